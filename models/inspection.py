@@ -1,0 +1,285 @@
+"""The inspection chain (SPEC §5): magnitude estimation, detection, localisation, interval.
+
+For a fault-mode model V with residual e[t; k] = y[t] − φ[t]ᵀΘ·g(k):
+
+1. k̂_V = argmin_k Σ e²[t; k] on [k_min, k_max] by bounded Brent search; σ̂_e² = mean(e²[t; k̂]).
+2. σ̂_k² = σ̂_e² / Σ_t (∂e[t; k]/∂k)² at k̂ (Gauss–Newton), plus, by default, the delta-method
+   term ∇ₖ(θ)ᵀ·Cov(θ)·∇ₖ(θ) for the estimation error of the fault-mode model itself.
+3. Detection: a fault when |k̂_V| > z·σ̂_k for some V. With M models each test is run at the
+   Šidák level α_M = 1 − (1 − α)^{1/M}, so the overall false-alarm rate stays at or below α
+   (the M tests share one record and are positively dependent, which only makes this safer).
+4. Localisation: Ljung–Box Q on each mode's residuals; a mode is accepted when
+   Q < χ²_{1−α}(h − 1), and every mode's figures are recorded. The candidate is the mode with
+   the smallest residual variance (the maximum-likelihood mode for Gaussian residuals); the
+   fault is localised to it when its Q test accepts it, and is an ``unknown_fault`` when not.
+   (Choosing among accepted modes instead would let a wrong mode win whenever the right one
+   fails its 5 % test by chance: a wrong stiffness mode can leave a residual that is white,
+   because the excitation is white, yet a hundred times larger.)
+5. Magnitude: k̂ ± z_{1−α/2}·σ̂_k from the reported mode.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy import optimize, special
+
+from models.diagnostics import ljung_box
+from models.errors import InputError
+from models.fnarx import FNARX
+from models.narx import z_quantile
+from models.signals import checked_record
+from models.terms import regressor_matrix
+
+Status = Literal["healthy", "faulty", "unknown_fault"]
+GRID_POINTS = 129
+# Residual samples per Ljung–Box lag below which the test has no meaningful distribution.
+SAMPLES_PER_LAG = 5
+
+
+@dataclass(frozen=True)
+class MagnitudeEstimate:
+    """k̂ of one fault-mode model on one record (SPEC §5, steps 1–2).
+
+    ``sigma_k`` includes the fault-mode model's own estimation error when requested;
+    ``sigma_k_record`` is the paper's σ̂_k from the record's residual alone.
+    """
+
+    k_hat: float
+    sigma_k: float
+    sigma_k_record: float
+    sigma_e2: float
+    residuals: np.ndarray
+    at_range_limit: bool
+
+
+@dataclass(frozen=True)
+class ModeResult:
+    """Every figure the chain computes for one fault mode."""
+
+    name: str
+    k_hat: float
+    sigma_k: float
+    sigma_k_record: float
+    z: float
+    detects: bool
+    residual_variance: float
+    q: float
+    q_critical: float
+    p_value: float
+    accepted: bool
+    at_range_limit: bool
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The outcome of inspecting one record against a set of fault-mode models.
+
+    ``k_hat``, ``sigma_k`` and ``interval`` come from ``reference_mode``, the mode that best
+    describes the record; they are None for an unknown fault (no model describes it, so no
+    magnitude is estimated).
+    """
+
+    status: Status
+    fault_detected: bool
+    fault_mode: str | None
+    reference_mode: str | None
+    k_hat: float | None
+    sigma_k: float | None
+    interval: tuple[float, float] | None
+    alpha: float
+    lags: int
+    n_samples: int
+    z_critical: float
+    modes: tuple[ModeResult, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        document = asdict(self)
+        document["interval"] = list(self.interval) if self.interval is not None else None
+        document["modes"] = [asdict(mode) for mode in self.modes]
+        return document
+
+
+def estimate_magnitude(
+    model: FNARX, x: ArrayLike, y: ArrayLike, *, model_uncertainty: bool = True
+) -> MagnitudeEstimate:
+    """Estimate the fault magnitude of a record under one fault-mode model (steps 1–2)."""
+    xa, ya = checked_record(x, y, model.max_lag + len(model.terms) + 1)
+    Phi, target = regressor_matrix(model.terms, xa, ya)
+    return _estimate(model, Phi, target, model_uncertainty)
+
+
+def inspect(
+    x: ArrayLike,
+    y: ArrayLike,
+    fault_modes: Sequence[FNARX],
+    *,
+    alpha: float = 0.05,
+    lags: int = 40,
+    model_uncertainty: bool = True,
+) -> Verdict:
+    """Run the whole chain on one record (x: excitation, y: response)."""
+    if not fault_modes:
+        raise InputError("inspection needs at least one fault-mode model")
+    names = [model.name for model in fault_modes]
+    if len(set(names)) != len(names):
+        raise InputError(f"fault-mode model names must be distinct, got {names}")
+    if not 0 < alpha < 0.5:
+        raise InputError(f"alpha must lie in (0, 0.5), got {alpha}")
+    if int(lags) != lags or lags < 2:
+        raise InputError(f"lags must be a whole number of at least 2, got {lags}")
+    longest_lag = max(model.max_lag for model in fault_modes)
+    needed = longest_lag + SAMPLES_PER_LAG * lags
+    xa, ya = checked_record(x, y, needed)
+
+    z_detect = z_quantile(1 - (1 - (1 - alpha) ** (1 / len(fault_modes))))
+    modes = []
+    regressors: dict[tuple[Any, ...], tuple[np.ndarray, np.ndarray]] = {}
+    for model in fault_modes:
+        key = model.terms
+        if key not in regressors:
+            regressors[key] = regressor_matrix(model.terms, xa, ya, longest_lag)
+        estimate = _estimate(model, *regressors[key], model_uncertainty)
+        whiteness = ljung_box(estimate.residuals, int(lags), alpha)
+        z = estimate.k_hat / estimate.sigma_k
+        modes.append(
+            ModeResult(
+                name=model.name,
+                k_hat=estimate.k_hat,
+                sigma_k=estimate.sigma_k,
+                sigma_k_record=estimate.sigma_k_record,
+                z=z,
+                detects=bool(abs(z) > z_detect),
+                residual_variance=estimate.sigma_e2,
+                q=whiteness.q,
+                q_critical=whiteness.q_critical,
+                p_value=whiteness.p_value,
+                accepted=whiteness.white,
+                at_range_limit=estimate.at_range_limit,
+            )
+        )
+    return _decide(modes, alpha, int(lags), len(ya), z_detect)
+
+
+def _decide(modes: list[ModeResult], alpha: float, lags: int, n: int, z_detect: float) -> Verdict:
+    detected = any(mode.detects for mode in modes)
+    best = min(modes, key=lambda mode: mode.residual_variance)
+    if not detected:
+        status: Status = "healthy"
+    elif best.accepted:
+        status = "faulty"
+    else:
+        status = "unknown_fault"
+    reference = None if status == "unknown_fault" else best
+    z = z_quantile(1 - alpha)
+    return Verdict(
+        status=status,
+        fault_detected=detected,
+        fault_mode=best.name if status == "faulty" else None,
+        reference_mode=reference.name if reference else None,
+        k_hat=reference.k_hat if reference else None,
+        sigma_k=reference.sigma_k if reference else None,
+        interval=(reference.k_hat - z * reference.sigma_k, reference.k_hat + z * reference.sigma_k)
+        if reference
+        else None,
+        alpha=alpha,
+        lags=lags,
+        n_samples=n,
+        z_critical=z_detect,
+        modes=tuple(modes),
+    )
+
+
+def _estimate(
+    model: FNARX, Phi: np.ndarray, target: np.ndarray, model_uncertainty: bool
+) -> MagnitudeEstimate:
+    basis = model.basis
+    Z = Phi @ model.theta  # column j: the prediction carried by G_j
+    k_hat = _minimise_sse(model, Z, target)
+    residuals = target - Z @ basis.values(k_hat)
+    sigma_e2 = float(np.mean(residuals**2))
+    slope = Z @ basis.derivatives(k_hat)  # −∂e/∂k
+    information = float(slope @ slope)
+    if not information > 0:
+        raise InputError(
+            f"the record carries no information on the magnitude of fault mode {model.name!r}: "
+            "the residual does not depend on k (is the excitation zero?)"
+        )
+    variance_record = sigma_e2 / information
+    variance = variance_record
+    if model_uncertainty:
+        gradient = np.kron(Phi.T @ slope, basis.values(k_hat)) / information
+        variance += float(gradient @ model.covariance @ gradient)
+    span = basis.k_max - basis.k_min
+    limit = min(k_hat - basis.k_min, basis.k_max - k_hat) < 1e-6 * span
+    return MagnitudeEstimate(
+        k_hat, float(np.sqrt(variance)), float(np.sqrt(variance_record)), sigma_e2, residuals, limit
+    )
+
+
+def _minimise_sse(model: FNARX, Z: np.ndarray, target: np.ndarray) -> float:
+    """Bounded Brent search for argmin Σe²(k), started from the best point of a coarse grid.
+
+    Σe² is a polynomial in u (the normalised magnitude) of degree 2(p − 1), so every
+    evaluation is a Horner step. Its coefficients lose precision far from where they are
+    expanded, so they are expanded again around the best grid point before the search.
+    """
+    basis = model.basis
+    W = Z @ basis.power_coefficients  # predictions carried by the powers u⁰, u¹, …
+    grid = np.linspace(-1.0, 1.0, GRID_POINTS)
+    best = grid[int(np.argmin(np.polyval(_sse_polynomial(W, target, 0.0), grid)))]
+    step = grid[1] - grid[0]
+    around_best = _sse_polynomial(W, target, best)
+    result = optimize.minimize_scalar(
+        lambda d: float(np.polyval(around_best, d)),
+        bounds=(max(-1.0 - best, -step), min(1.0 - best, step)),
+        method="bounded",
+        options={"xatol": 1e-12},
+    )
+    u_hat = best + float(result.x)
+    if basis.is_affine and basis.size == 2:
+        _check_closed_form(around_best, best, u_hat)
+    return float(basis.k_min + (u_hat + 1.0) * (basis.k_max - basis.k_min) / 2)
+
+
+def _check_closed_form(around_best: np.ndarray, best: float, u_hat: float) -> None:
+    """For an affine basis Σe² = g·δ² − 2c·δ + s0 has its minimum at δ = c/g.
+
+    A search that compares function values cannot locate a minimum closer than
+    √(eps·Σe²_min/g) (beyond that the values are equal in floating point), so that is the
+    agreement demanded, with a factor 10 of margin.
+    """
+    g, minus_2c = around_best[0], around_best[1]
+    if not g > 0:
+        return
+    closed = float(np.clip(best - minus_2c / (2 * g), -1.0, 1.0))
+    sse_min = max(float(np.polyval(around_best, closed - best)), np.finfo(float).tiny)
+    resolution = np.sqrt(np.finfo(float).eps * sse_min / g)
+    if abs(closed - u_hat) > 10 * resolution + 1e-12:
+        raise ArithmeticError(f"Brent search (u = {u_hat}) disagrees with the closed form (u = {closed})")
+
+
+def _sse_polynomial(W: np.ndarray, target: np.ndarray, u0: float) -> np.ndarray:
+    """Coefficients (highest power first) of Σe² as a polynomial in δ = u − u0.
+
+    With e = target − W·[u⁰ … u^{p−1}] and u^i = Σ_m C(i, m)·u0^{i−m}·δ^m, the residual is
+    r − Σ_{m≥1} V_m·δ^m with r the residual at u0.
+    """
+    p = W.shape[1]
+    i, m = np.meshgrid(np.arange(p), np.arange(p), indexing="ij")
+    shift = np.where(m <= i, special.comb(i, m) * u0 ** np.maximum(i - m, 0), 0.0)
+    Ws = W @ shift
+    r = target - Ws[:, 0]
+    V = Ws[:, 1:]
+    cross = V.T @ r
+    gram = V.T @ V
+    ascending = np.zeros(2 * p - 1)
+    ascending[0] = r @ r
+    ascending[1:p] -= 2 * cross
+    for a in range(1, p):
+        ascending[a + 1 : a + p] += gram[a - 1]
+    return ascending[::-1]

@@ -1,0 +1,81 @@
+"""Ordinary least squares with column scaling, as every model here is estimated.
+
+NARX regressions are badly scaled: the AR block is nearly the binomial (4, −6, 4, −1) and the
+exogenous coefficient is ~1e-10 in metres and newtons. Each column is divided by its Euclidean
+norm before a QR factorisation, and the estimates and their covariance are reported back in
+the physical units of the unscaled problem.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg
+
+from models.errors import InputError
+
+# A scaled design whose condition number exceeds this carries no usable information on at
+# least one coefficient (double precision keeps ~16 digits; the estimate would keep < 4).
+MAX_CONDITION = 1e12
+
+
+@dataclass(frozen=True)
+class LeastSquaresFit:
+    """Result of :func:`least_squares`.
+
+    Attributes
+    ----------
+    theta : estimates θ̂ = (ΦᵀΦ)⁻¹Φᵀy in the units of the columns.
+    covariance : σ̂²(ΦᵀΦ)⁻¹, the asymptotic covariance of θ̂.
+    sigma2 : σ̂² = mean(e²), the residual variance.
+    residuals : e = y − Φθ̂.
+    condition : condition number of the column-scaled design.
+    """
+
+    theta: np.ndarray
+    covariance: np.ndarray
+    sigma2: float
+    residuals: np.ndarray
+    condition: float
+
+
+def least_squares(
+    Phi: np.ndarray, target: np.ndarray, column_names: Sequence[str] | None = None
+) -> LeastSquaresFit:
+    """Solve min ‖y − Φθ‖² by QR of the column-scaled design.
+
+    Raises :class:`InputError` when a column is identically zero or the columns are linearly
+    dependent, naming the columns involved, since a person can act on that (a constant or
+    too-short signal, or a term listed in two forms).
+    """
+    n_obs, n_par = Phi.shape
+    names = list(column_names) if column_names is not None else [f"column {i}" for i in range(n_par)]
+    if n_obs <= n_par:
+        raise InputError(
+            f"{n_obs} usable samples cannot determine {n_par} parameters: supply a longer record"
+        )
+    scale = np.linalg.norm(Phi, axis=0)
+    zero = [names[i] for i in np.flatnonzero(~(scale > 0))]
+    if zero:
+        raise InputError(
+            f"regressor {', '.join(zero)} is identically zero: the signal it uses is constant "
+            "or zero over the record, so its coefficient cannot be estimated"
+        )
+    Q, R = linalg.qr(Phi / scale, mode="economic")
+    diag = np.abs(np.diag(R))
+    condition = float(np.linalg.cond(R))
+    if not condition < MAX_CONDITION:
+        weakest = names[int(np.argmin(diag))]
+        raise InputError(
+            f"the regressors are linearly dependent (condition number {condition:.2g}); "
+            f"{weakest} is explained by the others: the excitation is not rich enough "
+            "or the structure names a term twice"
+        )
+    theta_scaled = linalg.solve_triangular(R, Q.T @ target)
+    residuals = target - Phi @ (theta_scaled / scale)
+    sigma2 = float(np.mean(residuals**2))
+    R_inv = linalg.solve_triangular(R, np.eye(n_par))
+    covariance = sigma2 * (R_inv @ R_inv.T) / np.outer(scale, scale)
+    return LeastSquaresFit(theta_scaled / scale, covariance, sigma2, residuals, condition)

@@ -1,0 +1,211 @@
+"""Simulated records of the 2-DOF structure: excitation, noise, faults and undeclared effects.
+
+The declared model (SPEC §2) knows only the linear springs and dampers and the cubic spring.
+:class:`Effects` adds physics it does not know, each switched on by a name and a size, so that
+diagnostics can be tested against effects whose truth is known.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models.errors import InputError
+from simulator.physics import (
+    FaultMode,
+    PhysicalParameters,
+    UnstableSimulationError,
+    check_stable,
+)
+
+# Undeclared effects by name: (field, unit, meaning). ``sine`` takes AMPLITUDE@FREQUENCY.
+EFFECTS: dict[str, tuple[str, str]] = {
+    "coulomb1": ("N", "Coulomb friction on mass 1, force level"),
+    "coulomb2": ("N", "Coulomb friction on mass 2, force level"),
+    "quadratic_damping1": ("N·s²/m²", "quadratic damping c·v·|v| on mass 1"),
+    "quadratic_damping2": ("N·s²/m²", "quadratic damping c·v·|v| on mass 2"),
+    "quadratic_stiffness1": ("N/m²", "asymmetric spring force k·x1² on mass 1"),
+    "quadratic_stiffness2": ("N/m²", "asymmetric spring force k·x2² on mass 2"),
+    "offset": ("m", "constant offset of the y sensor"),
+    "sine": ("N@Hz", "unmeasured sinusoidal force on mass 1, AMPLITUDE@FREQUENCY"),
+    "saturation": ("N", "the actuator clips the applied force at ±size; x records the command"),
+}
+
+
+@dataclass(frozen=True)
+class Effects:
+    """Effects the declared model does not contain; zero means off."""
+
+    coulomb1: float = 0.0
+    coulomb2: float = 0.0
+    quadratic_damping1: float = 0.0
+    quadratic_damping2: float = 0.0
+    quadratic_stiffness1: float = 0.0
+    quadratic_stiffness2: float = 0.0
+    offset: float = 0.0
+    sine_amplitude: float = 0.0
+    sine_frequency: float = 0.0
+    saturation: float = 0.0
+
+    @classmethod
+    def parse(cls, specs: Iterable[str]) -> Effects:
+        """Effects from ``NAME=SIZE`` strings, e.g. ``coulomb2=40`` or ``sine=800@12.5``."""
+        values: dict[str, float] = {}
+        for spec in specs:
+            name, sep, size = spec.partition("=")
+            name = name.strip()
+            if not sep or name not in EFFECTS:
+                raise InputError(
+                    f"cannot read effect {spec!r}: write NAME=SIZE with NAME one of "
+                    f"{', '.join(EFFECTS)} (sine takes AMPLITUDE@FREQUENCY)"
+                )
+            try:
+                if name == "sine":
+                    amplitude, at, frequency = size.partition("@")
+                    if not at:
+                        raise ValueError
+                    values["sine_amplitude"], values["sine_frequency"] = float(amplitude), float(frequency)
+                else:
+                    values[name] = float(size)
+            except ValueError:
+                raise InputError(f"effect {spec!r}: the size is not a number ({EFFECTS[name][0]})") from None
+        effects = cls(**values)
+        for key, value in dataclasses.asdict(effects).items():
+            if not math.isfinite(value):
+                raise InputError(f"effect {key} must be a finite number, got {value}")
+        if effects.saturation < 0 or effects.sine_frequency < 0:
+            raise InputError("saturation level and sine frequency cannot be negative")
+        return effects
+
+    @property
+    def acts_on_state(self) -> bool:
+        return any(
+            (
+                self.coulomb1,
+                self.coulomb2,
+                self.quadratic_damping1,
+                self.quadratic_damping2,
+                self.quadratic_stiffness1,
+                self.quadratic_stiffness2,
+            )
+        )
+
+    def describe(self) -> dict[str, float]:
+        return {key: value for key, value in dataclasses.asdict(self).items() if value}
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything that defines a simulated record but its length and random seed.
+
+    Standard deviations are in newtons (forces) and metres (y); ``burn_in`` samples are
+    simulated and dropped so that records start in steady state.
+    """
+
+    params: PhysicalParameters = field(default_factory=PhysicalParameters)
+    fault: FaultMode = "none"
+    k: float = 0.0
+    excitation_std: float = 25e3
+    disturbance_std: float = 0.0
+    y_noise_std: float = 0.0
+    x_noise_std: float = 0.0
+    effects: Effects = field(default_factory=Effects)
+    burn_in: int = 1500
+
+    @property
+    def structure(self) -> PhysicalParameters:
+        """The physical parameters with the fault applied."""
+        return self.params.with_fault(self.fault, self.k)
+
+    @property
+    def fs(self) -> float:
+        return float(round(1 / self.params.ts))
+
+
+@dataclass(frozen=True)
+class SimulatedRecord:
+    x: np.ndarray
+    y: np.ndarray
+    fs: float
+    scenario: Scenario
+    seed: int | None
+
+
+def simulate(scenario: Scenario, n: int, seed: int | None = None) -> SimulatedRecord:
+    """Simulate ``n`` samples of measured excitation x (N) and response y (m)."""
+    if n < 1:
+        raise InputError(f"a record needs at least one sample, got n = {n}")
+    for name in ("excitation_std", "disturbance_std", "y_noise_std", "x_noise_std"):
+        value = getattr(scenario, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise InputError(f"{name} must be a finite, non-negative number, got {value}")
+    params = scenario.structure
+    check_stable(params)
+    rng = np.random.default_rng(seed)
+    total = n + scenario.burn_in
+    command = rng.normal(0.0, scenario.excitation_std, total)
+    disturbance = rng.normal(0.0, scenario.disturbance_std, total) if scenario.disturbance_std else 0.0
+    effects = scenario.effects
+    applied = np.clip(command, -effects.saturation, effects.saturation) if effects.saturation else command
+    force = applied + disturbance
+    if effects.sine_amplitude:
+        time = np.arange(total) * params.ts
+        phase = rng.uniform(0, 2 * np.pi)
+        force = force + effects.sine_amplitude * np.sin(2 * np.pi * effects.sine_frequency * time + phase)
+    x1, x2 = _integrate(params, force, effects)
+    _check_diverged(params, x1, x2, scenario)
+    x = command[scenario.burn_in :].copy()
+    y = x2[scenario.burn_in :] + effects.offset
+    if scenario.x_noise_std:
+        x += rng.normal(0.0, scenario.x_noise_std, n)
+    if scenario.y_noise_std:
+        y += rng.normal(0.0, scenario.y_noise_std, n)
+    return SimulatedRecord(x, y, scenario.fs, scenario, seed)
+
+
+def _integrate(p: PhysicalParameters, force: np.ndarray, effects: Effects) -> tuple[np.ndarray, np.ndarray]:
+    """March the forward-difference recursion; returns x1[t] and x2[t] for t = 0 … len(force)−1."""
+    ts, h1, h2 = p.ts, p.ts**2 / p.m1, p.ts**2 / p.m2
+    a1, b1, c1 = 2 - h1 * p.c1 / ts, -1 + h1 * p.c1 / ts - h1 * (p.k1 + p.k2), h1 * p.k2
+    a2, b2, c2, d2 = 2 - h2 * p.c2 / ts, -1 + h2 * p.c2 / ts - h2 * p.k2, h2 * p.k2, h2 * p.k3
+    drive = (h1 * force).tolist()
+    n = len(drive)
+    out1, out2 = [0.0] * n, [0.0] * n
+    state_effects = effects.acts_on_state
+    fc1, fc2 = effects.coulomb1, effects.coulomb2
+    cq1, cq2 = effects.quadratic_damping1, effects.quadratic_damping2
+    kq1, kq2 = effects.quadratic_stiffness1, effects.quadratic_stiffness2
+    # (u, u_next) = (x1[t], x1[t+1]) and (w, w_next) = (x2[t], x2[t+1]); both start at rest.
+    u = u_next = w = w_next = 0.0
+    for t in range(n):
+        out1[t] = u
+        out2[t] = w
+        u_new = a1 * u_next + b1 * u + c1 * w + drive[t]
+        w_new = a2 * w_next + b2 * w + c2 * u - d2 * w * w * w
+        if state_effects:
+            v1, v2 = (u_next - u) / ts, (w_next - w) / ts
+            u_new -= h1 * (fc1 * ((v1 > 0) - (v1 < 0)) + cq1 * v1 * abs(v1) + kq1 * u * u)
+            w_new -= h2 * (fc2 * ((v2 > 0) - (v2 < 0)) + cq2 * v2 * abs(v2) + kq2 * w * w)
+        u, u_next = u_next, u_new
+        w, w_next = w_next, w_new
+    return np.array(out1), np.array(out2)
+
+
+def _check_diverged(p: PhysicalParameters, x1: np.ndarray, x2: np.ndarray, scenario: Scenario) -> None:
+    limit = p.stable_amplitude
+    finite = np.isfinite(x1) & np.isfinite(x2)
+    beyond = ~finite | (np.abs(x2) > limit)
+    if not beyond.any():
+        return
+    first = int(np.argmax(beyond))
+    reached = "an infinite value" if not finite[first] else f"|x2| = {abs(x2[first]):.3g} m"
+    raise UnstableSimulationError(
+        f"the simulation diverged: the response reached {reached} at t = {first * p.ts:.3f} s, "
+        f"beyond the {limit:.3g} m up to which the explicit scheme is stable with the cubic "
+        f"spring's stiffening; lower the excitation (std {scenario.excitation_std:g} N) or the "
+        "effects driving it"
+    )
