@@ -132,10 +132,10 @@ class SimulatedRecord:
     y: np.ndarray
     fs: float
     scenario: Scenario
-    seed: int | None
+    seed: int | np.random.SeedSequence | None
 
 
-def simulate(scenario: Scenario, n: int, seed: int | None = None) -> SimulatedRecord:
+def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | None = None) -> SimulatedRecord:
     """Simulate ``n`` samples of measured excitation x (N) and response y (m)."""
     if n < 1:
         raise InputError(f"a record needs at least one sample, got n = {n}")

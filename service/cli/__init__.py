@@ -1,0 +1,29 @@
+"""The ``narxwatch`` command line."""
+
+from __future__ import annotations
+
+import typer
+
+from models.errors import InputError
+from service.cli import inspect, reproduce, simulate, train
+from service.cli.console import fail
+
+app = typer.Typer(
+    name="narxwatch",
+    help="Condition monitoring of vibrating structures with NARX and functional NARX models.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+app.command("simulate")(simulate.simulate)
+app.add_typer(train.app, name="train")
+app.command("inspect")(inspect.inspect)
+app.command("reproduce")(reproduce.reproduce)
+
+
+def main() -> None:
+    """Console-script entry point: input errors end with their message, not a traceback."""
+    try:
+        app()
+    except InputError as exc:
+        fail(str(exc))

@@ -1,0 +1,83 @@
+"""Reading and writing model documents and record sets for the command line."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from models.errors import InputError
+from models.fnarx import FNARX
+from models.terms import Term, parse_terms
+from simulator.recordfile import RecordFile, read_record
+from simulator.theory import EXACT_TERMS
+
+
+def read_terms(spec: str | None) -> tuple[Term, ...]:
+    """Terms from a comma-separated list, or from a JSON file holding a ``terms`` list
+    (a model document or the output of ``narxwatch select --json``); default SPEC §2's."""
+    if spec is None:
+        return EXACT_TERMS
+    path = Path(spec)
+    if path.suffix.lower() == ".json":
+        document = read_json(path)
+        if not isinstance(document, dict) or not isinstance(document.get("terms"), list):
+            raise InputError(f"{path}: no 'terms' list in this JSON document")
+        return parse_terms(document["terms"])
+    return parse_terms(name for name in spec.split(",") if name.strip())
+
+
+def read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the file ({exc.strerror})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
+
+
+def write_json(path: Path, document: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(document, indent=1) + "\n")
+
+
+def read_fault_mode(path: Path) -> tuple[FNARX, float | None]:
+    """A fault-mode model and the sampling rate it was trained at, if recorded."""
+    document = read_json(path)
+    try:
+        model = FNARX.from_document(document)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"{path}: not a usable fault-mode model ({exc})") from None
+    return model, document.get("metadata", {}).get("fs")
+
+
+def read_records(paths: Sequence[Path]) -> tuple[list[RecordFile], float | None]:
+    """Records and their common sampling rate; records stating different rates are refused."""
+    records = [read_record(path) for path in paths]
+    rates = {record.fs for record in records if record.fs is not None}
+    if len(rates) > 1:
+        raise InputError(f"the records have different sampling rates {sorted(rates)}; use one rate")
+    return records, rates.pop() if rates else None
+
+
+def read_manifest(path: Path) -> list[tuple[Path, float]]:
+    """Rows ``path,k`` of an experiment manifest; paths are relative to the manifest."""
+    try:
+        with path.open(newline="") as handle:
+            reader = csv.DictReader(handle)
+            if reader.fieldnames is None or not {"path", "k"} <= {f.strip() for f in reader.fieldnames}:
+                raise InputError(f"{path}: the manifest needs the columns 'path,k'")
+            rows = []
+            for number, row in enumerate(reader, start=2):
+                try:
+                    k = float(row["k"])
+                except (TypeError, ValueError):
+                    raise InputError(f"{path}, line {number}: k = {row['k']!r} is not a number") from None
+                rows.append((path.parent / row["path"].strip(), k))
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the manifest ({exc.strerror})") from None
+    if not rows:
+        raise InputError(f"{path}: the manifest lists no experiments")
+    return rows
