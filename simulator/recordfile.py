@@ -18,6 +18,7 @@ import numpy as np
 from models.errors import InputError
 
 FORMATS = (".csv", ".npz")
+ZIP_MAGIC = b"PK\x03\x04"
 _FS_COMMENT = re.compile(r"^#\s*fs\s*=\s*(?P<fs>\S+)\s*$", re.IGNORECASE)
 
 
@@ -114,6 +115,9 @@ def parse_csv(data: bytes | str) -> RecordFile:
 
 def parse_npz(data: bytes) -> RecordFile:
     """Parse an NPZ archive with arrays ``x``, ``y`` and optional scalar ``fs``; never unpickles."""
+    # np.load would otherwise take a bare .npy or treat unknown bytes as a pickle.
+    if not data.startswith(ZIP_MAGIC):
+        raise InputError("the file is not a readable NPZ archive")
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as archive:
             missing = {"x", "y"} - set(archive.files)

@@ -11,7 +11,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from service.cli.console import stdout
-from service.cli.figures import write_figures
 from simulator.paper import CASES, PAPER_RESULTS, StudyResult, StudySettings, run_study
 
 
@@ -46,6 +45,9 @@ def reproduce(
     ) as bar:
         tasks = {name: bar.add_task(name, total=total) for name, total in totals.items()}
         result = run_study(settings, lambda name, step: bar.advance(tasks[name], step), monte_carlo)
+    # matplotlib is loaded only here: it would add half a second to every other command.
+    from service.cli.figures import write_figures
+
     out.mkdir(parents=True, exist_ok=True)
     document = result.to_dict()
     (out / "results.json").write_text(json.dumps(document, indent=1) + "\n")

@@ -1,0 +1,254 @@
+"""The ``narxwatch`` command line, run as a user runs it: the installed console script."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def run(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess[str]:
+    assert NARXWATCH, "the narxwatch console script is not installed next to this Python"
+    result = subprocess.run([NARXWATCH, *args], cwd=cwd, capture_output=True, text=True, timeout=300)
+    if check:
+        assert result.returncode == 0, result.stderr
+    return result
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    """Healthy and k2 experiment records, a manifest, and trained models, made with the CLI."""
+    path = tmp_path_factory.mktemp("cli")
+    run("simulate", "--n", "30000", "--seed", "1", "--out", "healthy.csv", cwd=path)
+    with (path / "manifest.csv").open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["path", "k"])
+        for index, k in enumerate(range(-32, 33, 8)):
+            name = f"experiments/k2_{k}.npz"
+            run(
+                "simulate", "--fault", "k2", "--k", str(k), "--seed", str(10 + index), "--out", name, cwd=path
+            )
+            writer.writerow([name, k])
+    run("train", "baseline", "healthy.csv", "--out", "baseline.json", cwd=path)
+    run("train", "fault-mode", "--name", "k2", "--experiments", "manifest.csv", "--out", "k2.json", cwd=path)
+    return path
+
+
+@pytest.mark.parametrize(
+    "command",
+    [[], ["simulate"], ["train"], ["train", "baseline"], ["train", "fault-mode"], ["inspect"], ["reproduce"]],
+)
+def test_every_command_has_help(command, tmp_path):
+    result = run(*command, "--help", cwd=tmp_path)
+    assert "Usage" in result.stdout
+
+
+def test_simulate_writes_the_documented_csv(workdir):
+    lines = (workdir / "healthy.csv").read_text().splitlines()
+    assert lines[:2] == ["# fs=1500", "x,y"]
+    assert len(lines) == 2 + 30000
+
+
+def test_simulate_npz_holds_x_y_fs_and_is_reproducible(workdir, tmp_path):
+    run("simulate", "--fault", "k2", "--k", "-32", "--seed", "10", "--out", "again.npz", cwd=tmp_path)
+    with np.load(tmp_path / "again.npz") as again, np.load(workdir / "experiments/k2_-32.npz") as first:
+        assert set(again.files) == {"x", "y", "fs"}
+        assert float(again["fs"]) == 1500.0
+        np.testing.assert_array_equal(again["y"], first["y"])
+
+
+def test_simulate_accepts_effects_and_parameters(tmp_path):
+    run(
+        "simulate",
+        "--n",
+        "500",
+        "--seed",
+        "3",
+        "--effect",
+        "coulomb2=50",
+        "--effect",
+        "sine=500@12.5",
+        "--param",
+        "c1=800",
+        "--noise-std",
+        "1e-4",
+        "--out",
+        "e.csv",
+        cwd=tmp_path,
+    )
+    plain = run("simulate", "--n", "500", "--seed", "3", "--out", "p.csv", cwd=tmp_path)
+    assert "500 samples" in plain.stdout
+    assert (tmp_path / "e.csv").read_text() != (tmp_path / "p.csv").read_text()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--effect", "gremlins=3"], "cannot read effect"),
+        (["--effect", "coulomb1=lots"], "not a number"),
+        (["--param", "m3=4"], "unknown parameter m3"),
+        (["--param", "m1"], "NAME=NUMBER"),
+        (["--fault", "k9"], "unknown fault mode"),
+        (["--out", "r.txt"], "unknown record format"),
+        (["--excitation-std", "1e7"], "diverged"),
+        (
+            [
+                "--param",
+                "m1=1",
+                "--param",
+                "m2=5.5",
+                "--param",
+                "k1=1000",
+                "--param",
+                "k2=9000",
+                "--param",
+                "c1=7.5",
+                "--param",
+                "c2=3",
+            ],
+            "unstable",
+        ),
+    ],
+)
+def test_simulate_refuses_bad_input_with_a_message(tmp_path, args, message):
+    base = ["simulate", "--n", "2000", "--seed", "1"]
+    out = [] if "--out" in args else ["--out", "r.csv"]
+    result = run(*base, *out, *args, cwd=tmp_path, check=False)
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "r.csv").exists()
+
+
+def test_trained_models_are_documents_with_metadata(workdir):
+    baseline = json.loads((workdir / "baseline.json").read_text())
+    assert baseline["kind"] == "narx" and len(baseline["terms"]) == 8
+    assert baseline["metadata"]["fs"] == 1500.0
+    k2 = json.loads((workdir / "k2.json").read_text())
+    assert k2["kind"] == "fnarx" and k2["name"] == "k2"
+    assert k2["basis"] == {"family": "chebyshev2", "size": 2, "k_min": -32.0, "k_max": 32.0}
+    assert len(k2["metadata"]["experiments"]) == 9
+
+
+def test_train_with_explicit_terms(workdir, tmp_path):
+    run(
+        "train",
+        "baseline",
+        str(workdir / "healthy.csv"),
+        "--terms",
+        "y[t-1],y[t-2],x[t-4]",
+        "--out",
+        "linear.json",
+        cwd=tmp_path,
+    )
+    assert json.loads((tmp_path / "linear.json").read_text())["terms"] == ["y[t-1]", "y[t-2]", "x[t-4]"]
+
+
+def test_inspect_json_verdict_of_a_k2_fault(workdir):
+    run("simulate", "--fault", "k2", "--k", "12", "--seed", "99", "--out", "record.csv", cwd=workdir)
+    result = run("inspect", "record.csv", "--fault-mode", "k2.json", "--json", cwd=workdir)
+    verdict = json.loads(result.stdout)
+    for key in (
+        "status",
+        "fault_detected",
+        "fault_mode",
+        "k_hat",
+        "sigma_k",
+        "interval",
+        "alpha",
+        "lags",
+        "n_samples",
+        "modes",
+    ):
+        assert key in verdict
+    assert verdict["status"] == "faulty" and verdict["fault_mode"] == "k2"
+    # Within 5 interval half-widths: a generous statistical bound, not a fitted one.
+    assert abs(verdict["k_hat"] - 12) < 5 * verdict["sigma_k"] * 1.96
+    assert verdict["n_samples"] == 2000 and verdict["alpha"] == 0.05 and verdict["lags"] == 40
+    mode = verdict["modes"][0]
+    assert {"name", "k_hat", "sigma_k", "q", "q_critical", "p_value", "accepted"} <= set(mode)
+
+
+def test_inspect_table_output(workdir):
+    run("simulate", "--seed", "5", "--out", "healthy_record.csv", cwd=workdir)
+    result = run("inspect", "healthy_record.csv", "--fault-mode", "k2.json", cwd=workdir)
+    assert "k2" in result.stdout and "Q crit" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("x,y\n1,2\nfoo,3\n", "line 3"),
+        ("x,y\n" + "1,2\n" * 10, "too short"),
+        ("x,y\n" + "\n".join(f"{i},{'nan' if i == 7 else i % 5}" for i in range(300)), "NaN"),
+    ],
+)
+def test_inspect_refuses_bad_records(workdir, content, message):
+    (workdir / "bad.csv").write_text(content)
+    result = run("inspect", "bad.csv", "--fault-mode", "k2.json", cwd=workdir, check=False)
+    assert result.returncode == 2
+    assert message in result.stderr
+
+
+def test_inspect_refuses_a_model_of_another_sampling_rate(workdir):
+    record = np.load(workdir / "experiments/k2_0.npz")
+    np.savez(workdir / "fast.npz", x=record["x"], y=record["y"], fs=3000.0)
+    result = run("inspect", "fast.npz", "--fault-mode", "k2.json", cwd=workdir, check=False)
+    assert result.returncode == 2 and "3000 Hz" in result.stderr
+
+
+def test_inspect_refuses_unreadable_model_files(workdir):
+    (workdir / "junk.json").write_text("{not json")
+    result = run("inspect", "healthy.csv", "--fault-mode", "junk.json", cwd=workdir, check=False)
+    assert result.returncode == 2 and "not valid JSON" in result.stderr
+    result = run("inspect", "healthy.csv", "--fault-mode", "baseline.json", cwd=workdir, check=False)
+    assert result.returncode == 2 and "not a fnarx model document" in result.stderr
+
+
+def test_train_fault_mode_refuses_a_bad_manifest(workdir):
+    (workdir / "bad_manifest.csv").write_text("file,magnitude\na.csv,1\n")
+    result = run(
+        "train",
+        "fault-mode",
+        "--name",
+        "k2",
+        "--experiments",
+        "bad_manifest.csv",
+        "--out",
+        "x.json",
+        cwd=workdir,
+        check=False,
+    )
+    assert result.returncode == 2 and "path,k" in result.stderr
+
+
+def test_reproduce_writes_results_and_figures(tmp_path):
+    run("reproduce", "--runs", "2", "--monte-carlo", "10", "--out", "study", cwd=tmp_path)
+    results = json.loads((tmp_path / "study/results.json").read_text())
+    assert set(results["cases"]) == {"I", "II", "III", "IV"}
+    for case in results["cases"].values():
+        for key in (
+            "true_k",
+            "k_hat",
+            "sigma_k",
+            "q",
+            "mean_k_hat",
+            "mean_sigma_k",
+            "detected",
+            "accepted_k2",
+        ):
+            assert key in case
+        assert len(case["k_hat"]) == len(case["q"]) == 2
+    assert results["settings"]["runs"] == 2 and results["monte_carlo"]["records"] == 10
+    for name in ("figure3_prediction", "figure4_trajectories", "figure5_estimates", "figure6_q_statistic"):
+        data = (tmp_path / f"study/{name}.png").read_bytes()
+        assert data.startswith(PNG_MAGIC) and len(data) > 20_000
