@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint bench reproduce clean
+.PHONY: run test lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/narxwatch --help
+	$(BIN)/narxwatch reproduce --out var/reproduce
 
 test: $(STAMP)
 	$(BIN)/ruff check .
@@ -26,8 +26,6 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/pytest bench --benchmark-only --benchmark-columns=min,median,max,rounds
 
-reproduce: $(STAMP)
-	$(BIN)/narxwatch reproduce --out var/reproduce
 
 clean:
 	rm -rf $(VENV) var .pytest_cache .ruff_cache

@@ -1,0 +1,1 @@
+"""Speed benchmarks (see README.md); a package so its conftest never shadows tests/conftest.py."""
