@@ -136,6 +136,7 @@ class CaseResult:
             "mean_sigma_k": float(np.mean([m.sigma_k for m in estimates])),
             "detected": sum(v.fault_detected for v in self.verdicts),
             "detected_by_k2_alone": sum(v.fault_detected for v in self.k2_alone),
+            "k2_alone_magnitude_test_detects": sum("k2" in v.detected_by for v in self.k2_alone),
             "accepted_k2": sum(m.accepted for m in k2),
             "localised": sum(v.fault_mode == self.case.fault for v in self.verdicts),
             "interval_contains_true_k": sum(low <= truth <= high for low, high in intervals),
@@ -226,29 +227,29 @@ def run_study(settings: StudySettings, progress: Progress | None = None, monte_c
 def case_iv_noise_dependence(
     settings: StudySettings, progress: Progress | None = None
 ) -> list[dict[str, float]]:
-    """How often the k2 model alone detects the k1 fault, per disturbance level.
+    """How the k2 model alone sees the k1 fault, per disturbance level.
 
-    The k2 model cannot express a k1 fault; its best k̂ settles on a small bias k*, and the
-    fault is detected only while σ̂_k (proportional to the noise) is below |k*|/z.
+    The k2 model cannot express a k1 fault: its k̂ settles on a small bias k*, which the
+    magnitude test detects only while σ̂_k (proportional to the noise) is below |k*|/z. Its
+    residual, though, stays far from white at every level, which the chain's adequacy test sees.
     """
     rows = []
     for level in settings.noise_levels:
         seeds = _seeds(settings, 2 + int(level))
         models = train_fault_modes(settings, seeds, disturbance_std=level)
-        detected, k_hats, sigmas = 0, [], []
+        verdicts = []
         for _ in range(settings.runs):
             record = simulate(settings.scenario("k1", 30.0, level), settings.inspection_samples, next(seeds))
-            verdict = _inspect(settings, record.x, record.y, [models.k2])
-            detected += verdict.fault_detected
-            k_hats.append(verdict.modes[0].k_hat)
-            sigmas.append(verdict.modes[0].sigma_k)
+            verdicts.append(_inspect(settings, record.x, record.y, [models.k2]))
         rows.append(
             {
                 "disturbance_std": level,
-                "detected": detected,
                 "runs": settings.runs,
-                "mean_k_hat": float(np.mean(k_hats)),
-                "mean_sigma_k": float(np.mean(sigmas)),
+                "detected": sum(v.fault_detected for v in verdicts),
+                "magnitude_test_detects": sum("k2" in v.detected_by for v in verdicts),
+                "mean_k_hat": float(np.mean([v.modes[0].k_hat for v in verdicts])),
+                "mean_sigma_k": float(np.mean([v.modes[0].sigma_k for v in verdicts])),
+                "mean_q": float(np.mean([v.modes[0].q for v in verdicts])),
             }
         )
         if progress:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import MODE_FIELDS, VERDICT_FIELDS
 
 NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -157,25 +158,13 @@ def test_inspect_json_verdict_of_a_k2_fault(workdir):
     run("simulate", "--fault", "k2", "--k", "12", "--seed", "99", "--out", "record.csv", cwd=workdir)
     result = run("inspect", "record.csv", "--fault-mode", "k2.json", "--json", cwd=workdir)
     verdict = json.loads(result.stdout)
-    for key in (
-        "status",
-        "fault_detected",
-        "fault_mode",
-        "k_hat",
-        "sigma_k",
-        "interval",
-        "alpha",
-        "lags",
-        "n_samples",
-        "modes",
-    ):
-        assert key in verdict
+    assert set(VERDICT_FIELDS) <= set(verdict)
     assert verdict["status"] == "faulty" and verdict["fault_mode"] == "k2"
     # Within 5 interval half-widths: a generous statistical bound, not a fitted one.
     assert abs(verdict["k_hat"] - 12) < 5 * verdict["sigma_k"] * 1.96
     assert verdict["n_samples"] == 2000 and verdict["alpha"] == 0.05 and verdict["lags"] == 40
     mode = verdict["modes"][0]
-    assert {"name", "k_hat", "sigma_k", "q", "q_critical", "p_value", "accepted"} <= set(mode)
+    assert set(MODE_FIELDS) <= set(mode)
 
 
 def test_inspect_table_output(workdir):

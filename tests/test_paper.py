@@ -61,16 +61,21 @@ def test_case_iv_is_detected_rejected_by_k2_and_localised_to_k1(study):
     assert localised_and_covered >= 9
 
 
-def test_k2_alone_detects_case_iv_more_often_at_lower_noise(study):
-    """The k2 model's k̂ on a k1 fault settles on a small bias; whether that bias is detected
-    depends on σ̂_k, which is proportional to the disturbance."""
+def test_k2_alone_detects_case_iv_and_how_that_depends_on_noise(study):
+    """The k2 model cannot express a k1 fault. Its k̂ settles on a small bias, which the
+    magnitude test detects only while σ̂_k (proportional to the disturbance) is small; its
+    residual is far from white, by a margin that shrinks as the noise grows. At the study's
+    noise level (σ̂_k ≈ 0.07, as in the paper) the chain detects the fault in every run."""
     rows = study["case_iv_k2_alone_detection_vs_noise"]
     levels = [row["disturbance_std"] for row in rows]
     assert levels == sorted(levels)
-    sigmas = [row["mean_sigma_k"] for row in rows]
-    assert sigmas == sorted(sigmas)
-    assert rows[0]["detected"] >= 9
-    assert rows[-1]["detected"] < rows[0]["detected"]
+    assert [row["mean_sigma_k"] for row in rows] == sorted(row["mean_sigma_k"] for row in rows)
+    assert [row["mean_q"] for row in rows] == sorted((row["mean_q"] for row in rows), reverse=True)
+    assert rows[0]["magnitude_test_detects"] >= 9
+    assert rows[-1]["magnitude_test_detects"] < rows[0]["magnitude_test_detects"]
+    at_study_level = next(row for row in rows if row["disturbance_std"] == SETTINGS.disturbance_std)
+    assert at_study_level["detected"] == SETTINGS.runs
+    assert study["cases"]["IV"]["detected_by_k2_alone"] == SETTINGS.runs
 
 
 def test_false_alarm_rate_is_at_most_alpha(monte_carlo):

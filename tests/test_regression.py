@@ -1,0 +1,116 @@
+"""Column-scaled least squares (models.regression) against numpy and statsmodels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import statsmodels.api as sm
+from conftest import scaled_lstsq
+
+from models.errors import InputError
+from models.regression import least_squares
+
+EPS = np.finfo(float).eps
+
+
+def badly_scaled_problem(seed: int, n: int = 400) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Columns of magnitude 1 and 1e-10 (like y and the b1·x column of the NARX), noisy target."""
+    rng = np.random.default_rng(seed)
+    Phi = np.column_stack([rng.normal(size=n), rng.normal(size=n) * 1e-10, rng.normal(size=n) + 0.3])
+    theta = np.array([0.7, 3e9, -1.2])
+    target = Phi @ theta + 0.05 * rng.normal(size=n)
+    return Phi, target, theta
+
+
+def test_matches_numpy_lstsq_on_badly_scaled_problem() -> None:
+    Phi, target, _ = badly_scaled_problem(1)
+    fit = least_squares(Phi, target)
+    # Reference 1: numpy's SVD solver on the unit-norm columns (condition ~1 here).
+    np.testing.assert_allclose(fit.theta, scaled_lstsq(Phi, target), rtol=1e-12)
+    # Reference 2: numpy's solver on the raw columns. Its error is ~eps·cond(raw)·|θ| per
+    # coefficient relative to the largest singular direction; cond(raw) ≈ 1e10, so ~1e-6.
+    raw, *_ = np.linalg.lstsq(Phi, target, rcond=None)
+    cond_raw = np.linalg.cond(Phi)
+    assert 1e9 < cond_raw < 1e11
+    np.testing.assert_allclose(fit.theta, raw, rtol=100 * EPS * cond_raw)
+    # Residuals are those of the returned θ.
+    np.testing.assert_allclose(fit.residuals, target - Phi @ fit.theta, rtol=0, atol=1e-14)
+    assert fit.sigma2 == pytest.approx(np.mean(fit.residuals**2), rel=1e-14)
+    # The scaled design is well conditioned, which is the point of scaling.
+    assert fit.condition < 10
+
+
+def test_recovers_exact_solution_of_consistent_badly_scaled_system() -> None:
+    Phi, _, theta = badly_scaled_problem(2)
+    fit = least_squares(Phi, Phi @ theta)
+    # Scaled design has condition < 10, so the relative error is a few eps.
+    np.testing.assert_allclose(fit.theta, theta, rtol=1e-13)
+    assert fit.sigma2 < (1e-14 * np.linalg.norm(Phi @ theta)) ** 2
+
+
+def test_covariance_is_sigma2_times_inverse_gram() -> None:
+    rng = np.random.default_rng(3)
+    n = 500
+    Phi = np.column_stack([np.ones(n), rng.normal(size=n), rng.uniform(-1, 1, size=n)])
+    target = Phi @ np.array([1.0, -2.0, 0.5]) + 0.3 * rng.normal(size=n)
+    fit = least_squares(Phi, target)
+    residuals = target - Phi @ np.linalg.solve(Phi.T @ Phi, Phi.T @ target)
+    sigma2 = np.mean(residuals**2)
+    np.testing.assert_allclose(fit.covariance, sigma2 * np.linalg.inv(Phi.T @ Phi), rtol=1e-10)
+    # statsmodels divides the residual sum of squares by N − p; the library by N (SPEC §3).
+    ols = sm.OLS(target, Phi).fit()
+    np.testing.assert_allclose(fit.theta, ols.params, rtol=1e-12)
+    np.testing.assert_allclose(fit.covariance, ols.cov_params() * (n - 3) / n, rtol=1e-10)
+    assert fit.sigma2 == pytest.approx(ols.ssr / n, rel=1e-12)
+
+
+def test_covariance_on_badly_scaled_problem_matches_statsmodels() -> None:
+    Phi, target, _ = badly_scaled_problem(4)
+    fit = least_squares(Phi, target)
+    ols = sm.OLS(target, Phi).fit()
+    n, p = Phi.shape
+    # statsmodels inverts the raw Gram matrix by pinv: accurate to ~eps·cond(raw) only.
+    tolerance = 100 * EPS * np.linalg.cond(Phi)
+    # Compare standard errors and correlations: each must be right in its own units.
+    se = np.sqrt(np.diag(fit.covariance))
+    np.testing.assert_allclose(se, ols.bse * np.sqrt((n - p) / n), rtol=tolerance)
+    correlation = fit.covariance / np.outer(se, se)
+    np.testing.assert_allclose(correlation, ols.cov_params() / np.outer(ols.bse, ols.bse), atol=tolerance)
+
+
+def test_zero_column_raises_naming_it() -> None:
+    rng = np.random.default_rng(5)
+    Phi = np.column_stack([rng.normal(size=50), np.zeros(50), rng.normal(size=50)])
+    with pytest.raises(InputError, match=r"regressor x\[t-4\] is identically zero"):
+        least_squares(Phi, rng.normal(size=50), ["y[t-1]", "x[t-4]", "y[t-2]"])
+    with pytest.raises(InputError, match="column 1 is identically zero"):
+        least_squares(Phi, rng.normal(size=50))
+
+
+def test_collinear_columns_raise_naming_a_column_of_the_dependent_set() -> None:
+    rng = np.random.default_rng(6)
+    a, b = rng.normal(size=80), rng.normal(size=80)
+    Phi = np.column_stack([a, b, 2.5 * a - b])
+    with pytest.raises(InputError, match="linearly dependent") as info:
+        least_squares(Phi, rng.normal(size=80), ["first", "second", "third"])
+    message = str(info.value)
+    assert any(f"{name} is explained by the others" in message for name in ("first", "second", "third"))
+    # An exact duplicate: the later copy is the one explained by the earlier one.
+    Phi = np.column_stack([a, b, a])
+    with pytest.raises(InputError, match="dup is explained by the others"):
+        least_squares(Phi, rng.normal(size=80), ["orig", "other", "dup"])
+
+
+def test_nearly_collinear_beyond_double_precision_raises() -> None:
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=80), rng.normal(size=80)
+    Phi = np.column_stack([a, b, a + 1e-14 * b])
+    with pytest.raises(InputError, match="condition number"):
+        least_squares(Phi, rng.normal(size=80))
+
+
+@pytest.mark.parametrize("rows", [2, 3])
+def test_too_few_rows_raise(rows: int) -> None:
+    rng = np.random.default_rng(8)
+    with pytest.raises(InputError, match=f"{rows} usable samples cannot determine 3 parameters"):
+        least_squares(rng.normal(size=(rows, 3)), rng.normal(size=rows))
