@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 
 from models.basis import BasisFamily, FunctionalBasis
 from models.errors import InputError
-from models.narx import NARX, _check_document, z_quantile
+from models.narx import NARX, check_document, z_quantile
 from models.regression import least_squares
 from models.signals import checked_record
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
@@ -123,7 +123,7 @@ class FNARX:
 
     @classmethod
     def from_document(cls, document: dict[str, Any]) -> FNARX:
-        _check_document(document, "fnarx")
+        check_document(document, "fnarx")
         terms = parse_terms(document["terms"])
         basis = FunctionalBasis.from_document(document["basis"])
         theta = np.asarray(document["theta"], dtype=np.float64)

@@ -107,6 +107,13 @@ class Verdict:
     detected_by: tuple[str, ...]
     modes: tuple[ModeResult, ...]
 
+    def mode(self, name: str) -> ModeResult:
+        """The figures of the fault mode called ``name``."""
+        for mode in self.modes:
+            if mode.name == name:
+                return mode
+        raise KeyError(f"no fault mode {name!r} in this verdict")
+
     def to_dict(self) -> dict[str, Any]:
         document = asdict(self)
         document["interval"] = list(self.interval) if self.interval is not None else None

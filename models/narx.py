@@ -107,7 +107,7 @@ class NARX:
 
     @classmethod
     def from_document(cls, document: dict[str, Any]) -> NARX:
-        _check_document(document, "narx")
+        check_document(document, "narx")
         terms = parse_terms(document["terms"])
         theta = np.asarray(document["theta"], dtype=np.float64)
         covariance = np.asarray(document["covariance"], dtype=np.float64)
@@ -131,7 +131,8 @@ def fit_narx(records: Iterable[tuple[ArrayLike, ArrayLike]], terms: Sequence[str
     return NARX(parsed, fit.theta, fit.covariance, fit.sigma2, len(target))
 
 
-def _check_document(document: dict[str, Any], kind: str) -> None:
+def check_document(document: dict[str, Any], kind: str) -> None:
+    """Refuse a document of another kind or schema version, saying which."""
     if not isinstance(document, dict) or document.get("kind") != kind:
         raise InputError(f"not a {kind} model document")
     version = document.get("schema_version")

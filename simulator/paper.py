@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats
 
 from models.fnarx import FNARX, fit_fnarx
-from models.inspection import ModeResult, Verdict, inspect
+from models.inspection import Verdict, inspect
 from models.narx import NARX, fit_narx, z_quantile
 from simulator.physics import FaultMode, PhysicalParameters
 from simulator.simulate import Scenario, simulate
@@ -114,8 +114,8 @@ class CaseResult:
     def summary(self) -> dict[str, Any]:
         """Per-run figures and counts. ``k_hat``, ``sigma_k`` and ``interval`` are those of
         the estimating mode; ``q`` is the k2 model's Ljung–Box statistic (Figure 6)."""
-        estimates = [_mode(v, self.estimating_mode) for v in self.verdicts]
-        k2 = [_mode(v, "k2") for v in self.verdicts]
+        estimates = [v.mode(self.estimating_mode) for v in self.verdicts]
+        k2 = [v.mode("k2") for v in self.verdicts]
         z = z_quantile(1 - self.verdicts[0].alpha)
         truth = self.case.true_k
         intervals = [(m.k_hat - z * m.sigma_k, m.k_hat + z * m.sigma_k) for m in estimates]
@@ -285,7 +285,7 @@ def monte_carlo_checks(
         k = float(rng.uniform(k_min, k_max))
         faulty = simulate(settings.scenario(mode, k), settings.inspection_samples, next(seeds))
         verdict = _inspect(settings, faulty.x, faulty.y, models.both)
-        estimate = _mode(verdict, mode)
+        estimate = verdict.mode(mode)
         for key, sigma in (("with_model_term", estimate.sigma_k), ("paper", estimate.sigma_k_record)):
             covered[key] += abs(estimate.k_hat - k) <= z * sigma
         faulty_rows.append((mode, k, estimate.k_hat, estimate.sigma_k, estimate.sigma_k_record))
@@ -314,10 +314,6 @@ def monte_carlo_checks(
             for m, k, kh, s, sr in faulty_rows
         ],
     }
-
-
-def _mode(verdict: Verdict, name: str) -> ModeResult:
-    return next(mode for mode in verdict.modes if mode.name == name)
 
 
 def _inspect(settings: StudySettings, x: np.ndarray, y: np.ndarray, models: list[FNARX]) -> Verdict:

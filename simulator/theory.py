@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.basis import FunctionalBasis
 from models.fnarx import FNARX
 from models.narx import NARX
 from models.terms import parse_terms
@@ -52,8 +53,6 @@ def exact_trajectories(params: PhysicalParameters, mode: FaultMode, k: np.ndarra
 
 def exact_fault_mode(params: PhysicalParameters, mode: FaultMode, k_min: float, k_max: float) -> FNARX:
     """The exact fault-mode model: coefficients are affine in a stiffness, so p = 2 is exact."""
-    from models.basis import FunctionalBasis
-
     basis = FunctionalBasis("chebyshev2", 2, k_min, k_max)
     ends = np.array([k_min, k_max])
     G = basis.values(ends)  # rows g(k_min), g(k_max)

@@ -419,3 +419,11 @@ def test_inspect_refuses_nan(k2_model) -> None:
     x, y = record("none", 0.0, seed=1304, n=400)
     with pytest.raises(InputError, match="x has 1 NaN or infinite value"):
         inspect(np.r_[x[:-1], np.nan], y, [k2_model])
+
+
+def test_verdict_gives_each_mode_by_name(k2_model, k1_model) -> None:
+    verdict = inspect(*record("k2", 10.0, seed=1201), [k2_model, k1_model])
+    assert verdict.mode("k1") is verdict.modes[1]
+    assert verdict.mode("k2").k_hat == verdict.modes[0].k_hat
+    with pytest.raises(KeyError, match="no fault mode 'k3'"):
+        verdict.mode("k3")

@@ -80,7 +80,7 @@ def _figure5(result: StudyResult, path: Path) -> Path:
     panels = [(c, "k2") for c in result.cases] + [(result.cases[3], "k1")]
     fig, axes = plt.subplots(1, len(panels), figsize=(16, 3.8))
     for ax, (case_result, mode) in zip(axes, panels, strict=True):
-        estimates = [next(m for m in v.modes if m.name == mode) for v in case_result.verdicts]
+        estimates = [v.mode(mode) for v in case_result.verdicts]
         runs = np.arange(1, len(estimates) + 1)
         k_hat = np.array([m.k_hat for m in estimates])
         half = z * np.array([m.sigma_k for m in estimates])
@@ -101,7 +101,7 @@ def _figure6(result: StudyResult, path: Path) -> Path:
     """Q statistic of the k2 model per run against the critical value."""
     fig, axes = plt.subplots(1, 4, figsize=(14, 3.6))
     for ax, case_result in zip(axes, result.cases, strict=True):
-        k2 = [next(m for m in v.modes if m.name == "k2") for v in case_result.verdicts]
+        k2 = [v.mode("k2") for v in case_result.verdicts]
         runs = np.arange(1, len(k2) + 1)
         ax.bar(runs, [m.q for m in k2], color="tab:blue")
         ax.axhline(k2[0].q_critical, color="r", ls="--", label="critical point")
