@@ -17,6 +17,7 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check .
+	bash scripts/ensure-postgres.sh
 	$(BIN)/pytest
 
 lint: $(STAMP)

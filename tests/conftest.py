@@ -172,3 +172,50 @@ def k1_model() -> FNARX:
     """A k1 fault-mode model over [−32, 32] % (9 experiments)."""
     experiments = make_experiments("k1", np.arange(-32.0, 33.0, 8.0), DISTURBANCE_STD, seed0=3000)
     return fit_fnarx(experiments.runs, EXACT_TERMS, name="k1")
+
+
+# --- PostgreSQL for the API tests (tests/postgres.py) -------------------------------------------
+# One throwaway server per test session. Outside CI a machine without PostgreSQL skips the tests
+# that use it, saying how to install it; with CI=true that is an error instead.
+
+
+@pytest.fixture(scope="session")
+def postgres_url():  # yields str
+    """``postgresql+psycopg://narxwatch@127.0.0.1:PORT/narxwatch_test`` on a throwaway server."""
+    import postgres  # tests/postgres.py; imported here so the science tests never load it
+
+    with postgres.postgres_server() as url:
+        if url is None:
+            pytest.skip(f"PostgreSQL unavailable: {postgres.missing_reason()}")
+        yield url
+
+
+# --- The API over HTTP, on SQLite and on PostgreSQL --------------------------------------------
+
+
+@pytest.fixture(scope="session", params=["sqlite", "postgresql"])
+def api_server(request, tmp_path_factory):
+    """The real app served on loopback, once per database backend."""
+    from live import LiveServer
+
+    from service.config import Settings
+
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path_factory.mktemp('api') / 'narxwatch.db'}"
+    else:
+        import postgres
+
+        url = postgres.create_database(request.getfixturevalue("postgres_url"), "narxwatch_api")
+    with LiveServer(Settings(database_url=url)) as server:
+        yield server
+
+
+@pytest.fixture
+def tenant(api_server):
+    """A fresh organisation with an admin, an ingest and a viewer client."""
+    from live import Tenant
+
+    tenant = Tenant.create(api_server)
+    yield tenant
+    for client in (tenant.admin, tenant.ingest, tenant.viewer):
+        client.close()

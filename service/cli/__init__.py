@@ -5,7 +5,7 @@ from __future__ import annotations
 import typer
 
 from models.errors import InputError
-from service.cli import inspect, reproduce, simulate, train
+from service.cli import inspect, reproduce, server, simulate, train
 from service.cli.console import fail
 
 app = typer.Typer(
@@ -19,6 +19,10 @@ app.command("simulate")(simulate.simulate)
 app.add_typer(train.app, name="train")
 app.command("inspect")(inspect.inspect)
 app.command("reproduce")(reproduce.reproduce)
+app.command("serve")(server.serve)
+app.add_typer(server.db_app, name="db")
+app.add_typer(server.keys_app, name="keys")
+app.command("demo-seed")(server.demo_seed)
 
 
 def main() -> None:

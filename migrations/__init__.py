@@ -1,0 +1,1 @@
+"""Alembic migrations of the narxwatch database (a package, so installed services find them)."""

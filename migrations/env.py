@@ -1,0 +1,34 @@
+"""Alembic environment, wired to narxwatch's settings (NARXWATCH_DATABASE_URL)."""
+
+from __future__ import annotations
+
+from alembic import context
+
+from service import tables  # noqa: F401  (registers every table on the metadata)
+from service.config import get_settings
+from service.db import Base, make_engine
+
+config = context.config
+url = config.get_main_option("sqlalchemy.url") or get_settings().database_url
+
+
+def run_migrations_offline() -> None:
+    context.configure(url=url, target_metadata=Base.metadata, literal_binds=True, render_as_batch=True)
+    with context.begin_transaction():
+        context.run_migrations()
+
+
+def run_migrations_online() -> None:
+    engine = make_engine(url)
+    with engine.connect() as connection:
+        # Batch mode lets ALTER TABLE work on SQLite, which rebuilds tables to change them.
+        context.configure(connection=connection, target_metadata=Base.metadata, render_as_batch=True)
+        with context.begin_transaction():
+            context.run_migrations()
+    engine.dispose()
+
+
+if context.is_offline_mode():
+    run_migrations_offline()
+else:
+    run_migrations_online()

@@ -1,0 +1,66 @@
+"""The FastAPI application: routers under /api/v1, errors mapped to clear 4xx/5xx answers."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request, status
+from fastapi.responses import JSONResponse
+from sqlalchemy.exc import OperationalError
+
+from models.errors import InputError
+from service.api import health, modelling, records, structures
+from service.config import Settings, get_settings
+from service.db import make_engine, session_factory
+from service.domain.errors import ConflictError, NotFoundError
+from service.migrate import upgrade_database
+
+API_PREFIX = "/api/v1"
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if settings.upgrade_on_start:
+            upgrade_database(settings.database_url)
+        yield
+        app.state.engine.dispose()
+
+    app = FastAPI(
+        title="narxwatch",
+        version="0.1.0",
+        description="Condition monitoring of vibrating structures with NARX and functional NARX models.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.engine = make_engine(settings.database_url)
+    app.state.sessions = session_factory(app.state.engine)
+    app.include_router(health.router)
+    for router in (structures.router, modelling.router, records.router):
+        app.include_router(router, prefix=API_PREFIX)
+    _add_error_handlers(app)
+    return app
+
+
+def _add_error_handlers(app: FastAPI) -> None:
+    def answer(code: int, message: str) -> JSONResponse:
+        return JSONResponse({"detail": message}, status_code=code)
+
+    @app.exception_handler(InputError)
+    async def input_error(_: Request, exc: InputError) -> JSONResponse:
+        return answer(status.HTTP_422_UNPROCESSABLE_ENTITY, str(exc))
+
+    @app.exception_handler(NotFoundError)
+    async def not_found(_: Request, exc: NotFoundError) -> JSONResponse:
+        return answer(status.HTTP_404_NOT_FOUND, str(exc))
+
+    @app.exception_handler(ConflictError)
+    async def conflict(_: Request, exc: ConflictError) -> JSONResponse:
+        return answer(status.HTTP_409_CONFLICT, str(exc))
+
+    @app.exception_handler(OperationalError)
+    async def database_unavailable(_: Request, exc: OperationalError) -> JSONResponse:
+        return answer(status.HTTP_503_SERVICE_UNAVAILABLE, "the database is unavailable; retry shortly")

@@ -1,0 +1,64 @@
+"""Request-scoped dependencies: settings, the database session, the authenticated caller."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Request, status
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session
+
+from service.config import Settings
+from service.security import Principal, Role, authenticate
+
+bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer nw_…`")
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_session(request: Request) -> Iterator[Session]:
+    """One session per request; handlers commit, anything uncommitted is rolled back."""
+    with request.app.state.sessions() as session:
+        yield session
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+SessionDep = Annotated[Session, Depends(get_session)]
+
+
+def require(role: Role) -> Callable[..., Principal]:
+    """A dependency admitting keys of ``role`` or a more powerful one."""
+
+    def dependency(
+        session: SessionDep,
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+    ) -> Principal:
+        if credentials is None:
+            raise HTTPException(
+                status.HTTP_401_UNAUTHORIZED,
+                "missing API key: send the header 'Authorization: Bearer <key>'",
+                headers={"WWW-Authenticate": "Bearer"},
+            )
+        principal = authenticate(session, credentials.credentials)
+        if principal is None:
+            raise HTTPException(
+                status.HTTP_401_UNAUTHORIZED,
+                "the API key is not valid (unknown, malformed or revoked)",
+                headers={"WWW-Authenticate": "Bearer"},
+            )
+        if principal.role < role:
+            raise HTTPException(
+                status.HTTP_403_FORBIDDEN,
+                f"this needs a key of role '{role.name}' or higher; yours is '{principal.role.name}'",
+            )
+        return principal
+
+    return dependency
+
+
+Viewer = Annotated[Principal, Depends(require(Role.viewer))]
+Ingest = Annotated[Principal, Depends(require(Role.ingest))]
+Admin = Annotated[Principal, Depends(require(Role.admin))]

@@ -1,0 +1,105 @@
+"""Record uploads, inspections and verdicts."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
+from sqlalchemy.orm import Session
+
+from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
+from service.api.params import IdPath, require_timezone
+from service.api.uploads import REQUEST_BODY, Upload, parse_upload, read_body
+from service.config import Settings
+from service.domain import inspections, records, structures
+from service.schemas import RecordOut, VerdictOut
+from service.security import Principal
+from service.tables import Record
+
+router = APIRouter(tags=["records"])
+
+
+@router.post(
+    "/structures/{structure_id}/records",
+    status_code=status.HTTP_201_CREATED,
+    openapi_extra={"requestBody": REQUEST_BODY},
+    responses={200: {"model": RecordOut, "description": "The same data had been uploaded before"}},
+)
+async def upload_record(
+    request: Request,
+    response: Response,
+    structure_id: IdPath,
+    principal: Ingest,
+    session: SessionDep,
+    settings: SettingsDep,
+    inspect: Annotated[bool, Query(description="Run the inspection chain and return the verdict")] = False,
+    acquired_at: Annotated[
+        dt.datetime | None, Query(description="Acquisition time for CSV/NPZ bodies (ISO 8601 with zone)")
+    ] = None,
+) -> RecordOut:
+    """Upload a record as JSON, CSV or NPZ; a re-upload of the same data returns the stored one."""
+    body = await read_body(request, settings.max_upload_bytes)
+    upload = parse_upload(body, request.headers.get("content-type", ""), acquired_at)
+    out, created = await run_in_threadpool(
+        _store, session, principal, settings, structure_id, upload, inspect
+    )
+    if not created:
+        response.status_code = status.HTTP_200_OK
+    return out
+
+
+@router.post("/records/{record_id}/inspect")
+def inspect_record(
+    record_id: IdPath, principal: Ingest, session: SessionDep, settings: SettingsDep
+) -> VerdictOut:
+    """Inspect a stored record with every active fault-mode model of its structure."""
+    record = records.get_record(session, principal, record_id)
+    structure = structures.get_structure(session, principal, record.structure_id)
+    verdict, _ = inspections.inspect_record(session, record, structure, settings)
+    session.commit()
+    return inspections.verdict_out(verdict)
+
+
+@router.get("/verdicts/{verdict_id}")
+def get_verdict(verdict_id: IdPath, principal: Viewer, session: SessionDep) -> VerdictOut:
+    return inspections.verdict_out(inspections.get_verdict(session, principal, verdict_id))
+
+
+def _store(
+    session: Session,
+    principal: Principal,
+    settings: Settings,
+    structure_id: int,
+    upload: Upload,
+    inspect: bool,
+) -> tuple[RecordOut, bool]:
+    structure = structures.get_structure(session, principal, structure_id)
+    require_timezone(upload.acquired_at, "acquired_at")
+    record, created = records.store_record(
+        session,
+        structure,
+        upload.x,
+        upload.y,
+        upload.fs,
+        upload.acquired_at,
+        records.minimum_samples(settings.lags),
+    )
+    verdict = inspections.inspect_record(session, record, structure, settings)[0] if inspect else None
+    session.commit()
+    return _record_out(record, created, verdict), created
+
+
+def _record_out(record: Record, created: bool, verdict: object) -> RecordOut:
+    return RecordOut(
+        id=record.id,
+        structure_id=record.structure_id,
+        fs=record.fs,
+        n_samples=record.n_samples,
+        acquired_at=record.acquired_at,
+        created_at=record.created_at,
+        sha256=record.sha256,
+        created=created,
+        verdict=inspections.verdict_out(verdict) if verdict is not None else None,  # type: ignore[arg-type]
+    )

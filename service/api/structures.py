@@ -1,0 +1,71 @@
+"""Structures, their fault history and summary."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Annotated
+
+from fastapi import APIRouter, Query, status
+
+from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
+from service.api.params import IdPath, require_timezone
+from service.domain import history, structures
+from service.schemas import StructureCreate, StructureOut, Summary, VerdictPage
+
+router = APIRouter(prefix="/structures", tags=["structures"])
+
+
+@router.post("", status_code=status.HTTP_201_CREATED)
+def create_structure(body: StructureCreate, principal: Admin, session: SessionDep) -> StructureOut:
+    structure = structures.create_structure(session, principal, body)
+    session.commit()
+    return StructureOut.model_validate(structure, from_attributes=True)
+
+
+@router.get("")
+def list_structures(principal: Viewer, session: SessionDep) -> list[StructureOut]:
+    return [
+        StructureOut.model_validate(s, from_attributes=True)
+        for s in structures.list_structures(session, principal)
+    ]
+
+
+@router.get("/{structure_id}")
+def get_structure(structure_id: IdPath, principal: Viewer, session: SessionDep) -> StructureOut:
+    structure = structures.get_structure(session, principal, structure_id)
+    return StructureOut.model_validate(structure, from_attributes=True)
+
+
+@router.get("/{structure_id}/verdicts")
+def fault_history(
+    structure_id: IdPath,
+    principal: Viewer,
+    session: SessionDep,
+    settings: SettingsDep,
+    start: Annotated[
+        dt.datetime | None, Query(description="Acquired at or after (ISO 8601 with zone)")
+    ] = None,
+    end: Annotated[dt.datetime | None, Query(description="Acquired before (ISO 8601 with zone)")] = None,
+    status_filter: Annotated[history.Status | None, Query(alias="status")] = None,
+    fault_mode: Annotated[str | None, Query(max_length=100)] = None,
+    cursor: Annotated[str | None, Query(max_length=200)] = None,
+    limit: Annotated[int | None, Query(ge=1, le=1000)] = None,
+) -> VerdictPage:
+    """The structure's verdicts, newest first, with filters and cursor pagination."""
+    return history.history(
+        session,
+        principal,
+        structure_id,
+        start=require_timezone(start, "start"),
+        end=require_timezone(end, "end"),
+        status=status_filter,
+        fault_mode=fault_mode,
+        cursor=cursor,
+        limit=limit or settings.history_page_size,
+    )
+
+
+@router.get("/{structure_id}/summary")
+def structure_summary(structure_id: IdPath, principal: Viewer, session: SessionDep) -> Summary:
+    """Counts by status, the latest verdict and the k̂ trend."""
+    return history.summary(session, principal, structure_id)

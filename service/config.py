@@ -1,0 +1,33 @@
+"""Service settings, read from the environment with the ``NARXWATCH_`` prefix."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+DEFAULT_DATABASE = Path("var") / "narxwatch.db"
+
+
+class Settings(BaseSettings):
+    """Everything the service reads from its environment.
+
+    ``database_url`` defaults to a SQLite file under ``./var/``; the same code runs on
+    ``postgresql+psycopg://user:password@host/db``.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="NARXWATCH_", env_file=".env", extra="ignore")
+
+    database_url: str = f"sqlite:///{DEFAULT_DATABASE}"
+    max_upload_bytes: int = Field(16 * 1024 * 1024, gt=0)
+    alpha: float = Field(0.05, gt=0, lt=0.5)
+    lags: int = Field(40, ge=2)
+    upgrade_on_start: bool = True
+    history_page_size: int = Field(50, ge=1, le=1000)
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

@@ -1,0 +1,131 @@
+"""The fault history of a structure: filtered, cursor-paginated, newest first; and its summary."""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import datetime as dt
+from typing import Literal
+
+import numpy as np
+from sqlalchemy import and_, func, or_, select
+from sqlalchemy.orm import Session, selectinload
+
+from models.errors import InputError
+from service.domain.inspections import verdict_out
+from service.domain.structures import get_structure
+from service.schemas import Summary, TrendPoint, VerdictPage
+from service.security import Principal
+from service.tables import Verdict
+
+Status = Literal["healthy", "faulty", "unknown_fault"]
+TREND_POINTS = 100
+SECONDS_PER_DAY = 86_400.0
+
+
+def history(
+    session: Session,
+    principal: Principal,
+    structure_id: int,
+    *,
+    start: dt.datetime | None,
+    end: dt.datetime | None,
+    status: Status | None,
+    fault_mode: str | None,
+    cursor: str | None,
+    limit: int,
+) -> VerdictPage:
+    """Verdicts of a structure acquired in [start, end), newest first, ``limit`` at a time."""
+    get_structure(session, principal, structure_id)
+    query = select(Verdict).where(Verdict.structure_id == structure_id)
+    if start is not None:
+        query = query.where(Verdict.acquired_at >= start)
+    if end is not None:
+        query = query.where(Verdict.acquired_at < end)
+    if status is not None:
+        query = query.where(Verdict.status == status)
+    if fault_mode is not None:
+        query = query.where(Verdict.fault_mode == fault_mode)
+    if cursor is not None:
+        at, verdict_id = _decode(cursor)
+        query = query.where(
+            or_(Verdict.acquired_at < at, and_(Verdict.acquired_at == at, Verdict.id < verdict_id))
+        )
+    query = query.order_by(Verdict.acquired_at.desc(), Verdict.id.desc()).limit(limit + 1)
+    rows = list(session.scalars(query.options(selectinload(Verdict.models))))
+    page, more = rows[:limit], len(rows) > limit
+    return VerdictPage(
+        items=[verdict_out(v) for v in page],
+        next_cursor=_encode(page[-1].acquired_at, page[-1].id) if more else None,
+    )
+
+
+def summary(session: Session, principal: Principal, structure_id: int) -> Summary:
+    get_structure(session, principal, structure_id)
+    counts = dict(
+        session.execute(
+            select(Verdict.status, func.count())
+            .where(Verdict.structure_id == structure_id)
+            .group_by(Verdict.status)
+        ).all()
+    )
+    newest = list(
+        session.scalars(
+            select(Verdict)
+            .where(Verdict.structure_id == structure_id)
+            .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
+            .limit(TREND_POINTS)
+            .options(selectinload(Verdict.models))
+        )
+    )
+    trend = [
+        TrendPoint(
+            verdict_id=v.id,
+            acquired_at=v.acquired_at,
+            status=v.status,
+            fault_mode=v.fault_mode,
+            k_hat=v.k_hat,
+            sigma_k=v.sigma_k,
+        )
+        for v in reversed(newest)
+    ]
+    return Summary(
+        structure_id=structure_id,
+        total=sum(counts.values()),
+        counts={status: counts.get(status, 0) for status in ("healthy", "faulty", "unknown_fault")},
+        latest=verdict_out(newest[0]) if newest else None,
+        trend=trend,
+        k_hat_slope_per_day=_slope(newest),
+    )
+
+
+def _slope(newest: list[Verdict]) -> float | None:
+    """k̂ per day over the newest verdicts of the latest verdict's reference mode."""
+    if not newest or newest[0].reference_mode is None:
+        return None
+    mode = newest[0].reference_mode
+    points = [
+        (v.acquired_at.timestamp(), v.k_hat)
+        for v in newest
+        if v.reference_mode == mode and v.k_hat is not None
+    ]
+    times = np.array([t for t, _ in points])
+    if len(points) < 2 or np.ptp(times) == 0:
+        return None
+    slope = np.polyfit(times / SECONDS_PER_DAY, [k for _, k in points], 1)[0]
+    return float(slope)
+
+
+def _encode(at: dt.datetime, verdict_id: int) -> str:
+    return base64.urlsafe_b64encode(f"{at.isoformat()}|{verdict_id}".encode()).decode()
+
+
+def _decode(cursor: str) -> tuple[dt.datetime, int]:
+    try:
+        at, verdict_id = base64.urlsafe_b64decode(cursor.encode()).decode().split("|")
+        moment = dt.datetime.fromisoformat(at)
+        if moment.tzinfo is None:
+            raise ValueError
+        return moment, int(verdict_id)
+    except (ValueError, binascii.Error, UnicodeDecodeError):
+        raise InputError("the cursor is not one this service issued; use next_cursor from a page") from None

@@ -1,0 +1,160 @@
+"""Model versions: training from stored records, immutable versions, one active per name."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Any
+
+from sqlalchemy import func, select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, defer
+
+from models.errors import InputError
+from models.fnarx import FNARX, fit_fnarx
+from models.narx import fit_narx
+from service.domain.errors import ConflictError, NotFoundError
+from service.domain.records import get_record, signals
+from service.domain.structures import get_structure
+from service.schemas import BaselineTrain, FaultModeTrain
+from service.security import Principal
+from service.tables import ModelVersion, Record, Structure
+from simulator.theory import EXACT_TERMS
+
+BASELINE = "baseline"
+_CACHE_SIZE = 256
+# Versions are immutable, so a parsed model can be kept; keyed by id and creation time so that
+# two databases in one process (tests) never share an entry.
+_parsed: OrderedDict[tuple[int, str], FNARX] = OrderedDict()
+
+
+def train_baseline(
+    session: Session, principal: Principal, structure_id: int, body: BaselineTrain
+) -> ModelVersion:
+    structure = get_structure(session, principal, structure_id)
+    records = _records_of(session, principal, structure, body.record_ids)
+    model = fit_narx([signals(r) for r in records], body.terms or EXACT_TERMS)
+    training = {"record_ids": body.record_ids, "terms": model.term_names}
+    statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
+    return _new_version(session, structure, "baseline", BASELINE, model.to_document(), training, statistics)
+
+
+def train_fault_mode(
+    session: Session, principal: Principal, structure_id: int, body: FaultModeTrain
+) -> ModelVersion:
+    structure = get_structure(session, principal, structure_id)
+    if body.name == BASELINE:
+        raise InputError("'baseline' names the healthy model; give the fault mode another name")
+    if not body.k_min < body.k_max:
+        raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
+    records = _records_of(session, principal, structure, [e.record_id for e in body.experiments])
+    model = fit_fnarx(
+        [(*signals(r), e.k) for r, e in zip(records, body.experiments, strict=True)],
+        body.terms or EXACT_TERMS,
+        name=body.name,
+        family=body.basis,
+        size=body.degree + 1,
+        k_range=(body.k_min, body.k_max),
+    )
+    training = {
+        "experiments": [e.model_dump() for e in body.experiments],
+        "k_min": body.k_min,
+        "k_max": body.k_max,
+        "basis": body.basis,
+        "degree": body.degree,
+        "terms": model.term_names,
+    }
+    statistics = {"experiment_sigma2": model.experiment_sigma2.tolist(), "n_obs": model.n_obs}
+    return _new_version(
+        session, structure, "fault_mode", body.name, model.to_document(), training, statistics
+    )
+
+
+def list_models(session: Session, principal: Principal, structure_id: int) -> list[ModelVersion]:
+    get_structure(session, principal, structure_id)
+    query = select(ModelVersion).where(ModelVersion.structure_id == structure_id)
+    return list(session.scalars(query.order_by(ModelVersion.name, ModelVersion.version)))
+
+
+def activate_model(session: Session, principal: Principal, structure_id: int, model_id: int) -> ModelVersion:
+    get_structure(session, principal, structure_id)
+    version = session.get(ModelVersion, model_id)
+    if version is None or version.structure_id != structure_id:
+        raise NotFoundError("model version", model_id)
+    _deactivate(session, structure_id, version.name)
+    version.active = True
+    return version
+
+
+def active_fault_modes(session: Session, structure: Structure) -> list[tuple[ModelVersion, FNARX]]:
+    """The active fault-mode versions of a structure, by name, with their parsed models."""
+    query = (
+        select(ModelVersion)
+        .where(
+            ModelVersion.structure_id == structure.id,
+            ModelVersion.kind == "fault_mode",
+            ModelVersion.active.is_(True),
+        )
+        .order_by(ModelVersion.name)
+        .options(defer(ModelVersion.document))
+    )
+    return [(version, _parse(version)) for version in session.scalars(query)]
+
+
+def _parse(version: ModelVersion) -> FNARX:
+    key = (version.id, version.created_at.isoformat())
+    model = _parsed.get(key)
+    if model is None:
+        model = FNARX.from_document(version.document)
+        _parsed[key] = model
+        if len(_parsed) > _CACHE_SIZE:
+            _parsed.popitem(last=False)
+    return model
+
+
+def _records_of(session: Session, principal: Principal, structure: Structure, ids: list[int]) -> list[Record]:
+    records = [get_record(session, principal, record_id) for record_id in ids]
+    for record in records:
+        if record.structure_id != structure.id:
+            raise InputError(f"record {record.id} belongs to another structure, not {structure.name!r}")
+    return records
+
+
+def _deactivate(session: Session, structure_id: int, name: str) -> None:
+    session.execute(
+        update(ModelVersion)
+        .where(ModelVersion.structure_id == structure_id, ModelVersion.name == name)
+        .values(active=False)
+    )
+
+
+def _new_version(
+    session: Session,
+    structure: Structure,
+    kind: str,
+    name: str,
+    document: dict[str, Any],
+    training: dict[str, Any],
+    statistics: dict[str, Any],
+) -> ModelVersion:
+    latest = session.scalar(
+        select(func.max(ModelVersion.version)).where(
+            ModelVersion.structure_id == structure.id, ModelVersion.name == name
+        )
+    )
+    _deactivate(session, structure.id, name)
+    version = ModelVersion(
+        structure_id=structure.id,
+        kind=kind,
+        name=name,
+        version=(latest or 0) + 1,
+        document=document,
+        training=training,
+        statistics=statistics,
+        active=True,
+    )
+    try:
+        with session.begin_nested():
+            session.add(version)
+    except IntegrityError:
+        raise ConflictError(f"another version of {name!r} was created at the same moment; retry") from None
+    return version

@@ -1,0 +1,105 @@
+"""Records: validated, deduplicated by content, stored as .npy bytes."""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import io
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from models.errors import InputError
+from models.signals import checked_record
+from service.domain.errors import NotFoundError
+from service.domain.structures import get_structure
+from service.security import Principal
+from service.tables import Record, Structure, utcnow
+
+# Samples per Ljung–Box lag, plus the longest NARX lag: a shorter record cannot be inspected.
+SAMPLES_PER_LAG = 5
+LONGEST_LAG = 8
+
+
+def minimum_samples(lags: int) -> int:
+    return SAMPLES_PER_LAG * lags + LONGEST_LAG
+
+
+def content_hash(x: np.ndarray, y: np.ndarray, fs: float) -> str:
+    digest = hashlib.sha256()
+    digest.update(np.float64(fs).tobytes())
+    digest.update(np.ascontiguousarray(x, dtype="<f8").tobytes())
+    digest.update(np.ascontiguousarray(y, dtype="<f8").tobytes())
+    return digest.hexdigest()
+
+
+def store_record(
+    session: Session,
+    structure: Structure,
+    x: object,
+    y: object,
+    fs: float | None,
+    acquired_at: dt.datetime | None,
+    min_samples: int,
+) -> tuple[Record, bool]:
+    """Store a record, or return the stored one with the same data; True when new."""
+    xa, ya = checked_record(x, y, min_samples)
+    rate = structure.fs if fs is None else float(fs)
+    if rate != structure.fs:
+        raise InputError(
+            f"the record is sampled at {rate:g} Hz but structure {structure.name!r} is monitored at "
+            f"{structure.fs:g} Hz; resample it or register a structure at that rate"
+        )
+    sha = content_hash(xa, ya, rate)
+    existing = _find(session, structure.id, sha)
+    if existing is not None:
+        return existing, False
+    record = Record(
+        structure_id=structure.id,
+        fs=rate,
+        n_samples=len(xa),
+        acquired_at=acquired_at or utcnow(),
+        sha256=sha,
+        x=_npy(xa),
+        y=_npy(ya),
+    )
+    try:
+        with session.begin_nested():
+            session.add(record)
+    except IntegrityError:  # the same data arrived concurrently: keep the first
+        found = _find(session, structure.id, sha)
+        if found is None:
+            raise
+        return found, False
+    return record, True
+
+
+def get_record(session: Session, principal: Principal, record_id: int) -> Record:
+    record = session.get(Record, record_id)
+    if record is None:
+        raise NotFoundError("record", record_id)
+    try:
+        get_structure(session, principal, record.structure_id)
+    except NotFoundError:
+        raise NotFoundError("record", record_id) from None
+    return record
+
+
+def signals(record: Record) -> tuple[np.ndarray, np.ndarray]:
+    return _load(record.x), _load(record.y)
+
+
+def _find(session: Session, structure_id: int, sha: str) -> Record | None:
+    return session.scalar(select(Record).where(Record.structure_id == structure_id, Record.sha256 == sha))
+
+
+def _npy(values: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, values, allow_pickle=False)
+    return buffer.getvalue()
+
+
+def _load(data: bytes) -> np.ndarray:
+    return np.load(io.BytesIO(data), allow_pickle=False)

@@ -1,0 +1,170 @@
+"""Request and response bodies of the REST API (pydantic, strict on input)."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat, StrictInt
+
+from models.basis import FAMILIES
+
+Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f]+$")]
+ModeName = Annotated[str, Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_.\-]+$")]
+Id = Annotated[StrictInt, Field(ge=1, le=2**62)]
+Magnitude = Annotated[FiniteFloat, Field(ge=-1e6, le=1e6)]
+SamplingRate = Annotated[FiniteFloat, Field(gt=0, le=1e9)]
+TermName = Annotated[str, Field(min_length=1, max_length=200)]
+
+
+def _aware(value: dt.datetime) -> dt.datetime:
+    if value.tzinfo is None:
+        raise ValueError("give a timezone, e.g. 2026-11-21T10:00:00Z")
+    return value
+
+
+AwareDatetime = Annotated[dt.datetime, AfterValidator(_aware)]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(strict=True, extra="forbid")
+
+
+class StructureCreate(Strict):
+    name: Name
+    fs: SamplingRate
+    description: Annotated[str, Field(max_length=2000)] = ""
+
+
+class StructureOut(BaseModel):
+    id: int
+    name: str
+    fs: float
+    description: str
+    created_at: dt.datetime
+
+
+class BaselineTrain(Strict):
+    """Train the healthy structure's NARX from stored records."""
+
+    record_ids: Annotated[list[Id], Field(min_length=1, max_length=1000)]
+    terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
+
+
+class Experiment(Strict):
+    record_id: Id
+    k: Magnitude
+
+
+class FaultModeTrain(Strict):
+    """Train a fault-mode FNARX from stored records at known magnitudes."""
+
+    name: ModeName
+    k_min: Magnitude
+    k_max: Magnitude
+    degree: Annotated[StrictInt, Field(ge=1, le=8)] = 1
+    basis: Literal[FAMILIES] = "chebyshev2"  # type: ignore[valid-type]
+    experiments: Annotated[list[Experiment], Field(min_length=2, max_length=1000)]
+    terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
+
+
+class ModelOut(BaseModel):
+    id: int
+    kind: Literal["baseline", "fault_mode"]
+    name: str
+    version: int
+    active: bool
+    created_at: dt.datetime
+    terms: list[str]
+    training: dict[str, Any]
+    statistics: dict[str, Any]
+
+
+class RecordUpload(Strict):
+    """A record as JSON: excitation x [N], response y [m], sampling rate fs [Hz]."""
+
+    x: Annotated[list[FiniteFloat], Field(min_length=1)]
+    y: Annotated[list[FiniteFloat], Field(min_length=1)]
+    fs: SamplingRate
+    acquired_at: AwareDatetime | None = None
+
+
+class ModeOut(BaseModel):
+    name: str
+    k_hat: float
+    sigma_k: float
+    sigma_k_record: float
+    z: float
+    detects: bool
+    residual_variance: float
+    q: float
+    q_critical: float
+    p_value: float
+    accepted: bool
+    at_range_limit: bool
+
+
+class ModelRef(BaseModel):
+    id: int
+    name: str
+    version: int
+
+
+class VerdictOut(BaseModel):
+    id: int
+    record_id: int
+    structure_id: int
+    acquired_at: dt.datetime
+    created_at: dt.datetime
+    status: Literal["healthy", "faulty", "unknown_fault"]
+    fault_detected: bool
+    fault_mode: str | None
+    reference_mode: str | None
+    k_hat: float | None
+    sigma_k: float | None
+    interval: tuple[float, float] | None
+    alpha: float
+    lags: int
+    n_samples: int
+    z_critical: float
+    q_critical_detection: float
+    detected_by: list[str]
+    modes: list[ModeOut]
+    model_versions: list[ModelRef]
+
+
+class RecordOut(BaseModel):
+    id: int
+    structure_id: int
+    fs: float
+    n_samples: int
+    acquired_at: dt.datetime
+    created_at: dt.datetime
+    sha256: str
+    created: bool = Field(description="False when the same data had been uploaded before")
+    verdict: VerdictOut | None = None
+
+
+class VerdictPage(BaseModel):
+    items: list[VerdictOut]
+    next_cursor: str | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
+
+
+class TrendPoint(BaseModel):
+    verdict_id: int
+    acquired_at: dt.datetime
+    status: str
+    fault_mode: str | None
+    k_hat: float | None
+    sigma_k: float | None
+
+
+class Summary(BaseModel):
+    structure_id: int
+    total: int
+    counts: dict[str, int]
+    latest: VerdictOut | None
+    trend: list[TrendPoint] = Field(description="The newest verdicts, oldest first, for a k̂ chart")
+    k_hat_slope_per_day: float | None = Field(
+        description="Least-squares slope of k̂ over time for the latest verdict's mode, %/day"
+    )

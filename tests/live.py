@@ -1,0 +1,85 @@
+"""The real narxwatch app served by uvicorn on a free loopback port, for tests over HTTP."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+
+import httpx
+import uvicorn
+
+from service.api.app import create_app
+from service.config import Settings
+from service.db import transaction
+from service.security import Role, create_key
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class LiveServer:
+    """``with LiveServer(settings) as server:`` serves the app until the block ends."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.app = create_app(settings)
+        self.port = free_port()
+        config = uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning")
+        self._server = uvicorn.Server(config)
+        self._thread = threading.Thread(target=self._server.run, name="narxwatch-live", daemon=True)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def __enter__(self) -> LiveServer:
+        self._thread.start()
+        deadline = time.monotonic() + 60
+        while not self._server.started:
+            if not self._thread.is_alive() or time.monotonic() > deadline:
+                raise RuntimeError("the narxwatch test server did not start")
+            time.sleep(0.02)
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self._server.should_exit = True
+        self._thread.join(timeout=30)
+
+    def key(self, role: Role | str, organisation: str | None = None) -> str:
+        """A new API key (for a new organisation unless one is named)."""
+        with transaction(self.app.state.sessions) as session:
+            return create_key(
+                session,
+                organisation or f"org-{uuid.uuid4().hex[:12]}",
+                Role[str(role)] if isinstance(role, str) else role,
+            )
+
+    def client(self, key: str | None = None) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {key}"} if key else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=60)
+
+
+@dataclass
+class Tenant:
+    """An organisation with a key of each role."""
+
+    name: str
+    admin: httpx.Client
+    ingest: httpx.Client
+    viewer: httpx.Client
+
+    @classmethod
+    def create(cls, server: LiveServer) -> Tenant:
+        name = f"org-{uuid.uuid4().hex[:12]}"
+        return cls(
+            name,
+            server.client(server.key(Role.admin, name)),
+            server.client(server.key(Role.ingest, name)),
+            server.client(server.key(Role.viewer, name)),
+        )

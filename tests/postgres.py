@@ -1,0 +1,313 @@
+"""A throwaway PostgreSQL server for the test session.
+
+``postgres_server()`` runs ``initdb`` into a fresh temporary directory, starts the server on a
+free port of 127.0.0.1 (durability switched off: nothing here needs to survive a crash), creates
+an empty database and yields its SQLAlchemy URL. On exit the server is stopped and the directory
+deleted. It uses the server binaries of Debian's ``postgresql`` package
+(``/usr/lib/postgresql/<version>/bin``, newest version), falling back to ``initdb``/``pg_ctl``
+on ``PATH``; ``bash scripts/ensure-postgres.sh`` installs them.
+
+PostgreSQL refuses to run as root, so under root (as in CI) the directory is handed to the
+``postgres`` system user and the server runs as that user through ``runuser``.
+
+When the binaries (or the ``psycopg`` driver) are missing, ``postgres_server()`` yields
+``None`` with the reason in ``missing_reason()``, so the caller can skip; when the environment
+variable ``CI`` is true it raises ``PostgresUnavailableError`` instead: in CI a missing PostgreSQL is
+a failure, not a skip.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import shlex
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+USER = "narxwatch"
+DATABASE = "narxwatch_test"
+HOST = "127.0.0.1"
+SYSTEM_USER = "postgres"  # the account the server runs as when the tests run as root
+DEBIAN_ROOT = Path("/usr/lib/postgresql")
+INSTALL_HINT = "install it with `bash scripts/ensure-postgres.sh` (as root) or `apt-get install postgresql`"
+
+# A throwaway server: durability off, which makes initdb, DDL and commits much faster.
+SERVER_SETTINGS = {
+    "listen_addresses": f"'{HOST}'",
+    "max_connections": "100",
+    "fsync": "off",
+    "synchronous_commit": "off",
+    "full_page_writes": "off",
+    "shared_buffers": "'32MB'",
+    "log_min_messages": "warning",
+    "logging_collector": "off",
+}
+
+
+class PostgresUnavailableError(RuntimeError):
+    """PostgreSQL cannot be started here (binaries or driver missing, or the server failed)."""
+
+
+@dataclass(frozen=True)
+class Binaries:
+    initdb: Path
+    pg_ctl: Path
+
+
+def in_ci() -> bool:
+    return os.environ.get("CI", "").strip().lower() in {"true", "1", "yes"}
+
+
+def _version_key(path: Path) -> tuple[int, ...]:
+    return tuple(int(part) for part in re.findall(r"\d+", path.name)) or (0,)
+
+
+def find_binaries() -> Binaries | None:
+    """initdb and pg_ctl: Debian's newest versioned bin directory first, then ``PATH``.
+
+    ``/usr/local/bin/pg_ctl`` and friends may be wrappers or links on a developer machine, so the
+    versioned directory wins; both programs always come from the same directory.
+    """
+    if DEBIAN_ROOT.is_dir():
+        for version_dir in sorted(DEBIAN_ROOT.iterdir(), key=_version_key, reverse=True):
+            bin_dir = version_dir / "bin"
+            initdb, pg_ctl = bin_dir / "initdb", bin_dir / "pg_ctl"
+            if os.access(initdb, os.X_OK) and os.access(pg_ctl, os.X_OK):
+                return Binaries(initdb, pg_ctl)
+    found = shutil.which("pg_ctl")
+    if found:
+        bin_dir = Path(found).resolve().parent
+        initdb, pg_ctl = bin_dir / "initdb", bin_dir / "pg_ctl"
+        if os.access(initdb, os.X_OK):
+            return Binaries(initdb, pg_ctl)
+    return None
+
+
+def missing_reason() -> str | None:
+    """Why no server can be started here, or None when everything needed is installed."""
+    if find_binaries() is None:
+        return f"PostgreSQL server binaries (initdb, pg_ctl) not found; {INSTALL_HINT}"
+    try:
+        import psycopg  # noqa: F401
+    except ImportError:
+        return "the psycopg driver is not installed; install the test extras: pip install -e '.[test]'"
+    return None
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((HOST, 0))
+        return sock.getsockname()[1]
+
+
+def _running_as_root() -> bool:
+    return hasattr(os, "geteuid") and os.geteuid() == 0
+
+
+class _Runner:
+    """Runs the server programs as the current user, or as ``postgres`` when we are root."""
+
+    def __init__(self, workdir: Path) -> None:
+        self.workdir = workdir
+        self.as_root = _running_as_root()
+        if self.as_root:
+            import pwd
+
+            try:
+                self.account = pwd.getpwnam(SYSTEM_USER)
+            except KeyError:
+                raise PostgresUnavailableError(
+                    f"running as root, but there is no {SYSTEM_USER!r} system user to run PostgreSQL as "
+                    f"(PostgreSQL refuses to run as root); {INSTALL_HINT}"
+                ) from None
+            self.runuser = shutil.which("runuser") or shutil.which("su")
+            if self.runuser is None:
+                raise PostgresUnavailableError("running as root, but neither runuser nor su is available")
+
+    def command(self, argv: list[str]) -> list[str]:
+        if not self.as_root:
+            return argv
+        if Path(self.runuser).name == "runuser":
+            return [self.runuser, "-u", SYSTEM_USER, "--", *argv]
+        return [self.runuser, SYSTEM_USER, "-s", "/bin/sh", "-c", shlex.join(argv)]
+
+    def run(self, argv: list[str], timeout: float = 120) -> subprocess.CompletedProcess[str]:
+        env = {**os.environ, "LC_ALL": "C", "LANG": "C"}
+        env.pop("PGDATA", None)
+        return subprocess.run(
+            self.command(argv),
+            cwd=self.workdir,  # the postgres user may not be allowed into the caller's directory
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            check=False,
+        )
+
+    def give(self, path: Path) -> None:
+        if self.as_root:
+            os.chown(path, self.account.pw_uid, self.account.pw_gid)
+
+
+def _make_workdir(as_root: bool) -> Path:
+    """A private temporary directory; under root one the ``postgres`` user can reach (/tmp)."""
+    base = tempfile.gettempdir()
+    if as_root:
+        # Every parent must be traversable by the postgres user; /tmp always is.
+        parents = Path(base).resolve().parents
+        if not all(os.stat(p).st_mode & 0o001 for p in [Path(base).resolve(), *parents]):
+            base = "/tmp"
+    # Short name: the unix socket path (workdir/.s.PGSQL.<port>) must stay under 107 bytes.
+    return Path(tempfile.mkdtemp(prefix="nxpg-", dir=base))
+
+
+def _fail(message: str, result: subprocess.CompletedProcess[str] | None, log: Path | None) -> None:
+    details = []
+    if result is not None:
+        details.append(f"exit status {result.returncode}\n{result.stdout}\n{result.stderr}".strip())
+    if log is not None and log.exists():
+        tail = log.read_text(errors="replace").splitlines()[-30:]
+        details.append("server log (last lines):\n" + "\n".join(tail))
+    raise PostgresUnavailableError("\n".join([message, *details]))
+
+
+def _start(binaries: Binaries, runner: _Runner, data: Path, log: Path) -> int:
+    """initdb into ``data``, configure, start; returns the port the server listens on."""
+    workdir = data.parent
+    result = runner.run(
+        [
+            str(binaries.initdb),
+            "-D",
+            str(data),
+            "-A",
+            "trust",
+            "-U",
+            USER,
+            "--encoding=UTF8",
+            "--no-locale",
+            "--no-sync",
+        ]
+    )
+    if result.returncode != 0:
+        _fail("initdb failed", result, None)
+    settings = {**SERVER_SETTINGS, "unix_socket_directories": f"'{workdir}'"}
+    with (data / "postgresql.conf").open("a") as conf:
+        conf.write("\n# throwaway test server (tests/postgres.py)\n")
+        conf.writelines(f"{name} = {value}\n" for name, value in settings.items())
+
+    # The port is free when picked but another process could take it before the server binds
+    # it; try a few.
+    attempts = 5
+    for attempt in range(1, attempts + 1):
+        port = _free_port()
+        if log.exists():
+            log.write_text("")
+        result = runner.run(
+            [
+                str(binaries.pg_ctl),
+                "-D",
+                str(data),
+                "-l",
+                str(log),
+                "-w",
+                "-t",
+                "60",
+                "-o",
+                f"-p {port}",
+                "start",
+            ]
+        )
+        if result.returncode == 0:
+            return port
+        text = log.read_text(errors="replace") if log.exists() else ""
+        port_taken = "could not bind" in text or "already in use" in text
+        if not port_taken or attempt == attempts:
+            _fail("pg_ctl start failed", result, log)
+    raise AssertionError("unreachable")
+
+
+def _stop(binaries: Binaries, runner: _Runner, data: Path) -> None:
+    runner.run(
+        [str(binaries.pg_ctl), "-D", str(data), "-m", "immediate", "-w", "-t", "30", "stop"], timeout=60
+    )
+
+
+def conninfo(url: str) -> str:
+    """A libpq connection string for a ``postgresql+psycopg://user@host:port/db`` URL."""
+    match = re.fullmatch(r"postgresql(?:\+psycopg)?://([^@/:]+)(?::[^@/]*)?@([^:/]+):(\d+)/(\w+)", url)
+    if match is None:
+        raise ValueError(f"not a URL made by tests/postgres.py: {url}")
+    user, host, port, dbname = match.groups()
+    return f"host={host} port={port} user={user} dbname={dbname}"
+
+
+def reset_database(url: str) -> None:
+    """Drop everything in the database (schema ``public`` recreated empty), e.g. between modules."""
+    import psycopg
+
+    with psycopg.connect(conninfo(url), autocommit=True) as conn:
+        conn.execute("DROP SCHEMA IF EXISTS public CASCADE")
+        conn.execute("CREATE SCHEMA public")
+
+
+def create_database(url: str, name: str) -> str:
+    """A new empty database on the same server; returns its URL (for tests needing isolation)."""
+    import psycopg
+    from psycopg import sql
+
+    if not re.fullmatch(r"[a-z_][a-z0-9_]*", name):
+        raise ValueError(f"database name must be a lowercase identifier: {name!r}")
+    with psycopg.connect(conninfo(url), autocommit=True) as conn:
+        conn.execute(sql.SQL("CREATE DATABASE {}").format(sql.Identifier(name)))
+    return url.rsplit("/", 1)[0] + "/" + name
+
+
+@contextlib.contextmanager
+def postgres_server(database: str = DATABASE) -> Iterator[str | None]:
+    """Start a throwaway server and yield ``postgresql+psycopg://narxwatch@127.0.0.1:PORT/DB``.
+
+    Yields None when PostgreSQL or psycopg is missing outside CI (see ``missing_reason()``);
+    raises ``PostgresUnavailableError`` when they are missing in CI or the server fails to start.
+    """
+    reason = missing_reason()
+    if reason is not None:
+        if in_ci():
+            raise PostgresUnavailableError(f"CI=true and {reason}")
+        yield None
+        return
+    if not re.fullmatch(r"[a-z_][a-z0-9_]*", database):
+        raise ValueError(f"database name must be a lowercase identifier: {database!r}")
+    binaries = find_binaries()
+    assert binaries is not None
+    import psycopg
+
+    workdir = _make_workdir(_running_as_root())
+    data, log = workdir / "data", workdir / "server.log"
+    try:
+        runner = _Runner(workdir)
+        runner.give(workdir)
+        try:
+            port = _start(binaries, runner, data, log)
+            admin = f"host={HOST} port={port} user={USER} dbname=postgres"
+            with psycopg.connect(admin, autocommit=True) as conn:
+                conn.execute(f'CREATE DATABASE "{database}"')
+            yield f"postgresql+psycopg://{USER}@{HOST}:{port}/{database}"
+        finally:
+            if (data / "postmaster.pid").exists():
+                _stop(binaries, runner, data)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+if __name__ == "__main__":  # manual check: python tests/postgres.py
+    started = time.perf_counter()
+    with postgres_server() as server_url:
+        print(f"{server_url} up in {time.perf_counter() - started:.2f} s")
+    print(f"stopped and removed after {time.perf_counter() - started:.2f} s")

@@ -1,0 +1,75 @@
+"""The throwaway PostgreSQL server of tests/postgres.py works: connect, write, read, roll back."""
+
+from __future__ import annotations
+
+import postgres
+import pytest
+from sqlalchemy import Engine, create_engine, text
+from sqlalchemy.engine import make_url
+
+
+@pytest.fixture(scope="module")
+def engine(postgres_url: str):  # yields Engine
+    postgres.reset_database(postgres_url)
+    engine = create_engine(postgres_url)
+    yield engine
+    engine.dispose()
+    postgres.reset_database(postgres_url)
+
+
+def test_url_is_a_local_psycopg_url(postgres_url: str) -> None:
+    url = make_url(postgres_url)
+    assert url.drivername == "postgresql+psycopg"
+    assert url.host == "127.0.0.1"
+    assert url.port is not None and url.port > 0
+    assert url.username == postgres.USER
+    assert url.database == postgres.DATABASE
+
+
+def test_server_answers(engine: Engine) -> None:
+    with engine.connect() as conn:
+        version = conn.execute(text("select version()")).scalar_one()
+        assert version.startswith("PostgreSQL ")
+        assert conn.execute(text("select current_database()")).scalar_one() == postgres.DATABASE
+        assert conn.execute(text("show server_encoding")).scalar_one() == "UTF8"
+        assert conn.execute(text("show fsync")).scalar_one() == "off"
+
+
+def test_write_and_read_back(engine: Engine) -> None:
+    with engine.begin() as conn:
+        conn.execute(text("create table reading (id serial primary key, sensor text not null, value float8)"))
+        conn.execute(
+            text("insert into reading (sensor, value) values (:sensor, :value)"),
+            [{"sensor": "y", "value": 1.5}, {"sensor": "ü-σ", "value": -2.25}],
+        )
+    with engine.connect() as conn:
+        rows = conn.execute(text("select sensor, value from reading order by id")).all()
+    assert [tuple(row) for row in rows] == [("y", 1.5), ("ü-σ", -2.25)]
+
+
+def test_rollback_leaves_nothing_written(engine: Engine) -> None:
+    with engine.begin() as conn:
+        conn.execute(text("create table event (id integer primary key, note text)"))
+
+    class AbortError(Exception):
+        pass
+
+    with pytest.raises(AbortError), engine.begin() as conn:
+        conn.execute(text("insert into event values (1, 'lost')"))
+        assert conn.execute(text("select count(*) from event")).scalar_one() == 1
+        raise AbortError
+
+    with engine.connect() as conn:
+        assert conn.execute(text("select count(*) from event")).scalar_one() == 0
+        conn.execute(text("insert into event values (2, 'rolled back explicitly')"))
+        conn.rollback()
+        assert conn.execute(text("select count(*) from event")).scalar_one() == 0
+
+
+def test_reset_database_drops_everything(postgres_url: str, engine: Engine) -> None:
+    with engine.begin() as conn:
+        conn.execute(text("create table leftover (id integer)"))
+    postgres.reset_database(postgres_url)
+    with engine.connect() as conn:
+        tables = conn.execute(text("select tablename from pg_tables where schemaname = 'public'")).all()
+    assert tables == []
