@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint bench clean
+.PHONY: run test lint bench reproduce clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -13,6 +13,15 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
+	$(BIN)/narxwatch db upgrade
+	$(BIN)/narxwatch demo-seed
+	@echo
+	@echo "narxwatch is starting on http://127.0.0.1:8000  (API docs: http://127.0.0.1:8000/docs)"
+	@echo "demo admin key (shown once): $$($(BIN)/narxwatch keys create --org demo --role admin)"
+	@echo
+	$(BIN)/narxwatch serve --host 127.0.0.1 --port 8000
+
+reproduce: $(STAMP)
 	$(BIN)/narxwatch reproduce --out var/reproduce
 
 test: $(STAMP)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Annotated
 
 import typer
@@ -22,9 +23,12 @@ def serve(
     port: Annotated[int, typer.Option(help="TCP port.", min=1, max=65535)] = 8000,
     workers: Annotated[int, typer.Option(help="Worker processes.", min=1)] = 1,
 ) -> None:
-    """Serve the REST API (upgrading the database schema first)."""
+    """Serve the REST API (upgrading the database schema first, unless told not to)."""
     settings = get_settings()
-    upgrade_database(settings.database_url)
+    if settings.upgrade_on_start:
+        upgrade_database(settings.database_url)
+    # Upgraded once here: the workers must not race each other to do it again.
+    os.environ["NARXWATCH_UPGRADE_ON_START"] = "false"
     stdout.print(f"narxwatch API on http://{host}:{port}  (docs: http://{host}:{port}/docs)")
     uvicorn.run(
         "service.api.app:create_app", factory=True, host=host, port=port, workers=workers, log_level="info"
