@@ -16,7 +16,7 @@ from service.config import Settings
 from service.domain import inspections, records, structures
 from service.schemas import RecordOut, VerdictOut
 from service.security import Principal
-from service.tables import Record
+from service.tables import Record, Verdict
 
 router = APIRouter(tags=["records"])
 
@@ -91,7 +91,7 @@ def _store(
     return _record_out(record, created, verdict), created
 
 
-def _record_out(record: Record, created: bool, verdict: object) -> RecordOut:
+def _record_out(record: Record, created: bool, verdict: Verdict | None) -> RecordOut:
     return RecordOut(
         id=record.id,
         structure_id=record.structure_id,
@@ -101,5 +101,5 @@ def _record_out(record: Record, created: bool, verdict: object) -> RecordOut:
         created_at=record.created_at,
         sha256=record.sha256,
         created=created,
-        verdict=inspections.verdict_out(verdict) if verdict is not None else None,  # type: ignore[arg-type]
+        verdict=inspections.verdict_out(verdict) if verdict is not None else None,
     )
