@@ -26,6 +26,9 @@ def make_engine(url: str) -> Engine:
 
     @event.listens_for(engine, "connect")
     def _configure(connection, _record) -> None:  # type: ignore[no-untyped-def]
+        # pysqlite begins and commits transactions on its own, which turns SAVEPOINT release
+        # into a commit of the whole request; SQLAlchemy takes over transaction control instead.
+        connection.isolation_level = None
         cursor = connection.cursor()
         # WAL lets readers proceed during a write; NORMAL sync is durable across process
         # crashes (fsync at checkpoints), which is what a monitoring record store needs.
@@ -33,6 +36,10 @@ def make_engine(url: str) -> Engine:
         cursor.execute("PRAGMA synchronous=NORMAL")
         cursor.execute("PRAGMA foreign_keys=ON")
         cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _begin(connection) -> None:  # type: ignore[no-untyped-def]
+        connection.exec_driver_sql("BEGIN")
 
     return engine
 

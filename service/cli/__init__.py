@@ -14,6 +14,7 @@ app = typer.Typer(
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,
+    rich_markup_mode=None,  # help texts hold units like [m], which rich markup would swallow
 )
 app.command("simulate")(simulate.simulate)
 app.add_typer(train.app, name="train")

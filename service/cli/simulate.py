@@ -7,38 +7,37 @@ from typing import Annotated
 
 import typer
 
-from service.cli.console import parse_assignments, stdout
-from simulator.physics import FAULT_MODES, PhysicalParameters
-from simulator.recordfile import write_record
-from simulator.simulate import EFFECTS, Effects, Scenario
-from simulator.simulate import simulate as run_simulation
-
-EFFECT_HELP = "Undeclared effect NAME=SIZE (repeatable): " + "; ".join(
-    f"{name} [{unit}] {meaning}" for name, (unit, meaning) in EFFECTS.items()
+from service.cli.console import stdout
+from simulator.options import (
+    DisturbanceStd,
+    EffectList,
+    ExcitationStd,
+    Fault,
+    Magnitude,
+    NoiseStd,
+    ParamList,
+    Samples,
+    XNoiseStd,
+    parse_assignments,
 )
+from simulator.physics import PhysicalParameters
+from simulator.recordfile import write_record
+from simulator.simulate import Effects, Scenario
+from simulator.simulate import simulate as run_simulation
 
 
 def simulate(
     out: Annotated[Path, typer.Option("--out", help="Output file, .csv or .npz.")],
-    fault: Annotated[str, typer.Option(help=f"Fault mode: {', '.join(FAULT_MODES)}.")] = "none",
-    k: Annotated[
-        float, typer.Option(help="Fault magnitude in percent (positive = stiffness reduction).")
-    ] = 0.0,
-    n: Annotated[int, typer.Option(help="Number of samples.")] = 2000,
-    seed: Annotated[int | None, typer.Option(help="Random seed (default: fresh entropy).")] = None,
-    excitation_std: Annotated[float, typer.Option(help="Std of the white force excitation x [N].")] = 25e3,
-    disturbance_std: Annotated[
-        float, typer.Option(help="Std of the unmeasured white force on mass 1 [N] (white NARX residual).")
-    ] = 800.0,
-    noise_std: Annotated[float, typer.Option(help="Std of white measurement noise on y [m].")] = 0.0,
-    x_noise_std: Annotated[float, typer.Option(help="Std of white measurement noise on x [N].")] = 0.0,
-    effect: Annotated[list[str] | None, typer.Option(help=EFFECT_HELP)] = None,
-    param: Annotated[
-        list[str] | None,
-        typer.Option(
-            help=f"Physical parameter NAME=VALUE (repeatable): {', '.join(PhysicalParameters.names())}."
-        ),
-    ] = None,
+    fault: Fault = "none",
+    k: Magnitude = 0.0,
+    n: Samples = 2000,
+    seed: Annotated[int | None, typer.Option(help="Random seed (default: fresh entropy).", min=0)] = None,
+    excitation_std: ExcitationStd = 25e3,
+    disturbance_std: DisturbanceStd = 800.0,
+    noise_std: NoiseStd = 0.0,
+    x_noise_std: XNoiseStd = 0.0,
+    effect: EffectList = None,
+    param: ParamList = None,
 ) -> None:
     """Simulate excitation x [N] and response y [m] of the 2-DOF structure (SPEC §1)."""
     params = PhysicalParameters().replace(**parse_assignments(param or [], "parameter"))

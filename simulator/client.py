@@ -1,0 +1,709 @@
+"""``narxwatch-sim``: simulated records posted to a running narxwatch service, or written to files.
+
+``narxwatch simulate`` writes one file; this command feeds a service the way a data-acquisition
+system would (one record, the paper's four test cases, or a timed stream) and prints each verdict
+on one line, so that a demonstration or a smoke test of a deployment needs only a URL and a key.
+It reaches the service over HTTP alone, like any other client. The scenario options are those of
+``narxwatch simulate``: same names, defaults and messages.
+
+Every record's seed is printed (or written to the manifest), so any record can be made again with
+``narxwatch simulate --seed``. Output goes to stdout, one line per record; commentary and errors go
+to stderr, so that ``--json`` output stays one JSON document a line.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import enum
+import itertools
+import json
+import secrets
+import signal
+import time
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, NoReturn, Protocol
+
+import httpx
+import typer
+from rich.console import Console
+from rich.text import Text
+
+from models.errors import InputError
+from simulator.options import (
+    DisturbanceStd,
+    EffectList,
+    ExcitationStd,
+    Fault,
+    Magnitude,
+    NoiseStd,
+    ParamList,
+    Samples,
+    XNoiseStd,
+    parse_assignments,
+)
+from simulator.paper import CASES, StudySettings
+from simulator.physics import PhysicalParameters, check_stable
+from simulator.recordfile import dump_csv, dump_npz, write_record
+from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
+
+EXIT_SERVICE_ERROR = 1
+EXIT_INPUT_ERROR = 2
+DEFAULT_URL = "http://127.0.0.1:8000"
+API = "/api/v1"
+MANIFEST = "manifest.csv"
+MANIFEST_COLUMNS = ["path", "fault", "k", "seed"]
+SCENARIO_NAMES = [case.name for case in CASES] + ["all", "any"]
+STATUS_STYLES = {"healthy": "green", "faulty": "bold red", "unknown_fault": "bold yellow"}
+# The option defaults are the study's, so that the paper's cases are simulated as in the paper.
+STUDY = StudySettings()
+
+stdout = Console(soft_wrap=True, highlight=False)
+stderr = Console(stderr=True, soft_wrap=True, highlight=False)
+
+
+class ServiceError(Exception):
+    """The service refused a request or could not be reached; the message says which and why."""
+
+
+class Format(enum.StrEnum):
+    json = "json"
+    csv = "csv"
+    npz = "npz"
+
+
+MEDIA_TYPES = {Format.csv: "text/csv", Format.npz: "application/x-npz"}
+
+
+# --- Options shared by the subcommands ----------------------------------------------------------
+
+Seed = Annotated[
+    int | None,
+    typer.Option(min=0, help="Seed of the first record; the next ones use seed + 1, … (default: fresh)."),
+]
+Url = Annotated[str, typer.Option(envvar="NARXWATCH_SIM_URL", help="Base URL of the narxwatch service.")]
+Key = Annotated[
+    str | None,
+    typer.Option(envvar="NARXWATCH_SIM_API_KEY", show_default=False, help="API key of role ingest or admin."),
+]
+StructureId = Annotated[
+    int | None,
+    typer.Option("--structure", min=1, help="Structure id (default: the first one the key can see)."),
+]
+OutDir = Annotated[
+    Path | None,
+    typer.Option(
+        "--out", help="Write record files and a manifest.csv (path,fault,k,seed) here; post nothing."
+    ),
+]
+FormatOption = Annotated[
+    Format | None,
+    typer.Option("--format", help="Body to post (default json) or files to write with --out (default csv)."),
+]
+AcquiredAt = Annotated[
+    str | None,
+    typer.Option(help="Acquisition time, ISO 8601 with a zone, e.g. 2026-11-21T10:00:00Z (default: now)."),
+]
+JsonLines = Annotated[bool, typer.Option("--json", help="Print each verdict as one line of JSON.")]
+
+
+@dataclass(frozen=True)
+class ScenarioOptions:
+    """The scenario options as given, turned into checked scenarios for any fault and magnitude."""
+
+    excitation_std: float
+    disturbance_std: float
+    noise_std: float
+    x_noise_std: float
+    effects: tuple[str, ...]
+    params: tuple[str, ...]
+
+    def scenario(self, fault: str, k: float) -> Scenario:
+        """A scenario refused now, before anything is posted, if its options cannot be simulated."""
+        scenario = Scenario(
+            params=PhysicalParameters().replace(**parse_assignments(self.params, "parameter")),
+            fault=fault,  # type: ignore[arg-type]  # checked by with_fault below
+            k=0.0 if fault == "none" else k,
+            excitation_std=self.excitation_std,
+            disturbance_std=self.disturbance_std,
+            y_noise_std=self.noise_std,
+            x_noise_std=self.x_noise_std,
+            effects=Effects.parse(self.effects),
+        )
+        check_stable(scenario.structure)
+        return scenario
+
+
+@dataclass(frozen=True)
+class Plan:
+    """One record to make and deliver; ``case`` groups records for the tally."""
+
+    case: str
+    scenario: Scenario
+    n: int
+    seed: int
+    acquired_at: dt.datetime
+
+    def describe(self) -> str:
+        effects = ", ".join(f"{name}={value:g}" for name, value in self.scenario.effects.describe().items())
+        return f"simulated {truth(self.scenario)}{f' with {effects}' if effects else ''}, seed {self.seed}"
+
+
+def truth(scenario: Scenario) -> str:
+    return "healthy" if scenario.fault == "none" else f"{scenario.fault} {scenario.k:g} %"
+
+
+def first_seed(seed: int | None) -> int:
+    """The given seed, or a fresh one small enough to retype into ``narxwatch simulate --seed``."""
+    return secrets.randbelow(2**31) if seed is None else seed
+
+
+def start_time(text: str | None) -> dt.datetime | None:
+    """``--acquired-at`` as an aware datetime; a naive time is refused, as the service refuses it."""
+    if text is None:
+        return None
+    try:
+        moment = dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise InputError(
+            f"--acquired-at {text!r} is not an ISO 8601 time, e.g. 2026-11-21T10:00:00Z"
+        ) from None
+    if moment.tzinfo is None:
+        raise InputError(f"--acquired-at {text!r} needs a timezone, e.g. 2026-11-21T10:00:00Z")
+    return moment
+
+
+def now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC).replace(microsecond=0)
+
+
+# --- Where records go: the service, or files ----------------------------------------------------
+
+
+class Service:
+    """The narxwatch REST API over HTTP; every failure becomes a :class:`ServiceError`."""
+
+    def __init__(self, url: str, key: str) -> None:
+        if not url.startswith(("http://", "https://")):
+            raise InputError(f"--url must start with http:// or https://, got {url!r}")
+        self.url = url.rstrip("/")
+        try:
+            self._http = httpx.Client(
+                base_url=self.url, headers={"Authorization": f"Bearer {key}"}, timeout=60
+            )
+        except httpx.InvalidURL as exc:
+            raise InputError(f"--url {url!r} is not a usable URL ({exc})") from None
+
+    def close(self) -> None:
+        self._http.close()
+
+    def request(self, method: str, path: str, **options: Any) -> Any:
+        try:
+            response = self._http.request(method, path, **options)
+        except httpx.TransportError as exc:
+            reason = str(exc) or type(exc).__name__
+            raise ServiceError(
+                f"cannot reach narxwatch at {self.url} ({reason}); is the service running there?"
+            ) from None
+        if response.is_error:
+            answer = f"{response.status_code} {response.reason_phrase}"
+            raise ServiceError(f"the service answered {answer}: {server_detail(response)}")
+        try:
+            return response.json()
+        except ValueError:
+            raise ServiceError(
+                f"{self.url} answered {path} without JSON: is it a narxwatch service?"
+            ) from None
+
+    def first_structure(self) -> dict[str, Any]:
+        structures = self.request("GET", f"{API}/structures")
+        if not structures:
+            raise ServiceError(
+                f"the API key sees no structure at {self.url}: create one (POST {API}/structures with an "
+                "admin key) or pass --structure ID"
+            )
+        return structures[0]
+
+
+def server_detail(response: httpx.Response) -> str:
+    """The service's ``detail`` message: a string, or FastAPI's list of validation errors."""
+    try:
+        body = response.json()
+    except ValueError:
+        return "the answer holds no JSON; is the URL that of a narxwatch service?"
+    detail = body.get("detail") if isinstance(body, dict) else body
+    if isinstance(detail, str):
+        return detail
+    if isinstance(detail, list) and all(isinstance(item, dict) for item in detail):
+        return "; ".join(
+            f"{'.'.join(str(part) for part in item.get('loc', []))}: {item.get('msg', item)}"
+            for item in detail
+        )
+    return json.dumps(detail)[:300]
+
+
+class Delivery(Protocol):
+    """What became of one record: a verdict, or a written file."""
+
+    @property
+    def label(self) -> str: ...
+
+    def document(self) -> dict[str, Any]: ...
+
+    def text(self, plan: Plan) -> Text: ...
+
+
+class Destination(Protocol):
+    def deliver(self, plan: Plan, record: SimulatedRecord) -> Delivery: ...
+
+
+@dataclass(frozen=True)
+class Posted:
+    """A record stored by the service, with its verdict."""
+
+    record: dict[str, Any]
+
+    @property
+    def verdict(self) -> dict[str, Any]:
+        return self.record["verdict"]
+
+    @property
+    def label(self) -> str:
+        mode = self.verdict["fault_mode"]
+        return f"faulty {mode}" if mode else self.verdict["status"]
+
+    def document(self) -> dict[str, Any]:
+        return self.verdict
+
+    def text(self, plan: Plan) -> Text:
+        verdict = self.verdict
+        line = Text(f"{utc_text(verdict['acquired_at'])}  record {self.record['id']}  ")
+        line.append(verdict["status"], style=STATUS_STYLES.get(verdict["status"], ""))
+        fields = [*magnitude_fields(verdict), whiteness_field(verdict)]
+        if verdict["detected_by"]:
+            fields.append("detected by " + ", ".join(verdict["detected_by"]))
+        fields.append(f"({plan.describe()}{'' if self.record['created'] else ', uploaded before'})")
+        line.append("  " + "  ".join(fields))
+        return line
+
+
+def magnitude_fields(verdict: dict[str, Any]) -> list[str]:
+    """The localised mode (or, for a healthy record, the closest one) with k̂ and its interval."""
+    fields = []
+    if verdict["fault_mode"]:
+        fields.append(f"mode {verdict['fault_mode']}")
+    elif verdict["reference_mode"]:
+        fields.append(f"closest {verdict['reference_mode']}")
+    if verdict["k_hat"] is not None:
+        magnitude = f"k̂ = {verdict['k_hat']:.2f} %"
+        if verdict["interval"]:
+            low, high = verdict["interval"]
+            magnitude += f" [{low:.2f}, {high:.2f}]"
+        fields.append(magnitude)
+    return fields
+
+
+def whiteness_field(verdict: dict[str, Any]) -> str:
+    """Ljung–Box Q of the best-fitting mode against its critical value: why a mode is (not) accepted."""
+    best = min(verdict["modes"], key=lambda mode: mode["residual_variance"])
+    sign = "<" if best["accepted"] else "≥"
+    return f"Q({best['name']}) = {best['q']:.1f} {sign} {best['q_critical']:.1f}"
+
+
+def utc_text(stamp: str) -> str:
+    return dt.datetime.fromisoformat(stamp).astimezone(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+@dataclass(frozen=True)
+class Poster:
+    """Posts records to one structure with ``inspect=true``."""
+
+    service: Service
+    structure_id: int
+    format: Format
+
+    def deliver(self, plan: Plan, record: SimulatedRecord) -> Posted:
+        path = f"{API}/structures/{self.structure_id}/records"
+        when = plan.acquired_at.isoformat()
+        if self.format is Format.json:
+            body = {"x": record.x.tolist(), "y": record.y.tolist(), "fs": record.fs, "acquired_at": when}
+            answer = self.service.request("POST", path, params={"inspect": "true"}, json=body)
+        else:
+            content = (
+                dump_csv(record.x, record.y, record.fs).encode()
+                if self.format is Format.csv
+                else dump_npz(record.x, record.y, record.fs)
+            )
+            answer = self.service.request(
+                "POST",
+                path,
+                params={"inspect": "true", "acquired_at": when},
+                content=content,
+                headers={"Content-Type": MEDIA_TYPES[self.format]},
+            )
+        if answer.get("verdict") is None:
+            raise ServiceError(f"the service stored record {answer.get('id')} but returned no verdict")
+        return Posted(answer)
+
+
+@dataclass(frozen=True)
+class Written:
+    """A record written to a file and listed in the manifest."""
+
+    path: Path
+    row: dict[str, Any]
+    label = "written"
+
+    def document(self) -> dict[str, Any]:
+        return self.row
+
+    def text(self, plan: Plan) -> Text:
+        return Text(f"wrote {self.path}  ({plan.describe()})")
+
+
+class Writer:
+    """Record files numbered on from the manifest already in the directory, so that several runs
+    build one set (e.g. experiments for ``narxwatch train fault-mode --experiments manifest.csv``)."""
+
+    def __init__(self, directory: Path, file_format: Format) -> None:
+        if file_format is Format.json:
+            raise InputError("--out writes record files: use --format csv or npz")
+        self.directory = directory
+        self.format = file_format
+        self.manifest = directory / MANIFEST
+        self.count = manifest_rows(self.manifest)
+
+    def deliver(self, plan: Plan, record: SimulatedRecord) -> Written:
+        self.count += 1
+        name = f"record_{self.count:04d}_{plan.scenario.fault}_{plan.scenario.k:g}.{self.format}"
+        row = {"path": name, "fault": plan.scenario.fault, "k": plan.scenario.k, "seed": plan.seed}
+        try:
+            path = write_record(self.directory / name, record.x, record.y, record.fs)
+            new = not self.manifest.exists()
+            with self.manifest.open("a", newline="") as handle:
+                writer = csv.DictWriter(handle, MANIFEST_COLUMNS)
+                if new:
+                    writer.writeheader()
+                writer.writerow(row)
+        except OSError as exc:
+            raise InputError(f"cannot write into {self.directory} ({exc.strerror})") from None
+        return Written(path, row)
+
+
+def manifest_rows(manifest: Path) -> int:
+    """Rows already in a manifest (0 if there is none); a file of another kind is not touched."""
+    if not manifest.exists():
+        return 0
+    try:
+        with manifest.open(newline="") as handle:
+            reader = csv.reader(handle)
+            header = next(reader, None)
+            rows = sum(1 for _ in reader)
+    except OSError as exc:
+        raise InputError(f"{manifest}: cannot read the manifest ({exc.strerror})") from None
+    if header != MANIFEST_COLUMNS:
+        raise InputError(
+            f"{manifest} is not a manifest this command wrote (columns {','.join(MANIFEST_COLUMNS)}); "
+            "choose another --out directory"
+        )
+    return rows
+
+
+@dataclass(frozen=True)
+class Target:
+    """Where records go, as the common options say."""
+
+    url: str
+    key: str | None
+    structure: int | None
+    out: Path | None
+    format: Format | None
+
+
+@contextmanager
+def open_destination(target: Target) -> Iterator[Destination]:
+    """A file writer for ``--out``, else the service with the structure to post to."""
+    if target.out is not None:
+        yield Writer(target.out, target.format or Format.csv)
+        return
+    if not target.key:
+        raise InputError("posting needs an API key: pass --key or set NARXWATCH_SIM_API_KEY (or use --out)")
+    service = Service(target.url, target.key)
+    try:
+        structure_id = target.structure
+        if structure_id is None:
+            structure = service.first_structure()
+            structure_id = structure["id"]
+            stderr.print(
+                f"posting to structure {structure_id} {structure['name']!r} at {service.url}, the first "
+                "this key can see (choose another with --structure)",
+                markup=False,
+            )
+        yield Poster(service, structure_id, target.format or Format.json)
+    finally:
+        service.close()
+
+
+# --- Running and reporting ----------------------------------------------------------------------
+
+
+class Report:
+    """Prints each delivery on one line (or as JSON) and counts them per case for the tally."""
+
+    def __init__(self, json_lines: bool) -> None:
+        self.json_lines = json_lines
+        self.counts: dict[str, Counter[str]] = {}
+        self.failures = 0
+
+    def delivered(self, plan: Plan, delivery: Delivery) -> None:
+        self.counts.setdefault(plan.case, Counter())[delivery.label] += 1
+        if self.json_lines:
+            print(json.dumps(delivery.document()), flush=True)
+        else:
+            stdout.print(delivery.text(plan))
+
+    def failed(self, plan: Plan, message: str) -> None:
+        self.counts.setdefault(plan.case, Counter())["failed"] += 1
+        self.failures += 1
+        stderr.print(f"[bold red]failed:[/bold red] {plan.describe()}: ", end="")
+        stderr.print(message, markup=False)
+
+    def tally(self) -> None:
+        """Counts per case; on stderr with ``--json``, so that stdout stays one verdict a line."""
+        console = stderr if self.json_lines else stdout
+        for case, counts in self.counts.items():
+            listed = ", ".join(f"{label} {count}" for label, count in counts.items())
+            total = counts.total()
+            console.print(f"{case}: {total} record{'s' * (total != 1)}, {listed}", markup=False)
+
+
+def deliver_all(plans: Iterable[Plan], destination: Destination, report: Report) -> None:
+    """Every record in turn; the first failure ends the run (main turns it into exit code 1)."""
+    for plan in plans:
+        report.delivered(plan, destination.deliver(plan, simulate(plan.scenario, plan.n, plan.seed)))
+
+
+def deliver_stream(plans: Iterable[Plan], destination: Destination, report: Report) -> None:
+    """Every record in turn, reporting a failed one and going on: a feed outlives a refused record
+    or a restarting service. Ctrl-C stops it cleanly; exit code 1 if any record failed."""
+    try:
+        for plan in plans:
+            record = simulate(plan.scenario, plan.n, plan.seed)
+            try:
+                report.delivered(plan, destination.deliver(plan, record))
+            except ServiceError as exc:
+                report.failed(plan, str(exc))
+    except KeyboardInterrupt:
+        stderr.print("stopped")
+    finally:
+        report.tally()
+    if report.failures:
+        raise typer.Exit(EXIT_SERVICE_ERROR)
+
+
+@dataclass(frozen=True)
+class Stream:
+    """Records due every ``every`` seconds, the fault magnitude growing by ``drift`` per record."""
+
+    options: ScenarioOptions
+    fault: str
+    k: float
+    drift: float
+    n: int
+    seed: int
+    every: float
+    count: int | None
+    start: dt.datetime | None
+
+    @property
+    def mode(self) -> str:
+        """The drifting fault: the one given, or k2 when only a drift is."""
+        return "k2" if self.drift and self.fault == "none" else self.fault
+
+    def check(self) -> None:
+        """Refuse now a stream whose first or last record could not be simulated."""
+        self.options.scenario(self.mode, self.k)
+        if self.count is not None:
+            self.options.scenario(self.mode, self.k + self.drift * (self.count - 1))
+
+    def plans(self) -> Iterator[Plan]:
+        began = time.monotonic()
+        indices = itertools.count() if self.count is None else range(self.count)
+        for index in indices:
+            time.sleep(max(0.0, began + index * self.every - time.monotonic()))
+            when = now() if self.start is None else self.start + dt.timedelta(seconds=index * self.every)
+            scenario = self.options.scenario(self.mode, self.k + index * self.drift)
+            yield Plan("stream", scenario, self.n, self.seed + index, when)
+
+
+def chosen_cases(
+    name: str, fault: str | None, k: float | None, options: ScenarioOptions
+) -> list[tuple[str, Scenario]]:
+    """The named paper case(s) with their fault and magnitude, or ``any`` with the given ones."""
+    name = name.strip()
+    name = name.lower() if name.lower() in ("all", "any") else name.upper()
+    if name == "any":
+        scenario = options.scenario(fault or "none", k or 0.0)
+        return [(f"case any ({truth(scenario)})", scenario)]
+    if fault is not None or k is not None:
+        raise InputError(f"case {name} fixes the fault and its magnitude: use 'any' for --fault and --k")
+    chosen = [case for case in CASES if name in (case.name, "all")]
+    if not chosen:
+        raise InputError(f"unknown scenario {name!r}: choose one of {', '.join(SCENARIO_NAMES)}")
+    return [
+        (f"case {case.name} ({case.description})", options.scenario(case.fault, case.true_k))
+        for case in chosen
+    ]
+
+
+# --- The command line ---------------------------------------------------------------------------
+
+app = typer.Typer(
+    name="narxwatch-sim",
+    help="Post simulated records of the 2-DOF structure to a narxwatch service and print the verdicts.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+    rich_markup_mode=None,  # help texts hold units like [m], which rich markup would swallow
+)
+
+
+@app.command("record")
+def record_command(
+    fault: Fault = "none",
+    k: Magnitude = 0.0,
+    n: Samples = STUDY.inspection_samples,
+    seed: Seed = None,
+    excitation_std: ExcitationStd = STUDY.excitation_std,
+    disturbance_std: DisturbanceStd = STUDY.disturbance_std,
+    noise_std: NoiseStd = 0.0,
+    x_noise_std: XNoiseStd = 0.0,
+    effect: EffectList = None,
+    param: ParamList = None,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+    structure: StructureId = None,
+    out: OutDir = None,
+    file_format: FormatOption = None,
+    acquired_at: AcquiredAt = None,
+    json_lines: JsonLines = False,
+) -> None:
+    """Simulate one record, post it for inspection and print its verdict."""
+    options = ScenarioOptions(
+        excitation_std, disturbance_std, noise_std, x_noise_std, tuple(effect or ()), tuple(param or ())
+    )
+    plan = Plan("record", options.scenario(fault, k), n, first_seed(seed), start_time(acquired_at) or now())
+    with open_destination(Target(url, key, structure, out, file_format)) as destination:
+        deliver_all([plan], destination, Report(json_lines))
+
+
+@app.command("scenario")
+def scenario_command(
+    name: Annotated[
+        str,
+        typer.Argument(
+            help="A paper case (I healthy, II k2 3 %, III k2 29 %, IV k1 30 %), 'all' four, "
+            "or 'any' for the fault given by --fault and --k."
+        ),
+    ],
+    runs: Annotated[int, typer.Option(min=1, help="Records per case.")] = STUDY.runs,
+    fault: Annotated[str | None, typer.Option(help="Fault mode for 'any': none, k1, k2.")] = None,
+    k: Annotated[float | None, typer.Option(help="Fault magnitude in percent for 'any'.")] = None,
+    n: Samples = STUDY.inspection_samples,
+    seed: Seed = None,
+    excitation_std: ExcitationStd = STUDY.excitation_std,
+    disturbance_std: DisturbanceStd = STUDY.disturbance_std,
+    noise_std: NoiseStd = 0.0,
+    x_noise_std: XNoiseStd = 0.0,
+    effect: EffectList = None,
+    param: ParamList = None,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+    structure: StructureId = None,
+    out: OutDir = None,
+    file_format: FormatOption = None,
+    acquired_at: AcquiredAt = None,
+    json_lines: JsonLines = False,
+) -> None:
+    """Post --runs records of a paper test case (all at one acquisition time) and tally the verdicts."""
+    options = ScenarioOptions(
+        excitation_std, disturbance_std, noise_std, x_noise_std, tuple(effect or ()), tuple(param or ())
+    )
+    cases = chosen_cases(name, fault, k, options)
+    seeds = itertools.count(first_seed(seed))
+    when = start_time(acquired_at) or now()
+    plans = [Plan(case, scenario, n, next(seeds), when) for case, scenario in cases for _ in range(runs)]
+    report = Report(json_lines)
+    with open_destination(Target(url, key, structure, out, file_format)) as destination:
+        deliver_all(plans, destination, report)
+    report.tally()
+
+
+@app.command("stream")
+def stream_command(
+    every: Annotated[float, typer.Option(min=0, help="Seconds between records.")] = 5.0,
+    count: Annotated[int | None, typer.Option(min=1, help="Records to send (default: until Ctrl-C).")] = None,
+    drift: Annotated[
+        float,
+        typer.Option(help="Growth of k per record [%]; grows the --fault mode, or k2 if there is none."),
+    ] = 0.0,
+    fault: Fault = "none",
+    k: Magnitude = 0.0,
+    n: Samples = STUDY.inspection_samples,
+    seed: Seed = None,
+    excitation_std: ExcitationStd = STUDY.excitation_std,
+    disturbance_std: DisturbanceStd = STUDY.disturbance_std,
+    noise_std: NoiseStd = 0.0,
+    x_noise_std: XNoiseStd = 0.0,
+    effect: EffectList = None,
+    param: ParamList = None,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+    structure: StructureId = None,
+    out: OutDir = None,
+    file_format: FormatOption = None,
+    acquired_at: Annotated[
+        str | None,
+        typer.Option(
+            help="Time of the first record, the next ones --every seconds later (default: real time)."
+        ),
+    ] = None,
+    json_lines: JsonLines = False,
+) -> None:
+    """Post a record every --every seconds, each with a fresh seed, until --count or Ctrl-C.
+
+    A refused record is reported and the stream goes on; the exit code is 1 if any was refused.
+    """
+    options = ScenarioOptions(
+        excitation_std, disturbance_std, noise_std, x_noise_std, tuple(effect or ()), tuple(param or ())
+    )
+    stream = Stream(options, fault, k, drift, n, first_seed(seed), every, count, start_time(acquired_at))
+    stream.check()
+    # A service manager stops a feed with SIGTERM: stop as cleanly as on Ctrl-C.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    with open_destination(Target(url, key, structure, out, file_format)) as destination:
+        deliver_stream(stream.plans(), destination, Report(json_lines))
+
+
+def main() -> None:
+    """Console-script entry point: user errors end with their message, not a traceback.
+
+    Exit code 2 for options that cannot be used (as ``narxwatch``), 1 when the service refuses
+    a record or cannot be reached.
+    """
+    try:
+        app()
+    except InputError as exc:
+        fail(str(exc), EXIT_INPUT_ERROR)
+    except ServiceError as exc:
+        fail(str(exc), EXIT_SERVICE_ERROR)
+
+
+def fail(message: str, code: int) -> NoReturn:
+    stderr.print("[bold red]error:[/bold red] ", end="")
+    stderr.print(message, markup=False)
+    raise SystemExit(code)

@@ -1,0 +1,315 @@
+"""``narxwatch-sim`` run as a user runs it (the installed console script, the key in the
+environment) against the real service over HTTP, on SQLite and on PostgreSQL.
+
+The structure is trained through the API from 5 magnitudes per fault mode: coarser than the
+paper's 17, enough for the obvious cases used here (k2 29 %, k1 30 %). Seeds are fixed so that
+every run posts the same records.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from live import LiveServer, Tenant, free_port
+
+from service.cli.modelfiles import read_manifest
+from service.security import Role
+from simulator.paper import StudySettings
+from simulator.recordfile import read_record
+from simulator.simulate import Scenario, simulate
+
+SIM = shutil.which("narxwatch-sim", path=str(Path(sys.executable).parent))
+SETTINGS = StudySettings()
+MAGNITUDES = [-32.0, -16.0, 0.0, 16.0, 32.0]
+VERDICT_LINE = re.compile(
+    r"^(?P<when>\S+)  record (?P<record>\d+)  (?P<status>healthy|faulty|unknown_fault)  (?P<rest>.*)$"
+)
+
+
+@dataclass
+class Trained:
+    server: LiveServer
+    tenant: Tenant
+    structure_id: int
+    key: str  # an ingest key of the tenant, as a user would export it
+
+
+def run_sim(
+    *args: str, key: str | None = None, url: str | None = None, cwd: Path | None = None
+) -> subprocess.CompletedProcess[str]:
+    assert SIM, "the narxwatch-sim console script is not installed next to this Python"
+    return subprocess.run(
+        [SIM, *args], env=sim_env(key, url), cwd=cwd, capture_output=True, text=True, timeout=120
+    )
+
+
+def sim_env(key: str | None, url: str | None) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NARXWATCH_SIM_")}
+    if key is not None:
+        env["NARXWATCH_SIM_API_KEY"] = key
+    if url is not None:
+        env["NARXWATCH_SIM_URL"] = url
+    return env
+
+
+def upload_npz(client, structure_id: int, record) -> int:
+    buffer = io.BytesIO()
+    np.savez(buffer, x=record.x, y=record.y, fs=record.fs)
+    response = client.post(
+        f"/api/v1/structures/{structure_id}/records",
+        content=buffer.getvalue(),
+        headers={"Content-Type": "application/x-npz"},
+    )
+    assert response.status_code == 201, response.text
+    return response.json()["id"]
+
+
+def verdicts(trained: Trained, **params: str) -> list[dict]:
+    response = trained.tenant.viewer.get(
+        f"/api/v1/structures/{trained.structure_id}/verdicts", params={"limit": 1000, **params}
+    )
+    assert response.status_code == 200 and response.json()["next_cursor"] is None, response.text
+    return response.json()["items"]
+
+
+@pytest.fixture(scope="module")
+def trained(api_server: LiveServer):  # yields Trained
+    """A structure with k2 and k1 fault-mode models trained through the API."""
+    tenant = Tenant.create(api_server)
+    response = tenant.admin.post("/api/v1/structures", json={"name": "rig", "fs": 1500.0})
+    assert response.status_code == 201, response.text
+    structure_id = response.json()["id"]
+    seeds = iter(np.random.SeedSequence(7).spawn(2 * len(MAGNITUDES)))
+    for mode in ("k2", "k1"):
+        experiments = []
+        for k in MAGNITUDES:
+            record = simulate(SETTINGS.scenario(mode, k), 2000, next(seeds))
+            experiments.append({"record_id": upload_npz(tenant.ingest, structure_id, record), "k": k})
+        response = tenant.admin.post(
+            f"/api/v1/structures/{structure_id}/models/fault-modes",
+            json={"name": mode, "k_min": -32.0, "k_max": 32.0, "experiments": experiments},
+        )
+        assert response.status_code == 201, response.text
+    yield Trained(api_server, tenant, structure_id, api_server.key(Role.ingest, tenant.name))
+    for client in (tenant.admin, tenant.ingest, tenant.viewer):
+        client.close()
+
+
+def post(trained: Trained, *args: str) -> subprocess.CompletedProcess[str]:
+    """Run against the trained structure; the run must succeed."""
+    result = run_sim(*args, "--structure", str(trained.structure_id), key=trained.key, url=trained.server.url)
+    assert result.returncode == 0, result.stderr
+    assert trained.key not in result.stdout + result.stderr
+    return result
+
+
+def test_record_prints_the_verdict_the_service_stored(trained: Trained):
+    result = post(
+        trained,
+        "record",
+        "--fault",
+        "k2",
+        "--k",
+        "29",
+        "--seed",
+        "11",
+        "--acquired-at",
+        "2026-11-21T10:00:00Z",
+    )
+    lines = result.stdout.splitlines()
+    assert len(lines) == 1
+    line = VERDICT_LINE.match(lines[0])
+    assert line, lines[0]
+    assert line["when"] == "2026-11-21T10:00:00Z" and line["status"] == "faulty"
+    k_hat, low, high = map(float, re.search(r"k̂ = (\S+) % \[(\S+), (\S+)\]", line["rest"]).groups())
+    assert abs(k_hat - 29) < 1 and low < k_hat < high
+    assert "mode k2" in line["rest"] and "detected by k2" in line["rest"] and "seed 11" in line["rest"]
+    stored = next(v for v in verdicts(trained) if v["record_id"] == int(line["record"]))
+    assert (stored["status"], stored["fault_mode"]) == ("faulty", "k2")
+    assert f"k̂ = {stored['k_hat']:.2f} %" in line["rest"]
+
+
+def test_record_json_over_npz_is_the_stored_verdict(trained: Trained):
+    result = post(
+        trained, "record", "--fault", "k1", "--k", "30", "--seed", "12", "--format", "npz", "--json"
+    )
+    (line,) = result.stdout.splitlines()
+    verdict = json.loads(line)
+    assert (verdict["status"], verdict["fault_mode"]) == ("faulty", "k1")
+    assert verdict == trained.tenant.viewer.get(f"/api/v1/verdicts/{verdict['id']}").json()
+
+
+def test_scenario_iv_prints_a_line_per_run_and_a_tally(trained: Trained):
+    before = len(verdicts(trained))
+    result = post(trained, "scenario", "IV", "--runs", "2", "--seed", "21")
+    *lines, tally = result.stdout.splitlines()
+    assert len(lines) == 2 and all(VERDICT_LINE.match(line) for line in lines)
+    assert "(simulated k1 30 %, seed 21)" in lines[0] and "(simulated k1 30 %, seed 22)" in lines[1]
+    assert tally == "case IV (k1 fault, 30 % reduction): 2 records, faulty k1 2"
+    assert len(verdicts(trained)) == before + 2
+
+
+def test_stream_posts_count_records_every_period(trained: Trained):
+    before = len(verdicts(trained))
+    start = "2030-01-01T00:00:00+00:00"
+    result = post(
+        trained, "stream", "--every", "0.2", "--count", "3", "--acquired-at", start, "--format", "csv"
+    )
+    *lines, tally = result.stdout.splitlines()
+    assert len(lines) == 3 and all(VERDICT_LINE.match(line) for line in lines)
+    assert tally.startswith("stream: 3 records, ")
+    assert len(verdicts(trained)) == before + 3
+    streamed = verdicts(trained, start=start, end="2030-01-01T00:00:01+00:00")
+    offsets = sorted(
+        dt.datetime.fromisoformat(v["acquired_at"]) - dt.datetime.fromisoformat(start) for v in streamed
+    )
+    assert offsets == [dt.timedelta(seconds=s) for s in (0.0, 0.2, 0.4)]
+    seeds = [int(re.search(r"seed (\d+)\)", line)[1]) for line in lines]
+    assert seeds == [seeds[0], seeds[0] + 1, seeds[0] + 2]
+
+
+def test_out_writes_files_and_a_manifest_and_posts_nothing(trained: Trained, tmp_path: Path):
+    before = len(verdicts(trained))
+    args = ["stream", "--every", "0", "--count", "3", "--fault", "k2", "--k", "-20", "--drift", "20"]
+    result = post(trained, *args, "--seed", "31", "--out", str(tmp_path))
+    assert len(verdicts(trained)) == before
+    names = ["record_0001_k2_-20.csv", "record_0002_k2_0.csv", "record_0003_k2_20.csv"]
+    *lines, tally = result.stdout.splitlines()
+    assert [line.split()[1] for line in lines] == [str(tmp_path / n) for n in names]
+    assert tally == "stream: 3 records, written 3"
+    rows = (tmp_path / "manifest.csv").read_text().splitlines()
+    assert rows == ["path,fault,k,seed"] + [
+        f"{n},k2,{k},{s}" for n, k, s in zip(names, (-20.0, 0.0, 20.0), (31, 32, 33), strict=True)
+    ]
+    # The manifest is the one `narxwatch train fault-mode --experiments` reads, and its seeds
+    # make each record again.
+    assert read_manifest(tmp_path / "manifest.csv") == [
+        (tmp_path / n, k) for n, k in zip(names, (-20.0, 0.0, 20.0), strict=True)
+    ]
+    again = simulate(Scenario(fault="k2", k=20.0, disturbance_std=SETTINGS.disturbance_std), 2000, 33)
+    np.testing.assert_array_equal(read_record(tmp_path / names[2]).y, again.y)
+
+
+def test_out_numbers_on_from_an_existing_manifest(tmp_path: Path):
+    for fault, k in (("none", "0"), ("k1", "12.5")):
+        result = run_sim(
+            "record", "--fault", fault, "--k", k, "--seed", "5", "--format", "npz", "--out", str(tmp_path)
+        )
+        assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "manifest.csv",
+        "record_0001_none_0.npz",
+        "record_0002_k1_12.5.npz",
+    ]
+    assert (tmp_path / "manifest.csv").read_text().splitlines()[1:] == [
+        "record_0001_none_0.npz,none,0.0,5",
+        "record_0002_k1_12.5.npz,k1,12.5,5",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("role", "message"),
+    [
+        (None, "401 Unauthorized: the API key is not valid"),
+        (Role.viewer, "403 Forbidden: this needs a key of role 'ingest' or higher"),
+    ],
+    ids=["unknown key", "viewer key"],
+)
+def test_a_refused_key_exits_1_with_the_service_message(trained: Trained, role, message):
+    key = (
+        f"nw_{uuid.uuid4().hex[:12]}_not-a-key"
+        if role is None
+        else trained.server.key(role, trained.tenant.name)
+    )
+    result = run_sim("record", "--seed", "1", key=key, url=trained.server.url)
+    assert result.returncode == 1
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert key not in result.stdout + result.stderr and result.stdout == ""
+
+
+def test_an_unreachable_service_exits_1_naming_the_url():
+    url = f"http://127.0.0.1:{free_port()}"
+    result = run_sim("record", "--seed", "1", key="nw_x_y", url=url)
+    assert result.returncode == 1
+    assert f"cannot reach narxwatch at {url}" in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["record", "--effect", "gremlins=3"], "cannot read effect 'gremlins=3'"),
+        (["record", "--param", "c1=0", "--param", "c2=0"], "unstable"),
+        (["record", "--acquired-at", "2026-11-21T10:00:00"], "needs a timezone"),
+        (["stream", "--count", "101", "--fault", "k2", "--drift", "1"], "would remove the spring entirely"),
+        (["scenario", "IV", "--fault", "k2"], "use 'any' for --fault and --k"),
+        (["record", "--out", "files", "--format", "json"], "use --format csv or npz"),
+    ],
+    ids=["effect", "unstable", "naive time", "drift", "case with fault", "json files"],
+)
+def test_unusable_options_exit_2_before_contacting_the_service(args, message, tmp_path: Path):
+    # Nothing listens at this URL: exit code 2, not 1, shows the options were refused first.
+    result = run_sim(*args, key="nw_x_y", url=f"http://127.0.0.1:{free_port()}", cwd=tmp_path)
+    assert result.returncode == 2
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_default_structure_is_the_first_the_key_sees(trained: Trained):
+    spare = trained.tenant.admin.post(
+        "/api/v1/structures", json={"name": f"spare-{uuid.uuid4().hex[:8]}", "fs": 1500.0}
+    )
+    assert spare.status_code == 201 and spare.json()["id"] > trained.structure_id
+    result = run_sim("record", "--seed", "41", "--json", key=trained.key, url=trained.server.url)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["structure_id"] == trained.structure_id
+    assert f"posting to structure {trained.structure_id} 'rig'" in result.stderr
+
+
+def test_a_key_without_structures_is_told_so(api_server: LiveServer, tenant: Tenant):
+    key = api_server.key(Role.ingest, tenant.name)
+    result = run_sim("record", "--seed", "1", key=key, url=api_server.url)
+    assert result.returncode == 1
+    assert "the API key sees no structure" in result.stderr and "--structure ID" in result.stderr
+
+
+def test_stream_reports_a_refused_record_and_goes_on(api_server: LiveServer, tenant: Tenant):
+    untrained = tenant.admin.post("/api/v1/structures", json={"name": "new", "fs": 1500.0}).json()["id"]
+    key = api_server.key(Role.ingest, tenant.name)
+    result = run_sim(
+        "stream", "--every", "0", "--count", "2", "--structure", str(untrained), key=key, url=api_server.url
+    )
+    assert result.returncode == 1
+    failures = [line for line in result.stderr.splitlines() if line.startswith("failed: ")]
+    assert len(failures) == 2 and all("has no active fault-mode model" in line for line in failures)
+    assert result.stdout.splitlines() == ["stream: 2 records, failed 2"]
+
+
+def test_ctrl_c_stops_a_stream_cleanly(trained: Trained):
+    args = [SIM, "stream", "--every", "60", "--structure", str(trained.structure_id)]
+    with subprocess.Popen(
+        args,
+        env=sim_env(trained.key, trained.server.url),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    ) as process:
+        first = process.stdout.readline()  # the first record is posted at once, the next in a minute
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=30)
+    assert VERDICT_LINE.match(first), first + err
+    assert process.returncode == 0, err
+    assert "stopped" in err and "Traceback" not in err
+    assert out.splitlines()[-1].startswith("stream: 1 record, ")
