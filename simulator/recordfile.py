@@ -132,6 +132,8 @@ def parse_npz(data: bytes) -> RecordFile:
     except ValueError as exc:
         raise InputError(f"the NPZ holds data that cannot be loaded safely ({exc})") from None
     for name, array in (("x", x), ("y", y)):
+        if not isinstance(array, np.ndarray):  # a zip member that is not a .npy file
+            raise InputError(f"NPZ member {name!r} is not a numpy array")
         if array.dtype.kind not in "iuf":
             raise InputError(f"NPZ array {name!r} must be numeric, got dtype {array.dtype}")
     return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs)

@@ -110,3 +110,14 @@ def test_bare_npy_is_not_taken_for_an_npz():
     np.save(buffer, np.zeros(4))
     with pytest.raises(InputError, match="not a readable NPZ"):
         parse_npz(buffer.getvalue())
+
+
+def test_npz_member_that_is_not_an_array_is_refused():
+    import zipfile
+
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("x.txt", "1,2,3")
+        archive.writestr("y.npy", b"not an array")
+    with pytest.raises(InputError):
+        parse_npz(buffer.getvalue())
