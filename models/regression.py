@@ -56,6 +56,11 @@ def least_squares(
         raise InputError(
             f"{n_obs} usable samples cannot determine {n_par} parameters: supply a longer record"
         )
+    overflowed = [names[i] for i in np.flatnonzero(~np.all(np.isfinite(Phi), axis=0))]
+    if overflowed:
+        raise InputError(
+            f"regressor {', '.join(overflowed)} overflows on these signals: lower its power or scale the data"
+        )
     scale = np.linalg.norm(Phi, axis=0)
     zero = [names[i] for i in np.flatnonzero(~(scale > 0))]
     if zero:

@@ -16,6 +16,10 @@ import numpy as np
 from models.errors import InputError
 
 SIGNALS = ("y", "x")
+# Beyond these a term cannot describe a physical structure, and its regressor would overflow
+# or take unbounded time to build.
+MAX_POWER = 9
+MAX_LAG = 10_000
 _FACTOR = re.compile(r"^(?P<signal>[xy])\[t(?:-(?P<lag>\d+))?\](?:\^(?P<power>\d+))?$")
 
 
@@ -30,10 +34,12 @@ class Factor:
     def __post_init__(self) -> None:
         if self.signal not in SIGNALS:
             raise InputError(f"unknown signal {self.signal!r}: a factor uses 'y' or 'x'")
-        if self.lag < 0 or (self.signal == "y" and self.lag == 0):
-            raise InputError(f"lag {self.lag} of {self.signal} is not allowed: y needs a lag >= 1")
-        if self.power < 1:
-            raise InputError(f"power {self.power} is not allowed: powers are >= 1")
+        if self.signal == "y" and self.lag == 0:
+            raise InputError("lag 0 of y is not allowed: y needs a lag >= 1")
+        if not 0 <= self.lag <= MAX_LAG:
+            raise InputError(f"lag {self.lag} of {self.signal} is not allowed: lags run from 0 to {MAX_LAG}")
+        if not 1 <= self.power <= MAX_POWER:
+            raise InputError(f"power {self.power} is not allowed: powers are >= 1 and at most {MAX_POWER}")
 
     @property
     def name(self) -> str:

@@ -11,7 +11,8 @@ from models.basis import FAMILIES
 
 Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f]+$")]
 ModeName = Annotated[str, Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_.\-]+$")]
-Id = Annotated[StrictInt, Field(ge=1, le=2**62)]
+MAX_ID = 2**31 - 1  # ids are 32-bit integers in every database narxwatch runs on
+Id = Annotated[StrictInt, Field(ge=1, le=MAX_ID)]
 Magnitude = Annotated[FiniteFloat, Field(ge=-1e6, le=1e6)]
 SamplingRate = Annotated[FiniteFloat, Field(gt=0, le=1e9)]
 TermName = Annotated[str, Field(min_length=1, max_length=200)]
@@ -20,7 +21,10 @@ TermName = Annotated[str, Field(min_length=1, max_length=200)]
 def _aware(value: dt.datetime) -> dt.datetime:
     if value.tzinfo is None:
         raise ValueError("give a timezone, e.g. 2026-11-21T10:00:00Z")
-    return value
+    try:
+        return value.astimezone(dt.UTC)
+    except OverflowError:
+        raise ValueError("the time lies outside the years 1 to 9999 once converted to UTC") from None
 
 
 AwareDatetime = Annotated[dt.datetime, AfterValidator(_aware)]
@@ -33,7 +37,7 @@ class Strict(BaseModel):
 class StructureCreate(Strict):
     name: Name
     fs: SamplingRate
-    description: Annotated[str, Field(max_length=2000)] = ""
+    description: Annotated[str, Field(max_length=2000, pattern=r"^[^\x00]*$")] = ""
 
 
 class StructureOut(BaseModel):

@@ -113,30 +113,63 @@ def parse_csv(data: bytes | str) -> RecordFile:
     return RecordFile(values[:count, 0].copy(), values[:count, 1].copy(), fs)
 
 
-def parse_npz(data: bytes) -> RecordFile:
-    """Parse an NPZ archive with arrays ``x``, ``y`` and optional scalar ``fs``; never unpickles."""
-    # np.load would otherwise take a bare .npy or treat unknown bytes as a pickle.
+class RecordTooLargeError(InputError):
+    """The record would unpack to more than the allowed number of bytes."""
+
+
+def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
+    """Parse an NPZ archive with arrays ``x``, ``y`` and optional scalar ``fs``.
+
+    Never unpickles. Each array's size is read from its .npy header before anything is
+    allocated, so a compressed archive cannot unpack to more than ``max_bytes``.
+    """
+    # A bare .npy or arbitrary bytes would otherwise reach numpy's pickle path.
     if not data.startswith(ZIP_MAGIC):
         raise InputError("the file is not a readable NPZ archive")
     try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
-            missing = {"x", "y"} - set(archive.files)
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            names = set(archive.namelist())
+            missing = {"x", "y"} - {name.removesuffix(".npy") for name in names}
             if missing:
                 raise InputError(f"the NPZ lacks array(s) {', '.join(sorted(missing))}; it needs 'x' and 'y'")
-            x, y = archive["x"], archive["y"]
-            fs = _sampling_rate(archive["fs"]) if "fs" in archive.files else None
+            remaining = max_bytes if max_bytes is not None else np.inf
+            x = _read_member(archive, "x", remaining)
+            y = _read_member(archive, "y", remaining - x.nbytes)
+            fs = _sampling_rate(_read_member(archive, "fs", np.inf)) if "fs.npy" in names else None
     except InputError:
         raise
-    except (zipfile.BadZipFile, OSError, EOFError):
+    except zipfile.BadZipFile:
         raise InputError("the file is not a readable NPZ archive") from None
-    except ValueError as exc:
-        raise InputError(f"the NPZ holds data that cannot be loaded safely ({exc})") from None
+    except (OSError, EOFError, ValueError, KeyError) as exc:
+        raise InputError(f"the NPZ archive is damaged or not made by numpy ({exc})") from None
     for name, array in (("x", x), ("y", y)):
-        if not isinstance(array, np.ndarray):  # a zip member that is not a .npy file
-            raise InputError(f"NPZ member {name!r} is not a numpy array")
         if array.dtype.kind not in "iuf":
             raise InputError(f"NPZ array {name!r} must be numeric, got dtype {array.dtype}")
     return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs)
+
+
+def _read_member(archive: zipfile.ZipFile, name: str, limit: float) -> np.ndarray:
+    """One .npy member, refused before allocation if it holds more than ``limit`` bytes."""
+    with archive.open(f"{name}.npy") as stream:
+        version = np.lib.format.read_magic(stream)
+        read_header = {
+            (1, 0): np.lib.format.read_array_header_1_0,
+            (2, 0): np.lib.format.read_array_header_2_0,
+        }
+        if version not in read_header:
+            raise InputError(f"NPZ member {name!r} has an unsupported .npy version {version}")
+        shape, fortran_order, dtype = read_header[version](stream)
+        if dtype.hasobject:
+            raise InputError(f"NPZ member {name!r} holds Python objects, which are never unpickled")
+        size = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        if size > limit:
+            raise RecordTooLargeError(
+                f"the NPZ's arrays unpack to more than the upload limit ({name!r}: {size} bytes)"
+            )
+        raw = stream.read(size)
+        if len(raw) != size:
+            raise InputError(f"NPZ member {name!r} is shorter than its header says")
+    return np.frombuffer(raw, dtype=dtype).reshape(shape, order="F" if fortran_order else "C")
 
 
 def _sampling_rate(value: object) -> float:

@@ -69,7 +69,7 @@ def test_csv_nan_parses_so_validation_can_name_the_sample():
 def test_npz_with_pickled_objects_is_refused():
     buffer = io.BytesIO()
     np.savez(buffer, x=np.array([{"a": 1}], dtype=object), y=np.zeros(1))
-    with pytest.raises(InputError, match="cannot be loaded safely"):
+    with pytest.raises(InputError, match="never unpickled"):
         parse_npz(buffer.getvalue())
 
 
@@ -121,3 +121,15 @@ def test_npz_member_that_is_not_an_array_is_refused():
         archive.writestr("y.npy", b"not an array")
     with pytest.raises(InputError):
         parse_npz(buffer.getvalue())
+
+
+def test_npz_that_unpacks_beyond_the_limit_is_refused_before_loading():
+    from simulator.recordfile import RecordTooLargeError
+
+    pattern = np.tile([0.0, 1.0], 500_000)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, x=pattern, y=pattern)
+    assert len(buffer.getvalue()) < 100_000
+    with pytest.raises(RecordTooLargeError, match="upload limit"):
+        parse_npz(buffer.getvalue(), max_bytes=1_000_000)
+    assert parse_npz(buffer.getvalue(), max_bytes=16_000_000).x.size == 1_000_000

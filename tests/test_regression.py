@@ -114,3 +114,9 @@ def test_too_few_rows_raise(rows: int) -> None:
     rng = np.random.default_rng(8)
     with pytest.raises(InputError, match=f"{rows} usable samples cannot determine 3 parameters"):
         least_squares(rng.normal(size=(rows, 3)), rng.normal(size=rows))
+
+
+def test_overflowing_regressor_is_named() -> None:
+    Phi = np.column_stack([np.linspace(1, 2, 50), np.full(50, np.inf)])
+    with pytest.raises(InputError, match="regressor b overflows"):
+        least_squares(Phi, np.ones(50), ["a", "b"])

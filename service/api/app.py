@@ -6,15 +6,18 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI, Request, status
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import OperationalError
 
 from models.errors import InputError
 from service.api import health, modelling, records, structures
+from service.api.limits import BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
 from service.domain.errors import ConflictError, NotFoundError
 from service.migrate import upgrade_database
+from simulator.recordfile import RecordTooLargeError
 
 API_PREFIX = "/api/v1"
 
@@ -42,6 +45,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in (structures.router, modelling.router, records.router):
         app.include_router(router, prefix=API_PREFIX)
     _add_error_handlers(app)
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     return app
 
 
@@ -49,9 +53,20 @@ def _add_error_handlers(app: FastAPI) -> None:
     def answer(code: int, message: str) -> JSONResponse:
         return JSONResponse({"detail": message}, status_code=code)
 
+    @app.exception_handler(RecordTooLargeError)
+    async def too_large(_: Request, exc: RecordTooLargeError) -> JSONResponse:
+        return answer(status.HTTP_413_CONTENT_TOO_LARGE, str(exc))
+
     @app.exception_handler(InputError)
     async def input_error(_: Request, exc: InputError) -> JSONResponse:
         return answer(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:
+        # Where and why, but never the input itself: it may not even be encodable (a lone
+        # surrogate) and echoing it back serves no one.
+        errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
+        return JSONResponse({"detail": errors}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
     @app.exception_handler(NotFoundError)
     async def not_found(_: Request, exc: NotFoundError) -> JSONResponse:

@@ -8,13 +8,18 @@ from typing import Annotated
 from fastapi import Path
 
 from models.errors import InputError
+from service.schemas import MAX_ID
 
-# Bounded so that no id can overflow a 64-bit database integer.
-IdPath = Annotated[int, Path(ge=1, le=2**62)]
+IdPath = Annotated[int, Path(ge=1, le=MAX_ID)]
 
 
-def require_timezone(value: dt.datetime | None, name: str) -> dt.datetime | None:
-    """A naive timestamp is ambiguous across sites: refuse it rather than guess a zone."""
-    if value is not None and value.tzinfo is None:
+def utc(value: dt.datetime | None, name: str) -> dt.datetime | None:
+    """The time in UTC. A naive timestamp is ambiguous across sites: refused, not guessed."""
+    if value is None:
+        return None
+    if value.tzinfo is None:
         raise InputError(f"{name} needs a timezone, e.g. 2026-11-21T10:00:00Z")
-    return value
+    try:
+        return value.astimezone(dt.UTC)
+    except OverflowError:
+        raise InputError(f"{name} lies outside the years 1 to 9999 once converted to UTC") from None

@@ -10,8 +10,8 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
-from service.api.params import IdPath, require_timezone
-from service.api.uploads import REQUEST_BODY, Upload, parse_upload, read_body
+from service.api.params import IdPath, utc
+from service.api.uploads import REQUEST_BODY, Upload, parse_upload
 from service.config import Settings
 from service.domain import inspections, records, structures
 from service.schemas import RecordOut, VerdictOut
@@ -40,8 +40,10 @@ async def upload_record(
     ] = None,
 ) -> RecordOut:
     """Upload a record as JSON, CSV or NPZ; a re-upload of the same data returns the stored one."""
-    body = await read_body(request, settings.max_upload_bytes)
-    upload = parse_upload(body, request.headers.get("content-type", ""), acquired_at)
+    body = await request.body()  # bounded by the BodyLimitMiddleware
+    upload = parse_upload(
+        body, request.headers.get("content-type", ""), acquired_at, settings.max_upload_bytes
+    )
     out, created = await run_in_threadpool(
         _store, session, principal, settings, structure_id, upload, inspect
     )
@@ -76,14 +78,13 @@ def _store(
     inspect: bool,
 ) -> tuple[RecordOut, bool]:
     structure = structures.get_structure(session, principal, structure_id)
-    require_timezone(upload.acquired_at, "acquired_at")
     record, created = records.store_record(
         session,
         structure,
         upload.x,
         upload.y,
         upload.fs,
-        upload.acquired_at,
+        utc(upload.acquired_at, "acquired_at"),
         records.minimum_samples(settings.lags),
     )
     verdict = inspections.inspect_record(session, record, structure, settings)[0] if inspect else None

@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, status
 
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
-from service.api.params import IdPath, require_timezone
+from service.api.params import IdPath, utc
 from service.domain import history, structures
 from service.schemas import StructureCreate, StructureOut, Summary, VerdictPage
 
@@ -47,7 +47,7 @@ def fault_history(
     ] = None,
     end: Annotated[dt.datetime | None, Query(description="Acquired before (ISO 8601 with zone)")] = None,
     status_filter: Annotated[history.Status | None, Query(alias="status")] = None,
-    fault_mode: Annotated[str | None, Query(max_length=100)] = None,
+    fault_mode: Annotated[str | None, Query(max_length=100, pattern=r"^[A-Za-z0-9_.\-]+$")] = None,
     cursor: Annotated[str | None, Query(max_length=200)] = None,
     limit: Annotated[int | None, Query(ge=1, le=1000)] = None,
 ) -> VerdictPage:
@@ -56,8 +56,8 @@ def fault_history(
         session,
         principal,
         structure_id,
-        start=require_timezone(start, "start"),
-        end=require_timezone(end, "end"),
+        start=utc(start, "start"),
+        end=utc(end, "end"),
         status=status_filter,
         fault_mode=fault_mode,
         cursor=cursor,

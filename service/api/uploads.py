@@ -6,7 +6,7 @@ import datetime as dt
 from dataclasses import dataclass
 
 import numpy as np
-from fastapi import HTTPException, Request, status
+from fastapi import HTTPException, status
 from pydantic import ValidationError
 
 from models.errors import InputError
@@ -35,25 +35,11 @@ class Upload:
     acquired_at: dt.datetime | None
 
 
-async def read_body(request: Request, limit: int) -> bytes:
-    """The request body, refused with 413 as soon as it exceeds ``limit`` bytes."""
-    declared = request.headers.get("content-length")
-    if declared is not None:
-        if not declared.isdigit():
-            raise HTTPException(status.HTTP_400_BAD_REQUEST, "the Content-Length header is not a number")
-        if int(declared) > limit:
-            raise _too_large(limit)
-    chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limit:
-            raise _too_large(limit)
-        chunks.append(chunk)
-    return b"".join(chunks)
+def parse_upload(body: bytes, content_type: str, acquired_at: dt.datetime | None, max_bytes: int) -> Upload:
+    """A record from a body of the given media type; 415 for any other type.
 
-
-def parse_upload(body: bytes, content_type: str, acquired_at: dt.datetime | None) -> Upload:
-    """A record from a body of the given media type; 415 for any other type."""
+    ``max_bytes`` bounds the arrays an NPZ may unpack to, as the body limit bounds the body.
+    """
     media = content_type.split(";")[0].strip().lower()
     if media == JSON:
         try:
@@ -64,7 +50,7 @@ def parse_upload(body: bytes, content_type: str, acquired_at: dt.datetime | None
     if media == CSV:
         parsed = parse_csv(body)
     elif media in NPZ_TYPES:
-        parsed = parse_npz(body)
+        parsed = parse_npz(body, max_bytes)
     else:
         raise HTTPException(
             status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
@@ -80,10 +66,3 @@ def _describe(error: ValidationError) -> str:
         parts.append(f"{where}: {item['msg']}")
     more = error.error_count() - len(parts)
     return "invalid record: " + "; ".join(parts) + (f"; and {more} more" if more > 0 else "")
-
-
-def _too_large(limit: int) -> HTTPException:
-    return HTTPException(
-        status.HTTP_413_REQUEST_ENTITY_TOO_LARGE,
-        f"the upload exceeds the limit of {limit} bytes (NARXWATCH_MAX_UPLOAD_BYTES)",
-    )

@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session, selectinload
 from models.errors import InputError
 from service.domain.inspections import verdict_out
 from service.domain.structures import get_structure
-from service.schemas import Summary, TrendPoint, VerdictPage
+from service.schemas import MAX_ID, Summary, TrendPoint, VerdictPage
 from service.security import Principal
 from service.tables import Verdict
 
@@ -124,8 +124,8 @@ def _decode(cursor: str) -> tuple[dt.datetime, int]:
     try:
         at, verdict_id = base64.urlsafe_b64decode(cursor.encode()).decode().split("|")
         moment = dt.datetime.fromisoformat(at)
-        if moment.tzinfo is None:
+        if moment.tzinfo is None or not 0 < int(verdict_id) <= MAX_ID:
             raise ValueError
-        return moment, int(verdict_id)
-    except (ValueError, binascii.Error, UnicodeDecodeError):
+        return moment.astimezone(dt.UTC), int(verdict_id)
+    except (ValueError, OverflowError, binascii.Error, UnicodeDecodeError):
         raise InputError("the cursor is not one this service issued; use next_cursor from a page") from None

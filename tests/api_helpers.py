@@ -1,0 +1,235 @@
+"""Shared set-up for the HTTP tests: structures, records, trained fault-mode models, and a check
+that a refused request left nothing behind.
+
+Everything goes through the API of a :class:`live.LiveServer`; nothing here touches the database.
+"""
+
+from __future__ import annotations
+
+import ast
+import io
+import itertools
+import json
+import sys
+import threading
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+import numpy as np
+from live import LiveServer
+
+from service.security import Role
+from simulator.paper import StudySettings
+from simulator.simulate import SimulatedRecord, simulate
+
+API = "/api/v1"
+FS = 1500.0
+SETTINGS = StudySettings()
+# Magnitudes of the fault-mode training experiments: three are enough for a degree-1 basis
+# (two functions) and keep each training to a fraction of a second.
+TRAINING_K = (-30.0, 0.0, 30.0)
+TRAINING_SAMPLES = 2000
+_noise_seeds = itertools.count(1_000_000)
+
+# CPython 3.11 keeps the AST constructor's recursion depth in interpreter-wide state, so two
+# threads parsing at once can fail with "SystemError: AST constructor recursion depth mismatch"
+# (pytest-dev/pytest#10763, python/cpython#106905). Here they do: the server thread logs each 500
+# with a traceback, whose carets 3.11 places with ast.parse, while pytest parses sources to report
+# the failing test, and the INTERNALERROR ends the session. Parsing is serialised to avoid it.
+if sys.version_info < (3, 12) and not hasattr(ast.parse, "serialised"):
+    _parse, _parsing = ast.parse, threading.RLock()
+
+    def _serialised_parse(*args: Any, **kwargs: Any) -> Any:
+        with _parsing:
+            return _parse(*args, **kwargs)
+
+    _serialised_parse.serialised = True  # type: ignore[attr-defined]
+    ast.parse = _serialised_parse  # type: ignore[assignment]
+
+
+# --- bodies ---------------------------------------------------------------------------------
+
+
+def noise(n: int, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Two unrelated white signals of ``n`` samples: a valid record, never inspected."""
+    rng = np.random.default_rng(next(_noise_seeds) if seed is None else seed)
+    return rng.normal(0.0, 1.0, n), rng.normal(0.0, 1e-3, n)
+
+
+def json_body(n: int = 300, *, fs: float = FS, seed: int | None = None, **extra: Any) -> dict[str, Any]:
+    x, y = noise(n, seed)
+    return {"x": x.tolist(), "y": y.tolist(), "fs": fs, **extra}
+
+
+def npz_bytes(**arrays: Any) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def csv_text(x: np.ndarray, y: np.ndarray, fs: float | None = FS) -> str:
+    head = f"# fs={fs:g}\n" if fs is not None else ""
+    return head + "x,y\n" + "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(x, y, strict=True))
+
+
+def raw_json(document: Any) -> bytes:
+    """JSON as Python writes it: non-finite floats become the non-standard NaN/Infinity tokens."""
+    return json.dumps(document).encode()
+
+
+# --- requests -------------------------------------------------------------------------------
+
+
+def records_url(structure_id: int) -> str:
+    return f"{API}/structures/{structure_id}/records"
+
+
+def post_record(
+    client: httpx.Client,
+    structure_id: int,
+    body: dict[str, Any] | bytes | str,
+    content_type: str | None = None,
+    **params: Any,
+) -> httpx.Response:
+    """Upload ``body`` (a dict is sent as JSON) with the given Content-Type."""
+    if isinstance(body, dict):
+        content: bytes | str = raw_json(body)
+        content_type = content_type or "application/json"
+    else:
+        content = body
+    headers = {"Content-Type": content_type} if content_type is not None else {}
+    return client.post(records_url(structure_id), content=content, headers=headers, params=params)
+
+
+def upload_simulated(client: httpx.Client, structure_id: int, record: SimulatedRecord, **params: Any) -> dict:
+    response = post_record(
+        client, structure_id, npz_bytes(x=record.x, y=record.y, fs=record.fs), "application/x-npz", **params
+    )
+    assert response.status_code in (200, 201), response.text
+    return response.json()
+
+
+def simulated(fault: str, k: float, seed: Any, n: int = TRAINING_SAMPLES) -> SimulatedRecord:
+    return simulate(SETTINGS.scenario(fault, k), n, np.random.SeedSequence(seed))  # type: ignore[arg-type]
+
+
+def create_structure(admin: httpx.Client, name: str | None = None, fs: float = FS) -> dict:
+    response = admin.post(f"{API}/structures", json={"name": name or f"rig-{uuid.uuid4().hex[:8]}", "fs": fs})
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+def experiments(
+    ingest: httpx.Client, structure_id: int, mode: str, seed: int, magnitudes: tuple[float, ...] = TRAINING_K
+) -> list[dict]:
+    """Upload one simulated training record per magnitude; the experiments of a training body."""
+    return [
+        {"record_id": upload_simulated(ingest, structure_id, simulated(mode, k, [seed, i]))["id"], "k": k}
+        for i, k in enumerate(magnitudes)
+    ]
+
+
+def train_fault_mode(
+    admin: httpx.Client,
+    ingest: httpx.Client,
+    structure_id: int,
+    mode: str = "k2",
+    seed: int = 1,
+    **extra: Any,
+) -> dict:
+    """Train (a new version of) fault mode ``mode`` from three simulated experiments."""
+    body = {
+        "name": mode,
+        "k_min": -32.0,
+        "k_max": 32.0,
+        "experiments": experiments(ingest, structure_id, mode, seed),
+        **extra,
+    }
+    response = admin.post(f"{API}/structures/{structure_id}/models/fault-modes", json=body)
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+def detail(response: httpx.Response) -> str:
+    """The ``detail`` of an error answer as one string (validation errors are a list)."""
+    value = response.json()["detail"]
+    return value if isinstance(value, str) else json.dumps(value)
+
+
+# --- organisations --------------------------------------------------------------------------
+
+
+@dataclass
+class Org:
+    """An organisation's API keys; clients are opened per use so that no test inherits a
+    connection another test's server error left broken."""
+
+    server: LiveServer
+    name: str
+    keys: dict[str, str]
+
+    @classmethod
+    def create(cls, server: LiveServer) -> Org:
+        name = f"org-{uuid.uuid4().hex[:12]}"
+        return cls(server, name, {role.name: server.key(role, name) for role in Role})
+
+    def client(self, role: str) -> httpx.Client:
+        return self.server.client(self.keys[role])
+
+
+@contextmanager
+def clients(org: Org) -> Iterator[tuple[httpx.Client, httpx.Client, httpx.Client]]:
+    """(admin, ingest, viewer) clients of ``org``, closed afterwards."""
+    opened = tuple(org.client(role) for role in ("admin", "ingest", "viewer"))
+    try:
+        yield opened  # type: ignore[misc]
+    finally:
+        for client in opened:
+            client.close()
+
+
+# --- nothing half-written -------------------------------------------------------------------
+
+
+def _state(admin: httpx.Client, structure_id: int) -> dict[str, Any]:
+    def get(path: str) -> Any:
+        response = admin.get(f"{API}{path}")
+        assert response.status_code == 200, response.text
+        return response.json()
+
+    return {
+        "structures": get("/structures"),
+        "models": get(f"/structures/{structure_id}/models"),
+        "verdicts": get(f"/structures/{structure_id}/verdicts?limit=1000"),
+        "summary": get(f"/structures/{structure_id}/summary")["counts"],
+    }
+
+
+def sentinel_record(ingest: httpx.Client, structure_id: int) -> int:
+    """Store a fresh record and return its id: ids are increasing, so any record stored
+    between two sentinels has an id between theirs."""
+    response = post_record(ingest, structure_id, json_body(300))
+    assert response.status_code == 201, response.text
+    return response.json()["id"]
+
+
+@contextmanager
+def nothing_written(org: Org, structure_id: int) -> Iterator[None]:
+    """Assert that the requests made inside the block created no structure, model, verdict or
+    record: the listings are unchanged, and every record id allocated between a sentinel record
+    stored before and one stored after is unknown (404)."""
+    with clients(org) as (admin, ingest, _):
+        before = _state(admin, structure_id)
+        first = sentinel_record(ingest, structure_id)
+        yield
+        assert _state(admin, structure_id) == before, "a refused request changed what the API lists"
+        last = sentinel_record(ingest, structure_id)
+        assert first < last
+        assert last - first < 200, "implausibly many record ids allocated by refused requests"
+        for record_id in range(first + 1, last):
+            response = ingest.post(f"{API}/records/{record_id}/inspect")
+            assert response.status_code == 404, f"record {record_id} was stored: {response.text}"
