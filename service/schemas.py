@@ -8,6 +8,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat, StrictInt
 
 from models.basis import FAMILIES
+from models.inspection import ModeResult
 
 Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f]+$")]
 ModeName = Annotated[str, Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_.\-]+$")]
@@ -93,21 +94,6 @@ class RecordUpload(Strict):
     acquired_at: AwareDatetime | None = None
 
 
-class ModeOut(BaseModel):
-    name: str
-    k_hat: float
-    sigma_k: float
-    sigma_k_record: float
-    z: float
-    detects: bool
-    residual_variance: float
-    q: float
-    q_critical: float
-    p_value: float
-    accepted: bool
-    at_range_limit: bool
-
-
 class ModelRef(BaseModel):
     id: int
     name: str
@@ -133,7 +119,7 @@ class VerdictOut(BaseModel):
     z_critical: float
     q_critical_detection: float
     detected_by: list[str]
-    modes: list[ModeOut]
+    modes: list[ModeResult]
     model_versions: list[ModelRef]
 
 

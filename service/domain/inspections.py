@@ -8,13 +8,13 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, selectinload
 
-from models.inspection import inspect
+from models.inspection import ModeResult, inspect
 from service.config import Settings
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.modelling import active_fault_modes
 from service.domain.records import signals
 from service.domain.structures import get_structure
-from service.schemas import ModelRef, ModeOut, VerdictOut
+from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
 from service.tables import Record, Structure, Verdict
 
@@ -108,7 +108,7 @@ def verdict_out(verdict: Verdict) -> VerdictOut:
         z_critical=verdict.z_critical,
         q_critical_detection=verdict.q_critical_detection,
         detected_by=verdict.detected_by,
-        modes=[ModeOut(**mode) for mode in verdict.modes],
+        modes=[ModeResult(**mode) for mode in verdict.modes],
         model_versions=[
             ModelRef(id=m.id, name=m.name, version=m.version)
             for m in sorted(verdict.models, key=lambda m: m.name)
