@@ -5,14 +5,19 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 
 
 class Base(DeclarativeBase):
     pass
+
+
+_INSERTS = {"sqlite": sqlite.insert, "postgresql": postgresql.insert}
 
 
 def make_engine(url: str) -> Engine:
@@ -26,9 +31,6 @@ def make_engine(url: str) -> Engine:
 
     @event.listens_for(engine, "connect")
     def _configure(connection, _record) -> None:  # type: ignore[no-untyped-def]
-        # pysqlite begins and commits transactions on its own, which turns SAVEPOINT release
-        # into a commit of the whole request; SQLAlchemy takes over transaction control instead.
-        connection.isolation_level = None
         cursor = connection.cursor()
         # WAL lets readers proceed during a write; NORMAL sync is durable across process
         # crashes (fsync at checkpoints), which is what a monitoring record store needs.
@@ -37,11 +39,22 @@ def make_engine(url: str) -> Engine:
         cursor.execute("PRAGMA foreign_keys=ON")
         cursor.close()
 
-    @event.listens_for(engine, "begin")
-    def _begin(connection) -> None:  # type: ignore[no-untyped-def]
-        connection.exec_driver_sql("BEGIN")
-
     return engine
+
+
+def insert_unless_exists(
+    session: Session, model: type[Base], values: dict[str, Any], unique: list[str]
+) -> int | None:
+    """``INSERT … ON CONFLICT DO NOTHING``: the new row's id, or None if the unique columns match a row.
+
+    Concurrent duplicates (the same upload twice, a redelivered inspection) are settled by the
+    database without savepoints. pysqlite turns a savepoint's release into a commit, and it
+    starts a transaction only at the first write: that keeps SQLite's write lock short and lets
+    writers wait for it instead of failing.
+    """
+    dialect = session.get_bind().dialect.name
+    statement = _INSERTS[dialect](model).values(**values).on_conflict_do_nothing(index_elements=unique)
+    return session.execute(statement.returning(model.id)).scalar_one_or_none()  # type: ignore[attr-defined]
 
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:

@@ -4,19 +4,19 @@ from __future__ import annotations
 
 from dataclasses import asdict
 
-from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import insert, select
 from sqlalchemy.orm import Session, selectinload
 
 from models.inspection import ModeResult, inspect
 from service.config import Settings
+from service.db import insert_unless_exists
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.modelling import active_fault_modes
 from service.domain.records import signals
 from service.domain.structures import get_structure
 from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
-from service.tables import Record, Structure, Verdict
+from service.tables import Record, Structure, Verdict, VerdictModel
 
 
 def inspect_record(
@@ -39,7 +39,7 @@ def inspect_record(
         return existing, False
     x, y = signals(record)
     result = inspect(x, y, [model for _, model in active], alpha=settings.alpha, lags=settings.lags)
-    verdict = Verdict(
+    values = dict(
         record_id=record.id,
         structure_id=structure.id,
         acquired_at=record.acquired_at,
@@ -59,17 +59,17 @@ def inspect_record(
         q_critical_detection=result.q_critical_detection,
         detected_by=list(result.detected_by),
         modes=[asdict(mode) for mode in result.modes],
-        models=[version for version, _ in active],
     )
-    try:
-        with session.begin_nested():
-            session.add(verdict)
-    except IntegrityError:  # the same inspection finished concurrently: keep the first
+    verdict_id = insert_unless_exists(session, Verdict, values, ["record_id", "model_set"])
+    if verdict_id is None:  # the same inspection finished concurrently: keep the first
         found = _find(session, record.id, model_set)
         if found is None:
-            raise
+            raise RuntimeError(f"verdict of record {record.id} conflicted but cannot be found")
         return found, False
-    return verdict, True
+    session.execute(
+        insert(VerdictModel), [{"verdict_id": verdict_id, "model_version_id": v.id} for v, _ in active]
+    )
+    return session.get_one(Verdict, verdict_id, options=[selectinload(Verdict.models)]), True
 
 
 def get_verdict(session: Session, principal: Principal, verdict_id: int) -> Verdict:

@@ -152,9 +152,9 @@ def _new_version(
         statistics=statistics,
         active=True,
     )
+    session.add(version)
     try:
-        with session.begin_nested():
-            session.add(version)
-    except IntegrityError:
+        session.flush()
+    except IntegrityError:  # the request fails whole: its session is rolled back
         raise ConflictError(f"another version of {name!r} was created at the same moment; retry") from None
     return version

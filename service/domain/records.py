@@ -8,11 +8,11 @@ import io
 
 import numpy as np
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
 from models.signals import checked_record
+from service.db import insert_unless_exists
 from service.domain.errors import NotFoundError
 from service.domain.structures import get_structure
 from service.security import Principal
@@ -56,24 +56,19 @@ def store_record(
     existing = _find(session, structure.id, sha)
     if existing is not None:
         return existing, False
-    record = Record(
-        structure_id=structure.id,
-        fs=rate,
-        n_samples=len(xa),
-        acquired_at=acquired_at or utcnow(),
-        sha256=sha,
-        x=_npy(xa),
-        y=_npy(ya),
-    )
-    try:
-        with session.begin_nested():
-            session.add(record)
-    except IntegrityError:  # the same data arrived concurrently: keep the first
-        found = _find(session, structure.id, sha)
-        if found is None:
-            raise
-        return found, False
-    return record, True
+    values = {
+        "structure_id": structure.id,
+        "fs": rate,
+        "n_samples": len(xa),
+        "acquired_at": acquired_at or utcnow(),
+        "sha256": sha,
+        "x": _npy(xa),
+        "y": _npy(ya),
+    }
+    record_id = insert_unless_exists(session, Record, values, ["structure_id", "sha256"])
+    if record_id is None:  # the same data arrived concurrently: keep the first
+        return _find_or_fail(session, structure.id, sha), False
+    return session.get_one(Record, record_id), True
 
 
 def get_record(session: Session, principal: Principal, record_id: int) -> Record:
@@ -89,6 +84,13 @@ def get_record(session: Session, principal: Principal, record_id: int) -> Record
 
 def signals(record: Record) -> tuple[np.ndarray, np.ndarray]:
     return _load(record.x), _load(record.y)
+
+
+def _find_or_fail(session: Session, structure_id: int, sha: str) -> Record:
+    found = _find(session, structure_id, sha)
+    if found is None:  # a conflict with a row that is not there: nothing sensible to answer
+        raise RuntimeError(f"record {sha} conflicted but cannot be found")
+    return found
 
 
 def _find(session: Session, structure_id: int, sha: str) -> Record | None:

@@ -16,10 +16,10 @@ def create_structure(session: Session, principal: Principal, body: StructureCrea
     structure = Structure(
         organisation_id=principal.organisation_id, name=body.name, fs=body.fs, description=body.description
     )
+    session.add(structure)
     try:
-        with session.begin_nested():
-            session.add(structure)
-    except IntegrityError:
+        session.flush()
+    except IntegrityError:  # the request fails whole: its session is rolled back
         raise ConflictError(f"a structure named {body.name!r} already exists in your organisation") from None
     return structure
 
