@@ -44,8 +44,9 @@ def make_engine(url: str) -> Engine:
 
 def insert_unless_exists(
     session: Session, model: type[Base], values: dict[str, Any], unique: list[str]
-) -> int | None:
-    """``INSERT … ON CONFLICT DO NOTHING``: the new row's id, or None if the unique columns match a row.
+) -> Any | None:
+    """``INSERT … ON CONFLICT DO NOTHING``: the new row's ``id`` and ``created_at``, or None if
+    the unique columns match an existing row.
 
     Concurrent duplicates (the same upload twice, a redelivered inspection) are settled by the
     database without savepoints. pysqlite turns a savepoint's release into a commit, and it
@@ -54,7 +55,8 @@ def insert_unless_exists(
     """
     dialect = session.get_bind().dialect.name
     statement = _INSERTS[dialect](model).values(**values).on_conflict_do_nothing(index_elements=unique)
-    return session.execute(statement.returning(model.id)).scalar_one_or_none()  # type: ignore[attr-defined]
+    returning = statement.returning(model.id, model.created_at)  # type: ignore[attr-defined]
+    return session.execute(returning).one_or_none()
 
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:

@@ -59,7 +59,7 @@ def inspect_record(
     """Inspect a stored record with every active fault-mode model of its structure."""
     record = records.get_record(session, principal, record_id)
     structure = structures.get_structure(session, principal, record.structure_id)
-    verdict, _ = inspections.inspect_record(session, record, structure, settings)
+    verdict = inspections.inspect_record(session, record, structure, settings)
     session.commit()
     return inspections.verdict_out(verdict)
 
@@ -78,6 +78,7 @@ def _store(
     inspect: bool,
 ) -> tuple[RecordOut, bool]:
     structure = structures.get_structure(session, principal, structure_id)
+    evaluation = inspections.evaluate(session, structure, settings, upload.x, upload.y) if inspect else None
     record, created = records.store_record(
         session,
         structure,
@@ -87,7 +88,9 @@ def _store(
         utc(upload.acquired_at, "acquired_at"),
         records.minimum_samples(settings.lags),
     )
-    verdict = inspections.inspect_record(session, record, structure, settings)[0] if inspect else None
+    verdict = (
+        inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
+    )
     session.commit()
     return _record_out(record, created, verdict), created
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 
+from numpy.typing import ArrayLike
 from sqlalchemy import insert, select
 from sqlalchemy.orm import Session, selectinload
 
 from models.inspection import ModeResult, inspect
+from models.inspection import Verdict as InspectionVerdict
 from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain.errors import ConflictError, NotFoundError
@@ -16,16 +18,25 @@ from service.domain.records import signals
 from service.domain.structures import get_structure
 from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
-from service.tables import Record, Structure, Verdict, VerdictModel
+from service.tables import ModelVersion, Record, Structure, Verdict, VerdictModel
 
 
-def inspect_record(
-    session: Session, record: Record, structure: Structure, settings: Settings
-) -> tuple[Verdict, bool]:
-    """The verdict of a record under the structure's active fault-mode models; True when new.
+@dataclass(frozen=True)
+class Evaluation:
+    """A verdict computed but not yet stored, with the model versions that gave it."""
 
-    A record already inspected with the same model versions keeps its verdict, so repeating
-    an inspection (or a redelivered job) changes nothing.
+    versions: list[ModelVersion]
+    model_set: str
+    result: InspectionVerdict
+
+
+def evaluate(
+    session: Session, structure: Structure, settings: Settings, x: ArrayLike, y: ArrayLike
+) -> Evaluation:
+    """Run the chain with the structure's active fault-mode models; reads, never writes.
+
+    Kept apart from storing so that an upload computes its verdict before its first write:
+    SQLite then holds its write lock only for the inserts.
     """
     active = active_fault_modes(session, structure)
     if not active:
@@ -33,12 +44,29 @@ def inspect_record(
             f"structure {structure.name!r} has no active fault-mode model: train one with "
             f"POST /api/v1/structures/{structure.id}/models/fault-modes"
         )
-    model_set = ",".join(str(version.id) for version, _ in sorted(active, key=lambda item: item[0].id))
-    existing = _find(session, record.id, model_set)
-    if existing is not None:
-        return existing, False
-    x, y = signals(record)
     result = inspect(x, y, [model for _, model in active], alpha=settings.alpha, lags=settings.lags)
+    versions = [version for version, _ in active]
+    return Evaluation(versions, ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id)), result)
+
+
+def inspect_record(session: Session, record: Record, structure: Structure, settings: Settings) -> Verdict:
+    """The verdict of a stored record under the structure's active fault-mode models."""
+    return store_verdict(session, record, structure, evaluate(session, structure, settings, *signals(record)))
+
+
+def store_verdict(
+    session: Session, record: Record, structure: Structure, evaluation: Evaluation, new_record: bool = False
+) -> Verdict:
+    """Persist an evaluation as the record's verdict, unless one with the same models exists.
+
+    A record already inspected with the same model versions keeps its verdict, so repeating
+    an inspection (or a redelivered job) changes nothing. A record stored by this very request
+    (``new_record``) cannot have a verdict yet, so none is looked for.
+    """
+    existing = None if new_record else _find(session, record.id, evaluation.model_set)
+    if existing is not None:
+        return existing
+    result, model_set = evaluation.result, evaluation.model_set
     values = dict(
         record_id=record.id,
         structure_id=structure.id,
@@ -60,16 +88,17 @@ def inspect_record(
         detected_by=list(result.detected_by),
         modes=[asdict(mode) for mode in result.modes],
     )
-    verdict_id = insert_unless_exists(session, Verdict, values, ["record_id", "model_set"])
-    if verdict_id is None:  # the same inspection finished concurrently: keep the first
+    inserted = insert_unless_exists(session, Verdict, values, ["record_id", "model_set"])
+    if inserted is None:  # the same inspection finished concurrently: keep the first
         found = _find(session, record.id, model_set)
         if found is None:
             raise RuntimeError(f"verdict of record {record.id} conflicted but cannot be found")
-        return found, False
+        return found
+    versions = evaluation.versions
     session.execute(
-        insert(VerdictModel), [{"verdict_id": verdict_id, "model_version_id": v.id} for v, _ in active]
+        insert(VerdictModel), [{"verdict_id": inserted.id, "model_version_id": v.id} for v in versions]
     )
-    return session.get_one(Verdict, verdict_id, options=[selectinload(Verdict.models)]), True
+    return Verdict(id=inserted.id, created_at=inserted.created_at, models=versions, **values)
 
 
 def get_verdict(session: Session, principal: Principal, verdict_id: int) -> Verdict:

@@ -65,10 +65,11 @@ def store_record(
         "x": _npy(xa),
         "y": _npy(ya),
     }
-    record_id = insert_unless_exists(session, Record, values, ["structure_id", "sha256"])
-    if record_id is None:  # the same data arrived concurrently: keep the first
+    inserted = insert_unless_exists(session, Record, values, ["structure_id", "sha256"])
+    if inserted is None:  # the same data arrived concurrently: keep the first
         return _find_or_fail(session, structure.id, sha), False
-    return session.get_one(Record, record_id), True
+    # Built from what was written rather than read back: the blobs need no second trip.
+    return Record(id=inserted.id, created_at=inserted.created_at, **values), True
 
 
 def get_record(session: Session, principal: Principal, record_id: int) -> Record:
