@@ -17,14 +17,16 @@ What it does, in order:
 4. Four phases, each after a warm-up on the same connections: (a) the real upload
    ``POST /api/v1/structures/{id}/records?inspect=true`` at concurrency 1 (latency), (b) the same
    at concurrency C (sustained throughput), (c) and (d) the no-op at concurrency 1 and C. Every
-   connection is an ``httpx.Client`` with keep-alive in its own thread; latency is measured on
-   the client, from sending the request to having read the whole answer.
+   connection is an ``httpx.Client`` with keep-alive in its own thread (``--reconnect-every N``:
+   a new connection after every N requests); latency is measured on the client, from sending the
+   request to having read the whole answer.
 5. Checks that every real upload created a record and a verdict: the verdicts' ``total`` of the
    structure's summary and the record ids paged from its verdict history must match the
    successful uploads, and (after the server stopped) the ``records`` table must have grown by
    exactly that many rows.
 
-It prints a table (p50, p95, p99, max, throughput, errors, client and server CPU), the real/no-op
+It prints a table (p50, p95, p99, max, throughput, errors, client and server CPU, each worker's
+share), a CPU probe of the machine's speed before and after the load, the real/no-op
 ratios and one "target met / missed" line per speed target. The exit status is non-zero when any
 request failed (a non-2xx answer, a transport error, or an upload that was not created and
 inspected) or the database check does not match; missing a speed target only prints "missed".
@@ -75,6 +77,7 @@ NOOP_PATH = "/bench/noop"  # bench/noop_app.py (not imported here: the client ne
 SERVER_APP = "bench.noop_app:create_app_with_noop"
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 REQUEST_TIMEOUT = 60.0  # seconds
+CLOSE = {"Connection": "close"}
 ACCESS_LINE = re.compile(r'^INFO: +[0-9.]+:[0-9]+ - "')
 
 
@@ -167,9 +170,9 @@ class Server:
                     )
                 time.sleep(0.1)
 
-    def cpu_seconds(self) -> float:
-        """User + system CPU time of the server and all its live descendants (its workers)."""
-        return sum(_process_cpu(pid) for pid in _descendants(self.process.pid))
+    def cpu_seconds(self) -> dict[int, float]:
+        """User + system CPU time of the server and each of its live descendants (its workers), by pid."""
+        return {pid: _process_cpu(pid) for pid in _descendants(self.process.pid)}
 
     def log_tail(self, lines: int = 30, access: bool = True) -> str:
         """The log's last lines; without uvicorn's access-log lines unless ``access``."""
@@ -192,6 +195,22 @@ class Server:
                     os.killpg(self.process.pid, signal.SIGKILL)
                 self.process.wait(timeout=10)
         self._log.close()
+
+
+def cpu_probe_ms() -> float:
+    """A fixed pure-Python loop (best of 3, ms): the machine's speed of the moment.
+
+    On a shared virtual machine one core's speed can drift by a third within minutes, which
+    moves every figure here with it; the probe before and after a run shows how far.
+    """
+
+    def once() -> float:
+        started, total = time.perf_counter(), 0
+        for i in range(1_000_000):
+            total += i * i
+        return (time.perf_counter() - started) * 1000
+
+    return min(once() for _ in range(3))
 
 
 def machine_busy() -> float:
@@ -247,6 +266,7 @@ class Phase:
     elapsed: float = 0.0
     client_cpu: float = 0.0
     server_cpu: float = 0.0
+    process_cpu: list[float] = field(default_factory=list)  # cores, busiest server process first
     other_cpu: float = 0.0
 
     @property
@@ -307,18 +327,21 @@ def run_phase(
     feed: Feed,
     warmup: int,
     duration: float | None,
+    reconnect_every: int,
     stop: threading.Event,
 ) -> None:
-    """``phase.concurrency`` threads, one keep-alive connection each: warm-up, barrier, load."""
+    """``phase.concurrency`` threads, one keep-alive connection each: warm-up, barrier, load.
+
+    With ``reconnect_every`` > 0 each thread's every n-th request asks the server to close the
+    connection, so that the thread's next request comes on a new one.
+    """
     concurrency = phase.concurrency
     clock: dict[str, float] = {}
+    before: dict[int, float] = {}
 
     def start_measuring() -> None:  # run by the last thread to reach the barrier, before any goes on
-        clock["cpu"], clock["server"], clock["machine"] = (
-            time.process_time(),
-            server.cpu_seconds(),
-            machine_busy(),
-        )
+        before.update(server.cpu_seconds())
+        clock["cpu"], clock["machine"] = time.process_time(), machine_busy()
         clock["start"] = time.perf_counter()
         feed.begin(clock["start"] + duration if duration else None)
 
@@ -327,10 +350,12 @@ def run_phase(
     lock = threading.Lock()
     headers = {"Authorization": f"Bearer {key}", "Content-Type": "application/json"}
 
-    def send(client: httpx.Client, index: int, record_ids: list[int], measured: bool) -> None:
+    def send(
+        client: httpx.Client, index: int, record_ids: list[int], measured: bool, close: bool = False
+    ) -> None:
         started = time.perf_counter()
         try:
-            response = client.post(phase.path, content=payloads[index])
+            response = client.post(phase.path, content=payloads[index], headers=CLOSE if close else None)
             elapsed_ms = (time.perf_counter() - started) * 1000
             status: int | str = response.status_code
             problem = None
@@ -359,16 +384,21 @@ def run_phase(
                 phase.warmup_failures.append(problem)
 
     def worker(warm_limit: int) -> None:
+        client = httpx.Client(base_url=server.url, headers=headers, timeout=REQUEST_TIMEOUT)
         try:
-            with httpx.Client(base_url=server.url, headers=headers, timeout=REQUEST_TIMEOUT) as client:
-                for _ in range(warm_each):
-                    index = feed.take(warm_limit)
-                    if index is None or stop.is_set():
-                        break
-                    send(client, index, phase.warmup_record_ids, measured=False)
-                barrier.wait()
-                while not stop.is_set() and (index := feed.take()) is not None:
-                    send(client, index, phase.record_ids, measured=True)
+            for _ in range(warm_each):
+                index = feed.take(warm_limit)
+                if index is None or stop.is_set():
+                    break
+                send(client, index, phase.warmup_record_ids, measured=False)
+            barrier.wait()
+            sent = 0
+            while not stop.is_set() and (index := feed.take()) is not None:
+                sent += 1
+                # "Connection: close" ends this connection after the answer; the next request
+                # opens a new one, which may land on another worker process.
+                last = reconnect_every > 0 and sent % reconnect_every == 0
+                send(client, index, phase.record_ids, measured=True, close=last)
         except threading.BrokenBarrierError:
             return
         except Exception as exc:  # a bug here must end the phase, not leave the others waiting
@@ -376,6 +406,8 @@ def run_phase(
                 phase.warmup_failures.append(f"load thread failed: {type(exc).__name__}: {exc}")
             stop.set()
             barrier.abort()
+        finally:
+            client.close()
 
     warm_limit = feed.used + warm_each * concurrency
     threads = [
@@ -400,7 +432,10 @@ def run_phase(
         return
     phase.elapsed = time.perf_counter() - clock["start"]
     phase.client_cpu = (time.process_time() - clock["cpu"]) / phase.elapsed
-    phase.server_cpu = (server.cpu_seconds() - clock["server"]) / phase.elapsed
+    after = server.cpu_seconds()
+    used = sorted(((cpu - before.get(pid, 0.0)) / phase.elapsed for pid, cpu in after.items()), reverse=True)
+    phase.server_cpu = sum(used)
+    phase.process_cpu = [share for share in used if share >= 0.02]
     busy = (machine_busy() - clock["machine"]) / phase.elapsed
     phase.other_cpu = max(0.0, busy - phase.client_cpu - phase.server_cpu)
 
@@ -447,7 +482,9 @@ def count_records(database: Path, structure_id: int) -> int:
         return connection.execute(query, (structure_id,)).fetchone()[0]
 
 
-def report(phases: list[Phase], args: argparse.Namespace, payload_bytes: int, access_log: bool) -> None:
+def report(
+    phases: list[Phase], args: argparse.Namespace, payload_bytes: int, access_log: bool, probes: list[float]
+) -> None:
     cores = os.cpu_count()
     print()
     print(
@@ -455,10 +492,15 @@ def report(phases: list[Phase], args: argparse.Namespace, payload_bytes: int, ac
         f"access log {'on' if access_log else 'off'}; {SAMPLES}-sample JSON records "
         f"(~{payload_bytes / 1024:.0f} KiB each), client and server on the same machine"
     )
+    print(
+        "CPU probe (1e6-step Python loop, best of 3) before / after the load: "
+        + " / ".join(f"{probe:.1f} ms" for probe in probes)
+        + "; compare runs only at similar probe times"
+    )
     header = (
         f"{'phase':<5} {'endpoint':<20} {'conc':>4} {'requests':>8} {'errors':>6} {'p50 ms':>7} "
         f"{'p95 ms':>7} {'p99 ms':>7} {'max ms':>7} {'req/s':>7}  {'CPU client':>10} {'server':>6} "
-        f"{'other':>6} {'server ms/req':>13}"
+        f"{'other':>6} {'server ms/req':>13}  {'by process':<12}"
     )
     print(header)
     print("-" * len(header))
@@ -467,12 +509,21 @@ def report(phases: list[Phase], args: argparse.Namespace, payload_bytes: int, ac
             f"{p.label:<5} {p.endpoint:<20} {p.concurrency:>4} {p.completed:>8} {p.errors:>6} "
             f"{p.percentile(50):>7.2f} {p.percentile(95):>7.2f} {p.percentile(99):>7.2f} "
             f"{max(p.latencies_ms, default=float('nan')):>7.1f} {p.throughput:>7.1f}  "
-            f"{p.client_cpu:>10.0%} {p.server_cpu:>6.0%} {p.other_cpu:>6.0%} {_server_ms(p):>13}"
+            f"{p.client_cpu:>10.0%} {p.server_cpu:>6.0%} {p.other_cpu:>6.0%} {_server_ms(p):>13}  "
+            + "/".join(f"{share * 100:.0f}" for share in p.process_cpu)
         )
     print(
         f"CPU: 100 % = one core of {cores}. 'client' is this load generator (it competes with the server "
-        "for the same cores), 'server' all uvicorn processes, 'other' everything else on the machine."
+        "for the same cores), 'server' all uvicorn processes ('by process': each one's share, in %), "
+        "'other' everything else on the machine."
     )
+    uneven = [p for p in phases if p.concurrency > 1 and _uneven(p, args.workers)]
+    if uneven:
+        print(
+            f"WARNING: in phase(s) {', '.join(p.label for p in uneven)} one worker process did most of "
+            "the work: the connections landed unevenly on the workers (a keep-alive connection stays "
+            "with the worker that accepted it). Repeat the run, or pass --reconnect-every N."
+        )
     busiest = max(phases, key=lambda p: p.other_cpu)
     if busiest.other_cpu > 0.15:
         print(
@@ -507,6 +558,12 @@ def report(phases: list[Phase], args: argparse.Namespace, payload_bytes: int, ac
     )
 
 
+def _uneven(phase: Phase, workers: int) -> bool:
+    """True when, with several workers, one did more than 3/4 of the server's work."""
+    busy = [share for share in phase.process_cpu if share >= 0.05]
+    return workers > 1 and bool(busy) and busy[0] > 0.75 * phase.server_cpu and phase.server_cpu > 0.5
+
+
 def _per_request(phase: Phase) -> float:
     """Server CPU milliseconds per successful request."""
     return phase.server_cpu / phase.throughput * 1000 if phase.throughput > 0 else float("nan")
@@ -529,7 +586,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--requests", type=int, default=1000, help="measured requests per phase (default 1000)"
     )
     parser.add_argument(
-        "--concurrency", type=int, default=6, help="connections of phases b and d (default 6)"
+        "--concurrency", type=int, default=8, help="connections of phases b and d (default 8)"
     )
     parser.add_argument("--workers", type=int, default=2, help="uvicorn worker processes (default 2)")
     parser.add_argument(
@@ -537,6 +594,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="measure each phase for S seconds instead (still at most --requests requests)",
     )  # fmt: skip
     parser.add_argument("--warmup", type=int, default=50, help="warm-up requests per phase (default 50)")
+    parser.add_argument(
+        "--reconnect-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="open a new connection after every N requests (default 0: keep each connection; uvicorn "
+        "never moves a keep-alive connection to another worker, so a few connections can load one worker)",
+    )
     parser.add_argument("--server-log", type=Path, default=None, help="keep a copy of the server's log here")
     parser.add_argument("--seed", type=int, default=20260101, help="seed of the simulated records")
     parser.add_argument(
@@ -545,6 +610,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="run uvicorn without its access log (narxwatch serve has one)",
     )
     args = parser.parse_args(argv)
+    if args.reconnect_every < 0:
+        parser.error("--reconnect-every must be 0 or more")
     for name in ("requests", "concurrency", "workers"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be at least 1")
@@ -602,6 +669,7 @@ def main(argv: list[str] | None = None) -> int:
             payloads = make_payloads(real_needed, args.seed)
             mean_size = sum(len(p) for p in payloads) / len(payloads)
 
+            probes = [cpu_probe_ms()]
             server = Server(env, args.workers, Path(folder) / "server.log", access_log)
             say(f"starting {SERVER_APP} on {server.url} with {args.workers} worker(s)")
             server.wait_ready()
@@ -618,10 +686,13 @@ def main(argv: list[str] | None = None) -> int:
             for phase in phases:
                 say(f"phase {phase.label}: {phase.endpoint}, concurrency {phase.concurrency} ...")
                 feed = real_feed if phase.real else noop_feed
-                run_phase(phase, server, key, payloads, feed, args.warmup, args.duration, stop)
+                run_phase(
+                    phase, server, key, payloads, feed, args.warmup, args.duration, args.reconnect_every, stop
+                )
                 say(f"    {phase.completed} requests in {phase.elapsed:.1f} s, {phase.errors} failed")
 
-            report(phases, args, int(mean_size), access_log)
+            probes.append(cpu_probe_ms())
+            report(phases, args, int(mean_size), access_log, probes)
 
             uploaded = {i for p in phases if p.real for i in (*p.record_ids, *p.warmup_record_ids)}
             try:

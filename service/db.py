@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import fcntl
+import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -53,10 +55,50 @@ def insert_unless_exists(
     starts a transaction only at the first write: that keeps SQLite's write lock short and lets
     writers wait for it instead of failing.
     """
+    table = model.__table__
     dialect = session.get_bind().dialect.name
-    statement = _INSERTS[dialect](model).values(**values).on_conflict_do_nothing(index_elements=unique)
-    returning = statement.returning(model.id, model.created_at)  # type: ignore[attr-defined]
-    return session.execute(returning).one_or_none()
+    statement = _INSERTS[dialect](table).on_conflict_do_nothing(index_elements=unique)
+    returning = statement.returning(table.c.id, table.c.created_at)
+    return session.execute(returning, values).one_or_none()
+
+
+class WriterGate:
+    """One writer at a time on a SQLite file, across the threads and processes that share it.
+
+    SQLite admits one writer; the others retry on its busy handler, which sleeps 1, 2, 5, 10 …
+    ms between tries, so under load a writer often sleeps past the moment the lock came free.
+    Writers that queue here instead (a thread lock, then an advisory ``flock`` on a file next
+    to the database) are woken as soon as the previous one committed.
+    """
+
+    def __init__(self, database: Path) -> None:
+        self._threads = threading.Lock()
+        self._path = database.with_name(database.name + ".writer")
+
+    @contextmanager
+    def held(self) -> Iterator[None]:
+        with self._threads, self._path.open("a") as handle:
+            fcntl.flock(handle, fcntl.LOCK_EX)  # released when the file closes
+            yield
+
+
+_GATES: dict[str, WriterGate] = {}
+
+
+def writer_gate(session: Session) -> WriterGate | None:
+    """The gate of the session's SQLite file, or None where the database has no single-writer lock."""
+    url = session.get_bind().url
+    if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
+        return None
+    return _GATES.setdefault(url.database, WriterGate(Path(url.database).resolve()))
+
+
+@contextmanager
+def writing(session: Session) -> Iterator[None]:
+    """Hold the writer gate, if the database has one, around a session's writes and their commit."""
+    gate = writer_gate(session)
+    with gate.held() if gate is not None else nullcontext():
+        yield
 
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:

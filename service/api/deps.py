@@ -15,7 +15,8 @@ from service.security import Principal, Role, authenticate
 bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer nw_…`")
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
+    # async: a plain attribute read needs no trip through the thread pool.
     return request.app.state.settings
 
 

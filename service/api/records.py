@@ -7,16 +7,13 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
-from sqlalchemy.orm import Session
 
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
 from service.api.params import IdPath, utc
-from service.api.uploads import REQUEST_BODY, Upload, parse_upload
-from service.config import Settings
+from service.api.uploads import REQUEST_BODY, parse_upload
 from service.domain import inspections, records, structures
+from service.domain.ingest import Ingested, ingest_record
 from service.schemas import RecordOut, VerdictOut
-from service.security import Principal
-from service.tables import Record, Verdict
 
 router = APIRouter(tags=["records"])
 
@@ -44,12 +41,21 @@ async def upload_record(
     upload = parse_upload(
         body, request.headers.get("content-type", ""), acquired_at, settings.max_upload_bytes
     )
-    out, created = await run_in_threadpool(
-        _store, session, principal, settings, structure_id, upload, inspect
+    ingested = await run_in_threadpool(
+        ingest_record,
+        session,
+        principal,
+        settings,
+        structure_id,
+        upload.x,
+        upload.y,
+        upload.fs,
+        utc(upload.acquired_at, "acquired_at"),
+        inspect,
     )
-    if not created:
+    if not ingested.created:
         response.status_code = status.HTTP_200_OK
-    return out
+    return _record_out(ingested)
 
 
 @router.post("/records/{record_id}/inspect")
@@ -60,7 +66,6 @@ def inspect_record(
     record = records.get_record(session, principal, record_id)
     structure = structures.get_structure(session, principal, record.structure_id)
     verdict = inspections.inspect_record(session, record, structure, settings)
-    session.commit()
     return inspections.verdict_out(verdict)
 
 
@@ -69,33 +74,8 @@ def get_verdict(verdict_id: IdPath, principal: Viewer, session: SessionDep) -> V
     return inspections.verdict_out(inspections.get_verdict(session, principal, verdict_id))
 
 
-def _store(
-    session: Session,
-    principal: Principal,
-    settings: Settings,
-    structure_id: int,
-    upload: Upload,
-    inspect: bool,
-) -> tuple[RecordOut, bool]:
-    structure = structures.get_structure(session, principal, structure_id)
-    evaluation = inspections.evaluate(session, structure, settings, upload.x, upload.y) if inspect else None
-    record, created = records.store_record(
-        session,
-        structure,
-        upload.x,
-        upload.y,
-        upload.fs,
-        utc(upload.acquired_at, "acquired_at"),
-        records.minimum_samples(settings.lags),
-    )
-    verdict = (
-        inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
-    )
-    session.commit()
-    return _record_out(record, created, verdict), created
-
-
-def _record_out(record: Record, created: bool, verdict: Verdict | None) -> RecordOut:
+def _record_out(ingested: Ingested) -> RecordOut:
+    record, verdict = ingested.record, ingested.verdict
     return RecordOut(
         id=record.id,
         structure_id=record.structure_id,
@@ -104,6 +84,6 @@ def _record_out(record: Record, created: bool, verdict: Verdict | None) -> Recor
         acquired_at=record.acquired_at,
         created_at=record.created_at,
         sha256=record.sha256,
-        created=created,
+        created=ingested.created,
         verdict=inspections.verdict_out(verdict) if verdict is not None else None,
     )

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session, selectinload
 from models.inspection import ModeResult, inspect
 from models.inspection import Verdict as InspectionVerdict
 from service.config import Settings
-from service.db import insert_unless_exists
+from service.db import insert_unless_exists, writing
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.modelling import active_fault_modes
 from service.domain.records import signals
@@ -50,8 +50,15 @@ def evaluate(
 
 
 def inspect_record(session: Session, record: Record, structure: Structure, settings: Settings) -> Verdict:
-    """The verdict of a stored record under the structure's active fault-mode models."""
-    return store_verdict(session, record, structure, evaluate(session, structure, settings, *signals(record)))
+    """The verdict of a stored record under the structure's active fault-mode models; commits.
+
+    Computed first, then stored under the writer gate (see ``service.db.writing``).
+    """
+    evaluation = evaluate(session, structure, settings, *signals(record))
+    with writing(session):
+        verdict = store_verdict(session, record, structure, evaluation)
+        session.commit()
+    return verdict
 
 
 def store_verdict(
@@ -96,7 +103,8 @@ def store_verdict(
         return found
     versions = evaluation.versions
     session.execute(
-        insert(VerdictModel), [{"verdict_id": inserted.id, "model_version_id": v.id} for v in versions]
+        insert(VerdictModel.__table__),
+        [{"verdict_id": inserted.id, "model_version_id": v.id} for v in versions],
     )
     return Verdict(id=inserted.id, created_at=inserted.created_at, models=versions, **values)
 

@@ -53,9 +53,6 @@ def store_record(
             f"{structure.fs:g} Hz; resample it or register a structure at that rate"
         )
     sha = content_hash(xa, ya, rate)
-    existing = _find(session, structure.id, sha)
-    if existing is not None:
-        return existing, False
     values = {
         "structure_id": structure.id,
         "fs": rate,
@@ -65,8 +62,9 @@ def store_record(
         "x": _npy(xa),
         "y": _npy(ya),
     }
+    # Inserted first, looked up only on conflict: a new record, the common case, costs one statement.
     inserted = insert_unless_exists(session, Record, values, ["structure_id", "sha256"])
-    if inserted is None:  # the same data arrived concurrently: keep the first
+    if inserted is None:  # uploaded before, or concurrently: keep the first
         return _find_or_fail(session, structure.id, sha), False
     # Built from what was written rather than read back: the blobs need no second trip.
     return Record(id=inserted.id, created_at=inserted.created_at, **values), True
