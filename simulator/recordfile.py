@@ -3,6 +3,9 @@
 CSV: an optional first comment line ``# fs=1500``, a header ``x,y``, then one ``x,y`` pair a
 line. NPZ: arrays ``x`` and ``y`` and a scalar ``fs``, loaded without pickle. Parsing works on
 bytes so that an upload and a file on disk go through the same checks.
+
+The Silverbox benchmark's CSV files (Wigren & Schoukens 2013) are read as they are published:
+input ``V1`` as x, output ``V2`` as y, at fs = 10⁷/2¹⁴ Hz.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 from models.errors import InputError
 
 FORMATS = (".csv", ".npz")
+SILVERBOX_FS = 1e7 / 2**14  # Hz: the benchmark's 10 MHz clock divided by 2¹⁴
 ZIP_MAGIC = b"PK\x03\x04"
 _FS_COMMENT = re.compile(r"^#\s*fs\s*=\s*(?P<fs>\S+)\s*$", re.IGNORECASE)
 
@@ -111,6 +115,30 @@ def parse_csv(data: bytes | str) -> RecordFile:
     if count == 0:
         raise InputError("the CSV has a header but no data rows")
     return RecordFile(values[:count, 0].copy(), values[:count, 1].copy(), fs)
+
+
+def parse_silverbox(data: bytes | str) -> RecordFile:
+    """Parse a Silverbox CSV (``SNLS80mV.csv``, ``Schroeder80mV.csv``): columns ``V1`` and ``V2``.
+
+    Other columns (the overload flags, the empty one a trailing comma makes) are ignored.
+    """
+    try:
+        text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
+    except UnicodeDecodeError:
+        raise InputError("the Silverbox file is not UTF-8 text") from None
+    header, _, body = text.partition("\n")
+    names = [cell.strip().strip('"') for cell in header.split(",")]
+    if "V1" not in names or "V2" not in names:
+        raise InputError(f"a Silverbox file has columns 'V1' and 'V2'; the header is {header.strip()!r}")
+    if not body.strip():
+        raise InputError("the Silverbox file has a header but no data rows")
+    try:
+        values = np.loadtxt(
+            io.StringIO(body), delimiter=",", usecols=(names.index("V1"), names.index("V2")), ndmin=2
+        )
+    except ValueError as exc:
+        raise InputError(f"the Silverbox file has a row that is not numbers ({exc})") from None
+    return RecordFile(values[:, 0].copy(), values[:, 1].copy(), SILVERBOX_FS)
 
 
 class RecordTooLargeError(InputError):

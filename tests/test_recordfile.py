@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
 
 import numpy as np
 import pytest
+from conftest import SILVERBOX_SHA256
 
 from models.errors import InputError
-from simulator.recordfile import dump_csv, dump_npz, parse_csv, parse_npz, read_record, write_record
+from simulator.recordfile import (
+    dump_csv,
+    dump_npz,
+    parse_csv,
+    parse_npz,
+    parse_silverbox,
+    read_record,
+    write_record,
+)
 
 
 @pytest.fixture
@@ -133,3 +143,33 @@ def test_npz_that_unpacks_beyond_the_limit_is_refused_before_loading():
     with pytest.raises(RecordTooLargeError, match="upload limit"):
         parse_npz(buffer.getvalue(), max_bytes=1_000_000)
     assert parse_npz(buffer.getvalue(), max_bytes=16_000_000).x.size == 1_000_000
+
+
+@pytest.mark.parametrize("name", sorted(SILVERBOX_SHA256))
+def test_silverbox_files_read_as_published(silverbox_dir, name):
+    data = (silverbox_dir / name).read_bytes()
+    assert hashlib.sha256(data).hexdigest() == SILVERBOX_SHA256[name], "not the published file"
+    record = parse_silverbox(data)
+    assert record.fs == 1e7 / 2**14
+    assert len(record.x) == len(record.y) == 131_072
+    # The first and last data rows, read independently of the parser.
+    rows = [line.split(",") for line in data.decode().splitlines() if line.strip()]
+    header = [cell.strip('"') for cell in rows[0]]
+    v1, v2 = header.index("V1"), header.index("V2")
+    assert (record.x[0], record.y[0]) == (float(rows[1][v1]), float(rows[1][v2]))
+    assert (record.x[-1], record.y[-1]) == (float(rows[-1][v1]), float(rows[-1][v2]))
+    assert np.all(np.isfinite(record.x)) and np.all(np.isfinite(record.y))
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ('"x","y",\n1,2,\n', "columns 'V1' and 'V2'"),
+        ('"V1","V2",\n1,2,\n3,volts,\n', "not numbers"),
+        ('"V1","V2",\n', "no data rows"),
+        (b"\xff\xfe", "not UTF-8"),
+    ],
+)
+def test_malformed_silverbox_file_is_refused_with_the_reason(content, message):
+    with pytest.raises(InputError, match=message):
+        parse_silverbox(content)
