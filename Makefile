@@ -3,6 +3,10 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# SysIdentPy, the independent FROLS bench/bench_frols.py compares with, caps numpy below the
+# version narxwatch runs on: it gets an environment of its own instead of downgrading .venv.
+BENCH_VENV  := .venv-bench
+BENCH_STAMP := $(BENCH_VENV)/.installed
 
 .PHONY: run test lint bench reproduce clean
 
@@ -21,6 +25,12 @@ run: $(STAMP)
 	@echo
 	$(BIN)/narxwatch serve --host 127.0.0.1 --port 8000
 
+$(BENCH_STAMP): pyproject.toml
+	$(PYTHON) -m venv $(BENCH_VENV)
+	$(BENCH_VENV)/bin/pip install --quiet --upgrade pip
+	$(BENCH_VENV)/bin/pip install --quiet -e '.[bench]'
+	touch $(BENCH_STAMP)
+
 reproduce: $(STAMP)
 	$(BIN)/narxwatch reproduce --out var/reproduce
 
@@ -33,9 +43,10 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-bench: $(STAMP)
+bench: $(STAMP) $(BENCH_STAMP)
 	$(BIN)/pytest bench --benchmark-only --benchmark-columns=min,median,max,rounds
+	$(BENCH_VENV)/bin/python bench/bench_frols.py
 
 
 clean:
-	rm -rf $(VENV) var .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(BENCH_VENV) var .pytest_cache .ruff_cache

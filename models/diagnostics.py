@@ -1,11 +1,28 @@
-"""Residual diagnostics: sample autocorrelation and the Ljung–Box whiteness test."""
+"""Residual diagnostics: sample autocorrelation, Ljung–Box, and the whole battery at once.
+
+:func:`autocorrelation` and :func:`ljung_box` serve the inspection chain; :func:`residual_report`
+runs Ljung–Box, the correlation tests of :mod:`models.correlation_tests` and the spectral test of
+:mod:`models.spectrum` at one overall false-alarm rate.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import special
+
+from models.correlation_tests import (
+    BillingsVoonTests,
+    BillingsZhuTests,
+    CorrelationTest,
+    billings_voon,
+    billings_zhu,
+)
+from models.series import checked_series, sidak
+from models.spectrum import ResidualSpectrum, residual_spectrum
 
 
 def autocorrelation(e: np.ndarray, max_lag: int) -> np.ndarray:
@@ -49,4 +66,91 @@ def ljung_box(e: np.ndarray, lags: int = 40, alpha: float = 0.05, model_df: int 
         p_value=float(special.chdtrc(df, q)),
         df=df,
         lags=lags,
+    )
+
+
+REPORT_TESTS = 9  # Ljung–Box, five Billings–Voon, two Billings–Zhu, the spectrum
+SCALAR_CORRELATION_FIELDS = ("definition", "alpha", "statistic", "critical", "passed", "worst_lag", "outside")
+SCALAR_SPECTRUM_FIELDS = ("alpha", "passed", "threshold", "dof", "segments", "peaks")
+
+
+@dataclass(frozen=True, eq=False)
+class ResidualReport:
+    """Every residual test of one record, each at ``test_alpha`` so that the family is at ``alpha``."""
+
+    alpha: float
+    test_alpha: float
+    n_samples: int
+    max_lag: int
+    ljung_box: LjungBoxResult
+    billings_voon: BillingsVoonTests
+    billings_zhu: BillingsZhuTests
+    spectrum: ResidualSpectrum
+
+    @property
+    def correlation_tests(self) -> tuple[CorrelationTest, ...]:
+        return self.billings_voon.tests + self.billings_zhu.tests
+
+    @property
+    def failed(self) -> tuple[str, ...]:
+        """Names of the tests that reject the model, in the report's order."""
+        names = ["ljung_box"] if not self.ljung_box.white else []
+        names += [test.name for test in self.correlation_tests if not test.passed]
+        return tuple(names + ([] if self.spectrum.passed else ["spectrum"]))
+
+    @property
+    def passed(self) -> bool:
+        return not self.failed
+
+    def as_dict(self, series: bool = True) -> dict[str, Any]:
+        """JSON-serialisable figures; ``series=False`` leaves out the correlation functions and spectra."""
+        tests = {}
+        for test in self.correlation_tests:
+            figures = test.as_dict()
+            tests[test.name] = figures if series else {k: figures[k] for k in SCALAR_CORRELATION_FIELDS}
+        spectrum = self.spectrum.as_dict()
+        return {
+            "alpha": self.alpha,
+            "test_alpha": self.test_alpha,
+            "n_samples": self.n_samples,
+            "max_lag": self.max_lag,
+            "passed": self.passed,
+            "failed": list(self.failed),
+            "ljung_box": {**asdict(self.ljung_box), "white": self.ljung_box.white},
+            "correlation_tests": tests,
+            "spectrum": spectrum if series else {k: spectrum[k] for k in SCALAR_SPECTRUM_FIELDS},
+        }
+
+
+def residual_report(
+    u: ArrayLike,
+    y: ArrayLike,
+    e: ArrayLike,
+    fs: float,
+    max_lag: int = 40,
+    alpha: float = 0.05,
+    nperseg: int | None = None,
+) -> ResidualReport:
+    """Run every residual test on one record: u the input, y the output, e(t) = y(t) − ŷ(t).
+
+    The tests are Ljung–Box on ``max_lag`` lags (``model_df`` = 0: no correction for the
+    estimated parameters, which makes Q conservative for a fitted model), the five
+    :func:`billings_voon` tests, the two :func:`billings_zhu` tests and the
+    :func:`residual_spectrum` at sampling frequency ``fs`` [Hz]. ``alpha`` is the level of the
+    whole report: each of the nine tests runs at 1 − (1 − α)^{1/9} (Šidák), so that a valid
+    model fails ``passed`` with probability of about α or less, and a refinement loop can stop
+    on it. The series must be aligned and of equal length (drop the model's start-up samples
+    from all three).
+    """
+    u, y, e = checked_series(max_lag, alpha, u=u, y=y, e=e)
+    test_alpha = sidak(alpha, REPORT_TESTS)
+    return ResidualReport(
+        alpha=float(alpha),
+        test_alpha=test_alpha,
+        n_samples=e.size,
+        max_lag=int(max_lag),
+        ljung_box=ljung_box(e, lags=int(max_lag), alpha=test_alpha, model_df=0),
+        billings_voon=billings_voon(u, e, max_lag, test_alpha),
+        billings_zhu=billings_zhu(u, y, e, max_lag, test_alpha),
+        spectrum=residual_spectrum(e, fs, test_alpha, nperseg),
     )

@@ -151,14 +151,17 @@ def fit_fnarx(
     family: BasisFamily = "chebyshev2",
     size: int = 2,
     k_range: tuple[float, float] | None = None,
+    lag: int | None = None,
 ) -> FNARX:
     """Estimate a fault-mode model from experiments (x, y, k) by Kronecker-stacked OLS.
 
     ``size`` is p, the number of basis functions (p = 2, degree 1, is exact for stiffness
-    faults). ``k_range`` defaults to the smallest and largest experiment magnitude.
+    faults). ``k_range`` defaults to the smallest and largest experiment magnitude. Each
+    experiment contributes its equations t = ``lag`` … N−1; ``lag`` defaults to the largest
+    lag of the terms (structure selection passes its dictionary's, to fit the same equations).
     """
     parsed = parse_terms(terms)
-    L = max_lag(parsed)
+    L = max_lag(parsed) if lag is None else max(lag, max_lag(parsed))
     runs = list(experiments)
     if not runs:
         raise InputError("a fault-mode model needs experiments")

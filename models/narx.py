@@ -68,30 +68,35 @@ class NARX:
         half = z_quantile(level) * self.standard_errors()
         return np.column_stack([self.theta - half, self.theta + half])
 
-    def predict(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
-        """One-step-ahead predictions ŷ[t] = φ[t]ᵀθ for t = L … N−1 (L = ``max_lag``)."""
+    def predict(self, x: ArrayLike, y: ArrayLike, t0: int = 0) -> np.ndarray:
+        """One-step-ahead predictions ŷ[t] = φ[t]ᵀθ for t = L … N−1 (L = ``max_lag``).
+
+        ``t0`` is the sample index of the first sample in the time base of sinusoidal terms
+        (the estimation record's first sample is 0).
+        """
         xa, ya = checked_record(x, y, self.max_lag + 1)
-        Phi, _ = regressor_matrix(self.terms, xa, ya)
+        Phi, _ = regressor_matrix(self.terms, xa, ya, t0=t0)
         return Phi @ self.theta
 
-    def residuals(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
+    def residuals(self, x: ArrayLike, y: ArrayLike, t0: int = 0) -> np.ndarray:
         """One-step-ahead prediction errors e[t] = y[t] − ŷ[t] for t = L … N−1."""
         xa, ya = checked_record(x, y, self.max_lag + 1)
-        Phi, target = regressor_matrix(self.terms, xa, ya)
+        Phi, target = regressor_matrix(self.terms, xa, ya, t0=t0)
         return target - Phi @ self.theta
 
-    def simulate(self, x: ArrayLike, y_initial: ArrayLike) -> np.ndarray:
+    def simulate(self, x: ArrayLike, y_initial: ArrayLike, t0: int = 0) -> np.ndarray:
         """Free-run simulation driven by x, started from the first L samples of ``y_initial``.
 
         Returns the simulated output for every sample (the first L are the initial
         conditions). A model that diverges yields NaN from the sample where it blew up on.
+        ``t0`` as for :meth:`predict`.
         """
         L = self.max_lag
         xa = np.asarray(x, dtype=np.float64)
         y0 = np.asarray(y_initial, dtype=np.float64)[:L]
         if y0.size < L:
             raise InputError(f"free-run simulation needs {L} initial output samples, got {y0.size}")
-        return _free_run(self.terms, self.theta, xa, y0)
+        return _free_run(self.terms, self.theta, xa, y0, t0)
 
     def to_document(self) -> dict[str, Any]:
         """A JSON-compatible, versioned description from which :meth:`from_document` rebuilds it."""
@@ -116,15 +121,19 @@ class NARX:
         return cls(terms, theta, covariance, float(document["sigma2"]), int(document["n_obs"]))
 
 
-def fit_narx(records: Iterable[tuple[ArrayLike, ArrayLike]], terms: Sequence[str | Term]) -> NARX:
+def fit_narx(
+    records: Iterable[tuple[ArrayLike, ArrayLike]], terms: Sequence[str | Term], t0: int = 0
+) -> NARX:
     """Estimate a NARX model by OLS from one or more records.
 
     Each record contributes its own equations t = L … N−1, so lags never reach across the
-    boundary between two records.
+    boundary between two records. Sinusoidal terms count time from sample ``t0`` = 0 of each
+    record, unless ``t0`` says the records start later in that time base.
     """
     parsed = parse_terms(terms)
     L = max_lag(parsed)
-    blocks = [regressor_matrix(parsed, x, y, L) for x, y in checked_records(records, L + len(parsed) + 1)]
+    checked = checked_records(records, L + len(parsed) + 1)
+    blocks = [regressor_matrix(parsed, x, y, L, t0) for x, y in checked]
     Phi = np.vstack([block[0] for block in blocks])
     target = np.concatenate([block[1] for block in blocks])
     fit = least_squares(Phi, target, [t.name for t in parsed])
@@ -143,35 +152,53 @@ def check_document(document: dict[str, Any], kind: str) -> None:
         )
 
 
-def _free_run(terms: Sequence[Term], theta: np.ndarray, x: np.ndarray, y0: np.ndarray) -> np.ndarray:
+def _free_run(
+    terms: Sequence[Term], theta: np.ndarray, x: np.ndarray, y0: np.ndarray, t0: int = 0
+) -> np.ndarray:
     n, L = x.size, y0.size
-    # Terms without y are known in advance; only the autoregressive ones need the loop.
+    times = np.arange(t0, t0 + n, dtype=np.float64)
+
+    def lagged_x(k: int) -> np.ndarray:
+        lagged = np.zeros(n)
+        lagged[k:] = x[: n - k]
+        return lagged
+
+    # Factors without y are known in advance; only the autoregressive ones need the loop.
     exogenous = np.zeros(n)
-    recursive: list[tuple[float, list[int], list[float] | None]] = []
+    recursive: list[tuple[float, list[int], list[tuple[int, str, int]], list[float] | None]] = []
     for term, coefficient in zip(terms, theta, strict=True):
-        x_part = None
-        y_lags: list[int] = []
+        known = None
+        y_lags: list[int] = []  # plain y factors, one entry per power: the fast path
+        derived: list[tuple[int, str, int]] = []  # (lag, function, power) of dy factors
         for factor in term.factors:
-            if factor.signal == "x":
-                lagged = np.zeros(n)
-                lagged[factor.lag :] = x[: n - factor.lag] ** factor.power
-                x_part = lagged if x_part is None else x_part * lagged
-            else:
+            if not factor.autoregressive:
+                values = factor.values(lagged_x, lagged_x, times)  # reads x only (or t)
+                known = values if known is None else known * values
+            elif factor.plain:
                 y_lags.extend([factor.lag] * factor.power)
-        if y_lags:
-            recursive.append((float(coefficient), y_lags, None if x_part is None else x_part.tolist()))
+            else:
+                derived.append((factor.lag, factor.function, factor.power))
+        if y_lags or derived:
+            recursive.append((float(coefficient), y_lags, derived, None if known is None else known.tolist()))
         else:
-            exogenous += coefficient * (1.0 if x_part is None else x_part)
+            exogenous += coefficient * (1.0 if known is None else known)
     out = np.full(n, np.nan)
     out[:L] = y0
     ys = out.tolist()
     drive = exogenous.tolist()
     for t in range(L, n):
         total = drive[t]
-        for coefficient, y_lags, x_part in recursive:
-            value = coefficient if x_part is None else coefficient * x_part[t]
+        for coefficient, y_lags, derived, known in recursive:
+            value = coefficient if known is None else coefficient * known[t]
             for lag in y_lags:
                 value *= ys[t - lag]
+            for lag, function, power in derived:
+                step = ys[t - lag] - ys[t - lag - 1]
+                if function == "abs":
+                    step = abs(step)
+                elif function == "sign":
+                    step = (step > 0) - (step < 0)
+                value *= step**power
             total += value
         if not abs(total) < DIVERGED:
             break

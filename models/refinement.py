@@ -2,62 +2,72 @@
 
 Starting from a declared structure, each round
 
-1. fits the current terms by least squares on the estimation data and takes the residual e;
-2. scores every named candidate effect — a family of regressors with a physical meaning — by
-   how much of e it explains. Within a family, terms enter greedily by their error reduction
-   ratio against e, each after a partial F test
+1. fits the current model on the estimation data and takes its residual e (a NARX by least
+   squares; once moving-average noise terms are in, a NARMAX by extended least squares, whose
+   lagged innovations join the regressors);
+2. scores every named candidate effect — a family of regressors with a physical meaning
+   (:mod:`models.effects`) — by how much of e it explains. Within a family, regressors enter
+   greedily by their error reduction ratio against e, each after a partial F test
    F = (RSS_before − RSS_after) / (RSS_after / (N − p)) ~ F(1, N − p),
-   at the Bonferroni level α / M, where M counts every candidate term of every family in the
-   round: the more regressors are on offer, the stronger the evidence each must bring;
-3. adds the effect that explains most, and repeats until no family has a significant term.
+   at the Bonferroni level α / M, where M counts every candidate regressor of every family in
+   the round: the more regressors are on offer, the stronger the evidence each must bring;
+3. adds the significant effect with the largest fall of the Bayesian information criterion
+   (which charges each effect for its size), and repeats until no family has a significant
+   regressor.
 
 Candidate columns are orthogonalised against the current regressors first (e is orthogonal to
 them already), so each score is the reduction of the residual sum of squares that refitting
-with the new terms would achieve.
+with the new regressors would achieve.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
-from scipy import linalg, special
+from scipy import linalg, signal, special
 
+from models.assessment import Assessment, assess, assessment_dict
+from models.effects import Effect, candidate_effects, offset_direction, offset_terms, periodic_terms, unused
 from models.errors import InputError
+from models.narmax import fit_narmax, invertible
 from models.narx import NARX, fit_narx
-from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
+from models.terms import Term, max_lag, parse_terms, regressor_matrix
 
 DEFAULT_ALPHA = 0.01
 MAX_ROUNDS = 10
-
-
-@dataclass(frozen=True)
-class Effect:
-    """A named physical effect and the regressors that would represent it."""
-
-    name: str
-    description: str
-    terms: tuple[Term, ...]
+NOISE_LAGS_OFFERED = 4  # moving-average lags a round offers beyond those the model has
+# Extended least squares settles in 13–15 iterations on simulated records; on long measured ones
+# its last digits wander for longer without changing what the loop decides.
+NARMAX_ITERATIONS = 30
+GUARD_SAMPLES = 10_000  # estimation samples whose free run an added effect must not make worse
 
 
 @dataclass(frozen=True)
 class EffectScore:
-    """How much of the residual an effect explains with its significant terms.
+    """How much of the residual an effect explains with its significant regressors.
 
-    ``explained`` is the fraction of the residual sum of squares removed; ``terms`` the
-    significant ones in the order they entered, each with its partial F statistic and p-value.
+    ``explained`` is the fraction of the residual sum of squares removed and ``bic_change`` the
+    change of the Bayesian information criterion N·ln(RSS_after/RSS_before) + k·ln N for the k
+    regressors that entered, each with its partial F statistic and p-value; ``terms`` are the
+    terms adding the effect puts into the model (for moving-average noise, the e[t-k] it adds,
+    and ``noise_lags`` the model's moving-average order once it is added).
     """
 
     name: str
+    description: str
     explained: float
+    bic_change: float
     terms: tuple[str, ...]
     f_statistics: tuple[float, ...]
     p_values: tuple[float, ...]
+    noise_lags: int = 0
 
     @property
     def significant(self) -> bool:
-        return bool(self.terms)
+        return bool(self.f_statistics)
 
 
 @dataclass(frozen=True)
@@ -69,14 +79,22 @@ class Round:
     candidates: int  # M
     scores: tuple[EffectScore, ...]
     added: EffectScore | None
+    # Significant effects passed over, best first, because adding them made the model's free
+    # run on the estimation data worse (or diverge).
+    rejected: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
 class Refinement:
-    """The declared and refined models and the rounds that led from one to the other."""
+    """The declared and refined models and the rounds that led from one to the other.
+
+    ``noise`` holds the refined model's moving-average coefficients c_1 … c_q (empty unless
+    moving-average noise was added; ``refined`` is then the process part of a NARMAX).
+    """
 
     declared: NARX
     refined: NARX
+    noise: np.ndarray = field(default_factory=lambda: np.empty(0))
     rounds: tuple[Round, ...] = field(default=())
 
     @property
@@ -84,59 +102,77 @@ class Refinement:
         return tuple(r.added for r in self.rounds if r.added is not None)
 
 
-def linear_terms(ny: int, nx: int, delay: int = 1) -> tuple[Term, ...]:
-    """A linear ARX structure: y[t-1] … y[t-ny] and x[t-delay] … x[t-delay-nx+1]."""
-    if ny < 1 or nx < 1 or delay < 0:
-        raise InputError(
-            f"a linear ARX structure needs ny >= 1, nx >= 1, delay >= 0; got {ny}, {nx}, {delay}"
-        )
-    ys = [Term((Factor("y", lag),)) for lag in range(1, ny + 1)]
-    xs = [Term((Factor("x", lag),)) for lag in range(delay, delay + nx)]
-    return tuple(ys + xs)
+@dataclass(frozen=True)
+class RefinementReport:
+    """A refinement with the declared and refined models' errors on held-out data."""
+
+    refinement: Refinement
+    before: Assessment
+    after: Assessment
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-compatible: effects added in order with their evidence, errors before and after,
+        and both models' terms and parameters. Non-finite numbers (a diverged free run) become None."""
+        result = self.refinement
+        return {
+            "declared": _model_dict(result.declared),
+            "effects_added": [
+                {
+                    "name": score.name,
+                    "description": score.description,
+                    "terms": list(score.terms),
+                    "evidence": {
+                        "explained_fraction": score.explained,
+                        "bic_change": score.bic_change,
+                        "residual_rms_before": step.residual_rms,
+                        "f_statistics": list(score.f_statistics),
+                        "p_values": list(score.p_values),
+                        "level": step.level,
+                        "candidate_terms": step.candidates,
+                    },
+                }
+                for step in result.rounds
+                if (score := step.added) is not None
+            ],
+            "before": assessment_dict(self.before),
+            "after": assessment_dict(self.after),
+            "refined": _model_dict(result.refined) | {"noise_ma": result.noise.tolist()},
+        }
 
 
-def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
-    """The effect families a model with these terms may lack, sized to its lags.
+def refine_record(
+    x: np.ndarray,
+    y: np.ndarray,
+    declared: Sequence[str | Term],
+    estimation: tuple[int, int],
+    test: tuple[int, int],
+    initial: int = 0,
+    alpha: float = DEFAULT_ALPHA,
+    fs: float | None = None,
+) -> RefinementReport:
+    """Refine on samples ``estimation`` = (a, b) of one record, assess both models on ``test``.
 
-    Lags span those of the model (at least 1 … 4 for y): an effect entering the physics on an
-    unmeasured mass reaches the measured response through the same dynamics, at those lags.
+    The first ``initial`` test samples only start the predictions (benchmark protocols
+    prescribe such a start, e.g. 50 samples for Silverbox).
     """
-    y_lags = [f.lag for t in terms for f in t.factors if f.signal == "y"]
-    x_lags = [f.lag for t in terms for f in t.factors if f.signal == "x"]
-    ny = max(y_lags, default=0)
-    lags_y = range(1, max(ny, 4) + 1)
-    lags_x = sorted(set(x_lags)) or [1]
+    n = len(x)
+    for label, (first, last) in (("estimation", estimation), ("test", test)):
+        if not 0 <= first < last <= n:
+            raise InputError(f"the {label} samples {first}:{last} do not lie within the record's {n} samples")
+    if initial < 0:
+        raise InputError(f"the initial samples must be 0 or more, got {initial}")
+    a, b = estimation
+    result = refine(x[a:b], y[a:b], declared, alpha=alpha)
+    c, d = test
+    return RefinementReport(
+        result,
+        assess(result.declared, x[c:d], y[c:d], initial, fs, c - a),
+        assess(result.refined, x[c:d], y[c:d], initial, fs, c - a, result.noise),
+    )
 
-    def powers(signal: str, lags: Sequence[int], power: int) -> tuple[Term, ...]:
-        return tuple(Term((Factor(signal, lag, power),)) for lag in lags)
 
-    first_x = min(lags_x)
-    effects = [
-        Effect(
-            "cubic_stiffness",
-            "a cubic restoring force (hardening or softening spring)",
-            powers("y", lags_y, 3),
-        ),
-        Effect("quadratic_stiffness", "an asymmetric (quadratic) restoring force", powers("y", lags_y, 2)),
-        Effect(
-            "input_nonlinearity",
-            "a nonlinear excitation path (actuator or amplifier), x² and x³",
-            powers("x", lags_x, 2) + powers("x", lags_x, 3),
-        ),
-        Effect(
-            "missing_lags",
-            "dynamics beyond the declared lags, or a shorter input delay",
-            powers("y", [ny + 1, ny + 2], 1)
-            + powers("x", [max(lags_x) + 1] + ([first_x - 1] if first_x > 0 else []), 1),
-        ),
-        Effect("offset", "a constant offset (sensor bias or static load)", (Term(),)),
-    ]
-    present = set(terms)
-    return [
-        Effect(e.name, e.description, kept)
-        for e in effects
-        if (kept := tuple(t for t in e.terms if t not in present))
-    ]
+def _model_dict(model: NARX) -> dict[str, Any]:
+    return {"terms": model.term_names, "theta": model.theta.tolist()}
 
 
 def refine(
@@ -147,68 +183,226 @@ def refine(
     alpha: float = DEFAULT_ALPHA,
     max_rounds: int = MAX_ROUNDS,
 ) -> Refinement:
-    """Refine the declared structure on estimation data (x, y) until no effect is significant."""
+    """Refine the declared structure on estimation data (x, y) until no effect is significant.
+
+    ``effects`` are the families on offer, by default :func:`models.effects.candidate_effects`
+    of the declared terms: sized to the declared lags, so that the loop explains the residual
+    with the declared dynamics rather than by lengthening them round after round. An offset's
+    terms follow the model as it grows.
+    """
     if not 0 < alpha < 1:
         raise InputError(f"alpha must lie in (0, 1), got {alpha}")
     terms = parse_terms(declared)
-    offered = list(effects) if effects is not None else candidate_effects(terms)
-    # One common first row for every model and candidate, so that RSS values compare.
-    lag = max([max_lag(terms)] + [max_lag(e.terms) for e in offered])
-    declared_model = _fit(x, y, terms, lag)
+    families = list(effects) if effects is not None else candidate_effects(terms)
+    _check_length(len(y), terms, families)
+    declared_model, _ = _fit(x, y, terms, 0, max_lag(terms))
+    noise_lags = 0
+    free_run = _free_run_error(declared_model, x, y)
     rounds: list[Round] = []
     for _ in range(max_rounds):
-        remaining = [e for e in offered if any(t not in terms for t in e.terms)]
-        step = _round(x, y, terms, remaining, lag, alpha)
-        rounds.append(step)
-        if step.added is None:
+        offered = unused([_follow(effect, terms) for effect in families], terms)
+        if not offered:
             break
-        terms = terms + parse_terms(step.added.terms)
-    return Refinement(declared_model, _fit(x, y, terms, lag), tuple(rounds))
+        step = _round(x, y, terms, noise_lags, offered, alpha)
+        rejected: list[str] = []
+        for score in sorted((s for s in step.scores if s.significant), key=lambda s: s.bic_change):
+            new_terms = terms if score.noise_lags else terms + parse_terms(score.terms)
+            new_lags = score.noise_lags or noise_lags
+            model, _ = _fit(x, y, new_terms, new_lags, max_lag(new_terms))
+            error = _free_run_error(model, x, y)
+            if error <= free_run:
+                step = replace(step, added=score, rejected=tuple(rejected))
+                terms, noise_lags, free_run = new_terms, new_lags, error
+                break
+            rejected.append(score.name)
+        else:
+            rounds.append(replace(step, rejected=tuple(rejected)))
+            break
+        rounds.append(step)
+    refined, noise = _fit(x, y, terms, noise_lags, max_lag(terms))
+    return Refinement(declared_model, refined, noise, tuple(rounds))
 
 
-def _fit(x: np.ndarray, y: np.ndarray, terms: tuple[Term, ...], lag: int) -> NARX:
-    # fit_narx starts each record at the terms' own largest lag; trimming x and y to the common
-    # first row makes every model see the same equations.
+def _free_run_error(model: NARX, x: np.ndarray, y: np.ndarray) -> float:
+    """RMS error of the model's free run over the first ``GUARD_SAMPLES`` estimation samples
+    (inf if it diverges): an effect that makes the model simulate worse is not added."""
+    n = min(len(y), GUARD_SAMPLES)
+    simulated = model.simulate(x[:n], y[:n])[model.max_lag :]
+    error = float(np.sqrt(np.mean((simulated - y[model.max_lag : n]) ** 2)))
+    return error if np.isfinite(error) else np.inf
+
+
+def _check_length(n: int, terms: tuple[Term, ...], offered: Sequence[Effect]) -> None:
+    lag = max([max_lag(terms)] + [max_lag(e.terms) for e in offered if e.terms])
+    candidates = sum(len(e.terms) for e in offered)
+    needed = lag + 2 * (len(terms) + candidates) + 1
+    if n < needed:
+        raise InputError(
+            f"the estimation part has {n} samples; refining {len(terms)} terms with "
+            f"{candidates} candidates needs at least {needed}"
+        )
+
+
+def _follow(effect: Effect, terms: tuple[Term, ...]) -> Effect:
+    """An output-shift effect brings the terms the current model's offset would."""
+    if effect.kind != "output_shift":
+        return effect
+    return Effect(effect.name, effect.description, offset_terms(terms), effect.kind)
+
+
+def _fit(
+    x: np.ndarray, y: np.ndarray, terms: tuple[Term, ...], noise_lags: int, lag: int
+) -> tuple[NARX, np.ndarray]:
+    """The model on rows t = lag … N−1: a NARX, or with ``noise_lags`` a NARMAX's process part
+    and moving-average coefficients."""
+    # The fits start a record at the terms' own largest lag; trimming x and y to the common
+    # first row makes the model see the same equations as the candidates it is compared with.
     offset = lag - max_lag(terms)
-    return fit_narx([(x[offset:], y[offset:])], terms)
+    if noise_lags:
+        narmax = fit_narmax(
+            [(x[offset:], y[offset:])], terms, noise_lags, max_iter=NARMAX_ITERATIONS, t0=offset
+        )
+        return narmax.process, invertible(narmax.noise)
+    return fit_narx([(x[offset:], y[offset:])], terms, t0=offset), np.empty(0)
+
+
+def _lagged(series: np.ndarray, lags: Sequence[int]) -> np.ndarray:
+    """Columns series[t−k] for each k, zero before the series starts."""
+    columns = np.zeros((series.size, len(lags)))
+    for j, k in enumerate(lags):
+        columns[k:, j] = series[: series.size - k]
+    return columns
 
 
 def _round(
-    x: np.ndarray, y: np.ndarray, terms: tuple[Term, ...], effects: Sequence[Effect], lag: int, alpha: float
+    x: np.ndarray,
+    y: np.ndarray,
+    terms: tuple[Term, ...],
+    noise_lags: int,
+    effects: Sequence[Effect],
+    alpha: float,
 ) -> Round:
+    # One common first row for the model and every candidate, so that the RSS values compare.
+    lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
     Phi, target = regressor_matrix(terms, x, y, lag)
+    if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
+        process, noise = _fit(x, y, terms, noise_lags, lag)
+        innovations = signal.lfilter([1.0], np.concatenate(([1.0], noise)), target - Phi @ process.theta)
+        Phi = np.hstack([Phi, _lagged(innovations, range(1, noise_lags + 1))])
     scale = np.linalg.norm(Phi, axis=0)
-    Q, _ = linalg.qr(Phi / scale, mode="economic")
-    residual = target - Q @ (Q.T @ target)
+    Q, R = linalg.qr(Phi / scale, mode="economic")
+    projection = Q.T @ target
+    residual = target - Q @ projection
+    theta = (linalg.solve_triangular(R, projection) / scale)[: len(terms)]
     n_obs, n_par = Phi.shape
-    candidates = [[t for t in e.terms if t not in terms] for e in effects]
-    total = sum(len(c) for c in candidates)
+    candidates = [_candidates(e, terms, noise_lags, theta, residual, alpha, x, y, lag) for e in effects]
+    total = sum(columns.shape[1] for _, columns in candidates)
     level = alpha / max(total, 1)
-    scores = []
-    for effect, family in zip(effects, candidates, strict=True):
-        columns, _ = regressor_matrix(family, x, y, lag)
-        columns = columns / np.linalg.norm(columns, axis=0)
-        columns -= Q @ (Q.T @ columns)
-        scores.append(_forward(effect.name, family, columns, residual, n_obs - n_par, level))
-    significant = [s for s in scores if s.significant]
-    added = max(significant, key=lambda s: s.explained) if significant else None
-    rms = float(np.sqrt(np.mean(residual**2)))
-    return Round(rms, level, total, tuple(scores), added)
+    # A smooth residual predicts itself, and a coloured one makes spurious regressors look
+    # significant: effects of the signals are judged after the residual's own recent past has
+    # had its say, and moving-average noise after the signals' effects have had theirs. Each
+    # is credited only with what the other cannot explain.
+    own_past = _orthonormal(_lagged(residual, range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED)), Q)
+    scores: dict[int, EffectScore] = {}
+    explaining: list[np.ndarray] = []
+    for index, (effect, (labels, columns)) in enumerate(zip(effects, candidates, strict=True)):
+        if effect.kind != "noise":
+            score, _, chosen_columns = _score(
+                effect, labels, columns, residual, Q, own_past, n_obs - n_par, level
+            )
+            scores[index] = score
+            explaining.append(chosen_columns)
+    signals = _orthonormal(np.hstack([np.empty((n_obs, 0)), *explaining]), Q)
+    for index, (effect, (labels, columns)) in enumerate(zip(effects, candidates, strict=True)):
+        if effect.kind == "noise":
+            score, chosen, _ = _score(effect, labels, columns, residual, Q, signals, n_obs - n_par, level)
+            # The moving-average order becomes the longest lag that entered.
+            scores[index] = replace(score, noise_lags=noise_lags + 1 + max(chosen) if chosen else 0)
+    ordered = [scores[i] for i in range(len(effects))]
+    return Round(float(np.sqrt(np.mean(residual**2))), level, total, tuple(ordered), None)
+
+
+def _orthogonal_part(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Columns minus their projection on the orthonormal Q, by Gram–Schmidt applied twice: once
+    loses orthogonality when a column lies nearly in Q's span, twice is enough (Kahan–Parlett)."""
+    for _ in range(2):
+        columns = columns - Q @ (Q.T @ columns)
+    return columns
+
+
+def _orthonormal(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the columns' part orthogonal to Q (empty for no columns)."""
+    if columns.shape[1] == 0:
+        return columns
+    columns = _orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+    basis, triangle = linalg.qr(columns, mode="economic")
+    return basis[:, np.abs(np.diag(triangle)) > 1e-10]
+
+
+def _score(
+    effect: Effect,
+    labels: list[tuple[str, ...]],
+    columns: np.ndarray,
+    residual: np.ndarray,
+    Q: np.ndarray,
+    given: np.ndarray,
+    dof: int,
+    level: float,
+) -> tuple[EffectScore, list[int], np.ndarray]:
+    """An effect's score against the residual once the model (Q) and ``given`` (orthonormal,
+    orthogonal to Q) are accounted for; the indices of the columns it chose, and those columns
+    (orthogonal to Q)."""
+    columns = _orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+    chosen_from = columns.copy()
+    columns = _orthogonal_part(columns, given)
+    target = residual - given @ (given.T @ residual)
+    chosen, f_values, p_values, explained = _forward(columns, target, dof - given.shape[1], level)
+    added = [label for i in chosen for label in labels[i]]
+    n_obs = len(residual)
+    bic = n_obs * float(np.log1p(-min(explained, 1 - 1e-300))) + len(chosen) * float(np.log(n_obs))
+    score = EffectScore(effect.name, effect.description, explained, bic, tuple(added), f_values, p_values)
+    return score, chosen, chosen_from[:, chosen]
+
+
+def _candidates(
+    effect: Effect,
+    terms: tuple[Term, ...],
+    noise_lags: int,
+    theta: np.ndarray,
+    residual: np.ndarray,
+    alpha: float,
+    x: np.ndarray,
+    y: np.ndarray,
+    lag: int,
+) -> tuple[list[tuple[str, ...]], np.ndarray]:
+    """The regressors an effect is tested with, and for each the term names it adds if it enters."""
+    if effect.kind == "output_shift":
+        return [tuple(t.name for t in effect.terms)], offset_direction(terms, theta, x, y, lag)[:, None]
+    if effect.kind == "noise":
+        lags = range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED)
+        return [(f"e[t-{k}]",) for k in lags], _lagged(residual, lags)
+    found = periodic_terms(residual, alpha) if effect.kind == "periodic" else effect.terms
+    new = [t for t in found if t not in terms]
+    if not new:
+        return [], np.empty((len(residual), 0))
+    return [(t.name,) for t in new], regressor_matrix(new, x, y, lag)[0]
 
 
 def _forward(
-    name: str, family: Sequence[Term], columns: np.ndarray, residual: np.ndarray, dof: int, level: float
-) -> EffectScore:
-    """Greedy selection within one family by error reduction ratio, each term after its F test."""
+    columns: np.ndarray, residual: np.ndarray, dof: int, level: float
+) -> tuple[list[int], tuple[float, ...], tuple[float, ...], float]:
+    """Greedy selection within one family by error reduction ratio, each column after its F test:
+    the columns chosen in order, their F statistics and p-values, and the fraction of the
+    residual sum of squares they explain."""
     rss0 = rss = float(residual @ residual)
     e = residual.copy()
     W = columns.copy()
     chosen: list[int] = []
     f_values: list[float] = []
     p_values: list[float] = []
-    while len(chosen) < len(family):
+    while len(chosen) < W.shape[1]:
         norms = np.einsum("ij,ij->j", W, W)
-        usable = norms > 1e-10  # columns (nearly) in the span of the model or of chosen terms
+        usable = norms > 1e-10  # columns (nearly) in the span of the model or of chosen ones
         usable[chosen] = False
         if not usable.any():
             break
@@ -227,10 +421,4 @@ def _forward(
         f_values.append(float(f_value))
         p_values.append(p_value)
         rss = new_rss
-    return EffectScore(
-        name,
-        1.0 - rss / rss0 if rss0 > 0 else 0.0,
-        tuple(family[i].name for i in chosen),
-        tuple(f_values),
-        tuple(p_values),
-    )
+    return chosen, tuple(f_values), tuple(p_values), (1.0 - rss / rss0 if rss0 > 0 else 0.0)

@@ -1,50 +1,128 @@
-"""Polynomial NARX terms with readable names.
+"""NARX terms with readable names.
 
-A term is a product of lagged signals raised to powers, for example ``y[t-2]^3`` or
-``y[t-1]*x[t-4]``. The empty product is the constant term ``1``. Names parse back to the
-same term, so a model structure can be written by hand, stored as text and read again.
+A term is a product of factors, each a lagged signal raised to a power: ``y[t-2]^3`` or
+``y[t-1]*x[t-4]``. The empty product is the constant term ``1``. Beyond polynomials, so that a
+model can carry the effects physics puts into real structures, a factor may also be
+
+- a first difference of a signal, ``dy[t-1]`` = y[t-1] − y[t-2] (a velocity, for damping),
+  alone or inside ``abs(…)`` or ``sign(…)``: ``sign(dy[t-1])`` is Coulomb friction,
+  ``dy[t-1]*abs(dy[t-1])`` quadratic damping;
+- a sinusoid of the sample index t, ``sin(2pi*0.0125*t)`` or ``cos(…)``, its frequency in
+  cycles per sample: a periodic disturbance, phase-locked to the record's first sample.
+
+Names parse back to the same term, so a model structure can be written by hand, stored as text
+and read again.
 """
 
 from __future__ import annotations
 
+import math
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from models.errors import InputError
 
-SIGNALS = ("y", "x")
+SIGNALS = ("y", "x", "dy", "dx", "sin", "cos")
+FUNCTIONS = ("", "abs", "sign")
+WAVES = ("sin", "cos")
 # Beyond these a term cannot describe a physical structure, and its regressor would overflow
 # or take unbounded time to build.
 MAX_POWER = 9
 MAX_LAG = 10_000
-_FACTOR = re.compile(r"^(?P<signal>[xy])\[t(?:-(?P<lag>\d+))?\](?:\^(?P<power>\d+))?$")
+_LAGGED = re.compile(
+    r"^(?:(?P<function>abs|sign)\((?P<inner>d?[xy])\[t(?:-(?P<inner_lag>\d+))?\]\)"
+    r"|(?P<signal>d?[xy])\[t(?:-(?P<lag>\d+))?\])(?:\^(?P<power>\d+))?$"
+)
+_WAVE = re.compile(r"^(?P<wave>sin|cos)\(2pi\*(?P<frequency>[0-9.eE+-]+)\*t\)(?:\^(?P<power>\d+))?$")
+Lagged = Callable[[int], np.ndarray]
 
 
 @dataclass(frozen=True, order=True)
 class Factor:
-    """One lagged signal raised to a power: ``signal[t-lag]^power``."""
+    """One factor of a term: ``function(signal[t-lag])^power``, or a sinusoid of t.
+
+    ``signal`` is y or x, their first differences dy or dx, or sin or cos; ``function`` is ""
+    (none), "abs" or "sign" and applies to differences only; ``frequency`` (cycles per sample,
+    below 0.5) belongs to sin and cos, whose lag is 0.
+    """
 
     signal: str
     lag: int
     power: int = 1
+    function: str = ""
+    frequency: float = 0.0
 
     def __post_init__(self) -> None:
         if self.signal not in SIGNALS:
-            raise InputError(f"unknown signal {self.signal!r}: a factor uses 'y' or 'x'")
+            raise InputError(f"unknown signal {self.signal!r}: a factor uses y, x, dy, dx, sin or cos")
         if self.signal == "y" and self.lag == 0:
             raise InputError("lag 0 of y is not allowed: y needs a lag >= 1")
+        if self.signal == "dy" and self.lag == 0:
+            raise InputError("lag 0 of dy is not allowed: dy[t-1] = y[t-1] - y[t-2] is the latest")
         if not 0 <= self.lag <= MAX_LAG:
             raise InputError(f"lag {self.lag} of {self.signal} is not allowed: lags run from 0 to {MAX_LAG}")
         if not 1 <= self.power <= MAX_POWER:
             raise InputError(f"power {self.power} is not allowed: powers are >= 1 and at most {MAX_POWER}")
+        if self.function not in FUNCTIONS:
+            raise InputError(f"unknown function {self.function!r}: use abs or sign")
+        if self.function and self.signal not in ("dy", "dx"):
+            raise InputError(f"{self.function}(…) applies to a difference dy or dx, not to {self.signal}")
+        if self.function == "sign" and self.power > 1:
+            raise InputError("a power of sign(…) is not allowed: it is 1 or sign(…) itself")
+        if self.signal in WAVES:
+            if self.lag != 0 or not 0.0 < self.frequency < 0.5:
+                raise InputError(
+                    f"{self.signal}(2pi*f*t) needs 0 < f < 0.5 cycles per sample, got {self.frequency}"
+                )
+        elif self.frequency:
+            raise InputError(f"only sin and cos have a frequency, not {self.signal}")
 
     @property
     def name(self) -> str:
-        base = f"{self.signal}[t]" if self.lag == 0 else f"{self.signal}[t-{self.lag}]"
+        if self.signal in WAVES:
+            base = f"{self.signal}(2pi*{self.frequency!r}*t)"
+        else:
+            base = f"{self.signal}[t]" if self.lag == 0 else f"{self.signal}[t-{self.lag}]"
+            base = f"{self.function}({base})" if self.function else base
         return base if self.power == 1 else f"{base}^{self.power}"
+
+    @property
+    def reach(self) -> int:
+        """How many samples back the factor reads: its lag, one more for a difference."""
+        return self.lag + (self.signal in ("dy", "dx"))
+
+    @property
+    def autoregressive(self) -> bool:
+        """Whether the factor reads the output, so that a simulation must compute it as it runs."""
+        return self.signal in ("y", "dy")
+
+    @property
+    def plain(self) -> bool:
+        return self.signal in ("y", "x")
+
+    def values(self, lagged_y: Lagged, lagged_x: Lagged, times: np.ndarray) -> np.ndarray:
+        """The factor over the rows whose sample indices are ``times``; ``lagged_y(k)`` and
+        ``lagged_x(k)`` give y[t−k] and x[t−k] over the same rows."""
+        if self.signal in WAVES:
+            wave = np.sin if self.signal == "sin" else np.cos
+            base = wave(2.0 * math.pi * self.frequency * times)
+        else:
+            lagged = lagged_y if self.signal in ("y", "dy") else lagged_x
+            base = lagged(self.lag)
+            if not self.plain:
+                base = base - lagged(self.lag + 1)
+            if self.function == "abs":
+                base = np.abs(base)
+            elif self.function == "sign":
+                base = np.sign(base)
+        values = base
+        # Repeated products: ~100× faster than numpy's general pow for small powers.
+        for _ in range(self.power - 1):
+            values = values * base
+        return values
 
 
 @dataclass(frozen=True)
@@ -55,13 +133,21 @@ class Term:
 
     @classmethod
     def of(cls, factors: Iterable[Factor]) -> Term:
-        powers: dict[tuple[str, int], int] = {}
+        powers: dict[tuple[str, int, str, float], int] = {}
         for factor in factors:
-            key = (factor.signal, factor.lag)
+            key = (factor.signal, factor.lag, factor.function, factor.frequency)
             powers[key] = powers.get(key, 0) + factor.power
         # y before x, then by lag: matches how the paper writes its regressors.
-        ordered = sorted(powers.items(), key=lambda item: (SIGNALS.index(item[0][0]), item[0][1]))
-        return cls(tuple(Factor(signal, lag, power) for (signal, lag), power in ordered))
+        ordered = sorted(
+            powers.items(),
+            key=lambda item: (SIGNALS.index(item[0][0]), item[0][1], FUNCTIONS.index(item[0][2]), item[0][3]),
+        )
+        return cls(
+            tuple(
+                Factor(signal, lag, power, function, frequency)
+                for (signal, lag, function, frequency), power in ordered
+            )
+        )
 
     @classmethod
     def parse(cls, name: str) -> Term:
@@ -69,15 +155,7 @@ class Term:
         text = name.replace(" ", "")
         if text == "1":
             return cls()
-        factors = []
-        for part in text.split("*"):
-            match = _FACTOR.match(part)
-            if match is None:
-                raise InputError(
-                    f"cannot read term {name!r}: write factors like y[t-1], y[t-2]^3 or x[t-4], "
-                    "joined by '*', or '1' for the constant"
-                )
-            factors.append(Factor(match["signal"], int(match["lag"] or 0), int(match["power"] or 1)))
+        factors = [_parse_factor(part, name) for part in _split_product(text)]
         return cls.of(factors)
 
     @property
@@ -90,10 +168,42 @@ class Term:
 
     @property
     def max_lag(self) -> int:
-        return max((f.lag for f in self.factors), default=0)
+        return max((f.reach for f in self.factors), default=0)
 
     def __str__(self) -> str:
         return self.name
+
+
+def _split_product(text: str) -> list[str]:
+    # "*" also appears inside sin(2pi*f*t): split only outside parentheses.
+    parts, depth, start = [], 0, 0
+    for i, char in enumerate(text):
+        depth += (char == "(") - (char == ")")
+        if char == "*" and depth == 0:
+            parts.append(text[start:i])
+            start = i + 1
+    parts.append(text[start:])
+    return parts
+
+
+def _parse_factor(part: str, name: str) -> Factor:
+    power = 1
+    if wave := _WAVE.match(part):
+        try:
+            frequency = float(wave["frequency"])
+        except ValueError:
+            raise InputError(f"cannot read term {name!r}: {wave['frequency']!r} is not a frequency") from None
+        return Factor(wave["wave"], 0, int(wave["power"] or 1), frequency=frequency)
+    lagged = _LAGGED.match(part)
+    if lagged is None:
+        raise InputError(
+            f"cannot read term {name!r}: write factors like y[t-1], y[t-2]^3, x[t-4], dy[t-1], "
+            "sign(dy[t-1]), abs(dy[t-1]) or sin(2pi*0.01*t), joined by '*', or '1' for the constant"
+        )
+    power = int(lagged["power"] or 1)
+    if lagged["function"]:
+        return Factor(lagged["inner"], int(lagged["inner_lag"] or 0), power, lagged["function"])
+    return Factor(lagged["signal"], int(lagged["lag"] or 0), power)
 
 
 def parse_terms(names: Iterable[str | Term]) -> tuple[Term, ...]:
@@ -115,29 +225,32 @@ def max_lag(terms: Sequence[Term]) -> int:
 
 
 def regressor_matrix(
-    terms: Sequence[Term], x: np.ndarray, y: np.ndarray, lag: int | None = None
+    terms: Sequence[Term], x: np.ndarray, y: np.ndarray, lag: int | None = None, t0: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Regressor matrix Φ and target for one record.
 
     Row ``r`` holds φ[t] for t = L + r, with L = ``lag`` (default: the largest lag of the
-    terms), so Φ has N − L rows and one column per term; the target is y[L:].
+    terms), so Φ has N − L rows and one column per term; the target is y[L:]. ``t0`` is the
+    sample index of the record's first sample in the time base of sinusoidal terms.
     """
     L = max_lag(terms) if lag is None else lag
     n = len(y)
-    signals = {"y": y, "x": x}
-    powers: dict[Factor, np.ndarray] = {}
+    times = np.arange(t0 + L, t0 + n, dtype=np.float64)
+
+    def lagged_y(k: int) -> np.ndarray:
+        return y[L - k : n - k]
+
+    def lagged_x(k: int) -> np.ndarray:
+        return x[L - k : n - k]
+
+    cache: dict[Factor, np.ndarray] = {}
     Phi = np.empty((n - L, len(terms)))
     for col, term in enumerate(terms):
         column = np.ones(n - L)
         for factor in term.factors:
-            values = powers.get(factor)
+            values = cache.get(factor)
             if values is None:
-                window = signals[factor.signal][L - factor.lag : n - factor.lag]
-                values = window
-                # Repeated products: ~100× faster than numpy's general pow for small powers.
-                for _ in range(factor.power - 1):
-                    values = values * window
-                powers[factor] = values
+                values = cache[factor] = factor.values(lagged_y, lagged_x, times)
             column = column * values
         Phi[:, col] = column
     return Phi, y[L:]

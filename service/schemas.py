@@ -158,3 +158,29 @@ class Summary(BaseModel):
     k_hat_slope_per_day: float | None = Field(
         description="Least-squares slope of k̂ over time for the latest verdict's mode, %/day"
     )
+
+
+SampleIndex = Annotated[StrictInt, Field(ge=0, le=2**31 - 1)]
+SampleRange = Annotated[list[SampleIndex], Field(min_length=2, max_length=2, description="[first, end)")]
+
+
+class RefinementCreate(Strict):
+    """Refine a baseline version on a stored record: the record's estimation samples [a, b) fit,
+    its test samples [c, d) judge (default: the first two thirds and the last third)."""
+
+    record_id: Id
+    base_model_id: Id
+    estimation: SampleRange | None = None
+    test: SampleRange | None = None
+    initial: Annotated[StrictInt, Field(ge=0, le=100_000)] = 0
+    alpha: Annotated[FiniteFloat, Field(gt=0, lt=1)] = 0.01
+
+
+class RefinementOut(BaseModel):
+    id: int
+    structure_id: int
+    record_id: int
+    base_model: ModelRef
+    refined_model: ModelRef | None
+    created_at: dt.datetime
+    report: dict[str, Any]

@@ -169,3 +169,27 @@ class VerdictModel(Base):
     model_version_id: Mapped[int] = mapped_column(
         ForeignKey("model_versions.id", ondelete="RESTRICT"), primary_key=True
     )
+
+
+class Refinement(Base):
+    """One pass of the refinement loop on a stored record, starting from a baseline version.
+
+    ``refined_model_id`` names the new, inactive version the effects it added produced (None when
+    no effect was significant); ``report`` holds the effects with their evidence and the held-out
+    errors before and after.
+    """
+
+    __tablename__ = "refinements"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"), index=True)
+    record_id: Mapped[int] = mapped_column(ForeignKey("records.id", ondelete="CASCADE"))
+    base_model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id", ondelete="RESTRICT"))
+    refined_model_id: Mapped[int | None] = mapped_column(
+        ForeignKey("model_versions.id", ondelete="RESTRICT"), nullable=True
+    )
+    report: Mapped[dict[str, Any]] = mapped_column(Document)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+    base_model: Mapped[ModelVersion] = relationship(foreign_keys=[base_model_id])
+    refined_model: Mapped[ModelVersion | None] = relationship(foreign_keys=[refined_model_id])

@@ -28,6 +28,26 @@ DisturbanceStd = Annotated[
 ]
 NoiseStd = Annotated[float, typer.Option(help="Std of white measurement noise on y [m].")]
 XNoiseStd = Annotated[float, typer.Option(help="Std of white measurement noise on x [N].")]
+NoiseColour = Annotated[
+    str | None,
+    typer.Option(
+        help="Colour the measurement noise by a moving average: coefficients c1,c2,… of 1 + c1·q⁻¹ + …"
+    ),
+]
+
+
+def parse_colour(text: str | None) -> tuple[float, ...]:
+    """Moving-average coefficients from ``"1.5,1.2,0.9"``; none for None or an empty string."""
+    if not text:
+        return ()
+    try:
+        return tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise InputError(
+            f"--noise-colour {text!r}: write comma-separated numbers, e.g. 1.5,1.2,0.9"
+        ) from None
+
+
 EffectList = Annotated[list[str] | None, typer.Option(help=EFFECT_HELP)]
 ParamList = Annotated[
     list[str] | None,

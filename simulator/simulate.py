@@ -23,6 +23,7 @@ from simulator.physics import (
 )
 
 # Undeclared effects by name: (field, unit, meaning). ``sine`` takes AMPLITUDE@FREQUENCY.
+MAX_NOISE_COLOUR = 50  # moving-average coefficients of the measurement noise
 EFFECTS: dict[str, tuple[str, str]] = {
     "coulomb1": ("N", "Coulomb friction on mass 1, force level"),
     "coulomb2": ("N", "Coulomb friction on mass 2, force level"),
@@ -113,6 +114,9 @@ class Scenario:
     disturbance_std: float = 0.0
     y_noise_std: float = 0.0
     x_noise_std: float = 0.0
+    # Moving-average colour c_1 … c_q of the measurement noise: each sensor's noise is
+    # n[t] = ξ[t] + Σ c_i ξ[t−i] with ξ white of the std above (empty: white noise).
+    noise_colour: tuple[float, ...] = ()
     effects: Effects = field(default_factory=Effects)
     burn_in: int = 1500
 
@@ -143,6 +147,11 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
         value = getattr(scenario, name)
         if not (math.isfinite(value) and value >= 0):
             raise InputError(f"{name} must be a finite, non-negative number, got {value}")
+    if len(scenario.noise_colour) > MAX_NOISE_COLOUR or not all(map(math.isfinite, scenario.noise_colour)):
+        raise InputError(
+            f"noise_colour takes at most {MAX_NOISE_COLOUR} finite moving-average coefficients, "
+            f"got {scenario.noise_colour}"
+        )
     params = scenario.structure
     check_stable(params)
     rng = np.random.default_rng(seed)
@@ -161,10 +170,16 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
     x = command[scenario.burn_in :].copy()
     y = x2[scenario.burn_in :] + effects.offset
     if scenario.x_noise_std:
-        x += rng.normal(0.0, scenario.x_noise_std, n)
+        x += _measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
     if scenario.y_noise_std:
-        y += rng.normal(0.0, scenario.y_noise_std, n)
+        y += _measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
     return SimulatedRecord(x, y, scenario.fs, scenario, seed)
+
+
+def _measurement_noise(rng: np.random.Generator, std: float, colour: tuple[float, ...], n: int) -> np.ndarray:
+    """n samples of white noise of ``std``, coloured by the moving average 1 + Σ c_i q⁻ⁱ."""
+    white = rng.normal(0.0, std, n + len(colour))
+    return np.convolve(white, np.concatenate(([1.0], colour)), mode="valid") if colour else white
 
 
 def _integrate(p: PhysicalParameters, force: np.ndarray, effects: Effects) -> tuple[np.ndarray, np.ndarray]:

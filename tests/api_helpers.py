@@ -206,6 +206,7 @@ def _state(admin: httpx.Client, structure_id: int) -> dict[str, Any]:
         "models": get(f"/structures/{structure_id}/models"),
         "verdicts": get(f"/structures/{structure_id}/verdicts?limit=1000"),
         "summary": get(f"/structures/{structure_id}/summary")["counts"],
+        "refinements": get(f"/structures/{structure_id}/refinements"),
     }
 
 

@@ -47,13 +47,16 @@ POLICY = {
     ("POST", "/api/v1/structures/{structure_id}/records"): "ingest",
     ("POST", "/api/v1/records/{record_id}/inspect"): "ingest",
     ("GET", "/api/v1/verdicts/{verdict_id}"): "viewer",
+    ("POST", "/api/v1/structures/{structure_id}/refinements"): "admin",
+    ("GET", "/api/v1/structures/{structure_id}/refinements"): "viewer",
+    ("GET", "/api/v1/refinements/{refinement_id}"): "viewer",
 }
 MISSING = 10**6  # an id no object has
 
 
 @dataclass
 class Estate:
-    """An organisation with a trained structure, a stored record and a verdict."""
+    """An organisation with a trained structure, a stored record, a verdict and a refinement."""
 
     org: Org
     structure_id: int
@@ -62,6 +65,8 @@ class Estate:
     model_id: int
     record_id: int
     verdict_id: int
+    baseline_id: int
+    refinement_id: int
 
     def ids(self) -> dict[str, int]:
         return {
@@ -69,6 +74,7 @@ class Estate:
             "model_id": self.model_id,
             "record_id": self.record_id,
             "verdict_id": self.verdict_id,
+            "refinement_id": self.refinement_id,
         }
 
 
@@ -83,9 +89,26 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
             json={"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": training},
         )
         assert response.status_code == 201, response.text
+        model_id = response.json()["id"]
         record = upload_simulated(ingest, sid, simulated("k2", 10.0, [seed, 99]), inspect="true")
+        response = admin.post(f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record["id"]]})
+        assert response.status_code == 201, response.text
+        baseline_id = response.json()["id"]
+        response = admin.post(
+            f"{API}/structures/{sid}/refinements",
+            json={"record_id": record["id"], "base_model_id": baseline_id},
+        )
+        assert response.status_code == 201, response.text
     return Estate(
-        org, sid, structure["name"], training, response.json()["id"], record["id"], record["verdict"]["id"]
+        org,
+        sid,
+        structure["name"],
+        training,
+        model_id,
+        record["id"],
+        record["verdict"]["id"],
+        baseline_id,
+        response.json()["id"],
     )
 
 
@@ -116,7 +139,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 12, routes
+    assert routes == documented and len(routes) == 15, routes
     return routes
 
 
@@ -131,6 +154,8 @@ def body_for(path: str, estate: Estate) -> dict | None:
         return {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": estate.training}
     if path.endswith("/records"):
         return json_body(300)
+    if path.endswith("/refinements"):
+        return {"record_id": estate.record_id, "base_model_id": estate.baseline_id}
     return None
 
 
@@ -141,8 +166,9 @@ def call(
 
 
 def first_lookup(path: str, ids: dict[str, int]) -> str:
-    """What a handler looks up first, as its 404 names it: the structure, else the record or verdict."""
-    for name in ("structure", "record", "verdict"):
+    """What a handler looks up first, as its 404 names it: the structure, else the record,
+    verdict or refinement."""
+    for name in ("structure", "record", "verdict", "refinement"):
         if "{" + name + "_id}" in path:
             return f"{name} {ids[name + '_id']} not found"
     raise AssertionError(path)
@@ -201,6 +227,21 @@ def test_their_ids_inside_our_urls_and_bodies_are_not_found(ours: Estate, theirs
                 404,
                 {"detail": f"record {record_id} not found"},
             )
+        refinements = f"{API}/structures/{ours.structure_id}/refinements"
+        for record_id in (theirs.record_id, MISSING):
+            body = {"record_id": record_id, "base_model_id": ours.baseline_id}
+            response = admin.post(refinements, json=body)
+            assert (response.status_code, response.json()) == (
+                404,
+                {"detail": f"record {record_id} not found"},
+            )
+        for model_id in (theirs.baseline_id, MISSING):
+            body = {"record_id": ours.record_id, "base_model_id": model_id}
+            response = admin.post(refinements, json=body)
+            assert (response.status_code, response.json()) == (
+                404,
+                {"detail": f"model version {model_id} not found"},
+            )
 
 
 def test_listing_shows_only_our_structures(ours: Estate, theirs: Estate):
@@ -233,8 +274,8 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 needed = POLICY[method, path]
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
-    # viewer: 4 admin and 2 ingest routes; ingest: 4 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 10
+    # viewer: 5 admin and 2 ingest routes; ingest: 5 admin routes.
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 12
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

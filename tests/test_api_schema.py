@@ -53,12 +53,19 @@ def target(api_server: LiveServer) -> Target:
         model = train_fault_mode(admin, ingest, sid, "k2", seed=61)
         response = post_record(ingest, sid, json_body(2000), inspect="true")
         assert response.status_code == 201, response.text
+        record = response.json()
+        response = admin.post(f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record["id"]]})
+        assert response.status_code == 201, response.text
+        body = {"record_id": record["id"], "base_model_id": response.json()["id"]}
+        response = admin.post(f"{API}/structures/{sid}/refinements", json=body)
+        assert response.status_code == 201, response.text
     schema = schemathesis.openapi.from_url(f"{api_server.url}/openapi.json")
     owned = {
         "structure_id": sid,
         "model_id": model["id"],
-        "record_id": response.json()["id"],
-        "verdict_id": response.json()["verdict"]["id"],
+        "record_id": record["id"],
+        "verdict_id": record["verdict"]["id"],
+        "refinement_id": response.json()["id"],
     }
     return Target(schema, api_server.url, {"Authorization": f"Bearer {org.keys['admin']}"}, owned)
 
@@ -68,7 +75,7 @@ def test_the_served_schema_has_every_operation(target: Target):
         (method.upper(), path) for path, item in target.schema.raw_schema["paths"].items() for method in item
     )
     assert served == OPERATIONS
-    assert sum(path.startswith(API) for _, path in OPERATIONS) == 12
+    assert sum(path.startswith(API) for _, path in OPERATIONS) == 15
 
 
 @pytest.mark.parametrize(("method", "path"), OPERATIONS, ids=[f"{m} {p}" for m, p in OPERATIONS])

@@ -46,7 +46,16 @@ def workdir(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize(
     "command",
-    [[], ["simulate"], ["train"], ["train", "baseline"], ["train", "fault-mode"], ["inspect"], ["reproduce"]],
+    [
+        [],
+        ["simulate"],
+        ["train"],
+        ["train", "baseline"],
+        ["train", "fault-mode"],
+        ["inspect"],
+        ["refine"],
+        ["reproduce"],
+    ],
 )
 def test_every_command_has_help(command, tmp_path):
     result = run(*command, "--help", cwd=tmp_path)

@@ -200,6 +200,33 @@ def test_free_run_of_explicit_recursion_matches_hand_loop() -> None:
     np.testing.assert_allclose(model.simulate(x, y0), ref, rtol=1e-13, atol=1e-15)
 
 
+def test_free_run_with_friction_damping_and_a_sinusoid_matches_hand_loop() -> None:
+    """Non-polynomial factors in the recursion: sign and abs of the output's difference, a
+    sinusoid of the sample index (from t0), and a difference of the input."""
+    terms = ["y[t-1]", "y[t-2]", "sign(dy[t-1])", "dy[t-2]*abs(dy[t-2])", "sin(2pi*0.03*t)", "abs(dx[t-1])"]
+    theta = np.array([1.2, -0.5, -0.01, -0.3, 0.02, 0.05])
+    model = NARX(parse_terms(terms), theta, np.zeros((6, 6)))
+    x = np.random.default_rng(10).normal(size=300)
+    y0 = np.array([0.1, -0.2, 0.05])
+    t0 = 11
+    ref = np.zeros(300)
+    ref[:3] = y0
+    for t in range(3, 300):
+        d1, d2 = ref[t - 1] - ref[t - 2], ref[t - 2] - ref[t - 3]
+        ref[t] = (
+            theta[0] * ref[t - 1]
+            + theta[1] * ref[t - 2]
+            + theta[2] * np.sign(d1)
+            + theta[3] * d2 * abs(d2)
+            + theta[4] * np.sin(2 * np.pi * 0.03 * (t0 + t))
+            + theta[5] * abs(x[t - 1] - x[t - 2])
+        )
+    simulated = model.simulate(x, y0, t0=t0)
+    np.testing.assert_allclose(simulated, ref, rtol=1e-12, atol=1e-15)
+    # One-step predictions on the simulated output reproduce it: the same model, two code paths.
+    np.testing.assert_allclose(model.predict(x, simulated, t0=t0), simulated[3:], rtol=1e-12, atol=1e-15)
+
+
 def test_free_run_of_diverging_model_yields_nan_from_blow_up() -> None:
     model = NARX(parse_terms(["y[t-1]^2"]), np.array([2.0]), np.zeros((1, 1)))
     out = model.simulate(np.zeros(50), [3.0])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from conftest import hand_regressors
@@ -91,7 +93,7 @@ def test_bad_names_raise_input_error_with_guidance(name: str, fragment: str) -> 
 
 
 def test_bad_name_message_shows_how_to_write_terms() -> None:
-    with pytest.raises(InputError, match=r"y\[t-1\], y\[t-2\]\^3 or x\[t-4\]"):
+    with pytest.raises(InputError, match=r"y\[t-1\], y\[t-2\]\^3, x\[t-4\], dy\[t-1\], sign"):
         Term.parse("q[t-1]")
 
 
@@ -151,3 +153,70 @@ def test_regressor_matrix_with_a_longer_lag_drops_more_rows() -> None:
 def test_terms_beyond_physical_bounds_are_refused(name: str, message: str) -> None:
     with pytest.raises(InputError, match=message):
         Term.parse(name)
+
+
+# --- beyond polynomials: differences, abs/sign, sinusoids --------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "reach"),
+    [
+        ("dy[t-1]", 2),
+        ("sign(dy[t-1])", 2),
+        ("dy[t-2]*abs(dy[t-2])", 3),
+        ("dy[t-1]^3", 2),
+        ("abs(dx[t])", 1),
+        ("sin(2pi*0.0125*t)", 0),
+        ("y[t-1]*cos(2pi*0.1*t)", 1),
+        ("x[t-1]^2*sign(dx[t-3])", 4),
+    ],
+)
+def test_derived_factors_round_trip_and_reach_one_sample_further(name: str, reach: int) -> None:
+    term = Term.parse(name)
+    assert term.name == name
+    assert Term.parse(term.name) == term
+    assert term.max_lag == reach
+
+
+@pytest.mark.parametrize(
+    ("name", "fragment"),
+    [
+        ("sign(dy[t-1])^2", "power of sign"),
+        ("sign(dy[t-1])*sign(dy[t-1])", "power of sign"),
+        ("abs(y[t-1])", "applies to a difference"),
+        ("dy[t]", "lag 0 of dy"),
+        ("sin(2pi*0.5*t)", "0 < f < 0.5"),
+        ("cos(2pi*-0.1*t)", "0 < f < 0.5"),
+        ("sin(2pi*abc*t)", "cannot read term"),
+        ("sin(2pi*0.1*t", "cannot read term"),
+    ],
+)
+def test_bad_derived_factors_are_refused(name: str, fragment: str) -> None:
+    with pytest.raises(InputError, match=re.escape(fragment)):
+        Term.parse(name)
+
+
+def test_derived_regressors_match_a_hand_built_loop() -> None:
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(size=60), rng.normal(size=60)
+    names = [
+        "sign(dy[t-1])",
+        "dy[t-2]*abs(dy[t-2])",
+        "dy[t-1]^3",
+        "abs(dx[t])",
+        "sin(2pi*0.05*t)",
+        "cos(2pi*0.2*t)",
+    ]
+    t0, L = 7, 3
+    Phi, target = regressor_matrix(parse_terms(names), x, y, lag=L, t0=t0)
+    for row, t in enumerate(range(L, 60)):
+        expected = [
+            np.sign(y[t - 1] - y[t - 2]),
+            (y[t - 2] - y[t - 3]) * abs(y[t - 2] - y[t - 3]),
+            (y[t - 1] - y[t - 2]) ** 3,
+            abs(x[t] - x[t - 1]),
+            np.sin(2 * np.pi * 0.05 * (t0 + t)),
+            np.cos(2 * np.pi * 0.2 * (t0 + t)),
+        ]
+        np.testing.assert_allclose(Phi[row], expected, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(target, y[L:])

@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy.exc import OperationalError
 
 from models.errors import InputError
-from service.api import health, modelling, records, structures
+from service.api import health, modelling, records, refinements, structures
 from service.api.limits import BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
@@ -42,7 +42,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.engine = make_engine(settings.database_url)
     app.state.sessions = session_factory(app.state.engine)
     app.include_router(health.router)
-    for router in (structures.router, modelling.router, records.router):
+    for router in (structures.router, modelling.router, records.router, refinements.router):
         app.include_router(router, prefix=API_PREFIX)
     _add_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import typer
 
 from models.errors import InputError
-from service.cli import inspect, reproduce, server, simulate, train
+from service.cli import inspect, refine, reproduce, select, server, simulate, train
 from service.cli.console import fail
 
 app = typer.Typer(
@@ -18,7 +18,9 @@ app = typer.Typer(
 )
 app.command("simulate")(simulate.simulate)
 app.add_typer(train.app, name="train")
+app.command("select")(select.select)
 app.command("inspect")(inspect.inspect)
+app.command("refine")(refine.refine_command)
 app.command("reproduce")(reproduce.reproduce)
 app.command("serve")(server.serve)
 app.add_typer(server.db_app, name="db")

@@ -14,11 +14,13 @@ from simulator.options import (
     ExcitationStd,
     Fault,
     Magnitude,
+    NoiseColour,
     NoiseStd,
     ParamList,
     Samples,
     XNoiseStd,
     parse_assignments,
+    parse_colour,
 )
 from simulator.physics import PhysicalParameters
 from simulator.recordfile import write_record
@@ -36,6 +38,7 @@ def simulate(
     disturbance_std: DisturbanceStd = 800.0,
     noise_std: NoiseStd = 0.0,
     x_noise_std: XNoiseStd = 0.0,
+    noise_colour: NoiseColour = None,
     effect: EffectList = None,
     param: ParamList = None,
 ) -> None:
@@ -49,6 +52,7 @@ def simulate(
         disturbance_std=disturbance_std,
         y_noise_std=noise_std,
         x_noise_std=x_noise_std,
+        noise_colour=parse_colour(noise_colour),
         effects=Effects.parse(effect or []),
     )
     record = run_simulation(scenario, n, seed)

@@ -12,10 +12,10 @@ from models.inspection import ModeResult, inspect
 from models.inspection import Verdict as InspectionVerdict
 from service.config import Settings
 from service.db import insert_unless_exists, writing
-from service.domain.errors import ConflictError, NotFoundError
+from service.domain.errors import ConflictError
 from service.domain.modelling import active_fault_modes
 from service.domain.records import signals
-from service.domain.structures import get_structure
+from service.domain.structures import get_owned
 from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure, Verdict, VerdictModel
@@ -110,14 +110,9 @@ def store_verdict(
 
 
 def get_verdict(session: Session, principal: Principal, verdict_id: int) -> Verdict:
-    verdict = session.get(Verdict, verdict_id, options=[selectinload(Verdict.models)])
-    if verdict is None:
-        raise NotFoundError("verdict", verdict_id)
-    try:
-        get_structure(session, principal, verdict.structure_id)
-    except NotFoundError:
-        raise NotFoundError("verdict", verdict_id) from None
-    return verdict
+    return get_owned(
+        session, principal, Verdict, verdict_id, "verdict", options=[selectinload(Verdict.models)]
+    )
 
 
 def verdict_out(verdict: Verdict) -> VerdictOut:

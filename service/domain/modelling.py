@@ -35,7 +35,7 @@ def train_baseline(
     model = fit_narx([signals(r) for r in records], body.terms or EXACT_TERMS)
     training = {"record_ids": body.record_ids, "terms": model.term_names}
     statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
-    return _new_version(session, structure, "baseline", BASELINE, model.to_document(), training, statistics)
+    return new_version(session, structure, "baseline", BASELINE, model.to_document(), training, statistics)
 
 
 def train_fault_mode(
@@ -64,9 +64,7 @@ def train_fault_mode(
         "terms": model.term_names,
     }
     statistics = {"experiment_sigma2": model.experiment_sigma2.tolist(), "n_obs": model.n_obs}
-    return _new_version(
-        session, structure, "fault_mode", body.name, model.to_document(), training, statistics
-    )
+    return new_version(session, structure, "fault_mode", body.name, model.to_document(), training, statistics)
 
 
 def list_models(session: Session, principal: Principal, structure_id: int) -> list[ModelVersion]:
@@ -127,7 +125,7 @@ def _deactivate(session: Session, structure_id: int, name: str) -> None:
     )
 
 
-def _new_version(
+def new_version(
     session: Session,
     structure: Structure,
     kind: str,
@@ -135,13 +133,15 @@ def _new_version(
     document: dict[str, Any],
     training: dict[str, Any],
     statistics: dict[str, Any],
+    active: bool = True,
 ) -> ModelVersion:
     latest = session.scalar(
         select(func.max(ModelVersion.version)).where(
             ModelVersion.structure_id == structure.id, ModelVersion.name == name
         )
     )
-    _deactivate(session, structure.id, name)
+    if active:
+        _deactivate(session, structure.id, name)
     version = ModelVersion(
         structure_id=structure.id,
         kind=kind,
@@ -150,7 +150,7 @@ def _new_version(
         document=document,
         training=training,
         statistics=statistics,
-        active=True,
+        active=active,
     )
     session.add(version)
     try:

@@ -13,8 +13,7 @@ from sqlalchemy.orm import Session
 from models.errors import InputError
 from models.signals import checked_record
 from service.db import insert_unless_exists
-from service.domain.errors import NotFoundError
-from service.domain.structures import get_structure
+from service.domain.structures import get_owned
 from service.security import Principal
 from service.tables import Record, Structure, utcnow
 
@@ -71,14 +70,7 @@ def store_record(
 
 
 def get_record(session: Session, principal: Principal, record_id: int) -> Record:
-    record = session.get(Record, record_id)
-    if record is None:
-        raise NotFoundError("record", record_id)
-    try:
-        get_structure(session, principal, record.structure_id)
-    except NotFoundError:
-        raise NotFoundError("record", record_id) from None
-    return record
+    return get_owned(session, principal, Record, record_id, "record")
 
 
 def signals(record: Record) -> tuple[np.ndarray, np.ndarray]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any, Protocol, TypeVar
+
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -34,3 +36,25 @@ def get_structure(session: Session, principal: Principal, structure_id: int) -> 
     if structure is None or structure.organisation_id != principal.organisation_id:
         raise NotFoundError("structure", structure_id)
     return structure
+
+
+class _OfStructure(Protocol):
+    structure_id: int
+
+
+Owned = TypeVar("Owned", bound=_OfStructure)
+
+
+def get_owned(
+    session: Session, principal: Principal, model: type[Owned], object_id: int, label: str, **options: Any
+) -> Owned:
+    """An object of one of the caller's structures. Another organisation's is answered exactly
+    as a missing one, so that ids reveal nothing across organisations."""
+    found = session.get(model, object_id, **options)
+    if found is None:
+        raise NotFoundError(label, object_id)
+    try:
+        get_structure(session, principal, found.structure_id)
+    except NotFoundError:
+        raise NotFoundError(label, object_id) from None
+    return found

@@ -1,0 +1,87 @@
+"""Judging a model on held-out data: one-step and free-run errors and the residual's diagnostics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import signal
+
+from models.diagnostics import ResidualReport, residual_report
+from models.errors import InputError
+from models.narx import NARX
+
+LJUNG_BOX_LAGS = 40
+# The residual tests of h lags want at least 5h + 8 samples (models.diagnostics).
+SAMPLES_PER_LAG = 5
+LONGEST_LAG = 8
+
+
+@dataclass(frozen=True)
+class Assessment:
+    """A model's errors on held-out data: one-step and free-run RMS, and the diagnostics of its
+    one-step prediction error (:func:`models.diagnostics.residual_report`)."""
+
+    one_step_rms: float
+    free_run_rms: float
+    diagnostics: ResidualReport
+
+    @property
+    def ljung_box_p(self) -> float:
+        """Whiteness of the one-step prediction error: a small p-value means structure is left."""
+        return self.diagnostics.ljung_box.p_value
+
+
+def assess(
+    model: NARX,
+    x: np.ndarray,
+    y: np.ndarray,
+    initial: int = 0,
+    fs: float | None = None,
+    t0: int = 0,
+    noise: np.ndarray | None = None,
+    lags: int = LJUNG_BOX_LAGS,
+) -> Assessment:
+    """Assess ``model`` on held-out (x, y) sampled at ``fs`` [Hz] (None: frequencies in cycles
+    per sample).
+
+    The first ``initial`` samples (at least the model's lags) only start the predictions and
+    the simulation, as benchmark protocols prescribe; ``t0`` places (x, y) in the time base of
+    the model's sinusoidal terms. With moving-average ``noise`` coefficients c_1 … c_q (a
+    NARMAX), the one-step prediction error is the innovation ε = r / C(q), C(q) = 1 + Σ c_i q⁻ⁱ,
+    of the process residual r, started from rest; the free run uses the process model alone.
+    """
+    start_up = max(initial, model.max_lag)
+    needed = start_up + SAMPLES_PER_LAG * lags + LONGEST_LAG
+    if len(y) < needed:
+        raise InputError(
+            f"the test part has {len(y)} samples; judging a model needs at least {needed} "
+            f"({start_up} to start it and {needed - start_up} for the residual tests)"
+        )
+    start = start_up - model.max_lag
+    xs, ys = np.asarray(x, dtype=np.float64)[start:], np.asarray(y, dtype=np.float64)[start:]
+    error = model.residuals(xs, ys, t0 + start)
+    if noise is not None and len(noise):
+        error = signal.lfilter([1.0], np.concatenate(([1.0], noise)), error)
+    L = model.max_lag
+    simulated = model.simulate(xs, ys, t0 + start)[L:]
+    free_run = float(np.sqrt(np.mean((simulated - ys[L:]) ** 2)))
+    diagnostics = residual_report(xs[L:], ys[L:], error, fs or 1.0, lags)
+    return Assessment(
+        float(np.sqrt(np.mean(error**2))), free_run if np.isfinite(free_run) else float("inf"), diagnostics
+    )
+
+
+def assessment_dict(assessment: Assessment) -> dict[str, Any]:
+    """JSON-compatible figures of an assessment; a diverged free run's error becomes None."""
+
+    def finite(value: float) -> float | None:
+        return value if np.isfinite(value) else None
+
+    return {
+        "one_step_rms": finite(assessment.one_step_rms),
+        "free_run_rms": finite(assessment.free_run_rms),
+        "ljung_box_p": finite(assessment.ljung_box_p),
+        "diagnostics": assessment.diagnostics.as_dict(series=False),
+    }

@@ -1,0 +1,166 @@
+"""NARMAX models by extended least squares: NARX process terms plus moving-average noise terms.
+
+When the equation error is coloured,
+
+    y[t] = φ[t]ᵀθ + Σ_{i=1..q} c_i·e[t−i] + e[t],    e white,
+
+its past values are correlated with the lagged outputs in φ[t], and ordinary least squares on
+the process terms alone is biased. Extended least squares (Billings & Voon's NARMAX
+estimation, Ljung's pseudo-linear regression) replaces the unknown e by residuals:
+
+1. ε⁽⁰⁾ = y − Φθ̂⁽⁰⁾, the least-squares residual of the process terms;
+2. β̂⁽ⁱ⁾ = [θ̂; ĉ] by least squares on [Φ | E(ε⁽ⁱ⁻¹⁾)], E holding ε[t−1] … ε[t−q];
+3. ε⁽ⁱ⁾ = ½·(ε⁽ⁱ⁻¹⁾ + y − [Φ | E(ε⁽ⁱ⁻¹⁾)]·β̂⁽ⁱ⁾),
+
+until every parameter moves by less than ``rtol`` standard errors. Step 3 is relaxed: it has
+the same fixed point as feeding the new residual back unchanged, which on some records
+oscillates about it for ever (measured: 5 of 10 MA(2) records still moving by 0.1–0.3 s.e.
+after 100 iterations); the relaxed iteration settled in 13–15 on all of them. Each record
+keeps its own residual series, pre-windowed (ε = 0 before its first equation), so no lag
+crosses records. The covariance is that of the last least-squares fit, which treats the
+residual regressors as known: it understates the spread of θ̂ somewhat (by ~25 % in the
+tests' Monte Carlo).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from itertools import pairwise
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy import linalg
+
+from models.errors import InputError
+from models.narx import NARX
+from models.regression import least_squares
+from models.signals import checked_records
+from models.terms import Term, max_lag, parse_terms, regressor_matrix
+
+
+@dataclass(frozen=True)
+class NARMAX:
+    """Process model and moving-average noise model estimated together.
+
+    Attributes
+    ----------
+    process : the NARX part: terms, θ̂ and its covariance block, σ̂² = mean(ε²).
+    noise : MA coefficients c_1 … c_q.
+    noise_covariance : covariance of ĉ.
+    iterations : least-squares fits after the initial one.
+    converged : whether the last iteration moved every parameter by less than ``rtol`` s.e.
+    """
+
+    process: NARX
+    noise: np.ndarray
+    noise_covariance: np.ndarray
+    iterations: int
+    converged: bool
+
+    @property
+    def noise_lags(self) -> int:
+        return self.noise.size
+
+
+def fit_narmax(
+    records: Iterable[tuple[ArrayLike, ArrayLike]],
+    terms: Sequence[str | Term],
+    noise_lags: int,
+    *,
+    max_iter: int = 100,
+    rtol: float = 1e-2,
+    t0: int = 0,
+) -> NARMAX:
+    """Estimate a NARMAX model by extended least squares (module docstring); ``t0`` as for
+    :func:`models.narx.fit_narx`."""
+    if isinstance(noise_lags, bool) or not isinstance(noise_lags, int) or noise_lags < 1:
+        raise InputError(f"noise_lags must be an integer >= 1, got {noise_lags!r}")
+    if max_iter < 1:
+        raise InputError(f"max_iter must be >= 1, got {max_iter}")
+    parsed = parse_terms(terms)
+    L = max_lag(parsed)
+    n_par = len(parsed) + noise_lags
+    blocks = [regressor_matrix(parsed, x, y, L, t0) for x, y in checked_records(records, L + n_par + 1)]
+    Phi = np.vstack([block[0] for block in blocks])
+    target = np.concatenate([block[1] for block in blocks])
+    starts = np.cumsum([0] + [block[1].size for block in blocks])
+    names = [term.name for term in parsed] + [f"e[t-{i}]" for i in range(1, noise_lags + 1)]
+    fit = least_squares(Phi, target, names[: len(parsed)])  # also refuses a degenerate design
+    residuals = fit.residuals
+    # Φ stays fixed while the residual columns change: its QR is computed once, and each
+    # iteration only orthogonalises the q new columns against it (a block QR update).
+    process_scale = np.linalg.norm(Phi, axis=0)
+    Q1, R1 = linalg.qr(Phi / process_scale, mode="economic")
+    projected = Q1.T @ target
+    fitted_by_process = Q1 @ projected
+    previous = None
+    lagged = np.empty((target.size, noise_lags))
+    converged = False
+    iterations = 0
+    while iterations < max_iter and not converged:
+        for first, last in pairwise(starts):
+            for i in range(1, noise_lags + 1):
+                column = lagged[first:last, i - 1]
+                column[:i] = 0.0
+                column[i:] = residuals[first : last - i]
+        theta, standard_errors, fitted = _extended_step(
+            Q1, R1, projected, fitted_by_process, process_scale, lagged, target
+        )
+        iterations += 1
+        residuals = 0.5 * (residuals + target - fitted)
+        if previous is not None:
+            converged = bool(np.all(np.abs(theta - previous) / standard_errors < rtol))
+        previous = theta
+    fit = least_squares(np.hstack([Phi, lagged]), target, names)
+    k = len(parsed)
+    process = NARX(parsed, fit.theta[:k], fit.covariance[:k, :k], fit.sigma2, target.size)
+    return NARMAX(process, fit.theta[k:], fit.covariance[k:, k:], iterations, converged)
+
+
+def _extended_step(
+    Q1: np.ndarray,
+    R1: np.ndarray,
+    projected: np.ndarray,
+    fitted_by_process: np.ndarray,
+    process_scale: np.ndarray,
+    lagged: np.ndarray,
+    target: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares on [Φ | E] given Φ/s = Q1·R1, Q1ᵀy and Q1Q1ᵀy: the estimates, their
+    standard errors and the fitted values, from the QR of E's part orthogonal to Φ alone."""
+    noise_scale = np.linalg.norm(lagged, axis=0)
+    noise_scale[noise_scale == 0] = 1.0
+    E = lagged / noise_scale
+    coupling = Q1.T @ E
+    Q2, R2 = linalg.qr(E - Q1 @ coupling, mode="economic")
+    k, q = R1.shape[0], R2.shape[0]
+    R = np.zeros((k + q, k + q))
+    R[:k, :k], R[:k, k:], R[k:, k:] = R1, coupling, R2
+    along_noise = Q2.T @ target
+    beta = linalg.solve_triangular(R, np.concatenate([projected, along_noise]))
+    fitted = fitted_by_process + Q2 @ along_noise
+    sigma2 = float(np.mean((target - fitted) ** 2))
+    R_inv = linalg.solve_triangular(R, np.eye(k + q))
+    scale = np.concatenate([process_scale, noise_scale])
+    return beta / scale, np.sqrt(sigma2 * np.sum(R_inv**2, axis=1)) / scale, fitted
+
+
+def invertible(noise: ArrayLike) -> np.ndarray:
+    """The moving-average coefficients with every root of C(z) = 1 + Σ c_i z⁻ⁱ inside the unit
+    circle, as the innovations filter 1/C(q) needs to be stable.
+
+    A root r outside is replaced by 1/r̄, which leaves the noise spectrum's shape unchanged (it
+    scales it by |r|², absorbed in the innovation variance); a root on the circle is pulled just
+    inside. Extended least squares can settle on either factor; only this one predicts.
+    """
+    coefficients = np.asarray(noise, dtype=np.float64)
+    if coefficients.size == 0:
+        return coefficients
+    roots = np.roots(np.concatenate(([1.0], coefficients)))
+    radius = np.abs(roots)
+    if np.all(radius < 1.0):
+        return coefficients
+    roots = np.where(radius > 1.0, 1.0 / np.conj(roots), roots)
+    roots = np.where(np.abs(roots) >= 1.0 - 1e-6, roots * (1.0 - 1e-6), roots)
+    return np.real(np.poly(roots))[1:]

@@ -1,0 +1,60 @@
+"""The refinement report as a PNG: residual whiteness and spectrum before and after, and the free run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from models.refinement import RefinementReport
+
+SHOWN = 800  # samples of the free run shown: the end of the test, where errors have had time to grow
+
+
+def write_refinement_figure(
+    report: RefinementReport, x: np.ndarray, y: np.ndarray, initial: int, fs: float | None, path: Path
+) -> Path:
+    """Three panels on the held-out data (x, y), whose first ``initial`` samples start the models:
+    the residual autocorrelation with its band, the residual spectrum with its background and
+    significant peaks, and the measured output against both models' free runs."""
+    figure, (correlation, spectrum, run) = plt.subplots(3, 1, figsize=(9, 10), constrained_layout=True)
+    shown = slice(max(initial, len(y) - SHOWN), len(y))
+    samples = np.arange(shown.start, shown.stop)
+    run.plot(samples, y[shown], color="k", lw=1.6, label="measured")
+    models = (("declared", report.refinement.declared, report.before, "C3"),
+              ("refined", report.refinement.refined, report.after, "C0"))  # fmt: skip
+    for label, model, assessment, colour in models:
+        diagnostics = assessment.diagnostics
+        ee = diagnostics.billings_voon.ee
+        correlation.plot(ee.lags, ee.values, "o-", color=colour, ms=3, lw=0.8, label=label)
+        correlation.fill_between(ee.lags, -ee.band, ee.band, color=colour, alpha=0.12)
+        band = diagnostics.spectrum
+        spectrum.semilogy(band.frequencies, band.psd, color=colour, lw=0.8, label=label)
+        spectrum.semilogy(band.frequencies, band.background * band.threshold, color=colour, lw=0.6, ls="--")
+        for peak in band.peaks:
+            spectrum.annotate(f"{peak.frequency:.4g}", (peak.frequency, peak.power), color=colour, fontsize=7)
+        start = max(initial - model.max_lag, 0)
+        simulated = model.simulate(x[start:], y[start:])
+        run.plot(samples, simulated[shown.start - start :], color=colour, lw=0.8, label=f"{label} (free run)")
+    unit = "Hz" if fs else "cycles/sample"
+    correlation.set(
+        xlabel="lag [samples]",
+        ylabel="residual autocorrelation",
+        title="Residual whiteness (shaded: the band that decides for all lags at once)",
+    )
+    spectrum.set(
+        xlabel=f"frequency [{unit}]",
+        ylabel="residual PSD",
+        title="Residual spectrum (Welch); dashed: significance threshold; labels: significant peaks",
+    )
+    run.set(xlabel="sample", ylabel="response", title="Measured and simulated output (end of the test data)")
+    for axes in (correlation, spectrum, run):
+        axes.legend(fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path

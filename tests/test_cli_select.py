@@ -1,0 +1,116 @@
+"""``narxwatch select``, run as a user runs it: on records written by ``narxwatch simulate``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_cli import run
+
+LINEAR = ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]", "x[t-4]"]
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("select")
+    run("simulate", "--n", "20000", "--seed", "31", "--out", "a.csv", cwd=path)
+    run("simulate", "--n", "10000", "--seed", "32", "--out", "b.npz", cwd=path)
+    run("simulate", "--n", "5000", "--seed", "33", "--out", "held.csv", cwd=path)
+    return path
+
+
+def test_help() -> None:
+    result = run("select", "--help", cwd=Path.cwd())
+    for option in ("--degree", "--ny", "--nx", "--delay", "--criterion", "--n-terms", "--json", "--out"):
+        assert option in result.stdout
+
+
+def test_json_terms_feed_train_baseline(workdir) -> None:
+    """Two records, BIC, held-out errors on a third; the JSON (stdout and --out) is a terms file
+    for ``train baseline --terms``, which then fits exactly the selected structure."""
+    result = run(
+        "select", "a.csv", "b.npz", "--holdout", "held.csv", "--json", "--out", "selected.json", cwd=workdir
+    )
+    document = json.loads(result.stdout)
+    assert document == json.loads((workdir / "selected.json").read_text())
+    terms = document["terms"]
+    assert terms[:5] == LINEAR  # the linear part of SPEC §2 explains most, in this order
+    assert len(document["err"]) == len(document["theta"]) == len(document["standard_errors"]) == len(terms)
+    assert document["err"][0] > 0.99 and sum(document["err"]) + document["esr"] == pytest.approx(1, abs=1e-12)
+    assert document["criterion"] == "bic" and document["stopped_by"] == "bic"
+    assert document["n_candidates"] == 165 and document["n_obs"] == 20000 + 10000 - 8
+    assert len(document["path"]) == 20 and {"term", "err", "esr", "bic"} <= set(document["path"][0])
+    held = document["held_out"]
+    assert held["one_step"]["samples"] == 4996 and held["k_step"]["steps"] == 10
+    assert held["one_step"]["nrmse"] < held["k_step"]["nrmse"] < held["free_run"]["nrmse"] < 0.2
+    assert document["fs"] == 1500.0 and document["holdout"] == {"records": ["held.csv"], "split": None}
+    run("train", "baseline", "a.csv", "--terms", "selected.json", "--out", "model.json", cwd=workdir)
+    model = json.loads((workdir / "model.json").read_text())
+    assert model["terms"] == terms
+
+
+def test_table_output_and_split(workdir) -> None:
+    """Without --holdout the last quarter of each record is held out."""
+    result = run("select", "a.csv", "--n-terms", "6", cwd=workdir)
+    assert "y[t-1]" in result.stdout and "x[t-4]" in result.stdout  # names survive the table
+    assert "stopped by n_terms" in result.stdout and "free run" in result.stdout
+    document = json.loads(run("select", "a.csv", "--n-terms", "6", "--json", cwd=workdir).stdout)
+    assert document["n_obs"] == 15000 - 4 and document["held_out"]["one_step"]["samples"] == 5000 - 4
+    none = json.loads(run("select", "a.csv", "--n-terms", "6", "--split", "0", "--json", cwd=workdir).stdout)
+    assert none["held_out"] is None and none["n_obs"] == 20000 - 4
+    assert none["holdout"] == {"records": [], "split": 0.0}
+
+
+def test_dictionary_options(workdir) -> None:
+    """--delay 4 --nx 1 --degree 1 leaves 1 + 4 + 1 candidates; --err-tolerance with --prune;
+    --include forces a term in first."""
+    result = run(
+        "select", "a.csv", "--degree", "1", "--nx", "1", "--delay", "4", "--no-constant",
+        "--err-tolerance", "1e-10", "--prune", "--include", "x[t-4]", "--json", cwd=workdir,
+    )  # fmt: skip
+    document = json.loads(result.stdout)
+    assert document["n_candidates"] == 5
+    assert document["terms"][0] == "x[t-4]" and set(document["terms"]) <= {*LINEAR}
+    extra = run(
+        "select", "a.csv", "--degree", "1", "--extra", "y[t-2]^3", "--n-terms", "7", "--json", cwd=workdir
+    )
+    assert json.loads(extra.stdout)["n_candidates"] == 1 + 8 + 1
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--criterion", "hqc"], "unknown criterion 'hqc'"),
+        (["--degree", "0"], "degree must be an integer >= 1, got 0"),
+        (["--ny", "0"], "ny must be an integer >= 1, got 0"),
+        (["--nx", "0"], "nx must be an integer >= 1, got 0"),
+        (["--n-terms", "3", "--criterion", "aic"], "choose one stopping rule"),
+        (["--split", "1.5"], "--split must lie in [0, 1)"),
+        (["--extra", "q[t-1]"], "cannot read term"),
+        (["--out", "terms.txt"], "name a .json file"),
+    ],
+)
+def test_bad_settings_are_refused_with_a_message(workdir, args, message) -> None:
+    result = run("select", "a.csv", *args, cwd=workdir, check=False)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_bad_records_are_refused_with_a_message(workdir) -> None:
+    (workdir / "short.csv").write_text("x,y\n" + "".join(f"{i % 7},{i % 5}\n" for i in range(60)))
+    result = run("select", "short.csv", "--split", "0", cwd=workdir, check=False)
+    assert result.returncode == 2 and "cannot rank 165 candidate terms" in result.stderr
+    values = np.arange(300.0)
+    lines = [f"{np.sin(v)},{'nan' if v == 17 else np.cos(v)}" for v in values]
+    (workdir / "nan.csv").write_text("x,y\n" + "\n".join(lines) + "\n")
+    result = run("select", "nan.csv", cwd=workdir, check=False)
+    assert result.returncode == 2 and "NaN" in result.stderr
+    result = run("select", "missing.csv", cwd=workdir, check=False)
+    assert result.returncode == 2 and "cannot read the file" in result.stderr
+    record = np.load(workdir / "b.npz")
+    np.savez(workdir / "fast.npz", x=record["x"], y=record["y"], fs=3000.0)
+    result = run("select", "a.csv", "--holdout", "fast.npz", cwd=workdir, check=False)
+    assert result.returncode == 2 and "sampled at 3000 Hz, the others at 1500 Hz" in result.stderr
