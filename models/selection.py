@@ -52,6 +52,10 @@ CRITERIA: tuple[Criterion, ...] = ("aic", "bic", "fpe")
 # norm is treated as dependent on them: rounding (~eps of the column) would already be ~1e-8 of
 # what is left of it, and a model holding it would have a condition number of 1e8 or more.
 DEFAULT_TOLERANCE = 1e-8
+# The precise path keeps candidates down to this fraction: its twice-projected remainders are
+# exact to ~eps of the column, so a remainder of 1e-13 is still known to three digits, and on
+# noise-free data the terms that matter are collinear to ~1e-8 (their remainders ~1e-8 to 1e-13).
+PRECISE_TOLERANCE = 1e-13
 # Squared remaining norms are downdated, d_j ← d_j − (q_kᵀp_j)², which loses relative accuracy
 # ~eps·d_ref/d_j after falling from d_ref; below √eps·d_ref they are recomputed from the
 # explicitly orthogonalised column (LAPACK's pivoted QR, xLAQP2, uses the same threshold), so
@@ -234,7 +238,8 @@ def frols_grouped(
     block Gram–Schmidt: after each step the chosen block is orthonormalised (QR, after one
     more orthogonalisation against the basis) and projected out of every column of B in
     place, W ← W − Q_b·(Q_bᵀW). A block is dependent when the smallest eigenvalue of the Gram
-    matrix of its remaining (originally unit-norm) columns is ≤ tolerance². B is overwritten
+    matrix of its remaining (originally unit-norm) columns is ≤ tolerance². The projection is
+    applied twice each step, so that the path stays exact to rounding level. B is overwritten
     when ``overwrite`` is true and B is a Fortran-ordered float64 array, else copied.
     """
     n_obs, total = B.shape
@@ -278,7 +283,10 @@ def frols_grouped(
         g = Q.T @ residual
         residual -= Q @ g
         residual -= Q @ (Q.T @ residual)
-        blas.dgemm(-1.0, Q, Q.T @ W, beta=1.0, c=W, overwrite_c=True)
+        # Twice: one pass leaves W orthogonal to Q only to ~eps·‖W‖/‖W⊥‖, which ruins the
+        # ranking once the residual nears rounding level (noise-free data); twice is enough.
+        for _ in range(2):
+            blas.dgemm(-1.0, Q, Q.T @ W, beta=1.0, c=W, overwrite_c=True)
         current = float(residual @ residual)
         order.append(j)
         err.append(float(g @ g) / energy)
@@ -495,7 +503,8 @@ def select_narx(
     max_terms: int = 20,
     prune: bool = False,
     include: Sequence[str | Term] = (),
-    tolerance: float = DEFAULT_TOLERANCE,
+    tolerance: float | None = None,
+    precise: bool = False,
     progress: Progress | None = None,
 ) -> NarxSelection:
     """Select NARX terms from ``candidates`` by FROLS on one or more records.
@@ -507,7 +516,17 @@ def select_narx(
     extension is sought). Every record contributes its equations t = L … N−1 (L the
     dictionary's largest lag), so lags never cross records; the parameters are least-squares
     estimates on those equations.
+
+    ``precise`` runs the path on explicitly orthogonalised candidates (:func:`frols_grouped`,
+    twice-projected Gram–Schmidt) instead of the fast updates of :func:`frols`: ~20× slower, and
+    exact down to rounding level, which noise-free data needs — there the cubic regressors of an
+    oversampled response differ from each other by ~1e-8, and the updated norms and numerators
+    of the fast path lose the digits that rank them once the residual nears 1e-12 of y.
+    ``tolerance`` (the remaining-norm fraction below which a candidate counts as dependent)
+    defaults to ``DEFAULT_TOLERANCE``, or ``PRECISE_TOLERANCE`` on the precise path.
     """
+    if tolerance is None:
+        tolerance = PRECISE_TOLERANCE if precise else DEFAULT_TOLERANCE
     dictionary = candidate_matrix(candidates, records)
     rule = _rule(n_terms, criterion, err_tolerance, max_terms, len(dictionary.terms), prune)
     forced = _positions(dictionary.terms, include)
@@ -515,16 +534,29 @@ def select_narx(
         raise InputError(
             f"{len(forced)} included terms exceed the {rule.length} terms the selection may take"
         )
-    path = frols(
-        dictionary.P,
-        dictionary.target,
-        rule.length,
-        err_tolerance=rule.err_tolerance,
-        tolerance=tolerance,
-        scale=dictionary.scale,
-        forced=forced,
-        progress=progress,
-    )
+    if precise:
+        if forced:
+            raise InputError("included terms are not available with the precise path: select without them")
+        path = frols_grouped(
+            dictionary.P,
+            dictionary.target,
+            1,
+            rule.length,
+            err_tolerance=rule.err_tolerance,
+            tolerance=tolerance,
+            progress=progress,
+        )
+    else:
+        path = frols(
+            dictionary.P,
+            dictionary.target,
+            rule.length,
+            err_tolerance=rule.err_tolerance,
+            tolerance=tolerance,
+            scale=dictionary.scale,
+            forced=forced,
+            progress=progress,
+        )
     if not len(path):
         raise InputError("every candidate column is zero on these records: nothing can be selected")
     size, stopped_by = rule.select(path, len(forced))

@@ -23,7 +23,17 @@ def workdir(tmp_path_factory) -> Path:
 
 def test_help() -> None:
     result = run("select", "--help", cwd=Path.cwd())
-    for option in ("--degree", "--ny", "--nx", "--delay", "--criterion", "--n-terms", "--json", "--out"):
+    for option in (
+        "--degree",
+        "--ny",
+        "--nx",
+        "--delay",
+        "--criterion",
+        "--n-terms",
+        "--precise",
+        "--json",
+        "--out",
+    ):
         assert option in result.stdout
 
 

@@ -153,22 +153,21 @@ def test_several_records_equal_a_hand_stacked_matrix(candidates) -> None:
     assert np.max(np.abs(joined.path.err[:5] / selection.path.err[:5] - 1)) > 1e-4
 
 
-def test_noise_free_structure_and_coefficients_match_theory(noise_free_record, candidates, params) -> None:
-    """Noise-free data: forward selection until the unexplained share falls below 1e-26, then
-    pruning while it stays below, gives exactly the eight terms of SPEC §2, with coefficients
-    that agree with theory to the rounding bound of test_narx (< 1e-8 relative).
+@pytest.mark.parametrize("seed", [11, 12, 13, 14])
+def test_noise_free_structure_and_coefficients_match_theory(candidates, params, seed) -> None:
+    """Noise-free data, 30 000 samples: the precise path run until the unexplained share falls
+    below 1e-28, then pruned while it stays below, gives exactly the eight terms of SPEC §2 with
+    coefficients equal to theory to the rounding bound of test_narx (< 1e-8 relative).
 
-    1e-26 lies between the exact model's rounding-level ESR (~1e-30: its residual is rounding,
-    ~10·eps·|y|) and what the 15-term path leaves without any one of the eight (≥ 2e-23 here).
-    This holds for this record, not for every record: the cubic terms of an oversampled response
-    are collinear to ~1e-8, and the greedy path, which takes y[t-1]^3 first, reaches the
-    tolerance with a superset of the exact terms on 3 of 6 noise-free records of 30 000
-    samples tried (on the others it approximates y[t-2]^3 … y[t-4]^3 by other cubic terms to
-    ESR ~1e-27 and pruning keeps 16–18 terms). The first five terms are the exact linear part
-    on every record tried (next test).
+    1e-28 lies between the exact model's rounding-level ESR (~1e-30: its residual is rounding,
+    ~10·eps·|y|) and what any model without one of the eight leaves (≥ 1e-27: the cubic terms
+    of an oversampled response are collinear to ~1e-8, and other cubic terms stand in for them
+    that well). The fast path loses those digits on most records (next test).
     """
-    rec = noise_free_record
-    selection = select_narx([(rec.x, rec.y)], candidates, err_tolerance=1e-26, prune=True)
+    rec = simulate(Scenario(), 30_000, seed=seed)
+    selection = select_narx(
+        [(rec.x, rec.y)], candidates, err_tolerance=1e-28, max_terms=45, prune=True, precise=True
+    )
     assert set(selection.model.terms) == set(EXACT_TERMS)
     assert selection.stopped_by == "err_tolerance"
     assert selection.esr < 1e-28
@@ -178,6 +177,16 @@ def test_noise_free_structure_and_coefficients_match_theory(noise_free_record, c
     # The ERR of the pruned model is recomputed in its own order and still sums to 1 − ESR.
     assert np.sum(selection.err) == pytest.approx(1 - selection.esr, abs=1e-12)
     assert len(selection.removed) == len(selection.path) - 8
+
+
+def test_the_fast_path_loses_the_digits_noise_free_data_needs(candidates) -> None:
+    """Why the precise path exists: on a noise-free record where the fast path's updates stall
+    near ESR 1e-25 without the exact cubic terms, the precise one reaches rounding level."""
+    rec = simulate(Scenario(), 30_000, seed=12)
+    fast = select_narx([(rec.x, rec.y)], candidates, n_terms=30)
+    precise = select_narx([(rec.x, rec.y)], candidates, n_terms=30, precise=True)
+    assert not set(EXACT_TERMS) <= set(fast.model.terms) and fast.esr > 1e-27
+    assert set(EXACT_TERMS) <= set(precise.model.terms) and precise.esr < 1e-29
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -299,6 +308,7 @@ def test_bad_settings_are_refused(disturbed_record, candidates) -> None:
         ({"n_terms": 3, "prune": True}, "pruning needs a criterion or an ERR tolerance"),
         ({"err_tolerance": 1.5}, "err_tolerance must lie between 0 and 1"),
         ({"max_terms": 0}, "max_terms must be an integer >= 1"),
+        ({"n_terms": 3, "include": ["x[t-4]"], "precise": True}, "not available with the precise path"),
     ]
     for kwargs, message in cases:
         with pytest.raises(InputError, match=message):

@@ -50,6 +50,12 @@ def select(
     prune: Annotated[
         bool, typer.Option(help="Then drop terms one at a time while the stopping rule still holds.")
     ] = False,
+    precise: Annotated[
+        bool,
+        typer.Option(
+            help="Explicitly orthogonalised path, exact to rounding level (noise-free data); slower."
+        ),
+    ] = False,
     holdout: Annotated[
         list[Path] | None, typer.Option(help="Held-out record for the validation errors (repeatable).")
     ] = None,
@@ -101,6 +107,7 @@ def select(
             max_terms=max_terms,
             prune=prune,
             include=include or (),
+            precise=precise,
             progress=lambda step: bar.update(task, completed=step),
         )
     held_out = validate(selection.model, validation_signals, steps) if validation_signals else None
