@@ -40,11 +40,13 @@ from simulator.options import (
     ExcitationStd,
     Fault,
     Magnitude,
+    NoiseColour,
     NoiseStd,
     ParamList,
     Samples,
     XNoiseStd,
     parse_assignments,
+    parse_colour,
 )
 from simulator.paper import CASES, StudySettings
 from simulator.physics import PhysicalParameters, check_stable
@@ -121,6 +123,7 @@ class ScenarioOptions:
     x_noise_std: float
     effects: tuple[str, ...]
     params: tuple[str, ...]
+    noise_colour: str | None = None
 
     def scenario(self, fault: str, k: float) -> Scenario:
         """A scenario refused now, before anything is posted, if its options cannot be simulated."""
@@ -132,6 +135,7 @@ class ScenarioOptions:
             disturbance_std=self.disturbance_std,
             y_noise_std=self.noise_std,
             x_noise_std=self.x_noise_std,
+            noise_colour=parse_colour(self.noise_colour),
             effects=Effects.parse(self.effects),
         )
         check_stable(scenario.structure)
@@ -582,6 +586,7 @@ def record_command(
     disturbance_std: DisturbanceStd = STUDY.disturbance_std,
     noise_std: NoiseStd = 0.0,
     x_noise_std: XNoiseStd = 0.0,
+    noise_colour: NoiseColour = None,
     effect: EffectList = None,
     param: ParamList = None,
     url: Url = DEFAULT_URL,
@@ -594,7 +599,13 @@ def record_command(
 ) -> None:
     """Simulate one record, post it for inspection and print its verdict."""
     options = ScenarioOptions(
-        excitation_std, disturbance_std, noise_std, x_noise_std, tuple(effect or ()), tuple(param or ())
+        excitation_std,
+        disturbance_std,
+        noise_std,
+        x_noise_std,
+        tuple(effect or ()),
+        tuple(param or ()),
+        noise_colour,
     )
     plan = Plan("record", options.scenario(fault, k), n, first_seed(seed), start_time(acquired_at) or now())
     with open_destination(Target(url, key, structure, out, file_format)) as destination:
@@ -619,6 +630,7 @@ def scenario_command(
     disturbance_std: DisturbanceStd = STUDY.disturbance_std,
     noise_std: NoiseStd = 0.0,
     x_noise_std: XNoiseStd = 0.0,
+    noise_colour: NoiseColour = None,
     effect: EffectList = None,
     param: ParamList = None,
     url: Url = DEFAULT_URL,
@@ -631,7 +643,13 @@ def scenario_command(
 ) -> None:
     """Post --runs records of a paper test case (all at one acquisition time) and tally the verdicts."""
     options = ScenarioOptions(
-        excitation_std, disturbance_std, noise_std, x_noise_std, tuple(effect or ()), tuple(param or ())
+        excitation_std,
+        disturbance_std,
+        noise_std,
+        x_noise_std,
+        tuple(effect or ()),
+        tuple(param or ()),
+        noise_colour,
     )
     cases = chosen_cases(name, fault, k, options)
     seeds = itertools.count(first_seed(seed))
@@ -659,6 +677,7 @@ def stream_command(
     disturbance_std: DisturbanceStd = STUDY.disturbance_std,
     noise_std: NoiseStd = 0.0,
     x_noise_std: XNoiseStd = 0.0,
+    noise_colour: NoiseColour = None,
     effect: EffectList = None,
     param: ParamList = None,
     url: Url = DEFAULT_URL,
@@ -679,7 +698,13 @@ def stream_command(
     A refused record is reported and the stream goes on; the exit code is 1 if any was refused.
     """
     options = ScenarioOptions(
-        excitation_std, disturbance_std, noise_std, x_noise_std, tuple(effect or ()), tuple(param or ())
+        excitation_std,
+        disturbance_std,
+        noise_std,
+        x_noise_std,
+        tuple(effect or ()),
+        tuple(param or ()),
+        noise_colour,
     )
     stream = Stream(options, fault, k, drift, n, first_seed(seed), every, count, start_time(acquired_at))
     stream.check()

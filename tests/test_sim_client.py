@@ -313,3 +313,15 @@ def test_ctrl_c_stops_a_stream_cleanly(trained: Trained):
     assert process.returncode == 0, err
     assert "stopped" in err and "Traceback" not in err
     assert out.splitlines()[-1].startswith("stream: 1 record, ")
+
+
+def test_record_with_coloured_measurement_noise_is_the_simulators(tmp_path: Path):
+    """--noise-colour reaches the simulator: the written record equals one simulated directly."""
+    args = ["record", "--seed", "8", "--x-noise-std", "500", "--noise-colour", "1.5,0.5"]
+    result = run_sim(*args, "--format", "npz", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    scenario = Scenario(disturbance_std=SETTINGS.disturbance_std, x_noise_std=500.0, noise_colour=(1.5, 0.5))
+    expected = simulate(scenario, SETTINGS.inspection_samples, 8)
+    np.testing.assert_array_equal(read_record(tmp_path / "record_0001_none_0.npz").x, expected.x)
+    refused = run_sim("record", "--noise-colour", "1.5,x", "--out", str(tmp_path))
+    assert refused.returncode == 2 and "--noise-colour '1.5,x'" in refused.stderr
