@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -26,6 +27,9 @@ class Settings(BaseSettings):
     lags: int = Field(40, ge=2)
     upgrade_on_start: bool = True
     history_page_size: int = Field(50, ge=1, le=1000)
+    # "embedded": queued inspections run on a thread of each service process; "off": they wait
+    # in the queue for a worker elsewhere.
+    jobs: Literal["embedded", "off"] = "embedded"
 
 
 @lru_cache

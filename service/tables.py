@@ -193,3 +193,26 @@ class Refinement(Base):
 
     base_model: Mapped[ModelVersion] = relationship(foreign_keys=[base_model_id])
     refined_model: Mapped[ModelVersion | None] = relationship(foreign_keys=[refined_model_id])
+
+
+class Job(Base):
+    """A queued piece of work for the embedded job backend (the distributed one keeps its own).
+
+    A worker claims a job by setting ``locked_until``; a job whose lease ran out (its worker
+    died) is claimed again, so every job runs at least once. Jobs are idempotent: an inspection
+    stores at most one verdict per record and model set.
+    """
+
+    __tablename__ = "jobs"
+    __table_args__ = (Index("ix_jobs_due", "status", "run_after"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    task: Mapped[str] = mapped_column(String(50))
+    record_id: Mapped[int] = mapped_column(ForeignKey("records.id", ondelete="CASCADE"))
+    status: Mapped[str] = mapped_column(String(16), default="queued")
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    run_after: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+    locked_until: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)

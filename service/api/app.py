@@ -16,6 +16,7 @@ from service.api.limits import BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
 from service.domain.errors import ConflictError, NotFoundError
+from service.jobs import EmbeddedWorker
 from service.migrate import upgrade_database
 from simulator.recordfile import RecordTooLargeError
 
@@ -29,7 +30,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if settings.upgrade_on_start:
             upgrade_database(settings.database_url)
+        worker = app.state.jobs
+        if worker is not None:
+            worker.start()
         yield
+        if worker is not None:
+            worker.stop()
         app.state.engine.dispose()
 
     app = FastAPI(
@@ -41,6 +47,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = make_engine(settings.database_url)
     app.state.sessions = session_factory(app.state.engine)
+    app.state.jobs = EmbeddedWorker(app.state.sessions, settings) if settings.jobs == "embedded" else None
     app.include_router(health.router)
     for router in (structures.router, modelling.router, records.router, refinements.router):
         app.include_router(router, prefix=API_PREFIX)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+from enum import StrEnum
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response, status
@@ -18,11 +19,20 @@ from service.schemas import RecordOut, VerdictOut
 router = APIRouter(tags=["records"])
 
 
+class InspectMode(StrEnum):
+    false = "false"
+    true = "true"
+    queue = "queue"
+
+
 @router.post(
     "/structures/{structure_id}/records",
     status_code=status.HTTP_201_CREATED,
     openapi_extra={"requestBody": REQUEST_BODY},
-    responses={200: {"model": RecordOut, "description": "The same data had been uploaded before"}},
+    responses={
+        200: {"model": RecordOut, "description": "The same data had been uploaded before"},
+        202: {"model": RecordOut, "description": "Stored, and its inspection queued (inspect=queue)"},
+    },
 )
 async def upload_record(
     request: Request,
@@ -31,7 +41,13 @@ async def upload_record(
     principal: Ingest,
     session: SessionDep,
     settings: SettingsDep,
-    inspect: Annotated[bool, Query(description="Run the inspection chain and return the verdict")] = False,
+    inspect: Annotated[
+        InspectMode,
+        Query(
+            description="true: run the inspection chain and return the verdict; queue: queue it and "
+            "answer 202 (the verdict appears in the history); false: store only"
+        ),
+    ] = InspectMode.false,
     acquired_at: Annotated[
         dt.datetime | None, Query(description="Acquisition time for CSV/NPZ bodies (ISO 8601 with zone)")
     ] = None,
@@ -51,9 +67,14 @@ async def upload_record(
         upload.y,
         upload.fs,
         utc(upload.acquired_at, "acquired_at"),
-        inspect,
+        inspect is InspectMode.true,
+        inspect is InspectMode.queue,
     )
-    if not ingested.created:
+    if inspect is InspectMode.queue:
+        response.status_code = status.HTTP_202_ACCEPTED
+        if request.app.state.jobs is not None:
+            request.app.state.jobs.wake()
+    elif not ingested.created:
         response.status_code = status.HTTP_200_OK
     return _record_out(ingested)
 

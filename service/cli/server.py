@@ -1,4 +1,4 @@
-"""Service commands: ``serve``, ``db upgrade``, ``keys create``, ``demo-seed``."""
+"""Service commands: ``serve``, ``worker``, ``db upgrade``, ``keys create``, ``demo-seed``."""
 
 from __future__ import annotations
 
@@ -33,6 +33,30 @@ def serve(
     uvicorn.run(
         "service.api.app:create_app", factory=True, host=host, port=port, workers=workers, log_level="info"
     )
+
+
+def worker(
+    once: Annotated[bool, typer.Option(help="Run the jobs due now, then exit.")] = False,
+) -> None:
+    """Run queued inspections (inspect=queue) from the database's job queue, until stopped.
+
+    Any number may run, on any machine that reaches the database; each job runs at least once,
+    and its verdict is stored once. Run it when the service itself runs with NARXWATCH_JOBS=off.
+    """
+    from service.jobs import EmbeddedWorker
+
+    settings = get_settings()
+    runner = EmbeddedWorker(session_factory(make_engine(settings.database_url)), settings)
+    if once:
+        stdout.print(f"ran {runner.run_due()} job(s)")
+        return
+    stdout.print("narxwatch worker: running queued jobs (Ctrl-C stops)")
+    runner.start()
+    try:
+        while runner.alive():
+            runner.join(1.0)
+    except KeyboardInterrupt:
+        runner.stop()
 
 
 @db_app.command("upgrade")

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 from service.config import Settings
 from service.db import writing
 from service.domain import inspections, records, structures
+from service.jobs import enqueue_inspection
 from service.security import Principal
 from service.tables import Record, Verdict
 
@@ -32,8 +33,10 @@ def ingest_record(
     fs: float | None,
     acquired_at: dt.datetime | None,
     inspect: bool,
+    queue: bool = False,
 ) -> Ingested:
-    """Store a record and, with ``inspect``, its verdict under the active fault-mode models; commits.
+    """Store a record and, with ``inspect``, its verdict under the active fault-mode models, or
+    with ``queue`` an inspection job in the same transaction; commits.
 
     The verdict is computed before the first write, so that the write lock (SQLite's, or the
     writer gate in front of it) is held only for the inserts and their commit.
@@ -47,5 +50,7 @@ def ingest_record(
         verdict = (
             inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
         )
+        if queue:
+            enqueue_inspection(session, record.id)
         session.commit()
     return Ingested(record, created, verdict)

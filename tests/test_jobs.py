@@ -1,0 +1,152 @@
+"""Queued inspections (embedded job backend): 202 now, the verdict later, exactly once.
+
+Through HTTP on SQLite and PostgreSQL for the user's view; on a real SQLite file for the queue's
+own rules (leases, redelivery, retries with backoff).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from api_helpers import (
+    API,
+    Org,
+    clients,
+    create_structure,
+    npz_bytes,
+    post_record,
+    simulated,
+    train_fault_mode,
+)
+from live import LiveServer
+from sqlalchemy import func, select
+from test_cli import NARXWATCH
+
+from service.config import Settings
+from service.db import make_engine, session_factory, transaction
+from service.domain import records, structures
+from service.jobs import FIRST_RETRY, LEASE, MAX_ATTEMPTS, claim, enqueue_inspection, run
+from service.migrate import upgrade_database
+from service.schemas import StructureCreate
+from service.security import Principal, Role
+from service.tables import Job, Organisation, Verdict, utcnow
+
+
+def verdicts_of(viewer: httpx.Client, structure_id: int, record_id: int) -> list[dict]:
+    page = viewer.get(f"{API}/structures/{structure_id}/verdicts", params={"limit": 1000}).json()
+    return [v for v in page["items"] if v["record_id"] == record_id]
+
+
+def test_a_queued_upload_answers_202_and_its_verdict_appears_once(api_server: LiveServer):
+    """The queued verdict is the one an immediate inspection gives: checked against a twin
+    structure, trained identically, that inspects the same record with inspect=true."""
+    org = Org.create(api_server)
+    with clients(org) as (admin, ingest, viewer):
+        sid, twin = create_structure(admin)["id"], create_structure(admin)["id"]
+        for structure_id in (sid, twin):
+            train_fault_mode(admin, ingest, structure_id, "k2", seed=71)
+        record = simulated("k2", 25.0, [72])
+        body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+        immediate = post_record(ingest, twin, body, "application/x-npz", inspect="true").json()["verdict"]
+        response = post_record(ingest, sid, body, "application/x-npz", inspect="queue")
+        assert response.status_code == 202, response.text
+        answer = response.json()
+        assert answer["verdict"] is None and answer["created"] is True
+        deadline = time.monotonic() + 30
+        while not (found := verdicts_of(viewer, sid, answer["id"])) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(found) == 1, "the queued inspection produced no verdict within 30 s"
+        for field in ("status", "fault_detected", "fault_mode", "k_hat", "sigma_k", "interval", "modes"):
+            assert found[0][field] == immediate[field], field
+        # Inspecting again with the same models returns that verdict: no second one.
+        again = ingest.post(f"{API}/records/{answer['id']}/inspect")
+        assert again.status_code == 200 and again.json()["id"] == found[0]["id"]
+        assert len(verdicts_of(viewer, sid, answer["id"])) == 1
+
+
+# --- the queue's rules, on a SQLite file -----------------------------------------------------
+
+
+@pytest.fixture
+def queue(tmp_path: Path):
+    """A migrated database with one structure (no models yet) and one stored record."""
+    url = f"sqlite:///{tmp_path / 'jobs.db'}"
+    upgrade_database(url)
+    sessions = session_factory(make_engine(url))
+    with transaction(sessions) as session:
+        organisation = Organisation(name="jobs")
+        session.add(organisation)
+        session.flush()
+        principal = Principal(organisation.id, Role.admin, key_id=0)
+        structure = structures.create_structure(session, principal, StructureCreate(name="rig", fs=1500.0))
+        record = simulated("none", 0.0, [73])
+        stored, _ = records.store_record(session, structure, record.x, record.y, None, None, 100)
+        enqueue_inspection(session, stored.id)
+    return sessions, Settings(database_url=url, jobs="off")
+
+
+def test_a_leased_job_is_not_claimed_twice_until_its_lease_runs_out(queue):
+    sessions, _ = queue
+    with sessions() as session:
+        first = claim(session)
+        assert first is not None and first.attempts == 1
+        assert claim(session) is None, "a leased job was handed to a second worker"
+        # Its worker died: once the lease has run out, the job is redelivered.
+        later = utcnow() + LEASE + dt.timedelta(seconds=1)
+        again = claim(session, now=later)
+        assert again is not None and (again.id, again.attempts) == (first.id, 2)
+
+
+def test_a_failing_job_is_retried_with_backoff_then_marked_failed(queue):
+    sessions, settings = queue
+    with sessions() as session:
+        now = utcnow()
+        for attempt in range(1, MAX_ATTEMPTS + 1):
+            job = claim(session, now=now)
+            assert job is not None and job.attempts == attempt
+            run(session, job, settings, now=now)  # no active fault-mode model: the inspection fails
+            row = session.get(Job, job.id)
+            session.refresh(row)
+            assert "no active fault-mode model" in (row.last_error or "")
+            if attempt < MAX_ATTEMPTS:
+                delay = FIRST_RETRY * 2 ** (attempt - 1)
+                assert row.status == "queued" and row.run_after == now + delay
+                assert claim(session, now=now) is None, "retried before its backoff"
+                now = row.run_after + dt.timedelta(milliseconds=1)
+        assert row.status == "failed" and row.finished_at is not None
+        assert claim(session, now=now + dt.timedelta(days=1)) is None
+        assert session.scalar(select(func.count()).select_from(Verdict)) == 0
+
+
+def test_narxwatch_worker_runs_what_a_service_without_jobs_queued(tmp_path: Path):
+    """NARXWATCH_JOBS=off: the service only queues; `narxwatch worker --once` (another process)
+    inspects, and the verdict is the same as an immediate inspection's."""
+    url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    with LiveServer(Settings(database_url=url, jobs="off")) as server:
+        org = Org.create(server)
+        with clients(org) as (admin, ingest, viewer):
+            sid = create_structure(admin)["id"]
+            train_fault_mode(admin, ingest, sid, "k2", seed=74)
+            record = simulated("none", 0.0, [75])
+            body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+            queued = post_record(ingest, sid, body, "application/x-npz", inspect="queue")
+            assert queued.status_code == 202, queued.text
+            time.sleep(1.0)  # what an embedded worker would have needed
+            assert verdicts_of(viewer, sid, queued.json()["id"]) == []
+            result = subprocess.run(
+                [NARXWATCH, "worker", "--once"],
+                env={**os.environ, "NARXWATCH_DATABASE_URL": url},
+                capture_output=True,
+                text=True,
+                timeout=120,
+            )
+            assert result.returncode == 0 and "ran 1 job(s)" in result.stdout, result.stderr
+            (verdict,) = verdicts_of(viewer, sid, queued.json()["id"])
+            immediate = ingest.post(f"{API}/records/{queued.json()['id']}/inspect").json()
+            assert verdict == immediate
