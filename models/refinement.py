@@ -196,7 +196,7 @@ def refine(
     families = list(effects) if effects is not None else candidate_effects(terms)
     _check_length(len(y), terms, families)
     declared_model, _ = _fit(x, y, terms, 0, max_lag(terms))
-    noise_lags = 0
+    refined, noise, noise_lags = declared_model, np.empty(0), 0
     free_run = _free_run_error(declared_model, x, y)
     rounds: list[Round] = []
     for _ in range(max_rounds):
@@ -208,18 +208,19 @@ def refine(
         for score in sorted((s for s in step.scores if s.significant), key=lambda s: s.bic_change):
             new_terms = terms if score.noise_lags else terms + parse_terms(score.terms)
             new_lags = score.noise_lags or noise_lags
-            model, _ = _fit(x, y, new_terms, new_lags, max_lag(new_terms))
+            model, model_noise = _fit(x, y, new_terms, new_lags, max_lag(new_terms))
             error = _free_run_error(model, x, y)
             if error <= free_run:
                 step = replace(step, added=score, rejected=tuple(rejected))
                 terms, noise_lags, free_run = new_terms, new_lags, error
+                refined, noise = model, model_noise
                 break
             rejected.append(score.name)
         else:
             rounds.append(replace(step, rejected=tuple(rejected)))
             break
         rounds.append(step)
-    refined, noise = _fit(x, y, terms, noise_lags, max_lag(terms))
+    # The last effect accepted was fitted by its check: that fit is the refined model.
     return Refinement(declared_model, refined, noise, tuple(rounds))
 
 
