@@ -19,6 +19,9 @@ from api_helpers import (
     Org,
     clients,
     create_structure,
+    detail,
+    json_body,
+    nothing_written,
     npz_bytes,
     post_record,
     simulated,
@@ -68,6 +71,16 @@ def test_a_queued_upload_answers_202_and_its_verdict_appears_once(api_server: Li
         again = ingest.post(f"{API}/records/{answer['id']}/inspect")
         assert again.status_code == 200 and again.json()["id"] == found[0]["id"]
         assert len(verdicts_of(viewer, sid, answer["id"])) == 1
+
+
+def test_an_unknown_inspect_mode_is_refused_and_stores_nothing(api_server: LiveServer):
+    org = Org.create(api_server)
+    with clients(org) as (admin, ingest, _):
+        sid = create_structure(admin)["id"]
+        with nothing_written(org, sid):
+            response = post_record(ingest, sid, json_body(300), inspect="later")
+            assert response.status_code == 422, response.text
+            assert "inspect" in detail(response) and "'queue'" in detail(response)
 
 
 # --- the queue's rules, on a SQLite file -----------------------------------------------------

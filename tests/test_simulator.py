@@ -508,3 +508,26 @@ def test_parse_error_lists_known_effects() -> None:
         Effects.parse(["friction=3"])
     for name in EFFECTS:
         assert name in str(info.value)
+
+
+def test_coloured_measurement_noise_is_the_stated_moving_average() -> None:
+    """n[t] = ξ[t] + 1.5ξ[t−1] + 0.5ξ[t−2]: its autocorrelation is that of the MA(2) (theory:
+    ρ1 = (c1 + c1c2)/(1 + c1² + c2²), ρ2 = c2/(1 + c1² + c2²), zero beyond), its variance
+    (1 + c1² + c2²)·std²."""
+    colour = (1.5, 0.5)
+    clean = simulate(Scenario(), 40_000, seed=3)
+    noisy = simulate(Scenario(x_noise_std=100.0, noise_colour=colour), 40_000, seed=3)
+    noise = noisy.x - clean.x
+    power = 1 + 1.5**2 + 0.5**2
+    rho = autocorrelation(noise, 3)
+    band = 4 / np.sqrt(len(noise))
+    np.testing.assert_allclose(rho[1:], [(1.5 + 1.5 * 0.5) / power, 0.5 / power, 0.0], atol=band)
+    assert np.var(noise) == pytest.approx(power * 100.0**2, rel=0.05)
+
+
+@pytest.mark.parametrize(
+    "colour", [(float("nan"),), (float("inf"), 1.0), tuple([0.1] * (simulate_module.MAX_NOISE_COLOUR + 1))]
+)
+def test_bad_noise_colour_is_refused(colour) -> None:
+    with pytest.raises(InputError, match="noise_colour takes at most"):
+        simulate(Scenario(x_noise_std=1.0, noise_colour=colour), 100, seed=1)
