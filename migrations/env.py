@@ -7,13 +7,20 @@ from alembic import context
 from service import tables  # noqa: F401  (registers every table on the metadata)
 from service.config import get_settings
 from service.db import Base, make_engine
+from service.migrate import is_ours
 
 config = context.config
 url = config.get_main_option("sqlalchemy.url") or get_settings().database_url
 
 
 def run_migrations_offline() -> None:
-    context.configure(url=url, target_metadata=Base.metadata, literal_binds=True, render_as_batch=True)
+    context.configure(
+        url=url,
+        target_metadata=Base.metadata,
+        literal_binds=True,
+        render_as_batch=True,
+        include_name=is_ours,
+    )
     with context.begin_transaction():
         context.run_migrations()
 
@@ -22,7 +29,12 @@ def run_migrations_online() -> None:
     engine = make_engine(url)
     with engine.connect() as connection:
         # Batch mode lets ALTER TABLE work on SQLite, which rebuilds tables to change them.
-        context.configure(connection=connection, target_metadata=Base.metadata, render_as_batch=True)
+        context.configure(
+            connection=connection,
+            target_metadata=Base.metadata,
+            render_as_batch=True,
+            include_name=is_ours,
+        )
         with context.begin_transaction():
             context.run_migrations()
     engine.dispose()

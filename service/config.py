@@ -6,7 +6,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 DEFAULT_DATABASE = Path("var") / "narxwatch.db"
@@ -27,9 +27,20 @@ class Settings(BaseSettings):
     lags: int = Field(40, ge=2)
     upgrade_on_start: bool = True
     history_page_size: int = Field(50, ge=1, le=1000)
-    # "embedded": queued inspections run on a thread of each service process; "off": they wait
-    # in the queue for a worker elsewhere.
-    jobs: Literal["embedded", "off"] = "embedded"
+    # "json": one JSON object a line (timestamp, level, logger, message, request_id, …).
+    log_format: Literal["json", "text"] = "json"
+    # When set, GET /metrics needs "Authorization: Bearer <token>"; unset, it is open (serve it
+    # on an internal network only).
+    metrics_token: SecretStr | None = Field(None, min_length=1)
+    # Where queued inspections and schedules run (see service.jobs): "auto" is "embedded" on
+    # SQLite and "distributed" (Procrastinate, `narxwatch worker` processes) on PostgreSQL.
+    job_backend: Literal["auto", "embedded", "distributed"] = "auto"
+    # Embedded backend: run jobs on a thread of each service process; off, they wait for
+    # `narxwatch worker` processes.
+    embedded_worker: bool = True
+    # Distributed backend: a worker silent this long (killed, cut off) has its jobs run again.
+    worker_heartbeat_seconds: float = Field(2.0, gt=0)
+    worker_stalled_seconds: float = Field(10.0, gt=0)
 
 
 @lru_cache

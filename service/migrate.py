@@ -8,6 +8,11 @@ from alembic import command
 from alembic.config import Config
 
 
+def is_ours(name: str | None, type_: str, _parents: object) -> bool:
+    """Alembic's ``include_name`` filter: Procrastinate's tables are its own, not our metadata's."""
+    return not (type_ == "table" and name is not None and name.startswith("procrastinate_"))
+
+
 def alembic_config(database_url: str) -> Config:
     config = Config()
     config.set_main_option("script_location", str(resources.files("migrations")))

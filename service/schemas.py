@@ -5,7 +5,17 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat, StrictInt
+from croniter import CroniterError, croniter
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    FiniteFloat,
+    StrictInt,
+    model_validator,
+)
 
 from models.basis import FAMILIES
 from models.inspection import ModeResult
@@ -28,7 +38,18 @@ def _aware(value: dt.datetime) -> dt.datetime:
         raise ValueError("the time lies outside the years 1 to 9999 once converted to UTC") from None
 
 
-AwareDatetime = Annotated[dt.datetime, AfterValidator(_aware)]
+def _iso(value: object) -> object:
+    # Strict models take no strings for datetimes from Python objects (request bodies that
+    # FastAPI has decoded): an ISO 8601 string is read here, and nothing looser (no numbers).
+    if isinstance(value, str):
+        try:
+            return dt.datetime.fromisoformat(value)
+        except ValueError:
+            raise ValueError("give an ISO 8601 time with a zone, e.g. 2026-11-21T10:00:00Z") from None
+    return value
+
+
+AwareDatetime = Annotated[dt.datetime, BeforeValidator(_iso), AfterValidator(_aware)]
 
 
 class Strict(BaseModel):
@@ -184,3 +205,57 @@ class RefinementOut(BaseModel):
     refined_model: ModelRef | None
     created_at: dt.datetime
     report: dict[str, Any]
+
+
+MIN_INTERVAL_SECONDS = 10  # the sweepers look every few seconds; shorter would not be kept
+MAX_INTERVAL_SECONDS = 366 * 86400
+
+
+def _cron(expression: str) -> str:
+    """Five fields (minute hour day month weekday) that some day matches."""
+    if len(expression.split()) != 5:
+        raise ValueError("give five fields: minute hour day-of-month month day-of-week, e.g. '*/15 * * * *'")
+    try:
+        croniter(expression, dt.datetime.now(dt.UTC)).get_next(dt.datetime)
+    except (CroniterError, ValueError, KeyError) as exc:
+        raise ValueError(f"not a cron expression that ever runs: {exc}") from None
+    return expression
+
+
+Action = Literal["inspect_pending", "reinspect_latest"]
+
+
+class ScheduleCreate(Strict):
+    """Run ``action`` on a structure every ``interval_seconds`` or on a ``cron`` expression (UTC).
+
+    ``inspect_pending`` inspects every record of the structure that has no verdict yet;
+    ``reinspect_latest`` inspects its newest record with the active models.
+    """
+
+    action: Action
+    interval_seconds: Annotated[StrictInt, Field(ge=MIN_INTERVAL_SECONDS, le=MAX_INTERVAL_SECONDS)] | None = (
+        None
+    )
+    cron: Annotated[str, Field(max_length=100), AfterValidator(_cron)] | None = None
+    first_run_at: Annotated[
+        AwareDatetime | None, Field(description="First due time of an interval schedule (default: now)")
+    ] = None
+
+    @model_validator(mode="after")
+    def _one_timing(self) -> ScheduleCreate:
+        if (self.interval_seconds is None) == (self.cron is None):
+            raise ValueError("give exactly one of interval_seconds and cron")
+        if self.cron is not None and self.first_run_at is not None:
+            raise ValueError("first_run_at applies to interval schedules; a cron schedule runs on its times")
+        return self
+
+
+class ScheduleOut(BaseModel):
+    id: int
+    structure_id: int
+    action: Action
+    interval_seconds: int | None
+    cron: str | None
+    next_run_at: dt.datetime
+    last_run_at: dt.datetime | None
+    created_at: dt.datetime

@@ -196,11 +196,12 @@ class Refinement(Base):
 
 
 class Job(Base):
-    """A queued piece of work for the embedded job backend (the distributed one keeps its own).
+    """A queued task of the embedded job backend (the distributed one keeps Procrastinate's).
 
-    A worker claims a job by setting ``locked_until``; a job whose lease ran out (its worker
-    died) is claimed again, so every job runs at least once. Jobs are idempotent: an inspection
-    stores at most one verdict per record and model set.
+    ``task`` names a function of ``service.jobs.tasks`` and ``args`` its keyword arguments. A
+    worker claims a job by setting ``locked_until``; a job whose lease ran out (its worker died)
+    is claimed again, so every job runs at least once. Tasks are idempotent: an inspection stores
+    at most one verdict per record and model set.
     """
 
     __tablename__ = "jobs"
@@ -208,7 +209,7 @@ class Job(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     task: Mapped[str] = mapped_column(String(50))
-    record_id: Mapped[int] = mapped_column(ForeignKey("records.id", ondelete="CASCADE"))
+    args: Mapped[dict[str, Any]] = mapped_column(Document)
     status: Mapped[str] = mapped_column(String(16), default="queued")
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     run_after: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
@@ -216,3 +217,22 @@ class Job(Base):
     last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
     finished_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+
+class Schedule(Base):
+    """A periodic inspection of one structure: every ``interval_seconds`` or on a cron expression.
+
+    ``next_run_at`` is the next due time; a sweeper that finds it past moves it on with a
+    compare-and-set on its old value, so each due time is acted on once however many sweep.
+    """
+
+    __tablename__ = "schedules"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"), index=True)
+    action: Mapped[str] = mapped_column(String(32))
+    interval_seconds: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    cron: Mapped[str | None] = mapped_column(String(100), nullable=True)
+    next_run_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, index=True)
+    last_run_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)

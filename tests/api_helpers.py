@@ -207,6 +207,7 @@ def _state(admin: httpx.Client, structure_id: int) -> dict[str, Any]:
         "verdicts": get(f"/structures/{structure_id}/verdicts?limit=1000"),
         "summary": get(f"/structures/{structure_id}/summary")["counts"],
         "refinements": get(f"/structures/{structure_id}/refinements"),
+        "schedules": get(f"/structures/{structure_id}/schedules"),
     }
 
 

@@ -219,13 +219,20 @@ def api_server(request, tmp_path_factory):
 
     from service.config import Settings
 
-    if request.param == "sqlite":
+    if request.param == "sqlite":  # the embedded job backend: jobs run on the server's thread
         url = f"sqlite:///{tmp_path_factory.mktemp('api') / 'narxwatch.db'}"
-    else:
-        import postgres
+        with LiveServer(Settings(database_url=url)) as server:
+            yield server
+        return
+    import postgres
+    from workers import workers
 
-        url = postgres.create_database(request.getfixturevalue("postgres_url"), "narxwatch_api")
-    with LiveServer(Settings(database_url=url)) as server:
+    # The distributed job backend: queued jobs run on two `narxwatch worker` processes.
+    url = postgres.create_database(request.getfixturevalue("postgres_url"), "narxwatch_api")
+    with (
+        LiveServer(Settings(database_url=url)) as server,
+        workers(url, 2, tmp_path_factory.mktemp("workers")),
+    ):
         yield server
 
 

@@ -178,7 +178,7 @@ def _fail(message: str, result: subprocess.CompletedProcess[str] | None, log: Pa
     raise PostgresUnavailableError("\n".join([message, *details]))
 
 
-def _start(binaries: Binaries, runner: _Runner, data: Path, log: Path) -> int:
+def _start(binaries: Binaries, runner: _Runner, data: Path, log: Path, durable: bool = False) -> int:
     """initdb into ``data``, configure, start; returns the port the server listens on."""
     workdir = data.parent
     result = runner.run(
@@ -198,6 +198,8 @@ def _start(binaries: Binaries, runner: _Runner, data: Path, log: Path) -> int:
     if result.returncode != 0:
         _fail("initdb failed", result, None)
     settings = {**SERVER_SETTINGS, "unix_socket_directories": f"'{workdir}'"}
+    if durable:  # a server that is to be stopped under load keeps what it acknowledged
+        settings.update(fsync="on", synchronous_commit="on", full_page_writes="on")
     with (data / "postgresql.conf").open("a") as conf:
         conf.write("\n# throwaway test server (tests/postgres.py)\n")
         conf.writelines(f"{name} = {value}\n" for name, value in settings.items())
@@ -209,21 +211,7 @@ def _start(binaries: Binaries, runner: _Runner, data: Path, log: Path) -> int:
         port = _free_port()
         if log.exists():
             log.write_text("")
-        result = runner.run(
-            [
-                str(binaries.pg_ctl),
-                "-D",
-                str(data),
-                "-l",
-                str(log),
-                "-w",
-                "-t",
-                "60",
-                "-o",
-                f"-p {port}",
-                "start",
-            ]
-        )
+        result = _pg_ctl_start(binaries, runner, data, log, port)
         if result.returncode == 0:
             return port
         text = log.read_text(errors="replace") if log.exists() else ""
@@ -233,10 +221,15 @@ def _start(binaries: Binaries, runner: _Runner, data: Path, log: Path) -> int:
     raise AssertionError("unreachable")
 
 
-def _stop(binaries: Binaries, runner: _Runner, data: Path) -> None:
-    runner.run(
-        [str(binaries.pg_ctl), "-D", str(data), "-m", "immediate", "-w", "-t", "30", "stop"], timeout=60
-    )
+def _pg_ctl_start(
+    binaries: Binaries, runner: _Runner, data: Path, log: Path, port: int
+) -> subprocess.CompletedProcess[str]:
+    command = [str(binaries.pg_ctl), "-D", str(data), "-l", str(log), "-w", "-t", "60", "-o", f"-p {port}"]
+    return runner.run([*command, "start"])
+
+
+def _stop(binaries: Binaries, runner: _Runner, data: Path, mode: str = "immediate") -> None:
+    runner.run([str(binaries.pg_ctl), "-D", str(data), "-m", mode, "-w", "-t", "30", "stop"], timeout=60)
 
 
 def conninfo(url: str) -> str:
@@ -269,13 +262,33 @@ def create_database(url: str, name: str) -> str:
     return url.rsplit("/", 1)[0] + "/" + name
 
 
-@contextlib.contextmanager
-def postgres_server(database: str = DATABASE) -> Iterator[str | None]:
-    """Start a throwaway server and yield ``postgresql+psycopg://narxwatch@127.0.0.1:PORT/DB``.
+@dataclass
+class Server:
+    """A running throwaway server; ``stop`` and ``start`` take it down and up on the same port."""
 
-    Yields None when PostgreSQL or psycopg is missing outside CI (see ``missing_reason()``);
-    raises ``PostgresUnavailableError`` when they are missing in CI or the server fails to start.
-    """
+    url: str
+    binaries: Binaries
+    runner: _Runner
+    data: Path
+    log: Path
+    port: int
+
+    def stop(self, mode: str = "fast") -> None:
+        """``fast``: an operator's stop (sessions cut, work in flight rolled back); ``immediate``: a crash."""
+        _stop(self.binaries, self.runner, self.data, mode)
+
+    def start(self) -> None:
+        result = _pg_ctl_start(self.binaries, self.runner, self.data, self.log, self.port)
+        if result.returncode != 0:
+            _fail("pg_ctl start (restart) failed", result, self.log)
+
+
+@contextlib.contextmanager
+def postgres_instance(database: str = DATABASE, durable: bool = False) -> Iterator[Server | None]:
+    """Start a throwaway server with an empty ``database``; yield it (see ``postgres_server``).
+
+    ``durable``: with fsync and synchronous commits, as a production server, for tests that stop
+    it and count what survived; the default trades that for speed."""
     reason = missing_reason()
     if reason is not None:
         if in_ci():
@@ -294,16 +307,28 @@ def postgres_server(database: str = DATABASE) -> Iterator[str | None]:
         runner = _Runner(workdir)
         runner.give(workdir)
         try:
-            port = _start(binaries, runner, data, log)
+            port = _start(binaries, runner, data, log, durable)
             admin = f"host={HOST} port={port} user={USER} dbname=postgres"
             with psycopg.connect(admin, autocommit=True) as conn:
                 conn.execute(f'CREATE DATABASE "{database}"')
-            yield f"postgresql+psycopg://{USER}@{HOST}:{port}/{database}"
+            url = f"postgresql+psycopg://{USER}@{HOST}:{port}/{database}"
+            yield Server(url, binaries, runner, data, log, port)
         finally:
             if (data / "postmaster.pid").exists():
                 _stop(binaries, runner, data)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def postgres_server(database: str = DATABASE) -> Iterator[str | None]:
+    """Start a throwaway server and yield ``postgresql+psycopg://narxwatch@127.0.0.1:PORT/DB``.
+
+    Yields None when PostgreSQL or psycopg is missing outside CI (see ``missing_reason()``);
+    raises ``PostgresUnavailableError`` when they are missing in CI or the server fails to start.
+    """
+    with postgres_instance(database) as server:
+        yield None if server is None else server.url
 
 
 if __name__ == "__main__":  # manual check: python tests/postgres.py

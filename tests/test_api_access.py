@@ -50,7 +50,15 @@ POLICY = {
     ("POST", "/api/v1/structures/{structure_id}/refinements"): "admin",
     ("GET", "/api/v1/structures/{structure_id}/refinements"): "viewer",
     ("GET", "/api/v1/refinements/{refinement_id}"): "viewer",
+    ("POST", "/api/v1/structures/{structure_id}/schedules"): "admin",
+    ("GET", "/api/v1/structures/{structure_id}/schedules"): "viewer",
+    ("DELETE", "/api/v1/structures/{structure_id}/schedules/{schedule_id}"): "admin",
 }
+# Never due while the tests run: a schedule that ran would write verdicts under their feet.
+SCHEDULE = {"action": "inspect_pending", "interval_seconds": 3600, "first_run_at": "2099-01-01T00:00:00Z"}
+# The routes outside /api/v1: no organisation's data, so no API key. The probes, and the metrics
+# (fleet-wide counts; NARXWATCH_METRICS_TOKEN guards them when set, and it is unset here).
+PUBLIC = {("GET", "/healthz"), ("GET", "/readyz"), ("GET", "/metrics")}
 MISSING = 10**6  # an id no object has
 
 
@@ -67,6 +75,7 @@ class Estate:
     verdict_id: int
     baseline_id: int
     refinement_id: int
+    schedule_id: int
 
     def ids(self) -> dict[str, int]:
         return {
@@ -75,6 +84,7 @@ class Estate:
             "record_id": self.record_id,
             "verdict_id": self.verdict_id,
             "refinement_id": self.refinement_id,
+            "schedule_id": self.schedule_id,
         }
 
 
@@ -99,6 +109,9 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
             json={"record_id": record["id"], "base_model_id": baseline_id},
         )
         assert response.status_code == 201, response.text
+        refinement_id = response.json()["id"]
+        response = admin.post(f"{API}/structures/{sid}/schedules", json=SCHEDULE)
+        assert response.status_code == 201, response.text
     return Estate(
         org,
         sid,
@@ -108,6 +121,7 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         record["id"],
         record["verdict"]["id"],
         baseline_id,
+        refinement_id,
         response.json()["id"],
     )
 
@@ -139,7 +153,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 15, routes
+    assert routes == documented and len(routes) == 18, routes
     return routes
 
 
@@ -156,6 +170,8 @@ def body_for(path: str, estate: Estate) -> dict | None:
         return json_body(300)
     if path.endswith("/refinements"):
         return {"record_id": estate.record_id, "base_model_id": estate.baseline_id}
+    if path.endswith("/schedules"):
+        return SCHEDULE
     return None
 
 
@@ -176,6 +192,19 @@ def first_lookup(path: str, ids: dict[str, int]) -> str:
 
 def test_the_policy_covers_every_route(api_server: LiveServer):
     assert set(api_routes(api_server)) == set(POLICY)
+
+
+def test_the_routes_outside_the_api_are_public(api_server: LiveServer):
+    documented = {
+        (method.upper(), path)
+        for path, item in api_server.app.openapi()["paths"].items()
+        if not path.startswith(API)
+        for method in item
+    }
+    assert documented == PUBLIC
+    with api_server.client() as anonymous:
+        for method, path in PUBLIC:
+            assert anonymous.request(method, path).status_code == 200, path
 
 
 def test_other_organisations_ids_are_not_found(api_server: LiveServer, ours: Estate, theirs: Estate):
@@ -242,6 +271,12 @@ def test_their_ids_inside_our_urls_and_bodies_are_not_found(ours: Estate, theirs
                 404,
                 {"detail": f"model version {model_id} not found"},
             )
+        for schedule_id in (theirs.schedule_id, MISSING):
+            response = admin.delete(f"{API}/structures/{ours.structure_id}/schedules/{schedule_id}")
+            assert (response.status_code, response.json()) == (
+                404,
+                {"detail": f"schedule {schedule_id} not found"},
+            )
 
 
 def test_listing_shows_only_our_structures(ours: Estate, theirs: Estate):
@@ -274,8 +309,8 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 needed = POLICY[method, path]
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
-    # viewer: 5 admin and 2 ingest routes; ingest: 5 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 12
+    # viewer: 7 admin and 2 ingest routes; ingest: 7 admin routes.
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 16
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

@@ -785,3 +785,21 @@ def test_json_bodies_are_bounded_too(small: Small, role, path):
             pytest.fail(f"POST {path} with a 10 GB body: no answer within 3 s, the server waits for it all")
     expected = (b"HTTP/1.1 413",) if role else (b"HTTP/1.1 401", b"HTTP/1.1 413")
     assert answer.startswith(expected), answer[:200]
+
+
+def test_a_1_gib_upload_is_refused_without_being_read(small: Small):
+    """Content-Length: 1 GiB on the record upload: 413 at once, after 64 KiB of it were sent,
+    so the server neither waited for nor buffered the body."""
+    head = (
+        f"POST {records_url(small.structure_id)} HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        f"Authorization: Bearer {small.org.keys['ingest']}\r\nContent-Type: application/x-npz\r\n"
+        f"Content-Length: {2**30}\r\n\r\n"
+    ).encode()
+    with socket.create_connection(("127.0.0.1", small.server.port), timeout=3) as connection:
+        connection.sendall(head + b"\0" * 65536)
+        try:
+            answer = connection.recv(65536)
+        except TimeoutError:
+            pytest.fail("a 1 GiB upload got no answer within 3 s: the server waits for the body")
+    assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
+    assert b"exceeds the limit" in answer

@@ -14,6 +14,7 @@ built from its strategy here.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import pytest
@@ -46,7 +47,7 @@ class Target:
 
 
 @pytest.fixture(scope="module")
-def target(api_server: LiveServer) -> Target:
+def target(api_server: LiveServer) -> Iterator[Target]:
     org = Org.create(api_server)
     with clients(org) as (admin, ingest, _):
         sid = create_structure(admin, "fuzzed")["id"]
@@ -59,15 +60,28 @@ def target(api_server: LiveServer) -> Target:
         body = {"record_id": record["id"], "base_model_id": response.json()["id"]}
         response = admin.post(f"{API}/structures/{sid}/refinements", json=body)
         assert response.status_code == 201, response.text
+        refinement_id = response.json()["id"]
+        schedule = {
+            "action": "inspect_pending",
+            "interval_seconds": 3600,
+            "first_run_at": "2099-01-01T00:00:00Z",
+        }
+        response = admin.post(f"{API}/structures/{sid}/schedules", json=schedule)
+        assert response.status_code == 201, response.text
     schema = schemathesis.openapi.from_url(f"{api_server.url}/openapi.json")
     owned = {
         "structure_id": sid,
         "model_id": model["id"],
         "record_id": record["id"],
         "verdict_id": record["verdict"]["id"],
-        "refinement_id": response.json()["id"],
+        "refinement_id": refinement_id,
+        "schedule_id": response.json()["id"],
     }
-    return Target(schema, api_server.url, {"Authorization": f"Bearer {org.keys['admin']}"}, owned)
+    yield Target(schema, api_server.url, {"Authorization": f"Bearer {org.keys['admin']}"}, owned)
+    # The fuzzer's schedules would go on running (every 10 s at the most) for the tests after.
+    with org.client("admin") as admin:
+        for created in admin.get(f"{API}/structures/{sid}/schedules").json():
+            assert admin.delete(f"{API}/structures/{sid}/schedules/{created['id']}").status_code == 204
 
 
 def test_the_served_schema_has_every_operation(target: Target):
@@ -75,7 +89,12 @@ def test_the_served_schema_has_every_operation(target: Target):
         (method.upper(), path) for path, item in target.schema.raw_schema["paths"].items() for method in item
     )
     assert served == OPERATIONS
-    assert sum(path.startswith(API) for _, path in OPERATIONS) == 15
+    assert sum(path.startswith(API) for _, path in OPERATIONS) == 18
+    assert {(method, path) for method, path in OPERATIONS if not path.startswith(API)} == {
+        ("GET", "/healthz"),
+        ("GET", "/readyz"),
+        ("GET", "/metrics"),
+    }
 
 
 @pytest.mark.parametrize(("method", "path"), OPERATIONS, ids=[f"{m} {p}" for m, p in OPERATIONS])

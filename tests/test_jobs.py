@@ -34,7 +34,8 @@ from test_cli import NARXWATCH
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import records, structures
-from service.jobs import FIRST_RETRY, LEASE, MAX_ATTEMPTS, claim, enqueue_inspection, run
+from service.jobs.embedded import FIRST_RETRY, LEASE, MAX_ATTEMPTS, claim, defer, run
+from service.jobs.tasks import INSPECT_RECORD
 from service.migrate import upgrade_database
 from service.schemas import StructureCreate
 from service.security import Principal, Role
@@ -100,8 +101,8 @@ def queue(tmp_path: Path):
         structure = structures.create_structure(session, principal, StructureCreate(name="rig", fs=1500.0))
         record = simulated("none", 0.0, [73])
         stored, _ = records.store_record(session, structure, record.x, record.y, None, None, 100)
-        enqueue_inspection(session, stored.id)
-    return sessions, Settings(database_url=url, jobs="off")
+        defer(session, INSPECT_RECORD, record_id=stored.id)
+    return sessions, Settings(database_url=url, embedded_worker=False)
 
 
 def test_a_leased_job_is_not_claimed_twice_until_its_lease_runs_out(queue):
@@ -138,10 +139,10 @@ def test_a_failing_job_is_retried_with_backoff_then_marked_failed(queue):
 
 
 def test_narxwatch_worker_runs_what_a_service_without_jobs_queued(tmp_path: Path):
-    """NARXWATCH_JOBS=off: the service only queues; `narxwatch worker --once` (another process)
+    """NARXWATCH_EMBEDDED_WORKER=false: the service only queues; `narxwatch worker --once` (another process)
     inspects, and the verdict is the same as an immediate inspection's."""
     url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
-    with LiveServer(Settings(database_url=url, jobs="off")) as server:
+    with LiveServer(Settings(database_url=url, embedded_worker=False)) as server:
         org = Org.create(server)
         with clients(org) as (admin, ingest, viewer):
             sid = create_structure(admin)["id"]

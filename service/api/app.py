@@ -5,19 +5,22 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+from asgi_correlation_id import CorrelationIdMiddleware
 from fastapi import FastAPI, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import OperationalError
 
 from models.errors import InputError
-from service.api import health, modelling, records, refinements, structures
+from service.api import health, metrics, modelling, records, refinements, schedules, structures
 from service.api.limits import BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
 from service.domain.errors import ConflictError, NotFoundError
-from service.jobs import EmbeddedWorker
+from service.jobs import job_backend
 from service.migrate import upgrade_database
+from service.observability.logs import REQUEST_ID_HEADER, is_sane_request_id
+from service.observability.requests import ObserveRequests
 from simulator.recordfile import RecordTooLargeError
 
 API_PREFIX = "/api/v1"
@@ -30,12 +33,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if settings.upgrade_on_start:
             upgrade_database(settings.database_url)
-        worker = app.state.jobs
-        if worker is not None:
-            worker.start()
+        app.state.jobs.start()
         yield
-        if worker is not None:
-            worker.stop()
+        app.state.jobs.stop()
         app.state.engine.dispose()
 
     app = FastAPI(
@@ -47,12 +47,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = make_engine(settings.database_url)
     app.state.sessions = session_factory(app.state.engine)
-    app.state.jobs = EmbeddedWorker(app.state.sessions, settings) if settings.jobs == "embedded" else None
+    app.state.jobs = job_backend(settings, app.state.sessions, in_service=True)
     app.include_router(health.router)
-    for router in (structures.router, modelling.router, records.router, refinements.router):
+    app.include_router(metrics.router)
+    routers = (structures.router, modelling.router, records.router, refinements.router, schedules.router)
+    for router in routers:
         app.include_router(router, prefix=API_PREFIX)
     _add_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
+    # The last added runs first: a request gets its id, then is timed and logged whole.
+    app.add_middleware(ObserveRequests)
+    app.add_middleware(CorrelationIdMiddleware, header_name=REQUEST_ID_HEADER, validator=is_sane_request_id)
     return app
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterator
 from typing import Annotated
 
@@ -12,6 +13,7 @@ from sqlalchemy.orm import Session
 from service.config import Settings
 from service.security import Principal, Role, authenticate
 
+log = logging.getLogger("narxwatch.auth")
 bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer nw_…`")
 
 
@@ -45,6 +47,8 @@ def require(role: Role) -> Callable[..., Principal]:
             )
         principal = authenticate(session, credentials.credentials)
         if principal is None:
+            # A trace of refusals (a guessing client shows up), never the key nor any part of it.
+            log.warning("refused an API key: unknown, malformed or revoked")
             raise HTTPException(
                 status.HTTP_401_UNAUTHORIZED,
                 "the API key is not valid (unknown, malformed or revoked)",

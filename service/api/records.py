@@ -13,7 +13,9 @@ from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
 from service.api.params import IdPath, utc
 from service.api.uploads import REQUEST_BODY, parse_upload
 from service.domain import inspections, records, structures
-from service.domain.ingest import Ingested, ingest_record
+from service.domain.ingest import Ingested, QueueInspection, ingest_record
+from service.jobs import JobBackend
+from service.jobs.tasks import INSPECT_RECORD
 from service.schemas import RecordOut, VerdictOut
 
 router = APIRouter(tags=["records"])
@@ -68,12 +70,11 @@ async def upload_record(
         upload.fs,
         utc(upload.acquired_at, "acquired_at"),
         inspect is InspectMode.true,
-        inspect is InspectMode.queue,
+        _queue_inspection(request.app.state.jobs) if inspect is InspectMode.queue else None,
     )
     if inspect is InspectMode.queue:
         response.status_code = status.HTTP_202_ACCEPTED
-        if request.app.state.jobs is not None:
-            request.app.state.jobs.wake()
+        request.app.state.jobs.wake()
     elif not ingested.created:
         response.status_code = status.HTTP_200_OK
     return _record_out(ingested)
@@ -93,6 +94,10 @@ def inspect_record(
 @router.get("/verdicts/{verdict_id}")
 def get_verdict(verdict_id: IdPath, principal: Viewer, session: SessionDep) -> VerdictOut:
     return inspections.verdict_out(inspections.get_verdict(session, principal, verdict_id))
+
+
+def _queue_inspection(jobs: JobBackend) -> QueueInspection:
+    return lambda session, record_id: jobs.defer(session, INSPECT_RECORD, record_id=record_id)
 
 
 def _record_out(ingested: Ingested) -> RecordOut:

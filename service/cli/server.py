@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import logging
 import os
+import shutil
+import tempfile
 from typing import Annotated
 
 import typer
@@ -12,10 +15,13 @@ from service.cli.console import fail, stdout
 from service.config import get_settings
 from service.db import make_engine, session_factory, transaction
 from service.migrate import upgrade_database
+from service.observability.logs import configure_logging, logging_config
+from service.observability.metrics import MULTIPROCESS_DIR
 from service.security import Role, create_key
 
 db_app = typer.Typer(help="Database schema.", no_args_is_help=True)
 keys_app = typer.Typer(help="API keys.", no_args_is_help=True)
+log = logging.getLogger("narxwatch")
 
 
 def serve(
@@ -23,40 +29,68 @@ def serve(
     port: Annotated[int, typer.Option(help="TCP port.", min=1, max=65535)] = 8000,
     workers: Annotated[int, typer.Option(help="Worker processes.", min=1)] = 1,
 ) -> None:
-    """Serve the REST API (upgrading the database schema first, unless told not to)."""
+    """Serve the REST API (upgrading the database schema first, unless told not to).
+
+    Logs go to stderr in NARXWATCH_LOG_FORMAT (json or text), one line per request. With several
+    workers, the request-latency metrics are shared through files in PROMETHEUS_MULTIPROC_DIR: a
+    fresh temporary folder, removed at exit, unless the variable names one.
+    """
     settings = get_settings()
+    json_logs = settings.log_format == "json"
+    configure_logging("INFO", json=json_logs)
     if settings.upgrade_on_start:
         upgrade_database(settings.database_url)
     # Upgraded once here: the workers must not race each other to do it again.
     os.environ["NARXWATCH_UPGRADE_ON_START"] = "false"
-    stdout.print(f"narxwatch API on http://{host}:{port}  (docs: http://{host}:{port}/docs)")
-    uvicorn.run(
-        "service.api.app:create_app", factory=True, host=host, port=port, workers=workers, log_level="info"
-    )
+    metrics_dir = None
+    if workers > 1 and not os.environ.get(MULTIPROCESS_DIR):
+        # Set before uvicorn starts the workers: prometheus-client picks its mode at import.
+        metrics_dir = os.environ[MULTIPROCESS_DIR] = tempfile.mkdtemp(prefix="narxwatch-metrics-")
+    log.info("narxwatch API on http://%s:%s (docs: http://%s:%s/docs)", host, port, host, port)
+    try:
+        uvicorn.run(
+            "service.api.app:create_app",
+            factory=True,
+            host=host,
+            port=port,
+            workers=workers,
+            log_level="info",
+            log_config=logging_config("INFO", json=json_logs),  # applied again in each worker
+            access_log=False,  # narxwatch.access logs each request, with its route and duration
+        )
+    finally:
+        if metrics_dir is not None:
+            shutil.rmtree(metrics_dir, ignore_errors=True)
 
 
 def worker(
     once: Annotated[bool, typer.Option(help="Run the jobs due now, then exit.")] = False,
+    concurrency: Annotated[
+        int, typer.Option(help="Jobs run at once by this worker (distributed backend).", min=1, max=64)
+    ] = 1,
 ) -> None:
-    """Run queued inspections (inspect=queue) from the database's job queue, until stopped.
+    """Run queued inspections and scheduled runs, until stopped (Ctrl-C, SIGTERM).
 
     Any number may run, on any machine that reaches the database; each job runs at least once,
-    and its verdict is stored once. Run it when the service itself runs with NARXWATCH_JOBS=off.
+    and its verdict is stored once. On PostgreSQL this is a Procrastinate worker; on SQLite it
+    serves a service started with NARXWATCH_EMBEDDED_WORKER=false.
     """
-    from service.jobs import EmbeddedWorker
+    from service.jobs import job_backend
 
     settings = get_settings()
-    runner = EmbeddedWorker(session_factory(make_engine(settings.database_url)), settings)
-    if once:
-        stdout.print(f"ran {runner.run_due()} job(s)")
-        return
-    stdout.print("narxwatch worker: running queued jobs (Ctrl-C stops)")
-    runner.start()
+    configure_logging("INFO", json=settings.log_format == "json")
+    backend = job_backend(settings, session_factory(make_engine(settings.database_url)), in_service=False)
+    if backend.name == "embedded" and concurrency > 1:
+        fail("--concurrency applies to the distributed backend (PostgreSQL); run more workers instead")
+    if not once:
+        stdout.print(f"narxwatch worker ({backend.name} backend): running jobs (Ctrl-C stops)")
     try:
-        while runner.alive():
-            runner.join(1.0)
+        ran = backend.work(once=once, concurrency=concurrency)
     except KeyboardInterrupt:
-        runner.stop()
+        backend.stop()
+        return
+    if once:
+        stdout.print(f"ran {ran} job(s)" if ran is not None else "ran every job due")
 
 
 @db_app.command("upgrade")

@@ -8,6 +8,7 @@ from numpy.typing import ArrayLike
 from sqlalchemy import insert, select
 from sqlalchemy.orm import Session, selectinload
 
+from models.fnarx import FNARX
 from models.inspection import ModeResult, inspect
 from models.inspection import Verdict as InspectionVerdict
 from service.config import Settings
@@ -38,15 +39,21 @@ def evaluate(
     Kept apart from storing so that an upload computes its verdict before its first write:
     SQLite then holds its write lock only for the inserts.
     """
+    active = models_to_inspect_with(session, structure)
+    result = inspect(x, y, [model for _, model in active], alpha=settings.alpha, lags=settings.lags)
+    versions = [version for version, _ in active]
+    return Evaluation(versions, ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id)), result)
+
+
+def models_to_inspect_with(session: Session, structure: Structure) -> list[tuple[ModelVersion, FNARX]]:
+    """The structure's active fault-mode models; a conflict if it has none."""
     active = active_fault_modes(session, structure)
     if not active:
         raise ConflictError(
             f"structure {structure.name!r} has no active fault-mode model: train one with "
             f"POST /api/v1/structures/{structure.id}/models/fault-modes"
         )
-    result = inspect(x, y, [model for _, model in active], alpha=settings.alpha, lags=settings.lags)
-    versions = [version for version, _ in active]
-    return Evaluation(versions, ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id)), result)
+    return active
 
 
 def inspect_record(session: Session, record: Record, structure: Structure, settings: Settings) -> Verdict:
@@ -107,6 +114,10 @@ def store_verdict(
         [{"verdict_id": inserted.id, "model_version_id": v.id} for v in versions],
     )
     return Verdict(id=inserted.id, created_at=inserted.created_at, models=versions, **values)
+
+
+def has_verdict(session: Session, record_id: int) -> bool:
+    return session.scalar(select(Verdict.id).where(Verdict.record_id == record_id).limit(1)) is not None
 
 
 def get_verdict(session: Session, principal: Principal, verdict_id: int) -> Verdict:

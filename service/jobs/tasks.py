@@ -1,0 +1,68 @@
+"""What the jobs do, whichever backend runs them: each task takes a session, the settings and its
+keyword arguments, and is idempotent (an inspection stores at most one verdict per record and
+model set), so a job delivered twice changes nothing."""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+from collections.abc import Callable
+
+from sqlalchemy import exists, select
+from sqlalchemy.orm import Session
+
+from service.config import Settings
+from service.domain import inspections
+from service.domain.modelling import active_fault_modes
+from service.domain.schedules import RUN_SCHEDULE
+from service.tables import Record, Schedule, Structure, Verdict
+
+INSPECT_RECORD = "inspect_record"
+
+log = logging.getLogger("narxwatch.jobs")
+
+
+def inspect_record(session: Session, settings: Settings, record_id: int) -> None:
+    """The verdict of a stored record under its structure's active fault-mode models."""
+    record = session.get(Record, record_id)
+    if record is None:
+        log.warning("record %s no longer exists: nothing to inspect", record_id)
+        return
+    structure = session.get(Structure, record.structure_id)
+    assert structure is not None  # a record's structure is a foreign key
+    inspections.inspect_record(session, record, structure, settings)
+
+
+def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at: str) -> None:
+    """One due time of a schedule: its action on the structure's records."""
+    schedule = session.get(Schedule, schedule_id)
+    if schedule is None:
+        log.info("schedule %s was deleted before its run due %s", schedule_id, due_at)
+        return
+    structure = session.get(Structure, schedule.structure_id)
+    assert structure is not None
+    if not active_fault_modes(session, structure):
+        log.warning(
+            "schedule %s skipped: structure %s has no active fault-mode model", schedule_id, structure.id
+        )
+        return
+    for record_id in _records_to_inspect(session, schedule.action, structure.id):
+        inspect_record(session, settings, record_id)
+    log.info(
+        "schedule %s (%s) ran for its time %s",
+        schedule_id,
+        schedule.action,
+        dt.datetime.fromisoformat(due_at),
+    )
+
+
+def _records_to_inspect(session: Session, action: str, structure_id: int) -> list[int]:
+    of_structure = select(Record.id).where(Record.structure_id == structure_id)
+    if action == "reinspect_latest":
+        latest = of_structure.order_by(Record.acquired_at.desc(), Record.id.desc()).limit(1)
+        return list(session.scalars(latest))
+    has_verdict = exists().where(Verdict.record_id == Record.id)
+    return list(session.scalars(of_structure.where(~has_verdict).order_by(Record.id)))
+
+
+TASKS: dict[str, Callable[..., None]] = {INSPECT_RECORD: inspect_record, RUN_SCHEDULE: run_schedule}

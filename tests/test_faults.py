@@ -1,0 +1,195 @@
+"""Faults on real PostgreSQL: a worker killed in the middle of a job, the database stopped and
+restarted under load, and the same record uploaded twice at once."""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+import psycopg
+import pytest
+from api_helpers import (
+    API,
+    Org,
+    clients,
+    create_structure,
+    json_body,
+    npz_bytes,
+    post_record,
+    simulated,
+    train_fault_mode,
+)
+from live import LiveServer
+from workers import Worker, workers
+
+from service.config import Settings
+from service.jobs.distributed import conninfo
+
+FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3"}
+
+
+def wait_for(condition: Callable[[], object], timeout: float, what: str) -> object:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if value := condition():
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"{what}: not within {timeout} s")
+
+
+def verdicts_of(viewer: httpx.Client, structure_id: int, record_id: int) -> list[dict]:
+    page = viewer.get(f"{API}/structures/{structure_id}/verdicts", params={"limit": 1000}).json()
+    return [v for v in page["items"] if v["record_id"] == record_id]
+
+
+@pytest.fixture
+def database(postgres_url: str) -> str:
+    import postgres
+
+    return postgres.create_database(postgres_url, f"faults_{uuid.uuid4().hex[:12]}")
+
+
+def test_a_job_whose_worker_is_killed_mid_run_runs_again_and_leaves_one_verdict(
+    database: str, tmp_path: Path
+):
+    settings = Settings(database_url=database, worker_heartbeat_seconds=0.5, worker_stalled_seconds=3)
+    with LiveServer(settings) as server:
+        org = Org.create(server)
+        with clients(org) as (admin, ingest, viewer):
+            sid = create_structure(admin)["id"]
+            train_fault_mode(admin, ingest, sid, "k2", seed=91)
+            record = simulated("k2", 18.0, [92])
+            body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+            with psycopg.connect(conninfo(database)) as blocker:
+                # Held until the worker is dead: its job stops at its first look at the verdicts.
+                blocker.execute("LOCK TABLE verdicts IN ACCESS EXCLUSIVE MODE")
+                victim = Worker(database, tmp_path / "victim.log", **FAST_FAILOVER)
+                queued = post_record(ingest, sid, body, "application/x-npz", inspect="queue")
+                assert queued.status_code == 202, queued.text
+                record_id = queued.json()["id"]
+                with psycopg.connect(conninfo(database), autocommit=True) as look:
+
+                    def running() -> bool:
+                        query = "SELECT status FROM procrastinate_jobs WHERE task_name = 'inspect_record'"
+                        return look.execute(query).fetchone() == ("doing",)
+
+                    wait_for(running, 30, "the worker never started the job")
+                    time.sleep(0.5)  # now blocked inside the job, on the lock
+                    victim.kill()
+                blocker.rollback()
+            with workers(database, 1, tmp_path, **FAST_FAILOVER):
+                found = wait_for(lambda: verdicts_of(viewer, sid, record_id), 60, "no verdict after the kill")
+                time.sleep(2)
+                assert len(verdicts_of(viewer, sid, record_id)) == 1
+            immediate = ingest.post(f"{API}/records/{record_id}/inspect").json()
+            assert immediate["id"] == found[0]["id"], "inspecting again made a second verdict"
+    with psycopg.connect(conninfo(database)) as connection:
+        starts = connection.execute(
+            "SELECT count(*) FROM procrastinate_events e JOIN procrastinate_jobs j ON j.id = e.job_id "
+            "WHERE j.task_name = 'inspect_record' AND e.type = 'started'"
+        ).fetchone()
+    assert starts == (2,), "the killed job should have started twice: once killed, once to the end"
+
+
+@pytest.mark.parametrize("stop_mode", ["fast", "immediate"])
+def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_upload(
+    tmp_path: Path, stop_mode: str
+):
+    """While the database is down (stopped by an operator, or crashed) the API says so (503 on
+    /readyz and on writes, never a 500); it recovers by itself, and every upload it acknowledged
+    (202) is stored and inspected."""
+    import postgres
+
+    with postgres.postgres_instance("restart", durable=True) as database:
+        if database is None:
+            pytest.skip(f"PostgreSQL unavailable: {postgres.missing_reason()}")
+        settings = Settings(database_url=database.url)
+        with LiveServer(settings) as server, workers(database.url, 2, tmp_path, **FAST_FAILOVER) as running:
+            org = Org.create(server)
+            with clients(org) as (admin, ingest, viewer):
+                sid = create_structure(admin)["id"]
+                train_fault_mode(admin, ingest, sid, "k2", seed=93)
+                acknowledged: list[int] = []
+                answers: collections.Counter[int] = collections.Counter()
+                stop = threading.Event()
+
+                def upload(thread: int) -> None:
+                    with org.client("ingest") as client:
+                        for seed in range(10**6):
+                            if stop.is_set():
+                                return
+                            response = post_record(
+                                client, sid, json_body(600, seed=thread * 10**6 + seed), inspect="queue"
+                            )
+                            answers[response.status_code] += 1
+                            if response.status_code == 202:
+                                acknowledged.append(response.json()["id"])
+
+                load = [threading.Thread(target=upload, args=(i,)) for i in range(2)]
+                for thread in load:
+                    thread.start()
+                time.sleep(2)
+                before = len(acknowledged)
+                database.stop(stop_mode)
+                assert wait_for(
+                    lambda: server.client().get("/readyz").status_code == 503, 10, "/readyz still ready"
+                )
+                down = post_record(ingest, sid, json_body(600, seed=7), inspect="queue")
+                assert down.status_code == 503 and "database" in down.json()["detail"], down.text
+                time.sleep(3)
+                database.start()
+                wait_for(lambda: server.client().get("/readyz").status_code == 200, 30, "no recovery")
+                during = len(acknowledged)
+                wait_for(lambda: len(acknowledged) > during + 20, 30, "uploads did not resume")
+                stop.set()
+                for thread in load:
+                    thread.join(30)
+                assert set(answers) <= {202, 503}, answers
+                assert before > 0 and answers[503] > 0
+                pending = set(acknowledged)
+
+                def all_inspected() -> bool:
+                    page = viewer.get(f"{API}/structures/{sid}/verdicts", params={"limit": 1000}).json()
+                    return pending <= {v["record_id"] for v in page["items"]}
+
+                wait_for(all_inspected, 120, "acknowledged uploads without a verdict")
+                page = viewer.get(f"{API}/structures/{sid}/verdicts", params={"limit": 1000}).json()
+                inspected = [v["record_id"] for v in page["items"] if v["record_id"] in pending]
+                assert sorted(inspected) == sorted(pending), "a record got two verdicts"
+            assert all(worker.alive() for worker in running), [w.output()[-3000:] for w in running]
+
+
+def test_the_same_record_uploaded_at_once_is_stored_once(tenant):
+    """Eight uploads of one record released together: one is created, the others get it back,
+    and its queued inspection leaves one verdict."""
+    sid = create_structure(tenant.admin)["id"]
+    train_fault_mode(tenant.admin, tenant.ingest, sid, "k2", seed=94)
+    record = simulated("k2", 10.0, [95])
+    body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+    start = threading.Barrier(8)
+    answers: list[httpx.Response] = []
+
+    def upload() -> None:
+        with httpx.Client(
+            base_url=str(tenant.ingest.base_url), headers=tenant.ingest.headers, timeout=60
+        ) as client:
+            start.wait()
+            answers.append(post_record(client, sid, body, "application/x-npz", inspect="queue"))
+
+    threads = [threading.Thread(target=upload) for _ in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert len(answers) == 8 and {a.status_code for a in answers} == {202}, [a.text for a in answers]
+    assert len({a.json()["id"] for a in answers}) == 1, "one record, whoever won the race"
+    assert sum(a.json()["created"] for a in answers) == 1
+    record_id = answers[0].json()["id"]
+    wait_for(lambda: verdicts_of(tenant.viewer, sid, record_id), 60, "no verdict")
+    time.sleep(1)
+    assert len(verdicts_of(tenant.viewer, sid, record_id)) == 1
