@@ -1,4 +1,4 @@
-# narxwatch service image: the REST API (`narxwatch serve`), migrations (`narxwatch db upgrade`)
+# narxwatch service image: the REST API (`narxwatch serve`), job workers (`narxwatch worker`), migrations (`narxwatch db upgrade`)
 # and the simulator client (`narxwatch-sim`). Used by docker-compose.yml.
 FROM python:3.11-slim
 
