@@ -12,8 +12,9 @@ import itertools
 import json
 import sys
 import threading
+import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -152,6 +153,25 @@ def train_fault_mode(
     response = admin.post(f"{API}/structures/{structure_id}/models/fault-modes", json=body)
     assert response.status_code == 201, response.text
     return response.json()
+
+
+def verdicts(viewer: httpx.Client, structure_id: int) -> list[dict]:
+    """The structure's verdicts (the tests here make far fewer than a page of 1000)."""
+    return viewer.get(f"{API}/structures/{structure_id}/verdicts", params={"limit": 1000}).json()["items"]
+
+
+def verdicts_of(viewer: httpx.Client, structure_id: int, record_id: int) -> list[dict]:
+    return [v for v in verdicts(viewer, structure_id) if v["record_id"] == record_id]
+
+
+def wait_for(condition: Callable[[], object], timeout: float, what: str) -> object:
+    """Poll ``condition`` until it is true (returning its value), failing after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if value := condition():
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"{what}: not within {timeout} s")
 
 
 def detail(response: httpx.Response) -> str:

@@ -7,7 +7,6 @@ import collections
 import threading
 import time
 import uuid
-from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -23,6 +22,9 @@ from api_helpers import (
     post_record,
     simulated,
     train_fault_mode,
+    verdicts,
+    verdicts_of,
+    wait_for,
 )
 from live import LiveServer
 from workers import Worker, workers
@@ -31,20 +33,6 @@ from service.config import Settings
 from service.jobs.distributed import conninfo
 
 FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3"}
-
-
-def wait_for(condition: Callable[[], object], timeout: float, what: str) -> object:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := condition():
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"{what}: not within {timeout} s")
-
-
-def verdicts_of(viewer: httpx.Client, structure_id: int, record_id: int) -> list[dict]:
-    page = viewer.get(f"{API}/structures/{structure_id}/verdicts", params={"limit": 1000}).json()
-    return [v for v in page["items"] if v["record_id"] == record_id]
 
 
 @pytest.fixture
@@ -154,12 +142,10 @@ def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_uploa
                 pending = set(acknowledged)
 
                 def all_inspected() -> bool:
-                    page = viewer.get(f"{API}/structures/{sid}/verdicts", params={"limit": 1000}).json()
-                    return pending <= {v["record_id"] for v in page["items"]}
+                    return pending <= {v["record_id"] for v in verdicts(viewer, sid)}
 
                 wait_for(all_inspected, 120, "acknowledged uploads without a verdict")
-                page = viewer.get(f"{API}/structures/{sid}/verdicts", params={"limit": 1000}).json()
-                inspected = [v["record_id"] for v in page["items"] if v["record_id"] in pending]
+                inspected = [v["record_id"] for v in verdicts(viewer, sid) if v["record_id"] in pending]
                 assert sorted(inspected) == sorted(pending), "a record got two verdicts"
             assert all(worker.alive() for worker in running), [w.output()[-3000:] for w in running]
 

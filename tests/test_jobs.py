@@ -12,7 +12,6 @@ import subprocess
 import time
 from pathlib import Path
 
-import httpx
 import pytest
 from api_helpers import (
     API,
@@ -26,6 +25,7 @@ from api_helpers import (
     post_record,
     simulated,
     train_fault_mode,
+    verdicts_of,
 )
 from live import LiveServer
 from sqlalchemy import func, select
@@ -40,11 +40,6 @@ from service.migrate import upgrade_database
 from service.schemas import StructureCreate
 from service.security import Principal, Role
 from service.tables import Job, Organisation, Verdict, utcnow
-
-
-def verdicts_of(viewer: httpx.Client, structure_id: int, record_id: int) -> list[dict]:
-    page = viewer.get(f"{API}/structures/{structure_id}/verdicts", params={"limit": 1000}).json()
-    return [v for v in page["items"] if v["record_id"] == record_id]
 
 
 def test_a_queued_upload_answers_202_and_its_verdict_appears_once(api_server: LiveServer):

@@ -18,6 +18,8 @@ from api_helpers import (
     simulated,
     train_fault_mode,
     upload_simulated,
+    verdicts,
+    wait_for,
 )
 from live import LiveServer
 from sqlalchemy import select, text
@@ -198,16 +200,13 @@ def test_three_workers_run_a_due_schedule_once(empty_database: str, tmp_path: Pa
             due = dt.datetime.now(dt.UTC) + dt.timedelta(seconds=3)  # all three workers are up by then
             body = {"action": "inspect_pending", "interval_seconds": 3600, "first_run_at": due.isoformat()}
             schedule = admin.post(schedules_url(sid), json=body).json()
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline:
-                verdicts = viewer.get(f"{API}/structures/{sid}/verdicts", params={"limit": 1000}).json()[
-                    "items"
-                ]
-                if {v["record_id"] for v in verdicts} >= set(pending):
-                    break
-                time.sleep(0.5)
+
+            def inspected() -> bool:
+                return {v["record_id"] for v in verdicts(viewer, sid)} >= set(pending)
+
+            wait_for(inspected, 60, "the scheduled inspection left records without a verdict")
             time.sleep(5)  # two more sweeps of every worker: room for a duplicate to show
-            verdicts = viewer.get(f"{API}/structures/{sid}/verdicts", params={"limit": 1000}).json()["items"]
+            found = verdicts(viewer, sid)
         assert all(worker.alive() for worker in running), [w.output()[-2000:] for w in running]
-    assert sorted(v["record_id"] for v in verdicts if v["record_id"] in pending) == pending
+    assert sorted(v["record_id"] for v in found if v["record_id"] in pending) == pending
     assert run_schedule_count(empty_database, schedule["id"]) == 1

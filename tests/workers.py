@@ -5,12 +5,11 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-NARXWATCH = str(Path(sys.executable).with_name("narxwatch"))
+from test_cli import NARXWATCH
 
 
 class Worker:

@@ -9,7 +9,6 @@ downtime runs a schedule once for everything it missed, not once per missed time
 from __future__ import annotations
 
 import datetime as dt
-import logging
 from collections.abc import Callable
 
 from croniter import croniter
@@ -26,8 +25,6 @@ from service.tables import Schedule, utcnow
 RUN_SCHEDULE = "run_schedule"
 
 Defer = Callable[..., None]  # defer(session, task_name, **task_args), in the session's transaction
-
-log = logging.getLogger("narxwatch.schedules")
 
 
 def following(
