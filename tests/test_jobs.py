@@ -159,3 +159,15 @@ def test_narxwatch_worker_runs_what_a_service_without_jobs_queued(tmp_path: Path
             (verdict,) = verdicts_of(viewer, sid, queued.json()["id"])
             immediate = ingest.post(f"{API}/records/{queued.json()['id']}/inspect").json()
             assert verdict == immediate
+
+
+def test_narxwatch_worker_refuses_concurrency_on_the_embedded_backend(tmp_path: Path):
+    result = subprocess.run(
+        [NARXWATCH, "worker", "--once", "--concurrency", "2"],
+        env={**os.environ, "NARXWATCH_DATABASE_URL": f"sqlite:///{tmp_path / 'w.db'}"},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode != 0
+    assert "--concurrency applies to the distributed backend" in result.stdout + result.stderr
