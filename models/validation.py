@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from models.correlation_tests import CorrelationTest, residual_autocorrelation
 from models.errors import InputError
 from models.narx import NARX
 from models.signals import checked_record, checked_records
@@ -52,6 +53,30 @@ class Validation:
             "k_step": {**self.k_step.to_dict(), "steps": self.steps},
             "free_run": self.free_run.to_dict(),
         }
+
+
+@dataclass(frozen=True)
+class OneStepFit:
+    """A record against a model's one-step predictions (the paper's Figure 3).
+
+    ``measured`` is y[t], ``predicted`` ŷ[t|t−1] = φ[t]ᵀθ and ``residual`` e[t] = y[t] − ŷ[t],
+    for t = L … N−1 (in the units of y); ``autocorrelation`` is the residual's φ_ee(τ),
+    τ = 1 … h, with its bands (:func:`models.correlation_tests.residual_autocorrelation`).
+    """
+
+    measured: np.ndarray
+    predicted: np.ndarray
+    residual: np.ndarray
+    autocorrelation: CorrelationTest
+
+
+def one_step_fit(model: NARX, x: ArrayLike, y: ArrayLike, lags: int = 40, alpha: float = 0.05) -> OneStepFit:
+    """The one-step predictions of ``model`` on the record (x, y) and its residual's whiteness."""
+    xa, ya = checked_record(x, y, model.max_lag + 1)
+    predicted = model.predict(xa, ya)
+    measured = ya[model.max_lag :]
+    residual = measured - predicted
+    return OneStepFit(measured, predicted, residual, residual_autocorrelation(residual, lags, alpha))
 
 
 def k_step_predictions(model: NARX, x: ArrayLike, y: ArrayLike, steps: int, t0: int = 0) -> np.ndarray:

@@ -41,6 +41,11 @@ class Settings(BaseSettings):
     # Distributed backend: a worker silent this long (killed, cut off) has its jobs run again.
     worker_heartbeat_seconds: float = Field(2.0, gt=0)
     worker_stalled_seconds: float = Field(10.0, gt=0)
+    # Dashboard logins: how long one lasts, and whether its cookie is sent over HTTPS only.
+    # Browsers treat http://localhost and 127.0.0.1 as secure, so the default suits local use;
+    # turn it off only behind a plain-HTTP proxy on a trusted network.
+    dashboard_session_hours: float = Field(12.0, gt=0, le=24 * 30)
+    session_cookie_secure: bool = True
 
 
 @lru_cache

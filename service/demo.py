@@ -2,24 +2,32 @@
 
 from __future__ import annotations
 
+import datetime as dt
 from collections.abc import Callable
 
 import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from service.domain import modelling, records, structures
+from service.config import Settings
+from service.domain import inspections, modelling, records, structures
 from service.schemas import BaselineTrain, Experiment, FaultModeTrain, StructureCreate
 from service.security import Principal, Role
-from service.tables import ApiKey, Organisation, Structure
+from service.tables import ApiKey, Organisation, Structure, utcnow
 from simulator.paper import StudySettings
 from simulator.simulate import simulate
 
 ORGANISATION = "demo"
 STRUCTURE = "2-DOF rig (paper parameters)"
+HISTORY_RECORDS = 28
+HISTORY_STEP = dt.timedelta(hours=6)
+HEALTHY_RECORDS = 16
+FAULT_START, FAULT_END = 4.0, 20.0  # k2 [%]
 
 
-def seed_demo(session: Session, progress: Callable[[str], None] = lambda _: None) -> Structure:
+def seed_demo(
+    session: Session, settings: Settings, progress: Callable[[str], None] = lambda _: None
+) -> Structure:
     """Create the demo once; later calls find it and change nothing."""
     organisation = session.scalar(select(Organisation).where(Organisation.name == ORGANISATION))
     if organisation is None:
@@ -32,37 +40,60 @@ def seed_demo(session: Session, progress: Callable[[str], None] = lambda _: None
     )
     if existing is not None:
         return existing
-    settings = StudySettings()
+    study = StudySettings()
     structure = structures.create_structure(
         session,
         principal,
         StructureCreate(
             name=STRUCTURE,
-            fs=settings.scenario().fs,
+            fs=study.scenario().fs,
             description="Two masses, cubic spring on mass 2; force on mass 1, displacement of mass 2.",
         ),
     )
-    seeds = np.random.SeedSequence(2026).spawn(1 + 2 * len(settings.experiment_k))
+    seeds = np.random.SeedSequence(2026).spawn(1 + 2 * len(study.experiment_k))
     progress("baseline record")
-    healthy = simulate(settings.scenario(), settings.baseline_samples, seeds[0])
+    healthy = simulate(study.scenario(), study.baseline_samples, seeds[0])
     baseline, _ = records.store_record(session, structure, healthy.x, healthy.y, healthy.fs, None, 1)
     modelling.train_baseline(session, principal, structure.id, BaselineTrain(record_ids=[baseline.id]))
     for index, mode in enumerate(("k2", "k1")):
         progress(f"{mode} experiments")
         experiments = []
-        for j, k in enumerate(settings.experiment_k):
-            seed = seeds[1 + index * len(settings.experiment_k) + j]
-            run = simulate(settings.scenario(mode, k), settings.experiment_samples, seed)
+        for j, k in enumerate(study.experiment_k):
+            seed = seeds[1 + index * len(study.experiment_k) + j]
+            run = simulate(study.scenario(mode, k), study.experiment_samples, seed)
             record, _ = records.store_record(session, structure, run.x, run.y, run.fs, None, 1)
             experiments.append(Experiment(record_id=record.id, k=k))
-        k_min, k_max = min(settings.experiment_k), max(settings.experiment_k)
+        k_min, k_max = min(study.experiment_k), max(study.experiment_k)
         modelling.train_fault_mode(
             session,
             principal,
             structure.id,
             FaultModeTrain(name=mode, k_min=k_min, k_max=k_max, experiments=experiments),
         )
+    progress("a week of inspected records")
+    _history(session, structure, settings, study)
     return structure
+
+
+def _history(session: Session, structure: Structure, settings: Settings, study: StudySettings) -> None:
+    """A week of records every six hours, inspected: healthy, then a k2 fault growing to 20 %,
+    so that the dashboard has a story to tell from the first start."""
+    now = utcnow().replace(minute=0, second=0, microsecond=0)
+    seeds = np.random.SeedSequence(2027).spawn(HISTORY_RECORDS)
+    for index, seed in enumerate(seeds):
+        growing = index - HEALTHY_RECORDS
+        k = (
+            0.0
+            if growing < 0
+            else FAULT_START + (FAULT_END - FAULT_START) * growing / (HISTORY_RECORDS - HEALTHY_RECORDS - 1)
+        )
+        run = simulate(study.scenario("k2", k), study.experiment_samples, seed)
+        evaluation = inspections.evaluate(session, structure, settings, run.x, run.y)
+        acquired = now - (HISTORY_RECORDS - 1 - index) * HISTORY_STEP
+        record, _ = records.store_record(
+            session, structure, run.x, run.y, run.fs, acquired, records.minimum_samples(settings.lags)
+        )
+        inspections.store_verdict(session, record, structure, evaluation, new_record=True)
 
 
 def has_keys(session: Session, organisation_name: str) -> bool:

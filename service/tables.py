@@ -75,6 +75,19 @@ class ApiKey(Base):
     organisation: Mapped[Organisation] = relationship()
 
 
+class DashboardSession(Base):
+    """A dashboard login. Its cookie holds a random token; only the token's SHA-256 is stored,
+    with the key it was opened with, so revoking the key ends the login too."""
+
+    __tablename__ = "dashboard_sessions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    api_key_id: Mapped[int] = mapped_column(ForeignKey("api_keys.id", ondelete="CASCADE"), index=True)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+    expires_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, index=True)
+
+
 class Structure(Base):
     """A monitored asset."""
 

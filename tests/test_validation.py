@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import DISTURBANCE_STD
+from conftest import DISTURBANCE_STD, exact_narx_residual, reference_coefficients
 
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.terms import parse_terms
-from models.validation import k_step_predictions, validate
+from models.validation import k_step_predictions, one_step_fit, validate
 from simulator.simulate import Scenario, simulate
 from simulator.theory import EXACT_TERMS, exact_narx
 
@@ -109,3 +109,20 @@ def test_k_step_prediction_with_friction_and_a_sinusoid_equals_the_free_run() ->
         start = t - steps - L + 1
         segment = model.simulate(x[start : t + 1], y[start : start + L], t0=5 + start)
         assert predicted[t] == pytest.approx(segment[-1], rel=1e-12, abs=1e-15)
+
+
+def test_one_step_fit_is_the_exact_residual_and_its_autocorrelation(held_out, params) -> None:
+    """The record page's Figure 3: with the exact coefficients (SPEC §2, derived independently in
+    conftest) the residual is e[t] = y[t] − φ[t]ᵀθ, and φ_ee is statsmodels' biased ACF of it."""
+    from statsmodels.tsa.stattools import acf
+
+    coefficients = reference_coefficients(params)
+    model = NARX(parse_terms(EXACT_TERMS), coefficients, np.zeros((8, 8)), 1.0, 0)
+    fit = one_step_fit(model, held_out.x, held_out.y, lags=30, alpha=0.01)
+    expected = exact_narx_residual(held_out.x, held_out.y, coefficients)
+    np.testing.assert_allclose(fit.residual, expected, rtol=0, atol=1e-12 * np.abs(held_out.y).max())
+    np.testing.assert_array_equal(fit.measured, held_out.y[4:])
+    np.testing.assert_allclose(fit.predicted + fit.residual, fit.measured, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(fit.autocorrelation.values, acf(expected, nlags=30, fft=False)[1:], atol=1e-9)
+    n = expected.size
+    np.testing.assert_allclose(fit.autocorrelation.pointwise_band, 2.5758293035489 / np.sqrt(n) * np.ones(30))

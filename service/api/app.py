@@ -7,11 +7,14 @@ from contextlib import asynccontextmanager
 
 from asgi_correlation_id import CorrelationIdMiddleware
 from fastapi import FastAPI, Request, status
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import OperationalError
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from models.errors import InputError
+from service import dashboard
 from service.api import health, metrics, modelling, records, refinements, schedules, structures
 from service.api.limits import BodyLimitMiddleware
 from service.config import Settings, get_settings
@@ -53,6 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     routers = (structures.router, modelling.router, records.router, refinements.router, schedules.router)
     for router in routers:
         app.include_router(router, prefix=API_PREFIX)
+    dashboard.install(app)
     _add_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     # The last added runs first: a request gets its id, then is timed and logged whole.
@@ -62,32 +66,45 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 
 def _add_error_handlers(app: FastAPI) -> None:
-    def answer(code: int, message: str) -> JSONResponse:
+    def answer(request: Request, code: int, message: str) -> Response:
+        if dashboard.is_dashboard(request):
+            return dashboard.error_page(request, code, message)
         return JSONResponse({"detail": message}, status_code=code)
 
     @app.exception_handler(RecordTooLargeError)
-    async def too_large(_: Request, exc: RecordTooLargeError) -> JSONResponse:
-        return answer(status.HTTP_413_CONTENT_TOO_LARGE, str(exc))
+    async def too_large(request: Request, exc: RecordTooLargeError) -> Response:
+        return answer(request, status.HTTP_413_CONTENT_TOO_LARGE, str(exc))
 
     @app.exception_handler(InputError)
-    async def input_error(_: Request, exc: InputError) -> JSONResponse:
-        return answer(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc))
+    async def input_error(request: Request, exc: InputError) -> Response:
+        return answer(request, status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc))
 
     @app.exception_handler(RequestValidationError)
-    async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:
+    async def invalid_request(request: Request, exc: RequestValidationError) -> Response:
         # Where and why, but never the input itself: it may not even be encodable (a lone
         # surrogate) and echoing it back serves no one.
         errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
+        if dashboard.is_dashboard(request):
+            message = "; ".join(f"{e['loc'][-1]}: {e['msg']}" for e in errors)
+            return dashboard.error_page(request, status.HTTP_422_UNPROCESSABLE_CONTENT, message)
         return JSONResponse({"detail": errors}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        if dashboard.is_dashboard(request):
+            return dashboard.error_page(request, exc.status_code, str(exc.detail))
+        return await http_exception_handler(request, exc)
+
     @app.exception_handler(NotFoundError)
-    async def not_found(_: Request, exc: NotFoundError) -> JSONResponse:
-        return answer(status.HTTP_404_NOT_FOUND, str(exc))
+    async def not_found(request: Request, exc: NotFoundError) -> Response:
+        return answer(request, status.HTTP_404_NOT_FOUND, str(exc))
 
     @app.exception_handler(ConflictError)
-    async def conflict(_: Request, exc: ConflictError) -> JSONResponse:
-        return answer(status.HTTP_409_CONFLICT, str(exc))
+    async def conflict(request: Request, exc: ConflictError) -> Response:
+        return answer(request, status.HTTP_409_CONFLICT, str(exc))
 
     @app.exception_handler(OperationalError)
-    async def database_unavailable(_: Request, exc: OperationalError) -> JSONResponse:
-        return answer(status.HTTP_503_SERVICE_UNAVAILABLE, "the database is unavailable; retry shortly")
+    async def database_unavailable(request: Request, exc: OperationalError) -> Response:
+        return answer(
+            request, status.HTTP_503_SERVICE_UNAVAILABLE, "the database is unavailable; retry shortly"
+        )

@@ -123,5 +123,5 @@ def demo_seed() -> None:
     upgrade_database(settings.database_url)
     sessions = session_factory(make_engine(settings.database_url))
     with transaction(sessions) as session:
-        structure = seed_demo(session, lambda step: stdout.print(f"demo: {step}"))
+        structure = seed_demo(session, settings, lambda step: stdout.print(f"demo: {step}"))
     stdout.print(f"demo structure {STRUCTURE!r} is structure {structure.id}")

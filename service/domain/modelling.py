@@ -95,10 +95,11 @@ def active_fault_modes(session: Session, structure: Structure) -> list[tuple[Mod
         .order_by(ModelVersion.name)
         .options(defer(ModelVersion.document))
     )
-    return [(version, _parse(version)) for version in session.scalars(query)]
+    return [(version, fault_mode_model(version)) for version in session.scalars(query)]
 
 
-def _parse(version: ModelVersion) -> FNARX:
+def fault_mode_model(version: ModelVersion) -> FNARX:
+    """The parsed model of a fault-mode version, kept once parsed: versions never change."""
     key = (version.id, version.created_at.isoformat())
     model = _parsed.get(key)
     if model is None:

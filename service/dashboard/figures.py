@@ -1,0 +1,295 @@
+"""Plotly figures (data and layout as JSON-ready dicts) for the dashboard's charts.
+
+Built here rather than in the browser so that what a chart shows is decided, and tested, in
+one place; the page's script only hands each figure to ``Plotly.newPlot``. Times are epoch
+milliseconds on date axes.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from models.fnarx import FNARX
+from models.validation import OneStepFit
+from service.domain.timeline import TimelinePoint
+
+Figure = dict[str, Any]
+# Above this many points a trace is drawn with WebGL: SVG slows down past a few thousand.
+WEBGL_POINTS = 1500
+TRAJECTORY_GRID = 65
+STATUS_COLOURS = {"healthy": "#2e7d32", "faulty": "#c62828", "unknown_fault": "#ef6c00"}
+MODE_COLOURS = ("#1f77b4", "#9467bd", "#17becf", "#8c564b", "#e377c2", "#7f7f7f")
+MODE_SYMBOLS = ("circle", "diamond", "square", "triangle-up", "cross", "x")
+MARGIN = {"l": 60, "r": 20, "t": 40, "b": 45}
+
+
+def _scatter(n: int) -> str:
+    return "scattergl" if n > WEBGL_POINTS else "scatter"
+
+
+def _ms(moment: dt.datetime) -> float:
+    return moment.timestamp() * 1000.0
+
+
+def _mode_colour(index: int) -> str:
+    return MODE_COLOURS[index % len(MODE_COLOURS)]
+
+
+def k_hat_figure(points: Sequence[TimelinePoint], interval_label: str) -> Figure:
+    """k̂ of each verdict with its interval, one trace per reference mode (Figure 5 over time).
+
+    Unknown faults carry no magnitude and are left out.
+    """
+    modes = sorted({p.reference_mode for p in points if p.k_hat is not None and p.reference_mode})
+    data = []
+    for index, mode in enumerate(modes):
+        chosen = [p for p in points if p.reference_mode == mode and p.k_hat is not None]
+        k_hat = [p.k_hat for p in chosen]
+        data.append(
+            {
+                "type": _scatter(len(chosen)),
+                "mode": "markers",
+                "name": f"k̂ ({mode} model)",
+                "x": [_ms(p.acquired_at) for p in chosen],
+                "y": k_hat,
+                "customdata": [p.record_id for p in chosen],
+                "marker": {
+                    "color": [STATUS_COLOURS[p.status] for p in chosen],
+                    "symbol": MODE_SYMBOLS[index % len(MODE_SYMBOLS)],
+                    "size": 7,
+                },
+                "error_y": {
+                    "type": "data",
+                    "symmetric": False,
+                    "array": [_gap(p.interval_high, p.k_hat) for p in chosen],
+                    "arrayminus": [_gap(p.k_hat, p.interval_low) for p in chosen],
+                    "color": _mode_colour(index),
+                    "thickness": 1,
+                    "width": 0,
+                },
+                "hovertemplate": "k̂ %{y:.2f} %<br>record %{customdata}<extra>" + mode + "</extra>",
+            }
+        )
+    layout = {
+        "title": {"text": f"Fault magnitude k̂ with its {interval_label} interval"},
+        "xaxis": {"type": "date", "title": {"text": "acquired (UTC)"}},
+        "yaxis": {"title": {"text": "k̂ [%]"}, "zeroline": True},
+        "margin": MARGIN,
+        "legend": {"orientation": "h", "y": -0.2},
+    }
+    return {"data": data, "layout": layout}
+
+
+def _lines(x: Sequence[float], y: Any, **style: Any) -> dict[str, Any]:
+    """A line trace (``y`` a sequence or an array) with plotly attributes ``style``."""
+    return {"type": "scatter", "mode": "lines", "x": list(x), "y": np.asarray(y).tolist(), **style}
+
+
+def _gap(high: float | None, low: float | None) -> float | None:
+    return None if high is None or low is None else high - low
+
+
+def q_figure(points: Sequence[TimelinePoint]) -> Figure:
+    """The Ljung–Box Q of each fault mode's residual per verdict against its critical value (Figure 6)."""
+    names = sorted({m["name"] for p in points for m in p.modes})
+    data = []
+    for index, name in enumerate(names):
+        pairs = [(p, m) for p in points for m in p.modes if m["name"] == name]
+        x = [_ms(p.acquired_at) for p, _ in pairs]
+        colour = _mode_colour(index)
+        data.append(
+            {
+                "type": _scatter(len(pairs)),
+                "mode": "markers",
+                "name": f"Q ({name} model)",
+                "x": x,
+                "y": [m["q"] for _, m in pairs],
+                "customdata": [p.record_id for p, _ in pairs],
+                "marker": {"color": colour, "size": 5},
+                "hovertemplate": "Q %{y:.1f}<br>record %{customdata}<extra>" + name + "</extra>",
+            }
+        )
+        critical = pairs[-1][1]["q_critical"]
+        data.append(
+            {
+                "type": "scatter",
+                "mode": "lines",
+                "name": f"critical value ({name})",
+                "x": [x[0], x[-1]],
+                "y": [critical, critical],
+                "line": {"color": colour, "dash": "dash", "width": 1.5},
+                "hovertemplate": "χ² critical %{y:.1f}<extra></extra>",
+            }
+        )
+    layout = {
+        "title": {"text": "Residual whiteness: Ljung–Box Q per fault-mode model"},
+        "xaxis": {"type": "date", "title": {"text": "acquired (UTC)"}},
+        "yaxis": {"title": {"text": "Q"}, "type": "log"},
+        "margin": MARGIN,
+        "legend": {"orientation": "h", "y": -0.2},
+    }
+    return {"data": data, "layout": layout}
+
+
+def trajectories_figure(model: FNARX, level: float = 0.95) -> Figure:
+    """Each coefficient θ_i(k) over the model's magnitude range with its pointwise interval (Figure 4)."""
+    k = np.linspace(model.basis.k_min, model.basis.k_max, TRAJECTORY_GRID)
+    trajectories = model.trajectories(k, level)
+    columns = min(4, len(model.terms))
+    rows = -(-len(model.terms) // columns)
+    data: list[dict[str, Any]] = []
+    annotations = []
+    for index, name in enumerate(trajectories.term_names):
+        axis = "" if index == 0 else str(index + 1)
+        axes = {"xaxis": f"x{axis}", "yaxis": f"y{axis}", "showlegend": index == 0}
+        grid = k.tolist()
+        band = {"line": {"width": 0}, "hoverinfo": "skip", **axes}
+        data.append(_lines(grid, trajectories.high[:, index], name="upper", **band) | {"showlegend": False})
+        data.append(
+            _lines(grid, trajectories.low[:, index], name=f"{level:.0%} interval", **band)
+            | {"fill": "tonexty", "fillcolor": "rgba(31,119,180,0.25)"}
+        )
+        data.append(
+            _lines(grid, trajectories.values[:, index], name="θ(k)", line={"color": "#1f77b4"}, **axes)
+        )
+        annotations.append(
+            {
+                "text": name,
+                "xref": f"x{axis} domain",
+                "yref": f"y{axis} domain",
+                "x": 0.5,
+                "y": 1.12,
+                "showarrow": False,
+                "font": {"size": 11},
+            }
+        )
+    layout = {
+        "title": {"text": f"Coefficients of fault mode {model.name} against its magnitude k [%]"},
+        "grid": {"rows": rows, "columns": columns, "pattern": "independent"},
+        "annotations": annotations,
+        "margin": {"l": 60, "r": 20, "t": 70, "b": 40},
+        "height": 260 * rows + 80,
+        "legend": {"orientation": "h", "y": -0.08},
+    }
+    return {"data": data, "layout": layout}
+
+
+def record_figures(fit: OneStepFit, fs: float, max_lag: int, shown: int, label: str) -> dict[str, Figure]:
+    """Measured vs one-step predicted response, the residual, and its autocorrelation with bands
+    (Figure 3). The first ``shown`` samples are drawn; the autocorrelation is of the whole residual."""
+    t = ((np.arange(min(shown, fit.measured.size)) + max_lag) / fs).tolist()
+    n = len(t)
+    kind = _scatter(n)
+    response = {
+        "data": [
+            {
+                "type": kind,
+                "mode": "lines",
+                "name": "measured y",
+                "x": t,
+                "y": fit.measured[:n].tolist(),
+                "line": {"color": "#222", "width": 1.5},
+            },
+            {
+                "type": kind,
+                "mode": "lines",
+                "name": f"one-step predicted ({label})",
+                "x": t,
+                "y": fit.predicted[:n].tolist(),
+                "line": {"color": "#e4572e", "width": 1.2, "dash": "dash"},
+            },
+        ],
+        "layout": {
+            "title": {"text": "Response: measured and one-step predicted"},
+            "xaxis": {"title": {"text": "time [s]"}},
+            "yaxis": {"title": {"text": "y [m]"}, "exponentformat": "e"},
+            "margin": MARGIN,
+            "legend": {"orientation": "h", "y": -0.25},
+        },
+    }
+    residual = {
+        "data": [
+            {
+                "type": kind,
+                "mode": "lines",
+                "name": "residual e = y − ŷ",
+                "x": t,
+                "y": fit.residual[:n].tolist(),
+                "line": {"color": "#1f77b4", "width": 1},
+            },
+        ],
+        "layout": {
+            "title": {"text": "One-step prediction error"},
+            "xaxis": {"title": {"text": "time [s]"}},
+            "yaxis": {"title": {"text": "e [m]"}, "exponentformat": "e"},
+            "margin": MARGIN,
+        },
+    }
+    test = fit.autocorrelation
+    lags = test.lags.tolist()
+    band = test.pointwise_band.tolist()
+    autocorrelation = {
+        "data": [
+            {
+                "type": "bar",
+                "name": "φ_ee(τ)",
+                "x": lags,
+                "y": test.values.tolist(),
+                "marker": {"color": "#1f77b4"},
+            },
+            {
+                "type": "scatter",
+                "mode": "lines",
+                "name": f"±{1 - test.alpha:.0%} band",
+                "x": lags,
+                "y": band,
+                "line": {"color": "#c62828", "dash": "dash", "width": 1},
+            },
+            {
+                "type": "scatter",
+                "mode": "lines",
+                "showlegend": False,
+                "x": lags,
+                "y": [-b for b in band],
+                "line": {"color": "#c62828", "dash": "dash", "width": 1},
+                "hoverinfo": "skip",
+            },
+        ],
+        "layout": {
+            "title": {"text": "Residual autocorrelation"},
+            "xaxis": {"title": {"text": "lag τ [samples]"}},
+            "yaxis": {"title": {"text": "φ_ee(τ)"}},
+            "margin": MARGIN,
+            "legend": {"orientation": "h", "y": -0.25},
+        },
+    }
+    return {"response": response, "residual": residual, "autocorrelation": autocorrelation}
+
+
+def refinement_figure(before: dict[str, Any], after: dict[str, Any]) -> Figure:
+    """Held-out one-step and free-run RMS error of the declared and the refined model."""
+    measures = [("one_step_rms", "one-step RMS"), ("free_run_rms", "free-run RMS")]
+    labels = [label for _, label in measures]
+    data = [
+        {
+            "type": "bar",
+            "name": name,
+            "x": labels,
+            "y": [figures.get(key) for key, _ in measures],
+            "marker": {"color": colour},
+            "texttemplate": "%{y:.3g}",
+            "textposition": "outside",
+        }
+        for name, figures, colour in (("declared", before, "#9e9e9e"), ("refined", after, "#2e7d32"))
+    ]
+    layout = {
+        "title": {"text": "Error on held-out data, before and after"},
+        "barmode": "group",
+        "yaxis": {"title": {"text": "RMS error [units of y]"}, "type": "log", "exponentformat": "e"},
+        "margin": MARGIN,
+    }
+    return {"data": data, "layout": layout}

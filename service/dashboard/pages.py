@@ -1,0 +1,171 @@
+"""The dashboard's pages: server-rendered, charts drawn by plotly.js from figures built server-side."""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+from pathlib import Path
+from typing import Annotated, Any, get_args
+
+import plotly
+from fastapi import APIRouter, Depends, Form, Query, Request, status
+from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
+from fastapi.templating import Jinja2Templates
+
+from models.errors import InputError
+from service.api.deps import SessionDep, SettingsDep
+from service.api.params import IdPath
+from service.dashboard import views
+from service.dashboard.auth import COOKIE, HOME, LOGIN, LoginDep, safe_next, same_origin
+from service.domain.history import Status
+from service.domain.logins import close_login, open_login
+
+HERE = Path(__file__).parent
+PLOTLY_JS = Path(plotly.__file__).parent / "package_data" / "plotly.min.js"
+FAULT_MODE = re.compile(r"^[A-Za-z0-9_.\-]{1,100}$")
+
+templates = Jinja2Templates(directory=HERE / "templates")
+templates.env.globals["plotly_version"] = plotly.__version__
+router = APIRouter(prefix=HOME, include_in_schema=False)
+
+
+def _when(moment: dt.datetime | None) -> str:
+    return "—" if moment is None else moment.astimezone(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+def _number(value: float | None, digits: int = 3) -> str:
+    return "—" if value is None else f"{value:.{digits}g}"
+
+
+templates.env.filters["when"] = _when
+templates.env.filters["number"] = _number
+
+
+def render(
+    request: Request, name: str, context: dict[str, Any], code: int = status.HTTP_200_OK
+) -> HTMLResponse:
+    return templates.TemplateResponse(request, name, context, status_code=code)
+
+
+@router.get("/static/plotly.min.js")
+def plotly_js() -> FileResponse:
+    """plotly.js as the installed ``plotly`` package ships it: nothing is fetched from elsewhere."""
+    return FileResponse(
+        PLOTLY_JS, media_type="text/javascript", headers={"Cache-Control": "public, max-age=86400"}
+    )
+
+
+@router.get("/login")
+def login_form(
+    request: Request, next_page: Annotated[str | None, Query(alias="next", max_length=2000)] = None
+) -> HTMLResponse:
+    return render(request, "login.html", {"next": safe_next(next_page), "error": None})
+
+
+@router.post("/login", dependencies=[Depends(same_origin)])
+def log_in(
+    request: Request,
+    session: SessionDep,
+    settings: SettingsDep,
+    api_key: Annotated[str, Form(max_length=200)],
+    next_page: Annotated[str, Form(alias="next", max_length=2000)] = HOME,
+) -> Response:
+    lifetime = dt.timedelta(hours=settings.dashboard_session_hours)
+    token = open_login(session, api_key, lifetime)
+    if token is None:
+        error = "That API key is not valid: it is unknown, malformed or revoked."
+        return render(request, "login.html", {"next": safe_next(next_page), "error": error}, 401)
+    response = RedirectResponse(safe_next(next_page), status.HTTP_303_SEE_OTHER)
+    response.set_cookie(
+        COOKIE,
+        token,
+        max_age=int(lifetime.total_seconds()),
+        path=HOME,
+        secure=settings.session_cookie_secure,
+        httponly=True,
+        samesite="lax",
+    )
+    return response
+
+
+@router.post("/logout", dependencies=[Depends(same_origin)])
+def log_out(request: Request, session: SessionDep) -> Response:
+    token = request.cookies.get(COOKIE)
+    if token:
+        close_login(session, token)
+    response = RedirectResponse(LOGIN, status.HTTP_303_SEE_OTHER)
+    response.delete_cookie(COOKIE, path=HOME)
+    return response
+
+
+@router.get("")
+def fleet(request: Request, login: LoginDep, session: SessionDep) -> HTMLResponse:
+    return render(request, "fleet.html", {"login": login} | views.fleet_page(session, login.principal))
+
+
+@router.get("/structures/{structure_id}")
+def structure(
+    request: Request,
+    structure_id: IdPath,
+    login: LoginDep,
+    session: SessionDep,
+    status_filter: Annotated[str | None, Query(alias="status", max_length=20)] = None,
+    fault_mode: Annotated[str | None, Query(max_length=200)] = None,
+    start: Annotated[str | None, Query(max_length=40)] = None,
+    end: Annotated[str | None, Query(max_length=40)] = None,
+    cursor: Annotated[str | None, Query(max_length=200)] = None,
+) -> HTMLResponse:
+    filters = views.HistoryFilter(
+        status=_status(status_filter),
+        fault_mode=_fault_mode(fault_mode),
+        start=_moment(start, "from"),
+        end=_moment(end, "to"),
+        cursor=cursor or None,
+    )
+    context = views.structure_page(session, login.principal, structure_id, filters)
+    return render(request, "structure.html", {"login": login} | context)
+
+
+@router.get("/records/{record_id}")
+def record(
+    request: Request,
+    record_id: IdPath,
+    login: LoginDep,
+    session: SessionDep,
+    mode: Annotated[str | None, Query(max_length=200)] = None,
+) -> HTMLResponse:
+    context = views.record_page(session, login.principal, record_id, _fault_mode(mode))
+    return render(request, "record.html", {"login": login} | context)
+
+
+@router.get("/refinements/{refinement_id}")
+def refinement(request: Request, refinement_id: IdPath, login: LoginDep, session: SessionDep) -> HTMLResponse:
+    context = views.refinement_page(session, login.principal, refinement_id)
+    return render(request, "refinement.html", {"login": login} | context)
+
+
+def _status(value: str | None) -> Status | None:
+    if not value:
+        return None
+    if value not in get_args(Status):
+        raise InputError(f"status must be one of {', '.join(get_args(Status))}, not {value!r}")
+    return value  # type: ignore[return-value]
+
+
+def _fault_mode(value: str | None) -> str | None:
+    if not value:
+        return None
+    if not FAULT_MODE.match(value):
+        raise InputError("a fault mode name has letters, digits, '_', '.' and '-' only")
+    return value
+
+
+def _moment(value: str | None, name: str) -> dt.datetime | None:
+    """A time from the filter form: ISO 8601, read as UTC when it has no zone (the form says UTC)."""
+    if not value:
+        return None
+    try:
+        moment = dt.datetime.fromisoformat(value)
+    except ValueError:
+        raise InputError(f"'{name}' is not a date and time; write it like 2026-11-21T10:00") from None
+    return moment.replace(tzinfo=dt.UTC) if moment.tzinfo is None else moment.astimezone(dt.UTC)

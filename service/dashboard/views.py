@@ -1,0 +1,149 @@
+"""What each dashboard page shows, gathered from the domain services and shaped for its template."""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, selectinload
+
+from models.errors import InputError
+from models.validation import one_step_fit
+from service.dashboard import figures
+from service.domain import fleet, history, modelling, records, refinements, structures, timeline
+from service.domain.history import Status
+from service.domain.inspections import verdict_out
+from service.schemas import ModeResult
+from service.security import Principal
+from service.tables import Verdict
+
+# Samples of a record drawn on its page; longer records show their start (the residual's
+# autocorrelation is always of the whole record).
+RECORD_POINTS = 20_000
+HISTORY_PAGE = 25
+
+
+@dataclass(frozen=True)
+class HistoryFilter:
+    """The verdict table's filters and page, as the history API takes them."""
+
+    status: Status | None = None
+    fault_mode: str | None = None
+    start: dt.datetime | None = None
+    end: dt.datetime | None = None
+    cursor: str | None = None
+
+    def query(self, **changes: Any) -> dict[str, str]:
+        """The page's query parameters with ``changes`` applied (None drops one)."""
+        values = {
+            "status": self.status,
+            "fault_mode": self.fault_mode,
+            "start": self.start.isoformat() if self.start else None,
+            "end": self.end.isoformat() if self.end else None,
+            "cursor": self.cursor,
+        } | changes
+        return {key: str(value) for key, value in values.items() if value}
+
+
+def fleet_page(session: Session, principal: Principal) -> dict[str, Any]:
+    return {"rows": fleet.fleet(session, principal)}
+
+
+def structure_page(
+    session: Session, principal: Principal, structure_id: int, filters: HistoryFilter
+) -> dict[str, Any]:
+    structure = structures.get_structure(session, principal, structure_id)
+    status = fleet.structure_status(session, structure)
+    points = timeline.timeline(session, structure_id)
+    page = history.history(
+        session,
+        principal,
+        structure_id,
+        start=filters.start,
+        end=filters.end,
+        status=filters.status,
+        fault_mode=filters.fault_mode,
+        cursor=filters.cursor,
+        limit=HISTORY_PAGE,
+    )
+    versions = modelling.list_models(session, principal, structure_id)
+    active_modes = [v for v in versions if v.active and v.kind == "fault_mode"]
+    level = f"{1 - status.latest.alpha:.0%}" if status.latest is not None else "95%"
+    charts = {
+        "k_hat": figures.k_hat_figure(points.points, level),
+        "q": figures.q_figure(points.points),
+    } | {
+        f"trajectories-{v.name}": figures.trajectories_figure(modelling.fault_mode_model(v))
+        for v in active_modes
+    }
+    return {
+        "structure": structure,
+        "status": status,
+        "timeline": points,
+        "page": page,
+        "filters": filters,
+        "fault_modes": sorted({v.name for v in versions if v.kind == "fault_mode"}),
+        "models": [v for v in versions if v.active],
+        "trajectory_models": active_modes,
+        "refinements": refinements.list_refinements(session, principal, structure_id),
+        "charts": charts,
+    }
+
+
+def record_page(session: Session, principal: Principal, record_id: int, mode: str | None) -> dict[str, Any]:
+    """The record with its newest verdict, and the fit of one fault mode at its k̂ (by default the
+    verdict's reference mode, else the mode with the smallest residual variance)."""
+    record = records.get_record(session, principal, record_id)
+    structure = structures.get_structure(session, principal, record.structure_id)
+    verdict = session.scalar(
+        select(Verdict)
+        .where(Verdict.record_id == record.id)
+        .order_by(Verdict.created_at.desc(), Verdict.id.desc())
+        .limit(1)
+        .options(selectinload(Verdict.models))
+    )
+    context: dict[str, Any] = {"record": record, "structure": structure, "verdict": None, "charts": {}}
+    if verdict is None:
+        return context
+    out = verdict_out(verdict)
+    chosen = _chosen_mode(out.modes, out.reference_mode, mode)
+    version = next(v for v in verdict.models if v.name == chosen.name)
+    model = modelling.fault_mode_model(version).narx_at(chosen.k_hat)
+    fit = one_step_fit(model, *records.signals(record), out.lags, out.alpha)
+    label = f"{chosen.name} model at k̂ = {chosen.k_hat:.2f} %"
+    context |= {
+        "verdict": out,
+        "mode": chosen,
+        "version": version,
+        "fit": fit,
+        "shown": min(RECORD_POINTS, fit.measured.size),
+        "charts": figures.record_figures(fit, record.fs, model.max_lag, RECORD_POINTS, label),
+    }
+    return context
+
+
+def _chosen_mode(modes: list[ModeResult], reference: str | None, wanted: str | None) -> ModeResult:
+    by_name = {m.name: m for m in modes}
+    if wanted is not None:
+        if wanted not in by_name:
+            raise InputError(
+                f"this verdict has no fault mode {wanted!r}; it has {', '.join(sorted(by_name))}"
+            )
+        return by_name[wanted]
+    if reference is not None:
+        return by_name[reference]
+    return min(modes, key=lambda m: m.residual_variance)
+
+
+def refinement_page(session: Session, principal: Principal, refinement_id: int) -> dict[str, Any]:
+    refinement = refinements.get_refinement(session, principal, refinement_id)
+    structure = structures.get_structure(session, principal, refinement.structure_id)
+    report = refinement.report
+    return {
+        "refinement": refinement,
+        "structure": structure,
+        "report": report,
+        "charts": {"errors": figures.refinement_figure(report["before"], report["after"])},
+    }

@@ -1,0 +1,68 @@
+"""Dashboard logins: an API key exchanged for a random session token held in a cookie.
+
+The browser never keeps the API key: it keeps a 256-bit token whose SHA-256 is stored with
+the key it was opened with. A login ends at logout, at expiry, or when its key is revoked.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import secrets
+from dataclasses import dataclass
+
+from sqlalchemy import delete, select
+from sqlalchemy.orm import Session
+
+from service.db import writing
+from service.security import Principal, Role, authenticate
+from service.tables import ApiKey, DashboardSession, Organisation, utcnow
+
+
+@dataclass(frozen=True)
+class Login:
+    """Who is looking at the dashboard."""
+
+    principal: Principal
+    organisation: str
+
+
+def open_login(session: Session, key: str, lifetime: dt.timedelta) -> str | None:
+    """A new session token for a valid key of role viewer or higher; None for any other key. Commits."""
+    principal = authenticate(session, key.strip())
+    if principal is None or principal.role < Role.viewer:
+        return None
+    token = secrets.token_urlsafe(32)
+    now = utcnow()
+    with writing(session):
+        session.execute(delete(DashboardSession).where(DashboardSession.expires_at <= now))
+        session.add(
+            DashboardSession(token_hash=_hash(token), api_key_id=principal.key_id, expires_at=now + lifetime)
+        )
+        session.commit()
+    return token
+
+
+def find_login(session: Session, token: str) -> Login | None:
+    """The login a token stands for, unless it expired or its key was revoked."""
+    row = session.execute(
+        select(ApiKey, Organisation.name)
+        .join(DashboardSession, DashboardSession.api_key_id == ApiKey.id)
+        .join(Organisation, Organisation.id == ApiKey.organisation_id)
+        .where(DashboardSession.token_hash == _hash(token), DashboardSession.expires_at > utcnow())
+    ).one_or_none()
+    if row is None or row.ApiKey.revoked_at is not None:
+        return None
+    key = row.ApiKey
+    return Login(Principal(key.organisation_id, Role[key.role], key.id), row.name)
+
+
+def close_login(session: Session, token: str) -> None:
+    """End a login (an unknown token is already ended). Commits."""
+    with writing(session):
+        session.execute(delete(DashboardSession).where(DashboardSession.token_hash == _hash(token)))
+        session.commit()
+
+
+def _hash(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()

@@ -1,0 +1,405 @@
+"""The dashboard over HTTP, on SQLite and PostgreSQL: logins, isolation between organisations,
+and pages whose figures agree with the history API and with an independent recomputation.
+
+The structure watched was healthy, then developed a k2 fault (tests/dashboard_helpers.py); every
+record went through the real inspection chain on upload.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+from pathlib import Path
+
+import httpx
+import numpy as np
+import plotly
+import pytest
+from api_helpers import API, Org, clients, create_structure
+from dashboard_helpers import (
+    COOKIE,
+    DASHBOARD,
+    FAULT_K,
+    Monitored,
+    charts,
+    logged_in,
+    monitored_structure,
+)
+from live import LiveServer
+from sqlalchemy import update
+
+from service.tables import ApiKey, utcnow
+
+PAGE_SIZE = 25  # service.dashboard.views.HISTORY_PAGE
+
+
+@pytest.fixture(scope="module")
+def monitored(api_server: LiveServer) -> Monitored:
+    return monitored_structure(api_server, seed=41)
+
+
+@pytest.fixture
+def viewer(api_server: LiveServer, monitored: Monitored) -> httpx.Client:
+    with logged_in(api_server, monitored.org.keys["viewer"]) as client:
+        yield client
+
+
+def parse(text: str) -> dt.datetime:
+    return dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
+
+
+def ms(text: str) -> float:
+    return parse(text).timestamp() * 1000.0
+
+
+def row_ids(page: httpx.Response, attribute: str) -> list[int]:
+    return [int(found) for found in re.findall(rf'{attribute}="(\d+)"', page.text)]
+
+
+# --- logging in and out ---------------------------------------------------------------------
+
+
+def test_a_logged_out_visitor_is_sent_to_the_login_page(api_server: LiveServer, monitored: Monitored):
+    structure_id, record_id = monitored.structure["id"], monitored.records[0]["id"]
+    with httpx.Client(base_url=api_server.url) as anonymous:
+        for path in (
+            DASHBOARD,
+            f"{DASHBOARD}/structures/{structure_id}?status=faulty",
+            f"{DASHBOARD}/records/{record_id}",
+            f"{DASHBOARD}/refinements/1",
+        ):
+            response = anonymous.get(path)
+            assert response.status_code == 303, path
+            location = httpx.URL(response.headers["location"])
+            assert location.path == f"{DASHBOARD}/login"
+            assert location.params["next"] == path, "after logging in the visitor comes back here"
+            assert structure_id and monitored.structure["name"] not in response.text
+        anonymous.cookies.set(COOKIE, "forged-or-expired")
+        response = anonymous.get(DASHBOARD)
+        assert response.status_code == 303 and "/login" in response.headers["location"]
+        login_page = anonymous.get(f"{DASHBOARD}/login")
+        assert login_page.status_code == 200 and 'name="api_key"' in login_page.text
+
+
+def test_logging_in_sets_a_secure_http_only_cookie_that_is_not_the_key(
+    api_server: LiveServer, monitored: Monitored
+):
+    key = monitored.org.keys["viewer"]
+    with httpx.Client(base_url=api_server.url) as client:
+        wanted = f"{DASHBOARD}/structures/{monitored.structure['id']}"
+        response = client.post(f"{DASHBOARD}/login", data={"api_key": key, "next": wanted})
+    assert response.status_code == 303 and response.headers["location"] == wanted
+    cookie = response.headers["set-cookie"]
+    attributes = {part.strip().split("=")[0].lower() for part in cookie.split(";")}
+    assert {"httponly", "secure", "samesite", "path", "max-age"} <= attributes
+    assert "samesite=lax" in cookie.lower() and f"path={DASHBOARD}" in cookie.lower()
+    token = response.cookies[COOKIE]
+    assert len(token) >= 40 and token not in key and key.split("_")[2] not in cookie
+
+
+@pytest.mark.parametrize(
+    "key",
+    ["", "nw_deadbeef0000_" + "x" * 43, "not a key at all", "Bearer nw_x_y"],
+    ids=["empty", "unknown", "malformed", "header"],
+)
+def test_a_bad_key_is_refused_with_a_message_and_no_session(api_server: LiveServer, key: str):
+    with httpx.Client(base_url=api_server.url) as client:
+        response = client.post(f"{DASHBOARD}/login", data={"api_key": key, "next": DASHBOARD})
+        assert response.status_code in (401, 422)
+        assert COOKIE not in response.cookies
+        assert "API key" in response.text or "api_key" in response.text
+        assert client.get(DASHBOARD).status_code == 303
+
+
+def test_every_role_may_log_in(api_server: LiveServer, monitored: Monitored):
+    for role in ("viewer", "ingest", "admin"):
+        with logged_in(api_server, monitored.org.keys[role]) as client:
+            page = client.get(DASHBOARD)
+            assert page.status_code == 200 and f"· {role}" in page.text
+
+
+def test_next_never_leads_off_the_dashboard(api_server: LiveServer, monitored: Monitored):
+    key = monitored.org.keys["viewer"]
+    with httpx.Client(base_url=api_server.url) as client:
+        for target in (
+            "https://evil.example/dashboard",
+            "//evil.example/x",
+            "/api/v1/structures",
+            "/dashboardx",
+        ):
+            response = client.post(f"{DASHBOARD}/login", data={"api_key": key, "next": target})
+            assert response.status_code == 303 and response.headers["location"] == DASHBOARD, target
+
+
+def test_logging_out_ends_the_session_on_the_server(api_server: LiveServer, monitored: Monitored):
+    client = logged_in(api_server, monitored.org.keys["viewer"])
+    token = client.cookies[COOKIE]
+    with client:
+        assert client.get(DASHBOARD).status_code == 200
+        response = client.post(f"{DASHBOARD}/logout")
+        assert response.status_code == 303 and response.headers["location"] == f"{DASHBOARD}/login"
+        assert (
+            f"{COOKIE}=" in response.headers["set-cookie"]
+            and "max-age=0" in response.headers["set-cookie"].lower()
+        )
+    with httpx.Client(base_url=api_server.url, cookies={COOKIE: token}) as replay:
+        assert replay.get(DASHBOARD).status_code == 303, "a cookie kept after logout opens nothing"
+
+
+def test_a_form_posted_from_another_site_is_refused(api_server: LiveServer, monitored: Monitored):
+    with logged_in(api_server, monitored.org.keys["viewer"]) as client:
+        response = client.post(f"{DASHBOARD}/logout", headers={"Origin": "https://evil.example"})
+        assert response.status_code == 403 and "dashboard itself" in response.text
+        assert client.get(DASHBOARD).status_code == 200, "the refused logout ended nothing"
+
+
+def test_revoking_the_key_ends_its_logins(api_server: LiveServer):
+    org = Org.create(api_server)
+    with logged_in(api_server, org.keys["viewer"]) as client:
+        assert client.get(DASHBOARD).status_code == 200
+        prefix = org.keys["viewer"].split("_")[1]
+        with api_server.app.state.sessions() as session:
+            session.execute(update(ApiKey).where(ApiKey.prefix == prefix).values(revoked_at=utcnow()))
+            session.commit()
+        assert client.get(DASHBOARD).status_code == 303
+
+
+def test_plotly_js_is_served_from_the_installed_package(api_server: LiveServer):
+    with httpx.Client(base_url=api_server.url) as anonymous:
+        response = anonymous.get(f"{DASHBOARD}/static/plotly.min.js")
+    assert response.status_code == 200 and "javascript" in response.headers["content-type"]
+    assert response.content == (Path(plotly.__file__).parent / "package_data" / "plotly.min.js").read_bytes()
+
+
+# --- organisations ----------------------------------------------------------------------------
+
+
+def test_another_organisations_structures_never_appear(api_server: LiveServer, monitored: Monitored):
+    other = Org.create(api_server)
+    with clients(other) as (admin, _, _):
+        theirs = create_structure(admin, "their secret rig")
+    with logged_in(api_server, other.keys["viewer"]) as client:
+        fleet = client.get(DASHBOARD)
+        assert "their secret rig" in fleet.text and monitored.structure["name"] not in fleet.text
+        assert row_ids(fleet, "data-structure-id") == [theirs["id"]]
+        for path in (
+            f"/structures/{monitored.structure['id']}",
+            f"/records/{monitored.records[0]['id']}",
+        ):
+            response = client.get(DASHBOARD + path)
+            assert response.status_code == 404, path
+            assert monitored.structure["name"] not in response.text and "not found" in response.text.lower()
+
+
+# --- pages ----------------------------------------------------------------------------------
+
+
+def test_the_fleet_page_shows_each_structure_where_it_stands(viewer: httpx.Client, monitored: Monitored):
+    page = viewer.get(DASHBOARD)
+    assert page.status_code == 200
+    assert row_ids(page, "data-structure-id") == [monitored.structure["id"]]
+    latest = monitored.verdicts[0]
+    row = page.text[page.text.index("data-structure-id") :]
+    assert f'class="status-{latest["status"]}"' in page.text[: page.text.index("data-structure-id") + 40]
+    low, high = latest["interval"]
+    assert f"{latest['k_hat']:.3g} %" in row and f"[{low:.3g}, {high:.3g}]" in row
+    assert latest["fault_mode"] == "k2" and ">k2<" in row
+    assert _since(monitored.verdicts).strftime("%Y-%m-%d %H:%M:%S UTC") in row
+
+
+def _since(verdicts: list[dict]) -> dt.datetime:
+    """When the current status began, worked out from the history API's list (newest first)."""
+    current = verdicts[0]["status"]
+    run = []
+    for verdict in verdicts:
+        if verdict["status"] != current:
+            break
+        run.append(verdict)
+    return parse(run[-1]["acquired_at"])
+
+
+def test_the_structure_page_charts_every_verdict(viewer: httpx.Client, monitored: Monitored):
+    page = viewer.get(f"{DASHBOARD}/structures/{monitored.structure['id']}")
+    assert page.status_code == 200
+    figures = charts(page)
+    oldest_first = monitored.verdicts[::-1]
+    # An unknown fault has no magnitude: it is left off the k̂ chart, and only that chart.
+    estimated = [v for v in oldest_first if v["k_hat"] is not None]
+    (k_hat,) = figures["k_hat"]["data"]  # one reference mode: k2
+    assert k_hat["x"] == [ms(v["acquired_at"]) for v in estimated]
+    assert k_hat["y"] == [v["k_hat"] for v in estimated]
+    np.testing.assert_allclose(k_hat["error_y"]["array"], [v["interval"][1] - v["k_hat"] for v in estimated])
+    np.testing.assert_allclose(
+        k_hat["error_y"]["arrayminus"], [v["k_hat"] - v["interval"][0] for v in estimated]
+    )
+    assert max(k_hat["y"]) == pytest.approx(FAULT_K, abs=2.0)
+    q, critical = figures["q"]["data"]
+    assert q["x"] == [ms(v["acquired_at"]) for v in oldest_first]
+    assert q["y"] == [v["modes"][0]["q"] for v in oldest_first]
+    assert critical["y"] == [oldest_first[0]["modes"][0]["q_critical"]] * 2
+    trajectories = figures["trajectories-k2"]["data"]
+    assert len(trajectories) == 3 * 8, "band edges and estimate for each of the eight terms"
+    assert "Since" in page.text and _since(monitored.verdicts).strftime("%Y-%m-%d %H:%M:%S") in page.text
+
+
+def test_the_trajectories_are_the_models_coefficients(viewer: httpx.Client, monitored: Monitored, api_server):
+    from models.fnarx import FNARX
+    from service.tables import ModelVersion
+
+    figures = charts(viewer.get(f"{DASHBOARD}/structures/{monitored.structure['id']}"))
+    with api_server.app.state.sessions() as session:
+        version = (
+            session.query(ModelVersion).filter_by(structure_id=monitored.structure["id"], name="k2").one()
+        )
+        model = FNARX.from_document(version.document)
+    estimate = figures["trajectories-k2"]["data"][2::3]
+    for index, trace in enumerate(estimate):
+        k = np.array(trace["x"])
+        assert k[0] == model.basis.k_min and k[-1] == model.basis.k_max
+        theta = model.theta[index] @ np.array([model.basis.values(kk) for kk in k]).T
+        np.testing.assert_allclose(trace["y"], theta, rtol=1e-12)
+
+
+def test_the_verdict_table_filters_and_pages_like_the_history_api(
+    api_server: LiveServer, monitored: Monitored, viewer: httpx.Client
+):
+    structure_id = monitored.structure["id"]
+    url = f"{DASHBOARD}/structures/{structure_id}"
+    everything = viewer.get(url)
+    assert row_ids(everything, "data-verdict-id") == [v["id"] for v in monitored.verdicts]
+    with clients(monitored.org) as (_, _, api):
+        for status in ("healthy", "faulty"):
+            page = viewer.get(url, params={"status": status})
+            expected = api.get(f"{API}/structures/{structure_id}/verdicts", params={"status": status}).json()
+            assert row_ids(page, "data-verdict-id") == [v["id"] for v in expected["items"]]
+            assert row_ids(page, "data-verdict-id"), f"the history has {status} verdicts"
+    middle = parse(monitored.verdicts[3]["acquired_at"])
+    page = viewer.get(url, params={"start": middle.strftime("%Y-%m-%dT%H:%M"), "fault_mode": "k2"})
+    assert row_ids(page, "data-verdict-id") == [
+        v["id"] for v in monitored.verdicts if parse(v["acquired_at"]) >= middle and v["fault_mode"] == "k2"
+    ]
+
+
+def test_the_verdict_table_pages_through_a_long_history(api_server: LiveServer):
+    many = monitored_structure(api_server, seed=43, healthy=15, faulty=PAGE_SIZE - 10)
+    with logged_in(api_server, many.org.keys["viewer"]) as client:
+        url = f"{DASHBOARD}/structures/{many.structure['id']}"
+        first = client.get(url)
+        assert row_ids(first, "data-verdict-id") == [v["id"] for v in many.verdicts[:PAGE_SIZE]]
+        older = re.search(r'href="\?([^"]+)" id="older"', first.text)
+        assert older is not None
+        second = client.get(f"{url}?{older.group(1).replace('&amp;', '&')}")
+        assert row_ids(second, "data-verdict-id") == [v["id"] for v in many.verdicts[PAGE_SIZE:]]
+        assert 'id="older"' not in second.text and 'id="newest"' in second.text
+
+
+@pytest.mark.parametrize(
+    ("params", "fragment"),
+    [
+        ({"status": "broken"}, "status must be one of"),
+        ({"start": "yesterday"}, "not a date and time"),
+        ({"fault_mode": "k2; drop table"}, "fault mode name"),
+        ({"cursor": "bm90LWEtY3Vyc29y"}, "cursor"),
+    ],
+    ids=["status", "start", "fault-mode", "cursor"],
+)
+def test_bad_filters_get_a_page_that_says_why(viewer: httpx.Client, monitored: Monitored, params, fragment):
+    response = viewer.get(f"{DASHBOARD}/structures/{monitored.structure['id']}", params=params)
+    assert response.status_code == 422
+    assert "text/html" in response.headers["content-type"] and fragment in response.text
+
+
+@pytest.mark.parametrize("path", ["/structures/999999", "/records/999999", "/refinements/999999", "/nowhere"])
+def test_unknown_ids_get_a_404_page(viewer: httpx.Client, path: str):
+    response = viewer.get(DASHBOARD + path)
+    assert response.status_code == 404 and "text/html" in response.headers["content-type"]
+    assert "Back to the fleet" in response.text
+
+
+def test_the_record_page_shows_the_fit_the_verdict_was_judged_on(viewer: httpx.Client, monitored: Monitored):
+    """The residual drawn is the one whose Ljung–Box Q the verdict holds: Q recomputed here from
+    the page's autocorrelation, Q = N(N+2)·Σ ρ̂²(τ)/(N − τ), equals the stored Q."""
+    verdict = monitored.verdicts[0]
+    page = viewer.get(f"{DASHBOARD}/records/{verdict['record_id']}")
+    assert page.status_code == 200
+    figures = charts(page)
+    measured, predicted = figures["response"]["data"]
+    (residual,) = figures["residual"]["data"]
+    np.testing.assert_allclose(np.subtract(measured["y"], predicted["y"]), residual["y"], atol=1e-15)
+    acf, upper, lower = figures["autocorrelation"]["data"]
+    rho = np.array(acf["y"])
+    n = len(residual["y"])
+    tau = np.arange(1, len(rho) + 1)
+    q = n * (n + 2) * np.sum(rho**2 / (n - tau))
+    (mode,) = verdict["modes"]
+    assert len(rho) == verdict["lags"]
+    assert q == pytest.approx(mode["q"], rel=1e-9)
+    assert upper["y"] == pytest.approx([1.959963984540054 / np.sqrt(n)] * len(rho))
+    assert lower["y"] == pytest.approx([-b for b in upper["y"]])
+    assert f"{mode['k_hat']:.4g}" in page.text and verdict["status"] in page.text
+
+
+def test_a_record_without_a_verdict_says_so(
+    api_server: LiveServer, monitored: Monitored, viewer: httpx.Client
+):
+    from api_helpers import simulated, upload_simulated
+
+    with clients(monitored.org) as (_, ingest, _):
+        stored = upload_simulated(ingest, monitored.structure["id"], simulated("k2", 0.0, [41, 999], 500))
+    page = viewer.get(f"{DASHBOARD}/records/{stored['id']}")
+    assert page.status_code == 200 and 'id="no-verdict"' in page.text
+    assert 'id="charts"' not in page.text
+
+
+def test_an_unknown_fault_mode_on_the_record_page_is_refused(viewer: httpx.Client, monitored: Monitored):
+    response = viewer.get(f"{DASHBOARD}/records/{monitored.records[0]['id']}", params={"mode": "k9"})
+    assert response.status_code == 422 and "no fault mode &#39;k9&#39;; it has k2" in response.text
+
+
+def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: LiveServer):
+    from api_helpers import npz_bytes, post_record
+
+    from simulator.simulate import Effects, Scenario, simulate
+
+    org = Org.create(api_server)
+    with clients(org) as (admin, ingest, _):
+        structure_id = create_structure(admin, "rig to refine")["id"]
+        ids = []
+        for seed, effects in ((1, []), (2, ["quadratic_stiffness2=3e5"])):
+            scenario = Scenario(disturbance_std=200.0, effects=Effects.parse(effects))
+            record = simulate(scenario, 12_000, np.random.SeedSequence([43, seed]))
+            body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+            ids.append(post_record(ingest, structure_id, body, "application/x-npz").json()["id"])
+        baseline = admin.post(
+            f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": ids[:1]}
+        )
+        body = {"record_id": ids[1], "base_model_id": baseline.json()["id"]}
+        refinement = admin.post(f"{API}/structures/{structure_id}/refinements", json=body).json()
+    report = refinement["report"]
+    assert report["effects_added"], "the undeclared quadratic stiffness is found"
+    with logged_in(api_server, org.keys["viewer"]) as client:
+        structure_page = client.get(f"{DASHBOARD}/structures/{structure_id}")
+        assert f'href="/dashboard/refinements/{refinement["id"]}"' in structure_page.text
+        page = client.get(f"{DASHBOARD}/refinements/{refinement['id']}")
+    assert page.status_code == 200
+    for effect in report["effects_added"]:
+        assert f"<strong>{effect['name']}</strong>" in page.text
+    declared, refined = charts(page)["errors"]["data"]
+    assert declared["y"] == [report["before"]["one_step_rms"], report["before"]["free_run_rms"]]
+    assert refined["y"] == [report["after"]["one_step_rms"], report["after"]["free_run_rms"]]
+    assert refined["y"][0] < declared["y"][0]
+
+
+def test_a_login_ends_when_it_expires(api_server: LiveServer):
+    from service.domain.logins import find_login, open_login
+
+    org = Org.create(api_server)
+    with api_server.app.state.sessions() as session:
+        lasting = open_login(session, org.keys["viewer"], dt.timedelta(hours=1))
+        expired = open_login(session, org.keys["viewer"], dt.timedelta(seconds=-1))
+        assert lasting is not None and expired is not None
+        found = find_login(session, lasting)
+        assert found is not None and found.organisation == org.name
+        assert find_login(session, expired) is None
+    with httpx.Client(base_url=api_server.url, cookies={COOKIE: expired}) as client:
+        assert client.get(DASHBOARD).status_code == 303

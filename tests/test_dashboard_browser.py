@@ -1,0 +1,167 @@
+"""The dashboard end to end in a real headless browser: Debian's Chromium driven by Playwright.
+
+A person logs in, reads the fleet, follows a structure, sees its charts drawn with one point per
+verdict, follows a record and sees its fit, and logs out. Screenshots of each page are kept under
+``var/test-artifacts/dashboard/`` (or ``$NARXWATCH_TEST_ARTIFACTS``) for a person to look at.
+
+Chromium comes from ``scripts/ensure-chromium.sh`` (``make test`` runs it); Playwright's own
+browser download is never used. Without Chromium these tests are skipped with the reason, and
+with CI=true they fail instead: CI must run them.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from api_helpers import Org, clients, create_structure
+from dashboard_helpers import DASHBOARD, Monitored, monitored_structure
+from live import LiveServer
+
+from service.config import Settings
+
+CHROMIUM = Path("/usr/bin/chromium")
+# Chromium as root needs --no-sandbox; the others keep it off a network this machine does not have.
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+ARTIFACTS = Path(
+    os.environ.get("NARXWATCH_TEST_ARTIFACTS", Path(__file__).parents[1] / "var" / "test-artifacts")
+)
+TIMEOUT_MS = 30_000
+
+
+def _in_ci() -> bool:
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    if not CHROMIUM.exists():
+        message = f"{CHROMIUM} is not installed: run 'sudo bash scripts/ensure-chromium.sh'"
+        if _in_ci():
+            pytest.fail(message)
+        pytest.skip(message)
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield chromium
+        chromium.close()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
+    url = f"sqlite:///{tmp_path_factory.mktemp('browser') / 'narxwatch.db'}"
+    with LiveServer(Settings(database_url=url)) as live:
+        yield live
+
+
+@pytest.fixture(scope="module")
+def monitored(server: LiveServer) -> Monitored:
+    return monitored_structure(server, seed=47)
+
+
+@pytest.fixture
+def page(browser, request: pytest.FixtureRequest):  # type: ignore[no-untyped-def]
+    context = browser.new_context(viewport={"width": 1360, "height": 900})
+    context.set_default_timeout(TIMEOUT_MS)
+    tab = context.new_page()
+    errors: list[str] = []
+    tab.on("pageerror", lambda error: errors.append(str(error)))
+    yield tab
+    context.close()
+    assert not errors, f"the page raised in the browser: {errors}"
+
+
+def shot(page, name: str) -> None:  # type: ignore[no-untyped-def]
+    folder = ARTIFACTS / "dashboard"
+    folder.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=folder / f"{name}.png", full_page=True)
+
+
+def drawn(page, chart: str) -> dict:  # type: ignore[no-untyped-def]
+    """Waits until plotly.js has drawn the chart; its traces' point counts, as plotly holds and draws them."""
+    page.wait_for_selector(f"#chart-{chart}[data-drawn=true]")
+    return page.evaluate(
+        """(id) => {
+            const element = document.getElementById(id);
+            return {
+                points: element.data.map((trace) => trace.x.length),
+                markers: element.querySelectorAll('.scatterlayer .trace .points path').length,
+                bars: element.querySelectorAll('.barlayer .point').length,
+                traces: element.querySelectorAll('.scatterlayer .trace').length,
+            };
+        }""",
+        f"chart-{chart}",
+    )
+
+
+def log_in(page, key: str) -> None:  # type: ignore[no-untyped-def]
+    page.fill("#api_key", key)
+    page.click("#login")
+
+
+def test_log_in_follow_a_structure_and_a_record_and_log_out(page, server: LiveServer, monitored: Monitored):
+    other = Org.create(server)
+    with clients(other) as (admin, _, _):
+        create_structure(admin, "another organisation's rig")
+
+    page.goto(f"{server.url}{DASHBOARD}")
+    assert page.url.startswith(f"{server.url}{DASHBOARD}/login"), "a logged-out visitor is sent to log in"
+    shot(page, "1-login")
+    log_in(page, monitored.org.keys["viewer"])
+    page.wait_for_url(f"{server.url}{DASHBOARD}")
+
+    rows = page.locator("#fleet tbody tr")
+    assert rows.count() == 1
+    assert "another organisation's rig" not in page.content()
+    latest = monitored.verdicts[0]
+    assert rows.first.get_attribute("class") == f"status-{latest['status']}"
+    shot(page, "2-fleet")
+
+    page.click(f"text={monitored.structure['name']}")
+    page.wait_for_url(f"**{DASHBOARD}/structures/{monitored.structure['id']}")
+    with_magnitude = sum(v["k_hat"] is not None for v in monitored.verdicts)
+    k_hat = drawn(page, "k_hat")
+    assert k_hat["points"] == [with_magnitude] and k_hat["markers"] == with_magnitude
+    q = drawn(page, "q")
+    assert q["points"] == [len(monitored.verdicts), 2] and q["markers"] == len(monitored.verdicts)
+    trajectories = drawn(page, "trajectories-k2")
+    assert trajectories["points"] == [65] * 24 and trajectories["traces"] == 24
+    assert page.locator("#verdicts tbody tr").count() == len(monitored.verdicts)
+    shot(page, "3-structure")
+
+    record_id = monitored.verdicts[0]["record_id"]
+    page.click(f"#verdicts a[href='/dashboard/records/{record_id}']")
+    page.wait_for_url(f"**{DASHBOARD}/records/{record_id}")
+    record = next(r for r in monitored.records if r["id"] == record_id)
+    predicted = record["n_samples"] - 4  # the k2 model's longest lag is 4
+    response = drawn(page, "response")
+    assert response["points"] == [predicted, predicted]
+    assert drawn(page, "residual")["points"] == [predicted]
+    autocorrelation = drawn(page, "autocorrelation")
+    assert autocorrelation["bars"] == latest["lags"] and autocorrelation["points"] == [latest["lags"]] * 3
+    assert latest["status"] in page.locator("#verdict").inner_text()
+    shot(page, "4-record")
+
+    page.click("#logout")
+    page.wait_for_url(f"**{DASHBOARD}/login")
+    page.goto(f"{server.url}{DASHBOARD}/records/{record_id}")
+    assert "/login?next=" in page.url, "after logging out the pages are closed again"
+
+
+def test_a_wrong_key_stays_on_the_login_page_with_the_reason(page, server: LiveServer):
+    page.goto(f"{server.url}{DASHBOARD}/login")
+    log_in(page, "nw_000000000000_not-a-real-key")
+    page.wait_for_selector(".error")
+    assert "not valid" in page.locator(".error").inner_text()
+    assert page.context.cookies() == [], "no session cookie for a refused key"
+    shot(page, "5-refused")
