@@ -47,6 +47,7 @@ lint: $(STAMP)
 bench: $(STAMP) $(BENCH_STAMP)
 	$(BIN)/pytest bench --benchmark-only --benchmark-columns=min,median,max,rounds
 	$(BENCH_VENV)/bin/python bench/bench_frols.py
+	$(BIN)/python bench/dashboard.py
 
 
 clean:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import datetime as dt
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -22,6 +23,16 @@ HEALTHY_RECORDS = 4
 FAULTY_RECORDS = 4
 FAULT_K = 25.0
 RECORD_SAMPLES = 2000
+CHROMIUM = Path("/usr/bin/chromium")
+# Chromium as root needs --no-sandbox; the others keep it off a network this machine does not have.
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 CHARTS = re.compile(r'<script type="application/json" id="charts">(.*?)</script>', re.S)
 
 

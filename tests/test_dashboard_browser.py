@@ -17,21 +17,11 @@ from pathlib import Path
 
 import pytest
 from api_helpers import Org, clients, create_structure
-from dashboard_helpers import DASHBOARD, Monitored, monitored_structure
+from dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, DASHBOARD, Monitored, monitored_structure
 from live import LiveServer
 
 from service.config import Settings
 
-CHROMIUM = Path("/usr/bin/chromium")
-# Chromium as root needs --no-sandbox; the others keep it off a network this machine does not have.
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 ARTIFACTS = Path(
     os.environ.get("NARXWATCH_TEST_ARTIFACTS", Path(__file__).parents[1] / "var" / "test-artifacts")
 )
@@ -88,7 +78,9 @@ def shot(page, name: str) -> None:  # type: ignore[no-untyped-def]
 
 
 def drawn(page, chart: str) -> dict:  # type: ignore[no-untyped-def]
-    """Waits until plotly.js has drawn the chart; its traces' point counts, as plotly holds and draws them."""
+    """Scrolls to the chart (charts are drawn as they come into view) and waits until plotly.js has
+    drawn it; its traces' point counts, as plotly holds and draws them."""
+    page.locator(f"#chart-{chart}").scroll_into_view_if_needed()
     page.wait_for_selector(f"#chart-{chart}[data-drawn=true]")
     return page.evaluate(
         """(id) => {
@@ -134,6 +126,7 @@ def test_log_in_follow_a_structure_and_a_record_and_log_out(page, server: LiveSe
     assert k_hat["points"] == [with_magnitude] and k_hat["markers"] == with_magnitude
     q = drawn(page, "q")
     assert q["points"] == [len(monitored.verdicts), 2] and q["markers"] == len(monitored.verdicts)
+    assert page.get_attribute("#chart-trajectories-k2", "data-drawn") is None, "below the fold: not drawn yet"
     trajectories = drawn(page, "trajectories-k2")
     assert trajectories["points"] == [65] * 24 and trajectories["traces"] == 24
     assert page.locator("#verdicts tbody tr").count() == len(monitored.verdicts)
