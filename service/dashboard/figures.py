@@ -25,6 +25,7 @@ STATUS_COLOURS = {"healthy": "#2e7d32", "faulty": "#c62828", "unknown_fault": "#
 MODE_COLOURS = ("#1f77b4", "#9467bd", "#17becf", "#8c564b", "#e377c2", "#7f7f7f")
 MODE_SYMBOLS = ("circle", "diamond", "square", "triangle-up", "cross", "x")
 MARGIN = {"l": 60, "r": 20, "t": 40, "b": 45}
+LEGEND_BELOW = {"orientation": "h", "y": -0.2}
 
 
 def _scatter(n: int) -> str:
@@ -74,19 +75,39 @@ def k_hat_figure(points: Sequence[TimelinePoint], interval_label: str) -> Figure
                 "hovertemplate": "k̂ %{y:.2f} %<br>record %{customdata}<extra>" + mode + "</extra>",
             }
         )
-    layout = {
-        "title": {"text": f"Fault magnitude k̂ with its {interval_label} interval"},
-        "xaxis": {"type": "date", "title": {"text": "acquired (UTC)"}},
-        "yaxis": {"title": {"text": "k̂ [%]"}, "zeroline": True},
-        "margin": MARGIN,
-        "legend": {"orientation": "h", "y": -0.2},
-    }
+    layout = _layout(
+        f"Fault magnitude k̂ with its {interval_label} interval",
+        "acquired (UTC)",
+        "k̂ [%]",
+        xaxis={"type": "date"},
+        yaxis={"zeroline": True},
+        legend=LEGEND_BELOW,
+    )
     return {"data": data, "layout": layout}
 
 
-def _lines(x: Sequence[float], y: Any, **style: Any) -> dict[str, Any]:
-    """A line trace (``y`` a sequence or an array) with plotly attributes ``style``."""
-    return {"type": "scatter", "mode": "lines", "x": list(x), "y": np.asarray(y).tolist(), **style}
+def _lines(x: Any, y: Any, **style: Any) -> dict[str, Any]:
+    """A line trace (``x`` and ``y`` sequences or arrays) with plotly attributes ``style`` (which may
+    set ``type`` to "scattergl")."""
+    return {
+        "type": "scatter",
+        "mode": "lines",
+        "x": np.asarray(x).tolist(),
+        "y": np.asarray(y).tolist(),
+        **style,
+    }
+
+
+def _layout(title: str, x_title: str, y_title: str, **extra: Any) -> dict[str, Any]:
+    """A single chart's layout: its title, axis titles and the common margins; ``extra`` adds to
+    or replaces entries (``xaxis``/``yaxis`` keys merge into the axes)."""
+    layout = {
+        "title": {"text": title},
+        "xaxis": {"title": {"text": x_title}} | extra.pop("xaxis", {}),
+        "yaxis": {"title": {"text": y_title}} | extra.pop("yaxis", {}),
+        "margin": MARGIN,
+    }
+    return layout | extra
 
 
 def _gap(high: float | None, low: float | None) -> float | None:
@@ -115,23 +136,22 @@ def q_figure(points: Sequence[TimelinePoint]) -> Figure:
         )
         critical = pairs[-1][1]["q_critical"]
         data.append(
-            {
-                "type": "scatter",
-                "mode": "lines",
-                "name": f"critical value ({name})",
-                "x": [x[0], x[-1]],
-                "y": [critical, critical],
-                "line": {"color": colour, "dash": "dash", "width": 1.5},
-                "hovertemplate": "χ² critical %{y:.1f}<extra></extra>",
-            }
+            _lines(
+                [x[0], x[-1]],
+                [critical, critical],
+                name=f"critical value ({name})",
+                line={"color": colour, "dash": "dash", "width": 1.5},
+                hovertemplate="χ² critical %{y:.1f}<extra></extra>",
+            )
         )
-    layout = {
-        "title": {"text": "Residual whiteness: Ljung–Box Q per fault-mode model"},
-        "xaxis": {"type": "date", "title": {"text": "acquired (UTC)"}},
-        "yaxis": {"title": {"text": "Q"}, "type": "log"},
-        "margin": MARGIN,
-        "legend": {"orientation": "h", "y": -0.2},
-    }
+    layout = _layout(
+        "Residual whiteness: Ljung–Box Q per fault-mode model",
+        "acquired (UTC)",
+        "Q",
+        xaxis={"type": "date"},
+        yaxis={"type": "log"},
+        legend=LEGEND_BELOW,
+    )
     return {"data": data, "layout": layout}
 
 
@@ -146,16 +166,13 @@ def trajectories_figure(model: FNARX, level: float = 0.95) -> Figure:
     for index, name in enumerate(trajectories.term_names):
         axis = "" if index == 0 else str(index + 1)
         axes = {"xaxis": f"x{axis}", "yaxis": f"y{axis}", "showlegend": index == 0}
-        grid = k.tolist()
         band = {"line": {"width": 0}, "hoverinfo": "skip", **axes}
-        data.append(_lines(grid, trajectories.high[:, index], name="upper", **band) | {"showlegend": False})
+        data.append(_lines(k, trajectories.high[:, index], name="upper", **band) | {"showlegend": False})
         data.append(
-            _lines(grid, trajectories.low[:, index], name=f"{level:.0%} interval", **band)
+            _lines(k, trajectories.low[:, index], name=f"{level:.0%} interval", **band)
             | {"fill": "tonexty", "fillcolor": "rgba(31,119,180,0.25)"}
         )
-        data.append(
-            _lines(grid, trajectories.values[:, index], name="θ(k)", line={"color": "#1f77b4"}, **axes)
-        )
+        data.append(_lines(k, trajectories.values[:, index], name="θ(k)", line={"color": "#1f77b4"}, **axes))
         annotations.append(
             {
                 "text": name,
@@ -181,91 +198,56 @@ def trajectories_figure(model: FNARX, level: float = 0.95) -> Figure:
 def record_figures(fit: OneStepFit, fs: float, max_lag: int, shown: int, label: str) -> dict[str, Figure]:
     """Measured vs one-step predicted response, the residual, and its autocorrelation with bands
     (Figure 3). The first ``shown`` samples are drawn; the autocorrelation is of the whole residual."""
-    t = ((np.arange(min(shown, fit.measured.size)) + max_lag) / fs).tolist()
+    t = (np.arange(min(shown, fit.measured.size)) + max_lag) / fs
     n = len(t)
     kind = _scatter(n)
+    legend = {"orientation": "h", "y": -0.25}
     response = {
         "data": [
-            {
-                "type": kind,
-                "mode": "lines",
-                "name": "measured y",
-                "x": t,
-                "y": fit.measured[:n].tolist(),
-                "line": {"color": "#222", "width": 1.5},
-            },
-            {
-                "type": kind,
-                "mode": "lines",
-                "name": f"one-step predicted ({label})",
-                "x": t,
-                "y": fit.predicted[:n].tolist(),
-                "line": {"color": "#e4572e", "width": 1.2, "dash": "dash"},
-            },
+            _lines(t, fit.measured[:n], type=kind, name="measured y", line={"color": "#222", "width": 1.5}),
+            _lines(
+                t,
+                fit.predicted[:n],
+                type=kind,
+                name=f"one-step predicted ({label})",
+                line={"color": "#e4572e", "width": 1.2, "dash": "dash"},
+            ),
         ],
-        "layout": {
-            "title": {"text": "Response: measured and one-step predicted"},
-            "xaxis": {"title": {"text": "time [s]"}},
-            "yaxis": {"title": {"text": "y [m]"}, "exponentformat": "e"},
-            "margin": MARGIN,
-            "legend": {"orientation": "h", "y": -0.25},
-        },
+        "layout": _layout(
+            "Response: measured and one-step predicted",
+            "time [s]",
+            "y [m]",
+            yaxis={"exponentformat": "e"},
+            legend=legend,
+        ),
     }
     residual = {
         "data": [
-            {
-                "type": kind,
-                "mode": "lines",
-                "name": "residual e = y − ŷ",
-                "x": t,
-                "y": fit.residual[:n].tolist(),
-                "line": {"color": "#1f77b4", "width": 1},
-            },
+            _lines(
+                t,
+                fit.residual[:n],
+                type=kind,
+                name="residual e = y − ŷ",
+                line={"color": "#1f77b4", "width": 1},
+            )
         ],
-        "layout": {
-            "title": {"text": "One-step prediction error"},
-            "xaxis": {"title": {"text": "time [s]"}},
-            "yaxis": {"title": {"text": "e [m]"}, "exponentformat": "e"},
-            "margin": MARGIN,
-        },
+        "layout": _layout("One-step prediction error", "time [s]", "e [m]", yaxis={"exponentformat": "e"}),
     }
     test = fit.autocorrelation
-    lags = test.lags.tolist()
-    band = test.pointwise_band.tolist()
+    band_line = {"color": "#c62828", "dash": "dash", "width": 1}
     autocorrelation = {
         "data": [
             {
                 "type": "bar",
                 "name": "φ_ee(τ)",
-                "x": lags,
+                "x": test.lags.tolist(),
                 "y": test.values.tolist(),
                 "marker": {"color": "#1f77b4"},
             },
-            {
-                "type": "scatter",
-                "mode": "lines",
-                "name": f"±{1 - test.alpha:.0%} band",
-                "x": lags,
-                "y": band,
-                "line": {"color": "#c62828", "dash": "dash", "width": 1},
-            },
-            {
-                "type": "scatter",
-                "mode": "lines",
-                "showlegend": False,
-                "x": lags,
-                "y": [-b for b in band],
-                "line": {"color": "#c62828", "dash": "dash", "width": 1},
-                "hoverinfo": "skip",
-            },
+            _lines(test.lags, test.pointwise_band, name=f"±{1 - test.alpha:.0%} band", line=band_line),
+            _lines(test.lags, -test.pointwise_band, showlegend=False, line=band_line, hoverinfo="skip"),
         ],
-        "layout": {
-            "title": {"text": "Residual autocorrelation"},
-            "xaxis": {"title": {"text": "lag τ [samples]"}},
-            "yaxis": {"title": {"text": "φ_ee(τ)"}},
-            "margin": MARGIN,
-            "legend": {"orientation": "h", "y": -0.25},
-        },
+        "layout": _layout("Residual autocorrelation", "lag τ [samples]", "φ_ee(τ)", legend=legend),
     }
     return {"response": response, "residual": residual, "autocorrelation": autocorrelation}
 
