@@ -21,7 +21,10 @@ from models.basis import FAMILIES
 from models.inspection import ModeResult
 
 Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f]+$")]
-ModeName = Annotated[str, Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_.\-]+$")]
+# Fault-mode names: the same rule wherever one is given (bodies, history filters, dashboard).
+MODE_NAME_PATTERN = r"^[A-Za-z0-9_.\-]+$"
+MODE_NAME_LENGTH = 100
+ModeName = Annotated[str, Field(min_length=1, max_length=MODE_NAME_LENGTH, pattern=MODE_NAME_PATTERN)]
 MAX_ID = 2**31 - 1  # ids are 32-bit integers in every database narxwatch runs on
 Id = Annotated[StrictInt, Field(ge=1, le=MAX_ID)]
 Magnitude = Annotated[FiniteFloat, Field(ge=-1e6, le=1e6)]

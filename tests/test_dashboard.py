@@ -298,10 +298,11 @@ def test_the_verdict_table_pages_through_a_long_history(api_server: LiveServer):
     [
         ({"status": "broken"}, "status must be one of"),
         ({"start": "yesterday"}, "not a date and time"),
+        ({"end": "0001-01-01T00:00:00+05:00"}, "outside the years 1 to 9999"),
         ({"fault_mode": "k2; drop table"}, "fault mode name"),
         ({"cursor": "bm90LWEtY3Vyc29y"}, "cursor"),
     ],
-    ids=["status", "start", "fault-mode", "cursor"],
+    ids=["status", "start", "end-out-of-range", "fault-mode", "cursor"],
 )
 def test_bad_filters_get_a_page_that_says_why(viewer: httpx.Client, monitored: Monitored, params, fragment):
     response = viewer.get(f"{DASHBOARD}/structures/{monitored.structure['id']}", params=params)

@@ -10,7 +10,14 @@ from fastapi import APIRouter, Query, status
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
 from service.api.params import IdPath, utc
 from service.domain import history, structures
-from service.schemas import StructureCreate, StructureOut, Summary, VerdictPage
+from service.schemas import (
+    MODE_NAME_LENGTH,
+    MODE_NAME_PATTERN,
+    StructureCreate,
+    StructureOut,
+    Summary,
+    VerdictPage,
+)
 
 router = APIRouter(prefix="/structures", tags=["structures"])
 
@@ -47,7 +54,7 @@ def fault_history(
     ] = None,
     end: Annotated[dt.datetime | None, Query(description="Acquired before (ISO 8601 with zone)")] = None,
     status_filter: Annotated[history.Status | None, Query(alias="status")] = None,
-    fault_mode: Annotated[str | None, Query(max_length=100, pattern=r"^[A-Za-z0-9_.\-]+$")] = None,
+    fault_mode: Annotated[str | None, Query(max_length=MODE_NAME_LENGTH, pattern=MODE_NAME_PATTERN)] = None,
     cursor: Annotated[str | None, Query(max_length=200)] = None,
     limit: Annotated[int | None, Query(ge=1, le=1000)] = None,
 ) -> VerdictPage:

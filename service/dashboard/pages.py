@@ -14,15 +14,15 @@ from fastapi.templating import Jinja2Templates
 
 from models.errors import InputError
 from service.api.deps import SessionDep, SettingsDep
-from service.api.params import IdPath
+from service.api.params import IdPath, utc
 from service.dashboard import views
 from service.dashboard.auth import COOKIE, HOME, LOGIN, LoginDep, safe_next, same_origin
 from service.domain.history import Status
 from service.domain.logins import close_login, open_login
+from service.schemas import MODE_NAME_LENGTH, MODE_NAME_PATTERN
 
 HERE = Path(__file__).parent
 PLOTLY_JS = Path(plotly.__file__).parent / "package_data" / "plotly.min.js"
-FAULT_MODE = re.compile(r"^[A-Za-z0-9_.\-]{1,100}$")
 
 templates = Jinja2Templates(directory=HERE / "templates")
 templates.env.globals["plotly_version"] = plotly.__version__
@@ -155,8 +155,10 @@ def _status(value: str | None) -> Status | None:
 def _fault_mode(value: str | None) -> str | None:
     if not value:
         return None
-    if not FAULT_MODE.match(value):
-        raise InputError("a fault mode name has letters, digits, '_', '.' and '-' only")
+    if len(value) > MODE_NAME_LENGTH or not re.fullmatch(MODE_NAME_PATTERN, value):
+        raise InputError(
+            f"a fault mode name has at most {MODE_NAME_LENGTH} letters, digits, '_', '.' and '-' only"
+        )
     return value
 
 
@@ -168,4 +170,4 @@ def _moment(value: str | None, name: str) -> dt.datetime | None:
         moment = dt.datetime.fromisoformat(value)
     except ValueError:
         raise InputError(f"'{name}' is not a date and time; write it like 2026-11-21T10:00") from None
-    return moment.replace(tzinfo=dt.UTC) if moment.tzinfo is None else moment.astimezone(dt.UTC)
+    return utc(moment.replace(tzinfo=dt.UTC) if moment.tzinfo is None else moment, name)
