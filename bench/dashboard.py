@@ -24,7 +24,7 @@ What it does, in order:
    (``bench/test_bench_inspection.py`` does): 10 000 real inspections would only make the seeding
    slower, while the page reads the same columns either way.
 4. Logs in through ``POST /dashboard/login`` with the viewer key (the session cookie is Secure, so
-   it is handed to the httpx client by hand, as ``dashboard_helpers.logged_in`` does) and times
+   ``dashboard_helpers.logged_in`` hands it to the httpx client, as a browser would) and times
    ``GET /dashboard/structures/{id}``, ``GET /dashboard`` (the fleet) and
    ``GET /dashboard/records/{id}`` (the newest record) on one keep-alive connection: one warm-up,
    then ``--repeats`` requests each, measured on the client from sending the request to having
@@ -55,8 +55,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
-import re
 import statistics
 import sys
 import tempfile
@@ -75,7 +73,7 @@ import service  # noqa: E402, F401  (first: one BLAS thread, as in narxwatch's p
 import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 from api_helpers import Org, create_structure, simulated, train_fault_mode  # noqa: E402
-from dashboard_helpers import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
+from dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, DASHBOARD, charts, logged_in  # noqa: E402
 from live import LiveServer  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: E402
@@ -94,9 +92,6 @@ MAX_K = 30.0
 SAMPLES = (300, 600)
 TRANSACTION_ROWS = 2500
 SEED = 20261201
-DASHBOARD = "/dashboard"
-COOKIE = "narxwatch_session"
-CHARTS = re.compile(r'<script type="application/json" id="charts">(.*?)</script>', re.S)
 BROWSER_TIMEOUT_MS = 60_000
 # Injected before the page's own scripts: notes performance.now() (ms since navigation start)
 # when the last chart in the first screenful is marked drawn by dashboard.js (charts further
@@ -212,15 +207,6 @@ def seed(server: LiveServer, n_verdicts: int, distinct: int) -> Seeded:
     return Seeded(structure["id"], org.keys["viewer"], newest, n_verdicts, statuses, with_k_hat)
 
 
-def logged_in(url: str, key: str) -> httpx.Client:
-    response = httpx.post(f"{url}{DASHBOARD}/login", data={"api_key": key, "next": DASHBOARD})
-    if response.status_code != 303:
-        raise SystemExit(f"logging in answered {response.status_code}: {response.text[:300]}")
-    client = httpx.Client(base_url=url, timeout=120)
-    client.cookies.set(COOKIE, response.cookies[COOKIE])
-    return client
-
-
 def time_page(client: httpx.Client, name: str, path: str, repeats: int) -> tuple[Timing, httpx.Response]:
     """One warm-up, then ``repeats`` timed requests; the last answer is returned for checks."""
     response = client.get(path)
@@ -238,10 +224,7 @@ def time_page(client: httpx.Client, name: str, path: str, repeats: int) -> tuple
 
 def chart_points(page: httpx.Response) -> dict[str, int]:
     """Points of the structure page's k̂ and Q markers, as it embeds them for plotly.js."""
-    found = CHARTS.search(page.text)
-    if found is None:
-        raise SystemExit("the structure page embeds no charts")
-    figures = json.loads(found.group(1))
+    figures = charts(page)
     return {
         name: sum(len(trace["x"]) for trace in figures[name]["data"] if trace.get("mode") == "markers")
         for name in ("k_hat", "q")
@@ -348,7 +331,7 @@ def main(argv: list[str] | None = None) -> None:
         seeding = time.perf_counter() - started
         console.print(f"seeded in {seeding:.1f} s: verdicts {seeded.statuses}")
         structure_path = f"{DASHBOARD}/structures/{seeded.structure_id}"
-        with logged_in(server.url, seeded.viewer_key) as client:
+        with logged_in(server, seeded.viewer_key) as client:
             structure, page = time_page(client, "structure page (HTTP)", structure_path, args.repeats)
             fleet, _ = time_page(client, "fleet page (HTTP)", DASHBOARD, args.repeats)
             record, _ = time_page(

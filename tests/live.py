@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import socket
+import subprocess
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import httpx
@@ -15,6 +17,20 @@ from service.api.app import create_app
 from service.config import Settings
 from service.db import transaction
 from service.security import Role, create_key
+
+
+def wait_until_serving(base: str, process: subprocess.Popen, timeout: float, why: Callable[[], str]) -> None:
+    """Poll ``base``/healthz until a separately started ``narxwatch serve`` answers; fail with
+    ``why()`` if it exits or ``timeout`` seconds pass first."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if httpx.get(f"{base}/healthz").status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        assert time.monotonic() < deadline and process.poll() is None, why()
+        time.sleep(0.1)
 
 
 def free_port() -> int:

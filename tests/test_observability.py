@@ -32,7 +32,7 @@ from api_helpers import (
     simulated,
     upload_simulated,
 )
-from live import free_port
+from live import free_port, wait_until_serving
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.db import make_engine, session_factory, transaction
@@ -89,15 +89,7 @@ def served(tmp_path_factory) -> Iterator[Served]:
         )
     try:
         base = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                if httpx.get(f"{base}/healthz").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline and server.poll() is None, log.read_text()
-            time.sleep(0.1)
+        wait_until_serving(base, server, 120, log.read_text)
         engine = make_engine(url)
         with transaction(session_factory(engine)) as session:
             org = f"org-{uuid.uuid4().hex[:12]}"

@@ -7,12 +7,11 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 import pytest
-from live import free_port
+from live import free_port, wait_until_serving
 
 BIN = Path(sys.executable).parent
 NARXWATCH = shutil.which("narxwatch", path=str(BIN))
@@ -66,15 +65,7 @@ def test_serve_answers_with_the_seeded_demo(seeded):
     )
     try:
         base = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{base}/healthz").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline and server.poll() is None, "narxwatch serve did not start"
-            time.sleep(0.1)
+        wait_until_serving(base, server, 60, lambda: "narxwatch serve did not start")
         assert httpx.get(f"{base}/readyz").json() == {"status": "ready"}
         headers = {"Authorization": f"Bearer {admin}"}
         structures = httpx.get(f"{base}/api/v1/structures", headers=headers).json()
