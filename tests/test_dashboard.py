@@ -99,8 +99,8 @@ def test_logging_in_sets_a_secure_http_only_cookie_that_is_not_the_key(
 
 @pytest.mark.parametrize(
     "key",
-    ["", "nw_deadbeef0000_" + "x" * 43, "not a key at all", "Bearer nw_x_y"],
-    ids=["empty", "unknown", "malformed", "header"],
+    ["", "nw_deadbeef0000_" + "x" * 43, "not a key at all", "Bearer nw_x_y", "nw_" + "x" * 5000],
+    ids=["empty", "unknown", "malformed", "header", "oversize"],
 )
 def test_a_bad_key_is_refused_with_a_message_and_no_session(api_server: LiveServer, key: str):
     with httpx.Client(base_url=api_server.url) as client:
