@@ -7,11 +7,12 @@ import uuid
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
-from sqlalchemy import inspect
+from sqlalchemy import inspect, select, text
 
-from service import tables  # noqa: F401  (registers the tables)
+from service import tables
 from service.db import Base, make_engine
 from service.migrate import is_ours, upgrade_database
+from service.tables import utcnow
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -36,6 +37,47 @@ def test_upgrade_matches_the_declared_tables(fresh_url):
     assert set(Base.metadata.tables) <= tables_present
 
 
+def schema_and_revision(url: str) -> tuple[dict, list]:
+    """Every table's columns, indexes, unique and foreign keys, and the Alembic revision stored."""
+    engine = make_engine(url)
+    with engine.connect() as connection:
+        inspector = inspect(connection)
+        schema = {
+            table: {
+                "columns": [(c["name"], str(c["type"]), c["nullable"]) for c in inspector.get_columns(table)],
+                "indexes": sorted(
+                    (i["name"] or "", tuple(i["column_names"]), bool(i["unique"]))
+                    for i in inspector.get_indexes(table)
+                ),
+                "unique": sorted(tuple(u["column_names"]) for u in inspector.get_unique_constraints(table)),
+                "foreign_keys": sorted(
+                    (tuple(f["constrained_columns"]), f["referred_table"])
+                    for f in inspector.get_foreign_keys(table)
+                ),
+            }
+            for table in inspector.get_table_names()
+        }
+        revision = [row[0] for row in connection.execute(text("SELECT version_num FROM alembic_version"))]
+    engine.dispose()
+    return schema, revision
+
+
 def test_upgrade_is_idempotent(fresh_url):
+    """A second upgrade (every `narxwatch` start runs one) changes neither the schema nor the data."""
     upgrade_database(fresh_url)
+    schema, revision = schema_and_revision(fresh_url)
+    assert set(Base.metadata.tables) <= set(schema)
+    assert len(revision) == 1
+    engine = make_engine(fresh_url)
+    with engine.begin() as connection:
+        connection.execute(tables.Organisation.__table__.insert().values(name="kept", created_at=utcnow()))
+    engine.dispose()
+
     upgrade_database(fresh_url)
+
+    assert schema_and_revision(fresh_url) == (schema, revision)
+    engine = make_engine(fresh_url)
+    with engine.connect() as connection:
+        names = connection.execute(select(tables.Organisation.name)).scalars().all()
+    engine.dispose()
+    assert names == ["kept"]
