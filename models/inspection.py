@@ -11,7 +11,8 @@ For a fault-mode model V with residual e[t; k] = y[t] − φ[t]ᵀΘ·g(k):
    describes need not move any k̂: the paper's case IV against the k2 model alone). This
    adequacy test takes a small share α_Q of α (2 %, 0.001 at α = 0.05): it is meant for gross failures,
    whose Q runs to hundreds, and Ljung–Box's upper tail is too heavy at N ≈ 2000, h = 40 for
-   a larger share to keep its nominal size (2.7 % observed at 1.7 %). The M magnitude tests
+   a larger share to keep its nominal size (bench/false_alarms.py: 2.1 % observed at 1.7 %, and
+   twice the nominal rate at 0.1 % on white noise). The M magnitude tests
    share the rest by Šidák, each at 1 − ((1 − α)/(1 − α_Q))^{1/M}, so the overall false-alarm
    rate stays at or below α (the tests share one record and are positively dependent, which
    only makes this safer).
