@@ -56,30 +56,35 @@ def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silv
 
 # One undeclared effect at a time, sized so that it, not the disturbance, dominates the declared
 # model's residual; "quadratic_stiffness2" etc. act on the measured mass (simulator.simulate).
+# The last figure bounds the held-out one-step RMS after refinement as a share of the one before:
+# README's figure for the effect (seed 1 gives 0.008, 0.055, 0.211, 0.338, 0.270, 0.429) with a
+# margin of about 20 % for arithmetic differences between machines (0.012 for Coulomb friction's
+# 0.01, as README rounds it).
 UNDECLARED = [
-    ("coulomb_friction", Scenario(disturbance_std=200.0, effects=Effects(coulomb2=300.0))),
-    ("quadratic_damping", Scenario(disturbance_std=200.0, effects=Effects(quadratic_damping2=2e3))),
-    ("quadratic_stiffness", Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5))),
-    ("offset", Scenario(disturbance_std=200.0, effects=Effects(offset=0.02))),
+    ("coulomb_friction", Scenario(disturbance_std=200.0, effects=Effects(coulomb2=300.0)), 0.012),
+    ("quadratic_damping", Scenario(disturbance_std=200.0, effects=Effects(quadratic_damping2=2e3)), 0.065),
+    ("quadratic_stiffness", Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 0.25),
+    ("offset", Scenario(disturbance_std=200.0, effects=Effects(offset=0.02)), 0.40),
     (
         "periodic_disturbance",
         Scenario(disturbance_std=200.0, effects=Effects(sine_amplitude=1000.0, sine_frequency=12.5)),
+        0.32,
     ),
     # Coloured force-sensor noise, the only noise: its moving average has |C|² = 5.95, so the best
     # one-step predictor's error is 1/√5.95 = 0.41 of the white-noise model's.
-    ("moving_average_noise", Scenario(x_noise_std=800.0, noise_colour=(1.5, 1.2, 0.9, 0.6, 0.3))),
+    ("moving_average_noise", Scenario(x_noise_std=800.0, noise_colour=(1.5, 1.2, 0.9, 0.6, 0.3)), 0.50),
 ]
 
 
-@pytest.mark.parametrize(("effect", "scenario"), UNDECLARED, ids=[name for name, _ in UNDECLARED])
-def test_an_undeclared_effect_is_named_first_and_the_one_step_error_halves(effect, scenario):
+@pytest.mark.parametrize(("effect", "scenario", "share"), UNDECLARED, ids=[name for name, *_ in UNDECLARED])
+def test_an_undeclared_effect_is_named_first_and_the_one_step_error_falls(effect, scenario, share):
     record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
     estimation, test = (0, ESTIMATION), (ESTIMATION, ESTIMATION + HELD_OUT)
     report = refine_record(record.x, record.y, EXACT_TERMS, estimation, test, fs=record.fs)
     assert report.refinement.effects_added[0].name == effect, [
         e.name for e in report.refinement.effects_added
     ]
-    assert report.after.one_step_rms <= report.before.one_step_rms / 2, (report.before, report.after)
+    assert report.after.one_step_rms <= share * report.before.one_step_rms, (report.before, report.after)
 
 
 def test_the_periodic_disturbance_is_found_at_its_frequency():
