@@ -262,3 +262,26 @@ class ScheduleOut(BaseModel):
     next_run_at: dt.datetime
     last_run_at: dt.datetime | None
     created_at: dt.datetime
+
+
+class KeyCreate(Strict):
+    """A new key of the caller's organisation; without ``expires_at`` it lasts until revoked."""
+
+    role: Literal["admin", "ingest", "viewer"]
+    expires_at: AwareDatetime | None = None
+
+
+class KeyOut(BaseModel):
+    """An API key as listed: never the key nor its hash."""
+
+    id: int
+    prefix: str
+    role: str
+    created_at: dt.datetime
+    expires_at: dt.datetime | None
+    last_used_at: dt.datetime | None
+    revoked_at: dt.datetime | None
+
+
+class KeyCreated(KeyOut):
+    key: str = Field(description="The key itself: shown this once, stored only as its hash.")

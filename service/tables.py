@@ -18,6 +18,7 @@ from sqlalchemy import (
     Text,
     TypeDecorator,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.dialects.postgresql import BYTEA, JSONB
 from sqlalchemy.orm import Mapped, mapped_column, relationship
@@ -60,7 +61,10 @@ class Organisation(Base):
 
 
 class ApiKey(Base):
-    """An API key, stored as its SHA-256: keys are 256-bit random, so a fast hash is safe."""
+    """An API key, stored as its SHA-256: keys are 256-bit random, so a fast hash is safe.
+
+    ``expires_at`` (None: never) and ``revoked_at`` end it; ``last_used_at`` is kept to the
+    minute (``service.security``), so that recording it is not a write on every request."""
 
     __tablename__ = "api_keys"
 
@@ -71,6 +75,8 @@ class ApiKey(Base):
     role: Mapped[str] = mapped_column(String(16))
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
     revoked_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    expires_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    last_used_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
     organisation: Mapped[Organisation] = relationship()
 
@@ -105,10 +111,21 @@ class Structure(Base):
 
 
 class ModelVersion(Base):
-    """An immutable trained model; one version per name may be active at a time."""
+    """An immutable trained model; one version per name is active at a time, which a partial
+    unique index guarantees (``service.domain.modelling`` serialises the changes per structure)."""
 
     __tablename__ = "model_versions"
-    __table_args__ = (UniqueConstraint("structure_id", "name", "version"),)
+    __table_args__ = (
+        UniqueConstraint("structure_id", "name", "version"),
+        Index(
+            "uq_model_versions_active",
+            "structure_id",
+            "name",
+            unique=True,
+            sqlite_where=text("active"),
+            postgresql_where=text("active"),
+        ),
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"), index=True)

@@ -53,6 +53,9 @@ POLICY = {
     ("POST", "/api/v1/structures/{structure_id}/schedules"): "admin",
     ("GET", "/api/v1/structures/{structure_id}/schedules"): "viewer",
     ("DELETE", "/api/v1/structures/{structure_id}/schedules/{schedule_id}"): "admin",
+    ("GET", "/api/v1/keys"): "admin",
+    ("POST", "/api/v1/keys"): "admin",
+    ("POST", "/api/v1/keys/{key_id}/revoke"): "admin",
 }
 # Never due while the tests run: a schedule that ran would write verdicts under their feet.
 SCHEDULE = {"action": "inspect_pending", "interval_seconds": 3600, "first_run_at": "2099-01-01T00:00:00Z"}
@@ -76,6 +79,7 @@ class Estate:
     baseline_id: int
     refinement_id: int
     schedule_id: int
+    key_id: int
 
     def ids(self) -> dict[str, int]:
         return {
@@ -85,6 +89,7 @@ class Estate:
             "verdict_id": self.verdict_id,
             "refinement_id": self.refinement_id,
             "schedule_id": self.schedule_id,
+            "key_id": self.key_id,
         }
 
 
@@ -112,6 +117,8 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         refinement_id = response.json()["id"]
         response = admin.post(f"{API}/structures/{sid}/schedules", json=SCHEDULE)
         assert response.status_code == 201, response.text
+        viewer_prefix = org.keys["viewer"].split("_")[1]
+        (key_id,) = [key["id"] for key in admin.get(f"{API}/keys").json() if key["prefix"] == viewer_prefix]
     return Estate(
         org,
         sid,
@@ -123,6 +130,7 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         baseline_id,
         refinement_id,
         response.json()["id"],
+        key_id,
     )
 
 
@@ -153,7 +161,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 18, routes
+    assert routes == documented and len(routes) == 21, routes
     return routes
 
 
@@ -172,6 +180,8 @@ def body_for(path: str, estate: Estate) -> dict | None:
         return {"record_id": estate.record_id, "base_model_id": estate.baseline_id}
     if path.endswith("/schedules"):
         return SCHEDULE
+    if path.endswith("/keys"):
+        return {"role": "viewer"}
     return None
 
 
@@ -183,10 +193,11 @@ def call(
 
 def first_lookup(path: str, ids: dict[str, int]) -> str:
     """What a handler looks up first, as its 404 names it: the structure, else the record,
-    verdict or refinement."""
-    for name in ("structure", "record", "verdict", "refinement"):
+    verdict, refinement or key."""
+    labels = {name: name for name in ("structure", "record", "verdict", "refinement")} | {"key": "API key"}
+    for name, label in labels.items():
         if "{" + name + "_id}" in path:
-            return f"{name} {ids[name + '_id']} not found"
+            return f"{label} {ids[name + '_id']} not found"
     raise AssertionError(path)
 
 
@@ -309,8 +320,8 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 needed = POLICY[method, path]
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
-    # viewer: 7 admin and 2 ingest routes; ingest: 7 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 16
+    # viewer: 10 admin and 2 ingest routes; ingest: 10 admin routes.
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 22
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import uuid
 
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from sqlalchemy import inspect, select, text
+from sqlalchemy.exc import IntegrityError
 
 from service import tables
 from service.db import Base, make_engine
@@ -81,3 +83,49 @@ def test_upgrade_is_idempotent(fresh_url):
         names = connection.execute(select(tables.Organisation.name)).scalars().all()
     engine.dispose()
     assert names == ["kept"]
+
+
+def test_0006_keeps_the_newest_of_two_active_versions(fresh_url):
+    """A database left with two active versions of one name (before 0006) keeps only the newest
+    active, and from then on the database refuses a second active version."""
+    upgrade_database(fresh_url, "0005")
+    engine = make_engine(fresh_url)
+    versions = Base.metadata.tables["model_versions"]
+    now = dt.datetime.now(dt.UTC)
+    with engine.begin() as connection:
+        connection.execute(
+            text("INSERT INTO organisations (id, name, created_at) VALUES (1, 'o', :t)"), {"t": now}
+        )
+        connection.execute(
+            text(
+                "INSERT INTO structures (id, organisation_id, name, fs, description, created_at) "
+                "VALUES (1, 1, 's', 1500.0, '', :t)"
+            ),
+            {"t": now},
+        )
+        rows = [("k2", 1, True), ("k2", 2, True), ("k2", 3, False), ("k1", 1, True), ("k1", 2, False)]
+        for name, number, active in rows:
+            connection.execute(
+                versions.insert().values(
+                    structure_id=1,
+                    kind="fault_mode",
+                    name=name,
+                    version=number,
+                    document={},
+                    training={},
+                    statistics={},
+                    active=active,
+                    created_at=now,
+                )
+            )
+    upgrade_database(fresh_url)
+    with engine.begin() as connection:
+        active = connection.execute(
+            select(versions.c.name, versions.c.version).where(versions.c.active)
+        ).all()
+    assert sorted(active) == [("k1", 1), ("k2", 2)]
+    with pytest.raises(IntegrityError), engine.begin() as connection:
+        connection.execute(
+            versions.update().where(versions.c.name == "k2", versions.c.version == 3).values(active=True)
+        )
+    engine.dispose()

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import datetime as dt
+import hashlib
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 
 import httpx
@@ -15,6 +18,8 @@ from live import free_port, wait_until_serving
 
 BIN = Path(sys.executable).parent
 NARXWATCH = shutil.which("narxwatch", path=str(BIN))
+ROLES = ("admin", "ingest", "viewer")
+HEADER = ["id", "organisation", "prefix", "role", "created", "expires", "last", "used", "revoked"]
 
 
 def run(*args: str, env: dict[str, str], check: bool = True) -> subprocess.CompletedProcess[str]:
@@ -54,6 +59,102 @@ def test_keys_create_refuses_an_unknown_role(seeded):
     assert result.returncode == 2 and "unknown role 'root'" in result.stderr
 
 
+def listing(env: dict[str, str], *args: str) -> dict[str, list[str]]:
+    """``narxwatch keys list``'s rows, by prefix: id, organisation, prefix, role, then the times."""
+    return rows_of(run("keys", "list", *args, env=env).stdout)
+
+
+def rows_of(text: str) -> dict[str, list[str]]:
+    header, *lines = text.splitlines()
+    assert header.split() == HEADER
+    return {row[2]: row for row in (line.split() for line in lines)}
+
+
+def prefix(key: str) -> str:
+    return key.split("_")[1]
+
+
+def test_keys_list_shows_every_key_but_never_the_key_or_its_hash(seeded):
+    org = f"list-{uuid.uuid4().hex[:8]}"
+    made = {
+        role: run("keys", "create", "--org", org, "--role", role, env=seeded).stdout.strip() for role in ROLES
+    }
+    text = run("keys", "list", env=seeded).stdout
+    everyone, ours = rows_of(text), listing(seeded, "--org", org)
+    assert set(ours) == {prefix(key) for key in made.values()} and set(ours) < set(everyone)
+    for role, key in made.items():
+        row = ours[prefix(key)]
+        # id, organisation, prefix, role, created (date and minute), expires, last used and revoked: none.
+        assert row[1:4] == [org, prefix(key), role] and row[6:] == ["-", "-", "-"], row
+        assert dt.datetime.fromisoformat(f"{row[4]}T{row[5]}+00:00") <= dt.datetime.now(dt.UTC)
+    for key in made.values():
+        assert key not in text and hashlib.sha256(key.encode()).hexdigest() not in text
+    unknown = run("keys", "list", "--org", "no-such-org", env=seeded, check=False)
+    assert unknown.returncode == 2 and "organisation 'no-such-org' has no keys" in unknown.stderr
+
+
+def test_keys_create_expires_after_a_duration_or_at_a_time(seeded):
+    org = f"expiring-{uuid.uuid4().hex[:8]}"
+    expiries = {
+        "90m": dt.timedelta(minutes=90),
+        "30d": dt.timedelta(days=30),
+        "2099-01-31": dt.datetime(2099, 1, 31, tzinfo=dt.UTC),  # a date: its midnight UTC
+        "2099-01-31T10:30:00+02:00": dt.datetime(2099, 1, 31, 8, 30, tzinfo=dt.UTC),
+    }
+    made = {}
+    for expires in expiries:
+        before = dt.datetime.now(dt.UTC).replace(second=0, microsecond=0)
+        created = run("keys", "create", "--org", org, "--role", "viewer", "--expires", expires, env=seeded)
+        made[expires] = (prefix(created.stdout.strip()), before, dt.datetime.now(dt.UTC))
+    rows = listing(seeded, "--org", org)
+    for expires, expected in expiries.items():
+        key, before, after = made[expires]
+        listed = dt.datetime.fromisoformat(f"{rows[key][6]}T{rows[key][7]}+00:00")  # to the minute
+        if isinstance(expected, dt.timedelta):
+            assert before + expected <= listed <= after + expected, expires
+        else:
+            assert listed == expected, expires
+
+
+def test_keys_create_refuses_an_expiry_it_cannot_keep(seeded):
+    org = f"refused-{uuid.uuid4().hex[:8]}"
+    refusals = {
+        "2020-01-01": "has passed; give a time in the future",
+        "tomorrow": "give a duration (90m, 12h, 30d, 2w) or an ISO date or time",
+        "2099-01-31T10:30:00": "give the time a zone",
+        "99999999999d": "lies beyond the year 9999",
+    }
+    for expires, message in refusals.items():
+        result = run(
+            "keys", "create", "--org", org, "--role", "viewer", "--expires", expires, env=seeded, check=False
+        )
+        assert result.returncode == 2 and message in result.stderr, (expires, result.stderr)
+        assert "Traceback" not in result.stderr and result.stdout == ""
+    assert run("keys", "list", "--org", org, env=seeded, check=False).returncode == 2, (
+        "a refused key was stored"
+    )
+
+
+def test_keys_revoke_by_prefix_or_id(seeded):
+    org = f"revoke-{uuid.uuid4().hex[:8]}"
+    first, second, kept = (
+        run("keys", "create", "--org", org, "--role", "ingest", env=seeded).stdout.strip() for _ in range(3)
+    )
+    rows = listing(seeded, "--org", org)
+    by_prefix = run("keys", "revoke", prefix(first), env=seeded).stdout
+    assert f"key {rows[prefix(first)][0]} ({prefix(first)}, ingest of '{org}') revoked at" in by_prefix
+    by_id = run("keys", "revoke", rows[prefix(second)][0], env=seeded).stdout
+    assert f"({prefix(second)}, ingest of '{org}') revoked at" in by_id
+    after = listing(seeded, "--org", org)
+    for key in (first, second):
+        revoked = dt.datetime.fromisoformat(f"{after[prefix(key)][-2]}T{after[prefix(key)][-1]}+00:00")
+        assert revoked <= dt.datetime.now(dt.UTC)
+    assert after[prefix(kept)][-1] == "-"
+    for unknown in ("999999", "0123456789ab"):
+        result = run("keys", "revoke", unknown, env=seeded, check=False)
+        assert result.returncode == 2 and f"API key {unknown} not found" in result.stderr, result.stderr
+
+
 def test_serve_answers_with_the_seeded_demo(seeded):
     port = free_port()
     admin = run("keys", "create", "--org", "demo", "--role", "admin", env=seeded).stdout.strip()
@@ -76,6 +177,12 @@ def test_serve_answers_with_the_seeded_demo(seeded):
             ("k1", True),
             ("k2", True),
         ]
+        # A key revoked on the command line is refused by the running service at once.
+        key = run("keys", "create", "--org", "demo", "--role", "viewer", env=seeded).stdout.strip()
+        viewer = {"Authorization": f"Bearer {key}"}
+        assert httpx.get(f"{base}/api/v1/structures", headers=viewer).status_code == 200
+        run("keys", "revoke", prefix(key), env=seeded)
+        assert httpx.get(f"{base}/api/v1/structures", headers=viewer).status_code == 401
     finally:
         server.send_signal(signal.SIGINT)
         server.wait(timeout=30)

@@ -11,7 +11,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from service.config import Settings
-from service.security import Principal, Role, authenticate
+from service.security import KeyRefusedError, Principal, Role, authenticate
 
 log = logging.getLogger("narxwatch.auth")
 bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer nw_…`")
@@ -45,15 +45,14 @@ def require(role: Role) -> Callable[..., Principal]:
                 "missing API key: send the header 'Authorization: Bearer <key>'",
                 headers={"WWW-Authenticate": "Bearer"},
             )
-        principal = authenticate(session, credentials.credentials)
-        if principal is None:
+        try:
+            principal = authenticate(session, credentials.credentials)
+        except KeyRefusedError as refused:
             # A trace of refusals (a guessing client shows up), never the key nor any part of it.
-            log.warning("refused an API key: unknown, malformed or revoked")
+            log.warning("refused an API key: %s", refused)
             raise HTTPException(
-                status.HTTP_401_UNAUTHORIZED,
-                "the API key is not valid (unknown, malformed or revoked)",
-                headers={"WWW-Authenticate": "Bearer"},
-            )
+                status.HTTP_401_UNAUTHORIZED, str(refused), headers={"WWW-Authenticate": "Bearer"}
+            ) from None
         if principal.role < role:
             raise HTTPException(
                 status.HTTP_403_FORBIDDEN,

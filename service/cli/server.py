@@ -1,23 +1,31 @@
-"""Service commands: ``serve``, ``worker``, ``db upgrade``, ``keys create``, ``demo-seed``."""
+"""Service commands: ``serve``, ``worker``, ``db upgrade``, ``keys create/list/revoke``, ``demo-seed``."""
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import os
+import re
 import shutil
 import tempfile
 from typing import Annotated
 
 import typer
 import uvicorn
+from rich.table import Table
+from rich.text import Text
+from sqlalchemy.orm import Session, sessionmaker
 
 from service.cli.console import fail, stdout
 from service.config import get_settings
 from service.db import make_engine, session_factory, transaction
+from service.domain import keys
+from service.domain.errors import NotFoundError
 from service.migrate import upgrade_database
 from service.observability.logs import configure_logging, logging_config
 from service.observability.metrics import MULTIPROCESS_DIR
 from service.security import Role, create_key
+from service.tables import utcnow
 
 db_app = typer.Typer(help="Database schema.", no_args_is_help=True)
 keys_app = typer.Typer(help="API keys.", no_args_is_help=True)
@@ -105,14 +113,95 @@ def db_upgrade(revision: Annotated[str, typer.Argument(help="Target revision.")]
 def keys_create(
     org: Annotated[str, typer.Option(help="Organisation name (created if new).")],
     role: Annotated[str, typer.Option(help="admin, ingest or viewer.")],
+    expires: Annotated[
+        str | None,
+        typer.Option(
+            help="When the key stops working: a duration from now (90m, 12h, 30d, 2w) or an ISO date "
+            "(midnight UTC) or time with a zone. Default: never (until revoked)."
+        ),
+    ] = None,
 ) -> None:
     """Create an API key and print it once: only its hash is stored."""
     if role not in Role.__members__:
         fail(f"unknown role {role!r}: choose admin, ingest or viewer")
-    sessions = session_factory(make_engine(get_settings().database_url))
-    with transaction(sessions) as session:
-        key = create_key(session, org, Role[role])
+    expires_at = None if expires is None else _expiry(expires, utcnow())
+    with transaction(_sessions()) as session:
+        key = create_key(session, org, Role[role], expires_at)
     print(key)
+
+
+@keys_app.command("list")
+def keys_list(
+    org: Annotated[str | None, typer.Option(help="Only this organisation's keys.")] = None,
+) -> None:
+    """List the keys (never the keys themselves nor their hashes), times in UTC."""
+    with transaction(_sessions()) as session:
+        rows = [key for key in keys.list_keys(session) if org is None or key.organisation.name == org]
+        table = Table(
+            "id", "organisation", "prefix", "role", "created", "expires", "last used", "revoked", box=None
+        )
+        for key in rows:
+            table.add_row(
+                str(key.id),
+                Text(key.organisation.name),  # a name is not rich markup
+                key.prefix,
+                key.role,
+                *(_when(t) for t in (key.created_at, key.expires_at, key.last_used_at, key.revoked_at)),
+            )
+    if not rows and org is not None:
+        fail(f"organisation {org!r} has no keys")
+    stdout.print(table if rows else "no keys yet: create one with `narxwatch keys create`")
+
+
+@keys_app.command("revoke")
+def keys_revoke(
+    key: Annotated[str, typer.Argument(help="The key's id or prefix, as `narxwatch keys list` shows them.")],
+) -> None:
+    """Revoke a key at once; the dashboard logins opened with it end too."""
+    with transaction(_sessions()) as session:
+        try:
+            revoked = keys.revoke_key(session, keys.find_key(session, key.strip()))
+        except NotFoundError as exc:
+            fail(str(exc))
+        stdout.print(
+            f"key {revoked.id} ({revoked.prefix}, {revoked.role} of {revoked.organisation.name!r}) "
+            f"revoked at {_when(revoked.revoked_at)} UTC; its dashboard logins ended",
+            markup=False,
+        )
+
+
+_DURATION = re.compile(r"(\d+)\s*([smhdw])")
+_UNITS = {"s": "seconds", "m": "minutes", "h": "hours", "d": "days", "w": "weeks"}
+
+
+def _expiry(text: str, now: dt.datetime) -> dt.datetime:
+    """The time ``--expires`` names: a duration from ``now``, a date (its midnight UTC), or a time
+    with a zone."""
+    text = text.strip()
+    try:
+        if duration := _DURATION.fullmatch(text):
+            return now + dt.timedelta(**{_UNITS[duration[2]]: int(duration[1])})
+        try:
+            return dt.datetime.combine(dt.date.fromisoformat(text), dt.time(), dt.UTC)
+        except ValueError:
+            when = dt.datetime.fromisoformat(text)
+    except ValueError:
+        fail(
+            f"--expires {text!r}: give a duration (90m, 12h, 30d, 2w) or an ISO date or time, e.g. 2027-01-31"
+        )
+    except OverflowError:
+        fail(f"--expires {text!r} lies beyond the year 9999")
+    if when.tzinfo is None:
+        fail(f"--expires {text!r}: give the time a zone, e.g. {text}Z, or give a date alone")
+    return when
+
+
+def _when(moment: dt.datetime | None) -> str:
+    return "-" if moment is None else f"{moment:%Y-%m-%d %H:%M}"
+
+
+def _sessions() -> sessionmaker[Session]:
+    return session_factory(make_engine(get_settings().database_url))
 
 
 def demo_seed() -> None:

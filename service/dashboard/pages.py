@@ -73,7 +73,7 @@ def log_in(
     lifetime = dt.timedelta(hours=settings.dashboard_session_hours)
     token = open_login(session, api_key, lifetime)
     if token is None:
-        error = "That API key is not valid: it is unknown, malformed or revoked."
+        error = "That API key is not valid: it is unknown, malformed, revoked or expired."
         return render(request, "login.html", {"next": safe_next(next_page), "error": error}, 401)
     response = RedirectResponse(safe_next(next_page), status.HTTP_303_SEE_OTHER)
     response.set_cookie(

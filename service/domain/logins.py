@@ -1,7 +1,8 @@
 """Dashboard logins: an API key exchanged for a random session token held in a cookie.
 
 The browser never keeps the API key: it keeps a 256-bit token whose SHA-256 is stored with
-the key it was opened with. A login ends at logout, at expiry, or when its key is revoked.
+the key it was opened with. A login ends at logout, at expiry, or when its key expires or is
+revoked.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from service.db import writing
-from service.security import Principal, Role, authenticate
+from service.security import KeyRefusedError, Principal, Role, authenticate
 from service.tables import ApiKey, DashboardSession, Organisation, utcnow
 
 
@@ -29,8 +30,11 @@ class Login:
 
 def open_login(session: Session, key: str, lifetime: dt.timedelta) -> str | None:
     """A new session token for a valid key of role viewer or higher; None for any other key. Commits."""
-    principal = authenticate(session, key.strip())
-    if principal is None or principal.role < Role.viewer:
+    try:
+        principal = authenticate(session, key.strip())
+    except KeyRefusedError:
+        return None
+    if principal.role < Role.viewer:
         return None
     token = secrets.token_urlsafe(32)
     now = utcnow()
@@ -44,7 +48,7 @@ def open_login(session: Session, key: str, lifetime: dt.timedelta) -> str | None
 
 
 def find_login(session: Session, token: str) -> Login | None:
-    """The login a token stands for, unless it expired or its key was revoked."""
+    """The login a token stands for, unless it or its key expired, or its key was revoked."""
     row = session.execute(
         select(ApiKey, Organisation.name)
         .join(DashboardSession, DashboardSession.api_key_id == ApiKey.id)
@@ -52,6 +56,8 @@ def find_login(session: Session, token: str) -> Login | None:
         .where(DashboardSession.token_hash == _hash(token), DashboardSession.expires_at > utcnow())
     ).one_or_none()
     if row is None or row.ApiKey.revoked_at is not None:
+        return None
+    if row.ApiKey.expires_at is not None and row.ApiKey.expires_at <= utcnow():
         return None
     key = row.ApiKey
     return Login(Principal(key.organisation_id, Role[key.role], key.id), row.name)
@@ -62,6 +68,11 @@ def close_login(session: Session, token: str) -> None:
     with writing(session):
         session.execute(delete(DashboardSession).where(DashboardSession.token_hash == _hash(token)))
         session.commit()
+
+
+def end_logins(session: Session, key_id: int) -> None:
+    """End every login opened with a key (it is being revoked)."""
+    session.execute(delete(DashboardSession).where(DashboardSession.api_key_id == key_id))
 
 
 def _hash(token: str) -> str:

@@ -78,8 +78,10 @@ def activate_model(session: Session, principal: Principal, structure_id: int, mo
     version = session.get(ModelVersion, model_id)
     if version is None or version.structure_id != structure_id:
         raise NotFoundError("model version", model_id)
+    _lock_versions(session, structure_id)
     _deactivate(session, structure_id, version.name)
     version.active = True
+    session.flush()
     return version
 
 
@@ -118,6 +120,20 @@ def _records_of(session: Session, principal: Principal, structure: Structure, id
     return records
 
 
+def _lock_versions(session: Session, structure_id: int) -> None:
+    """Take the structure's row lock before changing which of its versions is active.
+
+    Trainings and activations of one structure then run one after another, each seeing what the
+    previous one committed: none can deactivate the versions it saw while another's new active
+    version is not yet visible to it, and none waits for row locks taken in another order (a
+    deadlock). ``FOR NO KEY UPDATE``, not ``FOR UPDATE``: uploads and inspections, whose foreign
+    keys take ``KEY SHARE`` locks on the same row, neither wait for it nor make it wait. SQLite
+    renders a plain read: it has one writer, and the first write below takes its lock.
+    The partial unique index on active versions refuses a second one in any case.
+    """
+    session.execute(select(Structure.id).where(Structure.id == structure_id).with_for_update(key_share=True))
+
+
 def _deactivate(session: Session, structure_id: int, name: str) -> None:
     session.execute(
         update(ModelVersion)
@@ -136,13 +152,16 @@ def new_version(
     statistics: dict[str, Any],
     active: bool = True,
 ) -> ModelVersion:
+    _lock_versions(session, structure.id)
+    if active:
+        _deactivate(session, structure.id, name)
+    # Read after the lock (and, on SQLite, after the first write): no other version of the
+    # name can be numbered in between.
     latest = session.scalar(
         select(func.max(ModelVersion.version)).where(
             ModelVersion.structure_id == structure.id, ModelVersion.name == name
         )
     )
-    if active:
-        _deactivate(session, structure.id, name)
     version = ModelVersion(
         structure_id=structure.id,
         kind=kind,
