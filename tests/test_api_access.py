@@ -24,10 +24,12 @@ from api_helpers import (
     experiments,
     json_body,
     nothing_written,
+    npz_bytes,
     post_record,
     simulated,
     train_fault_mode,
     upload_simulated,
+    wait_for,
 )
 from live import LiveServer
 
@@ -53,6 +55,8 @@ POLICY = {
     ("POST", "/api/v1/structures/{structure_id}/schedules"): "admin",
     ("GET", "/api/v1/structures/{structure_id}/schedules"): "viewer",
     ("DELETE", "/api/v1/structures/{structure_id}/schedules/{schedule_id}"): "admin",
+    ("GET", "/api/v1/jobs"): "admin",
+    ("GET", "/api/v1/jobs/{job_id}"): "admin",
 }
 # Never due while the tests run: a schedule that ran would write verdicts under their feet.
 SCHEDULE = {"action": "inspect_pending", "interval_seconds": 3600, "first_run_at": "2099-01-01T00:00:00Z"}
@@ -64,7 +68,8 @@ MISSING = 10**6  # an id no object has
 
 @dataclass
 class Estate:
-    """An organisation with a trained structure, a stored record, a verdict and a refinement."""
+    """An organisation with a trained structure, a stored record, a verdict, a refinement, a
+    schedule and a job."""
 
     org: Org
     structure_id: int
@@ -76,6 +81,7 @@ class Estate:
     baseline_id: int
     refinement_id: int
     schedule_id: int
+    job_id: int
 
     def ids(self) -> dict[str, int]:
         return {
@@ -85,6 +91,7 @@ class Estate:
             "verdict_id": self.verdict_id,
             "refinement_id": self.refinement_id,
             "schedule_id": self.schedule_id,
+            "job_id": self.job_id,
         }
 
 
@@ -112,6 +119,17 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         refinement_id = response.json()["id"]
         response = admin.post(f"{API}/structures/{sid}/schedules", json=SCHEDULE)
         assert response.status_code == 201, response.text
+        later = simulated("k2", -10.0, [seed, 98])
+        queued = post_record(
+            ingest, sid, npz_bytes(x=later.x, y=later.y, fs=later.fs), "application/x-npz", inspect="queue"
+        )
+        assert queued.status_code == 202, queued.text
+        (job,) = admin.get(f"{API}/jobs").json()["items"]
+        assert job["args"] == {"record_id": queued.json()["id"]}
+        # Done before the tests look: a job still running would write under their feet.
+        wait_for(
+            lambda: admin.get(f"{API}/jobs/{job['id']}").json()["state"] == "done", 60, "the job never ran"
+        )
     return Estate(
         org,
         sid,
@@ -123,6 +141,7 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         baseline_id,
         refinement_id,
         response.json()["id"],
+        job["id"],
     )
 
 
@@ -153,7 +172,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 18, routes
+    assert routes == documented and len(routes) == 20, routes
     return routes
 
 
@@ -184,7 +203,7 @@ def call(
 def first_lookup(path: str, ids: dict[str, int]) -> str:
     """What a handler looks up first, as its 404 names it: the structure, else the record,
     verdict or refinement."""
-    for name in ("structure", "record", "verdict", "refinement"):
+    for name in ("structure", "record", "verdict", "refinement", "job"):
         if "{" + name + "_id}" in path:
             return f"{name} {ids[name + '_id']} not found"
     raise AssertionError(path)
@@ -310,7 +329,7 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
     # viewer: 7 admin and 2 ingest routes; ingest: 7 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 16
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 20
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

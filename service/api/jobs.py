@@ -10,7 +10,7 @@ from service.api.deps import Admin, SessionDep
 from service.api.params import IdPath
 from service.domain.errors import NotFoundError
 from service.jobs import JobBackend, JobInfo, JobState
-from service.schemas import JobOut, JobPage
+from service.schemas import MAX_ID, JobOut, JobPage
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -23,7 +23,7 @@ def list_jobs(
     principal: Admin,
     session: SessionDep,
     state: JobState | None = None,
-    cursor: Annotated[int | None, Query(ge=1)] = None,
+    cursor: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = PAGE,
 ) -> JobPage:
     """The organisation's jobs, newest first; ``state=failed`` lists those that failed for good,
