@@ -237,6 +237,24 @@ def test_a_job_whose_error_is_final_fails_at_once_with_its_reason(long_lags: Mon
         assert backend.get_job(session, organisation + 1, job_id) is None, "another organisation's job"
 
 
+def test_a_job_whose_error_is_not_final_is_queued_again_with_its_reason(long_lags: Monitored):
+    """A record whose stored signal cannot be read (damaged storage, perhaps mended later): the job
+    is tried again after a backoff, and says why it failed meanwhile."""
+    damaged = long_lags.store("none", 0.0, [6])
+    with transaction(long_lags.sessions) as session:
+        session.execute(update(Record).where(Record.id == damaged).values(x=b"not an npy array"))
+    backend = long_lags.backend()
+    organisation = long_lags.principal.organisation_id
+    with transaction(long_lags.sessions) as session:
+        job_id = backend.defer(session, INSPECT_RECORD, organisation, record_id=damaged)
+    backend.work(once=True)  # runs what is due now: not the retry, due after the backoff
+    with long_lags.sessions() as session:
+        job = backend.get_job(session, organisation, job_id)
+        assert job is not None and (job.state, job.attempts) == ("queued", 1), job
+        assert (job.error or "").startswith("ValueError: "), job.error
+        assert session.scalar(select(func.count()).select_from(InspectionFailure)) == 0
+
+
 # --- a running job keeps its lease --------------------------------------------------------------
 
 
@@ -244,7 +262,7 @@ def test_a_job_running_longer_than_its_lease_is_not_claimed_by_another_worker(qu
     """The lease is renewed while the job runs: a second worker that looks after several leases
     have gone by finds nothing to claim, and the job starts once."""
     sessions, settings = queue
-    lease = dt.timedelta(seconds=0.4)
+    lease = dt.timedelta(seconds=1.5)  # renewed every 0.5 s: a second of slack on a busy machine
     started, release = threading.Event(), threading.Event()
     starts: list[int] = []
 
@@ -259,7 +277,7 @@ def test_a_job_running_longer_than_its_lease_is_not_claimed_by_another_worker(qu
     running.start()
     try:
         assert started.wait(30), "the job never started"
-        time.sleep(5 * lease.total_seconds())
+        time.sleep(3 * lease.total_seconds())
         with sessions() as session:
             assert claim(session, lease=lease) is None, "a running job was handed to a second worker"
             (job,) = session.scalars(select(Job))

@@ -96,15 +96,19 @@ def _run(context: JobContext, task: str, **args: Any) -> None:
 
 def _keep_error(sessions: sessionmaker[Session], job_id: int, error: str) -> None:
     """Store a job's last error, which Procrastinate does not; on a connection of its own, as
-    the job's may be the reason it failed."""
+    the job's may be the reason it failed. Not storing it (the database away) must not change
+    how the job ends, so that failure is only logged."""
     values = {"job_id": job_id, "error": error, "at": utcnow()}
     upsert = insert(JobError.__table__).values(values)
     upsert = upsert.on_conflict_do_update(
         index_elements=["job_id"], set_={"error": error, "at": values["at"]}
     )
-    with sessions() as session:
-        session.execute(upsert)
-        session.commit()
+    try:
+        with sessions() as session:
+            session.execute(upsert)
+            session.commit()
+    except Exception:
+        log.exception("the error of job %s could not be stored: %s", job_id, error)
 
 
 # ``organisation_id`` is None only in jobs deferred before jobs knew their organisation.
