@@ -210,11 +210,12 @@ class EmbeddedBackend:
             self._thread.join(timeout)
 
     def work(self, once: bool, concurrency: int = 1) -> int:
-        """Run jobs in this thread: those due now (``once``), or until stopped; the number run.
-        One at a time: SQLite has one writer, and more workers are more processes."""
+        """Run jobs in this thread: those due now (``once``; an error of the queue then ends the
+        call), or until stopped; the number run. One at a time: SQLite has one writer, and more
+        workers are more processes."""
         if once:
             self._guarded(self.sweep, "sweep the schedules")
-            return self._guarded(self.run_due, "run the jobs")
+            return self.run_due()
         count = 0
         while not self._stop.is_set():
             self._guarded(self.sweep, "sweep the schedules")
