@@ -89,19 +89,18 @@ def _inspect(
 ) -> InputError | None:
     """Inspect one record and commit its verdict; or, if the models (``model_set``) cannot
     inspect it, commit a mark saying why and return the refusal."""
+    record_id = record.id  # read now: after the rollback below, reading it would reload the row
     try:
         inspections.inspect_record(session, record, structure, settings)
         session.commit()
         return None
     except InputError as refusal:
         session.rollback()
-        values = {"record_id": record.id, "model_set": model_set, "reason": str(refusal)}
+        values = {"record_id": record_id, "model_set": model_set, "reason": str(refusal)}
         with writing(session):
             insert_unless_exists(session, InspectionFailure, values, ["record_id", "model_set"])
             session.commit()
-        log.warning(
-            "record %s cannot be inspected with models %s: %s", record.id, values["model_set"], refusal
-        )
+        log.warning("record %s cannot be inspected with models %s: %s", record_id, model_set, refusal)
         return refusal
 
 
