@@ -146,8 +146,12 @@ async def retry_stalled_jobs(context: JobContext, timestamp: int) -> None:
 @app.task(name="prune_finished_jobs", pass_context=True, queueing_lock="prune_finished_jobs")
 async def prune_finished_jobs(context: JobContext, timestamp: int) -> None:
     """Succeeded jobs (the sweeps every few seconds among them) are kept an hour, then dropped;
-    verdicts are the lasting record. Failed jobs stay for an operator to look at."""
+    verdicts are the lasting record. Failed jobs stay for an operator to look at. The errors
+    kept for jobs now gone go with them."""
     await context.app.job_manager.delete_old_jobs(nb_hours=KEEP_SUCCEEDED_HOURS)
+    await context.app.connector.execute_query_async(
+        "DELETE FROM job_errors e WHERE NOT EXISTS (SELECT FROM procrastinate_jobs j WHERE j.id = e.job_id)"
+    )
 
 
 LATENCIES = text(
