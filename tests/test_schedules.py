@@ -275,6 +275,26 @@ def test_a_schedule_on_a_structure_without_active_models_is_refused(tenant):
     assert tenant.viewer.get(schedules_url(sid)).json() == []
 
 
+def test_a_scheduled_run_over_a_record_the_models_cannot_inspect_still_inspects_the_others(tenant):
+    """The finding end to end, on the service's own workers: records stored with inspect=false,
+    one too short for the model's lags, then an inspect_pending schedule. Its run succeeds, the
+    records after the bad one get their verdicts, and the bad one none."""
+    sid = create_structure(tenant.admin)["id"]
+    train_fault_mode(tenant.admin, tenant.ingest, sid, "k2", seed=92, terms=LONG_LAG_TERMS)
+    bad = upload_simulated(tenant.ingest, sid, simulated("none", 0.0, [93], TOO_SHORT))["id"]
+    valid = [upload_simulated(tenant.ingest, sid, simulated("k2", 8.0, [94, i]))["id"] for i in range(2)]
+    body = {"action": "inspect_pending", "interval_seconds": 3600}
+    assert tenant.admin.post(schedules_url(sid), json=body).status_code == 201
+
+    def ran() -> list[dict]:
+        return [j for j in tenant.admin.get(f"{API}/jobs").json()["items"] if j["task"] == RUN_SCHEDULE]
+
+    wait_for(lambda: [j["state"] for j in ran()] == ["done"], 60, "the schedule's run did not succeed")
+    inspected = {v["record_id"] for v in verdicts(tenant.viewer, sid)}
+    assert set(valid) <= inspected and bad not in inspected
+    assert tenant.admin.get(f"{API}/jobs", params={"state": "failed"}).json()["items"] == []
+
+
 def test_only_admins_change_schedules(tenant):
     sid = create_structure(tenant.admin)["id"]
     train_fault_mode(tenant.admin, tenant.ingest, sid, "k2", seed=86)
