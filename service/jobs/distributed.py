@@ -31,7 +31,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.config import Settings
 from service.domain import schedules
 from service.jobs import FINAL_ERRORS, JobInfo, JobState, QueueStats, error_text
-from service.jobs.tasks import INSPECT_RECORD, TASKS
+from service.jobs.tasks import TASKS
 from service.tables import JobError, utcnow
 
 
@@ -111,17 +111,19 @@ def _keep_error(sessions: sessionmaker[Session], job_id: int, error: str) -> Non
         log.exception("the error of job %s could not be stored: %s", job_id, error)
 
 
-# ``organisation_id`` is None only in jobs deferred before jobs knew their organisation.
-@app.task(name=INSPECT_RECORD, pass_context=True, retry=RETRY)
-def inspect_record(context: JobContext, record_id: int, organisation_id: int | None = None) -> None:
-    _run(context, INSPECT_RECORD, record_id=record_id)
+def _declare(task: str) -> None:
+    """Declare a task of ``TASKS`` to Procrastinate. The organisation a job was deferred for is
+    in its arguments for ``GET /jobs``, not for the task (None in jobs deferred before jobs knew
+    their organisation)."""
+
+    def run(context: JobContext, organisation_id: int | None = None, **args: Any) -> None:
+        _run(context, task, **args)
+
+    app.task(name=task, pass_context=True, retry=RETRY)(run)
 
 
-@app.task(name=schedules.RUN_SCHEDULE, pass_context=True, retry=RETRY)
-def run_schedule(
-    context: JobContext, schedule_id: int, due_at: str, organisation_id: int | None = None
-) -> None:
-    _run(context, schedules.RUN_SCHEDULE, schedule_id=schedule_id, due_at=due_at)
+for _task in TASKS:  # every task of the service, whichever backend runs it
+    _declare(_task)
 
 
 @app.periodic(cron=SWEEP_CRON, periodic_id="sweep")
