@@ -19,6 +19,7 @@ from pydantic import (
 
 from models.basis import FAMILIES
 from models.inspection import ModeResult
+from service.jobs import JobState
 
 Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f]+$")]
 # Fault-mode names: the same rule wherever one is given (bodies, history filters, dashboard).
@@ -285,3 +286,21 @@ class KeyOut(BaseModel):
 
 class KeyCreated(KeyOut):
     key: str = Field(description="The key itself: shown this once, stored only as its hash.")
+
+
+class JobOut(BaseModel):
+    """A queued task of the caller's organisation: ``error`` is the last failure's reason (kept
+    when a retry then succeeded); ``args`` names what it works on (a record, a schedule)."""
+
+    id: int
+    task: str
+    args: dict[str, Any]
+    state: JobState
+    attempts: int
+    error: str | None
+    created_at: dt.datetime | None
+
+
+class JobPage(BaseModel):
+    items: list[JobOut]
+    next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")

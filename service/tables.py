@@ -7,6 +7,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Float,
@@ -238,6 +239,10 @@ class Job(Base):
     __table_args__ = (Index("ix_jobs_due", "status", "run_after"),)
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    # None only for jobs queued before jobs knew their organisation (they are listed to no one).
+    organisation_id: Mapped[int | None] = mapped_column(
+        ForeignKey("organisations.id", ondelete="CASCADE"), index=True, nullable=True
+    )
     task: Mapped[str] = mapped_column(String(50))
     args: Mapped[dict[str, Any]] = mapped_column(Document)
     status: Mapped[str] = mapped_column(String(16), default="queued")
@@ -265,4 +270,30 @@ class Schedule(Base):
     cron: Mapped[str | None] = mapped_column(String(100), nullable=True)
     next_run_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, index=True)
     last_run_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class JobError(Base):
+    """The last error of a distributed (Procrastinate) job, which Procrastinate does not keep;
+    the embedded backend keeps it in ``jobs.last_error``. Rows of jobs Procrastinate has pruned
+    are pruned with them."""
+
+    __tablename__ = "job_errors"
+
+    job_id: Mapped[int] = mapped_column(BigInteger, primary_key=True, autoincrement=False)
+    error: Mapped[str] = mapped_column(Text)
+    at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class InspectionFailure(Base):
+    """A record its structure's models could not inspect (too short for their lags, values
+    they cannot take), with the reason: schedules skip it until the model set changes."""
+
+    __tablename__ = "inspection_failures"
+    __table_args__ = (UniqueConstraint("record_id", "model_set"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    record_id: Mapped[int] = mapped_column(ForeignKey("records.id", ondelete="CASCADE"), index=True)
+    model_set: Mapped[str] = mapped_column(String(200))
+    reason: Mapped[str] = mapped_column(Text)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)

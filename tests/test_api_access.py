@@ -24,10 +24,12 @@ from api_helpers import (
     experiments,
     json_body,
     nothing_written,
+    npz_bytes,
     post_record,
     simulated,
     train_fault_mode,
     upload_simulated,
+    wait_for,
 )
 from live import LiveServer
 
@@ -56,6 +58,8 @@ POLICY = {
     ("GET", "/api/v1/keys"): "admin",
     ("POST", "/api/v1/keys"): "admin",
     ("POST", "/api/v1/keys/{key_id}/revoke"): "admin",
+    ("GET", "/api/v1/jobs"): "admin",
+    ("GET", "/api/v1/jobs/{job_id}"): "admin",
 }
 # Never due while the tests run: a schedule that ran would write verdicts under their feet.
 SCHEDULE = {"action": "inspect_pending", "interval_seconds": 3600, "first_run_at": "2099-01-01T00:00:00Z"}
@@ -67,7 +71,8 @@ MISSING = 10**6  # an id no object has
 
 @dataclass
 class Estate:
-    """An organisation with a trained structure, a stored record, a verdict and a refinement."""
+    """An organisation with a trained structure, a stored record, a verdict, a refinement, a
+    schedule and a job."""
 
     org: Org
     structure_id: int
@@ -80,6 +85,7 @@ class Estate:
     refinement_id: int
     schedule_id: int
     key_id: int
+    job_id: int
 
     def ids(self) -> dict[str, int]:
         return {
@@ -90,6 +96,7 @@ class Estate:
             "refinement_id": self.refinement_id,
             "schedule_id": self.schedule_id,
             "key_id": self.key_id,
+            "job_id": self.job_id,
         }
 
 
@@ -117,6 +124,17 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         refinement_id = response.json()["id"]
         response = admin.post(f"{API}/structures/{sid}/schedules", json=SCHEDULE)
         assert response.status_code == 201, response.text
+        later = simulated("k2", -10.0, [seed, 98])
+        queued = post_record(
+            ingest, sid, npz_bytes(x=later.x, y=later.y, fs=later.fs), "application/x-npz", inspect="queue"
+        )
+        assert queued.status_code == 202, queued.text
+        (job,) = admin.get(f"{API}/jobs").json()["items"]
+        assert job["args"] == {"record_id": queued.json()["id"]}
+        # Done before the tests look: a job still running would write under their feet.
+        wait_for(
+            lambda: admin.get(f"{API}/jobs/{job['id']}").json()["state"] == "done", 60, "the job never ran"
+        )
         viewer_prefix = org.keys["viewer"].split("_")[1]
         (key_id,) = [key["id"] for key in admin.get(f"{API}/keys").json() if key["prefix"] == viewer_prefix]
     return Estate(
@@ -131,6 +149,7 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         refinement_id,
         response.json()["id"],
         key_id,
+        job["id"],
     )
 
 
@@ -161,7 +180,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 21, routes
+    assert routes == documented and len(routes) == 23, routes
     return routes
 
 
@@ -193,8 +212,9 @@ def call(
 
 def first_lookup(path: str, ids: dict[str, int]) -> str:
     """What a handler looks up first, as its 404 names it: the structure, else the record,
-    verdict, refinement or key."""
-    labels = {name: name for name in ("structure", "record", "verdict", "refinement")} | {"key": "API key"}
+    verdict, refinement, API key or job."""
+    names = ("structure", "record", "verdict", "refinement", "job")
+    labels = {name: name for name in names} | {"key": "API key"}
     for name, label in labels.items():
         if "{" + name + "_id}" in path:
             return f"{label} {ids[name + '_id']} not found"
@@ -320,8 +340,8 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 needed = POLICY[method, path]
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
-    # viewer: 10 admin and 2 ingest routes; ingest: 10 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 22
+    # viewer: 12 admin and 2 ingest routes; ingest: 12 admin routes.
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 26
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

@@ -1,7 +1,8 @@
 """Queued inspections (embedded job backend): 202 now, the verdict later, exactly once.
 
 Through HTTP on SQLite and PostgreSQL for the user's view; on a real SQLite file for the queue's
-own rules (leases, redelivery, retries with backoff).
+own rules (leases and their renewal, redelivery, retries with backoff); on both databases for
+errors that no retry can mend, which fail a job at once.
 """
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from __future__ import annotations
 import datetime as dt
 import os
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -27,19 +29,22 @@ from api_helpers import (
     train_fault_mode,
     verdicts_of,
 )
+from job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
 from live import LiveServer
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from test_cli import NARXWATCH
 
+from models.fnarx import FNARX
+from models.inspection import inspect
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import records, structures
-from service.jobs.embedded import FIRST_RETRY, LEASE, MAX_ATTEMPTS, claim, defer, run
-from service.jobs.tasks import INSPECT_RECORD
+from service.jobs.embedded import FIRST_RETRY, LEASE, MAX_ATTEMPTS, EmbeddedBackend, claim, defer, run
+from service.jobs.tasks import INSPECT_RECORD, TASKS
 from service.migrate import upgrade_database
 from service.schemas import StructureCreate
 from service.security import Principal, Role
-from service.tables import Job, Organisation, Verdict, utcnow
+from service.tables import InspectionFailure, Job, ModelVersion, Organisation, Record, Verdict, utcnow
 
 
 def test_a_queued_upload_answers_202_and_its_verdict_appears_once(api_server: LiveServer):
@@ -84,7 +89,8 @@ def test_an_unknown_inspect_mode_is_refused_and_stores_nothing(api_server: LiveS
 
 @pytest.fixture
 def queue(tmp_path: Path):
-    """A migrated database with one structure (no models yet) and one stored record."""
+    """A migrated database with one structure (no models yet), one stored record and a job to
+    inspect it."""
     url = f"sqlite:///{tmp_path / 'jobs.db'}"
     upgrade_database(url)
     sessions = session_factory(make_engine(url))
@@ -96,7 +102,7 @@ def queue(tmp_path: Path):
         structure = structures.create_structure(session, principal, StructureCreate(name="rig", fs=1500.0))
         record = simulated("none", 0.0, [73])
         stored, _ = records.store_record(session, structure, record.x, record.y, None, None, 100)
-        defer(session, INSPECT_RECORD, record_id=stored.id)
+        defer(session, INSPECT_RECORD, organisation.id, record_id=stored.id)
     return sessions, Settings(database_url=url, embedded_worker=False)
 
 
@@ -112,17 +118,23 @@ def test_a_leased_job_is_not_claimed_twice_until_its_lease_runs_out(queue):
         assert again is not None and (again.id, again.attempts) == (first.id, 2)
 
 
-def test_a_failing_job_is_retried_with_backoff_then_marked_failed(queue):
-    sessions, settings = queue
+def test_a_failing_job_is_retried_with_backoff_then_marked_failed(tmp_path: Path):
+    """An error that is not final (here a record whose stored signal cannot be read) is retried."""
+    monitored = Monitored.create(f"sqlite:///{tmp_path / 'retry.db'}", EXACT_TERM_NAMES)
+    sessions, settings = monitored.sessions, monitored.settings
+    damaged = monitored.store("none", 0.0, [73])
+    with transaction(sessions) as session:
+        session.execute(update(Record).where(Record.id == damaged).values(x=b"not an npy array"))
+        defer(session, INSPECT_RECORD, monitored.principal.organisation_id, record_id=damaged)
     with sessions() as session:
         now = utcnow()
         for attempt in range(1, MAX_ATTEMPTS + 1):
             job = claim(session, now=now)
             assert job is not None and job.attempts == attempt
-            run(session, job, settings, now=now)  # no active fault-mode model: the inspection fails
+            run(session, job, settings, now=now)
             row = session.get(Job, job.id)
             session.refresh(row)
-            assert "no active fault-mode model" in (row.last_error or "")
+            assert (row.last_error or "").startswith("ValueError: "), row.last_error
             if attempt < MAX_ATTEMPTS:
                 delay = FIRST_RETRY * 2 ** (attempt - 1)
                 assert row.status == "queued" and row.run_after == now + delay
@@ -135,7 +147,8 @@ def test_a_failing_job_is_retried_with_backoff_then_marked_failed(queue):
 
 def test_narxwatch_worker_runs_what_a_service_without_jobs_queued(tmp_path: Path):
     """NARXWATCH_EMBEDDED_WORKER=false: the service only queues; `narxwatch worker --once` (another process)
-    inspects, and the verdict is the same as an immediate inspection's."""
+    inspects, and its verdict is the one `models.inspection.inspect` computes here from the record's
+    signals and the stored model document, without the service."""
     url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
     with LiveServer(Settings(database_url=url, embedded_worker=False)) as server:
         org = Org.create(server)
@@ -157,8 +170,29 @@ def test_narxwatch_worker_runs_what_a_service_without_jobs_queued(tmp_path: Path
             )
             assert result.returncode == 0 and "ran 1 job(s)" in result.stdout, result.stderr
             (verdict,) = verdicts_of(viewer, sid, queued.json()["id"])
-            immediate = ingest.post(f"{API}/records/{queued.json()['id']}/inspect").json()
-            assert verdict == immediate
+        engine = make_engine(url)
+        with session_factory(engine)() as session:
+            document = session.scalars(select(ModelVersion.document).where(ModelVersion.active)).one()
+        engine.dispose()
+        expected = inspect(
+            record.x,
+            record.y,
+            [FNARX.from_document(document)],
+            alpha=server.settings.alpha,
+            lags=server.settings.lags,
+        )
+        assert (verdict["status"], verdict["fault_mode"], verdict["n_samples"]) == (
+            expected.status,
+            expected.fault_mode,
+            expected.n_samples,
+        )
+        assert verdict["k_hat"] == pytest.approx(expected.k_hat, rel=1e-9)
+        assert verdict["sigma_k"] == pytest.approx(expected.sigma_k, rel=1e-9)
+        (mode,) = verdict["modes"]
+        (expected_mode,) = expected.modes
+        assert (mode["q"], mode["p_value"]) == pytest.approx(
+            (expected_mode.q, expected_mode.p_value), rel=1e-9
+        )
 
 
 def test_narxwatch_worker_refuses_concurrency_on_the_embedded_backend(tmp_path: Path):
@@ -171,3 +205,87 @@ def test_narxwatch_worker_refuses_concurrency_on_the_embedded_backend(tmp_path: 
     )
     assert result.returncode != 0
     assert "--concurrency applies to the distributed backend" in result.stdout + result.stderr
+
+
+# --- errors no retry can mend, on both databases ----------------------------------------------
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def long_lags(request, tmp_path: Path) -> Monitored:
+    """A structure whose active k2 model has a term lagged 100 samples."""
+    return Monitored.create(database_url(request.param, tmp_path, request), LONG_LAG_TERMS)
+
+
+def test_a_job_whose_error_is_final_fails_at_once_with_its_reason(long_lags: Monitored):
+    """A stored record too short for the model's lags cannot be inspected however often it is
+    tried: its job fails after one attempt, saying why, and the record is marked with the model set."""
+    short = long_lags.store("none", 0.0, [5], n=TOO_SHORT)
+    backend = long_lags.backend()
+    organisation = long_lags.principal.organisation_id
+    with transaction(long_lags.sessions) as session:
+        job_id = backend.defer(session, INSPECT_RECORD, organisation, record_id=short)
+    backend.work(once=True)
+    with long_lags.sessions() as session:
+        job = backend.get_job(session, organisation, job_id)
+        assert job is not None
+        assert (job.state, job.attempts) == ("failed", 1), job
+        assert job.error is not None and "InputError" in job.error and "too short" in job.error
+        (failure,) = session.scalars(select(InspectionFailure))
+        (model_id,) = session.scalars(select(ModelVersion.id).where(ModelVersion.active))
+        assert (failure.record_id, failure.model_set) == (short, str(model_id))
+        assert "too short" in failure.reason
+        assert backend.get_job(session, organisation + 1, job_id) is None, "another organisation's job"
+
+
+def test_a_job_whose_error_is_not_final_is_queued_again_with_its_reason(long_lags: Monitored):
+    """A record whose stored signal cannot be read (damaged storage, perhaps mended later): the job
+    is tried again after a backoff, and says why it failed meanwhile."""
+    damaged = long_lags.store("none", 0.0, [6])
+    with transaction(long_lags.sessions) as session:
+        session.execute(update(Record).where(Record.id == damaged).values(x=b"not an npy array"))
+    backend = long_lags.backend()
+    organisation = long_lags.principal.organisation_id
+    with transaction(long_lags.sessions) as session:
+        job_id = backend.defer(session, INSPECT_RECORD, organisation, record_id=damaged)
+    backend.work(once=True)  # runs what is due now: not the retry, due after the backoff
+    with long_lags.sessions() as session:
+        job = backend.get_job(session, organisation, job_id)
+        assert job is not None and (job.state, job.attempts) == ("queued", 1), job
+        assert (job.error or "").startswith("ValueError: "), job.error
+        assert session.scalar(select(func.count()).select_from(InspectionFailure)) == 0
+
+
+# --- a running job keeps its lease --------------------------------------------------------------
+
+
+def test_a_job_running_longer_than_its_lease_is_not_claimed_by_another_worker(queue, monkeypatch):
+    """The lease is renewed while the job runs: a second worker that looks after several leases
+    have gone by finds nothing to claim, and the job starts once."""
+    sessions, settings = queue
+    lease = dt.timedelta(seconds=1.5)  # renewed every 0.5 s: a second of slack on a busy machine
+    started, release = threading.Event(), threading.Event()
+    starts: list[int] = []
+
+    def long_task(session, settings, record_id: int) -> None:  # a job that takes as long as the test says
+        starts.append(record_id)
+        started.set()
+        release.wait(30)
+
+    monkeypatch.setitem(TASKS, INSPECT_RECORD, long_task)
+    worker = EmbeddedBackend(sessions, settings, run_in_process=False, lease=lease)
+    running = threading.Thread(target=worker.run_due)
+    running.start()
+    try:
+        assert started.wait(30), "the job never started"
+        time.sleep(3 * lease.total_seconds())
+        with sessions() as session:
+            assert claim(session, lease=lease) is None, "a running job was handed to a second worker"
+            (job,) = session.scalars(select(Job))
+            assert job.status == "running" and job.locked_until > utcnow()
+    finally:
+        release.set()
+        running.join(30)
+    with sessions() as session:
+        (job,) = session.scalars(select(Job))
+        assert (job.status, job.attempts) == ("done", 1)
+    assert len(starts) == 1

@@ -1,5 +1,6 @@
-"""Schedules: the API, the due-time arithmetic, and a due time run exactly once however many
-sweepers look (embedded threads, `narxwatch worker` processes, Procrastinate's periodic sweep)."""
+"""Schedules: the API, the due-time arithmetic, a due time run exactly once however many
+sweepers look (embedded threads, `narxwatch worker` processes, Procrastinate's periodic sweep),
+and a run that neither one bad record nor one bad schedule can stop."""
 
 from __future__ import annotations
 
@@ -21,17 +22,19 @@ from api_helpers import (
     verdicts,
     wait_for,
 )
+from job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
 from live import LiveServer
-from sqlalchemy import select, text
+from sqlalchemy import func, select, text, update
 from workers import workers
 
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import schedules
-from service.domain.schedules import RUN_SCHEDULE, following
+from service.domain.schedules import RETRY_UNSWEPT, RUN_SCHEDULE, following
 from service.jobs import embedded
+from service.jobs.tasks import INSPECT_RECORD
 from service.migrate import upgrade_database
-from service.tables import Job, Organisation, Schedule, Structure
+from service.tables import InspectionFailure, Job, ModelVersion, Organisation, Schedule, Structure, Verdict
 
 T0 = dt.datetime(2026, 11, 21, 10, 7, 30, tzinfo=dt.UTC)
 
@@ -99,11 +102,121 @@ def test_a_due_time_is_deferred_once_however_often_it_is_swept(database):
     assert run_schedule_jobs(sessions) == [{"schedule_id": 1, "due_at": T0.isoformat()}]
 
 
+@pytest.fixture(params=["sqlite", "postgresql"])
+def monitored(request, tmp_path: Path) -> Monitored:
+    """A structure with an active k2 model on either database, and its job backend."""
+    return Monitored.create(database_url(request.param, tmp_path, request), EXACT_TERM_NAMES)
+
+
+def add_schedule(monitored: Monitored, due: dt.datetime, cron: str | None = None) -> int:
+    with transaction(monitored.sessions) as session:
+        schedule = Schedule(
+            structure_id=monitored.structure_id,
+            action="inspect_pending",
+            interval_seconds=None if cron else 600,
+            cron=cron,
+            next_run_at=due,
+        )
+        session.add(schedule)
+        session.flush()
+        return schedule.id
+
+
+def test_two_sweepers_that_both_read_a_schedule_as_due_defer_one_job(monitored: Monitored):
+    """The stale read the compare-and-set exists for: both sweepers have read the due time before
+    either writes; the second one's claim finds the time moved on and defers nothing."""
+    schedule_id = add_schedule(monitored, T0)
+    backend = monitored.backend()
+    now = T0 + dt.timedelta(seconds=1)
+    with monitored.sessions() as first, monitored.sessions() as second:
+        (read_by_first,) = schedules.due_schedules(first, now)
+        (read_by_second,) = schedules.due_schedules(second, now)
+        assert read_by_first == read_by_second and read_by_first.schedule_id == schedule_id
+        assert schedules.claim(first, backend.defer, read_by_first, now) is True
+        assert schedules.claim(second, backend.defer, read_by_second, now) is False
+    assert run_schedule_count(monitored.settings.database_url, schedule_id) == 1
+
+
+def test_a_schedule_that_cannot_be_swept_holds_up_neither_other_schedules_nor_the_jobs(monitored: Monitored):
+    """A cron expression the database holds but croniter refuses (written by hand, or by an older
+    release): the sweep logs it, tries it again a minute later, sweeps the next schedule, and the
+    worker still runs the queued jobs."""
+    broken = add_schedule(monitored, T0, cron="* * * * *")
+    with transaction(monitored.sessions) as session:
+        session.execute(update(Schedule).where(Schedule.id == broken).values(cron="every tuesday"))
+    healthy = add_schedule(monitored, T0)
+    record_id = monitored.store("k2", 12.0, [83])
+    backend = monitored.backend()
+    organisation = monitored.principal.organisation_id
+    with transaction(monitored.sessions) as session:
+        backend.defer(session, INSPECT_RECORD, organisation, record_id=record_id)
+    before = dt.datetime.now(dt.UTC)
+    with monitored.sessions() as session:
+        assert schedules.sweep(session, backend.defer) == 1  # the healthy one
+    backend.work(once=True)  # the embedded worker sweeps too: nothing is due any more
+    with monitored.sessions() as session:
+        verdicts_of_record = select(func.count()).select_from(Verdict).where(Verdict.record_id == record_id)
+        assert session.scalar(verdicts_of_record) == 1
+        jobs = backend.list_jobs(session, organisation, None, 10, None)
+        assert sorted((job.task, job.state) for job in jobs) == [
+            (INSPECT_RECORD, "done"),
+            (RUN_SCHEDULE, "done"),
+        ]
+        assert [job.args["schedule_id"] for job in jobs if job.task == RUN_SCHEDULE] == [healthy]
+        postponed = session.get(Schedule, broken)
+        assert postponed is not None
+        assert before + RETRY_UNSWEPT <= postponed.next_run_at <= dt.datetime.now(dt.UTC) + RETRY_UNSWEPT
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_a_record_the_models_cannot_inspect_is_marked_and_the_rest_of_the_run_goes_on(
+    request, tmp_path: Path, kind: str
+):
+    """An inspect_pending run over a record too short for the model's lags, between valid ones:
+    the valid records get their verdicts, the bad one is marked with why and with which model
+    set, the run's job succeeds, and a new model set tries the record again."""
+    monitored = Monitored.create(database_url(kind, tmp_path, request), LONG_LAG_TERMS)
+    before = set(monitored.record_ids())  # the training records
+    valid_first = monitored.store("k2", 12.0, [84, 0])
+    bad = monitored.store("none", 0.0, [84, 1], n=TOO_SHORT)
+    valid_last = monitored.store("k2", -12.0, [84, 2])
+    schedule_id = add_schedule(monitored, T0)
+    backend = monitored.backend()
+    organisation = monitored.principal.organisation_id
+    with monitored.sessions() as session:
+        assert schedules.sweep(session, backend.defer) == 1
+    backend.work(once=True)
+    with monitored.sessions() as session:
+        inspected = set(session.scalars(select(Verdict.record_id)))
+        assert {valid_first, valid_last} <= inspected and bad not in inspected
+        (failure,) = session.scalars(select(InspectionFailure))
+        (model_id,) = session.scalars(select(ModelVersion.id).where(ModelVersion.active))
+        assert (failure.record_id, failure.model_set) == (bad, str(model_id))
+        assert "too short" in failure.reason and "300" in failure.reason
+        (run,) = backend.list_jobs(session, organisation, None, 10, None)
+        assert (run.task, run.args["schedule_id"], run.state, run.attempts) == (
+            RUN_SCHEDULE,
+            schedule_id,
+            "done",
+            1,
+        )
+    assert before <= inspected
+    # New models: the record is tried again, and marked again under the new model set.
+    new_model = monitored.train(LONG_LAG_TERMS, seed=2)
+    with transaction(monitored.sessions) as session:
+        backend.defer(session, RUN_SCHEDULE, organisation, schedule_id=schedule_id, due_at=T0.isoformat())
+    backend.work(once=True)
+    with monitored.sessions() as session:
+        marks = session.execute(select(InspectionFailure.record_id, InspectionFailure.model_set)).all()
+        assert sorted(marks) == sorted([(bad, str(model_id)), (bad, str(new_model))])
+
+
 # --- the API ----------------------------------------------------------------------------------
 
 
 def test_schedules_are_created_listed_and_deleted(tenant):
     sid = create_structure(tenant.admin)["id"]
+    train_fault_mode(tenant.admin, tenant.ingest, sid, "k2", seed=85)
     before = dt.datetime.now(dt.UTC)
     interval = tenant.admin.post(
         schedules_url(sid), json={"action": "inspect_pending", "interval_seconds": 3600}
@@ -151,8 +264,40 @@ def test_a_bad_schedule_is_refused_with_its_reason_and_stores_nothing(tenant, bo
     assert tenant.viewer.get(schedules_url(sid)).json() == []
 
 
+def test_a_schedule_on_a_structure_without_active_models_is_refused(tenant):
+    """It would have nothing to inspect with, and be skipped at every run without a word."""
+    sid = create_structure(tenant.admin)["id"]
+    response = tenant.admin.post(
+        schedules_url(sid), json={"action": "inspect_pending", "interval_seconds": 60}
+    )
+    assert response.status_code == 409, response.text
+    assert "no active fault-mode model" in detail(response) and "/models/fault-modes" in detail(response)
+    assert tenant.viewer.get(schedules_url(sid)).json() == []
+
+
+def test_a_scheduled_run_over_a_record_the_models_cannot_inspect_still_inspects_the_others(tenant):
+    """The finding end to end, on the service's own workers: records stored with inspect=false,
+    one too short for the model's lags, then an inspect_pending schedule. Its run succeeds, the
+    records after the bad one get their verdicts, and the bad one none."""
+    sid = create_structure(tenant.admin)["id"]
+    train_fault_mode(tenant.admin, tenant.ingest, sid, "k2", seed=92, terms=LONG_LAG_TERMS)
+    bad = upload_simulated(tenant.ingest, sid, simulated("none", 0.0, [93], TOO_SHORT))["id"]
+    valid = [upload_simulated(tenant.ingest, sid, simulated("k2", 8.0, [94, i]))["id"] for i in range(2)]
+    body = {"action": "inspect_pending", "interval_seconds": 3600}
+    assert tenant.admin.post(schedules_url(sid), json=body).status_code == 201
+
+    def ran() -> list[dict]:
+        return [j for j in tenant.admin.get(f"{API}/jobs").json()["items"] if j["task"] == RUN_SCHEDULE]
+
+    wait_for(lambda: [j["state"] for j in ran()] == ["done"], 60, "the schedule's run did not succeed")
+    inspected = {v["record_id"] for v in verdicts(tenant.viewer, sid)}
+    assert set(valid) <= inspected and bad not in inspected
+    assert tenant.admin.get(f"{API}/jobs", params={"state": "failed"}).json()["items"] == []
+
+
 def test_only_admins_change_schedules(tenant):
     sid = create_structure(tenant.admin)["id"]
+    train_fault_mode(tenant.admin, tenant.ingest, sid, "k2", seed=86)
     body = {"action": "inspect_pending", "interval_seconds": 60}
     for client in (tenant.ingest, tenant.viewer):
         assert client.post(schedules_url(sid), json=body).status_code == 403

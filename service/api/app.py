@@ -15,7 +15,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from models.errors import InputError
 from service import dashboard
-from service.api import health, keys, metrics, modelling, records, refinements, schedules, structures
+from service.api import health, jobs, keys, metrics, modelling, records, refinements, schedules, structures
 from service.api.limits import BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
@@ -53,8 +53,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.jobs = job_backend(settings, app.state.sessions, in_service=True)
     app.include_router(health.router)
     app.include_router(metrics.router)
-    routers = (structures.router, modelling.router, records.router, refinements.router, schedules.router)
-    app.include_router(keys.router, prefix=API_PREFIX)
+    routers = (
+        structures.router,
+        modelling.router,
+        records.router,
+        refinements.router,
+        schedules.router,
+        jobs.router,
+        keys.router,
+    )
     for router in routers:
         app.include_router(router, prefix=API_PREFIX)
     dashboard.install(app)

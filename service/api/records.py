@@ -70,7 +70,9 @@ async def upload_record(
         upload.fs,
         utc(upload.acquired_at, "acquired_at"),
         inspect is InspectMode.true,
-        _queue_inspection(request.app.state.jobs) if inspect is InspectMode.queue else None,
+        _queue_inspection(request.app.state.jobs, principal.organisation_id)
+        if inspect is InspectMode.queue
+        else None,
     )
     if inspect is InspectMode.queue:
         response.status_code = status.HTTP_202_ACCEPTED
@@ -96,8 +98,10 @@ def get_verdict(verdict_id: IdPath, principal: Viewer, session: SessionDep) -> V
     return inspections.verdict_out(inspections.get_verdict(session, principal, verdict_id))
 
 
-def _queue_inspection(jobs: JobBackend) -> QueueInspection:
-    return lambda session, record_id: jobs.defer(session, INSPECT_RECORD, record_id=record_id)
+def _queue_inspection(jobs: JobBackend, organisation_id: int) -> QueueInspection:
+    return lambda session, record_id: jobs.defer(
+        session, INSPECT_RECORD, organisation_id, record_id=record_id
+    )
 
 
 def _record_out(ingested: Ingested) -> RecordOut:

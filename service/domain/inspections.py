@@ -42,7 +42,12 @@ def evaluate(
     active = models_to_inspect_with(session, structure)
     result = inspect(x, y, [model for _, model in active], alpha=settings.alpha, lags=settings.lags)
     versions = [version for version, _ in active]
-    return Evaluation(versions, ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id)), result)
+    return Evaluation(versions, model_set_of(versions), result)
+
+
+def model_set_of(versions: list[ModelVersion]) -> str:
+    """The key of a set of model versions: their ids in ascending order, comma-separated."""
+    return ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id))
 
 
 def models_to_inspect_with(session: Session, structure: Structure) -> list[tuple[ModelVersion, FNARX]]:

@@ -7,7 +7,10 @@
 
 Either way a job is deferred in the transaction of the request that asks for it, so an
 acknowledged upload always has its job; every job runs at least once, and its task is
-idempotent, so a redelivered job changes nothing.
+idempotent, so a redelivered job changes nothing. A job that fails is retried with backoff,
+unless its error says that running it again cannot succeed (``FINAL_ERRORS``): it then fails at
+once, its reason stored for ``GET /jobs``. Every job belongs to an organisation, which alone
+sees it.
 """
 
 from __future__ import annotations
@@ -15,12 +18,39 @@ from __future__ import annotations
 import datetime as dt
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
+from models.errors import InputError
 from service.config import Settings
+from service.domain.errors import ConflictError, NotFoundError
+
+# Errors of the input or of the state, not of the moment: a retry would fail the same way.
+FINAL_ERRORS: tuple[type[Exception], ...] = (InputError, ConflictError, NotFoundError)
+
+# One vocabulary for a job's state, whichever backend keeps it.
+JobState = Literal["queued", "running", "done", "failed"]
+JOB_STATES: tuple[JobState, ...] = ("queued", "running", "done", "failed")
+
+
+@dataclass(frozen=True)
+class JobInfo:
+    """A job as its organisation sees it: what it runs, how far it got, and why it failed."""
+
+    id: int
+    task: str
+    args: Mapping[str, Any]
+    state: JobState
+    attempts: int
+    error: str | None
+    created_at: dt.datetime | None
+
+
+def error_text(exc: BaseException) -> str:
+    """How a job's failure is stored: the error's kind and its message."""
+    return f"{type(exc).__name__}: {exc}"
 
 
 @dataclass(frozen=True)
@@ -35,10 +65,19 @@ class QueueStats:
 class JobBackend(Protocol):
     name: str
 
-    def defer(self, session: Session, task: str, **args: Any) -> None:
-        """Queue ``task(**args)`` in the session's transaction (committed with it)."""
+    def defer(self, session: Session, task: str, organisation_id: int, **args: Any) -> int:
+        """Queue ``task(**args)`` for an organisation in the session's transaction (committed
+        with it); the job's id, for ``GET /jobs/{id}``."""
 
     def queue_stats(self, session: Session, window: dt.timedelta) -> QueueStats: ...
+
+    def list_jobs(
+        self, session: Session, organisation_id: int, state: JobState | None, limit: int, before: int | None
+    ) -> list[JobInfo]:
+        """The organisation's jobs, newest first, optionally of one state, older than ``before``."""
+
+    def get_job(self, session: Session, organisation_id: int, job_id: int) -> JobInfo | None:
+        """One of the organisation's jobs; None if there is none with that id, or it is another's."""
 
     def start(self) -> None:
         """Start what runs inside a service process (the embedded worker), if anything."""

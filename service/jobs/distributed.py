@@ -1,7 +1,8 @@
 """The distributed job backend: Procrastinate on PostgreSQL, run by ``narxwatch worker`` processes.
 
 Any number of workers, on any machine that reaches the database. Procrastinate gives at-least-once
-execution and retries with exponential backoff; its periodic tasks, deferred once per tick
+execution and retries with exponential backoff (not for ``FINAL_ERRORS``, which fail at once;
+the last error of a job is kept in ``job_errors``); its periodic tasks, deferred once per tick
 however many workers run, sweep the schedules and hand back the jobs of workers that died (no
 heartbeat for ``worker_stalled_seconds``). The service itself only defers jobs, in the
 transaction of the request that asks for them.
@@ -12,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
+import json
 import logging
 import signal
 import time
@@ -19,19 +21,44 @@ from typing import Any
 
 import procrastinate
 from procrastinate import JobContext, PsycopgConnector, RetryStrategy, SyncPsycopgConnector
+from procrastinate.jobs import Job as ProcrastinateJob
+from procrastinate.retry import RetryDecision
 from sqlalchemy import text
+from sqlalchemy.dialects.postgresql import insert
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
 from service.domain import schedules
-from service.jobs import QueueStats
-from service.jobs.tasks import INSPECT_RECORD, TASKS
+from service.jobs import FINAL_ERRORS, JobInfo, JobState, QueueStats, error_text
+from service.jobs.tasks import TASKS
+from service.tables import JobError, utcnow
 
-RETRY = RetryStrategy(max_attempts=5, exponential_wait=2)  # waits 2, 4, 8, 16 s between attempts
+
+class RetryUnlessFinal(RetryStrategy):
+    """Procrastinate's backoff for errors of the moment; none for ``FINAL_ERRORS``, which a
+    retry cannot mend (Procrastinate's own ``retry_exceptions`` lists what to retry, not what not to)."""
+
+    def get_retry_decision(self, *, exception: BaseException, job: ProcrastinateJob) -> RetryDecision | None:
+        if isinstance(exception, FINAL_ERRORS):
+            return None
+        return super().get_retry_decision(exception=exception, job=job)
+
+
+RETRY = RetryUnlessFinal(max_attempts=5, exponential_wait=2)  # waits 2, 4, 8, 16 s between attempts
 SWEEP_CRON = "* * * * * */2"  # croniter's sixth field is seconds: every 2 s
 KEEP_SUCCEEDED_HOURS = 1
 STATES = ("todo", "doing", "succeeded", "failed", "cancelled", "aborting", "aborted")
+# Procrastinate's states in the service's vocabulary (narxwatch cancels and aborts nothing).
+AS_JOB_STATE: dict[str, JobState] = {
+    "todo": "queued",
+    "doing": "running",
+    "aborting": "running",
+    "succeeded": "done",
+    "failed": "failed",
+    "cancelled": "failed",
+    "aborted": "failed",
+}
 RESTART_FIRST, RESTART_MAX = 1.0, 30.0  # seconds between restarts of a worker that lost the database
 
 log = logging.getLogger("narxwatch.jobs")
@@ -48,26 +75,55 @@ def conninfo(database_url: str) -> str:
     return make_url(database_url).set(drivername="postgresql").render_as_string(hide_password=False)
 
 
-def defer(session: Session, task: str, **args: Any) -> None:
-    """Queue ``task(**args)`` in the session's transaction (committed with it)."""
+def defer(session: Session, task: str, organisation_id: int, **args: Any) -> int:
+    """Queue ``task(**args)`` for an organisation in the session's transaction (committed with
+    it); the job's id. The organisation travels in the job's arguments, where ``GET /jobs``
+    looks for it."""
     connection = session.connection().connection.driver_connection
-    deferrer.configure_task(task, connection=connection).defer(**args)
+    return deferrer.configure_task(task, connection=connection).defer(organisation_id=organisation_id, **args)
 
 
 def _run(context: JobContext, task: str, **args: Any) -> None:
     sessions: sessionmaker[Session] = context.additional_context["sessions"]
-    with sessions() as session:
-        TASKS[task](session, context.additional_context["settings"], **args)
+    try:
+        with sessions() as session:
+            TASKS[task](session, context.additional_context["settings"], **args)
+    except Exception as exc:
+        assert context.job is not None and context.job.id is not None  # a running job has both
+        _keep_error(sessions, context.job.id, error_text(exc))
+        raise
 
 
-@app.task(name=INSPECT_RECORD, pass_context=True, retry=RETRY)
-def inspect_record(context: JobContext, record_id: int) -> None:
-    _run(context, INSPECT_RECORD, record_id=record_id)
+def _keep_error(sessions: sessionmaker[Session], job_id: int, error: str) -> None:
+    """Store a job's last error, which Procrastinate does not; on a connection of its own, as
+    the job's may be the reason it failed. Not storing it (the database away) must not change
+    how the job ends, so that failure is only logged."""
+    values = {"job_id": job_id, "error": error, "at": utcnow()}
+    upsert = insert(JobError.__table__).values(values)
+    upsert = upsert.on_conflict_do_update(
+        index_elements=["job_id"], set_={"error": error, "at": values["at"]}
+    )
+    try:
+        with sessions() as session:
+            session.execute(upsert)
+            session.commit()
+    except Exception:
+        log.exception("the error of job %s could not be stored: %s", job_id, error)
 
 
-@app.task(name=schedules.RUN_SCHEDULE, pass_context=True, retry=RETRY)
-def run_schedule(context: JobContext, schedule_id: int, due_at: str) -> None:
-    _run(context, schedules.RUN_SCHEDULE, schedule_id=schedule_id, due_at=due_at)
+def _declare(task: str) -> None:
+    """Declare a task of ``TASKS`` to Procrastinate. The organisation a job was deferred for is
+    in its arguments for ``GET /jobs``, not for the task (None in jobs deferred before jobs knew
+    their organisation)."""
+
+    def run(context: JobContext, organisation_id: int | None = None, **args: Any) -> None:
+        _run(context, task, **args)
+
+    app.task(name=task, pass_context=True, retry=RETRY)(run)
+
+
+for _task in TASKS:  # every task of the service, whichever backend runs it
+    _declare(_task)
 
 
 @app.periodic(cron=SWEEP_CRON, periodic_id="sweep")
@@ -92,8 +148,12 @@ async def retry_stalled_jobs(context: JobContext, timestamp: int) -> None:
 @app.task(name="prune_finished_jobs", pass_context=True, queueing_lock="prune_finished_jobs")
 async def prune_finished_jobs(context: JobContext, timestamp: int) -> None:
     """Succeeded jobs (the sweeps every few seconds among them) are kept an hour, then dropped;
-    verdicts are the lasting record. Failed jobs stay for an operator to look at."""
+    verdicts are the lasting record. Failed jobs stay for an operator to look at. The errors
+    kept for jobs now gone go with them."""
     await context.app.job_manager.delete_old_jobs(nb_hours=KEEP_SUCCEEDED_HOURS)
+    await context.app.connector.execute_query_async(
+        "DELETE FROM job_errors e WHERE NOT EXISTS (SELECT FROM procrastinate_jobs j WHERE j.id = e.job_id)"
+    )
 
 
 LATENCIES = text(
@@ -113,6 +173,54 @@ def queue_stats(session: Session, window: dt.timedelta) -> QueueStats:
     return QueueStats(depth=depth, latencies=latencies, window_seconds=seconds)
 
 
+JOBS = """
+SELECT j.id, j.task_name, j.args, j.status::text, j.attempts, e.error,
+       (SELECT min(d.at) FROM procrastinate_events d WHERE d.job_id = j.id AND d.type = 'deferred')
+FROM procrastinate_jobs j LEFT JOIN job_errors e ON e.job_id = j.id
+WHERE j.args @> CAST(:owner AS jsonb)"""
+
+
+def list_jobs(
+    session: Session, organisation_id: int, state: JobState | None, limit: int, before: int | None
+) -> list[JobInfo]:
+    """The organisation's jobs, newest first, optionally of one state (in the service's words),
+    older than ``before``."""
+    statuses = [status for status, ours in AS_JOB_STATE.items() if state in (None, ours)]
+    query = text(
+        f"{JOBS} AND j.status::text = ANY(:statuses) AND j.id < :before ORDER BY j.id DESC LIMIT :limit"
+    )
+    params = {
+        "owner": _owner(organisation_id),
+        "statuses": statuses,
+        "limit": limit,
+        "before": before or 2**63 - 1,
+    }
+    return [_info(*row) for row in session.execute(query, params)]
+
+
+def get_job(session: Session, organisation_id: int, job_id: int) -> JobInfo | None:
+    row = session.execute(text(f"{JOBS} AND j.id = :id"), {"owner": _owner(organisation_id), "id": job_id})
+    found = row.one_or_none()
+    return _info(*found) if found is not None else None
+
+
+def _owner(organisation_id: int) -> str:
+    return json.dumps({"organisation_id": organisation_id})
+
+
+def _info(
+    job_id: int,
+    task: str,
+    args: dict[str, Any],
+    status: str,
+    attempts: int,
+    error: str | None,
+    created_at: dt.datetime | None,
+) -> JobInfo:
+    task_args = {name: value for name, value in args.items() if name != "organisation_id"}
+    return JobInfo(job_id, task, task_args, AS_JOB_STATE[status], attempts, error, created_at)
+
+
 class DistributedBackend:
     """Procrastinate: this process defers; ``work`` runs a worker (``narxwatch worker``)."""
 
@@ -122,11 +230,19 @@ class DistributedBackend:
         self._sessions = sessions
         self._settings = settings
 
-    def defer(self, session: Session, task: str, **args: Any) -> None:
-        defer(session, task, **args)
+    def defer(self, session: Session, task: str, organisation_id: int, **args: Any) -> int:
+        return defer(session, task, organisation_id, **args)
 
     def queue_stats(self, session: Session, window: dt.timedelta) -> QueueStats:
         return queue_stats(session, window)
+
+    def list_jobs(
+        self, session: Session, organisation_id: int, state: JobState | None, limit: int, before: int | None
+    ) -> list[JobInfo]:
+        return list_jobs(session, organisation_id, state, limit, before)
+
+    def get_job(self, session: Session, organisation_id: int, job_id: int) -> JobInfo | None:
+        return get_job(session, organisation_id, job_id)
 
     def start(self) -> None:
         """Nothing runs in the service's process: the workers do."""

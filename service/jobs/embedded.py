@@ -2,9 +2,11 @@
 
 Nothing else to start: each service process claims due jobs and runs them on a thread, which
 also sweeps the schedules. ``narxwatch worker`` runs the same loop in a process of its own. A
-claim is a lease (``locked_until``), so a job whose worker died is claimed again when the lease
-runs out: every job runs at least once, and running it twice changes nothing. A failed job is
-retried with exponential backoff, up to ``MAX_ATTEMPTS``.
+claim is a lease (``locked_until``), renewed while the job runs, so a job whose worker died is
+claimed again when the lease runs out, and only then: every job runs at least once, and running
+it twice changes nothing. A failed job is retried with exponential backoff, up to
+``MAX_ATTEMPTS``, unless its error is final (``FINAL_ERRORS``). The schedule sweep and the jobs
+are kept apart: neither one's failure stops the other.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,22 +25,23 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.config import Settings
 from service.db import writing
 from service.domain import schedules
-from service.jobs import QueueStats
+from service.jobs import FINAL_ERRORS, JOB_STATES, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
 from service.tables import Job, utcnow
 
-STATES = ("queued", "running", "done", "failed")
 MAX_ATTEMPTS = 5
-LEASE = dt.timedelta(seconds=60)  # longer than any inspection takes
+LEASE = dt.timedelta(seconds=60)  # renewed every third of it while the job runs
 FIRST_RETRY = dt.timedelta(seconds=1)  # then 2, 4, 8 … seconds
 IDLE_POLL = 0.5  # seconds between looks at an empty queue
 
 log = logging.getLogger("narxwatch.jobs")
 
 
-def defer(session: Session, task: str, **args: Any) -> None:
-    """Queue ``task(**args)`` in the caller's transaction (committed with it)."""
-    session.execute(insert(Job.__table__), {"task": task, "args": args})
+def defer(session: Session, task: str, organisation_id: int, **args: Any) -> int:
+    """Queue ``task(**args)`` for an organisation in the caller's transaction (committed with
+    it); the job's id."""
+    values = {"organisation_id": organisation_id, "task": task, "args": args}
+    return session.execute(insert(Job.__table__).returning(Job.id), values).scalar_one()
 
 
 @dataclass(frozen=True)
@@ -47,7 +52,7 @@ class Claimed:
     attempts: int
 
 
-def claim(session: Session, now: dt.datetime | None = None) -> Claimed | None:
+def claim(session: Session, now: dt.datetime | None = None, lease: dt.timedelta = LEASE) -> Claimed | None:
     """Lease the oldest due job (queued and due, or running with an expired lease); commits."""
     now = now or utcnow()
     due = or_(
@@ -62,7 +67,7 @@ def claim(session: Session, now: dt.datetime | None = None) -> Claimed | None:
     statement = (
         update(Job.__table__)
         .where(Job.id == oldest, due)  # re-checked: another worker may have leased it meanwhile
-        .values(status="running", attempts=Job.attempts + 1, locked_until=now + LEASE)
+        .values(status="running", attempts=Job.attempts + 1, locked_until=now + lease)
         .returning(Job.id, Job.task, Job.args, Job.attempts)
     )
     with writing(session):
@@ -71,20 +76,32 @@ def claim(session: Session, now: dt.datetime | None = None) -> Claimed | None:
     return Claimed(*row) if row is not None else None
 
 
+def renew(session: Session, job: Claimed, lease: dt.timedelta = LEASE) -> bool:
+    """Extend a running job's lease from now, if this claim of it still holds; commits."""
+    still_ours = (Job.id == job.id, Job.status == "running", Job.attempts == job.attempts)
+    with writing(session):
+        renewed = session.execute(
+            update(Job.__table__).where(*still_ours).values(locked_until=utcnow() + lease)
+        )
+        session.commit()
+    return renewed.rowcount == 1
+
+
 def run(session: Session, job: Claimed, settings: Settings, now: dt.datetime | None = None) -> None:
     """Run a claimed job and record how it ended (a retry is due a backoff after ``now``); commits."""
     try:
         TASKS[job.task](session, settings, **job.args)
-    except Exception as exc:  # any failure is the job's, and is retried
+    except Exception as exc:  # any failure is the job's: retried, unless final
         session.rollback()
-        _finish_failed(session, job, f"{type(exc).__name__}: {exc}", now or utcnow())
+        _finish_failed(session, job, exc, now or utcnow())
         return
     _finish(session, job.id, status="done", finished_at=utcnow(), locked_until=None)
 
 
-def _finish_failed(session: Session, job: Claimed, error: str, now: dt.datetime) -> None:
-    if job.attempts >= MAX_ATTEMPTS:
-        log.error("job %s failed for good after %s attempts: %s", job.id, job.attempts, error)
+def _finish_failed(session: Session, job: Claimed, exc: Exception, now: dt.datetime) -> None:
+    error = error_text(exc)
+    if isinstance(exc, FINAL_ERRORS) or job.attempts >= MAX_ATTEMPTS:
+        log.error("job %s failed for good after %s attempt(s): %s", job.id, job.attempts, error)
         _finish(session, job.id, status="failed", last_error=error, finished_at=utcnow(), locked_until=None)
         return
     delay = FIRST_RETRY * 2 ** (job.attempts - 1)
@@ -101,12 +118,41 @@ def _finish(session: Session, job_id: int, **values: object) -> None:
 def queue_stats(session: Session, window: dt.timedelta) -> QueueStats:
     """Jobs by status, and the enqueue-to-finish latency of those finished within ``window``."""
     counts = session.execute(select(Job.status, func.count()).group_by(Job.status)).all()
-    depth = {**dict.fromkeys(STATES, 0), **dict(counts)}
+    depth = {**dict.fromkeys(JOB_STATES, 0), **dict(counts)}
     finished = select(Job.created_at, Job.finished_at).where(
         Job.status == "done", Job.finished_at >= utcnow() - window
     )
     latencies = [(end - start).total_seconds() for start, end in session.execute(finished)]
     return QueueStats(depth=depth, latencies=latencies, window_seconds=window.total_seconds())
+
+
+def list_jobs(
+    session: Session, organisation_id: int, state: JobState | None, limit: int, before: int | None
+) -> list[JobInfo]:
+    """The organisation's jobs, newest first, optionally of one state, older than ``before``."""
+    query = select(Job).where(Job.organisation_id == organisation_id)
+    if state is not None:
+        query = query.where(Job.status == state)
+    if before is not None:
+        query = query.where(Job.id < before)
+    return [_info(job) for job in session.scalars(query.order_by(Job.id.desc()).limit(limit))]
+
+
+def get_job(session: Session, organisation_id: int, job_id: int) -> JobInfo | None:
+    job = session.get(Job, job_id)
+    return _info(job) if job is not None and job.organisation_id == organisation_id else None
+
+
+def _info(job: Job) -> JobInfo:
+    return JobInfo(
+        id=job.id,
+        task=job.task,
+        args=job.args,
+        state=job.status,  # type: ignore[arg-type]  # the column holds JOB_STATES only
+        attempts=job.attempts,
+        error=job.last_error,
+        created_at=job.created_at,
+    )
 
 
 class EmbeddedBackend:
@@ -118,9 +164,16 @@ class EmbeddedBackend:
 
     name = "embedded"
 
-    def __init__(self, sessions: sessionmaker[Session], settings: Settings, run_in_process: bool) -> None:
+    def __init__(
+        self,
+        sessions: sessionmaker[Session],
+        settings: Settings,
+        run_in_process: bool,
+        lease: dt.timedelta = LEASE,
+    ) -> None:
         self._sessions = sessions
         self._settings = settings
+        self._lease = lease
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._thread = (
@@ -129,11 +182,19 @@ class EmbeddedBackend:
             else None
         )
 
-    def defer(self, session: Session, task: str, **args: Any) -> None:
-        defer(session, task, **args)
+    def defer(self, session: Session, task: str, organisation_id: int, **args: Any) -> int:
+        return defer(session, task, organisation_id, **args)
 
     def queue_stats(self, session: Session, window: dt.timedelta) -> QueueStats:
         return queue_stats(session, window)
+
+    def list_jobs(
+        self, session: Session, organisation_id: int, state: JobState | None, limit: int, before: int | None
+    ) -> list[JobInfo]:
+        return list_jobs(session, organisation_id, state, limit, before)
+
+    def get_job(self, session: Session, organisation_id: int, job_id: int) -> JobInfo | None:
+        return get_job(session, organisation_id, job_id)
 
     def start(self) -> None:
         if self._thread is not None:
@@ -149,21 +210,29 @@ class EmbeddedBackend:
             self._thread.join(timeout)
 
     def work(self, once: bool, concurrency: int = 1) -> int:
-        """Run jobs in this thread: those due now (``once``), or until stopped; the number run.
-        One at a time: SQLite has one writer, and more workers are more processes."""
+        """Run jobs in this thread: those due now (``once``; an error of the queue then ends the
+        call), or until stopped; the number run. One at a time: SQLite has one writer, and more
+        workers are more processes."""
         if once:
-            self.sweep()
+            self._guarded(self.sweep, "sweep the schedules")
             return self.run_due()
         count = 0
         while not self._stop.is_set():
-            try:
-                self.sweep()
-                count += self.run_due()
-            except Exception:  # the database may be away for a while: keep the worker alive
-                log.exception("the job worker could not reach the queue; retrying")
+            self._guarded(self.sweep, "sweep the schedules")
+            count += self._guarded(self.run_due, "run the jobs")
             self._wake.wait(IDLE_POLL)
             self._wake.clear()
         return count
+
+    @staticmethod
+    def _guarded(step: Callable[[], int], what: str) -> int:
+        """Run one step of the loop; a failure (the database away for a while) is logged and
+        leaves the other step, and the next round, to go on."""
+        try:
+            return step()
+        except Exception:
+            log.exception("the job worker could not %s; retrying", what)
+            return 0
 
     def sweep(self) -> int:
         """Queue a job for each schedule due now; the number queued."""
@@ -175,12 +244,35 @@ class EmbeddedBackend:
         count = 0
         while not self._stop.is_set():
             with self._sessions() as session:
-                job = claim(session)
+                job = claim(session, lease=self._lease)
                 if job is None:
                     return count
-                run(session, job, self._settings)
+                with self._renewing(job):
+                    run(session, job, self._settings)
             count += 1
         return count
+
+    @contextmanager
+    def _renewing(self, job: Claimed) -> Iterator[None]:
+        """Renew the job's lease every third of it while it runs (a heartbeat), so that a job
+        running longer than one lease is not claimed by a second worker."""
+        done = threading.Event()
+
+        def beat() -> None:
+            while not done.wait(self._lease.total_seconds() / 3):
+                try:
+                    with self._sessions() as session:
+                        renew(session, job, self._lease)
+                except Exception:  # the database away for a moment: the next beat tries again
+                    log.exception("could not renew the lease of job %s", job.id)
+
+        heart = threading.Thread(target=beat, name=f"narxwatch-lease-{job.id}", daemon=True)
+        heart.start()
+        try:
+            yield
+        finally:
+            done.set()
+            heart.join()
 
     def _loop(self) -> None:
         self.work(once=False)

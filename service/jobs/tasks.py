@@ -1,6 +1,12 @@
 """What the jobs do, whichever backend runs them: each task takes a session, the settings and its
 keyword arguments, and is idempotent (an inspection stores at most one verdict per record and
-model set), so a job delivered twice changes nothing."""
+model set), so a job delivered twice changes nothing.
+
+Each record is a unit of work of its own, committed before the next: a record the models cannot
+inspect (``InputError``: too short for their lags, values they cannot take) is marked with the
+reason and the model set (``InspectionFailure``), so that schedules skip it until the models
+change, and it never keeps the other records of a schedule run from their verdicts.
+"""
 
 from __future__ import annotations
 
@@ -11,11 +17,12 @@ from collections.abc import Callable
 from sqlalchemy import exists, select
 from sqlalchemy.orm import Session
 
+from models.errors import InputError
 from service.config import Settings
+from service.db import insert_unless_exists, writing
 from service.domain import inspections
-from service.domain.modelling import active_fault_modes
 from service.domain.schedules import RUN_SCHEDULE
-from service.tables import Record, Schedule, Structure, Verdict
+from service.tables import InspectionFailure, Record, Schedule, Structure, Verdict
 
 INSPECT_RECORD = "inspect_record"
 
@@ -23,46 +30,93 @@ log = logging.getLogger("narxwatch.jobs")
 
 
 def inspect_record(session: Session, settings: Settings, record_id: int) -> None:
-    """The verdict of a stored record under its structure's active fault-mode models."""
+    """The verdict of a stored record under its structure's active fault-mode models; commits.
+    A record the models cannot inspect is marked, and the job fails with the reason."""
     record = session.get(Record, record_id)
     if record is None:
         log.warning("record %s no longer exists: nothing to inspect", record_id)
         return
     structure = session.get(Structure, record.structure_id)
     assert structure is not None  # a record's structure is a foreign key
-    inspections.inspect_record(session, record, structure, settings)
+    failure = _inspect(session, settings, record, structure, _model_set(session, structure))
+    if failure is not None:
+        raise failure
 
 
 def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at: str) -> None:
-    """One due time of a schedule: its action on the structure's records."""
+    """One due time of a schedule: its action on the structure's records, each its own unit.
+
+    Records the models cannot inspect are marked and skipped; an unexpected error on one record
+    (the database away for a moment) lets the others go on, then fails the job so that it is
+    retried (the records inspected meanwhile keep their verdicts and are not inspected again).
+    """
     schedule = session.get(Schedule, schedule_id)
     if schedule is None:
         log.info("schedule %s was deleted before its run due %s", schedule_id, due_at)
         return
     structure = session.get(Structure, schedule.structure_id)
     assert structure is not None
-    if not active_fault_modes(session, structure):
-        log.warning(
-            "schedule %s skipped: structure %s has no active fault-mode model", schedule_id, structure.id
-        )
-        return
-    for record_id in _records_to_inspect(session, schedule.action, structure.id):
-        inspect_record(session, settings, record_id)
+    model_set = _model_set(session, structure)  # a conflict if there is none: the job fails, saying so
+    unexpected: Exception | None = None
+    marked = 0
+    for record_id in _records_to_inspect(session, schedule.action, structure.id, model_set):
+        record = session.get(Record, record_id)
+        if record is None:  # deleted since the list was read
+            continue
+        try:
+            marked += _inspect(session, settings, record, structure, model_set) is not None
+        except Exception as exc:
+            session.rollback()
+            log.exception("schedule %s: record %s could not be inspected; going on", schedule_id, record_id)
+            unexpected = unexpected or exc
     log.info(
-        "schedule %s (%s) ran for its time %s",
+        "schedule %s (%s) ran for its time %s; %s record(s) the models cannot inspect were marked",
         schedule_id,
         schedule.action,
         dt.datetime.fromisoformat(due_at),
+        marked,
     )
+    if unexpected is not None:
+        raise unexpected
 
 
-def _records_to_inspect(session: Session, action: str, structure_id: int) -> list[int]:
+def _model_set(session: Session, structure: Structure) -> str:
+    return inspections.model_set_of([v for v, _ in inspections.models_to_inspect_with(session, structure)])
+
+
+def _inspect(
+    session: Session, settings: Settings, record: Record, structure: Structure, model_set: str
+) -> InputError | None:
+    """Inspect one record and commit its verdict; or, if the models (``model_set``) cannot
+    inspect it, commit a mark saying why and return the refusal."""
+    record_id = record.id  # read now: after the rollback below, reading it would reload the row
+    try:
+        inspections.inspect_record(session, record, structure, settings)
+        session.commit()
+        return None
+    except InputError as refusal:
+        session.rollback()
+        values = {"record_id": record_id, "model_set": model_set, "reason": str(refusal)}
+        with writing(session):
+            insert_unless_exists(session, InspectionFailure, values, ["record_id", "model_set"])
+            session.commit()
+        log.warning("record %s cannot be inspected with models %s: %s", record_id, model_set, refusal)
+        return refusal
+
+
+def _records_to_inspect(session: Session, action: str, structure_id: int, model_set: str) -> list[int]:
+    """The action's records, less those these models (``model_set``) already failed to inspect."""
     of_structure = select(Record.id).where(Record.structure_id == structure_id)
     if action == "reinspect_latest":
-        latest = of_structure.order_by(Record.acquired_at.desc(), Record.id.desc()).limit(1)
-        return list(session.scalars(latest))
-    has_verdict = exists().where(Verdict.record_id == Record.id)
-    return list(session.scalars(of_structure.where(~has_verdict).order_by(Record.id)))
+        chosen = of_structure.order_by(Record.acquired_at.desc(), Record.id.desc()).limit(1)
+    else:
+        chosen = of_structure.where(~exists().where(Verdict.record_id == Record.id)).order_by(Record.id)
+    candidates = list(session.scalars(chosen))
+    failed = select(InspectionFailure.record_id).where(
+        InspectionFailure.model_set == model_set, InspectionFailure.record_id.in_(candidates)
+    )
+    skipped = set(session.scalars(failed))
+    return [record_id for record_id in candidates if record_id not in skipped]
 
 
 TASKS: dict[str, Callable[..., None]] = {INSPECT_RECORD: inspect_record, RUN_SCHEDULE: run_schedule}

@@ -1,0 +1,47 @@
+"""The organisation's queued work (inspections, schedule runs): what ran, what failed, and why."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request
+
+from service.api.deps import Admin, SessionDep
+from service.api.params import IdPath
+from service.domain.errors import NotFoundError
+from service.jobs import JobBackend, JobInfo, JobState
+from service.schemas import MAX_ID, JobOut, JobPage
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+
+PAGE = 100
+
+
+@router.get("")
+def list_jobs(
+    request: Request,
+    principal: Admin,
+    session: SessionDep,
+    state: JobState | None = None,
+    cursor: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = PAGE,
+) -> JobPage:
+    """The organisation's jobs, newest first; ``state=failed`` lists those that failed for good,
+    each with its reason."""
+    backend: JobBackend = request.app.state.jobs
+    jobs = backend.list_jobs(session, principal.organisation_id, state, limit + 1, cursor)
+    page = jobs[:limit]
+    return JobPage(items=[_out(job) for job in page], next_cursor=page[-1].id if len(jobs) > limit else None)
+
+
+@router.get("/{job_id}")
+def get_job(request: Request, job_id: IdPath, principal: Admin, session: SessionDep) -> JobOut:
+    backend: JobBackend = request.app.state.jobs
+    job = backend.get_job(session, principal.organisation_id, job_id)
+    if job is None:
+        raise NotFoundError("job", job_id)
+    return _out(job)
+
+
+def _out(job: JobInfo) -> JobOut:
+    return JobOut.model_validate(job, from_attributes=True)
