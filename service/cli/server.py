@@ -10,11 +10,12 @@ from typing import Annotated
 
 import typer
 import uvicorn
+from sqlalchemy.orm import Session, sessionmaker
 
 from service.cli.console import fail, stdout
 from service.config import get_settings
 from service.db import make_engine, session_factory, transaction
-from service.migrate import upgrade_database
+from service.migrate import database_name, require_current_schema, upgrade_database
 from service.observability.logs import configure_logging, logging_config
 from service.observability.metrics import MULTIPROCESS_DIR
 from service.security import Role, create_key
@@ -36,6 +37,8 @@ def serve(
     fresh temporary folder, removed at exit, unless the variable names one.
     """
     settings = get_settings()
+    if not settings.upgrade_on_start:
+        require_current_schema(settings.database_url)
     json_logs = settings.log_format == "json"
     configure_logging("INFO", json=json_logs)
     if settings.upgrade_on_start:
@@ -75,13 +78,14 @@ def worker(
     and its verdict is stored once. On PostgreSQL this is a Procrastinate worker; on SQLite it
     serves a service started with NARXWATCH_EMBEDDED_WORKER=false.
     """
-    from service.jobs import job_backend
+    from service.jobs import backend_name, job_backend
 
     settings = get_settings()
+    if backend_name(settings) == "embedded" and concurrency > 1:
+        fail("--concurrency applies to the distributed backend (PostgreSQL); run more workers instead")
+    require_current_schema(settings.database_url)
     configure_logging("INFO", json=settings.log_format == "json")
     backend = job_backend(settings, session_factory(make_engine(settings.database_url)), in_service=False)
-    if backend.name == "embedded" and concurrency > 1:
-        fail("--concurrency applies to the distributed backend (PostgreSQL); run more workers instead")
     if not once:
         stdout.print(f"narxwatch worker ({backend.name} backend): running jobs (Ctrl-C stops)")
     try:
@@ -98,7 +102,15 @@ def db_upgrade(revision: Annotated[str, typer.Argument(help="Target revision.")]
     """Bring the database schema (NARXWATCH_DATABASE_URL) up to date."""
     settings = get_settings()
     upgrade_database(settings.database_url, revision)
-    stdout.print(f"database at {settings.database_url.split('@')[-1]} is at revision {revision}")
+    stdout.print(f"database at {database_name(settings.database_url)} is at revision {revision}")
+
+
+def ready_sessions() -> sessionmaker[Session]:
+    """Sessions on the configured database, once it is known to exist at the newest schema: a
+    command that only reads or adds rows must not create an empty database by opening it."""
+    database_url = get_settings().database_url
+    require_current_schema(database_url)
+    return session_factory(make_engine(database_url))
 
 
 @keys_app.command("create")
@@ -109,7 +121,7 @@ def keys_create(
     """Create an API key and print it once: only its hash is stored."""
     if role not in Role.__members__:
         fail(f"unknown role {role!r}: choose admin, ingest or viewer")
-    sessions = session_factory(make_engine(get_settings().database_url))
+    sessions = ready_sessions()
     with transaction(sessions) as session:
         key = create_key(session, org, Role[role])
     print(key)
