@@ -6,6 +6,7 @@ import logging
 import os
 import shutil
 import tempfile
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -18,7 +19,7 @@ from service.db import make_engine, session_factory, transaction
 from service.migrate import database_name, require_current_schema, upgrade_database
 from service.observability.logs import configure_logging, logging_config
 from service.observability.metrics import MULTIPROCESS_DIR
-from service.security import Role, create_key
+from service.security import Role, authenticate, create_key
 
 db_app = typer.Typer(help="Database schema.", no_args_is_help=True)
 keys_app = typer.Typer(help="API keys.", no_args_is_help=True)
@@ -127,13 +128,37 @@ def keys_create(
     print(key)
 
 
-def demo_seed() -> None:
+def demo_seed(
+    key_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also keep an ingest key of the demo organisation in this file (readable by its owner "
+            "only), made and printed once: the simulator's in docker-compose.yml.",
+            dir_okay=False,
+        ),
+    ] = None,
+) -> None:
     """Create the demo organisation, structure and models (once; repeating changes nothing)."""
-    from service.demo import STRUCTURE, seed_demo
+    from service.demo import ORGANISATION, STRUCTURE, seed_demo
 
     settings = get_settings()
     upgrade_database(settings.database_url)
     sessions = session_factory(make_engine(settings.database_url))
     with transaction(sessions) as session:
         structure = seed_demo(session, settings, lambda step: stdout.print(f"demo: {step}"))
+        key = None if key_file is None else _new_key_unless_kept(session, key_file, ORGANISATION)
+    if key_file is not None and key is not None:
+        key_file.touch(mode=0o600)
+        key_file.chmod(0o600)  # the owner's only, before the key is in it
+        key_file.write_text(key + "\n")
+        stdout.print(f"demo ingest key (also in {key_file}; shown once): {key}")
     stdout.print(f"demo structure {STRUCTURE!r} is structure {structure.id}")
+
+
+def _new_key_unless_kept(session: Session, key_file: Path, organisation: str) -> str | None:
+    """A new ingest key of ``organisation``, unless ``key_file`` holds one that still opens the API
+    (a restart keeps its key; a key revoked or lost with its database is replaced)."""
+    kept = key_file.read_text().strip() if key_file.is_file() else ""
+    if kept and authenticate(session, kept) is not None:
+        return None
+    return create_key(session, organisation, Role.ingest)
