@@ -156,3 +156,13 @@ def test_an_unmigrated_database_is_a_one_line_error_and_is_left_alone(newcomer, 
     line = one_line_refusal(run(*command, env=env, cwd=workdir, check=False), database)
     assert "0001" in line
     assert database.read_bytes() == before
+
+
+def test_an_unreachable_database_server_is_a_one_line_error_without_the_password(newcomer):
+    env, workdir, _ = newcomer
+    env["NARXWATCH_DATABASE_URL"] = "postgresql+psycopg://narxwatch:s3cret@127.0.0.1:1/narxwatch"
+    result = run("keys", "create", "--org", "o", "--role", "viewer", env=env, cwd=workdir, check=False)
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert "cannot open the database at postgresql+psycopg://narxwatch:***@127.0.0.1:1/narxwatch" in line
+    assert "s3cret" not in result.stderr
