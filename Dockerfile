@@ -15,10 +15,12 @@ COPY . .
 # psycopg[binary] bundles libpq, so the slim image needs no system packages for PostgreSQL.
 RUN pip install . "psycopg[binary]>=3.2"
 
-# Run unprivileged; var/ is the only place the service may write (the default SQLite file).
+# Run unprivileged; var/ is the only place the service may write: the default SQLite file lives in
+# the XDG data directory, $XDG_DATA_HOME/narxwatch/narxwatch.db.
+ENV XDG_DATA_HOME=/app/var
 RUN useradd --system --uid 10001 --user-group --home-dir /app --shell /usr/sbin/nologin narxwatch \
-    && mkdir -p /app/var \
-    && chown narxwatch:narxwatch /app/var
+    && mkdir -p /app/var/keys \
+    && chown -R narxwatch:narxwatch /app/var
 USER narxwatch
 
 EXPOSE 8000

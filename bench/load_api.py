@@ -444,15 +444,23 @@ def run_phase(
 # Checks and report
 
 
-def verify(server: Server, key: str, structure_id: int, expected_ids: set[int]) -> list[str]:
-    """Problems found comparing the structure's verdicts with the successful uploads."""
+def verify(
+    server: Server, key: str, structure_id: int, expected_ids: set[int], before: Counter[int]
+) -> list[str]:
+    """Problems found comparing the verdicts the run added with its successful uploads.
+
+    ``before`` counts the verdicts of each record the structure already had (the demo's seeded
+    history): those must be there unchanged, and are no upload's.
+    """
     problems = []
     with httpx.Client(base_url=server.url, headers={"Authorization": f"Bearer {key}"}, timeout=60) as client:
         summary = client.get(f"/api/v1/structures/{structure_id}/summary")
         summary.raise_for_status()
         total = summary.json()["total"]
-        if total != len(expected_ids):
-            problems.append(f"summary total is {total} verdicts, expected {len(expected_ids)}")
+        if total != len(expected_ids) + before.total():
+            problems.append(
+                f"summary total is {total} verdicts, expected {before.total()} seeded + {len(expected_ids)}"
+            )
         seen: list[int] = []
         cursor = None
         for _ in range(10_000):  # bounded: at most 10 million verdicts
@@ -466,14 +474,24 @@ def verify(server: Server, key: str, structure_id: int, expected_ids: set[int]) 
             cursor = body["next_cursor"]
             if not cursor:
                 break
-    if len(seen) != len(set(seen)):
-        problems.append(f"the verdict history lists {len(seen) - len(set(seen))} records twice")
-    if set(seen) != expected_ids:
-        missing, extra = len(expected_ids - set(seen)), len(set(seen) - expected_ids)
+    listed = Counter(seen)
+    if any(listed[record_id] != count for record_id, count in before.items()):
+        problems.append("the run changed the verdicts of the seeded history")
+    added = listed - before
+    if any(count > 1 for count in added.values()):
+        problems.append(f"the verdict history lists {sum(c > 1 for c in added.values())} uploads twice")
+    if set(added) != expected_ids:
+        missing, extra = len(expected_ids - set(added)), len(set(added) - expected_ids)
         problems.append(
             f"verdict history vs uploads: {missing} uploads without a verdict, {extra} unexpected"
         )
     return problems
+
+
+def verdicts_per_record(database: Path, structure_id: int) -> Counter[int]:
+    with sqlite3.connect(database) as connection:
+        query = "SELECT record_id FROM verdicts WHERE structure_id = ?"
+        return Counter(row[0] for row in connection.execute(query, (structure_id,)))
 
 
 def count_records(database: Path, structure_id: int) -> int:
@@ -662,6 +680,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise SystemExit("cannot find the key in the output of narxwatch keys create")
             key = keys[0]
             records_before = count_records(database, structure_id)
+            verdicts_before = verdicts_per_record(database, structure_id)
 
             warm_each = max(2, -(-args.warmup // args.concurrency))
             real_needed = max(2, args.warmup) + args.requests + warm_each * args.concurrency + args.requests
@@ -696,7 +715,7 @@ def main(argv: list[str] | None = None) -> int:
 
             uploaded = {i for p in phases if p.real for i in (*p.record_ids, *p.warmup_record_ids)}
             try:
-                problems = verify(server, key, structure_id, uploaded)
+                problems = verify(server, key, structure_id, uploaded, verdicts_before)
             except httpx.HTTPError as exc:
                 problems = [f"the verdict check itself failed: {type(exc).__name__}: {exc}"]
             server.stop()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -9,13 +10,23 @@ from typing import Literal
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-DEFAULT_DATABASE = Path("var") / "narxwatch.db"
+
+def _data_home() -> Path:
+    """The user's data directory per the XDG base-directory spec: where the default database lives,
+    whatever folder a command is run from (a path relative to it would start a new, empty one).
+    A relative ``XDG_DATA_HOME`` is ignored, as the spec says."""
+    configured = Path(os.environ.get("XDG_DATA_HOME", ""))
+    return configured if configured.is_absolute() else Path.home() / ".local" / "share"
+
+
+DEFAULT_DATABASE = _data_home() / "narxwatch" / "narxwatch.db"
 
 
 class Settings(BaseSettings):
     """Everything the service reads from its environment.
 
-    ``database_url`` defaults to a SQLite file under ``./var/``; the same code runs on
+    ``database_url`` defaults to a SQLite file in the user's data directory
+    (``$XDG_DATA_HOME/narxwatch/narxwatch.db``, ``~/.local/share/…`` without it); the same code runs on
     ``postgresql+psycopg://user:password@host/db``.
     """
 

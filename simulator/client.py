@@ -18,6 +18,7 @@ import datetime as dt
 import enum
 import itertools
 import json
+import os
 import secrets
 import signal
 import time
@@ -417,6 +418,21 @@ def manifest_rows(manifest: Path) -> int:
     return rows
 
 
+KEY_FILE = "NARXWATCH_SIM_API_KEY_FILE"
+
+
+def key_from_file() -> str | None:
+    """The key in the file ``NARXWATCH_SIM_API_KEY_FILE`` names: a key handed over in a volume, as
+    docker-compose.yml's seed service does, never on a command line or in the environment."""
+    path = os.environ.get(KEY_FILE)
+    if not path:
+        return None
+    try:
+        return Path(path).read_text().strip() or None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the API key ({exc.strerror})") from None
+
+
 @dataclass(frozen=True)
 class Target:
     """Where records go, as the common options say."""
@@ -434,9 +450,12 @@ def open_destination(target: Target) -> Iterator[Destination]:
     if target.out is not None:
         yield Writer(target.out, target.format or Format.csv)
         return
-    if not target.key:
-        raise InputError("posting needs an API key: pass --key or set NARXWATCH_SIM_API_KEY (or use --out)")
-    service = Service(target.url, target.key)
+    key = target.key or key_from_file()
+    if not key:
+        raise InputError(
+            f"posting needs an API key: pass --key or set NARXWATCH_SIM_API_KEY or {KEY_FILE} (or use --out)"
+        )
+    service = Service(target.url, key)
     try:
         structure_id = target.structure
         if structure_id is None:

@@ -171,6 +171,72 @@ def test_plotly_js_is_served_from_the_installed_package(api_server: LiveServer):
     assert response.content == (Path(plotly.__file__).parent / "package_data" / "plotly.min.js").read_bytes()
 
 
+# --- what a page may load, where it may lead, and who may frame or keep it ---------------------
+
+FORGED_HOST = "attacker.example"
+LINKS = re.compile(r'(?:href|src|action)="([^"]*)"')
+SCRIPTS = re.compile(r"<script([^>]*)>", re.S)
+
+
+def dashboard_pages(monitored: Monitored) -> list[str]:
+    return [
+        DASHBOARD,
+        f"{DASHBOARD}/structures/{monitored.structure['id']}",
+        f"{DASHBOARD}/records/{monitored.records[-1]['id']}",
+        f"{DASHBOARD}/records/999999999",  # the error page
+    ]
+
+
+def assert_relative_links(page: httpx.Response) -> None:
+    assert FORGED_HOST not in page.text
+    for url in LINKS.findall(page.text):
+        assert not httpx.URL(url).is_absolute_url and not url.startswith("//"), url
+
+
+def test_a_forged_host_header_never_becomes_a_link_or_a_redirect(
+    api_server: LiveServer, monitored: Monitored, viewer: httpx.Client
+):
+    forged = {"Host": FORGED_HOST}
+    with httpx.Client(base_url=api_server.url, headers=forged) as anonymous:
+        redirect = anonymous.get(DASHBOARD)
+        assert redirect.status_code == 303 and redirect.headers["location"].startswith(f"{DASHBOARD}/login")
+        assert_relative_links(anonymous.get(f"{DASHBOARD}/login"))
+        login = anonymous.post(
+            f"{DASHBOARD}/login", data={"api_key": monitored.org.keys["viewer"], "next": DASHBOARD}
+        )
+        assert login.status_code == 303 and login.headers["location"] == DASHBOARD
+    for path in dashboard_pages(monitored):
+        assert_relative_links(viewer.get(path, headers=forged))
+    logout = viewer.post(f"{DASHBOARD}/logout", headers=forged)
+    assert logout.status_code == 303 and logout.headers["location"] == f"{DASHBOARD}/login"
+
+
+def test_pages_forbid_framing_caching_inline_and_foreign_scripts(
+    api_server: LiveServer, monitored: Monitored, viewer: httpx.Client
+):
+    with httpx.Client(base_url=api_server.url) as anonymous:
+        pages = [anonymous.get(f"{DASHBOARD}/login")] + [viewer.get(p) for p in dashboard_pages(monitored)]
+    for page in pages:
+        policy = {
+            directive.split()[0]: directive.split()[1:]
+            for directive in page.headers["content-security-policy"].split(";")
+            if directive.strip()
+        }
+        webgl = '"scattergl"' in page.text  # regl compiles WebGL programs with new Function
+        assert policy["script-src"] == (["'self'", "'unsafe-eval'"] if webgl else ["'self'"]), page.url
+        assert policy["default-src"] == ["'self'"] and policy["object-src"] == ["'none'"]
+        assert policy["frame-ancestors"] == ["'none'"] and policy["base-uri"] == ["'none'"]
+        assert policy["form-action"] == ["'self'"]
+        assert page.headers["x-frame-options"] == "DENY"
+        assert page.headers["cache-control"] == "no-store"
+        assert page.headers["referrer-policy"] == "same-origin"
+        assert page.headers["x-content-type-options"] == "nosniff"
+        for attributes in SCRIPTS.findall(page.text):
+            assert "src=" in attributes or 'type="application/json"' in attributes, "no inline script runs"
+    record_page = pages[3]
+    assert '"scattergl"' in record_page.text, "the record page's 2000 samples are drawn with WebGL"
+
+
 # --- organisations ----------------------------------------------------------------------------
 
 

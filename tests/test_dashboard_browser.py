@@ -66,9 +66,11 @@ def page(browser, request: pytest.FixtureRequest):  # type: ignore[no-untyped-de
     tab = context.new_page()
     errors: list[str] = []
     tab.on("pageerror", lambda error: errors.append(str(error)))
+    # What the pages' Content-Security-Policy refuses is reported on the console, not raised.
+    tab.on("console", lambda note: errors.append(note.text) if "Security Policy" in note.text else None)
     yield tab
     context.close()
-    assert not errors, f"the page raised in the browser: {errors}"
+    assert not errors, f"the page raised in the browser or broke its security policy: {errors}"
 
 
 def shot(page, name: str) -> None:  # type: ignore[no-untyped-def]
@@ -140,6 +142,10 @@ def test_log_in_follow_a_structure_and_a_record_and_log_out(page, server: LiveSe
     response = drawn(page, "response")
     assert response["points"] == [predicted, predicted]
     assert drawn(page, "residual")["points"] == [predicted]
+    # Those 2 000-sample traces are WebGL ones, which plotly.js replaces by a notice where WebGL
+    # cannot run (no GPU, or a security policy refusing regl's compiled code).
+    assert page.locator("#chart-response .gl-canvas-context").count() == 1
+    assert page.locator(".no-webgl").count() == 0, "the WebGL charts are drawn, not refused"
     autocorrelation = drawn(page, "autocorrelation")
     assert autocorrelation["bars"] == latest["lags"] and autocorrelation["points"] == [latest["lags"]] * 3
     assert latest["status"] in page.locator("#verdict").inner_text()

@@ -22,8 +22,10 @@ ROLES = ("admin", "ingest", "viewer")
 HEADER = ["id", "organisation", "prefix", "role", "created", "expires", "last", "used", "revoked"]
 
 
-def run(*args: str, env: dict[str, str], check: bool = True) -> subprocess.CompletedProcess[str]:
-    result = subprocess.run([NARXWATCH, *args], env=env, capture_output=True, text=True, timeout=300)
+def run(
+    *args: str, env: dict[str, str], check: bool = True, cwd: Path | None = None
+) -> subprocess.CompletedProcess[str]:
+    result = subprocess.run([NARXWATCH, *args], env=env, cwd=cwd, capture_output=True, text=True, timeout=300)
     if check:
         assert result.returncode == 0, result.stderr
     return result
@@ -186,3 +188,88 @@ def test_serve_answers_with_the_seeded_demo(seeded):
     finally:
         server.send_signal(signal.SIGINT)
         server.wait(timeout=30)
+
+
+# --- Where the database lives, and commands run before it exists ---------------------------------
+
+
+@pytest.fixture
+def newcomer(tmp_path) -> tuple[dict[str, str], Path, Path]:
+    """A user's environment with no NARXWATCH_DATABASE_URL, a working directory outside the
+    repository, and the XDG data directory the default database belongs in."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NARXWATCH_")}
+    env["XDG_DATA_HOME"] = str(tmp_path / "data")
+    workdir = tmp_path / "somewhere"
+    workdir.mkdir()
+    return env, workdir, tmp_path / "data" / "narxwatch" / "narxwatch.db"
+
+
+def test_the_default_database_is_in_the_users_data_directory(newcomer, tmp_path):
+    env, workdir, database = newcomer
+    run("db", "upgrade", env=env, cwd=workdir)
+    assert database.is_file()
+    assert list(workdir.iterdir()) == []
+    # Another working directory reaches the same database.
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    key = run("keys", "create", "--org", "o", "--role", "viewer", env=env, cwd=elsewhere).stdout
+    assert key.startswith("nw_")
+    assert list(elsewhere.iterdir()) == []
+
+
+def test_without_xdg_data_home_the_database_is_under_local_share(newcomer, tmp_path):
+    env, workdir, _ = newcomer
+    del env["XDG_DATA_HOME"]
+    env["HOME"] = str(tmp_path / "home")
+    run("db", "upgrade", env=env, cwd=workdir)
+    assert (tmp_path / "home" / ".local" / "share" / "narxwatch" / "narxwatch.db").is_file()
+
+
+def one_line_refusal(result: subprocess.CompletedProcess[str], database: Path) -> str:
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert str(database) in lines[0] and "narxwatch db upgrade" in lines[0]
+    return lines[0]
+
+
+NEED_A_DATABASE = [
+    ["keys", "create", "--org", "o", "--role", "viewer"],
+    ["worker", "--once"],
+]
+
+
+@pytest.mark.parametrize("command", NEED_A_DATABASE, ids=lambda c: " ".join(c[:2]))
+def test_a_missing_database_is_a_one_line_error_and_is_not_created(newcomer, command, tmp_path):
+    env, workdir, database = newcomer
+    line = one_line_refusal(run(*command, env=env, cwd=workdir, check=False), database)
+    assert "no database" in line
+    assert not (tmp_path / "data").exists()
+    assert list(workdir.iterdir()) == []
+
+
+def test_serve_without_upgrading_refuses_a_missing_database(newcomer, tmp_path):
+    env, workdir, database = newcomer
+    env["NARXWATCH_UPGRADE_ON_START"] = "false"
+    one_line_refusal(run("serve", "--port", str(free_port()), env=env, cwd=workdir, check=False), database)
+    assert not (tmp_path / "data").exists()
+
+
+@pytest.mark.parametrize("command", NEED_A_DATABASE, ids=lambda c: " ".join(c[:2]))
+def test_an_unmigrated_database_is_a_one_line_error_and_is_left_alone(newcomer, command):
+    env, workdir, database = newcomer
+    run("db", "upgrade", "0001", env=env, cwd=workdir)
+    before = database.read_bytes()
+    line = one_line_refusal(run(*command, env=env, cwd=workdir, check=False), database)
+    assert "0001" in line
+    assert database.read_bytes() == before
+
+
+def test_an_unreachable_database_server_is_a_one_line_error_without_the_password(newcomer):
+    env, workdir, _ = newcomer
+    env["NARXWATCH_DATABASE_URL"] = "postgresql+psycopg://narxwatch:s3cret@127.0.0.1:1/narxwatch"
+    result = run("keys", "create", "--org", "o", "--role", "viewer", env=env, cwd=workdir, check=False)
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert "cannot open the database at postgresql+psycopg://narxwatch:***@127.0.0.1:1/narxwatch" in line
+    assert "s3cret" not in result.stderr

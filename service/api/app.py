@@ -9,9 +9,12 @@ from asgi_correlation_id import CorrelationIdMiddleware
 from fastapi import FastAPI, Request, status
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
+from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from swagger_ui_bundle import swagger_ui_path
 
 from models.errors import InputError
 from service import dashboard
@@ -27,6 +30,7 @@ from service.observability.requests import ObserveRequests
 from simulator.recordfile import RecordTooLargeError
 
 API_PREFIX = "/api/v1"
+DOCS = "/docs"
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -46,6 +50,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="0.1.0",
         description="Condition monitoring of vibrating structures with NARX and functional NARX models.",
         lifespan=lifespan,
+        docs_url=None,  # served by _add_docs from the installed package, not from a CDN
+        redoc_url=None,  # ReDoc has no packaged build; Swagger UI covers the same ground
     )
     app.state.settings = settings
     app.state.engine = make_engine(settings.database_url)
@@ -65,12 +71,33 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in routers:
         app.include_router(router, prefix=API_PREFIX)
     dashboard.install(app)
+    _add_docs(app)
     _add_error_handlers(app)
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     # The last added runs first: a request gets its id, then is timed and logged whole.
     app.add_middleware(ObserveRequests)
     app.add_middleware(CorrelationIdMiddleware, header_name=REQUEST_ID_HEADER, validator=is_sane_request_id)
     return app
+
+
+def _add_docs(app: FastAPI) -> None:
+    """``/docs``: Swagger UI with its assets from the ``swagger-ui-bundle-v2`` package, so the docs
+    work on a machine without internet; ``/`` leads people to the dashboard."""
+    app.mount(f"{DOCS}/static", StaticFiles(directory=str(swagger_ui_path)), name="docs-static")
+
+    @app.get(DOCS, include_in_schema=False)
+    def docs() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url or "/openapi.json",
+            title=f"{app.title} API",
+            swagger_js_url=f"{DOCS}/static/swagger-ui-bundle.js",
+            swagger_css_url=f"{DOCS}/static/swagger-ui.css",
+            swagger_favicon_url=f"{DOCS}/static/favicon-32x32.png",
+        )
+
+    @app.get("/", include_in_schema=False)
+    def root() -> RedirectResponse:
+        return RedirectResponse(dashboard.HOME, status.HTTP_303_SEE_OTHER)
 
 
 def _add_error_handlers(app: FastAPI) -> None:

@@ -1,6 +1,7 @@
 """``GET /metrics``: Prometheus metrics, open or behind a bearer token of their own.
 
-The metrics are fleet-wide counts with no organisation in any label, so they take no API key;
+The metrics are fleet-wide counts with no organisation, and nothing an organisation chose (such
+as a fault mode's name), in any label, so they take no API key;
 ``NARXWATCH_METRICS_TOKEN`` guards them where the endpoint is reachable beyond an internal network.
 """
 
@@ -37,7 +38,7 @@ def metrics(
     session: SessionDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(token_bearer)],
 ) -> Response:
-    """Records received, verdicts by status and fault mode, the job queue, request latency."""
+    """Records received, verdicts by status, the job queue, request latency."""
     if not admitted(settings.metrics_token, credentials):
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,

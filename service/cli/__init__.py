@@ -7,6 +7,7 @@ import typer
 from models.errors import InputError
 from service.cli import inspect, refine, reproduce, select, server, simulate, train
 from service.cli.console import fail
+from service.migrate import DatabaseNotReadyError
 
 app = typer.Typer(
     name="narxwatch",
@@ -30,8 +31,9 @@ app.command("demo-seed")(server.demo_seed)
 
 
 def main() -> None:
-    """Console-script entry point: input errors end with their message, not a traceback."""
+    """Console-script entry point: input errors and a database not ready end with their message,
+    not a traceback."""
     try:
         app()
-    except InputError as exc:
+    except (InputError, DatabaseNotReadyError) as exc:
         fail(str(exc))

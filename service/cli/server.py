@@ -8,6 +8,7 @@ import os
 import re
 import shutil
 import tempfile
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -21,15 +22,18 @@ from service.config import get_settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import keys
 from service.domain.errors import NotFoundError
-from service.migrate import upgrade_database
+from service.migrate import database_name, require_current_schema, upgrade_database
 from service.observability.logs import configure_logging, logging_config
 from service.observability.metrics import MULTIPROCESS_DIR
-from service.security import Role, create_key
+from service.security import KeyRefusedError, Role, authenticate, create_key
 from service.tables import utcnow
 
 db_app = typer.Typer(help="Database schema.", no_args_is_help=True)
 keys_app = typer.Typer(help="API keys.", no_args_is_help=True)
 log = logging.getLogger("narxwatch")
+
+
+WORKER_HEALTHCHECK_SECONDS = 60
 
 
 def serve(
@@ -44,6 +48,8 @@ def serve(
     fresh temporary folder, removed at exit, unless the variable names one.
     """
     settings = get_settings()
+    if not settings.upgrade_on_start:
+        require_current_schema(settings.database_url)
     json_logs = settings.log_format == "json"
     configure_logging("INFO", json=json_logs)
     if settings.upgrade_on_start:
@@ -62,6 +68,10 @@ def serve(
             host=host,
             port=port,
             workers=workers,
+            # uvicorn kills a worker that does not answer its supervisor's ping within this time
+            # (5 s by default): importing the app on a loaded machine, or a long numerical step
+            # holding the GIL, can take longer than that without anything being wrong.
+            timeout_worker_healthcheck=WORKER_HEALTHCHECK_SECONDS,
             log_level="info",
             log_config=logging_config("INFO", json=json_logs),  # applied again in each worker
             access_log=False,  # narxwatch.access logs each request, with its route and duration
@@ -83,13 +93,14 @@ def worker(
     and its verdict is stored once. On PostgreSQL this is a Procrastinate worker; on SQLite it
     serves a service started with NARXWATCH_EMBEDDED_WORKER=false.
     """
-    from service.jobs import job_backend
+    from service.jobs import backend_name, job_backend
 
     settings = get_settings()
+    if backend_name(settings) == "embedded" and concurrency > 1:
+        fail("--concurrency applies to the distributed backend (PostgreSQL); run more workers instead")
+    require_current_schema(settings.database_url)
     configure_logging("INFO", json=settings.log_format == "json")
     backend = job_backend(settings, session_factory(make_engine(settings.database_url)), in_service=False)
-    if backend.name == "embedded" and concurrency > 1:
-        fail("--concurrency applies to the distributed backend (PostgreSQL); run more workers instead")
     if not once:
         stdout.print(f"narxwatch worker ({backend.name} backend): running jobs (Ctrl-C stops)")
     try:
@@ -106,7 +117,15 @@ def db_upgrade(revision: Annotated[str, typer.Argument(help="Target revision.")]
     """Bring the database schema (NARXWATCH_DATABASE_URL) up to date."""
     settings = get_settings()
     upgrade_database(settings.database_url, revision)
-    stdout.print(f"database at {settings.database_url.split('@')[-1]} is at revision {revision}")
+    stdout.print(f"database at {database_name(settings.database_url)} is at revision {revision}")
+
+
+def ready_sessions() -> sessionmaker[Session]:
+    """Sessions on the configured database, once it is known to exist at the newest schema: a
+    command that only reads or adds rows must not create an empty database by opening it."""
+    database_url = get_settings().database_url
+    require_current_schema(database_url)
+    return session_factory(make_engine(database_url))
 
 
 @keys_app.command("create")
@@ -125,7 +144,7 @@ def keys_create(
     if role not in Role.__members__:
         fail(f"unknown role {role!r}: choose admin, ingest or viewer")
     expires_at = None if expires is None else _expiry(expires, utcnow())
-    with transaction(_sessions()) as session:
+    with transaction(ready_sessions()) as session:
         key = create_key(session, org, Role[role], expires_at)
     print(key)
 
@@ -135,7 +154,7 @@ def keys_list(
     org: Annotated[str | None, typer.Option(help="Only this organisation's keys.")] = None,
 ) -> None:
     """List the keys (never the keys themselves nor their hashes), times in UTC."""
-    with transaction(_sessions()) as session:
+    with transaction(ready_sessions()) as session:
         rows = [key for key in keys.list_keys(session) if org is None or key.organisation.name == org]
         table = Table(
             "id", "organisation", "prefix", "role", "created", "expires", "last used", "revoked", box=None
@@ -158,7 +177,7 @@ def keys_revoke(
     key: Annotated[str, typer.Argument(help="The key's id or prefix, as `narxwatch keys list` shows them.")],
 ) -> None:
     """Revoke a key at once; the dashboard logins opened with it end too."""
-    with transaction(_sessions()) as session:
+    with transaction(ready_sessions()) as session:
         try:
             revoked = keys.revoke_key(session, keys.find_key(session, key.strip()))
         except NotFoundError as exc:
@@ -200,17 +219,45 @@ def _when(moment: dt.datetime | None) -> str:
     return "-" if moment is None else f"{moment:%Y-%m-%d %H:%M}"
 
 
-def _sessions() -> sessionmaker[Session]:
-    return session_factory(make_engine(get_settings().database_url))
-
-
-def demo_seed() -> None:
+def demo_seed(
+    key_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also keep an ingest key of the demo organisation in this file (readable by its owner "
+            "only), made and printed once: the simulator's in docker-compose.yml.",
+            dir_okay=False,
+        ),
+    ] = None,
+) -> None:
     """Create the demo organisation, structure and models (once; repeating changes nothing)."""
-    from service.demo import STRUCTURE, seed_demo
+    from service.demo import ORGANISATION, STRUCTURE, seed_demo
 
     settings = get_settings()
     upgrade_database(settings.database_url)
     sessions = session_factory(make_engine(settings.database_url))
     with transaction(sessions) as session:
         structure = seed_demo(session, settings, lambda step: stdout.print(f"demo: {step}"))
+    key = None
+    if key_file is not None and not _opens_the_api(sessions, key_file):
+        with transaction(sessions) as session:
+            key = create_key(session, ORGANISATION, Role.ingest)
+    if key is not None:
+        key_file.touch(mode=0o600)
+        key_file.chmod(0o600)  # the owner's only, before the key is in it
+        key_file.write_text(key + "\n")
+        stdout.print(f"demo ingest key (also in {key_file}; shown once): {key}")
     stdout.print(f"demo structure {STRUCTURE!r} is structure {structure.id}")
+
+
+def _opens_the_api(sessions: sessionmaker[Session], key_file: Path) -> bool:
+    """Whether ``key_file`` holds a key that still opens the API: a restart keeps its key, and a
+    key revoked or lost with its database is replaced."""
+    kept = key_file.read_text().strip() if key_file.is_file() else ""
+    if not kept:
+        return False
+    with transaction(sessions) as session:
+        try:
+            authenticate(session, kept)
+        except KeyRefusedError:
+            return False
+    return True

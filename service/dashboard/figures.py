@@ -20,6 +20,7 @@ from service.domain.timeline import TimelinePoint
 Figure = dict[str, Any]
 # Above this many points a trace is drawn with WebGL: SVG slows down past a few thousand.
 WEBGL_POINTS = 1500
+WEBGL_TRACE = "scattergl"
 TRAJECTORY_GRID = 65
 STATUS_COLOURS = {"healthy": "#2e7d32", "faulty": "#c62828", "unknown_fault": "#ef6c00"}
 MODE_COLOURS = ("#1f77b4", "#9467bd", "#17becf", "#8c564b", "#e377c2", "#7f7f7f")
@@ -29,7 +30,7 @@ LEGEND_BELOW = {"orientation": "h", "y": -0.2}
 
 
 def _scatter(n: int) -> str:
-    return "scattergl" if n > WEBGL_POINTS else "scatter"
+    return WEBGL_TRACE if n > WEBGL_POINTS else "scatter"
 
 
 def _ms(moment: dt.datetime) -> float:

@@ -15,7 +15,7 @@ from fastapi.templating import Jinja2Templates
 from models.errors import InputError
 from service.api.deps import SessionDep, SettingsDep
 from service.api.params import IdPath, utc
-from service.dashboard import views
+from service.dashboard import figures, views
 from service.dashboard.auth import COOKIE, HOME, LOGIN, LoginDep, safe_next, same_origin
 from service.domain.history import Status
 from service.domain.logins import close_login, open_login
@@ -44,7 +44,35 @@ templates.env.filters["number"] = _number
 def render(
     request: Request, name: str, context: dict[str, Any], code: int = status.HTTP_200_OK
 ) -> HTMLResponse:
-    return templates.TemplateResponse(request, name, context, status_code=code)
+    headers = page_headers(uses_webgl(context.get("charts", {})))
+    return templates.TemplateResponse(request, name, context, status_code=code, headers=headers)
+
+
+def page_headers(webgl: bool) -> dict[str, str]:
+    """Every page's defences. Scripts come from this site only (plotly.js, dashboard.js; the
+    figures travel as a JSON data block, which runs nothing), so injected markup cannot run code;
+    no site may frame a page (clickjacking) and no cache may keep one (they show an
+    organisation's data). Only pages with WebGL charts allow ``eval``: regl, plotly.js's WebGL
+    layer, compiles its draw calls with ``new Function``. plotly.js sets inline styles, hence
+    ``style-src 'unsafe-inline'`` (styles run no code)."""
+    script_src = "'self' 'unsafe-eval'" if webgl else "'self'"
+    policy = (
+        f"default-src 'self'; script-src {script_src}; style-src 'self' 'unsafe-inline'; "
+        "img-src 'self' data: blob:; object-src 'none'; base-uri 'none'; form-action 'self'; "
+        "frame-ancestors 'none'"
+    )
+    return {
+        "Content-Security-Policy": policy,
+        "X-Frame-Options": "DENY",
+        "Cache-Control": "no-store",
+        "Referrer-Policy": "same-origin",
+        "X-Content-Type-Options": "nosniff",
+    }
+
+
+def uses_webgl(charts: dict[str, figures.Figure]) -> bool:
+    traces = (trace for figure in charts.values() for trace in figure["data"])
+    return any(trace.get("type") == figures.WEBGL_TRACE for trace in traces)
 
 
 @router.get("/static/plotly.min.js")

@@ -44,7 +44,8 @@ REQUEST_SECONDS = Histogram(
 
 @dataclass(frozen=True)
 class DatabaseCollector:
-    """Fleet-wide counts read from the database: no organisation's name or id is in any label."""
+    """Fleet-wide counts read from the database: no label value is an organisation's name or id,
+    or anything an organisation chose."""
 
     session: Session
     queue_stats: Callable[[Session, dt.timedelta], QueueStats]
@@ -56,16 +57,15 @@ class DatabaseCollector:
             "Records stored (an identical re-upload is the same record).",
             value=records,
         )
+        # By status only, a set the code fixes: fault-mode names are chosen by each organisation,
+        # so as label values they would be unbounded and would tell any reader of the metrics
+        # what another organisation monitors.
         verdicts = CounterMetricFamily(
-            "narxwatch_verdicts",
-            "Inspections stored, by status and fault mode ('' unless faulty).",
-            labels=["status", "fault_mode"],
+            "narxwatch_verdicts", "Inspections stored, by status.", labels=["status"]
         )
-        grouped = select(Verdict.status, Verdict.fault_mode, func.count()).group_by(
-            Verdict.status, Verdict.fault_mode
-        )
-        for status, fault_mode, count in self.session.execute(grouped):
-            verdicts.add_metric([status, fault_mode or ""], count)
+        grouped = select(Verdict.status, func.count()).group_by(Verdict.status)
+        for status, count in self.session.execute(grouped):
+            verdicts.add_metric([status], count)
         yield verdicts
         yield from queue_metrics(self.queue_stats(self.session, LATENCY_WINDOW))
 
