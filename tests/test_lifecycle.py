@@ -18,6 +18,7 @@ import asyncio
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -203,6 +204,50 @@ def test_a_full_pool_is_a_503_with_retry_after(database_url: str):
         assert "busy" in response.json()["detail"]
         assert POOL_TIMEOUT <= waited < POOL_TIMEOUT + 2, f"answered after {waited:.2f} s"
         assert client.get(f"{API}/structures").status_code == 200  # connections back: served again
+
+
+def raw_post(
+    port: int, path: str, key: str, pieces: list[bytes], pause: float, declared: int | None
+) -> bytes:
+    """A POST whose body is sent in ``pieces``, ``pause`` s apart (until the server answers), with
+    a declared ``Content-Length`` or, without one, chunked; the head of the answer."""
+    length = f"Content-Length: {declared}" if declared is not None else "Transfer-Encoding: chunked"
+    head = (
+        f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {key}\r\n"
+        f"Content-Type: application/json\r\n{length}\r\n\r\n"
+    )
+    if declared is None:
+        pieces = [b"%x\r\n%s\r\n" % (len(piece), piece) for piece in pieces] + [b"0\r\n\r\n"]
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as connection:
+        connection.sendall(head.encode())
+        try:
+            for piece in pieces:
+                connection.sendall(piece)
+                time.sleep(pause)
+        except ConnectionError:  # answered and closed
+            pass
+        return connection.recv(65536).partition(b"\r\n\r\n")[0]
+
+
+@pytest.mark.parametrize("route", ["structures", "records"])
+def test_every_route_bounds_its_body_in_time_and_size(tmp_path: Path, route: str):
+    """A route whose body FastAPI parses (structures) and one that reads it itself (records):
+    a body too slow is 408, a chunked body past the limit 413 (not the 400 FastAPI's body
+    parsing makes of other errors); both close the connection, whose body is left unread."""
+    database = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    settings = Settings(database_url=database, body_timeout_seconds=1.0, max_upload_bytes=4000)
+    with LiveServer(settings) as server:
+        key = server.key(Role.admin)
+        path = f"{API}/structures"
+        if route == "records":
+            with server.client(key) as admin:
+                path = f"{API}/structures/{create_structure(admin)['id']}/records"
+        slow = raw_post(server.port, path, key, [b"{ "] * 100, 0.05, declared=1000)
+        assert slow.startswith(b"HTTP/1.1 408 "), slow
+        assert b"connection: close" in slow.lower()
+        large = raw_post(server.port, path, key, [b" " * 1000] * 5, 0.0, declared=None)
+        assert large.startswith(b"HTTP/1.1 413 "), large
+        assert b"connection: close" in large.lower()
 
 
 REFUSE_AT_COMMIT = """

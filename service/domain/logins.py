@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from service.db import writing
 from service.security import Principal, Role, authenticate
 from service.tables import ApiKey, DashboardSession, Organisation, utcnow
 
@@ -28,18 +27,16 @@ class Login:
 
 
 def open_login(session: Session, key: str, lifetime: dt.timedelta) -> str | None:
-    """A new session token for a valid key of role viewer or higher; None for any other key. Commits."""
+    """A new session token for a valid key of role viewer or higher; None for any other key."""
     principal = authenticate(session, key.strip())
     if principal is None or principal.role < Role.viewer:
         return None
     token = secrets.token_urlsafe(32)
     now = utcnow()
-    with writing(session):
-        session.execute(delete(DashboardSession).where(DashboardSession.expires_at <= now))
-        session.add(
-            DashboardSession(token_hash=_hash(token), api_key_id=principal.key_id, expires_at=now + lifetime)
-        )
-        session.commit()
+    session.execute(delete(DashboardSession).where(DashboardSession.expires_at <= now))
+    session.add(
+        DashboardSession(token_hash=_hash(token), api_key_id=principal.key_id, expires_at=now + lifetime)
+    )
     return token
 
 
@@ -58,10 +55,8 @@ def find_login(session: Session, token: str) -> Login | None:
 
 
 def close_login(session: Session, token: str) -> None:
-    """End a login (an unknown token is already ended). Commits."""
-    with writing(session):
-        session.execute(delete(DashboardSession).where(DashboardSession.token_hash == _hash(token)))
-        session.commit()
+    """End a login (an unknown token is already ended)."""
+    session.execute(delete(DashboardSession).where(DashboardSession.token_hash == _hash(token)))
 
 
 def _hash(token: str) -> str:

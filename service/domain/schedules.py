@@ -15,7 +15,6 @@ from croniter import croniter
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from service.db import writing
 from service.domain.errors import NotFoundError
 from service.domain.structures import get_structure
 from service.schemas import ScheduleCreate
@@ -52,9 +51,8 @@ def create_schedule(
         cron=body.cron,
         next_run_at=first,
     )
-    with writing(session):
-        session.add(schedule)
-        session.commit()
+    session.add(schedule)
+    session.flush()
     return schedule
 
 
@@ -69,9 +67,7 @@ def delete_schedule(session: Session, principal: Principal, structure_id: int, s
     schedule = session.get(Schedule, schedule_id)
     if schedule is None or schedule.structure_id != structure.id:
         raise NotFoundError("schedule", schedule_id)
-    with writing(session):
-        session.delete(schedule)
-        session.commit()
+    session.delete(schedule)
 
 
 def sweep(session: Session, defer: Defer, now: dt.datetime | None = None) -> int:
@@ -90,9 +86,7 @@ def sweep(session: Session, defer: Defer, now: dt.datetime | None = None) -> int
             .where(Schedule.id == schedule_id, Schedule.next_run_at == due_at)
             .values(next_run_at=following(cron, interval_seconds, due_at, now), last_run_at=now)
         )
-        with writing(session):
-            if session.execute(claim).rowcount == 1:  # else another sweeper has just moved it on
-                defer(session, RUN_SCHEDULE, schedule_id=schedule_id, due_at=due_at.isoformat())
-                deferred += 1
-            session.commit()
+        if session.execute(claim).rowcount == 1:  # else another sweeper has just moved it on
+            defer(session, RUN_SCHEDULE, schedule_id=schedule_id, due_at=due_at.isoformat())
+            deferred += 1
     return deferred

@@ -58,6 +58,7 @@ def _run(context: JobContext, task: str, **args: Any) -> None:
     sessions: sessionmaker[Session] = context.additional_context["sessions"]
     with sessions() as session:
         TASKS[task](session, context.additional_context["settings"], **args)
+        session.commit()
 
 
 @app.task(name=INSPECT_RECORD, pass_context=True, retry=RETRY)
@@ -76,6 +77,7 @@ def sweep_schedules(context: JobContext, timestamp: int) -> None:
     sessions: sessionmaker[Session] = context.additional_context["sessions"]
     with sessions() as session:
         schedules.sweep(session, defer, dt.datetime.fromtimestamp(timestamp, dt.UTC))
+        session.commit()
 
 
 @app.periodic(cron=SWEEP_CRON, periodic_id="stalled")

@@ -168,7 +168,9 @@ class EmbeddedBackend:
     def sweep(self) -> int:
         """Queue a job for each schedule due now; the number queued."""
         with self._sessions() as session:
-            return schedules.sweep(session, defer)
+            deferred = schedules.sweep(session, defer)
+            session.commit()
+            return deferred
 
     def run_due(self) -> int:
         """Run every job due now; the number run."""

@@ -48,6 +48,7 @@ def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at:
         return
     for record_id in _records_to_inspect(session, schedule.action, structure.id):
         inspect_record(session, settings, record_id)
+        session.commit()  # each verdict on its own: SQLite's writer gate is not held for the next one
     log.info(
         "schedule %s (%s) ran for its time %s",
         schedule_id,
