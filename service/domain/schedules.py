@@ -71,14 +71,14 @@ def delete_schedule(session: Session, principal: Principal, structure_id: int, s
 
 
 def sweep(session: Session, defer: Defer, now: dt.datetime | None = None) -> int:
-    """Defer one ``run_schedule`` job for each schedule due at ``now``; the number deferred.
+    """Defer one ``run_schedule`` job for each schedule due at ``now``, in the caller's
+    transaction; the number deferred.
 
     Reads first: a sweep that finds nothing due takes no write lock.
     """
     now = now or utcnow()
     columns = (Schedule.id, Schedule.cron, Schedule.interval_seconds, Schedule.next_run_at)
     due = session.execute(select(*columns).where(Schedule.next_run_at <= now).order_by(Schedule.id)).all()
-    session.rollback()
     deferred = 0
     for schedule_id, cron, interval_seconds, due_at in due:
         claim = (
