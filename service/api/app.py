@@ -111,12 +111,18 @@ def _add_error_handlers(app: FastAPI, settings: Settings) -> None:
     async def conflict(request: Request, exc: ConflictError) -> Response:
         return answer(request, status.HTTP_409_CONFLICT, str(exc))
 
-    # The client may retry once as long as the pool was waited for has passed.
+    # Retry after as long as a request may wait for the pool: the connections in use turn over.
     retry_after = {"Retry-After": str(math.ceil(settings.pool_timeout_seconds))}
 
     @app.exception_handler(OperationalError)
     async def database_unavailable(request: Request, exc: OperationalError) -> Response:
         message = "the database is unavailable; retry shortly"
+        return answer(request, status.HTTP_503_SERVICE_UNAVAILABLE, message, retry_after)
+
+    @app.exception_handler(PoolTimeoutError)
+    async def database_busy(request: Request, exc: PoolTimeoutError) -> Response:
+        # Every pooled connection stayed in use for NARXWATCH_POOL_TIMEOUT_SECONDS: overload, not a fault.
+        message = "the service is busy (no database connection came free in time); retry shortly"
         return answer(request, status.HTTP_503_SERVICE_UNAVAILABLE, message, retry_after)
 
     @app.exception_handler(Exception)
@@ -125,9 +131,3 @@ def _add_error_handlers(app: FastAPI, settings: Settings) -> None:
         # saying so keeps a keep-alive client from sending its next request into a closed socket.
         message = "internal error (logged on the server); the request's changes were rolled back"
         return answer(request, status.HTTP_500_INTERNAL_SERVER_ERROR, message, {"Connection": "close"})
-
-    @app.exception_handler(PoolTimeoutError)
-    async def database_busy(request: Request, exc: PoolTimeoutError) -> Response:
-        # Every pooled connection stayed in use for NARXWATCH_POOL_TIMEOUT_SECONDS: overload, not a fault.
-        message = "the service is busy (no database connection came free in time); retry shortly"
-        return answer(request, status.HTTP_503_SERVICE_UNAVAILABLE, message, retry_after)
