@@ -6,6 +6,8 @@ and the SQLite writer gate taken by the engine.
   while another organisation's client times ``GET /structures``. The slow clients must get 408
   and the other organisation no 5xx and a p95 of at most a second: a request that holds a pooled
   connection while its body trickles in starves every other.
+- On a route whose body FastAPI parses and on one that reads it itself, a body too slow is 408
+  and a chunked body past the limit 413.
 - A full connection pool is a 503 with ``Retry-After`` after ``NARXWATCH_POOL_TIMEOUT_SECONDS``.
 - A commit that fails is never answered 2xx: the request's session commits before the response
   is sent (a deferred PostgreSQL constraint trigger makes the COMMIT itself fail).
