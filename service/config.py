@@ -34,6 +34,14 @@ class Settings(BaseSettings):
 
     database_url: str = f"sqlite:///{DEFAULT_DATABASE}"
     max_upload_bytes: int = Field(16 * 1024 * 1024, gt=0)
+    # The whole body of a request must arrive within this many seconds of its headers, or the
+    # request is answered 408: a total, not a per-read bound, since a client trickling 2 bytes
+    # every few seconds never trips a per-read one. 30 s carries a typical record (≤ 2 MB) over
+    # a 1 Mbit/s link and the largest allowed body over 5 Mbit/s.
+    body_timeout_seconds: float = Field(30.0, gt=0)
+    # The longest a request waits for a database connection when all are in use; then it is
+    # answered 503 with Retry-After. Well under a client's patience (typically 10–30 s).
+    pool_timeout_seconds: float = Field(5.0, gt=0)
     alpha: float = Field(0.05, gt=0, lt=0.5)
     lags: int = Field(40, ge=2)
     upgrade_on_start: bool = True

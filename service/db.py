@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import fcntl
+import sqlite3
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.dialects import postgresql, sqlite
-from sqlalchemy.engine import make_url
+from sqlalchemy.engine import URL, make_url
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 
 
@@ -22,17 +23,26 @@ class Base(DeclarativeBase):
 _INSERTS = {"sqlite": sqlite.insert, "postgresql": postgresql.insert}
 
 
-def make_engine(url: str) -> Engine:
-    """An engine for ``url``; a SQLite file gets its folder, WAL journaling and foreign keys."""
+def make_engine(url: str, pool_timeout: float = 30.0) -> Engine:
+    """An engine for ``url``; a SQLite file gets its folder, WAL journaling, foreign keys and the
+    writer gate. A request for a connection waits at most ``pool_timeout`` seconds for the pool
+    (then ``sqlalchemy.exc.TimeoutError``); the service passes NARXWATCH_POOL_TIMEOUT_SECONDS."""
     parsed = make_url(url)
     if parsed.get_backend_name() != "sqlite":
-        return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
-    if parsed.database and parsed.database != ":memory:":
-        Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
-    engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+        return create_engine(
+            url, pool_pre_ping=True, pool_size=10, max_overflow=20, pool_timeout=pool_timeout
+        )
+    connect_args = {"check_same_thread": False, "timeout": 30, "factory": GatedConnection}
+    gate = writer_gate(parsed)
+    if gate is None:  # in memory: one connection, no pool to wait for
+        engine = create_engine(url, connect_args=connect_args)
+    else:
+        Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)  # type: ignore[arg-type]
+        engine = create_engine(url, connect_args=connect_args, pool_timeout=pool_timeout)
 
     @event.listens_for(engine, "connect")
     def _configure(connection, _record) -> None:  # type: ignore[no-untyped-def]
+        connection.gate = gate
         cursor = connection.cursor()
         # WAL lets readers proceed during a write; NORMAL sync is durable across process
         # crashes (fsync at checkpoints), which is what a monitoring record store needs.
@@ -68,37 +78,125 @@ class WriterGate:
     SQLite admits one writer; the others retry on its busy handler, which sleeps 1, 2, 5, 10 …
     ms between tries, so under load a writer often sleeps past the moment the lock came free.
     Writers that queue here instead (a thread lock, then an advisory ``flock`` on a file next
-    to the database) are woken as soon as the previous one committed.
+    to the database) are woken as soon as the previous one committed. The engine takes it for
+    every write transaction (``GatedConnection``); SQLite's own lock still guarantees correctness.
     """
 
     def __init__(self, database: Path) -> None:
         self._threads = threading.Lock()
         self._path = database.with_name(database.name + ".writer")
+        self._handle: IO[str] | None = None
+
+    def acquire(self) -> None:
+        self._threads.acquire()
+        try:
+            handle = self._path.open("a")
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        except BaseException:
+            self._threads.release()
+            raise
+        self._handle = handle
+
+    def release(self) -> None:
+        """Let the next writer in; any thread may release what another acquired."""
+        handle, self._handle = self._handle, None
+        assert handle is not None, "the writer gate was released without being held"
+        handle.close()  # releases the flock
+        self._threads.release()
 
     @contextmanager
     def held(self) -> Iterator[None]:
-        with self._threads, self._path.open("a") as handle:
-            fcntl.flock(handle, fcntl.LOCK_EX)  # released when the file closes
+        self.acquire()
+        try:
             yield
+        finally:
+            self.release()
 
 
 _GATES: dict[str, WriterGate] = {}
 
 
-def writer_gate(session: Session) -> WriterGate | None:
-    """The gate of the session's SQLite file, or None where the database has no single-writer lock."""
-    url = session.get_bind().url
-    if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
+def writer_gate(url: str | URL) -> WriterGate | None:
+    """The gate of a SQLite file (one per file in a process), or None where the database has no
+    single-writer lock."""
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite" or not parsed.database or parsed.database == ":memory:":
         return None
-    return _GATES.setdefault(url.database, WriterGate(Path(url.database).resolve()))
+    path = Path(parsed.database).resolve()
+    return _GATES.setdefault(str(path), WriterGate(path))
+
+
+# pysqlite opens a transaction right before the first of these statements (and no other); it is
+# SQLite's write transaction, so that is when the gate is taken.
+_WRITES = ("INSERT", "UPDATE", "DELETE", "REPLACE")
+
+
+class GatedConnection(sqlite3.Connection):
+    """A pysqlite connection that holds its file's writer gate for each of its write transactions.
+
+    The gate is taken before the statement that begins a write transaction and given back once
+    that transaction has ended (commit, rollback, or the connection closed), whichever code
+    wrote: requests, jobs, the command line and migrations alike. Reads never wait for it.
+    """
+
+    gate: WriterGate | None = None
+    _holds_gate = False
+
+    def cursor(self, factory: type[sqlite3.Cursor] | None = None) -> sqlite3.Cursor:  # type: ignore[override]
+        return super().cursor(factory or _GatedCursor)
+
+    def take_gate(self) -> None:
+        if self.gate is not None and not self._holds_gate:
+            self.gate.acquire()
+            self._holds_gate = True
+
+    def commit(self) -> None:
+        try:
+            super().commit()
+        finally:  # a failed COMMIT leaves SQLite's own lock in charge until the rollback
+            self._give_gate_back()
+
+    def rollback(self) -> None:
+        try:
+            super().rollback()
+        finally:
+            self._give_gate_back()
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self._give_gate_back()
+
+    def _give_gate_back(self) -> None:
+        if self._holds_gate:
+            self._holds_gate = False
+            assert self.gate is not None
+            self.gate.release()
+
+
+class _GatedCursor(sqlite3.Cursor):
+    connection: GatedConnection
+
+    def execute(self, sql: str, parameters: Any = (), /) -> sqlite3.Cursor:  # type: ignore[override]
+        if sql.lstrip()[:7].upper().startswith(_WRITES):
+            self.connection.take_gate()
+        return super().execute(sql, parameters)
+
+    def executemany(self, sql: str, parameters: Any, /) -> sqlite3.Cursor:  # type: ignore[override]
+        if sql.lstrip()[:7].upper().startswith(_WRITES):
+            self.connection.take_gate()
+        return super().executemany(sql, parameters)
 
 
 @contextmanager
 def writing(session: Session) -> Iterator[None]:
-    """Hold the writer gate, if the database has one, around a session's writes and their commit."""
-    gate = writer_gate(session)
-    with gate.held() if gate is not None else nullcontext():
-        yield
+    """Take the writer gate for the session's transaction now, before its first write (the
+    engine takes it at the first write anyway, and gives it back when the transaction ends)."""
+    driver = session.connection().connection.driver_connection
+    if isinstance(driver, GatedConnection):
+        driver.take_gate()
+    yield
 
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:

@@ -19,7 +19,6 @@ from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
-from service.db import writing
 from service.tables import ApiKey, Organisation, utcnow
 
 KEY_PREFIX = "nw"
@@ -112,7 +111,7 @@ def _record_use(session: Session, key_id: int, now: dt.datetime) -> None:
     may run long or be rolled back. The compare on the old value lets one of several requests
     arriving together write it."""
     stale = now - USE_RECORDED_EVERY
-    with Session(session.get_bind()) as own, writing(own):
+    with Session(session.get_bind()) as own:
         own.execute(
             update(ApiKey)
             .where(ApiKey.id == key_id, or_(ApiKey.last_used_at.is_(None), ApiKey.last_used_at <= stale))

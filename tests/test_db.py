@@ -8,9 +8,6 @@ import textwrap
 import threading
 from pathlib import Path
 
-from sqlalchemy import create_engine
-from sqlalchemy.orm import Session
-
 from service.db import WriterGate, make_engine, writer_gate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,11 +79,11 @@ def test_threads_of_one_process_take_the_gate_in_turn(tmp_path: Path) -> None:
 
 
 def test_only_a_sqlite_file_has_a_gate(tmp_path: Path) -> None:
-    file_engine = make_engine(f"sqlite:///{tmp_path / 'a.db'}")
-    with Session(file_engine) as session:
-        gate = writer_gate(session)
-        assert gate is not None
-        assert writer_gate(session) is gate  # one per database file in a process
+    gate = writer_gate(f"sqlite:///{tmp_path / 'a.db'}")
+    assert gate is not None
+    assert writer_gate(f"sqlite:///{tmp_path / 'a.db'}") is gate  # one per database file in a process
+    engine = make_engine(f"sqlite:///{tmp_path / 'a.db'}")
+    with engine.connect() as connection:
+        assert connection.connection.driver_connection.gate is gate  # the engine's connections take it
     for url in ("sqlite://", "sqlite:///:memory:", "postgresql+psycopg://monitor@localhost/narxwatch"):
-        with Session(create_engine(url)) as session:
-            assert writer_gate(session) is None, url
+        assert writer_gate(url) is None, url

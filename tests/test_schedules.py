@@ -93,9 +93,15 @@ def test_a_due_time_is_deferred_once_however_often_it_is_swept(database):
     _, sessions = database
     later = T0 + dt.timedelta(seconds=1)
     with sessions() as session:
-        assert schedules.sweep(session, embedded.defer, now=T0 - dt.timedelta(seconds=1)) == 0
-        assert schedules.sweep(session, embedded.defer, now=later) == 1
-        assert schedules.sweep(session, embedded.defer, now=later) == 0
+
+        def sweep(now: dt.datetime) -> int:  # as the job runners do: each sweep committed
+            deferred = schedules.sweep(session, embedded.defer, now=now)
+            session.commit()
+            return deferred
+
+        assert sweep(T0 - dt.timedelta(seconds=1)) == 0
+        assert sweep(later) == 1
+        assert sweep(later) == 0
         schedule = session.get(Schedule, 1)
         assert schedule is not None
         assert schedule.next_run_at == T0 + dt.timedelta(seconds=600) and schedule.last_run_at == later

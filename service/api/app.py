@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+import math
+from collections.abc import AsyncIterator, Mapping
 from contextlib import asynccontextmanager
 
 from asgi_correlation_id import CorrelationIdMiddleware
@@ -13,6 +14,7 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from swagger_ui_bundle import swagger_ui_path
 
@@ -54,7 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,  # ReDoc has no packaged build; Swagger UI covers the same ground
     )
     app.state.settings = settings
-    app.state.engine = make_engine(settings.database_url)
+    app.state.engine = make_engine(settings.database_url, settings.pool_timeout_seconds)
     app.state.sessions = session_factory(app.state.engine)
     app.state.jobs = job_backend(settings, app.state.sessions, in_service=True)
     app.include_router(health.router)
@@ -72,8 +74,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router, prefix=API_PREFIX)
     dashboard.install(app)
     _add_docs(app)
-    _add_error_handlers(app)
-    app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
+    _add_error_handlers(app, settings)
+    app.add_middleware(
+        BodyLimitMiddleware, limit=settings.max_upload_bytes, timeout=settings.body_timeout_seconds
+    )
     # The last added runs first: a request gets its id, then is timed and logged whole.
     app.add_middleware(ObserveRequests)
     app.add_middleware(CorrelationIdMiddleware, header_name=REQUEST_ID_HEADER, validator=is_sane_request_id)
@@ -100,11 +104,15 @@ def _add_docs(app: FastAPI) -> None:
         return RedirectResponse(dashboard.HOME, status.HTTP_303_SEE_OTHER)
 
 
-def _add_error_handlers(app: FastAPI) -> None:
-    def answer(request: Request, code: int, message: str) -> Response:
+def _add_error_handlers(app: FastAPI, settings: Settings) -> None:
+    def answer(
+        request: Request, code: int, message: str, headers: Mapping[str, str] | None = None
+    ) -> Response:
         if dashboard.is_dashboard(request):
-            return dashboard.error_page(request, code, message)
-        return JSONResponse({"detail": message}, status_code=code)
+            response = dashboard.error_page(request, code, message)
+            response.headers.update(headers or {})
+            return response
+        return JSONResponse({"detail": message}, status_code=code, headers=headers)
 
     @app.exception_handler(RecordTooLargeError)
     async def too_large(request: Request, exc: RecordTooLargeError) -> Response:
@@ -127,7 +135,7 @@ def _add_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         if dashboard.is_dashboard(request):
-            return dashboard.error_page(request, exc.status_code, str(exc.detail))
+            return answer(request, exc.status_code, str(exc.detail), exc.headers)
         return await http_exception_handler(request, exc)
 
     @app.exception_handler(NotFoundError)
@@ -138,8 +146,23 @@ def _add_error_handlers(app: FastAPI) -> None:
     async def conflict(request: Request, exc: ConflictError) -> Response:
         return answer(request, status.HTTP_409_CONFLICT, str(exc))
 
+    # Retry after as long as a request may wait for the pool: the connections in use turn over.
+    retry_after = {"Retry-After": str(math.ceil(settings.pool_timeout_seconds))}
+
     @app.exception_handler(OperationalError)
     async def database_unavailable(request: Request, exc: OperationalError) -> Response:
-        return answer(
-            request, status.HTTP_503_SERVICE_UNAVAILABLE, "the database is unavailable; retry shortly"
-        )
+        message = "the database is unavailable; retry shortly"
+        return answer(request, status.HTTP_503_SERVICE_UNAVAILABLE, message, retry_after)
+
+    @app.exception_handler(PoolTimeoutError)
+    async def database_busy(request: Request, exc: PoolTimeoutError) -> Response:
+        # Every pooled connection stayed in use for NARXWATCH_POOL_TIMEOUT_SECONDS: overload, not a fault.
+        message = "the service is busy (no database connection came free in time); retry shortly"
+        return answer(request, status.HTTP_503_SERVICE_UNAVAILABLE, message, retry_after)
+
+    @app.exception_handler(Exception)
+    async def internal_error(request: Request, exc: Exception) -> Response:
+        # uvicorn closes the connection after an unhandled error (logged with its traceback):
+        # saying so keeps a keep-alive client from sending its next request into a closed socket.
+        message = "internal error (logged on the server); the request's changes were rolled back"
+        return answer(request, status.HTTP_500_INTERNAL_SERVER_ERROR, message, {"Connection": "close"})

@@ -11,6 +11,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from service.config import Settings
+from service.db import transaction
 from service.security import KeyRefusedError, Principal, Role, authenticate
 
 log = logging.getLogger("narxwatch.auth")
@@ -23,22 +24,30 @@ async def get_settings(request: Request) -> Settings:
 
 
 def get_session(request: Request) -> Iterator[Session]:
-    """One session per request; handlers commit, anything uncommitted is rolled back."""
+    """The request's unit of work: committed once when the endpoint returns, rolled back (on
+    close) if it raises. Routers and domain code only flush.
+
+    Declared with ``scope="function"`` (``SessionDep``): FastAPI then runs the code after
+    ``yield`` before it sends the response, so a commit that fails is answered as an error, never
+    as the success the endpoint had prepared. The default scope would commit after the response.
+    """
     with request.app.state.sessions() as session:
         yield session
+        session.commit()
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-SessionDep = Annotated[Session, Depends(get_session)]
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 
 def require(role: Role) -> Callable[..., Principal]:
     """A dependency admitting keys of ``role`` or a more powerful one."""
 
     def dependency(
-        session: SessionDep,
-        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+        request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
     ) -> Principal:
+        """The key is checked in a short session of its own, not the request's: a request that
+        then awaits its body (an upload) holds no pooled connection while the body arrives."""
         if credentials is None:
             raise HTTPException(
                 status.HTTP_401_UNAUTHORIZED,
@@ -46,7 +55,8 @@ def require(role: Role) -> Callable[..., Principal]:
                 headers={"WWW-Authenticate": "Bearer"},
             )
         try:
-            principal = authenticate(session, credentials.credentials)
+            with transaction(request.app.state.sessions) as session:
+                principal = authenticate(session, credentials.credentials)
         except KeyRefusedError as refused:
             # A trace of refusals (a guessing client shows up), never the key nor any part of it.
             log.warning("refused an API key: %s", refused)

@@ -1,68 +1,86 @@
-"""A bound on every request body, enforced before any route reads it.
+"""Bounds on every request body, in size and in time, enforced before any route reads it.
 
 A declared ``Content-Length`` over the limit is answered 413 at once; a body without one is
 counted as it arrives and refused as soon as it passes the limit, so no request, on any route
-and whether authenticated or not, can make the server hold more than the limit.
+and whether authenticated or not, can make the server hold more than the limit. The whole body
+must also arrive within ``body_timeout`` seconds of the request's headers, or it is answered 408:
+a client trickling its body cannot keep a request (and what it holds) alive for long.
+
+Both refusals are raised from ``receive`` as HTTP exceptions, where the route reads the body:
+FastAPI passes those through its body parsing (any other error there becomes a 400), and the
+app's handler answers them like every other error, closing the connection whose body is unread.
 """
 
 from __future__ import annotations
 
 import json
 
+import anyio
+from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+CLOSE = {"Connection": "close"}  # the unread rest of the body makes the connection unusable
 
-class BodyTooLargeError(Exception):
-    pass
+
+class BodyTooLargeError(HTTPException):
+    def __init__(self, limit: int) -> None:
+        detail = f"the request body exceeds the limit of {limit} bytes (NARXWATCH_MAX_UPLOAD_BYTES)"
+        super().__init__(413, detail, headers=CLOSE)
+
+
+class BodyTimeoutError(HTTPException):
+    def __init__(self, seconds: float) -> None:
+        detail = (
+            f"the request body did not arrive within {seconds:g} s (NARXWATCH_BODY_TIMEOUT_SECONDS); "
+            "send it faster or in smaller parts"
+        )
+        super().__init__(408, detail, headers=CLOSE)
 
 
 class BodyLimitMiddleware:
-    def __init__(self, app: ASGIApp, limit: int) -> None:
+    def __init__(self, app: ASGIApp, limit: int, timeout: float) -> None:
         self.app = app
         self.limit = limit
+        self.timeout = timeout
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > self.limit):
-            await self._refuse(send, declared.isdigit())
+        if declared is not None and not declared.isdigit():
+            await _answer(send, HTTPException(400, "the Content-Length header is not a number", CLOSE))
             return
+        if declared is not None and int(declared) > self.limit:
+            await _answer(send, BodyTooLargeError(self.limit))
+            return
+        deadline = anyio.current_time() + self.timeout
         received = 0
-        started = False
+        complete = False
 
-        async def counting_receive() -> Message:
-            nonlocal received
-            message = await receive()
+        async def bounded_receive() -> Message:
+            nonlocal received, complete
+            if complete:  # after the body: a wait for the client's disconnect, unbounded
+                return await receive()
+            try:
+                with anyio.fail_after(deadline - anyio.current_time()):
+                    message = await receive()
+            except TimeoutError:
+                raise BodyTimeoutError(self.timeout) from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > self.limit:
-                    raise BodyTooLargeError
+                    raise BodyTooLargeError(self.limit)
+                complete = not message.get("more_body", False)
             return message
 
-        async def tracking_send(message: Message) -> None:
-            nonlocal started
-            started = started or message["type"] == "http.response.start"
-            await send(message)
+        await self.app(scope, bounded_receive, send)
 
-        try:
-            await self.app(scope, counting_receive, tracking_send)
-        except BodyTooLargeError:
-            if started:
-                raise
-            await self._refuse(send, True)
 
-    async def _refuse(self, send: Send, too_large: bool) -> None:
-        status = 413 if too_large else 400
-        detail = (
-            f"the request body exceeds the limit of {self.limit} bytes (NARXWATCH_MAX_UPLOAD_BYTES)"
-            if too_large
-            else "the Content-Length header is not a number"
-        )
-        body = json.dumps({"detail": detail}).encode()
-        headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-        # The unread rest of the body makes the connection unusable: close it.
-        headers.append((b"connection", b"close"))
-        await send({"type": "http.response.start", "status": status, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
+async def _answer(send: Send, refusal: HTTPException) -> None:
+    """Answer before the app is called, from the declared headers alone."""
+    body = json.dumps({"detail": refusal.detail}).encode()
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    headers += [(name.lower().encode(), value.encode()) for name, value in (refusal.headers or {}).items()]
+    await send({"type": "http.response.start", "status": refusal.status_code, "headers": headers})
+    await send({"type": "http.response.body", "body": body})

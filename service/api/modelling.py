@@ -33,7 +33,6 @@ def train_baseline(
 ) -> ModelOut:
     """Identify the healthy structure's NARX from stored records (default: SPEC §2's 8 terms)."""
     version = modelling.train_baseline(session, principal, structure_id, body)
-    session.commit()
     return model_out(version)
 
 
@@ -43,7 +42,6 @@ def train_fault_mode(
 ) -> ModelOut:
     """Identify a fault mode as a functional NARX; the new version becomes the active one."""
     version = modelling.train_fault_mode(session, principal, structure_id, body)
-    session.commit()
     return model_out(version)
 
 
@@ -56,5 +54,4 @@ def list_models(structure_id: IdPath, principal: Viewer, session: SessionDep) ->
 def activate_model(structure_id: IdPath, model_id: IdPath, principal: Admin, session: SessionDep) -> ModelOut:
     """Make this version the active one of its name."""
     version = modelling.activate_model(session, principal, structure_id, model_id)
-    session.commit()
     return model_out(version)

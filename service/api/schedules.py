@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response, status
+from fastapi import APIRouter, BackgroundTasks, Request, Response, status
 
 from service.api.deps import Admin, SessionDep, Viewer
 from service.api.params import IdPath
@@ -14,12 +14,17 @@ router = APIRouter(prefix="/structures/{structure_id}/schedules", tags=["schedul
 
 @router.post("", status_code=status.HTTP_201_CREATED)
 def create_schedule(
-    request: Request, structure_id: IdPath, body: ScheduleCreate, principal: Admin, session: SessionDep
+    request: Request,
+    background: BackgroundTasks,
+    structure_id: IdPath,
+    body: ScheduleCreate,
+    principal: Admin,
+    session: SessionDep,
 ) -> ScheduleOut:
     """Run an action on the structure's records every ``interval_seconds`` or on a ``cron``
     expression (UTC); each due time runs once, however many workers run."""
     schedule = schedules.create_schedule(session, principal, structure_id, body)
-    request.app.state.jobs.wake()
+    background.add_task(request.app.state.jobs.wake)  # after the commit: the sweep then sees it
     return ScheduleOut.model_validate(schedule, from_attributes=True)
 
 

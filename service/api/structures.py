@@ -25,7 +25,6 @@ router = APIRouter(prefix="/structures", tags=["structures"])
 @router.post("", status_code=status.HTTP_201_CREATED)
 def create_structure(body: StructureCreate, principal: Admin, session: SessionDep) -> StructureOut:
     structure = structures.create_structure(session, principal, body)
-    session.commit()
     return StructureOut.model_validate(structure, from_attributes=True)
 
 

@@ -12,7 +12,7 @@ from models.fnarx import FNARX
 from models.inspection import ModeResult, inspect
 from models.inspection import Verdict as InspectionVerdict
 from service.config import Settings
-from service.db import insert_unless_exists, writing
+from service.db import insert_unless_exists
 from service.domain.errors import ConflictError
 from service.domain.modelling import active_fault_modes
 from service.domain.records import signals
@@ -62,15 +62,13 @@ def models_to_inspect_with(session: Session, structure: Structure) -> list[tuple
 
 
 def inspect_record(session: Session, record: Record, structure: Structure, settings: Settings) -> Verdict:
-    """The verdict of a stored record under the structure's active fault-mode models; commits.
+    """The verdict of a stored record under the structure's active fault-mode models.
 
-    Computed first, then stored under the writer gate (see ``service.db.writing``).
+    Computed first, then stored: the write transaction (and SQLite's writer gate) begins only
+    with the inserts.
     """
     evaluation = evaluate(session, structure, settings, *signals(record))
-    with writing(session):
-        verdict = store_verdict(session, record, structure, evaluation)
-        session.commit()
-    return verdict
+    return store_verdict(session, record, structure, evaluation)
 
 
 def store_verdict(

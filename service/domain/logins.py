@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from service.db import writing
 from service.security import KeyRefusedError, Principal, Role, authenticate
 from service.tables import ApiKey, DashboardSession, Organisation, utcnow
 
@@ -29,7 +28,7 @@ class Login:
 
 
 def open_login(session: Session, key: str, lifetime: dt.timedelta) -> str | None:
-    """A new session token for a valid key of role viewer or higher; None for any other key. Commits."""
+    """A new session token for a valid key of role viewer or higher; None for any other key."""
     try:
         principal = authenticate(session, key.strip())
     except KeyRefusedError:
@@ -38,12 +37,10 @@ def open_login(session: Session, key: str, lifetime: dt.timedelta) -> str | None
         return None
     token = secrets.token_urlsafe(32)
     now = utcnow()
-    with writing(session):
-        session.execute(delete(DashboardSession).where(DashboardSession.expires_at <= now))
-        session.add(
-            DashboardSession(token_hash=_hash(token), api_key_id=principal.key_id, expires_at=now + lifetime)
-        )
-        session.commit()
+    session.execute(delete(DashboardSession).where(DashboardSession.expires_at <= now))
+    session.add(
+        DashboardSession(token_hash=_hash(token), api_key_id=principal.key_id, expires_at=now + lifetime)
+    )
     return token
 
 
@@ -64,10 +61,8 @@ def find_login(session: Session, token: str) -> Login | None:
 
 
 def close_login(session: Session, token: str) -> None:
-    """End a login (an unknown token is already ended). Commits."""
-    with writing(session):
-        session.execute(delete(DashboardSession).where(DashboardSession.token_hash == _hash(token)))
-        session.commit()
+    """End a login (an unknown token is already ended)."""
+    session.execute(delete(DashboardSession).where(DashboardSession.token_hash == _hash(token)))
 
 
 def end_logins(session: Session, key_id: int) -> None:

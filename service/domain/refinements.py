@@ -8,7 +8,6 @@ from sqlalchemy.orm import Session
 from models.errors import InputError
 from models.narx import NARX
 from models.refinement import refine_record
-from service.db import writing
 from service.domain.errors import NotFoundError
 from service.domain.modelling import new_version
 from service.domain.records import get_record, signals
@@ -22,7 +21,7 @@ def create_refinement(
     session: Session, principal: Principal, structure_id: int, body: RefinementCreate
 ) -> Refinement:
     """Refine, then store the report and, if an effect was added, the refined model as a new
-    inactive version of the base model's name; commits.
+    inactive version of the base model's name.
 
     The loop runs before the first write, so the write lock is held only for the inserts.
     """
@@ -53,41 +52,39 @@ def create_refinement(
             "alpha": body.alpha,
         }
     }
-    with writing(session):
-        refined = None
-        if report.refinement.effects_added:
-            model = report.refinement.refined
-            training = {
-                "refined_from": base.id,
-                "record_ids": [record.id],
-                "estimation": list(estimation),
-                "effects_added": [effect.name for effect in report.refinement.effects_added],
-                "terms": model.term_names,
-                # The moving-average noise model, if one was added: the stored model is its
-                # process part, which the inspection chain and free runs use.
-                "noise_ma": report.refinement.noise.tolist(),
-            }
-            statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
-            refined = new_version(
-                session,
-                structure,
-                base.kind,
-                base.name,
-                model.to_document(),
-                training,
-                statistics,
-                active=False,
-            )
-        refinement = Refinement(
-            structure_id=structure.id,
-            record_id=record.id,
-            base_model=base,
-            refined_model=refined,
-            report=document,
+    refined = None
+    if report.refinement.effects_added:
+        model = report.refinement.refined
+        training = {
+            "refined_from": base.id,
+            "record_ids": [record.id],
+            "estimation": list(estimation),
+            "effects_added": [effect.name for effect in report.refinement.effects_added],
+            "terms": model.term_names,
+            # The moving-average noise model, if one was added: the stored model is its
+            # process part, which the inspection chain and free runs use.
+            "noise_ma": report.refinement.noise.tolist(),
+        }
+        statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
+        refined = new_version(
+            session,
+            structure,
+            base.kind,
+            base.name,
+            model.to_document(),
+            training,
+            statistics,
+            active=False,
         )
-        session.add(refinement)
-        session.flush()
-        session.commit()
+    refinement = Refinement(
+        structure_id=structure.id,
+        record_id=record.id,
+        base_model=base,
+        refined_model=refined,
+        report=document,
+    )
+    session.add(refinement)
+    session.flush()
     return refinement
 
 

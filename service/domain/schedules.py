@@ -19,7 +19,6 @@ from croniter import croniter
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from service.db import writing
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.modelling import active_fault_modes
 from service.domain.structures import get_structure
@@ -77,9 +76,8 @@ def create_schedule(
         cron=body.cron,
         next_run_at=first,
     )
-    with writing(session):
-        session.add(schedule)
-        session.commit()
+    session.add(schedule)
+    session.flush()
     return schedule
 
 
@@ -94,13 +92,12 @@ def delete_schedule(session: Session, principal: Principal, structure_id: int, s
     schedule = session.get(Schedule, schedule_id)
     if schedule is None or schedule.structure_id != structure.id:
         raise NotFoundError("schedule", schedule_id)
-    with writing(session):
-        session.delete(schedule)
-        session.commit()
+    session.delete(schedule)
 
 
 def sweep(session: Session, defer: Defer, now: dt.datetime | None = None) -> int:
-    """Defer one ``run_schedule`` job for each schedule due at ``now``; the number deferred.
+    """Defer one ``run_schedule`` job for each schedule due at ``now``, in the caller's
+    transaction; the number deferred.
 
     Reads first: a sweep that finds nothing due takes no write lock. Each schedule is claimed in
     a transaction of its own, and one that fails is logged and left for later, so that it never
@@ -145,17 +142,16 @@ def claim(session: Session, defer: Defer, due: Due, now: dt.datetime) -> bool:
         .where(Schedule.id == due.schedule_id, Schedule.next_run_at == due.due_at)
         .values(next_run_at=following(due.cron, due.interval_seconds, due.due_at, now), last_run_at=now)
     )
-    with writing(session):
-        claimed = session.execute(moved).rowcount == 1
-        if claimed:
-            defer(
-                session,
-                RUN_SCHEDULE,
-                due.organisation_id,
-                schedule_id=due.schedule_id,
-                due_at=due.due_at.isoformat(),
-            )
-        session.commit()
+    claimed = session.execute(moved).rowcount == 1
+    if claimed:
+        defer(
+            session,
+            RUN_SCHEDULE,
+            due.organisation_id,
+            schedule_id=due.schedule_id,
+            due_at=due.due_at.isoformat(),
+        )
+    session.commit()
     return claimed
 
 
@@ -167,9 +163,8 @@ def _postpone(session: Session, due: Due, until: dt.datetime) -> None:
         .values(next_run_at=until)
     )
     try:
-        with writing(session):
-            session.execute(later)
-            session.commit()
+        session.execute(later)
+        session.commit()
     except Exception:  # the database itself is away: the next sweep sees the schedule again
         session.rollback()
         log.exception("schedule %s could not be postponed", due.schedule_id)

@@ -88,6 +88,7 @@ def _run(context: JobContext, task: str, **args: Any) -> None:
     try:
         with sessions() as session:
             TASKS[task](session, context.additional_context["settings"], **args)
+            session.commit()
     except Exception as exc:
         assert context.job is not None and context.job.id is not None  # a running job has both
         _keep_error(sessions, context.job.id, error_text(exc))
@@ -132,6 +133,7 @@ def sweep_schedules(context: JobContext, timestamp: int) -> None:
     sessions: sessionmaker[Session] = context.additional_context["sessions"]
     with sessions() as session:
         schedules.sweep(session, defer, dt.datetime.fromtimestamp(timestamp, dt.UTC))
+        session.commit()
 
 
 @app.periodic(cron=SWEEP_CRON, periodic_id="stalled")

@@ -23,7 +23,6 @@ from sqlalchemy import and_, func, insert, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
-from service.db import writing
 from service.domain import schedules
 from service.jobs import FINAL_ERRORS, JOB_STATES, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
@@ -70,20 +69,16 @@ def claim(session: Session, now: dt.datetime | None = None, lease: dt.timedelta 
         .values(status="running", attempts=Job.attempts + 1, locked_until=now + lease)
         .returning(Job.id, Job.task, Job.args, Job.attempts)
     )
-    with writing(session):
-        row = session.execute(statement).one_or_none()
-        session.commit()
+    row = session.execute(statement).one_or_none()
+    session.commit()
     return Claimed(*row) if row is not None else None
 
 
 def renew(session: Session, job: Claimed, lease: dt.timedelta = LEASE) -> bool:
     """Extend a running job's lease from now, if this claim of it still holds; commits."""
     still_ours = (Job.id == job.id, Job.status == "running", Job.attempts == job.attempts)
-    with writing(session):
-        renewed = session.execute(
-            update(Job.__table__).where(*still_ours).values(locked_until=utcnow() + lease)
-        )
-        session.commit()
+    renewed = session.execute(update(Job.__table__).where(*still_ours).values(locked_until=utcnow() + lease))
+    session.commit()
     return renewed.rowcount == 1
 
 
@@ -110,9 +105,8 @@ def _finish_failed(session: Session, job: Claimed, exc: Exception, now: dt.datet
 
 
 def _finish(session: Session, job_id: int, **values: object) -> None:
-    with writing(session):
-        session.execute(update(Job.__table__).where(Job.id == job_id).values(**values))
-        session.commit()
+    session.execute(update(Job.__table__).where(Job.id == job_id).values(**values))
+    session.commit()
 
 
 def queue_stats(session: Session, window: dt.timedelta) -> QueueStats:
@@ -237,7 +231,9 @@ class EmbeddedBackend:
     def sweep(self) -> int:
         """Queue a job for each schedule due now; the number queued."""
         with self._sessions() as session:
-            return schedules.sweep(session, defer)
+            deferred = schedules.sweep(session, defer)
+            session.commit()
+            return deferred
 
     def run_due(self) -> int:
         """Run every job due now; the number run."""

@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from models.errors import InputError
 from service.config import Settings
-from service.db import insert_unless_exists, writing
+from service.db import insert_unless_exists
 from service.domain import inspections
 from service.domain.schedules import RUN_SCHEDULE
 from service.tables import InspectionFailure, Record, Schedule, Structure, Verdict
@@ -97,9 +97,8 @@ def _inspect(
     except InputError as refusal:
         session.rollback()
         values = {"record_id": record_id, "model_set": model_set, "reason": str(refusal)}
-        with writing(session):
-            insert_unless_exists(session, InspectionFailure, values, ["record_id", "model_set"])
-            session.commit()
+        insert_unless_exists(session, InspectionFailure, values, ["record_id", "model_set"])
+        session.commit()
         log.warning("record %s cannot be inspected with models %s: %s", record_id, model_set, refusal)
         return refusal
 

@@ -1,0 +1,366 @@
+"""One request lifecycle: bounded waits for a connection and for a body, one commit per request,
+and the SQLite writer gate taken by the engine.
+
+- Slow bodies (issue 13, finding 2): one organisation's ingest key opens 40 uploads that send
+  their JSON 2 bytes at a time against a real ``narxwatch serve``, on SQLite and on PostgreSQL,
+  while another organisation's client times ``GET /structures``. The slow clients must get 408
+  and the other organisation no 5xx and a p95 of at most a second: a request that holds a pooled
+  connection while its body trickles in starves every other.
+- On a route whose body FastAPI parses and on one that reads it itself, a body too slow is 408
+  and a chunked body past the limit 413.
+- A full connection pool is a 503 with ``Retry-After`` after ``NARXWATCH_POOL_TIMEOUT_SECONDS``.
+- A commit that fails is never answered 2xx: the request's session commits before the response
+  is sent (a deferred PostgreSQL constraint trigger makes the COMMIT itself fail).
+- A write through a domain function waits for the writer gate without asking for it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from api_helpers import API, create_structure, json_body
+from live import LiveServer, free_port, wait_until_serving
+from sqlalchemy import exc, select
+from test_cli import NARXWATCH
+
+from service.config import Settings
+from service.db import make_engine, session_factory, transaction
+from service.domain import structures
+from service.migrate import upgrade_database
+from service.schemas import StructureCreate
+from service.security import Role, authenticate, create_key
+from service.tables import Organisation, Structure
+
+ROOT = Path(__file__).resolve().parents[1]
+SLOW_CLIENTS = 40
+BODY_TIMEOUT = 3.0  # NARXWATCH_BODY_TIMEOUT_SECONDS of the served app: short, so the test ends soon
+TRICKLE_PAUSE = 0.1  # seconds between two 2-byte pieces of a slow body
+VICTIM_P95 = 1.0  # seconds
+POOL_TIMEOUT = 0.5  # NARXWATCH_POOL_TIMEOUT_SECONDS of the pool test
+
+
+@dataclass
+class Served:
+    port: int
+    attacker: str  # an ingest key of one organisation
+    attacker_admin: str
+    victim: str  # a viewer key of another
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request, tmp_path) -> str:
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    import postgres
+
+    name = f"narxwatch_lifecycle_{uuid.uuid4().hex[:8]}"
+    return postgres.create_database(request.getfixturevalue("postgres_url"), name)
+
+
+@pytest.fixture
+def served(database_url: str, tmp_path: Path) -> Iterator[Served]:
+    """``narxwatch serve`` in one worker process, so that all the slow clients meet one pool."""
+    env = {
+        **os.environ,
+        "NARXWATCH_DATABASE_URL": database_url,
+        "NARXWATCH_BODY_TIMEOUT_SECONDS": str(BODY_TIMEOUT),
+        "NARXWATCH_LOG_FORMAT": "text",
+    }
+    port = free_port()
+    log = tmp_path / "serve.log"
+    with log.open("w") as output:
+        server = subprocess.Popen(
+            [NARXWATCH, "serve", "--port", str(port), "--workers", "1"], env=env, stderr=output, stdout=output
+        )
+    try:
+        wait_until_serving(f"http://127.0.0.1:{port}", server, 120, log.read_text)
+        engine = make_engine(database_url)
+        with transaction(session_factory(engine)) as session:
+            attacker_org, victim_org = (f"org-{uuid.uuid4().hex[:12]}" for _ in range(2))
+            keys = Served(
+                port,
+                attacker=create_key(session, attacker_org, Role.ingest),
+                attacker_admin=create_key(session, attacker_org, Role.admin),
+                victim=create_key(session, victim_org, Role.viewer),
+            )
+        engine.dispose()
+        yield keys
+    finally:
+        server.send_signal(signal.SIGINT)
+        server.wait(timeout=30)
+
+
+async def slow_upload(port: int, path: str, key: str, body: bytes, patience: float) -> int | None:
+    """POST ``body`` 2 bytes at a time; the status of the answer, or None if none came in ``patience`` s."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    head = (
+        f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nAuthorization: Bearer {key}\r\n"
+        f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n"
+    )
+    writer.write(head.encode())
+
+    async def trickle() -> None:
+        try:
+            for start in range(0, len(body), 2):
+                writer.write(body[start : start + 2])
+                await writer.drain()
+                await asyncio.sleep(TRICKLE_PAUSE)
+        except ConnectionError:  # the server answered and closed the connection
+            pass
+
+    sending = asyncio.create_task(trickle())
+    try:
+        status_line = await asyncio.wait_for(reader.readline(), patience)
+        return int(status_line.split()[1]) if status_line else None
+    except TimeoutError:
+        return None
+    finally:
+        sending.cancel()
+        writer.close()
+
+
+async def time_victim(served: Served, slow: list[asyncio.Task]) -> list[tuple[float, int | None]]:
+    """``GET /structures`` of the other organisation, one after another while the slow uploads last."""
+    timings: list[tuple[float, int | None]] = []
+    headers = {"Authorization": f"Bearer {served.victim}"}
+    async with httpx.AsyncClient(base_url=served.url, headers=headers, timeout=10) as client:
+        await asyncio.sleep(0.5)  # every slow client has sent its headers and its first bytes
+        while not all(task.done() for task in slow):
+            started = time.monotonic()
+            try:
+                status: int | None = (await client.get(f"{API}/structures")).status_code
+            except httpx.TimeoutException:
+                status = None
+            timings.append((time.monotonic() - started, status))
+    return timings
+
+
+def test_slow_bodies_get_408_and_never_slow_another_organisation(served: Served):
+    headers = {"Authorization": f"Bearer {served.attacker_admin}"}
+    with httpx.Client(base_url=served.url, headers=headers) as admin:
+        structure_id = create_structure(admin)["id"]
+    path = f"{API}/structures/{structure_id}/records"
+    body = json.dumps(json_body(2000, seed=5)).encode()  # ~80 kB: hours at 2 bytes per piece
+    patience = BODY_TIMEOUT + 20
+
+    async def scenario() -> tuple[list[int | None], list[tuple[float, int | None]]]:
+        slow = [
+            asyncio.create_task(slow_upload(served.port, path, served.attacker, body, patience))
+            for _ in range(SLOW_CLIENTS)
+        ]
+        timings = await time_victim(served, slow)
+        return list(await asyncio.gather(*slow)), timings
+
+    started = time.monotonic()
+    statuses, timings = asyncio.run(scenario())
+    elapsed = time.monotonic() - started
+    assert len(timings) >= 10, f"only {len(timings)} requests of the other organisation were timed"
+    failed = [status for _, status in timings if status != 200]
+    assert not failed, f"the other organisation got {failed} among {len(timings)} requests"
+    p95 = float(np.percentile([seconds for seconds, _ in timings], 95))
+    assert p95 <= VICTIM_P95, f"the other organisation's p95 was {p95:.2f} s"
+    assert statuses == [408] * SLOW_CLIENTS, f"slow clients answered {sorted(statuses, key=str)}"
+    assert elapsed < BODY_TIMEOUT + 10, f"the slow bodies were cut after {elapsed:.1f} s"
+
+
+def test_a_full_pool_is_a_503_with_retry_after(database_url: str):
+    settings = Settings(database_url=database_url, pool_timeout_seconds=POOL_TIMEOUT)
+    with LiveServer(settings) as server, server.client(server.key(Role.viewer)) as client:
+        assert client.get(f"{API}/structures").status_code == 200
+        engine = server.app.state.engine
+        held = []
+        try:
+            while True:  # take every connection the pool will give
+                held.append(engine.connect())
+        except exc.TimeoutError:
+            pass
+        try:
+            started = time.monotonic()
+            response = client.get(f"{API}/structures", timeout=10)
+            waited = time.monotonic() - started
+        finally:
+            for connection in held:
+                connection.close()
+        assert response.status_code == 503, response.text
+        assert int(response.headers["Retry-After"]) >= 1
+        assert "busy" in response.json()["detail"]
+        assert POOL_TIMEOUT <= waited < POOL_TIMEOUT + 2, f"answered after {waited:.2f} s"
+        assert client.get(f"{API}/structures").status_code == 200  # connections back: served again
+
+
+def raw_post(
+    port: int, path: str, key: str, pieces: list[bytes], pause: float, declared: int | None
+) -> bytes:
+    """A POST whose body is sent in ``pieces``, ``pause`` s apart (until the server answers), with
+    a declared ``Content-Length`` or, without one, chunked; the head of the answer."""
+    length = f"Content-Length: {declared}" if declared is not None else "Transfer-Encoding: chunked"
+    head = (
+        f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {key}\r\n"
+        f"Content-Type: application/json\r\n{length}\r\n\r\n"
+    )
+    if declared is None:
+        pieces = [b"%x\r\n%s\r\n" % (len(piece), piece) for piece in pieces] + [b"0\r\n\r\n"]
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as connection:
+        connection.sendall(head.encode())
+        try:
+            for piece in pieces:
+                connection.sendall(piece)
+                time.sleep(pause)
+        except ConnectionError:  # answered and closed
+            pass
+        return connection.recv(65536).partition(b"\r\n\r\n")[0]
+
+
+@pytest.mark.parametrize("route", ["structures", "records"])
+def test_every_route_bounds_its_body_in_time_and_size(tmp_path: Path, route: str):
+    """A route whose body FastAPI parses (structures) and one that reads it itself (records):
+    a body too slow is 408, a chunked body past the limit 413 (not the 400 FastAPI's body
+    parsing makes of other errors); both close the connection, whose body is left unread."""
+    database = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    settings = Settings(database_url=database, body_timeout_seconds=1.0, max_upload_bytes=4000)
+    with LiveServer(settings) as server:
+        key = server.key(Role.admin)
+        path = f"{API}/structures"
+        if route == "records":
+            with server.client(key) as admin:
+                path = f"{API}/structures/{create_structure(admin)['id']}/records"
+        slow = raw_post(server.port, path, key, [b"{ "] * 100, 0.05, declared=1000)
+        assert slow.startswith(b"HTTP/1.1 408 "), slow
+        assert b"connection: close" in slow.lower()
+        large = raw_post(server.port, path, key, [b" " * 1000] * 5, 0.0, declared=None)
+        assert large.startswith(b"HTTP/1.1 413 "), large
+        assert b"connection: close" in large.lower()
+
+
+REFUSE_AT_COMMIT = """
+CREATE FUNCTION refuse_at_commit() RETURNS trigger LANGUAGE plpgsql AS $$
+BEGIN RAISE EXCEPTION 'refused at commit'; END $$;
+CREATE CONSTRAINT TRIGGER refuse_at_commit AFTER INSERT ON structures
+DEFERRABLE INITIALLY DEFERRED FOR EACH ROW WHEN (NEW.name = 'refused-at-commit')
+EXECUTE FUNCTION refuse_at_commit();
+"""
+
+
+def test_a_failed_commit_is_never_answered_2xx(postgres_url: str):
+    """The COMMIT itself fails (a deferred trigger): had the session been committed after the
+    response was sent, the client would have had its 201 for a structure that does not exist."""
+    import postgres
+
+    url = postgres.create_database(postgres_url, f"narxwatch_commit_{uuid.uuid4().hex[:8]}")
+    with LiveServer(Settings(database_url=url)) as server, server.client(server.key(Role.admin)) as admin:
+        with server.app.state.engine.begin() as connection:
+            connection.exec_driver_sql(REFUSE_AT_COMMIT)
+        refused = admin.post(f"{API}/structures", json={"name": "refused-at-commit", "fs": 1500.0})
+        assert not refused.is_success, refused.text
+        assert refused.status_code == 500
+        accepted = admin.post(f"{API}/structures", json={"name": "accepted", "fs": 1500.0})
+        assert accepted.status_code == 201, accepted.text
+        with server.app.state.engine.connect() as connection:  # committed before the answer
+            names = connection.scalars(select(Structure.name)).all()
+        assert names == ["accepted"]
+
+
+GATE_HOLDER = textwrap.dedent(
+    """
+    import sys
+    from pathlib import Path
+    from service.db import WriterGate
+
+    with WriterGate(Path(sys.argv[1])).held():
+        print("held", flush=True)
+        sys.stdin.readline()
+    """
+)
+
+
+def test_a_domain_write_on_sqlite_takes_the_writer_gate_unasked(tmp_path: Path):
+    """Another process holds the gate: a read goes on, a structure created through the domain
+    function (which never mentions the gate) waits until the gate is let go, then is stored."""
+    database = tmp_path / "narxwatch.db"
+    url = f"sqlite:///{database}"
+    upgrade_database(url)
+    sessions = session_factory(make_engine(url))
+    with transaction(sessions) as session:
+        key = create_key(session, "gated", Role.admin)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", GATE_HOLDER, str(database)],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    written = threading.Event()
+
+    def write() -> None:
+        with sessions() as session:
+            principal = authenticate(session, key)
+            assert principal is not None
+            structures.create_structure(session, principal, StructureCreate(name="gated", fs=1500.0))
+            session.commit()
+        written.set()
+
+    try:
+        assert holder.stdout is not None and holder.stdin is not None
+        assert holder.stdout.readline().strip() == "held"
+        with sessions() as session:  # reads never wait for the gate
+            assert session.scalars(select(Structure)).all() == []
+        writer = threading.Thread(target=write)
+        writer.start()
+        assert not written.wait(1.0), "a domain write went ahead while another process held the gate"
+        holder.stdin.write("release\n")
+        holder.stdin.flush()
+        assert written.wait(10), "the write stayed blocked after the gate was let go"
+        writer.join()
+    finally:
+        holder.kill()
+        holder.wait()
+    with sessions() as session:
+        assert session.scalars(select(Structure.name)).all() == ["gated"]
+
+
+def test_the_gate_is_given_back_at_commit_and_at_rollback(tmp_path: Path):
+    """Two threads of one process: the second writer waits while the first's write transaction
+    is open, and goes ahead once it ends, however it ends."""
+    url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    upgrade_database(url)
+    sessions = session_factory(make_engine(url))
+
+    def second_write(name: str, done: threading.Event) -> None:
+        with transaction(sessions) as session:
+            session.add(Organisation(name=name))
+        done.set()
+
+    for end in ("commit", "rollback"):
+        with sessions() as first:
+            first.add(Organisation(name=end))
+            first.flush()
+            second_done = threading.Event()
+            thread = threading.Thread(target=second_write, args=(f"after-{end}", second_done))
+            thread.start()
+            assert not second_done.wait(0.5), f"a second writer went ahead before the first's {end}"
+            getattr(first, end)()
+            assert second_done.wait(10), f"the gate was not given back at {end}"
+            thread.join()
+    with sessions() as session:
+        names = session.scalars(select(Organisation.name).order_by(Organisation.id)).all()
+    assert names == ["commit", "after-commit", "after-rollback"]
