@@ -36,7 +36,6 @@ def list_keys(principal: Admin, session: SessionDep) -> list[KeyOut]:
 def create_key(body: KeyCreate, principal: Admin, session: SessionDep) -> KeyCreated:
     """A new key of your organisation; the answer holds the key, which is never shown again."""
     key, secret = keys.create_key(session, principal, Role[body.role], body.expires_at)
-    session.commit()
     return KeyCreated(**key_out(key).model_dump(), key=secret)
 
 
@@ -44,5 +43,4 @@ def create_key(body: KeyCreate, principal: Admin, session: SessionDep) -> KeyCre
 def revoke_key(key_id: IdPath, principal: Admin, session: SessionDep) -> KeyOut:
     """Revoke a key at once; the dashboard logins opened with it end too."""
     key = keys.revoke_key(session, keys.get_key(session, principal, key_id))
-    session.commit()
     return key_out(key)
