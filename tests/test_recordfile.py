@@ -10,15 +10,8 @@ import pytest
 from conftest import SILVERBOX_SHA256
 
 from models.errors import InputError
-from simulator.recordfile import (
-    dump_csv,
-    dump_npz,
-    parse_csv,
-    parse_npz,
-    parse_silverbox,
-    read_record,
-    write_record,
-)
+from service.recordfiles import RecordTooLargeError, parse_csv, parse_npz, parse_silverbox, read_record
+from simulator.recordfile import dump_csv, dump_npz, write_record
 
 
 @pytest.fixture
@@ -134,8 +127,6 @@ def test_npz_member_that_is_not_an_array_is_refused():
 
 
 def test_npz_that_unpacks_beyond_the_limit_is_refused_before_loading():
-    from simulator.recordfile import RecordTooLargeError
-
     pattern = np.tile([0.0, 1.0], 500_000)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, x=pattern, y=pattern)

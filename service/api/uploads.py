@@ -10,8 +10,8 @@ from fastapi import HTTPException, status
 from pydantic import ValidationError
 
 from models.errors import InputError
+from service.recordfiles import parse_csv, parse_npz
 from service.schemas import RecordUpload
-from simulator.recordfile import parse_csv, parse_npz
 
 JSON = "application/json"
 CSV = "text/csv"
