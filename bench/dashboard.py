@@ -161,7 +161,6 @@ def seed(server: LiveServer, n_verdicts: int, distinct: int) -> Seeded:
     magnitudes = np.linspace(0.0, MAX_K, distinct)
     lengths = rng.integers(SAMPLES[0], SAMPLES[1], distinct, endpoint=True)
     settings = server.settings
-    min_samples = records.minimum_samples(settings.lags)
     statuses: dict[str, int] = {}
     with_k_hat = 0
     with progress() as bar, server.app.state.sessions() as session:
@@ -192,7 +191,6 @@ def seed(server: LiveServer, n_verdicts: int, distinct: int) -> Seeded:
                         distinct_copy(simulations[source].y, copy),
                         simulations[source].fs,
                         FIRST_ACQUISITION + j * EVERY,
-                        min_samples,
                     )
                     if not created:
                         raise SystemExit(f"copy {copy} of record {source} was stored before")

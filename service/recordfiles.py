@@ -12,7 +12,10 @@ input ``V1`` as x, output ``V2`` as y, at fs = 10⁷/2¹⁴ Hz.
 from __future__ import annotations
 
 import io
+import math
 import re
+import struct
+import tokenize
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +29,19 @@ SILVERBOX_FS = 1e7 / 2**14  # Hz: the benchmark's 10 MHz clock divided by 2¹⁴
 ZIP_MAGIC = b"PK\x03\x04"
 _FS_COMMENT = re.compile(r"^#\s*fs\s*=\s*(?P<fs>\S+)\s*$", re.IGNORECASE)
 
+# An NPZ record holds these members and nothing else.
+NPZ_MEMBERS = ("x.npy", "y.npy", "fs.npy")
+# Room for a member's .npy header (numpy writes 128 bytes; version 2 allows more) over its data.
+NPY_HEADER_BYTES = 4096
+# ``fs`` is one number, possibly written as text: "1500" as a <U4 array takes 16 bytes.
+FS_BYTES = 64
+# numpy writes 46 bytes plus the name and a 20-byte ZIP64 field per member: three members take
+# about 200 bytes. This leaves room for other writers' extra fields (and for naming a few
+# members too many) while keeping zipfile from building a long member list.
+CENTRAL_DIRECTORY_BYTES = 1024
+_END_OF_CENTRAL_DIRECTORY = struct.Struct("<4s4H2LH")
+_ZIP64_LOCATOR = b"PK\x06\x07"
+
 
 @dataclass(frozen=True)
 class RecordFile:
@@ -34,6 +50,10 @@ class RecordFile:
     x: np.ndarray
     y: np.ndarray
     fs: float | None
+
+
+class RecordTooLargeError(InputError):
+    """The record would unpack to more than the allowed number of bytes."""
 
 
 def read_record(path: str | Path) -> RecordFile:
@@ -114,39 +134,78 @@ def parse_silverbox(data: bytes | str) -> RecordFile:
     return RecordFile(values[:, 0].copy(), values[:, 1].copy(), SILVERBOX_FS)
 
 
-class RecordTooLargeError(InputError):
-    """The record would unpack to more than the allowed number of bytes."""
-
-
 def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
     """Parse an NPZ archive with arrays ``x``, ``y`` and optional scalar ``fs``.
 
-    Never unpickles. Each array's size is read from its .npy header before anything is
-    allocated, so a compressed archive cannot unpack to more than ``max_bytes``.
+    Never unpickles, and never unpacks more than it may keep: the archive may hold only the
+    members ``x``, ``y`` and ``fs``, in a central directory of bounded size; each member's
+    declared size, then its .npy header's shape × item size, is checked before any of its data
+    is decompressed. ``x`` and ``y`` together may hold ``max_bytes``; ``fs`` one number.
     """
     # A bare .npy or arbitrary bytes would otherwise reach numpy's pickle path.
     if not data.startswith(ZIP_MAGIC):
         raise InputError("the file is not a readable NPZ archive")
+    _check_central_directory(data)
+    budget = max_bytes if max_bytes is not None else np.inf
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as archive:
-            names = set(archive.namelist())
-            missing = {"x", "y"} - {name.removesuffix(".npy") for name in names}
-            if missing:
-                raise InputError(f"the NPZ lacks array(s) {', '.join(sorted(missing))}; it needs 'x' and 'y'")
-            remaining = max_bytes if max_bytes is not None else np.inf
-            x = _read_member(archive, "x", remaining)
-            y = _read_member(archive, "y", remaining - x.nbytes)
-            fs = _sampling_rate(_read_member(archive, "fs", np.inf)) if "fs.npy" in names else None
+            members = _checked_members(archive, budget)
+            x = _read_member(archive, "x", budget)
+            y = _read_member(archive, "y", budget - x.nbytes)
+            fs = _sampling_rate(_read_member(archive, "fs", FS_BYTES)) if "fs" in members else None
     except InputError:
         raise
     except zipfile.BadZipFile:
         raise InputError("the file is not a readable NPZ archive") from None
-    except (OSError, EOFError, ValueError, KeyError) as exc:
+    except (OSError, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError) as exc:
         raise InputError(f"the NPZ archive is damaged or not made by numpy ({exc})") from None
     for name, array in (("x", x), ("y", y)):
         if array.dtype.kind not in "iuf":
             raise InputError(f"NPZ array {name!r} must be numeric, got dtype {array.dtype}")
     return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs)
+
+
+def _check_central_directory(data: bytes) -> None:
+    """Refuse an archive whose member list zipfile would have to build at length.
+
+    zipfile reads the whole central directory, whatever its size, into a list of members
+    before any can be refused by name; a body of nothing but entries would cost far more
+    memory than its size. Its size is read here from the end record first.
+    """
+    end = data.rfind(b"PK\x05\x06", max(0, len(data) - _END_OF_CENTRAL_DIRECTORY.size - 0xFFFF))
+    if end < 0 or len(data) - end < _END_OF_CENTRAL_DIRECTORY.size:
+        raise InputError("the file is not a readable NPZ archive")
+    fields = _END_OF_CENTRAL_DIRECTORY.unpack_from(data, end)
+    entries, directory_size = fields[4], fields[5]
+    if data[max(0, end - 20) : end].startswith(_ZIP64_LOCATOR):
+        raise InputError("the NPZ is a ZIP64 archive; a record within the upload limit never needs one")
+    if directory_size > CENTRAL_DIRECTORY_BYTES:
+        raise InputError(
+            f"the NPZ lists {entries} members in a {directory_size}-byte directory; "
+            f"it may hold only the arrays x, y and fs"
+        )
+
+
+def _checked_members(archive: zipfile.ZipFile, budget: float) -> set[str]:
+    """The names of the archive's arrays, after checking them against the declared sizes."""
+    infos = archive.infolist()
+    names = [info.filename for info in infos]
+    unknown = sorted(set(names) - set(NPZ_MEMBERS))
+    if unknown:
+        raise InputError(f"the NPZ may hold only the arrays x, y and fs; it also holds {', '.join(unknown)}")
+    if len(set(names)) != len(names):
+        raise InputError("the NPZ holds the same array twice")
+    members = {name.removesuffix(".npy") for name in names}
+    missing = {"x", "y"} - members
+    if missing:
+        raise InputError(f"the NPZ lacks array(s) {', '.join(sorted(missing))}; it needs 'x' and 'y'")
+    declared = {info.filename.removesuffix(".npy"): info.file_size for info in infos}
+    if declared.get("fs", 0) > NPY_HEADER_BYTES + FS_BYTES:
+        raise InputError(f"NPZ member 'fs' must be one number, but it unpacks to {declared['fs']} bytes")
+    arrays = declared["x"] + declared["y"]
+    if arrays > budget + 2 * NPY_HEADER_BYTES:
+        raise RecordTooLargeError(f"the NPZ's arrays unpack to more than the upload limit ({arrays} bytes)")
+    return members
 
 
 def _read_member(archive: zipfile.ZipFile, name: str, limit: float) -> np.ndarray:
@@ -159,11 +218,19 @@ def _read_member(archive: zipfile.ZipFile, name: str, limit: float) -> np.ndarra
         }
         if version not in read_header:
             raise InputError(f"NPZ member {name!r} has an unsupported .npy version {version}")
-        shape, fortran_order, dtype = read_header[version](stream)
+        try:
+            shape, fortran_order, dtype = read_header[version](stream)
+        except (ValueError, SyntaxError, tokenize.TokenError) as exc:
+            # numpy reads the header as a Python literal: a cut-off one fails in its tokenizer.
+            raise InputError(f"NPZ member {name!r} has a malformed .npy header ({exc})") from None
         if dtype.hasobject:
             raise InputError(f"NPZ member {name!r} holds Python objects, which are never unpickled")
-        size = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        size = math.prod(shape) * dtype.itemsize  # exact: np.prod would wrap around
         if size > limit:
+            if name == "fs":
+                raise InputError(
+                    f"NPZ member 'fs' must be one number, but its header declares shape {shape} of {dtype}"
+                )
             raise RecordTooLargeError(
                 f"the NPZ's arrays unpack to more than the upload limit ({name!r}: {size} bytes)"
             )

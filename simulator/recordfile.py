@@ -34,8 +34,8 @@ def write_record(path: str | Path, x: np.ndarray, y: np.ndarray, fs: float) -> P
 
 def dump_csv(x: np.ndarray, y: np.ndarray, fs: float) -> str:
     buffer = io.StringIO()
-    buffer.write(f"# fs={fs:g}\nx,y\n")
-    # 17 significant digits round-trip every double exactly.
+    # 17 significant digits: a rate such as 1500.0000001 reads back as itself, not as 1500.
+    buffer.write(f"# fs={fs:.17g}\nx,y\n")
     np.savetxt(buffer, np.column_stack([x, y]), delimiter=",", fmt="%.17g")
     return buffer.getvalue()
 

@@ -404,15 +404,16 @@ def test_inspect_refuses_missing_or_duplicate_models(k2_model) -> None:
         inspect(x, y, [k2_model, k2_model])
 
 
-def test_inspect_needs_max_lag_plus_five_samples_per_lag(k2_model) -> None:
+def test_inspect_needs_max_lag_plus_5h_plus_8_samples(k2_model) -> None:
+    """The residual tests' 5·h + 8 samples after the model's longest lag (4) starts it."""
     x, y = record("none", 0.0, seed=1303, n=400)
-    needed = 4 + 5 * 40
+    needed = 4 + 5 * 40 + 8
     inspect(x[:needed], y[:needed], [k2_model])  # exactly enough
     with pytest.raises(InputError, match=f"{needed - 1} samples is too short; this needs at least {needed}"):
         inspect(x[: needed - 1], y[: needed - 1], [k2_model])
-    inspect(x[:54], y[:54], [k2_model], lags=10)
-    with pytest.raises(InputError, match="53 samples is too short; this needs at least 54"):
-        inspect(x[:53], y[:53], [k2_model], lags=10)
+    inspect(x[:62], y[:62], [k2_model], lags=10)
+    with pytest.raises(InputError, match="61 samples is too short; this needs at least 62"):
+        inspect(x[:61], y[:61], [k2_model], lags=10)
 
 
 def test_inspect_refuses_nan(k2_model) -> None:
