@@ -53,7 +53,7 @@ def seed_demo(
     seeds = np.random.SeedSequence(2026).spawn(1 + 2 * len(study.experiment_k))
     progress("baseline record")
     healthy = simulate(study.scenario(), study.baseline_samples, seeds[0])
-    baseline, _ = records.store_record(session, structure, healthy.x, healthy.y, healthy.fs, None, 1)
+    baseline, _ = records.store_record(session, structure, healthy.x, healthy.y, healthy.fs, None)
     modelling.train_baseline(session, principal, structure.id, BaselineTrain(record_ids=[baseline.id]))
     for index, mode in enumerate(("k2", "k1")):
         progress(f"{mode} experiments")
@@ -61,7 +61,7 @@ def seed_demo(
         for j, k in enumerate(study.experiment_k):
             seed = seeds[1 + index * len(study.experiment_k) + j]
             run = simulate(study.scenario(mode, k), study.experiment_samples, seed)
-            record, _ = records.store_record(session, structure, run.x, run.y, run.fs, None, 1)
+            record, _ = records.store_record(session, structure, run.x, run.y, run.fs, None)
             experiments.append(Experiment(record_id=record.id, k=k))
         k_min, k_max = min(study.experiment_k), max(study.experiment_k)
         modelling.train_fault_mode(
