@@ -204,9 +204,9 @@ def checked_for_inspection(x: ArrayLike, y: ArrayLike, fault_modes: Sequence[FNA
 def _check_finite(modes: list[ModeResult]) -> None:
     """Refuse a record whose statistics came out infinite or NaN.
 
-    The magnitude bound keeps sums of squares finite, but not every way to a non-finite figure
-    (values so small that the residual variance underflows to 0 make z infinite); a verdict
-    built on one would store nonsense as healthy.
+    The magnitude bound keeps the record's own sums of squares finite, but a model's extreme
+    coefficients can still overflow the residual of an ordinary record; a verdict built on an
+    infinite or NaN figure would be stored as healthy with its statistics lost.
     """
     for mode in modes:
         for field, value in asdict(mode).items():

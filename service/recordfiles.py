@@ -17,6 +17,7 @@ import re
 import struct
 import tokenize
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -157,7 +158,7 @@ def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
         raise
     except zipfile.BadZipFile:
         raise InputError("the file is not a readable NPZ archive") from None
-    except (OSError, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError) as exc:
+    except (OSError, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError, zlib.error) as exc:
         raise InputError(f"the NPZ archive is damaged or not made by numpy ({exc})") from None
     for name, array in (("x", x), ("y", y)):
         if array.dtype.kind not in "iuf":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from models.diagnostics import ljung_box
 from models.errors import InputError
 from models.fnarx import fit_fnarx
 from models.inspection import estimate_magnitude, inspect
+from models.signals import magnitude_limit
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS, exact_fault_mode
 
@@ -420,6 +422,29 @@ def test_inspect_refuses_nan(k2_model) -> None:
     x, y = record("none", 0.0, seed=1304, n=400)
     with pytest.raises(InputError, match="x has 1 NaN or infinite value"):
         inspect(np.r_[x[:-1], np.nan], y, [k2_model])
+
+
+def test_inspect_refuses_values_whose_statistics_overflow(k2_model) -> None:
+    """Cubic terms of y·10⁶⁰ overflow Σe²: refused by the bound for the model's degree (3), with
+    the bound stated; a tenth of the bound still gives finite figures."""
+    x, y = record("none", 0.0, seed=1305, n=2000)
+    limit = magnitude_limit(2000, 3)
+    assert limit == pytest.approx((1e200 / 2000) ** (1 / 6))
+    message = f"y reaches .* with 2000 samples and terms of degree 3 .* beyond {re.escape(f'{limit:.3g}')}"
+    with pytest.raises(InputError, match=message):
+        inspect(x, y * 1e60, [k2_model])
+    scale = 0.1 * limit / np.max(np.abs(y))
+    verdict = inspect(x, y * scale, [k2_model])
+    mode = verdict.modes[0]
+    assert all(np.isfinite([mode.k_hat, mode.sigma_k, mode.z, mode.residual_variance, mode.q, mode.p_value]))
+
+
+def test_inspect_refuses_a_verdict_with_non_finite_figures(k2_model) -> None:
+    """The last guard: a model whose coefficients overflow the residual (the record's values are
+    within bounds) gives a refusal, never a verdict holding inf or NaN."""
+    overflowing = dataclasses.replace(k2_model, theta=k2_model.theta * 1e160)
+    with pytest.raises(InputError, match="with fault mode 'k2' gives a non-finite sigma_k"):
+        inspect(*record("none", 0.0, seed=1306, n=2000), [overflowing])
 
 
 def test_verdict_gives_each_mode_by_name(k2_model, k1_model) -> None:

@@ -261,3 +261,12 @@ def test_npz_with_the_same_member_twice_is_refused():
 def test_csv_keeps_every_digit_of_the_rate(tmp_path):
     path = write_record(tmp_path / "r.csv", np.arange(3.0), np.arange(3.0) ** 2, 1500.0000001)
     assert read_record(path).fs == 1500.0000001
+
+
+@pytest.mark.parametrize("method", [8, 12, 14, 99], ids=["deflate", "bzip2", "lzma", "unknown"])
+def test_npz_member_whose_compressed_data_is_corrupt_is_refused(method):
+    good = npy(np.ones(3))
+    corrupt = (b"\xff" * 50, method, len(good), zlib.crc32(good))
+    archive = zip_archive({"x.npy": corrupt, "y.npy": stored(good)})
+    with pytest.raises(InputError, match="NPZ"):
+        parse_npz(archive, LIMIT)
