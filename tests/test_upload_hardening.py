@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import math
 import resource
+import socket
+import threading
+import time
 from dataclasses import dataclass
 
 import httpx
@@ -21,6 +24,7 @@ from api_helpers import (
     Org,
     clients,
     create_structure,
+    csv_text,
     detail,
     json_body,
     noise,
@@ -226,6 +230,47 @@ def test_the_rate_is_checked_before_any_inspection(site: Site, ingest):
     with nothing_written(site.org, site.rig):
         response = post_record(ingest, site.rig, body, inspect="true")
         assert_refused(response, 422, "sampled at 1000 Hz but structure 'rig' is monitored at 1500 Hz")
+
+
+# --- parsing off the event loop (issue 13, from reading the code) ------------------------------
+
+
+def test_a_body_is_parsed_off_the_event_loop(site: Site):
+    """While a 13 MB CSV is parsed (to fail at its last line), the server answers other requests:
+    a /healthz sent after the whole body had gone out is answered before the upload is. Parsed on
+    the event loop, as before, nothing else was answered until the parse had ended."""
+    x, y = noise(300_000)
+    content = (csv_text(x, y) + "1.0,abc\n").encode()
+    assert 10 * 2**20 < len(content) < site.server.settings.max_upload_bytes
+    head = (
+        f"POST {API}/structures/{site.rig}/records HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        f"Authorization: Bearer {site.org.keys['ingest']}\r\nContent-Type: text/csv\r\n"
+        f"Content-Length: {len(content)}\r\nConnection: close\r\n\r\n"
+    ).encode()
+    polls: list[tuple[float, float]] = []  # (sent, answered) of each /healthz
+    stop = threading.Event()
+
+    def poll() -> None:
+        with site.server.client() as client:
+            while not stop.is_set():
+                sent = time.monotonic()
+                assert client.get("/healthz").status_code == 200
+                polls.append((sent, time.monotonic()))
+
+    poller = threading.Thread(target=poll)
+    poller.start()
+    try:
+        with socket.create_connection(("127.0.0.1", site.server.port)) as upload:
+            upload.sendall(head + content)
+            body_sent = time.monotonic()
+            answer = b"".join(iter(lambda: upload.recv(65536), b""))
+            answered = time.monotonic()
+    finally:
+        stop.set()
+        poller.join()
+    assert answer.startswith(b"HTTP/1.1 422"), answer[:300]
+    assert b"is not two numbers" in answer
+    assert any(body_sent < sent and done < answered for sent, done in polls), "no request answered meanwhile"
 
 
 # --- a queued re-upload (issue 13, from reading the code) -------------------------------------
