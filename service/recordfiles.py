@@ -40,6 +40,9 @@ FS_BYTES = 64
 # about 200 bytes. This leaves room for other writers' extra fields (and for naming a few
 # members too many) while keeping zipfile from building a long member list.
 CENTRAL_DIRECTORY_BYTES = 1024
+# Lines a CSV may have beyond its rows (the fs comment, the header, blank lines), counted before
+# it is split into lines.
+CSV_SLACK_LINES = 64
 _END_OF_CENTRAL_DIRECTORY = struct.Struct("<4s4H2LH")
 _ZIP64_LOCATOR = b"PK\x06\x07"
 
@@ -55,6 +58,22 @@ class RecordFile:
 
 class RecordTooLargeError(InputError):
     """The record would unpack to more than the allowed number of bytes."""
+
+
+def record_samples(max_bytes: int) -> int:
+    """The most samples a record within ``max_bytes`` holds: x and y as float64, as an NPZ has them.
+
+    Applied to every format, so that short numbers ("0,1" is 4 bytes a sample) cannot make a
+    body within the limit unpack to many times its size in Python objects and arrays.
+    """
+    return max_bytes // (2 * np.float64().nbytes)
+
+
+def too_many_samples(what: str, max_samples: int) -> RecordTooLargeError:
+    return RecordTooLargeError(
+        f"{what} more than {max_samples} samples; a record may hold at most {max_samples} samples "
+        "(NARXWATCH_MAX_UPLOAD_BYTES / 16)"
+    )
 
 
 def read_record(path: str | Path) -> RecordFile:
@@ -73,8 +92,14 @@ def read_record(path: str | Path) -> RecordFile:
         raise InputError(f"{path}: {exc}") from None
 
 
-def parse_csv(data: bytes | str) -> RecordFile:
-    """Parse CSV text: optional ``# fs=…`` comment, header ``x,y``, numeric rows."""
+def parse_csv(data: bytes | str, max_samples: int | None = None) -> RecordFile:
+    """Parse CSV text: optional ``# fs=…`` comment, header ``x,y``, numeric rows.
+
+    With ``max_samples``, more rows than that are refused, grossly so before the text is split.
+    """
+    newline = b"\n" if isinstance(data, bytes) else "\n"
+    if max_samples is not None and data.count(newline) > max_samples + CSV_SLACK_LINES:  # type: ignore[arg-type]
+        raise too_many_samples("the CSV has", max_samples)
     try:
         text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
     except UnicodeDecodeError:
@@ -101,6 +126,8 @@ def parse_csv(data: bytes | str) -> RecordFile:
         cells = line.split(",")
         if len(cells) != 2:
             raise InputError(f"CSV line {number}: expected 2 values 'x,y', found {len(cells)}")
+        if count == max_samples:
+            raise too_many_samples("the CSV has", max_samples)
         try:
             values[count] = float(cells[0]), float(cells[1])
         except ValueError:

@@ -16,7 +16,14 @@ from conftest import SILVERBOX_SHA256
 from npz_bombs import bomb_member, bomb_npz, cut_off_header_npz, npy, npy_header, stored, zip_archive
 
 from models.errors import InputError
-from service.recordfiles import RecordTooLargeError, parse_csv, parse_npz, parse_silverbox, read_record
+from service.recordfiles import (
+    RecordTooLargeError,
+    parse_csv,
+    parse_npz,
+    parse_silverbox,
+    read_record,
+    record_samples,
+)
 from simulator.recordfile import dump_csv, dump_npz, write_record
 
 
@@ -270,3 +277,14 @@ def test_npz_member_whose_compressed_data_is_corrupt_is_refused(method):
     archive = zip_archive({"x.npy": corrupt, "y.npy": stored(good)})
     with pytest.raises(InputError, match="NPZ"):
         parse_npz(archive, LIMIT)
+
+
+def test_csv_with_more_rows_than_a_record_may_hold_is_refused_before_parsing():
+    """Rows of "0,1" pack a sample in 4 bytes: a body within the limit would otherwise unpack to
+    several times its size in Python objects."""
+    rows = b"x,y\n" + b"0,1\n" * 1000
+    assert parse_csv(rows, max_samples=1000).x.size == 1000
+    message = "the CSV has more than 1000 samples; a record may hold at most 1000 samples"
+    with pytest.raises(RecordTooLargeError, match=message):
+        parse_csv(rows + b"0,1\n", max_samples=1000)
+    assert record_samples(16 * 2**20) == 2**20  # x and y as float64, as an NPZ within the limit holds them

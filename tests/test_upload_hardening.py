@@ -121,6 +121,21 @@ def test_npz_with_other_members_is_refused(site: Site, ingest):
         assert_refused(response, 422, "the NPZ may hold only the arrays x, y and fs; it also holds z.npy")
 
 
+@pytest.mark.parametrize("media", ["text/csv", "application/json"])
+def test_short_numbers_cannot_make_a_record_larger_than_an_npz_could(site: Site, ingest, media):
+    """A body of "0,1" rows (4 bytes a sample) would hold 4·2²⁰ samples within 16 MiB and take
+    hundreds of MB to parse; a record holds at most limit/16 samples, whatever its format."""
+    most = site.server.settings.max_upload_bytes // 16
+    n = most + 1
+    if media == "text/csv":
+        body = b"x,y\n" + b"0,1\n" * n
+    else:
+        body = b'{"fs": 1500, "x": [' + b",".join([b"0"] * n) + b'], "y": [' + b",".join([b"1"] * n) + b"]}"
+    with nothing_written(site.org, site.bare):
+        response = post_record(ingest, site.bare, body, media)
+        assert_refused(response, 413, f"a record may hold at most {most} samples")
+
+
 # --- values whose statistics overflow (finding 3) ---------------------------------------------
 
 
