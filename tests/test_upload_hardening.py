@@ -127,10 +127,13 @@ def test_short_numbers_cannot_make_a_record_larger_than_an_npz_could(site: Site,
     hundreds of MB to parse; a record holds at most limit/16 samples, whatever its format."""
     most = site.server.settings.max_upload_bytes // 16
     n = most + 1
+    x = b"01" * (n // 2) + b"0" * (n % 2)  # a valid record but for its length: 0, 1, 0, 1, …
+    y = x[::-1]
     if media == "text/csv":
-        body = b"x,y\n" + b"0,1\n" * n
+        body = b"x,y\n" + b"".join(bytes([a, 44, b, 10]) for a, b in zip(x, y, strict=True))
     else:
-        body = b'{"fs": 1500, "x": [' + b",".join([b"0"] * n) + b'], "y": [' + b",".join([b"1"] * n) + b"]}"
+        body = b'{"fs": 1500, "x": [' + b",".join(x[i : i + 1] for i in range(n)) + b'], "y": ['
+        body += b",".join(y[i : i + 1] for i in range(n)) + b"]}"
     with nothing_written(site.org, site.bare):
         response = post_record(ingest, site.bare, body, media)
         assert_refused(response, 413, f"a record may hold at most {most} samples")
