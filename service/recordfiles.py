@@ -97,13 +97,12 @@ def parse_csv(data: bytes | str, max_samples: int | None = None) -> RecordFile:
 
     With ``max_samples``, more rows than that are refused, grossly so before the text is split.
     """
-    newline = b"\n" if isinstance(data, bytes) else "\n"
-    if max_samples is not None and data.count(newline) > max_samples + CSV_SLACK_LINES:  # type: ignore[arg-type]
-        raise too_many_samples("the CSV has", max_samples)
     try:
         text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
     except UnicodeDecodeError:
         raise InputError("the CSV is not UTF-8 text") from None
+    if max_samples is not None and text.count("\n") > max_samples + CSV_SLACK_LINES:
+        raise too_many_samples("the CSV has", max_samples)
     lines = text.splitlines()
     fs: float | None = None
     index = 0
