@@ -80,7 +80,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table  # noqa: E402
 
 from service.config import Settings  # noqa: E402
-from service.db import writing  # noqa: E402
 from service.domain import inspections, records  # noqa: E402
 from service.tables import Structure  # noqa: E402
 
@@ -161,7 +160,6 @@ def seed(server: LiveServer, n_verdicts: int, distinct: int) -> Seeded:
     magnitudes = np.linspace(0.0, MAX_K, distinct)
     lengths = rng.integers(SAMPLES[0], SAMPLES[1], distinct, endpoint=True)
     settings = server.settings
-    min_samples = records.minimum_samples(settings.lags)
     statuses: dict[str, int] = {}
     with_k_hat = 0
     with progress() as bar, server.app.state.sessions() as session:
@@ -181,29 +179,27 @@ def seed(server: LiveServer, n_verdicts: int, distinct: int) -> Seeded:
         storing = bar.add_task("storing records and verdicts", total=n_verdicts)
         newest = 0
         for first in range(0, n_verdicts, TRANSACTION_ROWS):
-            with writing(session):
-                for j in range(first, min(first + TRANSACTION_ROWS, n_verdicts)):
-                    source = j * distinct // n_verdicts
-                    copy = j - -(-source * n_verdicts // distinct)  # 0 for the first copy of a source
-                    record, created = records.store_record(
-                        session,
-                        structure_row,
-                        simulations[source].x,
-                        distinct_copy(simulations[source].y, copy),
-                        simulations[source].fs,
-                        FIRST_ACQUISITION + j * EVERY,
-                        min_samples,
-                    )
-                    if not created:
-                        raise SystemExit(f"copy {copy} of record {source} was stored before")
-                    verdict = inspections.store_verdict(
-                        session, record, structure_row, evaluations[source], new_record=True
-                    )
-                    statuses[verdict.status] = statuses.get(verdict.status, 0) + 1
-                    with_k_hat += verdict.k_hat is not None and verdict.reference_mode is not None
-                    newest = record.id
-                    bar.advance(storing)
-                session.commit()
+            for j in range(first, min(first + TRANSACTION_ROWS, n_verdicts)):
+                source = j * distinct // n_verdicts
+                copy = j - -(-source * n_verdicts // distinct)  # 0 for the first copy of a source
+                record, created = records.store_record(
+                    session,
+                    structure_row,
+                    simulations[source].x,
+                    distinct_copy(simulations[source].y, copy),
+                    simulations[source].fs,
+                    FIRST_ACQUISITION + j * EVERY,
+                )
+                if not created:
+                    raise SystemExit(f"copy {copy} of record {source} was stored before")
+                verdict = inspections.store_verdict(
+                    session, record, structure_row, evaluations[source], new_record=True
+                )
+                statuses[verdict.status] = statuses.get(verdict.status, 0) + 1
+                with_k_hat += verdict.k_hat is not None and verdict.reference_mode is not None
+                newest = record.id
+                bar.advance(storing)
+            session.commit()
     return Seeded(structure["id"], org.keys["viewer"], newest, n_verdicts, statuses, with_k_hat)
 
 

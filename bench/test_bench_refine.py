@@ -18,7 +18,7 @@ import pytest
 
 from models.effects import linear_terms
 from models.refinement import refine, refine_record
-from simulator.recordfile import parse_silverbox
+from service.recordfiles import parse_silverbox
 
 DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
 SNLS80MV = DATA / "silverbox" / "SNLS80mV.csv"

@@ -11,11 +11,9 @@ from scipy import signal
 from models.diagnostics import ResidualReport, residual_report
 from models.errors import InputError
 from models.narx import NARX
+from models.signals import minimum_samples
 
 LJUNG_BOX_LAGS = 40
-# The residual tests of h lags want at least 5h + 8 samples (models.diagnostics).
-SAMPLES_PER_LAG = 5
-LONGEST_LAG = 8
 
 
 @dataclass(frozen=True)
@@ -53,7 +51,7 @@ def assess(
     of the process residual r, started from rest; the free run uses the process model alone.
     """
     start_up = max(initial, model.max_lag)
-    needed = start_up + SAMPLES_PER_LAG * lags + LONGEST_LAG
+    needed = minimum_samples(lags, start_up)
     if len(y) < needed:
         raise InputError(
             f"the test part has {len(y)} samples; judging a model needs at least {needed} "

@@ -40,14 +40,12 @@ from models.diagnostics import ljung_box
 from models.errors import InputError
 from models.fnarx import FNARX
 from models.narx import z_quantile
-from models.signals import checked_record
+from models.signals import Record, checked_record, minimum_samples
 from models.terms import regressor_matrix
 
 Status = Literal["healthy", "faulty", "unknown_fault"]
 GRID_POINTS = 129
 ADEQUACY_SHARE = 0.02  # of α: 0.001 at α = 0.05
-# Residual samples per Ljung–Box lag below which the test has no meaningful distribution.
-SAMPLES_PER_LAG = 5
 
 
 @dataclass(frozen=True)
@@ -156,8 +154,7 @@ def inspect(
     if int(lags) != lags or lags < 2:
         raise InputError(f"lags must be a whole number of at least 2, got {lags}")
     longest_lag = max(model.max_lag for model in fault_modes)
-    needed = longest_lag + SAMPLES_PER_LAG * lags
-    xa, ya = checked_record(x, y, needed)
+    xa, ya = checked_for_inspection(x, y, fault_modes, int(lags))
 
     magnitude_level = 1 - ((1 - alpha) / (1 - adequacy_alpha)) ** (1 / len(fault_modes))
     z_detect = z_quantile(1 - magnitude_level)
@@ -187,7 +184,39 @@ def inspect(
                 at_range_limit=estimate.at_range_limit,
             )
         )
+    _check_finite(modes)
     return _decide(modes, alpha, int(lags), len(ya), z_detect, q_detect)
+
+
+def checked_for_inspection(x: ArrayLike, y: ArrayLike, fault_modes: Sequence[FNARX], lags: int) -> Record:
+    """(x, y) as float64 vectors fit to be inspected with ``fault_modes`` at ``lags`` Ljung–Box lags.
+
+    Long enough for the residual tests after the models' longest lag
+    (:func:`models.signals.minimum_samples`), and no value so large that the models' terms of
+    highest degree overflow the statistics (:func:`models.signals.magnitude_limit`). A service
+    that queues an inspection checks a record with this before storing it, so that the queued
+    inspection cannot fail on what the upload could have refused.
+    """
+    longest_lag = max(model.max_lag for model in fault_modes)
+    degree = max(term.degree for model in fault_modes for term in model.terms)
+    return checked_record(x, y, minimum_samples(lags, longest_lag), degree=max(degree, 1))
+
+
+def _check_finite(modes: list[ModeResult]) -> None:
+    """Refuse a record whose statistics came out infinite or NaN.
+
+    The magnitude bound keeps the record's own sums of squares finite, but a model's extreme
+    coefficients can still overflow the residual of an ordinary record; a verdict built on an
+    infinite or NaN figure would be stored as healthy with its statistics lost.
+    """
+    for mode in modes:
+        for field, value in asdict(mode).items():
+            if isinstance(value, float) and not np.isfinite(value):
+                raise InputError(
+                    f"inspecting the record with fault mode {mode.name!r} gives a non-finite {field} "
+                    f"({value}): its values are too large or too small for the model; rescale the record "
+                    "(e.g. to SI units)"
+                )
 
 
 def _decide(

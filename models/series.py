@@ -6,10 +6,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from models.errors import InputError
-
-# Samples per lag below which a correlation test is refused (the inspection chain's rule, 5·h + 8).
-SAMPLES_PER_LAG = 5
-MIN_EXTRA_SAMPLES = 8
+from models.signals import EXTRA_SAMPLES, SAMPLES_PER_LAG, minimum_samples
 
 
 def _series(values: ArrayLike, name: str) -> np.ndarray:
@@ -41,12 +38,12 @@ def checked_series(max_lag: int, alpha: float, **named: ArrayLike) -> list[np.nd
     if isinstance(max_lag, bool) or not isinstance(max_lag, int | np.integer) or max_lag < 1:
         raise InputError(f"max_lag must be a whole number of at least 1, got {max_lag!r}")
     n = series[0].size
-    needed = SAMPLES_PER_LAG * int(max_lag) + MIN_EXTRA_SAMPLES
+    needed = minimum_samples(max_lag)
     if n < needed:
         raise InputError(
             f"{n} samples is too short for max_lag = {max_lag}: the tests need at least "
-            f"{SAMPLES_PER_LAG}·max_lag + {MIN_EXTRA_SAMPLES} = {needed}; use max_lag ≤ "
-            f"{max(0, (n - MIN_EXTRA_SAMPLES) // SAMPLES_PER_LAG)} or a longer record"
+            f"{SAMPLES_PER_LAG}·max_lag + {EXTRA_SAMPLES} = {needed}; use max_lag ≤ "
+            f"{max(0, (n - EXTRA_SAMPLES) // SAMPLES_PER_LAG)} or a longer record"
         )
     return series
 

@@ -1,4 +1,9 @@
-"""Validation of excitation/response pairs before any estimation touches them."""
+"""Validation of excitation/response pairs before any estimation touches them.
+
+Two rules live here so that every caller states the same numbers: how long a record must be
+for its residual tests (:func:`minimum_samples`), and how large its values may be before the
+sums of squares the estimators form overflow (:func:`magnitude_limit`).
+"""
 
 from __future__ import annotations
 
@@ -11,13 +16,46 @@ from models.errors import InputError
 
 Record = tuple[np.ndarray, np.ndarray]
 
+# A correlation test of h lags (Ljung–Box, the cross-correlation tests) has no meaningful
+# distribution on fewer than 5·h + 8 residual samples.
+SAMPLES_PER_LAG = 5
+EXTRA_SAMPLES = 8
+# What a sum of squared products of record values (a Gram matrix, Σe², an autocovariance) may
+# reach: 10¹⁰⁸ below the largest double, room for a model's coefficients, for the powers of the
+# fault magnitude k in the functional coefficients, and for summing over the terms.
+SUM_OF_SQUARES_LIMIT = 1e200
 
-def checked_record(x: ArrayLike, y: ArrayLike, min_samples: int = 1, label: str = "record") -> Record:
+
+def minimum_samples(lags: int, longest_lag: int = 0) -> int:
+    """The shortest record whose residual can be tested at ``lags`` lags after a model whose
+    longest lag is ``longest_lag`` has used its first samples to start its predictions.
+
+    With ``longest_lag`` 0 it is the shortest record worth storing: no model can do with less.
+    """
+    return int(longest_lag) + SAMPLES_PER_LAG * int(lags) + EXTRA_SAMPLES
+
+
+def magnitude_limit(n_samples: int, degree: int = 1) -> float:
+    """The largest magnitude a record's values may have for terms of ``degree`` over ``n_samples``.
+
+    A regressor of degree d built from values of magnitude A is at most A^d, so a sum of n of
+    its squares is at most n·A^(2d); that stays below :data:`SUM_OF_SQUARES_LIMIT` when
+    A ≤ (limit / n)^(1/(2d)). For 2000 samples that is 2·10⁹⁸ for linear terms and 6·10³² for
+    cubic ones: far above any physical record in SI units, far below the values (y·10⁶⁰,
+    x·10²⁰⁰) whose statistics come out infinite or NaN.
+    """
+    return float((SUM_OF_SQUARES_LIMIT / max(int(n_samples), 1)) ** (1.0 / (2 * max(int(degree), 1))))
+
+
+def checked_record(
+    x: ArrayLike, y: ArrayLike, min_samples: int = 1, label: str = "record", degree: int = 1
+) -> Record:
     """Return (x, y) as float64 vectors, or raise :class:`InputError` saying what is wrong.
 
     A record must hold two one-dimensional signals of equal length, at least ``min_samples``
-    long, all finite, and neither signal constant (a constant carries no information about
-    the dynamics and makes every regression singular).
+    long, all finite, neither signal constant (a constant carries no information about the
+    dynamics and makes every regression singular), and no value beyond
+    :func:`magnitude_limit` for terms of ``degree`` (the statistics would overflow).
     """
     try:
         xa = np.asarray(x, dtype=np.float64)
@@ -30,6 +68,7 @@ def checked_record(x: ArrayLike, y: ArrayLike, min_samples: int = 1, label: str 
         raise InputError(f"{label}: x has {xa.size} samples but y has {ya.size}; they must be equal")
     if xa.size < min_samples:
         raise InputError(f"{label}: {xa.size} samples is too short; this needs at least {min_samples}")
+    limit = magnitude_limit(xa.size, degree)
     for name, values in (("x", xa), ("y", ya)):
         bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
@@ -38,6 +77,13 @@ def checked_record(x: ArrayLike, y: ArrayLike, min_samples: int = 1, label: str 
             )
         if values.size and np.ptp(values) == 0.0:
             raise InputError(f"{label}: {name} is constant; a record needs a varying signal")
+        peak = float(np.max(np.abs(values))) if values.size else 0.0
+        if peak > limit:
+            raise InputError(
+                f"{label}: {name} reaches {peak:.3g} in magnitude; with {xa.size} samples and terms of "
+                f"degree {degree} the statistics overflow beyond {limit:.3g}: rescale the record "
+                "(e.g. to SI units)"
+            )
     return xa, ya
 
 

@@ -189,16 +189,6 @@ class _GatedCursor(sqlite3.Cursor):
         return super().executemany(sql, parameters)
 
 
-@contextmanager
-def writing(session: Session) -> Iterator[None]:
-    """Take the writer gate for the session's transaction now, before its first write (the
-    engine takes it at the first write anyway, and gives it back when the transaction ends)."""
-    driver = session.connection().connection.driver_connection
-    if isinstance(driver, GatedConnection):
-        driver.take_gate()
-    yield
-
-
 def session_factory(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
 

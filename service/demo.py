@@ -53,7 +53,7 @@ def seed_demo(
     seeds = np.random.SeedSequence(2026).spawn(1 + 2 * len(study.experiment_k))
     progress("baseline record")
     healthy = simulate(study.scenario(), study.baseline_samples, seeds[0])
-    baseline, _ = records.store_record(session, structure, healthy.x, healthy.y, healthy.fs, None, 1)
+    baseline, _ = records.store_record(session, structure, healthy.x, healthy.y, healthy.fs, None)
     modelling.train_baseline(session, principal, structure.id, BaselineTrain(record_ids=[baseline.id]))
     for index, mode in enumerate(("k2", "k1")):
         progress(f"{mode} experiments")
@@ -61,7 +61,7 @@ def seed_demo(
         for j, k in enumerate(study.experiment_k):
             seed = seeds[1 + index * len(study.experiment_k) + j]
             run = simulate(study.scenario(mode, k), study.experiment_samples, seed)
-            record, _ = records.store_record(session, structure, run.x, run.y, run.fs, None, 1)
+            record, _ = records.store_record(session, structure, run.x, run.y, run.fs, None)
             experiments.append(Experiment(record_id=record.id, k=k))
         k_min, k_max = min(study.experiment_k), max(study.experiment_k)
         modelling.train_fault_mode(
@@ -90,9 +90,7 @@ def _history(session: Session, structure: Structure, settings: Settings, study: 
         run = simulate(study.scenario("k2", k), study.experiment_samples, seed)
         evaluation = inspections.evaluate(session, structure, settings, run.x, run.y)
         acquired = now - (HISTORY_RECORDS - 1 - index) * HISTORY_STEP
-        record, _ = records.store_record(
-            session, structure, run.x, run.y, run.fs, acquired, records.minimum_samples(settings.lags)
-        )
+        record, _ = records.store_record(session, structure, run.x, run.y, run.fs, acquired)
         inspections.store_verdict(session, record, structure, evaluation, new_record=True)
 
 

@@ -1,19 +1,14 @@
-"""Record files: excitation x and response y with their sampling rate, as CSV or NPZ.
+"""Writing record files: excitation x and response y with their sampling rate, as CSV or NPZ.
 
-CSV: an optional first comment line ``# fs=1500``, a header ``x,y``, then one ``x,y`` pair a
-line. NPZ: arrays ``x`` and ``y`` and a scalar ``fs``, loaded without pickle. Parsing works on
-bytes so that an upload and a file on disk go through the same checks.
-
-The Silverbox benchmark's CSV files (Wigren & Schoukens 2013) are read as they are published:
-input ``V1`` as x, output ``V2`` as y, at fs = 10⁷/2¹⁴ Hz.
+The layouts are the ones ``service.recordfiles`` reads: CSV with a first comment line
+``# fs=1500``, a header ``x,y`` and one ``x,y`` pair a line; NPZ with arrays ``x`` and ``y``
+and a scalar ``fs``. The simulator only writes records; reading them (from uploads and from
+files given to the command line) belongs to the service.
 """
 
 from __future__ import annotations
 
 import io
-import re
-import zipfile
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,34 +16,6 @@ import numpy as np
 from models.errors import InputError
 
 FORMATS = (".csv", ".npz")
-SILVERBOX_FS = 1e7 / 2**14  # Hz: the benchmark's 10 MHz clock divided by 2¹⁴
-ZIP_MAGIC = b"PK\x03\x04"
-_FS_COMMENT = re.compile(r"^#\s*fs\s*=\s*(?P<fs>\S+)\s*$", re.IGNORECASE)
-
-
-@dataclass(frozen=True)
-class RecordFile:
-    """Signals read from a file; ``fs`` is None when the file does not state it."""
-
-    x: np.ndarray
-    y: np.ndarray
-    fs: float | None
-
-
-def read_record(path: str | Path) -> RecordFile:
-    """Read a ``.csv`` or ``.npz`` record, with a message naming the file on any failure."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in FORMATS:
-        raise InputError(f"{path}: unknown record format {suffix or '(none)'}; use .csv or .npz")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read the file ({exc.strerror})") from None
-    try:
-        return parse_csv(data) if suffix == ".csv" else parse_npz(data)
-    except InputError as exc:
-        raise InputError(f"{path}: {exc}") from None
 
 
 def write_record(path: str | Path, x: np.ndarray, y: np.ndarray, fs: float) -> Path:
@@ -67,8 +34,8 @@ def write_record(path: str | Path, x: np.ndarray, y: np.ndarray, fs: float) -> P
 
 def dump_csv(x: np.ndarray, y: np.ndarray, fs: float) -> str:
     buffer = io.StringIO()
-    buffer.write(f"# fs={fs:g}\nx,y\n")
-    # 17 significant digits round-trip every double exactly.
+    # 17 significant digits: a rate such as 1500.0000001 reads back as itself, not as 1500.
+    buffer.write(f"# fs={fs:.17g}\nx,y\n")
     np.savetxt(buffer, np.column_stack([x, y]), delimiter=",", fmt="%.17g")
     return buffer.getvalue()
 
@@ -77,134 +44,3 @@ def dump_npz(x: np.ndarray, y: np.ndarray, fs: float) -> bytes:
     buffer = io.BytesIO()
     np.savez(buffer, x=np.asarray(x, dtype=np.float64), y=np.asarray(y, dtype=np.float64), fs=np.float64(fs))
     return buffer.getvalue()
-
-
-def parse_csv(data: bytes | str) -> RecordFile:
-    """Parse CSV text: optional ``# fs=…`` comment, header ``x,y``, numeric rows."""
-    try:
-        text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
-    except UnicodeDecodeError:
-        raise InputError("the CSV is not UTF-8 text") from None
-    lines = text.splitlines()
-    fs: float | None = None
-    index = 0
-    while index < len(lines) and (lines[index].startswith("#") or not lines[index].strip()):
-        match = _FS_COMMENT.match(lines[index].strip())
-        if match:
-            fs = _sampling_rate(match["fs"])
-        index += 1
-    if index == len(lines):
-        raise InputError("the CSV has no header line 'x,y'")
-    header = [cell.strip().strip('"').lower() for cell in lines[index].split(",")]
-    if header != ["x", "y"]:
-        raise InputError(f"the CSV header must be 'x,y', found {lines[index].strip()!r}")
-    rows = lines[index + 1 :]
-    values = np.empty((len(rows), 2))
-    count = 0
-    for number, line in enumerate(rows, start=index + 2):
-        if not line.strip():
-            continue
-        cells = line.split(",")
-        if len(cells) != 2:
-            raise InputError(f"CSV line {number}: expected 2 values 'x,y', found {len(cells)}")
-        try:
-            values[count] = float(cells[0]), float(cells[1])
-        except ValueError:
-            raise InputError(f"CSV line {number}: {line.strip()!r} is not two numbers") from None
-        count += 1
-    if count == 0:
-        raise InputError("the CSV has a header but no data rows")
-    return RecordFile(values[:count, 0].copy(), values[:count, 1].copy(), fs)
-
-
-def parse_silverbox(data: bytes | str) -> RecordFile:
-    """Parse a Silverbox CSV (``SNLS80mV.csv``, ``Schroeder80mV.csv``): columns ``V1`` and ``V2``.
-
-    Other columns (the overload flags, the empty one a trailing comma makes) are ignored.
-    """
-    try:
-        text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
-    except UnicodeDecodeError:
-        raise InputError("the Silverbox file is not UTF-8 text") from None
-    header, _, body = text.partition("\n")
-    names = [cell.strip().strip('"') for cell in header.split(",")]
-    if "V1" not in names or "V2" not in names:
-        raise InputError(f"a Silverbox file has columns 'V1' and 'V2'; the header is {header.strip()!r}")
-    if not body.strip():
-        raise InputError("the Silverbox file has a header but no data rows")
-    try:
-        values = np.loadtxt(
-            io.StringIO(body), delimiter=",", usecols=(names.index("V1"), names.index("V2")), ndmin=2
-        )
-    except ValueError as exc:
-        raise InputError(f"the Silverbox file has a row that is not numbers ({exc})") from None
-    return RecordFile(values[:, 0].copy(), values[:, 1].copy(), SILVERBOX_FS)
-
-
-class RecordTooLargeError(InputError):
-    """The record would unpack to more than the allowed number of bytes."""
-
-
-def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
-    """Parse an NPZ archive with arrays ``x``, ``y`` and optional scalar ``fs``.
-
-    Never unpickles. Each array's size is read from its .npy header before anything is
-    allocated, so a compressed archive cannot unpack to more than ``max_bytes``.
-    """
-    # A bare .npy or arbitrary bytes would otherwise reach numpy's pickle path.
-    if not data.startswith(ZIP_MAGIC):
-        raise InputError("the file is not a readable NPZ archive")
-    try:
-        with zipfile.ZipFile(io.BytesIO(data)) as archive:
-            names = set(archive.namelist())
-            missing = {"x", "y"} - {name.removesuffix(".npy") for name in names}
-            if missing:
-                raise InputError(f"the NPZ lacks array(s) {', '.join(sorted(missing))}; it needs 'x' and 'y'")
-            remaining = max_bytes if max_bytes is not None else np.inf
-            x = _read_member(archive, "x", remaining)
-            y = _read_member(archive, "y", remaining - x.nbytes)
-            fs = _sampling_rate(_read_member(archive, "fs", np.inf)) if "fs.npy" in names else None
-    except InputError:
-        raise
-    except zipfile.BadZipFile:
-        raise InputError("the file is not a readable NPZ archive") from None
-    except (OSError, EOFError, ValueError, KeyError) as exc:
-        raise InputError(f"the NPZ archive is damaged or not made by numpy ({exc})") from None
-    for name, array in (("x", x), ("y", y)):
-        if array.dtype.kind not in "iuf":
-            raise InputError(f"NPZ array {name!r} must be numeric, got dtype {array.dtype}")
-    return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs)
-
-
-def _read_member(archive: zipfile.ZipFile, name: str, limit: float) -> np.ndarray:
-    """One .npy member, refused before allocation if it holds more than ``limit`` bytes."""
-    with archive.open(f"{name}.npy") as stream:
-        version = np.lib.format.read_magic(stream)
-        read_header = {
-            (1, 0): np.lib.format.read_array_header_1_0,
-            (2, 0): np.lib.format.read_array_header_2_0,
-        }
-        if version not in read_header:
-            raise InputError(f"NPZ member {name!r} has an unsupported .npy version {version}")
-        shape, fortran_order, dtype = read_header[version](stream)
-        if dtype.hasobject:
-            raise InputError(f"NPZ member {name!r} holds Python objects, which are never unpickled")
-        size = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-        if size > limit:
-            raise RecordTooLargeError(
-                f"the NPZ's arrays unpack to more than the upload limit ({name!r}: {size} bytes)"
-            )
-        raw = stream.read(size)
-        if len(raw) != size:
-            raise InputError(f"NPZ member {name!r} is shorter than its header says")
-    return np.frombuffer(raw, dtype=dtype).reshape(shape, order="F" if fortran_order else "C")
-
-
-def _sampling_rate(value: object) -> float:
-    try:
-        fs = float(np.asarray(value, dtype=np.float64).reshape(()))
-    except (TypeError, ValueError):
-        raise InputError(f"the sampling rate {value!r} is not a number") from None
-    if not (np.isfinite(fs) and fs > 0):
-        raise InputError(f"the sampling rate must be a positive number, got {fs}")
-    return fs

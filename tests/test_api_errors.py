@@ -38,8 +38,8 @@ from api_helpers import (
 )
 from live import LiveServer
 
+from models.signals import minimum_samples
 from service.config import Settings
-from service.domain.records import minimum_samples
 from simulator.theory import EXACT_TERMS
 
 UNKNOWN = 10**6
@@ -533,7 +533,7 @@ def test_a_baseline_is_not_a_fault_mode_model(site: Site, admin, ingest):
 
 def test_inspect_on_upload_is_all_or_nothing(site: Site, ingest):
     """A record long enough to store but too short for the model's lags: refused whole."""
-    needed = 60 + 5 * 40
+    needed = 60 + 5 * 40 + 8
     body = json_body(needed - 40)
     with nothing_written(site.org, site.long_lag):
         response = post_record(ingest, site.long_lag, body, inspect="true")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from models.diagnostics import ljung_box
 from models.errors import InputError
 from models.fnarx import fit_fnarx
 from models.inspection import estimate_magnitude, inspect
+from models.signals import magnitude_limit
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS, exact_fault_mode
 
@@ -404,21 +406,45 @@ def test_inspect_refuses_missing_or_duplicate_models(k2_model) -> None:
         inspect(x, y, [k2_model, k2_model])
 
 
-def test_inspect_needs_max_lag_plus_five_samples_per_lag(k2_model) -> None:
+def test_inspect_needs_max_lag_plus_5h_plus_8_samples(k2_model) -> None:
+    """The residual tests' 5·h + 8 samples after the model's longest lag (4) starts it."""
     x, y = record("none", 0.0, seed=1303, n=400)
-    needed = 4 + 5 * 40
+    needed = 4 + 5 * 40 + 8
     inspect(x[:needed], y[:needed], [k2_model])  # exactly enough
     with pytest.raises(InputError, match=f"{needed - 1} samples is too short; this needs at least {needed}"):
         inspect(x[: needed - 1], y[: needed - 1], [k2_model])
-    inspect(x[:54], y[:54], [k2_model], lags=10)
-    with pytest.raises(InputError, match="53 samples is too short; this needs at least 54"):
-        inspect(x[:53], y[:53], [k2_model], lags=10)
+    inspect(x[:62], y[:62], [k2_model], lags=10)
+    with pytest.raises(InputError, match="61 samples is too short; this needs at least 62"):
+        inspect(x[:61], y[:61], [k2_model], lags=10)
 
 
 def test_inspect_refuses_nan(k2_model) -> None:
     x, y = record("none", 0.0, seed=1304, n=400)
     with pytest.raises(InputError, match="x has 1 NaN or infinite value"):
         inspect(np.r_[x[:-1], np.nan], y, [k2_model])
+
+
+def test_inspect_refuses_values_whose_statistics_overflow(k2_model) -> None:
+    """Cubic terms of y·10⁶⁰ overflow Σe²: refused by the bound for the model's degree (3), with
+    the bound stated; a tenth of the bound still gives finite figures."""
+    x, y = record("none", 0.0, seed=1305, n=2000)
+    limit = magnitude_limit(2000, 3)
+    assert limit == pytest.approx((1e200 / 2000) ** (1 / 6))
+    message = f"y reaches .* with 2000 samples and terms of degree 3 .* beyond {re.escape(f'{limit:.3g}')}"
+    with pytest.raises(InputError, match=message):
+        inspect(x, y * 1e60, [k2_model])
+    scale = 0.1 * limit / np.max(np.abs(y))
+    verdict = inspect(x, y * scale, [k2_model])
+    mode = verdict.modes[0]
+    assert all(np.isfinite([mode.k_hat, mode.sigma_k, mode.z, mode.residual_variance, mode.q, mode.p_value]))
+
+
+def test_inspect_refuses_a_verdict_with_non_finite_figures(k2_model) -> None:
+    """The last guard: a model whose coefficients overflow the residual (the record's values are
+    within bounds) gives a refusal, never a verdict holding inf or NaN."""
+    overflowing = dataclasses.replace(k2_model, theta=k2_model.theta * 1e160)
+    with pytest.raises(InputError, match="with fault mode 'k2' gives a non-finite sigma_k"):
+        inspect(*record("none", 0.0, seed=1306, n=2000), [overflowing])
 
 
 def test_verdict_gives_each_mode_by_name(k2_model, k1_model) -> None:

@@ -101,7 +101,7 @@ def queue(tmp_path: Path):
         principal = Principal(organisation.id, Role.admin, key_id=0)
         structure = structures.create_structure(session, principal, StructureCreate(name="rig", fs=1500.0))
         record = simulated("none", 0.0, [73])
-        stored, _ = records.store_record(session, structure, record.x, record.y, None, None, 100)
+        stored, _ = records.store_record(session, structure, record.x, record.y, structure.fs, None)
         defer(session, INSPECT_RECORD, organisation.id, record_id=stored.id)
     return sessions, Settings(database_url=url, embedded_worker=False)
 

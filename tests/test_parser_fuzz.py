@@ -19,7 +19,8 @@ from hypothesis import strategies as st
 
 from models.errors import InputError
 from service.api.uploads import parse_upload
-from simulator.recordfile import RecordFile, dump_csv, dump_npz, parse_csv, parse_npz, parse_silverbox
+from service.recordfiles import RecordFile, parse_csv, parse_npz, parse_silverbox
+from simulator.recordfile import dump_csv, dump_npz
 
 LIMIT = 1 << 20
 FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

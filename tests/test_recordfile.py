@@ -4,21 +4,27 @@ from __future__ import annotations
 
 import hashlib
 import io
+import tracemalloc
+import zipfile
+import zlib
+from collections.abc import Callable
 
 import numpy as np
 import pytest
+from api_helpers import npz_bytes
 from conftest import SILVERBOX_SHA256
+from npz_bombs import bomb_member, bomb_npz, cut_off_header_npz, npy, npy_header, stored, zip_archive
 
 from models.errors import InputError
-from simulator.recordfile import (
-    dump_csv,
-    dump_npz,
+from service.recordfiles import (
+    RecordTooLargeError,
     parse_csv,
     parse_npz,
     parse_silverbox,
     read_record,
-    write_record,
+    record_samples,
 )
+from simulator.recordfile import dump_csv, dump_npz, write_record
 
 
 @pytest.fixture
@@ -134,8 +140,6 @@ def test_npz_member_that_is_not_an_array_is_refused():
 
 
 def test_npz_that_unpacks_beyond_the_limit_is_refused_before_loading():
-    from simulator.recordfile import RecordTooLargeError
-
     pattern = np.tile([0.0, 1.0], 500_000)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, x=pattern, y=pattern)
@@ -173,3 +177,114 @@ def test_silverbox_files_read_as_published(silverbox_dir, name):
 def test_malformed_silverbox_file_is_refused_with_the_reason(content, message):
     with pytest.raises(InputError, match=message):
         parse_silverbox(content)
+
+
+# --- hostile archives: refused before anything is decompressed ---------------------------------
+
+LIMIT = 16 * 2**20  # the service's default upload limit
+
+
+def peak_allocation(action: Callable[[], object]) -> int:
+    """Bytes allocated at the peak while ``action`` runs (numpy reports its buffers too)."""
+    tracemalloc.start()
+    try:
+        action()
+    except InputError:
+        pass
+    finally:
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+    return peak
+
+
+@pytest.mark.parametrize(
+    ("member", "error", "message"),
+    [
+        ("fs", InputError, "NPZ member 'fs' must be one number"),
+        ("x", RecordTooLargeError, "unpack to more than the upload limit"),
+        ("y", RecordTooLargeError, "unpack to more than the upload limit"),
+    ],
+)
+def test_npz_bomb_in_any_member_is_refused_with_bounded_memory(member, error, message):
+    x, y = np.ones(300), np.arange(300.0)
+    bomb = bomb_npz(x, y, bomb=member, items=50_000_000)  # 400 MB of zeros in 400 kB
+    assert len(bomb) < 500_000
+    with pytest.raises(error, match=message):
+        parse_npz(bomb, LIMIT)
+    assert peak_allocation(lambda: parse_npz(bomb, LIMIT)) < 2**20
+
+
+def test_npz_member_whose_zip_sizes_lie_is_refused_by_its_npy_header():
+    """The zip's declared size can be small while the .npy header declares gigabytes: both count."""
+    compressed, _, _ = bomb_member(50_000_000)
+    header = npy_header("<f8", (50_000_000,))
+    first = zlib.crc32(header + bytes(4096 - len(header)))  # the CRC of what the zip says it holds
+    archive = zip_archive({"x.npy": (compressed, 8, 4096, first), "y.npy": stored(npy(np.ones(3)))})
+    with pytest.raises(RecordTooLargeError, match="'x': 400000000 bytes"):
+        parse_npz(archive, LIMIT)
+    assert peak_allocation(lambda: parse_npz(archive, LIMIT)) < 2**20
+
+
+def test_npz_fs_holding_more_than_one_number_is_refused():
+    message = r"NPZ member 'fs' must be one number, but its header declares shape \(10,\) of float64"
+    with pytest.raises(InputError, match=message):
+        parse_npz(npz_bytes(x=np.ones(3), y=np.ones(3), fs=np.full(10, 1500.0)), LIMIT)
+    with pytest.raises(InputError, match=r"the sampling rate array\(\[1500., 1500.\]\) is not a number"):
+        parse_npz(npz_bytes(x=np.ones(3), y=np.ones(3), fs=np.full(2, 1500.0)), LIMIT)
+
+
+def test_npz_with_a_cut_off_npy_header_is_refused_with_the_reason():
+    with pytest.raises(InputError, match=r"NPZ member 'y' has a malformed \.npy header"):
+        parse_npz(cut_off_header_npz(np.ones(3)), LIMIT)
+
+
+def test_npz_with_members_other_than_x_y_fs_is_refused():
+    archive = npz_bytes(x=np.ones(3), y=np.ones(3), fs=1500.0, notes=np.zeros(1))
+    with pytest.raises(InputError, match=r"may hold only the arrays x, y and fs; it also holds notes\.npy"):
+        parse_npz(archive, LIMIT)
+
+
+def test_npz_with_a_long_member_list_is_refused_before_zipfile_reads_it():
+    """Ten thousand empty members: zipfile would build ten thousand entries before any name is checked."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for name in ("x.npy", "y.npy"):
+            archive.writestr(name, npy(np.ones(3)))
+        for index in range(10_000):
+            archive.writestr(f"m{index}", b"")
+    data = buffer.getvalue()
+    with pytest.raises(InputError, match=r"the NPZ lists 10002 members in a \d+-byte directory"):
+        parse_npz(data, LIMIT)
+    assert peak_allocation(lambda: parse_npz(data, LIMIT)) < 2**20
+
+
+def test_npz_with_the_same_member_twice_is_refused():
+    x = stored(npy(np.ones(3)))
+    archive = zip_archive({"x.npy": x, "y.npy": x}).replace(b"y.npy", b"x.npy")
+    with pytest.raises(InputError, match="the same array twice"):
+        parse_npz(archive, LIMIT)
+
+
+def test_csv_keeps_every_digit_of_the_rate(tmp_path):
+    path = write_record(tmp_path / "r.csv", np.arange(3.0), np.arange(3.0) ** 2, 1500.0000001)
+    assert read_record(path).fs == 1500.0000001
+
+
+@pytest.mark.parametrize("method", [8, 12, 14, 99], ids=["deflate", "bzip2", "lzma", "unknown"])
+def test_npz_member_whose_compressed_data_is_corrupt_is_refused(method):
+    good = npy(np.ones(3))
+    corrupt = (b"\xff" * 50, method, len(good), zlib.crc32(good))
+    archive = zip_archive({"x.npy": corrupt, "y.npy": stored(good)})
+    with pytest.raises(InputError, match="NPZ"):
+        parse_npz(archive, LIMIT)
+
+
+def test_csv_with_more_rows_than_a_record_may_hold_is_refused_before_parsing():
+    """Rows of "0,1" pack a sample in 4 bytes: a body within the limit would otherwise unpack to
+    several times its size in Python objects."""
+    rows = b"x,y\n" + b"0,1\n" * 1000
+    assert parse_csv(rows, max_samples=1000).x.size == 1000
+    message = "the CSV has more than 1000 samples; a record may hold at most 1000 samples"
+    with pytest.raises(RecordTooLargeError, match=message):
+        parse_csv(rows + b"0,1\n", max_samples=1000)
+    assert record_samples(16 * 2**20) == 2**20  # x and y as float64, as an NPZ within the limit holds them

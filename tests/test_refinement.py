@@ -11,7 +11,7 @@ from models.errors import InputError
 from models.refinement import refine, refine_record
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
-from simulator.recordfile import parse_silverbox
+from service.recordfiles import parse_silverbox
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
 

@@ -26,9 +26,9 @@ import pytest
 from live import LiveServer, Tenant, free_port
 
 from service.cli.modelfiles import read_manifest
+from service.recordfiles import read_record
 from service.security import Role
 from simulator.paper import StudySettings
-from simulator.recordfile import read_record
 from simulator.simulate import Scenario, simulate
 
 SIM = shutil.which("narxwatch-sim", path=str(Path(sys.executable).parent))

@@ -29,7 +29,7 @@ from service.jobs import job_backend
 from service.migrate import upgrade_database
 from service.observability.logs import REQUEST_ID_HEADER, is_sane_request_id
 from service.observability.requests import ObserveRequests
-from simulator.recordfile import RecordTooLargeError
+from service.recordfiles import RecordTooLargeError
 
 API_PREFIX = "/api/v1"
 DOCS = "/docs"

@@ -6,17 +6,20 @@ import datetime as dt
 from enum import StrEnum
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request, Response, status
+from fastapi import APIRouter, BackgroundTasks, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
+from sqlalchemy.orm import Session
 
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
 from service.api.params import IdPath, utc
 from service.api.uploads import REQUEST_BODY, parse_upload
+from service.config import Settings
 from service.domain import inspections, records, structures
 from service.domain.ingest import Ingested, QueueInspection, ingest_record
 from service.jobs import JobBackend
 from service.jobs.tasks import INSPECT_RECORD
 from service.schemas import RecordOut, VerdictOut
+from service.security import Principal
 
 router = APIRouter(tags=["records"])
 
@@ -32,13 +35,18 @@ class InspectMode(StrEnum):
     status_code=status.HTTP_201_CREATED,
     openapi_extra={"requestBody": REQUEST_BODY},
     responses={
-        200: {"model": RecordOut, "description": "The same data had been uploaded before"},
+        200: {
+            "model": RecordOut,
+            "description": "The same data had been uploaded before (with inspect=queue: and the active "
+            "models' verdict on it, which is returned instead of queueing it again)",
+        },
         202: {"model": RecordOut, "description": "Stored, and its inspection queued (inspect=queue)"},
     },
 )
 async def upload_record(
     request: Request,
     response: Response,
+    background: BackgroundTasks,
     structure_id: IdPath,
     principal: Ingest,
     session: SessionDep,
@@ -55,28 +63,29 @@ async def upload_record(
     ] = None,
 ) -> RecordOut:
     """Upload a record as JSON, CSV or NPZ; a re-upload of the same data returns the stored one."""
+    # Nothing is queried before the body has arrived: a slow client holds no connection.
     body = await request.body()  # bounded by the BodyLimitMiddleware
-    upload = parse_upload(
-        body, request.headers.get("content-type", ""), acquired_at, settings.max_upload_bytes
+    queue = (
+        _queue_inspection(request.app.state.jobs, principal.organisation_id)
+        if inspect is InspectMode.queue
+        else None
     )
+    # Parsing a large body and checking it take a good part of a second: never on the event loop.
     ingested = await run_in_threadpool(
-        ingest_record,
+        _parse_and_ingest,
+        body,
+        request.headers.get("content-type", ""),
+        acquired_at,
         session,
         principal,
         settings,
         structure_id,
-        upload.x,
-        upload.y,
-        upload.fs,
-        utc(upload.acquired_at, "acquired_at"),
         inspect is InspectMode.true,
-        _queue_inspection(request.app.state.jobs, principal.organisation_id)
-        if inspect is InspectMode.queue
-        else None,
+        queue,
     )
-    if inspect is InspectMode.queue:
+    if ingested.queued:
         response.status_code = status.HTTP_202_ACCEPTED
-        request.app.state.jobs.wake()
+        background.add_task(request.app.state.jobs.wake)  # after the commit: the worker then sees it
     elif not ingested.created:
         response.status_code = status.HTTP_200_OK
     return _record_out(ingested)
@@ -96,6 +105,24 @@ def inspect_record(
 @router.get("/verdicts/{verdict_id}")
 def get_verdict(verdict_id: IdPath, principal: Viewer, session: SessionDep) -> VerdictOut:
     return inspections.verdict_out(inspections.get_verdict(session, principal, verdict_id))
+
+
+def _parse_and_ingest(
+    body: bytes,
+    content_type: str,
+    acquired_at: dt.datetime | None,
+    session: Session,
+    principal: Principal,
+    settings: Settings,
+    structure_id: int,
+    inspect: bool,
+    queue: QueueInspection | None,
+) -> Ingested:
+    upload = parse_upload(body, content_type, acquired_at, settings.max_upload_bytes)
+    when = utc(upload.acquired_at, "acquired_at")
+    return ingest_record(
+        session, principal, settings, structure_id, upload.x, upload.y, upload.fs, when, inspect, queue
+    )
 
 
 def _queue_inspection(jobs: JobBackend, organisation_id: int) -> QueueInspection:

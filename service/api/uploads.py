@@ -10,12 +10,13 @@ from fastapi import HTTPException, status
 from pydantic import ValidationError
 
 from models.errors import InputError
+from service.recordfiles import parse_csv, parse_npz, record_samples, too_many_samples
 from service.schemas import RecordUpload
-from simulator.recordfile import parse_csv, parse_npz
 
 JSON = "application/json"
 CSV = "text/csv"
 NPZ_TYPES = ("application/x-npz", "application/zip", "application/octet-stream")
+JSON_SLACK_COMMAS = 8
 
 REQUEST_BODY = {
     "required": True,
@@ -38,17 +39,24 @@ class Upload:
 def parse_upload(body: bytes, content_type: str, acquired_at: dt.datetime | None, max_bytes: int) -> Upload:
     """A record from a body of the given media type; 415 for any other type.
 
-    ``max_bytes`` bounds the arrays an NPZ may unpack to, as the body limit bounds the body.
+    ``max_bytes`` bounds the arrays an NPZ may unpack to, as the body limit bounds the body, and
+    so the samples of a record in any format (:func:`service.recordfiles.record_samples`).
     """
     media = content_type.split(";")[0].strip().lower()
+    max_samples = record_samples(max_bytes)
     if media == JSON:
+        # x and y of n samples take 2n − 2 commas, and the fields two or three more.
+        if body.count(b",") > 2 * max_samples + JSON_SLACK_COMMAS:
+            raise too_many_samples("the JSON holds", max_samples)
         try:
             record = RecordUpload.model_validate_json(body)
         except ValidationError as exc:
             raise InputError(_describe(exc)) from None
+        if max(len(record.x), len(record.y)) > max_samples:
+            raise too_many_samples("the JSON holds", max_samples)
         return Upload(record.x, record.y, record.fs, record.acquired_at or acquired_at)
     if media == CSV:
-        parsed = parse_csv(body)
+        parsed = parse_csv(body, max_samples)
     elif media in NPZ_TYPES:
         parsed = parse_npz(body, max_bytes)
     else:

@@ -14,7 +14,7 @@ from models.inspection import Verdict
 from models.inspection import inspect as run_inspection
 from service.cli.console import stdout
 from service.cli.modelfiles import read_fault_mode
-from simulator.recordfile import read_record
+from service.recordfiles import read_record
 
 STATUS_STYLE = {"healthy": "green", "faulty": "red", "unknown_fault": "magenta"}
 

@@ -11,7 +11,7 @@ from typing import Any
 from models.errors import InputError
 from models.fnarx import FNARX
 from models.terms import Term, parse_terms
-from simulator.recordfile import RecordFile, read_record
+from service.recordfiles import RecordFile, read_record
 from simulator.theory import EXACT_TERMS
 
 

@@ -16,7 +16,7 @@ from models.refinement import DEFAULT_ALPHA, refine_record
 from models.terms import Term
 from service.cli.console import stdout
 from service.cli.modelfiles import read_terms
-from simulator.recordfile import RecordFile, parse_silverbox, read_record
+from service.recordfiles import RecordFile, parse_silverbox, read_record
 
 # The Silverbox benchmark's official split (shared/data/README.md): estimation and arrow test,
 # each test run started from 50 measured outputs.

@@ -1,4 +1,4 @@
-"""Ingesting a record: stored once by content, inspected on request, written under the writer gate."""
+"""Ingesting a record: checked, stored once by content, inspected or queued on request."""
 
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ from dataclasses import dataclass
 from numpy.typing import ArrayLike
 from sqlalchemy.orm import Session
 
+from models.inspection import checked_for_inspection
+from models.signals import checked_record, minimum_samples
 from service.config import Settings
-from service.db import writing
 from service.domain import inspections, records, structures
 from service.security import Principal
-from service.tables import Record, Verdict
+from service.tables import ModelVersion, Record, Verdict
 
 QueueInspection = Callable[[Session, int], None]  # queue(session, record_id), in its transaction
 
@@ -22,7 +23,9 @@ QueueInspection = Callable[[Session, int], None]  # queue(session, record_id), i
 class Ingested:
     record: Record
     created: bool  # False when the same data had been stored before
+    # Computed now (inspect), or, when queueing, the one the active models gave before.
     verdict: Verdict | None
+    queued: bool  # an inspection job was queued
 
 
 def ingest_record(
@@ -38,23 +41,36 @@ def ingest_record(
     queue: QueueInspection | None = None,
 ) -> Ingested:
     """Store a record and, with ``inspect``, its verdict under the active fault-mode models, or
-    through ``queue`` an inspection job in the same transaction; commits.
+    through ``queue`` an inspection job in the same transaction (committed by the caller).
 
-    The verdict is computed before the first write, so that the write lock (SQLite's, or the
-    writer gate in front of it) is held only for the inserts and their commit.
+    Everything that can refuse the record runs before the first write, cheapest first: the
+    sampling rate, then one check of the signals against what they will face (the inspection's
+    own check with ``inspect``, the same check without the inspection when queueing, so that a
+    queued job cannot fail on what the upload could have refused, and the shortest storable
+    record otherwise). The verdict is computed before the first write too, so the write lock
+    (SQLite's, and the writer gate in front of it) is held only for the inserts and their commit.
+    A record queued again is queued only when it has no verdict from the active models.
     """
     structure = structures.get_structure(session, principal, structure_id)
-    evaluation = inspections.evaluate(session, structure, settings, x, y) if inspect else None
+    rate = records.checked_rate(structure, fs)
+    evaluation = None
+    active: list[ModelVersion] = []
+    if inspect:
+        evaluation = inspections.evaluate(session, structure, settings, x, y)
+    elif queue is not None:
+        models = inspections.models_to_inspect_with(session, structure)
+        x, y = checked_for_inspection(x, y, [model for _, model in models], settings.lags)
+        active = [version for version, _ in models]
+    else:
+        x, y = checked_record(x, y, minimum_samples(settings.lags))
+    record, created = records.store_record(session, structure, x, y, rate, acquired_at)
+    verdict = (
+        inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
+    )
+    queued = False
     if queue is not None:
-        inspections.models_to_inspect_with(session, structure)  # refused now, not failed later
-    with writing(session):
-        record, created = records.store_record(
-            session, structure, x, y, fs, acquired_at, records.minimum_samples(settings.lags)
-        )
-        verdict = (
-            inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
-        )
-        if queue is not None and (created or not inspections.has_verdict(session, record.id)):
+        verdict = None if created else inspections.verdict_under(session, record.id, active)
+        if verdict is None:
             queue(session, record.id)
-        session.commit()
-    return Ingested(record, created, verdict)
+            queued = True
+    return Ingested(record, created, verdict, queued)

@@ -42,11 +42,11 @@ def evaluate(
     active = models_to_inspect_with(session, structure)
     result = inspect(x, y, [model for _, model in active], alpha=settings.alpha, lags=settings.lags)
     versions = [version for version, _ in active]
-    return Evaluation(versions, model_set_of(versions), result)
+    return Evaluation(versions, model_set(versions), result)
 
 
-def model_set_of(versions: list[ModelVersion]) -> str:
-    """The key of a set of model versions: their ids in ascending order, comma-separated."""
+def model_set(versions: list[ModelVersion]) -> str:
+    """The key a verdict is stored under: the ids of the model versions that gave it."""
     return ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id))
 
 
@@ -119,8 +119,9 @@ def store_verdict(
     return Verdict(id=inserted.id, created_at=inserted.created_at, models=versions, **values)
 
 
-def has_verdict(session: Session, record_id: int) -> bool:
-    return session.scalar(select(Verdict.id).where(Verdict.record_id == record_id).limit(1)) is not None
+def verdict_under(session: Session, record_id: int, versions: list[ModelVersion]) -> Verdict | None:
+    """The record's verdict under exactly these model versions, if it has one."""
+    return _find(session, record_id, model_set(versions))
 
 
 def get_verdict(session: Session, principal: Principal, verdict_id: int) -> Verdict:

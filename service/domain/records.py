@@ -1,29 +1,40 @@
-"""Records: validated, deduplicated by content, stored as .npy bytes."""
+"""Records: deduplicated by content, stored as .npy bytes."""
 
 from __future__ import annotations
 
 import datetime as dt
 import hashlib
 import io
+import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
-from models.signals import checked_record
 from service.db import insert_unless_exists
 from service.domain.structures import get_owned
 from service.security import Principal
 from service.tables import Record, Structure, utcnow
 
-# Samples per Ljung–Box lag, plus the longest NARX lag: a shorter record cannot be inspected.
-SAMPLES_PER_LAG = 5
-LONGEST_LAG = 8
+# Rates that differ by less than this share are one rate written two ways (1500 and
+# 1500.0000001 from a float32 clock or a division): far below any real difference of clocks.
+RATE_TOLERANCE = 1e-9
 
 
-def minimum_samples(lags: int) -> int:
-    return SAMPLES_PER_LAG * lags + LONGEST_LAG
+def checked_rate(structure: Structure, fs: float | None) -> float:
+    """The record's sampling rate: the structure's, which it must match; None stands for it.
+
+    A rate within :data:`RATE_TOLERANCE` of the structure's is taken as the structure's, so that
+    the same data hashes alike. Printed with 15 digits, two refused rates always look different.
+    """
+    if fs is None or math.isclose(fs, structure.fs, rel_tol=RATE_TOLERANCE):
+        return structure.fs
+    raise InputError(
+        f"the record is sampled at {fs:.15g} Hz but structure {structure.name!r} is monitored at "
+        f"{structure.fs:.15g} Hz; resample it or register a structure at that rate"
+    )
 
 
 def content_hash(x: np.ndarray, y: np.ndarray, fs: float) -> str:
@@ -37,20 +48,18 @@ def content_hash(x: np.ndarray, y: np.ndarray, fs: float) -> str:
 def store_record(
     session: Session,
     structure: Structure,
-    x: object,
-    y: object,
-    fs: float | None,
+    x: ArrayLike,
+    y: ArrayLike,
+    rate: float,
     acquired_at: dt.datetime | None,
-    min_samples: int,
 ) -> tuple[Record, bool]:
-    """Store a record, or return the stored one with the same data; True when new."""
-    xa, ya = checked_record(x, y, min_samples)
-    rate = structure.fs if fs is None else float(fs)
-    if rate != structure.fs:
-        raise InputError(
-            f"the record is sampled at {rate:g} Hz but structure {structure.name!r} is monitored at "
-            f"{structure.fs:g} Hz; resample it or register a structure at that rate"
-        )
+    """Store a record, or return the stored one with the same data; True when new.
+
+    The signals are stored as given: validate them first, with ``models.signals.checked_record``
+    or through the inspection (``models.inspection.inspect`` checks what it inspects), and the
+    rate with :func:`checked_rate`. Checking here too would validate every upload twice.
+    """
+    xa, ya = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     sha = content_hash(xa, ya, rate)
     values = {
         "structure_id": structure.id,

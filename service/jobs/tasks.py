@@ -81,7 +81,7 @@ def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at:
 
 
 def _model_set(session: Session, structure: Structure) -> str:
-    return inspections.model_set_of([v for v, _ in inspections.models_to_inspect_with(session, structure)])
+    return inspections.model_set([v for v, _ in inspections.models_to_inspect_with(session, structure)])
 
 
 def _inspect(
