@@ -251,7 +251,7 @@ def test_logs_are_json_lines_with_the_request_id_and_never_a_key(served: Served)
     assert any(line["request_id"] == replaced for line in lines)
 
     text = served.log.read_text()
-    for secret_text in (viewer, secret, prefix, bogus, bogus.split("_")[2], TOKEN, marker):
+    for secret_text in (viewer, secret, prefix, bogus, bogus.split("_", 2)[2], TOKEN, marker):
         assert secret_text not in text
 
 
