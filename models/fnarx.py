@@ -22,7 +22,7 @@ from models.errors import InputError
 from models.narx import NARX, check_document, z_quantile
 from models.regression import least_squares
 from models.signals import checked_record
-from models.terms import Term, max_lag, parse_terms, regressor_matrix
+from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix
 
 Experiment = tuple[ArrayLike, ArrayLike, float]
 
@@ -181,7 +181,9 @@ def fit_fnarx(
 
     blocks, targets, lengths = [], [], []
     for index, (x, y, k) in enumerate(runs):
-        xa, ya = checked_record(x, y, L + len(parsed) + 1, label=f"experiment {index + 1} (k={k})")
+        xa, ya = checked_record(
+            x, y, L + len(parsed) + 1, label=f"experiment {index + 1} (k={k})", degree=max_degree(parsed)
+        )
         Phi, target = regressor_matrix(parsed, xa, ya, L)
         g = basis.values(float(k))
         blocks.append((Phi[:, :, None] * g[None, None, :]).reshape(len(target), -1))

@@ -36,7 +36,7 @@ from models.errors import InputError
 from models.narx import NARX
 from models.regression import least_squares
 from models.signals import checked_records
-from models.terms import Term, max_lag, parse_terms, regressor_matrix
+from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,8 @@ def fit_narmax(
     parsed = parse_terms(terms)
     L = max_lag(parsed)
     n_par = len(parsed) + noise_lags
-    blocks = [regressor_matrix(parsed, x, y, L, t0) for x, y in checked_records(records, L + n_par + 1)]
+    checked = checked_records(records, L + n_par + 1, degree=max_degree(parsed))
+    blocks = [regressor_matrix(parsed, x, y, L, t0) for x, y in checked]
     Phi = np.vstack([block[0] for block in blocks])
     target = np.concatenate([block[1] for block in blocks])
     starts = np.cumsum([0] + [block[1].size for block in blocks])

@@ -21,7 +21,7 @@ from scipy import special
 from models.errors import InputError
 from models.regression import least_squares
 from models.signals import checked_record, checked_records
-from models.terms import Term, max_lag, parse_terms, regressor_matrix
+from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix
 
 DOCUMENT_VERSION = 1
 # Free-run outputs beyond this magnitude mean the simulated model has diverged.
@@ -132,7 +132,7 @@ def fit_narx(
     """
     parsed = parse_terms(terms)
     L = max_lag(parsed)
-    checked = checked_records(records, L + len(parsed) + 1)
+    checked = checked_records(records, L + len(parsed) + 1, degree=max_degree(parsed))
     blocks = [regressor_matrix(parsed, x, y, L, t0) for x, y in checked]
     Phi = np.vstack([block[0] for block in blocks])
     target = np.concatenate([block[1] for block in blocks])

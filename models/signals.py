@@ -87,9 +87,14 @@ def checked_record(
     return xa, ya
 
 
-def checked_records(records: Iterable[tuple[ArrayLike, ArrayLike]], min_samples: int) -> Sequence[Record]:
-    """Validate several records, naming the offending one by its position."""
-    checked = [checked_record(x, y, min_samples, label=f"record {i + 1}") for i, (x, y) in enumerate(records)]
+def checked_records(
+    records: Iterable[tuple[ArrayLike, ArrayLike]], min_samples: int, degree: int = 1
+) -> Sequence[Record]:
+    """Validate several records for terms of ``degree``, naming the offending one by its position."""
+    checked = [
+        checked_record(x, y, min_samples, label=f"record {i + 1}", degree=degree)
+        for i, (x, y) in enumerate(records)
+    ]
     if not checked:
         raise InputError("at least one record is needed")
     return checked

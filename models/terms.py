@@ -219,6 +219,12 @@ def parse_terms(names: Iterable[str | Term]) -> tuple[Term, ...]:
     return terms
 
 
+def max_degree(terms: Sequence[Term]) -> int:
+    """The highest degree among ``terms`` (1 at least): what bounds a record's values
+    (:func:`models.signals.magnitude_limit`)."""
+    return max((t.degree for t in terms), default=1) or 1
+
+
 def max_lag(terms: Sequence[Term]) -> int:
     """The number of initial samples a record must supply before the first prediction."""
     return max(term.max_lag for term in terms)

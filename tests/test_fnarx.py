@@ -234,3 +234,14 @@ def test_fit_uses_each_experiments_own_lags(params) -> None:
     np.testing.assert_allclose(
         model.coefficients(10.0), exact_coefficients(params.with_fault("k2", 10.0)), rtol=1e-7
     )
+
+
+def test_an_experiment_whose_cubic_sums_overflow_is_refused_by_name(k2_experiments) -> None:
+    """One experiment scaled by 1e60 is named, with the overflow as its reason."""
+    runs = list(k2_experiments.runs)
+    x, y, k = runs[3]
+    runs[3] = (x, y * 1e60, k)
+    with pytest.raises(
+        InputError, match=r"experiment 4 \(k=-20.0\): y reaches .* degree 3 the statistics overflow"
+    ):
+        fit_fnarx(runs, EXACT_TERMS, name="k2")

@@ -309,3 +309,13 @@ def test_predict_and_residuals_validate_records(short_record, params) -> None:
         model.predict(x, np.r_[y[:-1], np.nan])
     with pytest.raises(InputError, match="too short"):
         model.residuals(x[:4], y[:4])
+
+
+def test_values_whose_cubic_sums_overflow_are_refused_before_fitting(disturbed_record) -> None:
+    """y·1e60 fits a linear term's sums but not a cubic one's (y⁶·N overflows): the refusal
+    names the overflow and the degree, not the singular matrix the overflow would leave."""
+    scaled = (disturbed_record.x, disturbed_record.y * 1e60)
+    with pytest.raises(InputError, match=r"degree 3 the statistics overflow"):
+        fit_narx([scaled], EXACT_TERMS)
+    linear = fit_narx([scaled], ["y[t-1]", "y[t-2]", "x[t-4]"])  # degree 1: within the bound
+    assert np.all(np.isfinite(linear.theta))
