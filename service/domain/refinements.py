@@ -2,49 +2,53 @@
 
 from __future__ import annotations
 
-from sqlalchemy import select
-from sqlalchemy.orm import Session
+from dataclasses import dataclass
 
+from sqlalchemy import select
+from sqlalchemy.orm import Session, defer
+
+from models.effects import candidate_effects
 from models.errors import InputError
 from models.narx import NARX
 from models.refinement import refine_record
+from models.terms import Term
+from service.config import Settings
 from service.db import writing
 from service.domain.errors import NotFoundError
-from service.domain.modelling import new_version
-from service.domain.records import get_record, signals
+from service.domain.modelling import bounded_document, check_cost, new_version
+from service.domain.records import signals
 from service.domain.structures import get_owned, get_structure
 from service.schemas import RefinementCreate
 from service.security import Principal
-from service.tables import ModelVersion, Refinement
+from service.tables import ModelVersion, Record, Refinement, Structure
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """A refinement checked and priced: its record's signals not yet read."""
+
+    structure: Structure
+    record: Record
+    base: ModelVersion
+    terms: tuple[Term, ...]
+    cells: int
 
 
 def create_refinement(
-    session: Session, principal: Principal, structure_id: int, body: RefinementCreate
+    session: Session, principal: Principal, structure_id: int, body: RefinementCreate, settings: Settings
 ) -> Refinement:
     """Refine, then store the report and, if an effect was added, the refined model as a new
     inactive version of the base model's name; commits.
 
     The loop runs before the first write, so the write lock is held only for the inserts.
     """
-    structure = get_structure(session, principal, structure_id)
-    record = get_record(session, principal, body.record_id)
-    if record.structure_id != structure.id:
-        raise InputError(f"record {record.id} belongs to another structure, not {structure.name!r}")
-    base = session.get(ModelVersion, body.base_model_id)
-    if base is None or base.structure_id != structure.id:
-        raise NotFoundError("model version", body.base_model_id)
-    if base.kind != "baseline":
-        raise InputError(
-            f"model version {base.id} is a {base.kind.replace('_', '-')} model; refinement starts from a "
-            "baseline NARX version"
-        )
+    plan = _planned(session, principal, structure_id, body, settings)
+    structure, record, base = plan.structure, plan.record, plan.base
     x, y = signals(record)
     n = len(x)
     estimation = (body.estimation[0], body.estimation[1]) if body.estimation else (0, 2 * n // 3)
     test = (body.test[0], body.test[1]) if body.test else (2 * n // 3, n)
-    report = refine_record(
-        x, y, NARX.from_document(base.document).terms, estimation, test, body.initial, body.alpha, record.fs
-    )
+    report = refine_record(x, y, plan.terms, estimation, test, body.initial, body.alpha, record.fs)
     document = report.to_dict() | {
         "data": {
             "estimation": list(estimation),
@@ -73,7 +77,7 @@ def create_refinement(
                 structure,
                 base.kind,
                 base.name,
-                model.to_document(),
+                bounded_document(model.to_document(), settings),
                 training,
                 statistics,
                 active=False,
@@ -89,6 +93,38 @@ def create_refinement(
         session.flush()
         session.commit()
     return refinement
+
+
+def refinement_cells(
+    session: Session, principal: Principal, structure_id: int, body: RefinementCreate, settings: Settings
+) -> int:
+    """What a refinement costs in cells (the record's samples × the base model's terms and the
+    candidate regressors offered), from the record's length alone: it decides whether the
+    refinement runs at once or as a job. Refuses one over the limits."""
+    return _planned(session, principal, structure_id, body, settings).cells
+
+
+def _planned(
+    session: Session, principal: Principal, structure_id: int, body: RefinementCreate, settings: Settings
+) -> _Plan:
+    structure = get_structure(session, principal, structure_id)
+    unread = [defer(Record.x), defer(Record.y)]
+    record = get_owned(session, principal, Record, body.record_id, "record", options=unread)
+    if record.structure_id != structure.id:
+        raise InputError(f"record {record.id} belongs to another structure, not {structure.name!r}")
+    base = session.get(ModelVersion, body.base_model_id)
+    if base is None or base.structure_id != structure.id:
+        raise NotFoundError("model version", body.base_model_id)
+    if base.kind != "baseline":
+        raise InputError(
+            f"model version {base.id} is a {base.kind.replace('_', '-')} model; refinement starts from a "
+            "baseline NARX version"
+        )
+    terms = NARX.from_document(base.document).terms
+    regressors = len(terms) + sum(len(effect.terms) for effect in candidate_effects(terms))
+    cells = record.n_samples * regressors
+    check_cost(cells, regressors, settings, "this refinement")
+    return _Plan(structure, record, base, terms, cells)
 
 
 def list_refinements(session: Session, principal: Principal, structure_id: int) -> list[Refinement]:

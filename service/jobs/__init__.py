@@ -35,8 +35,8 @@ class QueueStats:
 class JobBackend(Protocol):
     name: str
 
-    def defer(self, session: Session, task: str, **args: Any) -> None:
-        """Queue ``task(**args)`` in the session's transaction (committed with it)."""
+    def defer(self, session: Session, task: str, **args: Any) -> int:
+        """Queue ``task(**args)`` in the session's transaction (committed with it); the job's id."""
 
     def queue_stats(self, session: Session, window: dt.timedelta) -> QueueStats: ...
 

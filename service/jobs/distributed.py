@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.config import Settings
 from service.domain import schedules
 from service.jobs import QueueStats
-from service.jobs.tasks import INSPECT_RECORD, TASKS
+from service.jobs.tasks import INSPECT_RECORD, REFINE, TASKS, TRAIN_MODEL
 
 RETRY = RetryStrategy(max_attempts=5, exponential_wait=2)  # waits 2, 4, 8, 16 s between attempts
 SWEEP_CRON = "* * * * * */2"  # croniter's sixth field is seconds: every 2 s
@@ -48,10 +48,10 @@ def conninfo(database_url: str) -> str:
     return make_url(database_url).set(drivername="postgresql").render_as_string(hide_password=False)
 
 
-def defer(session: Session, task: str, **args: Any) -> None:
-    """Queue ``task(**args)`` in the session's transaction (committed with it)."""
+def defer(session: Session, task: str, **args: Any) -> int:
+    """Queue ``task(**args)`` in the session's transaction (committed with it); the job's id."""
     connection = session.connection().connection.driver_connection
-    deferrer.configure_task(task, connection=connection).defer(**args)
+    return deferrer.configure_task(task, connection=connection).defer(**args)
 
 
 def _run(context: JobContext, task: str, **args: Any) -> None:
@@ -68,6 +68,16 @@ def inspect_record(context: JobContext, record_id: int) -> None:
 @app.task(name=schedules.RUN_SCHEDULE, pass_context=True, retry=RETRY)
 def run_schedule(context: JobContext, schedule_id: int, due_at: str) -> None:
     _run(context, schedules.RUN_SCHEDULE, schedule_id=schedule_id, due_at=due_at)
+
+
+@app.task(name=TRAIN_MODEL, pass_context=True, retry=RETRY)
+def train_model(context: JobContext, **args: Any) -> None:
+    _run(context, TRAIN_MODEL, **args)
+
+
+@app.task(name=REFINE, pass_context=True, retry=RETRY)
+def refine(context: JobContext, **args: Any) -> None:
+    _run(context, REFINE, **args)
 
 
 @app.periodic(cron=SWEEP_CRON, periodic_id="sweep")
@@ -122,8 +132,8 @@ class DistributedBackend:
         self._sessions = sessions
         self._settings = settings
 
-    def defer(self, session: Session, task: str, **args: Any) -> None:
-        defer(session, task, **args)
+    def defer(self, session: Session, task: str, **args: Any) -> int:
+        return defer(session, task, **args)
 
     def queue_stats(self, session: Session, window: dt.timedelta) -> QueueStats:
         return queue_stats(session, window)

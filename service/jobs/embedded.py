@@ -34,9 +34,9 @@ IDLE_POLL = 0.5  # seconds between looks at an empty queue
 log = logging.getLogger("narxwatch.jobs")
 
 
-def defer(session: Session, task: str, **args: Any) -> None:
-    """Queue ``task(**args)`` in the caller's transaction (committed with it)."""
-    session.execute(insert(Job.__table__), {"task": task, "args": args})
+def defer(session: Session, task: str, **args: Any) -> int:
+    """Queue ``task(**args)`` in the caller's transaction (committed with it); the job's id."""
+    return session.execute(insert(Job.__table__).returning(Job.id), {"task": task, "args": args}).scalar_one()
 
 
 @dataclass(frozen=True)
@@ -129,8 +129,8 @@ class EmbeddedBackend:
             else None
         )
 
-    def defer(self, session: Session, task: str, **args: Any) -> None:
-        defer(session, task, **args)
+    def defer(self, session: Session, task: str, **args: Any) -> int:
+        return defer(session, task, **args)
 
     def queue_stats(self, session: Session, window: dt.timedelta) -> QueueStats:
         return queue_stats(session, window)

@@ -12,12 +12,16 @@ from sqlalchemy import exists, select
 from sqlalchemy.orm import Session
 
 from service.config import Settings
-from service.domain import inspections
+from service.domain import inspections, modelling, refinements
 from service.domain.modelling import active_fault_modes
 from service.domain.schedules import RUN_SCHEDULE
+from service.schemas import BaselineTrain, FaultModeTrain, RefinementCreate
+from service.security import Principal, Role
 from service.tables import Record, Schedule, Structure, Verdict
 
 INSPECT_RECORD = "inspect_record"
+TRAIN_MODEL = "train_model"
+REFINE = "refine"
 
 log = logging.getLogger("narxwatch.jobs")
 
@@ -65,4 +69,43 @@ def _records_to_inspect(session: Session, action: str, structure_id: int) -> lis
     return list(session.scalars(of_structure.where(~has_verdict).order_by(Record.id)))
 
 
-TASKS: dict[str, Callable[..., None]] = {INSPECT_RECORD: inspect_record, RUN_SCHEDULE: run_schedule}
+def train_model(
+    session: Session, settings: Settings, principal: dict, structure_id: int, kind: str, body: dict
+) -> None:
+    """A training too large to run in its request, as the key that asked for it."""
+    caller = _caller(principal)
+    if kind == "baseline":
+        modelling.train_baseline(session, caller, structure_id, BaselineTrain.model_validate(body), settings)
+    else:
+        modelling.train_fault_mode(
+            session, caller, structure_id, FaultModeTrain.model_validate(body), settings
+        )
+    session.commit()
+
+
+def refine(session: Session, settings: Settings, principal: dict, structure_id: int, body: dict) -> None:
+    """A refinement too large to run in its request, as the key that asked for it; commits."""
+    refinements.create_refinement(
+        session, _caller(principal), structure_id, RefinementCreate.model_validate(body), settings
+    )
+
+
+def job_principal(principal: Principal) -> dict:
+    """The caller, as a queued training or refinement carries it."""
+    return {
+        "organisation_id": principal.organisation_id,
+        "role": int(principal.role),
+        "key_id": principal.key_id,
+    }
+
+
+def _caller(principal: dict) -> Principal:
+    return Principal(principal["organisation_id"], Role(principal["role"]), principal["key_id"])
+
+
+TASKS: dict[str, Callable[..., None]] = {
+    INSPECT_RECORD: inspect_record,
+    RUN_SCHEDULE: run_schedule,
+    TRAIN_MODEL: train_model,
+    REFINE: refine,
+}
