@@ -13,9 +13,11 @@ from models.errors import InputError
 from models.narx import NARX
 
 LJUNG_BOX_LAGS = 40
-# The residual tests of h lags want at least 5h + 8 samples (models.diagnostics).
+# The residual tests of h lags want at least 5h + 8 samples (models.diagnostics), and its
+# spectrum four Welch segments of 64 samples (the 31-bin background median needs 31 bins).
 SAMPLES_PER_LAG = 5
 LONGEST_LAG = 8
+SPECTRUM_SAMPLES = 256
 
 
 @dataclass(frozen=True)
@@ -53,12 +55,7 @@ def assess(
     of the process residual r, started from rest; the free run uses the process model alone.
     """
     start_up = max(initial, model.max_lag)
-    needed = start_up + SAMPLES_PER_LAG * lags + LONGEST_LAG
-    if len(y) < needed:
-        raise InputError(
-            f"the test part has {len(y)} samples; judging a model needs at least {needed} "
-            f"({start_up} to start it and {needed - start_up} for the residual tests)"
-        )
+    check_test_length(len(y), start_up, lags)
     start = start_up - model.max_lag
     xs, ys = np.asarray(x, dtype=np.float64)[start:], np.asarray(y, dtype=np.float64)[start:]
     error = model.residuals(xs, ys, t0 + start)
@@ -71,6 +68,17 @@ def assess(
     return Assessment(
         float(np.sqrt(np.mean(error**2))), free_run if np.isfinite(free_run) else float("inf"), diagnostics
     )
+
+
+def check_test_length(n: int, start_up: int, lags: int = LJUNG_BOX_LAGS) -> None:
+    """Refuse a test part too short to judge a model on: ``start_up`` samples start it, and the
+    residual tests and spectrum need the rest."""
+    needed = start_up + max(SAMPLES_PER_LAG * lags + LONGEST_LAG, SPECTRUM_SAMPLES)
+    if n < needed:
+        raise InputError(
+            f"the test part has {n} samples; judging a model needs at least {needed} "
+            f"({start_up} to start it and {needed - start_up} for the residual tests and spectrum)"
+        )
 
 
 def assessment_dict(assessment: Assessment) -> dict[str, Any]:

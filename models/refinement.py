@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from scipy import linalg, signal, special
 
-from models.assessment import Assessment, assess, assessment_dict
+from models.assessment import Assessment, assess, assessment_dict, check_test_length
 from models.effects import Effect, candidate_effects, offset_direction, offset_terms, periodic_terms, unused
 from models.errors import InputError
 from models.narmax import fit_narmax, invertible
@@ -162,8 +162,10 @@ def refine_record(
     if initial < 0:
         raise InputError(f"the initial samples must be 0 or more, got {initial}")
     a, b = estimation
-    result = refine(x[a:b], y[a:b], declared, alpha=alpha)
     c, d = test
+    # Checked before the loop rather than after it: a test part too short fails in seconds.
+    check_test_length(d - c, max(initial, max_lag(parse_terms(declared))))
+    result = refine(x[a:b], y[a:b], declared, alpha=alpha)
     return RefinementReport(
         result,
         assess(result.declared, x[c:d], y[c:d], initial, fs, c - a),
