@@ -48,9 +48,9 @@ class Settings(BaseSettings):
     session_cookie_secure: bool = True
     # Bounded cost of the expensive routes (README "Bounded cost"). A cell is one sample times
     # one coefficient (a term, times the basis functions of a fault mode, plus a refinement's
-    # candidate regressors): the regressor matrix a fit builds is 8 bytes a cell, and its time
-    # grows with it. Above ``queue_training_cells`` a training or refinement runs as a job (202).
-    max_training_cells: int = Field(25_000_000, gt=0)
+    # candidate regressors): a fit peaks at about 40 bytes a cell (12 M cells: 0.5 GB, 14 s),
+    # and its time grows with them. Above ``queue_training_cells`` it runs as a job (202).
+    max_training_cells: int = Field(12_000_000, gt=0)
     queue_training_cells: int = Field(2_000_000, gt=0)
     # Coefficients of one model (terms × basis functions): its document holds their covariance,
     # so it grows with their square, and every page that draws the model reads it.

@@ -36,7 +36,8 @@ from live import LiveServer
 from sqlalchemy import event, select
 
 from service.config import Settings
-from service.tables import Organisation
+from service.jobs.tasks import TASKS
+from service.tables import Job, Organisation
 from simulator.theory import EXACT_TERMS
 
 MAX_CELLS = 200_000
@@ -158,19 +159,35 @@ def test_a_model_document_over_the_limit_is_refused(bounded: Bounded):
 # --- large work is queued ---------------------------------------------------------------------
 
 
-def assert_queued(response: httpx.Response) -> None:
+def assert_queued(response: httpx.Response) -> int:
+    """The job id of a 202 answer, after checking that it says where to follow the job."""
     assert response.status_code == 202, response.text
     job = response.json()
     assert isinstance(job["job_id"], int)
     assert response.headers["location"] == job["location"] == f"{API}/jobs/{job['job_id']}"
     assert "NARXWATCH_QUEUE_TRAINING_CELLS" in job["detail"]
+    return job["job_id"]
+
+
+def run_again(server: LiveServer, job_id: int) -> None:
+    """Run a finished job once more, as a redelivery would (every job runs at least once)."""
+
+    def finished() -> Job | None:
+        with server.app.state.sessions() as session:
+            job = session.get(Job, job_id)
+            assert job is not None and job.last_error is None, job and job.last_error
+            return job if job.status == "done" else None
+
+    job = wait_for(finished, 30, f"job {job_id} done")
+    with server.app.state.sessions() as session:
+        TASKS[job.task](session, server.settings, **job.args)
 
 
 def test_a_large_training_is_queued_and_its_job_stores_the_version(bounded: Bounded):
     record = bounded.record[15_000]  # 120 000 cells: over the queueing threshold, under the limit
     with clients(bounded.org) as (admin, _, viewer):
         response = admin.post(baseline_url(bounded.rig), json={"record_ids": [record]})
-        assert_queued(response)
+        job_id = assert_queued(response)
 
         def trained() -> list[dict]:
             models = viewer.get(f"{API}/structures/{bounded.rig}/models").json()
@@ -179,6 +196,8 @@ def test_a_large_training_is_queued_and_its_job_stores_the_version(bounded: Boun
         (version,) = wait_for(trained, 60, "the queued training's version")
         assert version["active"] is True and version["terms"] == EXACT
         assert version["statistics"]["n_obs"] == 15_000 - 4
+        run_again(bounded.server, job_id)
+        assert trained() == [version], "the job run again stored a second version"
 
 
 def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(bounded: Bounded):
@@ -187,7 +206,7 @@ def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(b
         assert baseline.status_code == 201, baseline.text
         body = {"record_id": bounded.record[4000], "base_model_id": baseline.json()["id"]}
         response = admin.post(f"{API}/structures/{bounded.rig}/refinements", json=body)
-        assert_queued(response)
+        job_id = assert_queued(response)
 
         def refined() -> list[dict]:
             listed = viewer.get(f"{API}/structures/{bounded.rig}/refinements").json()
@@ -196,6 +215,8 @@ def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(b
         (refinement,) = wait_for(refined, 120, "the queued refinement")
         assert refinement["base_model"]["id"] == baseline.json()["id"]
         assert refinement["report"]["data"]["test"] == [2 * 4000 // 3, 4000]
+        run_again(bounded.server, job_id)
+        assert refined() == [refinement], "the job run again stored a second refinement"
 
 
 # --- a short record's refinement says what it needs -----------------------------------------

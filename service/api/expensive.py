@@ -10,6 +10,7 @@ run in its request at all: it is queued as a job and answered 202 with the job's
 from __future__ import annotations
 
 import threading
+import uuid
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -66,7 +67,10 @@ def slot(request: Request, principal: Principal) -> Any:
 
 def queued(request: Request, session: Session, principal: Principal, task: str, **args: Any) -> JSONResponse:
     """Queue ``task`` as the caller and answer 202 with where to follow the job; commits."""
-    job_id = request.app.state.jobs.defer(session, task, principal=job_principal(principal), **args)
+    token = uuid.uuid4().hex  # marks what the job stores, so that running it twice stores it once
+    job_id = request.app.state.jobs.defer(
+        session, task, principal=job_principal(principal), token=token, **args
+    )
     session.commit()
     request.app.state.jobs.wake()
     location = f"{JOBS_PATH}/{job_id}"

@@ -71,6 +71,13 @@ def train_fault_mode(
     return new_version(session, structure, "fault_mode", body.name, document, training, statistics)
 
 
+def version_of_job(session: Session, structure_id: int, token: str) -> ModelVersion | None:
+    """The version a queued training (marked ``training["job"]``) has stored already, if any."""
+    query = select(ModelVersion).where(ModelVersion.structure_id == structure_id)
+    versions = session.scalars(query.options(defer(ModelVersion.document)))
+    return next((v for v in versions if v.training.get("job") == token), None)
+
+
 def training_cells(
     session: Session,
     principal: Principal,

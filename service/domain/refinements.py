@@ -35,10 +35,16 @@ class _Plan:
 
 
 def create_refinement(
-    session: Session, principal: Principal, structure_id: int, body: RefinementCreate, settings: Settings
+    session: Session,
+    principal: Principal,
+    structure_id: int,
+    body: RefinementCreate,
+    settings: Settings,
+    job: str | None = None,
 ) -> Refinement:
     """Refine, then store the report and, if an effect was added, the refined model as a new
-    inactive version of the base model's name; commits.
+    inactive version of the base model's name; commits. A queued refinement's report is marked
+    with its ``job`` token (see :func:`refinement_of_job`).
 
     The loop runs before the first write, so the write lock is held only for the inserts.
     """
@@ -56,6 +62,7 @@ def create_refinement(
             "initial": body.initial,
             "alpha": body.alpha,
         }
+        | ({"job": job} if job is not None else {})
     }
     with writing(session):
         refined = None
@@ -93,6 +100,14 @@ def create_refinement(
         session.flush()
         session.commit()
     return refinement
+
+
+def refinement_of_job(session: Session, structure_id: int, record_id: int, token: str) -> Refinement | None:
+    """The refinement a queued job (marked ``report["data"]["job"]``) has stored already, if any."""
+    query = select(Refinement).where(
+        Refinement.structure_id == structure_id, Refinement.record_id == record_id
+    )
+    return next((r for r in session.scalars(query) if r.report["data"].get("job") == token), None)
 
 
 def refinement_cells(

@@ -70,24 +70,41 @@ def _records_to_inspect(session: Session, action: str, structure_id: int) -> lis
 
 
 def train_model(
-    session: Session, settings: Settings, principal: dict, structure_id: int, kind: str, body: dict
+    session: Session,
+    settings: Settings,
+    principal: dict,
+    structure_id: int,
+    kind: str,
+    body: dict,
+    token: str,
 ) -> None:
-    """A training too large to run in its request, as the key that asked for it."""
+    """A training too large to run in its request, as the key that asked for it. The version is
+    marked with the job's ``token``, so that the job run again stores no second one."""
     caller = _caller(principal)
+    if modelling.version_of_job(session, structure_id, token) is not None:
+        log.info("the training queued as %s has stored its version already", token)
+        return
     if kind == "baseline":
-        modelling.train_baseline(session, caller, structure_id, BaselineTrain.model_validate(body), settings)
-    else:
-        modelling.train_fault_mode(
-            session, caller, structure_id, FaultModeTrain.model_validate(body), settings
+        version = modelling.train_baseline(
+            session, caller, structure_id, BaselineTrain.model_validate(body), settings
         )
+    else:
+        fault_mode = FaultModeTrain.model_validate(body)
+        version = modelling.train_fault_mode(session, caller, structure_id, fault_mode, settings)
+    version.training = version.training | {"job": token}
     session.commit()
 
 
-def refine(session: Session, settings: Settings, principal: dict, structure_id: int, body: dict) -> None:
-    """A refinement too large to run in its request, as the key that asked for it; commits."""
-    refinements.create_refinement(
-        session, _caller(principal), structure_id, RefinementCreate.model_validate(body), settings
-    )
+def refine(
+    session: Session, settings: Settings, principal: dict, structure_id: int, body: dict, token: str
+) -> None:
+    """A refinement too large to run in its request, as the key that asked for it; marked with
+    the job's ``token`` like a queued training; commits."""
+    refinement = RefinementCreate.model_validate(body)
+    if refinements.refinement_of_job(session, structure_id, refinement.record_id, token) is not None:
+        log.info("the refinement queued as %s has been stored already", token)
+        return
+    refinements.create_refinement(session, _caller(principal), structure_id, refinement, settings, job=token)
 
 
 def job_principal(principal: Principal) -> dict:
