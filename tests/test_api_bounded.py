@@ -327,11 +327,19 @@ def test_history_and_verdicts_never_read_model_documents(api_server: LiveServer)
         model = train_fault_mode(admin, ingest, rig, "k2", seed=25, terms=terms)
         assert len(model["terms"]) == len(terms)
         verdict = post_record(ingest, rig, json_body(1000), inspect="true").json()["verdict"]
+        records = [post_record(ingest, rig, json_body(1000)).json()["id"] for _ in range(2)]
+        baseline = admin.post(baseline_url(rig), json={"record_ids": records[:1], "terms": terms})
+        assert baseline.status_code == 201, baseline.text
+        body = {"record_id": records[1], "base_model_id": baseline.json()["id"]}
+        refinement = admin.post(f"{API}/structures/{rig}/refinements", json=body)
+        assert refinement.status_code == 201, refinement.text
         pages = [
             f"{API}/structures/{rig}/verdicts",
             f"{API}/structures/{rig}/summary",
             f"{API}/verdicts/{verdict['id']}",
             f"{API}/structures/{rig}/models",
+            f"{API}/structures/{rig}/refinements",
+            f"{API}/refinements/{refinement.json()['id']}",
         ]
         with statements(api_server) as seen:
             answers = [viewer.get(page) for page in pages]

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, defer
+from sqlalchemy.orm import Session, defer, selectinload
 
 from models.effects import candidate_effects
 from models.errors import InputError
@@ -21,6 +21,12 @@ from service.domain.structures import get_owned, get_structure
 from service.schemas import RefinementCreate
 from service.security import Principal
 from service.tables import ModelVersion, Record, Refinement, Structure
+
+# A refinement's model versions as its answer names them (id, name, version), never their documents.
+MODEL_REFS = [
+    selectinload(relation).load_only(ModelVersion.id, ModelVersion.name, ModelVersion.version)
+    for relation in (Refinement.base_model, Refinement.refined_model)
+]
 
 
 @dataclass(frozen=True)
@@ -146,8 +152,8 @@ def list_refinements(session: Session, principal: Principal, structure_id: int) 
     """The structure's refinements, newest first."""
     get_structure(session, principal, structure_id)
     query = select(Refinement).where(Refinement.structure_id == structure_id).order_by(Refinement.id.desc())
-    return list(session.scalars(query))
+    return list(session.scalars(query.options(*MODEL_REFS)))
 
 
 def get_refinement(session: Session, principal: Principal, refinement_id: int) -> Refinement:
-    return get_owned(session, principal, Refinement, refinement_id, "refinement")
+    return get_owned(session, principal, Refinement, refinement_id, "refinement", options=MODEL_REFS)
