@@ -10,9 +10,10 @@ is seen in the SQL the server's engine sends, on SQLite and on PostgreSQL.
 
 from __future__ import annotations
 
+import json
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 
 import httpx
@@ -33,11 +34,11 @@ from api_helpers import (
     wait_for,
 )
 from live import LiveServer
-from sqlalchemy import event, select
+from sqlalchemy import event, select, text
 
 from service.config import Settings
 from service.jobs.tasks import TASKS
-from service.tables import Job, Organisation
+from service.tables import Organisation
 from simulator.theory import EXACT_TERMS
 
 MAX_CELLS = 200_000
@@ -55,18 +56,30 @@ class Bounded:
     record: dict[int, int]  # samples → record id
 
 
-@pytest.fixture(scope="module")
-def bounded(tmp_path_factory) -> Iterator[Bounded]:
+LIMITS = {
+    "max_training_cells": MAX_CELLS,
+    "queue_training_cells": QUEUE_CELLS,
+    "max_model_coefficients": MAX_COEFFICIENTS,
+    "max_model_document_bytes": MAX_DOCUMENT_BYTES,
+    "max_concurrent_expensive": 1,
+}
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def bounded(request, tmp_path_factory) -> Iterator[Bounded]:
+    """A server with small limits: on SQLite with its embedded job thread, on PostgreSQL with a
+    `narxwatch worker` process (the same limits) running the queued jobs."""
     folder = tmp_path_factory.mktemp("bounded")
-    settings = Settings(
-        database_url=f"sqlite:///{folder / 'narxwatch.db'}",
-        max_training_cells=MAX_CELLS,
-        queue_training_cells=QUEUE_CELLS,
-        max_model_coefficients=MAX_COEFFICIENTS,
-        max_model_document_bytes=MAX_DOCUMENT_BYTES,
-        max_concurrent_expensive=1,
-    )
-    with LiveServer(settings) as server:
+    with ExitStack() as stack:
+        if request.param == "sqlite":
+            url = f"sqlite:///{folder / 'narxwatch.db'}"
+        else:
+            import postgres
+            from workers import workers
+
+            url = postgres.create_database(request.getfixturevalue("postgres_url"), "narxwatch_bounded")
+            stack.enter_context(workers(url, 1, folder, **{k: str(v) for k, v in LIMITS.items()}))
+        server = stack.enter_context(LiveServer(Settings(database_url=url, **LIMITS)))
         org = Org.create(server)
         with clients(org) as (admin, ingest, _):
             rig = create_structure(admin, "rig")["id"]
@@ -171,16 +184,22 @@ def assert_queued(response: httpx.Response) -> int:
 
 def run_again(server: LiveServer, job_id: int) -> None:
     """Run a finished job once more, as a redelivery would (every job runs at least once)."""
+    if server.app.state.jobs.name == "embedded":
+        query = "SELECT task, args, status FROM jobs WHERE id = :id"
+    else:
+        query = "SELECT task_name, args, status::text FROM procrastinate_jobs WHERE id = :id"
 
-    def finished() -> Job | None:
+    def finished() -> tuple[str, dict] | None:
         with server.app.state.sessions() as session:
-            job = session.get(Job, job_id)
-            assert job is not None and job.last_error is None, job and job.last_error
-            return job if job.status == "done" else None
+            task, args, status = session.execute(text(query), {"id": job_id}).one()
+        assert status != "failed", f"job {job_id} failed"
+        if status not in ("done", "succeeded"):
+            return None
+        return task, args if isinstance(args, dict) else json.loads(args)  # SQLite's JSON is text
 
-    job = wait_for(finished, 30, f"job {job_id} done")
+    task, args = wait_for(finished, 30, f"job {job_id} done")
     with server.app.state.sessions() as session:
-        TASKS[job.task](session, server.settings, **job.args)
+        TASKS[task](session, server.settings, **args)
 
 
 def test_a_large_training_is_queued_and_its_job_stores_the_version(bounded: Bounded):
