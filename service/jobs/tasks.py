@@ -9,7 +9,7 @@ import logging
 from collections.abc import Callable
 
 from sqlalchemy import exists, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer
 
 from service.config import Settings
 from service.domain import inspections, modelling, refinements
@@ -28,7 +28,8 @@ log = logging.getLogger("narxwatch.jobs")
 
 def inspect_record(session: Session, settings: Settings, record_id: int) -> None:
     """The verdict of a stored record under its structure's active fault-mode models."""
-    record = session.get(Record, record_id)
+    # Its signals are read only if it has no verdict under the active models yet.
+    record = session.get(Record, record_id, options=[defer(Record.x), defer(Record.y)])
     if record is None:
         log.warning("record %s no longer exists: nothing to inspect", record_id)
         return
