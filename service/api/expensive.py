@@ -84,4 +84,11 @@ def queued(request: Request, session: Session, principal: Principal, task: str, 
     )
 
 
-ACCEPTED = {202: {"model": JobAccepted, "description": "Queued as a job: too large to run within a request"}}
+BUSY: dict[int | str, dict[str, Any]] = {
+    429: {
+        "description": "The organisation runs as many expensive requests as it may: retry after Retry-After"
+    }
+}
+ACCEPTED = BUSY | {
+    202: {"model": JobAccepted, "description": "Queued as a job: too large to run within a request"}
+}

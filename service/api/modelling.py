@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from fastapi import APIRouter, Request, status
+from fastapi.responses import JSONResponse
 
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
 from service.api.expensive import ACCEPTED, queued, slot
@@ -31,7 +30,7 @@ def model_out(version: ModelVersion) -> ModelOut:
     )
 
 
-@router.post("/baseline", status_code=status.HTTP_201_CREATED, responses=ACCEPTED)
+@router.post("/baseline", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED)
 def train_baseline(
     request: Request,
     structure_id: IdPath,
@@ -39,29 +38,20 @@ def train_baseline(
     principal: Admin,
     session: SessionDep,
     settings: SettingsDep,
-) -> Any:
+) -> ModelOut | JSONResponse:
     """Identify the healthy structure's NARX from stored records (default: SPEC §2's 8 terms);
     a large training is queued as a job (202)."""
-    if (
-        modelling.training_cells(session, principal, structure_id, body, settings)
-        > settings.queue_training_cells
-    ):
-        return queued(
-            request,
-            session,
-            principal,
-            TRAIN_MODEL,
-            structure_id=structure_id,
-            kind="baseline",
-            body=body.model_dump(),
-        )
+    cells = modelling.training_cells(session, principal, structure_id, body, settings)
+    if cells > settings.queue_training_cells:
+        job = {"structure_id": structure_id, "kind": "baseline", "body": body.model_dump()}
+        return queued(request, session, principal, TRAIN_MODEL, **job)
     with slot(request, principal):
         version = modelling.train_baseline(session, principal, structure_id, body, settings)
     session.commit()
     return model_out(version)
 
 
-@router.post("/fault-modes", status_code=status.HTTP_201_CREATED, responses=ACCEPTED)
+@router.post("/fault-modes", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED)
 def train_fault_mode(
     request: Request,
     structure_id: IdPath,
@@ -69,22 +59,13 @@ def train_fault_mode(
     principal: Admin,
     session: SessionDep,
     settings: SettingsDep,
-) -> Any:
+) -> ModelOut | JSONResponse:
     """Identify a fault mode as a functional NARX; the new version becomes the active one.
     A large training is queued as a job (202)."""
-    if (
-        modelling.training_cells(session, principal, structure_id, body, settings)
-        > settings.queue_training_cells
-    ):
-        return queued(
-            request,
-            session,
-            principal,
-            TRAIN_MODEL,
-            structure_id=structure_id,
-            kind="fault_mode",
-            body=body.model_dump(),
-        )
+    cells = modelling.training_cells(session, principal, structure_id, body, settings)
+    if cells > settings.queue_training_cells:
+        job = {"structure_id": structure_id, "kind": "fault_mode", "body": body.model_dump()}
+        return queued(request, session, principal, TRAIN_MODEL, **job)
     with slot(request, principal):
         version = modelling.train_fault_mode(session, principal, structure_id, body, settings)
     session.commit()

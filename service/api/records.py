@@ -10,7 +10,7 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
-from service.api.expensive import slot
+from service.api.expensive import BUSY, slot
 from service.api.params import IdPath, utc
 from service.api.uploads import REQUEST_BODY, parse_upload
 from service.domain import inspections
@@ -81,7 +81,7 @@ async def upload_record(
     return _record_out(ingested)
 
 
-@router.post("/records/{record_id}/inspect")
+@router.post("/records/{record_id}/inspect", responses=BUSY)
 def inspect_record(
     request: Request, record_id: IdPath, principal: Ingest, session: SessionDep, settings: SettingsDep
 ) -> VerdictOut:

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from fastapi import APIRouter, Request, status
+from fastapi.responses import JSONResponse
 
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
 from service.api.expensive import ACCEPTED, queued, slot
@@ -18,7 +17,10 @@ router = APIRouter(tags=["refinements"])
 
 
 @router.post(
-    "/structures/{structure_id}/refinements", status_code=status.HTTP_201_CREATED, responses=ACCEPTED
+    "/structures/{structure_id}/refinements",
+    status_code=status.HTTP_201_CREATED,
+    response_model=RefinementOut,
+    responses=ACCEPTED,
 )
 def create_refinement(
     request: Request,
@@ -27,14 +29,12 @@ def create_refinement(
     principal: Admin,
     session: SessionDep,
     settings: SettingsDep,
-) -> Any:
+) -> RefinementOut | JSONResponse:
     """Trace a baseline's residual on a record to the effects it lacks; the refined model is
     stored as a new version that is not active until activated. A refinement of a long record
     is queued as a job (202)."""
-    if (
-        refinements.refinement_cells(session, principal, structure_id, body, settings)
-        > settings.queue_training_cells
-    ):
+    cells = refinements.refinement_cells(session, principal, structure_id, body, settings)
+    if cells > settings.queue_training_cells:
         return queued(request, session, principal, REFINE, structure_id=structure_id, body=body.model_dump())
     with slot(request, principal):
         refinement = refinements.create_refinement(session, principal, structure_id, body, settings)
