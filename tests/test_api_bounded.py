@@ -238,6 +238,20 @@ def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(b
         assert refined() == [refinement], "the job run again stored a second refinement"
 
 
+def test_what_a_queued_training_would_fail_on_is_refused_before_it_is_queued(bounded: Bounded):
+    record = bounded.record[15_000]  # large enough to be queued
+    fault_mode = {"k_min": -32.0, "k_max": 32.0, "experiments": [{"record_id": record, "k": 0.0}] * 2}
+    refusals = [
+        ("baseline", {"record_ids": [record], "terms": ["y[t-1]", "z[t-1]"]}, "cannot read term 'z[t-1]'"),
+        ("fault-modes", {**fault_mode, "name": "baseline"}, "'baseline' names the healthy model"),
+        ("fault-modes", {**fault_mode, "name": "k1", "k_min": 40.0}, "k_min (40.0) must be below k_max"),
+    ]
+    with nothing_written(bounded.org, bounded.rig), bounded.org.client("admin") as admin:
+        for kind, body, message in refusals:
+            response = admin.post(f"{API}/structures/{bounded.rig}/models/{kind}", json=body)
+            assert_refused(response, 422, message)
+
+
 # --- a short record's refinement says what it needs -----------------------------------------
 
 

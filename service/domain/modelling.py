@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session, defer
 from models.errors import InputError
 from models.fnarx import FNARX, fit_fnarx
 from models.narx import fit_narx
+from models.terms import parse_terms
 from service.config import Settings
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.records import signals
@@ -45,10 +46,6 @@ def train_fault_mode(
     session: Session, principal: Principal, structure_id: int, body: FaultModeTrain, settings: Settings
 ) -> ModelVersion:
     structure = get_structure(session, principal, structure_id)
-    if body.name == BASELINE:
-        raise InputError("'baseline' names the healthy model; give the fault mode another name")
-    if not body.k_min < body.k_max:
-        raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
     records, _ = _training_records(session, principal, structure, body, settings)
     model = fit_fnarx(
         [(*signals(r), e.k) for r, e in zip(records, body.experiments, strict=True)],
@@ -185,13 +182,19 @@ def _training_records(
     body: BaselineTrain | FaultModeTrain,
     settings: Settings,
 ) -> tuple[list[Record], int]:
-    """The training's records (signals unread) and its cost in cells, refused over the limits."""
+    """The training's records (signals unread) and its cost in cells, refused over the limits;
+    what can be checked without the signals is, so that a queued training fails for no reason
+    its request could have given."""
     if isinstance(body, BaselineTrain):
         ids, size = body.record_ids, 1
     else:
+        if body.name == BASELINE:
+            raise InputError("'baseline' names the healthy model; give the fault mode another name")
+        if not body.k_min < body.k_max:
+            raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
         ids, size = [e.record_id for e in body.experiments], body.degree + 1
+    terms = len(parse_terms(body.terms or EXACT_TERMS))
     records = _records_of(session, principal, structure, ids)
-    terms = len(body.terms or EXACT_TERMS)
     cells = sum(r.n_samples for r in records) * terms * size
     check_cost(cells, terms * size, settings, "this training")
     return records, cells
