@@ -238,7 +238,7 @@ def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(b
         assert refined() == [refinement], "the job run again stored a second refinement"
 
 
-def test_what_a_queued_training_would_fail_on_is_refused_before_it_is_queued(bounded: Bounded):
+def test_what_queued_work_would_fail_on_is_refused_before_it_is_queued(bounded: Bounded):
     record = bounded.record[15_000]  # large enough to be queued
     fault_mode = {"k_min": -32.0, "k_max": 32.0, "experiments": [{"record_id": record, "k": 0.0}] * 2}
     refusals = [
@@ -246,10 +246,18 @@ def test_what_a_queued_training_would_fail_on_is_refused_before_it_is_queued(bou
         ("fault-modes", {**fault_mode, "name": "baseline"}, "'baseline' names the healthy model"),
         ("fault-modes", {**fault_mode, "name": "k1", "k_min": 40.0}, "k_min (40.0) must be below k_max"),
     ]
-    with nothing_written(bounded.org, bounded.rig), bounded.org.client("admin") as admin:
-        for kind, body, message in refusals:
-            response = admin.post(f"{API}/structures/{bounded.rig}/models/{kind}", json=body)
-            assert_refused(response, 422, message)
+    with bounded.org.client("admin") as admin:
+        baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
+        assert baseline.status_code == 201, baseline.text
+        refinement = {"record_id": bounded.record[4000], "base_model_id": baseline.json()["id"]}
+        with nothing_written(bounded.org, bounded.rig):
+            for kind, body, message in refusals:
+                response = admin.post(f"{API}/structures/{bounded.rig}/models/{kind}", json=body)
+                assert_refused(response, 422, message)
+            response = admin.post(
+                f"{API}/structures/{bounded.rig}/refinements", json={**refinement, "test": [3000, 5000]}
+            )
+            assert_refused(response, 422, "the test samples 3000:5000 do not lie within the record's 4000")
 
 
 # --- a short record's refinement says what it needs -----------------------------------------

@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session, defer, selectinload
 from models.effects import candidate_effects
 from models.errors import InputError
 from models.narx import NARX
-from models.refinement import refine_record
+from models.refinement import check_parts, refine_record
 from models.terms import Term
 from service.config import Settings
 from service.db import writing
@@ -37,6 +37,8 @@ class _Plan:
     record: Record
     base: ModelVersion
     terms: tuple[Term, ...]
+    estimation: tuple[int, int]
+    test: tuple[int, int]
     cells: int
 
 
@@ -56,10 +58,8 @@ def create_refinement(
     """
     plan = _planned(session, principal, structure_id, body, settings)
     structure, record, base = plan.structure, plan.record, plan.base
+    estimation, test = plan.estimation, plan.test
     x, y = signals(record)
-    n = len(x)
-    estimation = (body.estimation[0], body.estimation[1]) if body.estimation else (0, 2 * n // 3)
-    test = (body.test[0], body.test[1]) if body.test else (2 * n // 3, n)
     report = refine_record(x, y, plan.terms, estimation, test, body.initial, body.alpha, record.fs)
     document = report.to_dict() | {
         "data": {
@@ -142,10 +142,14 @@ def _planned(
             "baseline NARX version"
         )
     terms = NARX.from_document(base.document).terms
+    n = record.n_samples
+    estimation = (body.estimation[0], body.estimation[1]) if body.estimation else (0, 2 * n // 3)
+    test = (body.test[0], body.test[1]) if body.test else (2 * n // 3, n)
+    check_parts(n, terms, estimation, test, body.initial)
     regressors = len(terms) + sum(len(effect.terms) for effect in candidate_effects(terms))
-    cells = record.n_samples * regressors
+    cells = n * regressors
     check_cost(cells, regressors, settings, "this refinement")
-    return _Plan(structure, record, base, terms, cells)
+    return _Plan(structure, record, base, terms, estimation, test, cells)
 
 
 def list_refinements(session: Session, principal: Principal, structure_id: int) -> list[Refinement]:
