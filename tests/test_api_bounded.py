@@ -26,9 +26,7 @@ from api_helpers import (
     detail,
     experiments,
     json_body,
-    noise,
     nothing_written,
-    npz_bytes,
     post_record,
     train_fault_mode,
     wait_for,
@@ -286,39 +284,35 @@ def test_refinement_of_a_record_too_short_for_its_test_part(bounded: Bounded):
 
 
 def test_expensive_requests_are_capped_per_organisation(bounded: Bounded):
-    """With one expensive request allowed per organisation, a long inspection of ours makes our
-    next training a 429 with Retry-After, while another organisation's training runs."""
+    """With one expensive request allowed per organisation at once, ours are 429 with Retry-After
+    while one of ours holds the slot (taken here as a long inspection of ours would take it, so
+    that the moment is certain), and another organisation's training runs meanwhile. A request
+    gives its slot back however it ends."""
     other = Org.create(bounded.server)
     with bounded.server.app.state.sessions() as session:
         organisation_id = session.scalar(select(Organisation.id).where(Organisation.name == bounded.org.name))
+    body = {"record_ids": [bounded.record[2000]]}
     with clients(bounded.org) as (admin, ingest, _), clients(other) as (other_admin, other_ingest, _):
-        x, y = noise(300_000)  # an inspection of several seconds
-        long = post_record(ingest, bounded.rig, npz_bytes(x=x, y=y, fs=1500.0), "application/x-npz")
-        assert long.status_code == 201, long.text
         other_rig = create_structure(other_admin, "rig")["id"]
-        other_training = experiments(other_ingest, other_rig, "k2", seed=22)
-
-        answers: list[httpx.Response] = []
-        inspecting = threading.Thread(
-            target=lambda: answers.append(ingest.post(f"{API}/records/{long.json()['id']}/inspect"))
-        )
-        inspecting.start()
-        try:
-            slots = bounded.server.app.state.expensive
-            wait_for(lambda: slots.running(organisation_id) == 1, 30, "the long inspection under way")
-            body = {"record_ids": [bounded.record[2000]]}
+        fault_mode = {"name": "k2", "k_min": -32.0, "k_max": 32.0}
+        fault_mode["experiments"] = experiments(other_ingest, other_rig, "k2", seed=22)
+        inspected = post_record(ingest, bounded.rig, json_body(300), inspect="true").json()
+        with bounded.server.app.state.expensive.held(organisation_id):
             with nothing_written(bounded.org, bounded.rig):
                 refused = admin.post(baseline_url(bounded.rig), json=body)
-                assert_refused(refused, 429, "NARXWATCH_MAX_CONCURRENT_EXPENSIVE")
+                assert_refused(
+                    refused, 429, "at once as this server allows (1, NARXWATCH_MAX_CONCURRENT_EXPENSIVE)"
+                )
                 assert int(refused.headers["retry-after"]) > 0
-            assert inspecting.is_alive(), "the long inspection ended too soon for the test to mean anything"
-            fault_mode = {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": other_training}
+                refused = ingest.post(f"{API}/records/{inspected['id']}/inspect")
+                assert_refused(refused, 429, "NARXWATCH_MAX_CONCURRENT_EXPENSIVE")
             theirs = other_admin.post(f"{API}/structures/{other_rig}/models/fault-modes", json=fault_mode)
             assert theirs.status_code == 201, theirs.text
-        finally:
-            inspecting.join(120)
-        assert answers[0].status_code == 200, answers[0].text
+        failed = admin.post(baseline_url(bounded.rig), json={**body, "terms": ["y[t-0]"]})
+        assert failed.status_code == 422, failed.text
         assert admin.post(baseline_url(bounded.rig), json=body).status_code == 201
+        again = ingest.post(f"{API}/records/{inspected['id']}/inspect")
+        assert again.status_code == 200 and again.json() == inspected["verdict"]
 
 
 # --- what reads what: seen in the SQL the server sends ------------------------------------------

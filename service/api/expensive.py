@@ -43,9 +43,9 @@ class Slots:
             if self._running[organisation_id] >= self.limit:
                 raise HTTPException(
                     status.HTTP_429_TOO_MANY_REQUESTS,
-                    f"your organisation is already running {self.limit} trainings, refinements or "
-                    "inspections of stored records on this server (NARXWATCH_MAX_CONCURRENT_EXPENSIVE); "
-                    f"retry in {RETRY_AFTER_SECONDS} s",
+                    "your organisation already runs as many trainings, refinements and inspections of "
+                    f"stored records at once as this server allows ({self.limit}, "
+                    f"NARXWATCH_MAX_CONCURRENT_EXPENSIVE); retry in {RETRY_AFTER_SECONDS} s",
                     headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
                 )
             self._running[organisation_id] += 1
