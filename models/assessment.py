@@ -14,6 +14,9 @@ from models.narx import NARX
 from models.signals import minimum_samples
 
 LJUNG_BOX_LAGS = 40
+# The residual spectrum wants four Welch segments of 64 samples (its 31-bin background median
+# needs 31 bins); the residual tests want models.signals.minimum_samples.
+SPECTRUM_SAMPLES = 256
 
 
 @dataclass(frozen=True)
@@ -51,12 +54,7 @@ def assess(
     of the process residual r, started from rest; the free run uses the process model alone.
     """
     start_up = max(initial, model.max_lag)
-    needed = minimum_samples(lags, start_up)
-    if len(y) < needed:
-        raise InputError(
-            f"the test part has {len(y)} samples; judging a model needs at least {needed} "
-            f"({start_up} to start it and {needed - start_up} for the residual tests)"
-        )
+    check_test_length(len(y), start_up, lags)
     start = start_up - model.max_lag
     xs, ys = np.asarray(x, dtype=np.float64)[start:], np.asarray(y, dtype=np.float64)[start:]
     error = model.residuals(xs, ys, t0 + start)
@@ -69,6 +67,17 @@ def assess(
     return Assessment(
         float(np.sqrt(np.mean(error**2))), free_run if np.isfinite(free_run) else float("inf"), diagnostics
     )
+
+
+def check_test_length(n: int, start_up: int, lags: int = LJUNG_BOX_LAGS) -> None:
+    """Refuse a test part too short to judge a model on: ``start_up`` samples start it, and the
+    residual tests and spectrum need the rest."""
+    needed = max(minimum_samples(lags, start_up), start_up + SPECTRUM_SAMPLES)
+    if n < needed:
+        raise InputError(
+            f"the test part has {n} samples; judging a model needs at least {needed} "
+            f"({start_up} to start it and {needed - start_up} for the residual tests and spectrum)"
+        )
 
 
 def assessment_dict(assessment: Assessment) -> dict[str, Any]:

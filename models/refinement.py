@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from scipy import linalg, signal, special
 
-from models.assessment import Assessment, assess, assessment_dict
+from models.assessment import Assessment, assess, assessment_dict, check_test_length
 from models.effects import Effect, candidate_effects, offset_direction, offset_terms, periodic_terms, unused
 from models.errors import InputError
 from models.narmax import fit_narmax, invertible
@@ -155,20 +155,32 @@ def refine_record(
     The first ``initial`` test samples only start the predictions (benchmark protocols
     prescribe such a start, e.g. 50 samples for Silverbox).
     """
-    n = len(x)
-    for label, (first, last) in (("estimation", estimation), ("test", test)):
-        if not 0 <= first < last <= n:
-            raise InputError(f"the {label} samples {first}:{last} do not lie within the record's {n} samples")
-    if initial < 0:
-        raise InputError(f"the initial samples must be 0 or more, got {initial}")
+    check_parts(len(x), declared, estimation, test, initial)
     a, b = estimation
-    result = refine(x[a:b], y[a:b], declared, alpha=alpha)
     c, d = test
+    result = refine(x[a:b], y[a:b], declared, alpha=alpha)
     return RefinementReport(
         result,
         assess(result.declared, x[c:d], y[c:d], initial, fs, c - a),
         assess(result.refined, x[c:d], y[c:d], initial, fs, c - a, result.noise),
     )
+
+
+def check_parts(
+    n: int,
+    declared: Sequence[str | Term],
+    estimation: tuple[int, int],
+    test: tuple[int, int],
+    initial: int = 0,
+) -> None:
+    """Refuse estimation and test parts that do not fit a record of ``n`` samples, or a test part
+    too short to judge the models on: checked before the loop, which takes far longer."""
+    for label, (first, last) in (("estimation", estimation), ("test", test)):
+        if not 0 <= first < last <= n:
+            raise InputError(f"the {label} samples {first}:{last} do not lie within the record's {n} samples")
+    if initial < 0:
+        raise InputError(f"the initial samples must be 0 or more, got {initial}")
+    check_test_length(test[1] - test[0], max(initial, max_lag(parse_terms(declared))))
 
 
 def _model_dict(model: NARX) -> dict[str, Any]:

@@ -65,6 +65,20 @@ class Settings(BaseSettings):
     # turn it off only behind a plain-HTTP proxy on a trusted network.
     dashboard_session_hours: float = Field(12.0, gt=0, le=24 * 30)
     session_cookie_secure: bool = True
+    # Bounded cost of the expensive routes (README "Bounded cost"). A cell is one sample times
+    # one coefficient (a term, times the basis functions of a fault mode, plus a refinement's
+    # candidate regressors): a fit peaks at about 40 bytes a cell (12 M cells: 0.5 GB, 14 s),
+    # and its time grows with them. Above ``queue_training_cells`` it runs as a job (202).
+    max_training_cells: int = Field(12_000_000, gt=0)
+    queue_training_cells: int = Field(2_000_000, gt=0)
+    # Coefficients of one model (terms × basis functions): its document holds their covariance,
+    # so it grows with their square, and every page that draws the model reads it.
+    max_model_coefficients: int = Field(200, gt=0)
+    max_model_document_bytes: int = Field(2 * 1024 * 1024, gt=0)
+    # Trainings, refinements and inspections of stored records running at once for one
+    # organisation in one process; more are answered 429, so that no organisation can hold
+    # every thread and pooled connection.
+    max_concurrent_expensive: int = Field(2, ge=1)
 
 
 @lru_cache

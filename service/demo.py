@@ -54,7 +54,9 @@ def seed_demo(
     progress("baseline record")
     healthy = simulate(study.scenario(), study.baseline_samples, seeds[0])
     baseline, _ = records.store_record(session, structure, healthy.x, healthy.y, healthy.fs, None)
-    modelling.train_baseline(session, principal, structure.id, BaselineTrain(record_ids=[baseline.id]))
+    modelling.train_baseline(
+        session, principal, structure.id, BaselineTrain(record_ids=[baseline.id]), settings
+    )
     for index, mode in enumerate(("k2", "k1")):
         progress(f"{mode} experiments")
         experiments = []
@@ -69,6 +71,7 @@ def seed_demo(
             principal,
             structure.id,
             FaultModeTrain(name=mode, k_min=k_min, k_max=k_max, experiments=experiments),
+            settings,
         )
     progress("a week of inspected records")
     _history(session, structure, settings, study)

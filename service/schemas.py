@@ -110,6 +110,14 @@ class ModelOut(BaseModel):
     statistics: dict[str, Any]
 
 
+class JobAccepted(BaseModel):
+    """Work queued as a job rather than run within its request; follow it at ``location``."""
+
+    job_id: int
+    location: str
+    detail: str
+
+
 class RecordUpload(Strict):
     """A record as JSON: excitation x [N], response y [m], sampling rate fs [Hz]."""
 

@@ -21,6 +21,7 @@ from swagger_ui_bundle import swagger_ui_path
 from models.errors import InputError
 from service import dashboard
 from service.api import health, jobs, keys, metrics, modelling, records, refinements, schedules, structures
+from service.api.expensive import Slots
 from service.api.limits import BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
@@ -59,6 +60,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.engine = make_engine(settings.database_url, settings.pool_timeout_seconds)
     app.state.sessions = session_factory(app.state.engine)
     app.state.jobs = job_backend(settings, app.state.sessions, in_service=True)
+    app.state.expensive = Slots(settings.max_concurrent_expensive)
     app.include_router(health.router)
     app.include_router(metrics.router)
     routers = (

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, status
+from fastapi import APIRouter, Request, status
+from fastapi.responses import JSONResponse
 
-from service.api.deps import Admin, SessionDep, Viewer
+from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
+from service.api.expensive import ACCEPTED, queued, slot
 from service.api.params import IdPath
 from service.domain import modelling
+from service.jobs.tasks import TRAIN_MODEL
 from service.schemas import BaselineTrain, FaultModeTrain, ModelOut
 from service.tables import ModelVersion
 
@@ -27,21 +30,43 @@ def model_out(version: ModelVersion) -> ModelOut:
     )
 
 
-@router.post("/baseline", status_code=status.HTTP_201_CREATED)
+@router.post("/baseline", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED)
 def train_baseline(
-    structure_id: IdPath, body: BaselineTrain, principal: Admin, session: SessionDep
-) -> ModelOut:
-    """Identify the healthy structure's NARX from stored records (default: SPEC §2's 8 terms)."""
-    version = modelling.train_baseline(session, principal, structure_id, body)
+    request: Request,
+    structure_id: IdPath,
+    body: BaselineTrain,
+    principal: Admin,
+    session: SessionDep,
+    settings: SettingsDep,
+) -> ModelOut | JSONResponse:
+    """Identify the healthy structure's NARX from stored records (default: SPEC §2's 8 terms);
+    a large training is queued as a job (202)."""
+    cells = modelling.training_cells(session, principal, structure_id, body, settings)
+    if cells > settings.queue_training_cells:
+        job = {"structure_id": structure_id, "kind": "baseline", "body": body.model_dump()}
+        return queued(request, session, principal, TRAIN_MODEL, **job)
+    with slot(request, principal):
+        version = modelling.train_baseline(session, principal, structure_id, body, settings)
     return model_out(version)
 
 
-@router.post("/fault-modes", status_code=status.HTTP_201_CREATED)
+@router.post("/fault-modes", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED)
 def train_fault_mode(
-    structure_id: IdPath, body: FaultModeTrain, principal: Admin, session: SessionDep
-) -> ModelOut:
-    """Identify a fault mode as a functional NARX; the new version becomes the active one."""
-    version = modelling.train_fault_mode(session, principal, structure_id, body)
+    request: Request,
+    structure_id: IdPath,
+    body: FaultModeTrain,
+    principal: Admin,
+    session: SessionDep,
+    settings: SettingsDep,
+) -> ModelOut | JSONResponse:
+    """Identify a fault mode as a functional NARX; the new version becomes the active one.
+    A large training is queued as a job (202)."""
+    cells = modelling.training_cells(session, principal, structure_id, body, settings)
+    if cells > settings.queue_training_cells:
+        job = {"structure_id": structure_id, "kind": "fault_mode", "body": body.model_dump()}
+        return queued(request, session, principal, TRAIN_MODEL, **job)
+    with slot(request, principal):
+        version = modelling.train_fault_mode(session, principal, structure_id, body, settings)
     return model_out(version)
 
 

@@ -11,10 +11,11 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
+from service.api.expensive import BUSY, slot
 from service.api.params import IdPath, utc
 from service.api.uploads import REQUEST_BODY, parse_upload
 from service.config import Settings
-from service.domain import inspections, records, structures
+from service.domain import inspections
 from service.domain.ingest import Ingested, QueueInspection, ingest_record
 from service.jobs import JobBackend
 from service.jobs.tasks import INSPECT_RECORD
@@ -91,14 +92,14 @@ async def upload_record(
     return _record_out(ingested)
 
 
-@router.post("/records/{record_id}/inspect")
+@router.post("/records/{record_id}/inspect", responses=BUSY)
 def inspect_record(
-    record_id: IdPath, principal: Ingest, session: SessionDep, settings: SettingsDep
+    request: Request, record_id: IdPath, principal: Ingest, session: SessionDep, settings: SettingsDep
 ) -> VerdictOut:
-    """Inspect a stored record with every active fault-mode model of its structure."""
-    record = records.get_record(session, principal, record_id)
-    structure = structures.get_structure(session, principal, record.structure_id)
-    verdict = inspections.inspect_record(session, record, structure, settings)
+    """Inspect a stored record with every active fault-mode model of its structure; a verdict
+    it already has under those models is returned as it is."""
+    with slot(request, principal):
+        verdict = inspections.inspect_stored(session, principal, record_id, settings)
     return inspections.verdict_out(verdict)
 
 

@@ -2,24 +2,43 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, status
+from fastapi import APIRouter, Request, status
+from fastapi.responses import JSONResponse
 
-from service.api.deps import Admin, SessionDep, Viewer
+from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
+from service.api.expensive import ACCEPTED, queued, slot
 from service.api.params import IdPath
 from service.domain import refinements
+from service.jobs.tasks import REFINE
 from service.schemas import ModelRef, RefinementCreate, RefinementOut
 from service.tables import ModelVersion, Refinement
 
 router = APIRouter(tags=["refinements"])
 
 
-@router.post("/structures/{structure_id}/refinements", status_code=status.HTTP_201_CREATED)
+@router.post(
+    "/structures/{structure_id}/refinements",
+    status_code=status.HTTP_201_CREATED,
+    response_model=RefinementOut,
+    responses=ACCEPTED,
+)
 def create_refinement(
-    structure_id: IdPath, body: RefinementCreate, principal: Admin, session: SessionDep
-) -> RefinementOut:
+    request: Request,
+    structure_id: IdPath,
+    body: RefinementCreate,
+    principal: Admin,
+    session: SessionDep,
+    settings: SettingsDep,
+) -> RefinementOut | JSONResponse:
     """Trace a baseline's residual on a record to the effects it lacks; the refined model is
-    stored as a new version that is not active until activated."""
-    return refinement_out(refinements.create_refinement(session, principal, structure_id, body))
+    stored as a new version that is not active until activated. A refinement of a long record
+    is queued as a job (202)."""
+    cells = refinements.refinement_cells(session, principal, structure_id, body, settings)
+    if cells > settings.queue_training_cells:
+        return queued(request, session, principal, REFINE, structure_id=structure_id, body=body.model_dump())
+    with slot(request, principal):
+        refinement = refinements.create_refinement(session, principal, structure_id, body, settings)
+    return refinement_out(refinement)
 
 
 @router.get("/structures/{structure_id}/refinements")

@@ -7,14 +7,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy.orm import Session
 
 from models.errors import InputError
 from models.validation import one_step_fit
 from service.dashboard import figures
 from service.domain import fleet, history, modelling, records, refinements, structures, timeline
 from service.domain.history import Status
-from service.domain.inspections import verdict_out
+from service.domain.inspections import MODEL_REFS, verdict_out
 from service.schemas import ModeResult
 from service.security import Principal
 from service.tables import Verdict
@@ -102,7 +102,7 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
         .where(Verdict.record_id == record.id)
         .order_by(Verdict.created_at.desc(), Verdict.id.desc())
         .limit(1)
-        .options(selectinload(Verdict.models))
+        .options(MODEL_REFS)
     )
     context: dict[str, Any] = {"record": record, "structure": structure, "verdict": None, "charts": {}}
     if verdict is None:

@@ -6,8 +6,9 @@ import datetime as dt
 from dataclasses import dataclass
 
 from sqlalchemy import and_, func, or_, select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy.orm import Session
 
+from service.domain.inspections import MODEL_REFS
 from service.domain.structures import list_structures
 from service.security import Principal
 from service.tables import Structure, Verdict
@@ -43,7 +44,7 @@ def _status(session: Session, structure: Structure, counts: dict[str, int]) -> S
         .where(Verdict.structure_id == structure.id)
         .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
         .limit(1)
-        .options(selectinload(Verdict.models))
+        .options(MODEL_REFS)
     )
     since = _since(session, latest) if latest is not None else None
     return StructureStatus(structure, latest, since, {s: counts.get(s, 0) for s in STATUSES})

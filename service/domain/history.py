@@ -9,10 +9,10 @@ from typing import Literal
 
 import numpy as np
 from sqlalchemy import and_, func, or_, select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy.orm import Session
 
 from models.errors import InputError
-from service.domain.inspections import verdict_out
+from service.domain.inspections import MODEL_REFS, verdict_out
 from service.domain.structures import get_structure
 from service.schemas import MAX_ID, Summary, TrendPoint, VerdictPage
 from service.security import Principal
@@ -52,7 +52,7 @@ def history(
             or_(Verdict.acquired_at < at, and_(Verdict.acquired_at == at, Verdict.id < verdict_id))
         )
     query = query.order_by(Verdict.acquired_at.desc(), Verdict.id.desc()).limit(limit + 1)
-    rows = list(session.scalars(query.options(selectinload(Verdict.models))))
+    rows = list(session.scalars(query.options(MODEL_REFS)))
     page, more = rows[:limit], len(rows) > limit
     return VerdictPage(
         items=[verdict_out(v) for v in page],
@@ -75,7 +75,7 @@ def summary(session: Session, principal: Principal, structure_id: int) -> Summar
             .where(Verdict.structure_id == structure_id)
             .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
             .limit(TREND_POINTS)
-            .options(selectinload(Verdict.models))
+            .options(MODEL_REFS)
         )
     )
     trend = [

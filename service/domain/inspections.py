@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass
 
 from numpy.typing import ArrayLike
 from sqlalchemy import insert, select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy.orm import Session, defer, selectinload
 
 from models.fnarx import FNARX
 from models.inspection import ModeResult, inspect
@@ -16,10 +16,14 @@ from service.db import insert_unless_exists
 from service.domain.errors import ConflictError
 from service.domain.modelling import active_fault_modes
 from service.domain.records import signals
-from service.domain.structures import get_owned
+from service.domain.structures import get_owned, get_structure
 from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure, Verdict, VerdictModel
+
+# A verdict's model versions as verdict_out names them (id, name, version), never their
+# documents: those can be large, and no verdict answer or history page shows them.
+MODEL_REFS = selectinload(Verdict.models).load_only(ModelVersion.id, ModelVersion.name, ModelVersion.version)
 
 
 @dataclass(frozen=True)
@@ -39,7 +43,12 @@ def evaluate(
     Kept apart from storing so that an upload computes its verdict before its first write:
     SQLite then holds its write lock only for the inserts.
     """
-    active = models_to_inspect_with(session, structure)
+    return _evaluate(models_to_inspect_with(session, structure), settings, x, y)
+
+
+def _evaluate(
+    active: list[tuple[ModelVersion, FNARX]], settings: Settings, x: ArrayLike, y: ArrayLike
+) -> Evaluation:
     result = inspect(x, y, [model for _, model in active], alpha=settings.alpha, lags=settings.lags)
     versions = [version for version, _ in active]
     return Evaluation(versions, model_set(versions), result)
@@ -61,13 +70,28 @@ def models_to_inspect_with(session: Session, structure: Structure) -> list[tuple
     return active
 
 
+def inspect_stored(session: Session, principal: Principal, record_id: int, settings: Settings) -> Verdict:
+    """The caller's stored record inspected (see :func:`inspect_record`); its signals are read
+    only if it has no verdict under the active models yet."""
+    unread = [defer(Record.x), defer(Record.y)]
+    record = get_owned(session, principal, Record, record_id, "record", options=unread)
+    structure = get_structure(session, principal, record.structure_id)
+    return inspect_record(session, record, structure, settings)
+
+
 def inspect_record(session: Session, record: Record, structure: Structure, settings: Settings) -> Verdict:
     """The verdict of a stored record under the structure's active fault-mode models.
 
-    Computed first, then stored: the write transaction (and SQLite's writer gate) begins only
+    A verdict the record has under the same models is returned before its signals are read:
+    inspecting it again would cost as much as the first time and change nothing. Otherwise
+    computed first, then stored: the write transaction (and SQLite's writer gate) begins only
     with the inserts.
     """
-    evaluation = evaluate(session, structure, settings, *signals(record))
+    active = models_to_inspect_with(session, structure)
+    existing = _find(session, record.id, model_set([version for version, _ in active]))
+    if existing is not None:
+        return existing
+    evaluation = _evaluate(active, settings, *signals(record))
     return store_verdict(session, record, structure, evaluation)
 
 
@@ -125,9 +149,7 @@ def verdict_under(session: Session, record_id: int, versions: list[ModelVersion]
 
 
 def get_verdict(session: Session, principal: Principal, verdict_id: int) -> Verdict:
-    return get_owned(
-        session, principal, Verdict, verdict_id, "verdict", options=[selectinload(Verdict.models)]
-    )
+    return get_owned(session, principal, Verdict, verdict_id, "verdict", options=[MODEL_REFS])
 
 
 def verdict_out(verdict: Verdict) -> VerdictOut:
@@ -167,6 +189,6 @@ def _find(session: Session, record_id: int, model_set: str) -> Verdict | None:
     query = (
         select(Verdict)
         .where(Verdict.record_id == record_id, Verdict.model_set == model_set)
-        .options(selectinload(Verdict.models))
+        .options(MODEL_REFS)
     )
     return session.scalar(query)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections import OrderedDict
+import json
+from collections import Counter, OrderedDict
 from typing import Any
 
 from sqlalchemy import func, select, update
@@ -12,9 +13,11 @@ from sqlalchemy.orm import Session, defer
 from models.errors import InputError
 from models.fnarx import FNARX, fit_fnarx
 from models.narx import fit_narx
+from models.terms import parse_terms
+from service.config import Settings
 from service.domain.errors import ConflictError, NotFoundError
-from service.domain.records import get_record, signals
-from service.domain.structures import get_structure
+from service.domain.records import signals
+from service.domain.structures import get_owned, get_structure
 from service.schemas import BaselineTrain, FaultModeTrain
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure
@@ -28,25 +31,22 @@ _parsed: OrderedDict[tuple[int, str], FNARX] = OrderedDict()
 
 
 def train_baseline(
-    session: Session, principal: Principal, structure_id: int, body: BaselineTrain
+    session: Session, principal: Principal, structure_id: int, body: BaselineTrain, settings: Settings
 ) -> ModelVersion:
     structure = get_structure(session, principal, structure_id)
-    records = _records_of(session, principal, structure, body.record_ids)
+    records, _ = _training_records(session, principal, structure, body, settings)
     model = fit_narx([signals(r) for r in records], body.terms or EXACT_TERMS)
     training = {"record_ids": body.record_ids, "terms": model.term_names}
     statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
-    return new_version(session, structure, "baseline", BASELINE, model.to_document(), training, statistics)
+    document = bounded_document(model.to_document(), settings)
+    return new_version(session, structure, "baseline", BASELINE, document, training, statistics)
 
 
 def train_fault_mode(
-    session: Session, principal: Principal, structure_id: int, body: FaultModeTrain
+    session: Session, principal: Principal, structure_id: int, body: FaultModeTrain, settings: Settings
 ) -> ModelVersion:
     structure = get_structure(session, principal, structure_id)
-    if body.name == BASELINE:
-        raise InputError("'baseline' names the healthy model; give the fault mode another name")
-    if not body.k_min < body.k_max:
-        raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
-    records = _records_of(session, principal, structure, [e.record_id for e in body.experiments])
+    records, _ = _training_records(session, principal, structure, body, settings)
     model = fit_fnarx(
         [(*signals(r), e.k) for r, e in zip(records, body.experiments, strict=True)],
         body.terms or EXACT_TERMS,
@@ -64,12 +64,64 @@ def train_fault_mode(
         "terms": model.term_names,
     }
     statistics = {"experiment_sigma2": model.experiment_sigma2.tolist(), "n_obs": model.n_obs}
-    return new_version(session, structure, "fault_mode", body.name, model.to_document(), training, statistics)
+    document = bounded_document(model.to_document(), settings)
+    return new_version(session, structure, "fault_mode", body.name, document, training, statistics)
+
+
+def version_of_job(session: Session, structure_id: int, token: str) -> ModelVersion | None:
+    """The version a queued training (marked ``training["job"]``) has stored already, if any."""
+    query = select(ModelVersion).where(ModelVersion.structure_id == structure_id)
+    versions = session.scalars(query.options(defer(ModelVersion.document)))
+    return next((v for v in versions if v.training.get("job") == token), None)
+
+
+def training_cells(
+    session: Session,
+    principal: Principal,
+    structure_id: int,
+    body: BaselineTrain | FaultModeTrain,
+    settings: Settings,
+) -> int:
+    """What a training costs in cells (samples × coefficients), from the records' lengths alone:
+    it decides whether the training runs at once or as a job. Refuses one over the limits."""
+    structure = get_structure(session, principal, structure_id)
+    return _training_records(session, principal, structure, body, settings)[1]
+
+
+def check_cost(cells: int, coefficients: int, settings: Settings, what: str) -> None:
+    """Refuse a fit whose model or regressor matrix exceeds the configured bounds."""
+    if coefficients > settings.max_model_coefficients:
+        raise InputError(
+            f"{what} would have {coefficients} coefficients (terms × basis functions); the limit is "
+            f"{settings.max_model_coefficients} (NARXWATCH_MAX_MODEL_COEFFICIENTS)"
+        )
+    if cells > settings.max_training_cells:
+        raise InputError(
+            f"{what} would fit {cells} cells (samples × coefficients); the limit is "
+            f"{settings.max_training_cells} (NARXWATCH_MAX_TRAINING_CELLS): use fewer or shorter records"
+        )
+
+
+def bounded_document(document: dict[str, Any], settings: Settings) -> dict[str, Any]:
+    """The model's document, refused if larger than the service keeps: every page and inspection
+    that uses the model reads it whole."""
+    size = len(json.dumps(document))
+    if size > settings.max_model_document_bytes:
+        raise InputError(
+            f"the model's document would be {size} bytes; the limit is {settings.max_model_document_bytes} "
+            "(NARXWATCH_MAX_MODEL_DOCUMENT_BYTES): use fewer terms"
+        )
+    return document
 
 
 def list_models(session: Session, principal: Principal, structure_id: int) -> list[ModelVersion]:
     get_structure(session, principal, structure_id)
-    query = select(ModelVersion).where(ModelVersion.structure_id == structure_id)
+    # Listings show versions, not their documents: a parsed model is read when it is used.
+    query = (
+        select(ModelVersion)
+        .where(ModelVersion.structure_id == structure_id)
+        .options(defer(ModelVersion.document))
+    )
     return list(session.scalars(query.order_by(ModelVersion.name, ModelVersion.version)))
 
 
@@ -113,7 +165,12 @@ def fault_mode_model(version: ModelVersion) -> FNARX:
 
 
 def _records_of(session: Session, principal: Principal, structure: Structure, ids: list[int]) -> list[Record]:
-    records = [get_record(session, principal, record_id) for record_id in ids]
+    """The records, each once, without their signals: those are read only once the fit is allowed."""
+    repeated = [(i, n) for i, n in Counter(ids).items() if n > 1]
+    if repeated:
+        raise InputError(f"record {repeated[0][0]} is listed {repeated[0][1]} times; list each record once")
+    unread = [defer(Record.x), defer(Record.y)]
+    records = [get_owned(session, principal, Record, i, "record", options=unread) for i in ids]
     for record in records:
         if record.structure_id != structure.id:
             raise InputError(f"record {record.id} belongs to another structure, not {structure.name!r}")
@@ -132,6 +189,31 @@ def _lock_versions(session: Session, structure_id: int) -> None:
     The partial unique index on active versions refuses a second one in any case.
     """
     session.execute(select(Structure.id).where(Structure.id == structure_id).with_for_update(key_share=True))
+
+
+def _training_records(
+    session: Session,
+    principal: Principal,
+    structure: Structure,
+    body: BaselineTrain | FaultModeTrain,
+    settings: Settings,
+) -> tuple[list[Record], int]:
+    """The training's records (signals unread) and its cost in cells, refused over the limits;
+    what can be checked without the signals is, so that a queued training fails for no reason
+    its request could have given."""
+    if isinstance(body, BaselineTrain):
+        ids, size = body.record_ids, 1
+    else:
+        if body.name == BASELINE:
+            raise InputError("'baseline' names the healthy model; give the fault mode another name")
+        if not body.k_min < body.k_max:
+            raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
+        ids, size = [e.record_id for e in body.experiments], body.degree + 1
+    terms = len(parse_terms(body.terms or EXACT_TERMS))
+    records = _records_of(session, principal, structure, ids)
+    cells = sum(r.n_samples for r in records) * terms * size
+    check_cost(cells, terms * size, settings, "this training")
+    return records, cells
 
 
 def _deactivate(session: Session, structure_id: int, name: str) -> None:

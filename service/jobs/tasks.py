@@ -15,16 +15,20 @@ import logging
 from collections.abc import Callable
 
 from sqlalchemy import exists, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer
 
 from models.errors import InputError
 from service.config import Settings
 from service.db import insert_unless_exists
-from service.domain import inspections
+from service.domain import inspections, modelling, refinements
 from service.domain.schedules import RUN_SCHEDULE
+from service.schemas import BaselineTrain, FaultModeTrain, RefinementCreate
+from service.security import Principal, Role
 from service.tables import InspectionFailure, Record, Schedule, Structure, Verdict
 
 INSPECT_RECORD = "inspect_record"
+TRAIN_MODEL = "train_model"
+REFINE = "refine"
 
 log = logging.getLogger("narxwatch.jobs")
 
@@ -32,7 +36,8 @@ log = logging.getLogger("narxwatch.jobs")
 def inspect_record(session: Session, settings: Settings, record_id: int) -> None:
     """The verdict of a stored record under its structure's active fault-mode models; commits.
     A record the models cannot inspect is marked, and the job fails with the reason."""
-    record = session.get(Record, record_id)
+    # Its signals are read only if it has no verdict under the active models yet.
+    record = session.get(Record, record_id, options=[defer(Record.x), defer(Record.y)])
     if record is None:
         log.warning("record %s no longer exists: nothing to inspect", record_id)
         return
@@ -118,4 +123,60 @@ def _records_to_inspect(session: Session, action: str, structure_id: int, model_
     return [record_id for record_id in candidates if record_id not in skipped]
 
 
-TASKS: dict[str, Callable[..., None]] = {INSPECT_RECORD: inspect_record, RUN_SCHEDULE: run_schedule}
+def train_model(
+    session: Session,
+    settings: Settings,
+    principal: dict,
+    structure_id: int,
+    kind: str,
+    body: dict,
+    token: str,
+) -> None:
+    """A training too large to run in its request, as the key that asked for it. The version is
+    marked with the job's ``token``, so that the job run again stores no second one."""
+    caller = _caller(principal)
+    if modelling.version_of_job(session, structure_id, token) is not None:
+        log.info("the training queued as %s has stored its version already", token)
+        return
+    if kind == "baseline":
+        version = modelling.train_baseline(
+            session, caller, structure_id, BaselineTrain.model_validate(body), settings
+        )
+    else:
+        fault_mode = FaultModeTrain.model_validate(body)
+        version = modelling.train_fault_mode(session, caller, structure_id, fault_mode, settings)
+    version.training = version.training | {"job": token}
+    session.commit()
+
+
+def refine(
+    session: Session, settings: Settings, principal: dict, structure_id: int, body: dict, token: str
+) -> None:
+    """A refinement too large to run in its request, as the key that asked for it; marked with
+    the job's ``token`` like a queued training; commits."""
+    refinement = RefinementCreate.model_validate(body)
+    if refinements.refinement_of_job(session, structure_id, refinement.record_id, token) is not None:
+        log.info("the refinement queued as %s has been stored already", token)
+        return
+    refinements.create_refinement(session, _caller(principal), structure_id, refinement, settings, job=token)
+
+
+def job_principal(principal: Principal) -> dict:
+    """The caller, as a queued training or refinement carries it."""
+    return {
+        "organisation_id": principal.organisation_id,
+        "role": int(principal.role),
+        "key_id": principal.key_id,
+    }
+
+
+def _caller(principal: dict) -> Principal:
+    return Principal(principal["organisation_id"], Role(principal["role"]), principal["key_id"])
+
+
+TASKS: dict[str, Callable[..., None]] = {
+    INSPECT_RECORD: inspect_record,
+    RUN_SCHEDULE: run_schedule,
+    TRAIN_MODEL: train_model,
+    REFINE: refine,
+}

@@ -1,0 +1,98 @@
+"""Requests that cost much: a cap on those one organisation runs at once, and work handed to a job.
+
+Trainings, refinements and inspections of stored records take seconds and hold a thread and a
+pooled connection while they run. Each organisation may run ``max_concurrent_expensive`` of
+them at once in one process; more are answered 429, so that one organisation's burst cannot
+take every thread and connection from the others. Work above ``queue_training_cells`` is not
+run in its request at all: it is queued as a job and answered 202 with the job's address.
+"""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from fastapi import HTTPException, Request, status
+from fastapi.responses import JSONResponse
+from sqlalchemy.orm import Session
+from starlette.background import BackgroundTask
+
+from service.jobs.tasks import job_principal
+from service.schemas import JobAccepted
+from service.security import Principal
+
+JOBS_PATH = "/api/v1/jobs"
+RETRY_AFTER_SECONDS = 5
+
+
+class Slots:
+    """How many expensive requests each organisation is running in this process."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self._lock = threading.Lock()
+        self._running: Counter[int] = Counter()
+
+    @contextmanager
+    def held(self, organisation_id: int) -> Iterator[None]:
+        """Run the block in one of the organisation's slots; 429 if all are taken."""
+        with self._lock:
+            if self._running[organisation_id] >= self.limit:
+                raise HTTPException(
+                    status.HTTP_429_TOO_MANY_REQUESTS,
+                    "your organisation already runs as many trainings, refinements and inspections of "
+                    f"stored records at once as this server allows ({self.limit}, "
+                    f"NARXWATCH_MAX_CONCURRENT_EXPENSIVE); retry in {RETRY_AFTER_SECONDS} s",
+                    headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
+                )
+            self._running[organisation_id] += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._running[organisation_id] -= 1
+
+    def running(self, organisation_id: int) -> int:
+        with self._lock:
+            return self._running[organisation_id]
+
+
+def slot(request: Request, principal: Principal) -> Any:
+    """``with slot(request, principal):`` around the expensive part of a request."""
+    return request.app.state.expensive.held(principal.organisation_id)
+
+
+def queued(request: Request, session: Session, principal: Principal, task: str, **args: Any) -> JSONResponse:
+    """Queue ``task`` as the caller and answer 202 with where to follow the job (the request's
+    commit writes the job; the worker is woken after it)."""
+    token = uuid.uuid4().hex  # marks what the job stores, so that running it twice stores it once
+    jobs = request.app.state.jobs
+    job_id = jobs.defer(
+        session, task, principal.organisation_id, principal=job_principal(principal), token=token, **args
+    )
+    location = f"{JOBS_PATH}/{job_id}"
+    accepted = JobAccepted(
+        job_id=job_id,
+        location=location,
+        detail="too large to run within a request (NARXWATCH_QUEUE_TRAINING_CELLS): queued as a job",
+    )
+    return JSONResponse(
+        accepted.model_dump(),
+        status_code=status.HTTP_202_ACCEPTED,
+        headers={"Location": location},
+        background=BackgroundTask(jobs.wake),
+    )
+
+
+BUSY: dict[int | str, dict[str, Any]] = {
+    429: {
+        "description": "The organisation runs as many expensive requests as it may: retry after Retry-After"
+    }
+}
+ACCEPTED = BUSY | {
+    202: {"model": JobAccepted, "description": "Queued as a job: too large to run within a request"}
+}
