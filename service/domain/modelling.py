@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from collections import Counter, OrderedDict
 from typing import Any
 
@@ -26,8 +27,10 @@ from simulator.theory import EXACT_TERMS
 BASELINE = "baseline"
 _CACHE_SIZE = 256
 # Versions are immutable, so a parsed model can be kept; keyed by id and creation time so that
-# two databases in one process (tests) never share an entry.
+# two databases in one process (tests) never share an entry. Requests and the embedded worker
+# share it from several threads: an OrderedDict reordered by two at once can lose entries.
 _parsed: OrderedDict[tuple[int, str], FNARX] = OrderedDict()
+_parsed_lock = threading.Lock()
 
 
 def train_baseline(
@@ -155,12 +158,14 @@ def active_fault_modes(session: Session, structure: Structure) -> list[tuple[Mod
 def fault_mode_model(version: ModelVersion) -> FNARX:
     """The parsed model of a fault-mode version, kept once parsed: versions never change."""
     key = (version.id, version.created_at.isoformat())
-    model = _parsed.get(key)
-    if model is None:
+    with _parsed_lock:
+        model = _parsed.get(key)
+    if model is None:  # parsed outside the lock: two threads may both parse it, harmlessly
         model = FNARX.from_document(version.document)
-        _parsed[key] = model
-        if len(_parsed) > _CACHE_SIZE:
-            _parsed.popitem(last=False)
+        with _parsed_lock:
+            _parsed[key] = model
+            if len(_parsed) > _CACHE_SIZE:
+                _parsed.popitem(last=False)
     return model
 
 
