@@ -148,7 +148,7 @@ def stop(process: subprocess.Popen[bytes]) -> None:
             process.wait(30)
 
 
-def wait_ready(url: str, process: subprocess.Popen[bytes], timeout: float = 120) -> None:
+def wait_ready(url: str, process: subprocess.Popen[bytes], timeout: float = 300) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and process.poll() is None:
         with suppress(httpx.TransportError):
@@ -448,6 +448,7 @@ def run_database(name: str, url: str, args, bomb: bytes, payloads: list[bytes], 
             f"[{name}] the attack for {args.seconds:.0f} s (40 slow bodies, bombs, "
             f"2 + {args.trainings} trainings) …"
         )
+        logged_before = log.stat().st_size  # worker deaths are counted from here on
         with WorkerWatch(server.pid).watching() as watch:
             until = time.monotonic() + args.seconds
             tallies, threads = attack(api_url, port, attacker_keys, target, bomb, args, until)
@@ -460,7 +461,9 @@ def run_database(name: str, url: str, args, bomb: bytes, payloads: list[bytes], 
                 say(f"[{name}] {lingering} attacking client(s) still waiting; they are abandoned")
     finally:
         stop(server)
-    deaths = len(re.findall(r"Child process \[\d+\] died", log.read_text(errors="replace")))
+    with log.open("rb") as text:
+        text.seek(logged_before)
+        deaths = len(re.findall(rb"Child process \[\d+\] died", text.read()))
     return Outcome(name, alone, attacked, tallies, watch, deaths)
 
 
