@@ -490,6 +490,9 @@ def attacker_setup(http: httpx.Client, keys: dict[str, str], large_samples: int)
 
 def report(outcomes: list[Outcome]) -> None:
     print()
+    print(
+        f"machine load (1-minute average) at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+    )
     head = (
         f"{'database':11}{'phase':9}{'requests':>9}{'5xx':>5}{'dropped':>8}"
         f"{'p50 ms':>9}{'p95 ms':>9}{'max ms':>9}  {'workers died':14}peak RSS per worker (MB)"
