@@ -490,9 +490,7 @@ def attacker_setup(http: httpx.Client, keys: dict[str, str], large_samples: int)
 
 def report(outcomes: list[Outcome]) -> None:
     print()
-    print(
-        f"machine load (1-minute average) at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
-    )
+    print(f"machine load (1-minute average) at the end: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     head = (
         f"{'database':11}{'phase':9}{'requests':>9}{'5xx':>5}{'dropped':>8}"
         f"{'p50 ms':>9}{'p95 ms':>9}{'max ms':>9}  {'workers died':14}peak RSS per worker (MB)"
@@ -542,7 +540,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--baseline", type=float, help="the victim alone first (default 10, quick 5)")
     parser.add_argument("--trickle", type=float, help="seconds between a slow body's 2 bytes (5, quick 2)")
     parser.add_argument("--trainings", type=int, help="concurrent small trainings (default 45, quick 15)")
-    parser.add_argument("--large-samples", type=int, help="the large record (default 300 000, quick 100 000)")
+    parser.add_argument("--large-samples", type=int, help="the large record (default 150 000, quick 100 000)")
     args = parser.parse_args(argv)
     defaults = {
         "seconds": (90, 25),
