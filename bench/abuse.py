@@ -547,7 +547,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "baseline": (10, 5),
         "trickle": (5, 2),
         "trainings": (45, 15),
-        "large_samples": (300_000, 100_000),
+        "large_samples": (150_000, 100_000),
     }
     for name, (full, quick) in defaults.items():
         if getattr(args, name) is None:
