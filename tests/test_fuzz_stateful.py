@@ -11,13 +11,21 @@ statistics overflow, and the ids one organisation created requested with the oth
 What must hold on every answer, whatever came before:
 
 - no server error (5xx) and no dropped connection;
-- every JSON answer is standard JSON (no ``NaN`` or ``Infinity``, which browsers cannot read);
+- every JSON answer, and the charts' JSON in every dashboard page, is standard JSON (no ``NaN``
+  or ``Infinity``: browsers cannot read them);
 - an id created by one organisation, asked for with the other's key, is a 404 (a 404 or 422 when
   it is named in a body), never data; no listing shows the other organisation's objects; the
   dashboard shows its own objects and never the other's names;
 - a record with NaN, ±inf, a JSON number that overflows (1e400), y scaled by 1e60, x by 1e200
   or a constant signal is refused with a 4xx, whatever the encoding (JSON, CSV, NPZ) and the
   ``inspect`` mode, and the number of stored records does not change.
+
+First every operation of the served schema is sent a few times with each organisation's admin
+key and own ids (key-management routes, which may revoke the key they are sent with, with a third
+organisation's), so that every route is reached whatever the state machine chooses; each run of
+the state machine then starts with a tour (each overflowing input, each kind of foreign id, the
+own listings and each page once) before its steps. Routes outside the schema are listed in
+``OTHER_ROUTES``: a new one must be added there.
 
 Violations are collected over the whole run, not raised at the first, so one run lists every
 kind of failure (deduplicated by property, route and status, each with one request that shows
