@@ -75,7 +75,7 @@ from sqlalchemy import text
 
 from service.security import Role
 
-EXAMPLES = int(os.environ.get("NARXWATCH_FUZZ_EXAMPLES", "6"))
+EXAMPLES = int(os.environ.get("NARXWATCH_FUZZ_EXAMPLES", "16"))
 STEPS = int(os.environ.get("NARXWATCH_FUZZ_STEPS", "40"))
 SWEEP_EXAMPLES = 4
 
@@ -151,6 +151,7 @@ class World:
         self.covered: set[tuple[str, str]] = set()
         self.requests = 0
         self.runs = self.steps = 0
+        self.previous = "none"  # the request before, named when a connection drops
 
     def _organisation(self, tag: str) -> Organisation:
         name = f"fuzz-{tag}-{uuid.uuid4().hex[:8]}"
@@ -195,10 +196,13 @@ class World:
         try:
             response = self.http.request(method, path, headers=headers, **kwargs)
         except httpx.TransportError as exc:
-            self.violate("connection dropped", method, route, "", f"{described}: {exc!r}")
+            self.violate(
+                "connection dropped", method, route, "", f"{described}: {exc!r} (before it: {self.previous})"
+            )
             self.http.close()
             self.http = httpx.Client(base_url=self.server.url, timeout=120)
             return None
+        self.previous = f"{described} → {response.status_code}"
         self.check_answer(
             method,
             route,
