@@ -8,8 +8,9 @@ For each database (SQLite, then a throwaway PostgreSQL server from tests/postgre
    trained structure) and keys: the victim's ingest and viewer keys, the attacker's ingest and
    admin keys (organisation ``attacker``).
 2. ``narxwatch serve --workers 2`` on a free port of 127.0.0.1 (all traffic stays on loopback),
-   in its own process group. The attacker creates a structure and uploads a large record
-   (``--large-samples``) and a small one.
+   in its own process group, and on PostgreSQL two ``narxwatch worker`` processes for queued
+   work. The attacker creates a structure and uploads a large record (``--large-samples``) and a
+   small one.
 3. The victim alone for ``--baseline`` seconds, then the victim during the attack for
    ``--seconds``. The victim is two clients, each pausing 0.1 s between requests: one reads
    (``GET /structures`` and the structure's verdict history, in turn), one uploads distinct
@@ -22,9 +23,10 @@ For each database (SQLite, then a throwaway PostgreSQL server from tests/postgre
    - maximal trainings: two clients training a baseline on ``[large record] * 20`` in a loop,
      and ``--trainings`` concurrent clients training on ``[small record] * 20``.
    Every attacking request is bounded by the end of the attack window; every loop ends there.
-5. Throughout, the server's worker processes (the children of ``narxwatch serve`` that run
-   uvicorn's workers) are watched every 0.2 s in /proc: their peak RSS (VmHWM) and whether any
-   disappeared (uvicorn replaces a killed or unresponsive worker with a new process).
+5. Throughout, the worker processes (the children of ``narxwatch serve`` that run uvicorn's
+   workers, and the ``narxwatch worker`` processes) are watched every 0.2 s in /proc: their peak
+   RSS (VmHWM) and whether any disappeared (uvicorn replaces a killed or unresponsive worker with
+   a new process, so a death shows as a new PID).
 
 Prints, per database, the victim's requests, 5xx answers, transport errors, p50/p95/max latency
 (alone and under attack), the workers that died, each worker's peak RSS, what the attacker's
@@ -125,9 +127,13 @@ def noise_npz(n: int, seed: int) -> bytes:
 
 
 def spawn_server(env: dict[str, str], port: int, log: Path) -> subprocess.Popen[bytes]:
+    return spawn(["serve", "--host", HOST, "--port", str(port), "--workers", "2"], env, log)
+
+
+def spawn(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:
     with log.open("wb") as out:
         return subprocess.Popen(
-            [console_script("narxwatch"), "serve", "--host", HOST, "--port", str(port), "--workers", "2"],
+            [console_script("narxwatch"), *args],
             env=env,
             cwd=ROOT,
             stdout=out,
@@ -183,21 +189,31 @@ def worker_pids(server_pid: int) -> set[int]:
     return found
 
 
+def _running(pid: int) -> bool:
+    """Alive and not a zombie (a killed child stays in /proc until its parent reaps it)."""
+    return not _status_fields(pid).get("State", "Z").strip().startswith("Z")
+
+
 @dataclass
 class WorkerWatch:
-    """Every worker process seen, its peak RSS (VmHWM, bytes) and which of them went away."""
+    """Every worker process seen, its peak RSS (VmHWM, bytes) and which of them went away: uvicorn's
+    workers of the server (replaced when they die) and the ``narxwatch worker`` job processes."""
 
     server_pid: int
+    job_workers: list[int]
     peak: dict[int, int] = field(default_factory=dict)
     gone: list[int] = field(default_factory=list)
     _stop: threading.Event = field(default_factory=threading.Event)
 
     def _look(self) -> None:
-        alive = worker_pids(self.server_pid)
+        alive = worker_pids(self.server_pid) | {pid for pid in self.job_workers if _running(pid)}
         for pid in alive:
             hwm = _status_fields(pid).get("VmHWM", "0 kB").split()[0]
             self.peak[pid] = max(self.peak.get(pid, 0), int(hwm) * 1024)
         self.gone += [pid for pid in self.peak if pid not in alive and pid not in self.gone]
+
+    def kind(self, pid: int) -> str:
+        return "job" if pid in self.job_workers else "serve"
 
     @contextmanager
     def watching(self) -> Iterator[WorkerWatch]:
@@ -433,6 +449,11 @@ def run_database(name: str, url: str, args, bomb: bytes, payloads: list[bytes], 
     api_url = f"http://{HOST}:{port}"
     log = folder / f"serve-{name}.log"
     server = spawn_server(env, port, log)
+    # On PostgreSQL queued work (inspections, and whatever the service queues) runs in
+    # `narxwatch worker` processes, as in production: two of them, watched like the server's.
+    job_workers = [
+        spawn(["worker"], env, folder / f"worker-{i}.log") for i in range(2 if name == "postgresql" else 0)
+    ]
     try:
         wait_ready(api_url, server)
         with httpx.Client(base_url=api_url, timeout=120) as http:
@@ -449,7 +470,7 @@ def run_database(name: str, url: str, args, bomb: bytes, payloads: list[bytes], 
             f"2 + {args.trainings} trainings) …"
         )
         logged_before = log.stat().st_size  # worker deaths are counted from here on
-        with WorkerWatch(server.pid).watching() as watch:
+        with WorkerWatch(server.pid, [worker.pid for worker in job_workers]).watching() as watch:
             until = time.monotonic() + args.seconds
             tallies, threads = attack(api_url, port, attacker_keys, target, bomb, args, until)
             time.sleep(min(2.0, args.seconds / 10))  # the attack takes hold before the victim comes
@@ -460,7 +481,8 @@ def run_database(name: str, url: str, args, bomb: bytes, payloads: list[bytes], 
             if lingering:
                 say(f"[{name}] {lingering} attacking client(s) still waiting; they are abandoned")
     finally:
-        stop(server)
+        for process in (server, *job_workers):
+            stop(process)
     with log.open("rb") as text:
         text.seek(logged_before)
         deaths = len(re.findall(rb"Child process \[\d+\] died", text.read()))
@@ -503,7 +525,10 @@ def report(outcomes: list[Outcome]) -> None:
             workers = died = ""
             if phase == "attacked":
                 died = f"{len(outcome.watch.gone)} ({outcome.deaths_logged} logged)"
-                workers = ", ".join(f"{rss / 2**20:.0f}" for _, rss in sorted(outcome.watch.peak.items()))
+                workers = ", ".join(
+                    f"{rss / 2**20:.0f}{' (job)' if outcome.watch.kind(pid) == 'job' else ''}"
+                    for pid, rss in sorted(outcome.watch.peak.items())
+                )
             print(
                 f"{outcome.database:11}{phase:9}{len(tally.latencies):>9}{tally.server_errors():>5}"
                 f"{tally.transport_errors():>8}{p50:>9.0f}{p95:>9.0f}{top:>9.0f}  {died:14}{workers}"
