@@ -93,8 +93,8 @@ OTHER_ROUTES = {
     ("GET", "/dashboard/static/plotly.min.js"),
     ("GET", "/openapi.json"),
     ("GET", "/docs"),
-    ("GET", "/docs/oauth2-redirect"),
-    ("GET", "/redoc"),
+    ("GET", "/docs/static/swagger-ui-bundle.js"),
+    ("GET", "/"),
 } | {("GET", page) for page in DASHBOARD_PAGES}
 CHARTS = re.compile(rb'<script type="application/json"[^>]*>(.*?)</script>', re.DOTALL)
 OTHER_PAGES = sorted(route for method, route in OTHER_ROUTES if method == "GET")
