@@ -13,6 +13,7 @@ from api_helpers import TRAINING_K, simulated
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from models.signals import checked_record, minimum_samples
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import modelling, records, structures
@@ -24,7 +25,7 @@ from service.tables import Organisation, Record, Structure
 from simulator.theory import EXACT_TERMS
 
 # SPEC §2's terms and one lagged 100 samples: records of 208 samples (the storage minimum) up to
-# 5·lags + 100 = 300 can be stored but not inspected with this model.
+# 100 + 5·lags + 8 = 308 (models.signals.minimum_samples) can be stored but not inspected with it.
 EXACT_TERM_NAMES = [str(term) for term in EXACT_TERMS]
 LONG_LAG_TERMS = [*EXACT_TERM_NAMES, "y[t-100]"]
 TOO_SHORT = 250
@@ -74,8 +75,8 @@ class Monitored:
         record = simulated(fault, k, seed, n)
         with transaction(self.sessions) as session:
             structure = session.get(Structure, self.structure_id)
-            minimum = records.minimum_samples(self.settings.lags)
-            stored, _ = records.store_record(session, structure, record.x, record.y, None, None, minimum)
+            x, y = checked_record(record.x, record.y, minimum_samples(self.settings.lags))
+            stored, _ = records.store_record(session, structure, x, y, structure.fs, None)
             return stored.id
 
     def train(self, terms: list[str], seed: int) -> int:
@@ -85,7 +86,10 @@ class Monitored:
         ]
         body = FaultModeTrain(name="k2", k_min=-32.0, k_max=32.0, experiments=experiments, terms=terms)
         with transaction(self.sessions) as session:
-            return modelling.train_fault_mode(session, self.principal, self.structure_id, body).id
+            version = modelling.train_fault_mode(
+                session, self.principal, self.structure_id, body, self.settings
+            )
+            return version.id
 
     def record_ids(self) -> list[int]:
         with self.sessions() as session:

@@ -198,6 +198,7 @@ def run_again(server: LiveServer, job_id: int) -> None:
         return task, args if isinstance(args, dict) else json.loads(args)  # SQLite's JSON is text
 
     task, args = wait_for(finished, 30, f"job {job_id} done")
+    args.pop("organisation_id", None)  # Procrastinate's jobs carry it for GET /jobs, not for the task
     with server.app.state.sessions() as session:
         TASKS[task](session, server.settings, **args)
 

@@ -152,7 +152,7 @@ def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_uploa
 
 def test_the_same_record_uploaded_at_once_is_stored_once(tenant):
     """Eight uploads of one record released together: one is created, the others get it back,
-    and its queued inspection leaves one verdict."""
+    and its queued inspections leave one verdict."""
     sid = create_structure(tenant.admin)["id"]
     train_fault_mode(tenant.admin, tenant.ingest, sid, "k2", seed=94)
     record = simulated("k2", 10.0, [95])
@@ -172,7 +172,10 @@ def test_the_same_record_uploaded_at_once_is_stored_once(tenant):
         thread.start()
     for thread in threads:
         thread.join(60)
-    assert len(answers) == 8 and {a.status_code for a in answers} == {202}, [a.text for a in answers]
+    # 202 while the record has no verdict from the active models; once its job has stored one, a
+    # late duplicate gets that verdict back (200) instead of queueing the same work again.
+    assert len(answers) == 8 and {a.status_code for a in answers} <= {200, 202}, [a.text for a in answers]
+    assert all(a.json()["verdict"] is not None for a in answers if a.status_code == 200)
     assert len({a.json()["id"] for a in answers}) == 1, "one record, whoever won the race"
     assert sum(a.json()["created"] for a in answers) == 1
     record_id = answers[0].json()["id"]
