@@ -27,6 +27,7 @@ from live import LiveServer
 from sqlalchemy import func, select, text, update
 from workers import workers
 
+from models.signals import minimum_samples
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import schedules
@@ -198,7 +199,8 @@ def test_a_record_the_models_cannot_inspect_is_marked_and_the_rest_of_the_run_go
         (failure,) = session.scalars(select(InspectionFailure))
         (model_id,) = session.scalars(select(ModelVersion.id).where(ModelVersion.active))
         assert (failure.record_id, failure.model_set) == (bad, str(model_id))
-        assert "too short" in failure.reason and "300" in failure.reason
+        needed = minimum_samples(monitored.settings.lags, 100)  # the model reaches back 100 samples
+        assert "too short" in failure.reason and f"at least {needed}" in failure.reason
         (run,) = backend.list_jobs(session, organisation, None, 10, None)
         assert (run.task, run.args["schedule_id"], run.state, run.attempts) == (
             RUN_SCHEDULE,
