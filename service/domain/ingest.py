@@ -11,10 +11,13 @@ from sqlalchemy.orm import Session
 
 from models.inspection import checked_for_inspection
 from models.signals import checked_record, minimum_samples
+from models.terms import max_degree
 from service.config import Settings
 from service.domain import inspections, records, structures
+from service.domain.modelling import active_fault_modes
 from service.security import Principal
-from service.tables import ModelVersion, Record, Verdict
+from service.tables import ModelVersion, Record, Structure, Verdict
+from simulator.theory import EXACT_TERMS
 
 QueueInspection = Callable[[Session, int], None]  # queue(session, record_id), in its transaction
 
@@ -62,7 +65,9 @@ def ingest_record(
         x, y = checked_for_inspection(x, y, [model for _, model in models], settings.lags)
         active = [version for version, _ in models]
     else:
-        x, y = checked_record(x, y, minimum_samples(settings.lags))
+        x, y = checked_record(
+            x, y, minimum_samples(settings.lags), degree=_degree_to_hold(session, structure)
+        )
     record, created = records.store_record(session, structure, x, y, rate, acquired_at)
     verdict = (
         inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
@@ -74,3 +79,11 @@ def ingest_record(
             queue(session, record.id)
             queued = True
     return Ingested(record, created, verdict, queued)
+
+
+def _degree_to_hold(session: Session, structure: Structure) -> int:
+    """The term degree a stored record's values must fit: the active fault-mode models' highest,
+    or, before the structure has any, that of the terms a training uses by default (SPEC §2's,
+    cubic). A record only its later inspection would refuse for its magnitude is refused now."""
+    active = [model for _, model in active_fault_modes(session, structure)]
+    return max_degree([term for model in active for term in model.terms] or EXACT_TERMS)
