@@ -20,8 +20,10 @@ For each database (SQLite, then a throwaway PostgreSQL server from tests/postgre
      ``--trickle`` seconds (reconnecting when the server answers or closes);
    - NPZ decompression bombs, one after another: a ~4 MB archive whose ``fs`` member declares
      5·10⁸ float64 (4 GB unpacked);
-   - maximal trainings: two clients training a baseline on ``[large record] * 20`` in a loop,
-     and ``--trainings`` concurrent clients training on ``[small record] * 20``.
+   - maximal trainings: two clients training a baseline on the large record in a loop (the
+     costliest training the service still runs within a request), and ``--trainings`` concurrent
+     clients training on the small one (``[record] * 20``, the finding's request, is refused at
+     once since record ids may not repeat: tests/test_api_bounded.py shows it).
    Every attacking request is bounded by the end of the attack window; every loop ends there.
 5. Throughout, the worker processes (the children of ``narxwatch serve`` that run uvicorn's
    workers, and the ``narxwatch worker`` processes) are watched every 0.2 s in /proc: their peak
@@ -376,9 +378,7 @@ def attack(
         )
 
     def train_on(record: str) -> Callable[[httpx.Client, float], httpx.Response]:
-        return lambda http, left: http.post(
-            baseline, json={"record_ids": [target[record]] * 20}, timeout=left
-        )
+        return lambda http, left: http.post(baseline, json={"record_ids": [target[record]]}, timeout=left)
 
     threads = [
         threading.Thread(
