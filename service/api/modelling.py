@@ -4,13 +4,16 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request, status
 from fastapi.responses import JSONResponse
+from sqlalchemy.orm import Session
 
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
 from service.api.expensive import ACCEPTED, queued, slot
 from service.api.params import IdPath
+from service.config import Settings
 from service.domain import modelling
 from service.jobs.tasks import TRAIN_MODEL
 from service.schemas import BaselineTrain, FaultModeTrain, ModelOut
+from service.security import Principal
 from service.tables import ModelVersion
 
 router = APIRouter(prefix="/structures/{structure_id}/models", tags=["models"])
@@ -41,13 +44,7 @@ def train_baseline(
 ) -> ModelOut | JSONResponse:
     """Identify the healthy structure's NARX from stored records (default: SPEC §2's 8 terms);
     a large training is queued as a job (202)."""
-    cells = modelling.training_cells(session, principal, structure_id, body, settings)
-    if cells > settings.queue_training_cells:
-        job = {"structure_id": structure_id, "kind": "baseline", "body": body.model_dump()}
-        return queued(request, session, principal, TRAIN_MODEL, **job)
-    with slot(request, principal):
-        version = modelling.train_baseline(session, principal, structure_id, body, settings)
-    return model_out(version)
+    return _train(request, structure_id, body, principal, session, settings)
 
 
 @router.post("/fault-modes", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED)
@@ -61,12 +58,28 @@ def train_fault_mode(
 ) -> ModelOut | JSONResponse:
     """Identify a fault mode as a functional NARX; the new version becomes the active one.
     A large training is queued as a job (202)."""
+    return _train(request, structure_id, body, principal, session, settings)
+
+
+def _train(
+    request: Request,
+    structure_id: int,
+    body: BaselineTrain | FaultModeTrain,
+    principal: Principal,
+    session: Session,
+    settings: Settings,
+) -> ModelOut | JSONResponse:
+    """Run a training within the request, in one of the organisation's slots, or queue it."""
+    kind = "baseline" if isinstance(body, BaselineTrain) else "fault_mode"
     cells = modelling.training_cells(session, principal, structure_id, body, settings)
     if cells > settings.queue_training_cells:
-        job = {"structure_id": structure_id, "kind": "fault_mode", "body": body.model_dump()}
+        job = {"structure_id": structure_id, "kind": kind, "body": body.model_dump()}
         return queued(request, session, principal, TRAIN_MODEL, **job)
     with slot(request, principal):
-        version = modelling.train_fault_mode(session, principal, structure_id, body, settings)
+        if isinstance(body, BaselineTrain):
+            version = modelling.train_baseline(session, principal, structure_id, body, settings)
+        else:
+            version = modelling.train_fault_mode(session, principal, structure_id, body, settings)
     return model_out(version)
 
 
