@@ -18,7 +18,7 @@ from rich.table import Table
 from rich.text import Text
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.cli.console import fail, stdout
+from service.cli.console import fail, stderr, stdout
 from service.config import get_settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import keys
@@ -99,11 +99,11 @@ def worker(
     settings = get_settings()
     if backend_name(settings) == "embedded" and concurrency > 1:
         fail("--concurrency applies to the distributed backend (PostgreSQL); run more workers instead")
-    configure_logging("INFO", json=settings.log_format == "json")
     try:
         _wait_for_current_schema(settings.database_url)
     except KeyboardInterrupt:
         return
+    configure_logging("INFO", json=settings.log_format == "json")
     backend = job_backend(settings, session_factory(make_engine(settings.database_url)), in_service=False)
     if not once:
         stdout.print(f"narxwatch worker ({backend.name} backend): running jobs (Ctrl-C stops)")
@@ -128,7 +128,7 @@ def _wait_for_current_schema(database_url: str) -> None:
             require_current_schema(database_url)
             return
         except DatabaseUnreachableError as exc:
-            log.warning("%s; trying again in %.0f s", exc, delay)
+            stderr.print(f"waiting: {exc}; trying again in {delay:.0f} s", markup=False, highlight=False)
             time.sleep(delay)
             delay = min(2 * delay, RESTART_MAX)
 
