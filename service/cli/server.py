@@ -128,7 +128,12 @@ def _wait_for_current_schema(database_url: str) -> None:
             require_current_schema(database_url)
             return
         except DatabaseUnreachableError as exc:
-            stderr.print(f"waiting: {exc}; trying again in {delay:.0f} s", markup=False, highlight=False)
+            stderr.print(
+                f"waiting: {exc}; trying again in {delay:.0f} s",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
+            )
             time.sleep(delay)
             delay = min(2 * delay, RESTART_MAX)
 
