@@ -20,6 +20,11 @@ class DatabaseNotReadyError(Exception):
     """The database is missing or behind the code's schema; the message names it and the fix."""
 
 
+class DatabaseUnreachableError(DatabaseNotReadyError):
+    """The database did not answer (a server starting, restarting or away): unlike a missing or
+    old schema, something that may mend itself."""
+
+
 def is_ours(name: str | None, type_: str, _parents: object) -> bool:
     """Alembic's ``include_name`` filter: Procrastinate's tables are its own, not our metadata's."""
     return not (type_ == "table" and name is not None and name.startswith("procrastinate_"))
@@ -64,7 +69,7 @@ def require_current_schema(database_url: str) -> None:
             current = set(MigrationContext.configure(connection).get_current_heads())
     except OperationalError as exc:
         reason = str(exc.orig).strip().splitlines()[0] if exc.orig else str(exc)
-        raise DatabaseNotReadyError(f"cannot open the database at {where}: {reason}") from None
+        raise DatabaseUnreachableError(f"cannot open the database at {where}: {reason}") from None
     finally:
         engine.dispose()
     if current != heads:

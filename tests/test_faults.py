@@ -31,6 +31,7 @@ from workers import Worker, workers
 
 from service.config import Settings
 from service.jobs.distributed import conninfo
+from service.migrate import upgrade_database
 
 FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3"}
 
@@ -148,6 +149,32 @@ def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_uploa
                 inspected = [v["record_id"] for v in verdicts(viewer, sid) if v["record_id"] in pending]
                 assert sorted(inspected) == sorted(pending), "a record got two verdicts"
             assert all(worker.alive() for worker in running), [w.output()[-3000:] for w in running]
+
+
+def test_a_worker_started_while_postgresql_is_down_waits_for_it_and_then_runs(tmp_path: Path):
+    """A worker started while its database is stopped (a host booting, a server restarting)
+    waits for it instead of exiting, then works: like a running worker that loses the database."""
+    import postgres
+
+    with postgres.postgres_instance("late") as database:
+        if database is None:
+            pytest.skip(f"PostgreSQL unavailable: {postgres.missing_reason()}")
+        upgrade_database(database.url)
+        database.stop("fast")
+        worker = Worker(database.url, tmp_path / "worker.log", **FAST_FAILOVER)
+        try:
+            wait_for(lambda: "cannot open the database" in worker.output(), 60, "the worker did not try")
+            assert worker.alive(), worker.output()
+            database.start()
+            with psycopg.connect(conninfo(database.url), autocommit=True) as look:
+
+                def working() -> bool:
+                    return look.execute("SELECT count(*) FROM procrastinate_workers").fetchone() == (1,)
+
+                wait_for(working, 60, "the worker never came up after the database did")
+            assert worker.alive(), worker.output()
+        finally:
+            worker.stop()
 
 
 def test_the_same_record_uploaded_at_once_is_stored_once(tenant):

@@ -8,6 +8,7 @@ import os
 import re
 import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -17,12 +18,12 @@ from rich.table import Table
 from rich.text import Text
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.cli.console import fail, stdout
+from service.cli.console import fail, stderr, stdout
 from service.config import get_settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import keys
 from service.domain.errors import NotFoundError
-from service.migrate import database_name, require_current_schema, upgrade_database
+from service.migrate import DatabaseUnreachableError, database_name, require_current_schema, upgrade_database
 from service.observability.logs import configure_logging, logging_config
 from service.observability.metrics import MULTIPROCESS_DIR
 from service.security import KeyRefusedError, Role, authenticate, create_key
@@ -98,7 +99,10 @@ def worker(
     settings = get_settings()
     if backend_name(settings) == "embedded" and concurrency > 1:
         fail("--concurrency applies to the distributed backend (PostgreSQL); run more workers instead")
-    require_current_schema(settings.database_url)
+    try:
+        _wait_for_current_schema(settings.database_url)
+    except KeyboardInterrupt:
+        return
     configure_logging("INFO", json=settings.log_format == "json")
     backend = job_backend(settings, session_factory(make_engine(settings.database_url)), in_service=False)
     if not once:
@@ -110,6 +114,28 @@ def worker(
         return
     if once:
         stdout.print(f"ran {ran} job(s)" if ran is not None else "ran every job due")
+
+
+def _wait_for_current_schema(database_url: str) -> None:
+    """Check the schema as every command does, but wait for a database that does not answer: a
+    worker started while its server starts or restarts (or is away) must come up by itself, as a
+    running worker that loses the database does. A missing or old schema is refused at once."""
+    from service.jobs import RESTART_FIRST, RESTART_MAX
+
+    delay = RESTART_FIRST
+    while True:
+        try:
+            require_current_schema(database_url)
+            return
+        except DatabaseUnreachableError as exc:
+            stderr.print(
+                f"waiting: {exc}; trying again in {delay:.0f} s",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
+            )
+            time.sleep(delay)
+            delay = min(2 * delay, RESTART_MAX)
 
 
 @db_app.command("upgrade")

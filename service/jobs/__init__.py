@@ -34,6 +34,9 @@ FINAL_ERRORS: tuple[type[Exception], ...] = (InputError, ConflictError, NotFound
 JobState = Literal["queued", "running", "done", "failed"]
 JOB_STATES: tuple[JobState, ...] = ("queued", "running", "done", "failed")
 
+# Seconds between a worker's attempts to reach a database that is away (starting, restarting).
+RESTART_FIRST, RESTART_MAX = 1.0, 30.0
+
 
 @dataclass(frozen=True)
 class JobInfo:

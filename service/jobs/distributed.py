@@ -30,7 +30,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
 from service.domain import schedules
-from service.jobs import FINAL_ERRORS, JobInfo, JobState, QueueStats, error_text
+from service.jobs import FINAL_ERRORS, RESTART_FIRST, RESTART_MAX, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
 from service.tables import JobError, utcnow
 
@@ -59,7 +59,6 @@ AS_JOB_STATE: dict[str, JobState] = {
     "cancelled": "failed",
     "aborted": "failed",
 }
-RESTART_FIRST, RESTART_MAX = 1.0, 30.0  # seconds between restarts of a worker that lost the database
 
 log = logging.getLogger("narxwatch.jobs")
 
