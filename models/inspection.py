@@ -317,16 +317,21 @@ def _minimise_sse(model: FNARX, Z: np.ndarray, target: np.ndarray) -> float:
 def _check_closed_form(around_best: np.ndarray, best: float, u_hat: float) -> None:
     """For an affine basis Σe² = g·δ² − 2c·δ + s0 has its minimum at δ = c/g.
 
-    A search that compares function values cannot locate a minimum closer than
-    √(eps·Σe²_min/g) (beyond that the values are equal in floating point), so that is the
-    agreement demanded, with a factor 10 of margin.
+    A search that compares function values cannot locate a minimum closer than √(eps·S/g),
+    where S is the size of the values it compares: beyond that they are equal in floating
+    point. S is Σe²_min, or, for a near-perfect fit whose Σe²_min is far below the terms it is
+    computed from, the rounding of those terms (|s0| + |2c·δ| + g·δ²). That is the agreement
+    demanded, with a factor 10 of margin.
     """
-    g, minus_2c = around_best[0], around_best[1]
+    g, minus_2c, s0 = around_best[0], around_best[1], around_best[2]
     if not g > 0:
         return
     closed = float(np.clip(best - minus_2c / (2 * g), -1.0, 1.0))
-    sse_min = max(float(np.polyval(around_best, closed - best)), np.finfo(float).tiny)
-    resolution = np.sqrt(np.finfo(float).eps * sse_min / g)
+    delta = closed - best
+    sse_min = float(np.polyval(around_best, delta))
+    terms = abs(s0) + abs(minus_2c * delta) + g * delta**2
+    scale = max(sse_min, terms, np.finfo(float).tiny)
+    resolution = np.sqrt(np.finfo(float).eps * scale / g)
     if abs(closed - u_hat) > 10 * resolution + 1e-12:
         raise ArithmeticError(f"Brent search (u = {u_hat}) disagrees with the closed form (u = {closed})")
 

@@ -14,7 +14,7 @@ from scipy import stats
 from models.diagnostics import ljung_box
 from models.errors import InputError
 from models.fnarx import fit_fnarx
-from models.inspection import estimate_magnitude, inspect
+from models.inspection import _check_closed_form, estimate_magnitude, inspect
 from models.signals import magnitude_limit
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS, exact_fault_mode
@@ -163,6 +163,19 @@ def test_brent_search_equals_closed_form_for_p2(k2_model, k: float, seed: int) -
     resolution_k = resolution_u * (k2_model.basis.k_max - k2_model.basis.k_min) / 2
     assert abs(estimate.k_hat - k_star) < 10 * resolution_k + 1e-12
     assert abs(estimate.k_hat - k_star) < 1e-5 * estimate.sigma_k
+
+
+def test_closed_form_check_allows_the_rounding_of_a_near_perfect_fit() -> None:
+    """When the fit is near perfect, Σe²_min ≪ the terms of g·δ² − 2c·δ + s0, whose evaluation
+    rounds at eps·s0: values within √(eps·s0/g) of the minimum are equal in floating point, so no
+    value-comparing search does better (a fault mode trained on a fuzzer's records did 9e-11 off
+    and the request failed with a 500). A search off by far more is still caught."""
+    g, delta_star, s_min = 1.0, 0.3, 1e-20
+    around_best = np.array([g, -2 * g * delta_star, g * delta_star**2 + s_min])
+    rounding = np.sqrt(EPS * around_best[2] / g)  # 4.5e-9
+    _check_closed_form(around_best, 0.0, delta_star + 0.5 * rounding)
+    with pytest.raises(ArithmeticError, match="disagrees with the closed form"):
+        _check_closed_form(around_best, 0.0, delta_star + 1e3 * rounding)
 
 
 def test_search_clips_at_range_limit(exact_k2) -> None:
