@@ -77,8 +77,10 @@ class Settings(BaseSettings):
     max_model_document_bytes: int = Field(2 * 1024 * 1024, gt=0)
     # Trainings, refinements and inspections of stored records running at once for one
     # organisation in one process; more are answered 429, so that no organisation can hold
-    # every thread and pooled connection.
-    max_concurrent_expensive: int = Field(2, ge=1)
+    # every thread and pooled connection. One: each holds a core while it runs, and on a
+    # machine of few cores two per worker process left another organisation's reads a p95 just
+    # over a second under bench/abuse.py's attack.
+    max_concurrent_expensive: int = Field(1, ge=1)
 
 
 @lru_cache
