@@ -1,0 +1,68 @@
+"""Output-error refinement against theory: consistent where equation error is biased.
+
+The system y0[t] = a1·y0[t−1] + a2·y0[t−2] + b·x[t−1] is measured as y = y0 + v, v white. Least
+squares on the one-step error regresses on the noisy y[t−1], y[t−2] and is biased (the
+autoregressive coefficients are attenuated); the free-run error of the true θ is v itself, so
+minimising it is consistent, and its estimate must lie within a few standard errors of θ.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.errors import InputError
+from models.narx import NARX, fit_narx
+from models.output_error import fit_output_error
+from models.terms import parse_terms
+
+TERMS = ["y[t-1]", "y[t-2]", "x[t-1]"]
+TRUE = np.array([1.5, -0.7, 1.0])  # poles 0.75 ± 0.37j: modulus 0.84, stable
+
+
+def output_error_record(n: int, noise_std: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal(n)
+    y0 = np.zeros(n)
+    for t in range(2, n):
+        y0[t] = TRUE[0] * y0[t - 1] + TRUE[1] * y0[t - 2] + TRUE[2] * x[t - 1]
+    return x, y0 + noise_std * rng.standard_normal(n), y0
+
+
+def test_output_error_recovers_what_equation_error_gets_wrong() -> None:
+    x, y, y0 = output_error_record(4000, 1.0, seed=11)  # noise std ≈ 40 % of y0's
+    start = fit_narx([(x, y)], TERMS)
+    fit = fit_output_error(start, [(x, y)])
+    se = fit.model.standard_errors()
+    assert np.all(np.abs(fit.model.theta - TRUE) < 4 * se), (fit.model.theta, se)
+    # The start is far off in its own standard errors: the test can tell the two apart.
+    assert np.max(np.abs(start.theta - TRUE) / start.standard_errors()) > 10
+    # Free runs against the noise-free output: the refined model tracks the system itself.
+    simulated = fit.model.simulate(x, y0)[2:]
+    simulated_start = start.simulate(x, y0)[2:]
+    assert np.sqrt(np.mean((simulated - y0[2:]) ** 2)) < 0.2 * np.sqrt(
+        np.mean((simulated_start - y0[2:]) ** 2)
+    )
+    # Against the measured output the free-run error falls to the noise level (std 1).
+    assert fit.rms < fit.start_rms and fit.rms == pytest.approx(1.0, rel=0.05)
+    assert fit.status > 0
+
+
+def test_several_records_are_simulated_each_from_its_own_start() -> None:
+    records = [output_error_record(1500, 1.0, seed)[:2] for seed in (21, 22, 23)]
+    fit = fit_output_error(fit_narx(records, TERMS), records)
+    assert np.all(np.abs(fit.model.theta - TRUE) < 4 * fit.model.standard_errors())
+
+
+def test_a_starting_model_whose_free_run_diverges_is_refused() -> None:
+    x, y, _ = output_error_record(1000, 0.1, seed=31)
+    unstable = NARX(tuple(parse_terms(TERMS)), np.array([2.1, -0.9, 1.0]), np.zeros((3, 3)))  # pole at 1.35
+    with pytest.raises(InputError, match="free run of the starting model diverges"):
+        fit_output_error(unstable, [(x, y)])
+
+
+def test_records_too_short_for_the_model_are_refused() -> None:
+    x, y, _ = output_error_record(1000, 0.1, seed=41)
+    start = fit_narx([(x, y)], TERMS)
+    with pytest.raises(InputError, match="too short"):
+        fit_output_error(start, [(x[:5], y[:5])])
