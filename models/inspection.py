@@ -41,7 +41,7 @@ from models.errors import InputError
 from models.fnarx import FNARX
 from models.narx import z_quantile
 from models.signals import Record, checked_record, minimum_samples
-from models.terms import regressor_matrix
+from models.terms import max_degree, regressor_matrix
 
 Status = Literal["healthy", "faulty", "unknown_fault"]
 GRID_POINTS = 129
@@ -198,8 +198,8 @@ def checked_for_inspection(x: ArrayLike, y: ArrayLike, fault_modes: Sequence[FNA
     inspection cannot fail on what the upload could have refused.
     """
     longest_lag = max(model.max_lag for model in fault_modes)
-    degree = max(term.degree for model in fault_modes for term in model.terms)
-    return checked_record(x, y, minimum_samples(lags, longest_lag), degree=max(degree, 1))
+    degree = max_degree([term for model in fault_modes for term in model.terms])
+    return checked_record(x, y, minimum_samples(lags, longest_lag), degree=degree)
 
 
 def _check_finite(modes: list[ModeResult]) -> None:

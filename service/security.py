@@ -97,13 +97,22 @@ def authenticate(session: Session, key: str) -> Principal:
     if row is None or row.revoked_at is not None or not hmac.compare_digest(row.key_hash, hash_key(key)):
         raise KeyRefusedError(NOT_VALID)
     now = utcnow()
-    if row.expires_at is not None and row.expires_at <= now:
+    if has_expired(row, now):
         raise KeyRefusedError(
             f"the API key expired at {row.expires_at:%Y-%m-%d %H:%M:%S} UTC; ask an admin for a new one"
         )
     if row.last_used_at is None or now - row.last_used_at >= USE_RECORDED_EVERY:
         _record_use(session, row.id, now)
-    return Principal(row.organisation_id, Role[row.role], row.id)
+    return principal_of(row)
+
+
+def has_expired(key: ApiKey, now: dt.datetime) -> bool:
+    """Whether a key's lifetime has ended (a key without expiry lasts until revoked)."""
+    return key.expires_at is not None and key.expires_at <= now
+
+
+def principal_of(key: ApiKey) -> Principal:
+    return Principal(key.organisation_id, Role[key.role], key.id)
 
 
 def _record_use(session: Session, key_id: int, now: dt.datetime) -> None:

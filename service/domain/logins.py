@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from service.security import KeyRefusedError, Principal, Role, authenticate
+from service.security import KeyRefusedError, Principal, Role, authenticate, has_expired, principal_of
 from service.tables import ApiKey, DashboardSession, Organisation, utcnow
 
 
@@ -52,12 +52,9 @@ def find_login(session: Session, token: str) -> Login | None:
         .join(Organisation, Organisation.id == ApiKey.organisation_id)
         .where(DashboardSession.token_hash == _hash(token), DashboardSession.expires_at > utcnow())
     ).one_or_none()
-    if row is None or row.ApiKey.revoked_at is not None:
+    if row is None or row.ApiKey.revoked_at is not None or has_expired(row.ApiKey, utcnow()):
         return None
-    if row.ApiKey.expires_at is not None and row.ApiKey.expires_at <= utcnow():
-        return None
-    key = row.ApiKey
-    return Login(Principal(key.organisation_id, Role[key.role], key.id), row.name)
+    return Login(principal_of(row.ApiKey), row.name)
 
 
 def close_login(session: Session, token: str) -> None:
