@@ -21,11 +21,10 @@ from scipy import special
 from models.errors import InputError
 from models.regression import least_squares
 from models.signals import checked_record, checked_records
+from models.simulation import FreeRun
 from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix
 
 DOCUMENT_VERSION = 1
-# Free-run outputs beyond this magnitude mean the simulated model has diverged.
-DIVERGED = 1e100
 
 
 def z_quantile(level: float) -> float:
@@ -96,7 +95,7 @@ class NARX:
         y0 = np.asarray(y_initial, dtype=np.float64)[:L]
         if y0.size < L:
             raise InputError(f"free-run simulation needs {L} initial output samples, got {y0.size}")
-        return _free_run(self.terms, self.theta, xa, y0, t0)
+        return FreeRun.build(self.terms, xa, t0).run(self.theta, y0)
 
     def to_document(self) -> dict[str, Any]:
         """A JSON-compatible, versioned description from which :meth:`from_document` rebuilds it."""
@@ -151,57 +150,3 @@ def check_document(document: dict[str, Any], kind: str) -> None:
             f"version {DOCUMENT_VERSION}"
         )
 
-
-def _free_run(
-    terms: Sequence[Term], theta: np.ndarray, x: np.ndarray, y0: np.ndarray, t0: int = 0
-) -> np.ndarray:
-    n, L = x.size, y0.size
-    times = np.arange(t0, t0 + n, dtype=np.float64)
-
-    def lagged_x(k: int) -> np.ndarray:
-        lagged = np.zeros(n)
-        lagged[k:] = x[: n - k]
-        return lagged
-
-    # Factors without y are known in advance; only the autoregressive ones need the loop.
-    exogenous = np.zeros(n)
-    recursive: list[tuple[float, list[int], list[tuple[int, str, int]], list[float] | None]] = []
-    for term, coefficient in zip(terms, theta, strict=True):
-        known = None
-        y_lags: list[int] = []  # plain y factors, one entry per power: the fast path
-        derived: list[tuple[int, str, int]] = []  # (lag, function, power) of dy factors
-        for factor in term.factors:
-            if not factor.autoregressive:
-                values = factor.values(lagged_x, lagged_x, times)  # reads x only (or t)
-                known = values if known is None else known * values
-            elif factor.plain:
-                y_lags.extend([factor.lag] * factor.power)
-            else:
-                derived.append((factor.lag, factor.function, factor.power))
-        if y_lags or derived:
-            recursive.append((float(coefficient), y_lags, derived, None if known is None else known.tolist()))
-        else:
-            exogenous += coefficient * (1.0 if known is None else known)
-    out = np.full(n, np.nan)
-    out[:L] = y0
-    ys = out.tolist()
-    drive = exogenous.tolist()
-    for t in range(L, n):
-        total = drive[t]
-        for coefficient, y_lags, derived, known in recursive:
-            value = coefficient if known is None else coefficient * known[t]
-            for lag in y_lags:
-                value *= ys[t - lag]
-            for lag, function, power in derived:
-                step = ys[t - lag] - ys[t - lag - 1]
-                if function == "abs":
-                    step = abs(step)
-                elif function == "sign":
-                    step = (step > 0) - (step < 0)
-                value *= step**power
-            total += value
-        if not abs(total) < DIVERGED:
-            break
-        ys[t] = total
-    out[L:] = ys[L:]
-    return out
