@@ -36,7 +36,7 @@ from models.errors import InputError
 from models.narx import NARX
 from models.regression import least_squares
 from models.signals import checked_records
-from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix
+from models.terms import Term, max_degree, max_lag, parse_terms, stacked_regressors
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,7 @@ def fit_narmax(
     *,
     max_iter: int = 100,
     rtol: float = 1e-2,
-    t0: int = 0,
+    t0: int | Sequence[int] = 0,
 ) -> NARMAX:
     """Estimate a NARMAX model by extended least squares (module docstring); ``t0`` as for
     :func:`models.narx.fit_narx`."""
@@ -82,10 +82,7 @@ def fit_narmax(
     L = max_lag(parsed)
     n_par = len(parsed) + noise_lags
     checked = checked_records(records, L + n_par + 1, degree=max_degree(parsed))
-    blocks = [regressor_matrix(parsed, x, y, L, t0) for x, y in checked]
-    Phi = np.vstack([block[0] for block in blocks])
-    target = np.concatenate([block[1] for block in blocks])
-    starts = np.cumsum([0] + [block[1].size for block in blocks])
+    Phi, target, starts = stacked_regressors(parsed, checked, L, t0)
     names = [term.name for term in parsed] + [f"e[t-{i}]" for i in range(1, noise_lags + 1)]
     fit = least_squares(Phi, target, names[: len(parsed)])  # also refuses a degenerate design
     residuals = fit.residuals

@@ -22,7 +22,7 @@ from models.errors import InputError
 from models.regression import least_squares
 from models.signals import checked_record, checked_records
 from models.simulation import FreeRun
-from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix
+from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix, stacked_regressors
 
 DOCUMENT_VERSION = 1
 
@@ -121,20 +121,19 @@ class NARX:
 
 
 def fit_narx(
-    records: Iterable[tuple[ArrayLike, ArrayLike]], terms: Sequence[str | Term], t0: int = 0
+    records: Iterable[tuple[ArrayLike, ArrayLike]], terms: Sequence[str | Term], t0: int | Sequence[int] = 0
 ) -> NARX:
     """Estimate a NARX model by OLS from one or more records.
 
     Each record contributes its own equations t = L … N−1, so lags never reach across the
     boundary between two records. Sinusoidal terms count time from sample ``t0`` = 0 of each
-    record, unless ``t0`` says the records start later in that time base.
+    record, unless ``t0`` says the records start later in that time base (one index for all, or
+    one a record).
     """
     parsed = parse_terms(terms)
     L = max_lag(parsed)
     checked = checked_records(records, L + len(parsed) + 1, degree=max_degree(parsed))
-    blocks = [regressor_matrix(parsed, x, y, L, t0) for x, y in checked]
-    Phi = np.vstack([block[0] for block in blocks])
-    target = np.concatenate([block[1] for block in blocks])
+    Phi, target, _ = stacked_regressors(parsed, checked, L, t0)
     fit = least_squares(Phi, target, [t.name for t in parsed])
     return NARX(parsed, fit.theta, fit.covariance, fit.sigma2, len(target))
 
@@ -149,4 +148,3 @@ def check_document(document: dict[str, Any], kind: str) -> None:
             f"{kind} model document has schema version {version!r}; this narxwatch reads "
             f"version {DOCUMENT_VERSION}"
         )
-

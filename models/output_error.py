@@ -16,7 +16,7 @@ residuals are replaced by a penalty larger than any finite run's, so the search 
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +26,7 @@ from scipy import optimize
 from models.errors import InputError
 from models.narx import NARX
 from models.signals import checked_records
+from models.simulation import FreeRun
 from models.terms import max_degree
 
 
@@ -51,7 +52,10 @@ class OutputErrorFit:
 
 
 def fit_output_error(
-    start: NARX, records: Iterable[tuple[ArrayLike, ArrayLike]], max_evaluations: int = 200
+    start: NARX,
+    records: Iterable[tuple[ArrayLike, ArrayLike]],
+    max_evaluations: int = 200,
+    t0: int | Sequence[int] = 0,
 ) -> OutputErrorFit:
     """Refine ``start`` (an equation-error fit, say) by minimising its free-run error on ``records``.
 
@@ -61,7 +65,10 @@ def fit_output_error(
         diverge on any record.
     records : (x, y) pairs in the units of the model; each free run starts from its record's
         first L = ``start.max_lag`` measured outputs.
-    max_evaluations : bound on the free runs the search may compute.
+    max_evaluations : bound on the search's evaluations of V (each a free run on every record;
+        a finite-difference Jacobian costs one more run a parameter).
+    t0 : where each record starts in the time base of sinusoidal terms (one for all, or one a
+        record).
 
     Returns
     -------
@@ -88,10 +95,13 @@ def fit_output_error(
     targets = [ya[L:] for _, ya in checked]
     scale = np.sqrt(sum(float(np.sum(t**2)) for t in targets) / sum(t.size for t in targets)) or 1.0
 
+    origins = [t0] * len(checked) if isinstance(t0, int) else list(t0)
+    # The input side of every record is computed once; each θ costs only the compiled recursion.
+    pairs = zip(checked, origins, strict=True)
+    runs = [(FreeRun.build(start.terms, xa, origin), ya) for (xa, ya), origin in pairs]
+
     def errors(theta: np.ndarray) -> np.ndarray:
-        model = NARX(start.terms, theta, start.covariance)
-        runs = [model.simulate(xa, ya)[L:] - ya[L:] for xa, ya in checked]
-        return np.concatenate(runs)
+        return np.concatenate([run.run(theta, ya)[L:] - ya[L:] for run, ya in runs])
 
     initial = errors(start.theta)
     if not np.all(np.isfinite(initial)):

@@ -157,4 +157,3 @@ def _recursion(
         if not abs(total) < DIVERGED:
             return
         out[t] = total
-

@@ -260,3 +260,26 @@ def regressor_matrix(
             column = column * values
         Phi[:, col] = column
     return Phi, y[L:]
+
+
+def stacked_regressors(
+    terms: Sequence[Term],
+    records: Sequence[tuple[np.ndarray, np.ndarray]],
+    lag: int | None = None,
+    t0: int | Sequence[int] = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`regressor_matrix` of several records stacked, so that no lag reaches across the
+    boundary between two: Φ, the target and each record's first row (with the end as last entry).
+
+    ``t0`` is one sample index for every record, or one a record: where each starts in the time
+    base of sinusoidal terms.
+    """
+    origins = [t0] * len(records) if isinstance(t0, int) else list(t0)
+    if len(origins) != len(records):
+        raise InputError(f"{len(origins)} time origins given for {len(records)} records")
+    pairs = zip(records, origins, strict=True)
+    blocks = [regressor_matrix(terms, x, y, lag, origin) for (x, y), origin in pairs]
+    Phi = np.vstack([block[0] for block in blocks])
+    target = np.concatenate([block[1] for block in blocks])
+    starts = np.cumsum([0] + [block[1].size for block in blocks])
+    return Phi, target, starts
