@@ -1,86 +1,90 @@
 """Closing the loop (SPEC §7): residual → the effect the model lacks → refined model.
 
-Starting from a declared structure, each round
+Starting from a declared structure (or, with none declared, from a linear model whose orders the
+loop chooses), each round
 
-1. fits the current model on the estimation data and takes its residual e (a NARX by least
-   squares; once moving-average noise terms are in, a NARMAX by extended least squares, whose
-   lagged innovations join the regressors);
-2. scores every named candidate effect — a family of regressors with a physical meaning
-   (:mod:`models.effects`) — by how much of e it explains. Within a family, regressors enter
-   greedily by their error reduction ratio against e, each after a partial F test
-   F = (RSS_before − RSS_after) / (RSS_after / (N − p)) ~ F(1, N − p),
-   at the Bonferroni level α / M, where M counts every candidate regressor of every family in
-   the round: the more regressors are on offer, the stronger the evidence each must bring;
-3. adds the significant effect with the largest fall of the Bayesian information criterion
-   (which charges each effect for its size), and repeats until no family has a significant
-   regressor.
+1. fits the current model on the estimation records and takes its one-step residual e (a NARX
+   by least squares; once moving-average noise terms are in, a NARMAX by extended least squares);
+2. scores every named candidate effect by how much of e it explains (:mod:`models.scoring`:
+   partial F tests at a Bonferroni level, ranked by the fall of the Bayesian information
+   criterion);
+3. checks the significant effects, best first, on the **simulation error**: the model with the
+   effect is fitted on part of the estimation data and run free over the rest (the check
+   blocks, each free run started from its first measured outputs). The first effect that does
+   not make that free run worse is added — decided by the one-step criterion;
+4. if no effect is significant on e (on slow, finely sampled data the one-step residual carries
+   little of the simulation error), or every significant one made the free run worse, each
+   family's regressors are tried in the order of their error reduction, and the family whose
+   model (parameters refined by output error, as is the current model's) lowers the check
+   blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
+   criterion. Otherwise the loop stops.
 
-Candidate columns are orthogonalised against the current regressors first (e is orthogonal to
-them already), so each score is the reduction of the residual sum of squares that refitting
-with the new regressors would achieve.
+The refined model's parameters are finally refined by output-error minimisation on all the
+estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
+noise on the measured output gives least squares, when on the check blocks the output-error fit
+simulates clearly better than the least-squares one (by ``SIMULATION_GAIN``): where the noise is
+a force on the structure, least squares is consistent and the better one-step predictor.
+
+The estimation data may be several records: no lag crosses a record boundary, and each record
+is split into check and fit blocks alike. Free runs are compiled (:mod:`models.simulation`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
-from scipy import linalg, signal, special
 
 from models.assessment import Assessment, assess, assessment_dict, check_test_length
-from models.effects import Effect, candidate_effects, offset_direction, offset_terms, periodic_terms, unused
+from models.effects import Effect, candidate_effects, linear_terms, offset_terms, unused
 from models.errors import InputError
-from models.narmax import fit_narmax, invertible
-from models.narx import NARX, fit_narx
-from models.terms import Term, max_lag, parse_terms, regressor_matrix
+from models.narx import NARX
+from models.output_error import fit_output_error
+from models.scoring import EffectScore, Records, fit_model, score_effects
+from models.signals import checked_records
+from models.simulation import FreeRun
+from models.terms import Term, max_degree, max_lag, parse_terms
 
 DEFAULT_ALPHA = 0.01
 MAX_ROUNDS = 10
-NOISE_LAGS_OFFERED = 4  # moving-average lags a round offers beyond those the model has
-# Extended least squares settles in 13–15 iterations on simulated records; on long measured ones
-# its last digits wander for longer without changing what the loop decides.
-NARMAX_ITERATIONS = 30
-GUARD_SAMPLES = 10_000  # estimation samples whose free run an added effect must not make worse
+# A family added on the simulation error alone must lower the check blocks' free-run RMS by this
+# share at least: SEMP's threshold (Piroddi & Spinelli 2003), here relative, so that the
+# sampling noise of the comparison cannot add terms to a model that needs none.
+SIMULATION_GAIN = 0.05
+# Each record is cut into 3·CHECK_BLOCKS blocks, every third one a check block: fit and check
+# parts cover the whole record alike (a sine sweep's frequencies, a growing amplitude).
+CHECK_BLOCKS = 3
+MIN_BLOCK = 200  # samples of the shortest block; shorter records get fewer blocks
+# Output-error searches within the loop are bounded; the final one on all the data gets more.
+CHECK_EVALUATIONS = 30
+FINAL_EVALUATIONS = 100
+MAX_LINEAR_ORDER = 10  # the largest order tried when no structure is declared
 
-
-@dataclass(frozen=True)
-class EffectScore:
-    """How much of the residual an effect explains with its significant regressors.
-
-    ``explained`` is the fraction of the residual sum of squares removed and ``bic_change`` the
-    change of the Bayesian information criterion N·ln(RSS_after/RSS_before) + k·ln N for the k
-    regressors that entered, each with its partial F statistic and p-value; ``terms`` are the
-    terms adding the effect puts into the model (for moving-average noise, the e[t-k] it adds,
-    and ``noise_lags`` the model's moving-average order once it is added).
-    """
-
-    name: str
-    description: str
-    explained: float
-    bic_change: float
-    terms: tuple[str, ...]
-    f_statistics: tuple[float, ...]
-    p_values: tuple[float, ...]
-    noise_lags: int = 0
-
-    @property
-    def significant(self) -> bool:
-        return bool(self.f_statistics)
+Criterion = Literal["one-step", "simulation"]
+Segments = list[tuple[np.ndarray, np.ndarray, int]]  # (x, y, first sample's index in its record)
 
 
 @dataclass(frozen=True)
 class Round:
-    """One round of the loop: every effect's score, the level used, and the effect added (if any)."""
+    """One round of the loop: every effect's score, the level used, and the effect added (if any).
+
+    ``criterion`` says what decided the effect added: "one-step" (its regressors were significant
+    on the one-step residual and its model's free run over the check blocks was no worse) or
+    "simulation" (it lowered that free run by at least ``SIMULATION_GAIN``); ``check_rms`` is
+    the check blocks' free-run RMS before and after the round.
+    """
 
     residual_rms: float
     level: float  # the Bonferroni-corrected significance level α / M
     candidates: int  # M
     scores: tuple[EffectScore, ...]
     added: EffectScore | None
+    criterion: Criterion | None = None
+    check_rms: tuple[float, float] = (np.inf, np.inf)
     # Significant effects passed over, best first, because adding them made the model's free
-    # run on the estimation data worse (or diverge).
+    # run over the check blocks worse (or diverge).
     rejected: tuple[str, ...] = ()
 
 
@@ -88,14 +92,19 @@ class Round:
 class Refinement:
     """The declared and refined models and the rounds that led from one to the other.
 
-    ``noise`` holds the refined model's moving-average coefficients c_1 … c_q (empty unless
-    moving-average noise was added; ``refined`` is then the process part of a NARMAX).
+    ``declared`` is the declared structure fitted by least squares on all the estimation data;
+    ``refined`` the refined structure, its parameters by ``estimator``. ``noise`` holds the
+    refined model's moving-average coefficients c_1 … c_q (empty unless moving-average noise was
+    added; ``refined`` is then the process part of a NARMAX). ``orders`` are the linear model's
+    (ny, nx, input delay) the loop chose when no structure was declared.
     """
 
     declared: NARX
     refined: NARX
     noise: np.ndarray = field(default_factory=lambda: np.empty(0))
     rounds: tuple[Round, ...] = field(default=())
+    estimator: Literal["least squares", "output error"] = "least squares"
+    orders: tuple[int, int, int] | None = None
 
     @property
     def effects_added(self) -> tuple[EffectScore, ...]:
@@ -103,24 +112,43 @@ class Refinement:
 
 
 @dataclass(frozen=True)
-class RefinementReport:
-    """A refinement with the declared and refined models' errors on held-out data."""
+class Comparison:
+    """The declared and the refined model judged on one held-out record (or part)."""
 
-    refinement: Refinement
     before: Assessment
     after: Assessment
 
+
+@dataclass(frozen=True)
+class RefinementReport:
+    """A refinement with the declared and refined models' errors on held-out data: ``tests``
+    holds one comparison a test record; ``before``/``after`` are the first one's."""
+
+    refinement: Refinement
+    tests: tuple[Comparison, ...]
+
+    @property
+    def before(self) -> Assessment:
+        return self.tests[0].before
+
+    @property
+    def after(self) -> Assessment:
+        return self.tests[0].after
+
     def to_dict(self) -> dict[str, Any]:
-        """JSON-compatible: effects added in order with their evidence, errors before and after,
-        and both models' terms and parameters. Non-finite numbers (a diverged free run) become None."""
+        """JSON-compatible: effects added in order with their evidence and the criterion that
+        decided each, errors before and after on every test record, and both models' terms and
+        parameters. Non-finite numbers (a diverged free run) become None."""
         result = self.refinement
         return {
             "declared": _model_dict(result.declared),
+            "orders_chosen": list(result.orders) if result.orders else None,
             "effects_added": [
                 {
                     "name": score.name,
                     "description": score.description,
                     "terms": list(score.terms),
+                    "decided_by": step.criterion,
                     "evidence": {
                         "explained_fraction": score.explained,
                         "bic_change": score.bic_change,
@@ -129,6 +157,7 @@ class RefinementReport:
                         "p_values": list(score.p_values),
                         "level": step.level,
                         "candidate_terms": step.candidates,
+                        "check_free_run_rms": [_finite(value) for value in step.check_rms],
                     },
                 }
                 for step in result.rounds
@@ -136,14 +165,19 @@ class RefinementReport:
             ],
             "before": assessment_dict(self.before),
             "after": assessment_dict(self.after),
-            "refined": _model_dict(result.refined) | {"noise_ma": result.noise.tolist()},
+            "tests": [
+                {"before": assessment_dict(test.before), "after": assessment_dict(test.after)}
+                for test in self.tests
+            ],
+            "refined": _model_dict(result.refined)
+            | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
         }
 
 
 def refine_record(
     x: np.ndarray,
     y: np.ndarray,
-    declared: Sequence[str | Term],
+    declared: Sequence[str | Term] | None,
     estimation: tuple[int, int],
     test: tuple[int, int],
     initial: int = 0,
@@ -158,17 +192,49 @@ def refine_record(
     check_parts(len(x), declared, estimation, test, initial)
     a, b = estimation
     c, d = test
-    result = refine(x[a:b], y[a:b], declared, alpha=alpha)
-    return RefinementReport(
-        result,
-        assess(result.declared, x[c:d], y[c:d], initial, fs, c - a),
-        assess(result.refined, x[c:d], y[c:d], initial, fs, c - a, result.noise),
+    result = refine([(x[a:b], y[a:b])], declared, alpha=alpha)
+    return RefinementReport(result, (_compare(result, x[c:d], y[c:d], initial, fs, c - a),))
+
+
+def refine_records(
+    estimation: Records,
+    tests: Records,
+    declared: Sequence[str | Term] | None,
+    initial: int = 0,
+    alpha: float = DEFAULT_ALPHA,
+    fs: float | None = None,
+) -> RefinementReport:
+    """Refine on several estimation records, assess both models on each test record, whole.
+
+    Each test run starts from its record's first ``initial`` measured outputs (at least the
+    model's lags). A model with sinusoidal terms is phase-locked to the estimation record's
+    first sample; on a test record its sinusoids count time from that record's first sample.
+    """
+    if not tests:
+        raise InputError("at least one test record is needed to judge the refined model")
+    if initial < 0:
+        raise InputError(f"the initial samples must be 0 or more, got {initial}")
+    for number, (_, y) in enumerate(tests, start=1):
+        try:
+            check_test_length(len(y), max(initial, max_lag(parse_terms(declared)) if declared else initial))
+        except InputError as exc:
+            raise InputError(f"test record {number}: {exc}") from None
+    result = refine(estimation, declared, alpha=alpha)
+    return RefinementReport(result, tuple(_compare(result, x, y, initial, fs, 0) for x, y in tests))
+
+
+def _compare(
+    result: Refinement, x: np.ndarray, y: np.ndarray, initial: int, fs: float | None, t0: int
+) -> Comparison:
+    return Comparison(
+        assess(result.declared, x, y, initial, fs, t0),
+        assess(result.refined, x, y, initial, fs, t0, result.noise),
     )
 
 
 def check_parts(
     n: int,
-    declared: Sequence[str | Term],
+    declared: Sequence[str | Term] | None,
     estimation: tuple[int, int],
     test: tuple[int, int],
     initial: int = 0,
@@ -180,79 +246,221 @@ def check_parts(
             raise InputError(f"the {label} samples {first}:{last} do not lie within the record's {n} samples")
     if initial < 0:
         raise InputError(f"the initial samples must be 0 or more, got {initial}")
-    check_test_length(test[1] - test[0], max(initial, max_lag(parse_terms(declared))))
+    lags = max_lag(parse_terms(declared)) if declared else 0
+    check_test_length(test[1] - test[0], max(initial, lags))
 
 
 def _model_dict(model: NARX) -> dict[str, Any]:
     return {"terms": model.term_names, "theta": model.theta.tolist()}
 
 
+def _finite(value: float) -> float | None:
+    return value if np.isfinite(value) else None
+
+
 def refine(
-    x: np.ndarray,
-    y: np.ndarray,
-    declared: Sequence[str | Term],
+    records: Records,
+    declared: Sequence[str | Term] | None,
     effects: Sequence[Effect] | None = None,
     alpha: float = DEFAULT_ALPHA,
     max_rounds: int = MAX_ROUNDS,
+    output_error: bool = True,
 ) -> Refinement:
-    """Refine the declared structure on estimation data (x, y) until no effect is significant.
+    """Refine the declared structure on the estimation ``records`` (x, y pairs) until no effect
+    helps (module docstring).
 
-    ``effects`` are the families on offer, by default :func:`models.effects.candidate_effects`
-    of the declared terms: sized to the declared lags, so that the loop explains the residual
-    with the declared dynamics rather than by lengthening them round after round. An offset's
-    terms follow the model as it grows.
+    ``declared`` None starts from the linear model :func:`choose_linear` picks. ``effects`` are
+    the families on offer, by default :func:`models.effects.candidate_effects` of the declared
+    terms: sized to the declared lags, so that the loop explains the residual with the declared
+    dynamics rather than by lengthening them round after round. An offset's terms follow the
+    model as it grows. ``output_error`` False keeps least-squares parameters throughout.
     """
     if not 0 < alpha < 1:
         raise InputError(f"alpha must lie in (0, 1), got {alpha}")
-    terms = parse_terms(declared)
+    records = [(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)) for x, y in records]
+    orders = None
+    if declared is None:
+        orders, terms = choose_linear(records)
+    else:
+        terms = parse_terms(declared)
     families = list(effects) if effects is not None else candidate_effects(terms)
-    _check_length(len(y), terms, families)
-    declared_model, _ = _fit(x, y, terms, 0, max_lag(terms))
-    refined, noise, noise_lags = declared_model, np.empty(0), 0
-    free_run = _free_run_error(declared_model, x, y)
+    checked_records(records, 1, degree=max(max_degree(terms), 3))
+    _check_length(records, terms, families)
+    fit_part, check_part = split_for_checking(records)
+    declared_model, _ = fit_model(records, terms, 0, max_lag(terms))
+    noise_lags = 0
+    check = _check_error(terms, 0, fit_part, check_part)
     rounds: list[Round] = []
     for _ in range(max_rounds):
         offered = unused([_follow(effect, terms) for effect in families], terms)
         if not offered:
             break
-        step = _round(x, y, terms, noise_lags, offered, alpha)
+        scores = score_effects(records, terms, noise_lags, offered, alpha)
+        step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
-        for score in sorted((s for s in step.scores if s.significant), key=lambda s: s.bic_change):
-            new_terms = terms if score.noise_lags else terms + parse_terms(score.terms)
-            new_lags = score.noise_lags or noise_lags
-            model, model_noise = _fit(x, y, new_terms, new_lags, max_lag(new_terms))
-            error = _free_run_error(model, x, y)
-            if error <= free_run:
-                step = replace(step, added=score, rejected=tuple(rejected))
-                terms, noise_lags, free_run = new_terms, new_lags, error
-                refined, noise = model, model_noise
+        decided: tuple[EffectScore, Criterion, float] | None = None
+        for score in sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change):
+            new_terms, new_lags = _with(score, terms, noise_lags)
+            error = _check_error(new_terms, new_lags, fit_part, check_part)
+            if error <= check:
+                decided = (score, "one-step", error)
                 break
             rejected.append(score.name)
-        else:
-            rounds.append(replace(step, rejected=tuple(rejected)))
+        if decided is None and output_error:
+            decided = _by_simulation(offered, scores.scores, terms, noise_lags, fit_part, check_part)
+        if decided is None:
+            rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
-        rounds.append(step)
-    # The last effect accepted was fitted by its check: that fit is the refined model.
-    return Refinement(declared_model, refined, noise, tuple(rounds))
+        score, criterion, error = decided
+        terms, noise_lags = _with(score, terms, noise_lags)
+        step = replace(step, added=score, criterion=criterion, check_rms=(check, error))
+        rounds.append(replace(step, rejected=tuple(rejected)))
+        check = error
+    refined, noise = fit_model(records, terms, noise_lags, max_lag(terms))
+    estimator: Literal["least squares", "output error"] = "least squares"
+    # Least squares is consistent when the noise enters the equation (a force on the structure)
+    # and gives the best one-step predictor, which the inspection chain works on; output error
+    # when it is on the measured output. The check blocks tell which: output error is taken when
+    # its free run there is clearly better.
+    if output_error and _check_error(terms, noise_lags, fit_part, check_part, tuned=True) <= (
+        1 - SIMULATION_GAIN
+    ) * _check_error(terms, noise_lags, fit_part, check_part):
+        tuned = _output_error(refined, records, FINAL_EVALUATIONS)
+        if tuned is not refined:
+            refined, estimator = tuned, "output error"
+    return Refinement(declared_model, refined, noise, tuple(rounds), estimator, orders)
 
 
-def _free_run_error(model: NARX, x: np.ndarray, y: np.ndarray) -> float:
-    """RMS error of the model's free run over the first ``GUARD_SAMPLES`` estimation samples
-    (inf if it diverges): an effect that makes the model simulate worse is not added."""
-    n = min(len(y), GUARD_SAMPLES)
-    simulated = model.simulate(x[:n], y[:n])[model.max_lag :]
-    error = float(np.sqrt(np.mean((simulated - y[model.max_lag : n]) ** 2)))
-    return error if np.isfinite(error) else np.inf
+def choose_linear(
+    records: Records, max_order: int = MAX_LINEAR_ORDER
+) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
+    """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``)
+    whose free run over the check blocks is smallest, its parameters by output error.
+
+    Every candidate is fitted by least squares on the fit blocks; the three best by their free
+    run are refitted by output error (which least squares' noise bias would otherwise decide
+    against), and the best of those wins. Returns (n, n, d) and the terms.
+    """
+    fit_part, check_part = split_for_checking(records)
+    candidates = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
+    if not candidates:
+        raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
+    by_least_squares = sorted(
+        candidates, key=lambda nd: _check_error(linear_terms(nd[0], nd[0], nd[1]), 0, fit_part, check_part)
+    )
+    tuned = {
+        nd: _check_error(linear_terms(nd[0], nd[0], nd[1]), 0, fit_part, check_part, tuned=True)
+        for nd in by_least_squares[:3]
+    }
+    n, d = min(tuned, key=lambda nd: (tuned[nd], nd[0]))
+    return (n, n, d), linear_terms(n, n, d)
 
 
-def _check_length(n: int, terms: tuple[Term, ...], offered: Sequence[Effect]) -> None:
+def split_for_checking(records: Records) -> tuple[Segments, Segments]:
+    """Each record cut into 3·k equal blocks (k = ``CHECK_BLOCKS``, fewer for short records):
+    blocks 3i and 3i+1 are fitted, block 3i+2 is checked. Returns the fit segments (two blocks
+    joined) and the check blocks, each with its first sample's index in its record."""
+    fit: Segments = []
+    check: Segments = []
+    for x, y in records:
+        n = len(y)
+        blocks = int(np.clip(n // (3 * MIN_BLOCK), 1, CHECK_BLOCKS))
+        edges = np.linspace(0, n, 3 * blocks + 1).astype(int)
+        for i in range(blocks):
+            a, b, c = edges[3 * i], edges[3 * i + 2], edges[3 * i + 3]
+            fit.append((x[a:b], y[a:b], int(a)))
+            check.append((x[b:c], y[b:c], int(b)))
+    return fit, check
+
+
+def _with(score: EffectScore, terms: tuple[Term, ...], noise_lags: int) -> tuple[tuple[Term, ...], int]:
+    """The model's terms and moving-average order once the scored effect is added."""
+    if score.noise_lags:
+        return terms, score.noise_lags
+    return terms + parse_terms(score.terms), noise_lags
+
+
+def _check_error(
+    terms: tuple[Term, ...], noise_lags: int, fit: Segments, check: Segments, tuned: bool = False
+) -> float:
+    """Free-run RMS over the check blocks of the model fitted on the fit blocks (its parameters
+    by output error if ``tuned``); each run starts from its block's first measured outputs.
+    Infinite when the fit is impossible or a run diverges."""
+    L = max_lag(terms)
+    try:
+        model, _ = fit_model([(x, y) for x, y, _ in fit], terms, noise_lags, L, [t for *_, t in fit])
+        if tuned:
+            model = _output_error(model, fit, CHECK_EVALUATIONS)
+    except InputError:
+        return np.inf
+    squares, count = 0.0, 0
+    for x, y, t0 in check:
+        if len(y) <= L:
+            continue
+        error = FreeRun.build(model.terms, x, t0).run(model.theta, y)[L:] - y[L:]
+        squares += float(error @ error)
+        count += error.size
+    rms = np.sqrt(squares / count) if count else np.inf
+    return float(rms) if np.isfinite(rms) else np.inf
+
+
+def _output_error(model: NARX, segments: Segments | Records, evaluations: int) -> NARX:
+    """``model`` with its parameters refined by output error on ``segments`` when that lowers
+    its free-run error there; ``model`` itself when its free run diverges or nothing is gained."""
+    pairs = [(part[0], part[1]) for part in segments]
+    origins = [part[2] if len(part) == 3 else 0 for part in segments]
+    try:
+        fit = fit_output_error(model, pairs, evaluations, t0=origins)
+    except InputError:
+        return model
+    return fit.model if fit.rms < fit.start_rms else model
+
+
+def _by_simulation(
+    offered: Sequence[Effect],
+    scores: Sequence[EffectScore],
+    terms: tuple[Term, ...],
+    noise_lags: int,
+    fit: Segments,
+    check: Segments,
+) -> tuple[EffectScore, Criterion, float] | None:
+    """The family added on the simulation error alone, if one lowers the check blocks' free
+    run enough (module docstring, step 4): its score with the terms that won, and the check
+    blocks' free-run RMS with them (least squares, as the other rounds report it)."""
+    trials: list[tuple[float, EffectScore]] = []
+    for effect, score in zip(offered, scores, strict=True):
+        if effect.kind in ("noise", "periodic") or not score.ranked:
+            continue
+        best: tuple[float, EffectScore] | None = None
+        for k in range(1, len(score.ranked) + 1):
+            names = tuple(name for label in score.ranked[:k] for name in label)
+            error = _check_error(terms + parse_terms(names), noise_lags, fit, check)
+            if best is None or error < best[0]:
+                best = (error, replace(score, terms=names))
+        if best is not None and np.isfinite(best[0]):
+            trials.append(best)
+    if not trials:
+        return None
+    baseline = _check_error(terms, noise_lags, fit, check, tuned=True)
+    # Output error for the two best only: each costs a search, and a family whose least-squares
+    # model is far behind does not overtake by its parameters alone.
+    for error, score in sorted(trials, key=lambda trial: trial[0])[:2]:
+        tuned = _check_error(terms + parse_terms(score.terms), noise_lags, fit, check, tuned=True)
+        if tuned <= (1 - SIMULATION_GAIN) * baseline:
+            return score, "simulation", error
+    return None
+
+
+def _check_length(records: Records, terms: tuple[Term, ...], offered: Sequence[Effect]) -> None:
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in offered if e.terms])
     candidates = sum(len(e.terms) for e in offered)
-    needed = lag + 2 * (len(terms) + candidates) + 1
-    if n < needed:
+    n = sum(len(y) - lag for _, y in records)
+    needed = 2 * (len(terms) + candidates) + 1
+    if n < needed or any(len(y) <= lag + 3 * MIN_BLOCK // 10 for _, y in records):
         raise InputError(
-            f"the estimation part has {n} samples; refining {len(terms)} terms with "
-            f"{candidates} candidates needs at least {needed}"
+            f"the estimation records have {n} equations ({', '.join(str(len(y)) for _, y in records)} "
+            f"samples); refining {len(terms)} terms with {candidates} candidates needs at least "
+            f"{needed}, and each record more than {lag + 3 * MIN_BLOCK // 10} samples"
         )
 
 
@@ -261,177 +469,3 @@ def _follow(effect: Effect, terms: tuple[Term, ...]) -> Effect:
     if effect.kind != "output_shift":
         return effect
     return Effect(effect.name, effect.description, offset_terms(terms), effect.kind)
-
-
-def _fit(
-    x: np.ndarray, y: np.ndarray, terms: tuple[Term, ...], noise_lags: int, lag: int
-) -> tuple[NARX, np.ndarray]:
-    """The model on rows t = lag … N−1: a NARX, or with ``noise_lags`` a NARMAX's process part
-    and moving-average coefficients."""
-    # The fits start a record at the terms' own largest lag; trimming x and y to the common
-    # first row makes the model see the same equations as the candidates it is compared with.
-    offset = lag - max_lag(terms)
-    if noise_lags:
-        narmax = fit_narmax(
-            [(x[offset:], y[offset:])], terms, noise_lags, max_iter=NARMAX_ITERATIONS, t0=offset
-        )
-        return narmax.process, invertible(narmax.noise)
-    return fit_narx([(x[offset:], y[offset:])], terms, t0=offset), np.empty(0)
-
-
-def _lagged(series: np.ndarray, lags: Sequence[int]) -> np.ndarray:
-    """Columns series[t−k] for each k, zero before the series starts."""
-    columns = np.zeros((series.size, len(lags)))
-    for j, k in enumerate(lags):
-        columns[k:, j] = series[: series.size - k]
-    return columns
-
-
-def _round(
-    x: np.ndarray,
-    y: np.ndarray,
-    terms: tuple[Term, ...],
-    noise_lags: int,
-    effects: Sequence[Effect],
-    alpha: float,
-) -> Round:
-    # One common first row for the model and every candidate, so that the RSS values compare.
-    lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
-    Phi, target = regressor_matrix(terms, x, y, lag)
-    if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
-        process, noise = _fit(x, y, terms, noise_lags, lag)
-        innovations = signal.lfilter([1.0], np.concatenate(([1.0], noise)), target - Phi @ process.theta)
-        Phi = np.hstack([Phi, _lagged(innovations, range(1, noise_lags + 1))])
-    scale = np.linalg.norm(Phi, axis=0)
-    Q, R = linalg.qr(Phi / scale, mode="economic")
-    projection = Q.T @ target
-    residual = target - Q @ projection
-    theta = (linalg.solve_triangular(R, projection) / scale)[: len(terms)]
-    n_obs, n_par = Phi.shape
-    candidates = [_candidates(e, terms, noise_lags, theta, residual, alpha, x, y, lag) for e in effects]
-    total = sum(columns.shape[1] for _, columns in candidates)
-    level = alpha / max(total, 1)
-    # A smooth residual predicts itself, and a coloured one makes spurious regressors look
-    # significant: effects of the signals are judged after the residual's own recent past has
-    # had its say, and moving-average noise after the signals' effects have had theirs. Each
-    # is credited only with what the other cannot explain.
-    own_past = _orthonormal(_lagged(residual, range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED)), Q)
-    scores: dict[int, EffectScore] = {}
-    explaining: list[np.ndarray] = []
-    for index, (effect, (labels, columns)) in enumerate(zip(effects, candidates, strict=True)):
-        if effect.kind != "noise":
-            score, _, chosen_columns = _score(
-                effect, labels, columns, residual, Q, own_past, n_obs - n_par, level
-            )
-            scores[index] = score
-            explaining.append(chosen_columns)
-    signals = _orthonormal(np.hstack([np.empty((n_obs, 0)), *explaining]), Q)
-    for index, (effect, (labels, columns)) in enumerate(zip(effects, candidates, strict=True)):
-        if effect.kind == "noise":
-            score, chosen, _ = _score(effect, labels, columns, residual, Q, signals, n_obs - n_par, level)
-            # The moving-average order becomes the longest lag that entered.
-            scores[index] = replace(score, noise_lags=noise_lags + 1 + max(chosen) if chosen else 0)
-    ordered = [scores[i] for i in range(len(effects))]
-    return Round(float(np.sqrt(np.mean(residual**2))), level, total, tuple(ordered), None)
-
-
-def _orthogonal_part(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """Columns minus their projection on the orthonormal Q, by Gram–Schmidt applied twice: once
-    loses orthogonality when a column lies nearly in Q's span, twice is enough (Kahan–Parlett)."""
-    for _ in range(2):
-        columns = columns - Q @ (Q.T @ columns)
-    return columns
-
-
-def _orthonormal(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """An orthonormal basis of the columns' part orthogonal to Q (empty for no columns)."""
-    if columns.shape[1] == 0:
-        return columns
-    columns = _orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
-    basis, triangle = linalg.qr(columns, mode="economic")
-    return basis[:, np.abs(np.diag(triangle)) > 1e-10]
-
-
-def _score(
-    effect: Effect,
-    labels: list[tuple[str, ...]],
-    columns: np.ndarray,
-    residual: np.ndarray,
-    Q: np.ndarray,
-    given: np.ndarray,
-    dof: int,
-    level: float,
-) -> tuple[EffectScore, list[int], np.ndarray]:
-    """An effect's score against the residual once the model (Q) and ``given`` (orthonormal,
-    orthogonal to Q) are accounted for; the indices of the columns it chose, and those columns
-    (orthogonal to Q)."""
-    columns = _orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
-    chosen_from = columns.copy()
-    columns = _orthogonal_part(columns, given)
-    target = residual - given @ (given.T @ residual)
-    chosen, f_values, p_values, explained = _forward(columns, target, dof - given.shape[1], level)
-    added = [label for i in chosen for label in labels[i]]
-    n_obs = len(residual)
-    bic = n_obs * float(np.log1p(-min(explained, 1 - 1e-300))) + len(chosen) * float(np.log(n_obs))
-    score = EffectScore(effect.name, effect.description, explained, bic, tuple(added), f_values, p_values)
-    return score, chosen, chosen_from[:, chosen]
-
-
-def _candidates(
-    effect: Effect,
-    terms: tuple[Term, ...],
-    noise_lags: int,
-    theta: np.ndarray,
-    residual: np.ndarray,
-    alpha: float,
-    x: np.ndarray,
-    y: np.ndarray,
-    lag: int,
-) -> tuple[list[tuple[str, ...]], np.ndarray]:
-    """The regressors an effect is tested with, and for each the term names it adds if it enters."""
-    if effect.kind == "output_shift":
-        return [tuple(t.name for t in effect.terms)], offset_direction(terms, theta, x, y, lag)[:, None]
-    if effect.kind == "noise":
-        lags = range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED)
-        return [(f"e[t-{k}]",) for k in lags], _lagged(residual, lags)
-    found = periodic_terms(residual, alpha) if effect.kind == "periodic" else effect.terms
-    new = [t for t in found if t not in terms]
-    if not new:
-        return [], np.empty((len(residual), 0))
-    return [(t.name,) for t in new], regressor_matrix(new, x, y, lag)[0]
-
-
-def _forward(
-    columns: np.ndarray, residual: np.ndarray, dof: int, level: float
-) -> tuple[list[int], tuple[float, ...], tuple[float, ...], float]:
-    """Greedy selection within one family by error reduction ratio, each column after its F test:
-    the columns chosen in order, their F statistics and p-values, and the fraction of the
-    residual sum of squares they explain."""
-    rss0 = rss = float(residual @ residual)
-    e = residual.copy()
-    W = columns.copy()
-    chosen: list[int] = []
-    f_values: list[float] = []
-    p_values: list[float] = []
-    while len(chosen) < W.shape[1]:
-        norms = np.einsum("ij,ij->j", W, W)
-        usable = norms > 1e-10  # columns (nearly) in the span of the model or of chosen ones
-        usable[chosen] = False
-        if not usable.any():
-            break
-        gains = np.where(usable, (W.T @ e) ** 2 / np.where(usable, norms, 1.0), -1.0)
-        best = int(np.argmax(gains))
-        new_rss = rss - gains[best]
-        remaining_dof = dof - len(chosen) - 1
-        f_value = gains[best] / (new_rss / remaining_dof)
-        p_value = float(special.fdtrc(1, remaining_dof, f_value))
-        if p_value >= level:
-            break
-        w = W[:, best] / np.sqrt(norms[best])
-        e -= w * (w @ e)
-        W -= np.outer(w, w @ W)
-        chosen.append(best)
-        f_values.append(float(f_value))
-        p_values.append(p_value)
-        rss = new_rss
-    return chosen, tuple(f_values), tuple(p_values), (1.0 - rss / rss0 if rss0 > 0 else 0.0)

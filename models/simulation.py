@@ -105,25 +105,47 @@ class FreeRun:
     def run(self, theta: np.ndarray, y_initial: np.ndarray) -> np.ndarray:
         """The simulated output for every sample, the first L being ``y_initial``; NaN from the
         sample where the run diverged on."""
+        out, _ = self._run(theta, y_initial, sensitivities=False)
+        return out
+
+    def run_with_sensitivities(
+        self, theta: np.ndarray, y_initial: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The simulated output and its sensitivities S[t, j] = ∂ŷ[t]/∂θ_j (zero over the first L
+        samples, which are measured), by the recursion
+
+            S[t] = φ[t](ŷ) + Σ_k (∂F/∂ŷ[t−k]) · S[t−k],
+
+        with F the model's right-hand side: the Jacobian of the free-run error in one pass, where
+        finite differences would take a run per parameter. Rows from a divergence on are NaN."""
+        out, sensitivities = self._run(theta, y_initial, sensitivities=True)
+        return out, sensitivities
+
+    def _run(
+        self, theta: np.ndarray, y_initial: np.ndarray, sensitivities: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
         out = np.full(self.n, np.nan)
         L = min(self.lag, self.n)
         out[:L] = y_initial[:L]
-        if self.n <= L:
-            return out
-        drive = self.exogenous @ theta[self.exogenous_terms]
-        coefficients = np.ascontiguousarray(self.known * theta[self.recursive_terms])
-        _recursion(
-            out,
-            L,
-            drive,
-            coefficients,
-            self.factor_start,
-            self.difference,
-            self.factor_lag,
-            self.function,
-            self.power,
-        )
-        return out
+        S = np.zeros((self.n if sensitivities else 0, theta.size))
+        if self.n > L:
+            _recursion(
+                out,
+                L,
+                self.exogenous @ theta[self.exogenous_terms],
+                theta[self.recursive_terms],
+                self.recursive_terms,
+                self.known,
+                self.factor_start,
+                self.difference,
+                self.factor_lag,
+                self.function,
+                self.power,
+                self.exogenous,
+                self.exogenous_terms,
+                S,
+            )
+        return out, S
 
 
 @numba.njit(cache=True, nogil=True)
@@ -132,28 +154,77 @@ def _recursion(
     start: int,
     drive: np.ndarray,
     coefficients: np.ndarray,
+    columns: np.ndarray,
+    known: np.ndarray,
     factor_start: np.ndarray,
     difference: np.ndarray,
     factor_lag: np.ndarray,
     function: np.ndarray,
     power: np.ndarray,
+    exogenous: np.ndarray,
+    exogenous_columns: np.ndarray,
+    S: np.ndarray,
 ) -> None:
+    """The free run (into ``out``) and, when S has rows, its sensitivities (into S): see
+    :meth:`FreeRun.run_with_sensitivities`. ``columns`` are the autoregressive terms' places in θ."""
     n = out.size
-    terms = coefficients.shape[1]
+    terms = coefficients.size
+    with_sensitivities = S.shape[0] > 0
+    reach = 1
+    for f in range(factor_lag.size):
+        reach = max(reach, factor_lag[f] + 1 + difference[f])
+    slope = np.zeros(reach)  # ∂F/∂ŷ[t−k] at this step
+    bases = np.zeros(factor_lag.size)
+    values = np.zeros(factor_lag.size)
     for t in range(start, n):
         total = drive[t]
+        slope[:] = 0.0
         for j in range(terms):
-            value = coefficients[t, j]
-            for f in range(factor_start[j], factor_start[j + 1]):
+            first, last = factor_start[j], factor_start[j + 1]
+            product = known[t, j]
+            for f in range(first, last):
                 k = factor_lag[f]
                 base = out[t - k] - out[t - k - 1] if difference[f] else out[t - k]
                 if function[f] == 1:
                     base = abs(base)
                 elif function[f] == 2:
                     base = (base > 0.0) - (base < 0.0)
+                value = 1.0
                 for _ in range(power[f]):
                     value *= base
-            total += value
+                bases[f] = base
+                values[f] = value
+                product *= value
+            total += coefficients[j] * product
+            if not with_sensitivities:
+                continue
+            S[t, columns[j]] = product
+            for f in range(first, last):
+                if function[f] == 2:  # sign(…) is flat wherever it is differentiable
+                    continue
+                others = known[t, j]
+                for g in range(first, last):
+                    if g != f:
+                        others *= values[g]
+                derivative = power[f] * others
+                for _ in range(power[f] - 1):
+                    derivative *= bases[f]
+                if function[f] == 1:  # abs: the base was |v|, whose slope is sign(v)
+                    k = factor_lag[f]
+                    raw = out[t - k] - out[t - k - 1] if difference[f] else out[t - k]
+                    derivative *= (raw > 0.0) - (raw < 0.0)
+                contribution = coefficients[j] * derivative
+                slope[factor_lag[f]] += contribution
+                if difference[f]:
+                    slope[factor_lag[f] + 1] -= contribution
         if not abs(total) < DIVERGED:
+            if with_sensitivities:
+                S[t:, :] = np.nan
             return
         out[t] = total
+        if with_sensitivities:
+            for e in range(exogenous_columns.size):
+                S[t, exogenous_columns[e]] = exogenous[t, e]
+            for k in range(1, reach):
+                if slope[k] != 0.0 and t - k >= start:
+                    S[t, :] += slope[k] * S[t - k, :]

@@ -14,6 +14,7 @@ import pytest
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import fit_output_error
+from models.simulation import FreeRun
 from models.terms import parse_terms
 
 TERMS = ["y[t-1]", "y[t-2]", "x[t-1]"]
@@ -66,3 +67,40 @@ def test_records_too_short_for_the_model_are_refused() -> None:
     start = fit_narx([(x, y)], TERMS)
     with pytest.raises(InputError, match="too short"):
         fit_output_error(start, [(x[:5], y[:5])])
+
+
+def test_free_run_sensitivities_equal_finite_differences_of_the_free_run() -> None:
+    """∂ŷ/∂θ from the sensitivity recursion against central differences of the free run itself,
+    for every kind of factor the kernel differentiates: powers, products across lags, abs and
+    sign of a difference, the input, a sinusoid and the constant."""
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal(600)
+    terms = parse_terms(
+        [
+            "y[t-1]",
+            "y[t-2]",
+            "x[t-1]",
+            "y[t-1]^3",
+            "y[t-1]*y[t-2]*x[t-1]",
+            "dy[t-1]*abs(dy[t-1])",
+            "sign(dy[t-2])",
+            "abs(dy[t-1])^2*y[t-2]",
+            "sin(2pi*0.013*t)",
+            "1",
+        ]
+    )
+    theta = np.array([1.2, -0.5, 0.8, -0.05, 0.02, -0.03, 0.01, 0.02, 0.1, 0.05])
+    y0 = rng.standard_normal(3)
+    run = FreeRun.build(terms, x, t0=7)
+    simulated, S = run.run_with_sensitivities(theta, y0)
+    assert np.allclose(simulated, run.run(theta, y0), rtol=0, atol=0)
+    assert np.all(np.isfinite(simulated)) and np.max(np.abs(simulated)) < 10  # a stable, busy run
+    for j in range(theta.size):
+        step = 1e-6 * max(1.0, abs(theta[j]))
+        up, down = theta.copy(), theta.copy()
+        up[j] += step
+        down[j] -= step
+        central = (run.run(up, y0) - run.run(down, y0)) / (2 * step)
+        # sign(…) jumps where dy changes sign: at a step this small no simulated dy comes near
+        # enough to zero for the perturbed runs to land on different sides of a jump.
+        assert np.allclose(S[:, j], central, rtol=1e-5, atol=1e-7 * np.max(np.abs(central))), j
