@@ -164,6 +164,8 @@ def parse_csv(
     if index == len(lines):
         raise InputError(f"the CSV has no header line naming its columns (such as '{layout.x},{layout.y}')")
     groups, count = header_groups(lines[index])
+    rows = _data_rows(lines, index + 1, count, max_samples)
+    _drop_trailing_comma(groups, count, rows[0][1])
     widths = {name: len(columns) for name, columns in groups.items()}
     listing = "its columns are " + ", ".join(
         name if width == 1 else f"{name} ({width} columns, {name}1 … {name}{width})"
@@ -173,7 +175,6 @@ def parse_csv(
     for name in (layout.x, layout.y):
         group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
         wanted.append((name, groups[group][k]))
-    rows = _data_rows(lines, index + 1, count, max_samples)
     x, y = (_column(rows, name, column) for name, column in wanted)
     _check_lengths(layout, x, y)
     rate_name = next((name for name in groups if name.lower() == "fs" and widths[name] == 1), None)
@@ -191,14 +192,12 @@ def header_groups(line: str) -> tuple[dict[str, list[int]], int]:
     """The column groups a CSV header names (name → column indices) and its number of columns.
 
     An empty cell continues the group named to its left (cells before the first name belong to
-    none); one empty cell at the end is the line's trailing comma, not a column.
+    none).
     """
     try:
         cells = [cell.strip().strip('"').strip() for cell in next(csv.reader([line]), [])]
     except csv.Error as exc:
         raise InputError(f"the CSV header cannot be read ({exc})") from None
-    if len(cells) > 1 and not cells[-1]:
-        cells.pop()
     groups: dict[str, list[int]] = {}
     current = None
     for column, cell in enumerate(cells):
@@ -212,6 +211,17 @@ def header_groups(line: str) -> tuple[dict[str, list[int]], int]:
     if not groups:
         raise InputError(f"the CSV header {line.strip()!r} names no column")
     return groups, len(cells)
+
+
+def _drop_trailing_comma(groups: dict[str, list[int]], count: int, first_row: list[str]) -> None:
+    """An empty last header cell over an empty cell in the first row is a trailing comma (as
+    MATLAB's writers end every line), not a further column of the group to its left."""
+    last = count - 1
+    owner = next((name for name, columns in groups.items() if columns[-1] == last), None)
+    if owner is None or len(groups[owner]) == 1:
+        return
+    if last >= len(first_row) or not first_row[last].strip():
+        groups[owner].pop()
 
 
 def _data_rows(

@@ -275,7 +275,7 @@ def test_unsupported_content_type(site: Site, ingest, content_type):
             response,
             415,
             f"unsupported Content-Type {content_type or '(none)'!r}",
-            "application/json, text/csv or application/x-npz",
+            "application/json, text/csv, application/x-npz or application/x-matlab-data",
         )
 
 
