@@ -164,8 +164,11 @@ def parse_csv(
     if index == len(lines):
         raise InputError(f"the CSV has no header line naming its columns (such as '{layout.x},{layout.y}')")
     groups, count = header_groups(lines[index])
-    rows = _data_rows(lines, index + 1, count, max_samples)
-    _drop_trailing_comma(groups, count, rows[0][1])
+    first = next((number for number in range(index + 1, len(lines)) if lines[number].strip()), None)
+    if first is None:
+        raise InputError("the CSV has a header but no data rows")
+    first_row = lines[first].split(",")
+    _drop_trailing_comma(groups, count, first_row)
     widths = {name: len(columns) for name, columns in groups.items()}
     listing = "its columns are " + ", ".join(
         name if width == 1 else f"{name} ({width} columns, {name}1 … {name}{width})"
@@ -175,14 +178,13 @@ def parse_csv(
     for name in (layout.x, layout.y):
         group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
         wanted.append((name, groups[group][k]))
-    x, y = (_column(rows, name, column) for name, column in wanted)
+    x, y = _read_columns(lines, first, count, wanted, max_samples)
     _check_lengths(layout, x, y)
     rate_name = next((name for name in groups if name.lower() == "fs" and widths[name] == 1), None)
     fs = comment_fs
     if rate_name is not None:
-        _, cells = rows[0]
         column = groups[rate_name][0]
-        cell = cells[column].strip() if column < len(cells) else ""
+        cell = first_row[column].strip() if column < len(first_row) else ""
         if cell:
             fs = _agreed_rate(comment_fs, _sampling_rate(cell), f"the column {rate_name!r}")
     return RecordFile(x, y, fs if fs is not None else layout.fs)
@@ -224,48 +226,41 @@ def _drop_trailing_comma(groups: dict[str, list[int]], count: int, first_row: li
         groups[owner].pop()
 
 
-def _data_rows(
-    lines: list[str], first: int, count: int, max_samples: int | None
-) -> list[tuple[int, list[str]]]:
-    """(line number, cells) of each non-blank line from ``first`` on; cells past the header's
-    ``count`` may only be empty (trailing commas)."""
-    rows = []
+def _read_columns(
+    lines: list[str], first: int, count: int, wanted: list[tuple[str, int]], max_samples: int | None
+) -> list[np.ndarray]:
+    """The numbers of each wanted (name, column), each down to its first empty cell, from the
+    non-blank lines from ``first`` on. Cells past the header's ``count`` may only be empty
+    (trailing commas). Only the wanted cells of a line are kept: a wide CSV costs its text."""
+    values = [np.empty(len(lines) - first) for _ in wanted]
+    sizes = [0] * len(wanted)
+    ends: list[int | None] = [None] * len(wanted)  # the line of a column's first empty cell
+    rows = 0
     for number, line in enumerate(lines[first:], start=first + 1):
         if not line.strip():
             continue
         cells = line.split(",")
         if len(cells) > count and any(cell.strip() for cell in cells[count:]):
             raise InputError(f"CSV line {number}: expected {count} values, found {len(cells)}")
-        if len(rows) == max_samples:
+        if rows == max_samples:
             raise too_many_samples("the CSV has", max_samples)
-        rows.append((number, cells))
-    if not rows:
-        raise InputError("the CSV has a header but no data rows")
-    return rows
-
-
-def _column(rows: list[tuple[int, list[str]]], name: str, column: int) -> np.ndarray:
-    """The numbers of one column, down to its first empty cell."""
-    values = np.empty(len(rows))
-    end = None  # the line of its first empty cell
-    count = 0
-    for number, cells in rows:
-        cell = cells[column] if column < len(cells) else ""
-        if not cell.strip():
-            end = end or number
-            continue
-        if end is not None:
-            raise InputError(
-                f"CSV line {number}: column {name!r} has a value after its empty cell on line {end}"
-            )
-        try:
-            values[count] = float(cell)
-        except ValueError:
-            raise InputError(
-                f"CSV line {number}: {cell.strip()!r} in column {name!r} is not a number"
-            ) from None
-        count += 1
-    return values[:count].copy()
+        rows += 1
+        for index, (name, column) in enumerate(wanted):
+            cell = cells[column].strip() if column < len(cells) else ""
+            if not cell:
+                ends[index] = ends[index] or number
+                continue
+            if ends[index] is not None:
+                raise InputError(
+                    f"CSV line {number}: column {name!r} has a value after its empty cell "
+                    f"on line {ends[index]}"
+                )
+            try:
+                values[index][sizes[index]] = float(cell)
+            except ValueError:
+                raise InputError(f"CSV line {number}: {cell!r} in column {name!r} is not a number") from None
+            sizes[index] += 1
+    return [column[:size].copy() for column, size in zip(values, sizes, strict=True)]
 
 
 def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAULT_LAYOUT) -> RecordFile:
