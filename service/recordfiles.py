@@ -18,6 +18,7 @@ sampling rate in its first row. A trailing comma ends a line: it does not start 
 
 from __future__ import annotations
 
+import array
 import csv
 import io
 import math
@@ -231,10 +232,10 @@ def _read_columns(
 ) -> list[np.ndarray]:
     """The numbers of each wanted (name, column), each down to its first empty cell, from the
     non-blank lines from ``first`` on. Cells past the header's ``count`` may only be empty
-    (trailing commas). Only the wanted cells of a line are kept: a wide CSV costs its text."""
-    values = [np.empty(len(lines) - first) for _ in wanted]
-    sizes = [0] * len(wanted)
+    (trailing commas). Only the wanted cells' numbers are kept, 8 bytes each."""
+    values = [array.array("d") for _ in wanted]
     ends: list[int | None] = [None] * len(wanted)  # the line of a column's first empty cell
+    columns = list(enumerate(wanted))
     rows = 0
     for number, line in enumerate(lines[first:], start=first + 1):
         if not line.strip():
@@ -245,9 +246,15 @@ def _read_columns(
         if rows == max_samples:
             raise too_many_samples("the CSV has", max_samples)
         rows += 1
-        for index, (name, column) in enumerate(wanted):
-            cell = cells[column].strip() if column < len(cells) else ""
-            if not cell:
+        for index, (name, column) in columns:
+            cell = cells[column] if column < len(cells) else ""
+            try:
+                value = float(cell)
+            except ValueError:
+                if cell.strip():
+                    raise InputError(
+                        f"CSV line {number}: {cell.strip()!r} in column {name!r} is not a number"
+                    ) from None
                 ends[index] = ends[index] or number
                 continue
             if ends[index] is not None:
@@ -255,12 +262,8 @@ def _read_columns(
                     f"CSV line {number}: column {name!r} has a value after its empty cell "
                     f"on line {ends[index]}"
                 )
-            try:
-                values[index][sizes[index]] = float(cell)
-            except ValueError:
-                raise InputError(f"CSV line {number}: {cell!r} in column {name!r} is not a number") from None
-            sizes[index] += 1
-    return [column[:size].copy() for column, size in zip(values, sizes, strict=True)]
+            values[index].append(value)
+    return [np.frombuffer(column, dtype=np.float64).copy() for column in values]
 
 
 def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAULT_LAYOUT) -> RecordFile:
@@ -396,9 +399,9 @@ def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
         raise InputError("the file is not a readable NPZ archive") from None
     except (OSError, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError, zlib.error) as exc:
         raise InputError(f"the NPZ archive is damaged or not made by numpy ({exc})") from None
-    for name, array in (("x", x), ("y", y)):
-        if array.dtype.kind not in "iuf":
-            raise InputError(f"NPZ array {name!r} must be numeric, got dtype {array.dtype}")
+    for name, member in (("x", x), ("y", y)):
+        if member.dtype.kind not in "iuf":
+            raise InputError(f"NPZ array {name!r} must be numeric, got dtype {member.dtype}")
     return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs)
 
 
