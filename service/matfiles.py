@@ -18,7 +18,6 @@ from __future__ import annotations
 import io
 import math
 import struct
-import warnings
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -126,9 +125,8 @@ def load_variables(mat: MatFile, variables: Sequence[MatVariable]) -> dict[str, 
         header = mat.data[:116] + bytes(8) + mat.data[124:V5_HEADER_BYTES]  # no subsystem offset
         content = header + b"".join(_v5_element(mat, variable) for variable in variables)
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # scipy warns, then returns a string, for an unreadable one
-            loaded = scipy.io.loadmat(io.BytesIO(content), squeeze_me=False, spmatrix=False)
+        # A variable scipy cannot read comes back as a string (with a warning): refused below.
+        loaded = scipy.io.loadmat(io.BytesIO(content), squeeze_me=False, spmatrix=False)
     except Exception as exc:  # scipy.io raises many kinds on a damaged file; all mean that
         raise InputError(f"the MAT file is damaged ({type(exc).__name__}: {exc})") from None
     arrays = {}

@@ -310,7 +310,7 @@ def _signal_count(shape: tuple[int, ...]) -> int | None:
     """Signals a MAT variable holds: 1 for a vector, the shorter dimension of a matrix whose
     longer one holds the samples; None for a square matrix or more dimensions."""
     sizes = [size for size in shape if size != 1]
-    if len(sizes) <= 1:
+    if len(sizes) <= 1 or 0 in sizes:  # an empty one is refused for holding no values
         return 1
     if len(sizes) == 2 and sizes[0] != sizes[1]:
         return min(sizes)
@@ -320,7 +320,7 @@ def _signal_count(shape: tuple[int, ...]) -> int | None:
 def _signal(array: np.ndarray, k: int) -> np.ndarray:
     """The k-th signal (0-based) of a MAT variable of a shape :func:`_signal_count` accepts."""
     values = np.squeeze(array)
-    if values.ndim == 2:
+    if values.ndim == 2 and values.size:
         values = values[k] if values.shape[0] < values.shape[1] else values[:, k]
     return np.ascontiguousarray(values.reshape(-1), dtype=np.float64)
 

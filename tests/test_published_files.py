@@ -241,6 +241,18 @@ def test_mat_signals_of_different_lengths_and_unusable_variables_are_named():
     np.testing.assert_array_equal(parse_mat(data, LIMIT, Layout("x", "tall2")).y, np.arange(1.0, 600.0, 2.0))
 
 
+def test_mat_with_many_variables_is_refused_before_they_are_read():
+    data = mat_file(*(matrix(f"v{index}", np.ones((1, 1))) for index in range(300)))
+    with pytest.raises(InputError, match="holds more than 256 variables"):
+        parse_mat(data, LIMIT)
+
+
+def test_empty_variables_hold_no_values():
+    data = mat_file(matrix("x", np.ones((0, 5))), matrix("y", np.ones((1, 5))))
+    with pytest.raises(InputError, match=r"x \('x'\) holds no values"):
+        parse_mat(data, LIMIT)
+
+
 def test_mat_v73_is_refused_with_how_to_save_it():
     with pytest.raises(
         InputError, match=r"v7\.3 \(HDF5\) file, which is not read: save it with .*'-v7'.* or as CSV"
@@ -366,10 +378,21 @@ VALID_MAT = mat_file(
 )
 
 
-@settings(max_examples=300, deadline=None)
-@given(st.integers(0, len(VALID_MAT) - 1), st.integers(0, 16), st.binary(min_size=1, max_size=16))
-def test_mat_parser_never_crashes_on_a_damaged_file(at, cut, patch):
-    data = VALID_MAT[:at] + patch + VALID_MAT[at + cut :]
+_v4 = io.BytesIO()
+scipy.io.savemat(_v4, {"Force": np.ones(20), "Acc": np.ones((3, 20)), "Fs": 400.0}, format="4")
+VALID_V4 = _v4.getvalue()
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    st.sampled_from([VALID_MAT, VALID_V4]),
+    st.floats(0, 1),
+    st.integers(0, 16),
+    st.binary(min_size=1, max_size=16),
+)
+def test_mat_parser_never_crashes_on_a_damaged_file(valid, where, cut, patch):
+    at = int(where * (len(valid) - 1))
+    data = valid[:at] + patch + valid[at + cut :]
     try:
         record = parse_mat(data, LIMIT, Layout("Force", "Acc2"))
     except InputError:
