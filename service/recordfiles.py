@@ -78,6 +78,11 @@ class Layout:
 
 
 DEFAULT_LAYOUT = Layout()
+# How a name selects a signal, for the command line's and the API's help.
+NAMING_HELP = (
+    "NAMEk is the k-th column of a group (a header cell followed by empty ones) or the k-th row or "
+    "column of a matrix (whose longer dimension holds the samples), counted from 1"
+)
 SILVERBOX = Layout("V1", "V2", SILVERBOX_FS)
 
 

@@ -19,16 +19,13 @@ from service.domain import inspections
 from service.domain.ingest import Ingested, QueueInspection, ingest_record
 from service.jobs import JobBackend
 from service.jobs.tasks import INSPECT_RECORD
-from service.recordfiles import Layout
+from service.recordfiles import NAMING_HELP, Layout
 from service.schemas import RecordOut, VerdictOut
 from service.security import Principal
 
 router = APIRouter(tags=["records"])
 
-SIGNAL_HELP = (
-    "The CSV column or MAT variable that holds {role}; NAMEk is the k-th column of a group (a header "
-    "cell followed by empty ones) or the k-th row or column of a matrix, counted from 1"
-)
+SIGNAL_HELP = "The CSV column or MAT variable that holds {role}; " + NAMING_HELP
 NAME_LENGTH = 200
 
 

@@ -25,7 +25,12 @@ REQUEST_BODY = {
     "required": True,
     "content": {
         JSON: {"schema": {"$ref": "#/components/schemas/RecordUpload"}},
-        CSV: {"schema": {"type": "string", "description": "optional '# fs=1500' line, header 'x,y', rows"}},
+        CSV: {
+            "schema": {
+                "type": "string",
+                "description": "optional '# fs=1500' line, a header naming the columns, rows",
+            }
+        },
         "application/x-npz": {"schema": {"type": "string", "format": "binary"}},
         MAT: {"schema": {"type": "string", "format": "binary", "description": "MATLAB v4/v5/v7 MAT file"}},
     },

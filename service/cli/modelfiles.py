@@ -13,13 +13,10 @@ import typer
 from models.errors import InputError
 from models.fnarx import FNARX
 from models.terms import Term, parse_terms
-from service.recordfiles import DEFAULT_LAYOUT, Layout, RecordFile, read_record
+from service.recordfiles import DEFAULT_LAYOUT, NAMING_HELP, Layout, RecordFile, read_record
 from simulator.theory import EXACT_TERMS
 
-_SIGNAL_HELP = (
-    "The CSV column or MAT variable that holds {role} (default: {role}); NAMEk is the k-th column of "
-    "a group (a header cell followed by empty ones) or the k-th row or column of a matrix, from 1."
-)
+_SIGNAL_HELP = "The CSV column or MAT variable that holds {role} (default: {role}); " + NAMING_HELP + "."
 XName = Annotated[str | None, typer.Option("--x", help=_SIGNAL_HELP.format(role="x"))]
 YName = Annotated[str | None, typer.Option("--y", help=_SIGNAL_HELP.format(role="y"))]
 
