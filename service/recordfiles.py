@@ -333,25 +333,33 @@ def _signal(array: np.ndarray, k: int) -> np.ndarray:
 def _resolve(name: str, counts: dict[str, int | None], missing: str) -> tuple[str, int]:
     """The signal ``name`` denotes: (column group or variable, 0-based index of its signal).
 
-    A name is a group's or variable's own; ``NAMEk`` is the k-th signal of NAME.
+    A name is a group's or variable's own; ``NAMEk`` is the k-th signal of NAME. A name matches
+    in any case when no other does (a header ``X,Y`` is read as x and y).
     """
-    if name in counts:
-        count = counts[name]
+    own = _named(name, counts)
+    if own is not None:
+        count = counts[own]
         if count is None or count == 1:
-            return name, 0
-        raise InputError(f"{name!r} holds {count} signals: name one of them, {name}1 … {name}{count}")
+            return own, 0
+        raise InputError(f"{own!r} holds {count} signals: name one of them, {own}1 … {own}{count}")
     match = _NUMBERED.fullmatch(name)
-    if match and match["base"] in counts:
-        base, k = match["base"], int(match["k"])
-        count = counts[base]
-        if count is None:
-            return base, k - 1  # refused by the caller, with the variable's shape
-        if 1 <= k <= count:
-            return base, k - 1
+    base = _named(match["base"], counts) if match else None
+    if match and base is not None:
+        k, count = int(match["k"]), counts[base]
+        if count is None or 1 <= k <= count:
+            return base, k - 1  # a variable that is no signal is refused by the caller, with its shape
         raise InputError(
             f"{name!r} is out of range: {base!r} holds {count} signal(s), {base}1 … {base}{count}"
         )
     raise InputError(missing)
+
+
+def _named(name: str, counts: dict[str, int | None]) -> str | None:
+    """The group or variable called ``name``, or else the only one called so in another case."""
+    if name in counts:
+        return name
+    alike = [other for other in counts if other.lower() == name.lower()]
+    return alike[0] if len(alike) == 1 else None
 
 
 def _check_lengths(layout: Layout, x: np.ndarray, y: np.ndarray) -> None:

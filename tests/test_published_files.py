@@ -197,6 +197,16 @@ def test_a_group_index_out_of_range_is_named(f16_dir, wh_dir, file, layout, mess
         read_record((f16_dir if file == F16_MAT else wh_dir) / file, layout)
 
 
+def test_names_match_in_another_case_when_no_other_does():
+    record = parse_csv(b'"X","Y"\n1,2\n')  # as the x,y reader has always read it
+    assert (record.x[0], record.y[0]) == (1.0, 2.0)
+    assert parse_csv(b"U,u,Y\n1,2,3\n", layout=Layout("u", "y")).x[0] == 2.0  # its own case first
+    with pytest.raises(InputError, match="no column 'ab'"):
+        parse_csv(b"Ab,AB,y\n1,2,3\n", layout=Layout("ab", "y"))  # two in other cases: neither
+    data = mat_file(matrix("Force", np.ones((1, 3))), matrix("ACC", np.ones((2, 3))))
+    assert parse_mat(data, LIMIT, Layout("force", "acc2")).y.size == 3
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [
