@@ -1,16 +1,26 @@
-"""Reading record files: excitation x and response y with their sampling rate, as CSV or NPZ.
+"""Reading record files: excitation x and response y with their sampling rate, as CSV, NPZ or MAT.
 
-CSV: an optional first comment line ``# fs=1500``, a header ``x,y``, then one ``x,y`` pair a
-line. NPZ: arrays ``x`` and ``y`` and a scalar ``fs``, loaded without pickle. Parsing works on
-bytes so that an upload and a file given to the command line go through the same checks; the
-simulator writes these layouts (``simulator.recordfile``).
+CSV: optional comment lines (``# fs=1500``), a header naming the columns, then one row of
+values a line; ``narxwatch simulate`` writes the header ``x,y``. NPZ: arrays ``x`` and ``y`` and
+a scalar ``fs``, loaded without pickle. MAT: variables of a MATLAB v4/v5 file
+(:mod:`service.matfiles`), with the sampling rate in a variable ``fs`` or ``Fs``. Parsing works
+on bytes so that an upload and a file given to the command line go through the same checks; the
+simulator writes the CSV and NPZ layouts (``simulator.recordfile``).
 
-The Silverbox benchmark's CSV files (Wigren & Schoukens 2013) are read as they are published:
-input ``V1`` as x, output ``V2`` as y, at fs = 10⁷/2¹⁴ Hz.
+Published files are read as they are (:class:`Layout` names the signals to take as x and y):
+Silverbox's ``"V1","V2",`` (fs = 10⁷/2¹⁴ Hz), F-16's ``"Force",…,"Acceleration3","Fs",`` and
+MAT variables ``Force``, ``Acceleration`` (3×N), ``Fs``, and Wiener–Hammerstein's grouped
+columns ``"r",,,…,"u",,,…,"y",,,…,"fs",``. One naming rule for both formats: a name is a column
+or a variable; where a name covers several signals (a header cell followed by empty ones, or a
+matrix), ``NAMEk`` is its k-th, counted from 1. A CSV column named ``fs`` (any case) gives the
+sampling rate in its first row. The trailing comma MATLAB's writers end each line with does not
+start a column (an empty last header cell over an empty first-row cell).
 """
 
 from __future__ import annotations
 
+import array
+import csv
 import io
 import math
 import re
@@ -18,17 +28,19 @@ import struct
 import tokenize
 import zipfile
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from models.errors import InputError
-from simulator.recordfile import FORMATS
+from service import matfiles
 
 SILVERBOX_FS = 1e7 / 2**14  # Hz: the benchmark's 10 MHz clock divided by 2¹⁴
 ZIP_MAGIC = b"PK\x03\x04"
 _FS_COMMENT = re.compile(r"^#\s*fs\s*=\s*(?P<fs>\S+)\s*$", re.IGNORECASE)
+_NUMBERED = re.compile(r"(?P<base>.*?)(?P<k>\d+)")
+READABLE = (".csv", ".npz", ".mat")
 
 # An NPZ record holds these members and nothing else.
 NPZ_MEMBERS = ("x.npy", "y.npy", "fs.npy")
@@ -56,6 +68,25 @@ class RecordFile:
     fs: float | None
 
 
+@dataclass(frozen=True)
+class Layout:
+    """Which signals of a file are x and y (CSV column or MAT variable names, ``NAMEk`` for the
+    k-th of a group or matrix), and the sampling rate to take when the file states none."""
+
+    x: str = "x"
+    y: str = "y"
+    fs: float | None = None
+
+
+DEFAULT_LAYOUT = Layout()
+# How a name selects a signal, for the command line's and the API's help.
+NAMING_HELP = (
+    "NAMEk is the k-th column of a group (a header cell followed by empty ones) or the k-th row or "
+    "column of a matrix (whose longer dimension holds the samples), counted from 1"
+)
+SILVERBOX = Layout("V1", "V2", SILVERBOX_FS)
+
+
 class RecordTooLargeError(InputError):
     """The record would unpack to more than the allowed number of bytes."""
 
@@ -76,26 +107,52 @@ def too_many_samples(what: str, max_samples: int) -> RecordTooLargeError:
     )
 
 
-def read_record(path: str | Path) -> RecordFile:
-    """Read a ``.csv`` or ``.npz`` record, with a message naming the file on any failure."""
+def read_record(path: str | Path, layout: Layout = DEFAULT_LAYOUT) -> RecordFile:
+    """Read a ``.csv``, ``.npz`` or ``.mat`` record, with a message naming the file on any failure."""
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in FORMATS:
-        raise InputError(f"{path}: unknown record format {suffix or '(none)'}; use .csv or .npz")
+    if suffix not in READABLE:
+        raise InputError(f"{path}: unknown record format {suffix or '(none)'}; use .csv, .npz or .mat")
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read the file ({exc.strerror})") from None
     try:
-        return parse_csv(data) if suffix == ".csv" else parse_npz(data)
+        return parse_record(data, suffix, layout)
     except InputError as exc:
-        raise InputError(f"{path}: {exc}") from None
+        raise type(exc)(f"{path}: {exc}") from None
 
 
-def parse_csv(data: bytes | str, max_samples: int | None = None) -> RecordFile:
-    """Parse CSV text: optional ``# fs=…`` comment, header ``x,y``, numeric rows.
+def parse_record(
+    data: bytes, suffix: str, layout: Layout = DEFAULT_LAYOUT, max_bytes: int | None = None
+) -> RecordFile:
+    """A record in the format of ``suffix`` (``.csv``, ``.npz`` or ``.mat``).
 
-    With ``max_samples``, more rows than that are refused, grossly so before the text is split.
+    With ``max_bytes``, its arrays may take at most that many bytes (an upload's limit), and so
+    at most :func:`record_samples` samples.
+    """
+    if suffix == ".csv":
+        return parse_csv(data, None if max_bytes is None else record_samples(max_bytes), layout)
+    if suffix == ".mat":
+        return parse_mat(data, max_bytes, layout)
+    if (layout.x, layout.y) != ("x", "y"):
+        raise InputError(
+            f"an NPZ record holds the arrays x and y; the names {layout.x!r} and {layout.y!r} "
+            "select columns of a CSV or variables of a MAT file"
+        )
+    record = parse_npz(data, max_bytes)
+    return record if record.fs is not None else replace(record, fs=layout.fs)
+
+
+def parse_csv(
+    data: bytes | str, max_samples: int | None = None, layout: Layout = DEFAULT_LAYOUT
+) -> RecordFile:
+    """Parse CSV text: optional comment lines (``# fs=…``), a header naming the columns, rows.
+
+    The columns ``layout.x`` and ``layout.y`` are read, and the rate from a ``# fs=`` comment or
+    the first row of a column ``fs``. A column ends at its first empty cell (``fs`` after one row),
+    so that x and y of different lengths are told as such. With ``max_samples``, more rows than
+    that are refused, grossly so before the text is split.
     """
     try:
         text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
@@ -104,61 +161,231 @@ def parse_csv(data: bytes | str, max_samples: int | None = None) -> RecordFile:
     if max_samples is not None and text.count("\n") > max_samples + CSV_SLACK_LINES:
         raise too_many_samples("the CSV has", max_samples)
     lines = text.splitlines()
-    fs: float | None = None
+    comment_fs: float | None = None
     index = 0
     while index < len(lines) and (lines[index].startswith("#") or not lines[index].strip()):
         match = _FS_COMMENT.match(lines[index].strip())
         if match:
-            fs = _sampling_rate(match["fs"])
+            comment_fs = _sampling_rate(match["fs"])
         index += 1
     if index == len(lines):
-        raise InputError("the CSV has no header line 'x,y'")
-    header = [cell.strip().strip('"').lower() for cell in lines[index].split(",")]
-    if header != ["x", "y"]:
-        raise InputError(f"the CSV header must be 'x,y', found {lines[index].strip()!r}")
-    rows = lines[index + 1 :]
-    values = np.empty((len(rows), 2))
-    count = 0
-    for number, line in enumerate(rows, start=index + 2):
+        raise InputError(f"the CSV has no header line naming its columns (such as '{layout.x},{layout.y}')")
+    groups, count = header_groups(lines[index])
+    first = next((number for number in range(index + 1, len(lines)) if lines[number].strip()), None)
+    if first is None:
+        raise InputError("the CSV has a header but no data rows")
+    first_row = lines[first].split(",")
+    _drop_trailing_comma(groups, count, first_row)
+    widths = {name: len(columns) for name, columns in groups.items()}
+    listing = "its columns are " + ", ".join(
+        name if width == 1 else f"{name} ({width} columns, {name}1 … {name}{width})"
+        for name, width in widths.items()
+    )
+    wanted = []
+    for name in (layout.x, layout.y):
+        group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
+        wanted.append((name, groups[group][k]))
+    x, y = _read_columns(lines, first, count, wanted, max_samples)
+    _check_lengths(layout, x, y)
+    rate_name = next((name for name in groups if name.lower() == "fs" and widths[name] == 1), None)
+    fs = comment_fs
+    if rate_name is not None:
+        column = groups[rate_name][0]
+        cell = first_row[column].strip() if column < len(first_row) else ""
+        if cell:
+            fs = _agreed_rate(comment_fs, _sampling_rate(cell), f"the column {rate_name!r}")
+    return RecordFile(x, y, fs if fs is not None else layout.fs)
+
+
+def header_groups(line: str) -> tuple[dict[str, list[int]], int]:
+    """The column groups a CSV header names (name → column indices) and its number of columns.
+
+    An empty cell continues the group named to its left (cells before the first name belong to
+    none).
+    """
+    try:
+        cells = [cell.strip().strip('"').strip() for cell in next(csv.reader([line]), [])]
+    except csv.Error as exc:
+        raise InputError(f"the CSV header cannot be read ({exc})") from None
+    groups: dict[str, list[int]] = {}
+    current = None
+    for column, cell in enumerate(cells):
+        if cell:
+            if cell in groups:
+                raise InputError(f"the CSV header names the column {cell!r} twice")
+            groups[cell] = [column]
+            current = cell
+        elif current is not None:
+            groups[current].append(column)
+    if not groups:
+        raise InputError(f"the CSV header {line.strip()!r} names no column")
+    return groups, len(cells)
+
+
+def _drop_trailing_comma(groups: dict[str, list[int]], count: int, first_row: list[str]) -> None:
+    """An empty last header cell over an empty cell in the first row is a trailing comma (as
+    MATLAB's writers end every line), not a further column of the group to its left."""
+    last = count - 1
+    owner = next((name for name, columns in groups.items() if columns[-1] == last), None)
+    if owner is None or len(groups[owner]) == 1:
+        return
+    if last >= len(first_row) or not first_row[last].strip():
+        groups[owner].pop()
+
+
+def _read_columns(
+    lines: list[str], first: int, count: int, wanted: list[tuple[str, int]], max_samples: int | None
+) -> list[np.ndarray]:
+    """The numbers of each wanted (name, column), each down to its first empty cell, from the
+    non-blank lines from ``first`` on. Cells past the header's ``count`` may only be empty
+    (trailing commas). Only the wanted cells' numbers are kept, 8 bytes each."""
+    values = [array.array("d") for _ in wanted]
+    ends: list[int | None] = [None] * len(wanted)  # the line of a column's first empty cell
+    columns = list(enumerate(wanted))
+    rows = 0
+    for number, line in enumerate(lines[first:], start=first + 1):
         if not line.strip():
             continue
         cells = line.split(",")
-        if len(cells) != 2:
-            raise InputError(f"CSV line {number}: expected 2 values 'x,y', found {len(cells)}")
-        if count == max_samples:
+        if len(cells) > count and any(cell.strip() for cell in cells[count:]):
+            raise InputError(f"CSV line {number}: expected {count} values, found {len(cells)}")
+        if rows == max_samples:
             raise too_many_samples("the CSV has", max_samples)
-        try:
-            values[count] = float(cells[0]), float(cells[1])
-        except ValueError:
-            raise InputError(f"CSV line {number}: {line.strip()!r} is not two numbers") from None
-        count += 1
-    if count == 0:
-        raise InputError("the CSV has a header but no data rows")
-    return RecordFile(values[:count, 0].copy(), values[:count, 1].copy(), fs)
+        rows += 1
+        for index, (name, column) in columns:
+            cell = cells[column] if column < len(cells) else ""
+            try:
+                value = float(cell)
+            except ValueError:
+                if cell.strip():
+                    raise InputError(
+                        f"CSV line {number}: {cell.strip()!r} in column {name!r} is not a number"
+                    ) from None
+                ends[index] = ends[index] or number
+                continue
+            if ends[index] is not None:
+                raise InputError(
+                    f"CSV line {number}: column {name!r} has a value after its empty cell "
+                    f"on line {ends[index]}"
+                )
+            values[index].append(value)
+    return [np.frombuffer(column, dtype=np.float64).copy() for column in values]
+
+
+def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAULT_LAYOUT) -> RecordFile:
+    """Read ``layout.x`` and ``layout.y`` from a MAT file, and the rate from a variable ``fs``/``Fs``.
+
+    Only the variables these name are loaded (as a whole: ``Acceleration2`` loads the 3×N
+    ``Acceleration``); with ``max_bytes`` they may take at most that many bytes as float64, and
+    hold at most :func:`record_samples` samples, checked on their declared dimensions before
+    any of their data is inflated.
+    """
+    mat = matfiles.list_mat(data)
+    counts = {name: _signal_count(variable.shape) for name, variable in mat.variables.items()}
+    wanted = []
+    for name in (layout.x, layout.y):
+        variable, k = _resolve(
+            name, counts, f"the MAT file has no variable {name!r}; it holds {mat.describe()}"
+        )
+        if counts[variable] is None:
+            raise InputError(
+                f"MAT variable {mat.variables[variable].describe()} is not a vector, nor a matrix whose "
+                "longer dimension holds the samples"
+            )
+        wanted.append((mat.variables[variable], k))
+    rate = next((v for name, v in mat.variables.items() if name.lower() == "fs"), None)
+    if rate is not None and math.prod(rate.shape) != 1:
+        raise InputError(f"MAT variable {rate.describe()} must be one number, the sampling rate")
+    chosen = {variable.name: variable for variable, _ in wanted} | ({rate.name: rate} if rate else {})
+    declared = matfiles.declared_bytes(list(chosen.values()))
+    if max_bytes is not None and declared > max_bytes:
+        raise RecordTooLargeError(
+            f"the MAT variables {', '.join(chosen)} unpack to more than the upload limit "
+            f"({declared} bytes as float64)"
+        )
+    arrays = matfiles.load_variables(mat, list(chosen.values()))
+    x, y = (_signal(arrays[variable.name], k) for variable, k in wanted)
+    _check_lengths(layout, x, y)
+    if max_bytes is not None and x.size > record_samples(max_bytes):
+        raise too_many_samples("the MAT file's signals have", record_samples(max_bytes))
+    fs = _sampling_rate(arrays[rate.name]) if rate is not None else layout.fs
+    return RecordFile(x, y, fs)
+
+
+def _signal_count(shape: tuple[int, ...]) -> int | None:
+    """Signals a MAT variable holds: 1 for a vector, the shorter dimension of a matrix whose
+    longer one holds the samples; None for a square matrix or more dimensions."""
+    sizes = [size for size in shape if size != 1]
+    if len(sizes) <= 1 or 0 in sizes:  # an empty one is refused for holding no values
+        return 1
+    if len(sizes) == 2 and sizes[0] != sizes[1]:
+        return min(sizes)
+    return None
+
+
+def _signal(array: np.ndarray, k: int) -> np.ndarray:
+    """The k-th signal (0-based) of a MAT variable of a shape :func:`_signal_count` accepts."""
+    values = np.squeeze(array)
+    if values.ndim == 2 and values.size:
+        values = values[k] if values.shape[0] < values.shape[1] else values[:, k]
+    return np.ascontiguousarray(values.reshape(-1), dtype=np.float64)
+
+
+def _resolve(name: str, counts: dict[str, int | None], missing: str) -> tuple[str, int]:
+    """The signal ``name`` denotes: (column group or variable, 0-based index of its signal).
+
+    A name is a group's or variable's own; ``NAMEk`` is the k-th signal of NAME. A name matches
+    in any case when no other does (a header ``X,Y`` is read as x and y).
+    """
+    own = _named(name, counts)
+    if own is not None:
+        count = counts[own]
+        if count is None or count == 1:
+            return own, 0
+        raise InputError(f"{own!r} holds {count} signals: name one of them, {own}1 … {own}{count}")
+    match = _NUMBERED.fullmatch(name)
+    base = _named(match["base"], counts) if match else None
+    if match and base is not None:
+        k, count = int(match["k"]), counts[base]
+        if count is None or 1 <= k <= count:
+            return base, k - 1  # a variable that is no signal is refused by the caller, with its shape
+        raise InputError(
+            f"{name!r} is out of range: {base!r} holds {count} signal(s), {base}1 … {base}{count}"
+        )
+    raise InputError(missing)
+
+
+def _named(name: str, counts: dict[str, int | None]) -> str | None:
+    """The group or variable called ``name``, or else the only one called so in another case."""
+    if name in counts:
+        return name
+    alike = [other for other in counts if other.lower() == name.lower()]
+    return alike[0] if len(alike) == 1 else None
+
+
+def _check_lengths(layout: Layout, x: np.ndarray, y: np.ndarray) -> None:
+    for role, name, values in (("x", layout.x, x), ("y", layout.y, y)):
+        if values.size == 0:
+            raise InputError(f"{role} ({name!r}) holds no values")
+    if x.size != y.size:
+        raise InputError(
+            f"x ({layout.x!r}) has {x.size} samples but y ({layout.y!r}) has {y.size}; "
+            "x and y must be sampled together"
+        )
+
+
+def _agreed_rate(stated: float | None, found: float, where: str) -> float:
+    if stated is not None and stated != found:
+        raise InputError(f"the '# fs=' comment says {stated:g} Hz but {where} says {found:g} Hz")
+    return found
 
 
 def parse_silverbox(data: bytes | str) -> RecordFile:
     """Parse a Silverbox CSV (``SNLS80mV.csv``, ``Schroeder80mV.csv``): columns ``V1`` and ``V2``.
 
-    Other columns (the overload flags, the empty one a trailing comma makes) are ignored.
+    Other columns (the overload flags, filled in the first row only) are ignored.
     """
-    try:
-        text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
-    except UnicodeDecodeError:
-        raise InputError("the Silverbox file is not UTF-8 text") from None
-    header, _, body = text.partition("\n")
-    names = [cell.strip().strip('"') for cell in header.split(",")]
-    if "V1" not in names or "V2" not in names:
-        raise InputError(f"a Silverbox file has columns 'V1' and 'V2'; the header is {header.strip()!r}")
-    if not body.strip():
-        raise InputError("the Silverbox file has a header but no data rows")
-    try:
-        values = np.loadtxt(
-            io.StringIO(body), delimiter=",", usecols=(names.index("V1"), names.index("V2")), ndmin=2
-        )
-    except ValueError as exc:
-        raise InputError(f"the Silverbox file has a row that is not numbers ({exc})") from None
-    return RecordFile(values[:, 0].copy(), values[:, 1].copy(), SILVERBOX_FS)
+    return parse_csv(data, layout=SILVERBOX)
 
 
 def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
@@ -186,9 +413,9 @@ def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
         raise InputError("the file is not a readable NPZ archive") from None
     except (OSError, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError, zlib.error) as exc:
         raise InputError(f"the NPZ archive is damaged or not made by numpy ({exc})") from None
-    for name, array in (("x", x), ("y", y)):
-        if array.dtype.kind not in "iuf":
-            raise InputError(f"NPZ array {name!r} must be numeric, got dtype {array.dtype}")
+    for name, member in (("x", x), ("y", y)):
+        if member.dtype.kind not in "iuf":
+            raise InputError(f"NPZ array {name!r} must be numeric, got dtype {member.dtype}")
     return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs)
 
 

@@ -192,16 +192,16 @@ def _csv_rows(n: int = 300) -> list[str]:
 
 
 MALFORMED_CSV = {
-    "bad-header": (lambda rows: "a,b\n" + "\n".join(rows), "the CSV header must be 'x,y', found 'a,b'"),
-    "no-header": (lambda rows: "# fs=1500\n", "the CSV has no header line 'x,y'"),
+    "bad-header": (lambda rows: "a,b\n" + "\n".join(rows), "the CSV has no column 'x'; its columns are a, b"),
+    "no-header": (lambda rows: "# fs=1500\n", "the CSV has no header line naming its columns"),
     "header-only": (lambda rows: "x,y\n", "the CSV has a header but no data rows"),
     "non-numeric-line": (
         lambda rows: "x,y\n" + "\n".join([*rows[:3], "1.0,abc", *rows[3:]]),
-        "CSV line 5: '1.0,abc' is not two numbers",
+        "CSV line 5: 'abc' in column 'y' is not a number",
     ),
     "three-columns": (
         lambda rows: "x,y\n" + "\n".join([rows[0], rows[1] + ",7", *rows[2:]]),
-        "CSV line 3: expected 2 values 'x,y', found 3",
+        "CSV line 3: expected 2 values, found 3",
     ),
     "bad-fs-comment": (lambda rows: "# fs=-5\nx,y\n" + "\n".join(rows), "sampling rate must be a positive"),
     "not-utf8": (lambda rows: b"x,y\n\xff\xfe,1\n", "the CSV is not UTF-8 text"),
@@ -275,7 +275,7 @@ def test_unsupported_content_type(site: Site, ingest, content_type):
             response,
             415,
             f"unsupported Content-Type {content_type or '(none)'!r}",
-            "application/json, text/csv or application/x-npz",
+            "application/json, text/csv, application/x-npz or application/x-matlab-data",
         )
 
 

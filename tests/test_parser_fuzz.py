@@ -87,7 +87,10 @@ def test_npz_with_an_arbitrary_member_never_crashes(name: str, member: bytes) ->
 
 @FUZZ
 @given(
-    mutated(VALID_JSON), st.sampled_from(["application/json", "text/csv", "application/x-npz", "text/plain"])
+    mutated(VALID_JSON),
+    st.sampled_from(
+        ["application/json", "text/csv", "application/x-npz", "application/x-matlab-data", "text/plain"]
+    ),
 )
 def test_upload_parser_never_crashes(data: bytes, content_type: str) -> None:
     """The service's own entry: InputError becomes 422, HTTPException carries its own 4xx."""

@@ -63,7 +63,7 @@ def test_csv_without_fs_comment_and_with_quoted_header():
     [
         (b"", "no header"),
         (b"# fs=1500\n", "no header"),
-        (b"a,b\n1,2\n", "header must be 'x,y'"),
+        (b"a,b\n1,2\n", "no column 'x'; its columns are a, b"),
         (b"x,y\n", "no data rows"),
         (b"x,y\n1,2\n3,4,5\n", "line 3: expected 2 values"),
         (b"x,y\n1,2\nfoo,4\n", "line 3"),
@@ -168,8 +168,8 @@ def test_silverbox_files_read_as_published(silverbox_dir, name):
 @pytest.mark.parametrize(
     ("content", "message"),
     [
-        ('"x","y",\n1,2,\n', "columns 'V1' and 'V2'"),
-        ('"V1","V2",\n1,2,\n3,volts,\n', "not numbers"),
+        ('"x","y",\n1,2,\n', "no column 'V1'; its columns are x, y"),
+        ('"V1","V2",\n1,2,\n3,volts,\n', "CSV line 3: 'volts' in column 'V2' is not a number"),
         ('"V1","V2",\n', "no data rows"),
         (b"\xff\xfe", "not UTF-8"),
     ],

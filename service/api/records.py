@@ -19,10 +19,14 @@ from service.domain import inspections
 from service.domain.ingest import Ingested, QueueInspection, ingest_record
 from service.jobs import JobBackend
 from service.jobs.tasks import INSPECT_RECORD
+from service.recordfiles import NAMING_HELP, Layout
 from service.schemas import RecordOut, VerdictOut
 from service.security import Principal
 
 router = APIRouter(tags=["records"])
+
+SIGNAL_HELP = "The CSV column or MAT variable that holds {role}; " + NAMING_HELP
+NAME_LENGTH = 200
 
 
 class InspectMode(StrEnum):
@@ -60,10 +64,12 @@ async def upload_record(
         ),
     ] = InspectMode.false,
     acquired_at: Annotated[
-        dt.datetime | None, Query(description="Acquisition time for CSV/NPZ bodies (ISO 8601 with zone)")
+        dt.datetime | None, Query(description="Acquisition time for CSV/NPZ/MAT bodies (ISO 8601 with zone)")
     ] = None,
+    x: Annotated[str, Query(max_length=NAME_LENGTH, description=SIGNAL_HELP.format(role="x"))] = "x",
+    y: Annotated[str, Query(max_length=NAME_LENGTH, description=SIGNAL_HELP.format(role="y"))] = "y",
 ) -> RecordOut:
-    """Upload a record as JSON, CSV or NPZ; a re-upload of the same data returns the stored one."""
+    """Upload a record as JSON, CSV, NPZ or MAT; a re-upload of the same data returns the stored one."""
     # Nothing is queried before the body has arrived: a slow client holds no connection.
     body = await request.body()  # bounded by the BodyLimitMiddleware
     queue = (
@@ -83,6 +89,7 @@ async def upload_record(
         structure_id,
         inspect is InspectMode.true,
         queue,
+        Layout(x, y),
     )
     if ingested.queued:
         response.status_code = status.HTTP_202_ACCEPTED
@@ -118,8 +125,9 @@ def _parse_and_ingest(
     structure_id: int,
     inspect: bool,
     queue: QueueInspection | None,
+    layout: Layout,
 ) -> Ingested:
-    upload = parse_upload(body, content_type, acquired_at, settings.max_upload_bytes)
+    upload = parse_upload(body, content_type, acquired_at, settings.max_upload_bytes, layout)
     when = utc(upload.acquired_at, "acquired_at")
     return ingest_record(
         session, principal, settings, structure_id, upload.x, upload.y, upload.fs, when, inspect, queue

@@ -1,4 +1,4 @@
-"""Upload bodies: read with a size limit, then parsed by content type (JSON, CSV, NPZ)."""
+"""Upload bodies: read with a size limit, then parsed by content type (JSON, CSV, NPZ, MAT)."""
 
 from __future__ import annotations
 
@@ -10,20 +10,29 @@ from fastapi import HTTPException, status
 from pydantic import ValidationError
 
 from models.errors import InputError
-from service.recordfiles import parse_csv, parse_npz, record_samples, too_many_samples
+from service.recordfiles import DEFAULT_LAYOUT, Layout, parse_record, record_samples, too_many_samples
 from service.schemas import RecordUpload
 
 JSON = "application/json"
 CSV = "text/csv"
 NPZ_TYPES = ("application/x-npz", "application/zip", "application/octet-stream")
+MAT = "application/x-matlab-data"  # as mime.types names .mat files
+# The record file format (service.recordfiles) of each media type but JSON.
+FILE_FORMATS = {CSV: ".csv", MAT: ".mat"} | dict.fromkeys(NPZ_TYPES, ".npz")
 JSON_SLACK_COMMAS = 8
 
 REQUEST_BODY = {
     "required": True,
     "content": {
         JSON: {"schema": {"$ref": "#/components/schemas/RecordUpload"}},
-        CSV: {"schema": {"type": "string", "description": "optional '# fs=1500' line, header 'x,y', rows"}},
+        CSV: {
+            "schema": {
+                "type": "string",
+                "description": "optional '# fs=1500' line, a header naming the columns, rows",
+            }
+        },
         "application/x-npz": {"schema": {"type": "string", "format": "binary"}},
+        MAT: {"schema": {"type": "string", "format": "binary", "description": "MATLAB v4/v5/v7 MAT file"}},
     },
 }
 
@@ -36,15 +45,28 @@ class Upload:
     acquired_at: dt.datetime | None
 
 
-def parse_upload(body: bytes, content_type: str, acquired_at: dt.datetime | None, max_bytes: int) -> Upload:
+def parse_upload(
+    body: bytes,
+    content_type: str,
+    acquired_at: dt.datetime | None,
+    max_bytes: int,
+    layout: Layout = DEFAULT_LAYOUT,
+) -> Upload:
     """A record from a body of the given media type; 415 for any other type.
 
-    ``max_bytes`` bounds the arrays an NPZ may unpack to, as the body limit bounds the body, and
-    so the samples of a record in any format (:func:`service.recordfiles.record_samples`).
+    ``max_bytes`` bounds the arrays an NPZ or MAT file may unpack to, as the body limit bounds
+    the body, and so the samples of a record in any format
+    (:func:`service.recordfiles.record_samples`). ``layout`` names the CSV columns or MAT
+    variables that hold x and y.
     """
     media = content_type.split(";")[0].strip().lower()
     max_samples = record_samples(max_bytes)
     if media == JSON:
+        if layout != DEFAULT_LAYOUT:
+            raise InputError(
+                "a JSON record has the fields x and y; the parameters x and y name the columns of "
+                "a CSV or the variables of a MAT file"
+            )
         # x and y of n samples take 2n − 2 commas, and the fields two or three more.
         if body.count(b",") > 2 * max_samples + JSON_SLACK_COMMAS:
             raise too_many_samples("the JSON holds", max_samples)
@@ -55,15 +77,13 @@ def parse_upload(body: bytes, content_type: str, acquired_at: dt.datetime | None
         if max(len(record.x), len(record.y)) > max_samples:
             raise too_many_samples("the JSON holds", max_samples)
         return Upload(record.x, record.y, record.fs, record.acquired_at or acquired_at)
-    if media == CSV:
-        parsed = parse_csv(body, max_samples)
-    elif media in NPZ_TYPES:
-        parsed = parse_npz(body, max_bytes)
-    else:
+    suffix = FILE_FORMATS.get(media)
+    if suffix is None:
         raise HTTPException(
             status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
-            f"unsupported Content-Type {media or '(none)'!r}: send {JSON}, {CSV} or application/x-npz",
+            f"unsupported Content-Type {media or '(none)'!r}: send {JSON}, {CSV}, application/x-npz or {MAT}",
         )
+    parsed = parse_record(body, suffix, layout, max_bytes)
     return Upload(parsed.x, parsed.y, parsed.fs, acquired_at)
 
 

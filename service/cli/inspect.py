@@ -13,21 +13,23 @@ from models.errors import InputError
 from models.inspection import Verdict
 from models.inspection import inspect as run_inspection
 from service.cli.console import stdout
-from service.cli.modelfiles import read_fault_mode
+from service.cli.modelfiles import XName, YName, read_fault_mode, signal_layout
 from service.recordfiles import read_record
 
 STATUS_STYLE = {"healthy": "green", "faulty": "red", "unknown_fault": "magenta"}
 
 
 def inspect(
-    record: Annotated[Path, typer.Argument(help="Record to inspect (.csv or .npz).")],
+    record: Annotated[Path, typer.Argument(help="Record to inspect (.csv, .npz or .mat).")],
     fault_mode: Annotated[list[Path], typer.Option(help="Fault-mode model file (repeatable).")],
     alpha: Annotated[float, typer.Option(help="Risk level of every test.")] = 0.05,
     lags: Annotated[int, typer.Option(help="Ljung–Box lags h.")] = 40,
     as_json: Annotated[bool, typer.Option("--json", help="Print the verdict as JSON.")] = False,
+    x: XName = None,
+    y: YName = None,
 ) -> None:
     """Detect, localise and size a fault: k̂ per mode, detection, Ljung–Box, interval (SPEC §5)."""
-    data = read_record(record)
+    data = read_record(record, signal_layout(x, y))
     models = []
     for path in fault_mode:
         model, fs = read_fault_mode(path)

@@ -6,13 +6,24 @@ import csv
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
+
+import typer
 
 from models.errors import InputError
 from models.fnarx import FNARX
 from models.terms import Term, parse_terms
-from service.recordfiles import RecordFile, read_record
+from service.recordfiles import DEFAULT_LAYOUT, NAMING_HELP, Layout, RecordFile, read_record
 from simulator.theory import EXACT_TERMS
+
+_SIGNAL_HELP = "The CSV column or MAT variable that holds {role} (default: {role}); " + NAMING_HELP + "."
+XName = Annotated[str | None, typer.Option("--x", help=_SIGNAL_HELP.format(role="x"))]
+YName = Annotated[str | None, typer.Option("--y", help=_SIGNAL_HELP.format(role="y"))]
+
+
+def signal_layout(x: str | None, y: str | None, base: Layout = DEFAULT_LAYOUT) -> Layout:
+    """The layout to read records with: ``base`` with the names given on the command line."""
+    return Layout(x if x is not None else base.x, y if y is not None else base.y, base.fs)
 
 
 def read_terms(spec: str | None) -> tuple[Term, ...]:
@@ -53,9 +64,11 @@ def read_fault_mode(path: Path) -> tuple[FNARX, float | None]:
     return model, document.get("metadata", {}).get("fs")
 
 
-def read_records(paths: Sequence[Path]) -> tuple[list[RecordFile], float | None]:
+def read_records(
+    paths: Sequence[Path], layout: Layout = DEFAULT_LAYOUT
+) -> tuple[list[RecordFile], float | None]:
     """Records and their common sampling rate; records stating different rates are refused."""
-    records = [read_record(path) for path in paths]
+    records = [read_record(path, layout) for path in paths]
     rates = {record.fs for record in records if record.fs is not None}
     if len(rates) > 1:
         raise InputError(f"the records have different sampling rates {sorted(rates)}; use one rate")

@@ -15,8 +15,8 @@ from models.errors import InputError
 from models.refinement import DEFAULT_ALPHA, refine_record
 from models.terms import Term
 from service.cli.console import stdout
-from service.cli.modelfiles import read_terms
-from service.recordfiles import RecordFile, parse_silverbox, read_record
+from service.cli.modelfiles import XName, YName, read_terms, signal_layout
+from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, read_record
 
 # The Silverbox benchmark's official split (shared/data/README.md): estimation and arrow test,
 # each test run started from 50 measured outputs.
@@ -38,12 +38,18 @@ class DataFormat(StrEnum):
 
 def refine_command(
     data: Annotated[
-        Path, typer.Argument(help="Record: .csv or .npz as 'narxwatch simulate' writes, or Silverbox.")
+        Path,
+        typer.Argument(
+            help="Record: .csv or .npz as 'narxwatch simulate' writes, a CSV or MAT file (--x, --y)."
+        ),
     ],
     declared: Annotated[str | None, typer.Option(help=DECLARED_HELP)] = None,
     data_format: Annotated[
-        DataFormat, typer.Option("--format", help="'silverbox' for the benchmark's CSV files (V1, V2).")
+        DataFormat,
+        typer.Option("--format", help="'silverbox' for the benchmark's CSV files (--x V1 --y V2, its rate)."),
     ] = DataFormat.auto,
+    x: XName = None,
+    y: YName = None,
     fs: Annotated[float | None, typer.Option(help="Sampling rate [Hz] if the file has none.")] = None,
     estimation: Annotated[
         str | None,
@@ -64,7 +70,8 @@ def refine_command(
     plot: Annotated[Path | None, typer.Option(help="Write a PNG of the residuals and the free run.")] = None,
 ) -> None:
     """Fit the declared model, trace its residual to the effects it lacks, add them, compare."""
-    record = _read(data, data_format)
+    layout = signal_layout(x, y, SILVERBOX if data_format is DataFormat.silverbox else DEFAULT_LAYOUT)
+    record = read_record(data, layout)
     rate = record.fs if record.fs is not None else fs
     silverbox = data_format is DataFormat.silverbox
     n = len(record.x)
@@ -90,7 +97,7 @@ def refine_command(
                 )
             ),
         }
-        for path, other in ((path, _read(path, data_format)) for path in validate or [])
+        for path, other in ((path, read_record(path, layout)) for path in validate or [])
     ]
     if plot is not None:
         from service.cli.refine_figure import write_refinement_figure  # matplotlib only when asked
@@ -101,19 +108,6 @@ def refine_command(
         stdout.print_json(json.dumps(document))
         return
     _print(document, plot)
-
-
-def _read(path: Path, data_format: DataFormat) -> RecordFile:
-    if data_format is DataFormat.silverbox:
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise InputError(f"{path}: cannot read the file ({exc.strerror})") from None
-        try:
-            return parse_silverbox(data)
-        except InputError as exc:
-            raise InputError(f"{path}: {exc}") from None
-    return read_record(path)
 
 
 def _declared(spec: str | None) -> tuple[Term, ...]:

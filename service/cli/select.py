@@ -17,13 +17,15 @@ from models.errors import InputError
 from models.selection import CRITERIA, NarxSelection, select_narx
 from models.validation import Validation, validate
 from service.cli.console import stderr, stdout
-from service.cli.modelfiles import read_records, write_json
+from service.cli.modelfiles import XName, YName, read_records, signal_layout, write_json
 
 Signals = list[tuple[np.ndarray, np.ndarray]]
 
 
 def select(
-    records: Annotated[list[Path], typer.Argument(help="Records to select from (.csv or .npz).")],
+    records: Annotated[list[Path], typer.Argument(help="Records to select from (.csv, .npz or .mat).")],
+    x: XName = None,
+    y: YName = None,
     degree: Annotated[int, typer.Option(help="Largest total degree of the candidate monomials.")] = 3,
     ny: Annotated[int, typer.Option(help="Output lags y[t-1] … y[t-ny].")] = 4,
     nx: Annotated[int, typer.Option(help="Input lags x[t-delay] … x[t-delay-nx+1].")] = 4,
@@ -78,10 +80,11 @@ def select(
     """
     if out is not None and out.suffix.lower() != ".json":
         raise InputError(f"--out {out}: name a .json file, the kind `train --terms` reads")
-    loaded, fs = read_records(records)
+    layout = signal_layout(x, y)
+    loaded, fs = read_records(records, layout)
     signals = [(r.x, r.y) for r in loaded]
     if holdout:
-        held, held_fs = read_records(holdout)
+        held, held_fs = read_records(holdout, layout)
         if None not in (fs, held_fs) and held_fs != fs:
             raise InputError(f"the held-out records are sampled at {held_fs:g} Hz, the others at {fs:g} Hz")
         validation_signals = [(r.x, r.y) for r in held]

@@ -11,7 +11,15 @@ from models.basis import FAMILIES
 from models.fnarx import fit_fnarx
 from models.narx import fit_narx
 from service.cli.console import stdout
-from service.cli.modelfiles import read_manifest, read_records, read_terms, write_json
+from service.cli.modelfiles import (
+    XName,
+    YName,
+    read_manifest,
+    read_records,
+    read_terms,
+    signal_layout,
+    write_json,
+)
 
 app = typer.Typer(help="Estimate models from records.", no_args_is_help=True)
 
@@ -23,12 +31,14 @@ TERMS_HELP = (
 
 @app.command("baseline")
 def baseline(
-    records: Annotated[list[Path], typer.Argument(help="Healthy records (.csv or .npz).")],
+    records: Annotated[list[Path], typer.Argument(help="Healthy records (.csv, .npz or .mat).")],
     out: Annotated[Path, typer.Option("--out", help="Model file to write (.json).")],
     terms: Annotated[str | None, typer.Option(help=TERMS_HELP)] = None,
+    x: XName = None,
+    y: YName = None,
 ) -> None:
     """Identify the healthy structure as a NARX model from one or more records."""
-    loaded, fs = read_records(records)
+    loaded, fs = read_records(records, signal_layout(x, y))
     model = fit_narx([(r.x, r.y) for r in loaded], read_terms(terms))
     document = model.to_document()
     document["metadata"] = {"fs": fs, "records": [str(p) for p in records]}
@@ -52,10 +62,12 @@ def fault_mode(
     k_max: Annotated[
         float | None, typer.Option(help="Upper end of the fault range (default: largest k).")
     ] = None,
+    x: XName = None,
+    y: YName = None,
 ) -> None:
     """Identify a fault mode as a functional NARX model from experiments at several magnitudes."""
     rows = read_manifest(experiments)
-    loaded, fs = read_records([path for path, _ in rows])
+    loaded, fs = read_records([path for path, _ in rows], signal_layout(x, y))
     ks = [k for _, k in rows]
     k_range = (min(ks) if k_min is None else k_min, max(ks) if k_max is None else k_max)
     model = fit_fnarx(

@@ -1,0 +1,190 @@
+"""Uploading the files as published (issue 14, deliverable 6): MAT bodies
+(``application/x-matlab-data``) and CSVs with named columns, x and y named by the query parameters
+``x`` and ``y``. Through HTTP against the real app on SQLite and PostgreSQL; a refused upload
+leaves nothing behind (``api_helpers.nothing_written``).
+"""
+
+from __future__ import annotations
+
+import io
+import resource
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import scipy.io
+from api_helpers import (
+    FS,
+    Org,
+    clients,
+    create_structure,
+    detail,
+    json_body,
+    nothing_written,
+    npz_bytes,
+    post_record,
+    raw_json,
+)
+from conftest import DATA_DIR
+from live import LiveServer
+from mat_bombs import mat_file, matrix, v73_file, zeros_bomb
+
+MAT = "application/x-matlab-data"
+F16_MAT = DATA_DIR / "f16-gvt" / "F16Data_SineSw_Level3.mat"
+WH_CSV = DATA_DIR / "wiener-hammerstein" / "WH_EstimationExample.csv"
+
+
+@dataclass
+class Site:
+    server: LiveServer
+    org: Org
+    rig: int  # fs = FS, no models: where the refused uploads are tried
+
+
+@pytest.fixture(scope="module")
+def site(api_server: LiveServer) -> Site:
+    org = Org.create(api_server)
+    with clients(org) as (admin, _, _):
+        rig = create_structure(admin, "published")["id"]
+    return Site(api_server, org, rig)
+
+
+@pytest.fixture
+def ingest(site: Site):
+    with site.org.client("ingest") as client:
+        yield client
+
+
+def test_f16_mat_and_wh_csv_upload_as_the_records_they_hold(site: Site, ingest):
+    """The stored record is the one an independent read gives: the same data uploaded again as an
+    NPZ of it is recognised as already stored (same id, same sha256)."""
+    for path in (F16_MAT, WH_CSV):
+        assert path.is_file(), f"benchmark data missing: {path} (set NARXWATCH_DATA_DIR)"
+    with clients(site.org) as (admin, _, _):
+        f16 = create_structure(admin, "f16", fs=400.0)["id"]
+        wh = create_structure(admin, "wh", fs=78125.0)["id"]
+    response = post_record(ingest, f16, F16_MAT.read_bytes(), MAT, x="Force", y="Acceleration2")
+    assert response.status_code == 201, response.text
+    stored = response.json()
+    assert stored["n_samples"] == 108_477 and stored["fs"] == 400.0
+    reference = scipy.io.loadmat(F16_MAT)
+    again = post_record(
+        ingest,
+        f16,
+        npz_bytes(x=reference["Force"].ravel(), y=reference["Acceleration"][1], fs=400.0),
+        "application/x-npz",
+    )
+    assert again.status_code == 200 and (again.json()["id"], again.json()["sha256"]) == (
+        stored["id"],
+        stored["sha256"],
+    )
+
+    response = post_record(ingest, wh, WH_CSV.read_bytes(), "text/csv", x="u3", y="y3")
+    assert response.status_code == 201, response.text
+    stored = response.json()
+    assert stored["n_samples"] == 8192 and stored["fs"] == 78125.0
+    columns = np.genfromtxt(WH_CSV, delimiter=",", skip_header=1)
+    again = post_record(
+        ingest, wh, npz_bytes(x=columns[:, 12], y=columns[:, 22], fs=78125.0), "application/x-npz"
+    )
+    assert again.status_code == 200 and again.json()["id"] == stored["id"]
+
+
+def _mat(**variables: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    scipy.io.savemat(buffer, variables)
+    return buffer.getvalue()
+
+
+rng = np.random.default_rng(8)
+FORCE, ACC = rng.normal(size=300), rng.normal(0, 1e-3, (3, 300))
+GROUPED = '"Force","Acc",,,"fs",\n' + "".join(
+    f"{f:.17g},{a:.17g},{b:.17g},{c:.17g},{FS if i == 0 else ''},\n"
+    for i, (f, a, b, c) in enumerate(zip(FORCE, *ACC, strict=True))
+)
+
+
+NOT_A_NUMBER = GROUPED.replace(f"{ACC[1, 7]:.17g}", "n/a")  # row 8 of the data, line 9 of the file
+# id: (body, media type, query parameters, what the answer says)
+BAD_UPLOADS = {
+    "mat-variable": (
+        _mat(Force=FORCE, Acceleration=ACC, Fs=FS),
+        MAT,
+        {"x": "Force", "y": "Acc2"},
+        "the MAT file has no variable 'Acc2'; it holds Force (1×300 double), "
+        "Acceleration (3×300 double), Fs (1×1 double)",
+    ),
+    "csv-column": (
+        GROUPED,
+        "text/csv",
+        {"x": "Force", "y": "Acceleration2"},
+        "the CSV has no column 'Acceleration2'; its columns are Force, Acc (3 columns, Acc1 … Acc3), fs",
+    ),
+    "group-index": (
+        GROUPED,
+        "text/csv",
+        {"x": "Force", "y": "Acc4"},
+        "'Acc4' is out of range: 'Acc' holds 3",
+    ),
+    "whole-matrix": (
+        _mat(Force=FORCE, Acc=ACC),
+        MAT,
+        {"x": "Force", "y": "Acc"},
+        "name one of them, Acc1 … Acc3",
+    ),
+    "lengths": (
+        _mat(Force=FORCE[:299], Acc=ACC),
+        MAT,
+        {"x": "Force", "y": "Acc1"},
+        "x ('Force') has 299 samples but y ('Acc1') has 300",
+    ),
+    "not-a-number": (
+        NOT_A_NUMBER,
+        "text/csv",
+        {"x": "Force", "y": "Acc2"},
+        "CSV line 9: 'n/a' in column 'Acc2' is not a number",
+    ),
+    "v7.3": (v73_file(), MAT, {}, "v7.3 (HDF5) file, which is not read: save it with"),
+    "default-names": (
+        mat_file(matrix("x", np.ones((1, 300)))),
+        MAT,
+        {},
+        "no variable 'y'; it holds x (1×300 double)",
+    ),
+    "npz": (npz_bytes(x=FORCE, y=ACC[0], fs=FS), "application/x-npz", {"y": "Acc1"}, "an NPZ record holds"),
+    "json": (
+        raw_json(json_body(300)),
+        "application/json",
+        {"x": "Force"},
+        "a JSON record has the fields x and y",
+    ),
+}
+
+
+@pytest.mark.parametrize(
+    ("body", "media", "names", "message"), list(BAD_UPLOADS.values()), ids=list(BAD_UPLOADS)
+)
+def test_bad_names_and_files_are_a_422_naming_what_to_fix(site: Site, ingest, body, media, names, message):
+    with nothing_written(site.org, site.rig):
+        response = post_record(ingest, site.rig, body, media, **names)
+        assert response.status_code == 422, response.text
+        assert message in detail(response), detail(response)
+
+
+def test_named_upload_is_stored(site: Site, ingest):
+    response = post_record(ingest, site.rig, GROUPED, "text/csv", x="Force", y="Acc2")
+    assert response.status_code == 201, response.text
+    assert response.json()["n_samples"] == 300 and response.json()["fs"] == FS
+
+
+def test_mat_bomb_is_refused_before_it_is_inflated(site: Site, ingest):
+    """A 4 MB MAT file whose variable declares 4·10⁹ bytes of zeros: 413, and the server's peak
+    memory does not grow by anything like it."""
+    bomb = mat_file(zeros_bomb("x", (1, 500_000_000), 4_000_000_000), matrix("y", np.ones((1, 300))))
+    assert 3_000_000 < len(bomb) < site.server.settings.max_upload_bytes
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    with nothing_written(site.org, site.rig):
+        response = post_record(ingest, site.rig, bomb, MAT)
+        assert response.status_code == 413, response.text
+        assert "the MAT variables x, y unpack to more than the upload limit" in detail(response)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before < 200 * 2**20

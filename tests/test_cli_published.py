@@ -1,0 +1,112 @@
+"""``--x`` and ``--y`` on the commands that read records: CSV columns and MAT variables by name,
+read as the same record as the ``x,y`` file, and a bad name refused with what to fix."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+from api_helpers import simulated
+from test_cli import run
+
+from models.narx import fit_narx
+from models.terms import parse_terms
+from simulator.recordfile import write_record
+
+TERMS = "y[t-1],y[t-2],x[t-1],x[t-2]"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> Path:
+    """One simulated record as ``x,y`` CSV, as a CSV with a group ``"Force","Acc",,"Fs",`` (y in
+    Acc2), and as a MAT file with Force (1×N), Acc (2×N) and Fs."""
+    folder = tmp_path_factory.mktemp("published")
+    record = simulated("none", 0.0, 41, n=4000)
+    other = np.random.default_rng(5).normal(size=record.x.size)
+    write_record(folder / "plain.csv", record.x, record.y, record.fs)
+    rows = "".join(
+        f"{a:.17g},{b:.17g},{c:.17g},{record.fs if i == 0 else ''},\n"
+        for i, (a, b, c) in enumerate(zip(record.x, other, record.y, strict=True))
+    )
+    (folder / "named.csv").write_text('"Force","Acc",,"Fs",\n' + rows)
+    scipy.io.savemat(
+        folder / "named.mat", {"Force": record.x, "Acc": np.stack([other, record.y]), "Fs": record.fs}
+    )
+    # Acc2 one sample short, and a cell that is not a number.
+    lines = (folder / "named.csv").read_text().splitlines()
+    last = lines[-1].split(",")
+    (folder / "short.csv").write_text("\n".join([*lines[:-1], ",".join([*last[:2], "", *last[3:]])]) + "\n")
+    lines[4] = lines[4].replace(lines[4].split(",")[2], "volts", 1)
+    (folder / "volts.csv").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+@pytest.mark.parametrize("name", ["named.csv", "named.mat"])
+def test_refine_reads_named_signals_as_the_plain_record(files, name):
+    args = ("--declared", "linear:2,2", "--json")
+    plain = json.loads(run("refine", "plain.csv", *args, cwd=files).stdout)
+    named = json.loads(run("refine", name, "--x", "Force", "--y", "Acc2", *args, cwd=files).stdout)
+    assert named == plain and named["data"]["fs"] == 1500.0
+
+
+def test_train_and_select_read_named_signals(files):
+    record = simulated("none", 0.0, 41, n=4000)
+    run(
+        "train",
+        "baseline",
+        "named.mat",
+        "--x",
+        "Force",
+        "--y",
+        "Acc2",
+        "--terms",
+        TERMS,
+        "--out",
+        "m.json",
+        cwd=files,
+    )
+    document = json.loads((files / "m.json").read_text())
+    expected = fit_narx([(record.x, record.y)], parse_terms(TERMS.split(",")))
+    np.testing.assert_array_equal(document["theta"], expected.theta)
+    assert document["metadata"]["fs"] == 1500.0
+    options = ("--degree", "1", "--ny", "2", "--nx", "2", "--n-terms", "3", "--json")
+    plain = json.loads(run("select", "plain.csv", *options, cwd=files).stdout)
+    named = json.loads(run("select", "named.csv", "--x", "Force", "--y", "Acc2", *options, cwd=files).stdout)
+    assert named.pop("records") == ["named.csv"] and plain.pop("records") == ["plain.csv"]
+    assert named == plain
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["inspect", "named.mat", "--x", "Force", "--y", "Accel", "--fault-mode", "none.json"],
+            "named.mat: the MAT file has no variable 'Accel'; it holds Force (1×4000 double), "
+            "Acc (2×4000 double), Fs (1×1 double)",
+        ),
+        (
+            ["select", "named.csv", "--x", "Force", "--y", "Acceleration"],
+            "named.csv: the CSV has no column 'Acceleration'; its columns are Force, Acc (2 columns, "
+            "Acc1 … Acc2), Fs",
+        ),
+        (
+            ["train", "baseline", "named.csv", "--x", "Force", "--y", "Acc3", "--out", "m.json"],
+            "'Acc3' is out of range: 'Acc' holds 2 signal(s), Acc1 … Acc2",
+        ),
+        (
+            ["refine", "short.csv", "--x", "Force", "--y", "Acc2"],
+            "x ('Force') has 4000 samples but y ('Acc2') has 3999",
+        ),
+        (
+            ["refine", "volts.csv", "--x", "Force", "--y", "Acc2"],
+            "CSV line 5: 'volts' in column 'Acc2' is not a number",
+        ),
+        (["select", "plain.csv", "--x", "Force"], "no column 'Force'; its columns are x, y"),
+    ],
+)  # fmt: skip
+def test_bad_names_are_refused_with_what_to_fix(files, args, message):
+    result = run(*args, cwd=files, check=False)
+    assert result.returncode == 2 and message in result.stderr, result.stderr
