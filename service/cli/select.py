@@ -1,4 +1,5 @@
-"""``narxwatch select``: find a NARX structure from records by FROLS (SPEC §3)."""
+"""``narxwatch select``: find a NARX structure from records by FROLS (SPEC §3) or on the simulation
+error (SEMP, :mod:`models.semp`)."""
 
 from __future__ import annotations
 
@@ -15,11 +16,20 @@ from rich.text import Text
 from models.candidates import candidate_terms
 from models.errors import InputError
 from models.selection import CRITERIA, NarxSelection, select_narx
+from models.semp import (
+    DEFAULT_JUDGED_SHARE,
+    DEFAULT_PRESELECT,
+    DEFAULT_THRESHOLD,
+    SimulationSelection,
+    select_by_simulation,
+)
 from models.validation import Validation, validate
 from service.cli.console import stderr, stdout
 from service.cli.modelfiles import read_records, write_json
 
 Signals = list[tuple[np.ndarray, np.ndarray]]
+# The criterion that judges candidates on the free run instead of the one-step error.
+SIMULATION = "simulation"
 
 
 def select(
@@ -38,8 +48,10 @@ def select(
     criterion: Annotated[
         str | None,
         typer.Option(
-            help=f"Information criterion minimised along the path: {', '.join(CRITERIA)} "
-            "(default bic, unless --n-terms or --err-tolerance is given)."
+            help=f"On the one-step error, an information criterion minimised along the FROLS path: "
+            f"{', '.join(CRITERIA)} (default bic, unless --n-terms or --err-tolerance is given). Or "
+            "'simulation': terms judged "
+            "by the free-run error on the end of each record (SEMP, with pruning)."
         ),
     ] = None,
     n_terms: Annotated[int | None, typer.Option(help="Select exactly this many terms.")] = None,
@@ -56,6 +68,22 @@ def select(
             help="Explicitly orthogonalised path, exact to rounding level (noise-free data); slower."
         ),
     ] = False,
+    judged_share: Annotated[
+        float,
+        typer.Option(
+            help="With --criterion simulation: share of each record's end the free run is judged on."
+        ),
+    ] = DEFAULT_JUDGED_SHARE,
+    threshold: Annotated[
+        float,
+        typer.Option(
+            help="With --criterion simulation: relative drop of the mean-square free-run error a term must "
+            "bring to enter, and keep to stay."
+        ),
+    ] = DEFAULT_THRESHOLD,
+    preselect: Annotated[
+        int, typer.Option(help="With --criterion simulation: candidates tried per step, the first by ERR.")
+    ] = DEFAULT_PRESELECT,
     holdout: Annotated[
         list[Path] | None, typer.Option(help="Held-out record for the validation errors (repeatable).")
     ] = None,
@@ -70,11 +98,12 @@ def select(
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
 ) -> None:
-    """Select NARX terms from a dictionary of lagged monomials by FROLS with the error reduction ratio.
+    """Select NARX terms from a dictionary of lagged monomials by FROLS with the error reduction ratio,
+    or (--criterion simulation) by the free-run error of each candidate model.
 
-    Prints the chosen terms with their ERR and least-squares parameters, and one-step, k-step
-    and free-run errors on held-out data. The JSON (--json or --out) is accepted by
-    `narxwatch train baseline --terms FILE`.
+    Prints the chosen terms with their ERR (or the simulation path) and least-squares parameters,
+    and one-step, k-step and free-run errors on held-out data. The JSON (--json or --out) is
+    accepted by `narxwatch train baseline --terms FILE`.
     """
     if out is not None and out.suffix.lower() != ".json":
         raise InputError(f"--out {out}: name a .json file, the kind `train --terms` reads")
@@ -88,6 +117,26 @@ def select(
     else:
         signals, validation_signals = _split(signals, split)
     candidates = candidate_terms(degree, ny, nx, delay, constant=constant, extra=extra or ())
+    if criterion is not None and criterion.lower() not in (*CRITERIA, SIMULATION):
+        raise InputError(
+            f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)} (one-step error) "
+            f"or {SIMULATION} (free-run error)"
+        )
+    simulation = criterion is not None and criterion.lower() == SIMULATION
+    if simulation:
+        given = [
+            option
+            for option, value in (
+                ("--n-terms", n_terms),
+                ("--err-tolerance", err_tolerance),
+                ("--precise", precise),
+            )
+            if value not in (None, False)
+        ]
+        if given:
+            raise InputError(
+                f"--criterion simulation chooses the terms by their free run: drop {' and '.join(given)}"
+            )
     with Progress(
         TextColumn("selecting"),
         BarColumn(),
@@ -97,19 +146,33 @@ def select(
         transient=True,
         disable=not stderr.is_terminal,
     ) as bar:
-        task = bar.add_task("select", total=n_terms or min(max_terms, len(candidates)))
-        selection = select_narx(
-            signals,
-            candidates,
-            n_terms=n_terms,
-            criterion=criterion,
-            err_tolerance=err_tolerance,
-            max_terms=max_terms,
-            prune=prune,
-            include=include or (),
-            precise=precise,
-            progress=lambda step: bar.update(task, completed=step),
-        )
+        if simulation:
+            # The bar counts additions against their bound; the selection usually stops well before.
+            task = bar.add_task("select", total=2 * max_terms)
+            selection: NarxSelection | SimulationSelection = select_by_simulation(
+                signals,
+                candidates,
+                judged_share=judged_share,
+                include=include or (),
+                max_terms=max_terms,
+                preselect=preselect,
+                threshold=threshold,
+                progress=lambda step: bar.update(task, completed=step),
+            )
+        else:
+            task = bar.add_task("select", total=n_terms or min(max_terms, len(candidates)))
+            selection = select_narx(
+                signals,
+                candidates,
+                n_terms=n_terms,
+                criterion=criterion,
+                err_tolerance=err_tolerance,
+                max_terms=max_terms,
+                prune=prune,
+                include=include or (),
+                precise=precise,
+                progress=lambda step: bar.update(task, completed=step),
+            )
     held_out = validate(selection.model, validation_signals, steps) if validation_signals else None
     document = {
         **selection.to_dict(),
@@ -131,7 +194,12 @@ def select(
     if as_json:
         print(json.dumps(document, indent=1))
     else:
-        _print_selection(selection, held_out)
+        if isinstance(selection, SimulationSelection):
+            _print_simulation(selection)
+        else:
+            _print_selection(selection)
+        if held_out is not None:
+            _print_held_out(held_out)
         if out is not None:
             stdout.print(f"written to {out}")
 
@@ -150,7 +218,7 @@ def _split(signals: Signals, share: float) -> tuple[Signals, Signals]:
     return fitting, held
 
 
-def _print_selection(selection: NarxSelection, held_out: Validation | None) -> None:
+def _print_selection(selection: NarxSelection) -> None:
     model = selection.model
     table = Table(
         "term",
@@ -176,12 +244,46 @@ def _print_selection(selection: NarxSelection, held_out: Validation | None) -> N
         markup=False,
         highlight=False,
     )
-    if held_out is not None:
-        errors = Table("held out", "RMS", "NRMSE", "samples")
-        for label, mode in (
-            ("one-step", held_out.one_step),
-            (f"{held_out.steps}-step", held_out.k_step),
-            ("free run", held_out.free_run),
-        ):
-            errors.add_row(label, f"{mode.rms:.4e}", f"{mode.nrmse:.4e}", str(mode.samples))
-        stdout.print(errors)
+
+
+def _print_simulation(selection: SimulationSelection) -> None:
+    model = selection.model
+    table = Table(
+        "term",
+        "θ",
+        "s.e.",
+        title=f"{len(model.terms)} of {len(selection.candidates)} candidates, on the free-run error",
+        title_justify="left",
+    )
+    for name, theta, se in zip(model.term_names, model.theta, model.standard_errors(), strict=True):
+        table.add_row(Text(name), f"{theta: .6e}", f"{se:.2e}")
+    stdout.print(table)
+    path = Table("step", "term", "free-run RMS", "terms", title="simulation path", title_justify="left")
+    for step in selection.path:
+        path.add_row(
+            step.action,
+            Text("" if step.term is None else step.term.name),
+            f"{step.rms:.4e}",
+            str(step.n_terms),
+        )
+    stdout.print(path)
+    notes = [
+        f"stopped by {selection.stopped_by}",
+        f"{selection.evaluations} free runs on {selection.judged_samples} judged samples",
+    ]
+    if selection.removed:
+        notes.append(f"removed by pruning: {', '.join(t.name for t in selection.removed)}")
+    if selection.diverged:
+        notes.append(f"refused (free run diverged): {', '.join(t.name for t in selection.diverged)}")
+    stdout.print("; ".join(notes), markup=False, highlight=False)
+
+
+def _print_held_out(held_out: Validation) -> None:
+    errors = Table("held out", "RMS", "NRMSE", "samples")
+    for label, mode in (
+        ("one-step", held_out.one_step),
+        (f"{held_out.steps}-step", held_out.k_step),
+        ("free run", held_out.free_run),
+    ):
+        errors.add_row(label, f"{mode.rms:.4e}", f"{mode.nrmse:.4e}", str(mode.samples))
+    stdout.print(errors)
