@@ -31,7 +31,7 @@ The algorithm, from the model M₀ of the ``include`` and ``start`` terms:
    pruning that follows removes those of them that are not needed.
 4. Pruning: while some term m of M (not an ``include`` one) has J(M \\ {m}) ≤ (1 + ρ)·J_a,
    J_a being J right after the addition, the one of least J(M \\ {m}) is removed.
-5. Back to 2, until M holds ``max_terms`` terms or 2·``max_terms`` additions were made.
+5. Back to 2, until M holds ``max_terms`` terms or after 2·``max_terms`` iterations.
 
 Each iteration lowers J by a factor below (1 − ρ)(1 + ρ) = 1 − ρ² < 1, so no model is visited
 twice at the end of an iteration and the selection ends.
@@ -123,7 +123,7 @@ class SimulationSelection:
     removed : terms removed by pruning, in the order removed (a term may enter again later).
     diverged : candidates whose free run diverged when tried, in the order first seen.
     candidates : the dictionary.
-    stopped_by : ``no_improvement``, ``max_terms``, ``max_steps`` (2·max_terms additions) or
+    stopped_by : ``no_improvement``, ``max_terms``, ``max_steps`` (2·max_terms iterations) or
         ``exhausted`` (no independent candidate left).
     evaluations : free runs computed.
     judged_samples : N_J.
@@ -182,10 +182,10 @@ def select_by_simulation(
         judged (its sinusoids' time continuing from the fitted part) and the rest is fitted.
     include : candidates taken first and never removed.
     start : candidates the model starts from, which pruning may remove.
-    max_terms : the largest model; the selection also stops after 2·max_terms additions.
+    max_terms : the largest model; the selection also stops after 2·max_terms iterations.
     preselect : candidates tried per iteration, the first by ERR.
     threshold : ρ, the relative change of J that an addition must exceed and a removal may not.
-    progress : called with the number of additions made so far (of at most 2·max_terms).
+    progress : called after each iteration with their number so far (at most 2·max_terms).
 
     Returns
     -------
@@ -222,6 +222,8 @@ def select_by_simulation(
     search = _Search(dictionary, judge, fixed)
     model = [*fixed, *initial]
     current = search.error(model)
+    if current is None:
+        raise InputError("the starting terms are linearly dependent on these records: start from fewer")
     if not np.isfinite(current):
         raise InputError("the free run of the starting terms diverges on the judged data: start from fewer")
     path = [SimulationStep("start", None, float(np.sqrt(current)), len(model))]
@@ -289,6 +291,12 @@ class _Judge:
         self.records = records
         self.t0s = t0s
         self.lag = lag
+        for number, (_, y) in enumerate(records, 1):
+            if y.size <= lag:
+                raise InputError(
+                    f"judged record {number} has {y.size} samples; its free run needs more than the {lag} "
+                    "that start it"
+                )
         self.samples = sum(y.size - lag for _, y in records)
         self.empty = sum(float(np.sum(y[lag:] ** 2)) for _, y in records) / self.samples
         self.evaluations = 0

@@ -130,6 +130,10 @@ def test_a_candidate_whose_free_run_diverges_is_refused() -> None:
     assert square not in selection.model.term_names
     assert np.isfinite(selection.rms) and selection.rms < selection.path[0].rms
     assert not np.isnan(selection.model.simulate(x_judged, y_judged[:1])).any()
+    with pytest.raises(InputError, match="the free run of the starting terms diverges on the judged data"):
+        select_by_simulation(
+            [(x, y)], candidates, judged=[(x_judged, y_judged)], start=["y[t-1]", "x[t-1]", square]
+        )
 
 
 @pytest.mark.parametrize(
@@ -142,6 +146,7 @@ def test_a_candidate_whose_free_run_diverges_is_refused() -> None:
         ({"include": ["y[t-9]"]}, "included term y[t-9] is not among the candidates"),
         ({"start": ["x[t-7]"]}, "starting term x[t-7] is not among the candidates"),
         ({"start": list(TRUE), "max_terms": 2}, "3 starting terms exceed max_terms = 2"),
+        ({"judged": [(np.arange(4.0), np.arange(4.0) ** 2)]}, "judged record 1 has 4 samples"),
     ],
 )
 def test_bad_settings_are_refused(dictionary, options, message) -> None:

@@ -147,7 +147,7 @@ def select(
         disable=not stderr.is_terminal,
     ) as bar:
         if simulation:
-            # The bar counts additions against their bound; the selection usually stops well before.
+            # The bar counts iterations against their bound; the selection usually stops well before.
             task = bar.add_task("select", total=2 * max_terms)
             selection: NarxSelection | SimulationSelection = select_by_simulation(
                 signals,
