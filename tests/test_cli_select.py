@@ -32,6 +32,7 @@ def test_help() -> None:
         "--criterion",
         "--n-terms",
         "--precise",
+        "--judged",
         "--judged-share",
         "--threshold",
         "--preselect",
@@ -115,6 +116,14 @@ def test_simulation_criterion(workdir) -> None:
     held, frols_held = document["held_out"]["free_run"], frols["held_out"]["free_run"]
     assert held["samples"] == frols_held["samples"] == 5000 - 4
     assert held["rms"] <= frols_held["rms"]
+    assert document["judged"] == {"records": [], "share": 0.25} and "judged" not in frols
+    other = run(
+        "select", "a.csv", "--criterion", "simulation", "--judged", "b.npz", "--holdout", "held.csv",
+        "--json", cwd=workdir,
+    )  # fmt: skip
+    judged_on_b = json.loads(other.stdout)
+    assert judged_on_b["judged"] == {"records": ["b.npz"], "share": None}
+    assert judged_on_b["judged_samples"] == 10000 - 4 and set(LINEAR) <= set(judged_on_b["terms"])
     table = run("select", "a.csv", "--criterion", "simulation", cwd=workdir).stdout
     assert "simulation path" in table and "y[t-1]^3" in table and "stopped by no_improvement" in table
     run("train", "baseline", "a.csv", "--terms", "semp.json", "--out", "semp-model.json", cwd=workdir)
@@ -144,6 +153,7 @@ def test_simulation_criterion(workdir) -> None:
         (["--split", "1.5"], "--split must lie in [0, 1)"),
         (["--extra", "q[t-1]"], "cannot read term"),
         (["--out", "terms.txt"], "name a .json file"),
+        (["--judged", "b.npz"], "--judged records serve --criterion simulation only"),
     ],
 )
 def test_bad_settings_are_refused_with_a_message(workdir, args, message) -> None:
@@ -168,3 +178,7 @@ def test_bad_records_are_refused_with_a_message(workdir) -> None:
     np.savez(workdir / "fast.npz", x=record["x"], y=record["y"], fs=3000.0)
     result = run("select", "a.csv", "--holdout", "fast.npz", cwd=workdir, check=False)
     assert result.returncode == 2 and "sampled at 3000 Hz, the others at 1500 Hz" in result.stderr
+    result = run(
+        "select", "a.csv", "--criterion", "simulation", "--judged", "fast.npz", cwd=workdir, check=False
+    )
+    assert result.returncode == 2 and "the judged records are sampled at 3000 Hz" in result.stderr

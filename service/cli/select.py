@@ -68,6 +68,13 @@ def select(
             help="Explicitly orthogonalised path, exact to rounding level (noise-free data); slower."
         ),
     ] = False,
+    judged: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="With --criterion simulation: record the free run is judged on (repeatable); without, "
+            "the end of each record (--judged-share)."
+        ),
+    ] = None,
     judged_share: Annotated[
         float,
         typer.Option(
@@ -110,10 +117,7 @@ def select(
     loaded, fs = read_records(records)
     signals = [(r.x, r.y) for r in loaded]
     if holdout:
-        held, held_fs = read_records(holdout)
-        if None not in (fs, held_fs) and held_fs != fs:
-            raise InputError(f"the held-out records are sampled at {held_fs:g} Hz, the others at {fs:g} Hz")
-        validation_signals = [(r.x, r.y) for r in held]
+        validation_signals = _records_like(holdout, fs, "held-out")
     else:
         signals, validation_signals = _split(signals, split)
     candidates = candidate_terms(degree, ny, nx, delay, constant=constant, extra=extra or ())
@@ -123,6 +127,9 @@ def select(
             f"or {SIMULATION} (free-run error)"
         )
     simulation = criterion is not None and criterion.lower() == SIMULATION
+    if judged and not simulation:
+        raise InputError("--judged records serve --criterion simulation only")
+    judged_signals = _records_like(judged, fs, "judged") if judged else None
     if simulation:
         given = [
             option
@@ -152,6 +159,7 @@ def select(
             selection: NarxSelection | SimulationSelection = select_by_simulation(
                 signals,
                 candidates,
+                judged=judged_signals,
                 judged_share=judged_share,
                 include=include or (),
                 max_terms=max_terms,
@@ -187,6 +195,16 @@ def select(
         },
         "records": [str(path) for path in records],
         "holdout": {"records": [str(path) for path in holdout or []], "split": None if holdout else split},
+        **(
+            {
+                "judged": {
+                    "records": [str(path) for path in judged or []],
+                    "share": None if judged else judged_share,
+                }
+            }
+            if simulation
+            else {}
+        ),
         "fs": fs,
     }
     if out is not None:
@@ -202,6 +220,14 @@ def select(
             _print_held_out(held_out)
         if out is not None:
             stdout.print(f"written to {out}")
+
+
+def _records_like(paths: list[Path], fs: float | None, role: str) -> Signals:
+    """The records at ``paths``, refused unless sampled at ``fs`` (when both rates are known)."""
+    loaded, loaded_fs = read_records(paths)
+    if None not in (fs, loaded_fs) and loaded_fs != fs:
+        raise InputError(f"the {role} records are sampled at {loaded_fs:g} Hz, the others at {fs:g} Hz")
+    return [(r.x, r.y) for r in loaded]
 
 
 def _split(signals: Signals, share: float) -> tuple[Signals, Signals]:
