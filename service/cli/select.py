@@ -58,9 +58,15 @@ def select(
     err_tolerance: Annotated[
         float | None, typer.Option(help="Stop once the unexplained share 1 − ΣERR falls below this.")
     ] = None,
-    max_terms: Annotated[int, typer.Option(help="Longest greedy path.")] = 20,
+    max_terms: Annotated[
+        int, typer.Option(help="Longest greedy path (with --criterion simulation: the largest model).")
+    ] = 20,
     prune: Annotated[
-        bool, typer.Option(help="Then drop terms one at a time while the stopping rule still holds.")
+        bool,
+        typer.Option(
+            help="Then drop terms one at a time while the stopping rule still holds "
+            "(--criterion simulation always prunes)."
+        ),
     ] = False,
     precise: Annotated[
         bool,
