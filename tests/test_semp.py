@@ -16,13 +16,16 @@ import itertools
 
 import numpy as np
 import pytest
+from scipy import signal
 
 from models.candidates import candidate_terms
 from models.errors import InputError
 from models.narx import NARX, fit_narx
+from models.output_error import fit_output_error
 from models.selection import select_narx
 from models.semp import select_by_simulation
 from models.terms import parse_terms, regressor_matrix
+from models.validation import validate
 
 TRUE = ("y[t-2]", "x[t-1]", "y[t-2]*x[t-1]")
 NOISE = 0.01  # 4.6 % of the output's standard deviation (0.218)
@@ -60,6 +63,48 @@ def test_simulation_error_finds_the_true_structure_where_frols_adds_terms(dictio
         assert all(later < (1 - 0.02) ** 0.5 * earlier for earlier, later in itertools.pairwise(rms))
         # The last judged free run errs by about the measurement noise (its RMS, 0.01) alone.
         assert NOISE * 0.9 < selection.rms < NOISE * 1.15
+
+
+OSCILLATOR = ("y[t-1]", "y[t-2]", "x[t-1]", "y[t-1]^3")
+
+
+def oscillator(n: int, seed: int, noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A finely sampled hardening oscillator, w[t] = 1.5·w[t−1] − 0.7·w[t−2] + 0.2·x[t−1] − 0.1·w[t−1]³
+    (poles of the linear part at 0.75 ± 0.37j), driven by low-pass noise (Butterworth, 0.1 of
+    the sampling rate): on such data y[t−1] alone predicts y[t] closely, and the one-step error
+    says little about the free run. Returns x, the measured y = w + v, and w."""
+    rng = np.random.default_rng(seed)
+    b, a = signal.butter(4, 0.2)
+    x = 2 * signal.lfilter(b, a, rng.standard_normal(n))
+    w = np.zeros(n)
+    for t in range(2, n):
+        w[t] = 1.5 * w[t - 1] - 0.7 * w[t - 2] + 0.2 * x[t - 1] - 0.1 * w[t - 1] ** 3
+    return x, w + noise * rng.standard_normal(n), w
+
+
+def test_on_finely_sampled_data_the_structure_with_output_error_parameters_simulates_better() -> None:
+    """The oscillator with output noise (1.4 % of the output's standard deviation), 6 records.
+    FROLS never returns the four true terms (it keeps 11 to 13); SEMP returns them on 3 of 6
+    (measured). Least squares biases θ of the true structure (its free run errs by ~4e-3 on
+    noise-free validation data, worse than FROLS's larger models at ~8e-4): the structure is
+    SEMP's to choose, θ then the output error's (:mod:`models.output_error`). So refined, SEMP's
+    model simulates better than FROLS's on 5 of 6 records, by a median factor of 0.45 (measured;
+    refining FROLS's models by output error too, SEMP's is still better on 9 of 10 records, by
+    a median factor of 0.8, measured once over 10 records: too slow to repeat here)."""
+    x_val, _, w_val = oscillator(5000, 999, 0.0)
+    exact, ratios = 0, []
+    for seed in range(6):
+        x, y, _ = oscillator(5000, seed, 0.01)
+        candidates = candidate_terms(3, 4, 4)
+        frols = select_narx([(x, y)], candidates).model
+        semp = select_by_simulation([(x, y)], candidates).model
+        assert set(frols.term_names) != set(OSCILLATOR) and len(frols.terms) > 10
+        exact += set(semp.term_names) == set(OSCILLATOR)
+        refined = fit_output_error(semp, [(x, y)]).model
+        rms = [validate(model, [(x_val, w_val)]).free_run.rms for model in (frols, refined)]
+        ratios.append(rms[1] / rms[0])
+    assert exact >= 3
+    assert sum(ratio < 1 for ratio in ratios) >= 5 and np.median(ratios) < 0.6
 
 
 def _judged_rms(terms: tuple[str, ...], x: np.ndarray, y: np.ndarray, share: float = 0.25) -> float:

@@ -3,6 +3,7 @@ error (SEMP, :mod:`models.semp`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Annotated
@@ -15,6 +16,7 @@ from rich.text import Text
 
 from models.candidates import candidate_terms
 from models.errors import InputError
+from models.output_error import OutputErrorFit, fit_output_error
 from models.selection import CRITERIA, NarxSelection, select_narx
 from models.semp import (
     DEFAULT_JUDGED_SHARE,
@@ -109,6 +111,13 @@ def select(
         Path | None,
         typer.Option("--out", help="Write the result to this .json file (a file `train --terms` reads)."),
     ] = None,
+    output_error: Annotated[
+        bool,
+        typer.Option(
+            help="Then refine the selected model's θ by output error (least squares on its free run over "
+            "the selection records) instead of the one-step least squares, which noise on the output biases."
+        ),
+    ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
 ) -> None:
     """Select NARX terms from a dictionary of lagged monomials by FROLS with the error reduction ratio,
@@ -187,9 +196,13 @@ def select(
                 precise=precise,
                 progress=lambda step: bar.update(task, completed=step),
             )
+    refined = fit_output_error(selection.model, signals) if output_error else None
+    if refined is not None:
+        selection = dataclasses.replace(selection, model=refined.model)
     held_out = validate(selection.model, validation_signals, steps) if validation_signals else None
     document = {
         **selection.to_dict(),
+        "output_error": None if refined is None else _output_error_dict(refined),
         "held_out": None if held_out is None else held_out.to_dict(),
         "dictionary": {
             "degree": degree,
@@ -222,10 +235,21 @@ def select(
             _print_simulation(selection)
         else:
             _print_selection(selection)
+        if refined is not None:
+            stdout.print(
+                f"θ refined by output error: free-run RMS on the selection records {refined.start_rms:.4e} → "
+                f"{refined.rms:.4e} ({refined.evaluations} free runs)",
+                markup=False,
+                highlight=False,
+            )
         if held_out is not None:
             _print_held_out(held_out)
         if out is not None:
             stdout.print(f"written to {out}")
+
+
+def _output_error_dict(fit: OutputErrorFit) -> dict[str, float | int]:
+    return {"start_rms": fit.start_rms, "rms": fit.rms, "evaluations": fit.evaluations, "status": fit.status}
 
 
 def _records_like(paths: list[Path], fs: float | None, role: str) -> Signals:
