@@ -34,6 +34,7 @@ def test_help() -> None:
         "--precise",
         "--judged",
         "--judged-share",
+        "--output-error",
         "--threshold",
         "--preselect",
         "--json",
@@ -128,6 +129,20 @@ def test_simulation_criterion(workdir) -> None:
     assert "simulation path" in table and "y[t-1]^3" in table and "stopped by no_improvement" in table
     run("train", "baseline", "a.csv", "--terms", "semp.json", "--out", "semp-model.json", cwd=workdir)
     assert json.loads((workdir / "semp-model.json").read_text())["terms"] == terms
+
+
+def test_output_error_refines_the_selected_theta(workdir) -> None:
+    """--output-error keeps the selected terms and replaces θ by the output-error fit on the
+    selection records, whose free-run RMS there is never above the least-squares start's."""
+    plain = json.loads(run("select", "a.csv", "--n-terms", "6", "--json", cwd=workdir).stdout)
+    result = run("select", "a.csv", "--n-terms", "6", "--output-error", "--json", cwd=workdir)
+    refined = json.loads(result.stdout)
+    assert plain["output_error"] is None
+    assert refined["terms"] == plain["terms"] and refined["theta"] != plain["theta"]
+    fit = refined["output_error"]
+    assert fit["rms"] <= fit["start_rms"] and fit["evaluations"] >= 1
+    table = run("select", "a.csv", "--n-terms", "6", "--output-error", cwd=workdir).stdout
+    assert "θ refined by output error" in table
 
 
 @pytest.mark.parametrize(
