@@ -52,8 +52,8 @@ def select(
         typer.Option(
             help=f"On the one-step error, an information criterion minimised along the FROLS path: "
             f"{', '.join(CRITERIA)} (default bic, unless --n-terms or --err-tolerance is given). Or "
-            "'simulation': terms judged "
-            "by the free-run error on the end of each record (SEMP, with pruning)."
+            f"'{SIMULATION}': terms judged by the free-run error on the end of each record (SEMP, with "
+            "pruning)."
         ),
     ] = None,
     n_terms: Annotated[int | None, typer.Option(help="Select exactly this many terms.")] = None,
@@ -123,19 +123,12 @@ def select(
     """Select NARX terms from a dictionary of lagged monomials by FROLS with the error reduction ratio,
     or (--criterion simulation) by the free-run error of each candidate model.
 
-    Prints the chosen terms with their ERR (or the simulation path) and least-squares parameters,
-    and one-step, k-step and free-run errors on held-out data. The JSON (--json or --out) is
-    accepted by `narxwatch train baseline --terms FILE`.
+    Prints the chosen terms with their ERR (or the simulation path) and parameters (least squares,
+    or output error with --output-error), and one-step, k-step and free-run errors on held-out
+    data. The JSON (--json or --out) is accepted by `narxwatch train baseline --terms FILE`.
     """
     if out is not None and out.suffix.lower() != ".json":
         raise InputError(f"--out {out}: name a .json file, the kind `train --terms` reads")
-    loaded, fs = read_records(records)
-    signals = [(r.x, r.y) for r in loaded]
-    if holdout:
-        validation_signals = _records_like(holdout, fs, "held-out")
-    else:
-        signals, validation_signals = _split(signals, split)
-    candidates = candidate_terms(degree, ny, nx, delay, constant=constant, extra=extra or ())
     if criterion is not None and criterion.lower() not in (*CRITERIA, SIMULATION):
         raise InputError(
             f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)} (one-step error) "
@@ -144,7 +137,6 @@ def select(
     simulation = criterion is not None and criterion.lower() == SIMULATION
     if judged and not simulation:
         raise InputError("--judged records serve --criterion simulation only")
-    judged_signals = _records_like(judged, fs, "judged") if judged else None
     if simulation:
         given = [
             option
@@ -159,6 +151,14 @@ def select(
             raise InputError(
                 f"--criterion simulation chooses the terms by their free run: drop {' and '.join(given)}"
             )
+    loaded, fs = read_records(records)
+    signals = [(r.x, r.y) for r in loaded]
+    judged_signals = _records_like(judged, fs, "judged") if judged else None
+    if holdout:
+        validation_signals = _records_like(holdout, fs, "held-out")
+    else:
+        signals, validation_signals = _split(signals, split)
+    candidates = candidate_terms(degree, ny, nx, delay, constant=constant, extra=extra or ())
     with Progress(
         TextColumn("selecting"),
         BarColumn(),
@@ -214,18 +214,13 @@ def select(
         },
         "records": [str(path) for path in records],
         "holdout": {"records": [str(path) for path in holdout or []], "split": None if holdout else split},
-        **(
-            {
-                "judged": {
-                    "records": [str(path) for path in judged or []],
-                    "share": None if judged else judged_share,
-                }
-            }
-            if simulation
-            else {}
-        ),
         "fs": fs,
     }
+    if simulation:
+        document["judged"] = {
+            "records": [str(path) for path in judged or []],
+            "share": None if judged else judged_share,
+        }
     if out is not None:
         write_json(out, document)
     if as_json:
