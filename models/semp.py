@@ -21,33 +21,35 @@ The algorithm, from the model M₀ of the ``include`` and ``start`` terms:
    records' one-step residual of M (the FROLS ERR, :mod:`models.selection`); the first
    ``preselect`` of them are tried.
 3. Addition: the tried candidate c of least J(M ∪ {c}) enters if J(M ∪ {c}) < (1 − ρ)·J(M)
-   (ρ = ``threshold``); otherwise, or when J(M) is at rounding level (below 1e-20 of the judged
-   output's mean square), the selection stops (``no_improvement``). At the first
-   addition only, when no candidate does, the first candidates FROLS would add (largest ERR
-   first, up to ``max_terms``) enter, as many as give the least J, if that J is below
-   (1 − ρ)·J(M): a model that does not yet simulate the
-   output cannot be grown a term at a time (an oscillator's free run needs two output lags and
-   the input at once; with fewer it decays to zero, no better than the empty model), and the
-   pruning that follows removes those of them that are not needed.
+   (ρ = ``threshold``); otherwise, or once J(M) is at rounding level (below 1e-20 of the judged
+   output's mean square), the selection stops (``no_improvement``). At the first addition
+   only, when no single candidate is good enough, the first candidates FROLS would add (largest
+   ERR first, up to ``max_terms``) enter, as many as give the least J, if that J is below
+   (1 − ρ)·J(M): a model that does not yet simulate the output cannot be grown a term at a time
+   (an oscillator's free run needs two output lags and the input at once; with fewer it decays
+   to zero, no better than the empty model), and the pruning that follows removes those of them
+   that are not needed.
 4. Pruning: while some term m of M (not an ``include`` one) has J(M \\ {m}) ≤ (1 + ρ)·J_a,
    J_a being J right after the addition, the one of least J(M \\ {m}) is removed.
 5. Back to 2, until M holds ``max_terms`` terms or after 2·``max_terms`` iterations.
 
-Each iteration lowers J by a factor below (1 − ρ)(1 + ρ) = 1 − ρ² < 1, so no model is visited
-twice at the end of an iteration and the selection ends.
+Each iteration lowers J by a factor below (1 − ρ)(1 + ρ) = 1 − ρ² (and strictly when ρ = 0),
+so no model is visited twice at the end of an iteration and the selection ends. θ̂_M of the
+selected structure can then be refined on the free run (:mod:`models.output_error`), which the
+one-step least squares, biased by noise on the output, is not.
 
 Cost: k terms in M, N_F fitting equations, N_J judged samples and M candidates. An iteration
 costs one QR of the model (2·N_F·k²), the ERR of every candidate (N_F·M, the Gram matrix of the
 candidates being formed once, N_F·M²), and ``preselect`` + k·(r + 1) model evaluations, r the
 terms it prunes; an evaluation is a least-squares fit (N_F·k for an addition; k³ for a removal,
 after one QR of the model per pruning) and a free run (N_J·k, compiled:
-:class:`models.simulation.FreeRun`). The first addition may
-also take one FROLS path (N_F·M·max_terms) and evaluate up to ``max_terms`` models. With at
-most 2·max_terms iterations, and no more removals than |M₀| plus the additions, the number of
-model evaluations is bounded by max_terms·(2·preselect + 5·max_terms + |M₀| + 2), whatever the
-data (2 440 with the defaults and no starting terms), each a free run of every judged record.
-On Silverbox (165 candidates, 48 792 fitting equations, 16 262 judged samples) the selection
-evaluates 146 models in 0.7 s (``bench/test_bench_select.py``).
+:class:`models.simulation.FreeRun`). The first addition may also take one FROLS path
+(N_F·M·max_terms) and evaluate up to ``max_terms`` models. With at most 2·max_terms iterations,
+and no more removals than |M₀| plus the additions, the number of model evaluations is bounded
+by max_terms·(2·preselect + 5·max_terms + |M₀| + 2) whatever the data (2 440 with the defaults
+and no starting terms), each a free run of every judged record. On Silverbox (165 candidates,
+48 792 fitting equations, 16 262 judged samples) the selection evaluates 146 models in 0.7 s
+(``bench/test_bench_select.py``).
 
 References
 ----------
