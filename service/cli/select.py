@@ -1,7 +1,9 @@
-"""``narxwatch select``: find a NARX structure from records by FROLS (SPEC §3)."""
+"""``narxwatch select``: find a NARX structure from records by FROLS (SPEC §3) or on the simulation
+error (SEMP, :mod:`models.semp`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Annotated
@@ -14,12 +16,23 @@ from rich.text import Text
 
 from models.candidates import candidate_terms
 from models.errors import InputError
+from models.output_error import OutputErrorFit, fit_output_error
 from models.selection import CRITERIA, NarxSelection, select_narx
+from models.semp import (
+    DEFAULT_JUDGED_SHARE,
+    DEFAULT_PRESELECT,
+    DEFAULT_THRESHOLD,
+    SimulationSelection,
+    select_by_simulation,
+)
 from models.validation import Validation, validate
 from service.cli.console import stderr, stdout
 from service.cli.modelfiles import XName, YName, read_records, signal_layout, write_json
+from service.recordfiles import Layout
 
 Signals = list[tuple[np.ndarray, np.ndarray]]
+# The criterion that judges candidates on the free run instead of the one-step error.
+SIMULATION = "simulation"
 
 
 def select(
@@ -40,17 +53,25 @@ def select(
     criterion: Annotated[
         str | None,
         typer.Option(
-            help=f"Information criterion minimised along the path: {', '.join(CRITERIA)} "
-            "(default bic, unless --n-terms or --err-tolerance is given)."
+            help=f"On the one-step error, an information criterion minimised along the FROLS path: "
+            f"{', '.join(CRITERIA)} (default bic, unless --n-terms or --err-tolerance is given). Or "
+            f"'{SIMULATION}': terms judged by the free-run error on the end of each record (SEMP, with "
+            "pruning)."
         ),
     ] = None,
     n_terms: Annotated[int | None, typer.Option(help="Select exactly this many terms.")] = None,
     err_tolerance: Annotated[
         float | None, typer.Option(help="Stop once the unexplained share 1 − ΣERR falls below this.")
     ] = None,
-    max_terms: Annotated[int, typer.Option(help="Longest greedy path.")] = 20,
+    max_terms: Annotated[
+        int, typer.Option(help="Longest greedy path (with --criterion simulation: the largest model).")
+    ] = 20,
     prune: Annotated[
-        bool, typer.Option(help="Then drop terms one at a time while the stopping rule still holds.")
+        bool,
+        typer.Option(
+            help="Then drop terms one at a time while the stopping rule still holds "
+            "(--criterion simulation always prunes)."
+        ),
     ] = False,
     precise: Annotated[
         bool,
@@ -58,6 +79,29 @@ def select(
             help="Explicitly orthogonalised path, exact to rounding level (noise-free data); slower."
         ),
     ] = False,
+    judged: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="With --criterion simulation: record the free run is judged on (repeatable); without, "
+            "the end of each record (--judged-share)."
+        ),
+    ] = None,
+    judged_share: Annotated[
+        float,
+        typer.Option(
+            help="With --criterion simulation: share of each record's end the free run is judged on."
+        ),
+    ] = DEFAULT_JUDGED_SHARE,
+    threshold: Annotated[
+        float,
+        typer.Option(
+            help="With --criterion simulation: relative drop of the mean-square free-run error a term must "
+            "bring to enter, and keep to stay."
+        ),
+    ] = DEFAULT_THRESHOLD,
+    preselect: Annotated[
+        int, typer.Option(help="With --criterion simulation: candidates tried per step, the first by ERR.")
+    ] = DEFAULT_PRESELECT,
     holdout: Annotated[
         list[Path] | None, typer.Option(help="Held-out record for the validation errors (repeatable).")
     ] = None,
@@ -70,24 +114,52 @@ def select(
         Path | None,
         typer.Option("--out", help="Write the result to this .json file (a file `train --terms` reads)."),
     ] = None,
+    output_error: Annotated[
+        bool,
+        typer.Option(
+            help="Then refine the selected model's θ by output error (least squares on its free run over "
+            "the selection records) instead of the one-step least squares, which noise on the output biases."
+        ),
+    ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
 ) -> None:
-    """Select NARX terms from a dictionary of lagged monomials by FROLS with the error reduction ratio.
+    """Select NARX terms from a dictionary of lagged monomials by FROLS with the error reduction ratio,
+    or (--criterion simulation) by the free-run error of each candidate model.
 
-    Prints the chosen terms with their ERR and least-squares parameters, and one-step, k-step
-    and free-run errors on held-out data. The JSON (--json or --out) is accepted by
-    `narxwatch train baseline --terms FILE`.
+    Prints the chosen terms with their ERR (or the simulation path) and parameters (least squares,
+    or output error with --output-error), and one-step, k-step and free-run errors on held-out
+    data. The JSON (--json or --out) is accepted by `narxwatch train baseline --terms FILE`.
     """
     if out is not None and out.suffix.lower() != ".json":
         raise InputError(f"--out {out}: name a .json file, the kind `train --terms` reads")
     layout = signal_layout(x, y)
+    if criterion is not None and criterion.lower() not in (*CRITERIA, SIMULATION):
+        raise InputError(
+            f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)} (one-step error) "
+            f"or {SIMULATION} (free-run error)"
+        )
+    simulation = criterion is not None and criterion.lower() == SIMULATION
+    if judged and not simulation:
+        raise InputError("--judged records serve --criterion simulation only")
+    if simulation:
+        given = [
+            option
+            for option, value in (
+                ("--n-terms", n_terms),
+                ("--err-tolerance", err_tolerance),
+                ("--precise", precise),
+            )
+            if value not in (None, False)
+        ]
+        if given:
+            raise InputError(
+                f"--criterion simulation chooses the terms by their free run: drop {' and '.join(given)}"
+            )
     loaded, fs = read_records(records, layout)
     signals = [(r.x, r.y) for r in loaded]
+    judged_signals = _records_like(judged, fs, "judged", layout) if judged else None
     if holdout:
-        held, held_fs = read_records(holdout, layout)
-        if None not in (fs, held_fs) and held_fs != fs:
-            raise InputError(f"the held-out records are sampled at {held_fs:g} Hz, the others at {fs:g} Hz")
-        validation_signals = [(r.x, r.y) for r in held]
+        validation_signals = _records_like(holdout, fs, "held-out", layout)
     else:
         signals, validation_signals = _split(signals, split)
     candidates = candidate_terms(degree, ny, nx, delay, constant=constant, extra=extra or ())
@@ -100,22 +172,41 @@ def select(
         transient=True,
         disable=not stderr.is_terminal,
     ) as bar:
-        task = bar.add_task("select", total=n_terms or min(max_terms, len(candidates)))
-        selection = select_narx(
-            signals,
-            candidates,
-            n_terms=n_terms,
-            criterion=criterion,
-            err_tolerance=err_tolerance,
-            max_terms=max_terms,
-            prune=prune,
-            include=include or (),
-            precise=precise,
-            progress=lambda step: bar.update(task, completed=step),
-        )
+        if simulation:
+            # The bar counts iterations against their bound; the selection usually stops well before.
+            task = bar.add_task("select", total=2 * max_terms)
+            selection: NarxSelection | SimulationSelection = select_by_simulation(
+                signals,
+                candidates,
+                judged=judged_signals,
+                judged_share=judged_share,
+                include=include or (),
+                max_terms=max_terms,
+                preselect=preselect,
+                threshold=threshold,
+                progress=lambda step: bar.update(task, completed=step),
+            )
+        else:
+            task = bar.add_task("select", total=n_terms or min(max_terms, len(candidates)))
+            selection = select_narx(
+                signals,
+                candidates,
+                n_terms=n_terms,
+                criterion=criterion,
+                err_tolerance=err_tolerance,
+                max_terms=max_terms,
+                prune=prune,
+                include=include or (),
+                precise=precise,
+                progress=lambda step: bar.update(task, completed=step),
+            )
+    refined = fit_output_error(selection.model, signals) if output_error else None
+    if refined is not None:
+        selection = dataclasses.replace(selection, model=refined.model)
     held_out = validate(selection.model, validation_signals, steps) if validation_signals else None
     document = {
         **selection.to_dict(),
+        "output_error": None if refined is None else _output_error_dict(refined),
         "held_out": None if held_out is None else held_out.to_dict(),
         "dictionary": {
             "degree": degree,
@@ -129,14 +220,43 @@ def select(
         "holdout": {"records": [str(path) for path in holdout or []], "split": None if holdout else split},
         "fs": fs,
     }
+    if simulation:
+        document["judged"] = {
+            "records": [str(path) for path in judged or []],
+            "share": None if judged else judged_share,
+        }
     if out is not None:
         write_json(out, document)
     if as_json:
         print(json.dumps(document, indent=1))
     else:
-        _print_selection(selection, held_out)
+        if isinstance(selection, SimulationSelection):
+            _print_simulation(selection)
+        else:
+            _print_selection(selection)
+        if refined is not None:
+            stdout.print(
+                f"θ refined by output error: free-run RMS on the selection records {refined.start_rms:.4e} → "
+                f"{refined.rms:.4e} ({refined.evaluations} free runs)",
+                markup=False,
+                highlight=False,
+            )
+        if held_out is not None:
+            _print_held_out(held_out)
         if out is not None:
             stdout.print(f"written to {out}")
+
+
+def _output_error_dict(fit: OutputErrorFit) -> dict[str, float | int]:
+    return {"start_rms": fit.start_rms, "rms": fit.rms, "evaluations": fit.evaluations, "status": fit.status}
+
+
+def _records_like(paths: list[Path], fs: float | None, role: str, layout: Layout) -> Signals:
+    """The records at ``paths``, refused unless sampled at ``fs`` (when both rates are known)."""
+    loaded, loaded_fs = read_records(paths, layout)
+    if None not in (fs, loaded_fs) and loaded_fs != fs:
+        raise InputError(f"the {role} records are sampled at {loaded_fs:g} Hz, the others at {fs:g} Hz")
+    return [(r.x, r.y) for r in loaded]
 
 
 def _split(signals: Signals, share: float) -> tuple[Signals, Signals]:
@@ -153,7 +273,7 @@ def _split(signals: Signals, share: float) -> tuple[Signals, Signals]:
     return fitting, held
 
 
-def _print_selection(selection: NarxSelection, held_out: Validation | None) -> None:
+def _print_selection(selection: NarxSelection) -> None:
     model = selection.model
     table = Table(
         "term",
@@ -179,12 +299,46 @@ def _print_selection(selection: NarxSelection, held_out: Validation | None) -> N
         markup=False,
         highlight=False,
     )
-    if held_out is not None:
-        errors = Table("held out", "RMS", "NRMSE", "samples")
-        for label, mode in (
-            ("one-step", held_out.one_step),
-            (f"{held_out.steps}-step", held_out.k_step),
-            ("free run", held_out.free_run),
-        ):
-            errors.add_row(label, f"{mode.rms:.4e}", f"{mode.nrmse:.4e}", str(mode.samples))
-        stdout.print(errors)
+
+
+def _print_simulation(selection: SimulationSelection) -> None:
+    model = selection.model
+    table = Table(
+        "term",
+        "θ",
+        "s.e.",
+        title=f"{len(model.terms)} of {len(selection.candidates)} candidates, on the free-run error",
+        title_justify="left",
+    )
+    for name, theta, se in zip(model.term_names, model.theta, model.standard_errors(), strict=True):
+        table.add_row(Text(name), f"{theta: .6e}", f"{se:.2e}")
+    stdout.print(table)
+    path = Table("step", "term", "free-run RMS", "terms", title="simulation path", title_justify="left")
+    for step in selection.path:
+        path.add_row(
+            step.action,
+            Text("" if step.term is None else step.term.name),
+            f"{step.rms:.4e}",
+            str(step.n_terms),
+        )
+    stdout.print(path)
+    notes = [
+        f"stopped by {selection.stopped_by}",
+        f"{selection.evaluations} free runs on {selection.judged_samples} judged samples",
+    ]
+    if selection.removed:
+        notes.append(f"removed by pruning: {', '.join(t.name for t in selection.removed)}")
+    if selection.diverged:
+        notes.append(f"refused (free run diverged): {', '.join(t.name for t in selection.diverged)}")
+    stdout.print("; ".join(notes), markup=False, highlight=False)
+
+
+def _print_held_out(held_out: Validation) -> None:
+    errors = Table("held out", "RMS", "NRMSE", "samples")
+    for label, mode in (
+        ("one-step", held_out.one_step),
+        (f"{held_out.steps}-step", held_out.k_step),
+        ("free run", held_out.free_run),
+    ):
+        errors.add_row(label, f"{mode.rms:.4e}", f"{mode.nrmse:.4e}", str(mode.samples))
+    stdout.print(errors)
