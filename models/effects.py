@@ -16,7 +16,7 @@ import numpy as np
 from scipy import optimize
 
 from models.errors import InputError
-from models.spectrum import residual_spectrum
+from models.spectrum import excited_intervals, residual_spectrum
 from models.terms import WAVES, Factor, Term, regressor_matrix
 
 EffectKind = Literal["terms", "output_shift", "periodic", "noise"]
@@ -166,15 +166,22 @@ def _lower(term: Term, index: int) -> Term:
     return Term.of(rest)
 
 
-def periodic_terms(residual: np.ndarray, alpha: float) -> tuple[Term, ...]:
-    """A sine and a cosine at each significant peak of the residual's spectrum.
+def periodic_terms(residual: np.ndarray, alpha: float, x: np.ndarray) -> tuple[Term, ...]:
+    """A sine and a cosine at each significant peak of the residual's spectrum that the input
+    ``x`` does not excite.
 
     Peaks come from :func:`models.spectrum.residual_spectrum` at level ``alpha``; Welch's bins
     are far too coarse for a regressor that must stay in phase over the whole record, so each
     frequency is then refined to the maximum of the periodogram |Σ e[t]·exp(−2πi·f·t)|² near
     the peak: on an 8× zero-padded FFT grid, then by a bounded scalar search within one grid step.
+    A peak whose frequency lies on one of the input's lines, or on their harmonics and
+    intermodulation products (:func:`models.spectrum.excited_intervals`), is the periodic
+    residual a wrong model leaves under a periodic input, not an external tone: it is left out.
     """
     spectrum = residual_spectrum(residual, 1.0, alpha)
+    if not spectrum.peaks:
+        return ()
+    excited = excited_intervals(x, 1.0, alpha)
     n = residual.size
     padded = 8 * n
     power = np.abs(np.fft.rfft(residual - residual.mean(), padded)) ** 2
@@ -192,6 +199,8 @@ def periodic_terms(residual: np.ndarray, alpha: float) -> tuple[Term, ...]:
         step = 1.0 / padded
         low, high = max(coarse - step, 1e-9), min(coarse + step, 0.5 - 1e-9)
         frequency = float(optimize.minimize_scalar(periodogram, bounds=(low, high), method="bounded").x)
+        if np.any((excited[:, 0] <= frequency) & (frequency <= excited[:, 1])):
+            continue
         # Rounded so that the term's name stays short; the phase error this leaves over 10⁶
         # samples is below 10⁻³ of a cycle.
         frequency = float(f"{frequency:.10g}")

@@ -394,7 +394,7 @@ def _candidates(
     if effect.kind == "noise":
         lags = range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED)
         return [(f"e[t-{k}]",) for k in lags], _lagged(residual, lags)
-    found = periodic_terms(residual, alpha) if effect.kind == "periodic" else effect.terms
+    found = periodic_terms(residual, alpha, x) if effect.kind == "periodic" else effect.terms
     new = [t for t in found if t not in terms]
     if not new:
         return [], np.empty((len(residual), 0))
