@@ -205,18 +205,20 @@ def excited_intervals(x: ArrayLike, fs: float = 1.0, alpha: float = 0.01) -> np.
     - **random (broadband) input**: every frequency is excited, but none narrowband: a
       residual peak then needs a cause the input does not have, and no interval is returned.
 
-    Products of order 2 and 3 (sums and differences f₁ ± f₂ ± f₃, harmonics among them) are
-    the support of the excitation's convolutions with itself. The excitation is the strongest
-    of those lines and band bins, holding ``EXCITATION_SHARE`` of their power; the weaker lines
-    (the structure's own distortion fed back into a measured force, mains pickup) are excited
-    themselves, but a product of one of them is weaker than the excitation's own by its
-    amplitude ratio, and their products with a dense multisine would cover every bin. Each bin
-    stands for
-    the frequencies within half a bin of it: an N-sample record does not tell apart two
-    frequencies closer than 1/N (Rayleigh). A line off the bin grid is placed at its nearest
-    bin, so its products may lie up to 1.5 bins from where they are placed; in a record of
-    whole periods, lines and products are exact, and a tone half a bin or more from every
-    one of them is told apart.
+    The excitation is the strongest of those lines and band bins, holding ``EXCITATION_SHARE``
+    of their power; the weaker lines (the structure's own distortion fed back into a measured
+    force, mains pickup) are excited themselves, but a product of one of them is weaker than
+    the excitation's own by its amplitude ratio. The excitation's products of order 2 and 3
+    (sums and differences f₁ ± f₂ ± f₃, harmonics among them) are the support of its
+    convolutions with itself. When its bins have a common divisor g > 1 — a periodic input,
+    whose record holds N/g periods or a multiple — every nonlinearity, of any order, responds on
+    the multiples of g alone, and all of them are excited.
+
+    Each bin stands for the frequencies within half a bin of it: an N-sample record does not
+    tell apart two frequencies closer than 1/N (Rayleigh). In a record of whole periods, lines
+    and products are exact, and a tone half a bin or more from every one of them is told apart.
+    A record cut within a period has its lines off the bin grid: each is placed at its nearest
+    bin, its products up to 1.5 bins from where they are placed, and the common divisor is lost.
     """
     (x,) = checked_series(1, alpha, x=x)
     if not np.isfinite(fs) or fs <= 0:
@@ -237,6 +239,9 @@ def excited_intervals(x: ArrayLike, fs: float = 1.0, alpha: float = 0.01) -> np.
     excitation = np.zeros_like(narrowband)
     excitation[ranked[: np.searchsorted(share, EXCITATION_SHARE) + 1]] = True
     excited = _products(excitation) | narrowband
+    divisor = int(np.gcd.reduce(np.flatnonzero(excitation)))
+    if divisor > 1:
+        excited[::divisor] = True
     edges = np.flatnonzero(np.diff(np.concatenate(([0], excited.view(np.int8), [0]))))
     bins = np.column_stack([edges[::2] - 0.5, edges[1::2] - 0.5])
     return np.clip(bins * fs / n, 0.0, fs / 2)
