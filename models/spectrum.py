@@ -175,6 +175,10 @@ def residual_spectrum(
 PRODUCT_ORDER = 3  # harmonics and intermodulation products up to this order
 LINE_SMOOTHING = 31  # bins over which a line's background is taken
 LINE_QUANTILE = 0.25  # the quantile of those bins that estimates it
+# The background is taken no lower than this share of the strongest bin (−120 dB): below any
+# acquisition's dynamic range, far above float64 rounding, whose bins a noiseless input would
+# otherwise show as lines.
+DYNAMIC_RANGE = 1e-12
 EXCITATION_SHARE = 0.99  # share of the narrowband power held by the bins whose products are formed
 NARROWBAND_SHARE = 0.9  # share of a segment's power held by its strongest Welch bin and two either side
 
@@ -262,6 +266,7 @@ def _lines(x: np.ndarray, alpha: float) -> np.ndarray:
         background = ndimage.percentile_filter(
             inner, 100 * LINE_QUANTILE, size=LINE_SMOOTHING, mode="reflect"
         )
+        background = np.maximum(background, DYNAMIC_RANGE * power.max())
         correlation = np.abs(np.fft.rfft(window**2))[1:] / np.sum(window**2)
         background_dof = dof / (1.0 + 2.0 * float(np.sum(correlation**2)))
         threshold = float(special.fdtri(2.0, background_dof, 1.0 - sidak(alpha, inner.size)))
