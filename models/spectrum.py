@@ -214,9 +214,11 @@ def excited_intervals(x: ArrayLike, fs: float = 1.0, alpha: float = 0.01) -> np.
     force, mains pickup) are excited themselves, but a product of one of them is weaker than
     the excitation's own by its amplitude ratio. The excitation's products of order 2 and 3
     (sums and differences f₁ ± f₂ ± f₃, harmonics among them) are the support of its
-    convolutions with itself. When its bins have a common divisor g > 1 — a periodic input,
-    whose record holds N/g periods or a multiple — every nonlinearity, of any order, responds on
-    the multiples of g alone, and all of them are excited.
+    convolutions with itself. When its L bins have a common divisor g > 1 — a periodic input
+    whose record holds g periods, or a multisine exciting every g-th line of its grid — every
+    nonlinearity, of any order, responds on the multiples of g alone, and all of them are
+    excited; provided that L lines sharing the divisor by chance, with probability g^−(L−1),
+    is less likely than α (two lines at even bins do not make a period).
 
     Each bin stands for the frequencies within half a bin of it: an N-sample record does not
     tell apart two frequencies closer than 1/N (Rayleigh). In a record of whole periods, lines
@@ -243,12 +245,13 @@ def excited_intervals(x: ArrayLike, fs: float = 1.0, alpha: float = 0.01) -> np.
     excitation = np.zeros_like(narrowband)
     excitation[ranked[: np.searchsorted(share, EXCITATION_SHARE) + 1]] = True
     excited = _products(excitation) | narrowband
-    divisor = int(np.gcd.reduce(np.flatnonzero(excitation)))
-    if divisor > 1:
+    bins = np.flatnonzero(excitation)
+    divisor = int(np.gcd.reduce(bins))
+    if divisor > 1 and (bins.size - 1) * np.log(divisor) >= -np.log(alpha):
         excited[::divisor] = True
     edges = np.flatnonzero(np.diff(np.concatenate(([0], excited.view(np.int8), [0]))))
-    bins = np.column_stack([edges[::2] - 0.5, edges[1::2] - 0.5])
-    return np.clip(bins * fs / n, 0.0, fs / 2)
+    limits = np.column_stack([edges[::2] - 0.5, edges[1::2] - 0.5])  # in bins
+    return np.clip(limits * fs / n, 0.0, fs / 2)
 
 
 def _lines(x: np.ndarray, alpha: float) -> np.ndarray:
@@ -286,7 +289,7 @@ def _swept_band(x: np.ndarray) -> tuple[int, int] | None:
     around = np.pad(power, ((2, 2), (0, 0)))
     columns = np.arange(power.shape[1])
     near = sum(around[strongest + 2 + d, columns] for d in range(-2, 3))
-    narrowband = near >= NARROWBAND_SHARE * power.sum(axis=0)
+    narrowband = near > NARROWBAND_SHARE * power.sum(axis=0)
     if 2 * np.count_nonzero(narrowband) < narrowband.size:
         return None
     low, high = int(strongest[narrowband].min()), int(strongest[narrowband].max())
