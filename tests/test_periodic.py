@@ -10,7 +10,7 @@ import pytest
 from conftest import DATA_DIR
 from scipy import signal
 
-from models.effects import linear_terms, periodic_terms
+from models.effects import candidate_effects, linear_terms, periodic_terms
 from models.errors import InputError
 from models.narx import fit_narx
 from models.refinement import refine
@@ -151,12 +151,15 @@ def test_the_f16_residual_of_a_linear_model_offers_no_periodic_disturbance_on_it
 
 def test_the_f16_loop_from_a_linear_model_names_a_nonlinearity_not_periodic_disturbances(f16):
     """Before, the first four effects added were periodic disturbances at the excitation's lines.
-    Now the first is a named nonlinearity (quadratic damping on this record: the interface's
-    friction), and no round offers a periodic term on the multisine's grid."""
+    Now the first is a family of terms with a physical name (quadratic damping dy·|dy|, then
+    cubic damping and cubic stiffness, on this record), and no round offers a periodic term on
+    the multisine's grid."""
     x, y = f16
-    result = refine(x, y, linear_terms(10, 10), max_rounds=1)
+    declared = linear_terms(10, 10)
+    result = refine(x, y, declared, max_rounds=1)
     names = [effect.name for effect in result.effects_added]
-    assert names and names[0] != "periodic_disturbance", names
+    kinds = {effect.name: effect.kind for effect in candidate_effects(declared)}
+    assert names and kinds[names[0]] == "terms", names
     for step in result.rounds:
         for score in step.scores:
             assert not [f for f in wave_frequencies(score.terms) if on_grid(f, F16_PERIOD, x.size)]
