@@ -32,8 +32,9 @@ class Effect:
     - "output_shift": one regressor, the direction in which an offset of the measured output
       moves the model's prediction (:func:`offset_direction`); adding it adds ``terms``, the
       monomials that offset brings into the model;
-    - "periodic": a sine and a cosine at each significant peak of the residual spectrum
-      (:func:`periodic_terms`); its ``terms`` are found from the residual, so empty here;
+    - "periodic": a sine and a cosine at each significant peak of the residual spectrum that
+      the input does not excite (:func:`periodic_terms`); its ``terms`` are found from the
+      residual, so empty here;
     - "noise": moving-average terms e[t-k] of the residual itself, which make the model a
       NARMAX estimated by extended least squares (:mod:`models.narmax`); no terms either.
     """
