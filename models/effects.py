@@ -16,7 +16,7 @@ import numpy as np
 from scipy import optimize
 
 from models.errors import InputError
-from models.spectrum import residual_spectrum
+from models.spectrum import excited_intervals, residual_spectrum
 from models.terms import WAVES, Factor, Term, regressor_matrix
 
 EffectKind = Literal["terms", "output_shift", "periodic", "noise"]
@@ -32,8 +32,9 @@ class Effect:
     - "output_shift": one regressor, the direction in which an offset of the measured output
       moves the model's prediction (:func:`offset_direction`); adding it adds ``terms``, the
       monomials that offset brings into the model;
-    - "periodic": a sine and a cosine at each significant peak of the residual spectrum
-      (:func:`periodic_terms`); its ``terms`` are found from the residual, so empty here;
+    - "periodic": a sine and a cosine at each significant peak of the residual spectrum that
+      the input does not excite (:func:`periodic_terms`); its ``terms`` are found from the
+      residual, so empty here;
     - "noise": moving-average terms e[t-k] of the residual itself, which make the model a
       NARMAX estimated by extended least squares (:mod:`models.narmax`); no terms either.
     """
@@ -166,15 +167,22 @@ def _lower(term: Term, index: int) -> Term:
     return Term.of(rest)
 
 
-def periodic_terms(residual: np.ndarray, alpha: float) -> tuple[Term, ...]:
-    """A sine and a cosine at each significant peak of the residual's spectrum.
+def periodic_terms(residual: np.ndarray, alpha: float, x: np.ndarray) -> tuple[Term, ...]:
+    """A sine and a cosine at each significant peak of the residual's spectrum that the input
+    ``x`` does not excite.
 
     Peaks come from :func:`models.spectrum.residual_spectrum` at level ``alpha``; Welch's bins
     are far too coarse for a regressor that must stay in phase over the whole record, so each
     frequency is then refined to the maximum of the periodogram |Σ e[t]·exp(−2πi·f·t)|² near
     the peak: on an 8× zero-padded FFT grid, then by a bounded scalar search within one grid step.
+    A peak whose frequency lies on one of the input's lines, or on their harmonics and
+    intermodulation products (:func:`models.spectrum.excited_intervals`), is the periodic
+    residual a wrong model leaves under a periodic input, not an external tone: it is left out.
     """
     spectrum = residual_spectrum(residual, 1.0, alpha)
+    if not spectrum.peaks:
+        return ()
+    excited = excited_intervals(x, 1.0, alpha)
     n = residual.size
     padded = 8 * n
     power = np.abs(np.fft.rfft(residual - residual.mean(), padded)) ** 2
@@ -192,6 +200,8 @@ def periodic_terms(residual: np.ndarray, alpha: float) -> tuple[Term, ...]:
         step = 1.0 / padded
         low, high = max(coarse - step, 1e-9), min(coarse + step, 0.5 - 1e-9)
         frequency = float(optimize.minimize_scalar(periodogram, bounds=(low, high), method="bounded").x)
+        if np.any((excited[:, 0] <= frequency) & (frequency <= excited[:, 1])):
+            continue
         # Rounded so that the term's name stays short; the phase error this leaves over 10⁶
         # samples is below 10⁻³ of a cycle.
         frequency = float(f"{frequency:.10g}")

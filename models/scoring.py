@@ -237,7 +237,7 @@ def _candidates(
     if effect.kind == "periodic":
         # A sinusoid of t is phase-locked to the record it was found in: with several records and
         # no common time base it would mean nothing on the next one.
-        found = periodic_terms(residual, alpha) if len(records) == 1 else ()
+        found = periodic_terms(residual, alpha, records[0][0]) if len(records) == 1 else ()
     else:
         found = effect.terms
     new = [t for t in found if t not in terms]

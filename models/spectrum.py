@@ -170,3 +170,143 @@ def residual_spectrum(
         bins_tested=bins_tested,
         alpha=float(alpha),
     )
+
+
+PRODUCT_ORDER = 3  # harmonics and intermodulation products up to this order
+LINE_SMOOTHING = 31  # bins over which a line's background is taken
+LINE_QUANTILE = 0.25  # the quantile of those bins that estimates it
+# The background is taken no lower than this share of the strongest bin (−120 dB): below any
+# acquisition's dynamic range, far above float64 rounding, whose bins a noiseless input would
+# otherwise show as lines.
+DYNAMIC_RANGE = 1e-12
+EXCITATION_SHARE = 0.99  # share of the narrowband power held by the bins whose products are formed
+NARROWBAND_SHARE = 0.9  # share of a segment's power held by its strongest Welch bin and two either side
+
+
+def excited_intervals(x: ArrayLike, fs: float = 1.0, alpha: float = 0.01) -> np.ndarray:
+    """The frequency intervals [Hz] where the input excites the system narrowband, with their
+    harmonics and intermodulation products: rows (low, high), ascending, within 0 … fs/2.
+
+    A model that lacks dynamics or a nonlinearity, driven by a periodic input, leaves a periodic
+    residual: its spectral peaks sit on the input's lines and on their products, and a sine of
+    absolute time fits them as well as it would an external tone. What tells an external tone
+    apart is a residual peak where the input has no narrowband excitation:
+
+    - **a multisine, a sine, any periodic input**: its lines, the bins of the N-point
+      periodogram that are local maxima above the local background by more than the
+      F(2, ν_B) quantile at the Šidák level for the N/2 bins. The background is the running
+      25th percentile of ``LINE_SMOOTHING`` bins divided by −ln 0.75 (so that it estimates the
+      local mean of an exponentially distributed periodogram): a low quantile, because a
+      multisine excites every second bin of a record two periods long. With a rectangular
+      window the lines of a record of whole periods fall exactly on bins, with nothing
+      between; a Hann window, whose leakage falls off fast, finds lines off the bin grid (a
+      record cut within a period) that the rectangular window's leakage hides, and adds
+      those more than one bin from any line found already.
+    - **a sweep, a stepped sine**: narrowband at every moment, so every frequency it passes
+      is excited. When most Welch segments (Hann, ``nperseg`` = min(256, N // 4)) hold at least
+      ``NARROWBAND_SHARE`` of their power within two bins of their strongest bin, and that bin
+      moves, the band it spans, one Welch bin wider each side, is excited.
+    - **random (broadband) input**: every frequency is excited, but none narrowband: a
+      residual peak then needs a cause the input does not have, and no interval is returned.
+
+    The excitation is the strongest of those lines and band bins, holding ``EXCITATION_SHARE``
+    of their power; the weaker lines (the structure's own distortion fed back into a measured
+    force, mains pickup) are excited themselves, but a product of one of them is weaker than
+    the excitation's own by its amplitude ratio. The excitation's products of order 2 and 3
+    (sums and differences f₁ ± f₂ ± f₃, harmonics among them) are the support of its
+    convolutions with itself. When its L bins have a common divisor g > 1 — a periodic input
+    whose record holds g periods, or a multisine exciting every g-th line of its grid — every
+    nonlinearity, of any order, responds on the multiples of g alone, and all of them are
+    excited; provided that L lines sharing the divisor by chance, with probability g^−(L−1),
+    is less likely than α (two lines at even bins do not make a period).
+
+    Each bin stands for the frequencies within half a bin of it: an N-sample record does not
+    tell apart two frequencies closer than 1/N (Rayleigh). In a record of whole periods, lines
+    and products are exact, and a tone half a bin or more from every one of them is told apart.
+    A record cut within a period has its lines off the bin grid: each is placed at its nearest
+    bin, its products up to 1.5 bins from where they are placed, and the common divisor is lost.
+    """
+    (x,) = checked_series(1, alpha, x=x)
+    if not np.isfinite(fs) or fs <= 0:
+        raise InputError(f"fs must be a positive sampling frequency in Hz, got {fs}")
+    n = x.size
+    if n < 4 * MIN_SEGMENT:
+        raise InputError(f"{n} samples is too short to read the input's spectrum; it needs {4 * MIN_SEGMENT}")
+    x = x - x.mean()
+    narrowband = _lines(x, alpha)
+    band = _swept_band(x)
+    if band is not None:
+        narrowband[band[0] : band[1] + 1] = True
+    if not narrowband.any():
+        return np.empty((0, 2))
+    power = np.abs(np.fft.rfft(x)) ** 2
+    ranked = np.flatnonzero(narrowband)[np.argsort(power[narrowband])[::-1]]
+    share = np.cumsum(power[ranked]) / np.sum(power[ranked])
+    excitation = np.zeros_like(narrowband)
+    excitation[ranked[: np.searchsorted(share, EXCITATION_SHARE) + 1]] = True
+    excited = _products(excitation) | narrowband
+    bins = np.flatnonzero(excitation)
+    divisor = int(np.gcd.reduce(bins))
+    if divisor > 1 and (bins.size - 1) * np.log(divisor) >= -np.log(alpha):
+        excited[::divisor] = True
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], excited.view(np.int8), [0]))))
+    limits = np.column_stack([edges[::2] - 0.5, edges[1::2] - 0.5])  # in bins
+    return np.clip(limits * fs / n, 0.0, fs / 2)
+
+
+def _lines(x: np.ndarray, alpha: float) -> np.ndarray:
+    """The input's lines, True at their periodogram bins (see :func:`excited_intervals`)."""
+    n = x.size
+    # The p-quantile q = −ln(1 − p) of an exponential variable of mean 1 has the sample
+    # quantile's variance p / (w·(1 − p)) over w bins: as a χ²_ν/ν estimate of the mean it has
+    # ν = 2·w·(1 − p)·q² / p degrees of freedom, fewer for a Hann window's correlated bins.
+    q = -np.log1p(-LINE_QUANTILE)
+    dof = 2.0 * LINE_SMOOTHING * (1.0 - LINE_QUANTILE) * q**2 / LINE_QUANTILE
+    lines = np.zeros(n // 2 + 1, dtype=bool)
+    for window in (np.ones(n), signal.get_window("hann", n)):
+        power = np.abs(np.fft.rfft(x * window)) ** 2
+        inner = power[1:-1]
+        background = ndimage.percentile_filter(
+            inner, 100 * LINE_QUANTILE, size=LINE_SMOOTHING, mode="reflect"
+        )
+        background = np.maximum(background, DYNAMIC_RANGE * power.max())
+        correlation = np.abs(np.fft.rfft(window**2))[1:] / np.sum(window**2)
+        background_dof = dof / (1.0 + 2.0 * float(np.sum(correlation**2)))
+        threshold = float(special.fdtri(2.0, background_dof, 1.0 - sidak(alpha, inner.size)))
+        peaks = np.zeros_like(lines)
+        peaks[1:-1] = (inner >= power[:-2]) & (inner >= power[2:]) & (inner * q > threshold * background)
+        lines |= peaks & ~ndimage.binary_dilation(lines)
+    return lines
+
+
+def _swept_band(x: np.ndarray) -> tuple[int, int] | None:
+    """The band a sweep passes through, as a range of periodogram bins; None when the input is
+    not narrowband most of the time, or its narrowband peak stays put (a line, found as such)."""
+    n = x.size
+    nperseg = min(256, n // 4)
+    _, _, power = signal.spectrogram(x, window="hann", nperseg=nperseg, noverlap=nperseg // 2)
+    strongest = np.argmax(power, axis=0)
+    around = np.pad(power, ((2, 2), (0, 0)))
+    columns = np.arange(power.shape[1])
+    near = sum(around[strongest + 2 + d, columns] for d in range(-2, 3))
+    narrowband = near > NARROWBAND_SHARE * power.sum(axis=0)
+    if 2 * np.count_nonzero(narrowband) < narrowband.size:
+        return None
+    low, high = int(strongest[narrowband].min()), int(strongest[narrowband].max())
+    if high - low <= 1:
+        return None
+    scale = n / nperseg  # periodogram bins per Welch bin
+    return max(int((low - 1) * scale), 0), min(int(np.ceil((high + 1) * scale)), n // 2)
+
+
+def _products(excited: np.ndarray) -> np.ndarray:
+    """The bins (0 … Nyquist) of the excited set and of the sums and differences of up to
+    ``PRODUCT_ORDER`` of its frequencies: the support of the two-sided set's convolutions."""
+    two_sided = np.concatenate((excited[:0:-1], excited)).astype(np.float64)  # bins −N/2 … N/2
+    products = excited.copy()
+    convolved = two_sided
+    for _ in range(PRODUCT_ORDER - 1):
+        convolved = (signal.fftconvolve(convolved, two_sided) > 0.5).astype(np.float64)
+        centre = convolved.size // 2
+        products |= convolved[centre : centre + excited.size] > 0.5
+    return products
