@@ -22,8 +22,8 @@ loop chooses), each round
 The refined model's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
 noise on the measured output gives least squares, when on the check blocks the output-error fit
-simulates clearly better than the least-squares one (by ``SIMULATION_GAIN``): where the noise is
-a force on the structure, least squares is consistent and the better one-step predictor.
+simulates better than the least-squares one (where the noise is a force on the structure, least
+squares is consistent and the better one-step predictor, and may simulate as well).
 
 The estimation data may be several records: no lag crosses a record boundary, and each record
 is split into check and fit blocks alike. Free runs are compiled (:mod:`models.simulation`).
@@ -45,7 +45,7 @@ from models.output_error import fit_output_error
 from models.scoring import EffectScore, Records, fit_model, score_effects
 from models.signals import checked_records
 from models.simulation import FreeRun
-from models.terms import Term, max_degree, max_lag, parse_terms
+from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 
 DEFAULT_ALPHA = 0.01
 MAX_ROUNDS = 10
@@ -126,6 +126,7 @@ class RefinementReport:
 
     refinement: Refinement
     tests: tuple[Comparison, ...]
+    notes: tuple[str, ...] = ()
 
     @property
     def before(self) -> Assessment:
@@ -171,6 +172,7 @@ class RefinementReport:
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
+            "notes": list(self.notes),
         }
 
 
@@ -183,16 +185,17 @@ def refine_record(
     initial: int = 0,
     alpha: float = DEFAULT_ALPHA,
     fs: float | None = None,
+    output_error: bool = True,
 ) -> RefinementReport:
     """Refine on samples ``estimation`` = (a, b) of one record, assess both models on ``test``.
 
     The first ``initial`` test samples only start the predictions (benchmark protocols
-    prescribe such a start, e.g. 50 samples for Silverbox).
+    prescribe such a start, e.g. 50 samples for Silverbox). ``output_error`` as for :func:`refine`.
     """
     check_parts(len(x), declared, estimation, test, initial)
     a, b = estimation
     c, d = test
-    result = refine([(x[a:b], y[a:b])], declared, alpha=alpha)
+    result = refine([(x[a:b], y[a:b])], declared, alpha=alpha, output_error=output_error)
     return RefinementReport(result, (_compare(result, x[c:d], y[c:d], initial, fs, c - a),))
 
 
@@ -220,7 +223,19 @@ def refine_records(
         except InputError as exc:
             raise InputError(f"test record {number}: {exc}") from None
     result = refine(estimation, declared, alpha=alpha)
-    return RefinementReport(result, tuple(_compare(result, x, y, initial, fs, 0) for x, y in tests))
+    notes = []
+    if len(estimation) > 1:
+        notes.append(
+            "periodic disturbances were not looked for: a sinusoid of time found in several records "
+            "with no common time base would have no phase on the next one"
+        )
+    if any(factor.signal in WAVES for term in result.refined.terms for factor in term.factors):
+        notes.append(
+            "the refined model's periodic terms keep the phase of the estimation record's first "
+            "sample; the test records share no time base with it, so those terms are not validated there"
+        )
+    comparisons = tuple(_compare(result, x, y, initial, fs, 0) for x, y in tests)
+    return RefinementReport(result, comparisons, tuple(notes))
 
 
 def _compare(
@@ -307,7 +322,8 @@ def refine(
                 break
             rejected.append(score.name)
         if decided is None and output_error:
-            decided = _by_simulation(offered, scores.scores, terms, noise_lags, fit_part, check_part)
+            ranked = score_effects(records, terms, noise_lags, offered, alpha, rank=True).scores
+            decided = _by_simulation(offered, ranked, terms, noise_lags, fit_part, check_part)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
@@ -319,12 +335,11 @@ def refine(
     refined, noise = fit_model(records, terms, noise_lags, max_lag(terms))
     estimator: Literal["least squares", "output error"] = "least squares"
     # Least squares is consistent when the noise enters the equation (a force on the structure)
-    # and gives the best one-step predictor, which the inspection chain works on; output error
-    # when it is on the measured output. The check blocks tell which: output error is taken when
-    # its free run there is clearly better.
-    if output_error and _check_error(terms, noise_lags, fit_part, check_part, tuned=True) <= (
-        1 - SIMULATION_GAIN
-    ) * _check_error(terms, noise_lags, fit_part, check_part):
+    # and gives the best one-step predictor; output error when the noise is on the measured
+    # output. The check blocks tell which simulates better.
+    if output_error and _check_error(terms, noise_lags, fit_part, check_part, tuned=True) < _check_error(
+        terms, noise_lags, fit_part, check_part
+    ):
         tuned = _output_error(refined, records, FINAL_EVALUATIONS)
         if tuned is not refined:
             refined, estimator = tuned, "output error"
@@ -335,24 +350,26 @@ def choose_linear(
     records: Records, max_order: int = MAX_LINEAR_ORDER
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
     """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``)
-    whose free run over the check blocks is smallest, its parameters by output error.
+    that simulates best over the check blocks, its parameters by output error.
 
-    Every candidate is fitted by least squares on the fit blocks; the three best by their free
-    run are refitted by output error (which least squares' noise bias would otherwise decide
-    against), and the best of those wins. Returns (n, n, d) and the terms.
+    Every candidate is fitted by least squares on the fit blocks, then by output error (least
+    squares' noise bias would otherwise favour needlessly high orders); the smallest order whose
+    free run over the check blocks is within one standard error of the best wins. Returns
+    (n, n, d) and the terms.
     """
-    fit_part, check_part = split_for_checking(records)
-    candidates = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
-    if not candidates:
+    if max_order < 1:
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
-    by_least_squares = sorted(
-        candidates, key=lambda nd: _check_error(linear_terms(nd[0], nd[0], nd[1]), 0, fit_part, check_part)
-    )
-    tuned = {
-        nd: _check_error(linear_terms(nd[0], nd[0], nd[1]), 0, fit_part, check_part, tuned=True)
-        for nd in by_least_squares[:3]
+    fit_part, check_part = split_for_checking(records)
+    errors = {
+        (n, d): _check_error(linear_terms(n, n, d), 0, fit_part, check_part, tuned=True)
+        for d in (1, 0)
+        for n in range(1, max_order + 1)
     }
-    n, d = min(tuned, key=lambda nd: (tuned[nd], nd[0]))
+    # The one-standard-error rule: the smallest order within one standard error of the best
+    # RMS, 1/√(2N) of it for N independent Gaussian errors (fewer independent ones only widen it).
+    checked = sum(len(y) for _, y, _ in check_part)
+    best = min(errors.values()) * (1 + 1 / np.sqrt(2 * checked))
+    n, d = min((nd for nd, error in errors.items() if error <= best), key=lambda nd: nd[0])
     return (n, n, d), linear_terms(n, n, d)
 
 

@@ -97,8 +97,10 @@ def score_effects(
     noise_lags: int,
     effects: Sequence[Effect],
     alpha: float,
+    rank: bool = False,
 ) -> Scores:
-    """Score each effect against the current model's residual on the estimation records."""
+    """Score each effect against the current model's residual on the estimation records; with
+    ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``)."""
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
     Phi, target, starts = stacked_regressors(terms, records, lag)
@@ -135,14 +137,16 @@ def score_effects(
     for index, (effect, (labels, columns)) in enumerate(zip(effects, candidates, strict=True)):
         if effect.kind != "noise":
             score, _, chosen_columns = _score(
-                effect, labels, columns, residual, Q, own_past, n_obs - n_par, level
+                effect, labels, columns, residual, Q, own_past, n_obs - n_par, level, rank
             )
             scores[index] = score
             explaining.append(chosen_columns)
     signals = _orthonormal(np.hstack([np.empty((n_obs, 0)), *explaining]), Q)
     for index, (effect, (labels, columns)) in enumerate(zip(effects, candidates, strict=True)):
         if effect.kind == "noise":
-            score, chosen, _ = _score(effect, labels, columns, residual, Q, signals, n_obs - n_par, level)
+            score, chosen, _ = _score(
+                effect, labels, columns, residual, Q, signals, n_obs - n_par, level, rank
+            )
             # The moving-average order becomes the longest lag that entered.
             scores[index] = replace(score, noise_lags=noise_lags + 1 + max(chosen) if chosen else 0)
     ordered = [scores[i] for i in range(len(effects))]
@@ -189,6 +193,7 @@ def _score(
     given: np.ndarray,
     dof: int,
     level: float,
+    rank: bool,
 ) -> tuple[EffectScore, list[int], np.ndarray]:
     """An effect's score against the residual once the model (Q) and ``given`` (orthonormal,
     orthogonal to Q) are accounted for; the indices of the columns it chose, and those columns
@@ -198,7 +203,7 @@ def _score(
     columns = _orthogonal_part(columns, given)
     target = residual - given @ (given.T @ residual)
     dof -= given.shape[1]
-    order, count, f_values, p_values, explained = _forward(columns, target, dof, level)
+    order, count, f_values, p_values, explained = _forward(columns, target, dof, level, rank)
     chosen = order[:count]
     added = [label for i in chosen for label in labels[i]]
     n_obs = len(residual)
@@ -247,11 +252,12 @@ def _candidates(
 
 
 def _forward(
-    columns: np.ndarray, residual: np.ndarray, dof: int, level: float
+    columns: np.ndarray, residual: np.ndarray, dof: int, level: float, rank: bool
 ) -> tuple[list[int], int, tuple[float, ...], tuple[float, ...], float]:
     """Greedy selection within one family by error reduction ratio, each column after its F test.
 
-    Returns every usable column in the greedy order, how many of the first passed their tests
+    Returns the columns in the greedy order (every usable one if ``rank``, else up to the first
+    that fails its test), how many of the first passed their tests
     (the chosen ones), their F statistics and p-values, and the fraction of the residual sum of
     squares the chosen ones explain.
     """
@@ -281,6 +287,8 @@ def _forward(
                 f_values.append(float(f_value))
                 p_values.append(p_value)
                 explained = 1.0 - new_rss / rss0 if rss0 > 0 else 0.0
+            elif not rank:
+                break
         w = W[:, best] / np.sqrt(norms[best])
         e -= w * (w @ e)
         W -= np.outer(w, w @ W)
