@@ -8,8 +8,8 @@ STAMP  := $(VENV)/.installed
 BENCH_VENV  := .venv-bench
 BENCH_STAMP := $(BENCH_VENV)/.installed
 # pytest-xdist processes for `make test`. Much of the suite waits on servers (uvicorn, PostgreSQL,
-# narxwatch workers, Chromium) and on CLI subprocesses, so two processes nearly halve it even on two
-# cores. Whole files go to one process (--dist loadfile): their module fixtures are built once.
+# narxwatch workers, Chromium), so two processes take about two thirds of one's time even on two
+# busy cores. Whole files go to one process (--dist loadfile): their module fixtures are built once.
 TEST_WORKERS ?= 2
 
 .PHONY: run test lint bench reproduce clean
