@@ -7,6 +7,10 @@ STAMP  := $(VENV)/.installed
 # version narxwatch runs on: it gets an environment of its own instead of downgrading .venv.
 BENCH_VENV  := .venv-bench
 BENCH_STAMP := $(BENCH_VENV)/.installed
+# pytest-xdist processes for `make test`. Much of the suite waits on servers (uvicorn, PostgreSQL,
+# narxwatch workers, Chromium), so two processes take about two thirds of one's time even on two
+# busy cores. Whole files go to one process (--dist loadfile): their module fixtures are built once.
+TEST_WORKERS ?= 2
 
 .PHONY: run test lint bench reproduce clean
 
@@ -38,7 +42,7 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	bash scripts/ensure-postgres.sh
 	bash scripts/ensure-chromium.sh
-	$(BIN)/pytest
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

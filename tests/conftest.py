@@ -64,6 +64,30 @@ MODE_FIELDS = ("name", "k_hat", "sigma_k", "q", "q_critical", "p_value", "accept
 DISTURBANCE_STD = 800.0
 
 
+# The files that take a minute or more: the CLI run as subprocesses, the Monte Carlo study, the
+# measured-data refinement. `make test` hands whole files to two pytest-xdist workers in
+# collection order; these go first so that no long file starts when the other worker is nearly done.
+LONGEST_FILES = (
+    "test_service_cli.py",
+    "test_cli.py",
+    "test_paper.py",
+    "test_cli_select.py",
+    "test_refinement.py",
+    "test_api_schema.py",
+    "test_cli_refine.py",
+    "test_sim_client.py",
+    "test_faults.py",
+    "test_selection.py",
+)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The longest files first, each file's tests kept in their order (a stable sort)."""
+    rank = {name: index for index, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONGEST_FILES)))
+
+
 def reference_coefficients(params: PhysicalParameters) -> np.ndarray:
     """The eight exact NARX coefficients, derived here from SPEC §1 without the library.
 
@@ -212,28 +236,46 @@ def postgres_url():  # yields str
 # --- The API over HTTP, on SQLite and on PostgreSQL --------------------------------------------
 
 
-@pytest.fixture(scope="session", params=["sqlite", "postgresql"])
-def api_server(request, tmp_path_factory):
-    """The real app served on loopback, once per database backend."""
+@pytest.fixture(scope="session")
+def sqlite_api_server(tmp_path_factory):
+    """The real app on SQLite, served on loopback; the embedded job backend runs jobs on its thread."""
     from live import LiveServer
 
     from service.config import Settings
 
-    if request.param == "sqlite":  # the embedded job backend: jobs run on the server's thread
-        url = f"sqlite:///{tmp_path_factory.mktemp('api') / 'narxwatch.db'}"
-        with LiveServer(Settings(database_url=url)) as server:
-            yield server
-        return
+    url = f"sqlite:///{tmp_path_factory.mktemp('api') / 'narxwatch.db'}"
+    with LiveServer(Settings(database_url=url)) as server:
+        yield server
+
+
+@pytest.fixture(scope="session")
+def postgresql_api_server(postgres_url, tmp_path_factory):
+    """The real app on PostgreSQL, served on loopback; the distributed job backend runs queued jobs
+    on two `narxwatch worker` processes."""
     import postgres
+    from live import LiveServer
     from workers import workers
 
-    # The distributed job backend: queued jobs run on two `narxwatch worker` processes.
-    url = postgres.create_database(request.getfixturevalue("postgres_url"), "narxwatch_api")
+    from service.config import Settings
+
+    url = postgres.create_database(postgres_url, "narxwatch_api")
     with (
         LiveServer(Settings(database_url=url)) as server,
         workers(url, 2, tmp_path_factory.mktemp("workers")),
     ):
         yield server
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def api_server(request):
+    """The real app served on loopback, once per database backend.
+
+    Module-scoped over two session servers rather than one parametrised session fixture: pytest
+    tears a parametrised fixture down whenever the parameter changes, and under pytest-xdist
+    (`make test`) each worker runs whole files, sqlite then postgresql in every one, which would
+    start the PostgreSQL app and its workers again for every file. Each server starts once per
+    worker process instead, when a test first needs it."""
+    return request.getfixturevalue(f"{request.param}_api_server")
 
 
 @pytest.fixture

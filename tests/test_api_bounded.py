@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import threading
+import uuid
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
@@ -77,7 +78,8 @@ def bounded(request, tmp_path_factory) -> Iterator[Bounded]:
             import postgres
             from workers import workers
 
-            url = postgres.create_database(request.getfixturevalue("postgres_url"), "narxwatch_bounded")
+            name = f"narxwatch_bounded_{uuid.uuid4().hex[:8]}"  # may run twice per server under xdist
+            url = postgres.create_database(request.getfixturevalue("postgres_url"), name)
             server = stack.enter_context(LiveServer(Settings(database_url=url, **LIMITS)))
             stack.enter_context(workers(url, 1, folder, **{k: str(v) for k, v in LIMITS.items()}))
         org = Org.create(server)
