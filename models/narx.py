@@ -6,6 +6,11 @@ The model (SPEC §3) is
 
 with φ[t] a vector of monomials of lagged y and x (see :mod:`models.terms`), θ estimated by
 ordinary least squares and e[t] the one-step-ahead prediction error.
+
+A model may have output limits (low, high): the output of a system that saturates — a tank that
+overflows, a mass against its end stops — is y[t] = clip(φ[t]ᵀθ, low, high). Its predictions and
+free run are clipped, and its fit leaves out the equations whose target lies on a limit, where
+φ[t]ᵀθ is only known to lie beyond it.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ class NARX:
     covariance : parameter covariance σ̂²(ΦᵀΦ)⁻¹ (zeros for a theoretical model).
     sigma2 : residual variance σ̂² of the estimation data.
     n_obs : number of equations (rows of Φ) used for estimation.
+    output_limits : (low, high) the output saturates at (±inf for a side without), or None.
     """
 
     terms: tuple[Term, ...]
@@ -50,6 +56,7 @@ class NARX:
     covariance: np.ndarray
     sigma2: float = 0.0
     n_obs: int = 0
+    output_limits: tuple[float, float] | None = None
 
     @property
     def max_lag(self) -> int:
@@ -75,13 +82,16 @@ class NARX:
         """
         xa, ya = checked_record(x, y, self.max_lag + 1)
         Phi, _ = regressor_matrix(self.terms, xa, ya, t0=t0)
-        return Phi @ self.theta
+        return self._limited(Phi @ self.theta)
 
     def residuals(self, x: ArrayLike, y: ArrayLike, t0: int = 0) -> np.ndarray:
         """One-step-ahead prediction errors e[t] = y[t] − ŷ[t] for t = L … N−1."""
         xa, ya = checked_record(x, y, self.max_lag + 1)
         Phi, target = regressor_matrix(self.terms, xa, ya, t0=t0)
-        return target - Phi @ self.theta
+        return target - self._limited(Phi @ self.theta)
+
+    def _limited(self, output: np.ndarray) -> np.ndarray:
+        return output if self.output_limits is None else np.clip(output, *self.output_limits)
 
     def simulate(self, x: ArrayLike, y_initial: ArrayLike, t0: int = 0) -> np.ndarray:
         """Free-run simulation driven by x, started from the first L samples of ``y_initial``.
@@ -95,11 +105,14 @@ class NARX:
         y0 = np.asarray(y_initial, dtype=np.float64)[:L]
         if y0.size < L:
             raise InputError(f"free-run simulation needs {L} initial output samples, got {y0.size}")
-        return FreeRun.build(self.terms, xa, t0).run(self.theta, y0)
+        return FreeRun.build(self.terms, xa, t0).run(self.theta, y0, self.output_limits)
 
     def to_document(self) -> dict[str, Any]:
-        """A JSON-compatible, versioned description from which :meth:`from_document` rebuilds it."""
-        return {
+        """A JSON-compatible, versioned description from which :meth:`from_document` rebuilds it.
+
+        Output limits appear only when the model has them (a side without a limit as null), so
+        the documents of models without them are those of earlier versions."""
+        document: dict[str, Any] = {
             "kind": "narx",
             "schema_version": DOCUMENT_VERSION,
             "terms": self.term_names,
@@ -108,6 +121,9 @@ class NARX:
             "sigma2": self.sigma2,
             "n_obs": self.n_obs,
         }
+        if self.output_limits is not None:
+            document["output_limits"] = [v if np.isfinite(v) else None for v in self.output_limits]
+        return document
 
     @classmethod
     def from_document(cls, document: dict[str, Any]) -> NARX:
@@ -117,17 +133,44 @@ class NARX:
         covariance = np.asarray(document["covariance"], dtype=np.float64)
         if theta.shape != (len(terms),) or covariance.shape != (len(terms), len(terms)):
             raise InputError("model document: theta and covariance do not match the terms")
-        return cls(terms, theta, covariance, float(document["sigma2"]), int(document["n_obs"]))
+        limits = document.get("output_limits")
+        return cls(
+            terms,
+            theta,
+            covariance,
+            float(document["sigma2"]),
+            int(document["n_obs"]),
+            None if limits is None else checked_limits(limits),
+        )
+
+
+def checked_limits(limits: Sequence[float | None]) -> tuple[float, float]:
+    """Output limits (low, high) from two numbers, None for a side without one; refused unless
+    low < high."""
+    if len(limits) != 2:
+        raise InputError(f"output limits are two numbers [low, high], got {list(limits)!r}")
+    try:
+        low, high = (default if v is None else float(v) for v, default in zip(limits, (-np.inf, np.inf)))
+    except (TypeError, ValueError):
+        raise InputError(f"output limits are numbers or null, got {list(limits)!r}") from None
+    if np.isnan(low) or np.isnan(high) or not low < high:
+        raise InputError(f"output limits need low < high, got {list(limits)!r}")
+    return low, high
 
 
 def fit_narx(
-    records: Iterable[tuple[ArrayLike, ArrayLike]], terms: Sequence[str | Term], t0: int = 0
+    records: Iterable[tuple[ArrayLike, ArrayLike]],
+    terms: Sequence[str | Term],
+    t0: int = 0,
+    output_limits: tuple[float, float] | None = None,
 ) -> NARX:
     """Estimate a NARX model by OLS from one or more records.
 
     Each record contributes its own equations t = L … N−1, so lags never reach across the
     boundary between two records. Sinusoidal terms count time from sample ``t0`` = 0 of each
-    record, unless ``t0`` says the records start later in that time base.
+    record, unless ``t0`` says the records start later in that time base. With
+    ``output_limits`` the equations whose target lies on a limit are left out (they only say
+    that φ[t]ᵀθ lies beyond it), and the model saturates there.
     """
     parsed = parse_terms(terms)
     L = max_lag(parsed)
@@ -135,8 +178,16 @@ def fit_narx(
     blocks = [regressor_matrix(parsed, x, y, L, t0) for x, y in checked]
     Phi = np.vstack([block[0] for block in blocks])
     target = np.concatenate([block[1] for block in blocks])
+    if output_limits is not None:
+        inside = (target > output_limits[0]) & (target < output_limits[1])
+        if inside.sum() <= len(parsed):
+            raise InputError(
+                f"only {int(inside.sum())} samples lie inside the output limits {output_limits}; "
+                f"{len(parsed)} terms need more"
+            )
+        Phi, target = Phi[inside], target[inside]
     fit = least_squares(Phi, target, [t.name for t in parsed])
-    return NARX(parsed, fit.theta, fit.covariance, fit.sigma2, len(target))
+    return NARX(parsed, fit.theta, fit.covariance, fit.sigma2, len(target), output_limits)
 
 
 def check_document(document: dict[str, Any], kind: str) -> None:

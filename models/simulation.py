@@ -12,6 +12,8 @@ thousands of runs of the same structure over the same input, so it is split:
   faster than the same loop in Python), run for each θ by :meth:`FreeRun.run`.
 
 A run that leaves ±``DIVERGED`` (or becomes NaN) stops there; the samples from that one on are NaN.
+A run may be given output limits: each ŷ[t] is then clipped to them before it feeds the samples
+after it, as a tank's level stays at its overflow or a mass against its end stop.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from models.terms import Factor, Term, max_lag
 # Free-run outputs beyond this magnitude mean the simulated model has diverged.
 DIVERGED = 1e100
 # How an output factor transforms its value before the power: the codes the kernel knows.
-FUNCTION_CODES = {"": 0, "abs": 1, "sign": 2}
+FUNCTION_CODES = {"": 0, "abs": 1, "sign": 2, "spow": 3, "apow": 4}
 
 
 @dataclass(frozen=True)
@@ -41,8 +43,9 @@ class FreeRun:
     known : (N, R) the non-output part of each autoregressive term (ones if it has none);
         ``recursive_terms`` their indices.
     factor_start : (R + 1,) where each autoregressive term's output factors begin in the
-        flattened ``difference``/``lag``/``function``/``power`` arrays (one entry a factor; a
-        difference factor reads ŷ[t−lag] − ŷ[t−lag−1]).
+        flattened ``difference``/``lag``/``function``/``power``/``parameter`` arrays (one entry a
+        factor; a difference factor reads ŷ[t−lag] − ŷ[t−lag−1]; ``parameter`` is a power law's
+        exponent).
     """
 
     n: int
@@ -56,6 +59,7 @@ class FreeRun:
     factor_lag: np.ndarray
     function: np.ndarray
     power: np.ndarray
+    parameter: np.ndarray
 
     @classmethod
     def build(cls, terms: Sequence[Term], x: np.ndarray, t0: int = 0) -> FreeRun:
@@ -100,11 +104,15 @@ class FreeRun:
             factor_lag=np.asarray([f.lag for f in factors], dtype=np.int64),
             function=np.asarray([FUNCTION_CODES[f.function] for f in factors], dtype=np.int64),
             power=np.asarray([f.power for f in factors], dtype=np.int64),
+            parameter=np.asarray([f.parameter for f in factors], dtype=np.float64),
         )
 
-    def run(self, theta: np.ndarray, y_initial: np.ndarray) -> np.ndarray:
+    def run(
+        self, theta: np.ndarray, y_initial: np.ndarray, limits: tuple[float, float] | None = None
+    ) -> np.ndarray:
         """The simulated output for every sample, the first L being ``y_initial``; NaN from the
-        sample where the run diverged on."""
+        sample where the run diverged on. With ``limits`` = (low, high) every simulated sample
+        is clipped to them."""
         out = np.full(self.n, np.nan)
         L = min(self.lag, self.n)
         out[:L] = y_initial[:L]
@@ -122,6 +130,8 @@ class FreeRun:
             self.factor_lag,
             self.function,
             self.power,
+            self.parameter,
+            *(limits or (-np.inf, np.inf)),
         )
         return out
 
@@ -137,6 +147,9 @@ def _recursion(
     factor_lag: np.ndarray,
     function: np.ndarray,
     power: np.ndarray,
+    parameter: np.ndarray,
+    low: float,
+    high: float,
 ) -> None:
     n = out.size
     terms = coefficients.shape[1]
@@ -151,10 +164,14 @@ def _recursion(
                     base = abs(base)
                 elif function[f] == 2:
                     base = (base > 0.0) - (base < 0.0)
+                elif function[f] == 3:
+                    base = ((base > 0.0) - (base < 0.0)) * abs(base) ** parameter[f]
+                elif function[f] == 4:
+                    base = abs(base) ** parameter[f]
                 for _ in range(power[f]):
                     value *= base
             total += value
         if not abs(total) < DIVERGED:
             return
-        out[t] = total
+        out[t] = min(max(total, low), high)
 
