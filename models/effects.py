@@ -4,22 +4,54 @@ Each family is sized to the model it would extend. The lags span those of the mo
 1 … 4 for y): an effect entering the physics on an unmeasured mass reaches the measured
 response through the same dynamics, at those lags. Velocities enter as first differences of
 the response, dy[t-k] = y[t-k] − y[t-k-1].
+
+Beyond the forces on the measured coordinate, the families name effects on the output side and
+behind the sensor:
+
+- output saturation: plateaus at the record's extremes (an overflowing tank, end stops); the
+  model gains output limits its predictions and free run are clipped to (:func:`output_limits`);
+- power laws |y|^p·sign y and |dy|^p·sign dy with p estimated (outflow through an orifice
+  ∝ √level, turbulent or aerodynamic damping);
+- an input dead zone or backlash of a width estimated from the data;
+- hysteresis through the increments of a Bouc–Wen variable: Bouc and Wen's
+  dz = A·dx − β|dx|·z − γ·dx·|z| (Wen 1976), discretised by forward differences with z ≈ y
+  (Ikhouane & Rodellar, *Systems with Hysteresis*, 2007, ch. 2), puts |dy[t-k]|·y[t-k] and
+  dy[t-k]·|y[t-k]| into the model;
+- a nonlinear spring on a degree of freedom the sensor does not measure: its coordinate is a
+  linear combination of the measured one's lags, so its cube is a cross-lag cubic
+  y[t-i]·y[t-j]·y[t-k].
+
+Parameters estimated from the data (an exponent, a width) are found like a periodic
+disturbance's frequencies: from the residual, by a profile search (:func:`profile_search`)
+of how much of it the family explains.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from scipy import optimize
+from scipy import linalg, optimize
 
 from models.errors import InputError
 from models.spectrum import residual_spectrum
 from models.terms import WAVES, Factor, Term, regressor_matrix
 
-EffectKind = Literal["terms", "output_shift", "periodic", "noise"]
+EffectKind = Literal["terms", "output_shift", "periodic", "noise", "estimated", "saturation"]
+# What an "estimated" effect is: given x, y, the residual over rows lag … N−1, the model's terms
+# and lag, the family's terms with their parameters estimated.
+Finder = Callable[[np.ndarray, np.ndarray, np.ndarray, Sequence[Term], int], tuple[Term, ...]]
+# A plateau is at least this many consecutive samples at the record's maximum (or minimum):
+# a smooth signal visits its extreme once.
+PLATEAU_SAMPLES = 3
+# Exponents of the power laws, clear of the integer laws named by their own families (Coulomb
+# friction at 0, quadratic damping at 2, cubic stiffness and damping at 3) and of the linear 1.
+STIFFNESS_EXPONENTS = (0.2, 2.6)
+DAMPING_EXPONENTS = (0.2, 1.8)
+PROFILE_POINTS = 12
 
 
 @dataclass(frozen=True)
@@ -35,13 +67,18 @@ class Effect:
     - "periodic": a sine and a cosine at each significant peak of the residual spectrum
       (:func:`periodic_terms`); its ``terms`` are found from the residual, so empty here;
     - "noise": moving-average terms e[t-k] of the residual itself, which make the model a
-      NARMAX estimated by extended least squares (:mod:`models.narmax`); no terms either.
+      NARMAX estimated by extended least squares (:mod:`models.narmax`); no terms either;
+    - "estimated": terms with a parameter estimated from the data, found by ``find`` (a
+      :data:`Finder`) from the residual; no terms here;
+    - "saturation": one regressor, the change clipping the prediction to the record's plateaus
+      makes (:func:`saturation_direction`); adding it gives the model output limits, no terms.
     """
 
     name: str
     description: str
     terms: tuple[Term, ...]
     kind: EffectKind = "terms"
+    find: Finder | None = field(default=None, compare=False)
 
 
 def linear_terms(ny: int, nx: int, delay: int = 1) -> tuple[Term, ...]:
@@ -93,6 +130,58 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             powers("x", x_lags, 2) + powers("x", x_lags, 3),
         ),
         Effect(
+            "hysteresis",
+            "hysteretic restoring force (Bouc–Wen): increments |dy|·y and dy·|y|",
+            tuple(Term.of([Factor("dy", k, function="abs"), Factor("y", k)]) for k in lags_y)
+            + tuple(Term.of([Factor("dy", k), Factor("y", k, function="abs")]) for k in lags_y),
+        ),
+        Effect(
+            "unmeasured_nonlinearity",
+            "a nonlinear spring or damper on a coordinate y does not measure: cross-lag cubics "
+            "y[t-i]·y[t-j]·y[t-k]",
+            tuple(
+                Term.of([Factor("y", i), Factor("y", j), Factor("y", k)])
+                for i, j, k in itertools.combinations_with_replacement(lags_y, 3)
+            ),
+        ),
+        Effect(
+            "power_law_stiffness",
+            "a restoring force or outflow ∝ |y|^p·sign y, p estimated: a tank draining through an orifice",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: power_law_terms(
+                "y", lags_y, STIFFNESS_EXPONENTS, x, y, e, terms, lag
+            ),
+        ),
+        Effect(
+            "power_law_damping",
+            "damping ∝ |dy|^p·sign dy, p estimated: flow through an orifice, turbulent drag",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: power_law_terms("dy", lags_y, DAMPING_EXPONENTS, x, y, e, terms, lag),
+        ),
+        Effect(
+            "input_dead_zone",
+            "a dead zone in the actuator: no force until the command exceeds a width, estimated",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: input_play_terms("deadzone", x_lags, x, y, e, terms, lag),
+        ),
+        Effect(
+            "input_backlash",
+            "backlash (play) in the actuator's drive, of a width estimated",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: input_play_terms("backlash", x_lags, x, y, e, terms, lag),
+        ),
+        Effect(
+            "output_saturation",
+            "the output saturates: plateaus at the record's range ends (overflow, end stops, a "
+            "clipping sensor)",
+            (),
+            "saturation",
+        ),
+        Effect(
             "missing_lags",
             "dynamics beyond the declared lags, or a shorter input delay",
             powers("y", [ny + 1, ny + 2], 1) + powers("x", [x_lags[-1] + 1, *shorter_delay], 1),
@@ -111,13 +200,13 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
 
 def unused(effects: Sequence[Effect], terms: Sequence[Term]) -> list[Effect]:
     """The effects with the terms the model already has left out; those with none left dropped
-    (periodic and noise effects, whose regressors come from the residual, always stay)."""
+    (those whose regressors come from the data or the residual always stay)."""
     present = set(terms)
     kept = []
     for effect in effects:
         new = tuple(t for t in effect.terms if t not in present)
-        if new or effect.kind in ("periodic", "noise"):
-            kept.append(Effect(effect.name, effect.description, new, effect.kind))
+        if new or effect.kind in ("periodic", "noise", "estimated", "saturation"):
+            kept.append(Effect(effect.name, effect.description, new, effect.kind, effect.find))
     return kept
 
 
@@ -197,3 +286,106 @@ def periodic_terms(residual: np.ndarray, alpha: float) -> tuple[Term, ...]:
         frequency = float(f"{frequency:.10g}")
         terms += [Term((Factor(wave, 0, frequency=frequency),)) for wave in WAVES]
     return tuple(dict.fromkeys(terms))
+
+
+def output_limits(y: np.ndarray) -> tuple[float, float] | None:
+    """The levels the output saturates at: its maximum (minimum) if at least
+    ``PLATEAU_SAMPLES`` consecutive samples sit exactly there, ±inf for a side without a
+    plateau; None if neither side has one."""
+
+    def plateau(level: float) -> bool:
+        at = np.concatenate(([False], y == level, [False])).astype(np.int8)
+        edges = np.flatnonzero(np.diff(at))
+        return bool(edges.size) and int(np.max(edges[1::2] - edges[::2])) >= PLATEAU_SAMPLES
+
+    low, high = float(np.min(y)), float(np.max(y))
+    limits = (low if plateau(low) else -np.inf, high if plateau(high) else np.inf)
+    return None if limits == (-np.inf, np.inf) or low == high else limits
+
+
+def saturation_direction(prediction: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
+    """clip(ŷ) − ŷ: what clipping the one-step prediction ŷ to the output limits changes. A model
+    whose output saturates there has this regressor with coefficient one."""
+    return np.clip(prediction, *limits) - prediction
+
+
+def profile_search(
+    build: Callable[[float], tuple[Term, ...]],
+    bounds: tuple[float, float],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+    log_scale: bool = False,
+) -> tuple[Term, ...]:
+    """The terms ``build(p)`` for the parameter p in ``bounds`` whose regressors, beside the
+    model's, explain most of the residual (rows lag … N−1): a grid of ``PROFILE_POINTS``, then a
+    bounded scalar search between the best point's neighbours; p rounded to 4 digits so that
+    the terms' names stay short."""
+    Phi, _ = regressor_matrix(list(terms), x, y, lag)
+    model_basis, _ = linalg.qr(Phi / np.linalg.norm(Phi, axis=0), mode="economic")
+
+    def unexplained(p: float) -> float:
+        columns, _ = regressor_matrix(list(build(float(np.exp(p) if log_scale else p))), x, y, lag)
+        norms = np.linalg.norm(columns, axis=0)
+        if not np.all(np.isfinite(norms)) or not np.all(norms > 0):
+            return float(residual @ residual)
+        columns = columns / norms
+        for _ in range(2):  # Gram–Schmidt twice (see models.refinement)
+            columns = columns - model_basis @ (model_basis.T @ columns)
+        fit, *_ = linalg.lstsq(columns, residual, lapack_driver="gelsd")
+        remaining = residual - columns @ fit
+        return float(remaining @ remaining)
+
+    low, high = (np.log(bounds[0]), np.log(bounds[1])) if log_scale else bounds
+    grid = np.linspace(low, high, PROFILE_POINTS)
+    values = [unexplained(p) for p in grid]
+    best = int(np.argmin(values))
+    refined = optimize.minimize_scalar(
+        unexplained,
+        bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
+        method="bounded",
+        options={"xatol": 1e-3 * (high - low)},
+    )
+    p = float(refined.x) if refined.fun <= values[best] else float(grid[best])
+    return build(float(f"{np.exp(p) if log_scale else p:.4g}"))
+
+
+def power_law_terms(
+    signal: str,
+    lags: Sequence[int],
+    exponents: tuple[float, float],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[Term, ...]:
+    """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated."""
+
+    def build(p: float) -> tuple[Term, ...]:
+        return tuple(Term((Factor(signal, k, function="spow", parameter=p),)) for k in lags)
+
+    return profile_search(build, exponents, x, y, residual, terms, lag)
+
+
+def input_play_terms(
+    function: str,
+    lags: Sequence[int],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[Term, ...]:
+    """deadzone(x[t-k], w) or backlash(x[t-k], w) at the model's input lags, the half-width w
+    estimated between 1 % and 150 % of the input's standard deviation (on a log scale)."""
+    scale = float(np.std(x))
+    if not scale > 0:
+        return ()
+
+    def build(w: float) -> tuple[Term, ...]:
+        return tuple(Term((Factor("x", k, function=function, parameter=w),)) for k in lags)
+
+    return profile_search(build, (0.01 * scale, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)

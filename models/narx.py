@@ -200,4 +200,3 @@ def check_document(document: dict[str, Any], kind: str) -> None:
             f"{kind} model document has schema version {version!r}; this narxwatch reads "
             f"version {DOCUMENT_VERSION}"
         )
-

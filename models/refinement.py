@@ -30,7 +30,16 @@ import numpy as np
 from scipy import linalg, signal, special
 
 from models.assessment import Assessment, assess, assessment_dict, check_test_length
-from models.effects import Effect, candidate_effects, offset_direction, offset_terms, periodic_terms, unused
+from models.effects import (
+    Effect,
+    candidate_effects,
+    offset_direction,
+    offset_terms,
+    output_limits,
+    periodic_terms,
+    saturation_direction,
+    unused,
+)
 from models.errors import InputError
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, fit_narx
@@ -184,7 +193,13 @@ def check_parts(
 
 
 def _model_dict(model: NARX) -> dict[str, Any]:
-    return {"terms": model.term_names, "theta": model.theta.tolist()}
+    limits = model.output_limits
+    # [output-side effects hook] the limits a saturating model clips to (None: none).
+    return {
+        "terms": model.term_names,
+        "theta": model.theta.tolist(),
+        "output_limits": None if limits is None else [v if np.isfinite(v) else None for v in limits],
+    }
 
 
 def refine(
@@ -210,21 +225,28 @@ def refine(
     declared_model, _ = _fit(x, y, terms, 0, max_lag(terms))
     refined, noise, noise_lags = declared_model, np.empty(0), 0
     free_run = _free_run_error(declared_model, x, y)
+    limits: tuple[float, float] | None = None
     rounds: list[Round] = []
     for _ in range(max_rounds):
         offered = unused([_follow(effect, terms) for effect in families], terms)
+        # [output-side effects hook] a saturating model is not offered saturation again.
+        offered = [e for e in offered if not (e.kind == "saturation" and limits is not None)]
         if not offered:
             break
-        step = _round(x, y, terms, noise_lags, offered, alpha)
+        step = _round(x, y, terms, noise_lags, offered, alpha, limits)
         rejected: list[str] = []
+        kinds = {e.name: e.kind for e in offered}
         for score in sorted((s for s in step.scores if s.significant), key=lambda s: s.bic_change):
-            new_terms = terms if score.noise_lags else terms + parse_terms(score.terms)
+            # [output-side effects hook] saturation adds output limits, not terms.
+            saturation = kinds[score.name] == "saturation"
+            new_limits = output_limits(y) if saturation else limits
+            new_terms = terms if score.noise_lags or saturation else terms + parse_terms(score.terms)
             new_lags = score.noise_lags or noise_lags
-            model, model_noise = _fit(x, y, new_terms, new_lags, max_lag(new_terms))
+            model, model_noise = _fit(x, y, new_terms, new_lags, max_lag(new_terms), new_limits)
             error = _free_run_error(model, x, y)
             if error <= free_run:
                 step = replace(step, added=score, rejected=tuple(rejected))
-                terms, noise_lags, free_run = new_terms, new_lags, error
+                terms, noise_lags, free_run, limits = new_terms, new_lags, error, new_limits
                 refined, noise = model, model_noise
                 break
             rejected.append(score.name)
@@ -264,10 +286,15 @@ def _follow(effect: Effect, terms: tuple[Term, ...]) -> Effect:
 
 
 def _fit(
-    x: np.ndarray, y: np.ndarray, terms: tuple[Term, ...], noise_lags: int, lag: int
+    x: np.ndarray,
+    y: np.ndarray,
+    terms: tuple[Term, ...],
+    noise_lags: int,
+    lag: int,
+    limits: tuple[float, float] | None = None,
 ) -> tuple[NARX, np.ndarray]:
-    """The model on rows t = lag … N−1: a NARX, or with ``noise_lags`` a NARMAX's process part
-    and moving-average coefficients."""
+    """The model on rows t = lag … N−1: a NARX (saturating at ``limits``), or with
+    ``noise_lags`` a NARMAX's process part and moving-average coefficients."""
     # The fits start a record at the terms' own largest lag; trimming x and y to the common
     # first row makes the model see the same equations as the candidates it is compared with.
     offset = lag - max_lag(terms)
@@ -275,8 +302,8 @@ def _fit(
         narmax = fit_narmax(
             [(x[offset:], y[offset:])], terms, noise_lags, max_iter=NARMAX_ITERATIONS, t0=offset
         )
-        return narmax.process, invertible(narmax.noise)
-    return fit_narx([(x[offset:], y[offset:])], terms, t0=offset), np.empty(0)
+        return replace(narmax.process, output_limits=limits), invertible(narmax.noise)
+    return fit_narx([(x[offset:], y[offset:])], terms, t0=offset, output_limits=limits), np.empty(0)
 
 
 def _lagged(series: np.ndarray, lags: Sequence[int]) -> np.ndarray:
@@ -294,10 +321,16 @@ def _round(
     noise_lags: int,
     effects: Sequence[Effect],
     alpha: float,
+    limits: tuple[float, float] | None = None,
 ) -> Round:
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
     Phi, target = regressor_matrix(terms, x, y, lag)
+    # [output-side effects hook] a saturating model's equations on its limits are left out.
+    inside = (
+        np.ones(len(target), dtype=bool) if limits is None else (target > limits[0]) & (target < limits[1])
+    )
+    Phi, target = Phi[inside], target[inside]
     if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
         process, noise = _fit(x, y, terms, noise_lags, lag)
         innovations = signal.lfilter([1.0], np.concatenate(([1.0], noise)), target - Phi @ process.theta)
@@ -308,7 +341,14 @@ def _round(
     residual = target - Q @ projection
     theta = (linalg.solve_triangular(R, projection) / scale)[: len(terms)]
     n_obs, n_par = Phi.shape
-    candidates = [_candidates(e, terms, noise_lags, theta, residual, alpha, x, y, lag) for e in effects]
+    every_row = np.zeros(len(inside))
+    every_row[inside] = residual
+    candidates = [
+        (labels, columns[inside])
+        for labels, columns in (
+            _candidates(e, terms, noise_lags, theta, every_row, alpha, x, y, lag) for e in effects
+        )
+    ]
     total = sum(columns.shape[1] for _, columns in candidates)
     level = alpha / max(total, 1)
     # A smooth residual predicts itself, and a coloured one makes spurious regressors look
@@ -394,7 +434,18 @@ def _candidates(
     if effect.kind == "noise":
         lags = range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED)
         return [(f"e[t-{k}]",) for k in lags], _lagged(residual, lags)
-    found = periodic_terms(residual, alpha) if effect.kind == "periodic" else effect.terms
+    # [output-side effects hook] saturation: one regressor, the clip of the one-step prediction.
+    if effect.kind == "saturation":
+        limits = output_limits(y)
+        if limits is None:
+            return [], np.empty((len(residual), 0))
+        label = f"output_limits({limits[0]!r},{limits[1]!r})"
+        return [(label,)], saturation_direction(y[lag:] - residual, limits)[:, None]
+    # [output-side effects hook] terms whose parameters are estimated from the residual.
+    if effect.kind == "estimated" and effect.find is not None:
+        found = effect.find(x, y, residual, terms, lag)
+    else:
+        found = periodic_terms(residual, alpha) if effect.kind == "periodic" else effect.terms
     new = [t for t in found if t not in terms]
     if not new:
         return [], np.empty((len(residual), 0))

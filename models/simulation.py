@@ -174,4 +174,3 @@ def _recursion(
         if not abs(total) < DIVERGED:
             return
         out[t] = min(max(total, low), high)
-
