@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 from scipy import linalg, signal, special
@@ -42,7 +42,7 @@ from models.effects import (
 )
 from models.errors import InputError
 from models.narmax import fit_narmax, invertible
-from models.narx import NARX, fit_narx
+from models.narx import NARX, Saturation, fit_narx, fitted_rows
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 
 DEFAULT_ALPHA = 0.01
@@ -52,6 +52,7 @@ NOISE_LAGS_OFFERED = 4  # moving-average lags a round offers beyond those the mo
 # its last digits wander for longer without changing what the loop decides.
 NARMAX_ITERATIONS = 30
 GUARD_SAMPLES = 10_000  # estimation samples whose free run an added effect must not make worse
+Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limits, and how
 
 
 @dataclass(frozen=True)
@@ -199,6 +200,7 @@ def _model_dict(model: NARX) -> dict[str, Any]:
         "terms": model.term_names,
         "theta": model.theta.tolist(),
         "output_limits": None if limits is None else [v if np.isfinite(v) else None for v in limits],
+        "saturation": None if limits is None else model.saturation,
     }
 
 
@@ -225,28 +227,34 @@ def refine(
     declared_model, _ = _fit(x, y, terms, 0, max_lag(terms))
     refined, noise, noise_lags = declared_model, np.empty(0), 0
     free_run = _free_run_error(declared_model, x, y)
-    limits: tuple[float, float] | None = None
+    saturating: Saturating | None = None
     rounds: list[Round] = []
     for _ in range(max_rounds):
         offered = unused([_follow(effect, terms) for effect in families], terms)
         # [output-side effects hook] a saturating model is not offered saturation again.
-        offered = [e for e in offered if not (e.kind == "saturation" and limits is not None)]
+        offered = [e for e in offered if not (e.kind == "saturation" and saturating is not None)]
         if not offered:
             break
-        step = _round(x, y, terms, noise_lags, offered, alpha, limits)
+        step = _round(x, y, terms, noise_lags, offered, alpha, saturating)
         rejected: list[str] = []
         kinds = {e.name: e.kind for e in offered}
         for score in sorted((s for s in step.scores if s.significant), key=lambda s: s.bic_change):
-            # [output-side effects hook] saturation adds output limits, not terms.
+            # [output-side effects hook] saturation adds output limits, not terms: of the state
+            # or of the sensor, whichever simulates the estimation data better.
             saturation = kinds[score.name] == "saturation"
-            new_limits = output_limits(y) if saturation else limits
+            options = (
+                [(output_limits(y), how) for how in get_args(Saturation)] if saturation else [saturating]
+            )
             new_terms = terms if score.noise_lags or saturation else terms + parse_terms(score.terms)
             new_lags = score.noise_lags or noise_lags
-            model, model_noise = _fit(x, y, new_terms, new_lags, max_lag(new_terms), new_limits)
-            error = _free_run_error(model, x, y)
+            fits = []
+            for option in options:
+                model, model_noise = _fit(x, y, new_terms, new_lags, max_lag(new_terms), option)
+                fits.append((_free_run_error(model, x, y), model, model_noise, option))
+            error, model, model_noise, new_saturating = min(fits, key=lambda fit: fit[0])
             if error <= free_run:
                 step = replace(step, added=score, rejected=tuple(rejected))
-                terms, noise_lags, free_run, limits = new_terms, new_lags, error, new_limits
+                terms, noise_lags, free_run, saturating = new_terms, new_lags, error, new_saturating
                 refined, noise = model, model_noise
                 break
             rejected.append(score.name)
@@ -291,10 +299,11 @@ def _fit(
     terms: tuple[Term, ...],
     noise_lags: int,
     lag: int,
-    limits: tuple[float, float] | None = None,
+    saturating: Saturating | None = None,
 ) -> tuple[NARX, np.ndarray]:
-    """The model on rows t = lag … N−1: a NARX (saturating at ``limits``), or with
-    ``noise_lags`` a NARMAX's process part and moving-average coefficients."""
+    """The model on rows t = lag … N−1: a NARX (``saturating`` at its limits, in its way), or
+    with ``noise_lags`` a NARMAX's process part and moving-average coefficients."""
+    limits, saturation = saturating or (None, "state")
     # The fits start a record at the terms' own largest lag; trimming x and y to the common
     # first row makes the model see the same equations as the candidates it is compared with.
     offset = lag - max_lag(terms)
@@ -302,8 +311,9 @@ def _fit(
         narmax = fit_narmax(
             [(x[offset:], y[offset:])], terms, noise_lags, max_iter=NARMAX_ITERATIONS, t0=offset
         )
-        return replace(narmax.process, output_limits=limits), invertible(narmax.noise)
-    return fit_narx([(x[offset:], y[offset:])], terms, t0=offset, output_limits=limits), np.empty(0)
+        return replace(narmax.process, output_limits=limits, saturation=saturation), invertible(narmax.noise)
+    model = fit_narx([(x[offset:], y[offset:])], terms, offset, limits, saturation)
+    return model, np.empty(0)
 
 
 def _lagged(series: np.ndarray, lags: Sequence[int]) -> np.ndarray:
@@ -321,15 +331,14 @@ def _round(
     noise_lags: int,
     effects: Sequence[Effect],
     alpha: float,
-    limits: tuple[float, float] | None = None,
+    saturating: Saturating | None = None,
 ) -> Round:
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
     Phi, target = regressor_matrix(terms, x, y, lag)
-    # [output-side effects hook] a saturating model's equations on its limits are left out.
-    inside = (
-        np.ones(len(target), dtype=bool) if limits is None else (target > limits[0]) & (target < limits[1])
-    )
+    # [output-side effects hook] a saturating model's equations on (or, for a sensor, reading)
+    # its limits are left out.
+    inside = np.ones(len(target), dtype=bool) if saturating is None else fitted_rows(y, lag, *saturating)
     Phi, target = Phi[inside], target[inside]
     if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
         process, noise = _fit(x, y, terms, noise_lags, lag)

@@ -37,7 +37,7 @@ EFFECTS: dict[str, tuple[str, str]] = {
     "saturation": ("N", "the actuator clips the applied force at ±size; x records the command"),
     "dead_zone": ("N", "the actuator applies nothing within ±size of a zero command, command ∓ size beyond"),
     "backlash": ("N", "the actuator's force trails the command through a play of ±size (gear backlash)"),
-    "end_stop2": ("m", "rigid end stops hold mass 2 at ±size: y plateaus at the range ends"),
+    "sensor_range": ("m", "the y sensor saturates at ±size: y plateaus at the range ends"),
     "power_damping2": ("N·(s/m)^½", "orifice-like damping c·√|v|·sign v on mass 2"),
     "hysteresis2": (
         "N/m",
@@ -66,7 +66,7 @@ class Effects:
     saturation: float = 0.0
     dead_zone: float = 0.0
     backlash: float = 0.0
-    end_stop2: float = 0.0
+    sensor_range: float = 0.0
     power_damping2: float = 0.0
     hysteresis2: float = 0.0
     cubic_stiffness1: float = 0.0
@@ -97,7 +97,7 @@ class Effects:
         for key, value in dataclasses.asdict(effects).items():
             if not math.isfinite(value):
                 raise InputError(f"effect {key} must be a finite number, got {value}")
-        for name in ("saturation", "sine_frequency", "dead_zone", "backlash", "end_stop2"):
+        for name in ("saturation", "sine_frequency", "dead_zone", "backlash", "sensor_range"):
             if getattr(effects, name) < 0:
                 raise InputError(f"{name.replace('_', ' ')} cannot be negative")
         return effects
@@ -112,7 +112,6 @@ class Effects:
                 self.quadratic_damping2,
                 self.quadratic_stiffness1,
                 self.quadratic_stiffness2,
-                self.end_stop2,
                 self.power_damping2,
                 self.hysteresis2,
                 self.cubic_stiffness1,
@@ -206,6 +205,8 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
         x += _measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
     if scenario.y_noise_std:
         y += _measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
+    if effects.sensor_range:
+        y = np.clip(y, -effects.sensor_range, effects.sensor_range)
     return SimulatedRecord(x, y, scenario.fs, scenario, seed)
 
 
@@ -228,7 +229,6 @@ def _integrate(p: PhysicalParameters, force: np.ndarray, effects: Effects) -> tu
     cq1, cq2 = effects.quadratic_damping1, effects.quadratic_damping2
     kq1, kq2 = effects.quadratic_stiffness1, effects.quadratic_stiffness2
     kc1, cp2, kh2 = effects.cubic_stiffness1, effects.power_damping2, effects.hysteresis2
-    stop = effects.end_stop2 or math.inf
     # (u, u_next) = (x1[t], x1[t+1]) and (w, w_next) = (x2[t], x2[t+1]); both start at rest, as
     # does the Bouc–Wen variable z[t] of mass 2's hysteretic spring.
     u = u_next = w = w_next = z = 0.0
@@ -250,8 +250,6 @@ def _integrate(p: PhysicalParameters, force: np.ndarray, effects: Effects) -> tu
             # Bouc–Wen (n = 1) by the same forward difference: dz = dx2 − β|dx2|z − γ·dx2|z|.
             step = w_next - w
             z += step - BOUC_WEN_BETA * abs(step) * z - BOUC_WEN_GAMMA * step * abs(z)
-            # A perfectly plastic end stop: the mass stays at the stop until the forces pull it back.
-            w_new = min(max(w_new, -stop), stop)
         u, u_next = u_next, u_new
         w, w_next = w_next, w_new
     return np.array(out1), np.array(out2)
