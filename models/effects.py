@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -40,10 +40,15 @@ from models.errors import InputError
 from models.spectrum import residual_spectrum
 from models.terms import WAVES, Factor, Term, regressor_matrix
 
-EffectKind = Literal["terms", "output_shift", "periodic", "noise", "estimated", "saturation"]
+EffectKind = Literal["terms", "output_shift", "periodic", "noise", "estimated", "saturation", "combined"]
 # What an "estimated" effect is: given x, y, the residual over rows lag … N−1, the model's terms
 # and lag, the family's terms with their parameters estimated.
 Finder = Callable[[np.ndarray, np.ndarray, np.ndarray, Sequence[Term], int], tuple[Term, ...]]
+# What a "combined" effect is: from the same arguments, its one regressor over rows lag … N−1
+# and the terms that span it beside the model's.
+Combiner = Callable[
+    [np.ndarray, np.ndarray, np.ndarray, Sequence[Term], int], tuple[tuple[Term, ...], np.ndarray]
+]
 # A plateau is at least this many consecutive samples at the record's maximum (or minimum):
 # a smooth signal visits its extreme once.
 PLATEAU_SAMPLES = 3
@@ -71,7 +76,9 @@ class Effect:
     - "estimated": terms with a parameter estimated from the data, found by ``find`` (a
       :data:`Finder`) from the residual; no terms here;
     - "saturation": one regressor, the change clipping the prediction to the record's plateaus
-      makes (:func:`saturation_direction`); adding it gives the model output limits, no terms.
+      makes (:func:`saturation_direction`); adding it gives the model output limits, no terms;
+    - "combined": one regressor, a nonlinear combination of the data fitted to the residual by
+      ``combine`` (a :data:`Combiner`) whose expansion its ``terms`` span; adding it adds them.
     """
 
     name: str
@@ -79,6 +86,7 @@ class Effect:
     terms: tuple[Term, ...]
     kind: EffectKind = "terms"
     find: Finder | None = field(default=None, compare=False)
+    combine: Combiner | None = field(default=None, compare=False)
 
 
 def linear_terms(ny: int, nx: int, delay: int = 1) -> tuple[Term, ...]:
@@ -103,6 +111,12 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         return tuple(Term((Factor(signal, lag, power),)) for lag in lags)
 
     shorter_delay = [x_lags[0] - 1] if x_lags[0] > 0 else []
+    cube_terms = tuple(
+        Term.of(product)
+        for product in itertools.combinations_with_replacement(
+            [Factor("y", lags_y[-1])] + [Factor("dy", k) for k in lags_y[:-1]], 3
+        )
+    )
     velocity = [Factor("dy", lag) for lag in lags_y]
     effects = [
         Effect("cubic_stiffness", "cubic restoring force: a stiffening spring", powers("y", lags_y, 3)),
@@ -137,12 +151,11 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         ),
         Effect(
             "unmeasured_nonlinearity",
-            "a nonlinear spring or damper on a coordinate y does not measure: cross-lag cubics "
-            "y[t-i]·y[t-j]·y[t-k]",
-            tuple(
-                Term.of([Factor("y", i), Factor("y", j), Factor("y", k)])
-                for i, j, k in itertools.combinations_with_replacement(lags_y, 3)
-            ),
+            "a nonlinear spring on a coordinate y does not measure, reaching y through the linear "
+            "dynamics: the cube of a combination of y's lags, as cubics of y[t-m] and dy[t-k]",
+            cube_terms,
+            "combined",
+            combine=lambda x, y, e, terms, lag: unmeasured_cube(cube_terms, x, y, e, terms, lag),
         ),
         Effect(
             "power_law_stiffness",
@@ -206,7 +219,7 @@ def unused(effects: Sequence[Effect], terms: Sequence[Term]) -> list[Effect]:
     for effect in effects:
         new = tuple(t for t in effect.terms if t not in present)
         if new or effect.kind in ("periodic", "noise", "estimated", "saturation"):
-            kept.append(Effect(effect.name, effect.description, new, effect.kind, effect.find))
+            kept.append(replace(effect, terms=new))
     return kept
 
 
@@ -362,7 +375,10 @@ def power_law_terms(
     terms: Sequence[Term],
     lag: int,
 ) -> tuple[Term, ...]:
-    """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated."""
+    """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated; none if
+    the model has such a law already (one exponent per law)."""
+    if _has(terms, signal, "spow"):
+        return ()
 
     def build(p: float) -> tuple[Term, ...]:
         return tuple(Term((Factor(signal, k, function="spow", parameter=p),)) for k in lags)
@@ -380,12 +396,75 @@ def input_play_terms(
     lag: int,
 ) -> tuple[Term, ...]:
     """deadzone(x[t-k], w) or backlash(x[t-k], w) at the model's input lags, the half-width w
-    estimated between 1 % and 150 % of the input's standard deviation (on a log scale)."""
+    estimated between 1 % and 150 % of the input's standard deviation (on a log scale); none if
+    the model has one already."""
     scale = float(np.std(x))
-    if not scale > 0:
+    if not scale > 0 or _has(terms, "x", function):
         return ()
 
     def build(w: float) -> tuple[Term, ...]:
         return tuple(Term((Factor("x", k, function=function, parameter=w),)) for k in lags)
 
     return profile_search(build, (0.01 * scale, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
+
+
+def unmeasured_cube(
+    cubics: Sequence[Term],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[tuple[Term, ...], np.ndarray]:
+    """u[t]³ for the combination u[t] = Σ_k c_k·y[t-k] of the lags whose cube, beside the
+    model's regressors, best explains the residual (rows lag … N−1).
+
+    A spring k·u³ on a coordinate the sensor does not see, u, enters the response through the
+    linear dynamics, and u itself is a linear combination of the response's lags (on the 2-DOF
+    rig, x1 = (m2·ẍ2 + c2·ẋ2 + k2·x2 + k3·x2³)/k2 from mass 2's equation). In y's lags that
+    combination is a nearly cancelling one — an acceleration is a second difference — so c is
+    sought in the backward differences of y at the oldest lag, each scaled to unit spread, by
+    nonlinear least squares from every sign pattern of equal weights. The cube's expansion is a
+    sum of cubics of y[t-m] and dy[t-1] … dy[t-m+1] (the same span as the cross-lag cubics of
+    y's lags, far better conditioned), which the model then estimates freely: ``cubics``, less
+    those the model's own terms already span (a pivoted QR decides).
+    """
+    oldest = max(f.lag for t in cubics for f in t.factors if f.signal == "y")
+    ordered = range(oldest, 0, -1)  # y[t-m] … y[t-1]
+    rows = len(y) - lag
+    lagged = np.column_stack([y[lag - k : len(y) - k] for k in ordered])
+    differences = np.column_stack([np.diff(lagged, n, axis=1)[:, 0] for n in range(len(ordered))])
+    spread = np.std(differences, axis=0)
+    if not np.all(spread > 0) or not np.any(residual) or not cubics:
+        return (), np.zeros(rows)
+    basis = differences / spread
+    Phi, _ = regressor_matrix(list(terms), x, y, lag)
+    model_basis, _ = linalg.qr(Phi / np.linalg.norm(Phi, axis=0), mode="economic")
+    columns, _ = regressor_matrix(list(cubics), x, y, lag)
+    columns = columns / np.linalg.norm(columns, axis=0)
+    columns = columns - model_basis @ (model_basis.T @ columns)
+    _, triangle, pivots = linalg.qr(columns, mode="economic", pivoting=True)
+    independent = pivots[np.abs(np.diag(triangle)) > 1e-8 * abs(triangle[0, 0])]
+    spanning = tuple(cubics[i] for i in sorted(independent))
+    target = residual / np.std(residual)
+
+    def cube(c: np.ndarray) -> np.ndarray:
+        return (basis @ c) ** 3
+
+    def misfit(c: np.ndarray) -> np.ndarray:
+        column = cube(c)
+        return target - (column - model_basis @ (model_basis.T @ column))
+
+    best = None
+    for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=len(ordered) - 1), 8):
+        start = np.array((1.0, *signs)) / np.sqrt(len(ordered))
+        column = cube(start)
+        start = start * np.cbrt((target @ column) / (column @ column))
+        fit = optimize.least_squares(misfit, start, max_nfev=200)
+        if best is None or fit.cost < best.cost:
+            best = fit
+    return spanning, cube(best.x)
+
+
+def _has(terms: Sequence[Term], signal: str, function: str) -> bool:
+    return any(f.signal == signal and f.function == function for t in terms for f in t.factors)

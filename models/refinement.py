@@ -450,6 +450,12 @@ def _candidates(
             return [], np.empty((len(residual), 0))
         label = f"output_limits({limits[0]!r},{limits[1]!r})"
         return [(label,)], saturation_direction(y[lag:] - residual, limits)[:, None]
+    # [output-side effects hook] one regressor fitted to the residual, spanned by the effect's terms.
+    if effect.kind == "combined" and effect.combine is not None:
+        spanning, column = effect.combine(x, y, residual, terms, lag)
+        if not spanning:
+            return [], np.empty((len(residual), 0))
+        return [tuple(t.name for t in spanning)], column[:, None]
     # [output-side effects hook] terms whose parameters are estimated from the residual.
     if effect.kind == "estimated" and effect.find is not None:
         found = effect.find(x, y, residual, terms, lag)
