@@ -440,10 +440,14 @@ def unmeasured_cube(
     basis = differences / spread
     Phi, _ = regressor_matrix(list(terms), x, y, lag)
     model_basis, _ = linalg.qr(Phi / np.linalg.norm(Phi, axis=0), mode="economic")
+
+    def off_model(columns: np.ndarray) -> np.ndarray:
+        return columns - model_basis @ (model_basis.T @ columns)
+
     columns, _ = regressor_matrix(list(cubics), x, y, lag)
-    columns = columns / np.linalg.norm(columns, axis=0)
-    columns = columns - model_basis @ (model_basis.T @ columns)
-    _, triangle, pivots = linalg.qr(columns, mode="economic", pivoting=True)
+    columns = off_model(columns / np.linalg.norm(columns, axis=0))
+    # The pivots of a pivoted QR depend on the columns' inner products alone: those of R.
+    _, triangle, pivots = linalg.qr(linalg.qr(columns, mode="r")[0], mode="economic", pivoting=True)
     independent = pivots[np.abs(np.diag(triangle)) > 1e-8 * abs(triangle[0, 0])]
     spanning = tuple(cubics[i] for i in sorted(independent))
     target = residual / np.std(residual)
@@ -452,15 +456,17 @@ def unmeasured_cube(
         return (basis @ c) ** 3
 
     def misfit(c: np.ndarray) -> np.ndarray:
-        column = cube(c)
-        return target - (column - model_basis @ (model_basis.T @ column))
+        return target - off_model(cube(c))
+
+    def jacobian(c: np.ndarray) -> np.ndarray:
+        return -off_model(3.0 * ((basis @ c) ** 2)[:, None] * basis)
 
     best = None
     for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=len(ordered) - 1), 8):
         start = np.array((1.0, *signs)) / np.sqrt(len(ordered))
         column = cube(start)
         start = start * np.cbrt((target @ column) / (column @ column))
-        fit = optimize.least_squares(misfit, start, max_nfev=200)
+        fit = optimize.least_squares(misfit, start, jac=jacobian, max_nfev=100)
         if best is None or fit.cost < best.cost:
             best = fit
     return spanning, cube(best.x)
