@@ -13,10 +13,10 @@ behind the sensor:
 - power laws |y|^p·sign y and |dy|^p·sign dy with p estimated (outflow through an orifice
   ∝ √level, turbulent or aerodynamic damping);
 - an input dead zone or backlash of a width estimated from the data;
-- hysteresis through the increments of a Bouc–Wen variable: Bouc and Wen's
-  dz = A·dx − β|dx|·z − γ·dx·|z| (Wen 1976), discretised by forward differences with z ≈ y
-  (Ikhouane & Rodellar, *Systems with Hysteresis*, 2007, ch. 2), puts |dy[t-k]|·y[t-k] and
-  dy[t-k]·|y[t-k]| into the model;
+- hysteresis through a Bouc–Wen variable of the output: Bouc and Wen's
+  dz = A·dx − β|dx|·z − γ·dx·|z| (Wen 1976; Ikhouane & Rodellar, *Systems with Hysteresis*,
+  2007, ch. 2) with n = 1, A = 1 and β = γ, discretised by forward differences on y's
+  increments; the level ±1/(β+γ) it saturates at is estimated (:func:`hysteresis_terms`);
 - a nonlinear spring on a degree of freedom the sensor does not measure: its coordinate is a
   linear combination of the measured one's lags, so its cube is a cross-lag cubic
   y[t-i]·y[t-j]·y[t-k].
@@ -145,9 +145,11 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         ),
         Effect(
             "hysteresis",
-            "hysteretic restoring force (Bouc–Wen): increments |dy|·y and dy·|y|",
-            tuple(Term.of([Factor("dy", k, function="abs"), Factor("y", k)]) for k in lags_y)
-            + tuple(Term.of([Factor("dy", k), Factor("y", k, function="abs")]) for k in lags_y),
+            "a hysteretic restoring force (Bouc–Wen): the hysteretic variable z of y, saturating at "
+            "a level estimated",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: hysteresis_terms(lags_y, x, y, e, terms, lag),
         ),
         Effect(
             "unmeasured_nonlinearity",
@@ -470,6 +472,27 @@ def unmeasured_cube(
         if best is None or fit.cost < best.cost:
             best = fit
     return spanning, cube(best.x)
+
+
+def hysteresis_terms(
+    lags: Sequence[int],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[Term, ...]:
+    """boucwen(y[t-k], w) at each lag, the level w estimated between 1 % and 150 % of y's
+    standard deviation (on a log scale); none if the model has one already. A force k·z on a
+    coordinate y reaches y through the dynamics, at the model's lags."""
+    scale = float(np.std(y))
+    if not scale > 0 or _has(terms, "y", "boucwen"):
+        return ()
+
+    def build(w: float) -> tuple[Term, ...]:
+        return tuple(Term((Factor("y", k, function="boucwen", parameter=w),)) for k in lags)
+
+    return profile_search(build, (0.01 * scale, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
 
 
 def _has(terms: Sequence[Term], signal: str, function: str) -> bool:

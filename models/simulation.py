@@ -24,12 +24,12 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from models.terms import Factor, Term, max_lag
+from models.terms import Factor, Term, bouc_wen_step, max_lag
 
 # Free-run outputs beyond this magnitude mean the simulated model has diverged.
 DIVERGED = 1e100
 # How an output factor transforms its value before the power: the codes the kernel knows.
-FUNCTION_CODES = {"": 0, "abs": 1, "sign": 2, "spow": 3, "apow": 4}
+FUNCTION_CODES = {"": 0, "abs": 1, "sign": 2, "spow": 3, "apow": 4, "boucwen": 5}
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,8 @@ class FreeRun:
     factor_start : (R + 1,) where each autoregressive term's output factors begin in the
         flattened ``difference``/``lag``/``function``/``power``/``parameter`` arrays (one entry a
         factor; a difference factor reads ŷ[t−lag] − ŷ[t−lag−1]; ``parameter`` is a power law's
-        exponent).
+        exponent, a Bouc–Wen variable's saturation level; the kernel runs that variable of ŷ from
+        the first sample on).
     """
 
     n: int
@@ -153,12 +154,21 @@ def _recursion(
 ) -> None:
     n = out.size
     terms = coefficients.shape[1]
+    # Bouc–Wen variables of the output, one row a factor (unused rows stay zero).
+    hysteretic = np.zeros((function.size, n))
+    for f in range(function.size):
+        if function[f] == 5:
+            for t in range(1, start):
+                hysteretic[f, t] = bouc_wen_step(hysteretic[f, t - 1], out[t] - out[t - 1], parameter[f])
     for t in range(start, n):
         total = drive[t]
         for j in range(terms):
             value = coefficients[t, j]
             for f in range(factor_start[j], factor_start[j + 1]):
                 k = factor_lag[f]
+                if function[f] == 5:
+                    value *= hysteretic[f, t - k]
+                    continue
                 base = out[t - k] - out[t - k - 1] if difference[f] else out[t - k]
                 if function[f] == 1:
                     base = abs(base)
@@ -174,3 +184,6 @@ def _recursion(
         if not abs(total) < DIVERGED:
             return
         out[t] = min(max(total, low), high)
+        for f in range(function.size):
+            if function[f] == 5:
+                hysteretic[f, t] = bouc_wen_step(hysteretic[f, t - 1], out[t] - out[t - 1], parameter[f])

@@ -18,6 +18,11 @@ model can carry the effects physics puts into real structures, a factor may also
   that distance). Backlash has memory: it is run over the rows a regressor is computed on,
   starting with the play centred on the first value, and forgets that start once the input
   has moved by 2w;
+- the Bouc–Wen hysteretic variable of the output, ``boucwen(y[t-2],0.05)`` = z[t-2] with
+  z[t] = z[t-1] + Δ − β|Δ|·z[t-1] − γ·Δ·|z[t-1]|, Δ = y[t] − y[t-1] and β = γ = 1/(2w), so
+  that z saturates at ±w (Wen 1976, n = 1, discretised by forward differences). Like backlash it
+  is run over the rows it is computed on from z = 0 (the free run: from the record's first
+  sample), and forgets its start at the rate β|Δ|;
 - a sinusoid of the sample index t, ``sin(2pi*0.0125*t)`` or ``cos(…)``, its frequency in
   cycles per sample: a periodic disturbance, phase-locked to the record's first sample.
 
@@ -38,10 +43,12 @@ import numpy as np
 from models.errors import InputError
 
 SIGNALS = ("y", "x", "dy", "dx", "sin", "cos")
-FUNCTIONS = ("", "abs", "sign", "spow", "apow", "deadzone", "backlash")
+FUNCTIONS = ("", "abs", "sign", "spow", "apow", "deadzone", "backlash", "boucwen")
 # Functions with a parameter after a comma: the exponent of a power, the half-width of a play.
 POWER_LAWS = ("spow", "apow")
 INPUT_PLAYS = ("deadzone", "backlash")
+# Memory operators on the output, with the level they saturate at as their parameter.
+OUTPUT_HYSTERESES = ("boucwen",)
 WAVES = ("sin", "cos")
 # Beyond these a term cannot describe a physical structure, and its regressor would overflow
 # or take unbounded time to build.
@@ -52,7 +59,7 @@ _LAGGED = re.compile(
     r"|(?P<signal>d?[xy])\[t(?:-(?P<lag>\d+))?\])(?:\^(?P<power>\d+))?$"
 )
 _WITH_PARAMETER = re.compile(
-    r"^(?P<function>spow|apow|deadzone|backlash)\((?P<signal>d?[xy])\[t(?:-(?P<lag>\d+))?\],"
+    r"^(?P<function>spow|apow|deadzone|backlash|boucwen)\((?P<signal>d?[xy])\[t(?:-(?P<lag>\d+))?\],"
     r"(?P<parameter>[0-9.eE+-]+)\)(?:\^(?P<power>\d+))?$"
 )
 _WAVE = re.compile(r"^(?P<wave>sin|cos)\(2pi\*(?P<frequency>[0-9.eE+-]+)\*t\)(?:\^(?P<power>\d+))?$")
@@ -65,7 +72,8 @@ class Factor:
 
     ``signal`` is y or x, their first differences dy or dx, or sin or cos; ``function`` is ""
     (none), "abs", "sign", a power law "spow" or "apow" of exponent ``parameter`` (power 1),
-    or, on x alone, "deadzone" or "backlash" of half-width ``parameter``; ``frequency``
+    on x alone "deadzone" or "backlash" of half-width ``parameter``, on y alone "boucwen"
+    saturating at ``parameter`` (power 1); ``frequency``
     (cycles per sample, below 0.5) belongs to sin and cos, whose lag is 0.
     """
 
@@ -103,7 +111,9 @@ class Factor:
             raise InputError(f"{self.function}(…) applies to y, x, dy or dx, not to {self.signal}")
         if self.function in INPUT_PLAYS and self.signal != "x":
             raise InputError(f"{self.function}(…) applies to the input x, not to {self.signal}")
-        if self.function in ("sign", *POWER_LAWS) and self.power > 1:
+        if self.function in OUTPUT_HYSTERESES and self.signal != "y":
+            raise InputError(f"{self.function}(…) applies to the output y, not to {self.signal}")
+        if self.function in ("sign", *POWER_LAWS, *OUTPUT_HYSTERESES) and self.power > 1:
             raise InputError(
                 f"a power of {self.function}(…) is not allowed: write the exponent inside "
                 "(sign(…) is its own power)"
@@ -112,10 +122,11 @@ class Factor:
             raise InputError(
                 f"{self.function}(…) needs an exponent 0 < p <= {MAX_POWER}, got {self.parameter}"
             )
-        if self.function in INPUT_PLAYS and not (0.0 < self.parameter < math.inf):
+        if self.function in (*INPUT_PLAYS, *OUTPUT_HYSTERESES) and not (0.0 < self.parameter < math.inf):
             raise InputError(f"{self.function}(…) needs a finite half-width w > 0, got {self.parameter}")
-        if self.parameter and self.function not in (*POWER_LAWS, *INPUT_PLAYS):
-            raise InputError(f"only {', '.join(POWER_LAWS + INPUT_PLAYS)} take a parameter")
+        with_parameter = POWER_LAWS + INPUT_PLAYS + OUTPUT_HYSTERESES
+        if self.parameter and self.function not in with_parameter:
+            raise InputError(f"only {', '.join(with_parameter)} take a parameter")
 
     @property
     def name(self) -> str:
@@ -123,7 +134,7 @@ class Factor:
             base = f"{self.signal}(2pi*{self.frequency!r}*t)"
         else:
             base = f"{self.signal}[t]" if self.lag == 0 else f"{self.signal}[t-{self.lag}]"
-            if self.function in (*POWER_LAWS, *INPUT_PLAYS):
+            if self.function in (*POWER_LAWS, *INPUT_PLAYS, *OUTPUT_HYSTERESES):
                 base = f"{self.function}({base},{self.parameter!r})"
             elif self.function:
                 base = f"{self.function}({base})"
@@ -174,7 +185,24 @@ class Factor:
             return base - np.clip(base, -self.parameter, self.parameter)
         if self.function == "backlash":
             return play(np.ascontiguousarray(base, dtype=np.float64), self.parameter)
+        if self.function == "boucwen":
+            return bouc_wen(np.ascontiguousarray(base, dtype=np.float64), self.parameter)
         return base
+
+
+@numba.njit(cache=True, nogil=True)
+def bouc_wen(series: np.ndarray, level: float) -> np.ndarray:
+    """The Bouc–Wen variable of a series (n = 1, β = γ = 1/(2·level)), from z = 0."""
+    out = np.zeros_like(series)
+    for t in range(1, series.size):
+        out[t] = bouc_wen_step(out[t - 1], series[t] - series[t - 1], level)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def bouc_wen_step(z: float, step: float, level: float) -> float:
+    """z + Δ − β|Δ|z − γΔ|z| with β = γ = 1/(2·level): z saturates at ±level."""
+    return z + step - (abs(step) * z + step * abs(z)) / (2.0 * level)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -282,7 +310,7 @@ def _parse_factor(part: str, name: str) -> Factor:
     if lagged is None:
         raise InputError(
             f"cannot read term {name!r}: write factors like y[t-1], y[t-2]^3, x[t-4], dy[t-1], "
-            "sign(dy[t-1]), abs(dy[t-1]), spow(y[t-1],0.5), deadzone(x[t-4],100) or "
+            "sign(dy[t-1]), abs(dy[t-1]), spow(y[t-1],0.5), deadzone(x[t-4],100), boucwen(y[t-2],0.05) or "
             "sin(2pi*0.01*t), joined by '*', or '1' for the constant"
         )
     power = int(lagged["power"] or 1)

@@ -12,21 +12,20 @@ from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.refinement import refine_record
 from models.terms import Term, parse_terms
-from simulator.simulate import Effects, Scenario, simulate
+from simulator.simulate import BOUC_WEN_BETA, BOUC_WEN_GAMMA, Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
 
 ESTIMATION, HELD_OUT = 8000, 4000
 
 # One planted effect at a time, sized so that it, not the 200 N force disturbance, dominates the
-# declared model's free-run error. (Bouc–Wen hysteresis on mass 2, "hysteresis2", is not named
-# first yet: the force accumulates its increments and leaves a smooth residual that
-# moving-average noise explains before the increments can.)
+# declared model's free-run error.
 PLANTED = [
     ("output_saturation", "sensor_range=0.08"),
     ("power_law_damping", "power_damping2=1000"),
     ("input_dead_zone", "dead_zone=10000"),
     ("input_backlash", "backlash=5000"),
     ("unmeasured_nonlinearity", "cubic_stiffness1=4e6"),
+    ("hysteresis", "hysteresis2=3e4"),
 ]
 
 
@@ -46,10 +45,10 @@ def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, s
 
 
 def test_estimated_parameters_are_the_planted_ones():
-    """The profile searches find the dead zone's and the backlash's widths and the damping's
-    exponent ½ (to the 4 digits a name keeps, within the disturbance's blur)."""
+    """The profile searches find the dead zone's and the backlash's widths, the damping's
+    exponent ½ and the level 1/(β + γ) = 5 cm the Bouc–Wen variable saturates at."""
     found = {}
-    for spec in ("dead_zone=10000", "backlash=5000", "power_damping2=1000"):
+    for spec in ("dead_zone=10000", "backlash=5000", "power_damping2=1000", "hysteresis2=3e4"):
         record = simulate(Scenario(disturbance_std=200.0, effects=Effects.parse([spec])), ESTIMATION, seed=1)
         report = refine_record(
             record.x, record.y, EXACT_TERMS, (0, ESTIMATION // 2), (ESTIMATION // 2, ESTIMATION)
@@ -59,6 +58,7 @@ def test_estimated_parameters_are_the_planted_ones():
     assert found["dead_zone=10000"] == pytest.approx(10000, rel=0.01)
     assert found["backlash=5000"] == pytest.approx(5000, rel=0.01)
     assert found["power_damping2=1000"] == pytest.approx(0.5, abs=0.01)
+    assert found["hysteresis2=3e4"] == pytest.approx(1 / (BOUC_WEN_BETA + BOUC_WEN_GAMMA), rel=0.02)
 
 
 @pytest.mark.parametrize(
@@ -73,6 +73,8 @@ def test_estimated_parameters_are_the_planted_ones():
         "abs(y[t-2])*dy[t-2]",
         "sign(y[t-3])",
         "y[t-4]^2*dy[t-1]",
+        "boucwen(y[t-2],0.05)",
+        "boucwen(y[t-1],0.25)*x[t-1]",
     ],
 )
 def test_new_term_syntax_round_trips(name: str) -> None:
@@ -91,19 +93,26 @@ NEW_FACTORS = [
     "sign(y[t-1])",
     "deadzone(x[t-1],0.3)",
     "backlash(x[t-2],0.2)",
+    "boucwen(y[t-2],0.4)",
     "x[t-1]",
 ]
 
 
 def reference_free_run(theta, x, y0, limits, saturation) -> np.ndarray:
     """The recursion of NEW_FACTORS written out in Python; backlash by its own play loop
-    started at 0, the input being 0 before the record (as the free run sees it)."""
+    started at 0, the input being 0 before the record (as the free run sees it); the Bouc–Wen
+    variable (β = γ = 1/(2·0.4)) from 0 at the first sample, driven by the simulated output."""
     played, previous = [], 0.0
     for value in x:
         previous = min(max(previous, value - 0.2), value + 0.2)
         played.append(previous)
     state = list(y0)
     reported = list(y0)
+    beta = gamma = 1 / (2 * 0.4)
+    z = [0.0]
+    for t in range(1, len(y0)):
+        step = state[t] - state[t - 1]
+        z.append(z[-1] + step - beta * abs(step) * z[-1] - gamma * step * abs(z[-1]))
     for t in range(len(y0), len(x)):
         s1, s2, s3 = state[t - 1], state[t - 2], state[t - 3]
         d1, d2 = s1 - s2, s2 - s3
@@ -118,12 +127,15 @@ def reference_free_run(theta, x, y0, limits, saturation) -> np.ndarray:
             np.sign(s1),
             x1 - min(max(x1, -0.3), 0.3),
             played[t - 2],
+            z[t - 2],
             x1,
         ]
         value = float(np.dot(theta, phi))
         clipped = min(max(value, limits[0]), limits[1])
         state.append(clipped if saturation == "state" else value)
         reported.append(clipped)
+        step = state[t] - state[t - 1]
+        z.append(z[-1] + step - beta * abs(step) * z[-1] - gamma * step * abs(z[-1]))
     return np.array(reported)
 
 
@@ -131,10 +143,10 @@ def reference_free_run(theta, x, y0, limits, saturation) -> np.ndarray:
 def test_free_run_with_the_new_factors_equals_a_python_recursion(saturation) -> None:
     rng = np.random.default_rng(4)
     x = rng.normal(size=400)
-    theta = np.array([1.2, -0.5, 0.05, 0.03, -0.04, 0.02, 0.01, 0.3, 0.2, 0.5])
+    theta = np.array([1.2, -0.5, 0.02, 0.01, -0.02, 0.01, 0.01, 0.1, 0.1, -0.1, 0.3])
     terms = parse_terms(NEW_FACTORS)
     limits = (-0.8, 0.6)
-    model = NARX(terms, theta, np.zeros((10, 10)), output_limits=limits, saturation=saturation)
+    model = NARX(terms, theta, np.zeros((11, 11)), output_limits=limits, saturation=saturation)
     y0 = np.array([0.1, -0.2, 0.3])
     simulated = model.simulate(x, y0)
     expected = reference_free_run(theta, x, y0, limits, saturation)
