@@ -57,6 +57,9 @@ PLATEAU_SAMPLES = 3
 STIFFNESS_EXPONENTS = (0.2, 2.6)
 DAMPING_EXPONENTS = (0.2, 1.8)
 PROFILE_POINTS = 12
+# Rows a parameter search reads (the first ones): plenty to fix one parameter, or a few, to the
+# digits a term's name keeps, and a long record's search stays as quick as a short one's.
+SEARCH_ROWS = 10_000
 
 
 @dataclass(frozen=True)
@@ -337,9 +340,8 @@ def profile_search(
     """The terms ``build(p)`` for the parameter p in ``bounds`` whose regressors, beside the
     model's, explain most of the residual (rows lag … N−1): a grid of ``PROFILE_POINTS``, then a
     bounded scalar search between the best point's neighbours; p rounded to 4 digits so that
-    the terms' names stay short."""
-    Phi, _ = regressor_matrix(list(terms), x, y, lag)
-    model_basis, _ = linalg.qr(Phi / np.linalg.norm(Phi, axis=0), mode="economic")
+    the terms' names stay short. The search reads the first ``SEARCH_ROWS`` rows."""
+    x, y, residual, model_basis = _search_part(x, y, residual, terms, lag)
 
     def unexplained(p: float) -> float:
         columns, _ = regressor_matrix(list(build(float(np.exp(p) if log_scale else p))), x, y, lag)
@@ -426,10 +428,11 @@ def unmeasured_cube(
     rig, x1 = (m2·ẍ2 + c2·ẋ2 + k2·x2 + k3·x2³)/k2 from mass 2's equation). In y's lags that
     combination is a nearly cancelling one — an acceleration is a second difference — so c is
     sought in the backward differences of y at the oldest lag, each scaled to unit spread, by
-    nonlinear least squares from every sign pattern of equal weights. The cube's expansion is a
+    nonlinear least squares from equal weights of the first eight sign patterns. The cube's expansion is a
     sum of cubics of y[t-m] and dy[t-1] … dy[t-m+1] (the same span as the cross-lag cubics of
     y's lags, far better conditioned), which the model then estimates freely: ``cubics``, less
-    those the model's own terms already span (a pivoted QR decides).
+    those the model's own terms already span (a pivoted QR decides). The search reads the first
+    ``SEARCH_ROWS`` rows.
     """
     oldest = max(f.lag for t in cubics for f in t.factors if f.signal == "y")
     ordered = range(oldest, 0, -1)  # y[t-m] … y[t-1]
@@ -439,9 +442,9 @@ def unmeasured_cube(
     spread = np.std(differences, axis=0)
     if not np.all(spread > 0) or not np.any(residual) or not cubics:
         return (), np.zeros(rows)
-    basis = differences / spread
-    Phi, _ = regressor_matrix(list(terms), x, y, lag)
-    model_basis, _ = linalg.qr(Phi / np.linalg.norm(Phi, axis=0), mode="economic")
+    everywhere = differences / spread
+    x, y, residual, model_basis = _search_part(x, y, residual, terms, lag)
+    basis = everywhere[: len(residual)]
 
     def off_model(columns: np.ndarray) -> np.ndarray:
         return columns - model_basis @ (model_basis.T @ columns)
@@ -471,7 +474,7 @@ def unmeasured_cube(
         fit = optimize.least_squares(misfit, start, jac=jacobian, max_nfev=100)
         if best is None or fit.cost < best.cost:
             best = fit
-    return spanning, cube(best.x)
+    return spanning, (everywhere @ best.x) ** 3
 
 
 def hysteresis_terms(
@@ -484,15 +487,30 @@ def hysteresis_terms(
 ) -> tuple[Term, ...]:
     """boucwen(y[t-k], w) at each lag, the level w estimated between 1 % and 150 % of y's
     standard deviation (on a log scale); none if the model has one already. A force k·z on a
-    coordinate y reaches y through the dynamics, at the model's lags."""
+    coordinate y reaches y through the dynamics, at the model's lags. The forward difference of
+    z overshoots once a step of y exceeds w, so w stays above twice the largest step."""
     scale = float(np.std(y))
-    if not scale > 0 or _has(terms, "y", "boucwen"):
+    low = max(0.01 * scale, 2.0 * float(np.max(np.abs(np.diff(y)), initial=0.0)))
+    if not low < 1.5 * scale or _has(terms, "y", "boucwen"):
         return ()
 
     def build(w: float) -> tuple[Term, ...]:
         return tuple(Term((Factor("y", k, function="boucwen", parameter=w),)) for k in lags)
 
-    return profile_search(build, (0.01 * scale, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
+    return profile_search(build, (low, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
+
+
+def _search_part(
+    x: np.ndarray, y: np.ndarray, residual: np.ndarray, terms: Sequence[Term], lag: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The first ``SEARCH_ROWS`` rows of the record (x and y up to them) and of the residual, the
+    latter made orthogonal to the model's regressors over those rows, with their orthonormal basis."""
+    end = lag + min(len(residual), SEARCH_ROWS)
+    x, y = x[:end], y[:end]
+    Phi, _ = regressor_matrix(list(terms), x, y, lag)
+    model_basis, _ = linalg.qr(Phi / np.linalg.norm(Phi, axis=0), mode="economic")
+    residual = residual[: end - lag]
+    return x, y, residual - model_basis @ (model_basis.T @ residual), model_basis
 
 
 def _has(terms: Sequence[Term], signal: str, function: str) -> bool:
