@@ -18,22 +18,21 @@ from simulator.theory import EXACT_TERMS
 ESTIMATION, HELD_OUT = 8000, 4000
 
 # One planted effect at a time, sized so that it, not the 200 N force disturbance, dominates the
-# declared model's free-run error.
+# declared model's free-run error; with the parameter the loop must estimate for it: the dead
+# zone's and the backlash's half-widths, the damping's exponent ½ and the level 1/(β + γ) the
+# Bouc–Wen variable saturates at, each to 1 % (2 % for the exponent: 0.5 ± 0.01).
 PLANTED = [
-    ("output_saturation", "sensor_range=0.08"),
-    ("power_law_damping", "power_damping2=1000"),
-    ("input_dead_zone", "dead_zone=10000"),
-    ("input_backlash", "backlash=5000"),
-    ("unmeasured_nonlinearity", "cubic_stiffness1=4e6"),
-    ("hysteresis", "hysteresis2=3e4"),
+    ("output_saturation", "sensor_range=0.08", None),
+    ("power_law_damping", "power_damping2=1000", 0.5),
+    ("input_dead_zone", "dead_zone=10000", 10000.0),
+    ("input_backlash", "backlash=5000", 5000.0),
+    ("unmeasured_nonlinearity", "cubic_stiffness1=4e6", None),
+    ("hysteresis", "hysteresis2=3e4", 1 / (BOUC_WEN_BETA + BOUC_WEN_GAMMA)),
 ]
 
 
-@pytest.mark.parametrize(
-    ("effect", "spec"),
-    PLANTED,
-)
-def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, spec):
+@pytest.mark.parametrize(("effect", "spec", "parameter"), PLANTED, ids=[name for name, *_ in PLANTED])
+def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, spec, parameter):
     scenario = Scenario(disturbance_std=200.0, effects=Effects.parse([spec]))
     record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
     report = refine_record(
@@ -42,23 +41,9 @@ def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, s
     names = [e.name for e in report.refinement.effects_added]
     assert names and names[0] == effect, names
     assert report.after.free_run_rms <= report.before.free_run_rms / 2, (report.before, report.after)
-
-
-def test_estimated_parameters_are_the_planted_ones():
-    """The profile searches find the dead zone's and the backlash's widths, the damping's
-    exponent ½ and the level 1/(β + γ) = 5 cm the Bouc–Wen variable saturates at."""
-    found = {}
-    for spec in ("dead_zone=10000", "backlash=5000", "power_damping2=1000", "hysteresis2=3e4"):
-        record = simulate(Scenario(disturbance_std=200.0, effects=Effects.parse([spec])), ESTIMATION, seed=1)
-        report = refine_record(
-            record.x, record.y, EXACT_TERMS, (0, ESTIMATION // 2), (ESTIMATION // 2, ESTIMATION)
-        )
-        first = Term.parse(report.refinement.effects_added[0].terms[0])
-        found[spec] = first.factors[0].parameter
-    assert found["dead_zone=10000"] == pytest.approx(10000, rel=0.01)
-    assert found["backlash=5000"] == pytest.approx(5000, rel=0.01)
-    assert found["power_damping2=1000"] == pytest.approx(0.5, abs=0.01)
-    assert found["hysteresis2=3e4"] == pytest.approx(1 / (BOUC_WEN_BETA + BOUC_WEN_GAMMA), rel=0.02)
+    if parameter is not None:
+        estimated = Term.parse(report.refinement.effects_added[0].terms[0]).factors[0].parameter
+        assert estimated == pytest.approx(parameter, rel=0.02 if effect == "power_law_damping" else 0.01)
 
 
 @pytest.mark.parametrize(
