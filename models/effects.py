@@ -60,6 +60,9 @@ PROFILE_POINTS = 12
 # Rows a parameter search reads (the first ones): plenty to fix one parameter, or a few, to the
 # digits a term's name keeps, and a long record's search stays as quick as a short one's.
 SEARCH_ROWS = 10_000
+# Starting directions of the search for an unmeasured coordinate: sign patterns of equal weights.
+# On the 2-DOF rig the search converges from half of the first eight; four keep it quick.
+CUBE_STARTS = 4
 
 
 @dataclass(frozen=True)
@@ -428,11 +431,11 @@ def unmeasured_cube(
     rig, x1 = (m2·ẍ2 + c2·ẋ2 + k2·x2 + k3·x2³)/k2 from mass 2's equation). In y's lags that
     combination is a nearly cancelling one — an acceleration is a second difference — so c is
     sought in the backward differences of y at the oldest lag, each scaled to unit spread, by
-    nonlinear least squares from equal weights of the first eight sign patterns. The cube's expansion is a
-    sum of cubics of y[t-m] and dy[t-1] … dy[t-m+1] (the same span as the cross-lag cubics of
-    y's lags, far better conditioned), which the model then estimates freely: ``cubics``, less
-    those the model's own terms already span (a pivoted QR decides). The search reads the first
-    ``SEARCH_ROWS`` rows.
+    nonlinear least squares from equal weights of the first ``CUBE_STARTS`` sign patterns. The
+    cube's expansion is a sum of cubics of y[t-m] and dy[t-1] … dy[t-m+1] (the same span as the
+    cross-lag cubics of y's lags, far better conditioned), which the model then estimates
+    freely: ``cubics``, less those the model's own terms already span (a pivoted QR decides).
+    The search reads the first ``SEARCH_ROWS`` rows.
     """
     oldest = max(f.lag for t in cubics for f in t.factors if f.signal == "y")
     ordered = range(oldest, 0, -1)  # y[t-m] … y[t-1]
@@ -467,7 +470,7 @@ def unmeasured_cube(
         return -off_model(3.0 * ((basis @ c) ** 2)[:, None] * basis)
 
     best = None
-    for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=len(ordered) - 1), 8):
+    for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=len(ordered) - 1), CUBE_STARTS):
         start = np.array((1.0, *signs)) / np.sqrt(len(ordered))
         column = cube(start)
         start = start * np.cbrt((target @ column) / (column @ column))
