@@ -154,12 +154,14 @@ def _recursion(
 ) -> None:
     n = out.size
     terms = coefficients.shape[1]
-    # Bouc–Wen variables of the output, one row a factor (unused rows stay zero).
-    hysteretic = np.zeros((function.size, n))
-    for f in range(function.size):
-        if function[f] == 5:
-            for t in range(1, start):
-                hysteretic[f, t] = bouc_wen_step(hysteretic[f, t - 1], out[t] - out[t - 1], parameter[f])
+    # Bouc–Wen variables of the output: one row for each boucwen factor (none for most models).
+    bouc_wen = np.nonzero(function == 5)[0]
+    row = np.full(function.size, -1)
+    row[bouc_wen] = np.arange(bouc_wen.size)
+    hysteretic = np.zeros((bouc_wen.size, n))
+    for i, f in enumerate(bouc_wen):
+        for t in range(1, start):
+            hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], out[t] - out[t - 1], parameter[f])
     for t in range(start, n):
         total = drive[t]
         for j in range(terms):
@@ -167,7 +169,7 @@ def _recursion(
             for f in range(factor_start[j], factor_start[j + 1]):
                 k = factor_lag[f]
                 if function[f] == 5:
-                    value *= hysteretic[f, t - k]
+                    value *= hysteretic[row[f], t - k]
                     continue
                 base = out[t - k] - out[t - k - 1] if difference[f] else out[t - k]
                 if function[f] == 1:
@@ -184,6 +186,5 @@ def _recursion(
         if not abs(total) < DIVERGED:
             return
         out[t] = min(max(total, low), high)
-        for f in range(function.size):
-            if function[f] == 5:
-                hysteretic[f, t] = bouc_wen_step(hysteretic[f, t - 1], out[t] - out[t - 1], parameter[f])
+        for i, f in enumerate(bouc_wen):
+            hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], out[t] - out[t - 1], parameter[f])
