@@ -8,8 +8,9 @@ the response, dy[t-k] = y[t-k] − y[t-k-1].
 Beyond the forces on the measured coordinate, the families name effects on the output side and
 behind the sensor:
 
-- output saturation: plateaus at the record's extremes (an overflowing tank, end stops); the
-  model gains output limits its predictions and free run are clipped to (:func:`output_limits`);
+- output saturation: plateaus at the record's extremes (an overflowing tank, a clipping
+  sensor); the model gains output limits (:func:`output_limits`), of its state or of its sensor,
+  that its predictions and free run are clipped to (:mod:`models.narx`);
 - power laws |y|^p·sign y and |dy|^p·sign dy with p estimated (outflow through an orifice
   ∝ √level, turbulent or aerodynamic damping);
 - an input dead zone or backlash of a width estimated from the data;
@@ -18,8 +19,9 @@ behind the sensor:
   2007, ch. 2) with n = 1, A = 1 and β = γ, discretised by forward differences on y's
   increments; the level ±1/(β+γ) it saturates at is estimated (:func:`hysteresis_terms`);
 - a nonlinear spring on a degree of freedom the sensor does not measure: its coordinate is a
-  linear combination of the measured one's lags, so its cube is a cross-lag cubic
-  y[t-i]·y[t-j]·y[t-k].
+  linear combination of the measured one's lags, so its force is the cube of that combination,
+  fitted to the residual as one regressor (:func:`unmeasured_cube`) and added as the cross-lag
+  cubics that span it.
 
 Parameters estimated from the data (an exponent, a width) are found like a periodic
 disturbance's frequencies: from the residual, by a profile search (:func:`profile_search`)

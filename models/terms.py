@@ -7,8 +7,7 @@ model can carry the effects physics puts into real structures, a factor may also
 - a first difference of a signal, ``dy[t-1]`` = y[t-1] − y[t-2] (a velocity, for damping),
   alone or inside ``abs(…)`` or ``sign(…)``: ``sign(dy[t-1])`` is Coulomb friction,
   ``dy[t-1]*abs(dy[t-1])`` quadratic damping;
-- ``abs(…)`` or ``sign(…)`` of a plain signal too: ``abs(dy[t-1])*y[t-1]`` and
-  ``dy[t-1]*abs(y[t-1])`` are the increments of a Bouc–Wen hysteretic force;
+- ``abs(…)`` or ``sign(…)`` of a plain signal too: ``abs(y[t-1])``, ``sign(x[t-2])``;
 - a signed or absolute fractional power with its exponent after a comma,
   ``spow(y[t-1],0.5)`` = |y[t-1]|^0.5·sign(y[t-1]) (a tank's outflow through an orifice) and
   ``apow(dy[t-1],1.5)`` = |dy[t-1]|^1.5;
