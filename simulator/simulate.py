@@ -39,6 +39,7 @@ EFFECTS: dict[str, tuple[str, str]] = {
     "backlash": ("N", "the actuator's force trails the command through a play of ±size (gear backlash)"),
     "sensor_range": ("m", "the y sensor saturates at ±size: y plateaus at the range ends"),
     "power_damping2": ("N·(s/m)^½", "orifice-like damping c·√|v|·sign v on mass 2"),
+    "hertz_contact2": ("N/m^1.5", "Hertzian contact spring k·|x2|^1.5·sign x2 on mass 2"),
     "hysteresis2": (
         "N/m",
         f"Bouc–Wen hysteretic spring k·z on mass 2, dz = dx2 − β|dx2|z − γ·dx2|z|, β = γ = {1 / 0.1:g}/m",
@@ -68,6 +69,7 @@ class Effects:
     backlash: float = 0.0
     sensor_range: float = 0.0
     power_damping2: float = 0.0
+    hertz_contact2: float = 0.0
     hysteresis2: float = 0.0
     cubic_stiffness1: float = 0.0
 
@@ -113,6 +115,7 @@ class Effects:
                 self.quadratic_stiffness1,
                 self.quadratic_stiffness2,
                 self.power_damping2,
+                self.hertz_contact2,
                 self.hysteresis2,
                 self.cubic_stiffness1,
             )
@@ -229,6 +232,7 @@ def _integrate(p: PhysicalParameters, force: np.ndarray, effects: Effects) -> tu
     cq1, cq2 = effects.quadratic_damping1, effects.quadratic_damping2
     kq1, kq2 = effects.quadratic_stiffness1, effects.quadratic_stiffness2
     kc1, cp2, kh2 = effects.cubic_stiffness1, effects.power_damping2, effects.hysteresis2
+    kp2 = effects.hertz_contact2
     # (u, u_next) = (x1[t], x1[t+1]) and (w, w_next) = (x2[t], x2[t+1]); both start at rest, as
     # does the Bouc–Wen variable z[t] of mass 2's hysteretic spring.
     u = u_next = w = w_next = z = 0.0
@@ -245,6 +249,7 @@ def _integrate(p: PhysicalParameters, force: np.ndarray, effects: Effects) -> tu
                 + cq2 * v2 * abs(v2)
                 + kq2 * w * w
                 + cp2 * math.copysign(math.sqrt(abs(v2)), v2)
+                + kp2 * math.copysign(abs(w) ** 1.5, w)
                 + kh2 * z
             )
             # Bouc–Wen (n = 1) by the same forward difference: dz = dx2 − β|dx2|z − γ·dx2|z|.

@@ -19,11 +19,13 @@ ESTIMATION, HELD_OUT = 8000, 4000
 
 # One planted effect at a time, sized so that it, not the 200 N force disturbance, dominates the
 # declared model's free-run error; with the parameter the loop must estimate for it: the dead
-# zone's and the backlash's half-widths, the damping's exponent ½ and the level 1/(β + γ) the
-# Bouc–Wen variable saturates at, each to 1 % (2 % for the exponent: 0.5 ± 0.01).
+# zone's and the backlash's half-widths, the exponents ½ of the damping and 3/2 of the Hertzian
+# contact, and the level 1/(β + γ) the Bouc–Wen variable saturates at, each to 1 % (2 % for the
+# damping's exponent: 0.5 ± 0.01).
 PLANTED = [
     ("output_saturation", "sensor_range=0.08", None),
     ("power_law_damping", "power_damping2=1000", 0.5),
+    ("power_law_stiffness", "hertz_contact2=5e4", 1.5),
     ("input_dead_zone", "dead_zone=10000", 10000.0),
     ("input_backlash", "backlash=5000", 5000.0),
     ("unmeasured_nonlinearity", "cubic_stiffness1=4e6", None),

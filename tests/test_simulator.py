@@ -348,6 +348,7 @@ def test_every_effect_changes_the_record(baseline) -> None:
         "backlash": "backlash=5000",
         "sensor_range": "sensor_range=0.08",
         "power_damping2": "power_damping2=1000",
+        "hertz_contact2": "hertz_contact2=5e4",
         "hysteresis2": "hysteresis2=3e4",
         "cubic_stiffness1": "cubic_stiffness1=4e6",
     }
@@ -504,6 +505,12 @@ def test_power_law_damping_on_mass2(params) -> None:
     v2 = np.diff(rec.y) / params.ts
     e = exact_narx_residual(rec.x, rec.y, exact_coefficients(params))
     assert_residual_is(mass2_residual(params, -1000.0 * np.sign(v2) * np.sqrt(np.abs(v2)), len(rec.y)), e)
+
+
+def test_hertzian_contact_on_mass2(params) -> None:
+    rec = effect_record("hertz_contact2=5e4")
+    e = exact_narx_residual(rec.x, rec.y, exact_coefficients(params))
+    assert_residual_is(mass2_residual(params, -5e4 * np.sign(rec.y) * np.abs(rec.y) ** 1.5, len(rec.y)), e)
 
 
 def test_bouc_wen_hysteresis_on_mass2(params) -> None:
