@@ -4,22 +4,67 @@ Each family is sized to the model it would extend. The lags span those of the mo
 1 … 4 for y): an effect entering the physics on an unmeasured mass reaches the measured
 response through the same dynamics, at those lags. Velocities enter as first differences of
 the response, dy[t-k] = y[t-k] − y[t-k-1].
+
+Beyond the forces on the measured coordinate, the families name effects on the output side and
+behind the sensor:
+
+- output saturation: plateaus at the record's extremes (an overflowing tank, a clipping
+  sensor); the model gains output limits (:func:`output_limits`), of its state or of its sensor,
+  that its predictions and free run are clipped to (:mod:`models.narx`);
+- power laws |y|^p·sign y and |dy|^p·sign dy with p estimated (outflow through an orifice
+  ∝ √level, turbulent or aerodynamic damping);
+- an input dead zone or backlash of a width estimated from the data;
+- hysteresis through a Bouc–Wen variable of the output: Bouc and Wen's
+  dz = A·dx − β|dx|·z − γ·dx·|z| (Wen 1976; Ikhouane & Rodellar, *Systems with Hysteresis*,
+  2007, ch. 2) with n = 1, A = 1 and β = γ, discretised by forward differences on y's
+  increments; the level ±1/(β+γ) it saturates at is estimated (:func:`hysteresis_terms`);
+- a nonlinear spring on a degree of freedom the sensor does not measure: its coordinate is a
+  linear combination of the measured one's lags, so its force is the cube of that combination,
+  fitted to the residual as one regressor (:func:`unmeasured_cube`) and added as the cross-lag
+  cubics that span it.
+
+Parameters estimated from the data (an exponent, a width) are found like a periodic
+disturbance's frequencies: from the residual, by a profile search (:func:`profile_search`)
+of how much of it the family explains.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from scipy import optimize
+from scipy import linalg, optimize
 
 from models.errors import InputError
 from models.spectrum import excited_intervals, residual_spectrum
 from models.terms import WAVES, Factor, Term, regressor_matrix
 
-EffectKind = Literal["terms", "output_shift", "periodic", "noise"]
+EffectKind = Literal["terms", "output_shift", "periodic", "noise", "estimated", "saturation", "combined"]
+# What an "estimated" effect is: given x, y, the residual over rows lag … N−1, the model's terms
+# and lag, the family's terms with their parameters estimated.
+Finder = Callable[[np.ndarray, np.ndarray, np.ndarray, Sequence[Term], int], tuple[Term, ...]]
+# What a "combined" effect is: from the same arguments, its one regressor over rows lag … N−1
+# and the terms that span it beside the model's.
+Combiner = Callable[
+    [np.ndarray, np.ndarray, np.ndarray, Sequence[Term], int], tuple[tuple[Term, ...], np.ndarray]
+]
+# A plateau is at least this many consecutive samples at the record's maximum (or minimum):
+# a smooth signal visits its extreme once.
+PLATEAU_SAMPLES = 3
+# Exponents of the power laws, clear of the integer laws named by their own families (Coulomb
+# friction at 0, quadratic damping at 2, cubic stiffness and damping at 3) and of the linear 1.
+STIFFNESS_EXPONENTS = (0.2, 2.6)
+DAMPING_EXPONENTS = (0.2, 1.8)
+PROFILE_POINTS = 12
+# Rows a parameter search reads (the first ones): plenty to fix one parameter, or a few, to the
+# digits a term's name keeps, and a long record's search stays as quick as a short one's.
+SEARCH_ROWS = 10_000
+# Starting directions of the search for an unmeasured coordinate: sign patterns of equal weights.
+# On the 2-DOF rig the search converges from half of the first eight; four keep it quick.
+CUBE_STARTS = 4
 
 
 @dataclass(frozen=True)
@@ -36,13 +81,21 @@ class Effect:
       the input does not excite (:func:`periodic_terms`); its ``terms`` are found from the
       residual, so empty here;
     - "noise": moving-average terms e[t-k] of the residual itself, which make the model a
-      NARMAX estimated by extended least squares (:mod:`models.narmax`); no terms either.
+      NARMAX estimated by extended least squares (:mod:`models.narmax`); no terms either;
+    - "estimated": terms with a parameter estimated from the data, found by ``find`` (a
+      :data:`Finder`) from the residual; no terms here;
+    - "saturation": one regressor, the change clipping the prediction to the record's plateaus
+      makes (:func:`saturation_direction`); adding it gives the model output limits, no terms;
+    - "combined": one regressor, a nonlinear combination of the data fitted to the residual by
+      ``combine`` (a :data:`Combiner`) whose expansion its ``terms`` span; adding it adds them.
     """
 
     name: str
     description: str
     terms: tuple[Term, ...]
     kind: EffectKind = "terms"
+    find: Finder | None = field(default=None, compare=False)
+    combine: Combiner | None = field(default=None, compare=False)
 
 
 def linear_terms(ny: int, nx: int, delay: int = 1) -> tuple[Term, ...]:
@@ -67,6 +120,12 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         return tuple(Term((Factor(signal, lag, power),)) for lag in lags)
 
     shorter_delay = [x_lags[0] - 1] if x_lags[0] > 0 else []
+    cube_terms = tuple(
+        Term.of(product)
+        for product in itertools.combinations_with_replacement(
+            [Factor("y", lags_y[-1])] + [Factor("dy", k) for k in lags_y[:-1]], 3
+        )
+    )
     velocity = [Factor("dy", lag) for lag in lags_y]
     effects = [
         Effect("cubic_stiffness", "cubic restoring force: a stiffening spring", powers("y", lags_y, 3)),
@@ -94,6 +153,59 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             powers("x", x_lags, 2) + powers("x", x_lags, 3),
         ),
         Effect(
+            "hysteresis",
+            "a hysteretic restoring force (Bouc–Wen): the hysteretic variable z of y, saturating at "
+            "a level estimated",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: hysteresis_terms(lags_y, x, y, e, terms, lag),
+        ),
+        Effect(
+            "unmeasured_nonlinearity",
+            "a nonlinear spring on a coordinate y does not measure, reaching y through the linear "
+            "dynamics: the cube of a combination of y's lags, as cubics of y[t-m] and dy[t-k]",
+            cube_terms,
+            "combined",
+            combine=lambda x, y, e, terms, lag: unmeasured_cube(cube_terms, x, y, e, terms, lag),
+        ),
+        Effect(
+            "power_law_stiffness",
+            "a restoring force or outflow ∝ |y|^p·sign y, p estimated: a tank draining through an orifice",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: power_law_terms(
+                "y", lags_y, STIFFNESS_EXPONENTS, x, y, e, terms, lag
+            ),
+        ),
+        Effect(
+            "power_law_damping",
+            "damping ∝ |dy|^p·sign dy, p estimated: flow through an orifice, turbulent drag",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: power_law_terms("dy", lags_y, DAMPING_EXPONENTS, x, y, e, terms, lag),
+        ),
+        Effect(
+            "input_dead_zone",
+            "a dead zone in the actuator: no force until the command exceeds a width, estimated",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: input_play_terms("deadzone", x_lags, x, y, e, terms, lag),
+        ),
+        Effect(
+            "input_backlash",
+            "backlash (play) in the actuator's drive, of a width estimated",
+            (),
+            "estimated",
+            lambda x, y, e, terms, lag: input_play_terms("backlash", x_lags, x, y, e, terms, lag),
+        ),
+        Effect(
+            "output_saturation",
+            "the output saturates: plateaus at the record's range ends (overflow, end stops, a "
+            "clipping sensor)",
+            (),
+            "saturation",
+        ),
+        Effect(
             "missing_lags",
             "dynamics beyond the declared lags, or a shorter input delay",
             powers("y", [ny + 1, ny + 2], 1) + powers("x", [x_lags[-1] + 1, *shorter_delay], 1),
@@ -112,13 +224,13 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
 
 def unused(effects: Sequence[Effect], terms: Sequence[Term]) -> list[Effect]:
     """The effects with the terms the model already has left out; those with none left dropped
-    (periodic and noise effects, whose regressors come from the residual, always stay)."""
+    (those whose regressors come from the data or the residual always stay)."""
     present = set(terms)
     kept = []
     for effect in effects:
         new = tuple(t for t in effect.terms if t not in present)
-        if new or effect.kind in ("periodic", "noise"):
-            kept.append(Effect(effect.name, effect.description, new, effect.kind))
+        if new or effect.kind in ("periodic", "noise", "estimated", "saturation"):
+            kept.append(replace(effect, terms=new))
     return kept
 
 
@@ -207,3 +319,214 @@ def periodic_terms(residual: np.ndarray, alpha: float, x: np.ndarray) -> tuple[T
         frequency = float(f"{frequency:.10g}")
         terms += [Term((Factor(wave, 0, frequency=frequency),)) for wave in WAVES]
     return tuple(dict.fromkeys(terms))
+
+
+def output_limits(y: np.ndarray) -> tuple[float, float] | None:
+    """The levels the output saturates at: its maximum (minimum) if at least
+    ``PLATEAU_SAMPLES`` consecutive samples sit exactly there, ±inf for a side without a
+    plateau; None if neither side has one."""
+
+    def plateau(level: float) -> bool:
+        at = np.concatenate(([False], y == level, [False])).astype(np.int8)
+        edges = np.flatnonzero(np.diff(at))
+        return bool(edges.size) and int(np.max(edges[1::2] - edges[::2])) >= PLATEAU_SAMPLES
+
+    low, high = float(np.min(y)), float(np.max(y))
+    limits = (low if plateau(low) else -np.inf, high if plateau(high) else np.inf)
+    return None if limits == (-np.inf, np.inf) or low == high else limits
+
+
+def saturation_direction(prediction: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
+    """clip(ŷ) − ŷ: what clipping the one-step prediction ŷ to the output limits changes. A model
+    whose output saturates there has this regressor with coefficient one."""
+    return np.clip(prediction, *limits) - prediction
+
+
+def profile_search(
+    build: Callable[[float], tuple[Term, ...]],
+    bounds: tuple[float, float],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+    log_scale: bool = False,
+) -> tuple[Term, ...]:
+    """The terms ``build(p)`` for the parameter p in ``bounds`` whose regressors, beside the
+    model's, explain most of the residual (rows lag … N−1): a grid of ``PROFILE_POINTS``, then a
+    bounded scalar search between the best point's neighbours; p rounded to 4 digits so that
+    the terms' names stay short. The search reads the first ``SEARCH_ROWS`` rows."""
+    x, y, residual, model_basis = _search_part(x, y, residual, terms, lag)
+
+    def unexplained(p: float) -> float:
+        columns, _ = regressor_matrix(list(build(float(np.exp(p) if log_scale else p))), x, y, lag)
+        norms = np.linalg.norm(columns, axis=0)
+        if not np.all(np.isfinite(norms)) or not np.all(norms > 0):
+            return float(residual @ residual)
+        columns = columns / norms
+        for _ in range(2):  # Gram–Schmidt twice (see models.refinement)
+            columns = columns - model_basis @ (model_basis.T @ columns)
+        fit, *_ = linalg.lstsq(columns, residual, lapack_driver="gelsd")
+        remaining = residual - columns @ fit
+        return float(remaining @ remaining)
+
+    low, high = (np.log(bounds[0]), np.log(bounds[1])) if log_scale else bounds
+    grid = np.linspace(low, high, PROFILE_POINTS)
+    values = [unexplained(p) for p in grid]
+    best = int(np.argmin(values))
+    refined = optimize.minimize_scalar(
+        unexplained,
+        bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
+        method="bounded",
+        options={"xatol": 1e-3 * (high - low)},
+    )
+    p = float(refined.x) if refined.fun <= values[best] else float(grid[best])
+    return build(float(f"{np.exp(p) if log_scale else p:.4g}"))
+
+
+def power_law_terms(
+    signal: str,
+    lags: Sequence[int],
+    exponents: tuple[float, float],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[Term, ...]:
+    """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated; none if
+    the model has such a law already (one exponent per law)."""
+    if _has(terms, signal, "spow"):
+        return ()
+
+    def build(p: float) -> tuple[Term, ...]:
+        return tuple(Term((Factor(signal, k, function="spow", parameter=p),)) for k in lags)
+
+    return profile_search(build, exponents, x, y, residual, terms, lag)
+
+
+def input_play_terms(
+    function: str,
+    lags: Sequence[int],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[Term, ...]:
+    """deadzone(x[t-k], w) or backlash(x[t-k], w) at the model's input lags, the half-width w
+    estimated between 1 % and 150 % of the input's standard deviation (on a log scale); none if
+    the model has one already."""
+    scale = float(np.std(x))
+    if not scale > 0 or _has(terms, "x", function):
+        return ()
+
+    def build(w: float) -> tuple[Term, ...]:
+        return tuple(Term((Factor("x", k, function=function, parameter=w),)) for k in lags)
+
+    return profile_search(build, (0.01 * scale, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
+
+
+def unmeasured_cube(
+    cubics: Sequence[Term],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[tuple[Term, ...], np.ndarray]:
+    """u[t]³ for the combination u[t] = Σ_k c_k·y[t-k] of the lags whose cube, beside the
+    model's regressors, best explains the residual (rows lag … N−1).
+
+    A spring k·u³ on a coordinate the sensor does not see, u, enters the response through the
+    linear dynamics, and u itself is a linear combination of the response's lags (on the 2-DOF
+    rig, x1 = (m2·ẍ2 + c2·ẋ2 + k2·x2 + k3·x2³)/k2 from mass 2's equation). In y's lags that
+    combination is a nearly cancelling one — an acceleration is a second difference — so c is
+    sought in the backward differences of y at the oldest lag, each scaled to unit spread, by
+    nonlinear least squares from equal weights of the first ``CUBE_STARTS`` sign patterns. The
+    cube's expansion is a sum of cubics of y[t-m] and dy[t-1] … dy[t-m+1] (the same span as the
+    cross-lag cubics of y's lags, far better conditioned), which the model then estimates
+    freely: ``cubics``, less those the model's own terms already span (a pivoted QR decides).
+    The search reads the first ``SEARCH_ROWS`` rows.
+    """
+    oldest = max(f.lag for t in cubics for f in t.factors if f.signal == "y")
+    ordered = range(oldest, 0, -1)  # y[t-m] … y[t-1]
+    rows = len(y) - lag
+    lagged = np.column_stack([y[lag - k : len(y) - k] for k in ordered])
+    differences = np.column_stack([np.diff(lagged, n, axis=1)[:, 0] for n in range(len(ordered))])
+    spread = np.std(differences, axis=0)
+    if not np.all(spread > 0) or not np.any(residual) or not cubics:
+        return (), np.zeros(rows)
+    everywhere = differences / spread
+    x, y, residual, model_basis = _search_part(x, y, residual, terms, lag)
+    basis = everywhere[: len(residual)]
+
+    def off_model(columns: np.ndarray) -> np.ndarray:
+        return columns - model_basis @ (model_basis.T @ columns)
+
+    columns, _ = regressor_matrix(list(cubics), x, y, lag)
+    columns = off_model(columns / np.linalg.norm(columns, axis=0))
+    # The pivots of a pivoted QR depend on the columns' inner products alone: those of R.
+    _, triangle, pivots = linalg.qr(linalg.qr(columns, mode="r")[0], mode="economic", pivoting=True)
+    independent = pivots[np.abs(np.diag(triangle)) > 1e-8 * abs(triangle[0, 0])]
+    spanning = tuple(cubics[i] for i in sorted(independent))
+    target = residual / np.std(residual)
+
+    def cube(c: np.ndarray) -> np.ndarray:
+        return (basis @ c) ** 3
+
+    def misfit(c: np.ndarray) -> np.ndarray:
+        return target - off_model(cube(c))
+
+    def jacobian(c: np.ndarray) -> np.ndarray:
+        return -off_model(3.0 * ((basis @ c) ** 2)[:, None] * basis)
+
+    best = None
+    for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=len(ordered) - 1), CUBE_STARTS):
+        start = np.array((1.0, *signs)) / np.sqrt(len(ordered))
+        column = cube(start)
+        start = start * np.cbrt((target @ column) / (column @ column))
+        fit = optimize.least_squares(misfit, start, jac=jacobian, max_nfev=100)
+        if best is None or fit.cost < best.cost:
+            best = fit
+    return spanning, (everywhere @ best.x) ** 3
+
+
+def hysteresis_terms(
+    lags: Sequence[int],
+    x: np.ndarray,
+    y: np.ndarray,
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[Term, ...]:
+    """boucwen(y[t-k], w) at each lag, the level w estimated between 1 % and 150 % of y's
+    standard deviation (on a log scale); none if the model has one already. A force k·z on a
+    coordinate y reaches y through the dynamics, at the model's lags. The forward difference of
+    z overshoots once a step of y exceeds w, so w stays above twice the largest step."""
+    scale = float(np.std(y))
+    low = max(0.01 * scale, 2.0 * float(np.max(np.abs(np.diff(y)), initial=0.0)))
+    if not low < 1.5 * scale or _has(terms, "y", "boucwen"):
+        return ()
+
+    def build(w: float) -> tuple[Term, ...]:
+        return tuple(Term((Factor("y", k, function="boucwen", parameter=w),)) for k in lags)
+
+    return profile_search(build, (low, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
+
+
+def _search_part(
+    x: np.ndarray, y: np.ndarray, residual: np.ndarray, terms: Sequence[Term], lag: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The first ``SEARCH_ROWS`` rows of the record (x and y up to them) and of the residual, the
+    latter made orthogonal to the model's regressors over those rows, with their orthonormal basis."""
+    end = lag + min(len(residual), SEARCH_ROWS)
+    x, y = x[:end], y[:end]
+    Phi, _ = regressor_matrix(list(terms), x, y, lag)
+    model_basis, _ = linalg.qr(Phi / np.linalg.norm(Phi, axis=0), mode="economic")
+    residual = residual[: end - lag]
+    return x, y, residual - model_basis @ (model_basis.T @ residual), model_basis
+
+
+def _has(terms: Sequence[Term], signal: str, function: str) -> bool:
+    return any(f.signal == signal and f.function == function for t in terms for f in t.factors)

@@ -6,13 +6,24 @@ The model (SPEC §3) is
 
 with φ[t] a vector of monomials of lagged y and x (see :mod:`models.terms`), θ estimated by
 ordinary least squares and e[t] the one-step-ahead prediction error.
+
+A model may have output limits (low, high), where its output saturates, in one of two ways:
+
+- "state": the system's own output is held there — a tank that overflows — so the free run clips
+  each ŷ[t] before it feeds the samples after it, y[t] = clip(φ[t]ᵀθ, low, high);
+- "sensor": the sensor's range ends there, the system goes on beyond it, so the free run is the
+  unclipped recursion with its reported output clipped.
+
+Its one-step predictions are clipped too. Its fit leaves out the equations whose target lies on a
+limit (there φ[t]ᵀθ is only known to lie beyond it) and, for a sensor, those reading a clipped
+sample (it is not the system's output).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -25,6 +36,7 @@ from models.simulation import FreeRun
 from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix, stacked_regressors
 
 DOCUMENT_VERSION = 1
+Saturation = Literal["state", "sensor"]
 
 
 def z_quantile(level: float) -> float:
@@ -43,6 +55,8 @@ class NARX:
     covariance : parameter covariance σ̂²(ΦᵀΦ)⁻¹ (zeros for a theoretical model).
     sigma2 : residual variance σ̂² of the estimation data.
     n_obs : number of equations (rows of Φ) used for estimation.
+    output_limits : (low, high) the output saturates at (±inf for a side without), or None;
+        ``saturation`` says whether the state or the sensor saturates there.
     """
 
     terms: tuple[Term, ...]
@@ -50,6 +64,8 @@ class NARX:
     covariance: np.ndarray
     sigma2: float = 0.0
     n_obs: int = 0
+    output_limits: tuple[float, float] | None = None
+    saturation: Saturation = "state"
 
     @property
     def max_lag(self) -> int:
@@ -75,13 +91,16 @@ class NARX:
         """
         xa, ya = checked_record(x, y, self.max_lag + 1)
         Phi, _ = regressor_matrix(self.terms, xa, ya, t0=t0)
-        return Phi @ self.theta
+        return self._limited(Phi @ self.theta)
 
     def residuals(self, x: ArrayLike, y: ArrayLike, t0: int = 0) -> np.ndarray:
         """One-step-ahead prediction errors e[t] = y[t] − ŷ[t] for t = L … N−1."""
         xa, ya = checked_record(x, y, self.max_lag + 1)
         Phi, target = regressor_matrix(self.terms, xa, ya, t0=t0)
-        return target - Phi @ self.theta
+        return target - self._limited(Phi @ self.theta)
+
+    def _limited(self, output: np.ndarray) -> np.ndarray:
+        return output if self.output_limits is None else np.clip(output, *self.output_limits)
 
     def simulate(self, x: ArrayLike, y_initial: ArrayLike, t0: int = 0) -> np.ndarray:
         """Free-run simulation driven by x, started from the first L samples of ``y_initial``.
@@ -95,11 +114,23 @@ class NARX:
         y0 = np.asarray(y_initial, dtype=np.float64)[:L]
         if y0.size < L:
             raise InputError(f"free-run simulation needs {L} initial output samples, got {y0.size}")
-        return FreeRun.build(self.terms, xa, t0).run(self.theta, y0)
+        return self.run_free(FreeRun.build(self.terms, xa, t0), y0)
+
+    def run_free(self, run: FreeRun, y_initial: np.ndarray, theta: np.ndarray | None = None) -> np.ndarray:
+        """The free run prepared in ``run`` (for these terms) with this model's limits, and its
+        parameters or ``theta``: a state saturates inside the recursion, a sensor clips what
+        it reports."""
+        theta = self.theta if theta is None else theta
+        if self.output_limits is None or self.saturation == "state":
+            return run.run(theta, y_initial, self.output_limits)
+        return np.clip(run.run(theta, y_initial), *self.output_limits)
 
     def to_document(self) -> dict[str, Any]:
-        """A JSON-compatible, versioned description from which :meth:`from_document` rebuilds it."""
-        return {
+        """A JSON-compatible, versioned description from which :meth:`from_document` rebuilds it.
+
+        Output limits appear only when the model has them (a side without a limit as null), so
+        the documents of models without them are those of earlier versions."""
+        document: dict[str, Any] = {
             "kind": "narx",
             "schema_version": DOCUMENT_VERSION,
             "terms": self.term_names,
@@ -108,6 +139,10 @@ class NARX:
             "sigma2": self.sigma2,
             "n_obs": self.n_obs,
         }
+        if self.output_limits is not None:
+            document["output_limits"] = [v if np.isfinite(v) else None for v in self.output_limits]
+            document["saturation"] = self.saturation
+        return document
 
     @classmethod
     def from_document(cls, document: dict[str, Any]) -> NARX:
@@ -117,25 +152,75 @@ class NARX:
         covariance = np.asarray(document["covariance"], dtype=np.float64)
         if theta.shape != (len(terms),) or covariance.shape != (len(terms), len(terms)):
             raise InputError("model document: theta and covariance do not match the terms")
-        return cls(terms, theta, covariance, float(document["sigma2"]), int(document["n_obs"]))
+        limits = document.get("output_limits")
+        saturation = document.get("saturation", "state")
+        if saturation not in get_args(Saturation):
+            raise InputError(f"model document: saturation is 'state' or 'sensor', not {saturation!r}")
+        return cls(
+            terms,
+            theta,
+            covariance,
+            float(document["sigma2"]),
+            int(document["n_obs"]),
+            None if limits is None else checked_limits(limits),
+            saturation,
+        )
+
+
+def checked_limits(limits: Sequence[float | None]) -> tuple[float, float]:
+    """Output limits (low, high) from two numbers, None for a side without one; refused unless
+    low < high."""
+    try:
+        low, high = (
+            default if v is None else float(v) for v, default in zip(limits, (-np.inf, np.inf), strict=True)
+        )
+    except (TypeError, ValueError):
+        raise InputError(f"output limits are two numbers [low, high] or null, got {limits!r}") from None
+    if np.isnan(low) or np.isnan(high) or not low < high:
+        raise InputError(f"output limits need low < high, got {limits!r}")
+    return low, high
 
 
 def fit_narx(
-    records: Iterable[tuple[ArrayLike, ArrayLike]], terms: Sequence[str | Term], t0: int | Sequence[int] = 0
+    records: Iterable[tuple[ArrayLike, ArrayLike]],
+    terms: Sequence[str | Term],
+    t0: int | Sequence[int] = 0,
+    output_limits: tuple[float, float] | None = None,
+    saturation: Saturation = "state",
 ) -> NARX:
     """Estimate a NARX model by OLS from one or more records.
 
     Each record contributes its own equations t = L … N−1, so lags never reach across the
     boundary between two records. Sinusoidal terms count time from sample ``t0`` = 0 of each
     record, unless ``t0`` says the records start later in that time base (one index for all, or
-    one a record).
+    one a record). With ``output_limits`` the model saturates there (its ``saturation`` says
+    how) and the equations :func:`fitted_rows` leaves out are not used.
     """
     parsed = parse_terms(terms)
     L = max_lag(parsed)
     checked = checked_records(records, L + len(parsed) + 1, degree=max_degree(parsed))
     Phi, target, _ = stacked_regressors(parsed, checked, L, t0)
+    if output_limits is not None:
+        kept = np.concatenate([fitted_rows(y, L, output_limits, saturation) for _, y in checked])
+        if kept.sum() <= len(parsed):
+            raise InputError(
+                f"only {int(kept.sum())} equations lie clear of the output limits {output_limits}; "
+                f"{len(parsed)} terms need more"
+            )
+        Phi, target = Phi[kept], target[kept]
     fit = least_squares(Phi, target, [t.name for t in parsed])
-    return NARX(parsed, fit.theta, fit.covariance, fit.sigma2, len(target))
+    return NARX(parsed, fit.theta, fit.covariance, fit.sigma2, len(target), output_limits, saturation)
+
+
+def fitted_rows(y: np.ndarray, lag: int, limits: tuple[float, float], saturation: Saturation) -> np.ndarray:
+    """Which equations t = lag … N−1 a saturating model is fitted on: those whose target is off
+    the limits, and for a saturating sensor those whose lagged outputs are off them too."""
+    on = (y <= limits[0]) | (y >= limits[1])
+    reach = lag if saturation == "sensor" else 0
+    touched = np.zeros(len(y) - lag, dtype=bool)
+    for k in range(reach + 1):
+        touched |= on[lag - k : len(y) - k]
+    return ~touched
 
 
 def check_document(document: dict[str, Any], kind: str) -> None:

@@ -17,7 +17,7 @@ residuals are replaced by a penalty larger than any finite run's, so the search 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -101,7 +101,7 @@ def fit_output_error(
     runs = [(FreeRun.build(start.terms, xa, origin), ya) for (xa, ya), origin in pairs]
 
     def errors(theta: np.ndarray) -> np.ndarray:
-        return np.concatenate([run.run(theta, ya)[L:] - ya[L:] for run, ya in runs])
+        return np.concatenate([start.run_free(run, ya, theta)[L:] - ya[L:] for run, ya in runs])
 
     initial = errors(start.theta)
     if not np.all(np.isfinite(initial)):
@@ -117,9 +117,19 @@ def fit_output_error(
         residuals = errors(theta)
         return np.where(np.isfinite(residuals), residuals, penalty)
 
+    state = start.output_limits if start.saturation == "state" else None
+
     def jacobian(theta: np.ndarray) -> np.ndarray:
-        # Exact sensitivities of the free run (one pass a record); the penalty is flat.
-        blocks = [run.run_with_sensitivities(theta, ya)[1][L:] for run, ya in runs]
+        # Exact sensitivities of the free run (one pass a record); the penalty is flat, and so is
+        # a sensor's reading where it is clipped.
+        blocks = []
+        for run, ya in runs:
+            simulated, sensitivities = run.run_with_sensitivities(theta, ya, state)
+            if start.output_limits is not None and state is None:
+                sensitivities[
+                    (simulated <= start.output_limits[0]) | (simulated >= start.output_limits[1])
+                ] = 0.0
+            blocks.append(sensitivities[L:])
         return np.nan_to_num(np.vstack(blocks), nan=0.0, posinf=0.0, neginf=0.0)
 
     result = optimize.least_squares(
@@ -132,7 +142,7 @@ def fit_output_error(
     n, p = final.size, result.x.size
     sigma2 = float(final @ final) / max(n - p, 1)
     covariance = sigma2 * np.linalg.pinv(result.jac.T @ result.jac)
-    model = NARX(start.terms, result.x, covariance, sigma2, n)
+    model = replace(start, theta=result.x, covariance=covariance, sigma2=sigma2, n_obs=n)
     return OutputErrorFit(
         model, start_rms, float(np.sqrt(np.mean(final**2))), int(result.nfev), int(result.status)
     )

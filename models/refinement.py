@@ -33,16 +33,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import numpy as np
 
 from models.assessment import Assessment, assess, assessment_dict, check_test_length
-from models.effects import Effect, candidate_effects, linear_terms, offset_terms, unused
+from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
 from models.errors import InputError
-from models.narx import NARX
+from models.narx import NARX, Saturation
 from models.output_error import fit_output_error
-from models.scoring import EffectScore, Records, fit_model, score_effects
+from models.scoring import EffectScore, Records, Saturating, fit_model, score_effects
 from models.signals import checked_records
 from models.simulation import FreeRun
 from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
@@ -266,7 +266,14 @@ def check_parts(
 
 
 def _model_dict(model: NARX) -> dict[str, Any]:
-    return {"terms": model.term_names, "theta": model.theta.tolist()}
+    limits = model.output_limits
+    return {
+        "terms": model.term_names,
+        "theta": model.theta.tolist(),
+        # The limits a saturating model clips to (None: none), and whether a state or a sensor does.
+        "output_limits": None if limits is None else [_finite(v) for v in limits],
+        "saturation": None if limits is None else model.saturation,
+    }
 
 
 def _finite(value: float) -> float | None:
@@ -303,43 +310,60 @@ def refine(
     _check_length(records, terms, families)
     fit_part, check_part = split_for_checking(records)
     declared_model, _ = fit_model(records, terms, 0, max_lag(terms))
-    noise_lags = 0
-    check = _check_error(terms, 0, fit_part, check_part)
+    current = Structure(terms)
+    check = _check_error(current, fit_part, check_part)
     rounds: list[Round] = []
     for _ in range(max_rounds):
-        offered = unused([_follow(effect, terms) for effect in families], terms)
+        offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
+        # A saturating model is not offered saturation again.
+        offered = [e for e in offered if not (e.kind == "saturation" and current.saturating is not None)]
         if not offered:
             break
-        scores = score_effects(records, terms, noise_lags, offered, alpha)
+        kinds = {effect.name: effect.kind for effect in offered}
+        scores = score_effects(
+            records, current.terms, current.noise_lags, offered, alpha, saturating=current.saturating
+        )
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
-        decided: tuple[EffectScore, Criterion, float] | None = None
+        decided: tuple[EffectScore, Criterion, Structure, float] | None = None
         for score in sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change):
-            new_terms, new_lags = _with(score, terms, noise_lags)
-            error = _check_error(new_terms, new_lags, fit_part, check_part)
+            error, structure = min(
+                (
+                    (_check_error(option, fit_part, check_part), option)
+                    for option in _with(score, kinds, current, records)
+                ),
+                key=lambda trial: trial[0],
+            )
             if error <= check:
-                decided = (score, "one-step", error)
+                decided = (score, "one-step", structure, error)
                 break
             rejected.append(score.name)
         if decided is None and output_error:
-            ranked = score_effects(records, terms, noise_lags, offered, alpha, rank=True).scores
-            decided = _by_simulation(offered, ranked, terms, noise_lags, fit_part, check_part)
+            ranked = score_effects(
+                records,
+                current.terms,
+                current.noise_lags,
+                offered,
+                alpha,
+                rank=True,
+                saturating=current.saturating,
+            ).scores
+            decided = _by_simulation(offered, ranked, current, fit_part, check_part)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
-        score, criterion, error = decided
-        terms, noise_lags = _with(score, terms, noise_lags)
+        score, criterion, current, error = decided
         step = replace(step, added=score, criterion=criterion, check_rms=(check, error))
         rounds.append(replace(step, rejected=tuple(rejected)))
         check = error
-    refined, noise = fit_model(records, terms, noise_lags, max_lag(terms))
+    refined, noise = fit_model(
+        records, current.terms, current.noise_lags, max_lag(current.terms), saturating=current.saturating
+    )
     estimator: Literal["least squares", "output error"] = "least squares"
     # Least squares is consistent when the noise enters the equation (a force on the structure)
     # and gives the best one-step predictor; output error when the noise is on the measured
     # output. The check blocks tell which simulates better.
-    if output_error and _check_error(terms, noise_lags, fit_part, check_part, tuned=True) < _check_error(
-        terms, noise_lags, fit_part, check_part
-    ):
+    if output_error and _check_error(current, fit_part, check_part, tuned=True) < check:
         tuned = _output_error(refined, records, FINAL_EVALUATIONS)
         if tuned is not refined:
             refined, estimator = tuned, "output error"
@@ -361,7 +385,7 @@ def choose_linear(
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
     fit_part, check_part = split_for_checking(records)
     errors = {
-        (n, d): _check_error(linear_terms(n, n, d), 0, fit_part, check_part, tuned=True)
+        (n, d): _check_error(Structure(linear_terms(n, n, d)), fit_part, check_part, tuned=True)
         for d in (1, 0)
         for n in range(1, max_order + 1)
     }
@@ -390,22 +414,42 @@ def split_for_checking(records: Records) -> tuple[Segments, Segments]:
     return fit, check
 
 
-def _with(score: EffectScore, terms: tuple[Term, ...], noise_lags: int) -> tuple[tuple[Term, ...], int]:
-    """The model's terms and moving-average order once the scored effect is added."""
+@dataclass(frozen=True)
+class Structure:
+    """A model structure as the loop grows it: terms, moving-average order, output saturation."""
+
+    terms: tuple[Term, ...]
+    noise_lags: int = 0
+    saturating: Saturating | None = None
+
+
+def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records: Records) -> list[Structure]:
+    """The structures adding the scored effect may give: one, but two for output saturation
+    (of the state or of the sensor), which adds limits rather than terms."""
+    if kinds.get(score.name) == "saturation":
+        limits = output_limits(np.concatenate([y for _, y in records]))
+        if limits is None:
+            return []
+        return [replace(current, saturating=(limits, how)) for how in get_args(Saturation)]
     if score.noise_lags:
-        return terms, score.noise_lags
-    return terms + parse_terms(score.terms), noise_lags
+        return [replace(current, noise_lags=score.noise_lags)]
+    return [replace(current, terms=current.terms + parse_terms(score.terms))]
 
 
-def _check_error(
-    terms: tuple[Term, ...], noise_lags: int, fit: Segments, check: Segments, tuned: bool = False
-) -> float:
+def _check_error(structure: Structure, fit: Segments, check: Segments, tuned: bool = False) -> float:
     """Free-run RMS over the check blocks of the model fitted on the fit blocks (its parameters
     by output error if ``tuned``); each run starts from its block's first measured outputs.
     Infinite when the fit is impossible or a run diverges."""
-    L = max_lag(terms)
+    L = max_lag(structure.terms)
     try:
-        model, _ = fit_model([(x, y) for x, y, _ in fit], terms, noise_lags, L, [t for *_, t in fit])
+        model, _ = fit_model(
+            [(x, y) for x, y, _ in fit],
+            structure.terms,
+            structure.noise_lags,
+            L,
+            [t for *_, t in fit],
+            structure.saturating,
+        )
         if tuned:
             model = _output_error(model, fit, CHECK_EVALUATIONS)
     except InputError:
@@ -414,7 +458,7 @@ def _check_error(
     for x, y, t0 in check:
         if len(y) <= L:
             continue
-        error = FreeRun.build(model.terms, x, t0).run(model.theta, y)[L:] - y[L:]
+        error = model.run_free(FreeRun.build(model.terms, x, t0), y)[L:] - y[L:]
         squares += float(error @ error)
         count += error.size
     rms = np.sqrt(squares / count) if count else np.inf
@@ -436,35 +480,34 @@ def _output_error(model: NARX, segments: Segments | Records, evaluations: int) -
 def _by_simulation(
     offered: Sequence[Effect],
     scores: Sequence[EffectScore],
-    terms: tuple[Term, ...],
-    noise_lags: int,
+    current: Structure,
     fit: Segments,
     check: Segments,
-) -> tuple[EffectScore, Criterion, float] | None:
+) -> tuple[EffectScore, Criterion, Structure, float] | None:
     """The family added on the simulation error alone, if one lowers the check blocks' free
-    run enough (module docstring, step 4): its score with the terms that won, and the check
-    blocks' free-run RMS with them (least squares, as the other rounds report it)."""
-    trials: list[tuple[float, EffectScore]] = []
+    run enough (module docstring, step 4): its score with the terms that won, the structure, and
+    the check blocks' free-run RMS with it (least squares, as the other rounds report it)."""
+    trials: list[tuple[float, EffectScore, Structure]] = []
     for effect, score in zip(offered, scores, strict=True):
-        if effect.kind in ("noise", "periodic") or not score.ranked:
+        if effect.kind in ("noise", "periodic", "saturation") or not score.ranked:
             continue
-        best: tuple[float, EffectScore] | None = None
+        best: tuple[float, EffectScore, Structure] | None = None
         for k in range(1, len(score.ranked) + 1):
             names = tuple(name for label in score.ranked[:k] for name in label)
-            error = _check_error(terms + parse_terms(names), noise_lags, fit, check)
+            structure = replace(current, terms=current.terms + parse_terms(names))
+            error = _check_error(structure, fit, check)
             if best is None or error < best[0]:
-                best = (error, replace(score, terms=names))
+                best = (error, replace(score, terms=names), structure)
         if best is not None and np.isfinite(best[0]):
             trials.append(best)
     if not trials:
         return None
-    baseline = _check_error(terms, noise_lags, fit, check, tuned=True)
+    baseline = _check_error(current, fit, check, tuned=True)
     # Output error for the two best only: each costs a search, and a family whose least-squares
     # model is far behind does not overtake by its parameters alone.
-    for error, score in sorted(trials, key=lambda trial: trial[0])[:2]:
-        tuned = _check_error(terms + parse_terms(score.terms), noise_lags, fit, check, tuned=True)
-        if tuned <= (1 - SIMULATION_GAIN) * baseline:
-            return score, "simulation", error
+    for error, score, structure in sorted(trials, key=lambda trial: trial[0])[:2]:
+        if _check_error(structure, fit, check, tuned=True) <= (1 - SIMULATION_GAIN) * baseline:
+            return score, "simulation", structure, error
     return None
 
 

@@ -26,12 +26,13 @@ from itertools import pairwise
 import numpy as np
 from scipy import linalg, signal, special
 
-from models.effects import Effect, offset_direction, periodic_terms
+from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
 from models.narmax import fit_narmax, invertible
-from models.narx import NARX, fit_narx
+from models.narx import NARX, Saturation, fit_narx, fitted_rows
 from models.terms import Term, max_lag, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
+Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limits, and how
 NOISE_LAGS_OFFERED = 4  # moving-average lags a round offers beyond those the model has
 # Extended least squares settles in 13–15 iterations on simulated records; on long measured ones
 # its last digits wander for longer without changing what the loop decides.
@@ -76,10 +77,16 @@ class Scores:
 
 
 def fit_model(
-    records: Records, terms: tuple[Term, ...], noise_lags: int, lag: int, t0: Sequence[int] | int = 0
+    records: Records,
+    terms: tuple[Term, ...],
+    noise_lags: int,
+    lag: int,
+    t0: Sequence[int] | int = 0,
+    saturating: Saturating | None = None,
 ) -> tuple[NARX, np.ndarray]:
-    """The model on rows t = lag … N−1 of each record: a NARX, or with ``noise_lags`` a NARMAX's
-    process part and moving-average coefficients."""
+    """The model on rows t = lag … N−1 of each record: a NARX (``saturating`` at its limits, in
+    its way), or with ``noise_lags`` a NARMAX's process part and moving-average coefficients."""
+    limits, saturation = saturating or (None, "state")
     # The fits start a record at the terms' own largest lag; trimming x and y to the common
     # first row makes the model see the same equations as the candidates it is compared with.
     offset = lag - max_lag(terms)
@@ -87,8 +94,8 @@ def fit_model(
     origins = [origin + offset for origin in _origins(t0, len(records))]
     if noise_lags:
         narmax = fit_narmax(trimmed, terms, noise_lags, max_iter=NARMAX_ITERATIONS, t0=origins)
-        return narmax.process, invertible(narmax.noise)
-    return fit_narx(trimmed, terms, t0=origins), np.empty(0)
+        return replace(narmax.process, output_limits=limits, saturation=saturation), invertible(narmax.noise)
+    return fit_narx(trimmed, terms, origins, limits, saturation), np.empty(0)
 
 
 def score_effects(
@@ -98,14 +105,22 @@ def score_effects(
     effects: Sequence[Effect],
     alpha: float,
     rank: bool = False,
+    saturating: Saturating | None = None,
 ) -> Scores:
     """Score each effect against the current model's residual on the estimation records; with
     ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``)."""
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
     Phi, target, starts = stacked_regressors(terms, records, lag)
+    # A saturating model's equations on (or, for a sensor, reading) its limits are left out; the
+    # candidates are built on every row and masked alike.
+    inside = np.ones(target.size, dtype=bool)
+    if saturating is not None:
+        inside = np.concatenate([fitted_rows(y, lag, *saturating) for _, y in records])
+        Phi, target = Phi[inside], target[inside]
+        starts = np.concatenate(([0], np.cumsum([int(inside[a:b].sum()) for a, b in pairwise(starts)])))
     if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
-        process, noise = fit_model(records, terms, noise_lags, lag)
+        process, noise = fit_model(records, terms, noise_lags, lag, saturating=saturating)
         residual = target - Phi @ process.theta
         innovations = np.concatenate(
             [
@@ -120,8 +135,15 @@ def score_effects(
     residual = target - Q @ projection
     theta = (linalg.solve_triangular(R, projection) / scale)[: len(terms)]
     n_obs, n_par = Phi.shape
+    every_row = np.zeros(inside.size)
+    every_row[inside] = residual
+    every_start = stacked_starts(records, lag)
     candidates = [
-        _candidates(e, terms, noise_lags, theta, residual, starts, alpha, records, lag) for e in effects
+        (labels, columns[inside])
+        for labels, columns in (
+            _candidates(e, terms, noise_lags, theta, every_row, every_start, alpha, records, lag)
+            for e in effects
+        )
     ]
     total = sum(columns.shape[1] for _, columns in candidates)
     level = alpha / max(total, 1)
@@ -151,6 +173,11 @@ def score_effects(
             scores[index] = replace(score, noise_lags=noise_lags + 1 + max(chosen) if chosen else 0)
     ordered = [scores[i] for i in range(len(effects))]
     return Scores(float(np.sqrt(np.mean(residual**2))), level, total, tuple(ordered))
+
+
+def stacked_starts(records: Records, lag: int) -> np.ndarray:
+    """Each record's first row among the stacked rows t = lag … N−1 of every record (and the end)."""
+    return np.cumsum([0] + [len(y) - lag for _, y in records])
 
 
 def _origins(t0: Sequence[int] | int, count: int) -> list[int]:
@@ -239,7 +266,28 @@ def _candidates(
     if effect.kind == "noise":
         lags = range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED)
         return [(f"e[t-{k}]",) for k in lags], _lagged(residual, lags, starts)
-    if effect.kind == "periodic":
+    if effect.kind == "saturation":  # one regressor, the clip of the one-step prediction
+        limits = output_limits(np.concatenate([y for _, y in records]))
+        if limits is None:
+            return [], np.empty((len(residual), 0))
+        label = f"output_limits({limits[0]!r},{limits[1]!r})"
+        return [(label,)], saturation_direction(
+            np.concatenate([y[lag:] for _, y in records]) - residual, limits
+        )[:, None]
+    if effect.kind == "combined" and effect.combine is not None:
+        # One regressor fitted to the residual of one record: its combination would not carry
+        # over to another record's rows, so with several records it is not offered.
+        if len(records) > 1:
+            return [], np.empty((len(residual), 0))
+        spanning, column = effect.combine(records[0][0], records[0][1], residual, terms, lag)
+        if not spanning:
+            return [], np.empty((len(residual), 0))
+        return [tuple(t.name for t in spanning)], column[:, None]
+    if effect.kind == "estimated" and effect.find is not None:
+        # Parameters (a power, a width) estimated on the first record, tested on all.
+        x0, y0 = records[0]
+        found = effect.find(x0, y0, residual[: starts[1]], terms, lag)
+    elif effect.kind == "periodic":
         # A sinusoid of t is phase-locked to the record it was found in: with several records and
         # no common time base it would mean nothing on the next one.
         found = periodic_terms(residual, alpha, records[0][0]) if len(records) == 1 else ()

@@ -12,6 +12,8 @@ thousands of runs of the same structure over the same input, so it is split:
   faster than the same loop in Python), run for each θ by :meth:`FreeRun.run`.
 
 A run that leaves ±``DIVERGED`` (or becomes NaN) stops there; the samples from that one on are NaN.
+A run may be given output limits: each ŷ[t] is then clipped to them before it feeds the samples
+after it, as a tank's level stays at its overflow or a mass against its end stop.
 """
 
 from __future__ import annotations
@@ -22,12 +24,12 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from models.terms import Factor, Term, max_lag
+from models.terms import Factor, Term, bouc_wen_step, max_lag
 
 # Free-run outputs beyond this magnitude mean the simulated model has diverged.
 DIVERGED = 1e100
 # How an output factor transforms its value before the power: the codes the kernel knows.
-FUNCTION_CODES = {"": 0, "abs": 1, "sign": 2}
+FUNCTION_CODES = {"": 0, "abs": 1, "sign": 2, "spow": 3, "apow": 4, "boucwen": 5}
 
 
 @dataclass(frozen=True)
@@ -41,8 +43,10 @@ class FreeRun:
     known : (N, R) the non-output part of each autoregressive term (ones if it has none);
         ``recursive_terms`` their indices.
     factor_start : (R + 1,) where each autoregressive term's output factors begin in the
-        flattened ``difference``/``lag``/``function``/``power`` arrays (one entry a factor; a
-        difference factor reads ŷ[t−lag] − ŷ[t−lag−1]).
+        flattened ``difference``/``lag``/``function``/``power``/``parameter`` arrays (one entry a
+        factor; a difference factor reads ŷ[t−lag] − ŷ[t−lag−1]; ``parameter`` is a power law's
+        exponent, a Bouc–Wen variable's saturation level; the kernel runs that variable of ŷ from
+        the first sample on).
     """
 
     n: int
@@ -56,6 +60,7 @@ class FreeRun:
     factor_lag: np.ndarray
     function: np.ndarray
     power: np.ndarray
+    parameter: np.ndarray
 
     @classmethod
     def build(cls, terms: Sequence[Term], x: np.ndarray, t0: int = 0) -> FreeRun:
@@ -100,34 +105,45 @@ class FreeRun:
             factor_lag=np.asarray([f.lag for f in factors], dtype=np.int64),
             function=np.asarray([FUNCTION_CODES[f.function] for f in factors], dtype=np.int64),
             power=np.asarray([f.power for f in factors], dtype=np.int64),
+            parameter=np.asarray([f.parameter for f in factors], dtype=np.float64),
         )
 
-    def run(self, theta: np.ndarray, y_initial: np.ndarray) -> np.ndarray:
+    def run(
+        self, theta: np.ndarray, y_initial: np.ndarray, limits: tuple[float, float] | None = None
+    ) -> np.ndarray:
         """The simulated output for every sample, the first L being ``y_initial``; NaN from the
-        sample where the run diverged on."""
-        out, _ = self._run(theta, y_initial, sensitivities=False)
+        sample where the run diverged on. With ``limits`` = (low, high) every simulated sample
+        is clipped to them."""
+        out, _ = self._run(theta, y_initial, limits, sensitivities=False)
         return out
 
     def run_with_sensitivities(
-        self, theta: np.ndarray, y_initial: np.ndarray
+        self, theta: np.ndarray, y_initial: np.ndarray, limits: tuple[float, float] | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The simulated output and its sensitivities S[t, j] = ∂ŷ[t]/∂θ_j (zero over the first L
-        samples, which are measured), by the recursion
+        samples, which are measured, and where a limit holds ŷ[t]), by the recursion
 
             S[t] = φ[t](ŷ) + Σ_k (∂F/∂ŷ[t−k]) · S[t−k],
 
         with F the model's right-hand side: the Jacobian of the free-run error in one pass, where
-        finite differences would take a run per parameter. Rows from a divergence on are NaN."""
-        out, sensitivities = self._run(theta, y_initial, sensitivities=True)
-        return out, sensitivities
+        finite differences would take a run per parameter. A Bouc–Wen factor's own memory of ŷ is
+        left out of ∂F/∂ŷ (its value enters φ exactly): the Jacobian is then approximate, which
+        slows a search but does not mislead it, since a step is kept only if it lowers the error.
+        Rows from a divergence on are NaN."""
+        return self._run(theta, y_initial, limits, sensitivities=True)
 
     def _run(
-        self, theta: np.ndarray, y_initial: np.ndarray, sensitivities: bool
+        self,
+        theta: np.ndarray,
+        y_initial: np.ndarray,
+        limits: tuple[float, float] | None,
+        sensitivities: bool,
     ) -> tuple[np.ndarray, np.ndarray]:
         out = np.full(self.n, np.nan)
         L = min(self.lag, self.n)
         out[:L] = y_initial[:L]
         S = np.zeros((self.n if sensitivities else 0, theta.size))
+        low, high = limits or (-np.inf, np.inf)
         if self.n > L:
             _recursion(
                 out,
@@ -141,6 +157,9 @@ class FreeRun:
                 self.factor_lag,
                 self.function,
                 self.power,
+                self.parameter,
+                low,
+                high,
                 self.exogenous,
                 self.exogenous_terms,
                 S,
@@ -161,6 +180,9 @@ def _recursion(
     factor_lag: np.ndarray,
     function: np.ndarray,
     power: np.ndarray,
+    parameter: np.ndarray,
+    low: float,
+    high: float,
     exogenous: np.ndarray,
     exogenous_columns: np.ndarray,
     S: np.ndarray,
@@ -174,8 +196,16 @@ def _recursion(
     for f in range(factor_lag.size):
         reach = max(reach, factor_lag[f] + 1 + difference[f])
     slope = np.zeros(reach)  # ∂F/∂ŷ[t−k] at this step
-    bases = np.zeros(factor_lag.size)
+    slopes = np.zeros(factor_lag.size)  # each factor's slope with respect to its base
     values = np.zeros(factor_lag.size)
+    # Bouc–Wen variables of the output: one row for each boucwen factor (none for most models).
+    bouc_wen = np.nonzero(function == 5)[0]
+    row = np.full(function.size, -1)
+    row[bouc_wen] = np.arange(bouc_wen.size)
+    hysteretic = np.zeros((bouc_wen.size, n))
+    for i, f in enumerate(bouc_wen):
+        for t in range(1, start):
+            hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], out[t] - out[t - 1], parameter[f])
     for t in range(start, n):
         total = drive[t]
         slope[:] = 0.0
@@ -184,36 +214,45 @@ def _recursion(
             product = known[t, j]
             for f in range(first, last):
                 k = factor_lag[f]
-                base = out[t - k] - out[t - k - 1] if difference[f] else out[t - k]
+                if function[f] == 5:
+                    values[f] = hysteretic[row[f], t - k]
+                    slopes[f] = 0.0
+                    product *= values[f]
+                    continue
+                raw = out[t - k] - out[t - k - 1] if difference[f] else out[t - k]
+                sign = (raw > 0.0) - (raw < 0.0)
+                base, rate = raw, 1.0  # the transformed value and its slope d(base)/d(raw)
                 if function[f] == 1:
-                    base = abs(base)
+                    base, rate = abs(raw), sign
                 elif function[f] == 2:
-                    base = (base > 0.0) - (base < 0.0)
+                    base, rate = sign, 0.0
+                elif function[f] == 3:
+                    base = sign * abs(raw) ** parameter[f]
+                    rate = parameter[f] * abs(raw) ** (parameter[f] - 1.0) if raw != 0.0 else 0.0
+                elif function[f] == 4:
+                    base = abs(raw) ** parameter[f]
+                    rate = sign * parameter[f] * abs(raw) ** (parameter[f] - 1.0) if raw != 0.0 else 0.0
                 value = 1.0
                 for _ in range(power[f]):
                     value *= base
-                bases[f] = base
+                derivative = power[f] * rate
+                for _ in range(power[f] - 1):
+                    derivative *= base
                 values[f] = value
+                slopes[f] = derivative
                 product *= value
             total += coefficients[j] * product
             if not with_sensitivities:
                 continue
             S[t, columns[j]] = product
             for f in range(first, last):
-                if function[f] == 2:  # sign(…) is flat wherever it is differentiable
+                if slopes[f] == 0.0:
                     continue
                 others = known[t, j]
                 for g in range(first, last):
                     if g != f:
                         others *= values[g]
-                derivative = power[f] * others
-                for _ in range(power[f] - 1):
-                    derivative *= bases[f]
-                if function[f] == 1:  # abs: the base was |v|, whose slope is sign(v)
-                    k = factor_lag[f]
-                    raw = out[t - k] - out[t - k - 1] if difference[f] else out[t - k]
-                    derivative *= (raw > 0.0) - (raw < 0.0)
-                contribution = coefficients[j] * derivative
+                contribution = coefficients[j] * others * slopes[f]
                 slope[factor_lag[f]] += contribution
                 if difference[f]:
                     slope[factor_lag[f] + 1] -= contribution
@@ -221,8 +260,13 @@ def _recursion(
             if with_sensitivities:
                 S[t:, :] = np.nan
             return
-        out[t] = total
+        out[t] = min(max(total, low), high)
+        for i, f in enumerate(bouc_wen):
+            hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], out[t] - out[t - 1], parameter[f])
         if with_sensitivities:
+            if out[t] != total:  # held at a limit: no parameter moves it
+                S[t, :] = 0.0
+                continue
             for e in range(exogenous_columns.size):
                 S[t, exogenous_columns[e]] = exogenous[t, e]
             for k in range(1, reach):

@@ -7,6 +7,21 @@ model can carry the effects physics puts into real structures, a factor may also
 - a first difference of a signal, ``dy[t-1]`` = y[t-1] − y[t-2] (a velocity, for damping),
   alone or inside ``abs(…)`` or ``sign(…)``: ``sign(dy[t-1])`` is Coulomb friction,
   ``dy[t-1]*abs(dy[t-1])`` quadratic damping;
+- ``abs(…)`` or ``sign(…)`` of a plain signal too: ``abs(y[t-1])``, ``sign(x[t-2])``;
+- a signed or absolute fractional power with its exponent after a comma,
+  ``spow(y[t-1],0.5)`` = |y[t-1]|^0.5·sign(y[t-1]) (a tank's outflow through an orifice) and
+  ``apow(dy[t-1],1.5)`` = |dy[t-1]|^1.5;
+- an input through a dead zone or backlash of half-width w, ``deadzone(x[t-4],1500)`` =
+  x − clip(x, −w, w) and ``backlash(x[t-4],1500)``, the output of a play operator of width 2w
+  driven by x (the output stays put until the input has moved w past it, then follows it at
+  that distance). Backlash has memory: it is run over the rows a regressor is computed on,
+  starting with the play centred on the first value, and forgets that start once the input
+  has moved by 2w;
+- the Bouc–Wen hysteretic variable of the output, ``boucwen(y[t-2],0.05)`` = z[t-2] with
+  z[t] = z[t-1] + Δ − β|Δ|·z[t-1] − γ·Δ·|z[t-1]|, Δ = y[t] − y[t-1] and β = γ = 1/(2w), so
+  that z saturates at ±w (Wen 1976, n = 1, discretised by forward differences). Like backlash it
+  is run over the rows it is computed on from z = 0 (the free run: from the record's first
+  sample), and forgets its start at the rate β|Δ|;
 - a sinusoid of the sample index t, ``sin(2pi*0.0125*t)`` or ``cos(…)``, its frequency in
   cycles per sample: a periodic disturbance, phase-locked to the record's first sample.
 
@@ -21,12 +36,18 @@ import re
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from models.errors import InputError
 
 SIGNALS = ("y", "x", "dy", "dx", "sin", "cos")
-FUNCTIONS = ("", "abs", "sign")
+FUNCTIONS = ("", "abs", "sign", "spow", "apow", "deadzone", "backlash", "boucwen")
+# Functions with a parameter after a comma: the exponent of a power, the half-width of a play.
+POWER_LAWS = ("spow", "apow")
+INPUT_PLAYS = ("deadzone", "backlash")
+# Memory operators on the output, with the level they saturate at as their parameter.
+OUTPUT_HYSTERESES = ("boucwen",)
 WAVES = ("sin", "cos")
 # Beyond these a term cannot describe a physical structure, and its regressor would overflow
 # or take unbounded time to build.
@@ -35,6 +56,10 @@ MAX_LAG = 10_000
 _LAGGED = re.compile(
     r"^(?:(?P<function>abs|sign)\((?P<inner>d?[xy])\[t(?:-(?P<inner_lag>\d+))?\]\)"
     r"|(?P<signal>d?[xy])\[t(?:-(?P<lag>\d+))?\])(?:\^(?P<power>\d+))?$"
+)
+_WITH_PARAMETER = re.compile(
+    r"^(?P<function>spow|apow|deadzone|backlash|boucwen)\((?P<signal>d?[xy])\[t(?:-(?P<lag>\d+))?\],"
+    r"(?P<parameter>[0-9.eE+-]+)\)(?:\^(?P<power>\d+))?$"
 )
 _WAVE = re.compile(r"^(?P<wave>sin|cos)\(2pi\*(?P<frequency>[0-9.eE+-]+)\*t\)(?:\^(?P<power>\d+))?$")
 Lagged = Callable[[int], np.ndarray]
@@ -45,8 +70,10 @@ class Factor:
     """One factor of a term: ``function(signal[t-lag])^power``, or a sinusoid of t.
 
     ``signal`` is y or x, their first differences dy or dx, or sin or cos; ``function`` is ""
-    (none), "abs" or "sign" and applies to differences only; ``frequency`` (cycles per sample,
-    below 0.5) belongs to sin and cos, whose lag is 0.
+    (none), "abs", "sign", a power law "spow" or "apow" of exponent ``parameter`` (power 1),
+    on x alone "deadzone" or "backlash" of half-width ``parameter``, on y alone "boucwen"
+    saturating at ``parameter`` (power 1); ``frequency``
+    (cycles per sample, below 0.5) belongs to sin and cos, whose lag is 0.
     """
 
     signal: str
@@ -54,6 +81,7 @@ class Factor:
     power: int = 1
     function: str = ""
     frequency: float = 0.0
+    parameter: float = 0.0
 
     def __post_init__(self) -> None:
         if self.signal not in SIGNALS:
@@ -66,12 +94,7 @@ class Factor:
             raise InputError(f"lag {self.lag} of {self.signal} is not allowed: lags run from 0 to {MAX_LAG}")
         if not 1 <= self.power <= MAX_POWER:
             raise InputError(f"power {self.power} is not allowed: powers are >= 1 and at most {MAX_POWER}")
-        if self.function not in FUNCTIONS:
-            raise InputError(f"unknown function {self.function!r}: use abs or sign")
-        if self.function and self.signal not in ("dy", "dx"):
-            raise InputError(f"{self.function}(…) applies to a difference dy or dx, not to {self.signal}")
-        if self.function == "sign" and self.power > 1:
-            raise InputError("a power of sign(…) is not allowed: it is 1 or sign(…) itself")
+        self._check_function()
         if self.signal in WAVES:
             if self.lag != 0 or not 0.0 < self.frequency < 0.5:
                 raise InputError(
@@ -80,13 +103,40 @@ class Factor:
         elif self.frequency:
             raise InputError(f"only sin and cos have a frequency, not {self.signal}")
 
+    def _check_function(self) -> None:
+        if self.function not in FUNCTIONS:
+            raise InputError(f"unknown function {self.function!r}: use {', '.join(FUNCTIONS[1:])}")
+        if self.function and self.signal in WAVES:
+            raise InputError(f"{self.function}(…) applies to y, x, dy or dx, not to {self.signal}")
+        if self.function in INPUT_PLAYS and self.signal != "x":
+            raise InputError(f"{self.function}(…) applies to the input x, not to {self.signal}")
+        if self.function in OUTPUT_HYSTERESES and self.signal != "y":
+            raise InputError(f"{self.function}(…) applies to the output y, not to {self.signal}")
+        if self.function in ("sign", *POWER_LAWS, *OUTPUT_HYSTERESES) and self.power > 1:
+            raise InputError(
+                f"a power of {self.function}(…) is not allowed: write the exponent inside "
+                "(sign(…) is its own power)"
+            )
+        if self.function in POWER_LAWS and not 0.0 < self.parameter <= MAX_POWER:
+            raise InputError(
+                f"{self.function}(…) needs an exponent 0 < p <= {MAX_POWER}, got {self.parameter}"
+            )
+        if self.function in (*INPUT_PLAYS, *OUTPUT_HYSTERESES) and not (0.0 < self.parameter < math.inf):
+            raise InputError(f"{self.function}(…) needs a finite half-width w > 0, got {self.parameter}")
+        with_parameter = POWER_LAWS + INPUT_PLAYS + OUTPUT_HYSTERESES
+        if self.parameter and self.function not in with_parameter:
+            raise InputError(f"only {', '.join(with_parameter)} take a parameter")
+
     @property
     def name(self) -> str:
         if self.signal in WAVES:
             base = f"{self.signal}(2pi*{self.frequency!r}*t)"
         else:
             base = f"{self.signal}[t]" if self.lag == 0 else f"{self.signal}[t-{self.lag}]"
-            base = f"{self.function}({base})" if self.function else base
+            if self.function in (*POWER_LAWS, *INPUT_PLAYS, *OUTPUT_HYSTERESES):
+                base = f"{self.function}({base},{self.parameter!r})"
+            elif self.function:
+                base = f"{self.function}({base})"
         return base if self.power == 1 else f"{base}^{self.power}"
 
     @property
@@ -114,15 +164,57 @@ class Factor:
             base = lagged(self.lag)
             if not self.plain:
                 base = base - lagged(self.lag + 1)
-            if self.function == "abs":
-                base = np.abs(base)
-            elif self.function == "sign":
-                base = np.sign(base)
+            base = self._transformed(base)
         values = base
         # Repeated products: ~100× faster than numpy's general pow for small powers.
         for _ in range(self.power - 1):
             values = values * base
         return values
+
+    def _transformed(self, base: np.ndarray) -> np.ndarray:
+        if self.function == "abs":
+            return np.abs(base)
+        if self.function == "sign":
+            return np.sign(base)
+        if self.function == "spow":
+            return np.sign(base) * np.abs(base) ** self.parameter
+        if self.function == "apow":
+            return np.abs(base) ** self.parameter
+        if self.function == "deadzone":
+            return base - np.clip(base, -self.parameter, self.parameter)
+        if self.function == "backlash":
+            return play(np.ascontiguousarray(base, dtype=np.float64), self.parameter)
+        if self.function == "boucwen":
+            return bouc_wen(np.ascontiguousarray(base, dtype=np.float64), self.parameter)
+        return base
+
+
+@numba.njit(cache=True, nogil=True)
+def bouc_wen(series: np.ndarray, level: float) -> np.ndarray:
+    """The Bouc–Wen variable of a series (n = 1, β = γ = 1/(2·level)), from z = 0."""
+    out = np.zeros_like(series)
+    for t in range(1, series.size):
+        out[t] = bouc_wen_step(out[t - 1], series[t] - series[t - 1], level)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def bouc_wen_step(z: float, step: float, level: float) -> float:
+    """z + Δ − β|Δ|z − γΔ|z| with β = γ = 1/(2·level): z saturates at ±level."""
+    return z + step - (abs(step) * z + step * abs(z)) / (2.0 * level)
+
+
+@numba.njit(cache=True, nogil=True)
+def play(series: np.ndarray, half_width: float) -> np.ndarray:
+    """The play (backlash) operator: out[0] = series[0], then out[t] stays at out[t−1] unless
+    series[t] has moved more than ``half_width`` from it, and then trails it at that distance."""
+    out = np.empty_like(series)
+    if series.size == 0:
+        return out
+    out[0] = series[0]
+    for t in range(1, series.size):
+        out[t] = min(max(out[t - 1], series[t] - half_width), series[t] + half_width)
+    return out
 
 
 @dataclass(frozen=True)
@@ -133,19 +225,25 @@ class Term:
 
     @classmethod
     def of(cls, factors: Iterable[Factor]) -> Term:
-        powers: dict[tuple[str, int, str, float], int] = {}
+        powers: dict[tuple[str, int, str, float, float], int] = {}
         for factor in factors:
-            key = (factor.signal, factor.lag, factor.function, factor.frequency)
+            key = (factor.signal, factor.lag, factor.function, factor.frequency, factor.parameter)
             powers[key] = powers.get(key, 0) + factor.power
         # y before x, then by lag: matches how the paper writes its regressors.
         ordered = sorted(
             powers.items(),
-            key=lambda item: (SIGNALS.index(item[0][0]), item[0][1], FUNCTIONS.index(item[0][2]), item[0][3]),
+            key=lambda item: (
+                SIGNALS.index(item[0][0]),
+                item[0][1],
+                FUNCTIONS.index(item[0][2]),
+                item[0][3],
+                item[0][4],
+            ),
         )
         return cls(
             tuple(
-                Factor(signal, lag, power, function, frequency)
-                for (signal, lag, function, frequency), power in ordered
+                Factor(signal, lag, power, function, frequency, parameter)
+                for (signal, lag, function, frequency, parameter), power in ordered
             )
         )
 
@@ -187,18 +285,32 @@ def _split_product(text: str) -> list[str]:
 
 
 def _parse_factor(part: str, name: str) -> Factor:
-    power = 1
     if wave := _WAVE.match(part):
         try:
             frequency = float(wave["frequency"])
         except ValueError:
             raise InputError(f"cannot read term {name!r}: {wave['frequency']!r} is not a frequency") from None
         return Factor(wave["wave"], 0, int(wave["power"] or 1), frequency=frequency)
+    if with_parameter := _WITH_PARAMETER.match(part):
+        try:
+            parameter = float(with_parameter["parameter"])
+        except ValueError:
+            raise InputError(
+                f"cannot read term {name!r}: {with_parameter['parameter']!r} is not a number"
+            ) from None
+        return Factor(
+            with_parameter["signal"],
+            int(with_parameter["lag"] or 0),
+            int(with_parameter["power"] or 1),
+            with_parameter["function"],
+            parameter=parameter,
+        )
     lagged = _LAGGED.match(part)
     if lagged is None:
         raise InputError(
             f"cannot read term {name!r}: write factors like y[t-1], y[t-2]^3, x[t-4], dy[t-1], "
-            "sign(dy[t-1]), abs(dy[t-1]) or sin(2pi*0.01*t), joined by '*', or '1' for the constant"
+            "sign(dy[t-1]), abs(dy[t-1]), spow(y[t-1],0.5), deadzone(x[t-4],100), boucwen(y[t-2],0.05) or "
+            "sin(2pi*0.01*t), joined by '*', or '1' for the constant"
         )
     power = int(lagged["power"] or 1)
     if lagged["function"]:

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from models.errors import InputError
+from models.terms import play
 from simulator.physics import (
     FaultMode,
     PhysicalParameters,
@@ -34,7 +35,20 @@ EFFECTS: dict[str, tuple[str, str]] = {
     "offset": ("m", "constant offset of the y sensor"),
     "sine": ("N@Hz", "unmeasured sinusoidal force on mass 1, AMPLITUDE@FREQUENCY"),
     "saturation": ("N", "the actuator clips the applied force at ±size; x records the command"),
+    "dead_zone": ("N", "the actuator applies nothing within ±size of a zero command, command ∓ size beyond"),
+    "backlash": ("N", "the actuator's force trails the command through a play of ±size (gear backlash)"),
+    "sensor_range": ("m", "the y sensor saturates at ±size: y plateaus at the range ends"),
+    "power_damping2": ("N·(s/m)^½", "orifice-like damping c·√|v|·sign v on mass 2"),
+    "hertz_contact2": ("N/m^1.5", "Hertzian contact spring k·|x2|^1.5·sign x2 on mass 2"),
+    "hysteresis2": (
+        "N/m",
+        f"Bouc–Wen hysteretic spring k·z on mass 2, dz = dx2 − β|dx2|z − γ·dx2|z|, β = γ = {1 / 0.1:g}/m",
+    ),
+    "cubic_stiffness1": ("N/m³", "cubic spring k·x1³ on the unmeasured mass 1"),
 }
+# The Bouc–Wen variable z of "hysteresis2" saturates at 1/(β + γ) = 5 cm, within the response's
+# range at the default excitation (std(y) ≈ 8 cm): its loops are wide, not a linear spring.
+BOUC_WEN_BETA = BOUC_WEN_GAMMA = 10.0
 
 
 @dataclass(frozen=True)
@@ -51,6 +65,13 @@ class Effects:
     sine_amplitude: float = 0.0
     sine_frequency: float = 0.0
     saturation: float = 0.0
+    dead_zone: float = 0.0
+    backlash: float = 0.0
+    sensor_range: float = 0.0
+    power_damping2: float = 0.0
+    hertz_contact2: float = 0.0
+    hysteresis2: float = 0.0
+    cubic_stiffness1: float = 0.0
 
     @classmethod
     def parse(cls, specs: Iterable[str]) -> Effects:
@@ -78,8 +99,9 @@ class Effects:
         for key, value in dataclasses.asdict(effects).items():
             if not math.isfinite(value):
                 raise InputError(f"effect {key} must be a finite number, got {value}")
-        if effects.saturation < 0 or effects.sine_frequency < 0:
-            raise InputError("saturation level and sine frequency cannot be negative")
+        for name in ("saturation", "sine_frequency", "dead_zone", "backlash", "sensor_range"):
+            if getattr(effects, name) < 0:
+                raise InputError(f"{name.replace('_', ' ')} cannot be negative")
         return effects
 
     @property
@@ -92,8 +114,22 @@ class Effects:
                 self.quadratic_damping2,
                 self.quadratic_stiffness1,
                 self.quadratic_stiffness2,
+                self.power_damping2,
+                self.hertz_contact2,
+                self.hysteresis2,
+                self.cubic_stiffness1,
             )
         )
+
+    def applied_force(self, command: np.ndarray) -> np.ndarray:
+        """The force the actuator applies for the commanded one: clipped, through a dead zone,
+        through backlash, in that order."""
+        force = np.clip(command, -self.saturation, self.saturation) if self.saturation else command
+        if self.dead_zone:
+            force = force - np.clip(force, -self.dead_zone, self.dead_zone)
+        if self.backlash:
+            force = play(force, self.backlash)
+        return force
 
     def describe(self) -> dict[str, float]:
         return {key: value for key, value in dataclasses.asdict(self).items() if value}
@@ -159,8 +195,7 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
     command = rng.normal(0.0, scenario.excitation_std, total)
     disturbance = rng.normal(0.0, scenario.disturbance_std, total) if scenario.disturbance_std else 0.0
     effects = scenario.effects
-    applied = np.clip(command, -effects.saturation, effects.saturation) if effects.saturation else command
-    force = applied + disturbance
+    force = effects.applied_force(command) + disturbance
     if effects.sine_amplitude:
         time = np.arange(total) * params.ts
         phase = rng.uniform(0, 2 * np.pi)
@@ -173,6 +208,8 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
         x += _measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
     if scenario.y_noise_std:
         y += _measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
+    if effects.sensor_range:
+        y = np.clip(y, -effects.sensor_range, effects.sensor_range)
     return SimulatedRecord(x, y, scenario.fs, scenario, seed)
 
 
@@ -194,8 +231,11 @@ def _integrate(p: PhysicalParameters, force: np.ndarray, effects: Effects) -> tu
     fc1, fc2 = effects.coulomb1, effects.coulomb2
     cq1, cq2 = effects.quadratic_damping1, effects.quadratic_damping2
     kq1, kq2 = effects.quadratic_stiffness1, effects.quadratic_stiffness2
-    # (u, u_next) = (x1[t], x1[t+1]) and (w, w_next) = (x2[t], x2[t+1]); both start at rest.
-    u = u_next = w = w_next = 0.0
+    kc1, cp2, kh2 = effects.cubic_stiffness1, effects.power_damping2, effects.hysteresis2
+    kp2 = effects.hertz_contact2
+    # (u, u_next) = (x1[t], x1[t+1]) and (w, w_next) = (x2[t], x2[t+1]); both start at rest, as
+    # does the Bouc–Wen variable z[t] of mass 2's hysteretic spring.
+    u = u_next = w = w_next = z = 0.0
     for t in range(n):
         out1[t] = u
         out2[t] = w
@@ -203,8 +243,18 @@ def _integrate(p: PhysicalParameters, force: np.ndarray, effects: Effects) -> tu
         w_new = a2 * w_next + b2 * w + c2 * u - d2 * w * w * w
         if state_effects:
             v1, v2 = (u_next - u) / ts, (w_next - w) / ts
-            u_new -= h1 * (fc1 * ((v1 > 0) - (v1 < 0)) + cq1 * v1 * abs(v1) + kq1 * u * u)
-            w_new -= h2 * (fc2 * ((v2 > 0) - (v2 < 0)) + cq2 * v2 * abs(v2) + kq2 * w * w)
+            u_new -= h1 * (fc1 * ((v1 > 0) - (v1 < 0)) + cq1 * v1 * abs(v1) + kq1 * u * u + kc1 * u * u * u)
+            w_new -= h2 * (
+                fc2 * ((v2 > 0) - (v2 < 0))
+                + cq2 * v2 * abs(v2)
+                + kq2 * w * w
+                + cp2 * math.copysign(math.sqrt(abs(v2)), v2)
+                + kp2 * math.copysign(abs(w) ** 1.5, w)
+                + kh2 * z
+            )
+            # Bouc–Wen (n = 1) by the same forward difference: dz = dx2 − β|dx2|z − γ·dx2|z|.
+            step = w_next - w
+            z += step - BOUC_WEN_BETA * abs(step) * z - BOUC_WEN_GAMMA * step * abs(z)
         u, u_next = u_next, u_new
         w, w_next = w_next, w_new
     return np.array(out1), np.array(out2)

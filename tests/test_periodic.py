@@ -156,7 +156,7 @@ def test_the_f16_loop_from_a_linear_model_names_a_nonlinearity_not_periodic_dist
     the multisine's grid."""
     x, y = f16
     declared = linear_terms(10, 10)
-    result = refine(x, y, declared, max_rounds=1)
+    result = refine([(x, y)], declared, max_rounds=1)
     names = [effect.name for effect in result.effects_added]
     kinds = {effect.name: effect.kind for effect in candidate_effects(declared)}
     assert names and kinds[names[0]] == "terms", names
@@ -181,7 +181,7 @@ def test_a_dead_zone_under_a_multisine_is_not_taken_for_tones_but_a_tone_between
     tone = 50.5 / period
     rng = np.random.default_rng(8)
     y = y + 0.2 * np.sin(2 * np.pi * tone * np.arange(n) + 1.0) + 0.01 * rng.normal(size=n)
-    result = refine(x, y, linear_terms(2, 2), max_rounds=2)
+    result = refine([(x, y)], linear_terms(2, 2), max_rounds=2)
     added = {effect.name: wave_frequencies(effect.terms) for effect in result.effects_added}
     assert "periodic_disturbance" in added, list(added)
     (found,) = added["periodic_disturbance"]

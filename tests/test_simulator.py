@@ -344,6 +344,13 @@ def test_every_effect_changes_the_record(baseline) -> None:
         "offset": "offset=0.01",
         "sine": "sine=500@12.5",
         "saturation": "saturation=30000",
+        "dead_zone": "dead_zone=10000",
+        "backlash": "backlash=5000",
+        "sensor_range": "sensor_range=0.08",
+        "power_damping2": "power_damping2=1000",
+        "hertz_contact2": "hertz_contact2=5e4",
+        "hysteresis2": "hysteresis2=3e4",
+        "cubic_stiffness1": "cubic_stiffness1=4e6",
     }
     assert set(specs) == set(EFFECTS)
     for spec in specs.values():
@@ -462,6 +469,73 @@ def test_actuator_saturation(params) -> None:
     assert np.mean(np.abs(x) > 30000.0) == pytest.approx(2 * stats.norm.sf(1.2), abs=0.02)
 
 
+def test_actuator_dead_zone(params) -> None:
+    """The actuator applies x − clip(x, ±w): e[t] = b1·(dz(x) − x)[t−4] = −b1·clip(x, ±w)[t−4]."""
+    rec = effect_record("dead_zone=10000")
+    b1 = exact_coefficients(params)[7]
+    e = exact_narx_residual(rec.x, rec.y, exact_coefficients(params))
+    assert_residual_is(-b1 * np.clip(rec.x[:-4], -10000.0, 10000.0), e)
+
+
+def test_actuator_backlash(params) -> None:
+    """The applied force trails the command through a play of ±w, computed here by its own loop:
+    e[t] = b1·(play(x) − x)[t−4]."""
+    rec = effect_record("backlash=5000")
+    rng = np.random.default_rng(SEED)  # the simulator's command, burn-in included
+    full = rng.normal(0.0, Scenario().excitation_std, N + Scenario().burn_in)
+    applied = [full[0]]
+    for value in full[1:]:
+        applied.append(min(max(applied[-1], value - 5000.0), value + 5000.0))
+    applied = np.array(applied)[Scenario().burn_in :]
+    np.testing.assert_array_equal(full[Scenario().burn_in :], rec.x)
+    b1 = exact_coefficients(params)[7]
+    e = exact_narx_residual(rec.x, rec.y, exact_coefficients(params))
+    assert_residual_is(b1 * (applied - rec.x)[:-4], e)
+    assert np.all(np.abs(applied - rec.x) <= 5000.0 + 1e-9)
+
+
+def test_sensor_range_clips_the_reading_only(baseline) -> None:
+    rec = effect_record("sensor_range=0.08")
+    np.testing.assert_array_equal(rec.y, np.clip(baseline.y, -0.08, 0.08))
+    assert np.mean(np.abs(rec.y) == 0.08) > 0.1  # plateaus, not a rare touch
+
+
+def test_power_law_damping_on_mass2(params) -> None:
+    rec = effect_record("power_damping2=1000")
+    v2 = np.diff(rec.y) / params.ts
+    e = exact_narx_residual(rec.x, rec.y, exact_coefficients(params))
+    assert_residual_is(mass2_residual(params, -1000.0 * np.sign(v2) * np.sqrt(np.abs(v2)), len(rec.y)), e)
+
+
+def test_hertzian_contact_on_mass2(params) -> None:
+    rec = effect_record("hertz_contact2=5e4")
+    e = exact_narx_residual(rec.x, rec.y, exact_coefficients(params))
+    assert_residual_is(mass2_residual(params, -5e4 * np.sign(rec.y) * np.abs(rec.y) ** 1.5, len(rec.y)), e)
+
+
+def test_bouc_wen_hysteresis_on_mass2(params) -> None:
+    """The force −k·z on mass 2, z recomputed from y by its own recursion
+    z[s+1] = z[s] + Δ − β|Δ|z[s] − γΔ|z[s]|, Δ = y[s+1] − y[s], from rest: the record is
+    simulated without burn-in so that its first sample is the simulator's start."""
+    scenario = Scenario(burn_in=0, effects=Effects.parse(["hysteresis2=3e4"]))
+    rec = simulate(scenario, N, seed=SEED)
+    beta = gamma = simulate_module.BOUC_WEN_BETA
+    z = np.zeros(len(rec.y))
+    for s in range(len(rec.y) - 1):
+        step = rec.y[s + 1] - rec.y[s]
+        z[s + 1] = z[s] + step - beta * abs(step) * z[s] - gamma * step * abs(z[s])
+    e = exact_narx_residual(rec.x, rec.y, exact_coefficients(params))
+    assert_residual_is(mass2_residual(params, -3e4 * z, len(rec.y)), e)
+    assert np.max(np.abs(z)) < 1 / (beta + gamma) + 1e-12  # z saturates at 1/(β + γ)
+
+
+def test_cubic_stiffness_on_mass1(params) -> None:
+    rec = effect_record("cubic_stiffness1=4e6")
+    x1, _ = mass1_state(params, rec.y)
+    e = exact_narx_residual(rec.x, rec.y, exact_coefficients(params))
+    assert_residual_is(mass1_residual(params, -4e6 * x1**3, len(rec.y)), e)
+
+
 # ---------------------------------------------------------------- effect parsing
 
 
@@ -494,6 +568,8 @@ def test_parse_effects() -> None:
         ("offset=nan", "must be a finite number"),
         ("coulomb2=inf", "must be a finite number"),
         ("saturation=-5", "cannot be negative"),
+        ("backlash=-1", "backlash cannot be negative"),
+        ("sensor_range=-0.1", "sensor range cannot be negative"),
         ("sine=5@-1", "cannot be negative"),
     ],
 )

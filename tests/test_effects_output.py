@@ -1,0 +1,180 @@
+"""Effects on the output side and behind the sensor: saturation, power laws, an input dead zone
+and backlash, hysteresis, a nonlinear spring on the unmeasured mass — their terms, their free
+run, and the loop naming each when the simulator plants it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.effects import output_limits
+from models.errors import InputError
+from models.narx import NARX, fit_narx
+from models.refinement import refine_record
+from models.terms import Term, parse_terms
+from simulator.simulate import BOUC_WEN_BETA, BOUC_WEN_GAMMA, Effects, Scenario, simulate
+from simulator.theory import EXACT_TERMS
+
+ESTIMATION, HELD_OUT = 8000, 4000
+
+# One planted effect at a time, sized so that it, not the 200 N force disturbance, dominates the
+# declared model's free-run error; with the parameter the loop must estimate for it: the dead
+# zone's and the backlash's half-widths, the exponents ½ of the damping and 3/2 of the Hertzian
+# contact, and the level 1/(β + γ) the Bouc–Wen variable saturates at, each to 1 % (2 % for the
+# damping's exponent: 0.5 ± 0.01).
+PLANTED = [
+    ("output_saturation", "sensor_range=0.08", None),
+    ("power_law_damping", "power_damping2=1000", 0.5),
+    ("power_law_stiffness", "hertz_contact2=5e4", 1.5),
+    ("input_dead_zone", "dead_zone=10000", 10000.0),
+    ("input_backlash", "backlash=5000", 5000.0),
+    ("unmeasured_nonlinearity", "cubic_stiffness1=4e6", None),
+    ("hysteresis", "hysteresis2=3e4", 1 / (BOUC_WEN_BETA + BOUC_WEN_GAMMA)),
+]
+
+
+@pytest.mark.parametrize(("effect", "spec", "parameter"), PLANTED, ids=[name for name, *_ in PLANTED])
+def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, spec, parameter):
+    scenario = Scenario(disturbance_std=200.0, effects=Effects.parse([spec]))
+    record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
+    report = refine_record(
+        record.x, record.y, EXACT_TERMS, (0, ESTIMATION), (ESTIMATION, ESTIMATION + HELD_OUT), fs=record.fs
+    )
+    names = [e.name for e in report.refinement.effects_added]
+    assert names and names[0] == effect, names
+    assert report.after.free_run_rms <= report.before.free_run_rms / 2, (report.before, report.after)
+    if parameter is not None:
+        estimated = Term.parse(report.refinement.effects_added[0].terms[0]).factors[0].parameter
+        assert estimated == pytest.approx(parameter, rel=0.02 if effect == "power_law_damping" else 0.01)
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "spow(y[t-1],0.5)",
+        "apow(dy[t-2],1.5)",
+        "y[t-1]*x[t-1]*apow(dy[t-2],1.5)",
+        "deadzone(x[t-4],1500.0)^3",
+        "backlash(x[t-4],0.25)",
+        "y[t-1]*abs(dy[t-1])",
+        "abs(y[t-2])*dy[t-2]",
+        "sign(y[t-3])",
+        "y[t-4]^2*dy[t-1]",
+        "boucwen(y[t-2],0.05)",
+        "boucwen(y[t-1],0.25)*x[t-1]",
+    ],
+)
+def test_new_term_syntax_round_trips(name: str) -> None:
+    term = Term.parse(name)
+    assert term.name == name
+    assert Term.parse(term.name) == term
+
+
+NEW_FACTORS = [
+    "y[t-1]",
+    "y[t-2]",
+    "spow(y[t-1],0.5)",
+    "apow(dy[t-1],1.5)",
+    "y[t-1]*abs(dy[t-1])",
+    "abs(y[t-2])*dy[t-2]",
+    "sign(y[t-1])",
+    "deadzone(x[t-1],0.3)",
+    "backlash(x[t-2],0.2)",
+    "boucwen(y[t-2],0.4)",
+    "x[t-1]",
+]
+
+
+def reference_free_run(theta, x, y0, limits, saturation) -> np.ndarray:
+    """The recursion of NEW_FACTORS written out in Python; backlash by its own play loop
+    started at 0, the input being 0 before the record (as the free run sees it); the Bouc–Wen
+    variable (β = γ = 1/(2·0.4)) from 0 at the first sample, driven by the simulated output."""
+    played, previous = [], 0.0
+    for value in x:
+        previous = min(max(previous, value - 0.2), value + 0.2)
+        played.append(previous)
+    state = list(y0)
+    reported = list(y0)
+    beta = gamma = 1 / (2 * 0.4)
+    z = [0.0]
+    for t in range(1, len(y0)):
+        step = state[t] - state[t - 1]
+        z.append(z[-1] + step - beta * abs(step) * z[-1] - gamma * step * abs(z[-1]))
+    for t in range(len(y0), len(x)):
+        s1, s2, s3 = state[t - 1], state[t - 2], state[t - 3]
+        d1, d2 = s1 - s2, s2 - s3
+        x1 = x[t - 1]
+        phi = [
+            s1,
+            s2,
+            np.sign(s1) * abs(s1) ** 0.5,
+            abs(d1) ** 1.5,
+            s1 * abs(d1),
+            abs(s2) * d2,
+            np.sign(s1),
+            x1 - min(max(x1, -0.3), 0.3),
+            played[t - 2],
+            z[t - 2],
+            x1,
+        ]
+        value = float(np.dot(theta, phi))
+        clipped = min(max(value, limits[0]), limits[1])
+        state.append(clipped if saturation == "state" else value)
+        reported.append(clipped)
+        step = state[t] - state[t - 1]
+        z.append(z[-1] + step - beta * abs(step) * z[-1] - gamma * step * abs(z[-1]))
+    return np.array(reported)
+
+
+@pytest.mark.parametrize("saturation", ["state", "sensor"])
+def test_free_run_with_the_new_factors_equals_a_python_recursion(saturation) -> None:
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=400)
+    theta = np.array([1.2, -0.5, 0.02, 0.01, -0.02, 0.01, 0.01, 0.1, 0.1, -0.1, 0.3])
+    terms = parse_terms(NEW_FACTORS)
+    limits = (-0.8, 0.6)
+    model = NARX(terms, theta, np.zeros((11, 11)), output_limits=limits, saturation=saturation)
+    y0 = np.array([0.1, -0.2, 0.3])
+    simulated = model.simulate(x, y0)
+    expected = reference_free_run(theta, x, y0, limits, saturation)
+    assert np.any(simulated == limits[1]) and np.any(simulated == limits[0])  # the limits act
+    np.testing.assert_allclose(simulated, expected, rtol=1e-12, atol=1e-14)
+
+
+def test_output_limits_are_the_plateaus() -> None:
+    y = np.sin(np.linspace(0, 20, 2000)) * 1.3
+    assert output_limits(y) is None  # a smooth signal touches its extremes once
+    assert output_limits(np.clip(y, -2.0, 1.0)) == (-np.inf, 1.0)
+    assert output_limits(np.clip(y, -0.5, 1.0)) == (-0.5, 1.0)
+
+
+def test_a_saturating_model_document_round_trips_and_old_documents_read_as_none() -> None:
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects.parse(["sensor_range=0.08"])), 4000, seed=2
+    )
+    limits = output_limits(record.y)
+    model = fit_narx([(record.x, record.y)], EXACT_TERMS, output_limits=limits, saturation="sensor")
+    document = model.to_document()
+    assert document["output_limits"] == [-0.08, 0.08] and document["saturation"] == "sensor"
+    again = NARX.from_document(document)
+    assert again.output_limits == limits and again.saturation == "sensor"
+    np.testing.assert_array_equal(again.simulate(record.x, record.y), model.simulate(record.x, record.y))
+    plain = fit_narx([(record.x, record.y)], EXACT_TERMS).to_document()
+    assert "output_limits" not in plain and NARX.from_document(plain).output_limits is None
+    with pytest.raises(InputError, match="low < high"):
+        NARX.from_document(document | {"output_limits": [0.1, -0.1]})
+    with pytest.raises(InputError, match="'state' or 'sensor'"):
+        NARX.from_document(document | {"saturation": "valve"})
+
+
+def test_a_sensor_fit_leaves_out_the_equations_clipping_corrupts() -> None:
+    """On a clipped record with no disturbance, the equations clear of the plateaus are exact:
+    the sensor-saturating fit recovers the exact NARX's coefficients, the plain fit does not."""
+    record = simulate(Scenario(effects=Effects.parse(["sensor_range=0.08"])), 6000, seed=3)
+    clean = simulate(Scenario(), 6000, seed=3)
+    exact = fit_narx([(clean.x, clean.y)], EXACT_TERMS).theta
+    limits = output_limits(record.y)
+    sensor = fit_narx([(record.x, record.y)], EXACT_TERMS, output_limits=limits, saturation="sensor").theta
+    plain = fit_narx([(record.x, record.y)], EXACT_TERMS).theta
+    np.testing.assert_allclose(sensor, exact, rtol=1e-6)
+    assert not np.allclose(plain, exact, rtol=1e-2)
