@@ -50,9 +50,12 @@ from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 DEFAULT_ALPHA = 0.01
 MAX_ROUNDS = 10
 # A family added on the simulation error alone must lower the check blocks' free-run RMS by this
-# share at least: SEMP's threshold (Piroddi & Spinelli 2003), here relative, so that the
-# sampling noise of the comparison cannot add terms to a model that needs none.
-SIMULATION_GAIN = 0.05
+# share at least: SEMP's threshold (Piroddi & Spinelli 2003), here relative. Where an unmeasured
+# force drives much of the output, the free run over a few thousand check samples is a noisy
+# figure: on clean records of the 2-DOF rig (800 N disturbance) families of no effect lowered it
+# by up to 8 % by chance; the effects the one-step residual misses (a plateau, a drain) take far
+# more off it.
+SIMULATION_GAIN = 0.2
 # Each record is cut into 3·CHECK_BLOCKS blocks, every third one a check block: fit and check
 # parts cover the whole record alike (a sine sweep's frequencies, a growing amplitude).
 CHECK_BLOCKS = 3
