@@ -197,22 +197,61 @@ SampleIndex = Annotated[StrictInt, Field(ge=0, le=2**31 - 1)]
 SampleRange = Annotated[list[SampleIndex], Field(min_length=2, max_length=2, description="[first, end)")]
 
 
-class RefinementCreate(Strict):
-    """Refine a baseline version on a stored record: the record's estimation samples [a, b) fit,
-    its test samples [c, d) judge (default: the first two thirds and the last third)."""
+MAX_REFINEMENT_RECORDS = 100  # of each kind: the cells bound limits their total length as well
 
-    record_id: Id
+
+class RefinementCreate(Strict):
+    """Refine a baseline version on stored records. On one record (``record_id``): its
+    estimation samples [a, b) fit, its test samples [c, d) judge (default: the first two thirds
+    and the last third). On several (``record_ids``): all of them fit at once, and each of
+    ``test_record_ids`` is judged whole; ``transient`` samples are dropped at the start of each."""
+
+    record_id: Id | None = None
+    record_ids: Annotated[list[Id], Field(min_length=1, max_length=MAX_REFINEMENT_RECORDS)] | None = None
+    test_record_ids: Annotated[list[Id], Field(min_length=1, max_length=MAX_REFINEMENT_RECORDS)] | None = None
     base_model_id: Id
     estimation: SampleRange | None = None
     test: SampleRange | None = None
+    transient: Annotated[StrictInt, Field(ge=0, le=10_000_000)] = 0
     initial: Annotated[StrictInt, Field(ge=0, le=100_000)] = 0
     alpha: Annotated[FiniteFloat, Field(gt=0, lt=1)] = 0.01
 
+    @model_validator(mode="after")
+    def _one_protocol(self) -> RefinementCreate:
+        if (self.record_id is None) == (self.record_ids is None):
+            raise ValueError("give record_id (one record, with estimation and test parts) or record_ids")
+        if self.record_ids is None:
+            if self.test_record_ids is not None or self.transient:
+                raise ValueError(
+                    "test_record_ids and transient go with record_ids; on one record, give its "
+                    "estimation and test parts"
+                )
+        elif self.test_record_ids is None:
+            raise ValueError("with record_ids, give test_record_ids: the records the models are judged on")
+        elif self.estimation is not None or self.test is not None:
+            raise ValueError(
+                "estimation and test parts go with record_id; record_ids are fitted whole (drop their "
+                "start with transient)"
+            )
+        return self
+
+    @property
+    def estimation_record_ids(self) -> list[int]:
+        if self.record_ids is not None:
+            return self.record_ids
+        assert self.record_id is not None  # one of the two, as the validator checks
+        return [self.record_id]
+
 
 class RefinementOut(BaseModel):
+    """``record_id`` is the first of ``record_ids``, the records fitted; ``test_record_ids`` are
+    those judged whole (none when a test part of the one record judged)."""
+
     id: int
     structure_id: int
     record_id: int
+    record_ids: list[int]
+    test_record_ids: list[int]
     base_model: ModelRef
     refined_model: ModelRef | None
     created_at: dt.datetime

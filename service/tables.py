@@ -203,11 +203,12 @@ class VerdictModel(Base):
 
 
 class Refinement(Base):
-    """One pass of the refinement loop on a stored record, starting from a baseline version.
+    """One pass of the refinement loop on stored records, starting from a baseline version.
 
-    ``refined_model_id`` names the new, inactive version the effects it added produced (None when
-    no effect was significant); ``report`` holds the effects with their evidence and the held-out
-    errors before and after.
+    ``records`` lists the records it was fitted on and those it was judged on, whole;
+    ``record_id`` is the first record fitted. ``refined_model_id`` names the new, inactive
+    version the effects it added produced (None when no effect was significant); ``report``
+    holds the effects with their evidence and the held-out errors before and after.
     """
 
     __tablename__ = "refinements"
@@ -224,6 +225,29 @@ class Refinement(Base):
 
     base_model: Mapped[ModelVersion] = relationship(foreign_keys=[base_model_id])
     refined_model: Mapped[ModelVersion | None] = relationship(foreign_keys=[refined_model_id])
+    records: Mapped[list[RefinementRecord]] = relationship(
+        order_by="RefinementRecord.position", cascade="all, delete-orphan"
+    )
+
+    def record_ids_of(self, role: str) -> list[int]:
+        """The ids of the records in ``role`` ("estimation" or "test"), in the order given."""
+        return [r.record_id for r in self.records if r.role == role]
+
+
+class RefinementRecord(Base):
+    """A record a refinement was fitted on (``role`` "estimation") or judged on, whole ("test"),
+    at its ``position`` in the request's list of its role."""
+
+    __tablename__ = "refinement_records"
+
+    refinement_id: Mapped[int] = mapped_column(
+        ForeignKey("refinements.id", ondelete="CASCADE"), primary_key=True
+    )
+    record_id: Mapped[int] = mapped_column(
+        ForeignKey("records.id", ondelete="CASCADE"), primary_key=True, index=True
+    )
+    role: Mapped[str] = mapped_column(String(16))
+    position: Mapped[int] = mapped_column(Integer)
 
 
 class Job(Base):

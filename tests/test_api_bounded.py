@@ -241,6 +241,42 @@ def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(b
         assert refined() == [refinement], "the job run again stored a second refinement"
 
 
+def test_a_refinement_on_several_records_is_priced_on_all_of_them(bounded: Bounded):
+    """The records judged cost too: 2000 samples fitted (70 000 cells alone) with 4000 judged is
+    6000 × 35 = 210 000 cells, over the limit; 2000 + 700 fitted with 1000 judged, 129 500 cells,
+    is queued though no record alone would be, and the job stores every record's role."""
+    with clients(bounded.org) as (admin, ingest, viewer):
+        baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
+        assert baseline.status_code == 201, baseline.text
+        base = baseline.json()["id"]
+        with nothing_written(bounded.org, bounded.rig):
+            body = {"record_ids": [bounded.record[2000]], "test_record_ids": [bounded.record[4000]]}
+            response = admin.post(
+                f"{API}/structures/{bounded.rig}/refinements", json=body | {"base_model_id": base}
+            )
+            assert_refused(response, 422, "this refinement would fit 210000 cells")
+        judged = post_record(ingest, bounded.rig, json_body(1000, seed=77))
+        assert judged.status_code == 201, judged.text
+        body = {
+            "record_ids": [bounded.record[2000], bounded.record[700]],
+            "test_record_ids": [judged.json()["id"]],
+            "base_model_id": base,
+        }
+        job_id = assert_queued(admin.post(f"{API}/structures/{bounded.rig}/refinements", json=body))
+
+        def refined() -> list[dict]:
+            listed = viewer.get(f"{API}/structures/{bounded.rig}/refinements").json()
+            return [r for r in listed if r["test_record_ids"] == body["test_record_ids"]]
+
+        (refinement,) = wait_for(refined, 120, "the queued refinement")
+        assert (
+            refinement["record_ids"] == body["record_ids"] and refinement["record_id"] == bounded.record[2000]
+        )
+        assert [test["record_id"] for test in refinement["report"]["tests"]] == body["test_record_ids"]
+        run_again(bounded.server, job_id)
+        assert refined() == [refinement], "the job run again stored a second refinement"
+
+
 def test_what_queued_work_would_fail_on_is_refused_before_it_is_queued(bounded: Bounded):
     record = bounded.record[15_000]  # large enough to be queued
     fault_mode = {"k_min": -32.0, "k_max": 32.0, "experiments": [{"record_id": record, "k": 0.0}] * 2}

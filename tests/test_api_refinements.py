@@ -21,10 +21,13 @@ from api_helpers import (
 )
 from live import LiveServer
 
-from simulator.simulate import Effects, Scenario, simulate
+from models.narx import fit_narx
+from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
 
 SAMPLES = 12_000
+SHORT = 6000  # the records of refinements on several records
 UNKNOWN = 10**6
+QUADRATIC = ["quadratic_stiffness2=3e5"]
 
 
 @dataclass
@@ -36,12 +39,26 @@ class Rig:
     clean_record: int
     effect_record: int
     other_structure_record: int
+    # Records of the quadratic spring for refinements on several records: two fitted, two judged.
+    fitted: list[int]
+    judged: list[int]
+    signals: dict[int, tuple[np.ndarray, np.ndarray]]
+    other_rate_record: int  # of a structure monitored at 1000 Hz
+
+
+def simulated(effects: list[str], seed: int, n: int = SAMPLES) -> SimulatedRecord:
+    scenario = Scenario(disturbance_std=200.0, effects=Effects.parse(effects))
+    return simulate(scenario, n, np.random.SeedSequence(seed))
 
 
 def upload(ingest: httpx.Client, structure_id: int, effects: list[str], seed: int) -> int:
-    scenario = Scenario(disturbance_std=200.0, effects=Effects.parse(effects))
-    record = simulate(scenario, SAMPLES, np.random.SeedSequence(seed))
-    body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+    return upload_record(ingest, structure_id, simulated(effects, seed))
+
+
+def upload_record(
+    ingest: httpx.Client, structure_id: int, record: SimulatedRecord, fs: float | None = None
+) -> int:
+    body = npz_bytes(x=record.x, y=record.y, fs=fs or record.fs)
     response = post_record(ingest, structure_id, body, "application/x-npz")
     assert response.status_code == 201, response.text
     return response.json()["id"]
@@ -60,14 +77,21 @@ def rig(api_server: LiveServer) -> Rig:
         baseline = response.json()
         k2 = train_fault_mode(admin, ingest, structure_id, "k2", seed=2)
         other = create_structure(admin, "other")["id"]
+        slower = create_structure(admin, "slower", fs=1000.0)["id"]
+        short = {seed: simulated(QUADRATIC, seed, SHORT) for seed in (11, 12, 13, 14)}
+        ids = {seed: upload_record(ingest, structure_id, record) for seed, record in short.items()}
         return Rig(
             org,
             structure_id,
             baseline,
             k2,
             clean_record=upload(ingest, structure_id, [], seed=3),
-            effect_record=upload(ingest, structure_id, ["quadratic_stiffness2=3e5"], seed=4),
+            effect_record=upload(ingest, structure_id, QUADRATIC, seed=4),
             other_structure_record=upload(ingest, other, [], seed=5),
+            fitted=[ids[11], ids[12]],
+            judged=[ids[13], ids[14]],
+            signals={ids[seed]: (record.x, record.y) for seed, record in short.items()},
+            other_rate_record=upload_record(ingest, slower, simulated([], 6, SHORT), fs=1000.0),
         )
 
 
@@ -157,3 +181,114 @@ def test_roles_and_organisations(rig: Rig, api_server: LiveServer):
         assert viewer.get(f"{API}/refinements/{refinement_id}").status_code == 404
     with clients(rig.org) as (_, _, viewer):
         assert viewer.get(f"{API}/refinements/{UNKNOWN}").status_code == 404
+
+
+def test_several_records_are_fitted_at_once_and_each_test_record_judged_whole(rig: Rig):
+    body = {
+        "record_ids": rig.fitted,
+        "test_record_ids": rig.judged,
+        "base_model_id": rig.baseline["id"],
+        "transient": 500,
+        "initial": 10,
+    }
+    with clients(rig.org) as (admin, _, viewer):
+        response = admin.post(refinements_url(rig.structure_id), json=body)
+        assert response.status_code == 201, response.text
+        refinement = response.json()
+        assert refinement["record_ids"] == rig.fitted and refinement["test_record_ids"] == rig.judged
+        assert refinement["record_id"] == rig.fitted[0]
+        report = refinement["report"]
+        assert report["data"] | {"job": None} == {
+            "record_ids": rig.fitted,
+            "test_record_ids": rig.judged,
+            "transient": 500,
+            "initial": 10,
+            "alpha": 0.01,
+            "job": None,
+        }
+        # The base model's structure fitted on both records at once, their transients dropped:
+        # least squares on the two, computed here from the simulated signals.
+        declared = fit_narx(
+            [(x[500:], y[500:]) for x, y in (rig.signals[i] for i in rig.fitted)], rig.baseline["terms"]
+        )
+        np.testing.assert_allclose(report["declared"]["theta"], declared.theta, rtol=1e-9)
+        # Each test record judged whole (after its transient), its free run from 10 measured outputs.
+        assert [(t["record_id"], t["samples"]) for t in report["tests"]] == [
+            (i, [0, SHORT - 500]) for i in rig.judged
+        ]
+        for test, record_id in zip(report["tests"], rig.judged, strict=True):
+            x, y = (signal[500:] for signal in rig.signals[record_id])
+            start = 10 - declared.max_lag
+            run = declared.simulate(x[start:], y[start:])[declared.max_lag :]
+            assert test["before"]["free_run_rms"] == pytest.approx(
+                np.sqrt(np.mean((run - y[10:]) ** 2)), rel=1e-9
+            )
+            assert test["after"]["one_step_rms"] <= test["before"]["one_step_rms"] / 2
+        assert report["effects_added"][0]["name"] == "quadratic_stiffness"
+        assert all(effect["decided_by"] in ("one-step", "simulation") for effect in report["effects_added"])
+        models = {m["id"]: m for m in viewer.get(f"{API}/structures/{rig.structure_id}/models").json()}
+        training = models[refinement["refined_model"]["id"]]["training"]
+        assert training["record_ids"] == rig.fitted and training["transient"] == 500
+        assert training["estimator"] == report["refined"]["estimator"]
+        assert viewer.get(f"{API}/refinements/{refinement['id']}").json() == refinement
+
+
+@pytest.mark.parametrize(
+    ("change", "status", "fragment"),
+    [
+        ({"record_ids": ["fitted", UNKNOWN]}, 404, f"record {UNKNOWN}"),
+        ({"test_record_ids": [UNKNOWN]}, 404, f"record {UNKNOWN}"),
+        ({"test_record_ids": ["other"]}, 422, "belongs to another structure"),
+        ({"record_ids": ["other rate"]}, 422, "belongs to another structure"),
+        ({"test_record_ids": ["fitted"]}, 422, "is listed to fit and to judge"),
+        ({"record_ids": ["fitted", "fitted"]}, 422, "is listed 2 times; list each record once"),
+        ({"test_record_ids": None}, 422, "give test_record_ids"),
+        ({"estimation": [0, 3000]}, 422, "estimation and test parts go with record_id"),
+        ({"record_id": "fitted"}, 422, "give record_id (one record"),
+        ({"record_ids": None}, 422, "give record_id (one record"),
+        ({"transient": SHORT}, 422, f"has {SHORT} samples; the transient drops {SHORT}"),
+        ({"transient": SHORT - 100}, 422, "test record"),
+        ({"test_record_ids": []}, 422, "test_record_ids"),
+    ],
+)
+def test_bad_requests_on_several_records_are_refused_and_write_nothing(rig: Rig, change, status, fragment):
+    named = {
+        "fitted": rig.fitted[0],
+        "other": rig.other_structure_record,
+        "other rate": rig.other_rate_record,
+    }
+
+    def resolve(value):
+        if isinstance(value, list):
+            return [named.get(item, item) if isinstance(item, str) else item for item in value]
+        return named.get(value, value) if isinstance(value, str) else value
+
+    body = {"record_ids": rig.fitted, "test_record_ids": rig.judged, "base_model_id": rig.baseline["id"]}
+    body = {
+        key: value
+        for key, value in (body | {k: resolve(v) for k, v in change.items()}).items()
+        if value is not None
+    }
+    with nothing_written(rig.org, rig.structure_id), clients(rig.org) as (admin, _, _):
+        response = admin.post(refinements_url(rig.structure_id), json=body)
+        assert response.status_code == status, response.text
+        assert fragment in detail(response)
+
+
+def test_another_organisations_records_are_never_seen(rig: Rig, api_server: LiveServer):
+    """A record of another organisation is answered as one that does not exist, either way."""
+    stranger = Org.create(api_server)
+    with clients(stranger) as (admin, ingest, _):
+        own = create_structure(admin, "stranger's rig")["id"]
+        theirs = upload_record(ingest, own, simulated(QUADRATIC, 15, SHORT))
+        baseline = admin.post(f"{API}/structures/{own}/models/baseline", json={"record_ids": [theirs]}).json()
+        body = {"record_ids": [theirs], "test_record_ids": [rig.judged[0]], "base_model_id": baseline["id"]}
+        with nothing_written(stranger, own):
+            response = admin.post(refinements_url(own), json=body)
+        assert response.status_code == 404 and detail(response) == detail(
+            admin.post(refinements_url(own), json=body | {"test_record_ids": [UNKNOWN]})
+        ).replace(str(UNKNOWN), str(rig.judged[0]))
+    body = {"record_ids": rig.fitted, "test_record_ids": [theirs], "base_model_id": rig.baseline["id"]}
+    with nothing_written(rig.org, rig.structure_id), clients(rig.org) as (admin, _, _):
+        response = admin.post(refinements_url(rig.structure_id), json=body)
+        assert response.status_code == 404 and f"record {theirs}" in detail(response)

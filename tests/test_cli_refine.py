@@ -5,10 +5,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from test_cli import PNG_MAGIC, run
 
-REPORT_KEYS = {"declared", "effects_added", "before", "after", "refined", "data", "validation"}
+from models.narx import NARX, fit_narx
+from models.terms import parse_terms
+from service.recordfiles import read_record
+from simulator.theory import EXACT_TERMS
+
+REPORT_KEYS = {"declared", "orders_chosen", "effects_added", "before", "after", "tests", "refined", "data"}
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics"}
 
 
@@ -33,7 +39,11 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
         assert effect["terms"] and set(effect["evidence"]) >= {"explained_fraction", "p_values", "level"}
         assert max(effect["evidence"]["p_values"]) < effect["evidence"]["level"]
     # The official split, and the linear ARX as declared.
-    assert report["data"]["estimation"] == [40650, 105712] and report["data"]["test"] == [100, 40575]
+    assert report["data"]["estimation"] == [
+        {"path": str(silverbox_dir / "SNLS80mV.csv"), "samples": [40650, 105712]}
+    ]
+    arrow, schroeder = report["tests"]
+    assert arrow["samples"] == [100, 40575] and arrow["before"] == report["before"]
     assert report["declared"]["terms"][:4] == ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]"]
     # README's Silverbox table: one-step 1.20 → 0.085 mV, free run 14.39 → 0.324 mV on the full arrow,
     # with a margin of about 10 % for arithmetic differences between machines.
@@ -44,8 +54,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     assert not before["passed"] and before["failed"]
     assert set(before["correlation_tests"]) >= {"phi_ee", "phi_ue", "phi_u2'e"}
     # The refined model, not refitted, on the independent Schroeder-phase multisine record.
-    (schroeder,) = report["validation"]
-    assert schroeder["path"].endswith("Schroeder80mV.csv")
+    assert schroeder["path"].endswith("Schroeder80mV.csv") and schroeder["samples"] == [0, 131072]
     # README: 18.92 → 0.434 mV.
     assert (
         17e-3 < schroeder["before"]["free_run_rms"] < 21e-3 and schroeder["after"]["free_run_rms"] <= 0.48e-3
@@ -58,10 +67,10 @@ def test_simulated_quadratic_stiffness_is_named_and_the_table_printed(tmp_path):
         "simulate", "--n", "12000", "--seed", "3", "--disturbance-std", "200",
         "--effect", "quadratic_stiffness2=3e5", "--out", "record.csv", cwd=tmp_path,
     )  # fmt: skip
-    report = json.loads(run("refine", "record.csv", "--json", cwd=tmp_path).stdout)
+    report = json.loads(run("refine", "record.csv", "--declared", "2dof", "--json", cwd=tmp_path).stdout)
     assert report["effects_added"][0]["name"] == "quadratic_stiffness"
     assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
-    table = run("refine", "record.csv", cwd=tmp_path).stdout
+    table = run("refine", "record.csv", "--declared", "2dof", cwd=tmp_path).stdout
     assert "1. quadratic_stiffness" in table and "before" in table and "after" in table
 
 
@@ -85,3 +94,151 @@ def test_a_file_that_is_not_silverbox_is_named(tmp_path: Path):
     (tmp_path / "other.csv").write_text("a,b\n1,2\n")
     result = run("refine", "other.csv", "--format", "silverbox", cwd=tmp_path, check=False)
     assert result.returncode == 2 and "other.csv" in result.stderr and "V1" in result.stderr
+
+
+@pytest.fixture(scope="module")
+def simulated_records(tmp_path_factory) -> Path:
+    """Four 6000-sample records of the 2-DOF rig with an undeclared quadratic spring, written by
+    `narxwatch simulate`: e1, e2 to estimate on, v1, v2 to judge on."""
+    folder = tmp_path_factory.mktemp("records")
+    for seed, name in enumerate(("e1", "e2", "v1", "v2"), start=21):
+        run(
+            "simulate", "--n", "6000", "--seed", str(seed), "--disturbance-std", "200",
+            "--effect", "quadratic_stiffness2=3e5", "--out", f"{name}.csv", cwd=folder,
+        )  # fmt: skip
+    return folder
+
+
+def declared_fit(folder: Path, names: list[str], transient: int = 0) -> NARX:
+    """SPEC §2's structure fitted by least squares on the named records, independently of refine."""
+    records = [read_record(folder / f"{name}.csv") for name in names]
+    return fit_narx([(r.x[transient:], r.y[transient:]) for r in records], EXACT_TERMS)
+
+
+def free_run_rms(model: NARX, folder: Path, name: str, transient: int = 0) -> float:
+    """The model's free run over the whole record (after the transient), from its first L outputs."""
+    record = read_record(folder / f"{name}.csv")
+    x, y = record.x[transient:], record.y[transient:]
+    L = model.max_lag
+    return float(np.sqrt(np.mean((model.simulate(x, y)[L:] - y[L:]) ** 2)))
+
+
+def test_several_estimation_records_and_each_validation_record_judged_whole(simulated_records: Path):
+    report = json.loads(
+        run(
+            "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "v2.csv", "--json",
+            cwd=simulated_records,
+        ).stdout
+    )  # fmt: skip
+    assert set(report) == REPORT_KEYS
+    assert report["data"]["estimation"] == [
+        {"path": "e1.csv", "samples": [0, 6000]},
+        {"path": "e2.csv", "samples": [0, 6000]},
+    ]
+    # Estimation on both records at once: the declared model is the least-squares fit on both,
+    # not on either alone.
+    both = declared_fit(simulated_records, ["e1", "e2"])
+    np.testing.assert_allclose(report["declared"]["theta"], both.theta, rtol=1e-9)
+    alone = declared_fit(simulated_records, ["e1"])
+    assert not np.allclose(report["declared"]["theta"], alone.theta, rtol=1e-6)
+    # One before/after a validation record, each judged over the whole record.
+    terms = parse_terms(report["refined"]["terms"])
+    theta = np.asarray(report["refined"]["theta"])
+    refined = NARX(terms, theta, np.zeros((len(terms), len(terms))))
+    assert [(t["path"], t["samples"]) for t in report["tests"]] == [
+        ("v1.csv", [0, 6000]),
+        ("v2.csv", [0, 6000]),
+    ]
+    for test, name in zip(report["tests"], ("v1", "v2"), strict=True):
+        assert test["before"]["free_run_rms"] == pytest.approx(
+            free_run_rms(both, simulated_records, name), rel=1e-9
+        )
+        assert test["after"]["free_run_rms"] == pytest.approx(
+            free_run_rms(refined, simulated_records, name), rel=1e-9
+        )
+        assert test["after"]["one_step_rms"] <= test["before"]["one_step_rms"] / 2
+    assert report["before"] == report["tests"][0]["before"]
+    assert report["effects_added"][0]["name"] == "quadratic_stiffness"
+    assert {effect["decided_by"] for effect in report["effects_added"]} <= {"one-step", "simulation"}
+    assert report["refined"]["estimator"] in ("least squares", "output error")
+    assert report["orders_chosen"] is None
+
+    # --validate repeated says the same; the table names each effect's criterion and each record.
+    table = run(
+        "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--validate", "v2.csv",
+        cwd=simulated_records,
+    ).stdout  # fmt: skip
+    assert "1. quadratic_stiffness" in table and "decided by the one-step criterion" in table
+    rows = [line.split() for line in table.splitlines() if line.endswith("[0:6000]")]
+    assert [row[-2] for row in rows] == ["v1.csv", "v2.csv"]
+    for row, test in zip(rows, report["tests"], strict=True):
+        assert float(row[2]) == pytest.approx(test["before"]["free_run_rms"], rel=1e-3)
+        assert float(row[3]) == pytest.approx(test["after"]["free_run_rms"], rel=1e-3)
+
+
+def test_transient_samples_are_dropped_from_every_record(simulated_records: Path):
+    report = json.loads(
+        run(
+            "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--transient", "1000",
+            "--initial", "20", "--json", cwd=simulated_records,
+        ).stdout
+    )  # fmt: skip
+    assert report["data"]["transient"] == 1000 and report["data"]["initial"] == 20
+    assert [e["samples"] for e in report["data"]["estimation"]] == [[0, 5000], [0, 5000]]
+    fitted = declared_fit(simulated_records, ["e1", "e2"], transient=1000)
+    np.testing.assert_allclose(report["declared"]["theta"], fitted.theta, rtol=1e-9)
+    (test,) = report["tests"]
+    assert test["samples"] == [0, 5000]
+    # The free run starts from the first 20 measured outputs of v1 after its transient.
+    record = read_record(simulated_records / "v1.csv")
+    x, y = record.x[1000:], record.y[1000:]
+    start = 20 - fitted.max_lag
+    simulated = fitted.simulate(x[start:], y[start:])[fitted.max_lag :]
+    expected = float(np.sqrt(np.mean((simulated - y[20:]) ** 2)))
+    assert test["before"]["free_run_rms"] == pytest.approx(expected, rel=1e-9)
+
+
+def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_records: Path):
+    report = json.loads(
+        run("refine", "e1.csv", "e2.csv", "--validate", "v1.csv", "--json", cwd=simulated_records).stdout
+    )
+    ny, nx, delay = report["orders_chosen"]
+    assert 1 <= ny <= 10 and nx == ny and delay in (0, 1)
+    lags = [f"y[t-{k}]" for k in range(1, ny + 1)] + [f"x[t-{k}]" for k in range(delay, delay + nx)]
+    assert report["declared"]["terms"] == [name.replace("x[t-0]", "x[t]") for name in lags]
+    table = run("refine", "e1.csv", "e2.csv", "--validate", "v1.csv", cwd=simulated_records).stdout
+    assert f"the loop chose the linear model ny = {ny}, nx = {nx}, input delay {delay}" in table
+
+
+def test_records_at_different_rates_are_refused_naming_each(simulated_records: Path, tmp_path: Path):
+    text = (simulated_records / "v1.csv").read_text()
+    assert text.startswith("# fs=1500")
+    (tmp_path / "slow.csv").write_text(text.replace("# fs=1500", "# fs=1000", 1))
+    figure = tmp_path / "refine.png"
+    result = run(
+        "refine", str(simulated_records / "e1.csv"), "--declared", "2dof",
+        "--validate", str(tmp_path / "slow.csv"), "--plot", str(figure), cwd=tmp_path, check=False,
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    message = " ".join(result.stderr.split())
+    assert "e1.csv at 1500 Hz" in message and "slow.csv at 1000 Hz" in message
+    assert "resample them to one rate" in message
+    assert result.stdout == "" and not figure.exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["e1.csv", "e2.csv"], "name the records to judge on: --validate"),
+        (
+            ["e1.csv", "e2.csv", "--validate", "v1.csv", "--estimation", "0:3000"],
+            "picks a part of one record",
+        ),
+        (["e1.csv", "--validate", "v1.csv", "--transient", "6000"], "e1.csv: --transient 6000 drops all"),
+        (["e1.csv", "--validate", "v1.csv", "--transient", "-1"], "--transient must be 0 or more"),
+    ],
+)
+def test_bad_record_protocols_are_refused(simulated_records: Path, args, message):
+    result = run("refine", *args, "--declared", "2dof", cwd=simulated_records, check=False)
+    assert result.returncode == 2 and message in " ".join(result.stderr.split()), result.stderr
+    assert result.stdout == ""

@@ -456,6 +456,23 @@ def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: 
     assert refined["y"] == [report["after"]["one_step_rms"], report["after"]["free_run_rms"]]
     assert refined["y"][0] < declared["y"][0]
 
+    # A report stored before refinements judged several records: one test, as before/after.
+    from service.tables import Refinement
+
+    with api_server.app.state.sessions() as session:
+        stored = session.get(Refinement, refinement["id"])
+        assert stored is not None
+        stored.report = {key: value for key, value in stored.report.items() if key != "tests"} | {
+            "effects_added": [
+                {k: v for k, v in effect.items() if k != "decided_by"} for effect in report["effects_added"]
+            ]
+        }
+        session.commit()
+    with logged_in(api_server, org.keys["viewer"]) as client:
+        page = client.get(f"{DASHBOARD}/refinements/{refinement['id']}")
+    assert page.status_code == 200
+    assert f"{report['after']['free_run_rms']:.4g}" in page.text and f"record {ids[1]}" in page.text
+
 
 def test_a_login_ends_when_it_expires(api_server: LiveServer):
     from service.domain.logins import find_login, open_login

@@ -15,12 +15,14 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
-from api_helpers import Org, clients, create_structure
+from api_helpers import API, Org, clients, create_structure, npz_bytes, post_record
 from dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, DASHBOARD, Monitored, monitored_structure
 from live import LiveServer
 
 from service.config import Settings
+from simulator.simulate import Effects, Scenario, simulate
 
 ARTIFACTS = Path(
     os.environ.get("NARXWATCH_TEST_ARTIFACTS", Path(__file__).parents[1] / "var" / "test-artifacts")
@@ -164,3 +166,43 @@ def test_a_wrong_key_stays_on_the_login_page_with_the_reason(page, server: LiveS
     assert "not valid" in page.locator(".error").inner_text()
     assert page.context.cookies() == [], "no session cookie for a refused key"
     shot(page, "5-refused")
+
+
+def test_a_refinement_on_several_records_shows_each_test_record_and_each_criterion(page, server: LiveServer):
+    """Two records fitted, two judged: the page names the records fitted, gives each judged record
+    its declared and refined errors, and says which criterion decided each effect."""
+    org = Org.create(server)
+    with clients(org) as (admin, ingest, _):
+        structure_id = create_structure(admin, "rig refined on several records")["id"]
+        ids = []
+        for seed in range(4):
+            scenario = Scenario(disturbance_std=200.0, effects=Effects.parse(["quadratic_stiffness2=3e5"]))
+            record = simulate(scenario, 6000, np.random.SeedSequence([53, seed]))
+            body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+            ids.append(post_record(ingest, structure_id, body, "application/x-npz").json()["id"])
+        baseline = admin.post(
+            f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": ids[:1]}
+        )
+        body = {"record_ids": ids[:2], "test_record_ids": ids[2:], "base_model_id": baseline.json()["id"]}
+        response = admin.post(f"{API}/structures/{structure_id}/refinements", json=body)
+        assert response.status_code == 201, response.text
+        refinement = response.json()
+    report = refinement["report"]
+    assert report["effects_added"]
+    page.goto(f"{server.url}{DASHBOARD}/login")
+    log_in(page, org.keys["viewer"])
+    page.wait_for_url(f"{server.url}{DASHBOARD}")
+    page.goto(f"{server.url}{DASHBOARD}/refinements/{refinement['id']}")
+    for record_id in ids[:2]:
+        assert page.locator(f"p.muted a[href='/dashboard/records/{record_id}']").count() == 1
+    rows = page.locator("#errors tbody tr")
+    assert rows.count() == 4, "a declared and a refined row for each record judged"
+    for number, (record_id, test) in enumerate(zip(ids[2:], report["tests"], strict=True)):
+        declared, refined = rows.nth(2 * number), rows.nth(2 * number + 1)
+        assert f"record {record_id}" in declared.inner_text()
+        for row, figures in ((declared, test["before"]), (refined, test["after"])):
+            assert f"{figures['free_run_rms']:.4g}" in row.inner_text()
+    criteria = page.locator("#effects td.criterion").all_inner_texts()
+    assert criteria == [effect["decided_by"] for effect in report["effects_added"]]
+    drawn(page, "errors")
+    shot(page, "6-refinement")

@@ -10,6 +10,7 @@ from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from sqlalchemy import inspect, select, text
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
 
 from service import tables
 from service.db import Base, make_engine
@@ -128,4 +129,61 @@ def test_0006_keeps_the_newest_of_two_active_versions(fresh_url):
         connection.execute(
             versions.update().where(versions.c.name == "k2", versions.c.version == 3).values(active=True)
         )
+    engine.dispose()
+
+
+def test_0008_lists_each_earlier_refinement_s_record_as_fitted(fresh_url):
+    """A refinement stored before 0008 was fitted on its one record: after the upgrade it lists
+    that record as its only estimation record, and none judged whole."""
+    upgrade_database(fresh_url, "0007")
+    engine = make_engine(fresh_url)
+    now = dt.datetime.now(dt.UTC)
+    with engine.begin() as connection:
+        connection.execute(
+            text("INSERT INTO organisations (id, name, created_at) VALUES (1, 'o', :t)"), {"t": now}
+        )
+        connection.execute(
+            text(
+                "INSERT INTO structures (id, organisation_id, name, fs, description, created_at) "
+                "VALUES (1, 1, 's', 1500.0, '', :t)"
+            ),
+            {"t": now},
+        )
+        records = Base.metadata.tables["records"]
+        for record_id in (7, 8):
+            connection.execute(
+                records.insert().values(
+                    id=record_id, structure_id=1, fs=1500.0, n_samples=3, acquired_at=now, created_at=now,
+                    sha256=f"{record_id:064d}", x=b"", y=b"",
+                )
+            )  # fmt: skip
+        connection.execute(
+            Base.metadata.tables["model_versions"]
+            .insert()
+            .values(
+                id=1, structure_id=1, kind="baseline", name="baseline", version=1, document={}, training={},
+                statistics={}, active=True, created_at=now,
+            )
+        )  # fmt: skip
+        refinements = Base.metadata.tables["refinements"]
+        for refinement_id, record_id in ((1, 8), (2, 7)):
+            connection.execute(
+                refinements.insert().values(
+                    id=refinement_id, structure_id=1, record_id=record_id, base_model_id=1, report={},
+                    created_at=now,
+                )
+            )  # fmt: skip
+    upgrade_database(fresh_url)
+    with engine.connect() as connection:
+        rows = connection.execute(
+            text(
+                "SELECT refinement_id, record_id, role, position FROM refinement_records "
+                "ORDER BY refinement_id"
+            )
+        ).all()
+    assert [tuple(row) for row in rows] == [(1, 8, "estimation", 0), (2, 7, "estimation", 0)]
+    with Session(engine) as session:
+        refinement = session.get(tables.Refinement, 1)
+        assert refinement is not None
+        assert refinement.record_ids_of("estimation") == [8] and refinement.record_ids_of("test") == []
     engine.dispose()

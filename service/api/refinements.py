@@ -30,9 +30,9 @@ def create_refinement(
     session: SessionDep,
     settings: SettingsDep,
 ) -> RefinementOut | JSONResponse:
-    """Trace a baseline's residual on a record to the effects it lacks; the refined model is
-    stored as a new version that is not active until activated. A refinement of a long record
-    is queued as a job (202)."""
+    """Trace a baseline's residual on one or several records to the effects it lacks; the refined
+    model is stored as a new version that is not active until activated. A refinement of long
+    records is queued as a job (202)."""
     cells = refinements.refinement_cells(session, principal, structure_id, body, settings)
     if cells > settings.queue_training_cells:
         return queued(request, session, principal, REFINE, structure_id=structure_id, body=body.model_dump())
@@ -57,6 +57,8 @@ def refinement_out(refinement: Refinement) -> RefinementOut:
         id=refinement.id,
         structure_id=refinement.structure_id,
         record_id=refinement.record_id,
+        record_ids=refinement.record_ids_of("estimation"),
+        test_record_ids=refinement.record_ids_of("test"),
         base_model=_ref(refinement.base_model),
         refined_model=_ref(refinement.refined_model) if refinement.refined_model is not None else None,
         created_at=refinement.created_at,

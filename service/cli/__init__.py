@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import typer
 
 from models.errors import InputError
@@ -34,6 +36,29 @@ def main() -> None:
     """Console-script entry point: input errors and a database not ready end with their message,
     not a traceback."""
     try:
-        app()
+        app(args=files_after_options(sys.argv[1:]))
     except (InputError, DatabaseNotReadyError) as exc:
         fail(str(exc))
+
+
+# Options that take every file after them, up to the next option: click gives an option one
+# value, so `refine EST… --validate V1 V2` would otherwise fit on V2 as silently as on EST.
+MANY_FILES = {"refine": "--validate"}
+
+
+def files_after_options(args: list[str]) -> list[str]:
+    """``args`` with ``--validate V1 V2`` of ``refine`` written as ``--validate V1 --validate V2``."""
+    option = MANY_FILES.get(args[0]) if args else None
+    if option is None:
+        return args
+    written: list[str] = []
+    taking = False
+    for arg in args:
+        if arg == "--":
+            taking = False
+        elif arg.startswith("-"):
+            taking = arg.split("=", 1)[0] == option
+        elif taking and written[-1] != option:
+            written.append(option)
+        written.append(arg)
+    return written

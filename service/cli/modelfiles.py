@@ -69,10 +69,21 @@ def read_records(
 ) -> tuple[list[RecordFile], float | None]:
     """Records and their common sampling rate; records stating different rates are refused."""
     records = [read_record(path, layout) for path in paths]
-    rates = {record.fs for record in records if record.fs is not None}
-    if len(rates) > 1:
-        raise InputError(f"the records have different sampling rates {sorted(rates)}; use one rate")
-    return records, rates.pop() if rates else None
+    return records, common_rate([(str(path), record.fs) for path, record in zip(paths, records, strict=True)])
+
+
+def common_rate(rates: Sequence[tuple[str, float | None]]) -> float | None:
+    """The one sampling rate of the named records (None if none states one); records at
+    different rates are refused, each named with its rate: a model's lags count samples, so a
+    model fitted at one rate means another thing at another."""
+    stated = {rate for _, rate in rates if rate is not None}
+    if len(stated) > 1:
+        listing = ", ".join(f"{name} at {rate:.15g} Hz" for name, rate in rates if rate is not None)
+        raise InputError(
+            f"the records are sampled at different rates ({listing}); resample them to one rate, "
+            "or give only records of one rate together"
+        )
+    return stated.pop() if stated else None
 
 
 def read_manifest(path: Path) -> list[tuple[Path, float]]:

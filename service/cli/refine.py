@@ -1,33 +1,51 @@
-"""``narxwatch refine``: find the effects a declared model lacks and report the error before and after."""
+"""``narxwatch refine``: find the effects a model lacks and report the error before and after.
+
+Two protocols. **Parts of one record** (one record, no ``--validate``; or ``--estimation``/
+``--test`` given; or ``--format silverbox``, whose benchmark prescribes its split): the loop runs
+on the estimation part and both models are judged on the test part, then on each ``--validate``
+record whole. **Whole records** (several estimation records, or one with ``--validate``):
+estimation on all of them at once (no lag crosses a record's boundary), each ``--validate``
+record judged whole. ``--transient`` drops the first samples of every record in both.
+"""
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 import typer
 
-from models.assessment import assess, assessment_dict
+from models.assessment import assess
 from models.effects import linear_terms
 from models.errors import InputError
-from models.refinement import DEFAULT_ALPHA, refine_record
+from models.refinement import DEFAULT_ALPHA, Comparison, RefinementReport, refine_record, refine_records
 from models.terms import Term
 from service.cli.console import stdout
-from service.cli.modelfiles import XName, YName, read_terms, signal_layout
-from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, read_record
+from service.cli.modelfiles import XName, YName, common_rate, read_terms, signal_layout
+from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record
+from simulator.theory import EXACT_TERMS
 
 # The Silverbox benchmark's official split (shared/data/README.md): estimation and arrow test,
 # each test run started from 50 measured outputs.
 SILVERBOX_ESTIMATION = (40650, 105712)
 SILVERBOX_TEST = (100, 40575)
 SILVERBOX_INITIAL = 50
+# ``--declared`` naming SPEC §2's structure of the simulated 2-DOF rig.
+RIG = "2dof"
 
 DECLARED_HELP = (
     "The declared structure: comma-separated terms, a JSON file with a 'terms' list (a model or "
-    "'narxwatch select --json' output), or linear:NY,NX for a linear ARX model. Default: SPEC §2's "
-    "8 terms of the 2-DOF structure."
+    f"'narxwatch select --json' output), linear:NY,NX for a linear ARX model, or '{RIG}' for SPEC §2's "
+    "8 terms of the 2-DOF rig that 'narxwatch simulate' models. Default: none; the loop starts from the "
+    "linear model whose orders (up to 10) simulate best, and reports them."
+)
+VALIDATE_HELP = (
+    "Records to judge both models on, each whole, without refitting: every file after --validate up "
+    "to the next option (or --validate repeated)."
 )
 
 
@@ -36,11 +54,22 @@ class DataFormat(StrEnum):
     silverbox = "silverbox"
 
 
+@dataclass(frozen=True)
+class _Record:
+    """A record as the loop sees it: its file, signals (transient dropped) and sampling rate."""
+
+    path: Path
+    x: np.ndarray
+    y: np.ndarray
+    fs: float | None
+
+
 def refine_command(
     data: Annotated[
-        Path,
+        list[Path],
         typer.Argument(
-            help="Record: .csv or .npz as 'narxwatch simulate' writes, a CSV or MAT file (--x, --y)."
+            help="Estimation record(s): .csv or .npz as 'narxwatch simulate' writes, a CSV or MAT file "
+            "(--x, --y)."
         ),
     ],
     declared: Annotated[str | None, typer.Option(help=DECLARED_HELP)] = None,
@@ -50,68 +79,124 @@ def refine_command(
     ] = DataFormat.auto,
     x: XName = None,
     y: YName = None,
-    fs: Annotated[float | None, typer.Option(help="Sampling rate [Hz] if the file has none.")] = None,
+    fs: Annotated[float | None, typer.Option(help="Sampling rate [Hz] of files that state none.")] = None,
     estimation: Annotated[
         str | None,
-        typer.Option(help="Estimation samples A:B (default: first 2/3; Silverbox: official)."),
+        typer.Option(
+            help="Estimation samples A:B of the one record (default: first 2/3; Silverbox: official)."
+        ),
     ] = None,
     test: Annotated[
-        str | None, typer.Option(help="Test samples C:D (default: the last third; Silverbox: the arrow).")
+        str | None,
+        typer.Option(
+            help="Test samples C:D of the one record (default: the last third; Silverbox: the arrow)."
+        ),
     ] = None,
+    transient: Annotated[
+        int,
+        typer.Option(
+            help="Samples dropped at the start of every record (a benchmark's transient, e.g. the F-16 "
+            "multisine's first period, 8192); --estimation and --test count from there."
+        ),
+    ] = 0,
     initial: Annotated[
-        int | None, typer.Option(help="Test samples that only start the predictions (Silverbox: 50).")
+        int | None,
+        typer.Option(help="Measured samples each test free run starts from (Silverbox: 50)."),
     ] = None,
     alpha: Annotated[float, typer.Option(help="Family-wise level of each round.")] = DEFAULT_ALPHA,
-    validate: Annotated[
-        list[Path] | None,
-        typer.Option(help="Further records (same format) to judge both models on, whole, without refitting."),
-    ] = None,
+    validate: Annotated[list[Path] | None, typer.Option(help=VALIDATE_HELP)] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False,
-    plot: Annotated[Path | None, typer.Option(help="Write a PNG of the residuals and the free run.")] = None,
+    plot: Annotated[
+        Path | None, typer.Option(help="Write a PNG of the residuals and the free run on the first test.")
+    ] = None,
 ) -> None:
     """Fit the declared model, trace its residual to the effects it lacks, add them, compare."""
-    layout = signal_layout(x, y, SILVERBOX if data_format is DataFormat.silverbox else DEFAULT_LAYOUT)
-    record = read_record(data, layout)
-    rate = record.fs if record.fs is not None else fs
     silverbox = data_format is DataFormat.silverbox
-    n = len(record.x)
-    est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
-    held = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
+    layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
+    if transient < 0:
+        raise InputError(f"--transient must be 0 or more, got {transient}")
+    checked = [_read(path, layout, fs, transient) for path in (*data, *(validate or []))]
+    rate = common_rate([(str(record.path), record.fs) for record in checked])
+    fitted, held = checked[: len(data)], checked[len(data) :]
     start = initial if initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
-    report = refine_record(record.x, record.y, _declared(declared), est, held, start, alpha, rate)
-    document = report.to_dict() | {
-        "data": {"estimation": list(est), "test": list(held), "initial": start, "fs": rate, "alpha": alpha}
-    }
-    document["validation"] = [
-        {
-            "path": str(path),
-            "before": assessment_dict(assess(report.refinement.declared, other.x, other.y, start, other.fs)),
-            "after": assessment_dict(
-                assess(
-                    report.refinement.refined,
-                    other.x,
-                    other.y,
-                    start,
-                    other.fs,
-                    noise=report.refinement.noise,
+    terms = _declared(declared)
+    if len(fitted) == 1 and (not held or estimation is not None or test is not None or silverbox):
+        (record,) = fitted
+        n = len(record.y)
+        est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
+        part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
+        report = refine_record(record.x, record.y, terms, est, part, start, alpha, rate)
+        c, d = part
+        report = RefinementReport(report.refinement, report.tests + _judged(report, held, start, rate))
+        judged = [{"path": str(record.path), "samples": [c, d]}] + [_whole(r) for r in held]
+        protocol = {"estimation": [{"path": str(record.path), "samples": list(est)}]}
+        plotted = (record.x[c:d], record.y[c:d])
+    else:
+        for option, value in (("--estimation", estimation), ("--test", test)):
+            if value is not None:
+                raise InputError(
+                    f"{option} picks a part of one record; with several estimation records (or --validate) "
+                    "each record is used whole: drop its start with --transient"
                 )
-            ),
-        }
-        for path, other in ((path, read_record(path, layout)) for path in validate or [])
-    ]
+        if not held:
+            raise InputError("with several estimation records, name the records to judge on: --validate VAL…")
+        report = refine_records(
+            [(r.x, r.y) for r in fitted], [(r.x, r.y) for r in held], terms, start, alpha, rate
+        )
+        judged = [_whole(r) for r in held]
+        protocol = {"estimation": [_whole(r) for r in fitted]}
+        plotted = (held[0].x, held[0].y)
+    document = report.to_dict()
+    document["tests"] = [where | item for where, item in zip(judged, document["tests"], strict=True)]
+    document["data"] = protocol | {
+        "transient": transient,
+        "initial": start,
+        "fs": rate,
+        "alpha": alpha,
+    }
     if plot is not None:
         from service.cli.refine_figure import write_refinement_figure  # matplotlib only when asked
 
-        c, d = held
-        write_refinement_figure(report, record.x[c:d], record.y[c:d], start, rate, plot)
+        write_refinement_figure(report, *plotted, start, rate, plot)
     if as_json:
         stdout.print_json(json.dumps(document))
         return
     _print(document, plot)
 
 
-def _declared(spec: str | None) -> tuple[Term, ...]:
-    if spec is not None and spec.startswith("linear:"):
+def _read(path: Path, layout: Layout, fs: float | None, transient: int) -> _Record:
+    record = read_record(path, layout)
+    if transient >= len(record.y):
+        raise InputError(f"{path}: --transient {transient} drops all of its {len(record.y)} samples")
+    rate = record.fs if record.fs is not None else fs
+    return _Record(path, record.x[transient:], record.y[transient:], rate)
+
+
+def _whole(record: _Record) -> dict[str, Any]:
+    return {"path": str(record.path), "samples": [0, len(record.y)]}
+
+
+def _judged(
+    report: RefinementReport, records: list[_Record], initial: int, fs: float | None
+) -> tuple[Comparison, ...]:
+    """Both models judged on each record whole, without refitting."""
+    result = report.refinement
+    return tuple(
+        Comparison(
+            assess(result.declared, record.x, record.y, initial, fs),
+            assess(result.refined, record.x, record.y, initial, fs, noise=result.noise),
+        )
+        for record in records
+    )
+
+
+def _declared(spec: str | None) -> tuple[Term, ...] | None:
+    """The declared terms; None lets the loop choose a linear model's orders."""
+    if spec is None:
+        return None
+    if spec == RIG:
+        return EXACT_TERMS
+    if spec.startswith("linear:"):
         orders = spec.removeprefix("linear:").split(",")
         try:
             ny, nx = (int(value) for value in orders)
@@ -135,44 +220,50 @@ def _span(spec: str | None, n: int, default: tuple[int, int], option: str) -> tu
 
 
 def _print(report: dict[str, Any], plot: Path | None) -> None:
+    orders = report["orders_chosen"]
+    if orders is not None:
+        ny, nx, delay = orders
+        stdout.print(
+            f"nothing declared: the loop chose the linear model ny = {ny}, nx = {nx}, input delay {delay}",
+            highlight=False,
+        )
     stdout.print(f"declared: {', '.join(report['declared']['terms'])}", highlight=False, markup=False)
     if not report["effects_added"]:
-        stdout.print("no effect explains a significant part of the residual: nothing added")
+        stdout.print("no effect lowers the error enough: nothing added")
     for number, effect in enumerate(report["effects_added"], start=1):
         evidence = effect["evidence"]
+        before, after = (_number(value) for value in evidence["check_free_run_rms"])
+        p_values = evidence["p_values"]
         stdout.print(
             f"{number}. {effect['name']} ({effect['description']}): {', '.join(effect['terms'])}"
-            f" — explains {evidence['explained_fraction']:.1%} of the residual"
-            f" (smallest p {_p(min(evidence['p_values']))}, level {evidence['level']:.1e})",
+            f" — decided by the {effect['decided_by']} criterion (check blocks' free run {before} → {after};"
+            f" explains {evidence['explained_fraction']:.1%} of the residual"
+            + (f", smallest p {_p(min(p_values))}, level {evidence['level']:.1e})" if p_values else ")"),
             highlight=False,
             markup=False,
         )
-    stdout.print("on the test part:")
-    _print_errors(report)
-    for item in report["validation"]:
-        stdout.print(f"validation on {item['path']} (no refitting):", highlight=False, markup=False)
-        _print_errors(item)
+    stdout.print(f"refined parameters by {report['refined']['estimator']}")
+    stdout.print(f"{'one-step RMS':^23} {'free-run RMS':^23}  Ljung–Box p")
+    stdout.print(f"{'before':>11} {'after':>11} {'before':>11} {'after':>11}  {'after':>11}  judged on")
+    for item in report["tests"]:
+        first, last = item["samples"]
+        cells = [
+            _number(item[label][key])
+            for key in ("one_step_rms", "free_run_rms")
+            for label in ("before", "after")
+        ]
+        stdout.print(
+            " ".join(f"{cell:>11}" for cell in cells)
+            + f"  {item['after']['ljung_box_p'] or 0:>11.3g}  {item['path']} [{first}:{last}]",
+            highlight=False,
+            markup=False,
+        )
     if plot is not None:
         stdout.print(f"figure -> {plot}")
 
 
-def _print_errors(figures: dict[str, Any]) -> None:
-    """The before/after table of one assessment; the Ljung–Box p-value may be 0 when far from white."""
-    stdout.print(
-        f"{'':>14} {'one-step RMS':>14} {'free-run RMS':>14} {'Ljung–Box p':>12}  residual tests failed"
-    )
-    for label in ("before", "after"):
-        row = figures[label]
-        cells = [
-            f"{row[key]:.4g}" if row[key] is not None else "diverged"
-            for key in ("one_step_rms", "free_run_rms", "ljung_box_p")
-        ]
-        failed = ", ".join(row["diagnostics"]["failed"]) or "none"
-        stdout.print(
-            f"{label:>14} {cells[0]:>14} {cells[1]:>14} {cells[2]:>12}  {failed}",
-            highlight=False,
-            markup=False,
-        )
+def _number(value: float | None) -> str:
+    return f"{value:.4g}" if value is not None else "diverged"
 
 
 def _p(value: float) -> str:

@@ -141,9 +141,13 @@ def refinement_page(session: Session, principal: Principal, refinement_id: int) 
     refinement = refinements.get_refinement(session, principal, refinement_id)
     structure = structures.get_structure(session, principal, refinement.structure_id)
     report = refinement.report
+    # Reports stored before refinements judged several records hold one test, as before/after.
+    tests = report.get("tests") or [{"before": report["before"], "after": report["after"]}]
     return {
         "refinement": refinement,
         "structure": structure,
         "report": report,
+        "tests": tests,
+        "fitted": refinement.record_ids_of("estimation"),
         "charts": {"errors": figures.refinement_figure(report["before"], report["after"])},
     }

@@ -169,7 +169,9 @@ def fault_mode_model(version: ModelVersion) -> FNARX:
     return model
 
 
-def _records_of(session: Session, principal: Principal, structure: Structure, ids: list[int]) -> list[Record]:
+def owned_records(
+    session: Session, principal: Principal, structure: Structure, ids: list[int]
+) -> list[Record]:
     """The records, each once, without their signals: those are read only once the fit is allowed."""
     repeated = [(i, n) for i, n in Counter(ids).items() if n > 1]
     if repeated:
@@ -215,7 +217,7 @@ def _training_records(
             raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
         ids, size = [e.record_id for e in body.experiments], body.degree + 1
     terms = len(parse_terms(body.terms or EXACT_TERMS))
-    records = _records_of(session, principal, structure, ids)
+    records = owned_records(session, principal, structure, ids)
     cells = sum(r.n_samples for r in records) * terms * size
     check_cost(cells, terms * size, settings, "this training")
     return records, cells

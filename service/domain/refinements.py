@@ -1,43 +1,49 @@
-"""Refinements: the loop of SPEC §7 run on a stored record from a baseline version, kept with its report."""
+"""Refinements: the loop of SPEC §7 run on stored records from a baseline version, kept with its report."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, defer, selectinload
+from sqlalchemy.orm import Session, selectinload
 
+from models.assessment import check_test_length
 from models.effects import candidate_effects
 from models.errors import InputError
 from models.narx import NARX
-from models.refinement import check_parts, refine_record
-from models.terms import Term
+from models.refinement import check_parts, refine_record, refine_records
+from models.terms import Term, max_lag
 from service.config import Settings
 from service.domain.errors import NotFoundError
-from service.domain.modelling import bounded_document, check_cost, new_version
+from service.domain.modelling import bounded_document, check_cost, new_version, owned_records
 from service.domain.records import signals
 from service.domain.structures import get_owned, get_structure
 from service.schemas import RefinementCreate
 from service.security import Principal
-from service.tables import ModelVersion, Record, Refinement, Structure
+from service.tables import ModelVersion, Record, Refinement, RefinementRecord, Structure
 
-# A refinement's model versions as its answer names them (id, name, version), never their documents.
-MODEL_REFS = [
+# A refinement's model versions as its answer names them (id, name, version), never their
+# documents, and the records it was fitted and judged on.
+REFINEMENT_PARTS = [
     selectinload(relation).load_only(ModelVersion.id, ModelVersion.name, ModelVersion.version)
     for relation in (Refinement.base_model, Refinement.refined_model)
-]
+] + [selectinload(Refinement.records)]
 
 
 @dataclass(frozen=True)
 class _Plan:
-    """A refinement checked and priced: its record's signals not yet read."""
+    """A refinement checked and priced: its records' signals not yet read.
+
+    On one record, ``estimation`` and ``test`` are its parts; on several, ``tests`` holds the
+    records judged whole and ``estimation``/``test`` are None."""
 
     structure: Structure
-    record: Record
+    records: list[Record]
+    tests: list[Record]
     base: ModelVersion
     terms: tuple[Term, ...]
-    estimation: tuple[int, int]
-    test: tuple[int, int]
+    estimation: tuple[int, int] | None
+    test: tuple[int, int] | None
     cells: int
 
 
@@ -56,28 +62,46 @@ def create_refinement(
     The loop runs before the first write, so the write lock is held only for the inserts.
     """
     plan = _planned(session, principal, structure_id, body, settings)
-    structure, record, base = plan.structure, plan.record, plan.base
-    estimation, test = plan.estimation, plan.test
-    x, y = signals(record)
-    report = refine_record(x, y, plan.terms, estimation, test, body.initial, body.alpha, record.fs)
-    document = report.to_dict() | {
-        "data": {
-            "estimation": list(estimation),
-            "test": list(test),
-            "initial": body.initial,
-            "alpha": body.alpha,
+    structure, base = plan.structure, plan.base
+    fs = structure.fs  # every record of a structure is stored at its rate
+    if plan.estimation is not None and plan.test is not None:
+        (record,) = plan.records
+        x, y = signals(record)
+        report = refine_record(x, y, plan.terms, plan.estimation, plan.test, body.initial, body.alpha, fs)
+        judged = [{"record_id": record.id, "samples": list(plan.test)}]
+        data = {"estimation": list(plan.estimation), "test": list(plan.test)}
+    else:
+        cut = body.transient
+        fitted = [(x[cut:], y[cut:]) for x, y in map(signals, plan.records)]
+        held = [(x[cut:], y[cut:]) for x, y in map(signals, plan.tests)]
+        report = refine_records(fitted, held, plan.terms, body.initial, body.alpha, fs)
+        judged = [{"record_id": r.id, "samples": [0, r.n_samples - cut]} for r in plan.tests]
+        data = {"transient": cut}
+    document = report.to_dict()
+    document["tests"] = [where | test for where, test in zip(judged, document["tests"], strict=True)]
+    document["data"] = (
+        {
+            "record_ids": [r.id for r in plan.records],
+            "test_record_ids": [r.id for r in plan.tests],
         }
+        | data
+        | {"initial": body.initial, "alpha": body.alpha}
         | ({"job": job} if job is not None else {})
-    }
+    )
     refined = None
     if report.refinement.effects_added:
         model = report.refinement.refined
         training = {
             "refined_from": base.id,
-            "record_ids": [record.id],
-            "estimation": list(estimation),
+            "record_ids": [r.id for r in plan.records],
+            **(
+                {"estimation": list(plan.estimation)}
+                if plan.estimation is not None
+                else {"transient": body.transient}
+            ),
             "effects_added": [effect.name for effect in report.refinement.effects_added],
             "terms": model.term_names,
+            "estimator": report.refinement.estimator,
             # The moving-average noise model, if one was added: the stored model is its
             # process part, which the inspection chain and free runs use.
             "noise_ma": report.refinement.noise.tolist(),
@@ -95,10 +119,15 @@ def create_refinement(
         )
     refinement = Refinement(
         structure_id=structure.id,
-        record_id=record.id,
+        record_id=plan.records[0].id,
         base_model=base,
         refined_model=refined,
         report=document,
+        records=[
+            RefinementRecord(record_id=record.id, role=role, position=position)
+            for role, listed in (("estimation", plan.records), ("test", plan.tests))
+            for position, record in enumerate(listed)
+        ],
     )
     session.add(refinement)
     session.flush()
@@ -106,7 +135,8 @@ def create_refinement(
 
 
 def refinement_of_job(session: Session, structure_id: int, record_id: int, token: str) -> Refinement | None:
-    """The refinement a queued job (marked ``report["data"]["job"]``) has stored already, if any."""
+    """The refinement a queued job (marked ``report["data"]["job"]``) has stored already, if any;
+    ``record_id`` is the first record it fits."""
     query = select(Refinement).where(
         Refinement.structure_id == structure_id, Refinement.record_id == record_id
     )
@@ -116,20 +146,26 @@ def refinement_of_job(session: Session, structure_id: int, record_id: int, token
 def refinement_cells(
     session: Session, principal: Principal, structure_id: int, body: RefinementCreate, settings: Settings
 ) -> int:
-    """What a refinement costs in cells (the record's samples × the base model's terms and the
-    candidate regressors offered), from the record's length alone: it decides whether the
-    refinement runs at once or as a job. Refuses one over the limits."""
+    """What a refinement costs in cells (the samples of every record it reads × the base model's
+    terms and the candidate regressors offered), from the records' lengths alone: it decides
+    whether the refinement runs at once or as a job. Refuses one over the limits."""
     return _planned(session, principal, structure_id, body, settings).cells
 
 
 def _planned(
     session: Session, principal: Principal, structure_id: int, body: RefinementCreate, settings: Settings
 ) -> _Plan:
+    """What can be checked without the signals is, so that a queued refinement fails for no
+    reason its request could have given."""
     structure = get_structure(session, principal, structure_id)
-    unread = [defer(Record.x), defer(Record.y)]
-    record = get_owned(session, principal, Record, body.record_id, "record", options=unread)
-    if record.structure_id != structure.id:
-        raise InputError(f"record {record.id} belongs to another structure, not {structure.name!r}")
+    fitted_ids, test_ids = body.estimation_record_ids, body.test_record_ids or []
+    both = set(fitted_ids) & set(test_ids)
+    if both:
+        raise InputError(
+            f"record {min(both)} is listed to fit and to judge; judge the models on records not fitted"
+        )
+    records = owned_records(session, principal, structure, fitted_ids + test_ids)
+    fitted, tests = records[: len(fitted_ids)], records[len(fitted_ids) :]
     base = session.get(ModelVersion, body.base_model_id)
     if base is None or base.structure_id != structure.id:
         raise NotFoundError("model version", body.base_model_id)
@@ -139,22 +175,36 @@ def _planned(
             "baseline NARX version"
         )
     terms = NARX.from_document(base.document).terms
-    n = record.n_samples
-    estimation = (body.estimation[0], body.estimation[1]) if body.estimation else (0, 2 * n // 3)
-    test = (body.test[0], body.test[1]) if body.test else (2 * n // 3, n)
-    check_parts(n, terms, estimation, test, body.initial)
+    estimation = test = None
+    if body.record_id is not None:
+        n = fitted[0].n_samples
+        estimation = (body.estimation[0], body.estimation[1]) if body.estimation else (0, 2 * n // 3)
+        test = (body.test[0], body.test[1]) if body.test else (2 * n // 3, n)
+        check_parts(n, terms, estimation, test, body.initial)
+    else:
+        for record in records:
+            if record.n_samples <= body.transient:
+                raise InputError(
+                    f"record {record.id} has {record.n_samples} samples; the transient drops {body.transient}"
+                )
+        start_up = max(body.initial, max_lag(terms))
+        for record in tests:
+            try:
+                check_test_length(record.n_samples - body.transient, start_up)
+            except InputError as exc:
+                raise InputError(f"test record {record.id}: {exc}") from None
     regressors = len(terms) + sum(len(effect.terms) for effect in candidate_effects(terms))
-    cells = n * regressors
+    cells = sum(record.n_samples for record in records) * regressors
     check_cost(cells, regressors, settings, "this refinement")
-    return _Plan(structure, record, base, terms, estimation, test, cells)
+    return _Plan(structure, fitted, tests, base, terms, estimation, test, cells)
 
 
 def list_refinements(session: Session, principal: Principal, structure_id: int) -> list[Refinement]:
     """The structure's refinements, newest first."""
     get_structure(session, principal, structure_id)
     query = select(Refinement).where(Refinement.structure_id == structure_id).order_by(Refinement.id.desc())
-    return list(session.scalars(query.options(*MODEL_REFS)))
+    return list(session.scalars(query.options(*REFINEMENT_PARTS)))
 
 
 def get_refinement(session: Session, principal: Principal, refinement_id: int) -> Refinement:
-    return get_owned(session, principal, Refinement, refinement_id, "refinement", options=MODEL_REFS)
+    return get_owned(session, principal, Refinement, refinement_id, "refinement", options=REFINEMENT_PARTS)

@@ -155,7 +155,8 @@ def refine(
     """A refinement too large to run in its request, as the key that asked for it; marked with
     the job's ``token`` like a queued training; commits."""
     refinement = RefinementCreate.model_validate(body)
-    if refinements.refinement_of_job(session, structure_id, refinement.record_id, token) is not None:
+    first = refinement.estimation_record_ids[0]
+    if refinements.refinement_of_job(session, structure_id, first, token) is not None:
         log.info("the refinement queued as %s has been stored already", token)
         return
     refinements.create_refinement(session, _caller(principal), structure_id, refinement, settings, job=token)
