@@ -145,7 +145,7 @@ def test_a_clean_record_adds_nothing_and_stores_no_model(rig: Rig):
         ({"record_id": "other"}, 422, "another structure"),
         ({"estimation": [0, 10**9]}, 422, "do not lie within"),
         ({"test": [500, 100]}, 422, "do not lie within"),
-        ({"estimation": [0, 30]}, 422, "the estimation part has 30 samples"),
+        ({"estimation": [0, 30]}, 422, "the estimation records have 24 equations (30 samples)"),
         ({"test": [8000, 8100]}, 422, "the test part has 100 samples"),
         ({"alpha": 1.5}, 422, "alpha"),
         ({"initial": -1}, 422, "initial"),

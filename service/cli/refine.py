@@ -258,6 +258,8 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
+    for note in report["notes"]:
+        stdout.print(f"note: {note}", highlight=False, markup=False)
     if plot is not None:
         stdout.print(f"figure -> {plot}")
 
