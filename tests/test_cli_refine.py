@@ -14,7 +14,9 @@ from models.terms import parse_terms
 from service.recordfiles import read_record
 from simulator.theory import EXACT_TERMS
 
-REPORT_KEYS = {"declared", "orders_chosen", "effects_added", "before", "after", "tests", "refined", "notes", "data"}
+REPORT_KEYS = {
+    "declared", "orders_chosen", "effects_added", "before", "after", "tests", "refined", "notes", "data",
+}  # fmt: skip
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics"}
 
 
