@@ -33,6 +33,7 @@ from rich.table import Table
 
 from models.assessment import assess
 from models.effects import linear_terms
+from models.errors import InputError
 from models.output_error import fit_output_error
 from models.refinement import FINAL_EVALUATIONS, choose_linear, refine_records
 from models.scoring import fit_model
@@ -104,7 +105,10 @@ def best_linear(benchmark: Benchmark) -> tuple[tuple[int, int, int], dict[str, f
     """The linear output-error model of the orders the loop chooses, judged on each test record."""
     orders, terms = choose_linear(benchmark.estimation)
     model, _ = fit_model(benchmark.estimation, terms, 0, max_lag(terms))
-    model = fit_output_error(model, benchmark.estimation, FINAL_EVALUATIONS).model
+    try:
+        model = fit_output_error(model, benchmark.estimation, FINAL_EVALUATIONS).model
+    except InputError:  # its least-squares start diverges: output error cannot start from it
+        return orders, dict.fromkeys(benchmark.tests, np.inf)
     return orders, {
         name: assess(model, x, y, benchmark.initial).free_run_rms for name, (x, y) in benchmark.tests.items()
     }
@@ -137,7 +141,7 @@ def main() -> None:
         "published",
     ):
         table.add_column(column)
-    console = Console()
+    console = Console(width=220)
     for build in track(builders, description="benchmarks", console=console):
         benchmark = build()
         orders, linear = best_linear(benchmark)

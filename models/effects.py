@@ -97,6 +97,13 @@ class Effect:
     find: Finder | None = field(default=None, compare=False)
     combine: Combiner | None = field(default=None, compare=False)
 
+    @property
+    def regressors(self) -> int:
+        """How many regressors testing the effect puts beside the model's before its data are
+        seen: one for a shift, a saturation or a combination (whatever terms span them), the
+        terms' count otherwise (none yet for families found from the residual)."""
+        return 1 if self.kind in ("output_shift", "saturation", "combined") else len(self.terms)
+
 
 def linear_terms(ny: int, nx: int, delay: int = 1) -> tuple[Term, ...]:
     """A linear ARX structure: y[t-1] … y[t-ny] and x[t-delay] … x[t-delay-nx+1]."""
@@ -455,7 +462,14 @@ def unmeasured_cube(
     lagged = np.column_stack([y[lag - k : len(y) - k] for k in ordered])
     differences = np.column_stack([np.diff(lagged, n, axis=1)[:, 0] for n in range(len(ordered))])
     spread = np.std(differences, axis=0)
-    if not np.all(spread > 0) or not np.any(residual) or not cubics:
+    # Each cubic it may bring needs equations of its own: a record too short for the span (or for
+    # the search's pivoted QR, which needs more rows than columns) is not offered the family.
+    if (
+        not np.all(spread > 0)
+        or not np.any(residual)
+        or not cubics
+        or 10 * len(cubics) > min(rows, SEARCH_ROWS)
+    ):
         return (), np.zeros(rows)
     everywhere = differences / spread
     x, y, residual, model_basis = _search_part(x, y, residual, terms, lag)

@@ -222,7 +222,7 @@ def refine_records(
         raise InputError(f"the initial samples must be 0 or more, got {initial}")
     for number, (_, y) in enumerate(tests, start=1):
         try:
-            check_test_length(len(y), max(initial, max_lag(parse_terms(declared)) if declared else initial))
+            check_test_length(len(y), max(initial, reach(declared)))
         except InputError as exc:
             raise InputError(f"test record {number}: {exc}") from None
     result = refine(estimation, declared, alpha=alpha)
@@ -264,8 +264,15 @@ def check_parts(
             raise InputError(f"the {label} samples {first}:{last} do not lie within the record's {n} samples")
     if initial < 0:
         raise InputError(f"the initial samples must be 0 or more, got {initial}")
-    lags = max_lag(parse_terms(declared)) if declared else 0
-    check_test_length(test[1] - test[0], max(initial, lags))
+    check_test_length(test[1] - test[0], max(initial, reach(declared)))
+
+
+def reach(declared: Sequence[str | Term] | None) -> int:
+    """The most samples any model the loop may reach from ``declared`` looks back: the declared
+    lags and every candidate effect's (a linear start of the largest order when none is
+    declared). A test record must hold this many before the residual tests' samples."""
+    terms = parse_terms(declared) if declared else linear_terms(MAX_LINEAR_ORDER, MAX_LINEAR_ORDER, 0)
+    return max([max_lag(terms)] + [max_lag(e.terms) for e in candidate_effects(terms) if e.terms])
 
 
 def _model_dict(model: NARX) -> dict[str, Any]:
@@ -516,7 +523,7 @@ def _by_simulation(
 
 def _check_length(records: Records, terms: tuple[Term, ...], offered: Sequence[Effect]) -> None:
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in offered if e.terms])
-    candidates = sum(len(e.terms) for e in offered)
+    candidates = sum(e.regressors for e in offered)
     n = sum(len(y) - lag for _, y in records)
     needed = 2 * (len(terms) + candidates) + 1
     if n < needed or any(len(y) <= lag + 3 * MIN_BLOCK // 10 for _, y in records):

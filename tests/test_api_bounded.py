@@ -242,8 +242,8 @@ def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(b
 
 
 def test_a_refinement_on_several_records_is_priced_on_all_of_them(bounded: Bounded):
-    """The records judged cost too: 2000 samples fitted (70 000 cells alone) with 4000 judged is
-    6000 × 35 = 210 000 cells, over the limit; 2000 + 700 fitted with 1000 judged, 129 500 cells,
+    """The records judged cost too: 2000 samples fitted (68 000 cells alone) with 4000 judged is
+    6000 × 34 = 204 000 cells, over the limit; 2000 + 700 fitted with 1000 judged, 125 800 cells,
     is queued though no record alone would be, and the job stores every record's role."""
     with clients(bounded.org) as (admin, ingest, viewer):
         baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
@@ -254,7 +254,7 @@ def test_a_refinement_on_several_records_is_priced_on_all_of_them(bounded: Bound
             response = admin.post(
                 f"{API}/structures/{bounded.rig}/refinements", json=body | {"base_model_id": base}
             )
-            assert_refused(response, 422, "this refinement would fit 210000 cells")
+            assert_refused(response, 422, "this refinement would fit 204000 cells")
         judged = post_record(ingest, bounded.rig, json_body(1000, seed=77))
         assert judged.status_code == 201, judged.text
         body = {
@@ -304,17 +304,18 @@ def test_what_queued_work_would_fail_on_is_refused_before_it_is_queued(bounded: 
 
 def test_refinement_of_a_record_too_short_for_its_test_part(bounded: Bounded):
     """700 samples leave a test part of 234: enough for the residual tests' 208, too few for the
-    residual spectrum, which answered "smoothing_bins must be odd … got 31"."""
+    residual spectrum, which answered "smoothing_bins must be odd … got 31". The part must also
+    start any model the loop may reach: lags up to 6 from SPEC §2's structure (missing lags)."""
     with bounded.org.client("admin") as admin:
         baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
         assert baseline.status_code == 201, baseline.text
         body = {"record_id": bounded.record[700], "base_model_id": baseline.json()["id"]}
         with nothing_written(bounded.org, bounded.rig):
             response = admin.post(f"{API}/structures/{bounded.rig}/refinements", json=body)
-            assert_refused(response, 422, "the test part has 234 samples; judging a model needs at least 260")
+            assert_refused(response, 422, "the test part has 234 samples; judging a model needs at least 262")
             assert "smoothing_bins" not in detail(response)
-        body["test"] = [700 - 260, 700]
-        body["estimation"] = [0, 700 - 260]
+        body["test"] = [700 - 262, 700]
+        body["estimation"] = [0, 700 - 262]
         response = admin.post(f"{API}/structures/{bounded.rig}/refinements", json=body)
         assert response.status_code == 201, response.text
 

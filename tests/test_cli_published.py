@@ -49,6 +49,10 @@ def test_refine_reads_named_signals_as_the_plain_record(files, name):
     args = ("--declared", "linear:2,2", "--json")
     plain = json.loads(run("refine", "plain.csv", *args, cwd=files).stdout)
     named = json.loads(run("refine", name, "--x", "Force", "--y", "Acc2", *args, cwd=files).stdout)
+    # The same report but for the file names it quotes.
+    for report in (plain, named):
+        for item in report["data"]["estimation"] + report["tests"]:
+            item.pop("path")
     assert named == plain and named["data"]["fs"] == 1500.0
 
 

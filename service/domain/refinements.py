@@ -11,8 +11,8 @@ from models.assessment import check_test_length
 from models.effects import candidate_effects
 from models.errors import InputError
 from models.narx import NARX
-from models.refinement import check_parts, refine_record, refine_records
-from models.terms import Term, max_lag
+from models.refinement import check_parts, reach, refine_record, refine_records
+from models.terms import Term
 from service.config import Settings
 from service.domain.errors import NotFoundError
 from service.domain.modelling import bounded_document, check_cost, new_version, owned_records
@@ -187,13 +187,13 @@ def _planned(
                 raise InputError(
                     f"record {record.id} has {record.n_samples} samples; the transient drops {body.transient}"
                 )
-        start_up = max(body.initial, max_lag(terms))
+        start_up = max(body.initial, reach(terms))
         for record in tests:
             try:
                 check_test_length(record.n_samples - body.transient, start_up)
             except InputError as exc:
                 raise InputError(f"test record {record.id}: {exc}") from None
-    regressors = len(terms) + sum(len(effect.terms) for effect in candidate_effects(terms))
+    regressors = len(terms) + sum(effect.regressors for effect in candidate_effects(terms))
     cells = sum(record.n_samples for record in records) * regressors
     check_cost(cells, regressors, settings, "this refinement")
     return _Plan(structure, fitted, tests, base, terms, estimation, test, cells)
