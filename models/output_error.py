@@ -27,7 +27,7 @@ from models.errors import InputError
 from models.narx import NARX
 from models.signals import checked_records
 from models.simulation import FreeRun
-from models.terms import max_degree
+from models.terms import max_degree, record_origins
 
 
 @dataclass(frozen=True)
@@ -97,9 +97,8 @@ def fit_output_error(
     targets = [ya[L:] for _, ya in checked]
     scale = np.sqrt(sum(float(np.sum(t**2)) for t in targets) / sum(t.size for t in targets)) or 1.0
 
-    origins = [t0] * len(checked) if isinstance(t0, int) else list(t0)
     # The input side of every record is computed once; each θ costs only the compiled recursion.
-    pairs = zip(checked, origins, strict=True)
+    pairs = zip(checked, record_origins(t0, len(checked)), strict=True)
     runs = [(FreeRun.build(start.terms, xa, origin), ya) for (xa, ya), origin in pairs]
 
     def errors(theta: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ from scipy import linalg, signal, special
 from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
-from models.terms import Term, max_lag, stacked_regressors
+from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
 Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limits, and how
@@ -91,7 +91,7 @@ def fit_model(
     # first row makes the model see the same equations as the candidates it is compared with.
     offset = lag - max_lag(terms)
     trimmed = [(x[offset:], y[offset:]) for x, y in records]
-    origins = [origin + offset for origin in _origins(t0, len(records))]
+    origins = [origin + offset for origin in record_origins(t0, len(records))]
     if noise_lags:
         narmax = fit_narmax(trimmed, terms, noise_lags, max_iter=NARMAX_ITERATIONS, t0=origins)
         return replace(narmax.process, output_limits=limits, saturation=saturation), invertible(narmax.noise)
@@ -178,10 +178,6 @@ def score_effects(
 def stacked_starts(records: Records, lag: int) -> np.ndarray:
     """Each record's first row among the stacked rows t = lag … N−1 of every record (and the end)."""
     return np.cumsum([0] + [len(y) - lag for _, y in records])
-
-
-def _origins(t0: Sequence[int] | int, count: int) -> list[int]:
-    return [t0] * count if isinstance(t0, int) else list(t0)
 
 
 def _lagged(series: np.ndarray, lags: Sequence[int], starts: np.ndarray) -> np.ndarray:

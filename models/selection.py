@@ -476,14 +476,19 @@ class NarxSelection(_Selected):
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible: ``terms`` is readable by ``narxwatch train … --terms``."""
-        return {
-            "terms": self.model.term_names,
-            "theta": self.model.theta.tolist(),
-            "standard_errors": self.model.standard_errors().tolist(),
-            "sigma2": self.model.sigma2,
-            "n_obs": self.model.n_obs,
-            **self.summary(),
-        }
+        return model_fields(self.model) | self.summary()
+
+
+def model_fields(model: NARX) -> dict[str, Any]:
+    """A selected model as a selection's JSON gives it: terms (readable by ``narxwatch train …
+    --terms``), θ with standard errors, σ̂² and the number of equations."""
+    return {
+        "terms": model.term_names,
+        "theta": model.theta.tolist(),
+        "standard_errors": model.standard_errors().tolist(),
+        "sigma2": model.sigma2,
+        "n_obs": model.n_obs,
+    }
 
 
 @dataclass(frozen=True)

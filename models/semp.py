@@ -70,7 +70,7 @@ from scipy import linalg
 from models.candidates import CandidateMatrix, candidate_matrix
 from models.errors import InputError
 from models.narx import NARX, fit_narx
-from models.selection import DEFAULT_TOLERANCE, Progress, frols
+from models.selection import DEFAULT_TOLERANCE, Progress, frols, model_fields
 from models.signals import Record, checked_records
 from models.simulation import FreeRun
 from models.terms import Term, parse_terms
@@ -143,12 +143,7 @@ class SimulationSelection:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible: ``terms`` is readable by ``narxwatch train … --terms``."""
-        return {
-            "terms": self.model.term_names,
-            "theta": self.model.theta.tolist(),
-            "standard_errors": self.model.standard_errors().tolist(),
-            "sigma2": self.model.sigma2,
-            "n_obs": self.model.n_obs,
+        return model_fields(self.model) | {
             "n_candidates": len(self.candidates),
             "criterion": "simulation",
             "stopped_by": self.stopped_by,

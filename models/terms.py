@@ -374,6 +374,15 @@ def regressor_matrix(
     return Phi, y[L:]
 
 
+def record_origins(t0: int | Sequence[int], count: int) -> list[int]:
+    """Where each of ``count`` records starts in the time base of sinusoidal terms: ``t0`` for
+    every one, or ``t0[i]`` for record i."""
+    origins = [t0] * count if isinstance(t0, int) else list(t0)
+    if len(origins) != count:
+        raise InputError(f"{len(origins)} time origins given for {count} records")
+    return origins
+
+
 def stacked_regressors(
     terms: Sequence[Term],
     records: Sequence[tuple[np.ndarray, np.ndarray]],
@@ -386,10 +395,7 @@ def stacked_regressors(
     ``t0`` is one sample index for every record, or one a record: where each starts in the time
     base of sinusoidal terms.
     """
-    origins = [t0] * len(records) if isinstance(t0, int) else list(t0)
-    if len(origins) != len(records):
-        raise InputError(f"{len(origins)} time origins given for {len(records)} records")
-    pairs = zip(records, origins, strict=True)
+    pairs = zip(records, record_origins(t0, len(records)), strict=True)
     blocks = [regressor_matrix(terms, x, y, lag, origin) for (x, y), origin in pairs]
     Phi = np.vstack([block[0] for block in blocks])
     target = np.concatenate([block[1] for block in blocks])
