@@ -25,8 +25,9 @@ noise on the measured output gives least squares, when on the check blocks the o
 simulates better than the least-squares one (where the noise is a force on the structure, least
 squares is consistent and the better one-step predictor, and may simulate as well).
 
-The estimation data may be several records: no lag crosses a record boundary, and each record
-is split into check and fit blocks alike. Free runs are compiled (:mod:`models.simulation`).
+The estimation data may be several records: no lag crosses a record boundary; from three
+records on, whole records are checked (:func:`split_for_checking`). Free runs are compiled
+(:mod:`models.simulation`).
 """
 
 from __future__ import annotations
@@ -56,8 +57,10 @@ MAX_ROUNDS = 10
 # by up to 8 % by chance; the effects the one-step residual misses (a plateau, a drain) take far
 # more off it.
 SIMULATION_GAIN = 0.2
-# Each record is cut into 3·CHECK_BLOCKS blocks, every third one a check block: fit and check
-# parts cover the whole record alike (a sine sweep's frequencies, a growing amplitude).
+# With fewer than three records each is cut into 3·CHECK_BLOCKS blocks, every third one a check
+# block, so that fit and check parts cover the record alike (a growing amplitude, say). A sine
+# sweep's blocks hold different frequencies, though: from three records on, whole records are
+# checked instead.
 CHECK_BLOCKS = 3
 MIN_BLOCK = 200  # samples of the shortest block; shorter records get fewer blocks
 # Output-error searches within the loop are bounded; the final one on all the data gets more.
@@ -311,17 +314,17 @@ def refine(
         raise InputError(f"alpha must lie in (0, 1), got {alpha}")
     records = [(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)) for x, y in records]
     orders = None
+    checks = CheckSplit.of(records)
     if declared is None:
-        orders, terms = choose_linear(records)
+        orders, terms = choose_linear(records, checks=checks)
     else:
         terms = parse_terms(declared)
     families = list(effects) if effects is not None else candidate_effects(terms)
     checked_records(records, 1, degree=max(max_degree(terms), 3))
     _check_length(records, terms, families)
-    fit_part, check_part = split_for_checking(records)
     declared_model, _ = fit_model(records, terms, 0, max_lag(terms))
     current = Structure(terms)
-    check = _check_error(current, fit_part, check_part)
+    check = checks.error(current)
     rounds: list[Round] = []
     for _ in range(max_rounds):
         offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
@@ -338,10 +341,7 @@ def refine(
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
         for score in sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change):
             error, structure = min(
-                (
-                    (_check_error(option, fit_part, check_part), option)
-                    for option in _with(score, kinds, current, records)
-                ),
+                ((checks.error(option), option) for option in _with(score, kinds, current, records)),
                 key=lambda trial: trial[0],
             )
             if error <= check:
@@ -358,7 +358,7 @@ def refine(
                 rank=True,
                 saturating=current.saturating,
             ).scores
-            decided = _by_simulation(offered, ranked, current, fit_part, check_part)
+            decided = _by_simulation(offered, ranked, current, checks)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
@@ -373,15 +373,15 @@ def refine(
     # Least squares is consistent when the noise enters the equation (a force on the structure)
     # and gives the best one-step predictor; output error when the noise is on the measured
     # output. The check blocks tell which simulates better.
-    if output_error and _check_error(current, fit_part, check_part, tuned=True) < check:
-        tuned = _output_error(refined, records, FINAL_EVALUATIONS)
+    if output_error and checks.error(current, tuned=True) < check:
+        tuned = _output_error(refined, [(x, y, 0) for x, y in records], FINAL_EVALUATIONS)
         if tuned is not refined:
             refined, estimator = tuned, "output error"
     return Refinement(declared_model, refined, noise, tuple(rounds), estimator, orders)
 
 
 def choose_linear(
-    records: Records, max_order: int = MAX_LINEAR_ORDER
+    records: Records, max_order: int = MAX_LINEAR_ORDER, checks: CheckSplit | None = None
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
     """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``)
     that simulates best over the check blocks, its parameters by output error.
@@ -393,24 +393,34 @@ def choose_linear(
     """
     if max_order < 1:
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
-    fit_part, check_part = split_for_checking(records)
+    checks = checks or CheckSplit.of(records)
     errors = {
-        (n, d): _check_error(Structure(linear_terms(n, n, d)), fit_part, check_part, tuned=True)
+        (n, d): checks.error(Structure(linear_terms(n, n, d)), tuned=True)
         for d in (1, 0)
         for n in range(1, max_order + 1)
     }
     # The one-standard-error rule: the smallest order within one standard error of the best
     # RMS, 1/√(2N) of it for N independent Gaussian errors (fewer independent ones only widen it).
-    checked = sum(len(y) for _, y, _ in check_part)
+    checked = sum(len(y) for _, y, _ in checks.check)
     best = min(errors.values()) * (1 + 1 / np.sqrt(2 * checked))
     n, d = min((nd for nd, error in errors.items() if error <= best), key=lambda nd: nd[0])
     return (n, n, d), linear_terms(n, n, d)
 
 
 def split_for_checking(records: Records) -> tuple[Segments, Segments]:
-    """Each record cut into 3·k equal blocks (k = ``CHECK_BLOCKS``, fewer for short records):
-    blocks 3i and 3i+1 are fitted, block 3i+2 is checked. Returns the fit segments (two blocks
-    joined) and the check blocks, each with its first sample's index in its record."""
+    """The estimation data split into the parts a candidate is fitted on and the check parts its
+    free run is judged on, each part with its first sample's index in its record.
+
+    Three records or more: every third record (the second, fifth, …) is checked whole and the
+    others are fitted, a split across experiments alike in design (a sweep or multisine at
+    several levels, say). Fewer: each record is cut into 3·k equal blocks (k = ``CHECK_BLOCKS``,
+    fewer for short records); blocks 3i and 3i+1 are fitted, block 3i+2 is checked.
+    """
+    if len(records) >= 3:
+        return (
+            [(x, y, 0) for index, (x, y) in enumerate(records) if index % 3 != 1],
+            [(x, y, 0) for x, y in records[1::3]],
+        )
     fit: Segments = []
     check: Segments = []
     for x, y in records:
@@ -446,42 +456,62 @@ def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records
     return [replace(current, terms=current.terms + parse_terms(score.terms))]
 
 
-def _check_error(structure: Structure, fit: Segments, check: Segments, tuned: bool = False) -> float:
-    """Free-run RMS over the check blocks of the model fitted on the fit blocks (its parameters
-    by output error if ``tuned``); each run starts from its block's first measured outputs.
-    Infinite when the fit is impossible or a run diverges."""
-    L = max_lag(structure.terms)
-    try:
-        model, _ = fit_model(
-            [(x, y) for x, y, _ in fit],
-            structure.terms,
-            structure.noise_lags,
-            L,
-            [t for *_, t in fit],
-            structure.saturating,
-        )
-        if tuned:
-            model = _output_error(model, fit, CHECK_EVALUATIONS)
-    except InputError:
-        return np.inf
-    squares, count = 0.0, 0
-    for x, y, t0 in check:
-        if len(y) <= L:
-            continue
-        error = model.run_free(FreeRun.build(model.terms, x, t0), y)[L:] - y[L:]
-        squares += float(error @ error)
-        count += error.size
-    rms = np.sqrt(squares / count) if count else np.inf
-    return float(rms) if np.isfinite(rms) else np.inf
+@dataclass
+class CheckSplit:
+    """The estimation data's fit and check parts (:func:`split_for_checking`), and the check
+    parts' free-run RMS of every structure judged on them, kept: the loop asks again for the
+    current model's (each round, the final choice of estimator)."""
+
+    fit: Segments
+    check: Segments
+    _errors: dict[tuple[Structure, bool], float] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, records: Records) -> CheckSplit:
+        return cls(*split_for_checking(records))
+
+    def error(self, structure: Structure, tuned: bool = False) -> float:
+        """Free-run RMS over the check parts of ``structure`` fitted on the fit parts (its
+        parameters by output error if ``tuned``); each run starts from its part's first measured
+        outputs. Infinite when the fit is impossible or a run diverges."""
+        key = (structure, tuned)
+        if key not in self._errors:
+            self._errors[key] = self._judge(structure, tuned)
+        return self._errors[key]
+
+    def _judge(self, structure: Structure, tuned: bool) -> float:
+        L = max_lag(structure.terms)
+        try:
+            model, _ = fit_model(
+                [(x, y) for x, y, _ in self.fit],
+                structure.terms,
+                structure.noise_lags,
+                L,
+                [t for *_, t in self.fit],
+                structure.saturating,
+            )
+            if tuned:
+                model = _output_error(model, self.fit, CHECK_EVALUATIONS)
+        except InputError:
+            return np.inf
+        squares, count = 0.0, 0
+        for x, y, t0 in self.check:
+            if len(y) <= L:
+                continue
+            error = model.run_free(FreeRun.build(model.terms, x, t0), y)[L:] - y[L:]
+            squares += float(error @ error)
+            count += error.size
+        rms = np.sqrt(squares / count) if count else np.inf
+        return float(rms) if np.isfinite(rms) else np.inf
 
 
-def _output_error(model: NARX, segments: Segments | Records, evaluations: int) -> NARX:
+def _output_error(model: NARX, segments: Segments, evaluations: int) -> NARX:
     """``model`` with its parameters refined by output error on ``segments`` when that lowers
     its free-run error there; ``model`` itself when its free run diverges or nothing is gained."""
-    pairs = [(part[0], part[1]) for part in segments]
-    origins = [part[2] if len(part) == 3 else 0 for part in segments]
     try:
-        fit = fit_output_error(model, pairs, evaluations, t0=origins)
+        fit = fit_output_error(
+            model, [(x, y) for x, y, _ in segments], evaluations, t0=[t for *_, t in segments]
+        )
     except InputError:
         return model
     return fit.model if fit.rms < fit.start_rms else model
@@ -491,8 +521,7 @@ def _by_simulation(
     offered: Sequence[Effect],
     scores: Sequence[EffectScore],
     current: Structure,
-    fit: Segments,
-    check: Segments,
+    checks: CheckSplit,
 ) -> tuple[EffectScore, Criterion, Structure, float] | None:
     """The family added on the simulation error alone, if one lowers the check blocks' free
     run enough (module docstring, step 4): its score with the terms that won, the structure, and
@@ -505,18 +534,18 @@ def _by_simulation(
         for k in range(1, len(score.ranked) + 1):
             names = tuple(name for label in score.ranked[:k] for name in label)
             structure = replace(current, terms=current.terms + parse_terms(names))
-            error = _check_error(structure, fit, check)
+            error = checks.error(structure)
             if best is None or error < best[0]:
                 best = (error, replace(score, terms=names), structure)
         if best is not None and np.isfinite(best[0]):
             trials.append(best)
     if not trials:
         return None
-    baseline = _check_error(current, fit, check, tuned=True)
+    baseline = checks.error(current, tuned=True)
     # Output error for the two best only: each costs a search, and a family whose least-squares
     # model is far behind does not overtake by its parameters alone.
     for error, score, structure in sorted(trials, key=lambda trial: trial[0])[:2]:
-        if _check_error(structure, fit, check, tuned=True) <= (1 - SIMULATION_GAIN) * baseline:
+        if checks.error(structure, tuned=True) <= (1 - SIMULATION_GAIN) * baseline:
             return score, "simulation", structure, error
     return None
 

@@ -8,7 +8,7 @@ from scipy import linalg, signal, stats
 
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
-from models.refinement import refine, refine_record, refine_records
+from models.refinement import refine, refine_record, refine_records, split_for_checking
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from service.recordfiles import parse_silverbox
@@ -123,12 +123,15 @@ def test_the_periodic_disturbance_is_found_at_its_frequency():
     assert frequencies and all(abs(f * record.fs - 12.5) < 0.05 * record.fs / ESTIMATION for f in frequencies)
 
 
-def test_on_clean_data_no_effect_is_added_in_at_least_95_of_100_runs():
+def test_on_clean_data_an_effect_is_added_to_few_records():
+    """The issue's 100 records are bench/test_bench_refine.py's; here 20. Were effects added to 5 %
+    of clean records, 4 or more of 20 would happen with probability 1.6 % (binomial): a loop
+    that adds to one record in five fails this most of the time."""
     added = 0
-    for seed in range(100):
+    for seed in range(20):
         x, y = paper_record([], seed=1000 + seed, disturbance_std=800.0)
         added += bool(refine([(x[:ESTIMATION], y[:ESTIMATION])], EXACT_TERMS).effects_added)
-    assert added <= 5, f"an effect was added to {added} of 100 clean records"
+    assert added <= 3, f"an effect was added to {added} of 20 clean records"
 
 
 def test_score_and_f_statistic_agree_with_an_svd_refit():
@@ -261,3 +264,16 @@ def test_with_nothing_declared_the_loop_chooses_the_linear_orders_of_the_system(
     free_run = result.refined.simulate(x[4000:], clean[4000:])[3:] - clean[4003:]
     least_squares = result.declared.simulate(x[4000:], clean[4000:])[3:] - clean[4003:]
     assert np.sqrt(np.mean(free_run**2)) < np.sqrt(np.mean(least_squares**2))
+
+
+def test_from_three_records_on_whole_records_are_checked():
+    """A sine sweep's blocks hold different frequencies, so a block split judges a model at
+    frequencies its fit never saw (F-16: orders (2, 2) chosen). Records alike in design are
+    checked whole instead: every third from the second, the others fitted whole."""
+    records = [(np.full(300, float(i)), np.full(300, float(i))) for i in range(7)]
+    fit, check = split_for_checking(records)
+    assert [x[0] for x, _, _ in check] == [1.0, 4.0]
+    assert [x[0] for x, _, _ in fit] == [0.0, 2.0, 3.0, 5.0, 6.0]
+    assert all(len(y) == 300 and t0 == 0 for _, y, t0 in fit + check)
+    one_fit, one_check = split_for_checking(records[:1])
+    assert len(one_fit) == len(one_check) == 1 and one_check[0][2] == 200  # 300 // 3 = 1 block
