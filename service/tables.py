@@ -420,3 +420,69 @@ class AlarmTransition(Base):
     at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
     key_id: Mapped[int | None] = mapped_column(ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True)
     note: Mapped[str | None] = mapped_column(Text, nullable=True)
+
+
+class Webhook(Base):
+    """An organisation's HTTPS (or HTTP) endpoint told of the ``events`` it wants.
+
+    ``secret`` signs every delivery (``service.domain.notifications``), so it is kept as given,
+    not hashed; the API never shows it again after creation."""
+
+    __tablename__ = "webhooks"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    organisation_id: Mapped[int] = mapped_column(
+        ForeignKey("organisations.id", ondelete="CASCADE"), index=True
+    )
+    url: Mapped[str] = mapped_column(String(2000))
+    secret: Mapped[str] = mapped_column(String(200))
+    events: Mapped[list[str]] = mapped_column(Document)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class EmailSubscription(Base):
+    """E-mail ``addresses`` of an organisation told of the ``events`` they want, through the
+    server's SMTP relay (``NARXWATCH_SMTP_*``)."""
+
+    __tablename__ = "email_subscriptions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    organisation_id: Mapped[int] = mapped_column(
+        ForeignKey("organisations.id", ondelete="CASCADE"), index=True
+    )
+    addresses: Mapped[list[str]] = mapped_column(Document)
+    events: Mapped[list[str]] = mapped_column(Document)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class Delivery(Base):
+    """One event for one webhook or e-mail subscription, and the log of its attempts.
+
+    The rows are an outbox: written in the transaction of the change they announce, swept into
+    jobs once committed. ``next_attempt_at`` is when it is due while ``pending``; a sweep that
+    claims it moves it on (compare-and-set), and the job it defers acts only while it still
+    holds that value, so each claim is acted on by one job. ``key`` is sent as the
+    ``Idempotency-Key``, the same on every attempt.
+    """
+
+    __tablename__ = "deliveries"
+    __table_args__ = (Index("ix_deliveries_due", "status", "next_attempt_at"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    organisation_id: Mapped[int] = mapped_column(ForeignKey("organisations.id", ondelete="CASCADE"))
+    webhook_id: Mapped[int | None] = mapped_column(
+        ForeignKey("webhooks.id", ondelete="CASCADE"), index=True, nullable=True
+    )
+    email_subscription_id: Mapped[int | None] = mapped_column(
+        ForeignKey("email_subscriptions.id", ondelete="CASCADE"), index=True, nullable=True
+    )
+    key: Mapped[str] = mapped_column(String(36), unique=True)
+    event: Mapped[str] = mapped_column(String(50))
+    payload: Mapped[dict[str, Any]] = mapped_column(Document)
+    status: Mapped[str] = mapped_column(String(16), default="pending")
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+    last_status_code: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    delivered_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
