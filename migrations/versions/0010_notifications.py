@@ -1,7 +1,7 @@
 """webhooks, e-mail subscriptions and their deliveries
 
 Revision ID: 0010
-Revises: 0008
+Revises: 0009
 Create Date: 2026-11-23 22:40:00.000000
 
 Notifications of an organisation's events: its webhooks, its e-mail subscriptions, and one
@@ -15,7 +15,7 @@ from alembic import op
 from sqlalchemy.dialects import postgresql
 
 revision = "0010"
-down_revision = "0008"
+down_revision = "0009"
 branch_labels = None
 depends_on = None
 
