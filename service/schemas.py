@@ -412,3 +412,131 @@ class DeliveryOut(BaseModel):
 class DeliveryPage(BaseModel):
     items: list[DeliveryOut]
     next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
+
+
+# --- alarms ---------------------------------------------------------------------------------
+
+AlarmState = Literal["open", "acknowledged", "resolved"]
+RuleKind = Literal["persistence", "cusum", "severity"]
+Records = Annotated[StrictInt, Field(ge=1, le=10_000)]
+Note = Annotated[str, Field(max_length=2000, pattern=r"^[^\x00]*$")]
+
+
+class PersistenceRule(Strict):
+    """Fire when ``k`` of the last ``m`` verdicts are faulty or unknown (any fault mode)."""
+
+    kind: Literal["persistence"]
+    k: Annotated[StrictInt, Field(ge=1, le=1000)] = 3
+    m: Annotated[StrictInt, Field(ge=1, le=1000)] = 5
+    clear_after: Records = Field(5, description="Records in a row without firing before an alarm resolves")
+
+    @model_validator(mode="after")
+    def _k_of_m(self) -> PersistenceRule:
+        if self.m < self.k:
+            raise ValueError(f"m (the window, {self.m}) must be at least k (the faults in it, {self.k})")
+        return self
+
+
+class CusumRule(Strict):
+    """A two-sided CUSUM per fault mode on z = k̂/σ̂k of each verdict, designed (never tuned) for
+    ``false_alarms_per_year`` per structure at ``records_per_day`` and tuned to a step of ``shift`` σ."""
+
+    kind: Literal["cusum"]
+    false_alarms_per_year: Annotated[FiniteFloat, Field(gt=0, le=365)] = 1.0
+    records_per_day: Annotated[FiniteFloat, Field(gt=0, le=100_000)] = 4.0
+    shift: Annotated[FiniteFloat, Field(gt=0, le=20)] = 1.0
+    clear_after: Records = Field(25, description="Records in a row without a signal before an alarm resolves")
+
+
+class SeverityRule(Strict):
+    """Fire when a verdict's interval for k lies wholly beyond ±``threshold`` (% of k, as k̂)."""
+
+    kind: Literal["severity"]
+    threshold: Annotated[FiniteFloat, Field(le=1e6)] = 10.0
+    clear_after: Records = Field(5, description="Records in a row without firing before an alarm resolves")
+
+    @model_validator(mode="after")
+    def _positive(self) -> SeverityRule:
+        if self.threshold <= 0:
+            raise ValueError(
+                f"the severity threshold is a magnitude of k in %, applied to losses and gains alike: "
+                f"give it positive (got {self.threshold})"
+            )
+        return self
+
+
+AlarmRule = Annotated[PersistenceRule | CusumRule | SeverityRule, Field(discriminator="kind")]
+
+
+class AlarmRules(Strict):
+    """A structure's alarm rules, at most one of each kind; kinds left out do not fire."""
+
+    rules: Annotated[list[AlarmRule], Field(min_length=1, max_length=3)]
+
+    @model_validator(mode="after")
+    def _one_per_kind(self) -> AlarmRules:
+        kinds = [rule.kind for rule in self.rules]
+        if len(set(kinds)) != len(kinds):
+            raise ValueError(f"give each kind of rule at most once; got {', '.join(kinds)}")
+        return self
+
+
+class CusumDesignOut(BaseModel):
+    """The CUSUM each fault mode is watched with: reference and threshold in σ units, run lengths
+    in records (in control: the structure's target times its number of fault modes)."""
+
+    modes: int
+    reference: float
+    threshold: float
+    arl_in_control: float
+    arl_at_shift: float
+
+
+class AlarmRulesOut(BaseModel):
+    structure_id: int
+    defaults: bool = Field(description="True when no rule was set: the service's defaults apply")
+    rules: list[AlarmRule]
+    cusum_design: CusumDesignOut | None
+
+
+class AlarmOut(BaseModel):
+    """An alarm; ``*_by`` name the API key (its prefix) that acted, null for the service itself."""
+
+    id: int
+    structure_id: int
+    rule_kind: RuleKind
+    rule: dict[str, Any]
+    fault_mode: str | None
+    state: AlarmState
+    opened_at: dt.datetime
+    record_id: int | None
+    triggered_at: dt.datetime = Field(description="Acquisition time of the record the rule fired on")
+    drift_started_at: dt.datetime | None = Field(description="CUSUM: acquisition time the drift began")
+    acknowledged_at: dt.datetime | None
+    acknowledged_by: str | None
+    acknowledgement_note: str | None
+    resolved_at: dt.datetime | None
+    resolved_by: str | None
+    resolution: Literal["cleared", "by_hand", "rule_removed"] | None
+    resolution_note: str | None
+
+
+class AlarmTransitionOut(BaseModel):
+    from_state: AlarmState | None
+    to_state: AlarmState
+    at: dt.datetime
+    by: str | None = Field(description="The acting API key's prefix; null when the service's rules acted")
+    note: str | None
+
+
+class AlarmDetail(AlarmOut):
+    transitions: list[AlarmTransitionOut]
+
+
+class AlarmPage(BaseModel):
+    items: list[AlarmOut]
+    next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
+
+
+class AlarmAction(Strict):
+    note: Note = ""

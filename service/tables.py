@@ -402,6 +402,8 @@ class Alarm(Base):
     resolution: Mapped[str | None] = mapped_column(String(16), nullable=True)
     resolution_note: Mapped[str | None] = mapped_column(Text, nullable=True)
 
+    acknowledged_key: Mapped[ApiKey | None] = relationship(foreign_keys=[acknowledged_by])
+    resolved_key: Mapped[ApiKey | None] = relationship(foreign_keys=[resolved_by])
     transitions: Mapped[list[AlarmTransition]] = relationship(
         order_by="AlarmTransition.id", cascade="all, delete-orphan"
     )
@@ -420,6 +422,8 @@ class AlarmTransition(Base):
     at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
     key_id: Mapped[int | None] = mapped_column(ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True)
     note: Mapped[str | None] = mapped_column(Text, nullable=True)
+
+    key: Mapped[ApiKey | None] = relationship()
 
 
 class Webhook(Base):

@@ -21,6 +21,7 @@ from swagger_ui_bundle import swagger_ui_path
 from models.errors import InputError
 from service import dashboard
 from service.api import (
+    alarms,
     health,
     jobs,
     keys,
@@ -82,6 +83,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         schedules.router,
         jobs.router,
         keys.router,
+        alarms.router,
         notifications.router,
     )
     for router in routers:
