@@ -22,7 +22,18 @@ from pathlib import Path
 
 import psycopg
 import pytest
-from api_helpers import API, Org, clients, detail, wait_for
+from api_helpers import (
+    API,
+    Org,
+    clients,
+    create_structure,
+    detail,
+    npz_bytes,
+    post_record,
+    simulated,
+    train_fault_mode,
+    wait_for,
+)
 from live import LiveServer, free_port
 from receivers import HANG, Mailbox, Receiver, verify
 from sqlalchemy import func, select
@@ -31,11 +42,20 @@ from workers import Worker, workers
 
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
-from service.domain import notifications
+from service.domain import notifications, renotify
 from service.jobs.distributed import conninfo
 from service.jobs.embedded import claim, defer, run
 from service.migrate import upgrade_database
-from service.tables import Delivery, EmailSubscription, Job, Organisation, Webhook, utcnow
+from service.tables import (
+    Alarm,
+    Delivery,
+    EmailSubscription,
+    Job,
+    Organisation,
+    Structure,
+    Webhook,
+    utcnow,
+)
 
 SECRET = "whsec_" + "k" * 32
 PAYLOAD = {"id": 7, "structure_id": 3, "state": "open", "opened_at": "2026-11-23T22:00:00+00:00"}
@@ -48,6 +68,8 @@ FAST = {
     "notification_timeout_seconds": "5",
     "smtp_host": "127.0.0.1",
     "smtp_starttls": "false",
+    # Longer than the three attempts of a delivery take (two sweeps of 2 s on Procrastinate).
+    "renotify_after_seconds": "8",
 }
 FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3"}
 
@@ -295,6 +317,16 @@ def delivered(admin, path: str, count: int = 1) -> list[dict]:
     return wait_for(done, 60, f"deliveries of {path}")  # type: ignore[return-value]
 
 
+def delivered_event(admin, path: str, event: str) -> dict:
+    """The target's delivery of ``event`` once it is no longer pending (within 60 s)."""
+
+    def done() -> dict | None:
+        items = admin.get(f"{API}{path}/deliveries").json()["items"]
+        return next((i for i in items if i["event"] == event and i["status"] != "pending"), None)
+
+    return wait_for(done, 60, f"{event} delivered to {path}")  # type: ignore[return-value]
+
+
 def test_an_event_answered_500_twice_is_applied_once_with_every_attempt_signed_and_logged(notifying):
     org = Org.create(notifying)
     with Receiver(SECRET, answers=[500, 500]) as receiver, clients(org) as (admin, _, _):
@@ -346,6 +378,49 @@ def test_an_event_is_mailed_through_a_real_smtp_server_after_a_refusal(notifying
     assert "alarm.opened" in message["Subject"] and message["Message-ID"] == f"<{delivery['key']}@narxwatch>"
     document = json.loads(message.get_content())
     assert (document["id"], document["event"], document["data"]) == (delivery["key"], "alarm.opened", PAYLOAD)
+
+
+ONE_FAULT_OPENS = {"kind": "persistence", "k": 1, "m": 1, "clear_after": 5}
+
+
+def test_an_alarm_raised_by_an_upload_is_delivered_once_though_the_receiver_answers_500_twice(notifying):
+    """The whole way: a faulty record uploaded and inspected opens an alarm in the upload's
+    transaction; its webhook gets "alarm.opened" (applied once, after two 500s), then, as nobody
+    acknowledges it, "alarm.renotified"; acknowledged, "alarm.acknowledged", and no more reminders."""
+    org = Org.create(notifying)
+    events = ["alarm.opened", "alarm.acknowledged", "alarm.renotified"]
+    with Receiver(SECRET, answers=[500, 500]) as receiver, clients(org) as (admin, ingest, viewer):
+        structure_id = create_structure(admin)["id"]
+        train_fault_mode(admin, ingest, structure_id, "k2", seed=81)
+        rules = admin.put(f"{API}/structures/{structure_id}/alarm-rules", json={"rules": [ONE_FAULT_OPENS]})
+        assert rules.status_code == 200, rules.text
+        webhook = admin.post(
+            f"{API}/webhooks", json={"url": receiver.url, "secret": SECRET, "events": events}
+        )
+        assert webhook.status_code == 201, webhook.text
+        path = f"/webhooks/{webhook.json()['id']}"
+        record = simulated("k2", 25.0, [82])
+        body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+        uploaded = post_record(ingest, structure_id, body, "application/x-npz", inspect="true")
+        assert uploaded.status_code == 201 and uploaded.json()["verdict"]["status"] == "faulty", uploaded.text
+        (alarm,) = viewer.get(f"{API}/alarms", params={"structure_id": structure_id}).json()["items"]
+        opened = delivered_event(admin, path, "alarm.opened")
+        assert (opened["status"], opened["attempts"], opened["last_status_code"]) == ("delivered", 3, 200)
+        attempts = [r for r in receiver.requests if r.headers["idempotency-key"] == opened["key"]]
+        assert [r.document()["data"] for r in attempts] == [alarm] * 3
+        assert receiver.applied[opened["key"]]["data"] == alarm
+        reminder = delivered_event(admin, path, "alarm.renotified")
+        assert receiver.applied[reminder["key"]]["data"]["state"] == "open"
+        acknowledged = admin.post(f"{API}/alarms/{alarm['id']}/acknowledge", json={"note": "on it"})
+        assert acknowledged.status_code == 200, acknowledged.text
+        last = delivered_event(admin, path, "alarm.acknowledged")
+        assert receiver.applied[last["key"]]["data"] == acknowledged.json()
+        time.sleep(10)  # longer than renotify_after_seconds: an acknowledged alarm is not renotified
+        logged = admin.get(f"{API}{path}/deliveries").json()["items"]
+        assert sorted(d["event"] for d in logged) == sorted(events), "an event was announced twice"
+        assert all(d["status"] == "delivered" for d in logged)
+    assert len(receiver.applied) == 3, "an event was applied more than once"
+    assert all(request.signed for request in receiver.requests)
 
 
 def test_a_worker_killed_during_a_delivery_does_not_lose_it(postgres_url: str, tmp_path: Path):
@@ -460,3 +535,40 @@ def test_the_delivery_log_counts_rows_only_of_its_target(outbox: Outbox):
             select(func.count()).select_from(Delivery).where(Delivery.webhook_id == theirs)
         )
         assert total == 1
+
+
+def test_an_open_alarm_is_renotified_once_per_period_until_acknowledged(outbox: Outbox):
+    outbox.webhook("https://93.184.215.14/hook", ["alarm.renotified"])
+    opened = utcnow() - dt.timedelta(hours=2)
+    with transaction(outbox.sessions) as session:
+        structure = Structure(organisation_id=outbox.organisation_id, name="rig", fs=1500.0)
+        session.add(structure)
+        session.flush()
+        alarms = [
+            Alarm(
+                structure_id=structure.id,
+                rule_kind=kind,
+                rule={"kind": kind},
+                fault_mode="k2",
+                state=state,
+                opened_at=opened,
+                triggered_at=opened,
+                evaluated_through=opened,
+            )
+            for kind, state in (("persistence", "open"), ("severity", "acknowledged"))
+        ]
+        session.add_all(alarms)
+        session.flush()
+        open_id = alarms[0].id
+    hour = dt.timedelta(hours=1)
+    now = utcnow()
+    with outbox.sessions() as session:
+        assert renotify.sweep(session, dt.timedelta(hours=3), now) == 0, "renotified before its time"
+        assert renotify.sweep(session, hour, now) == 1
+        assert renotify.sweep(session, hour, now) == 0, "renotified twice in one period"
+        assert renotify.sweep(session, hour, now + hour - dt.timedelta(seconds=1)) == 0
+        assert renotify.sweep(session, hour, now + hour) == 1
+        assert renotify.sweep(session, dt.timedelta(0), now + 5 * hour) == 0, "0 means never"
+    found = outbox.deliveries()
+    assert [d.event for d in found] == ["alarm.renotified"] * 2
+    assert {(d.payload["id"], d.payload["state"]) for d in found} == {(open_id, "open")}
