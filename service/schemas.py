@@ -364,10 +364,16 @@ EMAIL_PATTERN = r"^[^@\s,;<>()\"\[\]\\]+@[^@\s,;<>()\"\[\]\\]+\.[^@\s,;<>()\"\[\
 EmailAddress = Annotated[str, Field(max_length=254, pattern=EMAIL_PATTERN)]
 
 
+def _url_characters(url: str) -> str:
+    if any(ord(c) <= 0x20 or ord(c) == 0x7F for c in url):
+        raise ValueError("a URL holds no spaces or control characters: percent-encode them")
+    return url
+
+
 class WebhookCreate(Strict):
     """An endpoint told of the ``events`` it wants, each POST signed with ``secret``."""
 
-    url: Annotated[str, Field(min_length=1, max_length=2000)]
+    url: Annotated[str, Field(min_length=1, max_length=2000), AfterValidator(_url_characters)]
     secret: Annotated[str, Field(min_length=MIN_SECRET_LENGTH, max_length=200, pattern=r"^[\x21-\x7e]+$")]
     events: Events
 

@@ -475,6 +475,7 @@ GOOD = {"url": "https://93.184.215.14/hooks", "secret": SECRET, "events": ["alar
         ({"url": "http://[fd00::1]/hooks"}, "not a public address"),
         ({"url": "http://0.0.0.0/hooks"}, "not a public address"),
         ({"url": "https://user:pw@93.184.215.14/hooks"}, "no user name or password"),
+        ({"url": "https://93.184.215.14/a hook"}, "no spaces or control characters"),
         ({"secret": "too-short"}, "at least 32 characters"),
         ({"events": ["alarm.exploded"]}, "alarm.opened"),
         ({"events": []}, "at least 1 item"),
