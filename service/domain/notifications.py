@@ -118,23 +118,11 @@ def deliver(session: Session, settings: Settings, delivery_id: int, claim: str) 
         session.rollback()
         return
     holds = (Delivery.id == delivery_id, Delivery.status == "pending", Delivery.next_attempt_at == claimed)
-    message = senders.Message(delivery.key, delivery.event, delivery.created_at, delivery.payload)
     attempt = delivery.attempts + 1
-    if delivery.webhook_id is not None:
-        webhook = session.get(Webhook, delivery.webhook_id)
-        assert webhook is not None  # deleting a webhook deletes its deliveries
-        url, secret = webhook.url, webhook.secret
-
-        def send() -> senders.Outcome:
-            return senders.post_webhook(url, secret, delivery_id, message, settings)
-    else:
-        subscription = session.get(EmailSubscription, delivery.email_subscription_id)
-        assert subscription is not None
-        addresses = list(subscription.addresses)
-
-        def send() -> senders.Outcome:
-            return senders.send_email(addresses, message, settings)
-
+    send = _sender(session, delivery, settings)
+    if send is None:  # its webhook or subscription was deleted since it was read (and the delivery with it)
+        session.rollback()
+        return
     session.execute(update(Delivery.__table__).where(*holds).values(attempts=attempt))
     session.commit()
     outcome = send()
@@ -157,6 +145,23 @@ def deliver(session: Session, settings: Settings, delivery_id: int, claim: str) 
         )
     session.execute(update(Delivery.__table__).where(*holds).values(**values))
     session.commit()
+
+
+def _sender(session: Session, delivery: Delivery, settings: Settings) -> Callable[[], senders.Outcome] | None:
+    """The attempt at ``delivery``, with everything it needs read now (no transaction stays open
+    while it runs); None if its target is gone."""
+    message = senders.Message(delivery.key, delivery.event, delivery.created_at, delivery.payload)
+    if delivery.webhook_id is not None:
+        webhook = session.get(Webhook, delivery.webhook_id)
+        if webhook is None:
+            return None
+        url, secret, delivery_id = webhook.url, webhook.secret, delivery.id
+        return lambda: senders.post_webhook(url, secret, delivery_id, message, settings)
+    subscription = session.get(EmailSubscription, delivery.email_subscription_id)
+    if subscription is None:
+        return None
+    addresses = list(subscription.addresses)
+    return lambda: senders.send_email(addresses, message, settings)
 
 
 # --- webhooks and e-mail subscriptions ------------------------------------------------------------
