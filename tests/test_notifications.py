@@ -12,7 +12,10 @@ import datetime as dt
 import email
 import itertools
 import json
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -44,7 +47,7 @@ from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import notifications, renotify
 from service.jobs.distributed import conninfo
-from service.jobs.embedded import claim, defer, run
+from service.jobs.embedded import EmbeddedBackend, claim, defer, run
 from service.migrate import upgrade_database
 from service.tables import (
     Alarm,
@@ -452,6 +455,61 @@ def test_a_worker_killed_during_a_delivery_does_not_lose_it(postgres_url: str, t
             "WHERE j.task_name = 'deliver' AND e.type = 'started'"
         ).fetchone()
     assert starts == (2,), "the killed delivery job should have started twice"
+
+
+# A `narxwatch worker` of the embedded backend with a short lease (the command's is a minute), so
+# that the test need not wait a minute for the killed worker's job to be claimed again.
+EMBEDDED_WORKER = """
+import datetime as dt, sys
+from service.config import Settings
+from service.db import make_engine, session_factory
+from service.jobs.embedded import EmbeddedBackend
+settings = Settings()
+sessions = session_factory(make_engine(settings.database_url))
+lease = dt.timedelta(seconds=float(sys.argv[1]))
+EmbeddedBackend(sessions, settings, run_in_process=False, lease=lease).work(once=False)
+"""
+
+
+def test_an_embedded_worker_killed_during_a_delivery_does_not_lose_it(tmp_path: Path):
+    """The same on SQLite: the killed worker's lease runs out, another worker claims the job
+    again, and the receiver's application acts once on the two attempts."""
+    url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    lease = 1.5
+    env = {**os.environ, "NARXWATCH_DATABASE_URL": url}
+    env |= {f"NARXWATCH_{name.upper()}": value for name, value in FAST.items()}
+    with LiveServer(fast_settings(url)) as server, Receiver(SECRET, answers=[HANG]) as receiver:
+        org = Org.create(server)
+        with clients(org) as (admin, _, _):
+            webhook = admin.post(
+                f"{API}/webhooks", json={"url": receiver.url, "secret": SECRET, "events": ["alarm.opened"]}
+            ).json()
+            announce(server, org, "alarm.opened", PAYLOAD)
+            with (tmp_path / "victim.log").open("wb") as log:
+                victim = subprocess.Popen(
+                    [sys.executable, "-c", EMBEDDED_WORKER, str(lease)], env=env, stdout=log, stderr=log
+                )
+            try:
+                assert receiver.arrived.wait(60), "the worker never attempted the delivery"
+            finally:
+                victim.kill()
+                victim.wait(30)
+            receiver.release.set()
+            with server.app.state.sessions() as session:
+                (job,) = session.scalars(select(Job).where(Job.task == notifications.DELIVER))
+                assert (job.status, job.attempts) == ("running", 1), "the killed worker's job is not leased"
+            time.sleep(lease + 0.5)
+            rescuer = EmbeddedBackend(
+                server.app.state.sessions,
+                server.settings,
+                run_in_process=False,
+                lease=dt.timedelta(seconds=lease),
+            )
+            assert rescuer.run_due() == 1
+            (delivery,) = admin.get(f"{API}/webhooks/{webhook['id']}/deliveries").json()["items"]
+    assert (delivery["status"], delivery["attempts"]) == ("delivered", 2)
+    assert len(receiver.requests) == 2 and len(receiver.applied) == 1
+    assert {r.headers["idempotency-key"] for r in receiver.requests} == {delivery["key"]}
 
 
 # --- the API's refusals and tenancy (default settings: private targets refused, no SMTP) --------
