@@ -291,7 +291,8 @@ def test_the_structure_page_charts_every_verdict(viewer: httpx.Client, monitored
     oldest_first = monitored.verdicts[::-1]
     # An unknown fault has no magnitude: it is left off the k̂ chart, and only that chart.
     estimated = [v for v in oldest_first if v["k_hat"] is not None]
-    (k_hat,) = figures["k_hat"]["data"]  # one reference mode: k2
+    traces = {trace["name"]: trace for trace in figures["k_hat"]["data"]}
+    k_hat = traces["k̂ (k2 model)"]  # one reference mode: k2
     assert k_hat["x"] == [ms(v["acquired_at"]) for v in estimated]
     assert k_hat["y"] == [v["k_hat"] for v in estimated]
     np.testing.assert_allclose(k_hat["error_y"]["array"], [v["interval"][1] - v["k_hat"] for v in estimated])
@@ -299,6 +300,34 @@ def test_the_structure_page_charts_every_verdict(viewer: httpx.Client, monitored
         k_hat["error_y"]["arrayminus"], [v["k_hat"] - v["interval"][0] for v in estimated]
     )
     assert max(k_hat["y"]) == pytest.approx(FAULT_K, abs=2.0)
+    # The markers' colours are explained: a legend entry (without points) per status.
+    for status in ("healthy", "faulty", "unknown fault"):
+        assert traces[status]["x"] == [None] and traces[status]["legendgroup"] == "status"
+    # The default CUSUM on z = k̂/σ̂k, as Page defined it, restarted after each signal (its design
+    # assumes the restart), against the threshold the alarm rules' API reports.
+    with monitored.org.client("viewer") as api:
+        design = api.get(f"{API}/structures/{monitored.structure['id']}/alarm-rules").json()["cusum_design"]
+        alarms = api.get(f"{API}/alarms", params={"structure_id": monitored.structure["id"]}).json()["items"]
+    statistic, upper, lower = [], 0.0, 0.0
+    for verdict in oldest_first:
+        z = verdict["modes"][0]["k_hat"] / verdict["modes"][0]["sigma_k"]
+        upper, lower = max(0.0, upper + z - design["reference"]), max(0.0, lower - z - design["reference"])
+        statistic.append(max(upper, lower))
+        if statistic[-1] > design["threshold"]:
+            upper = lower = 0.0
+    cusum = traces["CUSUM (k2)"]
+    assert cusum["x"] == [ms(v["acquired_at"]) for v in oldest_first] and cusum["yaxis"] == "y2"
+    np.testing.assert_allclose(cusum["y"], statistic)
+    threshold = traces[f"CUSUM threshold h = {design['threshold']:.2f} σ"]
+    assert threshold["y"] == [design["threshold"]] * 2
+    # Each alarm's line stands where it was raised, in its state's colour; the CUSUM's where its drift began.
+    assert {a["state"] for a in alarms} == {"open"} and {a["rule_kind"] for a in alarms} >= {"cusum"}
+    raised = traces["alarm raised (open)"]
+    assert sorted(x for x in raised["x"] if x is not None)[::2] == sorted(
+        ms(a["triggered_at"]) for a in alarms
+    )
+    drifts = [ms(a["drift_started_at"]) for a in alarms if a["drift_started_at"]]
+    assert sorted(x for x in traces["drift began (CUSUM)"]["x"] if x is not None)[::2] == sorted(drifts)
     q, critical = figures["q"]["data"]
     assert q["x"] == [ms(v["acquired_at"]) for v in oldest_first]
     assert q["y"] == [v["modes"][0]["q"] for v in oldest_first]
