@@ -28,6 +28,7 @@ from dashboard_helpers import (
 from live import LiveServer
 from sqlalchemy import update
 
+from service.dashboard.auth import form_token
 from service.tables import ApiKey, utcnow
 
 PAGE_SIZE = 25  # service.dashboard.views.HISTORY_PAGE
@@ -516,3 +517,51 @@ def test_a_login_ends_when_it_expires(api_server: LiveServer):
         assert find_login(session, expired) is None
     with httpx.Client(base_url=api_server.url, cookies={COOKIE: expired}) as client:
         assert client.get(DASHBOARD).status_code == 303
+
+
+# --- alarms (last: acknowledging changes the monitored structure's alarms) -------------------
+
+CSRF = re.compile(r'name="csrf" value="([0-9a-f]{64})"')
+
+
+def test_alarm_forms_need_an_admin_login_the_page_s_token_and_the_dashboard_s_origin(
+    api_server: LiveServer, monitored: Monitored
+):
+    sid = monitored.structure["id"]
+    with monitored.org.client("viewer") as api:
+        (alarm,) = api.get(f"{API}/alarms", params={"structure_id": sid, "rule_kind": "persistence"}).json()[
+            "items"
+        ]
+    url = f"{DASHBOARD}/alarms/{alarm['id']}/acknowledge"
+
+    def state() -> dict:
+        with monitored.org.client("viewer") as api:
+            return api.get(f"{API}/alarms/{alarm['id']}").json()
+
+    with logged_in(api_server, monitored.org.keys["viewer"]) as viewer:
+        page = viewer.get(f"{DASHBOARD}/structures/{sid}")
+        assert f'data-alarm-id="{alarm["id"]}"' in page.text and "Admins acknowledge" in page.text
+        assert "/acknowledge" not in page.text, "no buttons for a viewer"
+        # The viewer's own login token, which its pages do not show, does not make it an admin.
+        refused = viewer.post(url, data={"csrf": form_token(viewer.cookies[COOKIE]), "note": "mine"})
+        assert refused.status_code == 403 and "admin key" in refused.text
+    other = Org.create(api_server)
+    with logged_in(api_server, other.keys["admin"]) as stranger:
+        token = CSRF.search(stranger.get(DASHBOARD).text)
+        assert token is None, "a fleet without alarms has no alarm forms"
+    with logged_in(api_server, monitored.org.keys["admin"]) as admin:
+        page = admin.get(f"{DASHBOARD}/structures/{sid}")
+        found = CSRF.search(page.text)
+        assert found is not None and "/acknowledge" in page.text
+        token = found.group(1)
+        assert admin.post(url, data={"note": "no token"}).status_code == 403
+        assert admin.post(url, data={"csrf": "0" * 64}).status_code == 403
+        forged = admin.post(url, data={"csrf": token}, headers={"Origin": "https://evil.example"})
+        assert forged.status_code == 403 and "dashboard itself" in forged.text
+        assert state()["state"] == "open", "the refused forms changed nothing"
+        here = f"{DASHBOARD}/structures/{sid}"
+        done = admin.post(url, data={"csrf": token, "note": "crew on site", "next": here})
+        assert done.status_code == 303 and done.headers["location"] == here
+        assert (state()["state"], state()["acknowledgement_note"]) == ("acknowledged", "crew on site")
+        again = admin.post(url, data={"csrf": token, "next": here})
+        assert again.status_code == 409 and "only an open alarm" in again.text

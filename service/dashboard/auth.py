@@ -49,10 +49,14 @@ def same_origin(request: Request) -> None:
 
 
 def csrf_token(request: Request) -> str:
-    """The token a page's forms carry: bound to the login (a keyed hash of its session token), so a
-    form posted from another site cannot carry it, and nothing needs storing. A third lock besides
-    SameSite and the Origin check: some clients send no Origin header."""
-    session_token = request.cookies.get(COOKIE, "")
+    """The token the page's forms carry (:func:`form_token` of the request's login)."""
+    return form_token(request.cookies.get(COOKIE, ""))
+
+
+def form_token(session_token: str) -> str:
+    """A login's form token: a keyed hash of its session token, so a page of another site cannot
+    know it, and nothing needs storing. A third lock besides SameSite and the Origin check, which
+    some clients leave out."""
     return hmac.new(session_token.encode(), b"narxwatch dashboard form", hashlib.sha256).hexdigest()
 
 

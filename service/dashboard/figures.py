@@ -31,6 +31,7 @@ MODE_COLOURS = ("#1f77b4", "#9467bd", "#17becf", "#8c564b", "#e377c2", "#7f7f7f"
 MODE_SYMBOLS = ("circle", "diamond", "square", "triangle-up", "cross", "x")
 MARGIN = {"l": 60, "r": 20, "t": 40, "b": 45}
 LEGEND_BELOW = {"orientation": "h", "y": -0.2}
+CUSUM_AXIS_THRESHOLDS = 3.0  # the CUSUM axis of the k̂ chart reaches this many thresholds
 
 
 def _scatter(n: int) -> str:
@@ -100,16 +101,30 @@ def k_hat_figure(
         legend=LEGEND_BELOW,
     )
     if cusums or alarms:
+        # Up to a few thresholds: a fault's statistic can run to hundreds of σ, and what matters is
+        # where it crossed the threshold; beyond the top it leaves the chart.
         layout["yaxis2"] = {
             "title": {"text": "CUSUM statistic [σ]" if cusums else ""},
             "showticklabels": bool(cusums),
             "overlaying": "y",
             "side": "right",
-            "rangemode": "tozero",
+            "range": [0.0, _alarm_axis_top(cusums)],
             "showgrid": False,
+            "zeroline": False,
+            "tickmode": "auto",
+            "nticks": 5,
         }
-        layout["margin"] = MARGIN | {"r": 60}
+        # Room below the plot for the legend's three groups.
+        layout |= {
+            "margin": MARGIN | {"r": 60, "b": 60},
+            "height": 540,
+            "legend": LEGEND_BELOW | {"y": -0.15, "yanchor": "top"},
+        }
     return {"data": data, "layout": layout}
+
+
+def _alarm_axis_top(cusums: Sequence[CusumSeries]) -> float:
+    return CUSUM_AXIS_THRESHOLDS * cusums[0].threshold if cusums else 1.0
 
 
 def _status_legend() -> list[dict[str, Any]]:
@@ -166,7 +181,7 @@ def _cusum_traces(cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
 def _alarm_traces(alarms: Sequence[AlarmOut], cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
     """A vertical line (on the CUSUM axis, up to the threshold or the statistic's top) where each
     alarm was raised, one trace per state; and a dotted one where each CUSUM alarm's drift began."""
-    top = max([max(s.statistic, default=0.0) for s in cusums] + [s.threshold for s in cusums] + [1.0])
+    top = _alarm_axis_top(cusums)
     data = []
 
     def vertical(moments: list[dt.datetime]) -> dict[str, list[float | None]]:
