@@ -30,7 +30,7 @@ two-sided chart's ARL follows from the two one-sided ones:
 
     1/ARL = 1/ARL₊ + 1/ARL₋,
 
-exactly for r ≥ 0 and a zero start (Van Dobben de Bruyn 1968; Siegmund 1985, §2.6): while
+exactly for r ≥ 0 and a zero start (Van Dobben de Bruyn 1968; Lucas & Crosier 1982): while
 both sides are positive their sum falls by 2r every record, so it never exceeds h, and a side
 alarms only with the other at zero — the state the other side's run started from — whence the
 renewal argument gives the relation. The design assumes the chart restarts at zero after each
@@ -42,8 +42,11 @@ Page, E. S. (1954). Continuous inspection schemes. Biometrika 41, 100–115.
 Goel, A. L., Wu, S. M. (1971). Determination of A.R.L. and a contour nomogram for CUSUM charts
 to control normal mean. Technometrics 13, 221–230.
 Brook, D., Evans, D. A. (1972). An approach to the probability distribution of CUSUM run
-length. Biometrika 59, 539–549.
-Siegmund, D. (1985). Sequential Analysis. Springer, §2.6 and eq. (2.55).
+length. Biometrika 59, 539–549 (the same equation as a Markov chain on a grid of states).
+Siegmund, D. (1985). Sequential Analysis. Springer, chapter II.
+Van Dobben de Bruyn, C. S. (1968). Cumulative Sum Tests: Theory and Practice. Griffin.
+Lucas, J. M., Crosier, R. B. (1982). Fast initial response for CUSUM quality-control schemes.
+Technometrics 24, 199–205.
 Moustakides, G. V. (1986). Optimal stopping times for detecting changes in distributions.
 Annals of Statistics 14, 1379–1387.
 """
@@ -60,13 +63,15 @@ from scipy import optimize, stats
 
 from models.errors import InputError
 
-QUADRATURE_NODES = 64
+QUADRATURE_NODES = 64  # at least; more for h > 16
+NEVER = 1e10  # records: ARLs beyond are reported as inf (the integral equation cannot resolve them)
+MAX_THRESHOLD = 100.0  # σ units: the largest decision interval the design searches
 COMMON_NODES = 24
 RECORDS_PER_DAY = 4.0  # the record rate the defaults are designed for when none is stated
 # σ units: the CUSUM is tuned to a step of two standard errors of k̂. A smaller reference (δ = 1) is
 # optimal for 1σ steps only if the verdicts' z are independent; with the few per cent of σ̂k² that
 # the fault-mode model's error makes common to all records (``in_control_arl``), it needs h ≈ 18
-# instead of 4.4 for the same false-alarm rate and is slower at every step above 1σ.
+# instead of 4.4 for the same false-alarm rate and is slower at every step from 1σ up.
 DESIGN_SHIFT = 2.0
 PERSISTENCE_K = 3
 PERSISTENCE_M = 5
@@ -128,7 +133,7 @@ def one_sided_arl(threshold: float, reference: float, mean: float) -> float:
     Returns
     -------
     L(0), the solution of the integral equation in the module docstring by Gauss–Legendre
-    Nyström with ``QUADRATURE_NODES`` nodes.
+    Nyström (``QUADRATURE_NODES`` nodes, four per σ of h beyond); inf beyond ``NEVER`` records.
 
     Examples
     --------
@@ -141,7 +146,8 @@ def one_sided_arl(threshold: float, reference: float, mean: float) -> float:
 
 
 def _arl_nystrom(h: float, r: float, mu: float) -> float:
-    nodes, weights = _gauss_legendre(QUADRATURE_NODES)
+    # The kernel is a unit Gaussian: four nodes per σ of interval keep the rule exact to ~10⁻⁹.
+    nodes, weights = _gauss_legendre(max(QUADRATURE_NODES, int(np.ceil(4 * h))))
     x = 0.5 * h * (nodes + 1.0)
     w = 0.5 * h * weights
     # Unknowns: L at the nodes, and L(0) (the chart's start and its reset state).
@@ -151,8 +157,10 @@ def _arl_nystrom(h: float, r: float, mu: float) -> float:
     A[:, :-1] = -stats.norm.pdf(x[None, :] - u[:, None] + shift) * w[None, :]
     A[:, -1] = -stats.norm.cdf(shift - u)  # the step to or below zero resets the chart
     A[np.arange(u.size), np.arange(u.size)] += 1.0
-    L = np.linalg.solve(A, np.ones(u.size))
-    return L[-1]
+    L = np.linalg.solve(A, np.ones(u.size))[-1]
+    # I − K is singular to working precision once L(0) nears 1/eps: such a chart never alarms
+    # in any service's lifetime, and its rate 1/ARL is zero to the precision anything here needs.
+    return L if np.isfinite(L) and 0 < L < NEVER else np.inf
 
 
 @cache
@@ -168,16 +176,15 @@ def two_sided_arl(threshold: float, reference: float, mean: float) -> float:
     >>> round(two_sided_arl(4.0, 0.5, 0.0), 1)  # half the one-sided run length in control
     167.7
     """
-    return 1.0 / (
-        1.0 / one_sided_arl(threshold, reference, mean) + 1.0 / one_sided_arl(threshold, reference, -mean)
-    )
+    rate = 1.0 / one_sided_arl(threshold, reference, mean) + 1.0 / one_sided_arl(threshold, reference, -mean)
+    return 1.0 / rate if rate > 0 else np.inf
 
 
 def siegmund_arl(threshold: float, reference: float, mean: float) -> float:
     """Siegmund's approximation to the one-sided ARL, for checking the integral equation only.
 
     With Δ = μ − r and b = h + 1.166 (the mean overshoot of a Gaussian walk, 2·0.583):
-    ARL ≈ (exp(−2Δb) + 2Δb − 1)/(2Δ²), and b² when Δ = 0 (Siegmund 1985, eq. 2.55). Accurate to a
+    ARL ≈ (exp(−2Δb) + 2Δb − 1)/(2Δ²), and b² when Δ = 0 (Siegmund 1985, ch. II). Accurate to a
     few per cent for the h and r used here.
     """
     delta = mean - reference
@@ -218,7 +225,8 @@ def in_control_arl(threshold: float, reference: float, common_share: float = 0.0
     offsets = np.sqrt(common_share) * nodes[half]
     share = np.where(nodes[half] > 0, 2.0, 1.0) * weights[half]
     rates = [1.0 / two_sided_arl(threshold / rho, reference / rho, beta / rho) for beta in offsets]
-    return float(1.0 / np.dot(share, rates))
+    rate = float(np.dot(share, rates))
+    return 1.0 / rate if rate > 0 else np.inf
 
 
 @cache
@@ -270,11 +278,18 @@ def design_cusum(
     def excess(h: float) -> float:
         return np.log(in_control_arl(h, reference, common_share) / arl_in_control)
 
+    if arl_in_control > NEVER / 10:
+        raise InputError(
+            f"an in-control run length of {arl_in_control:g} records is beyond any service's life"
+        )
     upper = 1.0
     while excess(upper) < 0.0:
         upper *= 2.0
-        if upper > 200.0:
-            raise InputError(f"no decision interval below 200 σ reaches an ARL of {arl_in_control} records")
+        if upper > MAX_THRESHOLD:
+            raise InputError(
+                f"no decision interval below {MAX_THRESHOLD:g} σ reaches an ARL of {arl_in_control:g} "
+                f"records for a shift of {shift:g} σ with a common share of {common_share:g}"
+            )
     threshold = optimize.brentq(excess, 1e-6, upper, xtol=1e-10)
     rho = np.sqrt(1.0 - common_share)
     return CusumDesign(

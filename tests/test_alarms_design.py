@@ -216,3 +216,14 @@ def test_common_share_is_the_model_part_of_sigma_k():
         common_share(0.0, 0.0)
     with pytest.raises(InputError, match=r"\[0, 1\)"):
         in_control_arl(5.0, 0.5, 1.0)
+
+
+def test_run_lengths_beyond_resolution_are_never_not_garbage():
+    # At h = 46 the in-control chart's ARL is astronomically long; I − K is singular to working
+    # precision and a plain solve returns a negative number.
+    assert one_sided_arl(46.0, 0.5, 0.0) == np.inf
+    assert two_sided_arl(100.0, 1.0, 0.3) == np.inf
+    # Long intervals get nodes enough: ARL at μ = 1.1 against r = 1 grows linearly with h.
+    assert one_sided_arl(60.0, 1.0, 1.1) == pytest.approx(siegmund_arl(60.0, 1.0, 1.1), rel=0.01)
+    with pytest.raises(InputError, match="beyond any service"):
+        design_cusum(1e12)
