@@ -425,7 +425,8 @@ class DeliveryPage(BaseModel):
 AlarmState = Literal["open", "acknowledged", "resolved"]
 RuleKind = Literal["persistence", "cusum", "severity"]
 Records = Annotated[StrictInt, Field(ge=1, le=10_000)]
-Note = Annotated[str, Field(max_length=2000, pattern=r"^[^\x00]*$")]
+NOTE_PATTERN = r"^[^\x00]*$"
+Note = Annotated[str, Field(max_length=2000, pattern=NOTE_PATTERN)]
 
 
 class PersistenceRule(Strict):

@@ -60,6 +60,12 @@ POLICY = {
     ("POST", "/api/v1/keys/{key_id}/revoke"): "admin",
     ("GET", "/api/v1/jobs"): "admin",
     ("GET", "/api/v1/jobs/{job_id}"): "admin",
+    ("GET", "/api/v1/alarms"): "viewer",
+    ("GET", "/api/v1/alarms/{alarm_id}"): "viewer",
+    ("POST", "/api/v1/alarms/{alarm_id}/acknowledge"): "admin",
+    ("POST", "/api/v1/alarms/{alarm_id}/resolve"): "admin",
+    ("GET", "/api/v1/structures/{structure_id}/alarm-rules"): "viewer",
+    ("PUT", "/api/v1/structures/{structure_id}/alarm-rules"): "admin",
 }
 # Never due while the tests run: a schedule that ran would write verdicts under their feet.
 SCHEDULE = {"action": "inspect_pending", "interval_seconds": 3600, "first_run_at": "2099-01-01T00:00:00Z"}
@@ -72,7 +78,7 @@ MISSING = 10**6  # an id no object has
 @dataclass
 class Estate:
     """An organisation with a trained structure, a stored record, a verdict, a refinement, a
-    schedule and a job."""
+    schedule, a job and an alarm."""
 
     org: Org
     structure_id: int
@@ -86,6 +92,7 @@ class Estate:
     schedule_id: int
     key_id: int
     job_id: int
+    alarm_id: int
 
     def ids(self) -> dict[str, int]:
         return {
@@ -97,6 +104,7 @@ class Estate:
             "schedule_id": self.schedule_id,
             "key_id": self.key_id,
             "job_id": self.job_id,
+            "alarm_id": self.alarm_id,
         }
 
 
@@ -112,7 +120,11 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         )
         assert response.status_code == 201, response.text
         model_id = response.json()["id"]
+        # One faulty verdict opens an alarm under this rule.
+        rules = {"rules": [{"kind": "persistence", "k": 1, "m": 1}]}
+        assert admin.put(f"{API}/structures/{sid}/alarm-rules", json=rules).status_code == 200
         record = upload_simulated(ingest, sid, simulated("k2", 10.0, [seed, 99]), inspect="true")
+        (alarm,) = admin.get(f"{API}/alarms").json()["items"]
         response = admin.post(f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record["id"]]})
         assert response.status_code == 201, response.text
         baseline_id = response.json()["id"]
@@ -150,6 +162,7 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         response.json()["id"],
         key_id,
         job["id"],
+        alarm["id"],
     )
 
 
@@ -180,7 +193,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 23, routes
+    assert routes == documented and len(routes) == 29, routes
     return routes
 
 
@@ -201,6 +214,10 @@ def body_for(path: str, estate: Estate) -> dict | None:
         return SCHEDULE
     if path.endswith("/keys"):
         return {"role": "viewer"}
+    if path.endswith("/alarm-rules"):
+        return {"rules": [{"kind": "severity"}]}
+    if path.endswith(("/acknowledge", "/resolve")):
+        return {"note": "seen"}
     return None
 
 
@@ -213,7 +230,7 @@ def call(
 def first_lookup(path: str, ids: dict[str, int]) -> str:
     """What a handler looks up first, as its 404 names it: the structure, else the record,
     verdict, refinement, API key or job."""
-    names = ("structure", "record", "verdict", "refinement", "job")
+    names = ("structure", "record", "verdict", "refinement", "job", "alarm")
     labels = {name: name for name in names} | {"key": "API key"}
     for name, label in labels.items():
         if "{" + name + "_id}" in path:
@@ -340,8 +357,8 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 needed = POLICY[method, path]
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
-    # viewer: 12 admin and 2 ingest routes; ingest: 12 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 26
+    # viewer: 15 admin and 2 ingest routes; ingest: 15 admin routes.
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 32
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

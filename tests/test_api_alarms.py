@@ -293,3 +293,24 @@ def test_the_database_keeps_one_unresolved_alarm_per_structure_rule_and_fault_mo
             with pytest.raises(IntegrityError):
                 session.flush()
             session.rollback()
+
+
+def test_a_re_inspection_with_new_models_re_judges_the_record(api_server: LiveServer):
+    """A k1 fault inspected by a k2 model alone is an unknown fault, without a magnitude: no
+    severity alarm. Once a k1 model exists, inspecting the record again measures it, and the
+    severity rule fires on the new verdict."""
+    rig = new_rig(api_server, seed=63, rules=[{"kind": "severity", "threshold": 10.0}])
+    with clients(rig.org) as (admin, ingest, _):
+        record = simulated("k1", 20.0, [63, 1], 2000)
+        body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+        uploaded = post_record(ingest, rig.structure_id, body, "application/x-npz", inspect="true").json()
+        assert uploaded["verdict"]["status"] == "unknown_fault" and uploaded["verdict"]["interval"] is None
+        assert rig.alarms() == []
+        train_fault_mode(admin, ingest, rig.structure_id, "k1", seed=64)
+        response = ingest.post(f"{API}/records/{uploaded['id']}/inspect")
+        assert response.status_code == 200, response.text
+        verdict = response.json()
+        low, high = verdict["interval"]
+        assert verdict["fault_mode"] == "k1" and (high < -10.0 or low > 10.0)
+    (alarm,) = rig.alarms()
+    assert (alarm["rule_kind"], alarm["fault_mode"], alarm["record_id"]) == ("severity", "k1", uploaded["id"])

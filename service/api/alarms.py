@@ -64,15 +64,20 @@ def get_alarm(alarm_id: IdPath, principal: Viewer, session: SessionDep) -> Alarm
 
 
 @router.post("/alarms/{alarm_id}/acknowledge")
-def acknowledge_alarm(alarm_id: IdPath, body: AlarmAction, principal: Admin, session: SessionDep) -> AlarmOut:
-    """Someone is on it: an open alarm becomes acknowledged, with who, when and the note."""
-    return alarms.alarm_out(alarms.acknowledge(session, principal, alarm_id, body.note))
+def acknowledge_alarm(
+    alarm_id: IdPath, principal: Admin, session: SessionDep, body: AlarmAction | None = None
+) -> AlarmOut:
+    """Someone is on it: an open alarm becomes acknowledged, with who, when and the note (optional)."""
+    return alarms.alarm_out(alarms.acknowledge(session, principal, alarm_id, body.note if body else ""))
 
 
 @router.post("/alarms/{alarm_id}/resolve")
-def resolve_alarm(alarm_id: IdPath, body: AlarmAction, principal: Admin, session: SessionDep) -> AlarmOut:
-    """Resolve an open or acknowledged alarm by hand; the rule then looks only at later records."""
-    return alarms.alarm_out(alarms.resolve(session, principal, alarm_id, body.note))
+def resolve_alarm(
+    alarm_id: IdPath, principal: Admin, session: SessionDep, body: AlarmAction | None = None
+) -> AlarmOut:
+    """Resolve an open or acknowledged alarm by hand (a note is optional); the rule then looks only
+    at records acquired later."""
+    return alarms.alarm_out(alarms.resolve(session, principal, alarm_id, body.note if body else ""))
 
 
 @router.get("/structures/{structure_id}/alarm-rules")

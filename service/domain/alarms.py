@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -80,13 +80,24 @@ class Point:
 
 @dataclass(frozen=True)
 class Firing:
-    """Where a rule fired: ``fired`` per record of ``points``, and for the CUSUM the index of the
-    first record of each signal's drift."""
+    """Where a rule fired: ``fired`` per record of ``points``; for the CUSUM, the index of the
+    first record of each signal's drift, and its statistic (the larger side) after each record."""
 
     fault_mode: str | None
     points: list[Point]
     fired: list[bool]
     drift_starts: dict[int, int]
+    statistic: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class CusumSeries:
+    """A fault mode's CUSUM as the rules ran it, for the structure's k̂ chart."""
+
+    fault_mode: str
+    acquired_at: list[dt.datetime]
+    statistic: list[float]
+    threshold: float
 
 
 # --- rules ------------------------------------------------------------------------------------
@@ -254,16 +265,37 @@ def _cusum_firing(rule: CusumRule, mode: str, points: list[Point], modes: int) -
     z = np.array([k_hat / sigma for k_hat, sigma in (p.modes[mode] for p in points)])
     fired = [False] * len(points)
     drift_starts: dict[int, int] = {}
+    statistic: list[float] = []
     start = 0
     while start < len(points):
         path = rules_math.cusum(z[start:], design)
+        end = len(points) - start if path.alarm_at is None else path.alarm_at + 1
+        statistic += np.maximum(path.upper[:end], path.lower[:end]).tolist()
         if path.alarm_at is None or path.drift_start is None:
             break
         at = start + path.alarm_at
         fired[at] = True
         drift_starts[at] = start + path.drift_start
         start = at + 1
-    return Firing(mode, points, fired, drift_starts)
+    return Firing(mode, points, fired, drift_starts, statistic)
+
+
+def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
+    """Each fault mode's CUSUM statistic over the records the rules look at, with its threshold;
+    none when the structure has no CUSUM rule."""
+    rules, _ = rules_of(session, structure_id)
+    rule = next((r for r in rules if isinstance(r, CusumRule)), None)
+    points = _newest_points(session, structure_id, WINDOW)
+    if rule is None or not points:
+        return []
+    modes = _mode_count(points)
+    threshold = cusum_design(rule, modes).threshold
+    return [
+        CusumSeries(
+            firing.fault_mode or "", [p.acquired_at for p in firing.points], firing.statistic, threshold
+        )
+        for firing in _firings(rule, points, _resolved_through(session, structure_id), modes)
+    ]
 
 
 def _newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
