@@ -531,6 +531,9 @@ GOOD = {"url": "https://93.184.215.14/hooks", "secret": SECRET, "events": ["alar
         ({"url": "http://[::ffff:127.0.0.1]/hooks"}, "not a public address"),
         ({"url": "http://[fd00::1]/hooks"}, "not a public address"),
         ({"url": "http://0.0.0.0/hooks"}, "not a public address"),
+        # Other spellings of 127.0.0.1: the addresses a name resolves to are checked, not its text.
+        ({"url": "http://2130706433/hooks"}, "not a public address"),
+        ({"url": "http://0x7f.1/hooks"}, "not a public address"),
         ({"url": "https://user:pw@93.184.215.14/hooks"}, "no user name or password"),
         ({"url": "https://93.184.215.14/a hook"}, "no spaces or control characters"),
         ({"secret": "too-short"}, "at least 32 characters"),
