@@ -7,7 +7,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, IPvAnyNetwork, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -81,6 +81,28 @@ class Settings(BaseSettings):
     # machine of few cores two per worker process left another organisation's reads a p95 just
     # over a second under bench/abuse.py's attack.
     max_concurrent_expensive: int = Field(1, ge=1)
+    # Notifications (service.domain.notifications). Webhook targets must resolve to global
+    # addresses (no loopback, private, link-local … ranges: SSRF), checked when a webhook is
+    # created and again at each delivery; ``webhook_allow_private`` lifts that, and
+    # ``webhook_allowed_networks`` (JSON list, e.g. '["10.1.0.0/16"]') admits chosen ranges.
+    webhook_allow_private: bool = False
+    webhook_allowed_networks: list[IPvAnyNetwork] = []
+    # One attempt (connect, send, answer; or an SMTP conversation) ends after this many seconds.
+    notification_timeout_seconds: float = Field(10.0, gt=0, le=120)
+    # A failed delivery is tried again after 30 s, 1, 2, 4 … min, up to this many attempts in all
+    # (10: the last about 4 h after the first), then marked failed.
+    delivery_max_attempts: int = Field(10, ge=1, le=50)
+    delivery_first_retry_seconds: float = Field(30.0, gt=0)
+    # An open alarm nobody acknowledged is announced again ("alarm.renotified") this long after it
+    # was last announced; 0: never.
+    renotify_after_seconds: float = Field(4 * 3600.0, ge=0)
+    # E-mail notifications go through this relay; without a host, e-mail subscriptions are refused.
+    smtp_host: str | None = None
+    smtp_port: int = Field(587, ge=1, le=65535)
+    smtp_user: str | None = None
+    smtp_password: SecretStr | None = None
+    smtp_from: str = "narxwatch@localhost"
+    smtp_starttls: bool = True
 
 
 @lru_cache

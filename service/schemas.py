@@ -351,3 +351,199 @@ class JobOut(BaseModel):
 class JobPage(BaseModel):
     items: list[JobOut]
     next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
+
+
+# --- notifications (service.domain.notifications) ------------------------------------------------
+
+Event = Literal["alarm.opened", "alarm.acknowledged", "alarm.resolved", "alarm.renotified"]
+Events = Annotated[list[Event], Field(min_length=1, max_length=4, description="The events wanted")]
+# A signing secret as strong as the HMAC's key should be: 32 characters of a random token
+# (Stripe's are 32 base64 characters after ``whsec_``).
+MIN_SECRET_LENGTH = 32
+EMAIL_PATTERN = r"^[^@\s,;<>()\"\[\]\\]+@[^@\s,;<>()\"\[\]\\]+\.[^@\s,;<>()\"\[\]\\]+$"
+EmailAddress = Annotated[str, Field(max_length=254, pattern=EMAIL_PATTERN)]
+
+
+def _url_characters(url: str) -> str:
+    if any(ord(c) <= 0x20 or ord(c) == 0x7F for c in url):
+        raise ValueError("a URL holds no spaces or control characters: percent-encode them")
+    return url
+
+
+class WebhookCreate(Strict):
+    """An endpoint told of the ``events`` it wants, each POST signed with ``secret``."""
+
+    url: Annotated[str, Field(min_length=1, max_length=2000), AfterValidator(_url_characters)]
+    secret: Annotated[str, Field(min_length=MIN_SECRET_LENGTH, max_length=200, pattern=r"^[\x21-\x7e]+$")]
+    events: Events
+
+
+class WebhookOut(BaseModel):
+    """A webhook as listed: never its secret."""
+
+    id: int
+    url: str
+    events: list[Event]
+    created_at: dt.datetime
+
+
+class EmailSubscriptionCreate(Strict):
+    addresses: Annotated[list[EmailAddress], Field(min_length=1, max_length=20)]
+    events: Events
+
+
+class EmailSubscriptionOut(BaseModel):
+    id: int
+    addresses: list[str]
+    events: list[Event]
+    created_at: dt.datetime
+
+
+class DeliveryOut(BaseModel):
+    """One event for one webhook or subscription: ``attempts`` made so far, the last answer's
+    status code (HTTP, or SMTP reply) and error; ``next_attempt_at`` while it is pending."""
+
+    id: int
+    key: str = Field(description="Sent as Idempotency-Key, the same on every attempt")
+    event: Event
+    status: Literal["pending", "delivered", "failed"]
+    attempts: int
+    last_status_code: int | None
+    last_error: str | None
+    next_attempt_at: dt.datetime | None
+    delivered_at: dt.datetime | None
+    created_at: dt.datetime
+
+
+class DeliveryPage(BaseModel):
+    items: list[DeliveryOut]
+    next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
+
+
+# --- alarms ---------------------------------------------------------------------------------
+
+AlarmState = Literal["open", "acknowledged", "resolved"]
+RuleKind = Literal["persistence", "cusum", "severity"]
+Records = Annotated[StrictInt, Field(ge=1, le=10_000)]
+NOTE_PATTERN = r"^[^\x00]*$"
+Note = Annotated[str, Field(max_length=2000, pattern=NOTE_PATTERN)]
+
+
+class PersistenceRule(Strict):
+    """Fire when ``k`` of the last ``m`` verdicts are faulty or unknown (any fault mode)."""
+
+    kind: Literal["persistence"]
+    k: Annotated[StrictInt, Field(ge=1, le=1000)] = 3
+    m: Annotated[StrictInt, Field(ge=1, le=1000)] = 5
+    clear_after: Records = Field(5, description="Records in a row without firing before an alarm resolves")
+
+    @model_validator(mode="after")
+    def _k_of_m(self) -> PersistenceRule:
+        if self.m < self.k:
+            raise ValueError(f"m (the window, {self.m}) must be at least k (the faults in it, {self.k})")
+        return self
+
+
+class CusumRule(Strict):
+    """A two-sided CUSUM per fault mode on z = k̂/σ̂k of each verdict, designed (never tuned) for
+    ``false_alarms_per_year`` per structure at ``records_per_day`` and tuned to a step of ``shift`` σ."""
+
+    kind: Literal["cusum"]
+    false_alarms_per_year: Annotated[FiniteFloat, Field(gt=0, le=365)] = 1.0
+    records_per_day: Annotated[FiniteFloat, Field(gt=0, le=100_000)] = 4.0
+    shift: Annotated[FiniteFloat, Field(gt=0, le=20)] = 1.0
+    clear_after: Records = Field(25, description="Records in a row without a signal before an alarm resolves")
+
+
+class SeverityRule(Strict):
+    """Fire when a verdict's interval for k lies wholly beyond ±``threshold`` (% of k, as k̂)."""
+
+    kind: Literal["severity"]
+    threshold: Annotated[FiniteFloat, Field(le=1e6)] = 10.0
+    clear_after: Records = Field(5, description="Records in a row without firing before an alarm resolves")
+
+    @model_validator(mode="after")
+    def _positive(self) -> SeverityRule:
+        if self.threshold <= 0:
+            raise ValueError(
+                f"the severity threshold is a magnitude of k in %, applied to losses and gains alike: "
+                f"give it positive (got {self.threshold})"
+            )
+        return self
+
+
+AlarmRule = Annotated[PersistenceRule | CusumRule | SeverityRule, Field(discriminator="kind")]
+
+
+class AlarmRules(Strict):
+    """A structure's alarm rules, at most one of each kind; kinds left out do not fire."""
+
+    rules: Annotated[list[AlarmRule], Field(min_length=1, max_length=3)]
+
+    @model_validator(mode="after")
+    def _one_per_kind(self) -> AlarmRules:
+        kinds = [rule.kind for rule in self.rules]
+        if len(set(kinds)) != len(kinds):
+            raise ValueError(f"give each kind of rule at most once; got {', '.join(kinds)}")
+        return self
+
+
+class CusumDesignOut(BaseModel):
+    """The CUSUM each fault mode is watched with: reference and threshold in σ units, run lengths
+    in records (in control: the structure's target times its number of fault modes)."""
+
+    modes: int
+    reference: float
+    threshold: float
+    arl_in_control: float
+    arl_at_shift: float
+
+
+class AlarmRulesOut(BaseModel):
+    structure_id: int
+    defaults: bool = Field(description="True when no rule was set: the service's defaults apply")
+    rules: list[AlarmRule]
+    cusum_design: CusumDesignOut | None
+
+
+class AlarmOut(BaseModel):
+    """An alarm; ``*_by`` name the API key (its prefix) that acted, null for the service itself."""
+
+    id: int
+    structure_id: int
+    rule_kind: RuleKind
+    rule: dict[str, Any]
+    fault_mode: str | None
+    state: AlarmState
+    opened_at: dt.datetime
+    record_id: int | None
+    triggered_at: dt.datetime = Field(description="Acquisition time of the record the rule fired on")
+    drift_started_at: dt.datetime | None = Field(description="CUSUM: acquisition time the drift began")
+    acknowledged_at: dt.datetime | None
+    acknowledged_by: str | None
+    acknowledgement_note: str | None
+    resolved_at: dt.datetime | None
+    resolved_by: str | None
+    resolution: Literal["cleared", "by_hand", "rule_removed"] | None
+    resolution_note: str | None
+
+
+class AlarmTransitionOut(BaseModel):
+    from_state: AlarmState | None
+    to_state: AlarmState
+    at: dt.datetime
+    by: str | None = Field(description="The acting API key's prefix; null when the service's rules acted")
+    note: str | None
+
+
+class AlarmDetail(AlarmOut):
+    transitions: list[AlarmTransitionOut]
+
+
+class AlarmPage(BaseModel):
+    items: list[AlarmOut]
+    next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
+
+
+class AlarmAction(Strict):
+    note: Note = ""

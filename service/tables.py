@@ -321,3 +321,174 @@ class InspectionFailure(Base):
     model_set: Mapped[str] = mapped_column(String(200))
     reason: Mapped[str] = mapped_column(Text)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+# Alarms that are not resolved: at most one per structure, rule kind and fault mode. Two partial
+# indexes, because a unique index treats NULLs as distinct and a persistence alarm has no mode.
+UNRESOLVED = text("state != 'resolved'")
+UNRESOLVED_WITHOUT_MODE = text("state != 'resolved' AND fault_mode IS NULL")
+
+
+class AlarmRule(Base):
+    """A structure's alarm rule of one ``kind`` (persistence, cusum or severity) with its
+    ``parameters``; a structure with no rule stored is watched by the defaults
+    (``service.domain.alarms``)."""
+
+    __tablename__ = "alarm_rules"
+    __table_args__ = (UniqueConstraint("structure_id", "kind"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(16))
+    parameters: Mapped[dict[str, Any]] = mapped_column(Document)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class Alarm(Base):
+    """A rule that fired on a structure's verdicts, from open through acknowledged to resolved.
+
+    ``triggered_at`` is the acquisition time of the record on which the rule fired,
+    ``drift_started_at`` (CUSUM only) that of the first record of the drift it detected;
+    ``evaluated_through`` the newest record's, updated at each evaluation: after the alarm is
+    resolved, the rule looks only at records acquired later. ``rule`` keeps the rule's
+    parameters (and design) as they were when it fired. ``fault_mode`` is None for a
+    persistence alarm, which counts faults of any mode.
+    """
+
+    __tablename__ = "alarms"
+    __table_args__ = (
+        Index(
+            "uq_alarms_unresolved",
+            "structure_id",
+            "rule_kind",
+            "fault_mode",
+            unique=True,
+            sqlite_where=UNRESOLVED,
+            postgresql_where=UNRESOLVED,
+        ),
+        Index(
+            "uq_alarms_unresolved_without_mode",
+            "structure_id",
+            "rule_kind",
+            unique=True,
+            sqlite_where=UNRESOLVED_WITHOUT_MODE,
+            postgresql_where=UNRESOLVED_WITHOUT_MODE,
+        ),
+        Index("ix_alarms_listing", "structure_id", "opened_at", "id"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"))
+    rule_kind: Mapped[str] = mapped_column(String(16))
+    rule: Mapped[dict[str, Any]] = mapped_column(Document)
+    fault_mode: Mapped[str | None] = mapped_column(String(100), nullable=True)
+    state: Mapped[str] = mapped_column(String(16))
+    opened_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+    record_id: Mapped[int | None] = mapped_column(
+        ForeignKey("records.id", ondelete="SET NULL"), nullable=True
+    )
+    triggered_at: Mapped[dt.datetime] = mapped_column(UTCDateTime)
+    drift_started_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    evaluated_through: Mapped[dt.datetime] = mapped_column(UTCDateTime)
+    acknowledged_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    acknowledged_by: Mapped[int | None] = mapped_column(
+        ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True
+    )
+    acknowledgement_note: Mapped[str | None] = mapped_column(Text, nullable=True)
+    resolved_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    resolved_by: Mapped[int | None] = mapped_column(
+        ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True
+    )
+    resolution: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    resolution_note: Mapped[str | None] = mapped_column(Text, nullable=True)
+    # When it was last announced again while open (``service.domain.renotify``); None: not yet.
+    renotified_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+    acknowledged_key: Mapped[ApiKey | None] = relationship(foreign_keys=[acknowledged_by])
+    resolved_key: Mapped[ApiKey | None] = relationship(foreign_keys=[resolved_by])
+    transitions: Mapped[list[AlarmTransition]] = relationship(
+        order_by="AlarmTransition.id", cascade="all, delete-orphan"
+    )
+
+
+class AlarmTransition(Base):
+    """One change of an alarm's state (``from_state`` None when it opened). ``key_id`` is the API
+    key that made it; None when the service's rule evaluation did (opened, resolved as cleared)."""
+
+    __tablename__ = "alarm_transitions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    alarm_id: Mapped[int] = mapped_column(ForeignKey("alarms.id", ondelete="CASCADE"), index=True)
+    from_state: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    to_state: Mapped[str] = mapped_column(String(16))
+    at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+    key_id: Mapped[int | None] = mapped_column(ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True)
+    note: Mapped[str | None] = mapped_column(Text, nullable=True)
+
+    key: Mapped[ApiKey | None] = relationship()
+
+
+class Webhook(Base):
+    """An organisation's HTTPS (or HTTP) endpoint told of the ``events`` it wants.
+
+    ``secret`` signs every delivery (``service.domain.notifications``), so it is kept as given,
+    not hashed; the API never shows it again after creation."""
+
+    __tablename__ = "webhooks"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    organisation_id: Mapped[int] = mapped_column(
+        ForeignKey("organisations.id", ondelete="CASCADE"), index=True
+    )
+    url: Mapped[str] = mapped_column(String(2000))
+    secret: Mapped[str] = mapped_column(String(200))
+    events: Mapped[list[str]] = mapped_column(Document)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class EmailSubscription(Base):
+    """E-mail ``addresses`` of an organisation told of the ``events`` they want, through the
+    server's SMTP relay (``NARXWATCH_SMTP_*``)."""
+
+    __tablename__ = "email_subscriptions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    organisation_id: Mapped[int] = mapped_column(
+        ForeignKey("organisations.id", ondelete="CASCADE"), index=True
+    )
+    addresses: Mapped[list[str]] = mapped_column(Document)
+    events: Mapped[list[str]] = mapped_column(Document)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class Delivery(Base):
+    """One event for one webhook or e-mail subscription, and the log of its attempts.
+
+    The rows are an outbox: written in the transaction of the change they announce, swept into
+    jobs once committed. ``next_attempt_at`` is when it is due while ``pending``; a sweep that
+    claims it moves it on (compare-and-set), and the job it defers acts only while it still
+    holds that value, so each claim is acted on by one job. ``key`` is sent as the
+    ``Idempotency-Key``, the same on every attempt.
+    """
+
+    __tablename__ = "deliveries"
+    __table_args__ = (Index("ix_deliveries_due", "status", "next_attempt_at"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    organisation_id: Mapped[int] = mapped_column(ForeignKey("organisations.id", ondelete="CASCADE"))
+    webhook_id: Mapped[int | None] = mapped_column(
+        ForeignKey("webhooks.id", ondelete="CASCADE"), index=True, nullable=True
+    )
+    email_subscription_id: Mapped[int | None] = mapped_column(
+        ForeignKey("email_subscriptions.id", ondelete="CASCADE"), index=True, nullable=True
+    )
+    key: Mapped[str] = mapped_column(String(36), unique=True)
+    event: Mapped[str] = mapped_column(String(50))
+    payload: Mapped[dict[str, Any]] = mapped_column(Document)
+    status: Mapped[str] = mapped_column(String(16), default="pending")
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+    last_status_code: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    delivered_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)

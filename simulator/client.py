@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Annotated, Any, NoReturn, Protocol
 
 import httpx
+import numpy as np
 import typer
 from rich.console import Console
 from rich.text import Text
@@ -528,9 +529,22 @@ def deliver_stream(plans: Iterable[Plan], destination: Destination, report: Repo
         raise typer.Exit(EXIT_SERVICE_ERROR)
 
 
+class Course(enum.StrEnum):
+    """How a stream's fault develops over acquisition time (``--scenario``), for testing alarm rules."""
+
+    healthy = "healthy"  # no fault at all
+    step = "step"  # --k from --onset on
+    drift = "drift"  # growing at --rate % a day from --onset on
+    intermittent = "intermittent"  # --k in each record from --onset on with probability --duty
+
+
+SECONDS_PER_DAY = 86400.0
+
+
 @dataclass(frozen=True)
 class Stream:
-    """Records due every ``every`` seconds, the fault magnitude growing by ``drift`` per record."""
+    """Records due every ``every`` seconds, acquired ``spacing`` seconds apart (``every`` unless
+    ``--per-day`` is given), whose fault follows ``course`` or, without one, grows by ``drift`` per record."""
 
     options: ScenarioOptions
     fault: str
@@ -541,25 +555,91 @@ class Stream:
     every: float
     count: int | None
     start: dt.datetime | None
+    course: Course | None = None
+    onset: float = 0.0
+    rate: float = 0.0
+    duty: float = 0.5
+    per_day: float | None = None
 
     @property
     def mode(self) -> str:
-        """The drifting fault: the one given, or k2 when only a drift is."""
-        return "k2" if self.drift and self.fault == "none" else self.fault
+        """The faulty mode: the one given, or k2 when none is but a fault is asked for."""
+        if self.fault != "none" or self.course is Course.healthy:
+            return self.fault
+        return "k2" if self.drift or self.course is not None else self.fault
+
+    @property
+    def spacing(self) -> float:
+        """Seconds of acquisition time between records."""
+        return self.every if self.per_day is None else SECONDS_PER_DAY / self.per_day
+
+    def fault_at(self, index: int) -> tuple[str, float]:
+        """The fault mode and magnitude [%] of record ``index``; a record without fault is ("none", 0)."""
+        if self.course is None:
+            return self.mode, self.k + index * self.drift
+        days = index * self.spacing / SECONDS_PER_DAY
+        if self.course is Course.healthy or days < self.onset:
+            return "none", 0.0
+        if self.course is Course.step:
+            return self.mode, self.k
+        if self.course is Course.drift:
+            grown = self.rate * (days - self.onset)
+            return (self.mode, grown) if grown else ("none", 0.0)
+        # Whether the fault shows in this record is drawn from the record's own seed, so that
+        # `narxwatch simulate --seed` and the manifest tell the same story.
+        shows = np.random.default_rng([self.seed + index, 1]).random() < self.duty
+        return (self.mode, self.k) if shows else ("none", 0.0)
 
     def check(self) -> None:
-        """Refuse now a stream whose first or last record could not be simulated."""
-        self.options.scenario(self.mode, self.k)
+        """Refuse now a stream whose options do not fit its course, or whose first or last record
+        could not be simulated."""
+        self.check_course()
+        self.options.scenario(*self.fault_at(0))
         if self.count is not None:
-            self.options.scenario(self.mode, self.k + self.drift * (self.count - 1))
+            last = self.count - 1
+            self.options.scenario(*self.fault_at(last))
+            if self.course in (Course.step, Course.intermittent):
+                self.options.scenario(self.mode, self.k)
+
+    def check_course(self) -> None:
+        if self.per_day is not None and not self.per_day > 0:
+            raise InputError(f"--per-day must be positive; got {self.per_day:g}")
+        if self.course is None:
+            for name, given in (("--onset", self.onset), ("--rate", self.rate)):
+                if given:
+                    raise InputError(f"{name} belongs to a --scenario (step, drift or intermittent)")
+            return
+        if self.drift:
+            raise InputError(
+                "--drift grows k per record without a --scenario; with one, use --scenario drift --rate"
+            )
+        if self.course is Course.healthy and (self.fault != "none" or self.k):
+            raise InputError("--scenario healthy simulates no fault: leave out --fault and --k")
+        if self.course in (Course.step, Course.intermittent) and not self.k:
+            raise InputError(f"--scenario {self.course} needs the fault's size: give --k (percent)")
+        if self.course is Course.drift:
+            if self.k:
+                raise InputError("--scenario drift starts from no fault at --onset: give --rate, not --k")
+            if not self.rate:
+                raise InputError("--scenario drift needs its growth: give --rate (percent a day)")
+        elif self.rate:
+            raise InputError("--rate belongs to --scenario drift")
+        if self.onset < 0:
+            raise InputError(f"--onset is days after the first record; got {self.onset:g}")
+        if not 0 < self.duty <= 1:
+            raise InputError(
+                f"--duty is the share of records that show the fault, in (0, 1]; got {self.duty:g}"
+            )
 
     def plans(self) -> Iterator[Plan]:
         began = time.monotonic()
+        # Real time stamps each record as it is sent, unless --per-day sets the acquisitions' pace.
+        origin = self.start or (now() if self.per_day is not None else None)
         indices = itertools.count() if self.count is None else range(self.count)
         for index in indices:
             time.sleep(max(0.0, began + index * self.every - time.monotonic()))
-            when = now() if self.start is None else self.start + dt.timedelta(seconds=index * self.every)
-            scenario = self.options.scenario(self.mode, self.k + index * self.drift)
+            when = now() if origin is None else origin + dt.timedelta(seconds=index * self.spacing)
+            scenario = self.options.scenario(*self.fault_at(index))
             yield Plan("stream", scenario, self.n, self.seed + index, when)
 
 
@@ -688,6 +768,28 @@ def stream_command(
         float,
         typer.Option(help="Growth of k per record [%]; grows the --fault mode, or k2 if there is none."),
     ] = 0.0,
+    scenario: Annotated[
+        Course | None,
+        typer.Option(
+            help="How the fault develops in acquisition time: healthy (none), step (--k from --onset), "
+            "drift (--rate % a day from --onset), intermittent (--k in a --duty share of the records "
+            "from --onset). Default: --fault at --k growing by --drift a record."
+        ),
+    ] = None,
+    onset: Annotated[
+        float, typer.Option(help="Days of acquisition time after the first record when the fault begins.")
+    ] = 0.0,
+    rate: Annotated[float, typer.Option(help="Growth of k for --scenario drift [% a day].")] = 0.0,
+    duty: Annotated[
+        float, typer.Option(help="Share of records showing the fault for --scenario intermittent.")
+    ] = 0.5,
+    per_day: Annotated[
+        float | None,
+        typer.Option(
+            help="Records per day of acquisition time: stamps 24 h / PER_DAY apart, whatever --every "
+            "(default: --every seconds apart)."
+        ),
+    ] = None,
     fault: Fault = "none",
     k: Magnitude = 0.0,
     n: Samples = STUDY.inspection_samples,
@@ -707,7 +809,8 @@ def stream_command(
     acquired_at: Annotated[
         str | None,
         typer.Option(
-            help="Time of the first record, the next ones --every seconds later (default: real time)."
+            help="Time of the first record, the next ones --every seconds (or 24 h / --per-day) later "
+            "(default: real time)."
         ),
     ] = None,
     json_lines: JsonLines = False,
@@ -725,7 +828,22 @@ def stream_command(
         tuple(param or ()),
         noise_colour,
     )
-    stream = Stream(options, fault, k, drift, n, first_seed(seed), every, count, start_time(acquired_at))
+    stream = Stream(
+        options,
+        fault,
+        k,
+        drift,
+        n,
+        first_seed(seed),
+        every,
+        count,
+        start_time(acquired_at),
+        scenario,
+        onset,
+        rate,
+        duty,
+        per_day,
+    )
     stream.check()
     # A service manager stops a feed with SIGTERM: stop as cleanly as on Ctrl-C.
     signal.signal(signal.SIGTERM, signal.default_int_handler)

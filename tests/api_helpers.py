@@ -228,6 +228,8 @@ def _state(admin: httpx.Client, structure_id: int) -> dict[str, Any]:
         "summary": get(f"/structures/{structure_id}/summary")["counts"],
         "refinements": get(f"/structures/{structure_id}/refinements"),
         "schedules": get(f"/structures/{structure_id}/schedules"),
+        "alarms": get(f"/alarms?structure_id={structure_id}&limit=1000"),
+        "alarm_rules": get(f"/structures/{structure_id}/alarm-rules"),
     }
 
 

@@ -28,6 +28,7 @@ from dashboard_helpers import (
 from live import LiveServer
 from sqlalchemy import update
 
+from service.dashboard.auth import form_token
 from service.tables import ApiKey, utcnow
 
 PAGE_SIZE = 25  # service.dashboard.views.HISTORY_PAGE
@@ -291,7 +292,8 @@ def test_the_structure_page_charts_every_verdict(viewer: httpx.Client, monitored
     oldest_first = monitored.verdicts[::-1]
     # An unknown fault has no magnitude: it is left off the k̂ chart, and only that chart.
     estimated = [v for v in oldest_first if v["k_hat"] is not None]
-    (k_hat,) = figures["k_hat"]["data"]  # one reference mode: k2
+    traces = {trace["name"]: trace for trace in figures["k_hat"]["data"]}
+    k_hat = traces["k̂ (k2 model)"]  # one reference mode: k2
     assert k_hat["x"] == [ms(v["acquired_at"]) for v in estimated]
     assert k_hat["y"] == [v["k_hat"] for v in estimated]
     np.testing.assert_allclose(k_hat["error_y"]["array"], [v["interval"][1] - v["k_hat"] for v in estimated])
@@ -299,6 +301,34 @@ def test_the_structure_page_charts_every_verdict(viewer: httpx.Client, monitored
         k_hat["error_y"]["arrayminus"], [v["k_hat"] - v["interval"][0] for v in estimated]
     )
     assert max(k_hat["y"]) == pytest.approx(FAULT_K, abs=2.0)
+    # The markers' colours are explained: a legend entry (without points) per status.
+    for status in ("healthy", "faulty", "unknown fault"):
+        assert traces[status]["x"] == [None] and traces[status]["legendgroup"] == "status"
+    # The default CUSUM on z = k̂/σ̂k, as Page defined it, restarted after each signal (its design
+    # assumes the restart), against the threshold the alarm rules' API reports.
+    with monitored.org.client("viewer") as api:
+        design = api.get(f"{API}/structures/{monitored.structure['id']}/alarm-rules").json()["cusum_design"]
+        alarms = api.get(f"{API}/alarms", params={"structure_id": monitored.structure["id"]}).json()["items"]
+    statistic, upper, lower = [], 0.0, 0.0
+    for verdict in oldest_first:
+        z = verdict["modes"][0]["k_hat"] / verdict["modes"][0]["sigma_k"]
+        upper, lower = max(0.0, upper + z - design["reference"]), max(0.0, lower - z - design["reference"])
+        statistic.append(max(upper, lower))
+        if statistic[-1] > design["threshold"]:
+            upper = lower = 0.0
+    cusum = traces["CUSUM (k2)"]
+    assert cusum["x"] == [ms(v["acquired_at"]) for v in oldest_first] and cusum["yaxis"] == "y2"
+    np.testing.assert_allclose(cusum["y"], statistic)
+    threshold = traces[f"CUSUM threshold h = {design['threshold']:.2f} σ"]
+    assert threshold["y"] == [design["threshold"]] * 2
+    # Each alarm's line stands where it was raised, in its state's colour; the CUSUM's where its drift began.
+    assert {a["state"] for a in alarms} == {"open"} and {a["rule_kind"] for a in alarms} >= {"cusum"}
+    raised = traces["alarm raised (open)"]
+    assert sorted(x for x in raised["x"] if x is not None)[::2] == sorted(
+        ms(a["triggered_at"]) for a in alarms
+    )
+    drifts = [ms(a["drift_started_at"]) for a in alarms if a["drift_started_at"]]
+    assert sorted(x for x in traces["drift began (CUSUM)"]["x"] if x is not None)[::2] == sorted(drifts)
     q, critical = figures["q"]["data"]
     assert q["x"] == [ms(v["acquired_at"]) for v in oldest_first]
     assert q["y"] == [v["modes"][0]["q"] for v in oldest_first]
@@ -487,3 +517,51 @@ def test_a_login_ends_when_it_expires(api_server: LiveServer):
         assert find_login(session, expired) is None
     with httpx.Client(base_url=api_server.url, cookies={COOKIE: expired}) as client:
         assert client.get(DASHBOARD).status_code == 303
+
+
+# --- alarms (last: acknowledging changes the monitored structure's alarms) -------------------
+
+CSRF = re.compile(r'name="csrf" value="([0-9a-f]{64})"')
+
+
+def test_alarm_forms_need_an_admin_login_the_page_s_token_and_the_dashboard_s_origin(
+    api_server: LiveServer, monitored: Monitored
+):
+    sid = monitored.structure["id"]
+    with monitored.org.client("viewer") as api:
+        (alarm,) = api.get(f"{API}/alarms", params={"structure_id": sid, "rule_kind": "persistence"}).json()[
+            "items"
+        ]
+    url = f"{DASHBOARD}/alarms/{alarm['id']}/acknowledge"
+
+    def state() -> dict:
+        with monitored.org.client("viewer") as api:
+            return api.get(f"{API}/alarms/{alarm['id']}").json()
+
+    with logged_in(api_server, monitored.org.keys["viewer"]) as viewer:
+        page = viewer.get(f"{DASHBOARD}/structures/{sid}")
+        assert f'data-alarm-id="{alarm["id"]}"' in page.text and "Admins acknowledge" in page.text
+        assert "/acknowledge" not in page.text, "no buttons for a viewer"
+        # The viewer's own login token, which its pages do not show, does not make it an admin.
+        refused = viewer.post(url, data={"csrf": form_token(viewer.cookies[COOKIE]), "note": "mine"})
+        assert refused.status_code == 403 and "admin key" in refused.text
+    other = Org.create(api_server)
+    with logged_in(api_server, other.keys["admin"]) as stranger:
+        token = CSRF.search(stranger.get(DASHBOARD).text)
+        assert token is None, "a fleet without alarms has no alarm forms"
+    with logged_in(api_server, monitored.org.keys["admin"]) as admin:
+        page = admin.get(f"{DASHBOARD}/structures/{sid}")
+        found = CSRF.search(page.text)
+        assert found is not None and "/acknowledge" in page.text
+        token = found.group(1)
+        assert admin.post(url, data={"note": "no token"}).status_code == 403
+        assert admin.post(url, data={"csrf": "0" * 64}).status_code == 403
+        forged = admin.post(url, data={"csrf": token}, headers={"Origin": "https://evil.example"})
+        assert forged.status_code == 403 and "dashboard itself" in forged.text
+        assert state()["state"] == "open", "the refused forms changed nothing"
+        here = f"{DASHBOARD}/structures/{sid}"
+        done = admin.post(url, data={"csrf": token, "note": "crew on site", "next": here})
+        assert done.status_code == 303 and done.headers["location"] == here
+        assert (state()["state"], state()["acknowledgement_note"]) == ("acknowledged", "crew on site")
+        again = admin.post(url, data={"csrf": token, "next": here})
+        assert again.status_code == 409 and "only an open alarm" in again.text

@@ -11,14 +11,33 @@ with CI=true they fail instead: CI must run them.
 
 from __future__ import annotations
 
+import datetime as dt
 import os
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-from api_helpers import API, Org, clients, create_structure, npz_bytes, post_record
-from dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, DASHBOARD, Monitored, monitored_structure
+from api_helpers import (
+    API,
+    Org,
+    clients,
+    create_structure,
+    npz_bytes,
+    post_record,
+    simulated,
+    train_fault_mode,
+    upload_simulated,
+)
+from dashboard_helpers import (
+    CHROMIUM,
+    CHROMIUM_ARGS,
+    DASHBOARD,
+    FIRST_RECORD,
+    RECORD_SAMPLES,
+    Monitored,
+    monitored_structure,
+)
 from live import LiveServer
 
 from service.config import Settings
@@ -127,7 +146,7 @@ def test_log_in_follow_a_structure_and_a_record_and_log_out(page, server: LiveSe
     page.wait_for_url(f"**{DASHBOARD}/structures/{monitored.structure['id']}")
     with_magnitude = sum(v["k_hat"] is not None for v in monitored.verdicts)
     k_hat = drawn(page, "k_hat")
-    assert k_hat["points"] == [with_magnitude] and k_hat["markers"] == with_magnitude
+    assert k_hat["points"][0] == with_magnitude and k_hat["markers"] == with_magnitude
     q = drawn(page, "q")
     assert q["points"] == [len(monitored.verdicts), 2] and q["markers"] == len(monitored.verdicts)
     assert page.get_attribute("#chart-trajectories-k2", "data-drawn") is None, "below the fold: not drawn yet"
@@ -206,3 +225,62 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
     assert criteria == [effect["decided_by"] for effect in report["effects_added"]]
     drawn(page, "errors")
     shot(page, "6-refinement")
+
+
+def test_an_alarm_appears_after_uploads_is_acknowledged_then_resolved(page, server: LiveServer):
+    """Healthy records, then a k2 fault: the persistence and CUSUM rules raise alarms that an admin
+    sees at the top of the fleet page, acknowledges there with a note, and resolves on the
+    structure's page, whose k̂ chart draws the CUSUM, its threshold and where the alarms began."""
+    org = Org.create(server)
+    rules = [{"kind": "persistence", "k": 2, "m": 3}, {"kind": "cusum"}]
+    with clients(org) as (admin, ingest, _):
+        structure = create_structure(admin, "rig that develops a fault")
+        train_fault_mode(admin, ingest, structure["id"], "k2", seed=71)
+        response = admin.put(f"{API}/structures/{structure['id']}/alarm-rules", json={"rules": rules})
+        assert response.status_code == 200, response.text
+        for index, k in enumerate([0.0] * 3 + [25.0] * 3):
+            acquired = FIRST_RECORD + dt.timedelta(hours=6 * index)
+            record = simulated("k2", k, [71, 200 + index], RECORD_SAMPLES)
+            upload_simulated(
+                ingest, structure["id"], record, inspect="true", acquired_at=acquired.isoformat()
+            )
+    page.goto(f"{server.url}{DASHBOARD}/login")
+    log_in(page, org.keys["admin"])
+    page.wait_for_url(f"{server.url}{DASHBOARD}")
+
+    alarms = page.locator("#alarm-table tbody tr")
+    assert alarms.count() == 2, "one alarm per rule, however many records fired"
+    persistence = page.locator("#alarm-table tr", has_text="of the last 3 verdicts")
+    assert persistence.get_attribute("class") == "alarm-open"
+    shot(page, "7-fleet-alarms")
+    persistence.locator("form.acknowledge input[name=note]").fill("crew sent to bay 3")
+    persistence.locator("form.acknowledge button").click()
+    page.wait_for_url(f"{server.url}{DASHBOARD}")
+    persistence = page.locator("#alarm-table tr", has_text="of the last 3 verdicts")
+    assert persistence.get_attribute("class") == "alarm-acknowledged"
+    assert "crew sent to bay 3" in persistence.inner_text()
+    assert persistence.locator("form.acknowledge").count() == 0, "acknowledged once"
+
+    page.click(f"#fleet a:text('{structure['name']}')")
+    page.wait_for_url(f"**{DASHBOARD}/structures/{structure['id']}")
+    chart = drawn(page, "k_hat")
+    names = page.evaluate("() => document.getElementById('chart-k_hat').data.map((t) => t.name)")
+    assert "CUSUM (k2)" in names and any(n.startswith("CUSUM threshold") for n in names)
+    assert {"alarm raised (open)", "alarm raised (acknowledged)", "drift began (CUSUM)"} <= set(names)
+    legend = page.locator("#chart-k_hat .legend").text_content() or ""
+    for entry in ("healthy", "faulty", "unknown fault", "alarm raised (open)", "alarm raised (acknowledged)"):
+        assert entry in legend, f"the legend explains {entry!r}"
+    assert chart["points"][0] == 6, "six k̂ markers"
+    shot(page, "8-structure-alarms")
+    for _ in range(2):
+        row = page.locator("#alarm-table tbody tr").first
+        row.locator("form.resolve input[name=note]").fill("stiffener replaced")
+        row.locator("form.resolve button").click()
+        page.wait_for_url(f"**{DASHBOARD}/structures/{structure['id']}")
+    assert page.locator("#no-alarms").is_visible()
+    with org.client("viewer") as viewer:
+        listed = viewer.get(f"{API}/alarms", params={"structure_id": structure["id"]}).json()["items"]
+    assert [(a["state"], a["resolution"], a["resolution_note"]) for a in listed] == [
+        ("resolved", "by_hand", "stiffener replaced")
+    ] * 2
+    shot(page, "9-structure-resolved")

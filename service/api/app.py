@@ -20,7 +20,19 @@ from swagger_ui_bundle import swagger_ui_path
 
 from models.errors import InputError
 from service import dashboard
-from service.api import health, jobs, keys, metrics, modelling, records, refinements, schedules, structures
+from service.api import (
+    alarms,
+    health,
+    jobs,
+    keys,
+    metrics,
+    modelling,
+    notifications,
+    records,
+    refinements,
+    schedules,
+    structures,
+)
 from service.api.expensive import Slots
 from service.api.limits import BodyLimitMiddleware
 from service.config import Settings, get_settings
@@ -71,6 +83,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         schedules.router,
         jobs.router,
         keys.router,
+        alarms.router,
+        notifications.router,
     )
     for router in routers:
         app.include_router(router, prefix=API_PREFIX)

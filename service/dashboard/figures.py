@@ -15,7 +15,9 @@ import numpy as np
 
 from models.fnarx import FNARX
 from models.validation import OneStepFit
+from service.domain.alarms import CusumSeries
 from service.domain.timeline import TimelinePoint
+from service.schemas import AlarmOut
 
 Figure = dict[str, Any]
 # Above this many points a trace is drawn with WebGL: SVG slows down past a few thousand.
@@ -23,10 +25,13 @@ WEBGL_POINTS = 1500
 WEBGL_TRACE = "scattergl"
 TRAJECTORY_GRID = 65
 STATUS_COLOURS = {"healthy": "#2e7d32", "faulty": "#c62828", "unknown_fault": "#ef6c00"}
+# The dashboard's stylesheet gives alarm badges the same colours.
+ALARM_COLOURS = {"open": "#b71c1c", "acknowledged": "#f9a825", "resolved": "#78909c"}
 MODE_COLOURS = ("#1f77b4", "#9467bd", "#17becf", "#8c564b", "#e377c2", "#7f7f7f")
 MODE_SYMBOLS = ("circle", "diamond", "square", "triangle-up", "cross", "x")
 MARGIN = {"l": 60, "r": 20, "t": 40, "b": 45}
 LEGEND_BELOW = {"orientation": "h", "y": -0.2}
+CUSUM_AXIS_THRESHOLDS = 3.0  # the CUSUM axis of the k̂ chart reaches this many thresholds
 
 
 def _scatter(n: int) -> str:
@@ -41,10 +46,18 @@ def _mode_colour(index: int) -> str:
     return MODE_COLOURS[index % len(MODE_COLOURS)]
 
 
-def k_hat_figure(points: Sequence[TimelinePoint], interval_label: str) -> Figure:
-    """k̂ of each verdict with its interval, one trace per reference mode (Figure 5 over time).
+def k_hat_figure(
+    points: Sequence[TimelinePoint],
+    interval_label: str,
+    cusums: Sequence[CusumSeries] = (),
+    alarms: Sequence[AlarmOut] = (),
+) -> Figure:
+    """k̂ of each verdict with its interval, one trace per reference mode (Figure 5 over time);
+    on a second axis each fault mode's CUSUM statistic with its threshold, and the alarms: where
+    each was raised (a solid line, coloured by its state) and where its drift began (dotted).
 
-    Unknown faults carry no magnitude and are left out.
+    Unknown faults carry no magnitude and are left out. The legend explains the markers'
+    colours (the verdict's status) and the alarm lines' (the alarm's state).
     """
     modes = sorted({p.reference_mode for p in points if p.k_hat is not None and p.reference_mode})
     data = []
@@ -76,6 +89,9 @@ def k_hat_figure(points: Sequence[TimelinePoint], interval_label: str) -> Figure
                 "hovertemplate": "k̂ %{y:.2f} %<br>record %{customdata}<extra>" + mode + "</extra>",
             }
         )
+    data += _status_legend()
+    data += _cusum_traces(cusums)
+    data += _alarm_traces(alarms, cusums)
     layout = _layout(
         f"Fault magnitude k̂ with its {interval_label} interval",
         "acquired (UTC)",
@@ -84,7 +100,129 @@ def k_hat_figure(points: Sequence[TimelinePoint], interval_label: str) -> Figure
         yaxis={"zeroline": True},
         legend=LEGEND_BELOW,
     )
+    if cusums or alarms:
+        # Up to a few thresholds: a fault's statistic can run to hundreds of σ, and what matters is
+        # where it crossed the threshold; beyond the top it leaves the chart.
+        layout["yaxis2"] = {
+            "title": {"text": "CUSUM statistic [σ]" if cusums else ""},
+            "showticklabels": bool(cusums),
+            "overlaying": "y",
+            "side": "right",
+            "range": [0.0, _alarm_axis_top(cusums)],
+            "showgrid": False,
+            "zeroline": False,
+            "tickmode": "auto",
+            "nticks": 5,
+        }
+        # Room below the plot for the legend's three groups.
+        layout |= {
+            "margin": MARGIN | {"r": 60, "b": 60},
+            "height": 540,
+            "legend": LEGEND_BELOW | {"y": -0.15, "yanchor": "top"},
+        }
     return {"data": data, "layout": layout}
+
+
+def _alarm_axis_top(cusums: Sequence[CusumSeries]) -> float:
+    return CUSUM_AXIS_THRESHOLDS * cusums[0].threshold if cusums else 1.0
+
+
+def _status_legend() -> list[dict[str, Any]]:
+    """Legend entries (no points) saying what a marker's colour means."""
+    return [
+        {
+            "type": "scatter",
+            "mode": "markers",
+            "x": [None],
+            "y": [None],
+            "name": status.replace("_", " "),
+            "marker": {"color": colour, "size": 7},
+            "legendgroup": "status",
+            "legendgrouptitle": {"text": "verdict (marker colour)"},
+            "hoverinfo": "skip",
+        }
+        for status, colour in STATUS_COLOURS.items()
+    ]
+
+
+def _cusum_traces(cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
+    data = []
+    for index, series in enumerate(cusums):
+        x = [_ms(moment) for moment in series.acquired_at]
+        data.append(
+            _lines(
+                x,
+                series.statistic,
+                name=f"CUSUM ({series.fault_mode})",
+                yaxis="y2",
+                line={"color": _mode_colour(index), "width": 1.5, "shape": "hv"},
+                legendgroup="cusum",
+                legendgrouptitle={"text": "sequential test"},
+                hovertemplate="CUSUM %{y:.2f} σ<extra>" + series.fault_mode + "</extra>",
+            )
+        )
+    if cusums:
+        first, last = min(s.acquired_at[0] for s in cusums), max(s.acquired_at[-1] for s in cusums)
+        threshold = cusums[0].threshold
+        data.append(
+            _lines(
+                [_ms(first), _ms(last)],
+                [threshold, threshold],
+                name=f"CUSUM threshold h = {threshold:.2f} σ",
+                yaxis="y2",
+                line={"color": ALARM_COLOURS["open"], "dash": "dash", "width": 1},
+                legendgroup="cusum",
+                hoverinfo="skip",
+            )
+        )
+    return data
+
+
+def _alarm_traces(alarms: Sequence[AlarmOut], cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
+    """A vertical line (on the CUSUM axis, up to the threshold or the statistic's top) where each
+    alarm was raised, one trace per state; and a dotted one where each CUSUM alarm's drift began."""
+    top = _alarm_axis_top(cusums)
+    data = []
+
+    def vertical(moments: list[dt.datetime]) -> dict[str, list[float | None]]:
+        x: list[float | None] = []
+        y: list[float | None] = []
+        for moment in moments:
+            x += [_ms(moment), _ms(moment), None]
+            y += [0.0, top, None]
+        return {"x": x, "y": y}
+
+    for state, colour in ALARM_COLOURS.items():
+        chosen = [a for a in alarms if a.state == state]
+        if chosen:
+            data.append(
+                {
+                    "type": "scatter",
+                    "mode": "lines",
+                    **vertical([a.triggered_at for a in chosen]),
+                    "name": f"alarm raised ({state})",
+                    "yaxis": "y2",
+                    "line": {"color": colour, "width": 2},
+                    "legendgroup": "alarms",
+                    "legendgrouptitle": {"text": "alarms (line colour: state)"},
+                    "hoverinfo": "x+name",
+                }
+            )
+    drifts = [a.drift_started_at for a in alarms if a.drift_started_at is not None]
+    if drifts:
+        data.append(
+            {
+                "type": "scatter",
+                "mode": "lines",
+                **vertical(drifts),
+                "name": "drift began (CUSUM)",
+                "yaxis": "y2",
+                "line": {"color": ALARM_COLOURS["open"], "width": 1, "dash": "dot"},
+                "legendgroup": "alarms",
+                "hoverinfo": "x+name",
+            }
+        )
+    return data
 
 
 def _lines(x: Any, y: Any, **style: Any) -> dict[str, Any]:

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Annotated, Any, get_args
 
 import plotly
-from fastapi import APIRouter, Depends, Form, Query, Request, status
+from fastapi import APIRouter, Depends, Form, HTTPException, Query, Request, status
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 
@@ -16,10 +16,21 @@ from models.errors import InputError
 from service.api.deps import SessionDep, SettingsDep
 from service.api.params import IdPath, utc
 from service.dashboard import figures, views
-from service.dashboard.auth import COOKIE, HOME, LOGIN, LoginDep, safe_next, same_origin
+from service.dashboard.auth import (
+    COOKIE,
+    HOME,
+    LOGIN,
+    LoginDep,
+    checked_form,
+    csrf_token,
+    safe_next,
+    same_origin,
+)
+from service.domain import alarms
 from service.domain.history import Status
-from service.domain.logins import close_login, open_login
-from service.schemas import MODE_NAME_LENGTH, MODE_NAME_PATTERN
+from service.domain.logins import Login, close_login, open_login
+from service.schemas import MODE_NAME_LENGTH, MODE_NAME_PATTERN, NOTE_PATTERN
+from service.security import Principal, Role
 
 HERE = Path(__file__).parent
 PLOTLY_JS = Path(plotly.__file__).parent / "package_data" / "plotly.min.js"
@@ -45,6 +56,7 @@ def render(
     request: Request, name: str, context: dict[str, Any], code: int = status.HTTP_200_OK
 ) -> HTMLResponse:
     headers = page_headers(uses_webgl(context.get("charts", {})))
+    context = {"csrf": csrf_token(request)} | context
     return templates.TemplateResponse(request, name, context, status_code=code, headers=headers)
 
 
@@ -170,6 +182,40 @@ def record(
 def refinement(request: Request, refinement_id: IdPath, login: LoginDep, session: SessionDep) -> HTMLResponse:
     context = views.refinement_page(session, login.principal, refinement_id)
     return render(request, "refinement.html", {"login": login} | context)
+
+
+@router.post("/alarms/{alarm_id}/acknowledge", dependencies=[Depends(checked_form)])
+def acknowledge_alarm(
+    alarm_id: IdPath,
+    login: LoginDep,
+    session: SessionDep,
+    note: Annotated[str, Form(max_length=2000, pattern=NOTE_PATTERN)] = "",
+    next_page: Annotated[str, Form(alias="next", max_length=2000)] = HOME,
+) -> RedirectResponse:
+    alarms.acknowledge(session, _acting(login, "acknowledge"), alarm_id, note)
+    return RedirectResponse(safe_next(next_page), status.HTTP_303_SEE_OTHER)
+
+
+@router.post("/alarms/{alarm_id}/resolve", dependencies=[Depends(checked_form)])
+def resolve_alarm(
+    alarm_id: IdPath,
+    login: LoginDep,
+    session: SessionDep,
+    note: Annotated[str, Form(max_length=2000, pattern=NOTE_PATTERN)] = "",
+    next_page: Annotated[str, Form(alias="next", max_length=2000)] = HOME,
+) -> RedirectResponse:
+    alarms.resolve(session, _acting(login, "resolve"), alarm_id, note)
+    return RedirectResponse(safe_next(next_page), status.HTTP_303_SEE_OTHER)
+
+
+def _acting(login: Login, action: str) -> Principal:
+    """The login's principal if it may act on alarms (admins, as in the API)."""
+    if login.principal.role < Role.admin:
+        raise HTTPException(
+            status.HTTP_403_FORBIDDEN,
+            f"to {action} an alarm, log in with an admin key; yours is '{login.principal.role.name}'",
+        )
+    return login.principal
 
 
 def _status(value: str | None) -> Status | None:

@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 from models.errors import InputError
 from models.validation import one_step_fit
 from service.dashboard import figures
-from service.domain import fleet, history, modelling, records, refinements, structures, timeline
+from service.domain import alarms, fleet, history, modelling, records, refinements, structures, timeline
 from service.domain.history import Status
 from service.domain.inspections import MODEL_REFS, verdict_out
 from service.schemas import ModeResult
@@ -23,6 +23,7 @@ from service.tables import Verdict
 # autocorrelation is always of the whole record).
 RECORD_POINTS = 20_000
 HISTORY_PAGE = 25
+CHART_ALARMS = 100  # the newest alarms marked on the k̂ chart
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,12 @@ class HistoryFilter:
 
 
 def fleet_page(session: Session, principal: Principal) -> dict[str, Any]:
-    return {"rows": fleet.fleet(session, principal)}
+    rows = fleet.fleet(session, principal)
+    return {
+        "rows": rows,
+        "alarms": alarms.unresolved_alarms(session, principal),
+        "names": {row.structure.id: row.structure.name for row in rows},
+    }
 
 
 def structure_page(
@@ -71,8 +77,14 @@ def structure_page(
     versions = modelling.list_models(session, principal, structure_id)
     active_modes = [v for v in versions if v.active and v.kind == "fault_mode"]
     level = f"{1 - status.latest.alpha:.0%}" if status.latest is not None else "95%"
+    structure_alarms = alarms.unresolved_alarms(session, principal, structure_id)
     charts = {
-        "k_hat": figures.k_hat_figure(points.points, level),
+        "k_hat": figures.k_hat_figure(
+            points.points,
+            level,
+            alarms.cusum_series(session, structure_id),
+            alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items,
+        ),
         "q": figures.q_figure(points.points),
     } | {
         f"trajectories-{v.name}": figures.trajectories_figure(modelling.fault_mode_model(v))
@@ -80,6 +92,8 @@ def structure_page(
     }
     return {
         "structure": structure,
+        "alarms": structure_alarms,
+        "names": {structure.id: structure.name},
         "status": status,
         "timeline": points,
         "page": page,

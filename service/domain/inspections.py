@@ -13,6 +13,7 @@ from models.inspection import ModeResult, inspect
 from models.inspection import Verdict as InspectionVerdict
 from service.config import Settings
 from service.db import insert_unless_exists
+from service.domain import alarms
 from service.domain.errors import ConflictError
 from service.domain.modelling import active_fault_modes
 from service.domain.records import signals
@@ -101,7 +102,8 @@ def store_verdict(
     """Persist an evaluation as the record's verdict, unless one with the same models exists.
 
     A record already inspected with the same model versions keeps its verdict, so repeating
-    an inspection (or a redelivered job) changes nothing. A record stored by this very request
+    an inspection (or a redelivered job) changes nothing. A new verdict has the structure's
+    alarm rules run over its history (``service.domain.alarms``). A record stored by this very request
     (``new_record``) cannot have a verdict yet, so none is looked for.
     """
     existing = None if new_record else _find(session, record.id, evaluation.model_set)
@@ -140,6 +142,7 @@ def store_verdict(
         insert(VerdictModel.__table__),
         [{"verdict_id": inserted.id, "model_version_id": v.id} for v in versions],
     )
+    alarms.evaluate(session, structure)  # in the same transaction: the verdict and its alarms, or neither
     return Verdict(id=inserted.id, created_at=inserted.created_at, models=versions, **values)
 
 

@@ -23,7 +23,7 @@ from sqlalchemy import and_, func, insert, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
-from service.domain import schedules
+from service.domain import notifications, renotify, schedules
 from service.jobs import FINAL_ERRORS, JOB_STATES, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
 from service.tables import Job, utcnow
@@ -209,10 +209,12 @@ class EmbeddedBackend:
         workers are more processes."""
         if once:
             self._guarded(self.sweep, "sweep the schedules")
+            self._guarded(self.sweep_notifications, "sweep the notifications")
             return self.run_due()
         count = 0
         while not self._stop.is_set():
             self._guarded(self.sweep, "sweep the schedules")
+            self._guarded(self.sweep_notifications, "sweep the notifications")
             count += self._guarded(self.run_due, "run the jobs")
             self._wake.wait(IDLE_POLL)
             self._wake.clear()
@@ -234,6 +236,13 @@ class EmbeddedBackend:
             deferred = schedules.sweep(session, defer)
             session.commit()
             return deferred
+
+    def sweep_notifications(self) -> int:
+        """Announce again the open alarms due for it, then queue a job for each notification
+        delivery due now; the number queued."""
+        with self._sessions() as session:
+            renotify.sweep(session, dt.timedelta(seconds=self._settings.renotify_after_seconds))
+            return notifications.sweep(session, defer)
 
     def run_due(self) -> int:
         """Run every job due now; the number run."""

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session, defer
 from models.errors import InputError
 from service.config import Settings
 from service.db import insert_unless_exists
-from service.domain import inspections, modelling, refinements
+from service.domain import inspections, modelling, notifications, refinements
 from service.domain.schedules import RUN_SCHEDULE
 from service.schemas import BaselineTrain, FaultModeTrain, RefinementCreate
 from service.security import Principal, Role
@@ -180,4 +180,5 @@ TASKS: dict[str, Callable[..., None]] = {
     RUN_SCHEDULE: run_schedule,
     TRAIN_MODEL: train_model,
     REFINE: refine,
+    notifications.DELIVER: notifications.deliver,
 }

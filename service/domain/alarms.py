@@ -1,0 +1,517 @@
+"""Alarms: a structure's rules run over its verdicts after every stored verdict, and the lifecycle
+open → acknowledged → resolved, each transition stored and announced.
+
+One verdict is a test at level α, so one record deciding calls a fault about once in twenty
+healthy records. The rules (``models.alarms``) look across records instead: *persistence* (k of
+the last m verdicts faulty or unknown), a *CUSUM* per fault mode on z = k̂/σ̂k with each
+verdict's own σ̂k, designed for a stated number of false alarms a year, and *severity* (an
+interval wholly beyond a magnitude). A structure without rules of its own is watched by the
+defaults.
+
+Each rule fires or not at each record of the structure's recent history (the newest verdict of
+each record, so a re-inspection with new models re-judges it). An alarm opens when a rule fires
+on a record among the newest ``clear_after`` and none of its (structure, rule, fault mode) is
+unresolved; it resolves by itself once ``clear_after`` records in a row have not fired; after a
+resolution the rule looks only at records acquired later, so that the evidence an alarm was
+resolved on does not open it again. The CUSUM restarts from zero after each signal, as its design
+assumes (``models.alarms``); it starts from zero at the oldest record evaluated.
+
+Evaluations of one structure run one after another (its row lock on PostgreSQL, the single
+writer on SQLite), and the database refuses a second unresolved alarm of the same key anyway.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session, selectinload
+
+from models import alarms as rules_math
+from service.domain import notifications
+from service.domain.errors import ConflictError
+from service.domain.structures import get_owned, get_structure, list_structures
+from service.schemas import (
+    AlarmDetail,
+    AlarmOut,
+    AlarmPage,
+    AlarmRule,
+    AlarmRules,
+    AlarmRulesOut,
+    AlarmTransitionOut,
+    CusumDesignOut,
+    CusumRule,
+    PersistenceRule,
+    SeverityRule,
+)
+from service.security import Principal
+from service.tables import Alarm, AlarmTransition, ApiKey, Structure, Verdict, utcnow
+from service.tables import AlarmRule as StoredRule
+
+# Records a rule is evaluated over: the persistence and severity rules need a few, the CUSUM's
+# in-control statistic returns to zero every few records, so its start this far back matters
+# little; and the evaluation after each verdict stays a few milliseconds.
+WINDOW = 200
+FLAGGED = ("faulty", "unknown_fault")
+DEFAULT_RULES: tuple[AlarmRule, ...] = (
+    PersistenceRule(kind="persistence", k=rules_math.PERSISTENCE_K, m=rules_math.PERSISTENCE_M),
+    CusumRule(kind="cusum", records_per_day=rules_math.RECORDS_PER_DAY, shift=rules_math.DESIGN_SHIFT),
+    SeverityRule(kind="severity"),
+)
+SECONDS_PER_YEAR = 365.0 * 86_400.0
+MAX_PAGE = 1000
+
+
+@dataclass(frozen=True)
+class Point:
+    """A record's newest verdict, as the rules read it."""
+
+    record_id: int
+    acquired_at: dt.datetime
+    status: str
+    reference_mode: str | None
+    interval: tuple[float, float] | None
+    modes: dict[str, tuple[float, float]]  # name → (k̂, σ̂k)
+
+
+@dataclass(frozen=True)
+class Firing:
+    """Where a rule fired: ``fired`` per record of ``points``; for the CUSUM, the index of the
+    first record of each signal's drift, and its statistic (the larger side) after each record."""
+
+    fault_mode: str | None
+    points: list[Point]
+    fired: list[bool]
+    drift_starts: dict[int, int]
+    statistic: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class CusumSeries:
+    """A fault mode's CUSUM as the rules ran it, for the structure's k̂ chart."""
+
+    fault_mode: str
+    acquired_at: list[dt.datetime]
+    statistic: list[float]
+    threshold: float
+
+
+# --- rules ------------------------------------------------------------------------------------
+
+
+def rules_of(session: Session, structure_id: int) -> tuple[list[AlarmRule], bool]:
+    """The structure's rules and whether they are the defaults (it has none of its own)."""
+    stored = session.scalars(select(StoredRule).where(StoredRule.structure_id == structure_id))
+    rules = [AlarmRules.model_validate({"rules": [row.parameters]}).rules[0] for row in stored]
+    if not rules:
+        return list(DEFAULT_RULES), True
+    return sorted(rules, key=lambda rule: [r.kind for r in DEFAULT_RULES].index(rule.kind)), False
+
+
+def get_rules(session: Session, principal: Principal, structure_id: int) -> AlarmRulesOut:
+    get_structure(session, principal, structure_id)
+    rules, defaults = rules_of(session, structure_id)
+    return _rules_out(session, structure_id, rules, defaults)
+
+
+def set_rules(session: Session, principal: Principal, structure_id: int, body: AlarmRules) -> AlarmRulesOut:
+    """Replace the structure's rules and judge its history by them at once; unresolved alarms of
+    a kind no longer watched are resolved as ``rule_removed``."""
+    structure = get_structure(session, principal, structure_id)
+    _lock(session, structure_id)
+    session.execute(delete(StoredRule).where(StoredRule.structure_id == structure_id))
+    session.add_all(
+        StoredRule(structure_id=structure_id, kind=rule.kind, parameters=rule.model_dump(mode="json"))
+        for rule in body.rules
+    )
+    session.flush()
+    kinds = {rule.kind for rule in body.rules}
+    for alarm in _unresolved(session, structure_id).values():
+        if alarm.rule_kind not in kinds:
+            _resolve(session, structure, alarm, "rule_removed", None, None)
+    evaluate(session, structure)
+    return _rules_out(session, structure_id, body.rules, False)
+
+
+def _rules_out(session: Session, structure_id: int, rules: list[AlarmRule], defaults: bool) -> AlarmRulesOut:
+    cusum = next((rule for rule in rules if isinstance(rule, CusumRule)), None)
+    design = None
+    if cusum is not None:
+        modes = _mode_count(_newest_points(session, structure_id, 1))
+        design = CusumDesignOut(modes=modes, **vars(cusum_design(cusum, modes)))
+    return AlarmRulesOut(structure_id=structure_id, defaults=defaults, rules=rules, cusum_design=design)
+
+
+def cusum_design(rule: CusumRule, modes: int) -> rules_math.CusumDesign:
+    """The CUSUM of each of ``modes`` fault modes: the structure's false alarms a year are shared
+    among its charts (their rates add up at most), so each runs ``modes`` times longer in control."""
+    records_per_year = 365.0 * rule.records_per_day
+    return rules_math.design_cusum(modes * records_per_year / rule.false_alarms_per_year, rule.shift)
+
+
+# --- evaluation -------------------------------------------------------------------------------
+
+
+def evaluate(session: Session, structure: Structure) -> None:
+    """Run the structure's rules over its recent verdicts; open, keep or resolve its alarms.
+
+    Called in the transaction that stored a verdict (and when the rules change), after the
+    verdict's insert: only flushes. Every transition is announced through
+    :func:`service.domain.notifications.notify`, delivered after the commit.
+    """
+    _lock(session, structure.id)
+    points = _newest_points(session, structure.id, WINDOW)
+    if not points:
+        return
+    rules, _ = rules_of(session, structure.id)
+    unresolved = _unresolved(session, structure.id)
+    since = _resolved_through(session, structure.id)
+    modes = _mode_count(points)
+    for rule in rules:
+        for firing in _firings(rule, points, since, modes):
+            key = (rule.kind, firing.fault_mode)
+            _apply(session, structure, rule, firing, modes, unresolved.get(key))
+
+
+def _apply(
+    session: Session, structure: Structure, rule: AlarmRule, firing: Firing, modes: int, alarm: Alarm | None
+) -> None:
+    fired = [i for i, f in enumerate(firing.fired) if f]
+    newest = firing.points[-1]
+    quiet = len(firing.points) - 1 - fired[-1] if fired else len(firing.points)
+    if alarm is not None:
+        alarm.evaluated_through = max(alarm.evaluated_through, newest.acquired_at)
+        if quiet >= rule.clear_after:
+            _resolve(session, structure, alarm, "cleared", None, None)
+        return
+    if not fired or quiet >= rule.clear_after:
+        return
+    first = fired[-1]  # the first firing of the current run: no quiet stretch of clear_after since
+    for earlier in reversed(fired[:-1]):
+        if first - earlier > rule.clear_after:
+            break
+        first = earlier
+    trigger = firing.points[first]
+    drift = firing.drift_starts.get(first)
+    alarm = Alarm(
+        structure_id=structure.id,
+        rule_kind=rule.kind,
+        rule=_rule_document(rule, modes),
+        fault_mode=firing.fault_mode,
+        state="open",
+        opened_at=utcnow(),
+        record_id=trigger.record_id,
+        triggered_at=trigger.acquired_at,
+        drift_started_at=firing.points[drift].acquired_at if drift is not None else None,
+        evaluated_through=newest.acquired_at,
+    )
+    alarm.transitions.append(AlarmTransition(from_state=None, to_state="open", at=alarm.opened_at))
+    session.add(alarm)
+    session.flush()
+    _announce(session, structure, alarm, "alarm.opened")
+
+
+def _rule_document(rule: AlarmRule, modes: int) -> dict[str, Any]:
+    """The rule as it fired; a CUSUM's with the design it ran with."""
+    document = rule.model_dump(mode="json")
+    if isinstance(rule, CusumRule):
+        document["design"] = vars(cusum_design(rule, modes)) | {"modes": modes}
+    return document
+
+
+def _firings(
+    rule: AlarmRule, points: list[Point], since: dict[tuple[str, str | None], dt.datetime], modes: int
+) -> Iterator[Firing]:
+    """For each fault mode the rule watches, whether it fired at each record acquired after the
+    last resolution of its alarm."""
+
+    def after(mode: str | None) -> list[Point]:
+        start = since.get((rule.kind, mode))
+        return [p for p in points if start is None or p.acquired_at > start]
+
+    if isinstance(rule, PersistenceRule):
+        chosen = after(None)
+        flags = [p.status in FLAGGED for p in chosen]
+        fired = [rules_math.persistence(flags[: i + 1], rule.k, rule.m) for i in range(len(chosen))]
+        if chosen:
+            yield Firing(None, chosen, fired, {})
+        return
+    for mode in sorted({name for p in points for name in p.modes}):
+        chosen = after(mode)
+        if isinstance(rule, SeverityRule):
+            chosen_fired = [_severe(p, mode, rule.threshold) for p in chosen]
+            if chosen:
+                yield Firing(mode, chosen, chosen_fired, {})
+        else:
+            with_mode = [p for p in chosen if mode in p.modes]
+            if with_mode:
+                yield _cusum_firing(rule, mode, with_mode, modes)
+
+
+def _severe(point: Point, mode: str, threshold: float) -> bool:
+    if point.reference_mode != mode or point.interval is None:
+        return False
+    low, high = point.interval
+    return rules_math.severity(low, high, threshold) or rules_math.severity(low, high, -threshold)
+
+
+def _cusum_firing(rule: CusumRule, mode: str, points: list[Point], modes: int) -> Firing:
+    """The chart's signals, restarting from zero after each one (as its design assumes)."""
+    design = cusum_design(rule, modes)
+    z = np.array([k_hat / sigma for k_hat, sigma in (p.modes[mode] for p in points)])
+    fired = [False] * len(points)
+    drift_starts: dict[int, int] = {}
+    statistic: list[float] = []
+    start = 0
+    while start < len(points):
+        path = rules_math.cusum(z[start:], design)
+        end = len(points) - start if path.alarm_at is None else path.alarm_at + 1
+        statistic += np.maximum(path.upper[:end], path.lower[:end]).tolist()
+        if path.alarm_at is None or path.drift_start is None:
+            break
+        at = start + path.alarm_at
+        fired[at] = True
+        drift_starts[at] = start + path.drift_start
+        start = at + 1
+    return Firing(mode, points, fired, drift_starts, statistic)
+
+
+def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
+    """Each fault mode's CUSUM statistic over the records the rules look at, with its threshold;
+    none when the structure has no CUSUM rule."""
+    rules, _ = rules_of(session, structure_id)
+    rule = next((r for r in rules if isinstance(r, CusumRule)), None)
+    points = _newest_points(session, structure_id, WINDOW)
+    if rule is None or not points:
+        return []
+    modes = _mode_count(points)
+    threshold = cusum_design(rule, modes).threshold
+    return [
+        CusumSeries(
+            firing.fault_mode or "", [p.acquired_at for p in firing.points], firing.statistic, threshold
+        )
+        for firing in _firings(rule, points, _resolved_through(session, structure_id), modes)
+    ]
+
+
+def _newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
+    """The newest verdict of each of the structure's newest ``count`` inspected records, oldest
+    first. Re-inspections add verdicts to a record: three times as many are read to find them."""
+    rows = session.execute(
+        select(
+            Verdict.id,
+            Verdict.record_id,
+            Verdict.acquired_at,
+            Verdict.status,
+            Verdict.reference_mode,
+            Verdict.interval_low,
+            Verdict.interval_high,
+            Verdict.modes,
+        )
+        .where(Verdict.structure_id == structure_id)
+        .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
+        .limit(3 * count)
+    ).all()
+    newest: dict[int, Any] = {}
+    for row in rows:
+        if row.record_id not in newest or row.id > newest[row.record_id].id:
+            newest[row.record_id] = row
+    chosen = sorted(newest.values(), key=lambda row: (row.acquired_at, row.id))[-count:]
+    return [
+        Point(
+            record_id=row.record_id,
+            acquired_at=row.acquired_at,
+            status=row.status,
+            reference_mode=row.reference_mode,
+            interval=(row.interval_low, row.interval_high) if row.interval_low is not None else None,
+            modes={
+                m["name"]: (m["k_hat"], m["sigma_k"])
+                for m in row.modes
+                if m["sigma_k"] > 0 and np.isfinite(m["k_hat"] / m["sigma_k"])
+            },
+        )
+        for row in chosen
+    ]
+
+
+def _mode_count(points: list[Point]) -> int:
+    """The fault modes the newest verdict was judged against (one before any verdict): the
+    number of CUSUM charts that share the structure's false alarms."""
+    return max(1, len(points[-1].modes)) if points else 1
+
+
+def _unresolved(session: Session, structure_id: int) -> dict[tuple[str, str | None], Alarm]:
+    alarms = session.scalars(
+        select(Alarm).where(Alarm.structure_id == structure_id, Alarm.state != "resolved")
+    )
+    return {(alarm.rule_kind, alarm.fault_mode): alarm for alarm in alarms}
+
+
+def _resolved_through(session: Session, structure_id: int) -> dict[tuple[str, str | None], dt.datetime]:
+    rows = session.execute(
+        select(Alarm.rule_kind, Alarm.fault_mode, func.max(Alarm.evaluated_through))
+        .where(Alarm.structure_id == structure_id, Alarm.state == "resolved")
+        .group_by(Alarm.rule_kind, Alarm.fault_mode)
+    )
+    return {(kind, mode): through for kind, mode, through in rows}
+
+
+def _lock(session: Session, structure_id: int) -> None:
+    """The structure's row lock (``FOR NO KEY UPDATE``, as trainings take it): evaluations of one
+    structure run one after another, each seeing the alarms the previous one committed; uploads,
+    whose foreign keys take ``KEY SHARE`` locks, are not held up. SQLite has one writer."""
+    session.execute(select(Structure.id).where(Structure.id == structure_id).with_for_update(key_share=True))
+
+
+# --- lifecycle --------------------------------------------------------------------------------
+
+
+def acknowledge(session: Session, principal: Principal, alarm_id: int, note: str) -> Alarm:
+    alarm = _get(session, principal, alarm_id)
+    if alarm.state != "open":
+        raise ConflictError(f"alarm {alarm_id} is {alarm.state}; only an open alarm can be acknowledged")
+    structure = get_structure(session, principal, alarm.structure_id)
+    key = session.get(ApiKey, principal.key_id)
+    alarm.state, alarm.acknowledged_at = "acknowledged", utcnow()
+    alarm.acknowledged_key, alarm.acknowledgement_note = key, note or None
+    alarm.transitions.append(
+        AlarmTransition(
+            from_state="open", to_state="acknowledged", at=alarm.acknowledged_at, key=key, note=note or None
+        )
+    )
+    session.flush()
+    _announce(session, structure, alarm, "alarm.acknowledged")
+    return alarm
+
+
+def resolve(session: Session, principal: Principal, alarm_id: int, note: str) -> Alarm:
+    alarm = _get(session, principal, alarm_id)
+    if alarm.state == "resolved":
+        raise ConflictError(f"alarm {alarm_id} is resolved already ({alarm.resolution})")
+    structure = get_structure(session, principal, alarm.structure_id)
+    _resolve(session, structure, alarm, "by_hand", session.get(ApiKey, principal.key_id), note or None)
+    return alarm
+
+
+def _resolve(
+    session: Session, structure: Structure, alarm: Alarm, how: str, key: ApiKey | None, note: str | None
+) -> None:
+    """``key`` None: the service resolved it (the rule cleared, or was removed)."""
+    now = utcnow()
+    alarm.transitions.append(
+        AlarmTransition(from_state=alarm.state, to_state="resolved", at=now, key=key, note=note)
+    )
+    alarm.state, alarm.resolved_at, alarm.resolved_key = "resolved", now, key
+    alarm.resolution, alarm.resolution_note = how, note
+    session.flush()
+    _announce(session, structure, alarm, "alarm.resolved")
+
+
+def _announce(session: Session, structure: Structure, alarm: Alarm, event: str) -> None:
+    notifications.notify(session, structure.organisation_id, event, alarm_out(alarm).model_dump(mode="json"))
+
+
+# --- reading ----------------------------------------------------------------------------------
+
+LOADED = (
+    selectinload(Alarm.acknowledged_key),
+    selectinload(Alarm.resolved_key),
+)
+
+
+def _get(session: Session, principal: Principal, alarm_id: int) -> Alarm:
+    return get_owned(session, principal, Alarm, alarm_id, "alarm", options=list(LOADED))
+
+
+def get_alarm(session: Session, principal: Principal, alarm_id: int) -> AlarmDetail:
+    alarm = get_owned(
+        session,
+        principal,
+        Alarm,
+        alarm_id,
+        "alarm",
+        options=[*LOADED, selectinload(Alarm.transitions).selectinload(AlarmTransition.key)],
+    )
+    transitions = [
+        AlarmTransitionOut(
+            from_state=t.from_state,  # type: ignore[arg-type]
+            to_state=t.to_state,  # type: ignore[arg-type]
+            at=t.at,
+            by=t.key.prefix if t.key is not None else None,
+            note=t.note,
+        )
+        for t in alarm.transitions
+    ]
+    return AlarmDetail(**alarm_out(alarm).model_dump(), transitions=transitions)
+
+
+def list_alarms(
+    session: Session,
+    principal: Principal,
+    *,
+    structure_id: int | None = None,
+    state: str | None = None,
+    rule_kind: str | None = None,
+    fault_mode: str | None = None,
+    start: dt.datetime | None = None,
+    end: dt.datetime | None = None,
+    cursor: int | None = None,
+    limit: int = 100,
+) -> AlarmPage:
+    """The organisation's alarms opened in [start, end), newest first, ``limit`` at a time."""
+    if structure_id is not None:
+        get_structure(session, principal, structure_id)
+        query = select(Alarm).where(Alarm.structure_id == structure_id)
+    else:
+        owned = select(Structure.id).where(Structure.organisation_id == principal.organisation_id)
+        query = select(Alarm).where(Alarm.structure_id.in_(owned))
+    if state is not None:
+        query = query.where(Alarm.state == state)
+    if rule_kind is not None:
+        query = query.where(Alarm.rule_kind == rule_kind)
+    if fault_mode is not None:
+        query = query.where(Alarm.fault_mode == fault_mode)
+    if start is not None:
+        query = query.where(Alarm.opened_at >= start)
+    if end is not None:
+        query = query.where(Alarm.opened_at < end)
+    if cursor is not None:
+        query = query.where(Alarm.id < cursor)
+    rows = list(session.scalars(query.order_by(Alarm.id.desc()).limit(limit + 1).options(*LOADED)))
+    page = rows[:limit]
+    return AlarmPage(
+        items=[alarm_out(a) for a in page], next_cursor=page[-1].id if len(rows) > limit else None
+    )
+
+
+def unresolved_alarms(session: Session, principal: Principal, structure_id: int | None = None) -> list[Alarm]:
+    """The caller's open and acknowledged alarms (of one structure), oldest first: the dashboard's."""
+    owned = [s.id for s in list_structures(session, principal)] if structure_id is None else [structure_id]
+    query = select(Alarm).where(Alarm.structure_id.in_(owned), Alarm.state != "resolved")
+    return list(session.scalars(query.order_by(Alarm.id).options(*LOADED)))
+
+
+def alarm_out(alarm: Alarm) -> AlarmOut:
+    return AlarmOut(
+        id=alarm.id,
+        structure_id=alarm.structure_id,
+        rule_kind=alarm.rule_kind,  # type: ignore[arg-type]
+        rule=alarm.rule,
+        fault_mode=alarm.fault_mode,
+        state=alarm.state,  # type: ignore[arg-type]
+        opened_at=alarm.opened_at,
+        record_id=alarm.record_id,
+        triggered_at=alarm.triggered_at,
+        drift_started_at=alarm.drift_started_at,
+        acknowledged_at=alarm.acknowledged_at,
+        acknowledged_by=alarm.acknowledged_key.prefix if alarm.acknowledged_key is not None else None,
+        acknowledgement_note=alarm.acknowledgement_note,
+        resolved_at=alarm.resolved_at,
+        resolved_by=alarm.resolved_key.prefix if alarm.resolved_key is not None else None,
+        resolution=alarm.resolution,  # type: ignore[arg-type]
+        resolution_note=alarm.resolution_note,
+    )

@@ -1,0 +1,316 @@
+"""Alarms through HTTP, on SQLite and PostgreSQL: rules, the lifecycle, roles, tenancy, bad input.
+
+A rig with a k2 fault-mode model is fed simulated records, healthy then with a k2 fault of 25 %,
+each inspected on upload (or by a queued job). What the rules must do is worked out here from the
+verdicts the service returned, by the rule's own definition (k of the last m; a CUSUM written out
+in this file), and compared with the alarms the service opened and resolved.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from api_helpers import (
+    API,
+    Org,
+    clients,
+    create_structure,
+    detail,
+    npz_bytes,
+    post_record,
+    simulated,
+    train_fault_mode,
+    wait_for,
+)
+from live import LiveServer
+from sqlalchemy.exc import IntegrityError
+
+from models.alarms import design_cusum
+from service.tables import Alarm, utcnow
+
+T0 = dt.datetime(2026, 5, 1, 6, 0, tzinfo=dt.UTC)
+STEP = dt.timedelta(hours=6)
+FAULT_K = 25.0
+PERSISTENCE = {"kind": "persistence", "k": 2, "m": 3, "clear_after": 2}
+
+
+@dataclass
+class Rig:
+    org: Org
+    structure_id: int
+    uploaded: int = 0  # records uploaded so far: the next one is acquired STEP later
+
+    def upload(self, k: float, seed: int, **params: str) -> dict:
+        """A simulated record with a k2 fault of ``k`` %, inspected on upload by default."""
+        with self.org.client("ingest") as ingest:
+            record = simulated("k2", k, [seed, self.uploaded], 2000)
+            moment = T0 + self.uploaded * STEP
+            self.uploaded += 1
+            params = {"inspect": "true"} | params
+            body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+            params |= {"acquired_at": moment.isoformat()}
+            response = post_record(ingest, self.structure_id, body, "application/x-npz", **params)
+            assert response.status_code in (201, 202), response.text
+            return response.json()
+
+    def alarms(self, **filters: object) -> list[dict]:
+        with self.org.client("viewer") as viewer:
+            response = viewer.get(f"{API}/alarms", params={"structure_id": self.structure_id, **filters})
+            assert response.status_code == 200, response.text
+            return response.json()["items"]
+
+
+def new_rig(server: LiveServer, seed: int, rules: list[dict] | None) -> Rig:
+    org = Org.create(server)
+    with clients(org) as (admin, ingest, _):
+        structure_id = create_structure(admin, f"alarmed-{uuid.uuid4().hex[:6]}")["id"]
+        train_fault_mode(admin, ingest, structure_id, "k2", seed=seed)
+        if rules is not None:
+            response = admin.put(f"{API}/structures/{structure_id}/alarm-rules", json={"rules": rules})
+            assert response.status_code == 200, response.text
+    return Rig(org, structure_id)
+
+
+@pytest.fixture(scope="module")
+def rig(api_server: LiveServer) -> Rig:
+    return new_rig(api_server, seed=61, rules=[PERSISTENCE])
+
+
+def when(text: str) -> dt.datetime:
+    return dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
+
+
+def statuses(records: list[dict]) -> list[str]:
+    return [r["verdict"]["status"] for r in records]
+
+
+def test_an_alarm_opens_once_is_acknowledged_by_an_admin_and_resolves_when_the_rule_clears(rig: Rig):
+    healthy = [rig.upload(0.0, 1) for _ in range(2)]
+    assert statuses(healthy) == ["healthy", "healthy"]
+    assert rig.alarms() == []
+    faulty = [rig.upload(FAULT_K, 2) for _ in range(3)]
+    assert statuses(faulty) == ["faulty"] * 3
+    # 2 of the last 3 faulty first holds at the second faulty record; the third keeps the same alarm.
+    (alarm,) = rig.alarms()
+    assert (alarm["rule_kind"], alarm["fault_mode"], alarm["state"]) == ("persistence", None, "open")
+    assert alarm["record_id"] == faulty[1]["id"]
+    assert when(alarm["triggered_at"]) == when(faulty[1]["acquired_at"])
+    assert alarm["rule"] == PERSISTENCE
+
+    with clients(rig.org) as (admin, ingest, viewer):
+        url = f"{API}/alarms/{alarm['id']}"
+        assert viewer.get(url).json()["state"] == "open"
+        refused = ingest.post(f"{url}/acknowledge", json={"note": "on it"})
+        assert refused.status_code == 403 and "admin" in detail(refused) and "ingest" in detail(refused)
+        assert viewer.post(f"{url}/acknowledge", json={}).status_code == 403
+        assert admin.post(f"{url}/acknowledge", json={"note": "x" * 2001}).status_code == 422
+        assert viewer.get(url).json()["state"] == "open", "a refused acknowledgement changed nothing"
+        acknowledged = admin.post(f"{url}/acknowledge", json={"note": "crew sent to bay 3"})
+        assert acknowledged.status_code == 200, acknowledged.text
+        body = acknowledged.json()
+        assert body["state"] == "acknowledged" and body["acknowledgement_note"] == "crew sent to bay 3"
+        assert body["acknowledged_by"] == rig.org.keys["admin"].split("_")[1]
+        again = admin.post(f"{url}/acknowledge", json={})
+        assert again.status_code == 409 and "acknowledged" in detail(again)
+
+    # Healthy again: the rule still holds on the first healthy record (2 of the last 3), then
+    # clears; two records in a row without it resolve the alarm.
+    recovered = [rig.upload(0.0, 3) for _ in range(3)]
+    assert statuses(recovered) == ["healthy"] * 3
+    (resolved,) = rig.alarms()
+    assert resolved["state"] == "resolved" and resolved["resolution"] == "cleared"
+    assert resolved["resolved_by"] is None
+    with clients(rig.org) as (_, _, viewer):
+        transitions = viewer.get(f"{API}/alarms/{alarm['id']}").json()["transitions"]
+    assert [(t["from_state"], t["to_state"]) for t in transitions] == [
+        (None, "open"),
+        ("open", "acknowledged"),
+        ("acknowledged", "resolved"),
+    ]
+    assert [t["by"] for t in transitions] == [None, rig.org.keys["admin"].split("_")[1], None]
+    assert transitions[1]["note"] == "crew sent to bay 3"
+
+
+def test_an_alarm_resolved_by_hand_is_not_reopened_by_the_evidence_it_was_resolved_on(rig: Rig):
+    before = {a["id"] for a in rig.alarms()}
+    first = rig.upload(FAULT_K, 4)
+    # A queued inspection stores its verdict in a job: the alarm is raised there.
+    rig.upload(FAULT_K, 5, inspect="queue")
+    opened = wait_for(
+        lambda: [a for a in rig.alarms(state="open") if a["id"] not in before],
+        60,
+        "the queued verdict's alarm",
+    )
+    (alarm,) = opened  # type: ignore[misc]
+    assert alarm["record_id"] != first["id"], "it fired on the queued record, the second faulty one"
+    with clients(rig.org) as (admin, _, _):
+        response = admin.post(f"{API}/alarms/{alarm['id']}/resolve", json={"note": "sensor cable replaced"})
+        assert response.status_code == 200, response.text
+        assert response.json()["resolution"] == "by_hand"
+        assert admin.post(f"{API}/alarms/{alarm['id']}/resolve", json={}).status_code == 409
+    # The window still holds two faulty records, but they were judged already.
+    assert statuses([rig.upload(0.0, 6)]) == ["healthy"]
+    assert rig.alarms(state="open") == [] and rig.alarms(state="acknowledged") == []
+
+
+def test_the_cusum_fires_on_its_designed_threshold_and_reports_when_the_drift_began(api_server: LiveServer):
+    rule = {"kind": "cusum", "false_alarms_per_year": 1.0, "records_per_day": 4.0, "shift": 1.0}
+    rig = new_rig(api_server, seed=62, rules=[rule])
+    with rig.org.client("viewer") as viewer:
+        rules = viewer.get(f"{API}/structures/{rig.structure_id}/alarm-rules").json()
+    design = rules["cusum_design"]
+    assert rules["defaults"] is False and design["modes"] == 1
+    assert design["threshold"] == pytest.approx(design_cusum(1460.0, 1.0).threshold)
+    # A small step, a few σ̂k: no single record need prove it; the chart must add it up.
+    records = [rig.upload(0.0, 7) for _ in range(3)] + [rig.upload(3.0, 8) for _ in range(5)]
+    modes = [r["verdict"]["modes"][0] for r in records]
+    z = np.array([m["k_hat"] / m["sigma_k"] for m in modes])
+    sides = np.zeros((len(z) + 1, 2))  # Page's two-sided CUSUM by its definition, from zero
+    for i, zi in enumerate(z):
+        sides[i + 1] = np.maximum(0.0, sides[i] + np.array([zi, -zi]) - design["reference"])
+    beyond = np.flatnonzero(sides[1:].max(axis=1) > design["threshold"])
+    alarm_at = int(beyond[0]) if beyond.size else None
+    assert alarm_at is not None, f"the step was expected to be detected within 5 records: z = {z}"
+    (alarm,) = rig.alarms(rule_kind="cusum")
+    assert alarm["fault_mode"] == "k2" and alarm["record_id"] == records[alarm_at]["id"]
+    assert alarm["drift_started_at"] is not None
+    side = sides[: alarm_at + 2, int(np.argmax(sides[alarm_at + 1]))]
+    started = int(np.flatnonzero(side[: alarm_at + 1] == 0.0)[-1])  # the record after the last zero
+    assert when(alarm["drift_started_at"]) == T0 + started * STEP
+    assert alarm["rule"]["design"]["threshold"] == pytest.approx(design["threshold"])
+
+
+def test_rules_default_until_set_and_bad_rules_are_refused_with_nothing_stored(api_server: LiveServer):
+    org = Org.create(api_server)
+    with clients(org) as (admin, ingest, viewer):
+        structure_id = create_structure(admin)["id"]
+        url = f"{API}/structures/{structure_id}/alarm-rules"
+        defaults = viewer.get(url).json()
+        assert defaults["defaults"] is True
+        assert [r["kind"] for r in defaults["rules"]] == ["persistence", "cusum", "severity"]
+        assert defaults["cusum_design"]["arl_in_control"] == pytest.approx(1460.0)
+        bad = {
+            "unknown kind": [{"kind": "sprt", "k": 1}],
+            "m below k": [{"kind": "persistence", "k": 4, "m": 3}],
+            "negative threshold": [{"kind": "severity", "threshold": -5.0}],
+            "zero false alarms": [{"kind": "cusum", "false_alarms_per_year": 0}],
+            "negative shift": [{"kind": "cusum", "shift": -1.0}],
+            "a kind twice": [{"kind": "severity"}, {"kind": "severity", "threshold": 3.0}],
+            "no rule": [],
+            "an unknown field": [{"kind": "persistence", "window": 5}],
+        }
+        messages = {
+            "unknown kind": "persistence",
+            "m below k": "at least k",
+            "negative threshold": "give it positive",
+            "a kind twice": "at most once",
+        }
+        for case, rules in bad.items():
+            response = admin.put(url, json={"rules": rules})
+            assert response.status_code == 422, f"{case}: {response.text}"
+            assert messages.get(case, "") in detail(response), f"{case}: {detail(response)}"
+        assert viewer.get(url).json() == defaults, "a refused rule changed the stored ones"
+        wanted = [{"kind": "severity", "threshold": 12.5}]
+        assert ingest.put(url, json={"rules": wanted}).status_code == 403
+        assert viewer.put(url, json={"rules": wanted}).status_code == 403
+        stored = admin.put(url, json={"rules": wanted})
+        assert stored.status_code == 200, stored.text
+        assert stored.json()["rules"] == [{"kind": "severity", "threshold": 12.5, "clear_after": 5}]
+        assert stored.json()["cusum_design"] is None
+        assert viewer.get(url).json() == stored.json() | {"defaults": False}
+
+
+def test_no_organisation_sees_or_touches_another_s_alarms(rig: Rig, api_server: LiveServer):
+    (alarm, *_) = rig.alarms()
+    other = Org.create(api_server)
+    with clients(other) as (admin, _, viewer):
+        assert viewer.get(f"{API}/alarms").json()["items"] == []
+        for response in (
+            viewer.get(f"{API}/alarms/{alarm['id']}"),
+            admin.post(f"{API}/alarms/{alarm['id']}/acknowledge", json={}),
+            admin.post(f"{API}/alarms/{alarm['id']}/resolve", json={}),
+            viewer.get(f"{API}/alarms", params={"structure_id": rig.structure_id}),
+            viewer.get(f"{API}/structures/{rig.structure_id}/alarm-rules"),
+            admin.put(f"{API}/structures/{rig.structure_id}/alarm-rules", json={"rules": [PERSISTENCE]}),
+        ):
+            assert response.status_code == 404, response.text
+    with rig.org.client("viewer") as viewer:
+        assert viewer.get(f"{API}/alarms/{alarm['id']}").json()["state"] == alarm["state"]
+
+
+def test_alarms_are_listed_newest_first_with_filters_and_pages(rig: Rig):
+    everything = rig.alarms(limit=1000)
+    assert len(everything) >= 2
+    assert [a["id"] for a in everything] == sorted((a["id"] for a in everything), reverse=True)
+    with rig.org.client("viewer") as viewer:
+        pages, cursor = [], None
+        while True:
+            params = {"structure_id": rig.structure_id, "limit": 1} | ({"cursor": cursor} if cursor else {})
+            page = viewer.get(f"{API}/alarms", params=params).json()
+            pages += page["items"]
+            if (cursor := page["next_cursor"]) is None:
+                break
+        assert pages == everything
+        assert rig.alarms(state="resolved") == everything
+        assert rig.alarms(rule_kind="cusum") == []
+        assert rig.alarms(end=everything[-1]["opened_at"]) == []
+        assert rig.alarms(start=everything[0]["opened_at"]) == everything[:1]
+        for bad in (
+            {"state": "closed"},
+            {"rule_kind": "sprt"},
+            {"start": "2026-05-01T00:00:00"},
+            {"cursor": 0},
+        ):
+            assert viewer.get(f"{API}/alarms", params=bad).status_code == 422, bad
+
+
+def test_the_database_keeps_one_unresolved_alarm_per_structure_rule_and_fault_mode(rig: Rig, api_server):
+    """Whatever the code does, a second unresolved alarm of the same key is refused by the database
+    (persistence alarms have no fault mode: NULL, which a plain unique index would let through)."""
+    sessions = api_server.app.state.sessions
+    now = utcnow()
+
+    def alarm(mode: str | None, state: str = "open") -> Alarm:
+        return Alarm(
+            structure_id=rig.structure_id,
+            rule_kind="persistence" if mode is None else "severity",
+            rule={},
+            fault_mode=mode,
+            state=state,
+            triggered_at=now,
+            evaluated_through=now,
+        )
+
+    for mode in (None, "k2"):
+        with sessions() as session:
+            session.add_all([alarm(mode, "resolved"), alarm(mode, "resolved"), alarm(mode)])
+            session.flush()
+            session.add(alarm(mode, "acknowledged"))
+            with pytest.raises(IntegrityError):
+                session.flush()
+            session.rollback()
+
+
+def test_a_re_inspection_with_new_models_re_judges_the_record(api_server: LiveServer):
+    """A k1 fault inspected by a k2 model alone is an unknown fault, without a magnitude: no
+    severity alarm. Once a k1 model exists, inspecting the record again measures it, and the
+    severity rule fires on the new verdict."""
+    rig = new_rig(api_server, seed=63, rules=[{"kind": "severity", "threshold": 10.0}])
+    with clients(rig.org) as (admin, ingest, _):
+        record = simulated("k1", 20.0, [63, 1], 2000)
+        body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+        uploaded = post_record(ingest, rig.structure_id, body, "application/x-npz", inspect="true").json()
+        assert uploaded["verdict"]["status"] == "unknown_fault" and uploaded["verdict"]["interval"] is None
+        assert rig.alarms() == []
+        train_fault_mode(admin, ingest, rig.structure_id, "k1", seed=64)
+        response = ingest.post(f"{API}/records/{uploaded['id']}/inspect")
+        assert response.status_code == 200, response.text
+        verdict = response.json()
+        low, high = verdict["interval"]
+        assert verdict["fault_mode"] == "k1" and (high < -10.0 or low > 10.0)
+    (alarm,) = rig.alarms()
+    assert (alarm["rule_kind"], alarm["fault_mode"], alarm["record_id"]) == ("severity", "k1", uploaded["id"])
