@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -340,3 +341,26 @@ def test_a_re_inspection_with_new_models_re_judges_the_record(api_server: LiveSe
         assert verdict["fault_mode"] == "k1" and (high < -10.0 or low > 10.0)
     (alarm,) = rig.alarms()
     assert (alarm["rule_kind"], alarm["fault_mode"], alarm["record_id"]) == ("severity", "k1", uploaded["id"])
+
+
+def test_verdicts_stored_at_once_open_one_alarm(api_server: LiveServer):
+    """Six faulty records uploaded together, each firing the rule: one alarm, no error. The
+    structure's evaluations run one after another (its row lock), each seeing the alarm the one
+    before committed."""
+    rig = new_rig(api_server, seed=65, rules=[{"kind": "persistence", "k": 1, "m": 1}])
+    bodies = [simulated("k2", FAULT_K, [65, index], 2000) for index in range(6)]
+
+    def upload(index: int) -> int:
+        record = bodies[index]
+        moment = (T0 + index * STEP).isoformat()
+        with rig.org.client("ingest") as ingest:
+            body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+            response = post_record(
+                ingest, rig.structure_id, body, "application/x-npz", inspect="true", acquired_at=moment
+            )
+        return response.status_code
+
+    with ThreadPoolExecutor(len(bodies)) as pool:
+        assert list(pool.map(upload, range(len(bodies)))) == [201] * len(bodies)
+    (alarm,) = rig.alarms()
+    assert alarm["state"] == "open"
