@@ -225,6 +225,7 @@ def test_rules_default_until_set_and_bad_rules_are_refused_with_nothing_stored(a
             "zero false alarms": [{"kind": "cusum", "false_alarms_per_year": 0}],
             "negative shift": [{"kind": "cusum", "shift": -1.0}],
             "a shift no threshold can serve": [{"kind": "cusum", "shift": 0.05}],
+            "a shift a single record decides": [{"kind": "cusum", "shift": 11.6}],
             "a kind twice": [{"kind": "severity"}, {"kind": "severity", "threshold": 3.0}],
             "no rule": [],
             "an unknown field": [{"kind": "persistence", "window": 5}],
@@ -235,6 +236,7 @@ def test_rules_default_until_set_and_bad_rules_are_refused_with_nothing_stored(a
             "negative threshold": "give it positive",
             "a kind twice": "at most once",
             "a shift no threshold can serve": "threshold beyond 16 σ",
+            "a shift a single record decides": "smaller shift",
         }
         for case, rules in bad.items():
             response = admin.put(url, json={"rules": rules})
