@@ -17,6 +17,7 @@ from pydantic import (
     model_validator,
 )
 
+from models.alarms import DESIGN_SHIFT
 from models.basis import FAMILIES
 from models.inspection import ModeResult
 from service.jobs import JobState
@@ -451,7 +452,7 @@ class CusumRule(Strict):
     kind: Literal["cusum"]
     false_alarms_per_year: Annotated[FiniteFloat, Field(gt=0, le=365)] = 1.0
     records_per_day: Annotated[FiniteFloat, Field(gt=0, le=100_000)] = 4.0
-    shift: Annotated[FiniteFloat, Field(gt=0, le=20)] = 1.0
+    shift: Annotated[FiniteFloat, Field(gt=0, le=20)] = DESIGN_SHIFT
     clear_after: Records = Field(25, description="Records in a row without a signal before an alarm resolves")
 
 
@@ -490,13 +491,15 @@ class AlarmRules(Strict):
 
 class CusumDesignOut(BaseModel):
     """The CUSUM each fault mode is watched with: reference and threshold in σ units, run lengths
-    in records (in control: the structure's target times its number of fault modes)."""
+    in records (in control: the structure's target times its number of fault modes, averaged over
+    the models' own error; at the shift: for a structure without that error)."""
 
     modes: int
     reference: float
     threshold: float
     arl_in_control: float
     arl_at_shift: float
+    common_share: float = Field(description="The share of σ̂k² common to all records (the models' own error)")
 
 
 class AlarmRulesOut(BaseModel):
@@ -504,6 +507,7 @@ class AlarmRulesOut(BaseModel):
     defaults: bool = Field(description="True when no rule was set: the service's defaults apply")
     rules: list[AlarmRule]
     cusum_design: CusumDesignOut | None
+    cusum_problem: str | None = Field(description="Why the CUSUM rule does not run, when it does not")
 
 
 class AlarmOut(BaseModel):

@@ -33,6 +33,9 @@ SETTINGS = StudySettings()
 # Magnitudes of the fault-mode training experiments: three are enough for a degree-1 basis
 # (two functions) and keep each training to a fraction of a second.
 TRAINING_K = (-30.0, 0.0, 30.0)
+# Nine: the model's own error, the same in every record it inspects, is then a share of σ̂k² small
+# enough for a CUSUM with a false-alarm rate of a year (service.domain.alarms.MAX_THRESHOLD).
+CUSUM_TRAINING_K = (-30.0, -22.5, -15.0, -7.5, 0.0, 7.5, 15.0, 22.5, 30.0)
 TRAINING_SAMPLES = 2000
 _noise_seeds = itertools.count(1_000_000)
 
@@ -140,14 +143,15 @@ def train_fault_mode(
     structure_id: int,
     mode: str = "k2",
     seed: int = 1,
+    magnitudes: tuple[float, ...] = TRAINING_K,
     **extra: Any,
 ) -> dict:
-    """Train (a new version of) fault mode ``mode`` from three simulated experiments."""
+    """Train (a new version of) fault mode ``mode`` from simulated experiments (three by default)."""
     body = {
         "name": mode,
         "k_min": -32.0,
         "k_max": 32.0,
-        "experiments": experiments(ingest, structure_id, mode, seed),
+        "experiments": experiments(ingest, structure_id, mode, seed, magnitudes),
         **extra,
     }
     response = admin.post(f"{API}/structures/{structure_id}/models/fault-modes", json=body)

@@ -1,6 +1,7 @@
 """A monitored structure with a history worth looking at, and a logged-in dashboard client.
 
-The history is a rig that was healthy for four records and then developed a k2 fault of 25 %:
+The history is a rig (its k2 model trained on nine experiments) that was healthy for four records
+and then developed a k2 fault of 25 %:
 every record is simulated (simulator.simulate) and inspected by the service on upload.
 """
 
@@ -13,7 +14,15 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from api_helpers import Org, create_structure, simulated, train_fault_mode, upload_simulated, verdicts
+from api_helpers import (
+    CUSUM_TRAINING_K,
+    Org,
+    create_structure,
+    simulated,
+    train_fault_mode,
+    upload_simulated,
+    verdicts,
+)
 from live import LiveServer
 
 DASHBOARD = "/dashboard"
@@ -53,7 +62,7 @@ def monitored_structure(
     admin, ingest, viewer = org.client("admin"), org.client("ingest"), org.client("viewer")
     with admin, ingest, viewer:
         structure = create_structure(admin, "rig with a k2 fault")
-        train_fault_mode(admin, ingest, structure["id"], "k2", seed=seed)
+        train_fault_mode(admin, ingest, structure["id"], "k2", seed=seed, magnitudes=CUSUM_TRAINING_K)
         records = []
         magnitudes = [0.0] * healthy + [FAULT_K] * faulty
         for index, k in enumerate(magnitudes):

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from api_helpers import (
     API,
+    CUSUM_TRAINING_K,
     Org,
     clients,
     create_structure,
@@ -235,7 +236,7 @@ def test_an_alarm_appears_after_uploads_is_acknowledged_then_resolved(page, serv
     rules = [{"kind": "persistence", "k": 2, "m": 3}, {"kind": "cusum"}]
     with clients(org) as (admin, ingest, _):
         structure = create_structure(admin, "rig that develops a fault")
-        train_fault_mode(admin, ingest, structure["id"], "k2", seed=71)
+        train_fault_mode(admin, ingest, structure["id"], "k2", seed=71, magnitudes=CUSUM_TRAINING_K)
         response = admin.put(f"{API}/structures/{structure['id']}/alarm-rules", json={"rules": rules})
         assert response.status_code == 200, response.text
         for index, k in enumerate([0.0] * 3 + [25.0] * 3):

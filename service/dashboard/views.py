@@ -93,6 +93,7 @@ def structure_page(
     return {
         "structure": structure,
         "alarms": structure_alarms,
+        "cusum_problem": alarms.get_rules(session, principal, structure_id).cusum_problem,
         "names": {structure.id: structure.name},
         "status": status,
         "timeline": points,

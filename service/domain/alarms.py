@@ -25,6 +25,7 @@ from __future__ import annotations
 import datetime as dt
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,7 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session, selectinload
 
 from models import alarms as rules_math
+from models.errors import InputError
 from service.domain import notifications
 from service.domain.errors import ConflictError
 from service.domain.structures import get_owned, get_structure, list_structures
@@ -62,7 +64,9 @@ DEFAULT_RULES: tuple[AlarmRule, ...] = (
     CusumRule(kind="cusum", records_per_day=rules_math.RECORDS_PER_DAY, shift=rules_math.DESIGN_SHIFT),
     SeverityRule(kind="severity"),
 )
-SECONDS_PER_YEAR = 365.0 * 86_400.0
+# The largest CUSUM threshold (σ units) the service designs for: beyond it a chart is slow to detect
+# anything, and the design's search takes seconds.
+MAX_THRESHOLD = 16.0
 MAX_PAGE = 1000
 
 
@@ -75,7 +79,7 @@ class Point:
     status: str
     reference_mode: str | None
     interval: tuple[float, float] | None
-    modes: dict[str, tuple[float, float]]  # name → (k̂, σ̂k)
+    modes: dict[str, tuple[float, float, float]]  # name → (k̂, σ̂k, σ̂k of the record alone)
 
 
 @dataclass(frozen=True)
@@ -122,6 +126,9 @@ def set_rules(session: Session, principal: Principal, structure_id: int, body: A
     """Replace the structure's rules and judge its history by them at once; unresolved alarms of
     a kind no longer watched are resolved as ``rule_removed``."""
     structure = get_structure(session, principal, structure_id)
+    for rule in body.rules:
+        if isinstance(rule, CusumRule):  # a design that exists without the models' error, or a 422
+            cusum_design(rule, [])
     _lock(session, structure_id)
     session.execute(delete(StoredRule).where(StoredRule.structure_id == structure_id))
     session.add_all(
@@ -139,18 +146,73 @@ def set_rules(session: Session, principal: Principal, structure_id: int, body: A
 
 def _rules_out(session: Session, structure_id: int, rules: list[AlarmRule], defaults: bool) -> AlarmRulesOut:
     cusum = next((rule for rule in rules if isinstance(rule, CusumRule)), None)
-    design = None
+    design, problem = None, None
     if cusum is not None:
-        modes = _mode_count(_newest_points(session, structure_id, 1))
-        design = CusumDesignOut(modes=modes, **vars(cusum_design(cusum, modes)))
-    return AlarmRulesOut(structure_id=structure_id, defaults=defaults, rules=rules, cusum_design=design)
+        points = _newest_points(session, structure_id, WINDOW)
+        try:
+            design = CusumDesignOut(modes=_mode_count(points), **vars(cusum_design(cusum, points)))
+        except InputError as refusal:
+            problem = str(refusal)
+    return AlarmRulesOut(
+        structure_id=structure_id, defaults=defaults, rules=rules, cusum_design=design, cusum_problem=problem
+    )
 
 
-def cusum_design(rule: CusumRule, modes: int) -> rules_math.CusumDesign:
-    """The CUSUM of each of ``modes`` fault modes: the structure's false alarms a year are shared
-    among its charts (their rates add up at most), so each runs ``modes`` times longer in control."""
+def cusum_design(rule: CusumRule, points: list[Point]) -> rules_math.CusumDesign:
+    """The CUSUM each fault mode is watched with, for the models of the verdicts ``points``.
+
+    The structure's false alarms a year are shared among its charts (their rates add up at most),
+    so each runs as many times longer in control as there are modes; and the share of σ̂k² that
+    the models' own error makes common to all records (``_common_share``, to two decimals as
+    ``models.alarms.default_rules`` takes it) raises the threshold
+    that keeps that rate. ``InputError`` says why when no CUSUM within ``MAX_THRESHOLD`` can be
+    designed: then the CUSUM does not run (the rules' API says why), and the other rules still do.
+    """
     records_per_year = 365.0 * rule.records_per_day
-    return rules_math.design_cusum(modes * records_per_year / rule.false_alarms_per_year, rule.shift)
+    arl = _mode_count(points) * records_per_year / rule.false_alarms_per_year
+    design = _design(arl, rule.shift, round(_common_share(points), 2))
+    if isinstance(design, str):
+        raise InputError(design)
+    return design
+
+
+@cache
+def _design(arl: float, shift: float, share: float) -> rules_math.CusumDesign | str:
+    """A design, or why there is none; both kept. A design needing a threshold beyond
+    ``MAX_THRESHOLD`` is refused after one run-length evaluation, before any search: the search's
+    cost grows with the threshold, to seconds beyond it."""
+    if rules_math.in_control_arl(MAX_THRESHOLD, shift / 2.0, share) < arl:
+        common = (
+            f": the fault-mode models' own error is {share:.0%} of σ̂k², the same in every record"
+            if share > 0
+            else ""
+        )
+        return (
+            f"a CUSUM keeping {arl:.0f} records between false alarms would need a threshold beyond "
+            f"{MAX_THRESHOLD:g} σ{common}. Raise the shift, allow more false alarms a year, or train "
+            "the fault-mode models on more experiments"
+        )
+    try:
+        return rules_math.design_cusum(arl, shift, share)
+    except InputError as refusal:
+        return str(refusal)
+    except ValueError:  # Brent's bracket: even the smallest threshold runs longer than asked
+        return (
+            f"no CUSUM threshold fits: with a reference of {shift / 2:g} σ, a single record beyond it is "
+            f"already rarer than one in {arl:.0f}; give a smaller shift or allow fewer false alarms"
+        )
+
+
+def _common_share(points: list[Point]) -> float:
+    """The median over the healthy records (all, if none is) of the largest mode's common share:
+    the models' error grows away from the healthy state, and a design for the healthy structure
+    must not move because a fault is under way."""
+    healthy = [p for p in points if p.status == "healthy" and p.modes]
+    shares = [
+        max(rules_math.common_share(sigma, alone) for _, sigma, alone in point.modes.values())
+        for point in healthy or [p for p in points if p.modes]
+    ]
+    return float(np.median(shares)) if shares else 0.0
 
 
 # --- evaluation -------------------------------------------------------------------------------
@@ -170,15 +232,19 @@ def evaluate(session: Session, structure: Structure) -> None:
     rules, _ = rules_of(session, structure.id)
     unresolved = _unresolved(session, structure.id)
     since = _resolved_through(session, structure.id)
-    modes = _mode_count(points)
     for rule in rules:
-        for firing in _firings(rule, points, since, modes):
+        for firing in _firings(rule, points, since):
             key = (rule.kind, firing.fault_mode)
-            _apply(session, structure, rule, firing, modes, unresolved.get(key))
+            _apply(session, structure, rule, firing, points, unresolved.get(key))
 
 
 def _apply(
-    session: Session, structure: Structure, rule: AlarmRule, firing: Firing, modes: int, alarm: Alarm | None
+    session: Session,
+    structure: Structure,
+    rule: AlarmRule,
+    firing: Firing,
+    points: list[Point],
+    alarm: Alarm | None,
 ) -> None:
     fired = [i for i, f in enumerate(firing.fired) if f]
     newest = firing.points[-1]
@@ -200,7 +266,7 @@ def _apply(
     alarm = Alarm(
         structure_id=structure.id,
         rule_kind=rule.kind,
-        rule=_rule_document(rule, modes),
+        rule=_rule_document(rule, points),
         fault_mode=firing.fault_mode,
         state="open",
         opened_at=utcnow(),
@@ -215,16 +281,16 @@ def _apply(
     _announce(session, structure, alarm, "alarm.opened")
 
 
-def _rule_document(rule: AlarmRule, modes: int) -> dict[str, Any]:
+def _rule_document(rule: AlarmRule, points: list[Point]) -> dict[str, Any]:
     """The rule as it fired; a CUSUM's with the design it ran with."""
     document = rule.model_dump(mode="json")
     if isinstance(rule, CusumRule):
-        document["design"] = vars(cusum_design(rule, modes)) | {"modes": modes}
+        document["design"] = vars(cusum_design(rule, points)) | {"modes": _mode_count(points)}
     return document
 
 
 def _firings(
-    rule: AlarmRule, points: list[Point], since: dict[tuple[str, str | None], dt.datetime], modes: int
+    rule: AlarmRule, points: list[Point], since: dict[tuple[str, str | None], dt.datetime]
 ) -> Iterator[Firing]:
     """For each fault mode the rule watches, whether it fired at each record acquired after the
     last resolution of its alarm."""
@@ -240,6 +306,11 @@ def _firings(
         if chosen:
             yield Firing(None, chosen, fired, {})
         return
+    if isinstance(rule, CusumRule):
+        try:
+            design = cusum_design(rule, points)
+        except InputError:  # GET …/alarm-rules and the structure's page say why
+            return
     for mode in sorted({name for p in points for name in p.modes}):
         chosen = after(mode)
         if isinstance(rule, SeverityRule):
@@ -249,7 +320,7 @@ def _firings(
         else:
             with_mode = [p for p in chosen if mode in p.modes]
             if with_mode:
-                yield _cusum_firing(rule, mode, with_mode, modes)
+                yield _cusum_firing(mode, with_mode, design)
 
 
 def _severe(point: Point, mode: str, threshold: float) -> bool:
@@ -259,10 +330,9 @@ def _severe(point: Point, mode: str, threshold: float) -> bool:
     return rules_math.severity(low, high, threshold) or rules_math.severity(low, high, -threshold)
 
 
-def _cusum_firing(rule: CusumRule, mode: str, points: list[Point], modes: int) -> Firing:
+def _cusum_firing(mode: str, points: list[Point], design: rules_math.CusumDesign) -> Firing:
     """The chart's signals, restarting from zero after each one (as its design assumes)."""
-    design = cusum_design(rule, modes)
-    z = np.array([k_hat / sigma for k_hat, sigma in (p.modes[mode] for p in points)])
+    z = np.array([k_hat / sigma for k_hat, sigma, _ in (p.modes[mode] for p in points)])
     fired = [False] * len(points)
     drift_starts: dict[int, int] = {}
     statistic: list[float] = []
@@ -288,13 +358,15 @@ def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
     points = _newest_points(session, structure_id, WINDOW)
     if rule is None or not points:
         return []
-    modes = _mode_count(points)
-    threshold = cusum_design(rule, modes).threshold
+    try:
+        threshold = cusum_design(rule, points).threshold
+    except InputError:
+        return []
     return [
         CusumSeries(
             firing.fault_mode or "", [p.acquired_at for p in firing.points], firing.statistic, threshold
         )
-        for firing in _firings(rule, points, _resolved_through(session, structure_id), modes)
+        for firing in _firings(rule, points, _resolved_through(session, structure_id))
     ]
 
 
@@ -329,7 +401,7 @@ def _newest_points(session: Session, structure_id: int, count: int) -> list[Poin
             reference_mode=row.reference_mode,
             interval=(row.interval_low, row.interval_high) if row.interval_low is not None else None,
             modes={
-                m["name"]: (m["k_hat"], m["sigma_k"])
+                m["name"]: (m["k_hat"], m["sigma_k"], m["sigma_k_record"])
                 for m in row.modes
                 if m["sigma_k"] > 0 and np.isfinite(m["k_hat"] / m["sigma_k"])
             },
