@@ -41,17 +41,19 @@ def silverbox(silverbox_dir):
 
 
 def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silverbox):
+    """The loop's first four rounds (the whole loop, ten rounds to 0.272 mV, is
+    tests/test_cli_refine.py's, through the command)."""
     x, y = silverbox.x, silverbox.y
-    result = refine([(x[SILVERBOX_ESTIMATION], y[SILVERBOX_ESTIMATION])], linear_terms(4, 4))
+    result = refine([(x[SILVERBOX_ESTIMATION], y[SILVERBOX_ESTIMATION])], linear_terms(4, 4), max_rounds=4)
     names = [effect.name for effect in result.effects_added]
-    assert "cubic_stiffness" in names and "offset" in names, names
+    assert names == ["missing_lags", "cubic_damping", "offset", "cubic_stiffness"], names
     test_x, test_y = x[SILVERBOX_ARROW], y[SILVERBOX_ARROW]
     before = held_out_errors(result.declared, test_x, test_y, SILVERBOX_INITIAL).free_run.rms
     after = held_out_errors(result.refined, test_x, test_y, SILVERBOX_INITIAL).free_run.rms
-    # README's Silverbox table (linear ARX 14.39 mV, refined 0.272 mV on the full arrow), with a
-    # margin of about 10 % for arithmetic differences between machines, not for a worse model.
+    # Linear ARX 14.39 mV (README); after four rounds 0.390 mV, with a margin of about 10 % for
+    # arithmetic differences between machines, not for a worse model.
     assert 13e-3 < before < 16e-3, f"linear ARX free run {before * 1e3:.2f} mV"
-    assert after <= 0.30e-3, f"refined free run {after * 1e3:.3f} mV"
+    assert after <= 0.43e-3, f"refined free run {after * 1e3:.3f} mV"
 
 
 # One undeclared effect at a time, sized so that it, not the disturbance, dominates the declared
