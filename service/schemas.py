@@ -354,6 +354,73 @@ class JobPage(BaseModel):
     next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
 
 
+# --- notifications (service.domain.notifications) ------------------------------------------------
+
+Event = Literal["alarm.opened", "alarm.acknowledged", "alarm.resolved", "alarm.renotified"]
+Events = Annotated[list[Event], Field(min_length=1, max_length=4, description="The events wanted")]
+# A signing secret as strong as the HMAC's key should be: 32 characters of a random token
+# (Stripe's are 32 base64 characters after ``whsec_``).
+MIN_SECRET_LENGTH = 32
+EMAIL_PATTERN = r"^[^@\s,;<>()\"\[\]\\]+@[^@\s,;<>()\"\[\]\\]+\.[^@\s,;<>()\"\[\]\\]+$"
+EmailAddress = Annotated[str, Field(max_length=254, pattern=EMAIL_PATTERN)]
+
+
+def _url_characters(url: str) -> str:
+    if any(ord(c) <= 0x20 or ord(c) == 0x7F for c in url):
+        raise ValueError("a URL holds no spaces or control characters: percent-encode them")
+    return url
+
+
+class WebhookCreate(Strict):
+    """An endpoint told of the ``events`` it wants, each POST signed with ``secret``."""
+
+    url: Annotated[str, Field(min_length=1, max_length=2000), AfterValidator(_url_characters)]
+    secret: Annotated[str, Field(min_length=MIN_SECRET_LENGTH, max_length=200, pattern=r"^[\x21-\x7e]+$")]
+    events: Events
+
+
+class WebhookOut(BaseModel):
+    """A webhook as listed: never its secret."""
+
+    id: int
+    url: str
+    events: list[Event]
+    created_at: dt.datetime
+
+
+class EmailSubscriptionCreate(Strict):
+    addresses: Annotated[list[EmailAddress], Field(min_length=1, max_length=20)]
+    events: Events
+
+
+class EmailSubscriptionOut(BaseModel):
+    id: int
+    addresses: list[str]
+    events: list[Event]
+    created_at: dt.datetime
+
+
+class DeliveryOut(BaseModel):
+    """One event for one webhook or subscription: ``attempts`` made so far, the last answer's
+    status code (HTTP, or SMTP reply) and error; ``next_attempt_at`` while it is pending."""
+
+    id: int
+    key: str = Field(description="Sent as Idempotency-Key, the same on every attempt")
+    event: Event
+    status: Literal["pending", "delivered", "failed"]
+    attempts: int
+    last_status_code: int | None
+    last_error: str | None
+    next_attempt_at: dt.datetime | None
+    delivered_at: dt.datetime | None
+    created_at: dt.datetime
+
+
+class DeliveryPage(BaseModel):
+    items: list[DeliveryOut]
+    next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
+
+
 # --- alarms ---------------------------------------------------------------------------------
 
 AlarmState = Literal["open", "acknowledged", "resolved"]

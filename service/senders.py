@@ -112,7 +112,7 @@ def vetted_addresses(host: str, port: int, settings: Settings) -> list[Address]:
     that is not, or saying the host has none."""
     try:
         found = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError) as exc:
+    except (OSError, UnicodeError, ValueError) as exc:  # gaierror; IDNA; a name no resolver takes
         raise InputError(f"the webhook host {host!r} cannot be resolved: {exc}") from None
     addresses = list(dict.fromkeys(ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in found))
     refused = [address for address in addresses if not _admitted(address, settings)]

@@ -401,6 +401,8 @@ class Alarm(Base):
     )
     resolution: Mapped[str | None] = mapped_column(String(16), nullable=True)
     resolution_note: Mapped[str | None] = mapped_column(Text, nullable=True)
+    # When it was last announced again while open (``service.domain.renotify``); None: not yet.
+    renotified_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
     acknowledged_key: Mapped[ApiKey | None] = relationship(foreign_keys=[acknowledged_by])
     resolved_key: Mapped[ApiKey | None] = relationship(foreign_keys=[resolved_by])

@@ -77,6 +77,7 @@ LONGEST_FILES = (
     "test_cli_refine.py",
     "test_sim_client.py",
     "test_faults.py",
+    "test_notifications.py",
     "test_selection.py",
 )
 

@@ -32,6 +32,10 @@ from api_helpers import (
     wait_for,
 )
 from live import LiveServer
+from sqlalchemy import select
+
+from service.db import transaction
+from service.tables import EmailSubscription, Organisation
 
 RANK = {"viewer": 1, "ingest": 2, "admin": 3}
 ROLES = tuple(RANK)
@@ -66,6 +70,14 @@ POLICY = {
     ("POST", "/api/v1/alarms/{alarm_id}/resolve"): "admin",
     ("GET", "/api/v1/structures/{structure_id}/alarm-rules"): "viewer",
     ("PUT", "/api/v1/structures/{structure_id}/alarm-rules"): "admin",
+    ("POST", "/api/v1/webhooks"): "admin",
+    ("GET", "/api/v1/webhooks"): "admin",
+    ("DELETE", "/api/v1/webhooks/{webhook_id}"): "admin",
+    ("GET", "/api/v1/webhooks/{webhook_id}/deliveries"): "admin",
+    ("POST", "/api/v1/email-subscriptions"): "admin",
+    ("GET", "/api/v1/email-subscriptions"): "admin",
+    ("DELETE", "/api/v1/email-subscriptions/{subscription_id}"): "admin",
+    ("GET", "/api/v1/email-subscriptions/{subscription_id}/deliveries"): "admin",
 }
 # Never due while the tests run: a schedule that ran would write verdicts under their feet.
 SCHEDULE = {"action": "inspect_pending", "interval_seconds": 3600, "first_run_at": "2099-01-01T00:00:00Z"}
@@ -78,7 +90,7 @@ MISSING = 10**6  # an id no object has
 @dataclass
 class Estate:
     """An organisation with a trained structure, a stored record, a verdict, a refinement, a
-    schedule, a job and an alarm."""
+    schedule, a job, an alarm, a webhook and an e-mail subscription."""
 
     org: Org
     structure_id: int
@@ -93,6 +105,8 @@ class Estate:
     key_id: int
     job_id: int
     alarm_id: int
+    webhook_id: int
+    subscription_id: int
 
     def ids(self) -> dict[str, int]:
         return {
@@ -105,6 +119,8 @@ class Estate:
             "key_id": self.key_id,
             "job_id": self.job_id,
             "alarm_id": self.alarm_id,
+            "webhook_id": self.webhook_id,
+            "subscription_id": self.subscription_id,
         }
 
 
@@ -149,6 +165,18 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         )
         viewer_prefix = org.keys["viewer"].split("_")[1]
         (key_id,) = [key["id"] for key in admin.get(f"{API}/keys").json() if key["prefix"] == viewer_prefix]
+        webhook = admin.post(f"{API}/webhooks", json=body_for("/webhooks", None))
+        assert webhook.status_code == 201, webhook.text
+    # The shared servers send no e-mail (no SMTP relay, so the API refuses subscriptions): one is
+    # stored directly, for the routes that look one up.
+    with transaction(server.app.state.sessions) as session:
+        organisation_id = session.scalar(select(Organisation.id).where(Organisation.name == org.name))
+        subscription = EmailSubscription(
+            organisation_id=organisation_id, addresses=["ops@example.com"], events=["alarm.opened"]
+        )
+        session.add(subscription)
+        session.flush()
+        subscription_id = subscription.id
     return Estate(
         org,
         sid,
@@ -163,6 +191,8 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         key_id,
         job["id"],
         alarm["id"],
+        webhook.json()["id"],
+        subscription_id,
     )
 
 
@@ -193,13 +223,18 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 29, routes
+    assert routes == documented and len(routes) == 37, routes
     return routes
 
 
-def body_for(path: str, estate: Estate) -> dict | None:
+def body_for(path: str, estate: Estate | None) -> dict | None:
     """A valid body for ``path`` referring to ``estate``'s records, so that validation passes
     and only the lookups decide the answer."""
+    if path.endswith("/webhooks"):
+        return {"url": "https://93.184.215.14/hooks", "secret": "s" * 32, "events": ["alarm.opened"]}
+    if path.endswith("/email-subscriptions"):
+        return {"addresses": ["ops@example.com"], "events": ["alarm.opened"]}
+    assert estate is not None
     if path.endswith("/structures"):
         return {"name": f"new-{uuid.uuid4().hex[:8]}", "fs": 1500.0}
     if path.endswith("/baseline"):
@@ -231,7 +266,8 @@ def first_lookup(path: str, ids: dict[str, int]) -> str:
     """What a handler looks up first, as its 404 names it: the structure, else the record,
     verdict, refinement, API key or job."""
     names = ("structure", "record", "verdict", "refinement", "job", "alarm")
-    labels = {name: name for name in names} | {"key": "API key"}
+    labels = {name: name for name in names} | {"key": "API key", "webhook": "webhook"}
+    labels["subscription"] = "e-mail subscription"
     for name, label in labels.items():
         if "{" + name + "_id}" in path:
             return f"{label} {ids[name + '_id']} not found"
@@ -357,8 +393,8 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 needed = POLICY[method, path]
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
-    # viewer: 15 admin and 2 ingest routes; ingest: 15 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 32
+    # viewer: 23 admin and 2 ingest routes; ingest: 23 admin routes.
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 48
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

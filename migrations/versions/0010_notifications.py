@@ -5,7 +5,8 @@ Revises: 0009
 Create Date: 2026-11-23 22:40:00.000000
 
 Notifications of an organisation's events: its webhooks, its e-mail subscriptions, and one
-delivery row per event and target, the outbox the job workers sweep (service.domain.notifications).
+delivery row per event and target, the outbox the job workers sweep (service.domain.notifications);
+and when an open alarm was last announced again (service.domain.renotify).
 """
 
 from __future__ import annotations
@@ -71,9 +72,13 @@ def upgrade() -> None:
     op.create_index("ix_deliveries_due", "deliveries", ["status", "next_attempt_at"])
     op.create_index("ix_deliveries_webhook_id", "deliveries", ["webhook_id"])
     op.create_index("ix_deliveries_email_subscription_id", "deliveries", ["email_subscription_id"])
+    with op.batch_alter_table("alarms") as batch_op:
+        batch_op.add_column(sa.Column("renotified_at", sa.DateTime(timezone=True), nullable=True))
 
 
 def downgrade() -> None:
+    with op.batch_alter_table("alarms") as batch_op:
+        batch_op.drop_column("renotified_at")
     op.drop_table("deliveries")
     op.drop_table("email_subscriptions")
     op.drop_table("webhooks")

@@ -27,6 +27,7 @@ from service.api import (
     keys,
     metrics,
     modelling,
+    notifications,
     records,
     refinements,
     schedules,
@@ -83,6 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         jobs.router,
         keys.router,
         alarms.router,
+        notifications.router,
     )
     for router in routers:
         app.include_router(router, prefix=API_PREFIX)

@@ -19,17 +19,22 @@ import datetime as dt
 import logging
 import uuid
 from collections.abc import Callable
-from typing import Any
+from typing import Any, get_args
 
 from pydantic_core import to_jsonable_python
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from service import senders
 from service.config import Settings
+from service.domain.errors import ConflictError, NotFoundError
+from service.schemas import EmailSubscriptionCreate, Event, WebhookCreate
+from service.security import Principal
 from service.tables import Delivery, EmailSubscription, Webhook, utcnow
 
-EVENTS = ("alarm.opened", "alarm.acknowledged", "alarm.resolved", "alarm.renotified")
+EVENTS: tuple[str, ...] = get_args(Event)
+# Targets an organisation may have of each kind: every event costs a delivery per target.
+MAX_TARGETS = 20
 DELIVER = "deliver"
 # A claimed delivery whose job has not recorded an attempt within this time (the job lost, not
 # merely redelivered: the backends do that sooner) is claimed again by a later sweep.
@@ -113,23 +118,11 @@ def deliver(session: Session, settings: Settings, delivery_id: int, claim: str) 
         session.rollback()
         return
     holds = (Delivery.id == delivery_id, Delivery.status == "pending", Delivery.next_attempt_at == claimed)
-    message = senders.Message(delivery.key, delivery.event, delivery.created_at, delivery.payload)
     attempt = delivery.attempts + 1
-    if delivery.webhook_id is not None:
-        webhook = session.get(Webhook, delivery.webhook_id)
-        assert webhook is not None  # deleting a webhook deletes its deliveries
-        url, secret = webhook.url, webhook.secret
-
-        def send() -> senders.Outcome:
-            return senders.post_webhook(url, secret, delivery_id, message, settings)
-    else:
-        subscription = session.get(EmailSubscription, delivery.email_subscription_id)
-        assert subscription is not None
-        addresses = list(subscription.addresses)
-
-        def send() -> senders.Outcome:
-            return senders.send_email(addresses, message, settings)
-
+    send = _sender(session, delivery, settings)
+    if send is None:  # its webhook or subscription was deleted since it was read (and the delivery with it)
+        session.rollback()
+        return
     session.execute(update(Delivery.__table__).where(*holds).values(attempts=attempt))
     session.commit()
     outcome = send()
@@ -152,3 +145,104 @@ def deliver(session: Session, settings: Settings, delivery_id: int, claim: str) 
         )
     session.execute(update(Delivery.__table__).where(*holds).values(**values))
     session.commit()
+
+
+def _sender(session: Session, delivery: Delivery, settings: Settings) -> Callable[[], senders.Outcome] | None:
+    """The attempt at ``delivery``, with everything it needs read now (no transaction stays open
+    while it runs); None if its target is gone."""
+    message = senders.Message(delivery.key, delivery.event, delivery.created_at, delivery.payload)
+    if delivery.webhook_id is not None:
+        webhook = session.get(Webhook, delivery.webhook_id)
+        if webhook is None:
+            return None
+        url, secret, delivery_id = webhook.url, webhook.secret, delivery.id
+        return lambda: senders.post_webhook(url, secret, delivery_id, message, settings)
+    subscription = session.get(EmailSubscription, delivery.email_subscription_id)
+    if subscription is None:
+        return None
+    addresses = list(subscription.addresses)
+    return lambda: senders.send_email(addresses, message, settings)
+
+
+# --- webhooks and e-mail subscriptions ------------------------------------------------------------
+
+
+def create_webhook(
+    session: Session, principal: Principal, body: WebhookCreate, settings: Settings
+) -> Webhook:
+    """A webhook of the caller's organisation; its URL must be one a delivery may go to (http or
+    https, a host of public addresses unless settings allow others: ``senders.check_webhook_url``)."""
+    senders.check_webhook_url(body.url, settings)
+    _check_room(session, Webhook, principal.organisation_id, "webhooks")
+    webhook = Webhook(
+        organisation_id=principal.organisation_id, url=body.url, secret=body.secret, events=body.events
+    )
+    session.add(webhook)
+    session.flush()
+    return webhook
+
+
+def create_email_subscription(
+    session: Session, principal: Principal, body: EmailSubscriptionCreate, settings: Settings
+) -> EmailSubscription:
+    if settings.smtp_host is None:
+        raise ConflictError("this server sends no e-mail: its operator has set no NARXWATCH_SMTP_HOST")
+    _check_room(session, EmailSubscription, principal.organisation_id, "e-mail subscriptions")
+    subscription = EmailSubscription(
+        organisation_id=principal.organisation_id, addresses=body.addresses, events=body.events
+    )
+    session.add(subscription)
+    session.flush()
+    return subscription
+
+
+def _check_room(
+    session: Session, kind: type[Webhook | EmailSubscription], organisation_id: int, name: str
+) -> None:
+    count = session.scalar(
+        select(func.count()).select_from(kind).where(kind.organisation_id == organisation_id)
+    )
+    if (count or 0) >= MAX_TARGETS:
+        raise ConflictError(f"an organisation has at most {MAX_TARGETS} {name}: delete one first")
+
+
+def list_webhooks(session: Session, principal: Principal) -> list[Webhook]:
+    query = select(Webhook).where(Webhook.organisation_id == principal.organisation_id).order_by(Webhook.id)
+    return list(session.scalars(query))
+
+
+def list_email_subscriptions(session: Session, principal: Principal) -> list[EmailSubscription]:
+    query = select(EmailSubscription).where(EmailSubscription.organisation_id == principal.organisation_id)
+    return list(session.scalars(query.order_by(EmailSubscription.id)))
+
+
+def get_webhook(session: Session, principal: Principal, webhook_id: int) -> Webhook:
+    """One of the caller's organisation's webhooks; another's is as unknown as a missing one."""
+    webhook = session.get(Webhook, webhook_id)
+    if webhook is None or webhook.organisation_id != principal.organisation_id:
+        raise NotFoundError("webhook", webhook_id)
+    return webhook
+
+
+def get_email_subscription(session: Session, principal: Principal, subscription_id: int) -> EmailSubscription:
+    subscription = session.get(EmailSubscription, subscription_id)
+    if subscription is None or subscription.organisation_id != principal.organisation_id:
+        raise NotFoundError("e-mail subscription", subscription_id)
+    return subscription
+
+
+def delete_target(session: Session, target: Webhook | EmailSubscription) -> None:
+    """Delete a webhook or subscription, and with it its deliveries, pending ones included."""
+    session.delete(target)
+    session.flush()
+
+
+def deliveries(
+    session: Session, target: Webhook | EmailSubscription, limit: int, before: int | None
+) -> list[Delivery]:
+    """A target's deliveries, newest first, older than ``before``."""
+    column = Delivery.webhook_id if isinstance(target, Webhook) else Delivery.email_subscription_id
+    query = select(Delivery).where(column == target.id)
+    if before is not None:
+        query = query.where(Delivery.id < before)
+    return list(session.scalars(query.order_by(Delivery.id.desc()).limit(limit)))

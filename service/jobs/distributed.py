@@ -29,7 +29,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
-from service.domain import notifications, schedules
+from service.domain import notifications, renotify, schedules
 from service.jobs import FINAL_ERRORS, RESTART_FIRST, RESTART_MAX, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
 from service.tables import JobError, utcnow
@@ -138,9 +138,12 @@ def sweep_schedules(context: JobContext, timestamp: int) -> None:
 @app.periodic(cron=SWEEP_CRON, periodic_id="notifications")
 @app.task(name="sweep_notifications", pass_context=True, queueing_lock="sweep_notifications")
 def sweep_notifications(context: JobContext, timestamp: int) -> None:
-    """Defer a job for each notification delivery due (``service.domain.notifications``)."""
+    """Announce again the open alarms due for it (``service.domain.renotify``), then defer a job
+    for each notification delivery due (``service.domain.notifications``)."""
     sessions: sessionmaker[Session] = context.additional_context["sessions"]
+    settings: Settings = context.additional_context["settings"]
     with sessions() as session:
+        renotify.sweep(session, dt.timedelta(seconds=settings.renotify_after_seconds))
         notifications.sweep(session, defer)
 
 

@@ -23,7 +23,7 @@ from sqlalchemy import and_, func, insert, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
-from service.domain import notifications, schedules
+from service.domain import notifications, renotify, schedules
 from service.jobs import FINAL_ERRORS, JOB_STATES, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
 from service.tables import Job, utcnow
@@ -238,8 +238,10 @@ class EmbeddedBackend:
             return deferred
 
     def sweep_notifications(self) -> int:
-        """Queue a job for each notification delivery due now; the number queued."""
+        """Announce again the open alarms due for it, then queue a job for each notification
+        delivery due now; the number queued."""
         with self._sessions() as session:
+            renotify.sweep(session, dt.timedelta(seconds=self._settings.renotify_after_seconds))
             return notifications.sweep(session, defer)
 
     def run_due(self) -> int:
