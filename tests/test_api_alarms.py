@@ -366,3 +366,20 @@ def test_verdicts_stored_at_once_open_one_alarm(api_server: LiveServer):
         assert list(pool.map(upload, range(len(bodies)))) == [201] * len(bodies)
     (alarm,) = rig.alarms()
     assert alarm["state"] == "open"
+
+
+def test_a_cusum_the_models_cannot_serve_does_not_run_and_says_why(rig: Rig):
+    """Models trained on three experiments carry an error, the same in every record, of about a
+    quarter of σ̂k²: no threshold within 16 σ keeps one false alarm a year. The CUSUM then does not
+    run (the structure's verdicts are stored as ever), and the rules' answer says what to change."""
+    with clients(rig.org) as (admin, _, viewer):
+        url = f"{API}/structures/{rig.structure_id}/alarm-rules"
+        stored = admin.put(url, json={"rules": [{"kind": "cusum"}]})
+        assert stored.status_code == 200, stored.text
+        answer = viewer.get(url).json()
+    assert answer["cusum_design"] is None
+    assert (
+        "threshold beyond 16 σ" in answer["cusum_problem"] and "more experiments" in answer["cusum_problem"]
+    )
+    assert statuses([rig.upload(FAULT_K, 9)]) == ["faulty"]
+    assert rig.alarms(rule_kind="cusum") == []
