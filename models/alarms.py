@@ -290,6 +290,12 @@ def design_cusum(
                 f"no decision interval below {MAX_THRESHOLD:g} σ reaches an ARL of {arl_in_control:g} "
                 f"records for a shift of {shift:g} σ with a common share of {common_share:g}"
             )
+    if excess(1e-6) > 0.0:
+        raise InputError(
+            f"no CUSUM threshold fits: with a reference of {reference:g} σ a single record beyond it is "
+            f"already rarer than one in {arl_in_control:.0f}; give a smaller shift or allow fewer "
+            "false alarms"
+        )
     threshold = optimize.brentq(excess, 1e-6, upper, xtol=1e-10)
     rho = np.sqrt(1.0 - common_share)
     return CusumDesign(

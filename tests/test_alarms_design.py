@@ -227,3 +227,10 @@ def test_run_lengths_beyond_resolution_are_never_not_garbage():
     assert one_sided_arl(60.0, 1.0, 1.1) == pytest.approx(siegmund_arl(60.0, 1.0, 1.1), rel=0.01)
     with pytest.raises(InputError, match="beyond any service"):
         design_cusum(1e12)
+
+
+def test_a_shift_too_large_for_any_threshold_is_refused_with_a_message():
+    """With a reference of 5.8 σ one record beyond it happens once in ~3·10⁸: even h = 0 runs
+    longer than a year of records, and the design says so (Brent's bracket used to raise)."""
+    with pytest.raises(InputError, match="no CUSUM threshold fits"):
+        design_cusum(1460.0, shift=11.6)
