@@ -8,7 +8,9 @@ from scipy import linalg, signal, stats
 
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
-from models.refinement import refine, refine_record, refine_records, split_for_checking
+from models.narx import fit_narx
+from models.output_error import fit_output_error
+from models.refinement import FINAL_EVALUATIONS, refine, refine_record, refine_records, split_for_checking
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from service.recordfiles import parse_silverbox
@@ -279,3 +281,25 @@ def test_from_three_records_on_whole_records_are_checked():
     assert all(len(y) == 300 and t0 == 0 for _, y, t0 in fit + check)
     one_fit, one_check = split_for_checking(records[:1])
     assert len(one_fit) == len(one_check) == 1 and one_check[0][2] == 200  # 300 // 3 = 1 block
+
+
+def test_the_refined_model_simulates_the_estimation_data_no_worse_than_the_declared_output_error_fit():
+    """Its output-error search starts from the better of its least-squares fit and the declared
+    model's output-error fit grown by the added terms at zero, so it cannot end worse than the
+    latter (on the F-16 sweeps the search from least squares did: 0.184 against 0.156 m/s² on level
+    2 for acceleration 1, bench/measured.py)."""
+    rng = np.random.default_rng(11)
+    n = 6000
+    x = rng.standard_normal(n)
+    clean = signal.lfilter([0.0, 0.4, 0.2], [1.0, -1.5, 0.7], x)
+    y = clean + 0.05 * clean**3 + 0.5 * np.std(clean) * rng.standard_normal(n)
+    declared = linear_terms(2, 2)
+    result = refine([(x, y)], declared)
+    assert result.estimator == "output error"
+    least_squares_fit = fit_narx([(x, y)], declared)
+    declared_tuned = fit_output_error(least_squares_fit, [(x, y)], FINAL_EVALUATIONS).model
+
+    def free_run_rms(model):
+        return np.sqrt(np.mean((model.simulate(x, y)[2:] - y[2:]) ** 2))
+
+    assert free_run_rms(result.refined) <= free_run_rms(declared_tuned) * (1 + 1e-9)
