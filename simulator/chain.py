@@ -245,6 +245,11 @@ class ChainScenario:
         return masses
 
     @property
+    def channels(self) -> tuple[str, ...]:
+        """Names of the measured channels, y<mass>."""
+        return tuple(f"y{mass}" for mass in self.measured)
+
+    @property
     def fs(self) -> float:
         return float(round(1 / self.params.ts))
 
@@ -292,11 +297,11 @@ def simulate_chain(
     if scenario.x_noise_std:
         x += measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
     responses = {}
-    for mass in masses:
+    for mass, name in zip(masses, scenario.channels, strict=True):
         channel = motion[:, mass - 1].copy()
         if scenario.y_noise_std:
             channel += measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
-        responses[f"y{mass}"] = channel
+        responses[name] = channel
     return ChainRecord(x, responses, scenario.fs, scenario, seed)
 
 

@@ -177,6 +177,18 @@ class Scenario:
     def fs(self) -> float:
         return float(round(1 / self.params.ts))
 
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Names of the measured channels: ``y`` for mass 2 alone (SPEC §1), else y<mass>."""
+        if self.outputs == (2,):
+            return ("y",)
+        if not self.outputs or len(set(self.outputs)) < len(self.outputs) or not set(self.outputs) <= {1, 2}:
+            raise InputError(
+                f"--outputs must name distinct masses of the 2-DOF rig, 1 or 2; got "
+                f"{', '.join(map(str, self.outputs)) or 'none'}"
+            )
+        return tuple(f"y{mass}" for mass in self.outputs)
+
 
 @dataclass(frozen=True)
 class SimulatedRecord:
@@ -198,12 +210,7 @@ class SimulatedRecord:
 def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | None = None) -> SimulatedRecord:
     """Simulate ``n`` samples of measured excitation x (N) and response y (m)."""
     check_levels(scenario, n)
-    if (
-        not scenario.outputs
-        or not set(scenario.outputs) <= {1, 2}
-        or len(set(scenario.outputs)) < len(scenario.outputs)
-    ):
-        raise InputError(f"the 2-DOF rig measures mass 1 and mass 2: outputs {scenario.outputs} name others")
+    names = scenario.channels
     params = scenario.structure
     check_stable(params)
     rng = np.random.default_rng(seed)
@@ -226,7 +233,7 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
         y += measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
     if effects.sensor_range:
         y = np.clip(y, -effects.sensor_range, effects.sensor_range)
-    if scenario.outputs == (2,):
+    if names == ("y",):
         return SimulatedRecord(x, y, scenario.fs, scenario, seed, {"y": y})
     # Mass 1's sensor draws its noise after mass 2's, so that y is the single-output record's.
     y1 = x1[scenario.burn_in :] + effects.offset
@@ -234,10 +241,8 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
         y1 += measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
     if effects.sensor_range:
         y1 = np.clip(y1, -effects.sensor_range, effects.sensor_range)
-    measured = {1: y1, 2: y}
-    return SimulatedRecord(
-        x, y, scenario.fs, scenario, seed, {f"y{mass}": measured[mass] for mass in scenario.outputs}
-    )
+    measured = {"y1": y1, "y2": y}
+    return SimulatedRecord(x, y, scenario.fs, scenario, seed, {name: measured[name] for name in names})
 
 
 def check_levels(scenario: Scenario | ChainScenario, n: int) -> None:

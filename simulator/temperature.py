@@ -18,7 +18,7 @@ from models.errors import InputError
 REFERENCE_TEMPERATURE = 20.0  # °C: the temperature at which the stated stiffnesses hold
 DEFAULT_COEFFICIENT = -0.5  # %/°C for a spring whose coefficient is not stated
 DAILY_PEAK_HOUR = 15.0  # the warmest hour of the day, in the acquisition time's own zone
-SEASONAL_PEAK_DAY = 201.0  # 20 July, the warmest day of a northern year (a negative amplitude: south)
+SEASONAL_PEAK_DAY = 200.5  # noon on 20 July (days from 1 January, 0:00), the warmest of a northern year
 DAYS_PER_YEAR = 365.2425
 
 
@@ -65,11 +65,12 @@ class Thermal:
 class TemperatureCycle:
     """Air temperature over the day and the year:
 
-        T(t) = mean + daily·cos(2π·(hour − 15)/24) + seasonal·cos(2π·(day − 201)/365.2425)
+        T(t) = mean + daily·cos(2π·(hour − 15)/24) + seasonal·cos(2π·(day − 200.5)/365.2425)
 
-    with ``hour`` the time of day in the acquisition time's own zone and ``day`` the day of the
-    year counted from 0 (with its fraction): warmest at 15:00 and on 20 July. The amplitudes are
-    half the peak-to-peak swings, so a year spans mean ± (|daily| + |seasonal|).
+    with ``hour`` the time of day in the acquisition time's own zone and ``day`` the time since
+    1 January, 0:00, in days: warmest at 15:00 and at noon on 20 July (a negative seasonal
+    amplitude: the southern hemisphere). The amplitudes are half the peak-to-peak swings, so a
+    year spans mean ± (|daily| + |seasonal|).
     """
 
     mean: float
