@@ -223,6 +223,10 @@ class ChainScenario:
     outputs: tuple[int, ...] | None = None
     response: Response = "displacement"
 
+    def __post_init__(self) -> None:
+        if self.response not in RESPONSES:
+            raise InputError(f"--response {self.response!r}: choose one of {', '.join(RESPONSES)}")
+
     @property
     def structure(self) -> ChainParameters:
         """The parameters with the fault applied, at the scenario's temperature."""
@@ -278,8 +282,6 @@ def simulate_chain(
     with one noise draw per channel in the order of ``outputs``.
     """
     check_levels(scenario, n)
-    if scenario.response not in RESPONSES:
-        raise InputError(f"unknown response {scenario.response!r}; choose one of {', '.join(RESPONSES)}")
     masses = scenario.measured
     params = scenario.structure
     check_stable(params)

@@ -183,11 +183,9 @@ class ScenarioOptions:
                 fault,
                 k,
                 outputs=parse_outputs(self.outputs, parameters.n),
-                response=self.chain.response or "displacement",  # type: ignore[arg-type]  # checked below
+                response=self.chain.response or "displacement",  # type: ignore[arg-type]  # checked by it
                 **levels,
             )
-            if scenario.response not in chain.RESPONSES:
-                raise InputError(f"--response {scenario.response!r}: choose {', '.join(chain.RESPONSES)}")
             chain.check_stable(scenario.structure)
         else:
             scenario = Scenario(
@@ -216,7 +214,8 @@ class Plan:
         scenario = self.scenario
         described = f"simulated {truth(scenario)}"
         if isinstance(scenario, Scenario) and scenario.effects.describe():
-            described += " with " + ", ".join(f"{k}={v:g}" for k, v in scenario.effects.describe().items())
+            effects = scenario.effects.describe().items()
+            described += " with " + ", ".join(f"{name}={value:g}" for name, value in effects)
         if scenario.temperature is not None:
             described += f" at {scenario.temperature:.1f} °C"
         return f"{described}, seed {self.seed}"
@@ -405,7 +404,7 @@ class Poster:
         temperature (which the printed line and the JSON line carry)."""
         path = f"{API}/structures/{self.structure_id}/records"
         when = plan.acquired_at.isoformat()
-        (y,) = record.responses.values()  # one channel: checked by check_postable
+        (y,) = record.responses.values()  # one channel: Target.check refused more
         if self.format is Format.json:
             body = {"x": record.x.tolist(), "y": y.tolist(), "fs": record.fs, "acquired_at": when}
             answer = self.service.request("POST", path, params={"inspect": "true"}, json=body)
