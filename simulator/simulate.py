@@ -200,7 +200,7 @@ class SimulatedRecord:
     fs: float
     scenario: Scenario
     seed: int | np.random.SeedSequence | None
-    responses: dict[str, np.ndarray] = field(default_factory=dict)
+    responses: dict[str, np.ndarray]
 
     @property
     def temperature(self) -> float | None:
