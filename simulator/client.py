@@ -25,7 +25,7 @@ import time
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, NoReturn, Protocol
 
@@ -36,24 +36,38 @@ from rich.console import Console
 from rich.text import Text
 
 from models.errors import InputError
+from simulator import chain
+from simulator.chain import ChainRecord, ChainScenario, simulate_chain
 from simulator.options import (
+    ChainOptions,
+    CubicValues,
+    DampingValues,
     DisturbanceStd,
     EffectList,
     ExcitationStd,
     Fault,
     Magnitude,
+    Masses,
+    MassValues,
     NoiseColour,
     NoiseStd,
+    Outputs,
     ParamList,
+    ResponseOption,
     Samples,
+    StiffnessValues,
+    Temperature,
+    ThermalList,
     XNoiseStd,
     parse_assignments,
     parse_colour,
+    parse_outputs,
 )
 from simulator.paper import CASES, StudySettings
 from simulator.physics import PhysicalParameters, check_stable
 from simulator.recordfile import dump_csv, dump_npz, write_record
 from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
+from simulator.temperature import TemperatureCycle, Thermal
 
 EXIT_SERVICE_ERROR = 1
 EXIT_INPUT_ERROR = 2
@@ -61,6 +75,7 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 API = "/api/v1"
 MANIFEST = "manifest.csv"
 MANIFEST_COLUMNS = ["path", "fault", "k", "seed"]
+TEMPERATURE_COLUMN = "temperature"  # added to the manifest's columns when records have a temperature
 SCENARIO_NAMES = [case.name for case in CASES] + ["all", "any"]
 STATUS_STYLES = {"healthy": "green", "faulty": "bold red", "unknown_fault": "bold yellow"}
 # The option defaults are the study's, so that the paper's cases are simulated as in the paper.
@@ -115,9 +130,17 @@ AcquiredAt = Annotated[
 JsonLines = Annotated[bool, typer.Option("--json", help="Print each verdict as one line of JSON.")]
 
 
+AnyScenario = Scenario | ChainScenario
+AnyRecord = SimulatedRecord | ChainRecord
+
+
 @dataclass(frozen=True)
 class ScenarioOptions:
-    """The scenario options as given, turned into checked scenarios for any fault and magnitude."""
+    """The scenario options as given, turned into checked scenarios for any fault and magnitude.
+
+    ``climate`` gives each record its temperature from its acquisition time; ``chain`` the
+    n-mass chain's options (the 2-DOF rig without ``--masses``).
+    """
 
     excitation_std: float
     disturbance_std: float
@@ -126,21 +149,55 @@ class ScenarioOptions:
     effects: tuple[str, ...]
     params: tuple[str, ...]
     noise_colour: str | None = None
+    climate: TemperatureCycle | None = None
+    thermal: tuple[str, ...] = ()
+    outputs: str | None = None
+    chain: ChainOptions = field(default_factory=ChainOptions)
 
-    def scenario(self, fault: str, k: float) -> Scenario:
+    def temperature(self, when: dt.datetime) -> float | None:
+        return None if self.climate is None else self.climate.at(when)
+
+    def scenario(self, fault: str, k: float, temperature: float | None = None) -> AnyScenario:
         """A scenario refused now, before anything is posted, if its options cannot be simulated."""
-        scenario = Scenario(
-            params=PhysicalParameters().replace(**parse_assignments(self.params, "parameter")),
-            fault=fault,  # type: ignore[arg-type]  # checked by with_fault below
-            k=0.0 if fault == "none" else k,
-            excitation_std=self.excitation_std,
-            disturbance_std=self.disturbance_std,
-            y_noise_std=self.noise_std,
-            x_noise_std=self.x_noise_std,
-            noise_colour=parse_colour(self.noise_colour),
-            effects=Effects.parse(self.effects),
-        )
-        check_stable(scenario.structure)
+        if self.thermal and self.climate is None:
+            raise InputError("--thermal-coefficient acts only at a temperature: give it with --temperature")
+        thermal = Thermal(parse_assignments(self.thermal, "thermal coefficient"))
+        k = 0.0 if fault == "none" else k
+        levels = {
+            "excitation_std": self.excitation_std,
+            "disturbance_std": self.disturbance_std,
+            "y_noise_std": self.noise_std,
+            "x_noise_std": self.x_noise_std,
+            "noise_colour": parse_colour(self.noise_colour),
+            "temperature": temperature,
+            "thermal": thermal,
+        }
+        parameters = self.chain.parameters()
+        if parameters is not None:
+            if self.effects or self.params:
+                raise InputError(
+                    "--effect and --param act on the 2-DOF rig; the chain (--masses) takes --mass, "
+                    "--stiffness, --damping and --cubic"
+                )
+            scenario = ChainScenario(
+                parameters,
+                fault,
+                k,
+                outputs=parse_outputs(self.outputs, parameters.n),
+                response=self.chain.response or "displacement",  # type: ignore[arg-type]  # checked by it
+                **levels,
+            )
+            chain.check_stable(scenario.structure)
+        else:
+            scenario = Scenario(
+                params=PhysicalParameters().replace(**parse_assignments(self.params, "parameter")),
+                fault=fault,  # type: ignore[arg-type]  # checked by with_fault below
+                k=k,
+                effects=Effects.parse(self.effects),
+                outputs=parse_outputs(self.outputs, 2) or (2,),
+                **levels,
+            )
+            check_stable(scenario.structure)
         return scenario
 
 
@@ -149,17 +206,28 @@ class Plan:
     """One record to make and deliver; ``case`` groups records for the tally."""
 
     case: str
-    scenario: Scenario
+    scenario: AnyScenario
     n: int
     seed: int
     acquired_at: dt.datetime
 
     def describe(self) -> str:
-        effects = ", ".join(f"{name}={value:g}" for name, value in self.scenario.effects.describe().items())
-        return f"simulated {truth(self.scenario)}{f' with {effects}' if effects else ''}, seed {self.seed}"
+        scenario = self.scenario
+        described = f"simulated {truth(scenario)}"
+        if isinstance(scenario, Scenario) and scenario.effects.describe():
+            effects = scenario.effects.describe().items()
+            described += " with " + ", ".join(f"{name}={value:g}" for name, value in effects)
+        if scenario.temperature is not None:
+            described += f" at {scenario.temperature:.1f} °C"
+        return f"{described}, seed {self.seed}"
+
+    def simulate(self) -> AnyRecord:
+        if isinstance(self.scenario, ChainScenario):
+            return simulate_chain(self.scenario, self.n, self.seed)
+        return simulate(self.scenario, self.n, self.seed)
 
 
-def truth(scenario: Scenario) -> str:
+def truth(scenario: AnyScenario) -> str:
     return "healthy" if scenario.fault == "none" else f"{scenario.fault} {scenario.k:g} %"
 
 
@@ -264,7 +332,7 @@ class Delivery(Protocol):
 
 
 class Destination(Protocol):
-    def deliver(self, plan: Plan, record: SimulatedRecord) -> Delivery: ...
+    def deliver(self, plan: Plan, record: AnyRecord) -> Delivery: ...
 
 
 @dataclass(frozen=True)
@@ -332,17 +400,20 @@ class Poster:
     structure_id: int
     format: Format
 
-    def deliver(self, plan: Plan, record: SimulatedRecord) -> Posted:
+    def deliver(self, plan: Plan, record: AnyRecord) -> Posted:
+        """The body is what the service reads today: x and one response y, without the
+        temperature (which the printed line and the JSON line carry)."""
         path = f"{API}/structures/{self.structure_id}/records"
         when = plan.acquired_at.isoformat()
+        (y,) = record.responses.values()  # one channel: Target.check refused more
         if self.format is Format.json:
-            body = {"x": record.x.tolist(), "y": record.y.tolist(), "fs": record.fs, "acquired_at": when}
+            body = {"x": record.x.tolist(), "y": y.tolist(), "fs": record.fs, "acquired_at": when}
             answer = self.service.request("POST", path, params={"inspect": "true"}, json=body)
         else:
             content = (
-                dump_csv(record.x, record.y, record.fs).encode()
+                dump_csv(record.x, y, record.fs).encode()
                 if self.format is Format.csv
-                else dump_npz(record.x, record.y, record.fs)
+                else dump_npz(record.x, y, record.fs)
             )
             answer = self.service.request(
                 "POST",
@@ -375,23 +446,26 @@ class Writer:
     """Record files numbered on from the manifest already in the directory, so that several runs
     build one set (e.g. experiments for ``narxwatch train fault-mode --experiments manifest.csv``)."""
 
-    def __init__(self, directory: Path, file_format: Format) -> None:
+    def __init__(self, directory: Path, file_format: Format, temperature: bool = False) -> None:
         if file_format is Format.json:
             raise InputError("--out writes record files: use --format csv or npz")
         self.directory = directory
         self.format = file_format
         self.manifest = directory / MANIFEST
-        self.count = manifest_rows(self.manifest)
+        self.columns = MANIFEST_COLUMNS + [TEMPERATURE_COLUMN] * temperature
+        self.count = manifest_rows(self.manifest, self.columns)
 
-    def deliver(self, plan: Plan, record: SimulatedRecord) -> Written:
+    def deliver(self, plan: Plan, record: AnyRecord) -> Written:
         self.count += 1
         name = f"record_{self.count:04d}_{plan.scenario.fault}_{plan.scenario.k:g}.{self.format}"
         row = {"path": name, "fault": plan.scenario.fault, "k": plan.scenario.k, "seed": plan.seed}
+        conditions = {} if record.temperature is None else {TEMPERATURE_COLUMN: record.temperature}
+        row |= conditions
         try:
-            path = write_record(self.directory / name, record.x, record.y, record.fs)
+            path = write_record(self.directory / name, record.x, record.responses, record.fs, conditions)
             new = not self.manifest.exists()
             with self.manifest.open("a", newline="") as handle:
-                writer = csv.DictWriter(handle, MANIFEST_COLUMNS)
+                writer = csv.DictWriter(handle, self.columns)
                 if new:
                     writer.writeheader()
                 writer.writerow(row)
@@ -400,8 +474,9 @@ class Writer:
         return Written(path, row)
 
 
-def manifest_rows(manifest: Path) -> int:
-    """Rows already in a manifest (0 if there is none); a file of another kind is not touched."""
+def manifest_rows(manifest: Path, columns: list[str]) -> int:
+    """Rows already in a manifest (0 if there is none); a file of another kind, or a manifest of
+    records with (without) a temperature for records without (with) one, is not touched."""
     if not manifest.exists():
         return 0
     try:
@@ -411,9 +486,9 @@ def manifest_rows(manifest: Path) -> int:
             rows = sum(1 for _ in reader)
     except OSError as exc:
         raise InputError(f"{manifest}: cannot read the manifest ({exc.strerror})") from None
-    if header != MANIFEST_COLUMNS:
+    if header != columns:
         raise InputError(
-            f"{manifest} is not a manifest this command wrote (columns {','.join(MANIFEST_COLUMNS)}); "
+            f"{manifest} is not a manifest of such records (columns {','.join(columns)}); "
             "choose another --out directory"
         )
     return rows
@@ -444,12 +519,23 @@ class Target:
     out: Path | None
     format: Format | None
 
+    def check(self, scenario: AnyScenario) -> None:
+        """Refuse now outputs the structure does not have (naming the channels checks them), and
+        posting records of several channels: the service takes one response y."""
+        channels = scenario.channels
+        if self.out is None and len(channels) > 1:
+            raise InputError(
+                f"these records have {len(channels)} response channels ({', '.join(channels)}) and the "
+                "service takes one: write them to files with --out DIR, or choose one mass with --outputs"
+            )
+
 
 @contextmanager
-def open_destination(target: Target) -> Iterator[Destination]:
-    """A file writer for ``--out``, else the service with the structure to post to."""
+def open_destination(target: Target, temperature: bool = False) -> Iterator[Destination]:
+    """A file writer for ``--out`` (with a manifest column for the records' temperature), else
+    the service with the structure to post to."""
     if target.out is not None:
-        yield Writer(target.out, target.format or Format.csv)
+        yield Writer(target.out, target.format or Format.csv, temperature)
         return
     key = target.key or key_from_file()
     if not key:
@@ -486,7 +572,10 @@ class Report:
     def delivered(self, plan: Plan, delivery: Delivery) -> None:
         self.counts.setdefault(plan.case, Counter())[delivery.label] += 1
         if self.json_lines:
-            print(json.dumps(delivery.document()), flush=True)
+            document = delivery.document()
+            if plan.scenario.temperature is not None:
+                document = {**document, TEMPERATURE_COLUMN: plan.scenario.temperature}
+            print(json.dumps(document), flush=True)
         else:
             stdout.print(delivery.text(plan))
 
@@ -508,7 +597,7 @@ class Report:
 def deliver_all(plans: Iterable[Plan], destination: Destination, report: Report) -> None:
     """Every record in turn; the first failure ends the run (main turns it into exit code 1)."""
     for plan in plans:
-        report.delivered(plan, destination.deliver(plan, simulate(plan.scenario, plan.n, plan.seed)))
+        report.delivered(plan, destination.deliver(plan, plan.simulate()))
 
 
 def deliver_stream(plans: Iterable[Plan], destination: Destination, report: Report) -> None:
@@ -516,7 +605,7 @@ def deliver_stream(plans: Iterable[Plan], destination: Destination, report: Repo
     or a restarting service. Ctrl-C stops it cleanly; exit code 1 if any record failed."""
     try:
         for plan in plans:
-            record = simulate(plan.scenario, plan.n, plan.seed)
+            record = plan.simulate()
             try:
                 report.delivered(plan, destination.deliver(plan, record))
             except ServiceError as exc:
@@ -560,6 +649,7 @@ class Stream:
     rate: float = 0.0
     duty: float = 0.5
     per_day: float | None = None
+    wait: bool = True
 
     @property
     def mode(self) -> str:
@@ -592,14 +682,18 @@ class Stream:
 
     def check(self) -> None:
         """Refuse now a stream whose options do not fit its course, or whose first or last record
-        could not be simulated."""
+        could not be simulated, at the coldest and the warmest temperature of its cycle."""
         self.check_course()
-        self.options.scenario(*self.fault_at(0))
+        climate = self.options.climate
+        temperatures = [None] if climate is None else climate.extremes
+        faults = [self.fault_at(0)]
         if self.count is not None:
-            last = self.count - 1
-            self.options.scenario(*self.fault_at(last))
+            faults.append(self.fault_at(self.count - 1))
             if self.course in (Course.step, Course.intermittent):
-                self.options.scenario(self.mode, self.k)
+                faults.append((self.mode, self.k))
+        for fault in faults:
+            for temperature in temperatures:
+                self.options.scenario(*fault, temperature)
 
     def check_course(self) -> None:
         if self.per_day is not None and not self.per_day > 0:
@@ -637,20 +731,21 @@ class Stream:
         origin = self.start or (now() if self.per_day is not None else None)
         indices = itertools.count() if self.count is None else range(self.count)
         for index in indices:
-            time.sleep(max(0.0, began + index * self.every - time.monotonic()))
+            if self.wait:
+                time.sleep(max(0.0, began + index * self.every - time.monotonic()))
             when = now() if origin is None else origin + dt.timedelta(seconds=index * self.spacing)
-            scenario = self.options.scenario(*self.fault_at(index))
+            scenario = self.options.scenario(*self.fault_at(index), self.options.temperature(when))
             yield Plan("stream", scenario, self.n, self.seed + index, when)
 
 
 def chosen_cases(
-    name: str, fault: str | None, k: float | None, options: ScenarioOptions
-) -> list[tuple[str, Scenario]]:
+    name: str, fault: str | None, k: float | None, options: ScenarioOptions, temperature: float | None = None
+) -> list[tuple[str, AnyScenario]]:
     """The named paper case(s) with their fault and magnitude, or ``any`` with the given ones."""
     name = name.strip()
     name = name.lower() if name.lower() in ("all", "any") else name.upper()
     if name == "any":
-        scenario = options.scenario(fault or "none", k or 0.0)
+        scenario = options.scenario(fault or "none", k or 0.0, temperature)
         return [(f"case any ({truth(scenario)})", scenario)]
     if fault is not None or k is not None:
         raise InputError(f"case {name} fixes the fault and its magnitude: use 'any' for --fault and --k")
@@ -658,7 +753,7 @@ def chosen_cases(
     if not chosen:
         raise InputError(f"unknown scenario {name!r}: choose one of {', '.join(SCENARIO_NAMES)}")
     return [
-        (f"case {case.name} ({case.description})", options.scenario(case.fault, case.true_k))
+        (f"case {case.name} ({case.description})", options.scenario(case.fault, case.true_k, temperature))
         for case in chosen
     ]
 
@@ -688,6 +783,15 @@ def record_command(
     noise_colour: NoiseColour = None,
     effect: EffectList = None,
     param: ParamList = None,
+    temperature: Temperature = None,
+    thermal_coefficient: ThermalList = None,
+    outputs: Outputs = None,
+    masses: Masses = None,
+    mass: MassValues = None,
+    stiffness: StiffnessValues = None,
+    damping: DampingValues = None,
+    cubic: CubicValues = None,
+    response: ResponseOption = None,
     url: Url = DEFAULT_URL,
     key: Key = None,
     structure: StructureId = None,
@@ -705,9 +809,16 @@ def record_command(
         tuple(effect or ()),
         tuple(param or ()),
         noise_colour,
+        None if temperature is None else TemperatureCycle(temperature),
+        tuple(thermal_coefficient or ()),
+        outputs,
+        ChainOptions(masses, mass, stiffness, damping, cubic, response),
     )
-    plan = Plan("record", options.scenario(fault, k), n, first_seed(seed), start_time(acquired_at) or now())
-    with open_destination(Target(url, key, structure, out, file_format)) as destination:
+    when = start_time(acquired_at) or now()
+    plan = Plan("record", options.scenario(fault, k, temperature), n, first_seed(seed), when)
+    target = Target(url, key, structure, out, file_format)
+    target.check(plan.scenario)
+    with open_destination(target, temperature is not None) as destination:
         deliver_all([plan], destination, Report(json_lines))
 
 
@@ -732,6 +843,15 @@ def scenario_command(
     noise_colour: NoiseColour = None,
     effect: EffectList = None,
     param: ParamList = None,
+    temperature: Temperature = None,
+    thermal_coefficient: ThermalList = None,
+    outputs: Outputs = None,
+    masses: Masses = None,
+    mass: MassValues = None,
+    stiffness: StiffnessValues = None,
+    damping: DampingValues = None,
+    cubic: CubicValues = None,
+    response: ResponseOption = None,
     url: Url = DEFAULT_URL,
     key: Key = None,
     structure: StructureId = None,
@@ -749,13 +869,20 @@ def scenario_command(
         tuple(effect or ()),
         tuple(param or ()),
         noise_colour,
+        None if temperature is None else TemperatureCycle(temperature),
+        tuple(thermal_coefficient or ()),
+        outputs,
+        ChainOptions(masses, mass, stiffness, damping, cubic, response),
     )
-    cases = chosen_cases(name, fault, k, options)
+    cases = chosen_cases(name, fault, k, options, temperature)
     seeds = itertools.count(first_seed(seed))
     when = start_time(acquired_at) or now()
     plans = [Plan(case, scenario, n, next(seeds), when) for case, scenario in cases for _ in range(runs)]
     report = Report(json_lines)
-    with open_destination(Target(url, key, structure, out, file_format)) as destination:
+    target = Target(url, key, structure, out, file_format)
+    for _, scenario in cases:
+        target.check(scenario)
+    with open_destination(target, temperature is not None) as destination:
         deliver_all(plans, destination, report)
     report.tally()
 
@@ -801,6 +928,15 @@ def stream_command(
     noise_colour: NoiseColour = None,
     effect: EffectList = None,
     param: ParamList = None,
+    temperature: Temperature = None,
+    thermal_coefficient: ThermalList = None,
+    outputs: Outputs = None,
+    masses: Masses = None,
+    mass: MassValues = None,
+    stiffness: StiffnessValues = None,
+    damping: DampingValues = None,
+    cubic: CubicValues = None,
+    response: ResponseOption = None,
     url: Url = DEFAULT_URL,
     key: Key = None,
     structure: StructureId = None,
@@ -813,12 +949,39 @@ def stream_command(
             "(default: real time)."
         ),
     ] = None,
+    daily_amplitude: Annotated[
+        float,
+        typer.Option(
+            help="Daily temperature amplitude [°C] about --temperature, warmest at 15:00 of the acquisition "
+            "time's zone (half the day's swing)."
+        ),
+    ] = 0.0,
+    seasonal_amplitude: Annotated[
+        float,
+        typer.Option(
+            help="Seasonal temperature amplitude [°C] about --temperature, warmest on 20 July (negative: "
+            "southern hemisphere). A year spans --temperature ± (daily + seasonal)."
+        ),
+    ] = 0.0,
+    wait: Annotated[
+        bool,
+        typer.Option(
+            help="Wait --every seconds between records. --no-wait (with --acquired-at) makes them at once, "
+            "their acquisition times still --every seconds apart: a year of records in a minute."
+        ),
+    ] = True,
     json_lines: JsonLines = False,
 ) -> None:
     """Post a record every --every seconds, each with a fresh seed, until --count or Ctrl-C.
 
     A refused record is reported and the stream goes on; the exit code is 1 if any was refused.
+    With --temperature, each record's temperature follows the daily and seasonal cycle from its
+    acquisition time.
     """
+    if not wait and acquired_at is None:
+        raise InputError("--no-wait needs --acquired-at: in real time the records would share one time")
+    if temperature is None and (daily_amplitude or seasonal_amplitude):
+        raise InputError("--daily-amplitude and --seasonal-amplitude vary a mean: give it with --temperature")
     options = ScenarioOptions(
         excitation_std,
         disturbance_std,
@@ -827,6 +990,10 @@ def stream_command(
         tuple(effect or ()),
         tuple(param or ()),
         noise_colour,
+        None if temperature is None else TemperatureCycle(temperature, daily_amplitude, seasonal_amplitude),
+        tuple(thermal_coefficient or ()),
+        outputs,
+        ChainOptions(masses, mass, stiffness, damping, cubic, response),
     )
     stream = Stream(
         options,
@@ -843,11 +1010,14 @@ def stream_command(
         rate,
         duty,
         per_day,
+        wait,
     )
     stream.check()
+    target = Target(url, key, structure, out, file_format)
+    target.check(options.scenario(stream.mode, k))
     # A service manager stops a feed with SIGTERM: stop as cleanly as on Ctrl-C.
     signal.signal(signal.SIGTERM, signal.default_int_handler)
-    with open_destination(Target(url, key, structure, out, file_format)) as destination:
+    with open_destination(target, temperature is not None) as destination:
         deliver_stream(stream.plans(), destination, Report(json_lines))
 
 

@@ -18,9 +18,11 @@ from typing import Literal
 import numpy as np
 
 from models.errors import InputError
+from simulator.temperature import Thermal
 
 FaultMode = Literal["none", "k1", "k2"]
 FAULT_MODES: tuple[FaultMode, ...] = ("none", "k1", "k2")
+SPRINGS = ("k1", "k2", "k3")  # the stiffnesses temperature acts on (k3 the cubic spring)
 
 
 class UnstableSimulationError(InputError):
@@ -76,6 +78,13 @@ class PhysicalParameters:
         if not np.isfinite(k) or k >= 100:
             raise InputError(f"fault magnitude {k} % would remove the spring entirely; use k < 100")
         return self.replace(**{mode: getattr(self, mode) * (1 - k / 100)})
+
+    def at_temperature(self, temperature: float, thermal: Thermal) -> PhysicalParameters:
+        """Every spring's stiffness at ``temperature`` (the parameters hold at the reference)."""
+        thermal.check(SPRINGS)
+        return self.replace(
+            **{name: getattr(self, name) * thermal.factor(name, temperature) for name in SPRINGS}
+        )
 
     @cached_property
     def linear_pole_radius(self) -> float:

@@ -12,6 +12,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +24,10 @@ from simulator.physics import (
     UnstableSimulationError,
     check_stable,
 )
+from simulator.temperature import Thermal
+
+if TYPE_CHECKING:
+    from simulator.chain import ChainScenario
 
 # Undeclared effects by name: (field, unit, meaning). ``sine`` takes AMPLITUDE@FREQUENCY.
 MAX_NOISE_COLOUR = 50  # moving-average coefficients of the measurement noise
@@ -156,40 +161,59 @@ class Scenario:
     noise_colour: tuple[float, ...] = ()
     effects: Effects = field(default_factory=Effects)
     burn_in: int = 1500
+    # The structure's temperature [°C]; None: the stated stiffnesses hold (no thermal effect).
+    temperature: float | None = None
+    thermal: Thermal = field(default_factory=Thermal)
+    # Measured masses: (2,) is the SPEC's single response y = x2; any other choice, e.g. (1, 2),
+    # gives one channel per mass named y1, y2 (sensor effects act on each).
+    outputs: tuple[int, ...] = (2,)
 
     @cached_property
     def structure(self) -> PhysicalParameters:
-        """The physical parameters with the fault applied (once: their stability bound costs ~8 ms,
-        and a Monte Carlo simulates one scenario thousands of times)."""
-        return self.params.with_fault(self.fault, self.k)
+        """The physical parameters with the fault applied, at the scenario's temperature (once:
+        their stability bound costs ~8 ms, and a Monte Carlo simulates one scenario thousands of
+        times)."""
+        faulty = self.params.with_fault(self.fault, self.k)
+        return faulty if self.temperature is None else faulty.at_temperature(self.temperature, self.thermal)
 
     @property
     def fs(self) -> float:
         return float(round(1 / self.params.ts))
 
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Names of the measured channels: ``y`` for mass 2 alone (SPEC §1), else y<mass>."""
+        if self.outputs == (2,):
+            return ("y",)
+        if not self.outputs or len(set(self.outputs)) < len(self.outputs) or not set(self.outputs) <= {1, 2}:
+            raise InputError(
+                f"--outputs must name distinct masses of the 2-DOF rig, 1 or 2; got "
+                f"{', '.join(map(str, self.outputs)) or 'none'}"
+            )
+        return tuple(f"y{mass}" for mass in self.outputs)
+
 
 @dataclass(frozen=True)
 class SimulatedRecord:
+    """``y`` is mass 2's measured displacement; ``responses`` every measured channel by name
+    (``{"y": y}`` unless the scenario measures other masses)."""
+
     x: np.ndarray
     y: np.ndarray
     fs: float
     scenario: Scenario
     seed: int | np.random.SeedSequence | None
+    responses: dict[str, np.ndarray]
+
+    @property
+    def temperature(self) -> float | None:
+        return self.scenario.temperature
 
 
 def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | None = None) -> SimulatedRecord:
     """Simulate ``n`` samples of measured excitation x (N) and response y (m)."""
-    if n < 1:
-        raise InputError(f"a record needs at least one sample, got n = {n}")
-    for name in ("excitation_std", "disturbance_std", "y_noise_std", "x_noise_std"):
-        value = getattr(scenario, name)
-        if not (math.isfinite(value) and value >= 0):
-            raise InputError(f"{name} must be a finite, non-negative number, got {value}")
-    if len(scenario.noise_colour) > MAX_NOISE_COLOUR or not all(map(math.isfinite, scenario.noise_colour)):
-        raise InputError(
-            f"noise_colour takes at most {MAX_NOISE_COLOUR} finite moving-average coefficients, "
-            f"got {scenario.noise_colour}"
-        )
+    check_levels(scenario, n)
+    names = scenario.channels
     params = scenario.structure
     check_stable(params)
     rng = np.random.default_rng(seed)
@@ -207,15 +231,39 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
     x = command[scenario.burn_in :].copy()
     y = x2[scenario.burn_in :] + effects.offset
     if scenario.x_noise_std:
-        x += _measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
+        x += measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
     if scenario.y_noise_std:
-        y += _measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
+        y += measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
     if effects.sensor_range:
         y = np.clip(y, -effects.sensor_range, effects.sensor_range)
-    return SimulatedRecord(x, y, scenario.fs, scenario, seed)
+    if names == ("y",):
+        return SimulatedRecord(x, y, scenario.fs, scenario, seed, {"y": y})
+    # Mass 1's sensor draws its noise after mass 2's, so that y is the single-output record's.
+    y1 = x1[scenario.burn_in :] + effects.offset
+    if scenario.y_noise_std:
+        y1 += measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
+    if effects.sensor_range:
+        y1 = np.clip(y1, -effects.sensor_range, effects.sensor_range)
+    measured = {"y1": y1, "y2": y}
+    return SimulatedRecord(x, y, scenario.fs, scenario, seed, {name: measured[name] for name in names})
 
 
-def _measurement_noise(rng: np.random.Generator, std: float, colour: tuple[float, ...], n: int) -> np.ndarray:
+def check_levels(scenario: Scenario | ChainScenario, n: int) -> None:
+    """Refuse a record length, excitation or noise that cannot be simulated."""
+    if n < 1:
+        raise InputError(f"a record needs at least one sample, got n = {n}")
+    for name in ("excitation_std", "disturbance_std", "y_noise_std", "x_noise_std"):
+        value = getattr(scenario, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise InputError(f"{name} must be a finite, non-negative number, got {value}")
+    if len(scenario.noise_colour) > MAX_NOISE_COLOUR or not all(map(math.isfinite, scenario.noise_colour)):
+        raise InputError(
+            f"noise_colour takes at most {MAX_NOISE_COLOUR} finite moving-average coefficients, "
+            f"got {scenario.noise_colour}"
+        )
+
+
+def measurement_noise(rng: np.random.Generator, std: float, colour: tuple[float, ...], n: int) -> np.ndarray:
     """n samples of white noise of ``std``, coloured by the moving average 1 + Σ c_i q⁻ⁱ."""
     white = rng.normal(0.0, std, n + len(colour))
     return np.convolve(white, np.concatenate(([1.0], colour)), mode="valid") if colour else white
