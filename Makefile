@@ -12,7 +12,7 @@ BENCH_STAMP := $(BENCH_VENV)/.installed
 # busy cores. Whole files go to one process (--dist loadfile): their module fixtures are built once.
 TEST_WORKERS ?= 2
 
-.PHONY: run test lint bench reproduce clean
+.PHONY: run test slow lint bench reproduce clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -42,7 +42,12 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	bash scripts/ensure-postgres.sh
 	bash scripts/ensure-chromium.sh
-	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile -m "not slow"
+
+# The Monte Carlo studies marked slow (reduced versions of bench/'s), kept out of `make test`'s
+# fifteen minutes.
+slow: $(STAMP)
+	$(BIN)/pytest -n $(TEST_WORKERS) -m slow
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
