@@ -29,6 +29,9 @@ from models.errors import InputError
 
 # v5 data types and array classes (MAT-File Format, tables 1-2 and 1-3).
 MI_INT8, MI_INT32, MI_UINT32, MI_MATRIX, MI_COMPRESSED = 1, 5, 6, 14, 15
+# The data types a numeric matrix's values may be stored in: (u)int8…(u)int64, single, double.
+# scipy's reader indexes a table by this code unchecked: another code crashed the process (SIGBUS).
+NUMBER_TYPES = frozenset({1, 2, 3, 4, 5, 6, 7, 9, 12, 13})
 CLASSES = {
     1: "cell",
     2: "struct",
@@ -201,7 +204,7 @@ def _v5_header(head: bytes, order: str, start: int, end: int, compressed: bool) 
             raise InputError(f"{where} is not a matrix (data type {kind})")
         flags_kind, flags, after = _subelement(head, 8, order)
         dims_kind, dims, after = _subelement(head, after, order)
-        name_kind, name, _ = _subelement(head, after, order)
+        name_kind, name, after = _subelement(head, after, order)
     except struct.error:
         raise InputError(
             f"{where} has a header cut off or longer than {VARIABLE_HEADER_BYTES} bytes"
@@ -221,6 +224,10 @@ def _v5_header(head: bytes, order: str, start: int, end: int, compressed: bool) 
         raise InputError(f"{where} declares dimensions {shape}")
     numeric = class_code in NUMERIC_CLASSES and not word & COMPLEX_FLAG
     class_name = CLASSES.get(class_code, f"class {class_code}") + (" complex" if word & COMPLEX_FLAG else "")
+    if numeric and (values_kind := _data_type(head, after, order)) not in NUMBER_TYPES:
+        # Listed, but never handed to loadmat: asked for, it is refused as not numeric.
+        numeric = False
+        class_name += f" stored as data type {values_kind}"
     return MatVariable(name.decode("latin1"), shape, class_name, numeric, start, end, compressed)
 
 
@@ -238,6 +245,14 @@ def _subelement(head: bytes, position: int, order: str) -> tuple[int, bytes, int
     if len(data) != size:
         raise struct.error("data element runs past the header bytes")
     return word, data, position + 8 + -(-size // 8) * 8
+
+
+def _data_type(head: bytes, position: int, order: str) -> int | None:
+    """The data type in the tag at ``position``, None if the header ends before it."""
+    if len(head) < position + 4:
+        return None
+    (word,) = struct.unpack_from(order + "I", head, position)
+    return word & 0xFFFF if word >> 16 else word
 
 
 def _v5_element(mat: MatFile, variable: MatVariable) -> bytes:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import hashlib
 import io
 import re
+import subprocess
+import sys
 import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
@@ -391,6 +393,29 @@ VALID_MAT = mat_file(
 _v4 = io.BytesIO()
 scipy.io.savemat(_v4, {"Force": np.ones(20), "Acc": np.ones((3, 20)), "Fs": 400.0}, format="4")
 VALID_V4 = _v4.getvalue()
+
+
+def test_a_variable_whose_values_have_an_unknown_data_type_is_refused_not_a_crash():
+    """Found by the fuzz test below in a whole-suite run: seven bytes replaced over the end of
+    Fs's name and its values' tag, which then holds an unknown data type code (51435 where
+    miDOUBLE, 9, was). scipy's reader indexed its type table with it and the process died (SIGBUS
+    or SIGSEGV, from run to run). Parsed in a child process, so that a crash fails this test
+    instead of ending the run."""
+    damaged = VALID_MAT[:464] + bytes.fromhex("2465db7a47ebc8") + VALID_MAT[471:]
+    child = (
+        "import sys\n"
+        "from models.errors import InputError\n"
+        "from service.recordfiles import Layout, parse_mat\n"
+        "try:\n"
+        f"    parse_mat(sys.stdin.buffer.read(), {LIMIT}, Layout('Force', 'Acc2'))\n"
+        "except InputError as error:\n"
+        "    print(error)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", child], input=damaged, capture_output=True, timeout=120)
+    assert run.returncode == 0, f"the parser died ({run.returncode}): {run.stderr.decode()[-400:]}"
+    assert "Fs (1×1 double stored as data type 51435) is not a real numeric array" in run.stdout.decode(), (
+        run.stdout
+    )
 
 
 @settings(max_examples=400, deadline=None)
