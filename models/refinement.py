@@ -375,15 +375,17 @@ def refine(
     # output. The check blocks tell which simulates better.
     if output_error and checks.error(current, tuned=True) < check:
         everything: Segments = [(x, y, 0) for x, y in records]
-        start = refined
-        # The declared model's output-error fit, grown by the added terms at zero, simulates as
-        # that model does: from there the search cannot end worse than it on the estimation data,
-        # as it can from least squares (F-16's sweeps, Wiener–Hammerstein's records).
+        # The search starts from whichever simulates the estimation data best: the least-squares
+        # fit; the output-error fit on the fit parts the check just made (near the optimum, so
+        # that the search on all the data takes few steps); or the declared model's output-error
+        # fit grown by the added terms at zero, which simulates as that model does, so that the
+        # search cannot end worse than it, as it can from least squares (F-16's sweeps,
+        # Wiener–Hammerstein's records).
         declared_tuned = _output_error(declared_model, everything, FINAL_EVALUATIONS)
+        starts = [refined, replace(refined, theta=checks.tuned(current).theta)]
         if declared_tuned is not declared_model:
-            grown = _grown(declared_tuned, refined)
-            if _free_run_rms(grown, everything) < _free_run_rms(refined, everything):
-                start = grown
+            starts.append(_grown(declared_tuned, refined))
+        start = min(starts, key=lambda model: _free_run_rms(model, everything))
         tuned = _output_error(start, everything, FINAL_EVALUATIONS)
         if tuned is not start:
             refined, estimator = tuned, "output error"
@@ -497,6 +499,7 @@ class CheckSplit:
     fit: Segments
     check: Segments
     _errors: dict[tuple[Structure, bool], float] = field(default_factory=dict)
+    _tuned: dict[Structure, NARX] = field(default_factory=dict)
 
     @classmethod
     def of(cls, records: Records) -> CheckSplit:
@@ -511,22 +514,30 @@ class CheckSplit:
             self._errors[key] = self._judge(structure, tuned)
         return self._errors[key]
 
+    def tuned(self, structure: Structure) -> NARX:
+        """``structure`` fitted on the fit parts by output error (as :meth:`error` judges it with
+        ``tuned``); the least-squares fit where output error gains nothing."""
+        if structure not in self._tuned:
+            self._tuned[structure] = _output_error(self._fitted(structure), self.fit, CHECK_EVALUATIONS)
+        return self._tuned[structure]
+
     def _judge(self, structure: Structure, tuned: bool) -> float:
-        L = max_lag(structure.terms)
         try:
-            model, _ = fit_model(
-                [(x, y) for x, y, _ in self.fit],
-                structure.terms,
-                structure.noise_lags,
-                L,
-                [t for *_, t in self.fit],
-                structure.saturating,
-            )
-            if tuned:
-                model = _output_error(model, self.fit, CHECK_EVALUATIONS)
+            model = self.tuned(structure) if tuned else self._fitted(structure)
         except InputError:
             return np.inf
         return _free_run_rms(model, self.check)
+
+    def _fitted(self, structure: Structure) -> NARX:
+        model, _ = fit_model(
+            [(x, y) for x, y, _ in self.fit],
+            structure.terms,
+            structure.noise_lags,
+            max_lag(structure.terms),
+            [t for *_, t in self.fit],
+            structure.saturating,
+        )
+        return model
 
 
 def _output_error(model: NARX, segments: Segments, evaluations: int) -> NARX:
