@@ -3,40 +3,64 @@
 from __future__ import annotations
 
 import sys
+from importlib import import_module
 
 import typer
 
 from models.errors import InputError
-from service.cli import inspect, refine, reproduce, select, server, simulate, train
 from service.cli.console import fail
 from service.migrate import DatabaseNotReadyError
 
-app = typer.Typer(
-    name="narxwatch",
-    help="Condition monitoring of vibrating structures with NARX and functional NARX models.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-    add_completion=False,
-    rich_markup_mode=None,  # help texts hold units like [m], which rich markup would swallow
-)
-app.command("simulate")(simulate.simulate)
-app.add_typer(train.app, name="train")
-app.command("select")(select.select)
-app.command("inspect")(inspect.inspect)
-app.command("refine")(refine.refine_command)
-app.command("reproduce")(reproduce.reproduce)
-app.command("serve")(server.serve)
-app.command("worker")(server.worker)
-app.add_typer(server.db_app, name="db")
-app.add_typer(server.keys_app, name="keys")
-app.command("demo-seed")(server.demo_seed)
+# Each command's module and attribute: a command (a function) or a group of them (a Typer app).
+# Only the module of the command being run is imported — `narxwatch refine` does not load the
+# server's stack, nor `narxwatch serve` the refinement's — which takes about a second off every
+# invocation; `--help` and an unknown command load them all, to list them.
+COMMANDS = {
+    "simulate": ("service.cli.simulate", "simulate"),
+    "train": ("service.cli.train", "app"),
+    "select": ("service.cli.select", "select"),
+    "inspect": ("service.cli.inspect", "inspect"),
+    "refine": ("service.cli.refine", "refine_command"),
+    "reproduce": ("service.cli.reproduce", "reproduce"),
+    "serve": ("service.cli.server", "serve"),
+    "worker": ("service.cli.server", "worker"),
+    "db": ("service.cli.server", "db_app"),
+    "keys": ("service.cli.server", "keys_app"),
+    "demo-seed": ("service.cli.server", "demo_seed"),
+}
+
+
+def build_app(command: str | None = None) -> typer.Typer:
+    """The ``narxwatch`` application with ``command`` alone, or every command when it names none."""
+    app = typer.Typer(
+        name="narxwatch",
+        help="Condition monitoring of vibrating structures with NARX and functional NARX models.",
+        no_args_is_help=True,
+        pretty_exceptions_enable=False,
+        add_completion=False,
+        rich_markup_mode=None,  # help texts hold units like [m], which rich markup would swallow
+    )
+
+    @app.callback()
+    def narxwatch() -> None:
+        """Condition monitoring of vibrating structures with NARX and functional NARX models."""
+
+    for name, (module, attribute) in COMMANDS.items():
+        if command in (None, name):
+            target = getattr(import_module(module), attribute)
+            if isinstance(target, typer.Typer):
+                app.add_typer(target, name=name)
+            else:
+                app.command(name)(target)
+    return app
 
 
 def main() -> None:
     """Console-script entry point: input errors and a database not ready end with their message,
     not a traceback."""
     try:
-        app(args=files_after_options(sys.argv[1:]))
+        args = files_after_options(sys.argv[1:])
+        build_app(args[0] if args and args[0] in COMMANDS else None)(args=args)
     except (InputError, DatabaseNotReadyError) as exc:
         fail(str(exc))
 
