@@ -12,6 +12,12 @@ Identification*, 2nd ed., §4.2: output-error models; Piroddi & Spinelli 2003 fo
 NARX). V is not quadratic in θ, so it is minimised by ``scipy.optimize.least_squares`` from the
 equation-error estimate. A parameter vector whose free run diverges is never accepted: its
 residuals are replaced by a penalty larger than any finite run's, so the search steps back.
+
+Nor is one whose free run does not come to rest when the excitation stops (:class:`RingDowns`),
+where the start's does: a structure left to itself rings down. Polynomial terms tuned on the
+simulation error can keep a free run bounded while the input drives it and yet make the
+unforced model unstable: F-16's sweeps end in a few hundred samples of zero force, and a model of
+acceleration 1 (cubic damping terms over ten lags) diverged there on two test levels.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from models.errors import InputError
 from models.narx import NARX
 from models.signals import checked_records
 from models.simulation import FreeRun
-from models.terms import max_degree, record_origins
+from models.terms import Term, max_degree, max_lag, record_origins
 
 
 @dataclass(frozen=True)
@@ -98,24 +104,37 @@ def fit_output_error(
     scale = np.sqrt(sum(float(np.sum(t**2)) for t in targets) / sum(t.size for t in targets)) or 1.0
 
     # The input side of every record is computed once; each θ costs only the compiled recursion.
-    pairs = zip(checked, record_origins(t0, len(checked)), strict=True)
-    runs = [(FreeRun.build(start.terms, xa, origin), ya) for (xa, ya), origin in pairs]
+    origins = record_origins(t0, len(checked))
+    runs = [
+        (FreeRun.build(start.terms, xa, origin), ya)
+        for (xa, ya), origin in zip(checked, origins, strict=True)
+    ]
+    ring_downs = RingDowns.build(start.terms, checked, origins)
 
-    def errors(theta: np.ndarray) -> np.ndarray:
-        return np.concatenate([start.run_free(run, ya, theta)[L:] - ya[L:] for run, ya in runs])
+    def simulated(theta: np.ndarray) -> list[np.ndarray]:
+        return [start.run_free(run, ya, theta) for run, ya in runs]
 
-    initial = errors(start.theta)
+    def errors(outputs: list[np.ndarray]) -> np.ndarray:
+        return np.concatenate([out[L:] - ya[L:] for out, (_, ya) in zip(outputs, runs, strict=True)])
+
+    outputs = simulated(start.theta)
+    initial = errors(outputs)
     if not np.all(np.isfinite(initial)):
         raise InputError(
             "the free run of the starting model diverges on the estimation data: output-error "
             "refinement needs a starting model whose simulation is stable"
         )
+    # Where the start does not come to rest either, the search cannot be held to it.
+    at_rest = ring_downs.settle(start, start.theta, recursion_states(start, start.theta, runs, outputs))
     # What a diverged run costs: every residual at a hundred times the output's RMS, far above
     # anything a finite run reaches, so that the search backs away from an unstable θ.
     penalty = 100.0 * (scale + float(np.max(np.abs(initial))))
 
     def penalised(theta: np.ndarray) -> np.ndarray:
-        residuals = errors(theta)
+        outputs = simulated(theta)
+        residuals = errors(outputs)
+        if at_rest and not ring_downs.settle(start, theta, recursion_states(start, theta, runs, outputs)):
+            return np.full(residuals.size, penalty)
         return np.where(np.isfinite(residuals), residuals, penalty)
 
     state = start.output_limits if start.saturation == "state" else None
@@ -136,9 +155,17 @@ def fit_output_error(
     result = optimize.least_squares(
         penalised, start.theta, jac=jacobian, x_scale="jac", max_nfev=max_evaluations, method="lm"
     )
-    final = errors(result.x)
+    outputs = simulated(result.x)
+    final = errors(outputs)
     start_rms = float(np.sqrt(np.mean(initial**2)))
-    if not np.all(np.isfinite(final)) or float(np.sqrt(np.mean(final**2))) >= start_rms:
+    if (
+        not np.all(np.isfinite(final))
+        or float(np.sqrt(np.mean(final**2))) >= start_rms
+        or (
+            at_rest
+            and not ring_downs.settle(start, result.x, recursion_states(start, result.x, runs, outputs))
+        )
+    ):
         return OutputErrorFit(start, start_rms, start_rms, int(result.nfev), int(result.status))
     n, p = final.size, result.x.size
     sigma2 = float(final @ final) / max(n - p, 1)
@@ -147,3 +174,82 @@ def fit_output_error(
     return OutputErrorFit(
         model, start_rms, float(np.sqrt(np.mean(final**2))), int(result.nfev), int(result.status)
     )
+
+
+# Where and for how long each record's excitation is switched off to see the free run come to
+# rest: at this many points spread over the record (the last one its end), for this many samples.
+SWITCH_OFFS = 8
+RING_DOWN = 1000
+# A ring-down that leaves this many times the records' largest measured output has not come to rest.
+RESTLESS = 10.0
+
+
+@dataclass(frozen=True)
+class RingDowns:
+    """Free runs with the excitation switched off, prepared for a model's terms on its records.
+
+    At ``SWITCH_OFFS`` points c of each record the free run's state ŷ[c−L … c−1] starts a run whose
+    input is the record's up to c and zero after it, for ``RING_DOWN`` samples. A model comes to
+    rest when every such run stays finite and within ``RESTLESS`` times the largest measured
+    output: a stable structure's free decay never grows beyond the state it starts from, and an
+    unstable model's grows without bound, so the test needs no finer threshold.
+    """
+
+    lag: int
+    bound: float
+    runs: tuple[tuple[int, int, FreeRun], ...]  # (record, switch-off sample c, the run from c − L)
+
+    @classmethod
+    def build(
+        cls, terms: Sequence[Term], records: Sequence[tuple[np.ndarray, np.ndarray]], origins: Sequence[int]
+    ) -> RingDowns:
+        L = max_lag(terms)
+        runs = []
+        for index, ((x, y), origin) in enumerate(zip(records, origins, strict=True)):
+            if len(y) <= L:
+                continue
+            for c in np.unique(np.linspace(L, len(y), SWITCH_OFFS + 1)[1:].astype(int)):
+                unforced = np.concatenate([x[c - L : c], np.zeros(RING_DOWN)])
+                runs.append((index, int(c), FreeRun.build(terms, unforced, origin + int(c) - L)))
+        bound = RESTLESS * max((float(np.max(np.abs(y))) for _, y in records), default=0.0)
+        return cls(L, bound, tuple(runs))
+
+    def settle(self, model: NARX, theta: np.ndarray, states: Sequence[np.ndarray]) -> bool:
+        """Whether ``model`` with ``theta`` comes to rest after every switch-off, ``states`` being
+        its recursion's free runs over the records with that θ (:func:`recursion_states`)."""
+        limits = model.output_limits if model.saturation == "state" else None
+        for index, c, run in self.runs:
+            state = states[index][c - self.lag : c]
+            if not np.all(np.isfinite(state)):
+                return False
+            decay = run.run(theta, state, limits)
+            if not (np.all(np.isfinite(decay)) and float(np.max(np.abs(decay))) <= self.bound):
+                return False
+        return True
+
+
+def recursion_states(
+    model: NARX, theta: np.ndarray, runs: Sequence[tuple[FreeRun, np.ndarray]], outputs: Sequence[np.ndarray]
+) -> Sequence[np.ndarray]:
+    """The recursion's own outputs over the records, given what ``model`` reports (``outputs``):
+    the same but for a sensor's saturation, which clips only the reading — a ring-down started
+    from clipped readings would start from a state the model was never in."""
+    if model.output_limits is None or model.saturation == "state":
+        return outputs
+    return [run.run(theta, y) for run, y in runs]
+
+
+def comes_to_rest(
+    model: NARX, records: Sequence[tuple[np.ndarray, np.ndarray]], t0: int | Sequence[int] = 0
+) -> bool:
+    """Whether ``model``'s free run over each of ``records`` (x, y) stays finite and rings down
+    after the excitation is switched off anywhere in it (:class:`RingDowns`)."""
+    origins = record_origins(t0, len(records))
+    runs = [
+        (FreeRun.build(model.terms, x, origin), y) for (x, y), origin in zip(records, origins, strict=True)
+    ]
+    outputs = [model.run_free(run, y) for run, y in runs]
+    if not all(np.all(np.isfinite(out[model.max_lag :])) for out in outputs):
+        return False
+    states = recursion_states(model, model.theta, runs, outputs)
+    return RingDowns.build(model.terms, records, origins).settle(model, model.theta, states)

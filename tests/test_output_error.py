@@ -13,7 +13,7 @@ import pytest
 
 from models.errors import InputError
 from models.narx import NARX, fit_narx
-from models.output_error import fit_output_error
+from models.output_error import RING_DOWN, comes_to_rest, fit_output_error
 from models.simulation import FreeRun
 from models.terms import parse_terms
 
@@ -60,6 +60,50 @@ def test_a_starting_model_whose_free_run_diverges_is_refused() -> None:
     unstable = NARX(tuple(parse_terms(TERMS)), np.array([2.1, -0.9, 1.0]), np.zeros((3, 3)))  # pole at 1.35
     with pytest.raises(InputError, match="free run of the starting model diverges"):
         fit_output_error(unstable, [(x, y)])
+
+
+# y[t] = 1.05·y[t−1] − 0.3·y[t−1]·x[t−1]² + x[t−1]: the input's power damps the output (the
+# mean coefficient on y[t−1] is 1.05 − 0.3·E[x²] = 0.75 for unit-variance x), but with the input
+# switched off the pole is 1.05: driven, the free run stays bounded; left to itself, it grows.
+PARAMETRIC = ["y[t-1]", "y[t-1]*x[t-1]^2", "x[t-1]"]
+PARAMETRIC_TRUE = np.array([1.05, -0.3, 1.0])
+
+
+def parametric_record(n: int, noise_std: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal(n)
+    y = np.zeros(n)
+    for t in range(1, n):
+        y[t] = (PARAMETRIC_TRUE[0] + PARAMETRIC_TRUE[1] * x[t - 1] ** 2) * y[t - 1] + PARAMETRIC_TRUE[2] * x[
+            t - 1
+        ]
+    return x, y + noise_std * rng.standard_normal(n)
+
+
+def test_a_model_unstable_without_its_input_does_not_come_to_rest() -> None:
+    x, y = parametric_record(4000, 0.3, seed=51)
+    truth = NARX(tuple(parse_terms(PARAMETRIC)), PARAMETRIC_TRUE, np.zeros((3, 3)))
+    driven = truth.simulate(x, y)
+    assert np.all(np.isfinite(driven)) and np.max(np.abs(driven)) < 2 * np.max(np.abs(y))
+    assert not comes_to_rest(truth, [(x, y)])
+    # From its last state, with no input, the output grows as 1.05ᵗ: theory for the ring-down.
+    state = driven[-1]
+    assert abs(state) * 1.05**RING_DOWN > 10 * np.max(np.abs(y))
+    damped = NARX(tuple(parse_terms(PARAMETRIC)), np.array([0.9, 0.0, 1.0]), np.zeros((3, 3)))
+    assert comes_to_rest(damped, [(x, y)])
+
+
+def test_the_search_does_not_leave_a_start_that_comes_to_rest_for_one_that_does_not() -> None:
+    x, y = parametric_record(4000, 0.3, seed=52)
+    damped = NARX(tuple(parse_terms(PARAMETRIC)), np.array([0.9, 0.0, 1.0]), np.zeros((3, 3)))
+    held = fit_output_error(damped, [(x, y)])
+    assert held.rms < 0.5 * held.start_rms  # it does move, towards the data
+    assert comes_to_rest(held.model, [(x, y)])
+    # From a start that does not come to rest (least squares near the truth) nothing holds the
+    # search, and it ends at parameters that do not either: the guard above is what made the difference.
+    free = fit_output_error(fit_narx([(x, y)], PARAMETRIC), [(x, y)])
+    assert not comes_to_rest(free.model, [(x, y)])
+    assert free.rms < held.rms
 
 
 def test_records_too_short_for_the_model_are_refused() -> None:
