@@ -258,17 +258,22 @@ def test_npz_members_beside_x_y_fs_are_scalar_conditions_and_nothing_else():
         parse_npz(buffer.getvalue(), LIMIT)
 
 
-@pytest.mark.parametrize("suffix", [".csv", ".npz"])
-def test_the_simulators_conditions_read_back_exactly(tmp_path, signals, suffix):
-    """The simulator writes a record's temperature as ``# temperature=…`` or a scalar member: read
-    back to the last digit, without a unit (neither form states one)."""
+@pytest.mark.parametrize(("suffix", "unit"), [(".csv", "°C"), (".npz", None)])
+def test_the_simulators_conditions_read_back_exactly(tmp_path, signals, suffix, unit):
+    """The simulator writes a record's temperature as ``# temperature=… °C`` or as a scalar member
+    (which has no unit): read back to the last digit."""
     path = write_record(
         tmp_path / f"r{suffix}", *signals, 1500.0, {"temperature": 12.345678901234567, "level": -3}
     )
     assert read_record(path).conditions == (
         Condition("level", -3.0),
-        Condition("temperature", 12.345678901234567),
+        Condition("temperature", 12.345678901234567, unit),
     )
+
+
+def test_the_unitless_comment_of_earlier_simulator_files_is_read():
+    record = parse_csv("# fs=1500\n# temperature=12.5\nx,y\n1,2\n")
+    assert record.conditions == (Condition("temperature", 12.5),)
 
 
 def test_csv_conditions_are_assignment_comments_before_the_header():
