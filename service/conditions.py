@@ -28,7 +28,6 @@ MAX_CONDITIONS = 16
 NAME_LENGTH = 32
 UNIT_LENGTH = 16
 NAME_RULE = re.compile(rf"[a-z][a-z0-9_]{{0,{NAME_LENGTH - 1}}}")
-UNIT_RULE = re.compile(rf"[^\s\x00-\x1f\x7f]{{1,{UNIT_LENGTH}}}")
 RESERVED = ("x", "y", "fs")
 NAME_HELP = (
     f"a condition's name is a lowercase letter followed by at most {NAME_LENGTH - 1} lowercase letters, "
@@ -68,7 +67,8 @@ def check_condition(condition: Condition) -> None:
     check_name(name)
     if not math.isfinite(value):
         raise InputError(f"the condition {name!r} is {value}; a condition's value must be a finite number")
-    if unit is not None and not UNIT_RULE.fullmatch(unit):
+    # Printable (no control, format or separator characters, so no hidden ones) and no space.
+    if unit is not None and not (0 < len(unit) <= UNIT_LENGTH and unit.isprintable() and " " not in unit):
         raise InputError(
             f"the unit {_shown(unit)} of condition {name!r} is not allowed: a unit is 1 to {UNIT_LENGTH} "
             "characters without spaces or control characters (such as °C, m/s or %)"
