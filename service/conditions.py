@@ -3,15 +3,16 @@
 A bridge's natural frequencies move with its temperature by more than a small stiffness fault
 moves them, so a record states what it was measured under (temperature in °C, excitation level,
 speed, …) for models and people to take into account. A condition is a name, a finite value and
-an optional unit; every way into the service (JSON fields, CSV comment lines, NPZ and MAT
-scalars) ends in :func:`checked_conditions`, so that one rule holds for all of them:
+an optional unit; every way into the service (JSON fields, CSV comment lines, NPZ scalar
+members) ends in :func:`checked_conditions`, so that one rule holds for all of them:
 
 - a name is a lowercase letter followed by at most 31 lowercase letters, digits or underscores,
   and not ``x``, ``y`` or ``fs`` (the signals and the sampling rate). One spelling only, so that
   ``Temperature`` and ``temperature`` can never be two variables of one structure's records;
 - a value is a finite number;
-- a unit, when given, is 1 to 16 characters without spaces or control characters (``°C``,
-  ``m/s``, ``%``); no unit is implied for any name;
+- a unit, when given, is 1 to 16 printable characters without spaces (``°C``, ``m/s``, ``%``;
+  no control, format or separator characters, so none that cannot be seen); no unit is implied
+  for any name;
 - a record carries at most :data:`MAX_CONDITIONS` conditions, each name once.
 """
 
@@ -71,7 +72,7 @@ def check_condition(condition: Condition) -> None:
     if unit is not None and not (0 < len(unit) <= UNIT_LENGTH and unit.isprintable() and " " not in unit):
         raise InputError(
             f"the unit {_shown(unit)} of condition {name!r} is not allowed: a unit is 1 to {UNIT_LENGTH} "
-            "characters without spaces or control characters (such as °C, m/s or %)"
+            "printable characters without spaces (such as °C, m/s or %)"
         )
 
 

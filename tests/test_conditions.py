@@ -203,6 +203,8 @@ def many(count: int) -> list[dict]:
          "'fs' cannot name a condition: x, y and fs are the record's signals and sampling rate"),
         (json_body(300, conditions=[{"name": "t", "value": 1.0, "unit": "deg C"}]), None,
          "the unit 'deg C' of condition 't' is not allowed"),
+        (json_body(300, conditions=[{"name": "t", "value": 1.0, "unit": "\u200b°C"}]), None,
+         "the unit '\\u200b°C' of condition 't' is not allowed: a unit is 1 to 16 printable characters"),
         (json_body(300, conditions=many(MAX_CONDITIONS + 1)), None,
          f"a record may carry at most {MAX_CONDITIONS} conditions"),
         (condition_csv(*(f"# v{index}={index}" for index in range(MAX_CONDITIONS + 1))), CSV,
@@ -230,7 +232,8 @@ def many(count: int) -> list[dict]:
     ],
     ids=[
         "json-nan", "csv-inf", "json-uppercase-name", "csv-name-with-dash", "json-reserved-name",
-        "json-unit-with-space", "json-too-many", "csv-too-many", "json-twice", "csv-twice",
+        "json-unit-with-space", "json-unit-with-a-hidden-character", "json-too-many", "csv-too-many",
+        "json-twice", "csv-twice",
         "csv-value-not-a-number", "csv-fs-with-unit", "npz-two-values", "npz-array", "npz-text",
         "npz-uppercase-name", "npz-nan", "npz-too-many",
     ],
