@@ -53,13 +53,17 @@ def checked_conditions(conditions: Iterable[Condition]) -> tuple[Condition, ...]
     seen: dict[str, Condition] = {}
     for condition in conditions:
         if len(seen) == MAX_CONDITIONS:
-            raise InputError(f"a record may carry at most {MAX_CONDITIONS} conditions; this one has more")
+            raise too_many_conditions()
         name = condition.name
         if name in seen:
             raise InputError(f"the condition {_shown(name)} is given twice; give each condition once")
         check_condition(condition)
         seen[name] = condition
     return tuple(seen[name] for name in sorted(seen))
+
+
+def too_many_conditions() -> InputError:
+    return InputError(f"a record may carry at most {MAX_CONDITIONS} conditions; this one has more")
 
 
 def check_condition(condition: Condition) -> None:

@@ -37,7 +37,13 @@ import numpy as np
 
 from models.errors import InputError
 from service import matfiles
-from service.conditions import MAX_CONDITIONS, Condition, check_name, checked_conditions
+from service.conditions import (
+    MAX_CONDITIONS,
+    Condition,
+    check_name,
+    checked_conditions,
+    too_many_conditions,
+)
 
 SILVERBOX_FS = 1e7 / 2**14  # Hz: the benchmark's 10 MHz clock divided by 2¹⁴
 ZIP_MAGIC = b"PK\x03\x04"
@@ -185,6 +191,8 @@ def parse_csv(
         if match:
             comment_fs = _sampling_rate(match["fs"])
         elif match := _CONDITION_COMMENT.match(line):
+            if len(stated) == MAX_CONDITIONS:  # a million such lines cost no more than seventeen
+                raise too_many_conditions()
             stated.append(_condition_comment(match, index + 1))
         index += 1
     conditions = checked_conditions(stated)

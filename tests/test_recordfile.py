@@ -313,6 +313,13 @@ def test_malformed_csv_conditions_are_refused_with_the_reason(text, message):
         parse_csv(text + "x,y\n1,2\n")
 
 
+def test_csv_with_endless_condition_lines_is_refused_at_the_first_too_many():
+    text = b"# t=1\n" * 1_000_000 + b"x,y\n1,2\n"
+    with pytest.raises(InputError, match="a record may carry at most 16 conditions"):
+        parse_csv(text)
+    assert peak_allocation(lambda: parse_csv(text)) < 80 * 2**20  # the text's lines, not a million conditions
+
+
 def test_npz_with_more_members_than_a_record_has_is_refused_before_any_is_read():
     conditions = {f"v{index}": np.float64(index) for index in range(MAX_CONDITIONS)}
     assert (

@@ -20,8 +20,8 @@ NPZ_TYPES = ("application/x-npz", "application/zip", "application/octet-stream")
 MAT = "application/x-matlab-data"  # as mime.types names .mat files
 # The record file format (service.recordfiles) of each media type but JSON.
 FILE_FORMATS = {CSV: ".csv", MAT: ".mat"} | dict.fromkeys(NPZ_TYPES, ".npz")
-# Commas of a JSON record beyond its samples': between the fields, and three a condition with any
-# its unit holds.
+# Commas of a JSON record beyond those between its samples: between the fields, and three for each
+# condition with any its unit holds.
 JSON_SLACK_COMMAS = 8 + MAX_CONDITIONS * (3 + UNIT_LENGTH)
 
 REQUEST_BODY = {
