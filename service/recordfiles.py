@@ -71,6 +71,8 @@ CENTRAL_DIRECTORY_BYTES = 4096
 # it is split into lines.
 CSV_SLACK_LINES = 64
 _SIGNALS = ("x", "y")
+# Why a member that is more than one number is refused, for a file of several channels (y1, y2, …).
+_AS_CONDITION = "; every member beside x, y and fs is an operating condition"
 _SIGNALS_AND_RATE = ("x", "y", "fs")
 _END_OF_CENTRAL_DIRECTORY = struct.Struct("<4s4H2LH")
 _ZIP64_LOCATOR = b"PK\x06\x07"
@@ -482,7 +484,7 @@ def _condition_value(name: str, member: np.ndarray) -> float:
     if member.size != 1:
         raise InputError(
             f"NPZ member {name!r} holds {member.size} values (shape {member.shape}); "
-            "a condition is one number"
+            "a condition is one number" + _AS_CONDITION
         )
     return float(member.reshape(()))
 
@@ -541,6 +543,7 @@ def _checked_members(archive: zipfile.ZipFile, budget: float) -> list[str]:
         if declared[name] > NPY_HEADER_BYTES + SCALAR_BYTES:
             raise InputError(
                 f"NPZ member {name!r} must be one number, but it unpacks to {declared[name]} bytes"
+                + _AS_CONDITION * (name != "fs")
             )
     arrays = declared["x"] + declared["y"]
     if arrays > budget + 2 * NPY_HEADER_BYTES:
@@ -570,7 +573,7 @@ def _read_member(archive: zipfile.ZipFile, name: str, limit: float) -> np.ndarra
             if name not in _SIGNALS:
                 raise InputError(
                     f"NPZ member {name!r} must be one number, but its header declares shape {shape} "
-                    f"of {dtype}"
+                    f"of {dtype}" + _AS_CONDITION * (name != "fs")
                 )
             raise RecordTooLargeError(
                 f"the NPZ's arrays unpack to more than the upload limit ({name!r}: {size} bytes)"

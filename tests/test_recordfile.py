@@ -247,6 +247,13 @@ def test_npz_members_beside_x_y_fs_are_scalar_conditions_and_nothing_else():
         InputError, match=r"NPZ member 'notes' holds 3 values \(shape \(3,\)\); a condition is one"
     ):
         parse_npz(archive, LIMIT)
+    channels = npz_bytes(x=np.ones(300), y=np.ones(300), y2=np.ones(300))  # a second channel
+    message = (
+        "NPZ member 'y2' must be one number, but its header declares shape (300,) of float64; every "
+        "member beside x, y and fs is an operating condition"
+    )
+    with pytest.raises(InputError, match=re.escape(message)):
+        parse_npz(channels, LIMIT)
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
         for name in ("x.npy", "y.npy"):
