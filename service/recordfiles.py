@@ -1,8 +1,10 @@
-"""Reading record files: excitation x and response y with their sampling rate, as CSV, NPZ or MAT.
+"""Reading record files: excitation x and response y with their sampling rate and operating
+conditions, as CSV, NPZ or MAT.
 
-CSV: optional comment lines (``# fs=1500``), a header naming the columns, then one row of
-values a line; ``narxwatch simulate`` writes the header ``x,y``. NPZ: arrays ``x`` and ``y`` and
-a scalar ``fs``, loaded without pickle. MAT: variables of a MATLAB v4/v5 file
+CSV: optional comment lines (``# fs=1500``, conditions ``# temperature=12.5 °C``), a header
+naming the columns, then one row of values a line; ``narxwatch simulate`` writes the header
+``x,y``. NPZ: arrays ``x`` and ``y``, a scalar ``fs`` and a scalar member per condition (no
+unit), loaded without pickle. MAT: variables of a MATLAB v4/v5 file
 (:mod:`service.matfiles`), with the sampling rate in a variable ``fs`` or ``Fs``. Parsing works
 on bytes so that an upload and a file given to the command line go through the same checks; the
 simulator writes the CSV and NPZ layouts (``simulator.recordfile``).
@@ -35,37 +37,56 @@ import numpy as np
 
 from models.errors import InputError
 from service import matfiles
+from service.conditions import (
+    MAX_CONDITIONS,
+    Condition,
+    check_name,
+    checked_conditions,
+    too_many_conditions,
+)
 
 SILVERBOX_FS = 1e7 / 2**14  # Hz: the benchmark's 10 MHz clock divided by 2¹⁴
 ZIP_MAGIC = b"PK\x03\x04"
 _FS_COMMENT = re.compile(r"^#\s*fs\s*=\s*(?P<fs>\S+)\s*$", re.IGNORECASE)
+# A comment line whose first word is followed by "=" states a condition: "# NAME=VALUE [UNIT]".
+# Any other comment line is prose, and ignored.
+_CONDITION_COMMENT = re.compile(r"^#\s*(?P<name>[^\s=]+)\s*=\s*(?P<value>\S*)(?:\s+(?P<unit>.*?))?\s*$")
 _NUMBERED = re.compile(r"(?P<base>.*?)(?P<k>\d+)")
 READABLE = (".csv", ".npz", ".mat")
 
-# An NPZ record holds these members and nothing else.
+# An NPZ record holds these members and, beside them, a scalar member per condition.
 NPZ_MEMBERS = ("x.npy", "y.npy", "fs.npy")
+MAX_NPZ_MEMBERS = len(NPZ_MEMBERS) + MAX_CONDITIONS
 # Room for a member's .npy header (numpy writes 128 bytes; version 2 allows more) over its data.
 NPY_HEADER_BYTES = 4096
-# ``fs`` is one number, possibly written as text: "1500" as a <U4 array takes 16 bytes.
-FS_BYTES = 64
-# numpy writes 46 bytes plus the name and a 20-byte ZIP64 field per member: three members take
-# about 200 bytes. This leaves room for other writers' extra fields (and for naming a few
-# members too many) while keeping zipfile from building a long member list.
-CENTRAL_DIRECTORY_BYTES = 1024
+# ``fs`` and each condition are one number, ``fs`` possibly written as text: "1500" as a <U4
+# array takes 16 bytes.
+SCALAR_BYTES = 64
+# numpy writes 46 bytes plus the name and a 20-byte ZIP64 field per member: the most members a
+# record may have, with names of 36 characters, take about 2 kB. This leaves room for other
+# writers' extra fields (and for naming a few members too many) while keeping zipfile from
+# building a long member list.
+CENTRAL_DIRECTORY_BYTES = 4096
 # Lines a CSV may have beyond its rows (the fs comment, the header, blank lines), counted before
 # it is split into lines.
 CSV_SLACK_LINES = 64
+_SIGNALS = ("x", "y")
+# Why a member that is more than one number is refused, for a file of several channels (y1, y2, …).
+_AS_CONDITION = "; every member beside x, y and fs is an operating condition"
+_SIGNALS_AND_RATE = ("x", "y", "fs")
 _END_OF_CENTRAL_DIRECTORY = struct.Struct("<4s4H2LH")
 _ZIP64_LOCATOR = b"PK\x06\x07"
 
 
 @dataclass(frozen=True)
 class RecordFile:
-    """Signals read from a file; ``fs`` is None when the file does not state it."""
+    """Signals read from a file; ``fs`` is None when the file does not state it. ``conditions``
+    are checked (:func:`service.conditions.checked_conditions`) and sorted by name."""
 
     x: np.ndarray
     y: np.ndarray
     fs: float | None
+    conditions: tuple[Condition, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -147,10 +168,12 @@ def parse_record(
 def parse_csv(
     data: bytes | str, max_samples: int | None = None, layout: Layout = DEFAULT_LAYOUT
 ) -> RecordFile:
-    """Parse CSV text: optional comment lines (``# fs=…``), a header naming the columns, rows.
+    """Parse CSV text: optional comment lines (``# fs=…``, ``# NAME=VALUE [UNIT]``), a header
+    naming the columns, rows.
 
-    The columns ``layout.x`` and ``layout.y`` are read, and the rate from a ``# fs=`` comment or
-    the first row of a column ``fs``. A column ends at its first empty cell (``fs`` after one row),
+    The columns ``layout.x`` and ``layout.y`` are read, the rate from a ``# fs=`` comment or the
+    first row of a column ``fs``, and a condition from each other comment line whose first word
+    is followed by ``=``. A column ends at its first empty cell (``fs`` after one row),
     so that x and y of different lengths are told as such. With ``max_samples``, more rows than
     that are refused, grossly so before the text is split.
     """
@@ -162,12 +185,19 @@ def parse_csv(
         raise too_many_samples("the CSV has", max_samples)
     lines = text.splitlines()
     comment_fs: float | None = None
+    stated: list[Condition] = []
     index = 0
     while index < len(lines) and (lines[index].startswith("#") or not lines[index].strip()):
-        match = _FS_COMMENT.match(lines[index].strip())
+        line = lines[index].strip()
+        match = _FS_COMMENT.match(line)
         if match:
             comment_fs = _sampling_rate(match["fs"])
+        elif match := _CONDITION_COMMENT.match(line):
+            if len(stated) == MAX_CONDITIONS:  # a million such lines cost no more than seventeen
+                raise too_many_conditions()
+            stated.append(_condition_comment(match, index + 1))
         index += 1
+    conditions = checked_conditions(stated)
     if index == len(lines):
         raise InputError(f"the CSV has no header line naming its columns (such as '{layout.x},{layout.y}')")
     groups, count = header_groups(lines[index])
@@ -194,7 +224,25 @@ def parse_csv(
         cell = first_row[column].strip() if column < len(first_row) else ""
         if cell:
             fs = _agreed_rate(comment_fs, _sampling_rate(cell), f"the column {rate_name!r}")
-    return RecordFile(x, y, fs if fs is not None else layout.fs)
+    return RecordFile(x, y, fs if fs is not None else layout.fs, conditions)
+
+
+def _condition_comment(match: re.Match[str], number: int) -> Condition:
+    """The condition a ``# NAME=VALUE [UNIT]`` comment on line ``number`` states."""
+    name, value = match["name"], match["value"]
+    if name.lower() == "fs":
+        raise InputError(
+            f"CSV line {number}: the '# fs=' comment holds the sampling rate in Hz, one number without "
+            f"a unit; found {match.group(0)[:80]!r}"
+        )
+    try:
+        number_value = float(value)
+    except ValueError:
+        raise InputError(
+            f"CSV line {number}: the condition {name[:64]!r} has the value {value[:80]!r}, which is not a "
+            "number; write a condition as '# NAME=VALUE' or '# NAME=VALUE UNIT', e.g. '# temperature=12.5 °C'"
+        ) from None
+    return Condition(name, number_value, match["unit"] or None)
 
 
 def header_groups(line: str) -> tuple[dict[str, list[int]], int]:
@@ -389,12 +437,14 @@ def parse_silverbox(data: bytes | str) -> RecordFile:
 
 
 def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
-    """Parse an NPZ archive with arrays ``x``, ``y`` and optional scalar ``fs``.
+    """Parse an NPZ archive with arrays ``x``, ``y``, an optional scalar ``fs`` and a scalar
+    member per condition, named as the condition (NPZ gives a condition no unit).
 
-    Never unpickles, and never unpacks more than it may keep: the archive may hold only the
-    members ``x``, ``y`` and ``fs``, in a central directory of bounded size; each member's
-    declared size, then its .npy header's shape × item size, is checked before any of its data
-    is decompressed. ``x`` and ``y`` together may hold ``max_bytes``; ``fs`` one number.
+    Never unpickles, and never unpacks more than it may keep: the archive may hold only ``x``,
+    ``y``, ``fs`` and at most :data:`MAX_CONDITIONS` conditions, in a central directory of
+    bounded size; each member's declared size, then its .npy header's shape × item size, is
+    checked before any of its data is decompressed. ``x`` and ``y`` together may hold
+    ``max_bytes``; ``fs`` and each condition one number.
     """
     # A bare .npy or arbitrary bytes would otherwise reach numpy's pickle path.
     if not data.startswith(ZIP_MAGIC):
@@ -406,7 +456,12 @@ def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
             members = _checked_members(archive, budget)
             x = _read_member(archive, "x", budget)
             y = _read_member(archive, "y", budget - x.nbytes)
-            fs = _sampling_rate(_read_member(archive, "fs", FS_BYTES)) if "fs" in members else None
+            fs = _sampling_rate(_read_member(archive, "fs", SCALAR_BYTES)) if "fs" in members else None
+            stated = [
+                Condition(name, _condition_value(name, _read_member(archive, name, SCALAR_BYTES)))
+                for name in members
+                if name not in _SIGNALS_AND_RATE
+            ]
     except InputError:
         raise
     except zipfile.BadZipFile:
@@ -416,7 +471,22 @@ def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
     for name, member in (("x", x), ("y", y)):
         if member.dtype.kind not in "iuf":
             raise InputError(f"NPZ array {name!r} must be numeric, got dtype {member.dtype}")
-    return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs)
+    conditions = checked_conditions(stated)
+    return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs, conditions)
+
+
+def _condition_value(name: str, member: np.ndarray) -> float:
+    """The number an NPZ member holding a condition holds."""
+    if member.dtype.kind not in "iuf":
+        raise InputError(
+            f"NPZ member {name!r} holds a condition, which must be a number; got dtype {member.dtype}"
+        )
+    if member.size != 1:
+        raise InputError(
+            f"NPZ member {name!r} holds {member.size} values (shape {member.shape}); "
+            "a condition is one number" + _AS_CONDITION
+        )
+    return float(member.reshape(()))
 
 
 def _check_central_directory(data: bytes) -> None:
@@ -436,26 +506,45 @@ def _check_central_directory(data: bytes) -> None:
     if directory_size > CENTRAL_DIRECTORY_BYTES:
         raise InputError(
             f"the NPZ lists {entries} members in a {directory_size}-byte directory; "
-            f"it may hold only the arrays x, y and fs"
+            f"it may hold only the arrays x, y and fs and at most {MAX_CONDITIONS} conditions"
         )
 
 
-def _checked_members(archive: zipfile.ZipFile, budget: float) -> set[str]:
-    """The names of the archive's arrays, after checking them against the declared sizes."""
+def _checked_members(archive: zipfile.ZipFile, budget: float) -> list[str]:
+    """The names of the archive's arrays, after checking them and their declared sizes."""
     infos = archive.infolist()
     names = [info.filename for info in infos]
-    unknown = sorted(set(names) - set(NPZ_MEMBERS))
+    if len(names) > MAX_NPZ_MEMBERS:
+        raise InputError(
+            f"the NPZ holds {len(names)} members; a record holds the arrays x, y and fs and at most "
+            f"{MAX_CONDITIONS} conditions"
+        )
+    unknown = sorted(name for name in names if not name.endswith(".npy"))
     if unknown:
-        raise InputError(f"the NPZ may hold only the arrays x, y and fs; it also holds {', '.join(unknown)}")
+        raise InputError(
+            "the NPZ may hold only .npy arrays (x, y, fs and one number per condition); it also holds "
+            + ", ".join(unknown)
+        )
     if len(set(names)) != len(names):
         raise InputError("the NPZ holds the same array twice")
-    members = {name.removesuffix(".npy") for name in names}
-    missing = {"x", "y"} - members
+    members = [name.removesuffix(".npy") for name in names]
+    missing = {"x", "y"} - set(members)
     if missing:
         raise InputError(f"the NPZ lacks array(s) {', '.join(sorted(missing))}; it needs 'x' and 'y'")
-    declared = {info.filename.removesuffix(".npy"): info.file_size for info in infos}
-    if declared.get("fs", 0) > NPY_HEADER_BYTES + FS_BYTES:
-        raise InputError(f"NPZ member 'fs' must be one number, but it unpacks to {declared['fs']} bytes")
+    declared = dict(zip(members, (info.file_size for info in infos), strict=True))
+    for name in members:
+        if name in _SIGNALS:
+            continue
+        if name != "fs":
+            try:
+                check_name(name)
+            except InputError as exc:
+                raise InputError(f"NPZ member {name!r}: {exc}") from None
+        if declared[name] > NPY_HEADER_BYTES + SCALAR_BYTES:
+            raise InputError(
+                f"NPZ member {name!r} must be one number, but it unpacks to {declared[name]} bytes"
+                + _AS_CONDITION * (name != "fs")
+            )
     arrays = declared["x"] + declared["y"]
     if arrays > budget + 2 * NPY_HEADER_BYTES:
         raise RecordTooLargeError(f"the NPZ's arrays unpack to more than the upload limit ({arrays} bytes)")
@@ -481,9 +570,10 @@ def _read_member(archive: zipfile.ZipFile, name: str, limit: float) -> np.ndarra
             raise InputError(f"NPZ member {name!r} holds Python objects, which are never unpickled")
         size = math.prod(shape) * dtype.itemsize  # exact: np.prod would wrap around
         if size > limit:
-            if name == "fs":
+            if name not in _SIGNALS:
                 raise InputError(
-                    f"NPZ member 'fs' must be one number, but its header declares shape {shape} of {dtype}"
+                    f"NPZ member {name!r} must be one number, but its header declares shape {shape} "
+                    f"of {dtype}" + _AS_CONDITION * (name != "fs")
                 )
             raise RecordTooLargeError(
                 f"the NPZ's arrays unpack to more than the upload limit ({name!r}: {size} bytes)"

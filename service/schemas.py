@@ -20,6 +20,7 @@ from pydantic import (
 from models.alarms import DESIGN_SHIFT
 from models.basis import FAMILIES
 from models.inspection import ModeResult
+from service.conditions import Condition
 from service.jobs import JobState
 
 Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f]+$")]
@@ -119,13 +120,23 @@ class JobAccepted(BaseModel):
     detail: str
 
 
+CONDITIONS_HELP = (
+    "The operating conditions the record was acquired under, sorted by name: each a name (a lowercase "
+    "identifier), a finite value and its unit or null"
+)
+
+
 class RecordUpload(Strict):
-    """A record as JSON: excitation x [N], response y [m], sampling rate fs [Hz]."""
+    """A record as JSON: excitation x [N], response y [m], sampling rate fs [Hz], and the operating
+    conditions it was acquired under (checked by ``service.conditions.checked_conditions``)."""
 
     x: Annotated[list[FiniteFloat], Field(min_length=1)]
     y: Annotated[list[FiniteFloat], Field(min_length=1)]
     fs: SamplingRate
     acquired_at: AwareDatetime | None = None
+    conditions: list[Condition] = Field(
+        default=[], description="At most 16, each name once, e.g. {name: temperature, value: 12.5, unit: °C}"
+    )
 
 
 class ModelRef(BaseModel):
@@ -155,6 +166,7 @@ class VerdictOut(BaseModel):
     detected_by: list[str]
     modes: list[ModeResult]
     model_versions: list[ModelRef]
+    conditions: list[Condition] = Field(description=CONDITIONS_HELP)
 
 
 class RecordOut(BaseModel):
@@ -165,6 +177,7 @@ class RecordOut(BaseModel):
     acquired_at: dt.datetime
     created_at: dt.datetime
     sha256: str
+    conditions: list[Condition] = Field(description=CONDITIONS_HELP)
     created: bool = Field(description="False when the same data had been uploaded before")
     verdict: VerdictOut | None = None
 
@@ -181,6 +194,7 @@ class TrendPoint(BaseModel):
     fault_mode: str | None
     k_hat: float | None
     sigma_k: float | None
+    conditions: list[Condition] = Field(description=CONDITIONS_HELP)
 
 
 class Summary(BaseModel):

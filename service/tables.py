@@ -24,6 +24,7 @@ from sqlalchemy import (
 from sqlalchemy.dialects.postgresql import BYTEA, JSONB
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
+from service.conditions import NAME_LENGTH, UNIT_LENGTH
 from service.db import Base
 
 Document = JSON().with_variant(JSONB(), "postgresql")
@@ -156,6 +157,25 @@ class Record(Base):
     x: Mapped[bytes] = mapped_column(Blob)
     y: Mapped[bytes] = mapped_column(Blob)
 
+    conditions: Mapped[list[RecordCondition]] = relationship(
+        order_by="RecordCondition.name", passive_deletes=True
+    )
+
+
+class RecordCondition(Base):
+    """One operating condition of a record (``service.conditions``): a row per name, so that a
+    structure's records can be found and ordered by a condition's value through the index."""
+
+    __tablename__ = "record_conditions"
+    __table_args__ = (Index("ix_record_conditions_value", "structure_id", "name", "value"),)
+
+    record_id: Mapped[int] = mapped_column(ForeignKey("records.id", ondelete="CASCADE"), primary_key=True)
+    name: Mapped[str] = mapped_column(String(NAME_LENGTH), primary_key=True)
+    # The record's structure, repeated so that the index serves "records of a structure by condition".
+    structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"))
+    value: Mapped[float] = mapped_column(Float)
+    unit: Mapped[str | None] = mapped_column(String(UNIT_LENGTH), nullable=True)
+
 
 class Verdict(Base):
     """Every figure of one inspection, unique per record and set of model versions."""
@@ -189,6 +209,12 @@ class Verdict(Base):
     modes: Mapped[list[dict[str, Any]]] = mapped_column(Document)
 
     models: Mapped[list[ModelVersion]] = relationship(secondary="verdict_models")
+    # The conditions of the verdict's record, which every verdict answer shows.
+    conditions: Mapped[list[RecordCondition]] = relationship(
+        primaryjoin="Verdict.record_id == foreign(RecordCondition.record_id)",
+        order_by="RecordCondition.name",
+        viewonly=True,
+    )
 
 
 class VerdictModel(Base):

@@ -65,7 +65,7 @@ from simulator.options import (
 )
 from simulator.paper import CASES, StudySettings
 from simulator.physics import PhysicalParameters, check_stable
-from simulator.recordfile import dump_csv, dump_npz, write_record
+from simulator.recordfile import UNITS, dump_csv, dump_npz, write_record
 from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
 from simulator.temperature import TemperatureCycle, Thermal
 
@@ -401,19 +401,29 @@ class Poster:
     format: Format
 
     def deliver(self, plan: Plan, record: AnyRecord) -> Posted:
-        """The body is what the service reads today: x and one response y, without the
-        temperature (which the printed line and the JSON line carry)."""
+        """The body is what the service reads today: x and one response y, and the record's
+        temperature as its condition ``temperature`` (in °C, a unit NPZ cannot state)."""
         path = f"{API}/structures/{self.structure_id}/records"
         when = plan.acquired_at.isoformat()
         (y,) = record.responses.values()  # one channel: Target.check refused more
+        conditions = record_conditions(record)
         if self.format is Format.json:
-            body = {"x": record.x.tolist(), "y": y.tolist(), "fs": record.fs, "acquired_at": when}
+            body = {
+                "x": record.x.tolist(),
+                "y": y.tolist(),
+                "fs": record.fs,
+                "acquired_at": when,
+                "conditions": [
+                    {"name": name, "value": value, "unit": UNITS.get(name)}
+                    for name, value in conditions.items()
+                ],
+            }
             answer = self.service.request("POST", path, params={"inspect": "true"}, json=body)
         else:
             content = (
-                dump_csv(record.x, y, record.fs).encode()
+                dump_csv(record.x, y, record.fs, conditions).encode()
                 if self.format is Format.csv
-                else dump_npz(record.x, y, record.fs)
+                else dump_npz(record.x, y, record.fs, conditions)
             )
             answer = self.service.request(
                 "POST",
@@ -459,7 +469,7 @@ class Writer:
         self.count += 1
         name = f"record_{self.count:04d}_{plan.scenario.fault}_{plan.scenario.k:g}.{self.format}"
         row = {"path": name, "fault": plan.scenario.fault, "k": plan.scenario.k, "seed": plan.seed}
-        conditions = {} if record.temperature is None else {TEMPERATURE_COLUMN: record.temperature}
+        conditions = record_conditions(record)
         row |= conditions
         try:
             path = write_record(self.directory / name, record.x, record.responses, record.fs, conditions)
@@ -472,6 +482,11 @@ class Writer:
         except OSError as exc:
             raise InputError(f"cannot write into {self.directory} ({exc.strerror})") from None
         return Written(path, row)
+
+
+def record_conditions(record: AnyRecord) -> dict[str, float]:
+    """The operating conditions a record is written or posted with: its temperature, if it has one."""
+    return {} if record.temperature is None else {TEMPERATURE_COLUMN: record.temperature}
 
 
 def manifest_rows(manifest: Path, columns: list[str]) -> int:

@@ -4,8 +4,9 @@ The single-response layouts are the ones ``service.recordfiles`` reads: CSV with
 line ``# fs=1500``, a header ``x,y`` and one ``x,y`` pair a line; NPZ with arrays ``x`` and ``y``
 and a scalar ``fs``. A record of several response channels (the chain's masses, the rig's two)
 names them in place of ``y`` (columns or members ``y1,y2,…``), and a record's operating
-conditions (its temperature in °C) follow the rate as comment lines ``# temperature=12.5`` or as
-scalar NPZ members of that name. The simulator only writes records; reading them (from uploads
+conditions (its temperature in °C) follow the rate as comment lines ``# temperature=12.5 °C``
+(the syntax of ``service.recordfiles``, with the unit of :data:`UNITS`) or as scalar NPZ members
+of that name, which the format gives no unit. The simulator only writes records; reading them (from uploads
 and from files given to the command line) belongs to the service.
 """
 
@@ -20,6 +21,8 @@ import numpy as np
 from models.errors import InputError
 
 FORMATS = (".csv", ".npz")
+# The units of the conditions the simulator states.
+UNITS = {"temperature": "°C"}
 Responses = np.ndarray | Mapping[str, np.ndarray]
 
 
@@ -51,7 +54,8 @@ def dump_csv(x: np.ndarray, y: Responses, fs: float, conditions: Mapping[str, fl
     # 17 significant digits: a rate such as 1500.0000001 reads back as itself, not as 1500.
     buffer.write(f"# fs={fs:.17g}\n")
     for name, value in (conditions or {}).items():
-        buffer.write(f"# {name}={value:.17g}\n")
+        unit = UNITS.get(name)
+        buffer.write(f"# {name}={value:.17g}" + (f" {unit}" if unit else "") + "\n")
     buffer.write(",".join(["x", *responses]) + "\n")
     np.savetxt(buffer, np.column_stack([x, *responses.values()]), delimiter=",", fmt="%.17g")
     return buffer.getvalue()

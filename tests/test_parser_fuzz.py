@@ -27,10 +27,18 @@ FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCh
 
 rng = np.random.default_rng(0)
 X, Y = rng.normal(size=40), rng.normal(size=40)
-VALID_CSV = dump_csv(X, Y, 1500.0).encode()
-VALID_NPZ = dump_npz(X, Y, 1500.0)
+CONDITIONS = {"temperature": 12.5, "speed": 3.0}
+VALID_CSV = dump_csv(X, Y, 1500.0, CONDITIONS).encode()
+VALID_NPZ = dump_npz(X, Y, 1500.0, CONDITIONS)
 VALID_SILVERBOX = ('"V1","V2",\n' + "".join(f"{a},{b},\n" for a, b in zip(X, Y, strict=True))).encode()
-VALID_JSON = json.dumps({"x": X.tolist(), "y": Y.tolist(), "fs": 1500.0}).encode()
+VALID_JSON = json.dumps(
+    {
+        "x": X.tolist(),
+        "y": Y.tolist(),
+        "fs": 1500.0,
+        "conditions": [{"name": "t", "value": 1.0, "unit": "°C"}],
+    }
+).encode()
 
 
 def mutated(valid: bytes) -> st.SearchStrategy[bytes]:
@@ -53,6 +61,7 @@ def check(parse, data: bytes) -> None:
     for signal in (record.x, record.y):
         assert signal.dtype == np.float64 and signal.ndim == 1
     assert record.x.shape == record.y.shape
+    assert all(np.isfinite(condition.value) for condition in record.conditions)
 
 
 @FUZZ
@@ -74,7 +83,7 @@ def test_npz_parser_never_crashes(data: bytes) -> None:
 
 
 @FUZZ
-@given(st.sampled_from(["x", "y", "fs"]), st.binary(max_size=512))
+@given(st.sampled_from(["x", "y", "fs", "temperature"]), st.binary(max_size=512))
 def test_npz_with_an_arbitrary_member_never_crashes(name: str, member: bytes) -> None:
     """A well-formed archive whose member is arbitrary bytes: the .npy reader is fuzzed directly."""
     buffer = io.BytesIO()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import re
 import tracemalloc
 import zipfile
 import zlib
@@ -16,6 +17,7 @@ from conftest import SILVERBOX_SHA256
 from npz_bombs import bomb_member, bomb_npz, cut_off_header_npz, npy, npy_header, stored, zip_archive
 
 from models.errors import InputError
+from service.conditions import MAX_CONDITIONS, Condition
 from service.recordfiles import (
     RecordTooLargeError,
     parse_csv,
@@ -201,6 +203,7 @@ def peak_allocation(action: Callable[[], object]) -> int:
     ("member", "error", "message"),
     [
         ("fs", InputError, "NPZ member 'fs' must be one number"),
+        ("temperature", InputError, "NPZ member 'temperature' must be one number"),
         ("x", RecordTooLargeError, "unpack to more than the upload limit"),
         ("y", RecordTooLargeError, "unpack to more than the upload limit"),
     ],
@@ -238,9 +241,101 @@ def test_npz_with_a_cut_off_npy_header_is_refused_with_the_reason():
         parse_npz(cut_off_header_npz(np.ones(3)), LIMIT)
 
 
-def test_npz_with_members_other_than_x_y_fs_is_refused():
-    archive = npz_bytes(x=np.ones(3), y=np.ones(3), fs=1500.0, notes=np.zeros(1))
-    with pytest.raises(InputError, match=r"may hold only the arrays x, y and fs; it also holds notes\.npy"):
+def test_npz_members_beside_x_y_fs_are_scalar_conditions_and_nothing_else():
+    archive = npz_bytes(x=np.ones(3), y=np.ones(3), fs=1500.0, notes=np.zeros(3))
+    with pytest.raises(
+        InputError, match=r"NPZ member 'notes' holds 3 values \(shape \(3,\)\); a condition is one"
+    ):
+        parse_npz(archive, LIMIT)
+    channels = npz_bytes(x=np.ones(300), y=np.ones(300), y2=np.ones(300))  # a second channel
+    message = (
+        "NPZ member 'y2' must be one number, but its header declares shape (300,) of float64; every "
+        "member beside x, y and fs is an operating condition"
+    )
+    with pytest.raises(InputError, match=re.escape(message)):
+        parse_npz(channels, LIMIT)
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for name in ("x.npy", "y.npy"):
+            archive.writestr(name, npy(np.ones(3)))
+        archive.writestr("notes.txt", b"recorded on the north span")
+    with pytest.raises(
+        InputError, match=r"may hold only \.npy arrays \(x, y, fs and one number per condition\); it"
+    ):
+        parse_npz(buffer.getvalue(), LIMIT)
+
+
+@pytest.mark.parametrize(("suffix", "unit"), [(".csv", "°C"), (".npz", None)])
+def test_the_simulators_conditions_read_back_exactly(tmp_path, signals, suffix, unit):
+    """The simulator writes a record's temperature as ``# temperature=… °C`` or as a scalar member
+    (which has no unit): read back to the last digit."""
+    path = write_record(
+        tmp_path / f"r{suffix}", *signals, 1500.0, {"temperature": 12.345678901234567, "level": -3}
+    )
+    assert read_record(path).conditions == (
+        Condition("level", -3.0),
+        Condition("temperature", 12.345678901234567, unit),
+    )
+
+
+def test_the_unitless_comment_of_earlier_simulator_files_is_read():
+    record = parse_csv("# fs=1500\n# temperature=12.5\nx,y\n1,2\n")
+    assert record.conditions == (Condition("temperature", 12.5),)
+
+
+def test_csv_conditions_are_assignment_comments_before_the_header():
+    text = (
+        "# a record of the north span, 12 = 3 * 4\n"  # prose: its first word is not followed by "="
+        "#temperature = -4.5  °C  \n"
+        "# fs=1500\n"
+        "\n"
+        "# excitation_level=2e-1 N\n"
+        "x,y\n1,2\n3,4\n"
+    )
+    record = parse_csv(text)
+    assert record.fs == 1500.0
+    assert record.conditions == (
+        Condition("excitation_level", 0.2, "N"),
+        Condition("temperature", -4.5, "°C"),
+    )
+    assert parse_csv("x,y\n1,2\n").conditions == ()
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("# temperature=12.5 deg C\n", "the unit 'deg C' of condition 'temperature' is not allowed"),
+        (
+            "# temperature=\n",
+            "CSV line 1: the condition 'temperature' has the value '', which is not a number",
+        ),
+        ("# t=1\n# u=2\n# t=3\n", "the condition 't' is given twice"),
+        ("# y=1\n", "'y' cannot name a condition"),
+        ("# Fs=1500 Hz\n", "CSV line 1: the '# fs=' comment holds the sampling rate in Hz"),
+        ("".join(f"# v{i}=0\n" for i in range(17)), "a record may carry at most 16 conditions"),
+    ],
+)
+def test_malformed_csv_conditions_are_refused_with_the_reason(text, message):
+    with pytest.raises(InputError, match=re.escape(message)):
+        parse_csv(text + "x,y\n1,2\n")
+
+
+def test_csv_with_endless_condition_lines_is_refused_at_the_first_too_many():
+    text = b"# t=1\n" * 1_000_000 + b"x,y\n1,2\n"
+    with pytest.raises(InputError, match="a record may carry at most 16 conditions"):
+        parse_csv(text)
+    assert peak_allocation(lambda: parse_csv(text)) < 80 * 2**20  # the text's lines, not a million conditions
+
+
+def test_npz_with_more_members_than_a_record_has_is_refused_before_any_is_read():
+    conditions = {f"v{index}": np.float64(index) for index in range(MAX_CONDITIONS)}
+    assert (
+        len(parse_npz(npz_bytes(x=np.ones(3), y=np.ones(3), fs=1500.0, **conditions), LIMIT).conditions) == 16
+    )
+    archive = npz_bytes(x=np.ones(3), y=np.ones(3), fs=1500.0, extra=np.float64(1), **conditions)
+    with pytest.raises(
+        InputError, match="the NPZ holds 20 members; a record holds the arrays x, y and fs and"
+    ):
         parse_npz(archive, LIMIT)
 
 

@@ -338,7 +338,7 @@ def test_stream_writes_channels_and_each_records_temperature_from_its_time(tmp_p
     chain = ChainParameters.build(5, [10.0], [50e3], [300.0])
     for row, temperature, seed in zip(rows, expected, (40, 41, 42), strict=True):
         path = tmp_path / "d" / row["path"]
-        assert f"# temperature={temperature:.17g}\n" in path.read_text()
+        assert f"# temperature={temperature:.17g} °C\n" in path.read_text()
         again = simulate_chain(
             ChainScenario(chain, "k4", 5.0, disturbance_std=800.0, temperature=temperature), 2000, seed
         )

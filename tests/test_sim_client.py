@@ -30,6 +30,7 @@ from service.recordfiles import read_record
 from service.security import Role
 from simulator.paper import StudySettings
 from simulator.simulate import Scenario, simulate
+from simulator.temperature import TemperatureCycle
 
 SIM = shutil.which("narxwatch-sim", path=str(Path(sys.executable).parent))
 SETTINGS = StudySettings()
@@ -179,6 +180,26 @@ def test_stream_posts_count_records_every_period(trained: Trained):
     assert offsets == [dt.timedelta(seconds=s) for s in (0.0, 0.2, 0.4)]
     seeds = [int(re.search(r"seed (\d+)\)", line)[1]) for line in lines]
     assert seeds == [seeds[0], seeds[0] + 1, seeds[0] + 2]
+
+
+@pytest.mark.parametrize(("body", "unit"), [("json", "°C"), ("csv", "°C"), ("npz", None)])
+def test_a_streamed_records_temperature_is_stored_as_its_condition(trained: Trained, body: str, unit):
+    """Each record of a stream over the seasons arrives with the temperature it was simulated at,
+    to the last digit, as the condition ``temperature`` of its stored record and verdict (an NPZ
+    body states no unit)."""
+    start = dt.datetime(2031, 1, 1, 3, tzinfo=dt.UTC)
+    every = 91 * 86400 + 6 * 3600
+    args = ["stream", "--temperature", "10", "--daily-amplitude", "5", "--seasonal-amplitude", "15"]
+    args += ["--every", str(every), "--count", "2", "--no-wait", "--acquired-at", start.isoformat()]
+    result = post(trained, *args, "--format", body, "--json")
+    cycle = TemperatureCycle(10.0, 5.0, 15.0)
+    expected = [cycle.at(start + dt.timedelta(seconds=i * every)) for i in range(2)]
+    printed = [json.loads(line) for line in result.stdout.splitlines()]
+    assert [line["temperature"] for line in printed] == expected
+    stored = {v["id"]: v for v in verdicts(trained)}
+    for line, temperature in zip(printed, expected, strict=True):
+        condition = {"name": "temperature", "value": temperature, "unit": unit}
+        assert stored[line["id"]]["conditions"] == line["conditions"] == [condition]
 
 
 def test_out_writes_files_and_a_manifest_and_posts_nothing(trained: Trained, tmp_path: Path):

@@ -15,7 +15,7 @@ from service.api.expensive import BUSY, slot
 from service.api.params import IdPath, utc
 from service.api.uploads import REQUEST_BODY, parse_upload
 from service.config import Settings
-from service.domain import inspections
+from service.domain import inspections, records
 from service.domain.ingest import Ingested, QueueInspection, ingest_record
 from service.jobs import JobBackend
 from service.jobs.tasks import INSPECT_RECORD
@@ -130,7 +130,17 @@ def _parse_and_ingest(
     upload = parse_upload(body, content_type, acquired_at, settings.max_upload_bytes, layout)
     when = utc(upload.acquired_at, "acquired_at")
     return ingest_record(
-        session, principal, settings, structure_id, upload.x, upload.y, upload.fs, when, inspect, queue
+        session,
+        principal,
+        settings,
+        structure_id,
+        upload.x,
+        upload.y,
+        upload.fs,
+        when,
+        inspect,
+        queue,
+        upload.conditions,
     )
 
 
@@ -150,6 +160,7 @@ def _record_out(ingested: Ingested) -> RecordOut:
         acquired_at=record.acquired_at,
         created_at=record.created_at,
         sha256=record.sha256,
+        conditions=records.as_conditions(record.conditions),
         created=ingested.created,
         verdict=inspections.verdict_out(verdict) if verdict is not None else None,
     )

@@ -10,6 +10,7 @@ from fastapi import HTTPException, status
 from pydantic import ValidationError
 
 from models.errors import InputError
+from service.conditions import MAX_CONDITIONS, UNIT_LENGTH, Condition, checked_conditions
 from service.recordfiles import DEFAULT_LAYOUT, Layout, parse_record, record_samples, too_many_samples
 from service.schemas import RecordUpload
 
@@ -19,7 +20,9 @@ NPZ_TYPES = ("application/x-npz", "application/zip", "application/octet-stream")
 MAT = "application/x-matlab-data"  # as mime.types names .mat files
 # The record file format (service.recordfiles) of each media type but JSON.
 FILE_FORMATS = {CSV: ".csv", MAT: ".mat"} | dict.fromkeys(NPZ_TYPES, ".npz")
-JSON_SLACK_COMMAS = 8
+# Commas of a JSON record beyond those between its samples: between the fields, and three for each
+# condition with any its unit holds.
+JSON_SLACK_COMMAS = 8 + MAX_CONDITIONS * (3 + UNIT_LENGTH)
 
 REQUEST_BODY = {
     "required": True,
@@ -28,7 +31,8 @@ REQUEST_BODY = {
         CSV: {
             "schema": {
                 "type": "string",
-                "description": "optional '# fs=1500' line, a header naming the columns, rows",
+                "description": "optional comment lines ('# fs=1500', conditions such as "
+                "'# temperature=12.5 °C'), a header naming the columns, rows",
             }
         },
         "application/x-npz": {"schema": {"type": "string", "format": "binary"}},
@@ -43,6 +47,7 @@ class Upload:
     y: np.ndarray | list[float]
     fs: float | None
     acquired_at: dt.datetime | None
+    conditions: tuple[Condition, ...]  # checked, sorted by name
 
 
 def parse_upload(
@@ -76,7 +81,8 @@ def parse_upload(
             raise InputError(_describe(exc)) from None
         if max(len(record.x), len(record.y)) > max_samples:
             raise too_many_samples("the JSON holds", max_samples)
-        return Upload(record.x, record.y, record.fs, record.acquired_at or acquired_at)
+        conditions = checked_conditions(record.conditions)
+        return Upload(record.x, record.y, record.fs, record.acquired_at or acquired_at, conditions)
     suffix = FILE_FORMATS.get(media)
     if suffix is None:
         raise HTTPException(
@@ -84,7 +90,7 @@ def parse_upload(
             f"unsupported Content-Type {media or '(none)'!r}: send {JSON}, {CSV}, application/x-npz or {MAT}",
         )
     parsed = parse_record(body, suffix, layout, max_bytes)
-    return Upload(parsed.x, parsed.y, parsed.fs, acquired_at)
+    return Upload(parsed.x, parsed.y, parsed.fs, acquired_at, parsed.conditions)
 
 
 def _describe(error: ValidationError) -> str:

@@ -12,7 +12,8 @@ from sqlalchemy import and_, func, or_, select
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
-from service.domain.inspections import MODEL_REFS, verdict_out
+from service.domain.inspections import CONDITIONS, MODEL_REFS, verdict_out
+from service.domain.records import as_conditions
 from service.domain.structures import get_structure
 from service.schemas import MAX_ID, Summary, TrendPoint, VerdictPage
 from service.security import Principal
@@ -52,7 +53,7 @@ def history(
             or_(Verdict.acquired_at < at, and_(Verdict.acquired_at == at, Verdict.id < verdict_id))
         )
     query = query.order_by(Verdict.acquired_at.desc(), Verdict.id.desc()).limit(limit + 1)
-    rows = list(session.scalars(query.options(MODEL_REFS)))
+    rows = list(session.scalars(query.options(MODEL_REFS, CONDITIONS)))
     page, more = rows[:limit], len(rows) > limit
     return VerdictPage(
         items=[verdict_out(v) for v in page],
@@ -75,7 +76,7 @@ def summary(session: Session, principal: Principal, structure_id: int) -> Summar
             .where(Verdict.structure_id == structure_id)
             .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
             .limit(TREND_POINTS)
-            .options(MODEL_REFS)
+            .options(MODEL_REFS, CONDITIONS)
         )
     )
     trend = [
@@ -86,6 +87,7 @@ def summary(session: Session, principal: Principal, structure_id: int) -> Summar
             fault_mode=v.fault_mode,
             k_hat=v.k_hat,
             sigma_k=v.sigma_k,
+            conditions=as_conditions(v.conditions),
         )
         for v in reversed(newest)
     ]

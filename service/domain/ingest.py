@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from numpy.typing import ArrayLike
@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 from models.inspection import checked_for_inspection
 from models.signals import checked_record, minimum_samples
 from models.terms import max_degree
+from service.conditions import Condition
 from service.config import Settings
 from service.domain import inspections, records, structures
 from service.domain.modelling import active_fault_modes
@@ -42,9 +43,11 @@ def ingest_record(
     acquired_at: dt.datetime | None,
     inspect: bool,
     queue: QueueInspection | None = None,
+    conditions: Sequence[Condition] = (),
 ) -> Ingested:
-    """Store a record and, with ``inspect``, its verdict under the active fault-mode models, or
-    through ``queue`` an inspection job in the same transaction (committed by the caller).
+    """Store a record with its (checked) conditions and, with ``inspect``, its verdict under the
+    active fault-mode models, or through ``queue`` an inspection job in the same transaction
+    (committed by the caller).
 
     Everything that can refuse the record runs before the first write, cheapest first: the
     sampling rate, then one check of the signals against what they will face (the inspection's
@@ -68,7 +71,7 @@ def ingest_record(
         x, y = checked_record(
             x, y, minimum_samples(settings.lags), degree=_degree_to_hold(session, structure)
         )
-    record, created = records.store_record(session, structure, x, y, rate, acquired_at)
+    record, created = records.store_record(session, structure, x, y, rate, acquired_at, conditions)
     verdict = (
         inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
     )

@@ -16,7 +16,7 @@ from service.db import insert_unless_exists
 from service.domain import alarms
 from service.domain.errors import ConflictError
 from service.domain.modelling import active_fault_modes
-from service.domain.records import signals
+from service.domain.records import as_conditions, signals
 from service.domain.structures import get_owned, get_structure
 from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
@@ -25,6 +25,9 @@ from service.tables import ModelVersion, Record, Structure, Verdict, VerdictMode
 # A verdict's model versions as verdict_out names them (id, name, version), never their
 # documents: those can be large, and no verdict answer or history page shows them.
 MODEL_REFS = selectinload(Verdict.models).load_only(ModelVersion.id, ModelVersion.name, ModelVersion.version)
+# The conditions of a verdict's record, which verdict_out shows too: with MODEL_REFS, everything
+# verdict_out reads beyond the verdict's own row, loaded for a page of verdicts in two queries.
+CONDITIONS = selectinload(Verdict.conditions)
 
 
 @dataclass(frozen=True)
@@ -143,7 +146,13 @@ def store_verdict(
         [{"verdict_id": inserted.id, "model_version_id": v.id} for v in versions],
     )
     alarms.evaluate(session, structure)  # in the same transaction: the verdict and its alarms, or neither
-    return Verdict(id=inserted.id, created_at=inserted.created_at, models=versions, **values)
+    return Verdict(
+        id=inserted.id,
+        created_at=inserted.created_at,
+        models=versions,
+        conditions=record.conditions,
+        **values,
+    )
 
 
 def verdict_under(session: Session, record_id: int, versions: list[ModelVersion]) -> Verdict | None:
@@ -152,7 +161,7 @@ def verdict_under(session: Session, record_id: int, versions: list[ModelVersion]
 
 
 def get_verdict(session: Session, principal: Principal, verdict_id: int) -> Verdict:
-    return get_owned(session, principal, Verdict, verdict_id, "verdict", options=[MODEL_REFS])
+    return get_owned(session, principal, Verdict, verdict_id, "verdict", options=[MODEL_REFS, CONDITIONS])
 
 
 def verdict_out(verdict: Verdict) -> VerdictOut:
@@ -185,6 +194,7 @@ def verdict_out(verdict: Verdict) -> VerdictOut:
             ModelRef(id=m.id, name=m.name, version=m.version)
             for m in sorted(verdict.models, key=lambda m: m.name)
         ],
+        conditions=as_conditions(verdict.conditions),
     )
 
 
@@ -192,6 +202,6 @@ def _find(session: Session, record_id: int, model_set: str) -> Verdict | None:
     query = (
         select(Verdict)
         .where(Verdict.record_id == record_id, Verdict.model_set == model_set)
-        .options(MODEL_REFS)
+        .options(MODEL_REFS, CONDITIONS)
     )
     return session.scalar(query)

@@ -1,4 +1,4 @@
-"""Records: deduplicated by content, stored as .npy bytes."""
+"""Records: deduplicated by content, stored as .npy bytes, with the conditions they were acquired under."""
 
 from __future__ import annotations
 
@@ -6,17 +6,20 @@ import datetime as dt
 import hashlib
 import io
 import math
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
-from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy import insert, select
+from sqlalchemy.orm import Session, selectinload
 
 from models.errors import InputError
+from service.conditions import Condition
 from service.db import insert_unless_exists
+from service.domain.errors import ConflictError
 from service.domain.structures import get_owned
 from service.security import Principal
-from service.tables import Record, Structure, utcnow
+from service.tables import Record, RecordCondition, Structure, utcnow
 
 # Rates that differ by less than this share are one rate written two ways (1500 and
 # 1500.0000001 from a float32 clock or a division): far below any real difference of clocks.
@@ -52,12 +55,18 @@ def store_record(
     y: ArrayLike,
     rate: float,
     acquired_at: dt.datetime | None,
+    conditions: Sequence[Condition] = (),
 ) -> tuple[Record, bool]:
-    """Store a record, or return the stored one with the same data; True when new.
+    """Store a record with its conditions, or return the stored one with the same data; True when new.
 
     The signals are stored as given: validate them first, with ``models.signals.checked_record``
-    or through the inspection (``models.inspection.inspect`` checks what it inspects), and the
-    rate with :func:`checked_rate`. Checking here too would validate every upload twice.
+    or through the inspection (``models.inspection.inspect`` checks what it inspects), the rate
+    with :func:`checked_rate` and the conditions with ``service.conditions.checked_conditions``.
+    Checking here too would validate every upload twice.
+
+    The data identify a record, its conditions do not: a record is the same record whatever an
+    upload says of it, so an upload of stored data that states other conditions than the stored
+    ones is a conflict (one that states none takes the record as it is).
     """
     xa, ya = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     sha = content_hash(xa, ya, rate)
@@ -73,9 +82,45 @@ def store_record(
     # Inserted first, looked up only on conflict: a new record, the common case, costs one statement.
     inserted = insert_unless_exists(session, Record, values, ["structure_id", "sha256"])
     if inserted is None:  # uploaded before, or concurrently: keep the first
-        return _find_or_fail(session, structure.id, sha), False
+        found = _find_or_fail(session, structure.id, sha)
+        _check_same_conditions(found, conditions)
+        return found, False
+    rows = [
+        {
+            "record_id": inserted.id,
+            "structure_id": structure.id,
+            "name": c.name,
+            "value": c.value,
+            "unit": c.unit,
+        }
+        for c in conditions
+    ]
+    if rows:
+        session.execute(insert(RecordCondition.__table__), rows)
     # Built from what was written rather than read back: the blobs need no second trip.
-    return Record(id=inserted.id, created_at=inserted.created_at, **values), True
+    stored = [RecordCondition(**row) for row in rows]
+    return Record(id=inserted.id, created_at=inserted.created_at, conditions=stored, **values), True
+
+
+def as_conditions(rows: Iterable[RecordCondition]) -> list[Condition]:
+    """A record's stored conditions as the API shows them."""
+    return [Condition(row.name, row.value, row.unit) for row in rows]
+
+
+def describe_conditions(conditions: Sequence[Condition]) -> str:
+    """``temperature=12.5 °C, speed=3``; "none" for none."""
+    listed = [f"{c.name}={c.value:g}" + (f" {c.unit}" if c.unit else "") for c in conditions]
+    return ", ".join(listed) or "none"
+
+
+def _check_same_conditions(record: Record, conditions: Sequence[Condition]) -> None:
+    stored = as_conditions(record.conditions)
+    if conditions and list(conditions) != stored:
+        raise ConflictError(
+            f"record {record.id} holds the same data and was stored with the conditions "
+            f"{describe_conditions(stored)}; this upload states {describe_conditions(conditions)}. "
+            "A record keeps the conditions of its first upload"
+        )
 
 
 def get_record(session: Session, principal: Principal, record_id: int) -> Record:
@@ -94,7 +139,8 @@ def _find_or_fail(session: Session, structure_id: int, sha: str) -> Record:
 
 
 def _find(session: Session, structure_id: int, sha: str) -> Record | None:
-    return session.scalar(select(Record).where(Record.structure_id == structure_id, Record.sha256 == sha))
+    query = select(Record).where(Record.structure_id == structure_id, Record.sha256 == sha)
+    return session.scalar(query.options(selectinload(Record.conditions)))
 
 
 def _npy(values: np.ndarray) -> bytes:
