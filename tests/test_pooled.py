@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import DISTURBANCE_STD, exact_narx_residual, scaled_lstsq
+from conftest import DISTURBANCE_STD, exact_narx_residual, exact_regressors, scaled_lstsq
 from scipy import signal, stats
 
 from models.errors import InputError
@@ -24,7 +24,7 @@ from models.pooled import (
 from simulator.physics import PhysicalParameters
 from simulator.simulate import Scenario, simulate
 from simulator.temperature import Thermal
-from simulator.theory import EXACT_TERMS, exact_coefficients
+from simulator.theory import EXACT_TERMS, exact_coefficients, exact_narx
 
 ARX_TERMS = ["y[t-1]", "y[t-2]", "x[t-1]"]
 T_LOW, T_HIGH = -10.0, 30.0
@@ -167,13 +167,18 @@ def test_document_refusals(arx_case) -> None:
 # ---------------------------------------------------------------- simulator: temperature
 
 
-@pytest.fixture(scope="module")
-def pooled_baseline() -> PooledModel:
+def train_pooled_baseline(seed0: int) -> PooledModel:
+    """Nine 2000-sample healthy experiments at −10, −5, …, 30 °C."""
     runs = []
     for i, T in enumerate(TRAINING_TEMPERATURES):
-        rec = simulate(Scenario(disturbance_std=DISTURBANCE_STD, temperature=float(T)), N, seed=2000 + i)
+        rec = simulate(Scenario(disturbance_std=DISTURBANCE_STD, temperature=float(T)), N, seed=seed0 + i)
         runs.append(PooledExperiment(rec.x, rec.y, {"temperature": float(T)}))
     return fit_pooled(runs, EXACT_TERMS)
+
+
+@pytest.fixture(scope="module")
+def pooled_baseline() -> PooledModel:
+    return train_pooled_baseline(2000)
 
 
 def healthy(T: float, seed: int):
@@ -189,12 +194,15 @@ def test_pooled_baseline_follows_the_exact_narx(pooled_baseline) -> None:
         assert np.all(np.abs((narx.theta - exact) / narx.standard_errors()) < 4), T
 
 
-def test_one_temperature_baseline_alarms_where_the_pooled_one_does_not(pooled_baseline) -> None:
+def test_one_temperature_baseline_alarms_where_the_pooled_one_does_not() -> None:
     """40 healthy records at temperatures drawn uniformly over −10 … 30 °C. The baseline of
     today, one NARX trained on 18 000 samples at 20 °C, raises an alarm on most (every record
-    at −10 °C, its springs 15 % stiffer, or +30 °C, 5 % softer); the pooled baseline's false
-    alarms are Binomial(40, ≤ α) up to the small estimation effects its docstring bounds, and
-    stay below that binomial's 0.999 quantile."""
+    at −10 °C, its springs 15 % stiffer, or +30 °C, 5 % softer). The pooled baseline's test
+    has size α over the training data too (its reference variance carries its own estimation
+    error), so four pooled baselines, each trained anew and judging ten records, make 40
+    nearly independent trials: their false alarms stay below the 0.999 quantile of
+    Binomial(40, α). (One model judging all 40 would share its error of σ̂²(w), about half the
+    record's own standard error, among them.)"""
     rec = simulate(Scenario(disturbance_std=DISTURBANCE_STD, temperature=20.0), 9 * N, seed=2100)
     one_temperature = fit_narx([(rec.x, rec.y)], EXACT_TERMS)
     for index, T in enumerate((T_LOW, T_LOW, T_HIGH, T_HIGH)):
@@ -203,6 +211,8 @@ def test_one_temperature_baseline_alarms_where_the_pooled_one_does_not(pooled_ba
     temperatures = np.random.default_rng(2300).uniform(T_LOW, T_HIGH, 40)
     alarms_one = alarms_pooled = 0
     for index, T in enumerate(temperatures):
+        if index % 10 == 0:
+            pooled_baseline = train_pooled_baseline(3000 + index)
         record = healthy(float(T), 2400 + index)
         alarms_one += check_baseline(one_temperature, record.x, record.y).fault_detected
         pooled = check_baseline(pooled_baseline, record.x, record.y, {"temperature": float(T)})
@@ -213,16 +223,28 @@ def test_one_temperature_baseline_alarms_where_the_pooled_one_does_not(pooled_ba
 
 
 def test_check_baseline_figures(pooled_baseline) -> None:
-    """The check's figures are those of the tests it names: F = mean(e²)/σ̂²(w) against
-    F(N − 4, ν_0) at α_F = 1 − 0.95/0.999, Ljung–Box at α_Q = 0.001."""
+    """The check's figures are those of the tests it names: F = mean(e²)/(σ̂²(w) + mean φᵀCφ)
+    against F(N − 4, ν_0) at α_F = 1 − 0.95/0.999, Ljung–Box at α_Q = 0.001."""
     record = healthy(12.0, 2500)
     check = check_baseline(pooled_baseline, record.x, record.y, {"temperature": 12.0, "wind": 3.0})
     narx = pooled_baseline.narx_at({"temperature": 12.0})
     residuals = exact_narx_residual(record.x, record.y, narx.theta)
     np.testing.assert_allclose(check.residuals, residuals, rtol=1e-9, atol=1e-15)
     sigma2, dof = pooled_baseline.variance_at({"temperature": 12.0})
-    assert check.variance_ratio == pytest.approx(np.mean(residuals**2) / sigma2, rel=1e-9)
+    Phi, _ = exact_regressors(record.x, record.y)
+    estimation = np.mean([phi @ narx.covariance @ phi for phi in Phi])
+    assert 0 < estimation < 0.01 * sigma2
+    assert check.reference_sigma2 == pytest.approx(sigma2 + estimation, rel=1e-9)
+    assert check.variance_ratio == pytest.approx(np.mean(residuals**2) / (sigma2 + estimation), rel=1e-9)
     assert check.reference_dof == pytest.approx(dof)
+    # A plain NARX is its own reference: σ̂²·n/(n − 8) on n_obs degrees of freedom.
+    plain = check_baseline(narx, record.x, record.y)
+    assert plain.reference_sigma2 == pytest.approx(
+        narx.sigma2 * narx.n_obs / (narx.n_obs - 8) + estimation, rel=1e-9
+    )
+    assert plain.reference_dof == narx.n_obs
+    with pytest.raises(InputError, match="no residual variance to test against"):
+        check_baseline(exact_narx(PhysicalParameters()), record.x, record.y)
     assert check.variance_critical == pytest.approx(stats.f.ppf(0.95 / 0.999, N - 4, dof), rel=1e-9)
     assert check.q_critical == pytest.approx(stats.chi2.ppf(0.999, 39), rel=1e-9)
     assert check.fault_detected == (
@@ -297,6 +319,7 @@ def small_runs() -> list[PooledExperiment]:
 def test_refuses_records_outside_the_trained_range(arx_case) -> None:
     """Within 1 % of the 40 °C span (0.4 °C) beyond an end a record is evaluated; beyond, refused."""
     _, model, _ = arx_case
+    assert model.ranges == {"temperature": (T_LOW, T_HIGH)}
     model.narx_at({"temperature": 30.3})
     model.narx_at({"temperature": -10.3})
     for T in (30.5, -11.0, 45.0):
