@@ -329,6 +329,9 @@ def fit_pooled(
     degrees : the degree of each argument, by name, instead of the search.
     lag : the first equation of each experiment, as for :func:`models.fnarx.fit_fnarx`.
 
+    Each candidate costs one QR of a (M·(n_terms + 1)) × (n_terms·P) matrix, P < M; the
+    experiments' own QRs are computed once.
+
     Returns
     -------
     PooledModel
@@ -358,6 +361,7 @@ def fit_pooled(
         raise InputError(f"max_degree must be a whole number from 0 to {MAX_DEGREE}, got {max_degree}")
     parsed = parse_terms(terms)
     compressed = _compress(runs, parsed, lag)
+    n = int(compressed.lengths.sum())
     spans = [(float(column.min()), float(column.max())) for column in xi.T]
 
     def bases_for(choice: Sequence[int]) -> tuple[FunctionalBasis, ...]:
@@ -379,22 +383,19 @@ def fit_pooled(
                     f"there are {len(runs)}"
                 )
             continue
-        fit = _solve(compressed, G, parsed)
-        n = int(compressed.lengths.sum())
-        sigma2 = float(np.sum(fit[1]) / n)
-        parameters = len(parsed) * G.shape[1]
+        theta, per_experiment, covariance = _solve(compressed, G, parsed)
+        sigma2 = float(np.sum(per_experiment) / n)
         table.append(
             DegreeCandidate(
-                tuple(choice), parameters, sigma2, float(n * np.log(sigma2) + parameters * np.log(n))
+                tuple(choice), theta.size, sigma2, float(n * np.log(sigma2) + theta.size * np.log(n))
             )
         )
-        fits[tuple(choice)] = (bases, G, fit)
+        fits[tuple(choice)] = (bases, G, theta, per_experiment, covariance)
     best = min(table, key=lambda row: row.bic)
-    bases, G, (theta, per_experiment, covariance) = fits[best.degrees]
+    bases, G, theta, per_experiment, covariance = fits[best.degrees]
     sigma2 = per_experiment / compressed.lengths
     # The residuals of the fit fall short of the noise by the n_θ dimensions the fit used up:
     # E Σe² = (n − n_θ)·σ². The variance model is fitted on the unbiased σ̂²_m·n/(n − n_θ).
-    n = int(compressed.lengths.sum())
     unbiased = sigma2 * n / (n - theta.size)
     log_variance, log_variance_covariance = _log_variance_fit(G, unbiased, compressed.lengths)
     return PooledModel(

@@ -398,3 +398,15 @@ def test_refuses_bad_settings(small_runs) -> None:
     )
     with pytest.raises(InputError, match="'k2' is a pooled fault mode; evaluate it with fnarx_at"):
         faulty.narx_at({"temperature": 0.0})
+
+
+def test_pooled_fault_mode_refuses_records_it_cannot_judge(pooled_k2) -> None:
+    record = simulate(
+        Scenario(fault="k2", k=3.0, disturbance_std=DISTURBANCE_STD, temperature=35.0), N, seed=2900
+    )
+    with pytest.raises(InputError, match=r"'temperature' = 35 lies outside the range \[-10, 30\].*'k2'"):
+        inspect_pooled(record.x, record.y, {"temperature": 35.0}, [pooled_k2])
+    with pytest.raises(InputError, match="'k2' needs operating variable 'temperature'"):
+        inspect_pooled(record.x, record.y, {"humidity": 0.6}, [pooled_k2])
+    with pytest.raises(InputError, match="its variance depends on k too"):
+        pooled_k2.variance_at({"temperature": 10.0})
