@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 from conftest import DISTURBANCE_STD, exact_narx_residual, exact_regressors, scaled_lstsq
-from scipy import signal, stats
+from scipy import stats
 
 from models.errors import InputError
 from models.inspection import inspect
@@ -26,35 +26,44 @@ from simulator.simulate import Scenario, simulate
 from simulator.temperature import Thermal
 from simulator.theory import EXACT_TERMS, exact_coefficients, exact_narx
 
-ARX_TERMS = ["y[t-1]", "y[t-2]", "x[t-1]"]
+NARX_TERMS = ["y[t-1]", "y[t-2]", "x[t-1]", "y[t-1]^3"]
 T_LOW, T_HIGH = -10.0, 30.0
 TRAINING_TEMPERATURES = np.linspace(T_LOW, T_HIGH, 9)
-ARX_NOISE = 0.5
+NOISE = 0.5
 N = 2000
 
 
-def arx_coefficients(T: float, degree: int) -> np.ndarray:
-    """a1, a2, b of a stable ARX whose coefficients are polynomials of ``degree`` in T [°C]:
-    the poles of z² − a1·z − a2 stay complex with modulus √(−a2) ≤ 0.8 over −10 … 30 °C."""
+def narx_coefficients(T: float, degree: int, level: float | None = None) -> np.ndarray:
+    """a1, a2, b, c of y[t] = a1·y[t−1] + a2·y[t−2] + b·x[t−1] + c·y³[t−1] + e[t], polynomials of
+    ``degree`` in the temperature T [°C] and, given a ``level`` s (an excitation level, 1 … 4),
+    affine in s with a T·s cross term. Over these ranges |y| stays below 12, where the map's
+    slope a1 + 3c·y² stays inside (−1, 1.5): stable."""
     d = T - 10.0
     a1 = 1.2 + 0.004 * d + (3e-4 * d**2 if degree == 2 else 0.0)
-    return np.array([a1, -0.6 - 0.002 * d, 1.0 + 0.01 * d])
+    a2, b = -0.6 - 0.002 * d, 1.0 + 0.01 * d
+    if level is not None:
+        a2 += 5e-4 * d * (level - 2.5)
+        b += 0.1 * (level - 2.5)
+    return np.array([a1, a2, b, -0.002 - 5e-5 * d])
 
 
-def arx_record(T: float, degree: int, seed: int, n: int = N) -> tuple[np.ndarray, np.ndarray]:
-    """y[t] = a1·y[t−1] + a2·y[t−2] + b·x[t−1] + e[t], e white of std ARX_NOISE; 500 samples
-    of start-up dropped."""
-    a1, a2, b = arx_coefficients(T, degree)
+def narx_record(coefficients: np.ndarray, seed: int, n: int = N) -> tuple[np.ndarray, np.ndarray]:
+    """The recursion of :func:`narx_coefficients` driven by white x and e (std NOISE); 500
+    samples of start-up dropped."""
+    a1, a2, b, c = coefficients.tolist()
     rng = np.random.default_rng(seed)
     x = rng.normal(size=n + 500)
-    e = rng.normal(scale=ARX_NOISE, size=n + 500)
-    y = signal.lfilter([1.0], [1.0, -a1, -a2], b * np.concatenate(([0.0], x[:-1])) + e)
-    return x[500:], y[500:]
+    e = rng.normal(scale=NOISE, size=n + 500).tolist()
+    drive = x.tolist()
+    y = [0.0, 0.0]
+    for t in range(2, n + 500):
+        y.append(a1 * y[t - 1] + a2 * y[t - 2] + b * drive[t - 1] + c * y[t - 1] ** 3 + e[t])
+    return x[500:], np.array(y[500:])
 
 
-def arx_experiments(degree: int, seed0: int) -> list[PooledExperiment]:
+def narx_experiments(degree: int, seed0: int) -> list[PooledExperiment]:
     return [
-        PooledExperiment(*arx_record(float(T), degree, seed0 + i), {"temperature": float(T)})
+        PooledExperiment(*narx_record(narx_coefficients(T, degree), seed0 + i), {"temperature": float(T)})
         for i, T in enumerate(TRAINING_TEMPERATURES)
     ]
 
@@ -66,54 +75,54 @@ def chebyshev2(T: float, size: int) -> np.ndarray:
 
 
 @pytest.fixture(scope="module", params=[1, 2])
-def arx_case(request) -> tuple[int, PooledModel, list[PooledExperiment]]:
+def narx_case(request) -> tuple[int, PooledModel, list[PooledExperiment]]:
     degree = request.param
-    runs = arx_experiments(degree, seed0=100 * degree)
-    return degree, fit_pooled(runs, ARX_TERMS), runs
+    runs = narx_experiments(degree, seed0=100 * degree)
+    return degree, fit_pooled(runs, NARX_TERMS), runs
 
 
 # ---------------------------------------------------------------- theory
 
 
-def test_criterion_picks_the_true_degree(arx_case) -> None:
-    """BIC over degrees 0 … 4: an extra degree adds 3 parameters, a penalty 3·ln(17 982) = 29.4
-    that a χ²(3) exceeds with probability 2e-6; a missing one leaves a1 off by up to 0.12."""
-    degree, model, _ = arx_case
+def test_criterion_picks_the_true_degree(narx_case) -> None:
+    """BIC over degrees 0 … 4: an extra degree adds 4 parameters, a penalty 4·ln(17 982) = 39.2
+    that a χ²(4) exceeds with probability 1e-7; a missing one leaves a1 off by up to 0.12."""
+    degree, model, _ = narx_case
     assert model.degrees == {"temperature": degree}
     assert [row.degrees for row in model.criterion] == [(d,) for d in range(5)]
     n = model.n_obs
     for row in model.criterion:
-        assert row.parameters == 3 * (row.degrees[0] + 1)
+        assert row.parameters == 4 * (row.degrees[0] + 1)
         assert row.bic == pytest.approx(n * np.log(row.sigma2) + row.parameters * np.log(n), rel=1e-12)
     assert min(model.criterion, key=lambda row: row.bic).degrees == (degree,)
 
 
-def test_coefficients_recovered_within_their_covariance(arx_case) -> None:
+def test_coefficients_recovered_within_their_covariance(narx_case) -> None:
     """θ̂ − θ ~ N(0, Cov) for the exact projection coefficients θ (the true polynomials written
-    on U_0 … U_d by solving at d + 1 temperatures), so (θ̂ − θ)ᵀCov⁻¹(θ̂ − θ) ~ χ²(3(d + 1));
+    on U_0 … U_d by solving at d + 1 temperatures), so (θ̂ − θ)ᵀCov⁻¹(θ̂ − θ) ~ χ²(4(d + 1));
     tested at its 0.999 quantile. And at every temperature each coefficient within 4 se."""
-    degree, model, _ = arx_case
+    degree, model, _ = narx_case
     size = degree + 1
     nodes = np.linspace(T_LOW, T_HIGH, size)
     U = np.array([chebyshev2(T, size) for T in nodes])
-    exact = np.linalg.solve(U, np.array([arx_coefficients(T, degree) for T in nodes])).T
+    exact = np.linalg.solve(U, np.array([narx_coefficients(T, degree) for T in nodes])).T
     d = (model.theta - exact).ravel()
-    assert d @ np.linalg.solve(model.covariance, d) < stats.chi2.ppf(0.999, df=3 * size)
+    assert d @ np.linalg.solve(model.covariance, d) < stats.chi2.ppf(0.999, df=4 * size)
     for T in (-10.0, -3.3, 10.0, 24.0, 30.0):
         narx = model.narx_at({"temperature": T})
-        z = (narx.theta - arx_coefficients(T, degree)) / narx.standard_errors()
+        z = (narx.theta - narx_coefficients(T, degree)) / narx.standard_errors()
         assert np.all(np.abs(z) < 4), (T, z)
 
 
-def test_compressed_fit_is_the_stacked_ols(arx_case) -> None:
+def test_compressed_fit_is_the_stacked_ols(narx_case) -> None:
     """The per-experiment QR compression gives the OLS of the whole stacked Kronecker design,
     computed here directly by numpy's SVD solver: θ, σ̂²_m and σ̂²(XᵀX)⁻¹."""
-    degree, model, runs = arx_case
+    degree, model, runs = narx_case
     size = degree + 1
     rows, targets = [], []
     for run in runs:
         x, y = np.asarray(run.x), np.asarray(run.y)
-        Phi = np.column_stack([y[1:-1], y[:-2], x[1:-1]])
+        Phi = np.column_stack([y[1:-1], y[:-2], x[1:-1], y[1:-1] ** 3])
         g = chebyshev2(run.conditions["temperature"], size)
         rows.append(np.einsum("ti,j->tij", Phi, g).reshape(len(Phi), -1))
         targets.append(y[2:])
@@ -128,17 +137,49 @@ def test_compressed_fit_is_the_stacked_ols(arx_case) -> None:
     assert model.n_obs == len(Y)
 
 
-def test_residual_variance_model(arx_case) -> None:
+def test_two_operating_variables() -> None:
+    """Temperature and an excitation level s on a 4 × 4 grid: b is affine in s and a2 carries a
+    T·s term, so the truth has degree (1, 1), whose tensor basis [1, 2u_s, 2u_T, 4u_T·u_s]
+    (the last argument fastest) holds the cross term. BIC picks it (an extra degree adds 8
+    parameters, a penalty of 83 a χ²(8) exceeds with probability 1e-14), and θ̂ lies within its
+    covariance of the truth."""
+    grid = [(T, s) for T in np.linspace(T_LOW, T_HIGH, 4) for s in (1.0, 2.0, 3.0, 4.0)]
+    runs = [
+        PooledExperiment(*narx_record(narx_coefficients(T, 1, s), 500 + i), {"temperature": T, "level": s})
+        for i, (T, s) in enumerate(grid)
+    ]
+    model = fit_pooled(runs, NARX_TERMS, variables=["temperature", "level"])
+    assert model.arguments == ("temperature", "level")
+    assert model.degrees == {"temperature": 1, "level": 1}
+    assert all(np.prod(np.add(row.degrees, 1)) < 16 for row in model.criterion)
+
+    def g(T: float, s: float) -> np.ndarray:
+        u_T, u_s = (2 * T - T_HIGH - T_LOW) / (T_HIGH - T_LOW), (2 * s - 5) / 3
+        return np.array([1.0, 2 * u_s, 2 * u_T, 4 * u_T * u_s])
+
+    corners = [(T_LOW, 1.0), (T_LOW, 4.0), (T_HIGH, 1.0), (T_HIGH, 4.0)]
+    G = np.array([g(*corner) for corner in corners])
+    exact = np.linalg.solve(G, np.array([narx_coefficients(T, 1, s) for T, s in corners])).T
+    d = (model.theta - exact).ravel()
+    assert d @ np.linalg.solve(model.covariance, d) < stats.chi2.ppf(0.999, df=16)
+    np.testing.assert_allclose(
+        model.narx_at({"temperature": 2.0, "level": 3.5}).theta, model.theta @ g(2.0, 3.5)
+    )
+    with pytest.raises(InputError, match=r"'level' = 4.5 lies outside the range \[1, 4\]"):
+        model.narx_at({"temperature": 2.0, "level": 4.5})
+
+
+def test_residual_variance_model(narx_case) -> None:
     """σ² is 0.25 at every temperature: ln σ̂²(w) lies within 4 of its standard errors
     √(2/ν_0) of ln 0.25."""
-    _, model, _ = arx_case
+    _, model, _ = narx_case
     for T in (-10.0, 5.0, 30.0):
         sigma2, dof = model.variance_at({"temperature": T})
-        assert abs(np.log(sigma2 / ARX_NOISE**2)) < 4 * np.sqrt(2 / dof)
+        assert abs(np.log(sigma2 / NOISE**2)) < 4 * np.sqrt(2 / dof)
 
 
-def test_document_round_trip(arx_case) -> None:
-    _, model, _ = arx_case
+def test_document_round_trip(narx_case) -> None:
+    _, model, _ = narx_case
     document = json.loads(json.dumps(model.to_document()))
     assert document["kind"] == "pooled" and document["schema_version"] == 1
     back = PooledModel.from_document(document)
@@ -151,8 +192,8 @@ def test_document_round_trip(arx_case) -> None:
     assert back.variance_at(at) == model.variance_at(at)
 
 
-def test_document_refusals(arx_case) -> None:
-    _, model, _ = arx_case
+def test_document_refusals(narx_case) -> None:
+    _, model, _ = narx_case
     document = model.to_document()
     with pytest.raises(InputError, match="not a pooled model document"):
         PooledModel.from_document({**document, "kind": "fnarx"})
@@ -311,21 +352,23 @@ def test_fault_mode_at_conditions_is_the_tensor_model(pooled_k2) -> None:
 @pytest.fixture(scope="module")
 def small_runs() -> list[PooledExperiment]:
     return [
-        PooledExperiment(*arx_record(T, 1, 900 + i, n=400), {"temperature": T, "speed": 1.0 + i})
+        PooledExperiment(
+            *narx_record(narx_coefficients(T, 1), 900 + i, n=400), {"temperature": T, "speed": 1.0 + i}
+        )
         for i, T in enumerate((-10.0, 0.0, 10.0, 20.0, 30.0))
     ]
 
 
-def test_refuses_records_outside_the_trained_range(arx_case) -> None:
+def test_refuses_records_outside_the_trained_range(narx_case) -> None:
     """Within 1 % of the 40 °C span (0.4 °C) beyond an end a record is evaluated; beyond, refused."""
-    _, model, _ = arx_case
+    _, model, _ = narx_case
     assert model.ranges == {"temperature": (T_LOW, T_HIGH)}
     model.narx_at({"temperature": 30.3})
     model.narx_at({"temperature": -10.3})
     for T in (30.5, -11.0, 45.0):
         with pytest.raises(InputError, match=rf"'temperature' = {T:g} lies outside the range \[-10, 30\]"):
             model.narx_at({"temperature": T})
-    x, y = arx_record(45.0, 1, 1)
+    x, y = narx_record(narx_coefficients(45.0, 1), 1)
     with pytest.raises(InputError, match="outside the range"):
         check_baseline(model, x, y, {"temperature": 45.0})
     for bad in (float("nan"), "warm", None):
@@ -333,9 +376,9 @@ def test_refuses_records_outside_the_trained_range(arx_case) -> None:
             model.narx_at({"temperature": bad})
 
 
-def test_refuses_records_missing_a_variable(arx_case) -> None:
-    _, model, _ = arx_case
-    x, y = arx_record(10.0, 1, 2)
+def test_refuses_records_missing_a_variable(narx_case) -> None:
+    _, model, _ = narx_case
+    x, y = narx_record(narx_coefficients(10.0, 1), 2)
     with pytest.raises(
         InputError,
         match=r"needs operating variable 'temperature' \(trained over \[-10, 30\]\); "
@@ -349,52 +392,52 @@ def test_refuses_records_missing_a_variable(arx_case) -> None:
 def test_refuses_training_at_one_condition(small_runs) -> None:
     same = [PooledExperiment(r.x, r.y, {"temperature": 20.0}) for r in small_runs]
     with pytest.raises(InputError, match="every experiment has operating variable 'temperature' = 20"):
-        fit_pooled(same, ARX_TERMS)
+        fit_pooled(same, NARX_TERMS)
     at_one_k = [PooledExperiment(r.x, r.y, r.conditions, 5.0) for r in small_runs]
     with pytest.raises(InputError, match="every experiment has fault magnitude 'k' = 5"):
-        fit_pooled(at_one_k, ARX_TERMS, name="k2", variables=["temperature"])
+        fit_pooled(at_one_k, NARX_TERMS, name="k2", variables=["temperature"])
 
 
 def test_refuses_unknown_or_missing_variable_names(small_runs) -> None:
     with pytest.raises(InputError, match=r"unknown operating variable 'humidity'.*carry speed, temperature"):
-        fit_pooled(small_runs, ARX_TERMS, variables=["temperature", "humidity"])
+        fit_pooled(small_runs, NARX_TERMS, variables=["temperature", "humidity"])
     with pytest.raises(InputError, match="'k' names the fault magnitude"):
-        fit_pooled(small_runs, ARX_TERMS, variables=["k"])
+        fit_pooled(small_runs, NARX_TERMS, variables=["k"])
     partial = [*small_runs[:-1], PooledExperiment(small_runs[-1].x, small_runs[-1].y, {"speed": 2.0})]
     with pytest.raises(InputError, match="experiment 5 carries no operating variable 'temperature'"):
-        fit_pooled(partial, ARX_TERMS, variables=["temperature"])
+        fit_pooled(partial, NARX_TERMS, variables=["temperature"])
     with pytest.raises(InputError, match="at least one operating variable"):
-        fit_pooled([PooledExperiment(r.x, r.y, {}) for r in small_runs], ARX_TERMS)
+        fit_pooled([PooledExperiment(r.x, r.y, {}) for r in small_runs], NARX_TERMS)
     bad = [
         *small_runs[:-1],
         PooledExperiment(small_runs[-1].x, small_runs[-1].y, {"temperature": float("inf")}),
     ]
     with pytest.raises(InputError, match="experiment 5: operating variable 'temperature' must be a finite"):
-        fit_pooled(bad, ARX_TERMS, variables=["temperature"])
+        fit_pooled(bad, NARX_TERMS, variables=["temperature"])
 
 
 def test_refuses_bad_settings(small_runs) -> None:
     mixed = [PooledExperiment(r.x, r.y, r.conditions, 1.0 * i) for i, r in enumerate(small_runs[:-1])]
     with pytest.raises(InputError, match="experiment 5 has no fault magnitude k"):
-        fit_pooled([*mixed, small_runs[-1]], ARX_TERMS, name="k2")
+        fit_pooled([*mixed, small_runs[-1]], NARX_TERMS, name="k2")
     with pytest.raises(InputError, match="max_degree must be a whole number from 0 to 4"):
-        fit_pooled(small_runs, ARX_TERMS, max_degree=5)
+        fit_pooled(small_runs, NARX_TERMS, max_degree=5)
     with pytest.raises(
         InputError, match="degrees must name each of speed, temperature once; got temperature"
     ):
-        fit_pooled(small_runs, ARX_TERMS, degrees={"temperature": 1})
+        fit_pooled(small_runs, NARX_TERMS, degrees={"temperature": 1})
     with pytest.raises(
         InputError, match=r"make 25 basis functions, which need more than 25 experiments.*there are 5"
     ):
-        fit_pooled(small_runs, ARX_TERMS, degrees={"temperature": 4, "speed": 4})
+        fit_pooled(small_runs, NARX_TERMS, degrees={"temperature": 4, "speed": 4})
     with pytest.raises(InputError, match="a pooled model needs experiments"):
-        fit_pooled([], ARX_TERMS)
-    model = fit_pooled(small_runs, ARX_TERMS, degrees={"temperature": 1, "speed": 0})
+        fit_pooled([], NARX_TERMS)
+    model = fit_pooled(small_runs, NARX_TERMS, degrees={"temperature": 1, "speed": 0})
     assert model.degrees == {"speed": 0, "temperature": 1} and len(model.criterion) == 1
     with pytest.raises(InputError, match="is a pooled baseline; evaluate it with narx_at"):
         model.fnarx_at({"temperature": 0.0, "speed": 2.0})
     faulty = fit_pooled(
-        mixed, ARX_TERMS, name="k2", variables=["temperature"], degrees={"temperature": 1, "k": 0}
+        mixed, NARX_TERMS, name="k2", variables=["temperature"], degrees={"temperature": 1, "k": 0}
     )
     with pytest.raises(InputError, match="'k2' is a pooled fault mode; evaluate it with fnarx_at"):
         faulty.narx_at({"temperature": 0.0})
