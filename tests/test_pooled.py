@@ -178,6 +178,20 @@ def test_residual_variance_model(narx_case) -> None:
         assert abs(np.log(sigma2 / NOISE**2)) < 4 * np.sqrt(2 / dof)
 
 
+def test_residual_variance_model_by_hand(narx_case) -> None:
+    """With degree 0 the weighted fit of ln σ̂²_m (weights N_m/2, all equal here) is their mean,
+    taken of the unbiased σ̂²_m·n/(n − n_θ); its variance 2/Σ N_m is scaled by the reduced χ²
+    Σ (N_m/2)·(ℓ_m − ℓ̄)²/(M − 1) when that exceeds 1."""
+    _, _, runs = narx_case
+    model = fit_pooled(runs, NARX_TERMS, degrees={"temperature": 0})
+    n, lengths = model.n_obs, np.full(len(runs), model.n_obs // len(runs))
+    logs = np.log(model.experiment_sigma2 * n / (n - 4))
+    chi2 = np.sum(lengths / 2 * (logs - logs.mean()) ** 2) / (len(runs) - 1)
+    sigma2, dof = model.variance_at({"temperature": 17.0})
+    assert sigma2 == pytest.approx(np.exp(logs.mean()), rel=1e-12)
+    assert dof == pytest.approx(n / max(1.0, chi2), rel=1e-9)
+
+
 def test_document_round_trip(narx_case) -> None:
     _, model, _ = narx_case
     document = json.loads(json.dumps(model.to_document()))
