@@ -2,7 +2,7 @@
 
 A structure's dynamics move with its operating conditions (a bridge's natural frequencies by
 about 5 % over a year with temperature), enough to swamp a small stiffness fault. A functionally
-pooled model (Sakellariou & Fassois 2007; Kopsaftopoulos & Fassois 2013) makes each NARX
+pooled model (Sakellariou & Fassois 2016; Kopsaftopoulos & Fassois 2013) makes each NARX
 coefficient a function of the arguments ξ = (w_1, …, w_V[, k]) — the named operating variables w
 (temperature in °C, excitation level, …) and, for a fault mode, the fault magnitude k in percent —
 expanded on a tensor product of the functional bases of :mod:`models.basis`:
@@ -29,7 +29,8 @@ parameters); the table of every candidate is kept with the model. A candidate ne
 [g(ξ_1) … g(ξ_M)] of full rank P.
 
 Residual variance. ln σ²(ξ) is expanded on the same basis, fitted by weighted least squares to
-the experiments' ln σ̂²_m, whose variance is 2/N_m for Gaussian residuals; the covariance of
+the experiments' ln σ̂²_m (made unbiased, ·n/(n − n_θ)), whose variance is 2/N_m for Gaussian
+residuals; the covariance of
 that fit is scaled up by its reduced χ² when the experiments scatter more. The variance of
 ln σ̂²(ξ), v(ξ), gives the reference an equivalent number of degrees of freedom 2/v(ξ) for the
 residual-variance test of :func:`check_baseline`.
