@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 
 from models.errors import InputError
 from service.db import insert_unless_exists
+from service.domain import fleet
 from service.domain.structures import get_owned
 from service.security import Principal
 from service.tables import Record, Structure, utcnow
@@ -74,6 +75,7 @@ def store_record(
     inserted = insert_unless_exists(session, Record, values, ["structure_id", "sha256"])
     if inserted is None:  # uploaded before, or concurrently: keep the first
         return _find_or_fail(session, structure.id, sha), False
+    fleet.count_record(session, structure.id)
     # Built from what was written rather than read back: the blobs need no second trip.
     return Record(id=inserted.id, created_at=inserted.created_at, **values), True
 
