@@ -22,7 +22,9 @@ from models.basis import FAMILIES
 from models.inspection import ModeResult
 from service.jobs import JobState
 
-Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f]+$")]
+STRUCTURE_NAME_LENGTH = 200
+NAME_PATTERN = r"^[^\x00-\x1f]*$"  # no control characters (PostgreSQL's text refuses NUL)
+Name = Annotated[str, Field(min_length=1, max_length=STRUCTURE_NAME_LENGTH, pattern=NAME_PATTERN)]
 # Fault-mode names: the same rule wherever one is given (bodies, history filters, dashboard).
 MODE_NAME_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 MODE_NAME_LENGTH = 100

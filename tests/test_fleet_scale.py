@@ -413,6 +413,7 @@ def test_paging_never_shows_another_organisations_structures(listed):
         ({"limit": "many"}, "limit"),
         ({"status": "broken"}, "uninspected"),  # the message lists what is allowed
         ({"name": "x" * 201}, "name"),
+        ({"name": "a\x00b"}, "name"),  # no name holds a control character
     ],
 )
 def test_bad_paging_and_filters_are_refused_with_a_clear_422(listed, params, message):
@@ -438,7 +439,9 @@ def test_the_fleet_page_is_paged_and_filtered_from_the_state_rows(fleet_server: 
         assert _row_ids(named.text) == [str(ours.ids["tower_1"]), str(ours.ids["tower%2"])]
         nothing = client.get(DASHBOARD, params={"name": "their"})
         assert _row_ids(nothing.text) == [] and 'id="no-match"' in nothing.text
-        for params in ({"status": "broken"}, {"cursor": "not-a-cursor"}):
+        submitted_empty = client.get(DASHBOARD, params={"status": "", "name": ""})  # the form, untouched
+        assert _row_ids(submitted_empty.text) == _row_ids(page.text)
+        for params in ({"status": "broken"}, {"cursor": "not-a-cursor"}, {"name": "a\x00b"}):
             refused = client.get(DASHBOARD, params=params)
             assert refused.status_code == 422, params
 

@@ -13,6 +13,8 @@ from service.domain import fleet, history, structures
 from service.schemas import (
     MODE_NAME_LENGTH,
     MODE_NAME_PATTERN,
+    NAME_PATTERN,
+    STRUCTURE_NAME_LENGTH,
     StructureCreate,
     StructureOut,
     Summary,
@@ -40,7 +42,11 @@ def list_structures(
     ] = None,
     name: Annotated[
         str | None,
-        Query(max_length=fleet.NAME_FILTER_LENGTH, description="Only names containing this, in any case"),
+        Query(
+            max_length=STRUCTURE_NAME_LENGTH,
+            pattern=NAME_PATTERN,
+            description="Only names containing this, in any case",
+        ),
     ] = None,
     cursor: Annotated[str | None, Query(max_length=200, description="From the `next` link of a page")] = None,
     limit: Annotated[int, Query(ge=1, le=fleet.MAX_PAGE_SIZE)] = fleet.PAGE_SIZE,

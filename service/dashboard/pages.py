@@ -27,10 +27,16 @@ from service.dashboard.auth import (
     same_origin,
 )
 from service.domain import alarms
-from service.domain.fleet import NAME_FILTER_LENGTH, checked_standing
+from service.domain.fleet import checked_standing
 from service.domain.history import Status
 from service.domain.logins import Login, close_login, open_login
-from service.schemas import MODE_NAME_LENGTH, MODE_NAME_PATTERN, NOTE_PATTERN
+from service.schemas import (
+    MODE_NAME_LENGTH,
+    MODE_NAME_PATTERN,
+    NAME_PATTERN,
+    NOTE_PATTERN,
+    STRUCTURE_NAME_LENGTH,
+)
 from service.security import Principal, Role
 
 HERE = Path(__file__).parent
@@ -145,7 +151,7 @@ def fleet(
     login: LoginDep,
     session: SessionDep,
     status_filter: Annotated[str | None, Query(alias="status", max_length=20)] = None,
-    name: Annotated[str | None, Query(max_length=NAME_FILTER_LENGTH)] = None,
+    name: Annotated[str | None, Query(max_length=STRUCTURE_NAME_LENGTH, pattern=NAME_PATTERN)] = None,
     cursor: Annotated[str | None, Query(max_length=200)] = None,
 ) -> HTMLResponse:
     filters = views.FleetFilter(

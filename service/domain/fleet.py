@@ -28,7 +28,6 @@ STATUSES: tuple[Status, ...] = get_args(Status)
 Standing = Literal["healthy", "faulty", "unknown_fault", "uninspected"]
 STANDINGS: tuple[Standing, ...] = get_args(Standing)
 PAGE_SIZE, MAX_PAGE_SIZE = 100, 1000  # structures per page: by default, and at most
-NAME_FILTER_LENGTH = 200  # a structure's name is at most this long, so a longer filter matches none
 
 
 @dataclass(frozen=True)
