@@ -25,7 +25,7 @@ from service.tables import Structure, StructureState, Verdict
 
 STATUSES: tuple[Status, ...] = get_args(Status)
 # A structure's standing as the fleet filter names it: a verdict's status, or none yet.
-Standing = Literal["healthy", "faulty", "unknown_fault", "uninspected"]
+Standing = Literal[Status, "uninspected"]
 STANDINGS: tuple[Standing, ...] = get_args(Standing)
 PAGE_SIZE, MAX_PAGE_SIZE = 100, 1000  # structures per page: by default, and at most
 
@@ -66,7 +66,7 @@ def count_record(session: Session, structure_id: int) -> None:
 
 
 def count_verdict(
-    session: Session, verdict_id: int, structure_id: int, acquired_at: dt.datetime, status: str
+    session: Session, verdict_id: int, structure_id: int, acquired_at: dt.datetime, status: Status
 ) -> None:
     """A verdict just inserted, added to its structure's state.
 
