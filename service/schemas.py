@@ -19,7 +19,7 @@ from pydantic import (
 
 from models.alarms import DESIGN_SHIFT
 from models.basis import FAMILIES
-from models.inspection import ModeResult
+from models.inspection import ModeResult, Status
 from service.jobs import JobState
 
 STRUCTURE_NAME_LENGTH = 200
@@ -75,6 +75,16 @@ class StructureOut(BaseModel):
     fs: float
     description: str
     created_at: dt.datetime
+
+
+class StructureListed(StructureOut):
+    """A structure as ``GET /structures`` lists it: with where it stands, kept on write."""
+
+    status: Status | None = Field(description="Its latest verdict's status; null before its first verdict")
+    since: dt.datetime | None = Field(
+        description="When that status began: the acquisition time of the first verdict after the last "
+        "one of another status"
+    )
 
 
 class BaselineTrain(Strict):

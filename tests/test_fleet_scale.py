@@ -230,6 +230,8 @@ def test_counts_and_standings_stay_exact_through_uploads_inspections_and_jobs(fl
 
         summary = viewer.get(f"{API}/structures/{sid}/summary").json()
         walk = walked(fleet_server.engine, sid)
+        item = next(s for s in viewer.get(f"{API}/structures").json() if s["id"] == sid)
+        assert (item["status"], dt.datetime.fromisoformat(item["since"])) == (walk["status"], walk["since"])
         assert summary["counts"] == {status: walk[status] for status in STATUSES}
         assert summary["total"] == sum(walk[status] for status in STATUSES) == len(PLAN) + 2
 
@@ -381,9 +383,11 @@ def test_structures_are_filtered_by_status_and_name_on_every_page(listed, params
     ours, _ = listed
     with ours.org.client("viewer") as viewer:
         pages = every_page(viewer, limit=1, **params)  # the filters ride along in each next link
-    names = [s["name"] for page in pages for s in page]
-    assert names == sorted(expected, key=ours.ids.__getitem__)
-    assert all(ours.standing[name] == params.get("status", ours.standing[name]) for name in names)
+    items = [s for page in pages for s in page]
+    assert [s["name"] for s in items] == sorted(expected, key=ours.ids.__getitem__)
+    for item in items:  # each listed with where it stands
+        assert (item["status"] or "uninspected") == ours.standing[item["name"]]
+        assert (item["since"] is None) == (item["status"] is None)
 
 
 def test_paging_never_shows_another_organisations_structures(listed):

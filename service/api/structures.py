@@ -16,6 +16,7 @@ from service.schemas import (
     NAME_PATTERN,
     STRUCTURE_NAME_LENGTH,
     StructureCreate,
+    StructureListed,
     StructureOut,
     Summary,
     VerdictPage,
@@ -50,14 +51,15 @@ def list_structures(
     ] = None,
     cursor: Annotated[str | None, Query(max_length=200, description="From the `next` link of a page")] = None,
     limit: Annotated[int, Query(ge=1, le=fleet.MAX_PAGE_SIZE)] = fleet.PAGE_SIZE,
-) -> list[StructureOut]:
-    """Your organisation's structures in order of id, a page at a time; a header
+) -> list[StructureListed]:
+    """Your organisation's structures in order of id, each with its latest status and since when it
+    holds, a page at a time; a header
     `Link: </api/v1/structures?…&cursor=…>; rel="next"` gives the next page, and none the last."""
     page = fleet.fleet(session, principal, standing=status_filter, name=name, cursor=cursor, limit=limit)
     if page.next_cursor is not None:
         following = request.url.include_query_params(cursor=page.next_cursor)
         response.headers["Link"] = f'<{following.path}?{following.query}>; rel="next"'
-    return [StructureOut.model_validate(s.structure, from_attributes=True) for s in page.items]
+    return [row.listed() for row in page.items]
 
 
 @router.get("/{structure_id}")

@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session, joinedload
 
 from models.errors import InputError
 from models.inspection import Status
-from service.schemas import MAX_ID
+from service.schemas import MAX_ID, StructureListed
 from service.security import Principal
 from service.tables import Structure, StructureState, Verdict
 
@@ -39,6 +39,14 @@ class StructureStatus:
     latest: Verdict | None
     since: dt.datetime | None
     counts: dict[str, int]
+
+    def listed(self) -> StructureListed:
+        s = self.structure
+        status = self.latest.status if self.latest is not None else None
+        return StructureListed(
+            id=s.id, name=s.name, fs=s.fs, description=s.description, created_at=s.created_at,
+            status=status, since=self.since,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)
