@@ -198,11 +198,16 @@ class StructureState(Base):
     ``status`` is that of the ``latest`` verdict (newest acquisition, then newest id; None before
     the first), ``since`` when its current run of that status began; ``records`` and the three
     verdict counts are how many the structure has. ``organisation_id`` is the structure's, kept
-    here so that a fleet page filtered by status is one range of ``ix_structure_states_fleet``.
+    here so that a page of the fleet is one range of an index: ``ix_structure_states_fleet``, or
+    ``ix_structure_states_fleet_status`` for a page of one status. (No index holds the latest
+    verdict's columns, which change at every verdict: PostgreSQL can then update the row in place.)
     """
 
     __tablename__ = "structure_states"
-    __table_args__ = (Index("ix_structure_states_fleet", "organisation_id", "status", "structure_id"),)
+    __table_args__ = (
+        Index("ix_structure_states_fleet", "organisation_id", "structure_id"),
+        Index("ix_structure_states_fleet_status", "organisation_id", "status", "structure_id"),
+    )
 
     structure_id: Mapped[int] = mapped_column(
         ForeignKey("structures.id", ondelete="CASCADE"), primary_key=True, autoincrement=False

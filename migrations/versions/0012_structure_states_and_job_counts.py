@@ -41,8 +41,9 @@ def upgrade() -> None:
         sa.ForeignKeyConstraint(["structure_id"], ["structures.id"], ondelete="CASCADE"),
         sa.PrimaryKeyConstraint("structure_id"),
     )
+    op.create_index("ix_structure_states_fleet", "structure_states", ["organisation_id", "structure_id"])
     op.create_index(
-        "ix_structure_states_fleet", "structure_states", ["organisation_id", "status", "structure_id"]
+        "ix_structure_states_fleet_status", "structure_states", ["organisation_id", "status", "structure_id"]
     )
     op.create_table(
         "job_counts",
@@ -109,5 +110,6 @@ def _fill_structure_states() -> None:
 
 def downgrade() -> None:
     op.drop_table("job_counts")
+    op.drop_index("ix_structure_states_fleet_status", table_name="structure_states")
     op.drop_index("ix_structure_states_fleet", table_name="structure_states")
     op.drop_table("structure_states")

@@ -144,7 +144,7 @@ def fleet(
     """The caller's structures in order of id, ``limit`` at a time after ``cursor``, optionally
     only those of one ``standing`` and whose name contains ``name`` (any case).
 
-    A page is one range of ``ix_structure_states_fleet`` (organisation, status, id) with each
+    A page is one range of an index of the state rows (organisation, [status,] id) with each
     row's latest verdict fetched by its id, whatever the length of the history. The name filter
     reads the organisation's structures in order until it has a page: at most all of them.
     """
