@@ -19,11 +19,13 @@ from pydantic import (
 
 from models.alarms import DESIGN_SHIFT
 from models.basis import FAMILIES
-from models.inspection import ModeResult
+from models.inspection import ModeResult, Status
 from service.conditions import Condition
 from service.jobs import JobState
 
-Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f]+$")]
+STRUCTURE_NAME_LENGTH = 200
+NAME_PATTERN = r"^[^\x00-\x1f]*$"  # no control characters (PostgreSQL's text refuses NUL)
+Name = Annotated[str, Field(min_length=1, max_length=STRUCTURE_NAME_LENGTH, pattern=NAME_PATTERN)]
 # Fault-mode names: the same rule wherever one is given (bodies, history filters, dashboard).
 MODE_NAME_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 MODE_NAME_LENGTH = 100
@@ -74,6 +76,16 @@ class StructureOut(BaseModel):
     fs: float
     description: str
     created_at: dt.datetime
+
+
+class StructureListed(StructureOut):
+    """A structure as ``GET /structures`` lists it: with where it stands, kept on write."""
+
+    status: Status | None = Field(description="Its latest verdict's status; null before its first verdict")
+    since: dt.datetime | None = Field(
+        description="When that status began: the acquisition time of the first verdict after the last "
+        "one of another status"
+    )
 
 
 class BaselineTrain(Strict):

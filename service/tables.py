@@ -217,6 +217,42 @@ class Verdict(Base):
     )
 
 
+class StructureState(Base):
+    """Where a structure stands, kept in the transaction of each write that changes it
+    (``service.domain.fleet``), so that neither the fleet views nor ``/metrics`` read its history.
+
+    ``status`` is that of the ``latest`` verdict (newest acquisition, then newest id; None before
+    the first), ``since`` when its current run of that status began; ``records`` and the three
+    verdict counts are how many the structure has. ``organisation_id`` is the structure's, kept
+    here so that a page of the fleet is one range of an index: ``ix_structure_states_fleet``, or
+    ``ix_structure_states_fleet_status`` for a page of one status. (No index holds the latest
+    verdict's columns, which change at every verdict: PostgreSQL can then update the row in place.)
+    """
+
+    __tablename__ = "structure_states"
+    __table_args__ = (
+        Index("ix_structure_states_fleet", "organisation_id", "structure_id"),
+        Index("ix_structure_states_fleet_status", "organisation_id", "status", "structure_id"),
+    )
+
+    structure_id: Mapped[int] = mapped_column(
+        ForeignKey("structures.id", ondelete="CASCADE"), primary_key=True, autoincrement=False
+    )
+    organisation_id: Mapped[int] = mapped_column(ForeignKey("organisations.id", ondelete="CASCADE"))
+    status: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    since: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    latest_verdict_id: Mapped[int | None] = mapped_column(
+        ForeignKey("verdicts.id", ondelete="SET NULL"), nullable=True
+    )
+    latest_acquired_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    records: Mapped[int] = mapped_column(BigInteger, default=0)
+    healthy: Mapped[int] = mapped_column(BigInteger, default=0)
+    faulty: Mapped[int] = mapped_column(BigInteger, default=0)
+    unknown_fault: Mapped[int] = mapped_column(BigInteger, default=0)
+
+    latest: Mapped[Verdict | None] = relationship()
+
+
 class VerdictModel(Base):
     """The exact model versions a verdict was computed with."""
 
@@ -302,6 +338,16 @@ class Job(Base):
     last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
     finished_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+
+class JobCount(Base):
+    """How many jobs of the embedded backend ended in ``state`` (done or failed), counted as each
+    ends: their rows are never deleted, so counting them at each scrape would grow with history."""
+
+    __tablename__ = "job_counts"
+
+    state: Mapped[str] = mapped_column(String(16), primary_key=True)
+    count: Mapped[int] = mapped_column(BigInteger, default=0)
 
 
 class Schedule(Base):

@@ -6,6 +6,7 @@ import datetime as dt
 import uuid
 
 import pytest
+from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from sqlalchemy import inspect, select, text
@@ -14,7 +15,7 @@ from sqlalchemy.orm import Session
 
 from service import tables
 from service.db import Base, make_engine
-from service.migrate import is_ours, upgrade_database
+from service.migrate import alembic_config, is_ours, upgrade_database
 from service.tables import utcnow
 
 
@@ -187,3 +188,69 @@ def test_0008_lists_each_earlier_refinement_s_record_as_fitted(fresh_url):
         assert refinement is not None
         assert refinement.record_ids_of("estimation") == [8] and refinement.record_ids_of("test") == []
     engine.dispose()
+
+
+def test_0012_fills_each_structure_s_state_and_the_job_counts_from_what_is_stored(fresh_url):
+    """Structures stored before 0012 get their state from their history: the newest verdict (by
+    acquisition, then id, whatever the order of the ids), the start of its status's last run,
+    and their counts; the embedded jobs that ended are counted by state. Downgrading drops both."""
+    upgrade_database(fresh_url, "0010")
+    engine = make_engine(fresh_url)
+    now = dt.datetime.now(dt.UTC)
+    day = dt.timedelta(days=1)
+    t0 = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
+    table = Base.metadata.tables
+    # Verdicts of structure 1 as (id, acquisition day, status), stored in this order of ids:
+    # by acquisition they read healthy (2), faulty (3), healthy (4), faulty (1, 5 at one instant), faulty (6).
+    history = [(1, 5, "faulty"), (2, 1, "healthy"), (3, 3, "faulty"), (4, 4, "healthy"), (5, 5, "faulty")]
+    history.append((6, 6, "faulty"))
+    with engine.begin() as connection:
+        connection.execute(table["organisations"].insert().values(id=1, name="o", created_at=now))
+        for structure_id in (1, 2, 3):
+            connection.execute(
+                table["structures"].insert().values(
+                    id=structure_id, organisation_id=1, name=f"s{structure_id}", fs=1500.0, description="",
+                    created_at=now,
+                )
+            )  # fmt: skip
+        for record_id, structure_id in [(n, 1) for n in range(1, 8)] + [(8, 2), (9, 2)]:
+            connection.execute(
+                table["records"].insert().values(
+                    id=record_id, structure_id=structure_id, fs=1500.0, n_samples=3, acquired_at=now,
+                    created_at=now, sha256=f"{record_id:064d}", x=b"", y=b"",
+                )
+            )  # fmt: skip
+        for verdict_id, acquired, status in history:
+            connection.execute(
+                table["verdicts"].insert().values(
+                    id=verdict_id, record_id=verdict_id, structure_id=1, acquired_at=t0 + acquired * day,
+                    created_at=now, model_set="1", status=status, fault_detected=status != "healthy",
+                    alpha=0.05, lags=4, n_samples=3, z_critical=1.96, q_critical_detection=1.0,
+                    detected_by=[], modes=[],
+                )
+            )  # fmt: skip
+        for status in ("done", "done", "done", "failed", "queued", "running"):
+            connection.execute(
+                table["jobs"].insert().values(
+                    organisation_id=1, task="inspect_record", args={}, status=status, attempts=1,
+                    run_after=now, created_at=now,
+                )
+            )  # fmt: skip
+    upgrade_database(fresh_url)
+    with Session(engine) as session:
+        states = {s.structure_id: s for s in session.scalars(select(tables.StructureState))}
+        counts = dict(session.execute(select(tables.JobCount.state, tables.JobCount.count)).all())
+    assert set(states) == {1, 2, 3}
+    ordered = [states[structure_id] for structure_id in (1, 2, 3)]
+    standing = [(s.status, s.since, s.latest_verdict_id, s.latest_acquired_at) for s in ordered]
+    assert standing == [("faulty", t0 + 5 * day, 6, t0 + 6 * day), (None, None, None, None), (None,) * 4]
+    tallies = [(s.records, s.healthy, s.faulty, s.unknown_fault) for s in ordered]
+    assert tallies == [(7, 2, 4, 0), (2, 0, 0, 0), (0, 0, 0, 0)]
+    assert all(s.organisation_id == 1 for s in ordered)
+    assert counts == {"done": 3, "failed": 1}
+
+    command.downgrade(alembic_config(fresh_url), "0010")
+    with engine.connect() as connection:
+        left = set(inspect(connection).get_table_names())
+    engine.dispose()
+    assert not {"structure_states", "job_counts"} & left and {"structures", "jobs"} <= left

@@ -5,15 +5,18 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated
 
-from fastapi import APIRouter, Query, status
+from fastapi import APIRouter, Query, Request, Response, status
 
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
 from service.api.params import IdPath, utc
-from service.domain import history, structures
+from service.domain import fleet, history, structures
 from service.schemas import (
     MODE_NAME_LENGTH,
     MODE_NAME_PATTERN,
+    NAME_PATTERN,
+    STRUCTURE_NAME_LENGTH,
     StructureCreate,
+    StructureListed,
     StructureOut,
     Summary,
     VerdictPage,
@@ -29,11 +32,34 @@ def create_structure(body: StructureCreate, principal: Admin, session: SessionDe
 
 
 @router.get("")
-def list_structures(principal: Viewer, session: SessionDep) -> list[StructureOut]:
-    return [
-        StructureOut.model_validate(s, from_attributes=True)
-        for s in structures.list_structures(session, principal)
-    ]
+def list_structures(
+    request: Request,
+    response: Response,
+    principal: Viewer,
+    session: SessionDep,
+    status_filter: Annotated[
+        fleet.Standing | None,
+        Query(alias="status", description="Only structures whose latest verdict has this status"),
+    ] = None,
+    name: Annotated[
+        str | None,
+        Query(
+            max_length=STRUCTURE_NAME_LENGTH,
+            pattern=NAME_PATTERN,
+            description="Only names containing this, in any case",
+        ),
+    ] = None,
+    cursor: Annotated[str | None, Query(max_length=200, description="From the `next` link of a page")] = None,
+    limit: Annotated[int, Query(ge=1, le=fleet.MAX_PAGE_SIZE)] = fleet.PAGE_SIZE,
+) -> list[StructureListed]:
+    """Your organisation's structures in order of id, each with its latest status and since when it
+    holds, a page at a time; a header
+    `Link: </api/v1/structures?…&cursor=…>; rel="next"` gives the next page, and none the last."""
+    page = fleet.fleet(session, principal, standing=status_filter, name=name, cursor=cursor, limit=limit)
+    if page.next_cursor is not None:
+        following = request.url.include_query_params(cursor=page.next_cursor)
+        response.headers["Link"] = f'<{following.path}?{following.query}>; rel="next"'
+    return [row.listed() for row in page.items]
 
 
 @router.get("/{structure_id}")

@@ -27,9 +27,16 @@ from service.dashboard.auth import (
     same_origin,
 )
 from service.domain import alarms
+from service.domain.fleet import checked_standing
 from service.domain.history import Status
 from service.domain.logins import Login, close_login, open_login
-from service.schemas import MODE_NAME_LENGTH, MODE_NAME_PATTERN, NOTE_PATTERN
+from service.schemas import (
+    MODE_NAME_LENGTH,
+    MODE_NAME_PATTERN,
+    NAME_PATTERN,
+    NOTE_PATTERN,
+    STRUCTURE_NAME_LENGTH,
+)
 from service.security import Principal, Role
 
 HERE = Path(__file__).parent
@@ -139,8 +146,19 @@ def log_out(request: Request, session: SessionDep) -> Response:
 
 
 @router.get("")
-def fleet(request: Request, login: LoginDep, session: SessionDep) -> HTMLResponse:
-    return render(request, "fleet.html", {"login": login} | views.fleet_page(session, login.principal))
+def fleet(
+    request: Request,
+    login: LoginDep,
+    session: SessionDep,
+    status_filter: Annotated[str | None, Query(alias="status", max_length=20)] = None,
+    name: Annotated[str | None, Query(max_length=STRUCTURE_NAME_LENGTH, pattern=NAME_PATTERN)] = None,
+    cursor: Annotated[str | None, Query(max_length=200)] = None,
+) -> HTMLResponse:
+    filters = views.FleetFilter(
+        standing=checked_standing(status_filter), name=name or None, cursor=cursor or None
+    )
+    context = views.fleet_page(session, login.principal, filters)
+    return render(request, "fleet.html", {"login": login} | context)
 
 
 @router.get("/structures/{structure_id}")

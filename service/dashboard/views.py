@@ -23,6 +23,7 @@ from service.tables import Verdict
 # autocorrelation is always of the whole record).
 RECORD_POINTS = 20_000
 HISTORY_PAGE = 25
+FLEET_PAGE = 50  # structures per fleet page
 CHART_ALARMS = 100  # the newest alarms marked on the k̂ chart
 
 
@@ -48,12 +49,38 @@ class HistoryFilter:
         return {key: str(value) for key, value in values.items() if value}
 
 
-def fleet_page(session: Session, principal: Principal) -> dict[str, Any]:
-    rows = fleet.fleet(session, principal)
+@dataclass(frozen=True)
+class FleetFilter:
+    """The fleet table's filters and page, as ``GET /structures`` takes them."""
+
+    standing: fleet.Standing | None = None
+    name: str | None = None
+    cursor: str | None = None
+
+    def query(self, **changes: Any) -> dict[str, str]:
+        """The page's query parameters with ``changes`` applied (None drops one)."""
+        values = {"status": self.standing, "name": self.name, "cursor": self.cursor} | changes
+        return {key: str(value) for key, value in values.items() if value}
+
+
+def fleet_page(session: Session, principal: Principal, filters: FleetFilter) -> dict[str, Any]:
+    page = fleet.fleet(
+        session,
+        principal,
+        standing=filters.standing,
+        name=filters.name,
+        cursor=filters.cursor,
+        limit=FLEET_PAGE,
+    )
+    unresolved = alarms.unresolved_alarms(session, principal)
     return {
-        "rows": rows,
-        "alarms": alarms.unresolved_alarms(session, principal),
-        "names": {row.structure.id: row.structure.name for row in rows},
+        "rows": page.items,
+        "next_cursor": page.next_cursor,
+        "filters": filters,
+        "standings": fleet.STANDINGS,
+        "alarms": unresolved,
+        # The alarm table names each alarm's structure, which may be on another page.
+        "names": structures.structure_names(session, principal, {a.structure_id for a in unresolved}),
     }
 
 

@@ -36,7 +36,7 @@ from models import alarms as rules_math
 from models.errors import InputError
 from service.domain import notifications
 from service.domain.errors import ConflictError
-from service.domain.structures import get_owned, get_structure, list_structures
+from service.domain.structures import get_owned, get_structure
 from service.schemas import (
     AlarmDetail,
     AlarmOut,
@@ -557,8 +557,13 @@ def list_alarms(
 
 def unresolved_alarms(session: Session, principal: Principal, structure_id: int | None = None) -> list[Alarm]:
     """The caller's open and acknowledged alarms (of one structure), oldest first: the dashboard's."""
-    owned = [s.id for s in list_structures(session, principal)] if structure_id is None else [structure_id]
-    query = select(Alarm).where(Alarm.structure_id.in_(owned), Alarm.state != "resolved")
+    query = select(Alarm).where(Alarm.state != "resolved")
+    if structure_id is None:  # a join, not the list of the organisation's structures: it may be long
+        query = query.join(Structure, Structure.id == Alarm.structure_id).where(
+            Structure.organisation_id == principal.organisation_id
+        )
+    else:
+        query = query.where(Alarm.structure_id == structure_id)
     return list(session.scalars(query.order_by(Alarm.id).options(*LOADED)))
 
 

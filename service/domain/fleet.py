@@ -1,19 +1,33 @@
-"""Where each structure stands: its latest verdict, since when that status holds, and counts."""
+"""Where each structure stands, kept on write; the fleet listed a page at a time.
+
+Each structure has one ``StructureState`` row: its latest verdict, since when that status holds,
+and how many records and verdicts it has. Every write that changes one of these updates the row
+in its own transaction (:func:`count_record`, :func:`count_verdict`), so the fleet views, the
+summary and ``/metrics`` read a row per structure, never the structure's history.
+"""
 
 from __future__ import annotations
 
+import base64
+import binascii
 import datetime as dt
 from dataclasses import dataclass
+from typing import Literal, get_args
 
-from sqlalchemy import and_, func, or_, select
-from sqlalchemy.orm import Session
+from sqlalchemy import and_, func, or_, select, update
+from sqlalchemy.orm import Session, joinedload
 
-from service.domain.inspections import MODEL_REFS
-from service.domain.structures import list_structures
+from models.errors import InputError
+from models.inspection import Status
+from service.schemas import MAX_ID, StructureListed
 from service.security import Principal
-from service.tables import Structure, Verdict
+from service.tables import Structure, StructureState, Verdict
 
-STATUSES = ("healthy", "faulty", "unknown_fault")
+STATUSES: tuple[Status, ...] = get_args(Status)
+# A structure's standing as the fleet filter names it: a verdict's status, or none yet.
+Standing = Literal[Status, "uninspected"]
+STANDINGS: tuple[Standing, ...] = get_args(Standing)
+PAGE_SIZE, MAX_PAGE_SIZE = 100, 1000  # structures per page: by default, and at most
 
 
 @dataclass(frozen=True)
@@ -26,35 +40,86 @@ class StructureStatus:
     since: dt.datetime | None
     counts: dict[str, int]
 
-
-def fleet(session: Session, principal: Principal) -> list[StructureStatus]:
-    """Every structure of the caller's organisation with where it stands."""
-    structures = list_structures(session, principal)
-    counts = _counts(session, [s.id for s in structures])
-    return [_status(session, s, counts.get(s.id, {})) for s in structures]
-
-
-def structure_status(session: Session, structure: Structure) -> StructureStatus:
-    return _status(session, structure, _counts(session, [structure.id]).get(structure.id, {}))
+    def listed(self) -> StructureListed:
+        s = self.structure
+        status = self.latest.status if self.latest is not None else None
+        return StructureListed(
+            id=s.id, name=s.name, fs=s.fs, description=s.description, created_at=s.created_at,
+            status=status, since=self.since,
+        )  # fmt: skip
 
 
-def _status(session: Session, structure: Structure, counts: dict[str, int]) -> StructureStatus:
-    latest = session.scalar(
-        select(Verdict)
-        .where(Verdict.structure_id == structure.id)
-        .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
-        .limit(1)
-        .options(MODEL_REFS)
+@dataclass(frozen=True)
+class FleetPage:
+    items: list[StructureStatus]
+    next_cursor: str | None  # None on the last page
+
+
+def open_state(session: Session, structure: Structure) -> None:
+    """The state row of a structure just created (flushed), in the same transaction."""
+    session.add(StructureState(structure_id=structure.id, organisation_id=structure.organisation_id))
+
+
+def count_record(session: Session, structure_id: int) -> None:
+    """One more record stored for the structure. An increment in the database (``records + 1``),
+    so concurrent uploads never lose one: each waits for the other's row lock, then adds to its
+    committed value."""
+    counted = session.execute(
+        update(StructureState)
+        .where(StructureState.structure_id == structure_id)
+        .values(records=StructureState.records + 1)
     )
-    since = _since(session, latest) if latest is not None else None
-    return StructureStatus(structure, latest, since, {s: counts.get(s, 0) for s in STATUSES})
+    if counted.rowcount != 1:
+        raise RuntimeError(f"structure {structure_id} has no state row: run `narxwatch db upgrade`")
 
 
-def _since(session: Session, latest: Verdict) -> dt.datetime | None:
-    of_structure = Verdict.structure_id == latest.structure_id
+def count_verdict(
+    session: Session, verdict_id: int, structure_id: int, acquired_at: dt.datetime, status: Status
+) -> None:
+    """A verdict just inserted, added to its structure's state.
+
+    The row is locked first (``FOR UPDATE``; SQLite's write lock is held already), so the
+    verdicts of one structure are applied one after another, each seeing those committed before.
+    A verdict newer than the latest (by acquisition time, then id) becomes the latest; its run
+    goes on if its status is the same, else starts with it. An older one (a record uploaded late)
+    leaves the latest alone but may shorten or lengthen the current run, which is then read again
+    from the history: rare, and an indexed range of one structure's verdicts.
+    """
+    state = session.execute(
+        select(
+            StructureState.status,
+            StructureState.since,
+            StructureState.latest_verdict_id,
+            StructureState.latest_acquired_at,
+        )
+        .where(StructureState.structure_id == structure_id)
+        .with_for_update()
+    ).one_or_none()
+    if state is None:
+        raise RuntimeError(f"structure {structure_id} has no state row: run `narxwatch db upgrade`")
+    counts = {status: getattr(StructureState, status) + 1}
+    newer = state.latest_verdict_id is None or (acquired_at, verdict_id) > (
+        state.latest_acquired_at,
+        state.latest_verdict_id,
+    )
+    if newer:
+        since = state.since if status == state.status else acquired_at
+        values = dict(
+            status=status, since=since, latest_verdict_id=verdict_id, latest_acquired_at=acquired_at
+        )
+    else:
+        values = dict(since=_since(session, structure_id, state.status))
+    session.execute(
+        update(StructureState).where(StructureState.structure_id == structure_id).values(**counts, **values)
+    )
+
+
+def _since(session: Session, structure_id: int, status: str) -> dt.datetime | None:
+    """When the structure's current run of ``status`` began, read from its verdicts."""
+    of_structure = Verdict.structure_id == structure_id
     other = session.execute(
         select(Verdict.acquired_at, Verdict.id)
-        .where(of_structure, Verdict.status != latest.status)
+        .where(of_structure, Verdict.status != status)
         .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
         .limit(1)
     ).first()
@@ -67,15 +132,89 @@ def _since(session: Session, latest: Verdict) -> dt.datetime | None:
     return session.scalar(query)
 
 
-def _counts(session: Session, structure_ids: list[int]) -> dict[int, dict[str, int]]:
-    counts: dict[int, dict[str, int]] = {}
-    if not structure_ids:
-        return counts
-    rows = session.execute(
-        select(Verdict.structure_id, Verdict.status, func.count())
-        .where(Verdict.structure_id.in_(structure_ids))
-        .group_by(Verdict.structure_id, Verdict.status)
+def fleet(
+    session: Session,
+    principal: Principal,
+    *,
+    standing: Standing | None = None,
+    name: str | None = None,
+    cursor: str | None = None,
+    limit: int = PAGE_SIZE,
+) -> FleetPage:
+    """The caller's structures in order of id, ``limit`` at a time after ``cursor``, optionally
+    only those of one ``standing`` and whose name contains ``name`` (any case).
+
+    A page is one range of an index of the state rows (organisation, [status,] id) with each
+    row's latest verdict fetched by its id, whatever the length of the history. The name filter
+    reads the organisation's structures in order until it has a page: at most all of them.
+    """
+    if not 1 <= limit <= MAX_PAGE_SIZE:
+        raise InputError(f"limit must be between 1 and {MAX_PAGE_SIZE}, not {limit}")
+    query = (
+        select(StructureState, Structure)
+        .join(Structure, Structure.id == StructureState.structure_id)
+        .where(StructureState.organisation_id == principal.organisation_id)
     )
-    for structure_id, status, count in rows:
-        counts.setdefault(structure_id, {})[status] = count
-    return counts
+    if standing is not None:
+        query = query.where(
+            StructureState.status.is_(None)
+            if standing == "uninspected"
+            else StructureState.status == standing
+        )
+    if name:
+        query = query.where(Structure.name.icontains(name, autoescape=True))
+    if cursor is not None:
+        query = query.where(StructureState.structure_id > _decode(cursor))
+    query = (
+        query.order_by(StructureState.structure_id)
+        .limit(limit + 1)
+        .options(joinedload(StructureState.latest))
+    )
+    rows = session.execute(query).all()
+    page, more = rows[:limit], len(rows) > limit
+    return FleetPage(
+        items=[_status(structure, state) for state, structure in page],
+        next_cursor=_encode(page[-1][1].id) if more else None,
+    )
+
+
+def structure_status(session: Session, structure: Structure) -> StructureStatus:
+    state = session.scalar(
+        select(StructureState)
+        .where(StructureState.structure_id == structure.id)
+        .options(joinedload(StructureState.latest))
+    )
+    if state is None:
+        raise RuntimeError(f"structure {structure.id} has no state row: run `narxwatch db upgrade`")
+    return _status(structure, state)
+
+
+def verdict_counts(state: StructureState) -> dict[str, int]:
+    return {status: getattr(state, status) for status in STATUSES}
+
+
+def _status(structure: Structure, state: StructureState) -> StructureStatus:
+    return StructureStatus(structure, state.latest, state.since, verdict_counts(state))
+
+
+def checked_standing(value: str | None) -> Standing | None:
+    """A standing from a query string or a form; None for none given."""
+    if not value:
+        return None
+    if value not in STANDINGS:
+        raise InputError(f"status must be one of {', '.join(STANDINGS)}, not {value!r}")
+    return value  # type: ignore[return-value]
+
+
+def _encode(structure_id: int) -> str:
+    return base64.urlsafe_b64encode(f"structure|{structure_id}".encode()).decode()
+
+
+def _decode(cursor: str) -> int:
+    try:
+        kind, structure_id = base64.urlsafe_b64decode(cursor.encode()).decode().split("|")
+        if kind != "structure" or not 0 < int(structure_id) <= MAX_ID:
+            raise ValueError
+        return int(structure_id)
+    except (ValueError, binascii.Error, UnicodeDecodeError):
+        raise InputError("the cursor is not one this service issued; use the next link of a page") from None

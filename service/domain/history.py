@@ -8,10 +8,11 @@ import datetime as dt
 from typing import Literal
 
 import numpy as np
-from sqlalchemy import and_, func, or_, select
+from sqlalchemy import and_, or_, select
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
+from service.domain import fleet
 from service.domain.inspections import CONDITIONS, MODEL_REFS, verdict_out
 from service.domain.records import as_conditions
 from service.domain.structures import get_structure
@@ -62,14 +63,9 @@ def history(
 
 
 def summary(session: Session, principal: Principal, structure_id: int) -> Summary:
-    get_structure(session, principal, structure_id)
-    counts = dict(
-        session.execute(
-            select(Verdict.status, func.count())
-            .where(Verdict.structure_id == structure_id)
-            .group_by(Verdict.status)
-        ).all()
-    )
+    """Counts by status (kept on write, in the structure's state), the latest verdict and the trend."""
+    structure = get_structure(session, principal, structure_id)
+    counts = fleet.structure_status(session, structure).counts
     newest = list(
         session.scalars(
             select(Verdict)
@@ -94,7 +90,7 @@ def summary(session: Session, principal: Principal, structure_id: int) -> Summar
     return Summary(
         structure_id=structure_id,
         total=sum(counts.values()),
-        counts={status: counts.get(status, 0) for status in ("healthy", "faulty", "unknown_fault")},
+        counts=counts,
         latest=verdict_out(newest[0]) if newest else None,
         trend=trend,
         k_hat_slope_per_day=_slope(newest),

@@ -13,7 +13,7 @@ from models.inspection import ModeResult, inspect
 from models.inspection import Verdict as InspectionVerdict
 from service.config import Settings
 from service.db import insert_unless_exists
-from service.domain import alarms
+from service.domain import alarms, fleet
 from service.domain.errors import ConflictError
 from service.domain.modelling import active_fault_modes
 from service.domain.records import as_conditions, signals
@@ -140,6 +140,7 @@ def store_verdict(
         if found is None:
             raise RuntimeError(f"verdict of record {record.id} conflicted but cannot be found")
         return found
+    fleet.count_verdict(session, inserted.id, structure.id, record.acquired_at, result.status)
     versions = evaluation.versions
     session.execute(
         insert(VerdictModel.__table__),

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session, selectinload
 from models.errors import InputError
 from service.conditions import Condition
 from service.db import insert_unless_exists
+from service.domain import fleet
 from service.domain.errors import ConflictError
 from service.domain.structures import get_owned
 from service.security import Principal
@@ -97,6 +98,7 @@ def store_record(
     ]
     if rows:
         session.execute(insert(RecordCondition.__table__), rows)
+    fleet.count_record(session, structure.id)
     # Built from what was written rather than read back: the blobs need no second trip.
     stored = [RecordCondition(**row) for row in rows]
     return Record(id=inserted.id, created_at=inserted.created_at, conditions=stored, **values), True

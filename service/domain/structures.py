@@ -8,6 +8,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from service.domain import fleet
 from service.domain.errors import ConflictError, NotFoundError
 from service.schemas import StructureCreate
 from service.security import Principal
@@ -23,12 +24,16 @@ def create_structure(session: Session, principal: Principal, body: StructureCrea
         session.flush()
     except IntegrityError:  # the request fails whole: its session is rolled back
         raise ConflictError(f"a structure named {body.name!r} already exists in your organisation") from None
+    fleet.open_state(session, structure)
     return structure
 
 
-def list_structures(session: Session, principal: Principal) -> list[Structure]:
-    query = select(Structure).where(Structure.organisation_id == principal.organisation_id)
-    return list(session.scalars(query.order_by(Structure.id)))
+def structure_names(session: Session, principal: Principal, structure_ids: set[int]) -> dict[int, str]:
+    """The names of those of ``structure_ids`` that are the caller's structures."""
+    query = select(Structure.id, Structure.name).where(
+        Structure.organisation_id == principal.organisation_id, Structure.id.in_(structure_ids)
+    )
+    return {structure_id: name for structure_id, name in session.execute(query)}
 
 
 def get_structure(session: Session, principal: Principal, structure_id: int) -> Structure:

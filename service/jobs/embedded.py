@@ -26,12 +26,13 @@ from service.config import Settings
 from service.domain import notifications, renotify, schedules
 from service.jobs import FINAL_ERRORS, JOB_STATES, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
-from service.tables import Job, utcnow
+from service.tables import Job, JobCount, utcnow
 
 MAX_ATTEMPTS = 5
 LEASE = dt.timedelta(seconds=60)  # renewed every third of it while the job runs
 FIRST_RETRY = dt.timedelta(seconds=1)  # then 2, 4, 8 … seconds
 IDLE_POLL = 0.5  # seconds between looks at an empty queue
+ENDED: tuple[JobState, ...] = ("done", "failed")  # the states counted in ``job_counts``
 
 log = logging.getLogger("narxwatch.jobs")
 
@@ -90,28 +91,40 @@ def run(session: Session, job: Claimed, settings: Settings, now: dt.datetime | N
         session.rollback()
         _finish_failed(session, job, exc, now or utcnow())
         return
-    _finish(session, job.id, status="done", finished_at=utcnow(), locked_until=None)
+    _finish(session, job, status="done", finished_at=utcnow(), locked_until=None)
 
 
 def _finish_failed(session: Session, job: Claimed, exc: Exception, now: dt.datetime) -> None:
     error = error_text(exc)
     if isinstance(exc, FINAL_ERRORS) or job.attempts >= MAX_ATTEMPTS:
         log.error("job %s failed for good after %s attempt(s): %s", job.id, job.attempts, error)
-        _finish(session, job.id, status="failed", last_error=error, finished_at=utcnow(), locked_until=None)
+        _finish(session, job, status="failed", last_error=error, finished_at=utcnow(), locked_until=None)
         return
     delay = FIRST_RETRY * 2 ** (job.attempts - 1)
     log.warning("job %s failed (attempt %s), retried in %s: %s", job.id, job.attempts, delay, error)
-    _finish(session, job.id, status="queued", last_error=error, run_after=now + delay, locked_until=None)
+    _finish(session, job, status="queued", last_error=error, run_after=now + delay, locked_until=None)
 
 
-def _finish(session: Session, job_id: int, **values: object) -> None:
-    session.execute(update(Job.__table__).where(Job.id == job_id).values(**values))
+def _finish(session: Session, job: Claimed, status: JobState, **values: object) -> None:
+    """Record how a claimed job ended, if the claim still holds; commits. A worker whose lease ran
+    out, and whose job another worker claimed since, leaves the ending to that claim: each job
+    ends once, so ``job_counts`` counts it once."""
+    still_ours = (Job.id == job.id, Job.status == "running", Job.attempts == job.attempts)
+    ended = session.execute(update(Job.__table__).where(*still_ours).values(status=status, **values))
+    if ended.rowcount == 1 and status in ENDED:
+        session.execute(update(JobCount).where(JobCount.state == status).values(count=JobCount.count + 1))
     session.commit()
 
 
 def queue_stats(session: Session, window: dt.timedelta) -> QueueStats:
-    """Jobs by status, and the enqueue-to-finish latency of those finished within ``window``."""
-    counts = session.execute(select(Job.status, func.count()).group_by(Job.status)).all()
+    """Jobs by status, and the enqueue-to-finish latency of those finished within ``window``.
+
+    Queued and running jobs are counted in ``ix_jobs_due``, as many rows as the queue is deep;
+    ended ones are read from ``job_counts``, which counts them as they end."""
+    waiting = (
+        select(Job.status, func.count()).where(Job.status.in_(("queued", "running"))).group_by(Job.status)
+    )
+    counts = [*session.execute(waiting), *session.execute(select(JobCount.state, JobCount.count))]
     depth = {**dict.fromkeys(JOB_STATES, 0), **dict(counts)}
     finished = select(Job.created_at, Job.finished_at).where(
         Job.status == "done", Job.finished_at >= utcnow() - window

@@ -1,8 +1,9 @@
 """Prometheus metrics: business counts read from the database, request latency kept per process.
 
-Records, verdicts and jobs are counted in the database when ``/metrics`` is scraped, so the counts
-are exact however many service and worker processes write them; no process has to see every
-event. Request latency is a histogram each process keeps in memory; under several uvicorn
+Records, verdicts and ended jobs are counted in the database by the transactions that write them
+(``structure_states``, ``job_counts``), so the counts are exact however many service and worker
+processes write them, no process has to see every event, and a scrape reads a row per structure,
+never the history. Request latency is a histogram each process keeps in memory; under several uvicorn
 workers, prometheus-client's multiprocess mode (``PROMETHEUS_MULTIPROC_DIR``, set before the
 processes start) keeps it in files that any worker's scrape adds up.
 """
@@ -23,8 +24,9 @@ from prometheus_client.samples import Sample
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from service.domain.fleet import STATUSES
 from service.jobs import QueueStats
-from service.tables import Record, Verdict
+from service.tables import StructureState
 
 MULTIPROCESS_DIR = "PROMETHEUS_MULTIPROC_DIR"
 QUANTILES = (0.5, 0.95, 0.99)
@@ -51,7 +53,10 @@ class DatabaseCollector:
     queue_stats: Callable[[Session, dt.timedelta], QueueStats]
 
     def collect(self) -> Iterator[Metric]:
-        records = self.session.scalar(select(func.count()).select_from(Record))
+        columns = [StructureState.records, *(getattr(StructureState, status) for status in STATUSES)]
+        records, *by_status = self.session.execute(
+            select(*(func.coalesce(func.sum(c), 0) for c in columns))
+        ).one()
         yield CounterMetricFamily(
             "narxwatch_records_received",
             "Records stored (an identical re-upload is the same record).",
@@ -63,8 +68,7 @@ class DatabaseCollector:
         verdicts = CounterMetricFamily(
             "narxwatch_verdicts", "Inspections stored, by status.", labels=["status"]
         )
-        grouped = select(Verdict.status, func.count()).group_by(Verdict.status)
-        for status, count in self.session.execute(grouped):
+        for status, count in zip(STATUSES, by_status, strict=True):
             verdicts.add_metric([status], count)
         yield verdicts
         yield from queue_metrics(self.queue_stats(self.session, LATENCY_WINDOW))

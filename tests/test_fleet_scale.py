@@ -1,0 +1,473 @@
+"""Counts and standings kept on write, and the fleet listed a page at a time, on both databases.
+
+``/metrics``, the summary and the fleet views read each structure's state row
+(``structure_states``) and the ended-job counts (``job_counts``) instead of the history. Here
+they are held, after every step of a sequence of uploads, inspections and jobs (records uploaded
+late, two at one instant, the same data twice, concurrent uploads), against what the tables
+themselves hold, counted with ``COUNT(*)`` and walked in Python. Each database gets a server of
+its own (the embedded job backend, on PostgreSQL too), so that nothing else writes meanwhile.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import html as markup
+import re
+import threading
+import uuid
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import httpx
+import pytest
+from api_helpers import (
+    API,
+    Org,
+    clients,
+    create_structure,
+    detail,
+    json_body,
+    npz_bytes,
+    post_record,
+    simulated,
+    train_fault_mode,
+    wait_for,
+)
+from dashboard_helpers import DASHBOARD, logged_in
+from live import LiveServer
+from prometheus_client.parser import text_string_to_metric_families
+from sqlalchemy import Engine, func, insert, select, text
+
+from service.config import Settings
+from service.db import make_engine
+from service.jobs import embedded
+from service.tables import Job, JobCount, Record, StructureState, Verdict
+
+T0 = dt.datetime(2026, 6, 1, 6, 0, tzinfo=dt.UTC)
+STATUSES = ("healthy", "faulty", "unknown_fault")
+
+
+@dataclass
+class Fleet:
+    server: LiveServer
+    engine: Engine  # the test's own connection to the server's database
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def fleet_server(request, tmp_path_factory) -> Iterator[Fleet]:
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path_factory.mktemp('fleet') / 'narxwatch.db'}"
+    else:
+        import postgres
+
+        url = postgres.create_database(
+            request.getfixturevalue("postgres_url"), f"fleet_{uuid.uuid4().hex[:12]}"
+        )
+    with LiveServer(Settings(database_url=url, job_backend="embedded")) as server:
+        engine = make_engine(url)
+        yield Fleet(server, engine)
+        engine.dispose()
+
+
+# --- what the tables hold, computed without the state rows ------------------------------------
+
+
+def counted(engine: Engine) -> dict[str, object]:
+    """Records, verdicts by status and jobs by state, each a ``COUNT(*)`` of its table."""
+    with engine.connect() as connection:
+        records = connection.scalar(select(func.count()).select_from(Record))
+        verdicts = dict(
+            connection.execute(select(Verdict.status, func.count()).group_by(Verdict.status)).all()
+        )
+        jobs = dict(connection.execute(select(Job.status, func.count()).group_by(Job.status)).all())
+    return {
+        "records": records,
+        "verdicts": {status: verdicts.get(status, 0) for status in STATUSES},
+        "jobs": {state: jobs.get(state, 0) for state in ("queued", "running", "done", "failed")},
+    }
+
+
+def scraped(server: LiveServer) -> dict[str, object]:
+    with httpx.Client(base_url=server.url) as client:
+        response = client.get("/metrics")
+    assert response.status_code == 200, response.text
+    samples = {
+        (sample.name, tuple(sorted(sample.labels.items()))): sample.value
+        for family in text_string_to_metric_families(response.text)
+        for sample in family.samples
+    }
+    return {
+        "records": samples["narxwatch_records_received_total", ()],
+        "verdicts": {s: samples["narxwatch_verdicts_total", (("status", s),)] for s in STATUSES},
+        "jobs": {
+            state: samples["narxwatch_jobs", (("state", state),)]
+            for state in ("queued", "running", "done", "failed")
+        },
+    }
+
+
+def walked(engine: Engine, structure_id: int) -> dict[str, object]:
+    """A structure's standing walked from its verdicts in Python: the newest (by acquisition,
+    then id), and the acquisition time of the first of the unbroken run of its status at the end."""
+    with engine.connect() as connection:
+        rows = connection.execute(
+            select(Verdict.id, Verdict.acquired_at, Verdict.status).where(
+                Verdict.structure_id == structure_id
+            )
+        ).all()
+        records = connection.scalar(
+            select(func.count()).select_from(Record).where(Record.structure_id == structure_id)
+        )
+    ordered = sorted(rows, key=lambda row: (row.acquired_at, row.id))
+    latest = ordered[-1] if ordered else None
+    since = None
+    for row in reversed(ordered):
+        if row.status != latest.status:
+            break
+        since = row.acquired_at
+    counts = Counter(row.status for row in rows)
+    return {
+        "latest_verdict_id": latest.id if latest else None,
+        "status": latest.status if latest else None,
+        "since": since,
+        "records": records,
+        **{status: counts[status] for status in STATUSES},
+    }
+
+
+def kept(engine: Engine, structure_id: int) -> dict[str, object]:
+    with engine.connect() as connection:
+        state = connection.execute(
+            select(StructureState).where(StructureState.structure_id == structure_id)
+        ).one()
+    return {
+        key: getattr(state, key) for key in ("latest_verdict_id", "status", "since", "records", *STATUSES)
+    }
+
+
+def assert_exact(fleet: Fleet, *structure_ids: int) -> None:
+    assert scraped(fleet.server) == counted(fleet.engine)
+    for structure_id in structure_ids:
+        assert kept(fleet.engine, structure_id) == walked(fleet.engine, structure_id), structure_id
+
+
+# --- uploads --------------------------------------------------------------------------------
+
+
+def upload(
+    ingest: httpx.Client, structure_id: int, status: str, day: float, seed: int, **params: str
+) -> dict:
+    """A record that the structure's k2 model judges ``status``, acquired on ``day`` after T0."""
+    acquired_at = T0 + dt.timedelta(days=day)
+    params = {"inspect": "true", **params}
+    if status == "unknown_fault":  # two unrelated white signals: no model explains them
+        body = json_body(2000, seed=seed, acquired_at=acquired_at.isoformat())
+        response = post_record(ingest, structure_id, body, **params)
+    else:
+        fault, k = ("none", 0.0) if status == "healthy" else ("k2", 20.0)
+        record = simulated(fault, k, [seed, 7])
+        body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
+        response = post_record(
+            ingest, structure_id, body, "application/x-npz", acquired_at=acquired_at.isoformat(), **params
+        )
+    expected = 202 if params["inspect"] == "queue" else 201
+    assert response.status_code in (200, expected), response.text
+    assert dt.datetime.fromisoformat(response.json()["acquired_at"]) == acquired_at
+    return response.json()
+
+
+# (status, acquisition day): uploaded in this order, many of them late, so that the current run
+# grows backwards, is cut short and grows again; two pairs share an instant.
+PLAN = [
+    ("faulty", 5),
+    ("healthy", 1),
+    ("faulty", 3),  # late, and of the latest's status: the run now starts on day 3
+    ("healthy", 4),  # late, of another status: the run starts on day 5 again
+    ("faulty", 5),  # the same instant as the first: newer by its id
+    ("unknown_fault", 8),
+    ("unknown_fault", 2),
+    ("unknown_fault", 8),
+    ("healthy", 0),
+]
+
+
+def test_counts_and_standings_stay_exact_through_uploads_inspections_and_jobs(fleet_server: Fleet):
+    org = Org.create(fleet_server.server)
+    with clients(org) as (admin, ingest, viewer):
+        sid = create_structure(admin, "plan")["id"]
+        other = create_structure(admin, "untouched")["id"]
+        assert_exact(fleet_server, sid, other)  # two structures, nothing stored yet
+        train_fault_mode(admin, ingest, sid, "k2", seed=31)
+        assert_exact(fleet_server, sid, other)  # the training's records, no verdict
+        verdicts = []
+        for index, (status, day) in enumerate(PLAN):
+            answer = upload(ingest, sid, status, day, seed=300 + index)
+            assert answer["verdict"]["status"] == status
+            verdicts.append(answer["verdict"])
+            assert_exact(fleet_server, sid, other)
+        # The same data again is the same record: no count moves.
+        again = upload(ingest, sid, *PLAN[-1], seed=300 + len(PLAN) - 1)
+        assert again["id"] == verdicts[-1]["record_id"]
+        assert_exact(fleet_server, sid, other)
+
+        # Stored now, inspected later through the API; and one inspected by a queued job.
+        stored = upload(ingest, sid, "faulty", 2.5, seed=400, inspect="false")
+        assert_exact(fleet_server, sid, other)
+        response = ingest.post(f"{API}/records/{stored['id']}/inspect")
+        assert response.status_code in (200, 201), response.text
+        assert_exact(fleet_server, sid, other)
+        queued = upload(ingest, sid, "healthy", 9, seed=401, inspect="queue")
+
+        def inspected() -> bool:
+            latest = viewer.get(f"{API}/structures/{sid}/summary").json()["latest"]
+            return latest is not None and latest["record_id"] == queued["id"]
+
+        wait_for(inspected, 60, "the queued inspection")
+        wait_for(lambda: counted(fleet_server.engine)["jobs"]["done"] >= 1, 30, "the job's end")
+        assert_exact(fleet_server, sid, other)
+        assert kept(fleet_server.engine, sid)["status"] == "healthy"
+
+        summary = viewer.get(f"{API}/structures/{sid}/summary").json()
+        walk = walked(fleet_server.engine, sid)
+        item = next(s for s in viewer.get(f"{API}/structures").json() if s["id"] == sid)
+        assert (item["status"], dt.datetime.fromisoformat(item["since"])) == (walk["status"], walk["since"])
+        assert summary["counts"] == {status: walk[status] for status in STATUSES}
+        assert summary["total"] == sum(walk[status] for status in STATUSES) == len(PLAN) + 2
+
+
+def test_concurrent_uploads_lose_no_count(fleet_server: Fleet):
+    """Twelve uploads at once, each inspected, to one structure (and four to another): every
+    increment lands, whichever transaction waited for which."""
+    org = Org.create(fleet_server.server)
+    with clients(org) as (admin, ingest, _):
+        busy = create_structure(admin, "busy")["id"]
+        quiet = create_structure(admin, "quiet")["id"]
+        for sid, seed in ((busy, 41), (quiet, 42)):
+            train_fault_mode(admin, ingest, sid, "k2", seed=seed)
+    before = counted(fleet_server.engine)
+    plan = [(busy, index) for index in range(12)] + [(quiet, index) for index in range(4)]
+    start = threading.Barrier(len(plan))
+    failures: list[str] = []
+
+    def one(sid: int, index: int) -> None:
+        with org.client("ingest") as client:
+            start.wait()
+            try:
+                status = ("healthy", "faulty", "unknown_fault")[index % 3]
+                upload(client, sid, status, day=index / 10, seed=500 + index)
+            except AssertionError as exc:
+                failures.append(str(exc))
+
+    threads = [threading.Thread(target=one, args=args) for args in plan]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert failures == []
+    after = counted(fleet_server.engine)
+    assert after["records"] - before["records"] == len(plan)
+    assert sum(after["verdicts"].values()) - sum(before["verdicts"].values()) == len(plan)
+    assert_exact(fleet_server, busy, quiet)
+
+
+def test_a_job_whose_claim_was_taken_over_is_counted_once(fleet_server: Fleet):
+    """A worker whose lease ran out and whose job another worker claimed since does not end the
+    job: the new claim does, once, and the count of jobs done grows by one. The job is due only
+    tomorrow, so the server's own worker leaves it to the claims made here, at tomorrow's times."""
+    sessions = fleet_server.server.app.state.sessions
+    tomorrow = dt.datetime.now(dt.UTC) + dt.timedelta(days=1)
+    with sessions() as session:
+        organisation_id = session.execute(text("SELECT min(id) FROM organisations")).scalar_one()
+        values = {
+            "organisation_id": organisation_id,
+            "task": "inspect_record",
+            "args": {"record_id": 2**31 - 1},  # no such record: the task has nothing to do
+            "run_after": tomorrow,
+        }
+        job_id = session.execute(insert(Job).values(values).returning(Job.id)).scalar_one()
+        session.commit()
+        done_before = session.scalar(select(JobCount.count).where(JobCount.state == "done"))
+    with sessions() as session:
+        first = embedded.claim(session, now=tomorrow)
+        second = embedded.claim(session, now=tomorrow + 2 * embedded.LEASE)  # the first lease ran out
+    assert first is not None and second is not None and first.id == second.id == job_id
+    assert second.attempts == first.attempts + 1
+    settings = fleet_server.server.settings
+    with sessions() as session:
+        embedded.run(session, first, settings)
+        assert session.get(Job, job_id).status == "running"  # still the second claim's
+        embedded.run(session, second, settings)
+    with sessions() as session:
+        assert session.get(Job, job_id).status == "done"
+        done = session.scalar(select(JobCount.count).where(JobCount.state == "done"))
+    assert done == done_before + 1
+    assert scraped(fleet_server.server) == counted(fleet_server.engine)
+
+
+# --- the fleet a page at a time -------------------------------------------------------------
+
+
+@dataclass
+class Listed:
+    org: Org
+    ids: dict[str, int]  # name -> id
+    standing: dict[str, str]  # name -> status, or "uninspected"
+
+
+NAMES = ["North bridge", "south-BRIDGE", "tower_1", "tower%2", "mast", "pylon 7", "pylon 8"]
+
+
+@pytest.fixture(scope="module")
+def listed(fleet_server: Fleet) -> tuple[Listed, Listed]:
+    """Two organisations: the first with seven structures (three inspected, one of each status),
+    the second with two, one named as one of the first's."""
+    org = Org.create(fleet_server.server)
+    with clients(org) as (admin, ingest, _):
+        ids = {name: create_structure(admin, name)["id"] for name in NAMES}
+        standing = dict.fromkeys(NAMES, "uninspected")
+        for name, status, seed in (
+            ("North bridge", "faulty", 61),
+            ("mast", "healthy", 62),
+            ("pylon 8", "unknown_fault", 63),
+        ):
+            train_fault_mode(admin, ingest, ids[name], "k2", seed=seed)
+            upload(ingest, ids[name], status, day=1, seed=seed)
+            standing[name] = status
+    theirs = Org.create(fleet_server.server)
+    with clients(theirs) as (admin, _, _):
+        their_ids = {name: create_structure(admin, name)["id"] for name in ("mast", "their bridge")}
+    return Listed(org, ids, standing), Listed(theirs, their_ids, dict.fromkeys(their_ids, "uninspected"))
+
+
+def every_page(client: httpx.Client, **params: object) -> list[list[dict]]:
+    """The pages of ``GET /structures``, following each ``next`` link to the last."""
+    pages = []
+    response = client.get(f"{API}/structures", params=params)
+    while True:
+        assert response.status_code == 200, response.text
+        pages.append(response.json())
+        if "next" not in response.links:
+            return pages
+        response = client.get(response.links["next"]["url"])
+
+
+def test_structures_are_listed_a_page_at_a_time_in_order_of_id(listed):
+    ours, theirs = listed
+    with ours.org.client("viewer") as viewer:
+        whole = viewer.get(f"{API}/structures")
+        assert whole.status_code == 200 and "link" not in whole.headers  # fewer than a default page
+        assert [s["id"] for s in whole.json()] == sorted(ours.ids.values())
+        pages = every_page(viewer, limit=3)
+    assert [len(page) for page in pages] == [3, 3, 1]
+    assert [s["id"] for page in pages for s in page] == sorted(ours.ids.values())
+    with theirs.org.client("viewer") as viewer:
+        assert [s["id"] for page in every_page(viewer, limit=1) for s in page] == sorted(theirs.ids.values())
+
+
+@pytest.mark.parametrize(
+    ("params", "expected"),
+    [
+        ({"status": "faulty"}, ["North bridge"]),
+        ({"status": "healthy"}, ["mast"]),
+        ({"status": "unknown_fault"}, ["pylon 8"]),
+        ({"status": "uninspected"}, ["south-BRIDGE", "tower_1", "tower%2", "pylon 7"]),
+        ({"name": "bridge"}, ["North bridge", "south-BRIDGE"]),  # any case
+        ({"name": "_"}, ["tower_1"]),  # LIKE's wildcards are plain characters
+        ({"name": "%"}, ["tower%2"]),
+        ({"name": "pylon", "status": "uninspected"}, ["pylon 7"]),
+        ({"name": "nothing like it"}, []),
+    ],
+)
+def test_structures_are_filtered_by_status_and_name_on_every_page(listed, params, expected):
+    ours, _ = listed
+    with ours.org.client("viewer") as viewer:
+        pages = every_page(viewer, limit=1, **params)  # the filters ride along in each next link
+    items = [s for page in pages for s in page]
+    assert [s["name"] for s in items] == sorted(expected, key=ours.ids.__getitem__)
+    for item in items:  # each listed with where it stands
+        assert (item["status"] or "uninspected") == ours.standing[item["name"]]
+        assert (item["since"] is None) == (item["status"] is None)
+
+
+def test_paging_never_shows_another_organisations_structures(listed):
+    ours, theirs = listed
+    with ours.org.client("viewer") as viewer:
+        first = viewer.get(f"{API}/structures", params={"limit": 1})
+        our_cursor = httpx.URL(first.links["next"]["url"]).params["cursor"]
+        assert viewer.get(f"{API}/structures", params={"name": "their"}).json() == []
+    with theirs.org.client("viewer") as viewer:
+        # Our cursor is a position in order of id, not a key to our structures.
+        listed_after = viewer.get(f"{API}/structures", params={"cursor": our_cursor}).json()
+        assert {s["id"] for s in listed_after} <= set(theirs.ids.values())
+        assert [s["id"] for s in viewer.get(f"{API}/structures", params={"name": "mast"}).json()] == [
+            theirs.ids["mast"]
+        ]
+        assert viewer.get(f"{API}/structures", params={"status": "healthy"}).json() == []
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"cursor": "not-a-cursor"}, "cursor"),
+        ({"cursor": "c3RydWN0dXJlfDA="}, "cursor"),  # base64 of "structure|0": no id is 0
+        ({"cursor": "dmVyZGljdHwx"}, "cursor"),  # base64 of "verdict|1": another listing's
+        ({"limit": 0}, "limit"),
+        ({"limit": 1001}, "limit"),
+        ({"limit": "many"}, "limit"),
+        ({"status": "broken"}, "uninspected"),  # the message lists what is allowed
+        ({"name": "x" * 201}, "name"),
+        ({"name": "a\x00b"}, "name"),  # no name holds a control character
+    ],
+)
+def test_bad_paging_and_filters_are_refused_with_a_clear_422(listed, params, message):
+    ours, _ = listed
+    with ours.org.client("viewer") as viewer:
+        response = viewer.get(f"{API}/structures", params=params)
+    assert response.status_code == 422, response.text
+    assert message in detail(response)
+
+
+def test_the_fleet_page_is_paged_and_filtered_from_the_state_rows(fleet_server: Fleet, listed):
+    ours, _ = listed
+    with logged_in(fleet_server.server, ours.org.keys["viewer"]) as client:
+        page = client.get(DASHBOARD)
+        assert page.status_code == 200
+        shown = [int(i) for i in _row_ids(page.text)]
+        assert shown == sorted(ours.ids.values())
+        assert "their bridge" not in page.text
+        faulty = client.get(DASHBOARD, params={"status": "faulty"})
+        assert _row_ids(faulty.text) == [str(ours.ids["North bridge"])]
+        assert 'class="status-faulty"' in faulty.text
+        named = client.get(DASHBOARD, params={"name": "TOWER"})
+        assert _row_ids(named.text) == [str(ours.ids["tower_1"]), str(ours.ids["tower%2"])]
+        nothing = client.get(DASHBOARD, params={"name": "their"})
+        assert _row_ids(nothing.text) == [] and 'id="no-match"' in nothing.text
+        submitted_empty = client.get(DASHBOARD, params={"status": "", "name": ""})  # the form, untouched
+        assert _row_ids(submitted_empty.text) == _row_ids(page.text)
+        for params in ({"status": "broken"}, {"cursor": "not-a-cursor"}, {"name": "a\x00b"}):
+            refused = client.get(DASHBOARD, params=params)
+            assert refused.status_code == 422, params
+
+
+def test_the_fleet_page_links_to_the_next_page(fleet_server: Fleet):
+    """One structure more than a page: the first page links to the next, which holds it."""
+    from service.dashboard.views import FLEET_PAGE
+
+    org = Org.create(fleet_server.server)
+    with clients(org) as (admin, _, _):
+        ids = [create_structure(admin, f"unit {index}")["id"] for index in range(FLEET_PAGE + 1)]
+    with logged_in(fleet_server.server, org.keys["viewer"]) as client:
+        first = client.get(DASHBOARD)
+        assert _row_ids(first.text) == [str(i) for i in ids[:FLEET_PAGE]]
+        second = client.get(DASHBOARD + _next_link(first.text))
+        assert _row_ids(second.text) == [str(ids[-1])] and _next_link(second.text) is None
+
+
+def _row_ids(html: str) -> list[str]:
+    return re.findall(r'<tr class="status-[a-z_]+" data-structure-id="(\d+)"', html)
+
+
+def _next_link(html: str) -> str | None:
+    found = re.search(r'<a href="(\?[^"]*)" id="next">', html)
+    return markup.unescape(found.group(1)) if found else None
