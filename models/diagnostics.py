@@ -21,6 +21,7 @@ from models.correlation_tests import (
     billings_voon,
     billings_zhu,
 )
+from models.errors import InputError
 from models.series import checked_series, sidak
 from models.spectrum import ResidualSpectrum, residual_spectrum
 
@@ -66,6 +67,63 @@ def ljung_box(e: np.ndarray, lags: int = 40, alpha: float = 0.05, model_df: int 
         p_value=float(special.chdtrc(df, q)),
         df=df,
         lags=lags,
+    )
+
+
+@dataclass(frozen=True)
+class HoskingResult:
+    """Hosking's multivariate portmanteau test of a vector residual's whiteness.
+
+    Q = N²·Σ_{h=1..m} tr(Ĉ_hᵀ Ĉ_0⁻¹ Ĉ_h Ĉ_0⁻¹)/(N − h), with Ĉ_h = (1/N)·Σ_t e_t·e_{t−h}ᵀ the
+    residual's lag-h autocovariance (demeaned), compared with χ²_{1−α}(K²·m − model_df) for K
+    channels and m lags (Hosking 1980, "The multivariate portmanteau statistic", JASA 75).
+    The cross-covariances count: a residual white on every channel whose channels lead one
+    another is not white as a vector. For K = 1 it is Ljung–Box's Q scaled by N/(N + 2).
+    """
+
+    q: float
+    q_critical: float
+    p_value: float
+    df: int
+    lags: int
+    channels: int
+
+    @property
+    def white(self) -> bool:
+        return self.q < self.q_critical
+
+
+def hosking(e: ArrayLike, lags: int = 40, alpha: float = 0.05, model_df: int = 0) -> HoskingResult:
+    """Hosking's portmanteau test (:class:`HoskingResult`) of the residual ``e``, an (N, K) array
+    of K channels; ``model_df`` the parameters estimated, subtracted from the degrees of freedom.
+    Agrees with statsmodels' ``VARResults.test_whiteness(lags, adjusted=True)`` for a VAR's
+    residual with ``model_df`` = K²·p."""
+    residual = np.asarray(e, dtype=np.float64)
+    if residual.ndim != 2 or residual.shape[1] < 1:
+        raise InputError(f"the residual must be an (N, K) array of K channels, got shape {residual.shape}")
+    n, channels = residual.shape
+    df = channels**2 * lags - model_df
+    if not 1 <= lags < n or df < 1:
+        raise InputError(
+            f"{lags} lags of {n} samples of {channels} channels with {model_df} parameters leave no "
+            "degrees of freedom for the portmanteau test"
+        )
+    if not np.all(np.isfinite(residual)):
+        raise InputError("the residual holds values that are not finite")
+    centred = residual - residual.mean(axis=0)
+    c0_inv = np.linalg.pinv(centred.T @ centred / n)
+    q = 0.0
+    for h in range(1, lags + 1):
+        ch = centred[h:].T @ centred[:-h] / n
+        q += float(np.trace(ch.T @ c0_inv @ ch @ c0_inv)) / (n - h)
+    q *= n**2
+    return HoskingResult(
+        q=q,
+        q_critical=float(special.chdtri(df, alpha)),
+        p_value=float(special.chdtrc(df, q)),
+        df=df,
+        lags=lags,
+        channels=channels,
     )
 
 

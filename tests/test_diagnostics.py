@@ -19,7 +19,7 @@ from models.correlation_tests import (
     input_cross_correlation,
     residual_autocorrelation,
 )
-from models.diagnostics import autocorrelation, ljung_box, residual_report
+from models.diagnostics import autocorrelation, hosking, ljung_box, residual_report
 from models.errors import InputError
 from models.spectrum import residual_spectrum, welch_dof
 
@@ -424,3 +424,61 @@ GOOD = np.random.default_rng(80).normal(size=(3, 200))
 def test_bad_input_is_refused_with_a_clear_message(call, message: str) -> None:
     with pytest.raises(InputError, match=re.escape(message)):
         call()
+
+
+def _var1(n: int, coupling: float, seed: int) -> np.ndarray:
+    """A two-channel VAR(1) whose channels are each nearly white but lead one another."""
+    rng = np.random.default_rng(seed)
+    a = np.array([[0.0, coupling], [0.0, 0.0]])  # channel 1 follows channel 2 one sample late
+    z = np.zeros((n, 2))
+    shocks = rng.standard_normal((n, 2))
+    for t in range(1, n):
+        z[t] = a @ z[t - 1] + shocks[t]
+    return z
+
+
+def test_hosking_agrees_with_statsmodels_whiteness_test_of_a_var_residual():
+    from statsmodels.tsa.api import VAR
+
+    fitted = VAR(_var1(3000, 0.6, seed=3)).fit(2, trend="c")
+    expected = fitted.test_whiteness(nlags=12, adjusted=True)
+    result = hosking(fitted.resid, lags=12, model_df=2**2 * 2)
+    assert result.q == pytest.approx(expected.test_statistic, rel=1e-12)
+    assert result.df == expected.df and result.p_value == pytest.approx(expected.pvalue, rel=1e-9)
+
+
+def test_hosking_of_one_channel_is_ljung_box_scaled_by_n_over_n_plus_2():
+    e = np.random.default_rng(4).standard_normal(2000)
+    assert hosking(e[:, None], lags=20).q == pytest.approx(
+        ljung_box(e, 20, model_df=0).q * 2000 / 2002, rel=1e-12
+    )
+
+
+def test_hosking_sees_channels_that_lead_one_another_where_per_channel_tests_do_not():
+    z = _var1(4000, 0.5, seed=5)
+    # Each channel alone is white (channel 1 is a sum of two independent white series)...
+    assert all(ljung_box(z[:, i], 20, model_df=0).white for i in range(2))
+    # ...but as a vector it is not: channel 1 at t is channel 2 at t − 1, halved.
+    assert not hosking(z, lags=20).white
+
+
+def test_hosking_rejects_white_vectors_at_its_level():
+    """Over 400 independent three-channel white residuals the rejections stay within the 99 %
+    binomial range of α = 0.05."""
+    rng = np.random.default_rng(6)
+    rejected = sum(not hosking(rng.standard_normal((1000, 3)), lags=10).white for _ in range(400))
+    low, high = stats.binom.ppf([0.005, 0.995], 400, 0.05)
+    assert low <= rejected <= high, rejected
+
+
+@pytest.mark.parametrize(
+    ("shape", "lags", "model_df", "message"),
+    [
+        ((100,), 5, 0, r"\(N, K\) array"),
+        ((100, 2), 100, 0, "no degrees of freedom"),
+        ((100, 2), 2, 8, "no degrees"),
+    ],
+)
+def test_hosking_refuses_what_it_cannot_test(shape, lags, model_df, message):
+    with pytest.raises(InputError, match=message):
+        hosking(np.ones(shape), lags=lags, model_df=model_df)
