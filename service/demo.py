@@ -91,7 +91,7 @@ def _history(session: Session, structure: Structure, settings: Settings, study: 
             else FAULT_START + (FAULT_END - FAULT_START) * growing / (HISTORY_RECORDS - HEALTHY_RECORDS - 1)
         )
         run = simulate(study.scenario("k2", k), study.experiment_samples, seed)
-        evaluation = inspections.evaluate(session, structure, settings, run.x, run.y)
+        evaluation = inspections.evaluate(session, structure, settings, run.x, run.y, {})
         acquired = now - (HISTORY_RECORDS - 1 - index) * HISTORY_STEP
         record, _ = records.store_record(session, structure, run.x, run.y, run.fs, acquired)
         inspections.store_verdict(session, record, structure, evaluation, new_record=True)

@@ -46,7 +46,7 @@ def ingest_record(
     conditions: Sequence[Condition] = (),
 ) -> Ingested:
     """Store a record with its (checked) conditions and, with ``inspect``, its verdict under the
-    active fault-mode models, or through ``queue`` an inspection job in the same transaction
+    active models at those conditions, or through ``queue`` an inspection job in the same transaction
     (committed by the caller).
 
     Everything that can refuse the record runs before the first write, cheapest first: the
@@ -61,11 +61,12 @@ def ingest_record(
     rate = records.checked_rate(structure, fs)
     evaluation = None
     active: list[ModelVersion] = []
+    values = records.condition_values(conditions)
     if inspect:
-        evaluation = inspections.evaluate(session, structure, settings, x, y)
+        evaluation = inspections.evaluate(session, structure, settings, x, y, values)
     elif queue is not None:
         models = inspections.models_to_inspect_with(session, structure)
-        x, y = checked_for_inspection(x, y, [model for _, model in models], settings.lags)
+        x, y = checked_for_inspection(x, y, inspections.at_conditions(models, values), settings.lags)
         active = [version for version, _ in models]
     else:
         x, y = checked_record(

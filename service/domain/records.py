@@ -107,6 +107,11 @@ def as_conditions(rows: Iterable[RecordCondition]) -> list[Condition]:
     return [Condition(row.name, row.value, row.unit) for row in rows]
 
 
+def condition_values(conditions: Iterable[Condition | RecordCondition]) -> dict[str, float]:
+    """The values of conditions by name, as the models take them."""
+    return {c.name: c.value for c in conditions}
+
+
 def describe_conditions(conditions: Sequence[Condition]) -> str:
     """``temperature=12.5 °C, speed=3``; "none" for none."""
     listed = [f"{c.name}={c.value:g}" + (f" {c.unit}" if c.unit else "") for c in conditions]
