@@ -12,12 +12,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import pytest
-from api_helpers import API, Org, clients, create_structure, detail, nothing_written, post_record
+from api_helpers import API, Org, clients, create_structure, detail, nothing_written, post_record, wait_for
 from conftest import DISTURBANCE_STD
+from dashboard_helpers import DASHBOARD, logged_in
 from live import LiveServer
 
 from models.narx import fit_narx
 from models.pooled import check_baseline
+from service.config import Settings
 from simulator.simulate import Scenario, SimulatedRecord, simulate
 from simulator.theory import EXACT_TERMS
 
@@ -105,6 +107,16 @@ def test_healthy_record_inside_the_range_is_healthy(bridge: Bridge) -> None:
     assert verdict["model_versions"] == [{"id": bridge.baseline["id"], "name": "baseline", "version": 1}]
     assert verdict["z_critical"] is None and verdict["modes"] == [] and verdict["k_hat"] is None
     assert verdict["conditions"] == [{"name": "temperature", "value": 12.5, "unit": "°C"}]
+
+
+def test_the_record_page_of_a_baseline_verdict(bridge: Bridge, sqlite_api_server: LiveServer) -> None:
+    """The dashboard's record page of a verdict with no fault modes says what judged it rather
+    than drawing a fault mode's fit."""
+    verdict = inspected(bridge, record_at(17.0, 310), temperature=17.0)
+    with logged_in(sqlite_api_server, bridge.org.keys["viewer"]) as viewer:
+        page = viewer.get(f"{DASHBOARD}/records/{verdict['record_id']}")
+    assert page.status_code == 200, page.text
+    assert 'id="baseline-only"' in page.text and 'id="modes"' not in page.text
 
 
 def test_healthy_where_a_one_temperature_baseline_alarms(bridge: Bridge) -> None:
@@ -213,3 +225,27 @@ def test_pooled_fault_mode_estimates_k_at_the_records_temperature(sqlite_api_ser
     low, high = verdict["interval"]
     assert low <= 6.0 <= high and abs(verdict["k_hat"] - 6.0) < 1.5, verdict
     assert verdict["z_critical"] is not None
+
+
+def test_a_large_pooled_training_is_queued_and_its_job_stores_the_version(tmp_path) -> None:
+    """Over the queueing threshold the training answers 202 and the job, run by the embedded
+    worker, stores the same kind of version a training in the request would."""
+    settings = Settings(database_url=f"sqlite:///{tmp_path / 'narxwatch.db'}", queue_training_cells=1000)
+    with LiveServer(settings) as server:
+        org = Org.create(server)
+        with clients(org) as (admin, ingest, viewer):
+            structure_id = create_structure(admin, "queued")["id"]
+            ids = [
+                stored(post_record(ingest, structure_id, body(record_at(T, 900 + i), temperature=T)))["id"]
+                for i, T in enumerate((-10.0, 0.0, 10.0, 20.0, 30.0))
+            ]
+            url = f"{API}/structures/{structure_id}/models/pooled-baseline"
+            response = admin.post(url, json={"record_ids": ids, "max_degree": 1})
+            assert response.status_code == 202, response.text
+
+            def trained() -> list[dict]:
+                return viewer.get(f"{API}/structures/{structure_id}/models").json()
+
+            (version,) = wait_for(trained, 60, "the queued pooled training's version")  # type: ignore[misc]
+    assert version["kind"] == "baseline" and version["training"]["variables"] == ["temperature"]
+    assert version["training"]["job"] and version["statistics"]["ranges"] == {"temperature": [-10.0, 30.0]}
