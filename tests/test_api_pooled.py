@@ -109,6 +109,21 @@ def test_healthy_record_inside_the_range_is_healthy(bridge: Bridge) -> None:
     assert verdict["conditions"] == [{"name": "temperature", "value": 12.5, "unit": "°C"}]
 
 
+def test_stored_data_uploaded_again_without_conditions_keeps_its_own(bridge: Bridge) -> None:
+    """Conditions do not identify a record, its data do: the same data sent again stating no
+    conditions are the stored record, judged at the conditions it was stored with, not refused
+    for lacking them."""
+    record = record_at(8.0, 320)
+    first = inspected(bridge, record, temperature=8.0)
+    with bridge.org.client("ingest") as ingest:
+        for inspect in ("true", "queue"):
+            again = post_record(ingest, bridge.structure_id, body(record), inspect=inspect)
+            assert again.status_code == 200, again.text
+            answer = again.json()
+            assert answer["conditions"] == [{"name": "temperature", "value": 8.0, "unit": "°C"}]
+            assert answer["verdict"]["id"] == first["id"]
+
+
 def test_the_record_page_of_a_baseline_verdict(bridge: Bridge, sqlite_api_server: LiveServer) -> None:
     """The dashboard's record page of a verdict with no fault modes says what judged it rather
     than drawing a fault mode's fit."""

@@ -10,6 +10,7 @@ from numpy.typing import ArrayLike
 from sqlalchemy.orm import Session
 
 from models.inspection import checked_for_inspection
+from models.pooled import PooledModel
 from models.signals import checked_record, minimum_samples
 from models.terms import max_degree
 from service.conditions import Condition
@@ -61,11 +62,16 @@ def ingest_record(
     rate = records.checked_rate(structure, fs)
     evaluation = None
     active: list[ModelVersion] = []
-    values = records.condition_values(conditions)
-    if inspect:
-        evaluation = inspections.evaluate(session, structure, settings, x, y, values)
-    elif queue is not None:
+    if inspect or queue is not None:
         models = inspections.models_to_inspect_with(session, structure)
+        values = records.condition_values(conditions)
+        if not values and any(isinstance(model, PooledModel) for _, model in models):
+            # Data stored before and sent again stating no conditions are that record, to be
+            # judged at the conditions it was stored with (records.store_record).
+            values = records.condition_values(records.stored_conditions(session, structure, x, y, rate))
+    if inspect:
+        evaluation = inspections.evaluate(models, settings, x, y, values)
+    elif queue is not None:
         x, y = checked_for_inspection(x, y, inspections.at_conditions(models, values), settings.lags)
         active = [version for version, _ in models]
     else:

@@ -43,31 +43,17 @@ class Evaluation:
 
 
 def evaluate(
-    session: Session,
-    structure: Structure,
-    settings: Settings,
-    x: ArrayLike,
-    y: ArrayLike,
-    conditions: Mapping[str, float],
-) -> Evaluation:
-    """Run the chain with the structure's active models at the record's ``conditions``; reads,
-    never writes.
-
-    Kept apart from storing so that an upload computes its verdict before its first write:
-    SQLite then holds its write lock only for the inserts.
-    """
-    return _evaluate(models_to_inspect_with(session, structure), settings, x, y, conditions)
-
-
-def _evaluate(
     active: list[tuple[ModelVersion, FNARX | PooledModel]],
     settings: Settings,
     x: ArrayLike,
     y: ArrayLike,
     conditions: Mapping[str, float],
 ) -> Evaluation:
-    """The fault-mode chain (pooled modes evaluated at ``conditions``), or, for a structure
-    monitored by a pooled baseline alone, that baseline's check at ``conditions``."""
+    """A record's verdict under the ``active`` models (:func:`models_to_inspect_with`) at its
+    ``conditions``: the fault-mode chain (pooled modes evaluated there), or, for a structure
+    monitored by a pooled baseline alone, that baseline's check there. Reads, never writes:
+    kept apart from storing so that an upload computes its verdict before its first write
+    (SQLite then holds its write lock only for the inserts)."""
     models = [model for _, model in active]
     baseline = models[0] if isinstance(models[0], PooledModel) and not models[0].is_fault_mode else None
     if baseline is not None:
@@ -137,7 +123,7 @@ def inspect_record(session: Session, record: Record, structure: Structure, setti
     existing = _find(session, record.id, model_set([version for version, _ in active]))
     if existing is not None:
         return existing
-    evaluation = _evaluate(active, settings, *signals(record), condition_values(record.conditions))
+    evaluation = evaluate(active, settings, *signals(record), condition_values(record.conditions))
     return store_verdict(session, record, structure, evaluation)
 
 

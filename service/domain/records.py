@@ -102,6 +102,15 @@ def store_record(
     return Record(id=inserted.id, created_at=inserted.created_at, conditions=stored, **values), True
 
 
+def stored_conditions(
+    session: Session, structure: Structure, x: ArrayLike, y: ArrayLike, rate: float
+) -> list[Condition]:
+    """The conditions the same data were stored with, if the structure holds them (none if not)."""
+    sha = content_hash(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), rate)
+    found = _find(session, structure.id, sha)
+    return as_conditions(found.conditions) if found is not None else []
+
+
 def as_conditions(rows: Iterable[RecordCondition]) -> list[Condition]:
     """A record's stored conditions as the API shows them."""
     return [Condition(row.name, row.value, row.unit) for row in rows]
