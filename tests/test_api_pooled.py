@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import pytest
 from api_helpers import API, Org, clients, create_structure, detail, nothing_written, post_record, wait_for
 from conftest import DISTURBANCE_STD
-from dashboard_helpers import DASHBOARD, logged_in
+from dashboard_helpers import DASHBOARD, charts, logged_in
 from live import LiveServer
 
 from models.narx import fit_narx
@@ -210,7 +210,7 @@ def test_pooled_fault_mode_estimates_k_at_the_records_temperature(sqlite_api_ser
     """A pooled k2 fault mode from nine experiments (−10, 10, 30 °C × k = −8, 0, 8 %), trained over
     HTTP; a record with k2 loosened by 6 % at 0 °C is inspected at 0 °C: k̂ near 6 %, the
     interval holding it. Its version is a fault mode like any other, with its degrees per
-    argument reported."""
+    argument reported; the structure's dashboard page draws k̂ against temperature."""
     org = Org.create(sqlite_api_server)
     with clients(org) as (admin, ingest, _):
         structure_id = create_structure(admin, "pooled-k2")["id"]
@@ -240,6 +240,13 @@ def test_pooled_fault_mode_estimates_k_at_the_records_temperature(sqlite_api_ser
     low, high = verdict["interval"]
     assert low <= 6.0 <= high and abs(verdict["k_hat"] - 6.0) < 1.5, verdict
     assert verdict["z_critical"] is not None
+    # The dashboard draws k̂ against the temperature the record states, beside k̂ against time.
+    with logged_in(sqlite_api_server, org.keys["viewer"]) as viewer:
+        page = viewer.get(f"{DASHBOARD}/structures/{structure_id}")
+    assert page.status_code == 200, page.text
+    (trace, *_) = charts(page)["k_hat-temperature"]["data"]
+    assert (trace["x"], trace["y"]) == ([0.0], [verdict["k_hat"]])
+    assert trace["error_y"]["arrayminus"] == [pytest.approx(verdict["k_hat"] - low)]
 
 
 def test_a_large_pooled_training_is_queued_and_its_job_stores_the_version(tmp_path) -> None:

@@ -85,18 +85,25 @@ def structure_page(
     ]
     level = f"{1 - status.latest.alpha:.0%}" if status.latest is not None else "95%"
     structure_alarms = alarms.unresolved_alarms(session, principal, structure_id)
-    charts = {
-        "k_hat": figures.k_hat_figure(
-            points.points,
-            level,
-            alarms.cusum_series(session, structure_id),
-            alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items,
-        ),
-        "q": figures.q_figure(points.points),
-    } | {
-        f"trajectories-{v.name}": figures.trajectories_figure(modelling.parsed_model(v))  # type: ignore[arg-type]
-        for v in active_modes
-    }
+    charts = (
+        {
+            "k_hat": figures.k_hat_figure(
+                points.points,
+                level,
+                alarms.cusum_series(session, structure_id),
+                alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items,
+            ),
+            "q": figures.q_figure(points.points),
+        }
+        | {
+            f"k_hat-{name}": figures.k_hat_condition_figure(points.points, name, unit, level)
+            for name, unit in points.units.items()
+        }
+        | {
+            f"trajectories-{v.name}": figures.trajectories_figure(modelling.parsed_model(v))  # type: ignore[arg-type]
+            for v in active_modes
+        }
+    )
     return {
         "structure": structure,
         "alarms": structure_alarms,
