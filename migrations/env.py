@@ -28,6 +28,14 @@ def run_migrations_offline() -> None:
 def run_migrations_online() -> None:
     engine = make_engine(url)
     with engine.connect() as connection:
+        if connection.dialect.name == "sqlite":
+            # Batch mode rebuilds a table to alter it: copy, drop, rename. With foreign keys
+            # enforced (as every narxwatch connection has them), dropping the old table fires the
+            # ON DELETE actions of every row referring to it — verdict_models' links deleted,
+            # structure_states' latest verdicts set to NULL. The pragma is a no-op inside a
+            # transaction, so it is committed alone before the migrations' transaction begins.
+            connection.exec_driver_sql("PRAGMA foreign_keys=OFF")
+            connection.commit()
         # Batch mode lets ALTER TABLE work on SQLite, which rebuilds tables to change them.
         context.configure(
             connection=connection,
@@ -37,6 +45,10 @@ def run_migrations_online() -> None:
         )
         with context.begin_transaction():
             context.run_migrations()
+            if connection.dialect.name == "sqlite":
+                broken = connection.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
+                if broken:
+                    raise RuntimeError(f"the migration left rows whose references are broken: {broken[:5]}")
     engine.dispose()
 
 

@@ -88,7 +88,8 @@ class Verdict:
 
     ``k_hat``, ``sigma_k`` and ``interval`` come from ``reference_mode``, the mode that best
     describes the record; they are None for an unknown fault (no model describes it, so no
-    magnitude is estimated).
+    magnitude is estimated). ``z_critical`` is None when no fault mode was tested: a healthy
+    baseline's check alone (:func:`models.pooled.baseline_verdict`).
     """
 
     status: Status
@@ -101,7 +102,7 @@ class Verdict:
     alpha: float
     lags: int
     n_samples: int
-    z_critical: float
+    z_critical: float | None
     q_critical_detection: float
     detected_by: tuple[str, ...]
     modes: tuple[ModeResult, ...]

@@ -58,7 +58,7 @@ from models.basis import BasisFamily, FunctionalBasis
 from models.diagnostics import ljung_box
 from models.errors import InputError
 from models.fnarx import FNARX
-from models.inspection import ADEQUACY_SHARE, Verdict, inspect
+from models.inspection import ADEQUACY_SHARE, Status, Verdict, inspect
 from models.narx import NARX, check_document
 from models.regression import least_squares
 from models.signals import checked_record, minimum_samples
@@ -637,3 +637,26 @@ def inspect_pooled(
     evaluated at the record's measured ``conditions`` (k̂ and its interval with w fixed there).
     ``options`` are those of :func:`models.inspection.inspect`."""
     return inspect(x, y, [model.fnarx_at(conditions) for model in fault_modes], **options)
+
+
+def baseline_verdict(check: BaselineCheck, n_samples: int) -> Verdict:
+    """A record's verdict from a baseline check alone, for a structure monitored without fault
+    modes: healthy, or a fault no model describes (``unknown_fault``: nothing estimates its
+    magnitude), detected by the tests ``detected_by`` names. ``n_samples`` is the record's length."""
+    status: Status = "unknown_fault" if check.fault_detected else "healthy"
+    return Verdict(
+        status=status,
+        fault_detected=check.fault_detected,
+        fault_mode=None,
+        reference_mode=None,
+        k_hat=None,
+        sigma_k=None,
+        interval=None,
+        alpha=check.alpha,
+        lags=check.lags,
+        n_samples=n_samples,
+        z_critical=None,
+        q_critical_detection=check.q_critical,
+        detected_by=check.detected_by,
+        modes=(),
+    )

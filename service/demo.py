@@ -83,6 +83,7 @@ def _history(session: Session, structure: Structure, settings: Settings, study: 
     so that the dashboard has a story to tell from the first start."""
     now = utcnow().replace(minute=0, second=0, microsecond=0)
     seeds = np.random.SeedSequence(2027).spawn(HISTORY_RECORDS)
+    models = inspections.models_to_inspect_with(session, structure)
     for index, seed in enumerate(seeds):
         growing = index - HEALTHY_RECORDS
         k = (
@@ -91,7 +92,7 @@ def _history(session: Session, structure: Structure, settings: Settings, study: 
             else FAULT_START + (FAULT_END - FAULT_START) * growing / (HISTORY_RECORDS - HEALTHY_RECORDS - 1)
         )
         run = simulate(study.scenario("k2", k), study.experiment_samples, seed)
-        evaluation = inspections.evaluate(session, structure, settings, run.x, run.y)
+        evaluation = inspections.evaluate(models, settings, run.x, run.y, {})
         acquired = now - (HISTORY_RECORDS - 1 - index) * HISTORY_STEP
         record, _ = records.store_record(session, structure, run.x, run.y, run.fs, acquired)
         inspections.store_verdict(session, record, structure, evaluation, new_record=True)

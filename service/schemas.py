@@ -20,7 +20,8 @@ from pydantic import (
 from models.alarms import DESIGN_SHIFT
 from models.basis import FAMILIES
 from models.inspection import ModeResult, Status
-from service.conditions import Condition
+from models.pooled import MAX_DEGREE, MAX_VARIABLES
+from service.conditions import NAME_LENGTH, NAME_RULE, Condition
 from service.jobs import JobState
 
 STRUCTURE_NAME_LENGTH = 200
@@ -112,6 +113,40 @@ class FaultModeTrain(Strict):
     terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
 
 
+ConditionName = Annotated[str, Field(min_length=1, max_length=NAME_LENGTH, pattern=f"^{NAME_RULE.pattern}$")]
+PooledVariables = Annotated[list[ConditionName], Field(min_length=1, max_length=MAX_VARIABLES)]
+PooledDegree = Annotated[StrictInt, Field(ge=0, le=MAX_DEGREE)]
+POOLED_VARIABLES_HELP = (
+    "The operating variables the coefficients are functions of; by default every condition the first "
+    "record carries"
+)
+POOLED_DEGREE_HELP = "The highest degree per argument the information criterion may choose"
+
+
+class PooledBaselineTrain(Strict):
+    """Train a pooled baseline (``models.pooled``) from healthy stored records acquired over a range of
+    operating conditions."""
+
+    record_ids: Annotated[list[Id], Field(min_length=2, max_length=1000)]
+    terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
+    variables: PooledVariables | None = Field(None, description=POOLED_VARIABLES_HELP)
+    max_degree: PooledDegree = Field(2, description=POOLED_DEGREE_HELP)
+
+
+class PooledFaultModeTrain(Strict):
+    """Train a pooled fault mode, its coefficients functions of the operating variables and k, from
+    stored records at known magnitudes spread over the conditions."""
+
+    name: ModeName
+    experiments: Annotated[list[Experiment], Field(min_length=2, max_length=1000)]
+    terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
+    variables: PooledVariables | None = Field(None, description=POOLED_VARIABLES_HELP)
+    max_degree: PooledDegree = Field(2, description=POOLED_DEGREE_HELP)
+
+
+Train = BaselineTrain | FaultModeTrain | PooledBaselineTrain | PooledFaultModeTrain
+
+
 class ModelOut(BaseModel):
     id: int
     kind: Literal["baseline", "fault_mode"]
@@ -173,7 +208,11 @@ class VerdictOut(BaseModel):
     alpha: float
     lags: int
     n_samples: int
-    z_critical: float
+    z_critical: float | None = Field(
+        description="The magnitude test's critical |k̂|/σ̂_k; null for a verdict of a pooled baseline alone, "
+        "which tests the residual's variance and whiteness at the record's conditions (as detected_by "
+        "names them)"
+    )
     q_critical_detection: float
     detected_by: list[str]
     modes: list[ModeResult]

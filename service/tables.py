@@ -203,7 +203,8 @@ class Verdict(Base):
     alpha: Mapped[float] = mapped_column(Float)
     lags: Mapped[int] = mapped_column(Integer)
     n_samples: Mapped[int] = mapped_column(Integer)
-    z_critical: Mapped[float] = mapped_column(Float)
+    # None for a verdict of a pooled baseline alone, which has no magnitude test
+    z_critical: Mapped[float | None] = mapped_column(Float, nullable=True)
     q_critical_detection: Mapped[float] = mapped_column(Float)
     detected_by: Mapped[list[str]] = mapped_column(Document)
     modes: Mapped[list[dict[str, Any]]] = mapped_column(Document)

@@ -254,3 +254,54 @@ def test_0012_fills_each_structure_s_state_and_the_job_counts_from_what_is_store
         left = set(inspect(connection).get_table_names())
     engine.dispose()
     assert not {"structure_states", "job_counts"} & left and {"structures", "jobs"} <= left
+
+
+def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(fresh_url):
+    """0013 alters verdicts, which SQLite does by copying the table, dropping the old one and
+    renaming the copy. With foreign keys enforced during the drop, every verdict's link to its
+    models (ON DELETE CASCADE) was deleted and each structure's latest verdict (ON DELETE SET NULL)
+    forgotten; the migrations run with them off and check the references afterwards."""
+    upgrade_database(fresh_url, "0012")
+    engine = make_engine(fresh_url)
+    now = dt.datetime.now(dt.UTC)
+    table = Base.metadata.tables
+    with engine.begin() as connection:
+        connection.execute(table["organisations"].insert().values(id=1, name="o", created_at=now))
+        connection.execute(
+            table["structures"]
+            .insert()
+            .values(id=1, organisation_id=1, name="s", fs=1500.0, description="", created_at=now)
+        )
+        connection.execute(
+            table["model_versions"].insert().values(
+                id=1, structure_id=1, kind="fault_mode", name="k2", version=1, document={}, training={},
+                statistics={}, active=True, created_at=now,
+            )
+        )  # fmt: skip
+        connection.execute(
+            table["records"].insert().values(
+                id=1, structure_id=1, fs=1500.0, n_samples=3, acquired_at=now, created_at=now,
+                sha256="0" * 64, x=b"", y=b"",
+            )
+        )  # fmt: skip
+        connection.execute(
+            table["verdicts"].insert().values(
+                id=1, record_id=1, structure_id=1, acquired_at=now, created_at=now, model_set="1",
+                status="healthy", fault_detected=False, alpha=0.05, lags=4, n_samples=3, z_critical=1.96,
+                q_critical_detection=1.0, detected_by=[], modes=[],
+            )
+        )  # fmt: skip
+        connection.execute(table["verdict_models"].insert().values(verdict_id=1, model_version_id=1))
+        connection.execute(
+            table["structure_states"].insert().values(
+                structure_id=1, organisation_id=1, status="healthy", since=now, latest_verdict_id=1,
+                latest_acquired_at=now, records=1, healthy=1,
+            )
+        )  # fmt: skip
+    upgrade_database(fresh_url)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT verdict_id, model_version_id FROM verdict_models")).all() == [
+            (1, 1)
+        ]
+        assert connection.execute(text("SELECT latest_verdict_id FROM structure_states")).scalar_one() == 1
+    engine.dispose()

@@ -12,7 +12,14 @@ from service.api.params import IdPath
 from service.config import Settings
 from service.domain import modelling
 from service.jobs.tasks import TRAIN_MODEL
-from service.schemas import BaselineTrain, FaultModeTrain, ModelOut
+from service.schemas import (
+    BaselineTrain,
+    FaultModeTrain,
+    ModelOut,
+    PooledBaselineTrain,
+    PooledFaultModeTrain,
+    Train,
+)
 from service.security import Principal
 from service.tables import ModelVersion
 
@@ -61,25 +68,53 @@ def train_fault_mode(
     return _train(request, structure_id, body, principal, session, settings)
 
 
+@router.post(
+    "/pooled-baseline", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED
+)
+def train_pooled_baseline(
+    request: Request,
+    structure_id: IdPath,
+    body: PooledBaselineTrain,
+    principal: Admin,
+    session: SessionDep,
+    settings: SettingsDep,
+) -> ModelOut | JSONResponse:
+    """Identify a pooled baseline, its coefficients functions of the operating conditions the
+    records were stored with; it becomes the active baseline. A large training is queued (202)."""
+    return _train(request, structure_id, body, principal, session, settings)
+
+
+@router.post(
+    "/pooled-fault-modes", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED
+)
+def train_pooled_fault_mode(
+    request: Request,
+    structure_id: IdPath,
+    body: PooledFaultModeTrain,
+    principal: Admin,
+    session: SessionDep,
+    settings: SettingsDep,
+) -> ModelOut | JSONResponse:
+    """Identify a pooled fault mode, its coefficients functions of the operating conditions and k;
+    the new version becomes the active one. A large training is queued (202)."""
+    return _train(request, structure_id, body, principal, session, settings)
+
+
 def _train(
     request: Request,
     structure_id: int,
-    body: BaselineTrain | FaultModeTrain,
+    body: Train,
     principal: Principal,
     session: Session,
     settings: Settings,
 ) -> ModelOut | JSONResponse:
     """Run a training within the request, in one of the organisation's slots, or queue it."""
-    kind = "baseline" if isinstance(body, BaselineTrain) else "fault_mode"
     cells = modelling.training_cells(session, principal, structure_id, body, settings)
     if cells > settings.queue_training_cells:
-        job = {"structure_id": structure_id, "kind": kind, "body": body.model_dump()}
+        job = {"structure_id": structure_id, "kind": modelling.training_kind(body), "body": body.model_dump()}
         return queued(request, session, principal, TRAIN_MODEL, **job)
     with slot(request, principal):
-        if isinstance(body, BaselineTrain):
-            version = modelling.train_baseline(session, principal, structure_id, body, settings)
-        else:
-            version = modelling.train_fault_mode(session, principal, structure_id, body, settings)
+        version = modelling.train(session, principal, structure_id, body, settings)
     return model_out(version)
 
 

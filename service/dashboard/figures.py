@@ -8,7 +8,7 @@ milliseconds on date axes.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -59,36 +59,7 @@ def k_hat_figure(
     Unknown faults carry no magnitude and are left out. The legend explains the markers'
     colours (the verdict's status) and the alarm lines' (the alarm's state).
     """
-    modes = sorted({p.reference_mode for p in points if p.k_hat is not None and p.reference_mode})
-    data = []
-    for index, mode in enumerate(modes):
-        chosen = [p for p in points if p.reference_mode == mode and p.k_hat is not None]
-        k_hat = [p.k_hat for p in chosen]
-        data.append(
-            {
-                "type": _scatter(len(chosen)),
-                "mode": "markers",
-                "name": f"k̂ ({mode} model)",
-                "x": [_ms(p.acquired_at) for p in chosen],
-                "y": k_hat,
-                "customdata": [p.record_id for p in chosen],
-                "marker": {
-                    "color": [STATUS_COLOURS[p.status] for p in chosen],
-                    "symbol": MODE_SYMBOLS[index % len(MODE_SYMBOLS)],
-                    "size": 7,
-                },
-                "error_y": {
-                    "type": "data",
-                    "symmetric": False,
-                    "array": [_gap(p.interval_high, p.k_hat) for p in chosen],
-                    "arrayminus": [_gap(p.k_hat, p.interval_low) for p in chosen],
-                    "color": _mode_colour(index),
-                    "thickness": 1,
-                    "width": 0,
-                },
-                "hovertemplate": "k̂ %{y:.2f} %<br>record %{customdata}<extra>" + mode + "</extra>",
-            }
-        )
+    data = _k_hat_traces(points, lambda p: _ms(p.acquired_at))
     data += _status_legend()
     data += _cusum_traces(cusums)
     data += _alarm_traces(alarms, cusums)
@@ -121,6 +92,62 @@ def k_hat_figure(
             "legend": LEGEND_BELOW | {"y": -0.15, "yanchor": "top"},
         }
     return {"data": data, "layout": layout}
+
+
+def k_hat_condition_figure(
+    points: Sequence[TimelinePoint], name: str, unit: str | None, interval_label: str
+) -> Figure:
+    """k̂ of each verdict against the operating condition ``name`` its record was acquired under,
+    with its interval, one trace per reference mode: a magnitude that follows the condition is
+    its effect the models miss, a fault one that stands apart whatever the condition.
+    Verdicts whose records do not state the condition are left out, as are unknown faults."""
+    stated = [p for p in points if name in p.conditions]
+    data = _k_hat_traces(stated, lambda p: p.conditions[name]) + _status_legend()
+    axis = f"{name} [{unit}]" if unit else name
+    layout = _layout(
+        f"Fault magnitude k̂ with its {interval_label} interval against {name}",
+        axis,
+        "k̂ [%]",
+        yaxis={"zeroline": True},
+        legend=LEGEND_BELOW,
+    )
+    return {"data": data, "layout": layout}
+
+
+def _k_hat_traces(
+    points: Sequence[TimelinePoint], x: Callable[[TimelinePoint], float]
+) -> list[dict[str, Any]]:
+    """k̂ with its interval at ``x`` of each point, one trace per reference mode, coloured by status."""
+    modes = sorted({p.reference_mode for p in points if p.k_hat is not None and p.reference_mode})
+    data = []
+    for index, mode in enumerate(modes):
+        chosen = [p for p in points if p.reference_mode == mode and p.k_hat is not None]
+        data.append(
+            {
+                "type": _scatter(len(chosen)),
+                "mode": "markers",
+                "name": f"k̂ ({mode} model)",
+                "x": [x(p) for p in chosen],
+                "y": [p.k_hat for p in chosen],
+                "customdata": [p.record_id for p in chosen],
+                "marker": {
+                    "color": [STATUS_COLOURS[p.status] for p in chosen],
+                    "symbol": MODE_SYMBOLS[index % len(MODE_SYMBOLS)],
+                    "size": 7,
+                },
+                "error_y": {
+                    "type": "data",
+                    "symmetric": False,
+                    "array": [_gap(p.interval_high, p.k_hat) for p in chosen],
+                    "arrayminus": [_gap(p.k_hat, p.interval_low) for p in chosen],
+                    "color": _mode_colour(index),
+                    "thickness": 1,
+                    "width": 0,
+                },
+                "hovertemplate": "k̂ %{y:.2f} %<br>record %{customdata}<extra>" + mode + "</extra>",
+            }
+        )
+    return data
 
 
 def _alarm_axis_top(cusums: Sequence[CusumSeries]) -> float:

@@ -10,6 +10,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
+from models.fnarx import FNARX
+from models.pooled import PooledModel
 from models.validation import one_step_fit
 from service.dashboard import figures
 from service.domain import alarms, fleet, history, modelling, records, refinements, structures, timeline
@@ -102,21 +104,33 @@ def structure_page(
         limit=HISTORY_PAGE,
     )
     versions = modelling.list_models(session, principal, structure_id)
-    active_modes = [v for v in versions if v.active and v.kind == "fault_mode"]
+    # A pooled fault mode's trajectories depend on the conditions too: none is drawn for it here.
+    active_modes = [
+        v
+        for v in versions
+        if v.active and v.kind == "fault_mode" and isinstance(modelling.parsed_model(v), FNARX)
+    ]
     level = f"{1 - status.latest.alpha:.0%}" if status.latest is not None else "95%"
     structure_alarms = alarms.unresolved_alarms(session, principal, structure_id)
-    charts = {
-        "k_hat": figures.k_hat_figure(
-            points.points,
-            level,
-            alarms.cusum_series(session, structure_id),
-            alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items,
-        ),
-        "q": figures.q_figure(points.points),
-    } | {
-        f"trajectories-{v.name}": figures.trajectories_figure(modelling.fault_mode_model(v))
-        for v in active_modes
-    }
+    charts = (
+        {
+            "k_hat": figures.k_hat_figure(
+                points.points,
+                level,
+                alarms.cusum_series(session, structure_id),
+                alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items,
+            ),
+            "q": figures.q_figure(points.points),
+        }
+        | {
+            f"k_hat-{name}": figures.k_hat_condition_figure(points.points, name, unit, level)
+            for name, unit in points.units.items()
+        }
+        | {
+            f"trajectories-{v.name}": figures.trajectories_figure(modelling.parsed_model(v))  # type: ignore[arg-type]
+            for v in active_modes
+        }
+    )
     return {
         "structure": structure,
         "alarms": structure_alarms,
@@ -150,9 +164,17 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
     if verdict is None:
         return context
     out = verdict_out(verdict)
+    if not out.modes:  # the verdict of a pooled baseline alone: no fault mode to draw the fit of
+        return context | {"verdict": out}
     chosen = _chosen_mode(out.modes, out.reference_mode, mode)
     version = next(v for v in verdict.models if v.name == chosen.name)
-    model = modelling.fault_mode_model(version).narx_at(chosen.k_hat)
+    parsed = modelling.parsed_model(version)
+    fault_mode = (
+        parsed.fnarx_at(records.condition_values(record.conditions))
+        if isinstance(parsed, PooledModel)
+        else parsed
+    )
+    model = fault_mode.narx_at(chosen.k_hat)
     fit = one_step_fit(model, *records.signals(record), out.lags, out.alpha)
     label = f"{chosen.name} model at k̂ = {chosen.k_hat:.2f} %"
     context |= {

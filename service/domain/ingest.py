@@ -10,6 +10,7 @@ from numpy.typing import ArrayLike
 from sqlalchemy.orm import Session
 
 from models.inspection import checked_for_inspection
+from models.pooled import PooledModel
 from models.signals import checked_record, minimum_samples
 from models.terms import max_degree
 from service.conditions import Condition
@@ -46,7 +47,7 @@ def ingest_record(
     conditions: Sequence[Condition] = (),
 ) -> Ingested:
     """Store a record with its (checked) conditions and, with ``inspect``, its verdict under the
-    active fault-mode models, or through ``queue`` an inspection job in the same transaction
+    active models at those conditions, or through ``queue`` an inspection job in the same transaction
     (committed by the caller).
 
     Everything that can refuse the record runs before the first write, cheapest first: the
@@ -61,11 +62,17 @@ def ingest_record(
     rate = records.checked_rate(structure, fs)
     evaluation = None
     active: list[ModelVersion] = []
-    if inspect:
-        evaluation = inspections.evaluate(session, structure, settings, x, y)
-    elif queue is not None:
+    if inspect or queue is not None:
         models = inspections.models_to_inspect_with(session, structure)
-        x, y = checked_for_inspection(x, y, [model for _, model in models], settings.lags)
+        values = records.condition_values(conditions)
+        if not values and any(isinstance(model, PooledModel) for _, model in models):
+            # Data stored before and sent again stating no conditions are that record, to be
+            # judged at the conditions it was stored with (records.store_record).
+            values = records.condition_values(records.stored_conditions(session, structure, x, y, rate))
+    if inspect:
+        evaluation = inspections.evaluate(models, settings, x, y, values)
+    elif queue is not None:
+        x, y = checked_for_inspection(x, y, inspections.at_conditions(models, values), settings.lags)
         active = [version for version, _ in models]
     else:
         x, y = checked_record(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 
 from numpy.typing import ArrayLike
@@ -11,12 +12,14 @@ from sqlalchemy.orm import Session, defer, selectinload
 from models.fnarx import FNARX
 from models.inspection import ModeResult, inspect
 from models.inspection import Verdict as InspectionVerdict
+from models.narx import NARX
+from models.pooled import PooledModel, baseline_verdict, check_baseline
 from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import alarms, fleet
 from service.domain.errors import ConflictError
-from service.domain.modelling import active_fault_modes
-from service.domain.records import as_conditions, signals
+from service.domain.modelling import active_fault_modes, active_pooled_baseline
+from service.domain.records import as_conditions, condition_values, signals
 from service.domain.structures import get_owned, get_structure
 from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
@@ -40,22 +43,41 @@ class Evaluation:
 
 
 def evaluate(
-    session: Session, structure: Structure, settings: Settings, x: ArrayLike, y: ArrayLike
+    active: list[tuple[ModelVersion, FNARX | PooledModel]],
+    settings: Settings,
+    x: ArrayLike,
+    y: ArrayLike,
+    conditions: Mapping[str, float],
 ) -> Evaluation:
-    """Run the chain with the structure's active fault-mode models; reads, never writes.
-
-    Kept apart from storing so that an upload computes its verdict before its first write:
-    SQLite then holds its write lock only for the inserts.
-    """
-    return _evaluate(models_to_inspect_with(session, structure), settings, x, y)
-
-
-def _evaluate(
-    active: list[tuple[ModelVersion, FNARX]], settings: Settings, x: ArrayLike, y: ArrayLike
-) -> Evaluation:
-    result = inspect(x, y, [model for _, model in active], alpha=settings.alpha, lags=settings.lags)
+    """A record's verdict under the ``active`` models (:func:`models_to_inspect_with`) at its
+    ``conditions``: the fault-mode chain (pooled modes evaluated there), or, for a structure
+    monitored by a pooled baseline alone, that baseline's check there. Reads, never writes:
+    kept apart from storing so that an upload computes its verdict before its first write
+    (SQLite then holds its write lock only for the inserts)."""
+    models = [model for _, model in active]
+    baseline = models[0] if isinstance(models[0], PooledModel) and not models[0].is_fault_mode else None
+    if baseline is not None:
+        check = check_baseline(baseline, x, y, conditions, alpha=settings.alpha, lags=settings.lags)
+        result = baseline_verdict(check, len(x))
+    else:
+        result = inspect(x, y, at_conditions(active, conditions), alpha=settings.alpha, lags=settings.lags)
     versions = [version for version, _ in active]
     return Evaluation(versions, model_set(versions), result)
+
+
+def at_conditions(
+    active: list[tuple[ModelVersion, FNARX | PooledModel]], conditions: Mapping[str, float]
+) -> list[FNARX | NARX]:
+    """The models as they stand at a record's ``conditions``: each pooled one evaluated there,
+    which refuses a record without a variable it needs or outside the range it was trained on;
+    the others as they are."""
+    return [_at(model, conditions) for _, model in active]
+
+
+def _at(model: FNARX | PooledModel, conditions: Mapping[str, float]) -> FNARX | NARX:
+    if not isinstance(model, PooledModel):
+        return model
+    return model.fnarx_at(conditions) if model.is_fault_mode else model.narx_at(conditions)
 
 
 def model_set(versions: list[ModelVersion]) -> str:
@@ -63,9 +85,15 @@ def model_set(versions: list[ModelVersion]) -> str:
     return ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id))
 
 
-def models_to_inspect_with(session: Session, structure: Structure) -> list[tuple[ModelVersion, FNARX]]:
-    """The structure's active fault-mode models; a conflict if it has none."""
+def models_to_inspect_with(
+    session: Session, structure: Structure
+) -> list[tuple[ModelVersion, FNARX | PooledModel]]:
+    """The structure's active fault-mode models or, when it has none, its active pooled baseline
+    alone; a conflict if it has neither."""
     active = active_fault_modes(session, structure)
+    baseline = None if active else active_pooled_baseline(session, structure)
+    if baseline is not None:
+        return [baseline]
     if not active:
         raise ConflictError(
             f"structure {structure.name!r} has no active fault-mode model: train one with "
@@ -95,7 +123,7 @@ def inspect_record(session: Session, record: Record, structure: Structure, setti
     existing = _find(session, record.id, model_set([version for version, _ in active]))
     if existing is not None:
         return existing
-    evaluation = _evaluate(active, settings, *signals(record))
+    evaluation = evaluate(active, settings, *signals(record), condition_values(record.conditions))
     return store_verdict(session, record, structure, evaluation)
 
 

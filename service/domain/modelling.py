@@ -14,12 +14,13 @@ from sqlalchemy.orm import Session, defer
 from models.errors import InputError
 from models.fnarx import FNARX, fit_fnarx
 from models.narx import fit_narx
+from models.pooled import MAGNITUDE, MAX_VARIABLES, PooledExperiment, PooledModel, fit_pooled
 from models.terms import parse_terms
 from service.config import Settings
 from service.domain.errors import ConflictError, NotFoundError
-from service.domain.records import signals
+from service.domain.records import condition_values, signals
 from service.domain.structures import get_owned, get_structure
-from service.schemas import BaselineTrain, FaultModeTrain
+from service.schemas import BaselineTrain, FaultModeTrain, PooledBaselineTrain, PooledFaultModeTrain, Train
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure
 from simulator.theory import EXACT_TERMS
@@ -29,7 +30,7 @@ _CACHE_SIZE = 256
 # Versions are immutable, so a parsed model can be kept; keyed by id and creation time so that
 # two databases in one process (tests) never share an entry. Requests and the embedded worker
 # share it from several threads: an OrderedDict reordered by two at once can lose entries.
-_parsed: OrderedDict[tuple[int, str], FNARX] = OrderedDict()
+_parsed: OrderedDict[tuple[int, str], FNARX | PooledModel] = OrderedDict()
 _parsed_lock = threading.Lock()
 
 
@@ -71,6 +72,74 @@ def train_fault_mode(
     return new_version(session, structure, "fault_mode", body.name, document, training, statistics)
 
 
+def train_pooled(
+    session: Session,
+    principal: Principal,
+    structure_id: int,
+    body: PooledBaselineTrain | PooledFaultModeTrain,
+    settings: Settings,
+) -> ModelVersion:
+    """A pooled baseline or fault mode (``models.pooled``) from stored records and the conditions
+    they were stored with; its degrees per argument chosen by BIC and kept with the version."""
+    structure = get_structure(session, principal, structure_id)
+    records, _ = _training_records(session, principal, structure, body, settings)
+    variables = _pooled_variables(records, body)
+    if isinstance(body, PooledBaselineTrain):
+        kind, name, magnitudes = "baseline", BASELINE, [None] * len(records)
+        given = {"record_ids": body.record_ids}
+    else:
+        kind, name, magnitudes = "fault_mode", body.name, [e.k for e in body.experiments]
+        given = {"experiments": [e.model_dump() for e in body.experiments]}
+    experiments = [
+        PooledExperiment(*signals(r), condition_values(r.conditions), k)
+        for r, k in zip(records, magnitudes, strict=True)
+    ]
+    model = fit_pooled(
+        experiments, body.terms or EXACT_TERMS, name=name, variables=variables, max_degree=body.max_degree
+    )
+    training = given | {
+        "variables": list(model.variables),
+        "max_degree": body.max_degree,
+        "terms": [term.name for term in model.terms],
+    }
+    statistics = {
+        "degrees": model.degrees,
+        "ranges": {argument: list(span) for argument, span in model.ranges.items()},
+        "criterion": [
+            {"degrees": list(row.degrees), "bic": row.bic, "sigma2": row.sigma2} for row in model.criterion
+        ],
+        "experiment_sigma2": model.experiment_sigma2.tolist(),
+        "n_obs": model.n_obs,
+    }
+    document = bounded_document(model.to_document(), settings)
+    return new_version(session, structure, kind, name, document, training, statistics)
+
+
+# A queued training's body by the kind its job names (``service.jobs.tasks.train_model``).
+TRAININGS: dict[str, type[Train]] = {
+    "baseline": BaselineTrain,
+    "fault_mode": FaultModeTrain,
+    "pooled_baseline": PooledBaselineTrain,
+    "pooled_fault_mode": PooledFaultModeTrain,
+}
+
+
+def training_kind(body: Train) -> str:
+    """The name a queued training's job gives its body (:data:`TRAININGS`)."""
+    return next(kind for kind, schema in TRAININGS.items() if isinstance(body, schema))
+
+
+def train(
+    session: Session, principal: Principal, structure_id: int, body: Train, settings: Settings
+) -> ModelVersion:
+    """The training ``body`` asks for; its new version becomes the active one of its name."""
+    if isinstance(body, BaselineTrain):
+        return train_baseline(session, principal, structure_id, body, settings)
+    if isinstance(body, FaultModeTrain):
+        return train_fault_mode(session, principal, structure_id, body, settings)
+    return train_pooled(session, principal, structure_id, body, settings)
+
+
 def version_of_job(session: Session, structure_id: int, token: str) -> ModelVersion | None:
     """The version a queued training (marked ``training["job"]``) has stored already, if any."""
     query = select(ModelVersion).where(ModelVersion.structure_id == structure_id)
@@ -82,7 +151,7 @@ def training_cells(
     session: Session,
     principal: Principal,
     structure_id: int,
-    body: BaselineTrain | FaultModeTrain,
+    body: Train,
     settings: Settings,
 ) -> int:
     """What a training costs in cells (samples × coefficients), from the records' lengths alone:
@@ -140,7 +209,9 @@ def activate_model(session: Session, principal: Principal, structure_id: int, mo
     return version
 
 
-def active_fault_modes(session: Session, structure: Structure) -> list[tuple[ModelVersion, FNARX]]:
+def active_fault_modes(
+    session: Session, structure: Structure
+) -> list[tuple[ModelVersion, FNARX | PooledModel]]:
     """The active fault-mode versions of a structure, by name, with their parsed models."""
     query = (
         select(ModelVersion)
@@ -152,16 +223,36 @@ def active_fault_modes(session: Session, structure: Structure) -> list[tuple[Mod
         .order_by(ModelVersion.name)
         .options(defer(ModelVersion.document))
     )
-    return [(version, fault_mode_model(version)) for version in session.scalars(query)]
+    return [(version, parsed_model(version)) for version in session.scalars(query)]
 
 
-def fault_mode_model(version: ModelVersion) -> FNARX:
-    """The parsed model of a fault-mode version, kept once parsed: versions never change."""
+def active_pooled_baseline(session: Session, structure: Structure) -> tuple[ModelVersion, PooledModel] | None:
+    """The structure's active baseline with its parsed model, if it is a pooled one: a plain
+    baseline takes no part in inspections, which its fault modes make."""
+    query = select(ModelVersion).where(
+        ModelVersion.structure_id == structure.id,
+        ModelVersion.kind == "baseline",
+        ModelVersion.active.is_(True),
+    )
+    version = session.scalar(query.options(defer(ModelVersion.document)))
+    if version is None or version.training.get("variables") is None:
+        return None
+    model = parsed_model(version)
+    return (version, model) if isinstance(model, PooledModel) else None
+
+
+def parsed_model(version: ModelVersion) -> FNARX | PooledModel:
+    """The parsed model of a fault-mode or pooled version, kept once parsed: versions never change."""
     key = (version.id, version.created_at.isoformat())
     with _parsed_lock:
         model = _parsed.get(key)
     if model is None:  # parsed outside the lock: two threads may both parse it, harmlessly
-        model = FNARX.from_document(version.document)
+        document = version.document
+        model = (
+            PooledModel.from_document(document)
+            if document.get("kind") == "pooled"
+            else FNARX.from_document(document)
+        )
         with _parsed_lock:
             _parsed[key] = model
             if len(_parsed) > _CACHE_SIZE:
@@ -202,25 +293,68 @@ def _training_records(
     session: Session,
     principal: Principal,
     structure: Structure,
-    body: BaselineTrain | FaultModeTrain,
+    body: Train,
     settings: Settings,
 ) -> tuple[list[Record], int]:
     """The training's records (signals unread) and its cost in cells, refused over the limits;
     what can be checked without the signals is, so that a queued training fails for no reason
     its request could have given."""
-    if isinstance(body, BaselineTrain):
-        ids, size = body.record_ids, 1
+    if isinstance(body, BaselineTrain | PooledBaselineTrain):
+        ids = body.record_ids
     else:
         if body.name == BASELINE:
             raise InputError("'baseline' names the healthy model; give the fault mode another name")
-        if not body.k_min < body.k_max:
+        if isinstance(body, FaultModeTrain) and not body.k_min < body.k_max:
             raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
-        ids, size = [e.record_id for e in body.experiments], body.degree + 1
+        ids = [e.record_id for e in body.experiments]
     terms = len(parse_terms(body.terms or EXACT_TERMS))
     records = owned_records(session, principal, structure, ids)
+    if isinstance(body, BaselineTrain):
+        size = 1
+    elif isinstance(body, FaultModeTrain):
+        size = body.degree + 1
+    else:
+        # The largest candidate of the degree search: its basis functions are fewer than the records.
+        arguments = len(_pooled_variables(records, body)) + isinstance(body, PooledFaultModeTrain)
+        size = min((body.max_degree + 1) ** arguments, len(records) - 1)
     cells = sum(r.n_samples for r in records) * terms * size
     check_cost(cells, terms * size, settings, "this training")
     return records, cells
+
+
+def _pooled_variables(records: list[Record], body: PooledBaselineTrain | PooledFaultModeTrain) -> list[str]:
+    """The operating variables a pooled training pools over (by default those of its first
+    record), refused unless every record carries each and its values differ between records."""
+    variables = body.variables or sorted(c.name for c in records[0].conditions)
+    if not variables:
+        raise InputError(
+            f"record {records[0].id} carries no operating conditions: a pooled model needs records stored "
+            "with the conditions they were acquired under (such as temperature)"
+        )
+    if len(variables) > MAX_VARIABLES or len(set(variables)) != len(variables):
+        raise InputError(
+            f"a pooled model takes 1 to {MAX_VARIABLES} distinct operating variables, "
+            f"got {', '.join(variables)}"
+        )
+    if MAGNITUDE in variables:
+        raise InputError(f"{MAGNITUDE!r} names the fault magnitude; it cannot be an operating variable")
+    for name in variables:
+        values = set()
+        for record in records:
+            carried = condition_values(record.conditions)
+            if name not in carried:
+                raise InputError(
+                    f"record {record.id} carries no operating variable {name!r} "
+                    f"(it carries {', '.join(sorted(carried)) or 'none'}); a pooled training needs it "
+                    "on every record"
+                )
+            values.add(carried[name])
+        if len(values) == 1:
+            raise InputError(
+                f"every record of this training has {name} = {values.pop():g}: a pooled model cannot "
+                "learn how the dynamics change with it; add records acquired over its range"
+            )
+    return variables
 
 
 def _deactivate(session: Session, structure_id: int, name: str) -> None:

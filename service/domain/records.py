@@ -104,9 +104,23 @@ def store_record(
     return Record(id=inserted.id, created_at=inserted.created_at, conditions=stored, **values), True
 
 
+def stored_conditions(
+    session: Session, structure: Structure, x: ArrayLike, y: ArrayLike, rate: float
+) -> list[Condition]:
+    """The conditions the same data were stored with, if the structure holds them (none if not)."""
+    sha = content_hash(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), rate)
+    found = _find(session, structure.id, sha)
+    return as_conditions(found.conditions) if found is not None else []
+
+
 def as_conditions(rows: Iterable[RecordCondition]) -> list[Condition]:
     """A record's stored conditions as the API shows them."""
     return [Condition(row.name, row.value, row.unit) for row in rows]
+
+
+def condition_values(conditions: Iterable[Condition | RecordCondition]) -> dict[str, float]:
+    """The values of conditions by name, as the models take them."""
+    return {c.name: c.value for c in conditions}
 
 
 def describe_conditions(conditions: Sequence[Condition]) -> str:

@@ -174,6 +174,11 @@ def _planned(
             f"model version {base.id} is a {base.kind.replace('_', '-')} model; refinement starts from a "
             "baseline NARX version"
         )
+    if base.document.get("kind") == "pooled":
+        raise InputError(
+            f"model version {base.id} is a pooled baseline; refinement starts from a baseline NARX "
+            "identified at one condition"
+        )
     terms = NARX.from_document(base.document).terms
     estimation = test = None
     if body.record_id is not None:

@@ -1,15 +1,16 @@
-"""A structure's verdicts as columns over time, for its charts (k̂ with interval, Q per mode)."""
+"""A structure's verdicts as columns over time, for its charts (k̂ with interval, Q per mode, k̂
+against each operating condition)."""
 
 from __future__ import annotations
 
 import datetime as dt
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from service.tables import Verdict
+from service.tables import RecordCondition, Verdict
 
 # The charts hold the newest verdicts up to this many: beyond it a browser slows for no gain in
 # what a person can see, and the verdict table pages through the rest.
@@ -27,14 +28,17 @@ class TimelinePoint:
     interval_low: float | None
     interval_high: float | None
     modes: list[dict[str, Any]]
+    conditions: dict[str, float] = field(default_factory=dict)  # the record's, by name
 
 
 @dataclass(frozen=True)
 class Timeline:
-    """The newest verdicts of a structure, oldest first; ``total`` counts all of them."""
+    """The newest verdicts of a structure, oldest first; ``total`` counts all of them. ``units``
+    names each condition some point with a k̂ was acquired under, with its unit (None: none given)."""
 
     points: list[TimelinePoint]
     total: int
+    units: dict[str, str | None] = field(default_factory=dict)
 
 
 def timeline(session: Session, structure_id: int, limit: int = MAX_CHART_VERDICTS) -> Timeline:
@@ -58,4 +62,24 @@ def timeline(session: Session, structure_id: int, limit: int = MAX_CHART_VERDICT
         .limit(limit)
     ).all()
     total = session.scalar(select(func.count()).where(Verdict.structure_id == structure_id)) or 0
-    return Timeline([TimelinePoint(*row) for row in reversed(rows)], total)
+    # The conditions of those verdicts' records only: as bounded as the verdicts.
+    of_records = (
+        select(Verdict.record_id)
+        .where(Verdict.structure_id == structure_id)
+        .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
+        .limit(limit)
+    )
+    conditions: dict[int, dict[str, float]] = {}
+    units: dict[str, str | None] = {}
+    with_k_hat = {row.record_id for row in rows if row.k_hat is not None}
+    query = select(
+        RecordCondition.record_id, RecordCondition.name, RecordCondition.value, RecordCondition.unit
+    )
+    for record_id, name, value, unit in session.execute(
+        query.where(RecordCondition.structure_id == structure_id, RecordCondition.record_id.in_(of_records))
+    ):
+        conditions.setdefault(record_id, {})[name] = value
+        if record_id in with_k_hat:
+            units.setdefault(name, unit)
+    points = [TimelinePoint(*row, conditions=conditions.get(row.record_id, {})) for row in reversed(rows)]
+    return Timeline(points, total, dict(sorted(units.items())))

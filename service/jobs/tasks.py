@@ -22,7 +22,7 @@ from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import inspections, modelling, notifications, refinements
 from service.domain.schedules import RUN_SCHEDULE
-from service.schemas import BaselineTrain, FaultModeTrain, RefinementCreate
+from service.schemas import RefinementCreate
 from service.security import Principal, Role
 from service.tables import InspectionFailure, Record, Schedule, Structure, Verdict
 
@@ -138,13 +138,8 @@ def train_model(
     if modelling.version_of_job(session, structure_id, token) is not None:
         log.info("the training queued as %s has stored its version already", token)
         return
-    if kind == "baseline":
-        version = modelling.train_baseline(
-            session, caller, structure_id, BaselineTrain.model_validate(body), settings
-        )
-    else:
-        fault_mode = FaultModeTrain.model_validate(body)
-        version = modelling.train_fault_mode(session, caller, structure_id, fault_mode, settings)
+    training = modelling.TRAININGS[kind].model_validate(body)
+    version = modelling.train(session, caller, structure_id, training, settings)
     version.training = version.training | {"job": token}
     session.commit()
 
