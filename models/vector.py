@@ -215,3 +215,47 @@ def _judge(mode: VectorFNARX, x: ArrayLike, y: ArrayLike, alpha: float, lags: in
         hosking(e, lags=lags, alpha=alpha, model_df=1),
         tuple(float(v) for v in np.sqrt(np.mean(e**2, axis=0))),
     )
+
+
+def coefficients(model: VectorFNARX, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """The model at k: A (p, K, K), A[i−1] multiplying y[t−i], and B (p, K), B[i−1] multiplying x[t−i]."""
+    size, channels, p = model.basis.size, model.channels, model.lags
+    at_k = np.tensordot(
+        model.basis.values(float(k)), model.theta.reshape(-1, size, channels), axes=([0], [1])
+    )
+    A = at_k[: channels * p].reshape(p, channels, channels).transpose(0, 2, 1)
+    return A, at_k[channels * p :]
+
+
+def simulate_vector(model: VectorFNARX, k: float, x: ArrayLike, y: ArrayLike) -> np.ndarray:
+    """Free run of the model at k driven by x, started from the first p measured samples of y
+    (N, K); NaN from a sample whose magnitude passes 10¹⁰⁰ on (a diverged run)."""
+    xa, ya = checked_vector_record(x, y, model.lags, model.channels)
+    A, B = coefficients(model, k)
+    p, n = model.lags, len(xa)
+    lagged = np.column_stack([np.concatenate([np.zeros(i), xa[: n - i]]) for i in range(1, p + 1)])
+    drive = lagged @ B
+    out = ya.copy()
+    companion = np.hstack(list(A))  # (K, K·p) acting on (y[t−1], …, y[t−p])
+    for t in range(p, n):
+        out[t] = companion @ out[t - 1 :: -1][:p].reshape(-1) + drive[t]
+        if not np.all(np.abs(out[t]) < 1e100):
+            out[t:] = np.nan
+            break
+    return out
+
+
+def modal_parameters(model: VectorFNARX, k: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
+    """Natural frequencies [Hz] and damping ratios of the model's dynamics at k: each pole λ of
+    the companion matrix of A_1 … A_p (upper half-plane only) mapped to s = fs·ln λ, f = |s|/2π,
+    ζ = −Re s/|s|; sorted by frequency."""
+    A, _ = coefficients(model, k)
+    p, channels = model.lags, model.channels
+    companion = np.zeros((channels * p, channels * p))
+    companion[:channels] = np.hstack(list(A))
+    companion[channels:, : channels * (p - 1)] = np.eye(channels * (p - 1))
+    poles = np.linalg.eigvals(companion)
+    poles = poles[poles.imag > 0]
+    s = fs * np.log(poles)
+    order = np.argsort(np.abs(s))
+    return np.abs(s)[order] / (2 * np.pi), (-s.real / np.abs(s))[order]

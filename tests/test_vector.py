@@ -94,3 +94,33 @@ def test_bad_input_is_refused():
         inspect_vector(x[:4], y[:4], [model])
     with pytest.raises(InputError, match="not finite"):
         inspect_vector(x, np.where(np.arange(2000)[:, None] == 7, np.nan, y), [model])
+
+
+def test_the_models_poles_and_free_run_are_the_schemes():
+    """Fitted without noise, the model at k = 4 % runs free exactly as the chain does, and its
+    modal parameters are the eigenvalues of the scheme's own transition matrix [[0, I], [A0, A1]]."""
+    from models.vector import modal_parameters, simulate_vector
+
+    def clean(k: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        simulated = simulate_chain(ChainScenario(CHAIN, "k2", k), 2000, seed)
+        return simulated.x, np.column_stack([simulated.responses[f"y{m}"] for m in range(1, 6)])
+
+    model = fit_vector_fnarx("k2", [(*clean(k, 20 + i), k) for i, k in enumerate(TRAINING_K)], lags=2)
+    A1, A0 = CHAIN.with_fault("k2", 4.0).recursion()
+    transition = np.block([[np.zeros((5, 5)), np.eye(5)], [A0, A1]])
+    poles = np.linalg.eigvals(transition)
+    # The fit's coefficients carry rounding (10⁻¹⁰ here, 10⁻⁹ allowed), which the free run
+    # accumulates over the slowest mode's memory, 1/(1 − |λ|max) ≈ 500 samples.
+    x, y = clean(4.0, 99)
+    simulated = simulate_vector(model, 4.0, x, y)
+    memory = 1 / (1 - np.max(np.abs(poles)))
+    assert np.max(np.abs(simulated - y)) < 1e-9 * memory * np.max(np.abs(y))
+    s = np.log(poles[poles.imag > 0]) / CHAIN.ts
+    frequencies, damping = modal_parameters(model, 4.0, 1 / CHAIN.ts)
+    order = np.argsort(np.abs(s))
+    # A pole moved by δλ (≤ 10⁻⁹, as above) moves s = fs·ln λ by fs·δλ/|λ|: relative to |s|,
+    # δλ/|ln λ|, largest for the slowest mode; ζ = −Re s/|s| is that over ζ itself.
+    rtol = 1e-9 / np.min(np.abs(np.log(poles)))
+    expected_damping = -s.real[order] / np.abs(s)[order]
+    np.testing.assert_allclose(frequencies, np.abs(s)[order] / (2 * np.pi), rtol=rtol)
+    np.testing.assert_allclose(damping, expected_damping, rtol=rtol / np.min(expected_damping))
