@@ -55,10 +55,14 @@ def make_engine(url: str, pool_timeout: float = 30.0) -> Engine:
 
 
 def insert_unless_exists(
-    session: Session, model: type[Base], values: dict[str, Any], unique: list[str]
+    session: Session,
+    model: type[Base],
+    values: dict[str, Any],
+    unique: list[str],
+    returning: tuple[str, ...] = ("id", "created_at"),
 ) -> Any | None:
-    """``INSERT … ON CONFLICT DO NOTHING``: the new row's ``id`` and ``created_at``, or None if
-    the unique columns match an existing row.
+    """``INSERT … ON CONFLICT DO NOTHING``: the new row's ``returning`` columns, or None if the
+    unique columns match an existing row.
 
     Concurrent duplicates (the same upload twice, a redelivered inspection) are settled by the
     database without savepoints. pysqlite turns a savepoint's release into a commit, and it
@@ -68,8 +72,7 @@ def insert_unless_exists(
     table = model.__table__
     dialect = session.get_bind().dialect.name
     statement = _INSERTS[dialect](table).on_conflict_do_nothing(index_elements=unique)
-    returning = statement.returning(table.c.id, table.c.created_at)
-    return session.execute(returning, values).one_or_none()
+    return session.execute(statement.returning(*(table.c[name] for name in returning)), values).one_or_none()
 
 
 class WriterGate:

@@ -151,6 +151,8 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
         return context
     out = verdict_out(verdict)
     chosen = _chosen_mode(out.modes, out.reference_mode, mode)
+    if record.signals_pruned_at is not None:  # the verdict stands; the fit needs the signals
+        return context | {"verdict": out, "mode": chosen}
     version = next(v for v in verdict.models if v.name == chosen.name)
     model = modelling.fault_mode_model(version).narx_at(chosen.k_hat)
     fit = one_step_fit(model, *records.signals(record), out.lags, out.alpha)
