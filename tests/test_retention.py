@@ -16,8 +16,6 @@ import os
 import shutil
 import subprocess
 import sys
-import uuid
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -25,14 +23,20 @@ import httpx
 import pytest
 from api_helpers import API, Org, clients, create_structure, detail, json_body, post_record, wait_for
 from dashboard_helpers import DASHBOARD, logged_in
-from live import LiveServer
 from sqlalchemy import Engine, insert, select
 from sqlalchemy.orm import Session, sessionmaker
-from test_fleet_scale import STATUSES, Fleet, counted, kept, scraped, walked
+from test_fleet_scale import (
+    STATUSES,
+    Fleet,
+    counted,
+    fleet_server,  # noqa: F401  (the fixture ``site`` is built on)
+    kept,
+    scraped,
+    walked,
+)
 
 from models.inspection import ModeResult
-from service.config import Settings
-from service.db import make_engine, session_factory, transaction
+from service.db import session_factory, transaction
 from service.domain import fleet, retention
 from service.jobs import embedded
 from service.tables import Organisation, Record, Structure, Verdict, utcnow
@@ -50,20 +54,11 @@ class Site:
     sessions: sessionmaker[Session]
 
 
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
-def site(request, tmp_path_factory) -> Iterator[Site]:
-    if request.param == "sqlite":
-        url = f"sqlite:///{tmp_path_factory.mktemp('retention') / 'narxwatch.db'}"
-    else:
-        import postgres
-
-        url = postgres.create_database(
-            request.getfixturevalue("postgres_url"), f"retention_{uuid.uuid4().hex[:12]}"
-        )
-    with LiveServer(Settings(database_url=url, job_backend="embedded")) as server:
-        engine = make_engine(url)
-        yield Site(Fleet(server, engine), url, session_factory(engine))
-        engine.dispose()
+@pytest.fixture(scope="module")
+def site(fleet_server: Fleet) -> Site:  # noqa: F811  (the fixture imported above)
+    """A server of its own per database, as ``test_fleet_scale``'s, with the test's sessions on it."""
+    url = fleet_server.engine.url.render_as_string(hide_password=False)
+    return Site(fleet_server, url, session_factory(fleet_server.engine))
 
 
 # --- building a history ---------------------------------------------------------------------
