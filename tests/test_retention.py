@@ -39,7 +39,16 @@ from models.inspection import ModeResult
 from service.db import session_factory, transaction
 from service.domain import fleet, retention
 from service.jobs import embedded
-from service.tables import Organisation, Record, Structure, Verdict, utcnow
+from service.tables import (
+    ModelVersion,
+    Organisation,
+    Record,
+    Refinement,
+    RefinementRecord,
+    Structure,
+    Verdict,
+    utcnow,
+)
 
 NOW = utcnow()
 DAY = dt.timedelta(days=1)
@@ -224,6 +233,42 @@ def test_batches_are_bounded_and_uploads_go_on_between_them(site: Site):
     assert batches == [(what, n) for what in ("signals", "verdicts", "records") for n in (2, 2, 2, 1)]
     assert pruned.batches == 12
     assert len(rows(site.fleet.engine, org)["records"]) == 12  # the uploads made between batches
+    assert_exact(site, org, sid)
+
+
+def test_records_a_refinement_names_outlive_their_verdicts(site: Site):
+    """A refinement's report names the records it was fitted and judged on: they lose their
+    signals and verdicts with the others, never their rows."""
+    org = Org.create(site.fleet.server)
+    with clients(org) as (admin, ingest, _):
+        sid = create_structure(admin)["id"]
+        fitted, judged_whole, plain = (stored(ingest, sid, 100.5 + i, seed=500 + i) for i in range(3))
+        for record in (fitted, judged_whole, plain):
+            judged(site, record, "healthy")
+        assert admin.put(f"{API}/retention", json={"signal_days": 30, "verdict_days": 60}).status_code == 200
+    with transaction(site.sessions) as session:  # as a refinement stores it (service.domain.refinements)
+        base = ModelVersion(
+            structure_id=sid, kind="baseline", name="baseline", version=1,
+            document={}, training={}, statistics={}, active=False,
+        )  # fmt: skip
+        session.add(base)
+        session.flush()
+        session.add(
+            Refinement(
+                structure_id=sid, record_id=fitted["id"], base_model_id=base.id, report={},
+                records=[
+                    RefinementRecord(record_id=fitted["id"], role="estimation", position=0),
+                    RefinementRecord(record_id=judged_whole["id"], role="test", position=0),
+                ],
+            )
+        )  # fmt: skip
+    with site.sessions() as session:
+        pruned = retention.prune(session, organisation_id(site, org), now=NOW)
+    left = rows(site.fleet.engine, org)
+    assert set(left["records"]) == {fitted["id"], judged_whole["id"]}
+    assert all(pruned_signals for _, pruned_signals, *_ in left["records"].values())
+    assert left["verdicts"] == {}
+    assert (pruned.signals, pruned.verdicts, pruned.records) == (3, 3, 1)
     assert_exact(site, org, sid)
 
 
