@@ -52,6 +52,7 @@ DEFAULT_SIGNAL_DAYS, DEFAULT_VERDICT_DAYS = 90, 730
 BATCH = 1000  # rows a pruning transaction deletes or empties at most
 SWEPT = 100  # organisations a sweep queues at most; the next sweep takes the rest
 PRUNE = "prune_retention"
+KEY = ("organisation_id",)  # what an insert of a policy returns: the table has no id
 
 Pass = Literal["signals", "verdicts", "records"]
 
@@ -99,14 +100,24 @@ def policy(session: Session, organisation_id: int) -> RetentionOut:
 
 def set_policy(session: Session, principal: Principal, body: Retention) -> RetentionOut:
     """The caller's organisation's policy set (validated by :class:`service.schemas.Retention`);
-    flushes. It applies from the next pruning."""
-    row = session.get(RetentionPolicy, principal.organisation_id, with_for_update=True)
-    if row is None:
-        row = RetentionPolicy(organisation_id=principal.organisation_id)
-        session.add(row)
-    row.signal_days, row.verdict_days, row.updated_at = body.signal_days, body.verdict_days, utcnow()
-    session.flush()
-    return policy(session, principal.organisation_id)
+    flushes. It applies from the next pruning. The row is made first if missing (as the sweep
+    makes it), so two concurrent changes both apply, the later one last, neither failing."""
+    organisation_id = principal.organisation_id
+    insert_unless_exists(session, RetentionPolicy, _default_row(organisation_id), ["organisation_id"], KEY)
+    session.execute(
+        update(RetentionPolicy)
+        .where(RetentionPolicy.organisation_id == organisation_id)
+        .values(signal_days=body.signal_days, verdict_days=body.verdict_days, updated_at=utcnow())
+    )
+    return policy(session, organisation_id)
+
+
+def _default_row(organisation_id: int) -> dict[str, object]:
+    return {
+        "organisation_id": organisation_id,
+        "signal_days": DEFAULT_SIGNAL_DAYS,
+        "verdict_days": DEFAULT_VERDICT_DAYS,
+    }
 
 
 def prune(
