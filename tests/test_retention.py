@@ -374,3 +374,26 @@ def test_the_sweep_queues_one_pruning_a_period_and_the_cli_prunes_at_once(site: 
     assert_exact(site, queued_org, structures[queued_org.name])
     with clients(queued_org) as (admin, _, _):
         assert admin.get(f"{API}/retention").json()["last_pruned_at"] is not None
+
+
+def test_vacuum_gives_the_space_of_pruned_signals_back(site: Site):
+    """After the sweep above has pruned every organisation's old signals."""
+    sqlite = site.fleet.engine.dialect.name == "sqlite"
+    files = [Path(site.fleet.engine.url.database + suffix) for suffix in ("", "-wal")] if sqlite else []
+
+    def size() -> int:
+        return sum(f.stat().st_size for f in files if f.exists())
+
+    before = size()
+    env = {**os.environ, "NARXWATCH_DATABASE_URL": site.url}
+    result = subprocess.run([NARXWATCH, "db", "vacuum"], env=env, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "vacuumed" in result.stdout
+    if sqlite:  # dozens of records' signals of 32 KB each were pruned
+        assert size() < before - 500_000, (before, size())
+    else:
+        with site.fleet.engine.connect() as connection:
+            vacuumed = connection.exec_driver_sql(
+                "SELECT last_vacuum IS NOT NULL FROM pg_stat_user_tables WHERE relname = 'records'"
+            ).scalar_one()
+        assert vacuumed

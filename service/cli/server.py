@@ -1,4 +1,4 @@
-"""Service commands: ``serve``, ``worker``, ``db upgrade``, ``db prune``, ``keys create/list/revoke``,
+"""Service commands: ``serve``, ``worker``, ``db upgrade/prune/vacuum``, ``keys create/list/revoke``,
 ``demo-seed``."""
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.cli.console import fail, stderr, stdout
 from service.config import get_settings
-from service.db import make_engine, session_factory, transaction
+from service.db import make_engine, session_factory, transaction, vacuum
 from service.domain import keys, retention
 from service.domain.errors import NotFoundError
 from service.migrate import DatabaseUnreachableError, database_name, require_current_schema, upgrade_database
@@ -180,6 +180,20 @@ def db_prune(
             highlight=False,
             soft_wrap=True,
         )
+
+
+@db_app.command("vacuum")
+def db_vacuum() -> None:
+    """Give the space of pruned signals and rows back: on SQLite the file shrinks (uploads wait
+    while it is rewritten); on PostgreSQL the space is reused and the statistics refreshed."""
+    database_url = get_settings().database_url
+    require_current_schema(database_url)
+    engine = make_engine(database_url)
+    try:
+        vacuum(engine)
+    finally:
+        engine.dispose()
+    stdout.print(f"database at {database_name(database_url)} vacuumed", markup=False, soft_wrap=True)
 
 
 def ready_sessions() -> sessionmaker[Session]:
