@@ -2,8 +2,9 @@
 
 Each structure has one ``StructureState`` row: its latest verdict, since when that status holds,
 and how many records and verdicts it has. Every write that changes one of these updates the row
-in its own transaction (:func:`count_record`, :func:`count_verdict`), so the fleet views, the
-summary and ``/metrics`` read a row per structure, never the structure's history.
+in its own transaction (:func:`count_record`, :func:`count_verdict`; the retention's deletions
+through :func:`uncount_verdicts` and :func:`uncount_records`), so the fleet views, the summary and
+``/metrics`` read a row per structure, never the structure's history.
 """
 
 from __future__ import annotations

@@ -17,6 +17,9 @@ transaction of its own, so an upload waits at most one batch for the database:
    taken off the record counts. Records a refinement was fitted or judged on stay: the
    refinement's report refers to them.
 
+A batch takes any rows past the horizon, in no order: a range of an index (``ix_records_signals_kept``,
+``ix_verdicts_history``) then stops at the batch's size instead of sorting everything past it.
+
 The job workers' sweep queues one pruning per organisation every ``retention_every_seconds``
 (a compare-and-set on ``last_pruned_at``, so however many sweep, each period queues one);
 ``narxwatch db prune`` runs one at once.
@@ -166,7 +169,6 @@ def _drop_signals(session: Session, structures: Select, horizon: dt.datetime, ba
             Record.acquired_at < horizon,
             Record.signals_pruned_at.is_(None),
         )
-        .order_by(Record.id)
         .limit(batch)
     ).all()
     if not chosen:
@@ -184,7 +186,6 @@ def _delete_verdicts(session: Session, structures: Select, horizon: dt.datetime,
     chosen = session.execute(
         select(Verdict.id, Verdict.structure_id)
         .where(Verdict.structure_id.in_(structures), Verdict.acquired_at < horizon)
-        .order_by(Verdict.id)
         .limit(batch)
     ).all()
     if not chosen:
@@ -214,7 +215,6 @@ def _delete_records(session: Session, structures: Select, horizon: dt.datetime, 
     chosen = session.execute(
         select(Record.id, Record.structure_id)
         .where(Record.structure_id.in_(structures), Record.acquired_at < horizon, *unreferenced)
-        .order_by(Record.id)
         .limit(batch)
     ).all()
     if not chosen:
