@@ -16,6 +16,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -269,6 +270,47 @@ def test_records_a_refinement_names_outlive_their_verdicts(site: Site):
     assert all(pruned_signals for _, pruned_signals, *_ in left["records"].values())
     assert left["verdicts"] == {}
     assert (pruned.signals, pruned.verdicts, pruned.records) == (3, 3, 1)
+    assert_exact(site, org, sid)
+
+
+def test_a_verdict_stored_while_its_record_is_pruned_is_counted_once(site: Site):
+    """An inspection of an old record commits while a pruning wants to delete the record: the
+    pruning waits for it (PostgreSQL: at the structure's state row, then sees the verdict and keeps
+    the record; SQLite: at the writer lock, then prunes both) and every count stays exact."""
+    org = Org.create(site.fleet.server)
+    with clients(org) as (admin, ingest, _):
+        sid = create_structure(admin)["id"]
+        record = stored(ingest, sid, 100.5, seed=900)
+        assert admin.put(f"{API}/retention", json={"signal_days": 30, "verdict_days": 60}).status_code == 200
+    inspecting = site.sessions()
+    acquired_at = dt.datetime.fromisoformat(record["acquired_at"])
+    values = dict(
+        record_id=record["id"], structure_id=sid, acquired_at=acquired_at, model_set="k2:late",
+        status="faulty", fault_detected=True, fault_mode="k2", alpha=0.05, lags=40, n_samples=2000,
+        z_critical=1.96, q_critical_detection=40.0, detected_by=[], modes=[MODE],
+    )  # fmt: skip
+    verdict_id = inspecting.execute(insert(Verdict).returning(Verdict.id), values).scalar_one()
+    fleet.count_verdict(inspecting, verdict_id, sid, acquired_at, "faulty")
+    pruned: list[retention.Pruned] = []
+
+    def pruning() -> None:
+        with site.sessions() as session:
+            pruned.append(retention.prune(session, organisation_id(site, org), now=NOW))
+
+    worker = threading.Thread(target=pruning)
+    worker.start()
+    worker.join(1.0)
+    assert worker.is_alive()  # waiting for the inspection's transaction
+    inspecting.commit()
+    inspecting.close()
+    worker.join(30)
+    assert not worker.is_alive() and pruned
+    left = rows(site.fleet.engine, org)
+    if site.fleet.engine.dialect.name == "postgresql":
+        assert left["verdicts"] == {verdict_id: (record["id"], acquired_at)}
+        assert left["records"][record["id"]][1] is True  # its signals pruned all the same
+    else:
+        assert left == {"records": {}, "verdicts": {}}
     assert_exact(site, org, sid)
 
 

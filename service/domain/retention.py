@@ -219,10 +219,19 @@ def _delete_records(session: Session, structures: Select, horizon: dt.datetime, 
     ).all()
     if not chosen:
         return 0
+    # The records are locked before their states, in the order an upload that stores a verdict
+    # for one takes them (the verdict's foreign key, then the state row): such an upload finishes
+    # first, and the deletion, a statement of its own, then sees its verdict and keeps the record.
+    ids = session.scalars(
+        select(Record.id)
+        .where(Record.id.in_([row.id for row in chosen]))
+        .order_by(Record.id)
+        .with_for_update()
+    ).all()
     fleet.lock_states(session, (row.structure_id for row in chosen))
     deleted = session.scalars(
         delete(Record)
-        .where(Record.id.in_([row.id for row in chosen]), *unreferenced)  # checked again under the lock
+        .where(Record.id.in_(ids), *unreferenced)  # checked again under the locks
         .returning(Record.structure_id)
         .execution_options(synchronize_session=False)
     ).all()
