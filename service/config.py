@@ -96,6 +96,9 @@ class Settings(BaseSettings):
     # An open alarm nobody acknowledged is announced again ("alarm.renotified") this long after it
     # was last announced; 0: never.
     renotify_after_seconds: float = Field(4 * 3600.0, ge=0)
+    # Each organisation is pruned under its retention policy (service.domain.retention) this long
+    # after it was created, then again after as long; 0: only by `narxwatch db prune`.
+    retention_every_seconds: float = Field(24 * 3600.0, ge=0)
     # E-mail notifications go through this relay; without a host, e-mail subscriptions are refused.
     smtp_host: str | None = None
     smtp_port: int = Field(587, ge=1, le=65535)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import sqlite3
 import threading
@@ -55,10 +56,14 @@ def make_engine(url: str, pool_timeout: float = 30.0) -> Engine:
 
 
 def insert_unless_exists(
-    session: Session, model: type[Base], values: dict[str, Any], unique: list[str]
+    session: Session,
+    model: type[Base],
+    values: dict[str, Any],
+    unique: list[str],
+    returning: tuple[str, ...] = ("id", "created_at"),
 ) -> Any | None:
-    """``INSERT … ON CONFLICT DO NOTHING``: the new row's ``id`` and ``created_at``, or None if
-    the unique columns match an existing row.
+    """``INSERT … ON CONFLICT DO NOTHING``: the new row's ``returning`` columns, or None if the
+    unique columns match an existing row.
 
     Concurrent duplicates (the same upload twice, a redelivered inspection) are settled by the
     database without savepoints. pysqlite turns a savepoint's release into a commit, and it
@@ -68,8 +73,7 @@ def insert_unless_exists(
     table = model.__table__
     dialect = session.get_bind().dialect.name
     statement = _INSERTS[dialect](table).on_conflict_do_nothing(index_elements=unique)
-    returning = statement.returning(table.c.id, table.c.created_at)
-    return session.execute(returning, values).one_or_none()
+    return session.execute(statement.returning(*(table.c[name] for name in returning)), values).one_or_none()
 
 
 class WriterGate:
@@ -187,6 +191,29 @@ class _GatedCursor(sqlite3.Cursor):
         if sql.lstrip()[:7].upper().startswith(_WRITES):
             self.connection.take_gate()
         return super().executemany(sql, parameters)
+
+
+# The tables whose rows the retention empties or deletes, and the state rows it updates.
+PRUNED_TABLES = ("records", "verdicts", "verdict_models", "record_conditions", "structure_states")
+
+
+def vacuum(engine: Engine) -> None:
+    """Give back the space of pruned rows. SQLite: ``VACUUM`` rewrites the file without it, which
+    is the only way the file shrinks; it holds the writer gate throughout, so uploads wait for
+    it (a minute or so a gigabyte). PostgreSQL reuses the space of dead rows once vacuumed, which
+    autovacuum does by itself; ``VACUUM (ANALYZE)`` of the pruned tables does it now and
+    refreshes the planner's statistics, locking out no reader or writer."""
+    if engine.dialect.name == "sqlite":
+        gate = writer_gate(engine.url)
+        with contextlib.ExitStack() as stack, engine.connect() as connection:
+            if gate is not None:
+                stack.enter_context(gate.held())
+            connection.exec_driver_sql("VACUUM")
+            # In WAL mode the rewritten file sits in the log until a checkpoint copies it back.
+            connection.exec_driver_sql("PRAGMA wal_checkpoint(TRUNCATE)")
+        return
+    with engine.connect().execution_options(isolation_level="AUTOCOMMIT") as connection:
+        connection.exec_driver_sql(f"VACUUM (ANALYZE) {', '.join(PRUNED_TABLES)}")
 
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:

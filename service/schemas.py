@@ -230,6 +230,9 @@ class RecordOut(BaseModel):
     sha256: str
     conditions: list[Condition] = Field(description=CONDITIONS_HELP)
     created: bool = Field(description="False when the same data had been uploaded before")
+    signals_pruned_at: dt.datetime | None = Field(
+        None, description="When the organisation's retention dropped the record's signals; null while kept"
+    )
     verdict: VerdictOut | None = None
 
 
@@ -383,6 +386,37 @@ class KeyCreate(Strict):
 
     role: Literal["admin", "ingest", "viewer"]
     expires_at: AwareDatetime | None = None
+
+
+MAX_RETENTION_DAYS = 36_500  # a hundred years; beyond it, keep forever (null)
+RetentionDays = Annotated[StrictInt, Field(ge=1, le=MAX_RETENTION_DAYS)] | None
+
+
+class Retention(Strict):
+    """How long the organisation keeps its records' signals (x and y) and its verdicts, in days
+    of acquisition time; null keeps them forever. Signals go first: a verdict outlives the
+    signals it was computed from, never the other way round."""
+
+    signal_days: RetentionDays = Field(description="Days a record's signals are kept; null: forever")
+    verdict_days: RetentionDays = Field(
+        description="Days verdicts (and their records) are kept; null: forever"
+    )
+
+    @model_validator(mode="after")
+    def _signals_first(self) -> Retention:
+        forever = MAX_RETENTION_DAYS + 1
+        signals, verdicts = self.signal_days or forever, self.verdict_days or forever
+        if signals > verdicts:
+            raise ValueError(
+                f"signal_days ({self.signal_days or 'forever'}) must not exceed verdict_days "
+                f"({self.verdict_days}): a verdict's record keeps its signals no longer than the verdict"
+            )
+        return self
+
+
+class RetentionOut(Retention):
+    defaults: bool = Field(description="True while the organisation keeps the service's defaults")
+    last_pruned_at: dt.datetime | None = Field(description="When the last pruning was queued; null: never")
 
 
 class KeyOut(BaseModel):

@@ -141,11 +141,28 @@ class ModelVersion(Base):
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
+# Records whose signals are still stored: the only ones the retention's signal pass looks at, so
+# that each of its runs reads what is new past the horizon, not every record pruned before.
+SIGNALS_KEPT = text("signals_pruned_at IS NULL")
+
+
 class Record(Base):
-    """An excitation/response record; x and y are stored as .npy bytes."""
+    """An excitation/response record; x and y are stored as .npy bytes.
+
+    ``signals_pruned_at`` is when the organisation's retention (``service.domain.retention``)
+    dropped x and y (then empty); the row stays, with its conditions, for its verdicts."""
 
     __tablename__ = "records"
-    __table_args__ = (UniqueConstraint("structure_id", "sha256"),)
+    __table_args__ = (
+        UniqueConstraint("structure_id", "sha256"),
+        Index(
+            "ix_records_signals_kept",
+            "structure_id",
+            "acquired_at",
+            sqlite_where=SIGNALS_KEPT,
+            postgresql_where=SIGNALS_KEPT,
+        ),
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"), index=True)
@@ -156,6 +173,7 @@ class Record(Base):
     sha256: Mapped[str] = mapped_column(String(64))
     x: Mapped[bytes] = mapped_column(Blob)
     y: Mapped[bytes] = mapped_column(Blob)
+    signals_pruned_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
     conditions: Mapped[list[RecordCondition]] = relationship(
         order_by="RecordCondition.name", passive_deletes=True
@@ -252,6 +270,22 @@ class StructureState(Base):
     unknown_fault: Mapped[int] = mapped_column(BigInteger, default=0)
 
     latest: Mapped[Verdict | None] = relationship()
+
+
+class RetentionPolicy(Base):
+    """How long an organisation keeps its records' signals and its verdicts, in days (None:
+    forever); an organisation without a row keeps the defaults (``service.domain.retention``).
+    ``last_pruned_at`` is when its last pruning was queued, claimed by compare-and-set."""
+
+    __tablename__ = "retention_policies"
+
+    organisation_id: Mapped[int] = mapped_column(
+        ForeignKey("organisations.id", ondelete="CASCADE"), primary_key=True, autoincrement=False
+    )
+    signal_days: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    verdict_days: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    updated_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    last_pruned_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
 
 class VerdictModel(Base):

@@ -78,6 +78,8 @@ POLICY = {
     ("GET", "/api/v1/email-subscriptions"): "admin",
     ("DELETE", "/api/v1/email-subscriptions/{subscription_id}"): "admin",
     ("GET", "/api/v1/email-subscriptions/{subscription_id}/deliveries"): "admin",
+    ("GET", "/api/v1/retention"): "admin",
+    ("PUT", "/api/v1/retention"): "admin",
 }
 # Never due while the tests run: a schedule that ran would write verdicts under their feet.
 SCHEDULE = {"action": "inspect_pending", "interval_seconds": 3600, "first_run_at": "2099-01-01T00:00:00Z"}
@@ -223,7 +225,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 37, routes
+    assert routes == documented and len(routes) == 39, routes
     return routes
 
 
@@ -234,6 +236,8 @@ def body_for(path: str, estate: Estate | None) -> dict | None:
         return {"url": "https://93.184.215.14/hooks", "secret": "s" * 32, "events": ["alarm.opened"]}
     if path.endswith("/email-subscriptions"):
         return {"addresses": ["ops@example.com"], "events": ["alarm.opened"]}
+    if path.endswith("/retention"):
+        return {"signal_days": 90, "verdict_days": 730}
     assert estate is not None
     if path.endswith("/structures"):
         return {"name": f"new-{uuid.uuid4().hex[:8]}", "fs": 1500.0}
@@ -393,8 +397,8 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 needed = POLICY[method, path]
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
-    # viewer: 23 admin and 2 ingest routes; ingest: 23 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 48
+    # viewer: 25 admin and 2 ingest routes; ingest: 25 admin routes.
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 52
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

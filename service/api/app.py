@@ -30,6 +30,7 @@ from service.api import (
     notifications,
     records,
     refinements,
+    retention,
     schedules,
     structures,
 )
@@ -85,6 +86,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         keys.router,
         alarms.router,
         notifications.router,
+        retention.router,
     )
     for router in routers:
         app.include_router(router, prefix=API_PREFIX)

@@ -162,5 +162,6 @@ def _record_out(ingested: Ingested) -> RecordOut:
         sha256=record.sha256,
         conditions=records.as_conditions(record.conditions),
         created=ingested.created,
+        signals_pruned_at=record.signals_pruned_at,
         verdict=inspections.verdict_out(verdict) if verdict is not None else None,
     )

@@ -1,4 +1,5 @@
-"""Service commands: ``serve``, ``worker``, ``db upgrade``, ``keys create/list/revoke``, ``demo-seed``."""
+"""Service commands: ``serve``, ``worker``, ``db upgrade/prune/vacuum``, ``keys create/list/revoke``,
+``demo-seed``."""
 
 from __future__ import annotations
 
@@ -20,8 +21,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.cli.console import fail, stderr, stdout
 from service.config import get_settings
-from service.db import make_engine, session_factory, transaction
-from service.domain import keys
+from service.db import make_engine, session_factory, transaction, vacuum
+from service.domain import keys, retention
 from service.domain.errors import NotFoundError
 from service.migrate import DatabaseUnreachableError, database_name, require_current_schema, upgrade_database
 from service.observability.logs import configure_logging, logging_config
@@ -144,6 +145,55 @@ def db_upgrade(revision: Annotated[str, typer.Argument(help="Target revision.")]
     settings = get_settings()
     upgrade_database(settings.database_url, revision)
     stdout.print(f"database at {database_name(settings.database_url)} is at revision {revision}")
+
+
+PASSES = {"signals": "records' signals dropped", "verdicts": "verdicts deleted", "records": "records deleted"}
+
+
+@db_app.command("prune")
+def db_prune(
+    org: Annotated[str | None, typer.Option(help="Only this organisation (default: every one).")] = None,
+    batch: Annotated[
+        int, typer.Option(help="Rows per transaction: an upload waits at most one.", min=1, max=10_000)
+    ] = retention.BATCH,
+) -> None:
+    """Prune now under each organisation's retention policy (as the job workers do periodically),
+    printing each batch as it is committed."""
+    sessions = ready_sessions()
+    with sessions() as session:
+        chosen = retention.organisations(session, org)
+    if not chosen:
+        fail(f"no organisation named {org!r}" if org is not None else "no organisations yet")
+    for organisation_id, name in chosen:
+        with sessions() as session:
+
+            def shown(done: retention.Batch, name: str = name) -> None:
+                stdout.print(
+                    f"{name}: {done.rows} {PASSES[done.what]}", markup=False, highlight=False, soft_wrap=True
+                )
+
+            pruned = retention.prune(session, organisation_id, batch=batch, progress=shown)
+        stdout.print(
+            f"{name}: {pruned.signals} records' signals dropped, {pruned.verdicts} verdicts and "
+            f"{pruned.records} records deleted, in {pruned.batches} batch(es)",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
+
+
+@db_app.command("vacuum")
+def db_vacuum() -> None:
+    """Give the space of pruned signals and rows back: on SQLite the file shrinks (uploads wait
+    while it is rewritten); on PostgreSQL the space is reused and the statistics refreshed."""
+    database_url = get_settings().database_url
+    require_current_schema(database_url)
+    engine = make_engine(database_url)
+    try:
+        vacuum(engine)
+    finally:
+        engine.dispose()
+    stdout.print(f"database at {database_name(database_url)} vacuumed", markup=False, soft_wrap=True)
 
 
 def ready_sessions() -> sessionmaker[Session]:

@@ -167,6 +167,8 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
     if not out.modes:  # the verdict of a pooled baseline alone: no fault mode to draw the fit of
         return context | {"verdict": out}
     chosen = _chosen_mode(out.modes, out.reference_mode, mode)
+    if record.signals_pruned_at is not None:  # the verdict stands; the fit needs the signals
+        return context | {"verdict": out, "mode": chosen}
     version = next(v for v in verdict.models if v.name == chosen.name)
     parsed = modelling.parsed_model(version)
     fault_mode = (

@@ -2,8 +2,9 @@
 
 Each structure has one ``StructureState`` row: its latest verdict, since when that status holds,
 and how many records and verdicts it has. Every write that changes one of these updates the row
-in its own transaction (:func:`count_record`, :func:`count_verdict`), so the fleet views, the
-summary and ``/metrics`` read a row per structure, never the structure's history.
+in its own transaction (:func:`count_record`, :func:`count_verdict`; the retention's deletions
+through :func:`uncount_verdicts` and :func:`uncount_records`), so the fleet views, the summary and
+``/metrics`` read a row per structure, never the structure's history.
 """
 
 from __future__ import annotations
@@ -11,10 +12,12 @@ from __future__ import annotations
 import base64
 import binascii
 import datetime as dt
+from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
-from sqlalchemy import and_, func, or_, select, update
+from sqlalchemy import Row, and_, func, or_, select, update
 from sqlalchemy.orm import Session, joinedload
 
 from models.errors import InputError
@@ -111,6 +114,86 @@ def count_verdict(
         values = dict(since=_since(session, structure_id, state.status))
     session.execute(
         update(StructureState).where(StructureState.structure_id == structure_id).values(**counts, **values)
+    )
+
+
+@dataclass(frozen=True)
+class Removed:
+    """A verdict deleted (by the retention), as its ``DELETE … RETURNING`` gave it."""
+
+    id: int
+    structure_id: int
+    status: Status
+    acquired_at: dt.datetime
+
+
+def lock_states(session: Session, structure_ids: Iterable[int]) -> dict[int, Row[Any]]:
+    """Lock the state rows of these structures before deleting from them, in order of id, so two
+    deleters never wait for each other; each row's latest verdict and since-when as they stand.
+    Taken before the deletion, which sets ``latest_verdict_id`` to NULL if it removes the latest."""
+    rows = session.execute(
+        select(
+            StructureState.structure_id,
+            StructureState.status,
+            StructureState.latest_verdict_id,
+            StructureState.since,
+        )
+        .where(StructureState.structure_id.in_(sorted(set(structure_ids))))
+        .order_by(StructureState.structure_id)
+        .with_for_update()
+    )
+    return {row.structure_id: row for row in rows}
+
+
+def uncount_verdicts(session: Session, locked: dict[int, Row[Any]], removed: Sequence[Removed]) -> None:
+    """Verdicts just deleted, taken off their structures' states (locked by :func:`lock_states`).
+
+    Each status count goes down by as many as were deleted. If the latest verdict went, the
+    newest left becomes the latest (none: the structure is uninspected again); if verdicts of
+    the current run went, the run is read again from the history, which now starts later."""
+    by_structure: dict[int, list[Removed]] = {}
+    for verdict in removed:
+        by_structure.setdefault(verdict.structure_id, []).append(verdict)
+    for structure_id, gone in by_structure.items():
+        state = locked[structure_id]
+        values: dict[str, Any] = {
+            status: getattr(StructureState, status) - n
+            for status, n in Counter(v.status for v in gone).items()
+        }
+        if state.latest_verdict_id in {v.id for v in gone}:
+            values |= _newest(session, structure_id)
+        elif state.since is not None and max(v.acquired_at for v in gone) >= state.since:
+            values["since"] = _since(session, structure_id, state.status)
+        session.execute(
+            update(StructureState).where(StructureState.structure_id == structure_id).values(**values)
+        )
+
+
+def uncount_records(session: Session, structure_ids: Sequence[int]) -> None:
+    """Records just deleted (one structure id per record), taken off their structures' states."""
+    for structure_id, n in Counter(structure_ids).items():
+        session.execute(
+            update(StructureState)
+            .where(StructureState.structure_id == structure_id)
+            .values(records=StructureState.records - n)
+        )
+
+
+def _newest(session: Session, structure_id: int) -> dict[str, Any]:
+    """The state's latest-verdict columns read from the structure's remaining verdicts."""
+    newest = session.execute(
+        select(Verdict.id, Verdict.status, Verdict.acquired_at)
+        .where(Verdict.structure_id == structure_id)
+        .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
+        .limit(1)
+    ).first()
+    if newest is None:
+        return dict(status=None, since=None, latest_verdict_id=None, latest_acquired_at=None)
+    return dict(
+        status=newest.status,
+        since=_since(session, structure_id, newest.status),
+        latest_verdict_id=newest.id,
+        latest_acquired_at=newest.acquired_at,
     )
 
 

@@ -144,7 +144,19 @@ def get_record(session: Session, principal: Principal, record_id: int) -> Record
 
 
 def signals(record: Record) -> tuple[np.ndarray, np.ndarray]:
+    """The record's x and y; a conflict once the retention has pruned them."""
+    if record.signals_pruned_at is not None:
+        raise ConflictError(pruned_notice(record))
     return _load(record.x), _load(record.y)
+
+
+def pruned_notice(record: Record) -> str:
+    """What the API and the dashboard say of a record whose signals the retention pruned."""
+    assert record.signals_pruned_at is not None
+    return (
+        f"the signals of record {record.id} were pruned on {record.signals_pruned_at:%Y-%m-%d} under the "
+        "organisation's retention (GET /api/v1/retention); its verdicts and conditions are kept"
+    )
 
 
 def _find_or_fail(session: Session, structure_id: int, sha: str) -> Record:

@@ -29,7 +29,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
-from service.domain import notifications, renotify, schedules
+from service.domain import notifications, renotify, retention, schedules
 from service.jobs import FINAL_ERRORS, RESTART_FIRST, RESTART_MAX, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
 from service.tables import JobError, utcnow
@@ -145,6 +145,18 @@ def sweep_notifications(context: JobContext, timestamp: int) -> None:
     with sessions() as session:
         renotify.sweep(session, dt.timedelta(seconds=settings.renotify_after_seconds))
         notifications.sweep(session, defer)
+
+
+@app.periodic(cron="* * * * *", periodic_id="retention")
+@app.task(name="sweep_retention", pass_context=True, queueing_lock="sweep_retention")
+def sweep_retention(context: JobContext, timestamp: int) -> None:
+    """Defer a pruning for each organisation due one (``service.domain.retention``): every
+    minute is often enough for a period of hours."""
+    sessions: sessionmaker[Session] = context.additional_context["sessions"]
+    settings: Settings = context.additional_context["settings"]
+    with sessions() as session:
+        every = dt.timedelta(seconds=settings.retention_every_seconds)
+        retention.sweep(session, defer, every, dt.datetime.fromtimestamp(timestamp, dt.UTC))
 
 
 @app.periodic(cron=SWEEP_CRON, periodic_id="stalled")

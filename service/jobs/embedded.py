@@ -23,7 +23,7 @@ from sqlalchemy import and_, func, insert, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
-from service.domain import notifications, renotify, schedules
+from service.domain import notifications, renotify, retention, schedules
 from service.jobs import FINAL_ERRORS, JOB_STATES, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
 from service.tables import Job, JobCount, utcnow
@@ -221,17 +221,20 @@ class EmbeddedBackend:
         call), or until stopped; the number run. One at a time: SQLite has one writer, and more
         workers are more processes."""
         if once:
-            self._guarded(self.sweep, "sweep the schedules")
-            self._guarded(self.sweep_notifications, "sweep the notifications")
+            self._sweep_all()
             return self.run_due()
         count = 0
         while not self._stop.is_set():
-            self._guarded(self.sweep, "sweep the schedules")
-            self._guarded(self.sweep_notifications, "sweep the notifications")
+            self._sweep_all()
             count += self._guarded(self.run_due, "run the jobs")
             self._wake.wait(IDLE_POLL)
             self._wake.clear()
         return count
+
+    def _sweep_all(self) -> None:
+        self._guarded(self.sweep, "sweep the schedules")
+        self._guarded(self.sweep_notifications, "sweep the notifications")
+        self._guarded(self.sweep_retention, "sweep the retention")
 
     @staticmethod
     def _guarded(step: Callable[[], int], what: str) -> int:
@@ -256,6 +259,12 @@ class EmbeddedBackend:
         with self._sessions() as session:
             renotify.sweep(session, dt.timedelta(seconds=self._settings.renotify_after_seconds))
             return notifications.sweep(session, defer)
+
+    def sweep_retention(self) -> int:
+        """Queue a pruning for each organisation due one; the number queued."""
+        with self._sessions() as session:
+            every = dt.timedelta(seconds=self._settings.retention_every_seconds)
+            return retention.sweep(session, defer, every)
 
     def run_due(self) -> int:
         """Run every job due now; the number run."""

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session, defer
 from models.errors import InputError
 from service.config import Settings
 from service.db import insert_unless_exists
-from service.domain import inspections, modelling, notifications, refinements
+from service.domain import inspections, modelling, notifications, refinements, retention
 from service.domain.schedules import RUN_SCHEDULE
 from service.schemas import RefinementCreate
 from service.security import Principal, Role
@@ -110,7 +110,10 @@ def _inspect(
 
 def _records_to_inspect(session: Session, action: str, structure_id: int, model_set: str) -> list[int]:
     """The action's records, less those these models (``model_set``) already failed to inspect."""
-    of_structure = select(Record.id).where(Record.structure_id == structure_id)
+    # Records whose signals the retention pruned cannot be inspected again.
+    of_structure = select(Record.id).where(
+        Record.structure_id == structure_id, Record.signals_pruned_at.is_(None)
+    )
     if action == "reinspect_latest":
         chosen = of_structure.order_by(Record.acquired_at.desc(), Record.id.desc()).limit(1)
     else:
@@ -170,10 +173,18 @@ def _caller(principal: dict) -> Principal:
     return Principal(principal["organisation_id"], Role(principal["role"]), principal["key_id"])
 
 
+def prune_retention(session: Session, settings: Settings, organisation: int) -> None:
+    """Prune an organisation under its retention policy, a batch a transaction; commits each.
+    (Not ``organisation_id``: the distributed backend keeps that argument for ``GET /jobs``.)"""
+    pruned = retention.prune(session, organisation)
+    log.info("organisation %s pruned under its retention: %s", organisation, pruned)
+
+
 TASKS: dict[str, Callable[..., None]] = {
     INSPECT_RECORD: inspect_record,
     RUN_SCHEDULE: run_schedule,
     TRAIN_MODEL: train_model,
     REFINE: refine,
     notifications.DELIVER: notifications.deliver,
+    retention.PRUNE: prune_retention,
 }
