@@ -49,6 +49,8 @@ POLICY = {
     ("GET", "/api/v1/structures/{structure_id}/models"): "viewer",
     ("POST", "/api/v1/structures/{structure_id}/models/baseline"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/models/fault-modes"): "admin",
+    ("POST", "/api/v1/structures/{structure_id}/models/pooled-baseline"): "admin",
+    ("POST", "/api/v1/structures/{structure_id}/models/pooled-fault-modes"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/models/{model_id}/activate"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/records"): "ingest",
     ("POST", "/api/v1/records/{record_id}/inspect"): "ingest",
@@ -225,7 +227,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 39, routes
+    assert routes == documented and len(routes) == 41, routes
     return routes
 
 
@@ -241,6 +243,10 @@ def body_for(path: str, estate: Estate | None) -> dict | None:
     assert estate is not None
     if path.endswith("/structures"):
         return {"name": f"new-{uuid.uuid4().hex[:8]}", "fs": 1500.0}
+    if path.endswith("/pooled-baseline"):
+        return {"record_ids": [experiment["record_id"] for experiment in estate.training]}
+    if path.endswith("/pooled-fault-modes"):
+        return {"name": "k2", "experiments": estate.training}
     if path.endswith("/baseline"):
         return {"record_ids": [estate.record_id]}
     if path.endswith("/fault-modes"):
@@ -398,7 +404,7 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
     # viewer: 25 admin and 2 ingest routes; ingest: 25 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 52
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 56
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

@@ -1,7 +1,7 @@
 """retention: per-organisation policies, records whose signals were pruned
 
 Revision ID: 0014
-Revises: 0012
+Revises: 0013
 Create Date: 2026-11-25 23:00:00.000000
 
 ``retention_policies`` holds how long an organisation keeps its records' signals and its
@@ -18,7 +18,7 @@ import sqlalchemy as sa
 from alembic import op
 
 revision = "0014"
-down_revision = "0012"
+down_revision = "0013"
 branch_labels = None
 depends_on = None
 
