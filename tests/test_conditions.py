@@ -96,8 +96,9 @@ def test_a_record_without_conditions_answers_as_before_with_an_empty_list(site: 
     assert record["conditions"] == []
     assert set(record) == {
         "id", "structure_id", "fs", "n_samples", "acquired_at", "created_at", "sha256", "conditions",
-        "created", "verdict",
+        "created", "verdict", "signals_pruned_at",
     }  # fmt: skip
+    assert record["signals_pruned_at"] is None
 
 
 def test_csv_comment_lines_state_conditions_with_or_without_a_unit(site: Site, ingest):
