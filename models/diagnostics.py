@@ -71,7 +71,7 @@ def ljung_box(e: np.ndarray, lags: int = 40, alpha: float = 0.05, model_df: int 
 
 
 @dataclass(frozen=True)
-class HoskingResult:
+class HoskingResult(LjungBoxResult):
     """Hosking's multivariate portmanteau test of a vector residual's whiteness.
 
     Q = N²·Σ_{h=1..m} tr(Ĉ_hᵀ Ĉ_0⁻¹ Ĉ_h Ĉ_0⁻¹)/(N − h), with Ĉ_h = (1/N)·Σ_t e_t·e_{t−h}ᵀ the
@@ -79,18 +79,10 @@ class HoskingResult:
     channels and m lags (Hosking 1980, "The multivariate portmanteau statistic", JASA 75).
     The cross-covariances count: a residual white on every channel whose channels lead one
     another is not white as a vector. For K = 1 it is Ljung–Box's Q scaled by N/(N + 2).
+    Its fields and ``white`` are Ljung–Box's, with the number of ``channels``.
     """
 
-    q: float
-    q_critical: float
-    p_value: float
-    df: int
-    lags: int
     channels: int
-
-    @property
-    def white(self) -> bool:
-        return self.q < self.q_critical
 
 
 def hosking(e: ArrayLike, lags: int = 40, alpha: float = 0.05, model_df: int = 0) -> HoskingResult:

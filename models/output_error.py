@@ -244,12 +244,24 @@ def comes_to_rest(
 ) -> bool:
     """Whether ``model``'s free run over each of ``records`` (x, y) stays finite and rings down
     after the excitation is switched off anywhere in it (:class:`RingDowns`)."""
+    return free_run_at_rest(model, records, t0)[1]
+
+
+def free_run_at_rest(
+    model: NARX, records: Sequence[tuple[np.ndarray, np.ndarray]], t0: int | Sequence[int] = 0
+) -> tuple[float, bool]:
+    """The free-run RMS of ``model`` over ``records`` (samples L … N−1 of each, infinite when a
+    run diverges) and whether it comes to rest (:func:`comes_to_rest`), from one run a record."""
     origins = record_origins(t0, len(records))
     runs = [
         (FreeRun.build(model.terms, x, origin), y) for (x, y), origin in zip(records, origins, strict=True)
     ]
     outputs = [model.run_free(run, y) for run, y in runs]
-    if not all(np.all(np.isfinite(out[model.max_lag :])) for out in outputs):
-        return False
+    errors = np.concatenate(
+        [out[model.max_lag :] - y[model.max_lag :] for out, (_, y) in zip(outputs, runs, strict=True)]
+    )
+    if not np.all(np.isfinite(errors)):
+        return np.inf, False
     states = recursion_states(model, model.theta, runs, outputs)
-    return RingDowns.build(model.terms, records, origins).settle(model, model.theta, states)
+    at_rest = RingDowns.build(model.terms, records, origins).settle(model, model.theta, states)
+    return float(np.sqrt(np.mean(errors**2))), at_rest

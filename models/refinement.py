@@ -42,7 +42,7 @@ from models.assessment import Assessment, assess, assessment_dict, check_test_le
 from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
 from models.errors import InputError
 from models.narx import NARX, Saturation
-from models.output_error import comes_to_rest, fit_output_error
+from models.output_error import comes_to_rest, fit_output_error, free_run_at_rest
 from models.scoring import EffectScore, Records, Saturating, fit_model, score_effects
 from models.signals import checked_records
 from models.simulation import FreeRun
@@ -385,15 +385,19 @@ def refine(
         starts = [refined, replace(refined, theta=checks.tuned(current).theta)]
         if declared_tuned is not declared_model:
             starts.append(_grown(declared_tuned, refined))
-        start = min(
-            starts, key=lambda model: (not comes_to_rest(model, records), _free_run_rms(model, everything))
-        )
+        start = min(starts, key=lambda model: _restless_then_rms(free_run_at_rest(model, records)))
         tuned = _output_error(start, everything, FINAL_EVALUATIONS)
         # The search keeps a start that comes to rest from leaving it; a start that did not
         # (least squares' fit on all the data can differ from the check's) is no better.
         if tuned is not start and comes_to_rest(tuned, records):
             refined, estimator = tuned, "output error"
     return Refinement(declared_model, refined, noise, tuple(rounds), estimator, orders)
+
+
+def _restless_then_rms(judged: tuple[float, bool]) -> tuple[bool, float]:
+    """Sort key of a start: models that come to rest first, then by free-run RMS."""
+    rms, at_rest = judged
+    return not at_rest, rms
 
 
 def _grown(model: NARX, structure: NARX) -> NARX:
