@@ -89,7 +89,8 @@ class Verdict:
     ``k_hat``, ``sigma_k`` and ``interval`` come from ``reference_mode``, the mode that best
     describes the record; they are None for an unknown fault (no model describes it, so no
     magnitude is estimated). ``z_critical`` is None when no fault mode was tested: a healthy
-    baseline's check alone (:func:`models.pooled.baseline_verdict`).
+    baseline's check alone (:func:`models.pooled.baseline_verdict`); ``q_critical_detection`` is
+    None when no whiteness test detects: a vector inspection (:func:`models.vector.vector_verdict`).
     """
 
     status: Status
@@ -103,7 +104,7 @@ class Verdict:
     lags: int
     n_samples: int
     z_critical: float | None
-    q_critical_detection: float
+    q_critical_detection: float | None
     detected_by: tuple[str, ...]
     modes: tuple[ModeResult, ...]
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -39,7 +40,8 @@ from scipy import optimize
 from models.basis import BasisFamily, FunctionalBasis
 from models.diagnostics import HoskingResult, hosking
 from models.errors import InputError
-from models.narx import z_quantile
+from models.inspection import ModeResult, Verdict
+from models.narx import DOCUMENT_VERSION, check_document, z_quantile
 
 VectorExperiment = tuple[ArrayLike, ArrayLike, float]  # x (N,), y (N, K), k [%]
 
@@ -78,6 +80,32 @@ class VectorFNARX:
         xa, ya = checked_vector_record(x, y, self.lags, self.channels)
         target, parts = self.components(xa, ya)
         return target - np.tensordot(self.basis.values(float(k)), parts, axes=1)
+
+    def to_document(self) -> dict[str, Any]:
+        return {
+            "kind": "vector",
+            "schema_version": DOCUMENT_VERSION,
+            "name": self.name,
+            "lags": self.lags,
+            "channels": self.channels,
+            "basis": self.basis.to_document(),
+            "theta": self.theta.tolist(),
+            "sigma": self.sigma.tolist(),
+        }
+
+    @classmethod
+    def from_document(cls, document: dict[str, Any]) -> VectorFNARX:
+        check_document(document, "vector")
+        lags, channels = int(document["lags"]), int(document["channels"])
+        basis = FunctionalBasis.from_document(document["basis"])
+        theta = np.asarray(document["theta"], dtype=np.float64)
+        sigma = np.asarray(document["sigma"], dtype=np.float64)
+        if theta.shape != ((channels + 1) * lags * basis.size, channels) or sigma.shape != (
+            channels,
+            channels,
+        ):
+            raise InputError("vector model document: theta and sigma do not match its lags and channels")
+        return cls(str(document["name"]), lags, channels, basis, theta, sigma)
 
 
 def regressors(x: np.ndarray, y: np.ndarray, lags: int) -> np.ndarray:
@@ -166,11 +194,13 @@ class VectorModeResult:
 @dataclass(frozen=True)
 class VectorInspection:
     """The modes' figures and the verdict: whether a fault is detected, and the mode it is
-    localised to (the maximum-likelihood mode; None when no fault is detected)."""
+    localised to (the maximum-likelihood mode; None when no fault is detected); ``z_critical``
+    is the magnitude tests' critical |k̂|/σ̂_k."""
 
     modes: tuple[VectorModeResult, ...]
     detected: bool
     localised: str | None
+    z_critical: float
 
 
 def inspect_vector(
@@ -187,7 +217,72 @@ def inspect_vector(
     detected = any(abs(r.k_hat) > z * r.sigma_k for r in results)
     best = min(results, key=lambda r: r.generalised_variance)
     localised = best.name if detected else None
-    return VectorInspection(results, detected, localised)
+    return VectorInspection(results, detected, localised, z)
+
+
+@dataclass(frozen=True)
+class VectorModeFigures(ModeResult):
+    """A vector mode's figures in the scalar chain's fields (:func:`vector_verdict`), with each
+    channel's residual RMS by channel name."""
+
+    channel_rms: dict[str, float]
+
+
+def vector_verdict(
+    inspection: VectorInspection,
+    modes: Sequence[VectorFNARX],
+    channels: Sequence[str],
+    alpha: float,
+    lags: int,
+    n_samples: int,
+) -> Verdict:
+    """A vector inspection as the scalar chain's :class:`models.inspection.Verdict`, so that it is
+    stored, listed and alarmed on as any other. Per mode: ``residual_variance`` is the generalised
+    variance det Σ̂_r, ``q``, ``q_critical``, ``p_value`` and ``accepted`` are Hosking's test of the
+    vector residual, ``sigma_k_record`` is ``sigma_k`` (the record's own Gauss–Newton error), and
+    ``channel_rms`` names each channel's residual RMS. ``faulty`` when a magnitude test detects, in
+    the maximum-likelihood mode (``reference_mode`` always: the localisation does not wait for
+    whiteness, module docstring), else ``healthy``; never ``unknown_fault``, and
+    ``q_critical_detection`` is None: no whiteness test detects."""
+    figures = []
+    for model, result in zip(modes, inspection.modes, strict=True):
+        basis = model.basis
+        edge = 1e-3 * (basis.k_max - basis.k_min)
+        figures.append(
+            VectorModeFigures(
+                name=result.name,
+                k_hat=result.k_hat,
+                sigma_k=result.sigma_k,
+                sigma_k_record=result.sigma_k,
+                z=result.k_hat / result.sigma_k,
+                detects=bool(abs(result.k_hat) > inspection.z_critical * result.sigma_k),
+                residual_variance=result.generalised_variance,
+                q=result.whiteness.q,
+                q_critical=result.whiteness.q_critical,
+                p_value=result.whiteness.p_value,
+                accepted=result.whiteness.white,
+                at_range_limit=min(result.k_hat - basis.k_min, basis.k_max - result.k_hat) < edge,
+                channel_rms=dict(zip(channels, result.channel_rms, strict=True)),
+            )
+        )
+    best = min(figures, key=lambda mode: mode.residual_variance)
+    z = z_quantile(1 - alpha)
+    return Verdict(
+        status="faulty" if inspection.detected else "healthy",
+        fault_detected=inspection.detected,
+        fault_mode=inspection.localised,
+        reference_mode=best.name,
+        k_hat=best.k_hat,
+        sigma_k=best.sigma_k,
+        interval=(best.k_hat - z * best.sigma_k, best.k_hat + z * best.sigma_k),
+        alpha=alpha,
+        lags=lags,
+        n_samples=n_samples,
+        z_critical=inspection.z_critical,
+        q_critical_detection=None,
+        detected_by=tuple(mode.name for mode in figures if mode.detects),
+        modes=tuple(figures),
+    )
 
 
 def _judge(mode: VectorFNARX, x: ArrayLike, y: ArrayLike, alpha: float, lags: int) -> VectorModeResult:

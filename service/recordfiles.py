@@ -37,6 +37,7 @@ import numpy as np
 
 from models.errors import InputError
 from service import matfiles
+from service.channels import checked_channels
 from service.conditions import (
     MAX_CONDITIONS,
     Condition,
@@ -70,10 +71,8 @@ CENTRAL_DIRECTORY_BYTES = 4096
 # Lines a CSV may have beyond its rows (the fs comment, the header, blank lines), counted before
 # it is split into lines.
 CSV_SLACK_LINES = 64
-_SIGNALS = ("x", "y")
 # Why a member that is more than one number is refused, for a file of several channels (y1, y2, …).
 _AS_CONDITION = "; every member beside x, y and fs is an operating condition"
-_SIGNALS_AND_RATE = ("x", "y", "fs")
 _END_OF_CENTRAL_DIRECTORY = struct.Struct("<4s4H2LH")
 _ZIP64_LOCATOR = b"PK\x06\x07"
 
@@ -81,22 +80,33 @@ _ZIP64_LOCATOR = b"PK\x06\x07"
 @dataclass(frozen=True)
 class RecordFile:
     """Signals read from a file; ``fs`` is None when the file does not state it. ``conditions``
-    are checked (:func:`service.conditions.checked_conditions`) and sorted by name."""
+    are checked (:func:`service.conditions.checked_conditions`) and sorted by name. A record of
+    several responses has y of shape (N, K), its columns named by ``channels``
+    (:mod:`service.channels`); one of one response has y of shape (N,) and no channels."""
 
     x: np.ndarray
     y: np.ndarray
     fs: float | None
     conditions: tuple[Condition, ...] = ()
+    channels: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
 class Layout:
-    """Which signals of a file are x and y (CSV column or MAT variable names, ``NAMEk`` for the
-    k-th of a group or matrix), and the sampling rate to take when the file states none."""
+    """Which signals of a file are x and y (CSV column, NPZ member or MAT variable names, ``NAMEk``
+    for the k-th of a group or matrix), and the sampling rate to take when the file states none.
+    ``channels``, when given, name the responses of a record of several, read instead of ``y``
+    and named as given."""
 
     x: str = "x"
     y: str = "y"
     fs: float | None = None
+    channels: tuple[str, ...] = ()
+
+    @property
+    def responses(self) -> tuple[str, ...]:
+        """The names of the signals read as responses."""
+        return self.channels or (self.y,)
 
 
 DEFAULT_LAYOUT = Layout()
@@ -112,19 +122,21 @@ class RecordTooLargeError(InputError):
     """The record would unpack to more than the allowed number of bytes."""
 
 
-def record_samples(max_bytes: int) -> int:
-    """The most samples a record within ``max_bytes`` holds: x and y as float64, as an NPZ has them.
+def record_samples(max_bytes: int, channels: int = 1) -> int:
+    """The most samples a record within ``max_bytes`` holds: x and its ``channels`` responses as
+    float64, as an NPZ has them.
 
     Applied to every format, so that short numbers ("0,1" is 4 bytes a sample) cannot make a
     body within the limit unpack to many times its size in Python objects and arrays.
     """
-    return max_bytes // (2 * np.float64().nbytes)
+    return max_bytes // ((1 + channels) * np.float64().nbytes)
 
 
-def too_many_samples(what: str, max_samples: int) -> RecordTooLargeError:
+def too_many_samples(what: str, max_samples: int, channels: int = 1) -> RecordTooLargeError:
+    of = f" of {channels} channels" if channels > 1 else ""
     return RecordTooLargeError(
-        f"{what} more than {max_samples} samples; a record may hold at most {max_samples} samples "
-        "(NARXWATCH_MAX_UPLOAD_BYTES / 16)"
+        f"{what} more than {max_samples} samples; a record{of} may hold at most {max_samples} samples "
+        f"(NARXWATCH_MAX_UPLOAD_BYTES / {8 * (channels + 1)})"
     )
 
 
@@ -152,16 +164,19 @@ def parse_record(
     With ``max_bytes``, its arrays may take at most that many bytes (an upload's limit), and so
     at most :func:`record_samples` samples.
     """
+    if layout.channels:
+        checked_channels(layout.channels)
     if suffix == ".csv":
-        return parse_csv(data, None if max_bytes is None else record_samples(max_bytes), layout)
+        samples = None if max_bytes is None else record_samples(max_bytes, len(layout.responses))
+        return parse_csv(data, samples, layout)
     if suffix == ".mat":
         return parse_mat(data, max_bytes, layout)
     if (layout.x, layout.y) != ("x", "y"):
         raise InputError(
-            f"an NPZ record holds the arrays x and y; the names {layout.x!r} and {layout.y!r} "
-            "select columns of a CSV or variables of a MAT file"
+            f"an NPZ record holds the arrays x and y (or the channels the parameters y name); the names "
+            f"{layout.x!r} and {layout.y!r} select columns of a CSV or variables of a MAT file"
         )
-    record = parse_npz(data, max_bytes)
+    record = parse_npz(data, max_bytes, layout.channels)
     return record if record.fs is not None else replace(record, fs=layout.fs)
 
 
@@ -182,7 +197,7 @@ def parse_csv(
     except UnicodeDecodeError:
         raise InputError("the CSV is not UTF-8 text") from None
     if max_samples is not None and text.count("\n") > max_samples + CSV_SLACK_LINES:
-        raise too_many_samples("the CSV has", max_samples)
+        raise too_many_samples("the CSV has", max_samples, len(layout.responses))
     lines = text.splitlines()
     comment_fs: float | None = None
     stated: list[Condition] = []
@@ -212,11 +227,11 @@ def parse_csv(
         for name, width in widths.items()
     )
     wanted = []
-    for name in (layout.x, layout.y):
+    for name in (layout.x, *layout.responses):
         group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
         wanted.append((name, groups[group][k]))
-    x, y = _read_columns(lines, first, count, wanted, max_samples)
-    _check_lengths(layout, x, y)
+    x, *responses = _read_columns(lines, first, count, wanted, max_samples)
+    y = _check_lengths(layout, x, responses)
     rate_name = next((name for name in groups if name.lower() == "fs" and widths[name] == 1), None)
     fs = comment_fs
     if rate_name is not None:
@@ -224,7 +239,7 @@ def parse_csv(
         cell = first_row[column].strip() if column < len(first_row) else ""
         if cell:
             fs = _agreed_rate(comment_fs, _sampling_rate(cell), f"the column {rate_name!r}")
-    return RecordFile(x, y, fs if fs is not None else layout.fs, conditions)
+    return RecordFile(x, y, fs if fs is not None else layout.fs, conditions, layout.channels)
 
 
 def _condition_comment(match: re.Match[str], number: int) -> Condition:
@@ -298,7 +313,7 @@ def _read_columns(
         if len(cells) > count and any(cell.strip() for cell in cells[count:]):
             raise InputError(f"CSV line {number}: expected {count} values, found {len(cells)}")
         if rows == max_samples:
-            raise too_many_samples("the CSV has", max_samples)
+            raise too_many_samples("the CSV has", max_samples, len(wanted) - 1)
         rows += 1
         for index, (name, column) in columns:
             cell = cells[column] if column < len(cells) else ""
@@ -331,7 +346,7 @@ def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAUL
     mat = matfiles.list_mat(data)
     counts = {name: _signal_count(variable.shape) for name, variable in mat.variables.items()}
     wanted = []
-    for name in (layout.x, layout.y):
+    for name in (layout.x, *layout.responses):
         variable, k = _resolve(
             name, counts, f"the MAT file has no variable {name!r}; it holds {mat.describe()}"
         )
@@ -352,12 +367,13 @@ def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAUL
             f"({declared} bytes as float64)"
         )
     arrays = matfiles.load_variables(mat, list(chosen.values()))
-    x, y = (_signal(arrays[variable.name], k) for variable, k in wanted)
-    _check_lengths(layout, x, y)
-    if max_bytes is not None and x.size > record_samples(max_bytes):
-        raise too_many_samples("the MAT file's signals have", record_samples(max_bytes))
+    x, *responses = (_signal(arrays[variable.name], k) for variable, k in wanted)
+    y = _check_lengths(layout, x, responses)
+    channels = len(responses)
+    if max_bytes is not None and x.size > record_samples(max_bytes, channels):
+        raise too_many_samples("the MAT file's signals have", record_samples(max_bytes, channels), channels)
     fs = _sampling_rate(arrays[rate.name]) if rate is not None else layout.fs
-    return RecordFile(x, y, fs)
+    return RecordFile(x, y, fs, channels=layout.channels)
 
 
 def _signal_count(shape: tuple[int, ...]) -> int | None:
@@ -411,15 +427,21 @@ def _named(name: str, counts: dict[str, int | None]) -> str | None:
     return alike[0] if len(alike) == 1 else None
 
 
-def _check_lengths(layout: Layout, x: np.ndarray, y: np.ndarray) -> None:
-    for role, name, values in (("x", layout.x, x), ("y", layout.y, y)):
+def _check_lengths(layout: Layout, x: np.ndarray, responses: list[np.ndarray]) -> np.ndarray:
+    """y, after checking that x and every response hold values and as many as one another:
+    the one response, or the channels as the columns of an (N, K) array."""
+    if x.size == 0:
+        raise InputError(f"x ({layout.x!r}) holds no values")
+    role = "y" if not layout.channels else "the channel"
+    for name, values in zip(layout.responses, responses, strict=True):
         if values.size == 0:
             raise InputError(f"{role} ({name!r}) holds no values")
-    if x.size != y.size:
-        raise InputError(
-            f"x ({layout.x!r}) has {x.size} samples but y ({layout.y!r}) has {y.size}; "
-            "x and y must be sampled together"
-        )
+        if values.size != x.size:
+            raise InputError(
+                f"x ({layout.x!r}) has {x.size} samples but {role} ({name!r}) has {values.size}; "
+                f"x and {'y' if not layout.channels else 'every channel'} must be sampled together"
+            )
+    return np.column_stack(responses) if layout.channels else responses[0]
 
 
 def _agreed_rate(stated: float | None, found: float, where: str) -> float:
@@ -436,31 +458,39 @@ def parse_silverbox(data: bytes | str) -> RecordFile:
     return parse_csv(data, layout=SILVERBOX)
 
 
-def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
-    """Parse an NPZ archive with arrays ``x``, ``y``, an optional scalar ``fs`` and a scalar
-    member per condition, named as the condition (NPZ gives a condition no unit).
+def parse_npz(data: bytes, max_bytes: int | None = None, channels: tuple[str, ...] = ()) -> RecordFile:
+    """Parse an NPZ archive with arrays ``x``, ``y`` (or one array per channel, named as it, when
+    ``channels`` are given), an optional scalar ``fs`` and a scalar member per condition, named as
+    the condition (NPZ gives a condition no unit).
 
     Never unpickles, and never unpacks more than it may keep: the archive may hold only ``x``,
     ``y``, ``fs`` and at most :data:`MAX_CONDITIONS` conditions, in a central directory of
     bounded size; each member's declared size, then its .npy header's shape × item size, is
     checked before any of its data is decompressed. ``x`` and ``y`` together may hold
-    ``max_bytes``; ``fs`` and each condition one number.
+    ``max_bytes``, and x and the channels of a record of several; ``fs`` and each condition one
+    number.
     """
     # A bare .npy or arbitrary bytes would otherwise reach numpy's pickle path.
     if not data.startswith(ZIP_MAGIC):
         raise InputError("the file is not a readable NPZ archive")
     _check_central_directory(data)
     budget = max_bytes if max_bytes is not None else np.inf
+    signals = ("x", *(channels or ("y",)))
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as archive:
-            members = _checked_members(archive, budget)
-            x = _read_member(archive, "x", budget)
-            y = _read_member(archive, "y", budget - x.nbytes)
-            fs = _sampling_rate(_read_member(archive, "fs", SCALAR_BYTES)) if "fs" in members else None
+            members = _checked_members(archive, budget, signals)
+            arrays: list[np.ndarray] = []
+            for name in signals:
+                arrays.append(_read_member(archive, name, budget - sum(a.nbytes for a in arrays), signals))
+            fs = (
+                _sampling_rate(_read_member(archive, "fs", SCALAR_BYTES, signals))
+                if "fs" in members
+                else None
+            )
             stated = [
-                Condition(name, _condition_value(name, _read_member(archive, name, SCALAR_BYTES)))
+                Condition(name, _condition_value(name, _read_member(archive, name, SCALAR_BYTES, signals)))
                 for name in members
-                if name not in _SIGNALS_AND_RATE
+                if name not in (*signals, "fs")
             ]
     except InputError:
         raise
@@ -468,11 +498,15 @@ def parse_npz(data: bytes, max_bytes: int | None = None) -> RecordFile:
         raise InputError("the file is not a readable NPZ archive") from None
     except (OSError, EOFError, ValueError, KeyError, NotImplementedError, RuntimeError, zlib.error) as exc:
         raise InputError(f"the NPZ archive is damaged or not made by numpy ({exc})") from None
-    for name, member in (("x", x), ("y", y)):
+    for name, member in zip(signals, arrays, strict=True):
         if member.dtype.kind not in "iuf":
             raise InputError(f"NPZ array {name!r} must be numeric, got dtype {member.dtype}")
     conditions = checked_conditions(stated)
-    return RecordFile(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), fs, conditions)
+    x, *responses = (np.asarray(member, dtype=np.float64) for member in arrays)
+    if not channels:  # x and y as stored, whatever their shapes: the record's check judges them
+        return RecordFile(x, responses[0], fs, conditions)
+    y = _check_lengths(Layout(channels=channels), x.reshape(-1), [r.reshape(-1) for r in responses])
+    return RecordFile(x.reshape(-1), y, fs, conditions, channels)
 
 
 def _condition_value(name: str, member: np.ndarray) -> float:
@@ -510,11 +544,12 @@ def _check_central_directory(data: bytes) -> None:
         )
 
 
-def _checked_members(archive: zipfile.ZipFile, budget: float) -> list[str]:
-    """The names of the archive's arrays, after checking them and their declared sizes."""
+def _checked_members(archive: zipfile.ZipFile, budget: float, signals: tuple[str, ...]) -> list[str]:
+    """The names of the archive's arrays, after checking them and their declared sizes
+    (``signals``: x and the responses)."""
     infos = archive.infolist()
     names = [info.filename for info in infos]
-    if len(names) > MAX_NPZ_MEMBERS:
+    if len(names) > MAX_NPZ_MEMBERS + len(signals) - 2:
         raise InputError(
             f"the NPZ holds {len(names)} members; a record holds the arrays x, y and fs and at most "
             f"{MAX_CONDITIONS} conditions"
@@ -528,12 +563,15 @@ def _checked_members(archive: zipfile.ZipFile, budget: float) -> list[str]:
     if len(set(names)) != len(names):
         raise InputError("the NPZ holds the same array twice")
     members = [name.removesuffix(".npy") for name in names]
-    missing = {"x", "y"} - set(members)
+    missing = [name for name in signals if name not in members]
     if missing:
-        raise InputError(f"the NPZ lacks array(s) {', '.join(sorted(missing))}; it needs 'x' and 'y'")
+        raise InputError(
+            f"the NPZ lacks array(s) {', '.join(missing)}; it needs {', '.join(map(repr, signals))}"
+            + (f"; it holds {', '.join(members)}" if len(signals) > 2 else "")
+        )
     declared = dict(zip(members, (info.file_size for info in infos), strict=True))
     for name in members:
-        if name in _SIGNALS:
+        if name in signals:
             continue
         if name != "fs":
             try:
@@ -545,14 +583,15 @@ def _checked_members(archive: zipfile.ZipFile, budget: float) -> list[str]:
                 f"NPZ member {name!r} must be one number, but it unpacks to {declared[name]} bytes"
                 + _AS_CONDITION * (name != "fs")
             )
-    arrays = declared["x"] + declared["y"]
-    if arrays > budget + 2 * NPY_HEADER_BYTES:
+    arrays = sum(declared[name] for name in signals)
+    if arrays > budget + len(signals) * NPY_HEADER_BYTES:
         raise RecordTooLargeError(f"the NPZ's arrays unpack to more than the upload limit ({arrays} bytes)")
     return members
 
 
-def _read_member(archive: zipfile.ZipFile, name: str, limit: float) -> np.ndarray:
-    """One .npy member, refused before allocation if it holds more than ``limit`` bytes."""
+def _read_member(archive: zipfile.ZipFile, name: str, limit: float, signals: tuple[str, ...]) -> np.ndarray:
+    """One .npy member, refused before allocation if it holds more than ``limit`` bytes
+    (``signals``: the members that are x and the responses)."""
     with archive.open(f"{name}.npy") as stream:
         version = np.lib.format.read_magic(stream)
         read_header = {
@@ -570,7 +609,7 @@ def _read_member(archive: zipfile.ZipFile, name: str, limit: float) -> np.ndarra
             raise InputError(f"NPZ member {name!r} holds Python objects, which are never unpickled")
         size = math.prod(shape) * dtype.itemsize  # exact: np.prod would wrap around
         if size > limit:
-            if name not in _SIGNALS:
+            if name not in signals:
                 raise InputError(
                     f"NPZ member {name!r} must be one number, but its header declares shape {shape} "
                     f"of {dtype}" + _AS_CONDITION * (name != "fs")

@@ -21,6 +21,9 @@ from models.alarms import DESIGN_SHIFT
 from models.basis import FAMILIES
 from models.inspection import ModeResult, Status
 from models.pooled import MAX_DEGREE, MAX_VARIABLES
+from models.vector import VectorModeFigures
+from service.channels import MAX_CHANNELS
+from service.channels import NAME_LENGTH as CHANNEL_NAME_LENGTH
 from service.conditions import NAME_LENGTH, NAME_RULE, Condition
 from service.jobs import JobState
 
@@ -144,7 +147,26 @@ class PooledFaultModeTrain(Strict):
     max_degree: PooledDegree = Field(2, description=POOLED_DEGREE_HELP)
 
 
-Train = BaselineTrain | FaultModeTrain | PooledBaselineTrain | PooledFaultModeTrain
+MAX_VECTOR_LAGS = 10
+
+
+class VectorFaultModeTrain(Strict):
+    """Train a vector fault mode (``models.vector``) from stored records of several channels at known
+    magnitudes: one equation per channel over every channel's lags, each coefficient a function of k."""
+
+    name: ModeName
+    experiments: Annotated[list[Experiment], Field(min_length=2, max_length=1000)]
+    lags: Annotated[StrictInt, Field(ge=1, le=MAX_VECTOR_LAGS)] = Field(
+        2,
+        description="p: the lags of every channel and of x in each equation (2 for displacements of a chain)",
+    )
+    degree: Annotated[StrictInt, Field(ge=1, le=4)] = Field(
+        1, description="The degree of the functions of k (basis functions: degree + 1)"
+    )
+    basis: Literal[FAMILIES] = "chebyshev2"  # type: ignore[valid-type]
+
+
+Train = BaselineTrain | FaultModeTrain | PooledBaselineTrain | PooledFaultModeTrain | VectorFaultModeTrain
 
 
 class ModelOut(BaseModel):
@@ -173,17 +195,36 @@ CONDITIONS_HELP = (
 )
 
 
+class ChannelUpload(Strict):
+    """One response channel of a record of several: its name and its samples."""
+
+    name: Annotated[str, Field(min_length=1, max_length=CHANNEL_NAME_LENGTH)]
+    y: Annotated[list[FiniteFloat], Field(min_length=1)]
+
+
 class RecordUpload(Strict):
-    """A record as JSON: excitation x [N], response y [m], sampling rate fs [Hz], and the operating
-    conditions it was acquired under (checked by ``service.conditions.checked_conditions``)."""
+    """A record as JSON: excitation x [N], response y [m] or several named response ``channels``
+    (``service.channels``), sampling rate fs [Hz], and the operating conditions it was acquired
+    under (checked by ``service.conditions.checked_conditions``)."""
 
     x: Annotated[list[FiniteFloat], Field(min_length=1)]
-    y: Annotated[list[FiniteFloat], Field(min_length=1)]
+    y: Annotated[list[FiniteFloat], Field(min_length=1)] | None = None
+    channels: Annotated[list[ChannelUpload], Field(min_length=2, max_length=MAX_CHANNELS)] | None = Field(
+        None,
+        description="Instead of y, for a record of several sensors: 2 to 8 channels, each a name (a letter, "
+        "then letters, digits or underscores) and as many samples as x, e.g. {name: a1, y: [...]}",
+    )
     fs: SamplingRate
     acquired_at: AwareDatetime | None = None
     conditions: list[Condition] = Field(
         default=[], description="At most 16, each name once, e.g. {name: temperature, value: 12.5, unit: °C}"
     )
+
+    @model_validator(mode="after")
+    def _one_response_or_channels(self) -> RecordUpload:
+        if (self.y is None) == (self.channels is None):
+            raise ValueError("give y (one response) or channels (several named responses), not both")
+        return self
 
 
 class ModelRef(BaseModel):
@@ -213,9 +254,19 @@ class VerdictOut(BaseModel):
         "which tests the residual's variance and whiteness at the record's conditions (as detected_by "
         "names them)"
     )
-    q_critical_detection: float
+    q_critical_detection: float | None = Field(
+        description="The critical Ljung–Box Q beyond which even the best mode's residual is a fault no model "
+        "describes; null for a vector verdict (a record of several channels), which no whiteness test "
+        "detects: it is faulty when a mode's magnitude test detects, localised to the maximum-likelihood mode"
+    )
     detected_by: list[str]
-    modes: list[ModeResult]
+    modes: list[VectorModeFigures | ModeResult] = Field(
+        description="Every fault mode's figures. For a vector verdict each mode also has channel_rms (each "
+        "channel's residual RMS, by name), residual_variance is the generalised variance det Σ̂ of its "
+        "vector residual, q, q_critical, p_value and accepted are Hosking's multivariate portmanteau test "
+        "of it, and "
+        "sigma_k_record equals sigma_k (Gauss–Newton on the record's own residual covariance)"
+    )
     model_versions: list[ModelRef]
     conditions: list[Condition] = Field(description=CONDITIONS_HELP)
 
@@ -229,6 +280,11 @@ class RecordOut(BaseModel):
     created_at: dt.datetime
     sha256: str
     conditions: list[Condition] = Field(description=CONDITIONS_HELP)
+    channels: list[str] | None = Field(
+        None,
+        description="The names of a record's response channels, in the order uploaded; null for a "
+        "record of one response y",
+    )
     created: bool = Field(description="False when the same data had been uploaded before")
     signals_pruned_at: dt.datetime | None = Field(
         None, description="When the organisation's retention dropped the record's signals; null while kept"

@@ -149,6 +149,10 @@ SIGNALS_KEPT = text("signals_pruned_at IS NULL")
 class Record(Base):
     """An excitation/response record; x and y are stored as .npy bytes.
 
+    A record of several response channels (``service.channels``) has y of shape (N, K) and the
+    channels' names in ``channels``, in y's column order; one of one response has y of shape (N,)
+    and ``channels`` None.
+
     ``signals_pruned_at`` is when the organisation's retention (``service.domain.retention``)
     dropped x and y (then empty); the row stays, with its conditions, for its verdicts."""
 
@@ -173,6 +177,7 @@ class Record(Base):
     sha256: Mapped[str] = mapped_column(String(64))
     x: Mapped[bytes] = mapped_column(Blob)
     y: Mapped[bytes] = mapped_column(Blob)
+    channels: Mapped[list[str] | None] = mapped_column(Document, nullable=True)
     signals_pruned_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
     conditions: Mapped[list[RecordCondition]] = relationship(
@@ -223,7 +228,8 @@ class Verdict(Base):
     n_samples: Mapped[int] = mapped_column(Integer)
     # None for a verdict of a pooled baseline alone, which has no magnitude test
     z_critical: Mapped[float | None] = mapped_column(Float, nullable=True)
-    q_critical_detection: Mapped[float] = mapped_column(Float)
+    # None for a vector verdict, which no whiteness test detects (models.vector.vector_verdict)
+    q_critical_detection: Mapped[float | None] = mapped_column(Float, nullable=True)
     detected_by: Mapped[list[str]] = mapped_column(Document)
     modes: Mapped[list[dict[str, Any]]] = mapped_column(Document)
 

@@ -109,6 +109,12 @@ def post_record(
     return client.post(records_url(structure_id), content=content, headers=headers, params=params)
 
 
+def stored(response: httpx.Response) -> dict:
+    """The answer of an upload that stored a record (new, 201, or known, 200)."""
+    assert response.status_code in (200, 201), response.text
+    return response.json()
+
+
 def upload_simulated(client: httpx.Client, structure_id: int, record: SimulatedRecord, **params: Any) -> dict:
     response = post_record(
         client, structure_id, npz_bytes(x=record.x, y=record.y, fs=record.fs), "application/x-npz", **params

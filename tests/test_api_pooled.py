@@ -12,7 +12,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import pytest
-from api_helpers import API, Org, clients, create_structure, detail, nothing_written, post_record, wait_for
+from api_helpers import (
+    API,
+    Org,
+    clients,
+    create_structure,
+    detail,
+    nothing_written,
+    post_record,
+    stored,
+    wait_for,
+)
 from conftest import DISTURBANCE_STD
 from dashboard_helpers import DASHBOARD, charts, logged_in
 from live import LiveServer
@@ -35,11 +45,6 @@ def record_at(temperature: float, seed: int, fault: str = "none", k: float = 0.0
 def body(record: SimulatedRecord, **conditions: float) -> dict:
     stated = [{"name": name, "value": value, "unit": "°C"} for name, value in conditions.items()]
     return {"x": record.x.tolist(), "y": record.y.tolist(), "fs": record.fs, "conditions": stated}
-
-
-def stored(response) -> dict:
-    assert response.status_code in (200, 201), response.text
-    return response.json()
 
 
 @dataclass

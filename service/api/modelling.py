@@ -19,6 +19,7 @@ from service.schemas import (
     PooledBaselineTrain,
     PooledFaultModeTrain,
     Train,
+    VectorFaultModeTrain,
 )
 from service.security import Principal
 from service.tables import ModelVersion
@@ -97,6 +98,23 @@ def train_pooled_fault_mode(
 ) -> ModelOut | JSONResponse:
     """Identify a pooled fault mode, its coefficients functions of the operating conditions and k;
     the new version becomes the active one. A large training is queued (202)."""
+    return _train(request, structure_id, body, principal, session, settings)
+
+
+@router.post(
+    "/vector-fault-modes", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED
+)
+def train_vector_fault_mode(
+    request: Request,
+    structure_id: IdPath,
+    body: VectorFaultModeTrain,
+    principal: Admin,
+    session: SessionDep,
+    settings: SettingsDep,
+) -> ModelOut | JSONResponse:
+    """Identify a vector fault mode from records of several channels (one equation per channel over
+    every channel's lags, coefficients functions of k); it inspects the structure's records of those
+    channels. The new version becomes the active one. A large training is queued (202)."""
     return _train(request, structure_id, body, principal, session, settings)
 
 

@@ -10,10 +10,12 @@ from fastapi import APIRouter, BackgroundTasks, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
+from models.errors import InputError
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
 from service.api.expensive import BUSY, slot
 from service.api.params import IdPath, utc
 from service.api.uploads import REQUEST_BODY, parse_upload
+from service.channels import MAX_CHANNELS, checked_channels
 from service.config import Settings
 from service.domain import inspections, records
 from service.domain.ingest import Ingested, QueueInspection, ingest_record
@@ -67,7 +69,14 @@ async def upload_record(
         dt.datetime | None, Query(description="Acquisition time for CSV/NPZ/MAT bodies (ISO 8601 with zone)")
     ] = None,
     x: Annotated[str, Query(max_length=NAME_LENGTH, description=SIGNAL_HELP.format(role="x"))] = "x",
-    y: Annotated[str, Query(max_length=NAME_LENGTH, description=SIGNAL_HELP.format(role="y"))] = "y",
+    y: Annotated[
+        list[str],
+        Query(
+            description=SIGNAL_HELP.format(role="y")
+            + f"; given 2 to {MAX_CHANNELS} times, the CSV columns, NPZ members or MAT variables that hold "
+            "a record's response channels, named so"
+        ),
+    ] = ["y"],  # noqa: B006 - FastAPI copies a default, never shares it
 ) -> RecordOut:
     """Upload a record as JSON, CSV, NPZ or MAT; a re-upload of the same data returns the stored one."""
     # Nothing is queried before the body has arrived: a slow client holds no connection.
@@ -89,7 +98,7 @@ async def upload_record(
         structure_id,
         inspect is InspectMode.true,
         queue,
-        Layout(x, y),
+        _layout(x, y),
     )
     if ingested.queued:
         response.status_code = status.HTTP_202_ACCEPTED
@@ -141,7 +150,16 @@ def _parse_and_ingest(
         inspect,
         queue,
         upload.conditions,
+        upload.channels,
     )
+
+
+def _layout(x: str, y: list[str]) -> Layout:
+    """The signals an upload names: one response y, or several channels named as they are."""
+    for name in (x, *y):
+        if len(name) > NAME_LENGTH:
+            raise InputError(f"the signal name {name[:40]!r}… is longer than {NAME_LENGTH} characters")
+    return Layout(x, y[0]) if len(y) == 1 else Layout(x, channels=tuple(checked_channels(y)))
 
 
 def _queue_inspection(jobs: JobBackend, organisation_id: int) -> QueueInspection:
@@ -161,6 +179,7 @@ def _record_out(ingested: Ingested) -> RecordOut:
         created_at=record.created_at,
         sha256=record.sha256,
         conditions=records.as_conditions(record.conditions),
+        channels=record.channels,
         created=ingested.created,
         signals_pruned_at=record.signals_pruned_at,
         verdict=inspections.verdict_out(verdict) if verdict is not None else None,

@@ -10,9 +10,10 @@ from fastapi import HTTPException, status
 from pydantic import ValidationError
 
 from models.errors import InputError
+from service.channels import checked_channels
 from service.conditions import MAX_CONDITIONS, UNIT_LENGTH, Condition, checked_conditions
 from service.recordfiles import DEFAULT_LAYOUT, Layout, parse_record, record_samples, too_many_samples
-from service.schemas import RecordUpload
+from service.schemas import ChannelUpload, RecordUpload
 
 JSON = "application/json"
 CSV = "text/csv"
@@ -44,10 +45,11 @@ REQUEST_BODY = {
 @dataclass(frozen=True)
 class Upload:
     x: np.ndarray | list[float]
-    y: np.ndarray | list[float]
+    y: np.ndarray | list[float]  # (N, K) for a record of several channels
     fs: float | None
     acquired_at: dt.datetime | None
     conditions: tuple[Condition, ...]  # checked, sorted by name
+    channels: tuple[str, ...] = ()  # checked, in the order given; none for a record of one response
 
 
 def parse_upload(
@@ -79,10 +81,14 @@ def parse_upload(
             record = RecordUpload.model_validate_json(body)
         except ValidationError as exc:
             raise InputError(_describe(exc)) from None
-        if max(len(record.x), len(record.y)) > max_samples:
-            raise too_many_samples("the JSON holds", max_samples)
         conditions = checked_conditions(record.conditions)
-        return Upload(record.x, record.y, record.fs, record.acquired_at or acquired_at, conditions)
+        when = record.acquired_at or acquired_at
+        if record.y is not None:
+            if max(len(record.x), len(record.y)) > max_samples:
+                raise too_many_samples("the JSON holds", max_samples)
+            return Upload(record.x, record.y, record.fs, when, conditions)
+        assert record.channels is not None  # one of the two, as the schema checks
+        return _with_channels(record.x, record.channels, record.fs, when, conditions, max_bytes)
     suffix = FILE_FORMATS.get(media)
     if suffix is None:
         raise HTTPException(
@@ -90,7 +96,30 @@ def parse_upload(
             f"unsupported Content-Type {media or '(none)'!r}: send {JSON}, {CSV}, application/x-npz or {MAT}",
         )
     parsed = parse_record(body, suffix, layout, max_bytes)
-    return Upload(parsed.x, parsed.y, parsed.fs, acquired_at, parsed.conditions)
+    return Upload(parsed.x, parsed.y, parsed.fs, acquired_at, parsed.conditions, parsed.channels)
+
+
+def _with_channels(
+    x: list[float],
+    channels: list[ChannelUpload],
+    fs: float,
+    acquired_at: dt.datetime | None,
+    conditions: tuple[Condition, ...],
+    max_bytes: int,
+) -> Upload:
+    """A JSON record of several channels, after checking their names and lengths."""
+    names = checked_channels([channel.name for channel in channels])
+    max_samples = record_samples(max_bytes, len(names))
+    if len(x) > max_samples:
+        raise too_many_samples("the JSON holds", max_samples, len(names))
+    for channel in channels:
+        if len(channel.y) != len(x):
+            raise InputError(
+                f"x has {len(x)} samples but the channel {channel.name!r} has {len(channel.y)}; "
+                "x and every channel must be sampled together"
+            )
+    y = np.column_stack([np.asarray(channel.y, dtype=np.float64) for channel in channels])
+    return Upload(x, y, fs, acquired_at, conditions, names)
 
 
 def _describe(error: ValidationError) -> str:

@@ -11,8 +11,9 @@ from sqlalchemy.orm import Session
 
 from models.inspection import checked_for_inspection
 from models.pooled import PooledModel
-from models.signals import checked_record, minimum_samples
+from models.signals import minimum_samples
 from models.terms import max_degree
+from models.vector import VectorFNARX
 from service.conditions import Condition
 from service.config import Settings
 from service.domain import inspections, records, structures
@@ -45,6 +46,7 @@ def ingest_record(
     inspect: bool,
     queue: QueueInspection | None = None,
     conditions: Sequence[Condition] = (),
+    channels: Sequence[str] = (),
 ) -> Ingested:
     """Store a record with its (checked) conditions and, with ``inspect``, its verdict under the
     active models at those conditions, or through ``queue`` an inspection job in the same transaction
@@ -56,29 +58,33 @@ def ingest_record(
     queued job cannot fail on what the upload could have refused, and the shortest storable
     record otherwise). The verdict is computed before the first write too, so the write lock
     (SQLite's, and the writer gate in front of it) is held only for the inserts and their commit.
-    A record queued again is queued only when it has no verdict from the active models.
+    A record queued again is queued only when it has no verdict from the active models. A record
+    of several ``channels`` (checked, naming y's columns) is inspected by the active vector models,
+    whose channels it must have.
     """
     structure = structures.get_structure(session, principal, structure_id)
     rate = records.checked_rate(structure, fs)
     evaluation = None
     active: list[ModelVersion] = []
     if inspect or queue is not None:
-        models = inspections.models_to_inspect_with(session, structure)
+        models = inspections.models_to_inspect_with(session, structure, channels)
         values = records.condition_values(conditions)
         if not values and any(isinstance(model, PooledModel) for _, model in models):
             # Data stored before and sent again stating no conditions are that record, to be
             # judged at the conditions it was stored with (records.store_record).
             values = records.condition_values(records.stored_conditions(session, structure, x, y, rate))
     if inspect:
-        evaluation = inspections.evaluate(models, settings, x, y, values)
+        evaluation = inspections.evaluate(models, settings, x, y, values, channels)
     elif queue is not None:
-        x, y = checked_for_inspection(x, y, inspections.at_conditions(models, values), settings.lags)
+        if channels:  # checked as its job will check it; stored in the channel order uploaded
+            inspections.vector_record(models, x, y, channels, settings.lags)
+        else:
+            x, y = checked_for_inspection(x, y, inspections.at_conditions(models, values), settings.lags)
         active = [version for version, _ in models]
     else:
-        x, y = checked_record(
-            x, y, minimum_samples(settings.lags), degree=_degree_to_hold(session, structure)
-        )
-    record, created = records.store_record(session, structure, x, y, rate, acquired_at, conditions)
+        degree = 1 if channels else _degree_to_hold(session, structure)
+        x, y = records.checked_signals(x, y, channels, minimum_samples(settings.lags), degree)
+    record, created = records.store_record(session, structure, x, y, rate, acquired_at, conditions, channels)
     verdict = (
         inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
     )
@@ -95,5 +101,7 @@ def _degree_to_hold(session: Session, structure: Structure) -> int:
     """The term degree a stored record's values must fit: the active fault-mode models' highest,
     or, before the structure has any, that of the terms a training uses by default (SPEC §2's,
     cubic). A record only its later inspection would refuse for its magnitude is refused now."""
-    active = [model for _, model in active_fault_modes(session, structure)]
+    active = [
+        model for _, model in active_fault_modes(session, structure) if not isinstance(model, VectorFNARX)
+    ]
     return max_degree([term for model in active for term in model.terms] or EXACT_TERMS)

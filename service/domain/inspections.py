@@ -2,24 +2,29 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 
+import numpy as np
 from numpy.typing import ArrayLike
 from sqlalchemy import insert, select
 from sqlalchemy.orm import Session, defer, selectinload
 
+from models.errors import InputError
 from models.fnarx import FNARX
 from models.inspection import ModeResult, inspect
 from models.inspection import Verdict as InspectionVerdict
 from models.narx import NARX
 from models.pooled import PooledModel, baseline_verdict, check_baseline
+from models.signals import minimum_samples
+from models.vector import VectorFNARX, VectorModeFigures, inspect_vector, vector_verdict
+from service import channels as channel_rules
 from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import alarms, fleet
 from service.domain.errors import ConflictError
 from service.domain.modelling import active_fault_modes, active_pooled_baseline
-from service.domain.records import as_conditions, condition_values, signals
+from service.domain.records import as_conditions, checked_signals, condition_values, signals
 from service.domain.structures import get_owned, get_structure
 from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
@@ -42,21 +47,31 @@ class Evaluation:
     result: InspectionVerdict
 
 
+Active = list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX]]
+
+
 def evaluate(
-    active: list[tuple[ModelVersion, FNARX | PooledModel]],
+    active: Active,
     settings: Settings,
     x: ArrayLike,
     y: ArrayLike,
     conditions: Mapping[str, float],
+    channels: Sequence[str] = (),
 ) -> Evaluation:
     """A record's verdict under the ``active`` models (:func:`models_to_inspect_with`) at its
     ``conditions``: the fault-mode chain (pooled modes evaluated there), or, for a structure
-    monitored by a pooled baseline alone, that baseline's check there. Reads, never writes:
+    monitored by a pooled baseline alone, that baseline's check there; for a record of several
+    ``channels``, the vector inspection (:func:`vector_record`). Reads, never writes:
     kept apart from storing so that an upload computes its verdict before its first write
     (SQLite then holds its write lock only for the inserts)."""
     models = [model for _, model in active]
     baseline = models[0] if isinstance(models[0], PooledModel) and not models[0].is_fault_mode else None
-    if baseline is not None:
+    if channels:
+        vectors = [model for model in models if isinstance(model, VectorFNARX)]
+        xa, ya, names = vector_record(active, x, y, channels, settings.lags)
+        inspection = inspect_vector(xa, ya, vectors, alpha=settings.alpha, lags=settings.lags)
+        result = vector_verdict(inspection, vectors, names, settings.alpha, settings.lags, len(xa))
+    elif baseline is not None:
         check = check_baseline(baseline, x, y, conditions, alpha=settings.alpha, lags=settings.lags)
         result = baseline_verdict(check, len(x))
     else:
@@ -65,9 +80,29 @@ def evaluate(
     return Evaluation(versions, model_set(versions), result)
 
 
-def at_conditions(
-    active: list[tuple[ModelVersion, FNARX | PooledModel]], conditions: Mapping[str, float]
-) -> list[FNARX | NARX]:
+def vector_record(
+    active: Active, x: ArrayLike, y: ArrayLike, channels: Sequence[str], lags: int
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """x and y of a record of several ``channels``, y's columns put in the order of the active
+    vector models' channels (which are returned), after checking that the record has exactly their
+    channels (naming those missing and those beyond) and that it is long enough and finite."""
+    names: list[str] | None = None
+    for version, _ in active:
+        model_channels = version.training["channels"]
+        order = channel_rules.matched(channels, model_channels, version.name)
+        if names is not None and model_channels != names:
+            raise InputError(
+                f"the active vector models order their channels differently ({', '.join(names)} and "
+                f"{', '.join(model_channels)}); train them from records of one channel order"
+            )
+        names = model_channels
+    assert names is not None  # models_to_inspect_with gives at least one
+    longest = max(model.lags for _, model in active if isinstance(model, VectorFNARX))
+    xa, ya = checked_signals(x, y, channels, minimum_samples(lags, longest), degree=1)
+    return xa, ya[:, order], names
+
+
+def at_conditions(active: Active, conditions: Mapping[str, float]) -> list[FNARX | NARX]:
     """The models as they stand at a record's ``conditions``: each pooled one evaluated there,
     which refuses a record without a variable it needs or outside the range it was trained on;
     the others as they are."""
@@ -85,12 +120,21 @@ def model_set(versions: list[ModelVersion]) -> str:
     return ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id))
 
 
-def models_to_inspect_with(
-    session: Session, structure: Structure
-) -> list[tuple[ModelVersion, FNARX | PooledModel]]:
+def models_to_inspect_with(session: Session, structure: Structure, channels: Sequence[str] = ()) -> Active:
     """The structure's active fault-mode models or, when it has none, its active pooled baseline
-    alone; a conflict if it has neither."""
-    active = active_fault_modes(session, structure)
+    alone; a conflict if it has neither. For a record of several ``channels``, its active vector
+    fault-mode models, a conflict if it has none; the others are not for such a record, nor the
+    vector ones for a record of one response."""
+    every = active_fault_modes(session, structure)
+    if channels:
+        vectors = [(version, model) for version, model in every if isinstance(model, VectorFNARX)]
+        if not vectors:
+            raise ConflictError(
+                f"structure {structure.name!r} has no active vector fault-mode model for a record of several "
+                f"channels: train one with POST /api/v1/structures/{structure.id}/models/vector-fault-modes"
+            )
+        return vectors
+    active = [(version, model) for version, model in every if not isinstance(model, VectorFNARX)]
     baseline = None if active else active_pooled_baseline(session, structure)
     if baseline is not None:
         return [baseline]
@@ -119,11 +163,12 @@ def inspect_record(session: Session, record: Record, structure: Structure, setti
     computed first, then stored: the write transaction (and SQLite's writer gate) begins only
     with the inserts.
     """
-    active = models_to_inspect_with(session, structure)
+    channels = record.channels or ()
+    active = models_to_inspect_with(session, structure, channels)
     existing = _find(session, record.id, model_set([version for version, _ in active]))
     if existing is not None:
         return existing
-    evaluation = evaluate(active, settings, *signals(record), condition_values(record.conditions))
+    evaluation = evaluate(active, settings, *signals(record), condition_values(record.conditions), channels)
     return store_verdict(session, record, structure, evaluation)
 
 
@@ -218,7 +263,10 @@ def verdict_out(verdict: Verdict) -> VerdictOut:
         z_critical=verdict.z_critical,
         q_critical_detection=verdict.q_critical_detection,
         detected_by=verdict.detected_by,
-        modes=[ModeResult(**mode) for mode in verdict.modes],
+        modes=[
+            VectorModeFigures(**mode) if "channel_rms" in mode else ModeResult(**mode)
+            for mode in verdict.modes
+        ],
         model_versions=[
             ModelRef(id=m.id, name=m.name, version=m.version)
             for m in sorted(verdict.models, key=lambda m: m.name)

@@ -16,11 +16,20 @@ from models.fnarx import FNARX, fit_fnarx
 from models.narx import fit_narx
 from models.pooled import MAGNITUDE, MAX_VARIABLES, PooledExperiment, PooledModel, fit_pooled
 from models.terms import parse_terms
+from models.vector import VectorFNARX, fit_vector_fnarx
+from service.channels import matched
 from service.config import Settings
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.records import condition_values, signals
 from service.domain.structures import get_owned, get_structure
-from service.schemas import BaselineTrain, FaultModeTrain, PooledBaselineTrain, PooledFaultModeTrain, Train
+from service.schemas import (
+    BaselineTrain,
+    FaultModeTrain,
+    PooledBaselineTrain,
+    PooledFaultModeTrain,
+    Train,
+    VectorFaultModeTrain,
+)
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure
 from simulator.theory import EXACT_TERMS
@@ -30,7 +39,7 @@ _CACHE_SIZE = 256
 # Versions are immutable, so a parsed model can be kept; keyed by id and creation time so that
 # two databases in one process (tests) never share an entry. Requests and the embedded worker
 # share it from several threads: an OrderedDict reordered by two at once can lose entries.
-_parsed: OrderedDict[tuple[int, str], FNARX | PooledModel] = OrderedDict()
+_parsed: OrderedDict[tuple[int, str], FNARX | PooledModel | VectorFNARX] = OrderedDict()
 _parsed_lock = threading.Lock()
 
 
@@ -115,12 +124,45 @@ def train_pooled(
     return new_version(session, structure, kind, name, document, training, statistics)
 
 
+def train_vector(
+    session: Session, principal: Principal, structure_id: int, body: VectorFaultModeTrain, settings: Settings
+) -> ModelVersion:
+    """A vector fault mode (``models.vector``) from stored records of several channels, which must
+    all have the same channels; they are put in the first record's order, kept with the version
+    (``training["channels"]``) for the inspections to match records' channels by name."""
+    structure = get_structure(session, principal, structure_id)
+    records, _ = _training_records(session, principal, structure, body, settings)
+    names = list(records[0].channels or ())
+    experiments = []
+    for record, experiment in zip(records, body.experiments, strict=True):
+        x, y = signals(record)
+        experiments.append((x, y[:, matched(record.channels or (), names, body.name)], experiment.k))
+    model = fit_vector_fnarx(
+        body.name, experiments, lags=body.lags, basis_size=body.degree + 1, family=body.basis
+    )
+    training = {
+        "experiments": [e.model_dump() for e in body.experiments],
+        "channels": names,
+        "lags": body.lags,
+        "basis": body.basis,
+        "degree": body.degree,
+    }
+    statistics = {
+        "sigma": model.sigma.tolist(),
+        "k_range": [model.basis.k_min, model.basis.k_max],
+        "n_obs": sum(record.n_samples - body.lags for record in records),
+    }
+    document = bounded_document(model.to_document(), settings)
+    return new_version(session, structure, "fault_mode", body.name, document, training, statistics)
+
+
 # A queued training's body by the kind its job names (``service.jobs.tasks.train_model``).
 TRAININGS: dict[str, type[Train]] = {
     "baseline": BaselineTrain,
     "fault_mode": FaultModeTrain,
     "pooled_baseline": PooledBaselineTrain,
     "pooled_fault_mode": PooledFaultModeTrain,
+    "vector_fault_mode": VectorFaultModeTrain,
 }
 
 
@@ -137,6 +179,8 @@ def train(
         return train_baseline(session, principal, structure_id, body, settings)
     if isinstance(body, FaultModeTrain):
         return train_fault_mode(session, principal, structure_id, body, settings)
+    if isinstance(body, VectorFaultModeTrain):
+        return train_vector(session, principal, structure_id, body, settings)
     return train_pooled(session, principal, structure_id, body, settings)
 
 
@@ -211,8 +255,9 @@ def activate_model(session: Session, principal: Principal, structure_id: int, mo
 
 def active_fault_modes(
     session: Session, structure: Structure
-) -> list[tuple[ModelVersion, FNARX | PooledModel]]:
-    """The active fault-mode versions of a structure, by name, with their parsed models."""
+) -> list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX]]:
+    """The active fault-mode versions of a structure, by name, with their parsed models (vector ones,
+    for records of several channels, included)."""
     query = (
         select(ModelVersion)
         .where(
@@ -241,18 +286,19 @@ def active_pooled_baseline(session: Session, structure: Structure) -> tuple[Mode
     return (version, model) if isinstance(model, PooledModel) else None
 
 
-def parsed_model(version: ModelVersion) -> FNARX | PooledModel:
-    """The parsed model of a fault-mode or pooled version, kept once parsed: versions never change."""
+def parsed_model(version: ModelVersion) -> FNARX | PooledModel | VectorFNARX:
+    """The parsed model of a fault-mode, pooled or vector version, kept once parsed: versions never
+    change."""
     key = (version.id, version.created_at.isoformat())
     with _parsed_lock:
         model = _parsed.get(key)
     if model is None:  # parsed outside the lock: two threads may both parse it, harmlessly
         document = version.document
-        model = (
-            PooledModel.from_document(document)
-            if document.get("kind") == "pooled"
-            else FNARX.from_document(document)
-        )
+        kinds: dict[str, type[FNARX | PooledModel | VectorFNARX]] = {
+            "pooled": PooledModel,
+            "vector": VectorFNARX,
+        }
+        model = kinds.get(document.get("kind", ""), FNARX).from_document(document)
         with _parsed_lock:
             _parsed[key] = model
             if len(_parsed) > _CACHE_SIZE:
@@ -307,8 +353,17 @@ def _training_records(
         if isinstance(body, FaultModeTrain) and not body.k_min < body.k_max:
             raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
         ids = [e.record_id for e in body.experiments]
-    terms = len(parse_terms(body.terms or EXACT_TERMS))
     records = owned_records(session, principal, structure, ids)
+    if isinstance(body, VectorFaultModeTrain):
+        return records, _vector_cells(records, body, settings)
+    several = next((r for r in records if r.channels), None)
+    if several is not None:
+        raise InputError(
+            f"record {several.id} has {len(several.channels or ())} response channels "
+            f"({', '.join(several.channels or ())}); this training takes records of one response y: "
+            f"train a vector fault mode (POST /api/v1/structures/{structure.id}/models/vector-fault-modes)"
+        )
+    terms = len(parse_terms(body.terms or EXACT_TERMS))
     if isinstance(body, BaselineTrain):
         size = 1
     elif isinstance(body, FaultModeTrain):
@@ -320,6 +375,29 @@ def _training_records(
     cells = sum(r.n_samples for r in records) * terms * size
     check_cost(cells, terms * size, settings, "this training")
     return records, cells
+
+
+def _vector_cells(records: list[Record], body: VectorFaultModeTrain, settings: Settings) -> int:
+    """A vector training's cost in cells, after checking that its records all have the same
+    channels (in any order): samples × the columns of one equation, K·p lags of the channels and p
+    of x times the basis functions; its coefficients are K times those columns."""
+    first = records[0]
+    for record in records:
+        if not record.channels:
+            raise InputError(
+                f"record {record.id} has one response y; a vector fault mode is trained from records of "
+                "several channels"
+            )
+        if sorted(record.channels) != sorted(first.channels or ()):
+            raise InputError(
+                f"the records of a vector training must have the same channels: record {first.id} has "
+                f"{', '.join(first.channels or ())}, record {record.id} has {', '.join(record.channels)}"
+            )
+    channels = len(first.channels or ())
+    columns = (channels + 1) * body.lags * (body.degree + 1)
+    cells = sum(r.n_samples for r in records) * columns
+    check_cost(cells, columns * channels, settings, "this training")
+    return cells
 
 
 def _pooled_variables(records: list[Record], body: PooledBaselineTrain | PooledFaultModeTrain) -> list[str]:

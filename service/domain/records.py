@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import io
+import json
 import math
 from collections.abc import Iterable, Sequence
 
@@ -14,6 +15,7 @@ from sqlalchemy import insert, select
 from sqlalchemy.orm import Session, selectinload
 
 from models.errors import InputError
+from models.signals import checked_record
 from service.conditions import Condition
 from service.db import insert_unless_exists
 from service.domain import fleet
@@ -41,11 +43,15 @@ def checked_rate(structure: Structure, fs: float | None) -> float:
     )
 
 
-def content_hash(x: np.ndarray, y: np.ndarray, fs: float) -> str:
+def content_hash(x: np.ndarray, y: np.ndarray, fs: float, channels: Sequence[str] = ()) -> str:
+    """What identifies a record's data; a record of several channels hashes their names too
+    (the same numbers under other names are another record), one of one response as always."""
     digest = hashlib.sha256()
     digest.update(np.float64(fs).tobytes())
     digest.update(np.ascontiguousarray(x, dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(y, dtype="<f8").tobytes())
+    if channels:
+        digest.update(json.dumps(list(channels)).encode())
     return digest.hexdigest()
 
 
@@ -57,12 +63,14 @@ def store_record(
     rate: float,
     acquired_at: dt.datetime | None,
     conditions: Sequence[Condition] = (),
+    channels: Sequence[str] = (),
 ) -> tuple[Record, bool]:
     """Store a record with its conditions, or return the stored one with the same data; True when new.
 
     The signals are stored as given: validate them first, with ``models.signals.checked_record``
     or through the inspection (``models.inspection.inspect`` checks what it inspects), the rate
-    with :func:`checked_rate` and the conditions with ``service.conditions.checked_conditions``.
+    with :func:`checked_rate`, the conditions with ``service.conditions.checked_conditions`` and the
+    channels, names of y's columns when it has several, with ``service.channels.checked_channels``.
     Checking here too would validate every upload twice.
 
     The data identify a record, its conditions do not: a record is the same record whatever an
@@ -70,7 +78,7 @@ def store_record(
     ones is a conflict (one that states none takes the record as it is).
     """
     xa, ya = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
-    sha = content_hash(xa, ya, rate)
+    sha = content_hash(xa, ya, rate, channels)
     values = {
         "structure_id": structure.id,
         "fs": rate,
@@ -79,6 +87,7 @@ def store_record(
         "sha256": sha,
         "x": _npy(xa),
         "y": _npy(ya),
+        "channels": list(channels) or None,
     }
     # Inserted first, looked up only on conflict: a new record, the common case, costs one statement.
     inserted = insert_unless_exists(session, Record, values, ["structure_id", "sha256"])
@@ -104,11 +113,31 @@ def store_record(
     return Record(id=inserted.id, created_at=inserted.created_at, conditions=stored, **values), True
 
 
+def checked_signals(
+    x: ArrayLike, y: ArrayLike, channels: Sequence[str], min_samples: int, degree: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """x and y checked as ``models.signals.checked_record`` checks a record of one response; with
+    ``channels``, y (N, K) checked a channel at a time against x, each refusal naming its channel."""
+    if not channels:
+        return checked_record(x, y, min_samples, degree=degree)
+    ya = np.asarray(y, dtype=np.float64)
+    columns = [
+        checked_record(x, ya[:, j], min_samples, label=f"channel {name!r} of the record", degree=degree)
+        for j, name in enumerate(channels)
+    ]
+    return columns[0][0], np.column_stack([column for _, column in columns])
+
+
 def stored_conditions(
-    session: Session, structure: Structure, x: ArrayLike, y: ArrayLike, rate: float
+    session: Session,
+    structure: Structure,
+    x: ArrayLike,
+    y: ArrayLike,
+    rate: float,
+    channels: Sequence[str] = (),
 ) -> list[Condition]:
     """The conditions the same data were stored with, if the structure holds them (none if not)."""
-    sha = content_hash(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), rate)
+    sha = content_hash(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), rate, channels)
     found = _find(session, structure.id, sha)
     return as_conditions(found.conditions) if found is not None else []
 
@@ -144,7 +173,8 @@ def get_record(session: Session, principal: Principal, record_id: int) -> Record
 
 
 def signals(record: Record) -> tuple[np.ndarray, np.ndarray]:
-    """The record's x and y; a conflict once the retention has pruned them."""
+    """The record's x and y (N, K for a record of several channels, ``record.channels``); a conflict
+    once the retention has pruned them."""
     if record.signals_pruned_at is not None:
         raise ConflictError(pruned_notice(record))
     return _load(record.x), _load(record.y)

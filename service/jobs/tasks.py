@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from sqlalchemy import exists, select
 from sqlalchemy.orm import Session, defer
@@ -43,7 +43,8 @@ def inspect_record(session: Session, settings: Settings, record_id: int) -> None
         return
     structure = session.get(Structure, record.structure_id)
     assert structure is not None  # a record's structure is a foreign key
-    failure = _inspect(session, settings, record, structure, _model_set(session, structure))
+    model_set = _model_set(session, structure, record.channels or ())
+    failure = _inspect(session, settings, record, structure, model_set)
     if failure is not None:
         raise failure
 
@@ -85,8 +86,10 @@ def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at:
         raise unexpected
 
 
-def _model_set(session: Session, structure: Structure) -> str:
-    return inspections.model_set([v for v, _ in inspections.models_to_inspect_with(session, structure)])
+def _model_set(session: Session, structure: Structure, channels: Sequence[str] = ()) -> str:
+    """The model set a record of these ``channels`` (none: one response) is inspected with."""
+    active = inspections.models_to_inspect_with(session, structure, channels)
+    return inspections.model_set([v for v, _ in active])
 
 
 def _inspect(
