@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -29,66 +28,22 @@ from api_helpers import (
     stored,
     wait_for,
 )
+from channel_helpers import (
+    FS,
+    MODES,
+    NAMES,
+    TRAINING_K,
+    N,
+    Site,
+    build_site,
+    chain_record,
+    channels_body,
+    csv_text,
+)
+from dashboard_helpers import DASHBOARD, charts, logged_in
 from live import LiveServer
 
 from models.vector import fit_vector_fnarx, inspect_vector
-from simulator.chain import ChainParameters, ChainScenario, simulate_chain
-from simulator.options import DAMPING, MASS, STIFFNESS
-
-N = 1000
-CHAIN = ChainParameters.build(3, [MASS], [STIFFNESS], [DAMPING])
-FS = float(round(1 / CHAIN.ts))  # as simulator.chain states its records
-NAMES = ("a1", "a2", "a3")
-TRAINING_K = (-8.0, 0.0, 8.0)
-MODES = ("k2", "k3")
-
-
-def chain_record(fault: str, k: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    scenario = ChainScenario(CHAIN, fault, k, disturbance_std=800.0, y_noise_std=1e-6)
-    simulated = simulate_chain(scenario, N, seed)
-    return simulated.x, np.column_stack([simulated.responses[f"y{m}"] for m in (1, 2, 3)])
-
-
-def channels_body(x: np.ndarray, y: np.ndarray, names: tuple[str, ...] = NAMES, **extra: object) -> dict:
-    channels = [{"name": name, "y": y[:, j].tolist()} for j, name in enumerate(names)]
-    return {"x": x.tolist(), "channels": channels, "fs": FS, **extra}
-
-
-def csv_text(x: np.ndarray, y: np.ndarray, names: tuple[str, ...] = NAMES) -> str:
-    rows = "".join(",".join(f"{v:.17g}" for v in (a, *b)) + "\n" for a, b in zip(x, y, strict=True))
-    return f"# fs={FS:.17g}\n" + ",".join(("x", *names)) + "\n" + rows
-
-
-@dataclass
-class Site:
-    org: Org
-    structure_id: int
-    models: dict[str, dict]  # the vector modes' versions, as the trainings answered
-
-
-def build_site(server: LiveServer) -> Site:
-    """A structure with vector modes k2 and k3 trained over HTTP from three records each."""
-    org = Org.create(server)
-    with clients(org) as (admin, ingest, _):
-        structure_id = create_structure(admin, fs=FS)["id"]
-        models = {}
-        for m, mode in enumerate(MODES):
-            experiments = [
-                {
-                    "record_id": stored(
-                        post_record(ingest, structure_id, channels_body(*chain_record(mode, k, 10 * m + i)))
-                    )["id"],
-                    "k": k,
-                }
-                for i, k in enumerate(TRAINING_K)
-            ]
-            response = admin.post(
-                f"{API}/structures/{structure_id}/models/vector-fault-modes",
-                json={"name": mode, "experiments": experiments},
-            )
-            assert response.status_code == 201, response.text
-            models[mode] = response.json()
-    return Site(org, structure_id, models)
 
 
 @pytest.fixture(scope="module")
@@ -124,6 +79,27 @@ def test_a_record_of_several_channels_is_judged_by_the_vector_models(site: Site)
         assert list(mode["channel_rms"].values()) == pytest.approx(figures.channel_rms, rel=1e-6)
     with site.org.client("viewer") as viewer:
         assert viewer.get(f"{API}/verdicts/{verdict['id']}").json() == verdict
+
+
+def test_the_record_page_draws_each_channels_residual(site: Site, sqlite_api_server: LiveServer):
+    """The dashboard's page of a vector verdict draws the chosen mode's residual on every channel:
+    the very residual whose RMS the verdict recorded."""
+    x, y = chain_record("k3", 6.0, 504)
+    with site.org.client("ingest") as ingest:
+        verdict = stored(post_record(ingest, site.structure_id, channels_body(x, y), inspect="true"))[
+            "verdict"
+        ]
+    with logged_in(sqlite_api_server, site.org.keys["viewer"]) as viewer:
+        page = viewer.get(f"{DASHBOARD}/records/{verdict['record_id']}")
+    assert page.status_code == 200, page.text
+    drawn = charts(page)
+    assert sorted(drawn) == [f"residual-{name}" for name in NAMES]
+    mode = next(m for m in verdict["modes"] if m["name"] == verdict["reference_mode"])
+    for name in NAMES:
+        residual = np.asarray(drawn[f"residual-{name}"]["data"][0]["y"])
+        assert len(residual) == N - 2
+        assert np.sqrt(np.mean(residual**2)) == pytest.approx(mode["channel_rms"][name], rel=1e-9)
+    assert "Hosking" in page.text
 
 
 def test_channels_are_matched_by_name_in_any_order(site: Site):

@@ -30,6 +30,7 @@ from api_helpers import (
     train_fault_mode,
     upload_simulated,
 )
+from channel_helpers import NAMES, build_site, chain_record, channels_body
 from dashboard_helpers import (
     CHROMIUM,
     CHROMIUM_ARGS,
@@ -177,6 +178,26 @@ def test_log_in_follow_a_structure_and_a_record_and_log_out(page, server: LiveSe
     page.wait_for_url(f"**{DASHBOARD}/login")
     page.goto(f"{server.url}{DASHBOARD}/records/{record_id}")
     assert "/login?next=" in page.url, "after logging out the pages are closed again"
+
+
+def test_a_vector_verdict_shows_each_channels_residual(page, server: LiveServer):
+    """A record of three sensors inspected by vector modes: its page draws one residual chart per
+    channel, each of the residual's N − p samples, and the verdict's per-channel RMS."""
+    site = build_site(server)
+    x, y = chain_record("k2", 6.0, 900)
+    with site.org.client("ingest") as ingest:
+        uploaded = ingest.post(
+            f"/api/v1/structures/{site.structure_id}/records?inspect=true", json=channels_body(x, y)
+        )
+    assert uploaded.status_code == 201, uploaded.text
+    record_id = uploaded.json()["id"]
+    page.goto(f"{server.url}{DASHBOARD}/records/{record_id}")
+    log_in(page, site.org.keys["viewer"])
+    page.wait_for_url(f"**{DASHBOARD}/records/{record_id}")
+    for name in NAMES:
+        assert drawn(page, f"residual-{name}")["points"] == [len(x) - 2]
+    assert "a1, a2, a3" in page.content() and "Hosking" in page.locator("#vector-note").inner_text()
+    shot(page, "6-record-channels")
 
 
 def test_a_wrong_key_stays_on_the_login_page_with_the_reason(page, server: LiveServer):

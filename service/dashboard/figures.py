@@ -418,6 +418,31 @@ def record_figures(fit: OneStepFit, fs: float, max_lag: int, shown: int, label: 
     return {"response": response, "residual": residual, "autocorrelation": autocorrelation}
 
 
+def channel_figures(
+    residual: np.ndarray, channels: list[str], fs: float, lags: int, shown: int, label: str
+) -> dict[str, Figure]:
+    """A vector mode's one-step residual on each channel (``residual`` (n, K), columns named by
+    ``channels``), each with its RMS over the whole record; the first ``shown`` samples are drawn."""
+    n = min(shown, len(residual))
+    t = (np.arange(n) + lags) / fs
+    kind = _scatter(n)
+    out = {}
+    for j, name in enumerate(channels):
+        rms = float(np.sqrt(np.mean(residual[:, j] ** 2)))
+        out[f"residual-{name}"] = {
+            "data": [
+                _lines(t, residual[:n, j], type=kind, name=f"e_{name}", line={"color": "#1f77b4", "width": 1})
+            ],
+            "layout": _layout(
+                f"Channel {name}: one-step residual of the {label} (RMS {rms:.3g})",
+                "time [s]",
+                f"e_{name}",
+                yaxis={"exponentformat": "e"},
+            ),
+        }
+    return out
+
+
 def refinement_figure(before: dict[str, Any], after: dict[str, Any]) -> Figure:
     """Held-out one-step and free-run RMS error of the declared and the refined model."""
     measures = [("one_step_rms", "one-step RMS"), ("free_run_rms", "free-run RMS")]

@@ -13,13 +13,15 @@ from models.errors import InputError
 from models.fnarx import FNARX
 from models.pooled import PooledModel
 from models.validation import one_step_fit
+from models.vector import VectorFNARX
+from service.channels import matched
 from service.dashboard import figures
 from service.domain import alarms, fleet, history, modelling, records, refinements, structures, timeline
 from service.domain.history import Status
 from service.domain.inspections import MODEL_REFS, verdict_out
-from service.schemas import ModeResult
+from service.schemas import ModeResult, VerdictOut
 from service.security import Principal
-from service.tables import Verdict
+from service.tables import ModelVersion, Record, Verdict
 
 # Samples of a record drawn on its page; longer records show their start (the residual's
 # autocorrelation is always of the whole record).
@@ -171,6 +173,8 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
         return context | {"verdict": out, "mode": chosen}
     version = next(v for v in verdict.models if v.name == chosen.name)
     parsed = modelling.parsed_model(version)
+    if isinstance(parsed, VectorFNARX):
+        return context | _channel_residuals(record, out, chosen, version, parsed)
     fault_mode = (
         parsed.fnarx_at(records.condition_values(record.conditions))
         if isinstance(parsed, PooledModel)
@@ -188,6 +192,27 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
         "charts": figures.record_figures(fit, record.fs, model.max_lag, RECORD_POINTS, label),
     }
     return context
+
+
+def _channel_residuals(
+    record: Record, out: VerdictOut, chosen: ModeResult, version: ModelVersion, model: VectorFNARX
+) -> dict[str, Any]:
+    """A vector verdict's page: the chosen mode's one-step residual at its k̂ on each channel, in
+    the order the model names them."""
+    channels = version.training["channels"]
+    x, y = records.signals(record)
+    residual = model.residual(x, y[:, matched(record.channels or (), channels, version.name)], chosen.k_hat)
+    label = f"{chosen.name} model at k̂ = {chosen.k_hat:.2f} %"
+    shown = min(RECORD_POINTS, len(residual))
+    return {
+        "verdict": out,
+        "mode": chosen,
+        "version": version,
+        "channels": channels,
+        "residual_samples": len(residual),
+        "shown": shown,
+        "charts": figures.channel_figures(residual, channels, record.fs, model.lags, RECORD_POINTS, label),
+    }
 
 
 def _chosen_mode(modes: list[ModeResult], reference: str | None, wanted: str | None) -> ModeResult:
