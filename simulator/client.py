@@ -36,6 +36,7 @@ from rich.console import Console
 from rich.text import Text
 
 from models.errors import InputError
+from service.channels import MAX_CHANNELS
 from simulator import chain
 from simulator.chain import ChainRecord, ChainScenario, simulate_chain
 from simulator.options import (
@@ -401,16 +402,25 @@ class Poster:
     format: Format
 
     def deliver(self, plan: Plan, record: AnyRecord) -> Posted:
-        """The body is what the service reads today: x and one response y, and the record's
-        temperature as its condition ``temperature`` (in °C, a unit NPZ cannot state)."""
+        """The body is x and one response y, or the response channels by name (``y1`` … of the
+        chain's masses), and the record's temperature as its condition ``temperature`` (in °C, a unit
+        NPZ cannot state). A CSV or NPZ of several channels names them with repeated ``y``
+        parameters; a structure inspects such records with its vector fault modes."""
         path = f"{API}/structures/{self.structure_id}/records"
         when = plan.acquired_at.isoformat()
-        (y,) = record.responses.values()  # one channel: Target.check refused more
+        several = len(record.responses) > 1
+        y = record.responses if several else next(iter(record.responses.values()))
+        named = {"y": list(record.responses)} if several else {}
         conditions = record_conditions(record)
         if self.format is Format.json:
+            responses = (
+                {"channels": [{"name": name, "y": v.tolist()} for name, v in record.responses.items()]}
+                if several
+                else {"y": y.tolist()}  # type: ignore[union-attr]
+            )
             body = {
                 "x": record.x.tolist(),
-                "y": y.tolist(),
+                **responses,
                 "fs": record.fs,
                 "acquired_at": when,
                 "conditions": [
@@ -428,7 +438,7 @@ class Poster:
             answer = self.service.request(
                 "POST",
                 path,
-                params={"inspect": "true", "acquired_at": when},
+                params={"inspect": "true", "acquired_at": when, **named},
                 content=content,
                 headers={"Content-Type": MEDIA_TYPES[self.format]},
             )
@@ -536,12 +546,12 @@ class Target:
 
     def check(self, scenario: AnyScenario) -> None:
         """Refuse now outputs the structure does not have (naming the channels checks them), and
-        posting records of several channels: the service takes one response y."""
+        posting records of more channels than the service takes."""
         channels = scenario.channels
-        if self.out is None and len(channels) > 1:
+        if self.out is None and len(channels) > MAX_CHANNELS:
             raise InputError(
-                f"these records have {len(channels)} response channels ({', '.join(channels)}) and the "
-                "service takes one: write them to files with --out DIR, or choose one mass with --outputs"
+                f"these records have {len(channels)} response channels and the service takes at most "
+                f"{MAX_CHANNELS}: write them to files with --out DIR, or choose masses with --outputs"
             )
 
 

@@ -45,8 +45,9 @@ class Site:
     models: dict[str, dict]  # the vector modes' versions, as the trainings answered
 
 
-def build_site(server: LiveServer) -> Site:
-    """A structure with vector modes k2 and k3 trained over HTTP from three records each."""
+def build_site(server: LiveServer, names: tuple[str, ...] = NAMES) -> Site:
+    """A structure with vector modes k2 and k3 trained over HTTP from three records each, their
+    channels called ``names``."""
     org = Org.create(server)
     with clients(org) as (admin, ingest, _):
         structure_id = create_structure(admin, fs=FS)["id"]
@@ -55,7 +56,9 @@ def build_site(server: LiveServer) -> Site:
             experiments = [
                 {
                     "record_id": stored(
-                        post_record(ingest, structure_id, channels_body(*chain_record(mode, k, 10 * m + i)))
+                        post_record(
+                            ingest, structure_id, channels_body(*chain_record(mode, k, 10 * m + i), names)
+                        )
                     )["id"],
                     "k": k,
                 }

@@ -369,10 +369,9 @@ def test_a_manifest_without_temperatures_is_not_mixed_with_records_that_have_one
     ("args", "message"),
     [
         (
-            ["record", "--masses", "3"],
-            "these records have 3 response channels (y1, y2, y3) and the service takes one",
+            ["record", "--masses", "9"],
+            "these records have 9 response channels and the service takes at most 8",
         ),
-        (["record", "--outputs", "both"], "write them to files with --out DIR"),
         (["record", "--mass", "3", "--out", "d"], "--mass: options of the chain"),
         (
             ["record", "--masses", "3", "--param", "k1=1", "--out", "d"],
