@@ -213,7 +213,7 @@ def inspect_vector(
     if not modes:
         raise InputError("at least one fault-mode model is needed")
     results = tuple(_judge(mode, x, y, alpha, lags) for mode in modes)
-    z = z_quantile(1 - (1 - (1 - alpha) ** (1 / len(modes))) / 2)
+    z = z_quantile((1 - alpha) ** (1 / len(modes)))  # two-sided at α_M: z_{1−α_M/2}
     detected = any(abs(r.k_hat) > z * r.sigma_k for r in results)
     best = min(results, key=lambda r: r.generalised_variance)
     localised = best.name if detected else None

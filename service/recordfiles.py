@@ -565,8 +565,9 @@ def _checked_members(archive: zipfile.ZipFile, budget: float, signals: tuple[str
     members = [name.removesuffix(".npy") for name in names]
     missing = [name for name in signals if name not in members]
     if missing:
+        needs = " and ".join(map(repr, signals)) if len(signals) == 2 else ", ".join(signals)
         raise InputError(
-            f"the NPZ lacks array(s) {', '.join(missing)}; it needs {', '.join(map(repr, signals))}"
+            f"the NPZ lacks array(s) {', '.join(missing)}; it needs {needs}"
             + (f"; it holds {', '.join(members)}" if len(signals) > 2 else "")
         )
     declared = dict(zip(members, (info.file_size for info in infos), strict=True))

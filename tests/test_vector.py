@@ -55,7 +55,7 @@ def test_the_fit_recovers_the_schemes_matrices_where_no_noise_enters():
 
 def test_five_sensors_localise_what_one_cannot():
     """The study of bench/vector_localisation.py at a tenth of its size (README: 250/250 with all
-    five sensors, 34/250 with mass 1 alone): 20 records, k uniform over 3 … 8 %."""
+    five sensors, 40/250 with mass 1 alone): 20 records, k uniform over 3 … 8 %."""
     everything = [fit_vector_fnarx(s, experiments(s, slice(0, 5)), lags=2) for s in SPRINGS]
     alone = [fit_vector_fnarx(s, experiments(s, slice(0, 1)), lags=10) for s in SPRINGS]
     rng = np.random.default_rng(11)
@@ -124,3 +124,15 @@ def test_the_models_poles_and_free_run_are_the_schemes():
     expected_damping = -s.real[order] / np.abs(s)[order]
     np.testing.assert_allclose(frequencies, np.abs(s)[order] / (2 * np.pi), rtol=rtol)
     np.testing.assert_allclose(damping, expected_damping, rtol=rtol / np.min(expected_damping))
+
+
+def test_the_magnitude_tests_share_alpha_by_sidak_as_the_scalar_chains_do():
+    """Each of M modes' two-sided magnitude tests is at α_M = 1 − (1 − α)^{1/M}: its critical
+    |k̂|/σ̂_k is z_{1−α_M/2}, as the module says and models.inspection's magnitude tests use."""
+    from scipy import special
+
+    x, y = record("k2", 0.0, 3)
+    models = [fit_vector_fnarx(s, experiments(s, slice(0, 5))) for s in ("k2", "k3")]
+    inspection = inspect_vector(x, y, models, alpha=0.05)
+    alpha_m = 1 - 0.95 ** (1 / 2)
+    assert inspection.z_critical == pytest.approx(special.ndtri(1 - alpha_m / 2), rel=1e-12)

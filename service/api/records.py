@@ -10,12 +10,11 @@ from fastapi import APIRouter, BackgroundTasks, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
-from models.errors import InputError
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
 from service.api.expensive import BUSY, slot
 from service.api.params import IdPath, utc
-from service.api.uploads import REQUEST_BODY, parse_upload
-from service.channels import MAX_CHANNELS, checked_channels
+from service.api.uploads import REQUEST_BODY, parse_upload, signal_layout
+from service.channels import MAX_CHANNELS
 from service.config import Settings
 from service.domain import inspections, records
 from service.domain.ingest import Ingested, QueueInspection, ingest_record
@@ -98,7 +97,7 @@ async def upload_record(
         structure_id,
         inspect is InspectMode.true,
         queue,
-        _layout(x, y),
+        signal_layout(x, y, NAME_LENGTH),
     )
     if ingested.queued:
         response.status_code = status.HTTP_202_ACCEPTED
@@ -152,14 +151,6 @@ def _parse_and_ingest(
         upload.conditions,
         upload.channels,
     )
-
-
-def _layout(x: str, y: list[str]) -> Layout:
-    """The signals an upload names: one response y, or several channels named as they are."""
-    for name in (x, *y):
-        if len(name) > NAME_LENGTH:
-            raise InputError(f"the signal name {name[:40]!r}… is longer than {NAME_LENGTH} characters")
-    return Layout(x, y[0]) if len(y) == 1 else Layout(x, channels=tuple(checked_channels(y)))
 
 
 def _queue_inspection(jobs: JobBackend, organisation_id: int) -> QueueInspection:

@@ -122,6 +122,15 @@ def _with_channels(
     return Upload(x, y, fs, acquired_at, conditions, names)
 
 
+def signal_layout(x: str, y: list[str], name_length: int) -> Layout:
+    """The signals an upload's parameters name: one response y, or several channels named as they
+    are (``y`` given 2 to 8 times), each name at most ``name_length`` characters."""
+    for name in (x, *y):
+        if len(name) > name_length:
+            raise InputError(f"the signal name {name[:40]!r}… is longer than {name_length} characters")
+    return Layout(x, y[0]) if len(y) == 1 else Layout(x, channels=tuple(checked_channels(y)))
+
+
 def _describe(error: ValidationError) -> str:
     parts = []
     for item in error.errors()[:5]:
