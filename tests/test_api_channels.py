@@ -249,24 +249,29 @@ def test_trainings_refuse_records_of_other_channels(site: Site):
             "id"
         ]
         one = stored(post_record(ingest, site.structure_id, json_body(N, fs=FS)))["id"]
-    url = f"{API}/structures/{site.structure_id}/models"
+    url = f"{API}/structures/{site.structure_id}"
     cases = [
         (
-            "vector-fault-modes",
+            "models/vector-fault-modes",
             {"name": "k2", "experiments": [{"record_id": three, "k": 0}, {"record_id": other, "k": 8}]},
             f"record {other} has a1, a2, b3",
         ),
         (
-            "vector-fault-modes",
+            "models/vector-fault-modes",
             {"name": "k2", "experiments": [{"record_id": three, "k": 0}, {"record_id": two, "k": 8}]},
             f"record {two} has a1, a2",
         ),
         (
-            "vector-fault-modes",
+            "models/vector-fault-modes",
             {"name": "k2", "experiments": [{"record_id": three, "k": 0}, {"record_id": one, "k": 8}]},
             f"record {one} has one response",
         ),
-        ("baseline", {"record_ids": [one, three]}, f"record {three} has 3 response channels"),
+        ("models/baseline", {"record_ids": [one, three]}, f"record {three} has 3 response channels"),
+        (
+            "refinements",
+            {"record_ids": [three], "test_record_ids": [one], "base_model_id": site.models["k2"]["id"]},
+            f"record {three} has 3 response channels",
+        ),
     ]
     with nothing_written(site.org, site.structure_id), site.org.client("admin") as admin:
         for route, body, words in cases:
@@ -283,7 +288,7 @@ def chain_site(sqlite_api_server: LiveServer) -> Site:
     return build_site(sqlite_api_server, ("y1", "y2", "y3"))
 
 
-@pytest.mark.parametrize("body", ["json", "csv", "npz"])
+@pytest.mark.parametrize("body", ["json", "npz"])
 def test_the_simulator_posts_every_mass_of_a_chain(
     chain_site: Site, sqlite_api_server: LiveServer, body: str
 ):

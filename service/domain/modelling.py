@@ -356,13 +356,7 @@ def _training_records(
     records = owned_records(session, principal, structure, ids)
     if isinstance(body, VectorFaultModeTrain):
         return records, _vector_cells(records, body, settings)
-    several = next((r for r in records if r.channels), None)
-    if several is not None:
-        raise InputError(
-            f"record {several.id} has {len(several.channels or ())} response channels "
-            f"({', '.join(several.channels or ())}); this training takes records of one response y: "
-            f"train a vector fault mode (POST /api/v1/structures/{structure.id}/models/vector-fault-modes)"
-        )
+    check_one_response(records, structure, "this training")
     terms = len(parse_terms(body.terms or EXACT_TERMS))
     if isinstance(body, BaselineTrain):
         size = 1
@@ -375,6 +369,17 @@ def _training_records(
     cells = sum(r.n_samples for r in records) * terms * size
     check_cost(cells, terms * size, settings, "this training")
     return records, cells
+
+
+def check_one_response(records: list[Record], structure: Structure, what: str) -> None:
+    """Refuse a record of several channels where ``what`` takes records of one response y."""
+    several = next((r for r in records if r.channels), None)
+    if several is not None:
+        raise InputError(
+            f"record {several.id} has {len(several.channels or ())} response channels "
+            f"({', '.join(several.channels or ())}); {what} takes records of one response y: "
+            f"train a vector fault mode (POST /api/v1/structures/{structure.id}/models/vector-fault-modes)"
+        )
 
 
 def _vector_cells(records: list[Record], body: VectorFaultModeTrain, settings: Settings) -> int:

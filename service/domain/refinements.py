@@ -15,7 +15,13 @@ from models.refinement import check_parts, reach, refine_record, refine_records
 from models.terms import Term
 from service.config import Settings
 from service.domain.errors import NotFoundError
-from service.domain.modelling import bounded_document, check_cost, new_version, owned_records
+from service.domain.modelling import (
+    bounded_document,
+    check_cost,
+    check_one_response,
+    new_version,
+    owned_records,
+)
 from service.domain.records import signals
 from service.domain.structures import get_owned, get_structure
 from service.schemas import RefinementCreate
@@ -165,6 +171,7 @@ def _planned(
             f"record {min(both)} is listed to fit and to judge; judge the models on records not fitted"
         )
     records = owned_records(session, principal, structure, fitted_ids + test_ids)
+    check_one_response(records, structure, "a refinement")
     fitted, tests = records[: len(fitted_ids)], records[len(fitted_ids) :]
     base = session.get(ModelVersion, body.base_model_id)
     if base is None or base.structure_id != structure.id:
