@@ -13,7 +13,9 @@ from pydantic import (
     ConfigDict,
     Field,
     FiniteFloat,
+    SerializerFunctionWrapHandler,
     StrictInt,
+    model_serializer,
     model_validator,
 )
 
@@ -282,7 +284,7 @@ class RecordOut(BaseModel):
     conditions: list[Condition] = Field(description=CONDITIONS_HELP)
     channels: list[str] | None = Field(
         None,
-        description="The names of a record's response channels, in the order uploaded; null for a "
+        description="The names of a record's response channels, in the order uploaded; absent for a "
         "record of one response y",
     )
     created: bool = Field(description="False when the same data had been uploaded before")
@@ -290,6 +292,15 @@ class RecordOut(BaseModel):
         None, description="When the organisation's retention dropped the record's signals; null while kept"
     )
     verdict: VerdictOut | None = None
+
+    @model_serializer(mode="wrap")
+    def _one_response_as_before(self, handler: SerializerFunctionWrapHandler):  # type: ignore[no-untyped-def]
+        # A record of one response answers exactly as before records had channels: without the field.
+        # (Unannotated: pydantic would take a return annotation as the answer's schema, dropping its fields.)
+        answer = handler(self)
+        if self.channels is None:
+            answer.pop("channels", None)
+        return answer
 
 
 class VerdictPage(BaseModel):
