@@ -151,7 +151,9 @@ def main() -> None:
         )
         seconds = time.perf_counter() - started
         result = report.refinement
-        effects = ", ".join(f"{s.added.name} ({s.criterion})" for s in result.rounds if s.added) or "none"
+        effects = ", ".join(f"{s.added.name} ({s.criterion})" for s in result.kept if s.added) or "none"
+        if result.withdrawn:
+            effects = f"withdrawn: {', '.join(result.withdrawn)}"
         for index, (name, comparison) in enumerate(zip(benchmark.tests, report.tests, strict=True)):
             first = index == 0
             table.add_row(

@@ -15,7 +15,8 @@ from service.recordfiles import read_record
 from simulator.theory import EXACT_TERMS
 
 REPORT_KEYS = {
-    "declared", "orders_chosen", "effects_added", "before", "after", "tests", "refined", "notes", "data",
+    "declared", "orders_chosen", "effects_added", "effects_withdrawn", "before", "after", "tests", "refined",
+    "notes", "data",
 }  # fmt: skip
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics"}
 
