@@ -5,14 +5,12 @@
 
 For each size N:M (structures : verdicts), in order:
 
-1. A fresh database: a SQLite file in a temporary folder, or a throwaway PostgreSQL server
+1. Two fresh databases: SQLite files in a temporary folder, or two on a throwaway PostgreSQL server
    (``tests/postgres.py``: durability off, 32 MB of shared buffers; its binaries come from
-   ``bash scripts/ensure-postgres.sh``). Migrated, then the demo (``service.demo``: a structure
-   with a baseline, k2 and k1 models and a week of inspected records) and an ingest key of its
-   organisation.
-2. ``narxwatch serve`` (one process) on it: ``--uploads`` simulated 2000-sample records posted to
-   the demo structure one after another with ``inspect=true``, timed: the empty database's figure.
-3. The server stopped, the demo organisation's fleet is filled through the service's own tables:
+   ``bash scripts/ensure-postgres.sh``). Each is migrated and given the demo (``service.demo``: a
+   structure with a baseline, k2 and k1 models and a week of inspected records) and an ingest key
+   of its organisation. One stays so: the empty database.
+2. The other one's demo organisation is given a fleet, through the service's own tables:
    N structures, M records with empty signals (no view reads them), M verdicts, M / N a structure
    acquired 15 minutes apart up to now, each linked to the model versions of the demo's verdicts
    as an inspection links its own; a third of the structures had a fault for 20 records that
@@ -24,20 +22,24 @@ For each size N:M (structures : verdicts), in order:
    load, ``session_replication_role = replica``: the rows are consistent by construction), then
    the id sequences are moved past the rows and the tables vacuumed and analysed, as autovacuum
    would after a load; on SQLite, inserts of a few thousand rows a statement.
-4. ``narxwatch serve`` again. Times, on one keep-alive connection, a warm-up then ``--repeats``
-   requests each, measured on the client from sending the request to having read the whole
-   answer: ``GET /metrics``, ``GET /api/v1/structures`` (the first page of 100), the same
-   filtered by ``status=faulty``, ``GET /dashboard`` (the fleet's first page of 50, with the open
-   alarms), one structure's verdict history (the API's first page of 50 and its dashboard page)
-   and summary, and the organisation's alarms; then ``--uploads`` new records as in step 2.
-5. ``--explain`` (PostgreSQL): the queries behind the fleet, history, alarm, summary and metrics
+3. ``narxwatch serve`` (one process) on each. Times, on one keep-alive connection to the filled
+   one, a warm-up then ``--repeats`` requests each, measured on the client from sending the
+   request to having read the whole answer, and the serving process's CPU time over them (which a
+   busy machine inflates least): ``GET /metrics``, ``GET /api/v1/structures`` (the first page of
+   100), the same filtered by ``status=faulty``, ``GET /dashboard`` (the fleet's first page of 50,
+   with the open alarms), one structure's verdict history (the API's first page of 50 and its
+   dashboard page) and summary, and the organisation's alarms. Then ``--uploads`` simulated
+   2000-sample records to each demo structure with ``inspect=true``, one at a time, the two
+   databases in turns (so that the machine's load drifts alike under both).
+4. ``--explain`` (PostgreSQL): the queries behind the fleet, history, alarm, summary and metrics
    reads, issued in this process by the service's own functions and captured, each run again under
    ``EXPLAIN (ANALYZE, BUFFERS)``; prints each one's execution time and every sequential scan of
    ``verdicts``, ``records``, ``structures`` or ``alarms`` (with its plan).
 
-Prints a table per size (median and p95 in ms, the answer's size, and the uploads' p50 on the
-empty and the filled database). Exits non-zero when an answer is not 200, or when ``/metrics``
-does not count the records and verdicts stored. Nothing asserts on time.
+Prints a table per size (median and p95 in ms, server CPU ms a request, the answer's size, and
+the uploads' p50 on the empty and the filled database) with the machine's load average. Exits
+non-zero when an answer is not 200, or when ``/metrics`` does not count the records and verdicts
+stored. Nothing asserts on time.
 """
 
 from __future__ import annotations
@@ -66,7 +68,7 @@ import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import JSON, Connection, Engine, event, func, insert, select, text
 
-from bench.load_api import free_port, make_payloads
+from bench.load_api import _process_cpu, free_port, make_payloads
 from service.config import Settings
 from service.dashboard import views
 from service.db import make_engine, session_factory, transaction
@@ -270,7 +272,7 @@ class Filler:
 
 
 def fill(url: str, structures: int, verdicts: int, seed: int) -> int:
-    """Step 3 on a database holding the demo; the id of the structure whose history is timed."""
+    """Step 2 on a database holding the demo; the id of the structure whose history is timed."""
     engine = make_engine(url)
     with engine.connect() as connection:
         organisation_id = connection.scalar(select(Organisation.id).where(Organisation.name == ORGANISATION))
@@ -340,12 +342,13 @@ def _copy_all(engine: Engine, filler: Filler) -> None:
 
 
 @contextlib.contextmanager
-def serving(url: str, folder: Path) -> Iterator[str]:
-    """``narxwatch serve`` on ``url`` once it answers, stopped on leaving; its log goes to ``folder``."""
+def serving(url: str, log: Path) -> Iterator[tuple[str, int]]:
+    """``narxwatch serve`` on ``url`` once it answers, stopped on leaving: its address and process
+    id; its log goes to ``log``."""
     port = free_port()
     env = {**os.environ, "NARXWATCH_DATABASE_URL": url}
-    with (folder / "serve.log").open("a") as log:
-        process = subprocess.Popen([NARXWATCH, "serve", "--port", str(port)], env=env, stderr=log)
+    with log.open("w") as written:
+        process = subprocess.Popen([NARXWATCH, "serve", "--port", str(port)], env=env, stderr=written)
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 120
@@ -354,9 +357,9 @@ def serving(url: str, folder: Path) -> Iterator[str]:
                 if httpx.get(f"{base}/healthz").status_code == 200:
                     break
             if process.poll() is not None or time.monotonic() > deadline:
-                raise SystemExit(f"narxwatch serve did not start; see {folder / 'serve.log'}")
+                raise SystemExit(f"narxwatch serve did not start; see {log}")
             time.sleep(0.2)
-        yield base
+        yield base, process.pid
     finally:
         process.terminate()
         process.wait(timeout=30)
@@ -374,30 +377,32 @@ def client(base: str, key: str) -> Iterator[httpx.Client]:
         yield opened
 
 
-def timed(client: httpx.Client, path: str, repeats: int) -> tuple[list[float], int]:
-    """Milliseconds of ``repeats`` requests after a warm-up, and the answer's size in bytes."""
+def timed(client: httpx.Client, path: str, repeats: int, server: int) -> tuple[list[float], float, int]:
+    """Milliseconds of ``repeats`` requests after a warm-up, the CPU milliseconds the ``server``
+    process spent on each (the figure a busy machine inflates least), and the answer's size."""
     client.get(path)
     times = []
+    cpu = _process_cpu(server)
     for _ in range(repeats):
         began = time.perf_counter()
         response = client.get(path)
         times.append((time.perf_counter() - began) * 1000)
         if response.status_code != 200:
             raise SystemExit(f"GET {path} answered {response.status_code}: {response.text[:300]}")
-    return times, len(response.content)
+    return times, (_process_cpu(server) - cpu) * 1000 / repeats, len(response.content)
 
 
-def uploads(client: httpx.Client, structure_id: int, payloads: list[bytes]) -> list[float]:
-    """Milliseconds of each upload with ``inspect=true``, one after another."""
-    path = f"/api/v1/structures/{structure_id}/records?inspect=true"
-    times = []
-    for payload in payloads:
-        began = time.perf_counter()
-        response = client.post(path, content=payload, headers={"Content-Type": "application/json"})
-        times.append((time.perf_counter() - began) * 1000)
-        if response.status_code != 201 or response.json().get("verdict") is None:
-            raise SystemExit(f"an upload answered {response.status_code}: {response.text[:300]}")
-    return times
+def upload(client: httpx.Client, structure_id: int, payload: bytes) -> float:
+    """Milliseconds of one upload with ``inspect=true``."""
+    began = time.perf_counter()
+    response = client.post(
+        f"/api/v1/structures/{structure_id}/records?inspect=true",
+        content=payload,
+        headers={"Content-Type": "application/json"},
+    )
+    if response.status_code != 201 or response.json().get("verdict") is None:
+        raise SystemExit(f"an upload answered {response.status_code}: {response.text[:300]}")
+    return (time.perf_counter() - began) * 1000
 
 
 def counted(client: httpx.Client) -> tuple[float, float]:
@@ -427,7 +432,7 @@ def stored(url: str) -> tuple[int, int]:
 
 
 def explain(url: str, structure_id: int) -> None:
-    """Step 5: every query of the reads below, under ``EXPLAIN (ANALYZE, BUFFERS)``."""
+    """Step 4: every query of the reads below, under ``EXPLAIN (ANALYZE, BUFFERS)``."""
     engine = make_engine(url)
     sessions = session_factory(engine)
     with engine.connect() as connection:
@@ -495,21 +500,21 @@ def explain(url: str, structure_id: int) -> None:
 
 
 @contextlib.contextmanager
-def database(backend: str, folder: Path) -> Iterator[str]:
-    """A fresh, empty database's URL."""
+def databases(backend: str, folder: Path) -> Iterator[tuple[str, str]]:
+    """Two fresh, empty databases' URLs: the one to fill and the empty one."""
     if backend == "sqlite":
-        yield f"sqlite:///{folder / 'fleet.db'}"
+        yield f"sqlite:///{folder / 'fleet.db'}", f"sqlite:///{folder / 'empty.db'}"
         return
-    from tests.postgres import missing_reason, postgres_server
+    from tests.postgres import create_database, missing_reason, postgres_server
 
     with postgres_server("fleet") as url:
         if url is None:
             raise SystemExit(f"PostgreSQL unavailable: {missing_reason()}")
-        yield url
+        yield url, create_database(url, "empty")
 
 
 def seeded(url: str) -> tuple[int, str]:
-    """Steps 1: the demo's structure id and an ingest key of its organisation."""
+    """Step 1: the demo's structure id and an ingest key of its organisation."""
     upgrade_database(url)
     sessions = session_factory(make_engine(url))
     with transaction(sessions) as session:
@@ -520,15 +525,19 @@ def seeded(url: str) -> tuple[int, str]:
 
 def measure(backend: str, structures: int, verdicts: int, args: argparse.Namespace) -> None:
     payloads = make_payloads(2 * args.uploads, args.seed)
-    with tempfile.TemporaryDirectory(prefix="fleet-scale-") as name, database(backend, Path(name)) as url:
+    with tempfile.TemporaryDirectory(prefix="fleet-scale-") as name, databases(backend, Path(name)) as urls:
         folder = Path(name)
-        demo, key = seeded(url)
-        with serving(url, folder) as base, client(base, key) as opened:
-            empty = uploads(opened, demo, payloads[: args.uploads])
+        url, empty_url = urls
+        (demo, key), (empty_demo, empty_key) = seeded(url), seeded(empty_url)
         began = time.perf_counter()
         watched = fill(url, structures, verdicts, args.seed)
         filled = time.perf_counter() - began
-        with serving(url, folder) as base, client(base, key) as opened:
+        with (
+            serving(url, folder / "fleet.log") as (base, server),
+            client(base, key) as opened,
+            serving(empty_url, folder / "empty.log") as (empty_base, _),
+            client(empty_base, empty_key) as empty_client,
+        ):
             if (found := counted(opened)) != stored(url):
                 raise SystemExit(f"/metrics counts {found} records and verdicts, the tables {stored(url)}")
             paths = {
@@ -541,8 +550,17 @@ def measure(backend: str, structures: int, verdicts: int, args: argparse.Namespa
                 "GET …/structures/S/summary": f"/api/v1/structures/{watched}/summary",
                 "GET /api/v1/alarms (first page)": "/api/v1/alarms",
             }
-            rows = [(label, *timed(opened, path, args.repeats)) for label, path in paths.items()]
-            full = uploads(opened, demo, payloads[args.uploads :])
+            rows = [(label, *timed(opened, path, args.repeats, server)) for label, path in paths.items()]
+            # In turns, so that the machine's load drifts alike under both.
+            empty: list[float] = []
+            full: list[float] = []
+            for i in range(args.uploads):
+                turns = [
+                    (empty, empty_client, empty_demo, payloads[2 * i]),
+                    (full, opened, demo, payloads[2 * i + 1]),
+                ]
+                for times, each, structure_id, payload in turns if i % 2 else reversed(turns):
+                    times.append(upload(each, structure_id, payload))
         if args.explain and backend == "postgresql":
             explain(url, watched)
     load = os.getloadavg()
@@ -551,14 +569,14 @@ def measure(backend: str, structures: int, verdicts: int, args: argparse.Namespa
         f"S = structure {watched} ({verdicts // structures} verdicts); {args.repeats} requests each; "
         f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}"
     )
-    print(f"{'request':<42} {'median ms':>10} {'p95 ms':>8} {'bytes':>9}")
-    for label, times, size in rows:
+    print(f"{'request':<42} {'median ms':>10} {'p95 ms':>8} {'server CPU ms':>14} {'bytes':>9}")
+    for label, times, cpu, size in rows:
         p95 = float(np.percentile(times, 95))
-        print(f"{label:<42} {statistics.median(times):>10.1f} {p95:>8.1f} {size:>9}")
+        print(f"{label:<42} {statistics.median(times):>10.1f} {p95:>8.1f} {cpu:>14.1f} {size:>9}")
     ratio = statistics.median(full) / statistics.median(empty)
     print(
-        f"{'upload, inspect=true: p50 empty → filled':<42} {statistics.median(empty):>10.1f} "
-        f"→ {statistics.median(full):.1f} ms ({ratio:.2f}×, {args.uploads} uploads each)"
+        f"{'upload, inspect=true: p50 empty, filled':<42} {statistics.median(empty):>10.1f} "
+        f"{statistics.median(full):>8.1f} ms ({ratio:.2f}×, {args.uploads} uploads each, in turns)"
     )
 
 
