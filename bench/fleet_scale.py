@@ -290,7 +290,7 @@ def fill(url: str, structures: int, verdicts: int, seed: int) -> int:
                 for batch in _batches(rows(), BATCH):
                     connection.execute(insert(table), batch)
     engine.dispose()
-    # Timed: a structure with an open alarm, halfway down the fleet (or the last one).
+    # Timed: the structure halfway down those with an open alarm (with none, down the fleet).
     watched = [p for p in filler.plans if p.runs and p.runs[-1][1] == p.count] or filler.plans
     return watched[len(watched) // 2].structure_id
 
