@@ -29,7 +29,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
-from sqlalchemy import delete, func, select
+from sqlalchemy import Select, delete, func, select
 from sqlalchemy.orm import Session, selectinload
 
 from models import alarms as rules_math
@@ -555,16 +555,27 @@ def list_alarms(
     )
 
 
-def unresolved_alarms(session: Session, principal: Principal, structure_id: int | None = None) -> list[Alarm]:
-    """The caller's open and acknowledged alarms (of one structure), oldest first: the dashboard's."""
-    query = select(Alarm).where(Alarm.state != "resolved")
+def unresolved_alarms(
+    session: Session, principal: Principal, structure_id: int | None = None, limit: int | None = None
+) -> list[Alarm]:
+    """The caller's open and acknowledged alarms (of one structure), oldest first, at most ``limit``
+    (None: all): the dashboard's."""
+    query = _unresolved_of(select(Alarm), principal, structure_id).order_by(Alarm.id).limit(limit)
+    return list(session.scalars(query.options(*LOADED)))
+
+
+def count_unresolved(session: Session, principal: Principal) -> int:
+    """How many open and acknowledged alarms the caller's organisation has."""
+    return session.scalar(_unresolved_of(select(func.count(Alarm.id)), principal, None)) or 0
+
+
+def _unresolved_of(query: Select[Any], principal: Principal, structure_id: int | None) -> Select[Any]:
+    query = query.where(Alarm.state != "resolved")
     if structure_id is None:  # a join, not the list of the organisation's structures: it may be long
-        query = query.join(Structure, Structure.id == Alarm.structure_id).where(
+        return query.join(Structure, Structure.id == Alarm.structure_id).where(
             Structure.organisation_id == principal.organisation_id
         )
-    else:
-        query = query.where(Alarm.structure_id == structure_id)
-    return list(session.scalars(query.order_by(Alarm.id).options(*LOADED)))
+    return query.where(Alarm.structure_id == structure_id)
 
 
 def alarm_out(alarm: Alarm) -> AlarmOut:

@@ -31,6 +31,16 @@ STATUSES: tuple[Status, ...] = get_args(Status)
 Standing = Literal[Status, "uninspected"]
 STANDINGS: tuple[Standing, ...] = get_args(Standing)
 PAGE_SIZE, MAX_PAGE_SIZE = 100, 1000  # structures per page: by default, and at most
+# What a row of a fleet page shows of the latest verdict: not its documents (the fault modes' figures),
+# whose reading and decoding took most of a page's time.
+LISTED = joinedload(StructureState.latest).load_only(
+    Verdict.status,
+    Verdict.acquired_at,
+    Verdict.fault_mode,
+    Verdict.k_hat,
+    Verdict.interval_low,
+    Verdict.interval_high,
+)
 
 
 @dataclass(frozen=True)
@@ -248,11 +258,7 @@ def fleet(
         query = query.where(Structure.name.icontains(name, autoescape=True))
     if cursor is not None:
         query = query.where(StructureState.structure_id > _decode(cursor))
-    query = (
-        query.order_by(StructureState.structure_id)
-        .limit(limit + 1)
-        .options(joinedload(StructureState.latest))
-    )
+    query = query.order_by(StructureState.structure_id).limit(limit + 1).options(LISTED)
     rows = session.execute(query).all()
     page, more = rows[:limit], len(rows) > limit
     return FleetPage(
