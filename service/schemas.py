@@ -28,6 +28,7 @@ from service.channels import MAX_CHANNELS
 from service.channels import NAME_LENGTH as CHANNEL_NAME_LENGTH
 from service.conditions import NAME_LENGTH, NAME_RULE, Condition
 from service.jobs import JobState
+from service.tables import MAX_ID
 
 STRUCTURE_NAME_LENGTH = 200
 NAME_PATTERN = r"^[^\x00-\x1f]*$"  # no control characters (PostgreSQL's text refuses NUL)
@@ -36,7 +37,6 @@ Name = Annotated[str, Field(min_length=1, max_length=STRUCTURE_NAME_LENGTH, patt
 MODE_NAME_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 MODE_NAME_LENGTH = 100
 ModeName = Annotated[str, Field(min_length=1, max_length=MODE_NAME_LENGTH, pattern=MODE_NAME_PATTERN)]
-MAX_ID = 2**31 - 1  # ids are 32-bit integers in every database narxwatch runs on
 Id = Annotated[StrictInt, Field(ge=1, le=MAX_ID)]
 Magnitude = Annotated[FiniteFloat, Field(ge=-1e6, le=1e6)]
 SamplingRate = Annotated[FiniteFloat, Field(gt=0, le=1e9)]

@@ -29,6 +29,7 @@ from service.db import Base
 
 Document = JSON().with_variant(JSONB(), "postgresql")
 Blob = LargeBinary().with_variant(BYTEA(), "postgresql")
+MAX_ID = 2**31 - 1  # ids are 32-bit integers (Integer) in every database narxwatch runs on
 
 
 def utcnow() -> dt.datetime:

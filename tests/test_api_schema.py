@@ -35,7 +35,10 @@ OPERATIONS = sorted(
     for path, item in create_app(Settings(database_url="sqlite://")).openapi()["paths"].items()
     for method in item
 )
-MAX_EXAMPLES = 200
+# Cases per operation and backend. The inputs' breadth is the same on both backends; what only
+# PostgreSQL refuses (a NUL byte in text, an integer beyond its column) is found in the first few
+# dozen cases, so PostgreSQL gets fewer, which keeps `make test` within its fifteen minutes.
+MAX_EXAMPLES = {"sqlite": 200, "postgresql": 50}
 
 
 @dataclass
@@ -107,7 +110,7 @@ def test_the_served_schema_has_every_operation(target: Target):
 
 
 @pytest.mark.parametrize(("method", "path"), OPERATIONS, ids=[f"{m} {p}" for m, p in OPERATIONS])
-def test_no_server_error(target: Target, method: str, path: str):
+def test_no_server_error(target: Target, method: str, path: str, request: pytest.FixtureRequest):
     operation = target.schema[path][method]
     owned = {name: value for name, value in target.owned.items() if "{" + name + "}" in path}
     strategy = st.one_of(
@@ -119,7 +122,7 @@ def test_no_server_error(target: Target, method: str, path: str):
     )
 
     @settings(
-        max_examples=MAX_EXAMPLES,
+        max_examples=MAX_EXAMPLES[request.node.callspec.params["api_server"]],
         deadline=None,
         database=None,
         suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much, HealthCheck.data_too_large],

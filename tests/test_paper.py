@@ -89,6 +89,7 @@ def test_k2_alone_detects_case_iv_and_how_that_depends_on_noise(study):
     assert study["cases"]["IV"]["detected_by_k2_alone"] == SETTINGS.runs
 
 
+@pytest.mark.slow  # the 1000-record Monte Carlo study: `make slow`
 def test_false_alarm_rate_is_at_most_alpha(monte_carlo):
     records = monte_carlo["records"]
     assert records >= 500
@@ -96,6 +97,7 @@ def test_false_alarm_rate_is_at_most_alpha(monte_carlo):
     assert monte_carlo["false_alarms"] <= stats.binom.ppf(0.95, records, SETTINGS.alpha)
 
 
+@pytest.mark.slow  # the 1000-record Monte Carlo study: `make slow`
 def test_intervals_cover_the_true_magnitude(monte_carlo):
     true_k = np.array([row["true_k"] for row in monte_carlo["faulty"]])
     # Faulty records span the whole range, both ends included.
@@ -103,6 +105,7 @@ def test_intervals_cover_the_true_magnitude(monte_carlo):
     assert 0.93 <= monte_carlo["coverage_with_model_term"] <= 0.97
 
 
+@pytest.mark.slow  # the 1000-record Monte Carlo study: `make slow`
 def test_model_term_widens_intervals_where_the_model_is_least_certain(monte_carlo):
     rows = monte_carlo["faulty"]
     ratio = np.array([row["sigma_k"] / row["sigma_k_record"] for row in rows])

@@ -134,6 +134,7 @@ def test_the_periodic_disturbance_is_found_at_its_frequency():
     assert frequencies and all(abs(f * record.fs - 12.5) < 0.05 * record.fs / ESTIMATION for f in frequencies)
 
 
+@pytest.mark.slow  # a Monte Carlo study of 20 loops: `make slow`
 def test_on_clean_data_an_effect_is_added_to_few_records():
     """The issue's 100 records are bench/test_bench_refine.py's; here 20. Were effects added to 5 %
     of clean records, 4 or more of 20 would happen with probability 1.6 % (binomial): a loop

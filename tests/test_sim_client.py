@@ -87,6 +87,13 @@ def verdicts(trained: Trained, **params: str) -> list[dict]:
 
 
 @pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    """The client sees only HTTP: the database behind the app is the API tests' concern, on both
+    backends (tests/test_api_*.py), so these run against SQLite's server alone."""
+    return sqlite_api_server
+
+
+@pytest.fixture(scope="module")
 def trained(api_server: LiveServer):  # yields Trained
     """A structure with k2 and k1 fault-mode models trained through the API."""
     tenant = Tenant.create(api_server)

@@ -22,11 +22,10 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.cli.console import fail, stderr, stdout
 from service.config import get_settings
 from service.db import make_engine, session_factory, transaction, vacuum
-from service.domain import keys, retention
+from service.domain import keys
 from service.domain.errors import NotFoundError
 from service.migrate import DatabaseUnreachableError, database_name, require_current_schema, upgrade_database
 from service.observability.logs import configure_logging, logging_config
-from service.observability.metrics import MULTIPROCESS_DIR
 from service.security import KeyRefusedError, Role, authenticate, create_key
 from service.tables import utcnow
 
@@ -49,6 +48,9 @@ def serve(
     workers, the request-latency metrics are shared through files in PROMETHEUS_MULTIPROC_DIR: a
     fresh temporary folder, removed at exit, unless the variable names one.
     """
+    # Imported here, as the app is: the other commands of this module need neither.
+    from service.observability.metrics import MULTIPROCESS_DIR
+
     settings = get_settings()
     if not settings.upgrade_on_start:
         require_current_schema(settings.database_url)
@@ -154,11 +156,20 @@ PASSES = {"signals": "records' signals dropped", "verdicts": "verdicts deleted",
 def db_prune(
     org: Annotated[str | None, typer.Option(help="Only this organisation (default: every one).")] = None,
     batch: Annotated[
-        int, typer.Option(help="Rows per transaction: an upload waits at most one.", min=1, max=10_000)
-    ] = retention.BATCH,
+        int | None,
+        typer.Option(
+            help="Rows per transaction, an upload waiting at most one (default: as the job workers prune).",
+            min=1,
+            max=10_000,
+        ),
+    ] = None,
 ) -> None:
     """Prune now under each organisation's retention policy (as the job workers do periodically),
     printing each batch as it is committed."""
+    # Imported here: retention brings the schemas and the science they name, seconds that
+    # `narxwatch keys` and `db upgrade` should not pay.
+    from service.domain import retention
+
     sessions = ready_sessions()
     with sessions() as session:
         chosen = retention.organisations(session, org)
@@ -172,7 +183,7 @@ def db_prune(
                     f"{name}: {done.rows} {PASSES[done.what]}", markup=False, highlight=False, soft_wrap=True
                 )
 
-            pruned = retention.prune(session, organisation_id, batch=batch, progress=shown)
+            pruned = retention.prune(session, organisation_id, batch=batch or retention.BATCH, progress=shown)
         stdout.print(
             f"{name}: {pruned.signals} records' signals dropped, {pruned.verdicts} verdicts and "
             f"{pruned.records} records deleted, in {pruned.batches} batch(es)",

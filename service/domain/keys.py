@@ -10,9 +10,8 @@ from sqlalchemy.orm import Session, joinedload
 
 from service.domain.errors import NotFoundError
 from service.domain.logins import end_logins
-from service.schemas import MAX_ID
 from service.security import PREFIX_LENGTH, Principal, Role, issue_key
-from service.tables import ApiKey, utcnow
+from service.tables import MAX_ID, ApiKey, utcnow
 
 
 def list_keys(session: Session, organisation_id: int | None = None) -> list[ApiKey]:
