@@ -51,6 +51,7 @@ POLICY = {
     ("POST", "/api/v1/structures/{structure_id}/models/fault-modes"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/models/pooled-baseline"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/models/pooled-fault-modes"): "admin",
+    ("POST", "/api/v1/structures/{structure_id}/models/vector-fault-modes"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/models/{model_id}/activate"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/records"): "ingest",
     ("POST", "/api/v1/records/{record_id}/inspect"): "ingest",
@@ -227,7 +228,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 41, routes
+    assert routes == documented and len(routes) == 42, routes
     return routes
 
 
@@ -245,7 +246,7 @@ def body_for(path: str, estate: Estate | None) -> dict | None:
         return {"name": f"new-{uuid.uuid4().hex[:8]}", "fs": 1500.0}
     if path.endswith("/pooled-baseline"):
         return {"record_ids": [experiment["record_id"] for experiment in estate.training]}
-    if path.endswith("/pooled-fault-modes"):
+    if path.endswith("/pooled-fault-modes") or path.endswith("/vector-fault-modes"):
         return {"name": "k2", "experiments": estate.training}
     if path.endswith("/baseline"):
         return {"record_ids": [estate.record_id]}
@@ -404,7 +405,7 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
     # viewer: 25 admin and 2 ingest routes; ingest: 25 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 56
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 58
 
 
 # --- what each role may do, on our own objects -------------------------------------------------
