@@ -153,7 +153,7 @@ def main() -> None:
         result = report.refinement
         effects = ", ".join(f"{s.added.name} ({s.criterion})" for s in result.kept if s.added) or "none"
         if result.withdrawn:
-            effects = f"withdrawn: {', '.join(result.withdrawn)}"
+            effects = f"withdrawn: {', '.join(result.effects_withdrawn)}"
         for index, (name, comparison) in enumerate(zip(benchmark.tests, report.tests, strict=True)):
             first = index == 0
             table.add_row(

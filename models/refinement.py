@@ -107,9 +107,9 @@ class Refinement:
     ``refined`` the refined structure, its parameters by ``estimator``. ``noise`` holds the
     refined model's moving-average coefficients c_1 … c_q (empty unless moving-average noise was
     added; ``refined`` is then the process part of a NARMAX). ``orders`` are the linear model's
-    (ny, nx, input delay) the loop chose when no structure was declared. ``withdrawn`` names the
-    effects the rounds added that the final check took back (module docstring): ``refined`` is
-    then the declared structure.
+    (ny, nx, input delay) the loop chose when no structure was declared. ``withdrawn``: the final
+    check took back every effect the rounds added (module docstring), and ``refined`` is the
+    declared structure.
     """
 
     declared: NARX
@@ -118,7 +118,7 @@ class Refinement:
     rounds: tuple[Round, ...] = field(default=())
     estimator: Literal["least squares", "output error"] = "least squares"
     orders: tuple[int, int, int] | None = None
-    withdrawn: tuple[str, ...] = ()
+    withdrawn: bool = False
 
     @property
     def kept(self) -> tuple[Round, ...]:
@@ -128,6 +128,11 @@ class Refinement:
     @property
     def effects_added(self) -> tuple[EffectScore, ...]:
         return tuple(r.added for r in self.kept if r.added is not None)
+
+    @property
+    def effects_withdrawn(self) -> tuple[str, ...]:
+        """The names of the effects the final check took back."""
+        return tuple(r.added.name for r in self.rounds if r.added is not None) if self.withdrawn else ()
 
 
 @dataclass(frozen=True)
@@ -183,7 +188,7 @@ class RefinementReport:
                 for step in result.kept
                 if (score := step.added) is not None
             ],
-            "effects_withdrawn": list(result.withdrawn),
+            "effects_withdrawn": list(result.effects_withdrawn),
             "before": assessment_dict(self.before),
             "after": assessment_dict(self.after),
             "tests": [
@@ -382,16 +387,15 @@ def refine(
         rounds.append(replace(step, rejected=tuple(rejected)))
         check = error
     declared_structure = Structure(terms)
-    withdrawn: tuple[str, ...] = ()
-    if (
+    withdrawn = (
         output_error
         and current != declared_structure
         and checks.error(declared_structure, tuned=True) <= min(check, checks.error(current, tuned=True))
-    ):
+    )
+    if withdrawn:
         # Effects that helped least-squares parameters but not output-error ones repaired the
         # noise's bias, not the dynamics (F-16's acceleration 2: friction and backlash added on
         # tenths of a per cent, 12–39 % worse on the test levels once tuned).
-        withdrawn = tuple(step.added.name for step in rounds if step.added is not None)
         current = declared_structure
         check = checks.error(current)
     refined, noise = fit_model(

@@ -341,7 +341,7 @@ def test_effects_that_only_repair_the_bias_of_least_squares_are_withdrawn(measur
     bias. Withdrawn, the model simulates the held-out data better than the grown structure does
     with output-error parameters of its own."""
     record, estimation, result = measurement_noise_only
-    assert result.withdrawn and not result.effects_added
+    assert result.withdrawn and result.effects_withdrawn and not result.effects_added
     assert result.refined.terms == parse_terms(EXACT_TERMS)
     assert result.estimator == "output error"
     grown_terms = parse_terms(EXACT_TERMS) + tuple(
