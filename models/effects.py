@@ -21,7 +21,12 @@ behind the sensor:
 - a nonlinear spring on a degree of freedom the sensor does not measure: its coordinate is a
   linear combination of the measured one's lags, so its force is the cube of that combination,
   fitted to the residual as one regressor (:func:`unmeasured_cube`) and added as the cross-lag
-  cubics that span it.
+  cubics that span it;
+- a static nonlinearity between two linear filters (Wiener–Hammerstein), y = G2(f(G1 x)):
+  G1 x is a combination u[t] = Σ_k c_k·x[t-k] of the input's lags, so f's square and cube are
+  a·u² + b·u³, fitted to the residual as one regressor (:func:`filtered_input_powers`) and added
+  as the monomials of degree 2 and 3 of x's lags that span it. Both combinations are found by
+  one search (:func:`combination_terms`).
 
 Parameters estimated from the data (an exponent, a width) are found like a periodic
 disturbance's frequencies: from the residual, by a profile search (:func:`profile_search`)
@@ -46,10 +51,12 @@ EffectKind = Literal["terms", "output_shift", "periodic", "noise", "estimated", 
 # What an "estimated" effect is: given x, y, the residual over rows lag … N−1, the model's terms
 # and lag, the family's terms with their parameters estimated.
 Finder = Callable[[np.ndarray, np.ndarray, np.ndarray, Sequence[Term], int], tuple[Term, ...]]
-# What a "combined" effect is: from the same arguments, its one regressor over rows lag … N−1
-# and the terms that span it beside the model's.
+# What a "combined" effect is: given the records (x, y pairs), the residual over their stacked rows
+# lag … N−1, the model's terms and lag, the terms that span its one regressor beside the model's,
+# and that regressor over the same rows.
 Combiner = Callable[
-    [np.ndarray, np.ndarray, np.ndarray, Sequence[Term], int], tuple[tuple[Term, ...], np.ndarray]
+    [Sequence[tuple[np.ndarray, np.ndarray]], np.ndarray, Sequence[Term], int],
+    tuple[tuple[Term, ...], np.ndarray],
 ]
 # A plateau is at least this many consecutive samples at the record's maximum (or minimum):
 # a smooth signal visits its extreme once.
@@ -62,9 +69,10 @@ PROFILE_POINTS = 12
 # Rows a parameter search reads (the first ones): plenty to fix one parameter, or a few, to the
 # digits a term's name keeps, and a long record's search stays as quick as a short one's.
 SEARCH_ROWS = 10_000
-# Starting directions of the search for an unmeasured coordinate: sign patterns of equal weights.
-# On the 2-DOF rig the search converges from half of the first eight; four keep it quick.
-CUBE_STARTS = 4
+# Starting directions of the search for a combination of lags (an unmeasured coordinate, a filtered
+# input): sign patterns of equal weights. On the 2-DOF rig the search for the unmeasured coordinate
+# converges from half of the first eight; four keep it quick.
+COMBINATION_STARTS = 4
 
 
 @dataclass(frozen=True)
@@ -86,8 +94,9 @@ class Effect:
       :data:`Finder`) from the residual; no terms here;
     - "saturation": one regressor, the change clipping the prediction to the record's plateaus
       makes (:func:`saturation_direction`); adding it gives the model output limits, no terms;
-    - "combined": one regressor, a nonlinear combination of the data fitted to the residual by
-      ``combine`` (a :data:`Combiner`) whose expansion its ``terms`` span; adding it adds them.
+    - "combined": one regressor, a nonlinear function of a combination of the data's lags fitted
+      to the residual by ``combine`` (a :data:`Combiner`) whose expansion its ``terms`` span;
+      adding it adds them.
     """
 
     name: str
@@ -133,6 +142,12 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             [Factor("y", lags_y[-1])] + [Factor("dy", k) for k in lags_y[:-1]], 3
         )
     )
+    # A combination of one lag is the input nonlinearity's own x², x³: the family needs two.
+    filtered_terms = tuple(
+        Term.of(product)
+        for degree in (2, 3)
+        for product in itertools.combinations_with_replacement([Factor("x", k) for k in x_lags], degree)
+    )
     velocity = [Factor("dy", lag) for lag in lags_y]
     effects = [
         Effect("cubic_stiffness", "cubic restoring force: a stiffening spring", powers("y", lags_y, 3)),
@@ -159,6 +174,20 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             "nonlinear excitation path: actuator or amplifier, x² and x³",
             powers("x", x_lags, 2) + powers("x", x_lags, 3),
         ),
+        *(
+            [
+                Effect(
+                    "filtered_input_nonlinearity",
+                    "a static nonlinearity between two linear filters (Wiener–Hammerstein): the square "
+                    "and cube of a combination of x's lags, as the monomials of degree 2 and 3 of x's lags",
+                    filtered_terms,
+                    "combined",
+                    combine=filtered_input_powers(x_lags, filtered_terms),
+                )
+            ]
+            if len(x_lags) > 1
+            else []
+        ),
         Effect(
             "hysteresis",
             "a hysteretic restoring force (Bouc–Wen): the hysteretic variable z of y, saturating at "
@@ -173,7 +202,7 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             "dynamics: the cube of a combination of y's lags, as cubics of y[t-m] and dy[t-k]",
             cube_terms,
             "combined",
-            combine=lambda x, y, e, terms, lag: unmeasured_cube(cube_terms, x, y, e, terms, lag),
+            combine=unmeasured_cube(cube_terms),
         ),
         Effect(
             "power_law_stiffness",
@@ -434,76 +463,139 @@ def input_play_terms(
     return profile_search(build, (0.01 * scale, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
 
 
-def unmeasured_cube(
-    cubics: Sequence[Term],
-    x: np.ndarray,
-    y: np.ndarray,
+def unmeasured_cube(cubics: Sequence[Term]) -> Combiner:
+    """The combiner of u[t]³ for the combination u[t] = Σ_k c_k·y[t-k] of y's lags whose cube, beside
+    the model's regressors, best explains the residual, spanned by ``cubics`` (:func:`combination_terms`).
+
+    A spring k·u³ on a coordinate the sensor does not see, u, enters the response through the
+    linear dynamics, and u itself is a linear combination of the response's lags (on the 2-DOF
+    rig, x1 = (m2·ẍ2 + c2·ẋ2 + k2·x2 + k3·x2³)/k2 from mass 2's equation). The cube's expansion
+    is a sum of cubics of y[t-m] and dy[t-1] … dy[t-m+1] (the same span as the cross-lag cubics of
+    y's lags, far better conditioned).
+    """
+    lags = range(1, max(f.lag for t in cubics for f in t.factors if f.signal == "y") + 1)
+    return lambda records, e, terms, lag: combination_terms("y", lags, (3,), cubics, records, e, terms, lag)
+
+
+def filtered_input_powers(lags: Sequence[int], monomials: Sequence[Term]) -> Combiner:
+    """The combiner of a·u[t]² + b·u[t]³ for the combination u[t] = Σ_k c_k·x[t-k] of the input's
+    ``lags`` that, beside the model's regressors, best explains the residual, spanned by the
+    ``monomials`` of degree 2 and 3 of those lags (:func:`combination_terms`).
+
+    A Wiener–Hammerstein system y = G2(f(G1 x)) passes the input through a filter G1, a static
+    nonlinearity f(v) = v + a·v² + b·v³ + …, then a filter G2. A linear model holds G2·G1; what
+    it lacks is G2 applied to a·v² + b·v³, with v = G1 x a combination of x's lags (exactly so for
+    a finite impulse response, nearly so within the model's lags otherwise), G2's poles already
+    among the model's y lags. An asymmetric f (a diode) has both an even and an odd part, and
+    both are powers of the same v: searching c on the cube alone would ignore the even part's
+    evidence (and a diode near its knee is mostly even), on the square alone the odd part's. So c
+    is sought on a·u² + b·u³ jointly, a and b eliminated by separable least squares; no constant
+    beside them, since the square carries the mean it adds to the output. The monomials, then
+    estimated freely, hold the square and cube of every combination of the lags: products across
+    lags, where the input nonlinearity's powers of each lag alone hold a static nonlinearity
+    before the dynamics (Hammerstein).
+    """
+    return lambda records, e, terms, lag: combination_terms(
+        "x", lags, (2, 3), monomials, records, e, terms, lag
+    )
+
+
+def combination_terms(
+    signal: Literal["y", "x"],
+    lags: Sequence[int],
+    degrees: Sequence[int],
+    monomials: Sequence[Term],
+    records: Sequence[tuple[np.ndarray, np.ndarray]],
     residual: np.ndarray,
     terms: Sequence[Term],
     lag: int,
 ) -> tuple[tuple[Term, ...], np.ndarray]:
-    """u[t]³ for the combination u[t] = Σ_k c_k·y[t-k] of the lags whose cube, beside the
-    model's regressors, best explains the residual (rows lag … N−1).
+    """g(u[t]) = Σ_d a_d·u[t]^d over ``degrees`` for the combination u[t] = Σ_k c_k·s[t-k] of the
+    signal's ``lags`` (s = y or x) whose powers, beside the model's regressors, best explain the
+    residual; the ``monomials`` that span g(u) beside the model's, and g(u) itself over the stacked
+    rows lag … N−1 of every record (``residual`` runs over the same rows).
 
-    A spring k·u³ on a coordinate the sensor does not see, u, enters the response through the
-    linear dynamics, and u itself is a linear combination of the response's lags (on the 2-DOF
-    rig, x1 = (m2·ẍ2 + c2·ẋ2 + k2·x2 + k3·x2³)/k2 from mass 2's equation). In y's lags that
-    combination is a nearly cancelling one — an acceleration is a second difference — so c is
-    sought in the backward differences of y at the oldest lag, each scaled to unit spread, by
-    nonlinear least squares from equal weights of the first ``CUBE_STARTS`` sign patterns. The
-    cube's expansion is a sum of cubics of y[t-m] and dy[t-1] … dy[t-m+1] (the same span as the
-    cross-lag cubics of y's lags, far better conditioned), which the model then estimates
-    freely: ``cubics``, less those the model's own terms already span (a pivoted QR decides).
-    The search reads the first ``SEARCH_ROWS`` rows.
+    The search is separable least squares (variable projection; Golub & Pereyra, *Inverse
+    Problems* 19, 2003): for a direction c the coefficients a_d are those of the least-squares fit
+    of the powers u^d, each made orthogonal to the model's regressors, to the residual, so that c
+    alone is sought, by nonlinear least squares (Kaufman's Jacobian) from equal weights of the
+    first ``COMBINATION_STARTS`` sign patterns; c's length is immaterial (the a_d absorb it). On y
+    the combination is a nearly cancelling one (an acceleration is a second difference), so c is
+    sought in the backward differences of y at the oldest lag; on x in the lags themselves; either
+    way each basis column is scaled to unit spread on the first record. g(u) expands into
+    monomials of the lags of the degrees given, which the model then estimates freely:
+    ``monomials``, less those the model's own terms already span (a pivoted QR decides). The
+    search reads the first ``SEARCH_ROWS`` rows of the first record; the combination it finds is
+    a fixed function of the lags, so the regressor is built on every record with it. A
+    combination of fewer than two lags, or a record too short for the span (ten equations per
+    monomial, and more rows than columns for the pivoted QR), is not offered the family.
     """
-    oldest = max(f.lag for t in cubics for f in t.factors if f.signal == "y")
-    ordered = range(oldest, 0, -1)  # y[t-m] … y[t-1]
-    rows = len(y) - lag
-    lagged = np.column_stack([y[lag - k : len(y) - k] for k in ordered])
-    differences = np.column_stack([np.diff(lagged, n, axis=1)[:, 0] for n in range(len(ordered))])
-    spread = np.std(differences, axis=0)
-    # Each cubic it may bring needs equations of its own: a record too short for the span (or for
-    # the search's pivoted QR, which needs more rows than columns) is not offered the family.
-    if (
-        not np.all(spread > 0)
-        or not np.any(residual)
-        or not cubics
-        or 10 * len(cubics) > min(rows, SEARCH_ROWS)
-    ):
-        return (), np.zeros(rows)
-    everywhere = differences / spread
-    x, y, residual, model_basis = _search_part(x, y, residual, terms, lag)
-    basis = everywhere[: len(residual)]
+    x0, y0 = records[0]
+    rows = len(y0) - lag
+    stacked = sum(len(y) - lag for _, y in records)
+    too_short = 10 * len(monomials) > min(rows, SEARCH_ROWS)
+    if len(lags) < 2 or not monomials or not np.any(residual[:rows]) or too_short:
+        return (), np.zeros(stacked)
+    first = _combination_basis(signal, lags, x0, y0, lag)
+    spread = np.std(first, axis=0)
+    if not np.all(spread > 0):
+        return (), np.zeros(stacked)
+    x, y, residual, model_basis = _search_part(x0, y0, residual[:rows], terms, lag)
+    basis = first[: len(residual)] / spread
 
     def off_model(columns: np.ndarray) -> np.ndarray:
         return columns - model_basis @ (model_basis.T @ columns)
 
-    columns, _ = regressor_matrix(list(cubics), x, y, lag)
+    columns, _ = regressor_matrix(list(monomials), x, y, lag)
     columns = off_model(columns / np.linalg.norm(columns, axis=0))
     # The pivots of a pivoted QR depend on the columns' inner products alone: those of R.
     _, triangle, pivots = linalg.qr(linalg.qr(columns, mode="r")[0], mode="economic", pivoting=True)
     independent = pivots[np.abs(np.diag(triangle)) > 1e-8 * abs(triangle[0, 0])]
-    spanning = tuple(cubics[i] for i in sorted(independent))
+    spanning = tuple(monomials[i] for i in sorted(independent))
     target = residual / np.std(residual)
+    powers = np.asarray(degrees)
 
-    def cube(c: np.ndarray) -> np.ndarray:
-        return (basis @ c) ** 3
+    def projected(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """u, the orthonormal basis of the powers u^d off the model, and their coefficients a_d."""
+        u = basis @ c
+        q, r = linalg.qr(off_model(u[:, None] ** powers), mode="economic")
+        return u, q, linalg.lstsq(r, q.T @ target)[0]
 
     def misfit(c: np.ndarray) -> np.ndarray:
-        return target - off_model(cube(c))
+        _, q, _ = projected(c)
+        return target - q @ (q.T @ target)
 
     def jacobian(c: np.ndarray) -> np.ndarray:
-        return -off_model(3.0 * ((basis @ c) ** 2)[:, None] * basis)
+        # Kaufman's approximation: ∂/∂c of the fitted g(u) off the model, then off the powers.
+        u, q, a = projected(c)
+        slope = (u[:, None] ** (powers - 1)) @ (powers * a)  # g'(u)
+        change = off_model(slope[:, None] * basis)
+        return -(change - q @ (q.T @ change))
 
     best = None
-    for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=len(ordered) - 1), CUBE_STARTS):
-        start = np.array((1.0, *signs)) / np.sqrt(len(ordered))
-        column = cube(start)
-        start = start * np.cbrt((target @ column) / (column @ column))
+    for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=len(lags) - 1), COMBINATION_STARTS):
+        start = np.array((1.0, *signs)) / np.sqrt(len(lags))
         fit = optimize.least_squares(misfit, start, jac=jacobian, max_nfev=100)
         if best is None or fit.cost < best.cost:
             best = fit
-    return spanning, (everywhere @ best.x) ** 3
+    *_, a = projected(best.x)
+    everywhere = np.concatenate(
+        [(_combination_basis(signal, lags, xr, yr, lag) / spread) @ best.x for xr, yr in records]
+    )
+    return spanning, (everywhere[:, None] ** powers) @ a
+
+
+def _combination_basis(
+    signal: Literal["y", "x"], lags: Sequence[int], x: np.ndarray, y: np.ndarray, lag: int
+) -> np.ndarray:
+    """The columns a combination of the signal's lags is sought in, over rows lag … N−1: for y the
+    backward differences at the oldest lag (y[t-m], then the first, second, … differences of
+    y[t-m] … y[t-1]), for x the lags themselves."""
+    if signal == "x":
+        return np.column_stack([x[lag - k : len(x) - k] for k in lags])
+    ordered = sorted(lags, reverse=True)  # y[t-m] … y[t-1]
+    lagged = np.column_stack([y[lag - k : len(y) - k] for k in ordered])
+    return np.column_stack([np.diff(lagged, n, axis=1)[:, 0] for n in range(len(ordered))])
 
 
 def hysteresis_terms(

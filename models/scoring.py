@@ -271,11 +271,9 @@ def _candidates(
             np.concatenate([y[lag:] for _, y in records]) - residual, limits
         )[:, None]
     if effect.kind == "combined" and effect.combine is not None:
-        # One regressor fitted to the residual of one record: its combination would not carry
-        # over to another record's rows, so with several records it is not offered.
-        if len(records) > 1:
-            return [], np.empty((len(residual), 0))
-        spanning, column = effect.combine(records[0][0], records[0][1], residual, terms, lag)
+        # A combination of lags, sought on the first record like an estimated parameter, is a
+        # fixed function of the lags: its regressor is built on every record.
+        spanning, column = effect.combine(records, residual, terms, lag)
         if not spanning:
             return [], np.empty((len(residual), 0))
         return [tuple(t.name for t in spanning)], column[:, None]
