@@ -486,7 +486,8 @@ def filtered_input_powers(lags: Sequence[int], monomials: Sequence[Term]) -> Com
     nonlinearity f(v) = v + a·v² + b·v³ + …, then a filter G2. A linear model holds G2·G1; what
     it lacks is G2 applied to a·v² + b·v³, with v = G1 x a combination of x's lags (exactly so for
     a finite impulse response, nearly so within the model's lags otherwise), G2's poles already
-    among the model's y lags. An asymmetric f (a diode) has both an even and an odd part, and
+    among the model's y lags (its numerator's lags shift the combination: only as far as the
+    model's input lags reach are they held). An asymmetric f (a diode) has both an even and an odd part, and
     both are powers of the same v: searching c on the cube alone would ignore the even part's
     evidence (and a diode near its knee is mostly even), on the square alone the odd part's. So c
     is sought on a·u² + b·u³ jointly, a and b eliminated by separable least squares; no constant
