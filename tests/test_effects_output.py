@@ -242,3 +242,18 @@ def test_a_static_nonlinearity_before_the_dynamics_is_the_input_nonlinearity() -
     report = refine_record(x, y, linear_terms(2, 3), (0, 8000), (8000, 12_000))
     names = [e.name for e in report.refinement.effects_added]
     assert names and names[0] == "input_nonlinearity", names
+
+
+def test_a_combination_is_not_sought_where_the_first_record_leaves_nothing_to_explain() -> None:
+    """The search reads the first record: a residual that is zero there (as a saturating model's
+    is on its limits) gives no terms on any record, rather than a search on 0/0."""
+    rng = np.random.default_rng(5)
+    records = [(rng.standard_normal(3000), rng.standard_normal(3000)) for _ in range(2)]
+    terms = linear_terms(1, 3)
+    lag = 4  # the unmeasured coordinate's cubics reach y[t-4]
+    residual = np.concatenate([np.zeros(3000 - lag), rng.standard_normal(3000 - lag)])
+    combined = [effect for effect in candidate_effects(terms) if effect.kind == "combined"]
+    assert len(combined) == 2
+    for effect in combined:
+        spanning, column = effect.combine(records, residual, terms, lag)
+        assert spanning == () and column.shape == residual.shape and not column.any(), effect.name
