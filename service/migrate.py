@@ -13,16 +13,7 @@ from sqlalchemy import create_engine
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import OperationalError
 
-UPGRADE_HINT = "run `narxwatch db upgrade`"
-
-
-class DatabaseNotReadyError(Exception):
-    """The database is missing or behind the code's schema; the message names it and the fix."""
-
-
-class DatabaseUnreachableError(DatabaseNotReadyError):
-    """The database did not answer (a server starting, restarting or away): unlike a missing or
-    old schema, something that may mend itself."""
+from service.errors import UPGRADE_HINT, DatabaseNotReadyError, DatabaseUnreachableError
 
 
 def is_ours(name: str | None, type_: str, _parents: object) -> bool:

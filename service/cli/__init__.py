@@ -9,7 +9,7 @@ import typer
 
 from models.errors import InputError
 from service.cli.console import fail
-from service.migrate import DatabaseNotReadyError
+from service.errors import DatabaseNotReadyError
 
 # Each command's module and attribute: a command (a function) or a group of them (a Typer app).
 # Only the module of the command being run is imported — `narxwatch refine` does not load the

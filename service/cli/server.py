@@ -24,7 +24,8 @@ from service.config import get_settings
 from service.db import make_engine, session_factory, transaction, vacuum
 from service.domain import keys
 from service.domain.errors import NotFoundError
-from service.migrate import DatabaseUnreachableError, database_name, require_current_schema, upgrade_database
+from service.errors import DatabaseUnreachableError
+from service.migrate import database_name, require_current_schema, upgrade_database
 from service.observability.logs import configure_logging, logging_config
 from service.security import KeyRefusedError, Role, authenticate, create_key
 from service.tables import utcnow
