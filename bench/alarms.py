@@ -51,8 +51,9 @@ from models.alarms import (
 )
 from models.inspection import Verdict, inspect
 from simulator.client import Course, ScenarioOptions, Stream
-from simulator.paper import StudySettings, train_fault_modes
+from simulator.paper import train_fault_modes
 from simulator.simulate import Scenario, simulate
+from simulator.study import StudySettings
 
 SETTINGS = StudySettings()
 MODES = ("k2", "k1")

@@ -43,8 +43,8 @@ from models.candidates import candidate_terms
 from models.selection import select_narx
 from models.terms import Factor, Term
 from models.validation import validate
-from simulator.paper import StudySettings
 from simulator.simulate import simulate
+from simulator.study import StudySettings
 
 SAMPLES = 30_000
 SEED, HELD_OUT_SEED = 30_000, 30_001
@@ -106,7 +106,7 @@ def peak_memory_mb() -> tuple[float, float]:
         import service
         from models.candidates import candidate_terms
         from models.selection import select_narx
-        from simulator.paper import StudySettings
+        from simulator.study import StudySettings
         from simulator.simulate import simulate
         def peak():
             with open("/proc/self/status") as status:

@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/false_alarms.py [--records 3000] [--estimated 1000] [--white 20000]
 
-With the study's settings (simulator.paper.StudySettings: 25 kN excitation, 800 N unmeasured force
+With the study's settings (simulator.study.StudySettings: 25 kN excitation, 800 N unmeasured force
 disturbance, 2000-sample records, α = 0.05, h = 40) it prints:
 
 1. The false-alarm rate with the exact fault-mode models (SPEC §2's coefficients, k2 and k1 over
@@ -34,8 +34,9 @@ from scipy import stats
 
 from models.diagnostics import ljung_box
 from models.inspection import inspect
-from simulator.paper import StudySettings, monte_carlo_checks
+from simulator.paper import monte_carlo_checks
 from simulator.simulate import simulate
+from simulator.study import StudySettings
 from simulator.theory import exact_fault_mode
 
 SETTINGS = StudySettings()

@@ -14,8 +14,8 @@ from service.domain import inspections, modelling, records, structures
 from service.schemas import BaselineTrain, Experiment, FaultModeTrain, StructureCreate
 from service.security import Principal, Role
 from service.tables import ApiKey, Organisation, Structure, utcnow
-from simulator.paper import StudySettings
 from simulator.simulate import simulate
+from simulator.study import StudySettings
 
 ORGANISATION = "demo"
 STRUCTURE = "2-DOF rig (paper parameters)"

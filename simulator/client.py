@@ -64,10 +64,10 @@ from simulator.options import (
     parse_colour,
     parse_outputs,
 )
-from simulator.paper import CASES, StudySettings
 from simulator.physics import PhysicalParameters, check_stable
 from simulator.recordfile import UNITS, dump_csv, dump_npz, write_record
 from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
+from simulator.study import CASES, StudySettings
 from simulator.temperature import TemperatureCycle, Thermal
 
 EXIT_SERVICE_ERROR = 1

@@ -24,8 +24,8 @@ import numpy as np
 from live import LiveServer
 
 from service.security import Role
-from simulator.paper import StudySettings
 from simulator.simulate import SimulatedRecord, simulate
+from simulator.study import StudySettings
 
 API = "/api/v1"
 FS = 1500.0

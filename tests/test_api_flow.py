@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from live import LiveServer, Tenant
 
-from simulator.paper import StudySettings
 from simulator.recordfile import dump_csv
 from simulator.simulate import simulate
+from simulator.study import StudySettings
 
 SETTINGS = StudySettings()
 MAGNITUDES = [float(k) for k in range(-32, 33, 8)]

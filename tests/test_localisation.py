@@ -25,8 +25,9 @@ import pytest
 from scipy import stats
 
 from models.inspection import Verdict, inspect
-from simulator.paper import FaultModes, StudySettings, train_fault_modes
+from simulator.paper import FaultModes, train_fault_modes
 from simulator.simulate import simulate
+from simulator.study import StudySettings
 
 SETTINGS = StudySettings()
 RECORDS = 400  # ~2.5 s for each fault

@@ -1,7 +1,7 @@
 """The paper's results (SPEC §6) and the Monte Carlo checks beyond its ten runs.
 
 The study runs once per session with the documented default settings
-(:class:`simulator.paper.StudySettings`); the assertions are the issue's acceptance criteria.
+(:class:`simulator.study.StudySettings`); the assertions are the issue's acceptance criteria.
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from simulator.paper import StudySettings, monte_carlo_checks, run_study
+from simulator.paper import monte_carlo_checks, run_study
+from simulator.study import StudySettings
 
 SETTINGS = StudySettings()
 

@@ -28,8 +28,8 @@ from live import LiveServer, Tenant, free_port
 from service.cli.modelfiles import read_manifest
 from service.recordfiles import read_record
 from service.security import Role
-from simulator.paper import StudySettings
 from simulator.simulate import Scenario, simulate
+from simulator.study import StudySettings
 from simulator.temperature import TemperatureCycle
 
 SIM = shutil.which("narxwatch-sim", path=str(Path(sys.executable).parent))

@@ -18,8 +18,8 @@ import pytest
 
 from service.recordfiles import read_record
 from simulator.client import Course, ScenarioOptions, Stream
-from simulator.paper import StudySettings
 from simulator.simulate import simulate
+from simulator.study import StudySettings
 
 SIM = shutil.which("narxwatch-sim", path=str(Path(sys.executable).parent))
 SETTINGS = StudySettings()

@@ -11,7 +11,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from service.cli.console import stdout
-from simulator.paper import CASES, PAPER_RESULTS, StudyResult, StudySettings, run_study
+from simulator.paper import StudyResult, run_study
+from simulator.study import CASES, PAPER_RESULTS, StudySettings
 
 
 def reproduce(
