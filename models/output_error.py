@@ -176,8 +176,10 @@ def fit_output_error(
     )
 
 
-# Where and for how long each record's excitation is switched off to see the free run come to
-# rest: at this many points spread over the record (the last one its end), for this many samples.
+# Where and for how long the excitation is switched off to see the free run come to rest: at this
+# many points spread over the records, shared by their lengths (each record's end one of them),
+# for this many samples. Shared, not per record: a record cut into blocks (the refinement's check
+# split) would otherwise ring down eight times a block, more samples than the blocks themselves.
 SWITCH_OFFS = 8
 RING_DOWN = 1000
 # A ring-down that leaves this many times the records' largest measured output has not come to rest.
@@ -188,8 +190,9 @@ RESTLESS = 10.0
 class RingDowns:
     """Free runs with the excitation switched off, prepared for a model's terms on its records.
 
-    At ``SWITCH_OFFS`` points c of each record the free run's state ŷ[c−L … c−1] starts a run whose
-    input is the record's up to c and zero after it, for ``RING_DOWN`` samples. A model comes to
+    At ``SWITCH_OFFS`` points c over the records (a record's share of them by its length, at least
+    its end) the free run's state ŷ[c−L … c−1] starts a run whose input is the record's up to c
+    and zero after it, for ``RING_DOWN`` samples. A model comes to
     rest when every such run stays finite and within ``RESTLESS`` times the largest measured
     output: a stable structure's free decay never grows beyond the state it starts from, and an
     unstable model's grows without bound, so the test needs no finer threshold.
@@ -204,11 +207,13 @@ class RingDowns:
         cls, terms: Sequence[Term], records: Sequence[tuple[np.ndarray, np.ndarray]], origins: Sequence[int]
     ) -> RingDowns:
         L = max_lag(terms)
+        total = sum(len(y) for _, y in records)
         runs = []
         for index, ((x, y), origin) in enumerate(zip(records, origins, strict=True)):
             if len(y) <= L:
                 continue
-            for c in np.unique(np.linspace(L, len(y), SWITCH_OFFS + 1)[1:].astype(int)):
+            share = max(1, round(SWITCH_OFFS * len(y) / total))
+            for c in np.unique(np.linspace(L, len(y), share + 1)[1:].astype(int)):
                 unforced = np.concatenate([x[c - L : c], np.zeros(RING_DOWN)])
                 runs.append((index, int(c), FreeRun.build(terms, unforced, origin + int(c) - L)))
         bound = RESTLESS * max((float(np.max(np.abs(y))) for _, y in records), default=0.0)
