@@ -28,18 +28,19 @@ For each size N:M (structures : verdicts), in order:
    busy machine inflates least): ``GET /metrics``, ``GET /api/v1/structures`` (the first page of
    100), the same filtered by ``status=faulty``, ``GET /dashboard`` (the fleet's first page of 50,
    with the open alarms), one structure's verdict history (the API's first page of 50 and its
-   dashboard page) and summary, and the organisation's alarms. Then ``--uploads`` simulated
-   2000-sample records to each demo structure with ``inspect=true``, one at a time, the two
-   databases in turns (so that the machine's load drifts alike under both).
+   dashboard page) and summary, and the organisation's alarms. Then, after three untimed ones to
+   each (a server's first inspections load the models), ``--uploads`` simulated 2000-sample
+   records to each demo structure with ``inspect=true``, one at a time, the two databases in turns
+   (so that the machine's load drifts alike under both), and each server's CPU time over them.
 4. ``--explain`` (PostgreSQL): the queries behind the fleet, history, alarm, summary and metrics
    reads, issued in this process by the service's own functions and captured, each run again under
    ``EXPLAIN (ANALYZE, BUFFERS)``; prints each one's execution time and every sequential scan of
    ``verdicts``, ``records``, ``structures`` or ``alarms`` (with its plan).
 
 Prints a table per size (median and p95 in ms, server CPU ms a request, the answer's size, and
-the uploads' p50 on the empty and the filled database) with the machine's load average. Exits
-non-zero when an answer is not 200, or when ``/metrics`` does not count the records and verdicts
-stored. Nothing asserts on time.
+the uploads' p50 and server CPU on the empty and the filled database) with the machine's load
+average. Exits non-zero when an answer is not 200, or when ``/metrics`` does not count the
+records and verdicts stored. Nothing asserts on time.
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import JSON, Connection, Engine, event, func, insert, select, text
 
-from bench.load_api import _process_cpu, free_port, make_payloads
+from bench.load_api import free_port, make_payloads, process_cpu
 from service.config import Settings
 from service.dashboard import views
 from service.db import make_engine, session_factory, transaction
@@ -95,6 +96,9 @@ BATCH = 5000  # rows a statement, on SQLite
 NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
 COOKIE = "narxwatch_session"
 EPISODE = 20  # records a cleared fault lasts
+# The service's default re-notification period; open alarms were last announced at 16 points in it.
+RENOTIFY = dt.timedelta(seconds=Settings.model_fields["renotify_after_seconds"].default)
+WARM_UPS = 3  # untimed uploads to each database before the timed ones
 BIG_TABLES = ("verdicts", "records", "structures", "alarms")
 
 
@@ -192,7 +196,7 @@ class Filler:
                 "id": self.ids.record + offset, "structure_id": plan.structure_id, "fs": 1500.0,
                 "n_samples": 2000, "acquired_at": self.at(index), "created_at": self.now,
                 "sha256": f"{self.ids.record + offset:064x}", "x": b"", "y": b"",
-                "signals_pruned_at": None,
+                "signals_pruned_at": None, "channels": None,
             }  # fmt: skip
 
     def verdicts(self) -> Iterator[dict[str, Any]]:
@@ -217,7 +221,10 @@ class Filler:
 
     def alarms(self) -> Iterator[dict[str, Any]]:
         """A persistence alarm per faulty run, opened on its third record (k = 3 of m = 5),
-        resolved five records after the run ended (``clear_after``), or open."""
+        resolved five records after the run ended (``clear_after``), or open. An open one was
+        last announced again within the re-notification period, as the sweep keeps them: left
+        unannounced, all would fall due at once, and the serving process's sweep of them (200
+        at a time) would be timed with the uploads (1.5× their CPU at 10 000 structures)."""
         alarm_id = self.ids.alarm
         record = self.ids.record
         for plan in self.plans:
@@ -235,7 +242,7 @@ class Filler:
                     "acknowledged_by": None, "acknowledgement_note": None,
                     "resolved_at": self.at(through) if ended else None, "resolved_by": None,
                     "resolution": "cleared" if ended else None, "resolution_note": None,
-                    "renotified_at": None,
+                    "renotified_at": None if ended else self.now - (alarm_id % 16) * RENOTIFY / 16,
                 }  # fmt: skip
                 alarm_id += 1
             record += plan.count
@@ -327,7 +334,8 @@ def _copy_all(engine: Engine, filler: Filler) -> None:
                 for row in rows():
                     for name in documents:
                         value = row[name]
-                        row[name] = texts.get(id(value)) or texts.setdefault(id(value), json.dumps(value))
+                        if value is not None:  # SQL NULL, not JSON null
+                            row[name] = texts.get(id(value)) or texts.setdefault(id(value), json.dumps(value))
                     copy.write_row([row[c] for c in columns])
         for table in (Structure, Record, Verdict, Alarm):
             name = table.__tablename__
@@ -382,14 +390,14 @@ def timed(client: httpx.Client, path: str, repeats: int, server: int) -> tuple[l
     process spent on each (the figure a busy machine inflates least), and the answer's size."""
     client.get(path)
     times = []
-    cpu = _process_cpu(server)
+    cpu = process_cpu(server)
     for _ in range(repeats):
         began = time.perf_counter()
         response = client.get(path)
         times.append((time.perf_counter() - began) * 1000)
         if response.status_code != 200:
             raise SystemExit(f"GET {path} answered {response.status_code}: {response.text[:300]}")
-    return times, (_process_cpu(server) - cpu) * 1000 / repeats, len(response.content)
+    return times, (process_cpu(server) - cpu) * 1000 / repeats, len(response.content)
 
 
 def upload(client: httpx.Client, structure_id: int, payload: bytes) -> float:
@@ -524,7 +532,7 @@ def seeded(url: str) -> tuple[int, str]:
 
 
 def measure(backend: str, structures: int, verdicts: int, args: argparse.Namespace) -> None:
-    payloads = make_payloads(2 * args.uploads, args.seed)
+    payloads = make_payloads(2 * (args.uploads + WARM_UPS), args.seed)
     with tempfile.TemporaryDirectory(prefix="fleet-scale-") as name, databases(backend, Path(name)) as urls:
         folder = Path(name)
         url, empty_url = urls
@@ -535,7 +543,7 @@ def measure(backend: str, structures: int, verdicts: int, args: argparse.Namespa
         with (
             serving(url, folder / "fleet.log") as (base, server),
             client(base, key) as opened,
-            serving(empty_url, folder / "empty.log") as (empty_base, _),
+            serving(empty_url, folder / "empty.log") as (empty_base, empty_server),
             client(empty_base, empty_key) as empty_client,
         ):
             if (found := counted(opened)) != stored(url):
@@ -551,9 +559,14 @@ def measure(backend: str, structures: int, verdicts: int, args: argparse.Namespa
                 "GET /api/v1/alarms (first page)": "/api/v1/alarms",
             }
             rows = [(label, *timed(opened, path, args.repeats, server)) for label, path in paths.items()]
+            # Untimed first: each server's first inspections load the models and fill its caches.
+            for i in range(WARM_UPS):
+                upload(empty_client, empty_demo, payloads[-1 - 2 * i])
+                upload(opened, demo, payloads[-2 - 2 * i])
             # In turns, so that the machine's load drifts alike under both.
             empty: list[float] = []
             full: list[float] = []
+            cpu = {server: process_cpu(server), empty_server: process_cpu(empty_server)}
             for i in range(args.uploads):
                 turns = [
                     (empty, empty_client, empty_demo, payloads[2 * i]),
@@ -561,6 +574,7 @@ def measure(backend: str, structures: int, verdicts: int, args: argparse.Namespa
                 ]
                 for times, each, structure_id, payload in turns if i % 2 else reversed(turns):
                     times.append(upload(each, structure_id, payload))
+            upload_cpu = {pid: (process_cpu(pid) - spent) * 1000 / args.uploads for pid, spent in cpu.items()}
         if args.explain and backend == "postgresql":
             explain(url, watched)
     load = os.getloadavg()
@@ -577,6 +591,10 @@ def measure(backend: str, structures: int, verdicts: int, args: argparse.Namespa
     print(
         f"{'upload, inspect=true: p50 empty, filled':<42} {statistics.median(empty):>10.1f} "
         f"{statistics.median(full):>8.1f} ms ({ratio:.2f}×, {args.uploads} uploads each, in turns)"
+    )
+    print(
+        f"{'upload, inspect=true: server CPU empty, filled':<42} {upload_cpu[empty_server]:>10.1f} "
+        f"{upload_cpu[server]:>8.1f} ms ({upload_cpu[server] / upload_cpu[empty_server]:.2f}×)"
     )
 
 

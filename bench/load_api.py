@@ -67,8 +67,8 @@ import service  # noqa: E402, F401  (first: one BLAS thread, as in narxwatch's p
 import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 
-from simulator.paper import CASES, StudySettings  # noqa: E402
 from simulator.simulate import simulate  # noqa: E402
+from simulator.study import CASES, StudySettings  # noqa: E402
 
 TARGET_P50_MS = 20.0
 TARGET_THROUGHPUT = 150.0
@@ -172,7 +172,7 @@ class Server:
 
     def cpu_seconds(self) -> dict[int, float]:
         """User + system CPU time of the server and each of its live descendants (its workers), by pid."""
-        return {pid: _process_cpu(pid) for pid in _descendants(self.process.pid)}
+        return {pid: process_cpu(pid) for pid in _descendants(self.process.pid)}
 
     def log_tail(self, lines: int = 30, access: bool = True) -> str:
         """The log's last lines; without uvicorn's access-log lines unless ``access``."""
@@ -219,7 +219,7 @@ def machine_busy() -> float:
     return (sum(fields[:8]) - fields[3] - fields[4]) / CLOCK_TICKS  # user … steal, less idle, iowait
 
 
-def _process_cpu(pid: int) -> float:
+def process_cpu(pid: int) -> float:
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
     except OSError:
