@@ -75,7 +75,11 @@ from sqlalchemy import text
 
 from service.security import Role
 
-EXAMPLES = int(os.environ.get("NARXWATCH_FUZZ_EXAMPLES", "16"))
+# Runs of the state machine on each backend. The runs are the same on both (derandomised); what
+# only PostgreSQL refuses shows in the first few, so it makes half as many.
+EXAMPLES = {"sqlite": 16, "postgresql": 8}
+if "NARXWATCH_FUZZ_EXAMPLES" in os.environ:
+    EXAMPLES = dict.fromkeys(EXAMPLES, int(os.environ["NARXWATCH_FUZZ_EXAMPLES"]))
 STEPS = int(os.environ.get("NARXWATCH_FUZZ_STEPS", "40"))
 SWEEP_EXAMPLES = 4
 
@@ -936,13 +940,13 @@ def _send_each(world: World, org: Organisation, strategy: st.SearchStrategy) -> 
     send()
 
 
-def test_every_route_with_two_organisations(world: World):
+def test_every_route_with_two_organisations(world: World, request: pytest.FixtureRequest):
     sweep(world)
     FuzzMachine.world = world
     run_state_machine_as_test(
         FuzzMachine,
         settings=settings(
-            max_examples=EXAMPLES,
+            max_examples=EXAMPLES[request.node.callspec.params["api_server"]],
             stateful_step_count=STEPS,
             derandomize=True,
             database=None,
