@@ -9,7 +9,9 @@ BENCH_VENV  := .venv-bench
 BENCH_STAMP := $(BENCH_VENV)/.installed
 # pytest-xdist processes for `make test`. Much of the suite waits on servers (uvicorn, PostgreSQL,
 # narxwatch workers, Chromium), so two processes take about two thirds of one's time even on two
-# busy cores. Whole files go to one process (--dist loadfile): their module fixtures are built once.
+# busy cores. Whole files go to one process (--dist loadfile): their module fixtures are built once;
+# the longest first, in tests/conftest.py's order, which xdist would otherwise replace by the
+# number of tests in each file (--no-loadscope-reorder).
 TEST_WORKERS ?= 2
 
 .PHONY: run test slow lint bench reproduce clean
@@ -42,7 +44,7 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	bash scripts/ensure-postgres.sh
 	bash scripts/ensure-chromium.sh
-	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile -m "not slow"
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
 
 # The Monte Carlo studies marked slow (reduced versions of bench/'s), kept out of `make test`'s
 # fifteen minutes.

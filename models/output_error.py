@@ -150,7 +150,8 @@ def fit_output_error(
                     (simulated <= start.output_limits[0]) | (simulated >= start.output_limits[1])
                 ] = 0.0
             blocks.append(sensitivities[L:])
-        return np.nan_to_num(np.vstack(blocks), nan=0.0, posinf=0.0, neginf=0.0)
+        stacked = blocks[0] if len(blocks) == 1 else np.vstack(blocks)
+        return np.nan_to_num(stacked, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
 
     result = optimize.least_squares(
         penalised, start.theta, jac=jacobian, x_scale="jac", max_nfev=max_evaluations, method="lm"

@@ -271,4 +271,5 @@ def _recursion(
                 S[t, exogenous_columns[e]] = exogenous[t, e]
             for k in range(1, reach):
                 if slope[k] != 0.0 and t - k >= start:
-                    S[t, :] += slope[k] * S[t - k, :]
+                    for column in range(S.shape[1]):  # a loop: a slice expression would allocate
+                        S[t, column] += slope[k] * S[t - k, column]

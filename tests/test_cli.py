@@ -1,8 +1,15 @@
-"""The ``narxwatch`` command line, run as a user runs it: the installed console script."""
+"""The ``narxwatch`` command line, run as a user runs it: the installed console script.
+
+Each command's work is run through the script (:func:`run`); the tables of refusals, the help
+texts and the records a fixture needs go through its entry point in the test's process
+(:func:`invoke`), the same code but for the second of imports a new process spends.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import shutil
 import subprocess
@@ -12,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import MODE_FIELDS, VERDICT_FIELDS
+
+from service.cli import main
 
 NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -25,22 +34,45 @@ def run(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProces
     return result
 
 
+def invoke(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess[str]:
+    """:func:`run` in this process: the console script's entry point with ``args`` in ``cwd``, its
+    exit code and what it wrote. An exception it lets through fails the test, as a traceback
+    would."""
+    stdout, stderr = io.StringIO(), io.StringIO()
+    argv = sys.argv
+    sys.argv = [NARXWATCH or "narxwatch", *args]
+    try:
+        with contextlib.chdir(cwd), contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            main()
+        code = 0
+    except SystemExit as stopped:
+        code = stopped.code if isinstance(stopped.code, int) else int(stopped.code is not None)
+    finally:
+        sys.argv = argv
+    result = subprocess.CompletedProcess(list(args), code, stdout.getvalue(), stderr.getvalue())
+    if check:
+        assert result.returncode == 0, result.stderr
+    return result
+
+
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory) -> Path:
     """Healthy and k2 experiment records, a manifest, and trained models, made with the CLI."""
     path = tmp_path_factory.mktemp("cli")
-    run("simulate", "--n", "30000", "--seed", "1", "--out", "healthy.csv", cwd=path)
+    invoke("simulate", "--n", "30000", "--seed", "1", "--out", "healthy.csv", cwd=path)
     with (path / "manifest.csv").open("w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["path", "k"])
         for index, k in enumerate(range(-32, 33, 8)):
             name = f"experiments/k2_{k}.npz"
-            run(
+            invoke(
                 "simulate", "--fault", "k2", "--k", str(k), "--seed", str(10 + index), "--out", name, cwd=path
             )
             writer.writerow([name, k])
-    run("train", "baseline", "healthy.csv", "--out", "baseline.json", cwd=path)
-    run("train", "fault-mode", "--name", "k2", "--experiments", "manifest.csv", "--out", "k2.json", cwd=path)
+    invoke("train", "baseline", "healthy.csv", "--out", "baseline.json", cwd=path)
+    invoke(
+        "train", "fault-mode", "--name", "k2", "--experiments", "manifest.csv", "--out", "k2.json", cwd=path
+    )
     return path
 
 
@@ -58,7 +90,7 @@ def workdir(tmp_path_factory) -> Path:
     ],
 )
 def test_every_command_has_help(command, tmp_path):
-    result = run(*command, "--help", cwd=tmp_path)
+    result = invoke(*command, "--help", cwd=tmp_path)
     assert "Usage" in result.stdout
 
 
@@ -132,7 +164,7 @@ def test_simulate_accepts_effects_and_parameters(tmp_path):
 def test_simulate_refuses_bad_input_with_a_message(tmp_path, args, message):
     base = ["simulate", "--n", "2000", "--seed", "1"]
     out = [] if "--out" in args else ["--out", "r.csv"]
-    result = run(*base, *out, *args, cwd=tmp_path, check=False)
+    result = invoke(*base, *out, *args, cwd=tmp_path, check=False)
     assert result.returncode == 2
     assert message in result.stderr
     assert "Traceback" not in result.stderr
@@ -164,7 +196,7 @@ def test_train_with_explicit_terms(workdir, tmp_path):
 
 
 def test_inspect_json_verdict_of_a_k2_fault(workdir):
-    run("simulate", "--fault", "k2", "--k", "12", "--seed", "99", "--out", "record.csv", cwd=workdir)
+    invoke("simulate", "--fault", "k2", "--k", "12", "--seed", "99", "--out", "record.csv", cwd=workdir)
     result = run("inspect", "record.csv", "--fault-mode", "k2.json", "--json", cwd=workdir)
     verdict = json.loads(result.stdout)
     assert set(VERDICT_FIELDS) <= set(verdict)
@@ -177,7 +209,7 @@ def test_inspect_json_verdict_of_a_k2_fault(workdir):
 
 
 def test_inspect_table_output(workdir):
-    run("simulate", "--seed", "5", "--out", "healthy_record.csv", cwd=workdir)
+    invoke("simulate", "--seed", "5", "--out", "healthy_record.csv", cwd=workdir)
     result = run("inspect", "healthy_record.csv", "--fault-mode", "k2.json", cwd=workdir)
     assert "k2" in result.stdout and "Q crit" in result.stdout
 
@@ -192,7 +224,7 @@ def test_inspect_table_output(workdir):
 )
 def test_inspect_refuses_bad_records(workdir, content, message):
     (workdir / "bad.csv").write_text(content)
-    result = run("inspect", "bad.csv", "--fault-mode", "k2.json", cwd=workdir, check=False)
+    result = invoke("inspect", "bad.csv", "--fault-mode", "k2.json", cwd=workdir, check=False)
     assert result.returncode == 2
     assert message in result.stderr
 
@@ -208,7 +240,7 @@ def test_inspect_refuses_unreadable_model_files(workdir):
     (workdir / "junk.json").write_text("{not json")
     result = run("inspect", "healthy.csv", "--fault-mode", "junk.json", cwd=workdir, check=False)
     assert result.returncode == 2 and "not valid JSON" in result.stderr
-    result = run("inspect", "healthy.csv", "--fault-mode", "baseline.json", cwd=workdir, check=False)
+    result = invoke("inspect", "healthy.csv", "--fault-mode", "baseline.json", cwd=workdir, check=False)
     assert result.returncode == 2 and "not a fnarx model document" in result.stderr
 
 

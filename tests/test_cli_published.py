@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.io
 from api_helpers import simulated
-from test_cli import run
+from test_cli import invoke, run
 
 from models.narx import fit_narx
 from models.terms import parse_terms
@@ -127,5 +127,5 @@ def test_train_and_select_read_named_signals(files):
     ],
 )  # fmt: skip
 def test_bad_names_are_refused_with_what_to_fix(files, args, message):
-    result = run(*args, cwd=files, check=False)
+    result = invoke(*args, cwd=files, check=False)
     assert result.returncode == 2 and message in result.stderr, result.stderr

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cli import PNG_MAGIC, run
+from test_cli import PNG_MAGIC, invoke, run
 
 from models.narx import NARX, fit_narx
 from models.terms import parse_terms
@@ -92,7 +92,7 @@ def test_simulated_quadratic_stiffness_is_named_and_the_table_printed(tmp_path):
 )
 def test_bad_options_are_refused_with_a_message(silverbox_dir, tmp_path, args, message):
     data = str(silverbox_dir / "SNLS80mV.csv")
-    result = run("refine", data, "--format", "silverbox", *args, cwd=tmp_path, check=False)
+    result = invoke("refine", data, "--format", "silverbox", *args, cwd=tmp_path, check=False)
     assert result.returncode == 2 and message in result.stderr, result.stderr
 
 
@@ -108,7 +108,7 @@ def simulated_records(tmp_path_factory) -> Path:
     `narxwatch simulate`: e1, e2 to estimate on, v1, v2 to judge on."""
     folder = tmp_path_factory.mktemp("records")
     for seed, name in enumerate(("e1", "e2", "v1", "v2"), start=21):
-        run(
+        invoke(
             "simulate", "--n", "6000", "--seed", str(seed), "--disturbance-std", "200",
             "--effect", "quadratic_stiffness2=3e5", "--out", f"{name}.csv", cwd=folder,
         )  # fmt: skip
@@ -244,6 +244,6 @@ def test_records_at_different_rates_are_refused_naming_each(simulated_records: P
     ],
 )
 def test_bad_record_protocols_are_refused(simulated_records: Path, args, message):
-    result = run("refine", *args, "--declared", "2dof", cwd=simulated_records, check=False)
+    result = invoke("refine", *args, "--declared", "2dof", cwd=simulated_records, check=False)
     assert result.returncode == 2 and message in " ".join(result.stderr.split()), result.stderr
     assert result.stdout == ""

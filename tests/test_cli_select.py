@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cli import run
+from test_cli import invoke, run
 
 LINEAR = ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]", "x[t-4]"]
 
@@ -15,9 +15,9 @@ LINEAR = ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]", "x[t-4]"]
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("select")
-    run("simulate", "--n", "20000", "--seed", "31", "--out", "a.csv", cwd=path)
-    run("simulate", "--n", "10000", "--seed", "32", "--out", "b.npz", cwd=path)
-    run("simulate", "--n", "5000", "--seed", "33", "--out", "held.csv", cwd=path)
+    invoke("simulate", "--n", "20000", "--seed", "31", "--out", "a.csv", cwd=path)
+    invoke("simulate", "--n", "10000", "--seed", "32", "--out", "b.npz", cwd=path)
+    invoke("simulate", "--n", "5000", "--seed", "33", "--out", "held.csv", cwd=path)
     return path
 
 
@@ -172,7 +172,7 @@ def test_output_error_refines_the_selected_theta(workdir) -> None:
     ],
 )
 def test_bad_settings_are_refused_with_a_message(workdir, args, message) -> None:
-    result = run("select", "a.csv", *args, cwd=workdir, check=False)
+    result = invoke("select", "a.csv", *args, cwd=workdir, check=False)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr
     assert "Traceback" not in result.stderr
@@ -185,15 +185,15 @@ def test_bad_records_are_refused_with_a_message(workdir) -> None:
     values = np.arange(300.0)
     lines = [f"{np.sin(v)},{'nan' if v == 17 else np.cos(v)}" for v in values]
     (workdir / "nan.csv").write_text("x,y\n" + "\n".join(lines) + "\n")
-    result = run("select", "nan.csv", cwd=workdir, check=False)
+    result = invoke("select", "nan.csv", cwd=workdir, check=False)
     assert result.returncode == 2 and "NaN" in result.stderr
-    result = run("select", "missing.csv", cwd=workdir, check=False)
+    result = invoke("select", "missing.csv", cwd=workdir, check=False)
     assert result.returncode == 2 and "cannot read the file" in result.stderr
     record = np.load(workdir / "b.npz")
     np.savez(workdir / "fast.npz", x=record["x"], y=record["y"], fs=3000.0)
-    result = run("select", "a.csv", "--holdout", "fast.npz", cwd=workdir, check=False)
+    result = invoke("select", "a.csv", "--holdout", "fast.npz", cwd=workdir, check=False)
     assert result.returncode == 2 and "sampled at 3000 Hz, the others at 1500 Hz" in result.stderr
-    result = run(
+    result = invoke(
         "select", "a.csv", "--criterion", "simulation", "--judged", "fast.npz", cwd=workdir, check=False
     )
     assert result.returncode == 2 and "the judged records are sampled at 3000 Hz" in result.stderr

@@ -333,10 +333,18 @@ def test_ctrl_c_stops_a_stream_cleanly(trained: Trained):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        # As from a terminal: a pytest started in the background of a shell without job control
+        # ignores SIGINT, and a child inherits that, which Python then leaves alone.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     ) as process:
         first = process.stdout.readline()  # the first record is posted at once, the next in a minute
         process.send_signal(signal.SIGINT)
-        out, err = process.communicate(timeout=30)
+        try:
+            out, err = process.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            out, err = process.communicate()
+            pytest.fail(f"the stream went on after Ctrl-C; it printed:\n{first}{out}{err}")
     assert VERDICT_LINE.match(first), first + err
     assert process.returncode == 0, err
     assert "stopped" in err and "Traceback" not in err
