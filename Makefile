@@ -13,6 +13,10 @@ BENCH_STAMP := $(BENCH_VENV)/.installed
 # the longest first, in tests/conftest.py's order, which xdist would otherwise replace by the
 # number of tests in each file (--no-loadscope-reorder).
 TEST_WORKERS ?= 2
+# One BLAS thread a process, as narxwatch's own processes run (service/__init__.py); pytest's
+# plugins import numpy before a conftest could set it, and two busy workers with two BLAS threads
+# each took 17 min instead of 14 (the refinement tests three times the CPU).
+BLAS_THREADS := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 .PHONY: run test slow lint bench reproduce clean
 
@@ -44,12 +48,12 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	bash scripts/ensure-postgres.sh
 	bash scripts/ensure-chromium.sh
-	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
+	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
 
 # The Monte Carlo studies marked slow (reduced versions of bench/'s), kept out of `make test`'s
 # fifteen minutes.
 slow: $(STAMP)
-	$(BIN)/pytest -n $(TEST_WORKERS) -m slow
+	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) -m slow
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
