@@ -452,6 +452,9 @@ def test_inspect_refuses_values_whose_statistics_overflow(k2_model) -> None:
     assert all(np.isfinite([mode.k_hat, mode.sigma_k, mode.z, mode.residual_variance, mode.q, mode.p_value]))
 
 
+# The overflow is the case under test: numpy's warnings of it are expected.
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")
 def test_inspect_refuses_a_verdict_with_non_finite_figures(k2_model) -> None:
     """The last guard: a model whose coefficients overflow the residual (the record's values are
     within bounds) gives a refusal, never a verdict holding inf or NaN."""
