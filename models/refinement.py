@@ -408,12 +408,6 @@ def refine(
     # output. The check blocks tell which simulates better.
     if output_error and checks.error(current, tuned=True) < check:
         everything: Segments = [(x, y, 0) for x, y in records]
-        # The search starts from whichever simulates the estimation data best: the least-squares
-        # fit; the output-error fit on the fit parts the check just made (near the optimum, so
-        # that the search on all the data takes few steps); or the declared model's output-error
-        # fit grown by the added terms at zero, which simulates as that model does, so that the
-        # search cannot end worse than it, as it can from least squares (F-16's sweeps,
-        # Wiener–Hammerstein's records).
         declared_tuned = _output_error(declared_model, everything, FINAL_EVALUATIONS)
         if current == declared_structure:
             # Nothing was added: the declared structure's output-error fit, not a second search
@@ -422,6 +416,12 @@ def refine(
             # loop chose: 5–7 % worse than that fit on two test levels).
             tuned = None if declared_tuned is declared_model else declared_tuned
         else:
+            # The search starts from whichever simulates the estimation data best: the
+            # least-squares fit; the output-error fit on the fit parts the check just made (near
+            # the optimum, so that the search on all the data takes few steps); or the declared
+            # model's output-error fit grown by the added terms at zero, which simulates as that
+            # model does, so that the search cannot end worse than it, as it can from least
+            # squares (F-16's sweeps, Wiener–Hammerstein's records).
             starts = [refined, replace(refined, theta=checks.tuned(current).theta)]
             if declared_tuned is not declared_model:
                 starts.append(_grown(declared_tuned, refined))

@@ -381,5 +381,6 @@ def test_a_model_to_which_nothing_is_added_is_the_declared_structures_output_err
     orders: 5–7 % worse than the best linear model on two test levels, bench/measured.py, which
     computes that model as this test does)."""
     _, estimation, result = measurement_noise_only
+    assert not result.effects_added and result.refined.terms == parse_terms(EXACT_TERMS)
     declared = fit_output_error(fit_narx(estimation, EXACT_TERMS), estimation, FINAL_EVALUATIONS).model
     np.testing.assert_array_equal(result.refined.theta, declared.theta)
