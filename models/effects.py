@@ -556,11 +556,18 @@ def combination_terms(
     target = residual / np.std(residual)
     powers = np.asarray(degrees)
 
+    last: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
     def projected(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """u, the orthonormal basis of the powers u^d off the model, and their coefficients a_d."""
-        u = basis @ c
-        q, r = linalg.qr(off_model(u[:, None] ** powers), mode="economic")
-        return u, q, linalg.lstsq(r, q.T @ target)[0]
+        """u, the orthonormal basis of the powers u^d off the model, and their coefficients a_d
+        (kept for the last c: the search asks for the Jacobian where it has just evaluated)."""
+        key = c.tobytes()
+        if key not in last:
+            u = basis @ c
+            q, r = linalg.qr(off_model(u[:, None] ** powers), mode="economic")
+            last.clear()
+            last[key] = u, q, linalg.lstsq(r, q.T @ target)[0]
+        return last[key]
 
     def misfit(c: np.ndarray) -> np.ndarray:
         _, q, _ = projected(c)

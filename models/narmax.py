@@ -34,7 +34,7 @@ from scipy import linalg
 
 from models.errors import InputError
 from models.narx import NARX
-from models.regression import least_squares
+from models.regression import checked_condition, scaled_covariance, scaled_qr
 from models.signals import checked_records
 from models.terms import Term, max_degree, max_lag, parse_terms, stacked_regressors
 
@@ -84,14 +84,13 @@ def fit_narmax(
     checked = checked_records(records, L + n_par + 1, degree=max_degree(parsed))
     Phi, target, starts = stacked_regressors(parsed, checked, L, t0)
     names = [term.name for term in parsed] + [f"e[t-{i}]" for i in range(1, noise_lags + 1)]
-    fit = least_squares(Phi, target, names[: len(parsed)])  # also refuses a degenerate design
-    residuals = fit.residuals
-    # Φ stays fixed while the residual columns change: its QR is computed once, and each
-    # iteration only orthogonalises the q new columns against it (a block QR update).
-    process_scale = np.linalg.norm(Phi, axis=0)
-    Q1, R1 = linalg.qr(Phi / process_scale, mode="economic")
+    # Φ stays fixed while the residual columns change: its QR is computed once (which also refuses
+    # a degenerate design), and each iteration solves for the q new columns through the Schur
+    # complement of Φ's block (a block QR update without forming E's orthogonal part).
+    Q1, R1, process_scale, _ = scaled_qr(Phi, names[: len(parsed)])
     projected = Q1.T @ target
     fitted_by_process = Q1 @ projected
+    residuals = target - fitted_by_process
     previous = None
     lagged = np.empty((target.size, noise_lags))
     converged = False
@@ -102,18 +101,31 @@ def fit_narmax(
                 column = lagged[first:last, i - 1]
                 column[:i] = 0.0
                 column[i:] = residuals[first : last - i]
-        theta, standard_errors, fitted = _extended_step(
-            Q1, R1, projected, fitted_by_process, process_scale, lagged, target
-        )
+        step = _extended_step(Q1, R1, projected, fitted_by_process, process_scale, lagged, target, names)
         iterations += 1
-        residuals = 0.5 * (residuals + target - fitted)
+        residuals = 0.5 * (residuals + target - step.fitted)
         if previous is not None:
-            converged = bool(np.all(np.abs(theta - previous) / standard_errors < rtol))
-        previous = theta
-    fit = least_squares(np.hstack([Phi, lagged]), target, names)
+            converged = bool(np.all(np.abs(step.theta - previous) / step.standard_errors < rtol))
+        previous = step.theta
+    # The last step is the least-squares fit on [Φ | E] with E the residual columns it was given.
     k = len(parsed)
-    process = NARX(parsed, fit.theta[:k], fit.covariance[:k, :k], fit.sigma2, target.size)
-    return NARMAX(process, fit.theta[k:], fit.covariance[k:, k:], iterations, converged)
+    theta, covariance = step.theta, step.covariance
+    process = NARX(parsed, theta[:k], covariance[:k, :k], step.sigma2, target.size)
+    return NARMAX(process, theta[k:], covariance[k:, k:], iterations, converged)
+
+
+@dataclass(frozen=True)
+class _Step:
+    """One extended least-squares fit on [Φ | E]: estimates, covariance, σ̂² and fitted values."""
+
+    theta: np.ndarray
+    covariance: np.ndarray
+    sigma2: float
+    fitted: np.ndarray
+
+    @property
+    def standard_errors(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
 
 
 def _extended_step(
@@ -124,24 +136,33 @@ def _extended_step(
     process_scale: np.ndarray,
     lagged: np.ndarray,
     target: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Least squares on [Φ | E] given Φ/s = Q1·R1, Q1ᵀy and Q1Q1ᵀy: the estimates, their
-    standard errors and the fitted values, from the QR of E's part orthogonal to Φ alone."""
+    names: Sequence[str],
+) -> _Step:
+    """Least squares on [Φ | E] given Φ/s = Q1·R1, Q1ᵀy and Q1Q1ᵀy.
+
+    With C = Q1ᵀE (E column-scaled), E's part orthogonal to Φ is E⊥ = E − Q1·C, and
+    E⊥ᵀE⊥ = EᵀE − CᵀC = R2ᵀR2 (Cholesky): the noise coefficients solve R2ᵀR2·γ = Eᵀy − Cᵀ·Q1ᵀy,
+    the process ones R1·β = Q1ᵀy − C·γ, and [[R1, C], [0, R2]] is the triangular factor of the
+    scaled [Φ | E]. One pass over Q1 for C and one for the fitted values Q1Q1ᵀy + E·γ − Q1·(Cγ).
+    """
     noise_scale = np.linalg.norm(lagged, axis=0)
     noise_scale[noise_scale == 0] = 1.0
     E = lagged / noise_scale
     coupling = Q1.T @ E
-    Q2, R2 = linalg.qr(E - Q1 @ coupling, mode="economic")
+    try:
+        R2 = linalg.cholesky(E.T @ E - coupling.T @ coupling)
+    except linalg.LinAlgError:
+        R2 = np.zeros((E.shape[1], E.shape[1]))  # E within Φ's span: refused just below
     k, q = R1.shape[0], R2.shape[0]
     R = np.zeros((k + q, k + q))
     R[:k, :k], R[:k, k:], R[k:, k:] = R1, coupling, R2
-    along_noise = Q2.T @ target
-    beta = linalg.solve_triangular(R, np.concatenate([projected, along_noise]))
-    fitted = fitted_by_process + Q2 @ along_noise
+    checked_condition(R, names)
+    gamma = linalg.cho_solve((R2, False), E.T @ target - coupling.T @ projected)
+    beta = linalg.solve_triangular(R1, projected - coupling @ gamma)
+    fitted = fitted_by_process + E @ gamma - Q1 @ (coupling @ gamma)
     sigma2 = float(np.mean((target - fitted) ** 2))
-    R_inv = linalg.solve_triangular(R, np.eye(k + q))
     scale = np.concatenate([process_scale, noise_scale])
-    return beta / scale, np.sqrt(sigma2 * np.sum(R_inv**2, axis=1)) / scale, fitted
+    return _Step(np.concatenate([beta, gamma]) / scale, scaled_covariance(R, scale, sigma2), sigma2, fitted)
 
 
 def invertible(noise: ArrayLike) -> np.ndarray:

@@ -50,8 +50,20 @@ def least_squares(
     dependent, naming the columns involved, since a person can act on that (a constant or
     too-short signal, or a term listed in two forms).
     """
+    names = list(column_names) if column_names is not None else [f"column {i}" for i in range(Phi.shape[1])]
+    Q, R, scale, condition = scaled_qr(Phi, names)
+    theta_scaled = linalg.solve_triangular(R, Q.T @ target)
+    residuals = target - Phi @ (theta_scaled / scale)
+    sigma2 = float(np.mean(residuals**2))
+    return LeastSquaresFit(
+        theta_scaled / scale, scaled_covariance(R, scale, sigma2), sigma2, residuals, condition
+    )
+
+
+def scaled_qr(Phi: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Q·R = Φ/s, s the columns' Euclidean norms: (Q, R, s, R's condition number), after
+    refusing, as :func:`least_squares` does, a design that cannot determine its parameters."""
     n_obs, n_par = Phi.shape
-    names = list(column_names) if column_names is not None else [f"column {i}" for i in range(n_par)]
     if n_obs <= n_par:
         raise InputError(
             f"{n_obs} usable samples cannot determine {n_par} parameters: supply a longer record"
@@ -68,19 +80,26 @@ def least_squares(
             f"regressor {', '.join(zero)} is identically zero: the signal it uses is constant "
             "or zero over the record, so its coefficient cannot be estimated"
         )
-    Q, R = linalg.qr(Phi / scale, mode="economic")
-    diag = np.abs(np.diag(R))
+    Q, R = linalg.qr(Phi / scale, mode="economic", overwrite_a=True, check_finite=False)
+    return Q, R, scale, checked_condition(R, names)
+
+
+def checked_condition(R: np.ndarray, names: Sequence[str]) -> float:
+    """The condition number of the scaled design whose triangular factor is R; raises
+    :class:`InputError` when it is ``MAX_CONDITION`` or more (linearly dependent columns),
+    naming the weakest column."""
     condition = float(np.linalg.cond(R))
     if not condition < MAX_CONDITION:
-        weakest = names[int(np.argmin(diag))]
+        weakest = names[int(np.argmin(np.abs(np.diag(R))))]
         raise InputError(
             f"the regressors are linearly dependent (condition number {condition:.2g}); "
             f"{weakest} is explained by the others: the excitation is not rich enough "
             "or the structure names a term twice"
         )
-    theta_scaled = linalg.solve_triangular(R, Q.T @ target)
-    residuals = target - Phi @ (theta_scaled / scale)
-    sigma2 = float(np.mean(residuals**2))
-    R_inv = linalg.solve_triangular(R, np.eye(n_par))
-    covariance = sigma2 * (R_inv @ R_inv.T) / np.outer(scale, scale)
-    return LeastSquaresFit(theta_scaled / scale, covariance, sigma2, residuals, condition)
+    return condition
+
+
+def scaled_covariance(R: np.ndarray, scale: np.ndarray, sigma2: float) -> np.ndarray:
+    """σ²(ΦᵀΦ)⁻¹ in the columns' units, from the triangular factor R of Φ/s."""
+    R_inv = linalg.solve_triangular(R, np.eye(R.shape[0]))
+    return sigma2 * (R_inv @ R_inv.T) / np.outer(scale, scale)

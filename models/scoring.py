@@ -43,9 +43,12 @@ NARMAX_ITERATIONS = 30
 class EffectScore:
     """How much of the residual an effect explains with its significant regressors.
 
-    ``explained`` is the fraction of the residual sum of squares removed and ``bic_change`` the
-    change of the Bayesian information criterion for the k regressors that entered, each with
-    its partial F statistic and p-value; ``terms`` are the terms adding the effect puts into the
+    ``explained`` is the fraction of the residual sum of squares removed by the k regressors that
+    entered, each with its partial F statistic and p-value, and ``bic_change`` the change of the
+    Bayesian information criterion, n·ln(1 − explained) + p·ln n, p the parameters the model
+    gains: one a term (a combination's regressor stands for the monomials spanning it, which the
+    model then estimates freely, so a family of one regressor and thirty terms is not ranked as
+    one of a single term). ``terms`` are the terms adding the effect puts into the
     model (for moving-average noise, the e[t-k] it adds, and ``noise_lags`` the model's
     moving-average order once it is added). ``ranked`` lists every candidate's terms in the order
     of their error reduction, significant or not: what a simulation-error check may try.
@@ -230,7 +233,7 @@ def _score(
     chosen = order[:count]
     added = [label for i in chosen for label in labels[i]]
     n_obs = len(residual)
-    bic = n_obs * float(np.log1p(-min(explained, 1 - 1e-300))) + len(chosen) * float(np.log(n_obs))
+    bic = n_obs * float(np.log1p(-min(explained, 1 - 1e-300))) + len(added) * float(np.log(n_obs))
     score = EffectScore(
         effect.name,
         effect.description,

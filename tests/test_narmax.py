@@ -112,6 +112,22 @@ def test_estimates_are_the_fixed_point_of_els_with_per_record_residuals() -> Non
     estimates = np.r_[model.process.theta, model.noise]
     assert np.all(np.abs(beta - estimates) < 0.1 * se), (beta - estimates) / se
     assert model.process.n_obs == 3000 + 2500 - 4
+    # The covariance is least squares' on the same columns: σ̂²([Φ | E]ᵀ[Φ | E])⁻¹.
+    design = np.hstack([Phi, E])
+    sigma2 = np.mean((target - design @ beta) ** 2)
+    covariance = sigma2 * np.linalg.inv(design.T @ design)
+    reported = np.block(
+        [
+            [model.process.covariance, np.full((4, 2), np.nan)],
+            [np.full((2, 4), np.nan), model.noise_covariance],
+        ]
+    )
+    blocks = ~np.isnan(reported)
+    # Compared as correlations: the fixed point's residual columns differ from the last step's
+    # within the stopping tolerance.
+    spread = np.outer(np.sqrt(np.diag(covariance)), np.sqrt(np.diag(covariance)))
+    assert np.max(np.abs(reported - covariance)[blocks] / spread[blocks]) < 1e-2
+    assert model.process.sigma2 == pytest.approx(sigma2, rel=1e-3)
     joined = fit_narmax(
         [(np.r_[records[0][0], records[1][0]], np.r_[records[0][1], records[1][1]])], TERMS, 2
     )
