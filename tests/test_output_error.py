@@ -16,6 +16,8 @@ from models.narx import NARX, fit_narx
 from models.output_error import RING_DOWN, comes_to_rest, fit_output_error
 from models.simulation import FreeRun
 from models.terms import parse_terms
+from simulator.simulate import Scenario, simulate
+from simulator.theory import EXACT_TERMS
 
 TERMS = ["y[t-1]", "y[t-2]", "x[t-1]"]
 TRUE = np.array([1.5, -0.7, 1.0])  # poles 0.75 ± 0.37j: modulus 0.84, stable
@@ -104,6 +106,24 @@ def test_the_search_does_not_leave_a_start_that_comes_to_rest_for_one_that_does_
     free = fit_output_error(fit_narx([(x, y)], PARAMETRIC), [(x, y)])
     assert not comes_to_rest(free.model, [(x, y)])
     assert free.rms < held.rms
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known, not yet fixed: MINPACK's lm stops at its step-size test against the flat "
+    "penalty of a run that does not come to rest (README, Speed)",
+)
+def test_the_search_is_not_stopped_short_of_the_optimum_by_the_at_rest_penalty() -> None:
+    """The rig with 2 µm of white noise on the measured output and a 200 N unmeasured force (the
+    record of test_refinement.py's ``measurement_noise_only``), SPEC §2's structure grown by the
+    lags the loop adds there (y[t-6], x[t-5]). From least squares, lm stops with status 3 at a
+    free-run RMS of 32.5 mm; scipy's trf, from the same start and on the same penalised
+    residuals, reaches 2.8 mm in 90 evaluations. A search that gets there is within a factor 2."""
+    record = simulate(Scenario(disturbance_std=200.0, y_noise_std=2e-6), 12_000, seed=2005)
+    estimation = [(record.x[:8000], record.y[:8000])]
+    grown = EXACT_TERMS + tuple(parse_terms(["y[t-6]", "x[t-5]"]))
+    fit = fit_output_error(fit_narx(estimation, grown), estimation, 100)
+    assert fit.rms < 2 * 2.8e-3, (fit.rms, fit.evaluations, fit.status)
 
 
 def test_records_too_short_for_the_model_are_refused() -> None:
