@@ -15,6 +15,9 @@ from pathlib import Path
 import httpx
 import pytest
 from live import free_port, wait_until_serving
+from test_cli import invoke
+
+from service.config import get_settings
 
 BIN = Path(sys.executable).parent
 NARXWATCH = shutil.which("narxwatch", path=str(BIN))
@@ -56,8 +59,9 @@ def test_keys_create_prints_a_working_key_once(seeded):
     assert other != key
 
 
-def test_keys_create_refuses_an_unknown_role(seeded):
-    result = run("keys", "create", "--org", "demo", "--role", "root", env=seeded, check=False)
+def test_keys_create_refuses_an_unknown_role(tmp_path):
+    # Refused before the database is opened: in this process (the console script's entry point).
+    result = invoke("keys", "create", "--org", "demo", "--role", "root", cwd=tmp_path, check=False)
     assert result.returncode == 2 and "unknown role 'root'" in result.stderr
 
 
@@ -118,20 +122,25 @@ def test_keys_create_expires_after_a_duration_or_at_a_time(seeded):
             assert listed == expected, expires
 
 
-def test_keys_create_refuses_an_expiry_it_cannot_keep(seeded):
+def test_keys_create_refuses_an_expiry_it_cannot_keep(seeded, tmp_path, monkeypatch):
     org = f"refused-{uuid.uuid4().hex[:8]}"
+    # In this process, on the seeded database: a key that was not refused would be stored there.
+    monkeypatch.setenv("NARXWATCH_DATABASE_URL", seeded["NARXWATCH_DATABASE_URL"])
     refusals = {
         "2020-01-01": "has passed; give a time in the future",
         "tomorrow": "give a duration (90m, 12h, 30d, 2w) or an ISO date or time",
         "2099-01-31T10:30:00": "give the time a zone",
         "99999999999d": "lies beyond the year 9999",
     }
-    for expires, message in refusals.items():
-        result = run(
-            "keys", "create", "--org", org, "--role", "viewer", "--expires", expires, env=seeded, check=False
-        )
-        assert result.returncode == 2 and message in result.stderr, (expires, result.stderr)
-        assert "Traceback" not in result.stderr and result.stdout == ""
+    get_settings.cache_clear()
+    try:
+        for expires, message in refusals.items():
+            args = ("keys", "create", "--org", org, "--role", "viewer", "--expires", expires)
+            result = invoke(*args, cwd=tmp_path, check=False)
+            assert result.returncode == 2 and message in result.stderr, (expires, result.stderr)
+            assert "Traceback" not in result.stderr and result.stdout == ""
+    finally:
+        get_settings.cache_clear()
     assert run("keys", "list", "--org", org, env=seeded, check=False).returncode == 2, (
         "a refused key was stored"
     )
