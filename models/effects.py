@@ -35,6 +35,7 @@ of how much of it the family explains.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -556,18 +557,16 @@ def combination_terms(
     target = residual / np.std(residual)
     powers = np.asarray(degrees)
 
-    last: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    # Kept for the last c: the search asks for the Jacobian where it has just evaluated.
+    @functools.lru_cache(maxsize=1)
+    def projected_at(c: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        u = basis @ np.frombuffer(c)
+        q, r = linalg.qr(off_model(u[:, None] ** powers), mode="economic")
+        return u, q, linalg.lstsq(r, q.T @ target)[0]
 
     def projected(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """u, the orthonormal basis of the powers u^d off the model, and their coefficients a_d
-        (kept for the last c: the search asks for the Jacobian where it has just evaluated)."""
-        key = c.tobytes()
-        if key not in last:
-            u = basis @ c
-            q, r = linalg.qr(off_model(u[:, None] ** powers), mode="economic")
-            last.clear()
-            last[key] = u, q, linalg.lstsq(r, q.T @ target)[0]
-        return last[key]
+        """u, the orthonormal basis of the powers u^d off the model, and their coefficients a_d."""
+        return projected_at(np.asarray(c, dtype=np.float64).tobytes())
 
     def misfit(c: np.ndarray) -> np.ndarray:
         _, q, _ = projected(c)
