@@ -194,7 +194,14 @@ class _GatedCursor(sqlite3.Cursor):
 
 
 # The tables whose rows the retention empties or deletes, and the state rows it updates.
-PRUNED_TABLES = ("records", "verdicts", "verdict_models", "record_conditions", "structure_states")
+PRUNED_TABLES = (
+    "records",
+    "verdicts",
+    "verdict_models",
+    "record_conditions",
+    "structure_states",
+    "deliveries",
+)
 
 
 def vacuum(engine: Engine) -> None:

@@ -575,6 +575,10 @@ class EmailSubscription(Base):
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
+# Deliveries no longer owed: the only ones the retention deletes, by organisation and age.
+SETTLED = text("status <> 'pending'")
+
+
 class Delivery(Base):
     """One event for one webhook or e-mail subscription, and the log of its attempts.
 
@@ -582,11 +586,21 @@ class Delivery(Base):
     jobs once committed. ``next_attempt_at`` is when it is due while ``pending``; a sweep that
     claims it moves it on (compare-and-set), and the job it defers acts only while it still
     holds that value, so each claim is acted on by one job. ``key`` is sent as the
-    ``Idempotency-Key``, the same on every attempt.
+    ``Idempotency-Key``, the same on every attempt. Settled ones (delivered or failed) are kept
+    as long as the organisation keeps its verdicts (``service.domain.retention``).
     """
 
     __tablename__ = "deliveries"
-    __table_args__ = (Index("ix_deliveries_due", "status", "next_attempt_at"),)
+    __table_args__ = (
+        Index("ix_deliveries_due", "status", "next_attempt_at"),
+        Index(
+            "ix_deliveries_settled",
+            "organisation_id",
+            "created_at",
+            sqlite_where=SETTLED,
+            postgresql_where=SETTLED,
+        ),
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     organisation_id: Mapped[int] = mapped_column(ForeignKey("organisations.id", ondelete="CASCADE"))

@@ -17,6 +17,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -41,6 +42,7 @@ from service.db import session_factory, transaction
 from service.domain import fleet, retention
 from service.jobs import embedded
 from service.tables import (
+    Delivery,
     ModelVersion,
     Organisation,
     Record,
@@ -48,6 +50,7 @@ from service.tables import (
     RefinementRecord,
     Structure,
     Verdict,
+    Webhook,
     utcnow,
 )
 
@@ -237,6 +240,64 @@ def test_batches_are_bounded_and_uploads_go_on_between_them(site: Site):
     assert_exact(site, org, sid)
 
 
+def logged(site: Site, admin: httpx.Client, plan: list[tuple[float, str]]) -> tuple[int, dict[int, tuple]]:
+    """A webhook of the caller's organisation and its delivery log, as the outbox writes it, of
+    (days before NOW, status) rows. Its address is never called: no delivery is due this year."""
+    body = {"url": "https://93.184.215.14/hooks", "secret": "s" * 32, "events": ["alarm.opened"]}
+    response = admin.post(f"{API}/webhooks", json=body)
+    assert response.status_code == 201, response.text
+    webhook = response.json()["id"]
+    log = {}
+    with transaction(site.sessions) as session:
+        organisation = session.scalar(select(Webhook.organisation_id).where(Webhook.id == webhook))
+        for days_ago, status in plan:
+            written = NOW - days_ago * DAY
+            values = dict(
+                organisation_id=organisation, webhook_id=webhook, key=str(uuid.uuid4()), event="alarm.opened",
+                payload={"alarm": days_ago}, status=status, attempts=0 if status == "pending" else 1,
+                next_attempt_at=NOW + 365 * DAY, created_at=written,
+                delivered_at=written if status == "delivered" else None,
+            )  # fmt: skip
+            delivery = session.execute(insert(Delivery).returning(Delivery.id), values).scalar_one()
+            log[delivery] = (days_ago, status)
+    return webhook, log
+
+
+def listed(admin: httpx.Client, webhook: int) -> set[int]:
+    response = admin.get(f"{API}/webhooks/{webhook}/deliveries", params={"limit": 100})
+    assert response.status_code == 200, response.text
+    return {item["id"] for item in response.json()["items"]}
+
+
+def test_settled_deliveries_go_with_the_verdicts_they_announced_and_owed_ones_stay(site: Site):
+    """The delivery log is kept as long as the verdicts: settled deliveries (delivered, failed)
+    written before the verdict horizon are deleted, in batches; pending ones, which the outbox still
+    owes, never are; nor another organisation's."""
+    plan = [(90.5, "delivered"), (80.5, "failed"), (75.5, "pending"), (70.5, "delivered"), (61.5, "failed")]
+    plan += [(59.5, "delivered"), (30.5, "failed"), (1.5, "pending")]
+    org, other = Org.create(site.fleet.server), Org.create(site.fleet.server)
+    with clients(org) as (admin, _, _), clients(other) as (other_admin, _, _):
+        webhook, log = logged(site, admin, plan)
+        other_webhook, other_log = logged(site, other_admin, plan)
+        assert listed(admin, webhook) == log.keys() and listed(other_admin, other_webhook) == other_log.keys()
+        assert admin.put(f"{API}/retention", json={"signal_days": 30, "verdict_days": 60}).status_code == 200
+
+        batches: list[tuple[str, int]] = []
+        with site.sessions() as session:
+            pruned = retention.prune(
+                session,
+                organisation_id(site, org),
+                now=NOW,
+                batch=3,
+                progress=lambda b: batches.append((b.what, b.rows)),
+            )
+        owed_or_recent = {d for d, (days_ago, status) in log.items() if status == "pending" or days_ago < 60}
+        assert listed(admin, webhook) == owed_or_recent
+        assert len(log) - len(owed_or_recent) == 4  # the plan: not a vacuous comparison
+        assert (pruned.deliveries, batches) == (4, [("deliveries", 3), ("deliveries", 1)])
+        assert listed(other_admin, other_webhook) == other_log.keys()
+
+
 def test_records_a_refinement_names_outlive_their_verdicts(site: Site):
     """A refinement's report names the records it was fitted and judged on: they lose their
     signals and verdicts with the others, never their rows."""
@@ -400,7 +461,10 @@ def test_the_sweep_queues_one_pruning_a_period_and_the_cli_prunes_at_once(site: 
     assert result.returncode == 0, result.stderr
     assert result.stdout.count(f"{cli_org.name}: 2 records' signals dropped") == 1
     assert f"{cli_org.name}: 1 records' signals dropped" in result.stdout
-    assert "3 records' signals dropped, 0 verdicts and 0 records deleted, in 2 batch(es)" in result.stdout
+    assert (
+        "3 records' signals dropped, 0 verdicts, 0 records and 0 deliveries deleted, in 2 batch(es)"
+        in result.stdout
+    )
     assert all(row[1] for row in rows(site.fleet.engine, cli_org)["records"].values())
     assert not any(row[1] for row in rows(site.fleet.engine, queued_org)["records"].values())
 

@@ -150,7 +150,12 @@ def db_upgrade(revision: Annotated[str, typer.Argument(help="Target revision.")]
     stdout.print(f"database at {database_name(settings.database_url)} is at revision {revision}")
 
 
-PASSES = {"signals": "records' signals dropped", "verdicts": "verdicts deleted", "records": "records deleted"}
+PASSES = {
+    "signals": "records' signals dropped",
+    "verdicts": "verdicts deleted",
+    "records": "records deleted",
+    "deliveries": "deliveries deleted",
+}
 
 
 @db_app.command("prune")
@@ -186,8 +191,9 @@ def db_prune(
 
             pruned = retention.prune(session, organisation_id, batch=batch or retention.BATCH, progress=shown)
         stdout.print(
-            f"{name}: {pruned.signals} records' signals dropped, {pruned.verdicts} verdicts and "
-            f"{pruned.records} records deleted, in {pruned.batches} batch(es)",
+            f"{name}: {pruned.signals} records' signals dropped, {pruned.verdicts} verdicts, "
+            f"{pruned.records} records and {pruned.deliveries} deliveries deleted, "
+            f"in {pruned.batches} batch(es)",
             markup=False,
             highlight=False,
             soft_wrap=True,

@@ -5,7 +5,7 @@ defaults, signals :data:`DEFAULT_SIGNAL_DAYS` and verdicts :data:`DEFAULT_VERDIC
 verdict is a few hundred bytes, a record's signals tens of kilobytes, and a verdict keeps its
 meaning after the signals are gone.
 
-Pruning goes in three passes, each in batches of at most ``batch`` rows, each batch a short
+Pruning goes in four passes, each in batches of at most ``batch`` rows, each batch a short
 transaction of its own, so an upload waits at most one batch for the database:
 
 1. signals: the blobs of records acquired before the signal horizon are dropped; the row stays
@@ -15,10 +15,14 @@ transaction of its own, so an upload waits at most one batch for the database:
    (``service.domain.fleet.uncount_verdicts``), so ``/metrics`` and the summary stay exact;
 3. records past the verdict horizon, their signals gone and no verdict left, are deleted, and
    taken off the record counts. Records a refinement was fitted or judged on stay: the
-   refinement's report refers to them.
+   refinement's report refers to them;
+4. deliveries (the webhook and e-mail log) written before the verdict horizon are deleted once
+   settled, delivered or failed: they announced verdicts of that age. Pending ones never are: the
+   outbox still owes them.
 
 A batch takes any rows past the horizon, in no order: a range of an index (``ix_records_signals_kept``,
-``ix_verdicts_history``) then stops at the batch's size instead of sorting everything past it.
+``ix_verdicts_history``, ``ix_deliveries_settled``) then stops at the batch's size instead of
+sorting everything past it.
 
 The job workers' sweep queues one pruning per organisation every ``retention_every_seconds``
 (a compare-and-set on ``last_pruned_at``, so however many sweep, each period queues one);
@@ -41,6 +45,7 @@ from service.domain.schedules import Defer
 from service.schemas import Retention, RetentionOut
 from service.security import Principal
 from service.tables import (
+    Delivery,
     Organisation,
     Record,
     Refinement,
@@ -57,7 +62,7 @@ SWEPT = 100  # organisations a sweep queues at most; the next sweep takes the re
 PRUNE = "prune_retention"
 KEY = ("organisation_id",)  # what an insert of a policy returns: the table has no id
 
-Pass = Literal["signals", "verdicts", "records"]
+Pass = Literal["signals", "verdicts", "records", "deliveries"]
 
 
 @dataclass(frozen=True)
@@ -71,12 +76,13 @@ class Batch:
 
 @dataclass
 class Pruned:
-    """What a pruning did: records whose signals it dropped, verdicts and records it deleted,
-    and the number of transactions it took."""
+    """What a pruning did: records whose signals it dropped, verdicts, records and deliveries it
+    deleted, and the number of transactions it took."""
 
     signals: int = 0
     verdicts: int = 0
     records: int = 0
+    deliveries: int = 0
     batches: int = 0
 
     def add(self, batch: Batch) -> None:
@@ -135,13 +141,10 @@ def prune(
     kept = policy(session, organisation_id)
     session.rollback()  # the policy read holds no snapshot through the batches
     pruned = Pruned()
-    structures = select(Structure.id).where(Structure.organisation_id == organisation_id)
 
-    def run(
-        what: Pass, step: Callable[[Session, Select, dt.datetime, int], int], horizon: dt.datetime
-    ) -> None:
+    def run(what: Pass, step: Callable[[Session, int, dt.datetime, int], int], horizon: dt.datetime) -> None:
         while True:
-            rows = step(session, structures, horizon, batch)
+            rows = step(session, organisation_id, horizon, batch)
             session.commit()
             if rows == 0:
                 return
@@ -158,14 +161,19 @@ def prune(
         horizon = now - dt.timedelta(days=kept.verdict_days)
         run("verdicts", _delete_verdicts, horizon)
         run("records", _delete_records, horizon)
+        run("deliveries", _delete_deliveries, horizon)
     return pruned
 
 
-def _drop_signals(session: Session, structures: Select, horizon: dt.datetime, batch: int) -> int:
+def _structures(organisation_id: int) -> Select:
+    return select(Structure.id).where(Structure.organisation_id == organisation_id)
+
+
+def _drop_signals(session: Session, organisation_id: int, horizon: dt.datetime, batch: int) -> int:
     chosen = session.scalars(
         select(Record.id)
         .where(
-            Record.structure_id.in_(structures),
+            Record.structure_id.in_(_structures(organisation_id)),
             Record.acquired_at < horizon,
             Record.signals_pruned_at.is_(None),
         )
@@ -182,10 +190,10 @@ def _drop_signals(session: Session, structures: Select, horizon: dt.datetime, ba
     return dropped.rowcount
 
 
-def _delete_verdicts(session: Session, structures: Select, horizon: dt.datetime, batch: int) -> int:
+def _delete_verdicts(session: Session, organisation_id: int, horizon: dt.datetime, batch: int) -> int:
     chosen = session.execute(
         select(Verdict.id, Verdict.structure_id)
-        .where(Verdict.structure_id.in_(structures), Verdict.acquired_at < horizon)
+        .where(Verdict.structure_id.in_(_structures(organisation_id)), Verdict.acquired_at < horizon)
         .limit(batch)
     ).all()
     if not chosen:
@@ -205,7 +213,7 @@ def _delete_verdicts(session: Session, structures: Select, horizon: dt.datetime,
     return len(removed)
 
 
-def _delete_records(session: Session, structures: Select, horizon: dt.datetime, batch: int) -> int:
+def _delete_records(session: Session, organisation_id: int, horizon: dt.datetime, batch: int) -> int:
     unreferenced = (
         Record.signals_pruned_at.is_not(None),
         ~exists().where(Verdict.record_id == Record.id),
@@ -214,7 +222,9 @@ def _delete_records(session: Session, structures: Select, horizon: dt.datetime, 
     )
     chosen = session.execute(
         select(Record.id, Record.structure_id)
-        .where(Record.structure_id.in_(structures), Record.acquired_at < horizon, *unreferenced)
+        .where(
+            Record.structure_id.in_(_structures(organisation_id)), Record.acquired_at < horizon, *unreferenced
+        )
         .limit(batch)
     ).all()
     if not chosen:
@@ -237,6 +247,19 @@ def _delete_records(session: Session, structures: Select, horizon: dt.datetime, 
     ).all()
     fleet.uncount_records(session, deleted)
     return len(deleted)
+
+
+def _delete_deliveries(session: Session, organisation_id: int, horizon: dt.datetime, batch: int) -> int:
+    settled = (Delivery.organisation_id == organisation_id, Delivery.status != "pending")
+    chosen = session.scalars(
+        select(Delivery.id).where(*settled, Delivery.created_at < horizon).limit(batch)
+    ).all()
+    if not chosen:
+        return 0
+    deleted = session.execute(
+        delete(Delivery).where(Delivery.id.in_(chosen), *settled).execution_options(synchronize_session=False)
+    )
+    return deleted.rowcount
 
 
 def sweep(session: Session, defer: Defer, every: dt.timedelta, now: dt.datetime | None = None) -> int:
