@@ -50,6 +50,7 @@ from dashboard_helpers import DASHBOARD, charts, logged_in
 from live import LiveServer
 
 from models.vector import fit_vector_fnarx, inspect_vector
+from service.domain.schedules import RUN_SCHEDULE
 
 
 @pytest.fixture(scope="module")
@@ -178,6 +179,47 @@ def test_a_queued_inspection_of_several_channels_gives_the_same_verdict(site: Si
         )
         inspected = stored(ingest.post(f"{API}/records/{record_id}/inspect"))
     assert verdicts[0] == inspected and inspected["fault_mode"] == "k2"  # type: ignore[index]
+
+
+def test_a_schedule_inspects_records_of_several_channels_with_the_vector_models(site: Site):
+    """A structure whose only models are vector ones: its schedule's run inspects the records
+    stored uninspected, with those models, and succeeds. (It used to fail at every due time,
+    looking for models for a record of one response.)"""
+    with clients(site.org) as (admin, ingest, viewer):
+        pending = [
+            stored(
+                post_record(
+                    ingest,
+                    site.structure_id,
+                    channels_body(*chain_record("k2", 4.0, 600 + i)),
+                    inspect="false",
+                )
+            )["id"]
+            for i in range(2)
+        ]
+        body = {"action": "inspect_pending", "interval_seconds": 3600}
+        created = admin.post(f"{API}/structures/{site.structure_id}/schedules", json=body)
+        assert created.status_code == 201, created.text
+
+        def ran() -> list[str]:
+            return [
+                job["state"]
+                for job in admin.get(f"{API}/jobs").json()["items"]
+                if job["task"] == RUN_SCHEDULE
+            ]
+
+        wait_for(lambda: ran() and ran()[0] in ("done", "failed"), 60, "the schedule's run")
+        assert ran() == ["done"], admin.get(f"{API}/jobs").json()["items"]
+        judged = {
+            v["record_id"]: v
+            for v in viewer.get(f"{API}/structures/{site.structure_id}/verdicts").json()["items"]
+        }
+        assert set(pending) <= judged.keys()
+        assert {judged[record_id]["fault_mode"] for record_id in pending} == {"k2"}
+        assert (
+            admin.delete(f"{API}/structures/{site.structure_id}/schedules/{created.json()['id']}").status_code
+            == 204
+        )
 
 
 # --- refused, nothing stored ---------------------------------------------------------------

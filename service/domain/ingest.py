@@ -67,7 +67,7 @@ def ingest_record(
     evaluation = None
     active: list[ModelVersion] = []
     if inspect or queue is not None:
-        models = inspections.models_to_inspect_with(session, structure, channels)
+        models = inspections.models_to_inspect_with(session, structure, bool(channels))
         values = records.condition_values(conditions)
         if not values and any(isinstance(model, PooledModel) for _, model in models):
             # Data stored before and sent again stating no conditions are that record, to be

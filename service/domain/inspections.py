@@ -120,13 +120,13 @@ def model_set(versions: list[ModelVersion]) -> str:
     return ",".join(str(v.id) for v in sorted(versions, key=lambda v: v.id))
 
 
-def models_to_inspect_with(session: Session, structure: Structure, channels: Sequence[str] = ()) -> Active:
+def models_to_inspect_with(session: Session, structure: Structure, several: bool = False) -> Active:
     """The structure's active fault-mode models or, when it has none, its active pooled baseline
-    alone; a conflict if it has neither. For a record of several ``channels``, its active vector
+    alone; a conflict if it has neither. For a record of ``several`` channels, its active vector
     fault-mode models, a conflict if it has none; the others are not for such a record, nor the
     vector ones for a record of one response."""
     every = active_fault_modes(session, structure)
-    if channels:
+    if several:
         vectors = [(version, model) for version, model in every if isinstance(model, VectorFNARX)]
         if not vectors:
             raise ConflictError(
@@ -164,7 +164,7 @@ def inspect_record(session: Session, record: Record, structure: Structure, setti
     with the inserts.
     """
     channels = record.channels or ()
-    active = models_to_inspect_with(session, structure, channels)
+    active = models_to_inspect_with(session, structure, bool(channels))
     existing = _find(session, record.id, model_set([version for version, _ in active]))
     if existing is not None:
         return existing

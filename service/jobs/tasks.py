@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 from sqlalchemy import exists, select
 from sqlalchemy.orm import Session, defer
@@ -21,6 +21,7 @@ from models.errors import InputError
 from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import inspections, modelling, notifications, refinements, retention
+from service.domain.errors import ConflictError
 from service.domain.schedules import RUN_SCHEDULE
 from service.schemas import RefinementCreate
 from service.security import Principal, Role
@@ -43,7 +44,7 @@ def inspect_record(session: Session, settings: Settings, record_id: int) -> None
         return
     structure = session.get(Structure, record.structure_id)
     assert structure is not None  # a record's structure is a foreign key
-    model_set = _model_set(session, structure, record.channels or ())
+    model_set = _model_set(session, structure, bool(record.channels))
     failure = _inspect(session, settings, record, structure, model_set)
     if failure is not None:
         raise failure
@@ -62,10 +63,10 @@ def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at:
         return
     structure = session.get(Structure, schedule.structure_id)
     assert structure is not None
-    model_set = _model_set(session, structure)  # a conflict if there is none: the job fails, saying so
+    model_sets = _model_sets(session, structure)
     unexpected: Exception | None = None
     marked = 0
-    for record_id in _records_to_inspect(session, schedule.action, structure.id, model_set):
+    for record_id, model_set in _records_to_inspect(session, schedule.action, structure.id, model_sets):
         record = session.get(Record, record_id)
         if record is None:  # deleted since the list was read
             continue
@@ -86,10 +87,26 @@ def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at:
         raise unexpected
 
 
-def _model_set(session: Session, structure: Structure, channels: Sequence[str] = ()) -> str:
-    """The model set a record of these ``channels`` (none: one response) is inspected with."""
-    active = inspections.models_to_inspect_with(session, structure, channels)
+def _model_set(session: Session, structure: Structure, several: bool) -> str:
+    """The model set a record of one response, or of ``several`` channels, is inspected with."""
+    active = inspections.models_to_inspect_with(session, structure, several)
     return inspections.model_set([v for v, _ in active])
+
+
+def _model_sets(session: Session, structure: Structure) -> dict[bool, str]:
+    """The model set of each kind of record (of ``several`` channels or not) the structure has
+    active models for. A structure may have models for one kind only (vector ones, say); a
+    conflict if it has none for either, and the job fails, saying so."""
+    sets: dict[bool, str] = {}
+    refusals: list[ConflictError] = []
+    for several in (False, True):
+        try:
+            sets[several] = _model_set(session, structure, several)
+        except ConflictError as refusal:
+            refusals.append(refusal)
+    if not sets:
+        raise refusals[0]
+    return sets
 
 
 def _inspect(
@@ -111,22 +128,30 @@ def _inspect(
         return refusal
 
 
-def _records_to_inspect(session: Session, action: str, structure_id: int, model_set: str) -> list[int]:
-    """The action's records, less those these models (``model_set``) already failed to inspect."""
+def _records_to_inspect(
+    session: Session, action: str, structure_id: int, model_sets: dict[bool, str]
+) -> list[tuple[int, str]]:
+    """The action's records with the model set each is inspected with (``model_sets``, by kind),
+    less those of a kind no active model inspects and those their model set already failed to
+    inspect."""
     # Records whose signals the retention pruned cannot be inspected again.
-    of_structure = select(Record.id).where(
+    of_structure = select(Record.id, Record.channels).where(
         Record.structure_id == structure_id, Record.signals_pruned_at.is_(None)
     )
     if action == "reinspect_latest":
         chosen = of_structure.order_by(Record.acquired_at.desc(), Record.id.desc()).limit(1)
     else:
         chosen = of_structure.where(~exists().where(Verdict.record_id == Record.id)).order_by(Record.id)
-    candidates = list(session.scalars(chosen))
-    failed = select(InspectionFailure.record_id).where(
-        InspectionFailure.model_set == model_set, InspectionFailure.record_id.in_(candidates)
+    candidates = [
+        (record_id, model_sets[bool(channels)])
+        for record_id, channels in session.execute(chosen)
+        if bool(channels) in model_sets
+    ]
+    failed = select(InspectionFailure.record_id, InspectionFailure.model_set).where(
+        InspectionFailure.record_id.in_([record_id for record_id, _ in candidates])
     )
-    skipped = set(session.scalars(failed))
-    return [record_id for record_id in candidates if record_id not in skipped]
+    skipped = {(record_id, model_set) for record_id, model_set in session.execute(failed)}
+    return [candidate for candidate in candidates if candidate not in skipped]
 
 
 def train_model(
