@@ -37,13 +37,20 @@ def run_migrations_online() -> None:
             connection.exec_driver_sql("PRAGMA foreign_keys=OFF")
             connection.commit()
         # Batch mode lets ALTER TABLE work on SQLite, which rebuilds tables to change them.
+        # One transaction for the whole run, on SQLite as on PostgreSQL: Alembic would otherwise
+        # commit each revision on SQLite, and pysqlite each CREATE, DROP or ALTER alone (it begins
+        # a transaction only before a write of rows), so that a revision refused halfway (0015's
+        # downgrade with records of several channels stored) left those before it undone.
         context.configure(
             connection=connection,
             target_metadata=Base.metadata,
             render_as_batch=True,
             include_name=is_ours,
+            transactional_ddl=True,
         )
         with context.begin_transaction():
+            if connection.dialect.name == "sqlite":
+                connection.exec_driver_sql("BEGIN")
             context.run_migrations()
             if connection.dialect.name == "sqlite":
                 broken = connection.exec_driver_sql("PRAGMA foreign_key_check").fetchall()

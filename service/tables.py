@@ -28,6 +28,8 @@ from service.conditions import NAME_LENGTH, UNIT_LENGTH
 from service.db import Base
 
 Document = JSON().with_variant(JSONB(), "postgresql")
+# A document that may be absent: None is SQL NULL, which ``IS NULL`` finds, not JSON's null.
+OptionalDocument = JSON(none_as_null=True).with_variant(JSONB(none_as_null=True), "postgresql")
 Blob = LargeBinary().with_variant(BYTEA(), "postgresql")
 MAX_ID = 2**31 - 1  # ids are 32-bit integers (Integer) in every database narxwatch runs on
 
@@ -178,7 +180,7 @@ class Record(Base):
     sha256: Mapped[str] = mapped_column(String(64))
     x: Mapped[bytes] = mapped_column(Blob)
     y: Mapped[bytes] = mapped_column(Blob)
-    channels: Mapped[list[str] | None] = mapped_column(Document, nullable=True)
+    channels: Mapped[list[str] | None] = mapped_column(OptionalDocument, nullable=True)
     signals_pruned_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
     conditions: Mapped[list[RecordCondition]] = relationship(

@@ -9,7 +9,7 @@ import pytest
 from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
-from sqlalchemy import inspect, select, text
+from sqlalchemy import JSON, inspect, select, text
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -254,6 +254,73 @@ def test_0012_fills_each_structure_s_state_and_the_job_counts_from_what_is_store
         left = set(inspect(connection).get_table_names())
     engine.dispose()
     assert not {"structure_states", "job_counts"} & left and {"structures", "jobs"} <= left
+
+
+def _structure_with_records(url: str, *channels: object) -> None:
+    """An organisation, a structure and a record of each ``channels`` (None: one response), as
+    the service stores them."""
+    engine = make_engine(url)
+    now = utcnow()
+    with engine.begin() as connection:
+        connection.execute(
+            text("INSERT INTO organisations (id, name, created_at) VALUES (1, 'o', :t)"), {"t": now}
+        )
+        connection.execute(
+            text(
+                "INSERT INTO structures (id, organisation_id, name, fs, description, created_at) "
+                "VALUES (1, 1, 's', 1500.0, '', :t)"
+            ),
+            {"t": now},
+        )
+        for number, names in enumerate(channels):
+            connection.execute(
+                tables.Record.__table__.insert().values(
+                    structure_id=1, fs=1500.0, n_samples=2, acquired_at=now, created_at=now,
+                    sha256=f"{number:064d}", x=b"", y=b"", channels=names,
+                )
+            )  # fmt: skip
+    engine.dispose()
+
+
+def _channels(url: str) -> list[tuple[object, bool]]:
+    engine = make_engine(url)
+    with engine.connect() as connection:
+        stored = connection.execute(text("SELECT channels, channels IS NULL FROM records ORDER BY id")).all()
+    engine.dispose()
+    return [(names, bool(null)) for names, null in stored]
+
+
+def test_0015_is_undone_only_once_no_record_of_several_channels_is_stored(fresh_url):
+    """Downgrading past 0015 drops the channels the older schema cannot hold: refused, naming how
+    many records, while any is stored (and nothing changes); once they are deleted it goes
+    through and the records of one response stay. (It used to count every record, JSON's null
+    stored for a record of one response being no SQL NULL.)"""
+    upgrade_database(fresh_url)
+    _structure_with_records(fresh_url, None, ["a1", "a2"], None)
+    assert [null for _, null in _channels(fresh_url)] == [True, False, True]
+    before = schema_and_revision(fresh_url)
+    with pytest.raises(RuntimeError, match=r"^1 record\(s\) of several channels are stored"):
+        command.downgrade(alembic_config(fresh_url), "0014")
+    assert schema_and_revision(fresh_url) == before
+    engine = make_engine(fresh_url)
+    with engine.begin() as connection:
+        connection.execute(text("DELETE FROM records WHERE channels IS NOT NULL"))
+    engine.dispose()
+    command.downgrade(alembic_config(fresh_url), "0014")
+    assert schema_and_revision(fresh_url)[1] == ["0014"]
+    engine = make_engine(fresh_url)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT COUNT(*) FROM records")).scalar() == 2
+    engine.dispose()
+
+
+def test_0017_stores_a_record_of_one_response_with_sql_null_channels(fresh_url):
+    """Records stored before 0017 held JSON's null; after it, SQL NULL, as new ones are stored."""
+    upgrade_database(fresh_url, "0016")
+    _structure_with_records(fresh_url, JSON.NULL, ["a1", "a2"])  # JSON.NULL: what None was stored as
+    assert [null for _, null in _channels(fresh_url)] == [False, False]
+    upgrade_database(fresh_url)
+    assert [null for _, null in _channels(fresh_url)] == [True, False]
 
 
 def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(fresh_url):

@@ -34,7 +34,9 @@ def upgrade() -> None:
 
 def downgrade() -> None:
     several = (
-        op.get_bind().execute(sa.text("SELECT COUNT(*) FROM records WHERE channels IS NOT NULL")).scalar()
+        op.get_bind()
+        .execute(sa.text("SELECT COUNT(*) FROM records WHERE channels IS NOT NULL AND channels <> 'null'"))
+        .scalar()
     )
     if several:
         raise RuntimeError(
