@@ -9,7 +9,7 @@ import pytest
 from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
-from sqlalchemy import JSON, inspect, select, text
+from sqlalchemy import JSON, Connection, inspect, select, text
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -87,6 +87,20 @@ def test_upgrade_is_idempotent(fresh_url):
     assert names == ["kept"]
 
 
+def _organisation_and_structure(connection: Connection, now: dt.datetime) -> None:
+    """Organisation 1 and its structure 1, as the schema of any revision holds them."""
+    connection.execute(
+        text("INSERT INTO organisations (id, name, created_at) VALUES (1, 'o', :t)"), {"t": now}
+    )
+    connection.execute(
+        text(
+            "INSERT INTO structures (id, organisation_id, name, fs, description, created_at) "
+            "VALUES (1, 1, 's', 1500.0, '', :t)"
+        ),
+        {"t": now},
+    )
+
+
 def test_0006_keeps_the_newest_of_two_active_versions(fresh_url):
     """A database left with two active versions of one name (before 0006) keeps only the newest
     active, and from then on the database refuses a second active version."""
@@ -95,16 +109,7 @@ def test_0006_keeps_the_newest_of_two_active_versions(fresh_url):
     versions = Base.metadata.tables["model_versions"]
     now = dt.datetime.now(dt.UTC)
     with engine.begin() as connection:
-        connection.execute(
-            text("INSERT INTO organisations (id, name, created_at) VALUES (1, 'o', :t)"), {"t": now}
-        )
-        connection.execute(
-            text(
-                "INSERT INTO structures (id, organisation_id, name, fs, description, created_at) "
-                "VALUES (1, 1, 's', 1500.0, '', :t)"
-            ),
-            {"t": now},
-        )
+        _organisation_and_structure(connection, now)
         rows = [("k2", 1, True), ("k2", 2, True), ("k2", 3, False), ("k1", 1, True), ("k1", 2, False)]
         for name, number, active in rows:
             connection.execute(
@@ -140,16 +145,7 @@ def test_0008_lists_each_earlier_refinement_s_record_as_fitted(fresh_url):
     engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     with engine.begin() as connection:
-        connection.execute(
-            text("INSERT INTO organisations (id, name, created_at) VALUES (1, 'o', :t)"), {"t": now}
-        )
-        connection.execute(
-            text(
-                "INSERT INTO structures (id, organisation_id, name, fs, description, created_at) "
-                "VALUES (1, 1, 's', 1500.0, '', :t)"
-            ),
-            {"t": now},
-        )
+        _organisation_and_structure(connection, now)
         records = Base.metadata.tables["records"]
         for record_id in (7, 8):
             connection.execute(
@@ -262,16 +258,7 @@ def _structure_with_records(url: str, *channels: object) -> None:
     engine = make_engine(url)
     now = utcnow()
     with engine.begin() as connection:
-        connection.execute(
-            text("INSERT INTO organisations (id, name, created_at) VALUES (1, 'o', :t)"), {"t": now}
-        )
-        connection.execute(
-            text(
-                "INSERT INTO structures (id, organisation_id, name, fs, description, created_at) "
-                "VALUES (1, 1, 's', 1500.0, '', :t)"
-            ),
-            {"t": now},
-        )
+        _organisation_and_structure(connection, now)
         for number, names in enumerate(channels):
             connection.execute(
                 tables.Record.__table__.insert().values(
