@@ -362,11 +362,15 @@ class Job(Base):
     ``task`` names a function of ``service.jobs.tasks`` and ``args`` its keyword arguments. A
     worker claims a job by setting ``locked_until``; a job whose lease ran out (its worker died)
     is claimed again, so every job runs at least once. Tasks are idempotent: an inspection stores
-    at most one verdict per record and model set.
+    at most one verdict per record and model set. ``priority`` is minus the number of its
+    organisation's jobs waiting when it was queued (``service.jobs``: fair share).
     """
 
     __tablename__ = "jobs"
-    __table_args__ = (Index("ix_jobs_due", "status", "run_after"),)
+    __table_args__ = (
+        Index("ix_jobs_due", "status", "run_after"),
+        Index("ix_jobs_waiting", "organisation_id", "status"),
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     # None only for jobs queued before jobs knew their organisation (they are listed to no one).
@@ -376,6 +380,7 @@ class Job(Base):
     task: Mapped[str] = mapped_column(String(50))
     args: Mapped[dict[str, Any]] = mapped_column(Document)
     status: Mapped[str] = mapped_column(String(16), default="queued")
+    priority: Mapped[int] = mapped_column(Integer, server_default="0")
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     run_after: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
     locked_until: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)

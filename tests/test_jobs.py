@@ -28,17 +28,20 @@ from api_helpers import (
     simulated,
     train_fault_mode,
     verdicts_of,
+    wait_for,
 )
 from job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
 from live import LiveServer
-from sqlalchemy import func, select, update
+from sqlalchemy import func, select, text, update
 from test_cli import NARXWATCH
+from workers import workers
 
 from models.fnarx import FNARX
 from models.inspection import inspect
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import records, structures
+from service.domain.schedules import RUN_SCHEDULE
 from service.jobs.embedded import FIRST_RETRY, LEASE, MAX_ATTEMPTS, EmbeddedBackend, claim, defer, run
 from service.jobs.tasks import INSPECT_RECORD, TASKS
 from service.migrate import upgrade_database
@@ -289,3 +292,39 @@ def test_a_job_running_longer_than_its_lease_is_not_claimed_by_another_worker(qu
         (job,) = session.scalars(select(Job))
         assert (job.status, job.attempts) == ("done", 1)
     assert len(starts) == 1
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_an_organisation_s_backlog_does_not_hold_up_another_s_jobs(request, tmp_path: Path, kind: str):
+    """Fair share: six jobs of one organisation queued, then two of another, and one `narxwatch
+    worker` (embedded on SQLite, Procrastinate on PostgreSQL) takes them in turn, the first of
+    each then the second of each, not the second organisation's after all six of the first's.
+    (The jobs are runs of schedules deleted since, which end at once.)"""
+    flooding = Monitored.create(database_url(kind, tmp_path, request))
+    with transaction(flooding.sessions) as session:
+        other = Organisation(name="other")
+        session.add(other)
+        session.flush()
+        organisations = [flooding.principal.organisation_id] * 6 + [other.id] * 2
+        backend = flooding.backend()
+        for number, organisation in enumerate(organisations):
+            backend.defer(
+                session, RUN_SCHEDULE, organisation, schedule_id=10_000 + number, due_at=utcnow().isoformat()
+            )
+    started = (
+        "SELECT organisation_id FROM jobs WHERE status = 'done' ORDER BY finished_at"
+        if kind == "sqlite"
+        else "SELECT CAST(j.args->>'organisation_id' AS INTEGER) FROM procrastinate_events e "
+        "JOIN procrastinate_jobs j ON j.id = e.job_id "
+        "WHERE e.type = 'started' AND j.task_name = 'run_schedule' ORDER BY e.id"
+    )
+
+    def run_order() -> list[int]:
+        with flooding.sessions() as session:
+            return list(session.scalars(text(started)))
+
+    with workers(flooding.settings.database_url, 1, tmp_path) as running:
+        wait_for(lambda: len(run_order()) == len(organisations), 60, "the worker did not run every job")
+        assert all(worker.alive() for worker in running)
+    first, second = flooding.principal.organisation_id, other.id
+    assert run_order() == [first, second, first, second, first, first, first, first]

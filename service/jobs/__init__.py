@@ -11,6 +11,12 @@ idempotent, so a redelivered job changes nothing. A job that fails is retried wi
 unless its error says that running it again cannot succeed (``FINAL_ERRORS``): it then fails at
 once, its reason stored for ``GET /jobs``. Every job belongs to an organisation, which alone
 sees it.
+
+Fair share: no organisation's backlog holds up another's jobs. A job is queued with priority
+−n, n being its organisation's jobs waiting at that moment, and workers take the highest
+priority first, then the oldest. Organisations' waiting jobs are thus taken in turn (the first of
+each, then the second of each, …): a job queued behind a thousand of another organisation's
+waits for one of them, not a thousand.
 """
 
 from __future__ import annotations

@@ -76,10 +76,18 @@ def conninfo(database_url: str) -> str:
 
 def defer(session: Session, task: str, organisation_id: int, **args: Any) -> int:
     """Queue ``task(**args)`` for an organisation in the session's transaction (committed with
-    it); the job's id. The organisation travels in the job's arguments, where ``GET /jobs``
-    looks for it."""
+    it), behind its organisation's waiting jobs (``service.jobs``: fair share; Procrastinate's
+    workers take the highest priority first, then the oldest); the job's id. The organisation
+    travels in the job's arguments, where ``GET /jobs`` looks for it."""
+    waiting = session.execute(WAITING, {"owner": _owner(organisation_id)}).scalar_one()
     connection = session.connection().connection.driver_connection
-    return deferrer.configure_task(task, connection=connection).defer(organisation_id=organisation_id, **args)
+    deferrer_of_task = deferrer.configure_task(task, connection=connection, priority=-waiting)
+    return deferrer_of_task.defer(organisation_id=organisation_id, **args)
+
+
+WAITING = text(
+    "SELECT count(*) FROM procrastinate_jobs WHERE status = 'todo' AND args @> CAST(:owner AS jsonb)"
+)
 
 
 def _run(context: JobContext, task: str, **args: Any) -> None:

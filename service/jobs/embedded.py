@@ -39,9 +39,16 @@ log = logging.getLogger("narxwatch.jobs")
 
 def defer(session: Session, task: str, organisation_id: int, **args: Any) -> int:
     """Queue ``task(**args)`` for an organisation in the caller's transaction (committed with
-    it); the job's id."""
-    values = {"organisation_id": organisation_id, "task": task, "args": args}
-    return session.execute(insert(Job.__table__).returning(Job.id), values).scalar_one()
+    it), behind its organisation's waiting jobs (``service.jobs``: fair share); the job's id."""
+    waiting = (
+        select(func.count())
+        .where(Job.organisation_id == organisation_id, Job.status == "queued")
+        .scalar_subquery()
+    )
+    queued = insert(Job.__table__).values(
+        organisation_id=organisation_id, task=task, args=args, priority=-waiting
+    )
+    return session.execute(queued.returning(Job.id)).scalar_one()
 
 
 @dataclass(frozen=True)
@@ -53,7 +60,8 @@ class Claimed:
 
 
 def claim(session: Session, now: dt.datetime | None = None, lease: dt.timedelta = LEASE) -> Claimed | None:
-    """Lease the oldest due job (queued and due, or running with an expired lease); commits."""
+    """Lease the due job (queued and due, or running with an expired lease) of the highest
+    priority, the oldest of those (``service.jobs``: fair share); commits."""
     now = now or utcnow()
     due = or_(
         and_(Job.status == "queued", Job.run_after <= now),
@@ -63,10 +71,10 @@ def claim(session: Session, now: dt.datetime | None = None, lease: dt.timedelta 
     if session.scalar(select(Job.id).where(due).limit(1)) is None:
         session.rollback()
         return None
-    oldest = select(Job.id).where(due).order_by(Job.id).limit(1).scalar_subquery()
+    first = select(Job.id).where(due).order_by(Job.priority.desc(), Job.id).limit(1).scalar_subquery()
     statement = (
         update(Job.__table__)
-        .where(Job.id == oldest, due)  # re-checked: another worker may have leased it meanwhile
+        .where(Job.id == first, due)  # re-checked: another worker may have leased it meanwhile
         .values(status="running", attempts=Job.attempts + 1, locked_until=now + lease)
         .returning(Job.id, Job.task, Job.args, Job.attempts)
     )
