@@ -10,7 +10,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from service.config import Settings
-from service.domain import inspections, modelling, records, structures
+from service.domain import alarms, inspections, modelling, records, structures
 from service.schemas import BaselineTrain, Experiment, FaultModeTrain, StructureCreate
 from service.security import Principal, Role
 from service.tables import ApiKey, Organisation, Structure, utcnow
@@ -84,6 +84,7 @@ def _history(session: Session, structure: Structure, settings: Settings, study: 
     now = utcnow().replace(minute=0, second=0, microsecond=0)
     seeds = np.random.SeedSequence(2027).spawn(HISTORY_RECORDS)
     models = inspections.models_to_inspect_with(session, structure)
+    alarms.lock(session, structure.id)  # before the state row that storing a record locks
     for index, seed in enumerate(seeds):
         growing = index - HEALTHY_RECORDS
         k = (

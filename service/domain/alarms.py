@@ -129,7 +129,7 @@ def set_rules(session: Session, principal: Principal, structure_id: int, body: A
     for rule in body.rules:
         if isinstance(rule, CusumRule):  # a design that exists without the models' error, or a 422
             cusum_design(rule, [])
-    _lock(session, structure_id)
+    lock(session, structure_id)
     session.execute(delete(StoredRule).where(StoredRule.structure_id == structure_id))
     session.add_all(
         StoredRule(structure_id=structure_id, kind=rule.kind, parameters=rule.model_dump(mode="json"))
@@ -220,7 +220,7 @@ def evaluate(session: Session, structure: Structure) -> None:
     verdict's insert: only flushes. Every transition is announced through
     :func:`service.domain.notifications.notify`, delivered after the commit.
     """
-    _lock(session, structure.id)
+    lock(session, structure.id)
     points = _newest_points(session, structure.id, WINDOW)
     if not points:
         return
@@ -427,10 +427,15 @@ def _resolved_through(session: Session, structure_id: int) -> dict[tuple[str, st
     return {(kind, mode): through for kind, mode, through in rows}
 
 
-def _lock(session: Session, structure_id: int) -> None:
+def lock(session: Session, structure_id: int) -> None:
     """The structure's row lock (``FOR NO KEY UPDATE``, as trainings take it): evaluations of one
     structure run one after another, each seeing the alarms the previous one committed; uploads,
-    whose foreign keys take ``KEY SHARE`` locks, are not held up. SQLite has one writer."""
+    whose foreign keys take ``KEY SHARE`` locks, are not held up. SQLite has one writer.
+
+    Taken before the structure's state row (``service.domain.fleet``) by every transaction that
+    takes both, so that none waits for the other in a cycle: a stored verdict's alarms, then its
+    counts (``inspections.store_verdict``); an upload inspected at once locks it before storing
+    its record (``ingest``)."""
     session.execute(select(Structure.id).where(Structure.id == structure_id).with_for_update(key_share=True))
 
 

@@ -16,7 +16,7 @@ from models.terms import max_degree
 from models.vector import VectorFNARX
 from service.conditions import Condition
 from service.config import Settings
-from service.domain import inspections, records, structures
+from service.domain import alarms, inspections, records, structures
 from service.domain.modelling import active_fault_modes
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure, Verdict
@@ -84,6 +84,8 @@ def ingest_record(
     else:
         degree = 1 if channels else _degree_to_hold(session, structure)
         x, y = records.checked_signals(x, y, channels, minimum_samples(settings.lags), degree)
+    if evaluation is not None:
+        alarms.lock(session, structure.id)  # before the state row that storing the record locks
     record, created = records.store_record(session, structure, x, y, rate, acquired_at, conditions, channels)
     verdict = (
         inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None

@@ -213,13 +213,15 @@ def store_verdict(
         if found is None:
             raise RuntimeError(f"verdict of record {record.id} conflicted but cannot be found")
         return found
-    fleet.count_verdict(session, inserted.id, structure.id, record.acquired_at, result.status)
     versions = evaluation.versions
     session.execute(
         insert(VerdictModel.__table__),
         [{"verdict_id": inserted.id, "model_version_id": v.id} for v in versions],
     )
     alarms.evaluate(session, structure)  # in the same transaction: the verdict and its alarms, or neither
+    # Counted last: the state row, which every upload of the structure updates, is then locked
+    # only until the commit, not through the alarms' evaluation (alarms.lock: the lock order).
+    fleet.count_verdict(session, inserted.id, structure.id, record.acquired_at, result.status)
     return Verdict(
         id=inserted.id,
         created_at=inserted.created_at,
