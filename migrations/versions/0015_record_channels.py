@@ -33,11 +33,9 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
-    several = (
-        op.get_bind()
-        .execute(sa.text("SELECT COUNT(*) FROM records WHERE channels IS NOT NULL AND channels <> 'null'"))
-        .scalar()
-    )
+    # Neither SQL NULL nor JSON's null (records of one response stored before 0017) compares as
+    # different from 'null'.
+    several = op.get_bind().execute(sa.text("SELECT COUNT(*) FROM records WHERE channels <> 'null'")).scalar()
     if several:
         raise RuntimeError(
             f"{several} record(s) of several channels are stored, which the schema before revision 0015 "

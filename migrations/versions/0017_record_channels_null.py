@@ -23,8 +23,8 @@ depends_on = None
 
 def upgrade() -> None:
     # A JSON null is the text 'null' in SQLite and the jsonb value null in PostgreSQL; the literal
-    # compares as either.
-    op.execute("UPDATE records SET channels = NULL WHERE channels IS NOT NULL AND channels = 'null'")
+    # compares as either (and as nothing with SQL NULL).
+    op.execute("UPDATE records SET channels = NULL WHERE channels = 'null'")
 
 
 def downgrade() -> None:

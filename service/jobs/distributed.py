@@ -74,6 +74,12 @@ def conninfo(database_url: str) -> str:
     return make_url(database_url).set(drivername="postgresql").render_as_string(hide_password=False)
 
 
+# An organisation's jobs waiting to run, which a job it defers is queued behind (fair share).
+WAITING = text(
+    "SELECT count(*) FROM procrastinate_jobs WHERE status = 'todo' AND args @> CAST(:owner AS jsonb)"
+)
+
+
 def defer(session: Session, task: str, organisation_id: int, **args: Any) -> int:
     """Queue ``task(**args)`` for an organisation in the session's transaction (committed with
     it), behind its organisation's waiting jobs (``service.jobs``: fair share; Procrastinate's
@@ -83,11 +89,6 @@ def defer(session: Session, task: str, organisation_id: int, **args: Any) -> int
     connection = session.connection().connection.driver_connection
     deferrer_of_task = deferrer.configure_task(task, connection=connection, priority=-waiting)
     return deferrer_of_task.defer(organisation_id=organisation_id, **args)
-
-
-WAITING = text(
-    "SELECT count(*) FROM procrastinate_jobs WHERE status = 'todo' AND args @> CAST(:owner AS jsonb)"
-)
 
 
 def _run(context: JobContext, task: str, **args: Any) -> None:
