@@ -43,7 +43,7 @@ from models.alarms import (
     AlarmRules,
     CusumDesign,
     common_share,
-    cusum,
+    cusum_chart,
     default_rules,
     persistence,
     persistence_alarm_rate,
@@ -96,19 +96,6 @@ def scenario(fault: str, k: float) -> Scenario:
     return OPTIONS.scenario(fault, k)
 
 
-def cusum_alarms(z: np.ndarray, design: CusumDesign) -> list[int]:
-    """Records at which one mode's chart alarms, the chart restarting from the next record."""
-    alarms = []
-    start = 0
-    while start < z.size:
-        path = cusum(z[start:], design)
-        if path.alarm_at is None:
-            break
-        alarms.append(start + path.alarm_at)
-        start += path.alarm_at + 1
-    return alarms
-
-
 def persistence_alarms(flagged: np.ndarray, rules: AlarmRules) -> list[int]:
     """Records at which a persistence alarm opens: the rule holds and no alarm is open; an open
     alarm closes once the rule has not held for m records."""
@@ -128,7 +115,7 @@ def persistence_alarms(flagged: np.ndarray, rules: AlarmRules) -> list[int]:
 
 
 def alarms_by_rule(verdicts: Verdicts) -> dict[str, list[int]]:
-    charts = [cusum_alarms(verdicts.z[:, j], verdicts.rules.cusum) for j in range(len(MODES))]
+    charts = [list(cusum_chart(verdicts.z[:, j], verdicts.rules.cusum).alarms) for j in range(len(MODES))]
     return {
         "cusum": sorted(index for chart in charts for index in chart),
         "persistence": persistence_alarms(verdicts.flagged, verdicts.rules),

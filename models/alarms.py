@@ -107,6 +107,19 @@ class CusumPath:
 
 
 @dataclass(frozen=True)
+class CusumChart:
+    """A CUSUM run as a service runs it: restarted from zero after each alarm.
+
+    ``statistic`` is max(S⁺_i, S⁻_i) after each observation; ``alarms`` the indices at which the
+    chart signalled, each with its drift start (:class:`CusumPath`) in ``drift_starts``.
+    """
+
+    statistic: np.ndarray
+    alarms: tuple[int, ...]
+    drift_starts: tuple[int, ...]
+
+
+@dataclass(frozen=True)
 class AlarmRules:
     """The rules a structure's verdicts are judged by, for one record rate.
 
@@ -321,13 +334,7 @@ def cusum(z: ArrayLike, design: CusumDesign) -> CusumPath:
     >>> path.alarm_at, path.drift_start
     (4, 2)
     """
-    values = np.asarray(z, dtype=float)
-    if values.ndim != 1:
-        raise InputError("z must be a one-dimensional sequence of standardised estimates")
-    if not np.all(np.isfinite(values)):
-        raise InputError(
-            "z must be finite: a verdict without a standardised estimate has no place in a CUSUM"
-        )
+    values = _standardised(z)
     r, h = design.reference, design.threshold
     upper = np.empty(values.size)
     lower = np.empty(values.size)
@@ -344,6 +351,53 @@ def cusum(z: ArrayLike, design: CusumDesign) -> CusumPath:
     zeros = np.flatnonzero(side[:alarm_at] == 0.0)
     drift_start = int(zeros[-1]) + 1 if zeros.size else 0
     return CusumPath(upper=upper, lower=lower, alarm_at=alarm_at, drift_start=drift_start)
+
+
+def cusum_chart(z: ArrayLike, design: CusumDesign) -> CusumChart:
+    """Run the two-sided CUSUM of ``design`` over ``z`` (σ units), restarting both statistics
+    from zero after each alarm, as the ARL design assumes: one pass, where calling
+    :func:`cusum` again from each restart costs a pass per alarm.
+
+    Examples
+    --------
+    >>> chart = cusum_chart([0.2, 3.0, 3.0, 3.0, 0.0, 3.0, 3.0, 3.0], design_cusum(100.0, shift=1.0))
+    >>> chart.alarms, chart.drift_starts
+    ((2, 5, 7), (1, 3, 6))
+    """
+    values = _standardised(z)
+    r, h = design.reference, design.threshold
+    statistic = np.empty(values.size)
+    alarms: list[int] = []
+    drift_starts: list[int] = []
+    s_up = s_low = 0.0
+    # The record after the last zero of each side since the last restart: where its run began.
+    up_from = low_from = 0
+    for i, zi in enumerate(values):
+        s_up = max(0.0, s_up + zi - r)
+        s_low = max(0.0, s_low - zi - r)
+        statistic[i] = max(s_up, s_low)
+        if s_up > h or s_low > h:
+            alarms.append(i)
+            drift_starts.append(up_from if s_up > h else low_from)
+            s_up = s_low = 0.0
+            up_from = low_from = i + 1
+            continue
+        if s_up == 0.0:
+            up_from = i + 1
+        if s_low == 0.0:
+            low_from = i + 1
+    return CusumChart(statistic, tuple(alarms), tuple(drift_starts))
+
+
+def _standardised(z: ArrayLike) -> np.ndarray:
+    values = np.asarray(z, dtype=float)
+    if values.ndim != 1:
+        raise InputError("z must be a one-dimensional sequence of standardised estimates")
+    if not np.all(np.isfinite(values)):
+        raise InputError(
+            "z must be finite: a verdict without a standardised estimate has no place in a CUSUM"
+        )
+    return values
 
 
 def persistence(flags: Sequence[bool], k: int, m: int) -> bool:

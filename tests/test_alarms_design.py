@@ -12,6 +12,7 @@ from models.alarms import (
     CusumDesign,
     common_share,
     cusum,
+    cusum_chart,
     default_rules,
     design_cusum,
     in_control_arl,
@@ -109,6 +110,31 @@ def test_cusum_drift_start_after_the_last_zero_of_the_alarming_side():
     assert path.upper[2] == 0.0 and path.upper[1] == pytest.approx(2.5)
     assert path.alarm_at is not None and path.upper[path.alarm_at] > design.threshold
     assert path.drift_start == 3
+
+
+def test_the_restarting_chart_is_the_recursion_started_afresh_after_each_alarm():
+    # Independent computation: the one-alarm recursion run again from the record after each
+    # alarm, on a stream with steps both ways and long quiet stretches.
+    design = design_cusum(200.0, shift=1.0)
+    rng = np.random.default_rng(7)
+    z = rng.standard_normal(600) + np.repeat([0.0, 1.5, 0.0, -2.0, 0.3, 0.0], 100)
+    chart = cusum_chart(z, design)
+    alarms, drift_starts, statistic, start = [], [], [], 0
+    while start < z.size:
+        path = cusum(z[start:], design)
+        end = z.size - start if path.alarm_at is None else path.alarm_at + 1
+        statistic += np.maximum(path.upper[:end], path.lower[:end]).tolist()
+        if path.alarm_at is None:
+            break
+        alarms.append(start + path.alarm_at)
+        drift_starts.append(start + path.drift_start)
+        start += path.alarm_at + 1
+    assert len(alarms) >= 10  # the steps make the chart signal again and again
+    assert chart.alarms == tuple(alarms)
+    assert chart.drift_starts == tuple(drift_starts)
+    np.testing.assert_array_equal(chart.statistic, statistic)
+    with pytest.raises(InputError, match="finite"):
+        cusum_chart([0.1, np.inf], design)
 
 
 def test_cusum_without_alarm_and_bad_input():

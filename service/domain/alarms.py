@@ -29,8 +29,8 @@ from functools import cache
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Select, delete, func, select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy import Select, delete, exists, func, select
+from sqlalchemy.orm import Session, aliased, selectinload
 
 from models import alarms as rules_math
 from models.errors import InputError
@@ -328,21 +328,12 @@ def _severe(point: Point, mode: str, threshold: float) -> bool:
 def _cusum_firing(mode: str, points: list[Point], design: rules_math.CusumDesign) -> Firing:
     """The chart's signals, restarting from zero after each one (as its design assumes)."""
     z = np.array([k_hat / sigma for k_hat, sigma, _ in (p.modes[mode] for p in points)])
+    chart = rules_math.cusum_chart(z, design)
     fired = [False] * len(points)
-    drift_starts: dict[int, int] = {}
-    statistic: list[float] = []
-    start = 0
-    while start < len(points):
-        path = rules_math.cusum(z[start:], design)
-        end = len(points) - start if path.alarm_at is None else path.alarm_at + 1
-        statistic += np.maximum(path.upper[:end], path.lower[:end]).tolist()
-        if path.alarm_at is None or path.drift_start is None:
-            break
-        at = start + path.alarm_at
+    for at in chart.alarms:
         fired[at] = True
-        drift_starts[at] = start + path.drift_start
-        start = at + 1
-    return Firing(mode, points, fired, drift_starts, statistic)
+    drift_starts = dict(zip(chart.alarms, chart.drift_starts, strict=True))
+    return Firing(mode, points, fired, drift_starts, chart.statistic.tolist())
 
 
 def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
@@ -367,10 +358,11 @@ def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
 
 def _newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
     """The newest verdict of each of the structure's newest ``count`` inspected records, oldest
-    first. Re-inspections add verdicts to a record: three times as many are read to find them."""
+    first (a re-inspection with new models re-judges a record: its earlier verdicts are passed
+    over, each through the index on the record)."""
+    later = aliased(Verdict)
     rows = session.execute(
         select(
-            Verdict.id,
             Verdict.record_id,
             Verdict.acquired_at,
             Verdict.status,
@@ -379,15 +371,13 @@ def _newest_points(session: Session, structure_id: int, count: int) -> list[Poin
             Verdict.interval_high,
             Verdict.modes,
         )
-        .where(Verdict.structure_id == structure_id)
+        .where(
+            Verdict.structure_id == structure_id,
+            ~exists().where(later.record_id == Verdict.record_id, later.id > Verdict.id),
+        )
         .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
-        .limit(3 * count)
+        .limit(count)
     ).all()
-    newest: dict[int, Any] = {}
-    for row in rows:
-        if row.record_id not in newest or row.id > newest[row.record_id].id:
-            newest[row.record_id] = row
-    chosen = sorted(newest.values(), key=lambda row: (row.acquired_at, row.id))[-count:]
     return [
         Point(
             record_id=row.record_id,
@@ -401,7 +391,7 @@ def _newest_points(session: Session, structure_id: int, count: int) -> list[Poin
                 if m["sigma_k"] > 0 and np.isfinite(m["k_hat"] / m["sigma_k"])
             },
         )
-        for row in chosen
+        for row in reversed(rows)
     ]
 
 
