@@ -462,8 +462,8 @@ def test_the_sweep_queues_one_pruning_a_period_and_the_cli_prunes_at_once(site: 
     assert result.stdout.count(f"{cli_org.name}: 2 records' signals dropped") == 1
     assert f"{cli_org.name}: 1 records' signals dropped" in result.stdout
     assert (
-        "3 records' signals dropped, 0 verdicts, 0 records and 0 deliveries deleted, in 2 batch(es)"
-        in result.stdout
+        "3 records' signals dropped, 0 verdicts deleted, 0 records deleted, 0 deliveries deleted, "
+        "in 2 batch(es)" in result.stdout
     )
     assert all(row[1] for row in rows(site.fleet.engine, cli_org)["records"].values())
     assert not any(row[1] for row in rows(site.fleet.engine, queued_org)["records"].values())

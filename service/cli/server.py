@@ -190,10 +190,9 @@ def db_prune(
                 )
 
             pruned = retention.prune(session, organisation_id, batch=batch or retention.BATCH, progress=shown)
+        counts = ", ".join(f"{getattr(pruned, what)} {done}" for what, done in PASSES.items())
         stdout.print(
-            f"{name}: {pruned.signals} records' signals dropped, {pruned.verdicts} verdicts, "
-            f"{pruned.records} records and {pruned.deliveries} deliveries deleted, "
-            f"in {pruned.batches} batch(es)",
+            f"{name}: {counts}, in {pruned.batches} batch(es)",
             markup=False,
             highlight=False,
             soft_wrap=True,
