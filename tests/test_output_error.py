@@ -13,7 +13,7 @@ import pytest
 
 from models.errors import InputError
 from models.narx import NARX, fit_narx
-from models.output_error import RING_DOWN, comes_to_rest, fit_output_error
+from models.output_error import RESTLESS, RING_DOWN, STILL, comes_to_rest, fit_output_error
 from models.simulation import FreeRun
 from models.terms import parse_terms
 from simulator.simulate import Scenario, simulate
@@ -93,6 +93,41 @@ def test_a_model_unstable_without_its_input_does_not_come_to_rest() -> None:
     assert abs(state) * 1.05**RING_DOWN > 10 * np.max(np.abs(y))
     damped = NARX(tuple(parse_terms(PARAMETRIC)), np.array([0.9, 0.0, 1.0]), np.zeros((3, 3)))
     assert comes_to_rest(damped, [(x, y)])
+
+
+@pytest.mark.parametrize(("slow", "at_rest"), [(1.0005, False), (1.0001, True), (0.999, True)])
+def test_a_mode_that_drifts_at_rest_is_caught_by_the_linearised_model(slow: float, at_rest: bool) -> None:
+    """y[t] = (λ + 0.5)·y[t−1] − 0.5·λ·y[t−2] + x[t−1]: poles λ and 0.5. A slow root λ = 1.0005
+    grows only 1.65-fold over the ring-down, from a state within the records' range: the ring-down
+    stays bounded, but the mode would grow e² over the 4000-sample record, beyond GROWTH = 2, so
+    the model does not come to rest; λ = 1.0001 grows 1.5-fold over the record and passes."""
+    terms = tuple(parse_terms(["y[t-1]", "y[t-2]", "x[t-1]"]))
+    model = NARX(terms, np.array([slow + 0.5, -0.5 * slow, 1.0]), np.zeros((3, 3)))
+    x = np.random.default_rng(61).standard_normal(4000)
+    y = model.simulate(x, np.zeros(2))
+    assert comes_to_rest(model, [(x, y)]) is at_rest
+    # Theory, by simulation: from the record's end, unforced, the drifting model leaves the
+    # records' range ten times over within 20 000 samples (λ^20000 = e^10).
+    ring_down = model.simulate(np.concatenate([x[-2:], np.zeros(20_000)]), y[-2:])
+    assert bool(np.max(np.abs(ring_down)) > 10 * np.max(np.abs(y))) is not at_rest
+
+
+def test_a_term_without_a_slope_at_rest_is_not_linearised_as_if_held() -> None:
+    """y[t] = 1.01·y[t−1] − 0.02·z[t−1] + x[t−1], z a Bouc–Wen variable of y saturating at 1000
+    (far beyond the motion): z's small motions follow y's, so the model behaves as
+    y[t] ≈ 0.99·y[t−1] and rings down, still moving after the test's thousand samples. Holding z
+    would leave the root 1.01 (the F-16 loop's hysteresis family, whose least-squares fit has a
+    root of 1.0026 beside its Bouc–Wen terms, was refused so)."""
+    terms = tuple(parse_terms(["y[t-1]", "boucwen(y[t-1],1000)", "x[t-1]"]))
+    model = NARX(terms, np.array([1.01, -0.02, 1.0]), np.zeros((3, 3)))
+    x = np.random.default_rng(62).standard_normal(4000)
+    y = model.simulate(x, np.zeros(1))
+    # Theory: it settles as 0.99ᵗ, where z's memory leaves it (off zero: hysteresis) — moving
+    # after RING_DOWN samples, still after five times as many.
+    ring_down = model.simulate(np.concatenate([x[-1:], np.zeros(5 * RING_DOWN)]), y[-1:])
+    assert np.ptp(ring_down[RING_DOWN - 1 : RING_DOWN + 1]) > STILL * RESTLESS * np.max(np.abs(y))
+    assert np.ptp(ring_down[-100:]) < 1e-12 * np.max(np.abs(y))
+    assert comes_to_rest(model, [(x, y)])
 
 
 def test_the_search_does_not_leave_a_start_that_comes_to_rest_for_one_that_does_not() -> None:
