@@ -234,8 +234,9 @@ class Filler:
                 ended = end < plan.count
                 through = min(end + 4, plan.count - 1) if ended else plan.count - 1
                 yield {
-                    "id": alarm_id, "structure_id": plan.structure_id, "rule_kind": "persistence",
-                    "rule": RULE, "fault_mode": None, "state": "resolved" if ended else "open",
+                    "id": alarm_id, "structure_id": plan.structure_id,
+                    "organisation_id": self.organisation_id, "rule_kind": "persistence", "rule": RULE,
+                    "fault_mode": None, "state": "resolved" if ended else "open",
                     "opened_at": self.at(start + 2), "record_id": record + start + 2,
                     "triggered_at": self.at(start + 2), "drift_started_at": None,
                     "evaluated_through": self.at(through), "acknowledged_at": None,

@@ -496,10 +496,13 @@ class Alarm(Base):
             postgresql_where=UNRESOLVED_WITHOUT_MODE,
         ),
         Index("ix_alarms_listing", "structure_id", "opened_at", "id"),
+        # An organisation's alarms newest first, without reading another's (migration 0019).
+        Index("ix_alarms_organisation", "organisation_id", "id"),
     )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"))
+    organisation_id: Mapped[int] = mapped_column(ForeignKey("organisations.id", ondelete="CASCADE"))
     rule_kind: Mapped[str] = mapped_column(String(16))
     rule: Mapped[dict[str, Any]] = mapped_column(Document)
     fault_mode: Mapped[str | None] = mapped_column(String(100), nullable=True)

@@ -310,6 +310,45 @@ def test_0017_stores_a_record_of_one_response_with_sql_null_channels(fresh_url):
     assert [null for _, null in _channels(fresh_url)] == [True, False]
 
 
+def test_0019_gives_each_alarm_the_organisation_of_its_structure_and_undoes_cleanly(fresh_url):
+    upgrade_database(fresh_url, "0018")
+    engine = make_engine(fresh_url)
+    now = dt.datetime.now(dt.UTC)
+    with engine.begin() as connection:
+        for organisation in (1, 2):
+            connection.execute(text("INSERT INTO organisations (id, name, created_at) VALUES (:i, :n, :t)"),
+                               dict(i=organisation, n=f"o{organisation}", t=now))  # fmt: skip
+        for structure, organisation in ((1, 1), (2, 2), (3, 2)):
+            connection.execute(
+                text("INSERT INTO structures (id, organisation_id, name, fs, description, created_at) "
+                     "VALUES (:s, :o, :n, 1500, '', :t)"),
+                dict(s=structure, o=organisation, n=f"s{structure}", t=now),
+            )  # fmt: skip
+        for alarm, structure in ((1, 3), (2, 1), (3, 2)):
+            connection.execute(
+                text("INSERT INTO alarms (id, structure_id, rule_kind, rule, state, opened_at, triggered_at, "
+                     "evaluated_through) VALUES (:a, :s, 'persistence', '{}', 'open', :t, :t, :t)"),
+                dict(a=alarm, s=structure, t=now),
+            )  # fmt: skip
+        connection.execute(
+            text("INSERT INTO alarm_transitions (alarm_id, to_state, at) VALUES (1, 'open', :t)"), dict(t=now)
+        )
+    engine.dispose()
+    upgrade_database(fresh_url)
+    engine = make_engine(fresh_url)
+    with engine.connect() as connection:
+        rows = connection.execute(text("SELECT id, organisation_id FROM alarms ORDER BY id")).all()
+        assert rows == [(1, 2), (2, 1), (3, 2)]
+        assert connection.execute(text("SELECT alarm_id FROM alarm_transitions")).scalar_one() == 1
+    engine.dispose()
+    command.downgrade(alembic_config(fresh_url), "0018")
+    engine = make_engine(fresh_url)
+    with engine.connect() as connection:
+        assert "organisation_id" not in {c["name"] for c in inspect(connection).get_columns("alarms")}
+        assert connection.execute(text("SELECT COUNT(*) FROM alarms")).scalar() == 3
+    engine.dispose()
+
+
 def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(fresh_url):
     """0013 alters verdicts, which SQLite does by copying the table, dropping the old one and
     renaming the copy. With foreign keys enforced during the drop, every verdict's link to its

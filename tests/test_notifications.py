@@ -608,6 +608,7 @@ def test_an_open_alarm_is_renotified_once_per_period_until_acknowledged(outbox: 
         alarms = [
             Alarm(
                 structure_id=structure.id,
+                organisation_id=outbox.organisation_id,
                 rule_kind=kind,
                 rule={"kind": kind},
                 fault_mode="k2",

@@ -260,6 +260,7 @@ def _apply(
     drift = firing.drift_starts.get(first)
     alarm = Alarm(
         structure_id=structure.id,
+        organisation_id=structure.organisation_id,
         rule_kind=rule.kind,
         rule=_rule_document(rule, points),
         fault_mode=firing.fault_mode,
@@ -529,8 +530,7 @@ def list_alarms(
         get_structure(session, principal, structure_id)
         query = select(Alarm).where(Alarm.structure_id == structure_id)
     else:
-        owned = select(Structure.id).where(Structure.organisation_id == principal.organisation_id)
-        query = select(Alarm).where(Alarm.structure_id.in_(owned))
+        query = select(Alarm).where(Alarm.organisation_id == principal.organisation_id)
     if state is not None:
         query = query.where(Alarm.state == state)
     if rule_kind is not None:
@@ -566,10 +566,8 @@ def count_unresolved(session: Session, principal: Principal) -> int:
 
 def _unresolved_of(query: Select[Any], principal: Principal, structure_id: int | None) -> Select[Any]:
     query = query.where(Alarm.state != "resolved")
-    if structure_id is None:  # a join, not the list of the organisation's structures: it may be long
-        return query.join(Structure, Structure.id == Alarm.structure_id).where(
-            Structure.organisation_id == principal.organisation_id
-        )
+    if structure_id is None:
+        return query.where(Alarm.organisation_id == principal.organisation_id)
     return query.where(Alarm.structure_id == structure_id)
 
 
