@@ -42,7 +42,7 @@ from sqlalchemy import Engine, func, insert, select, text
 from service.config import Settings
 from service.db import make_engine
 from service.jobs import embedded
-from service.tables import Alarm, Job, JobCount, Record, StructureState, Verdict
+from service.tables import Alarm, Job, JobCount, Record, Structure, StructureState, Verdict
 
 T0 = dt.datetime(2026, 6, 1, 6, 0, tzinfo=dt.UTC)
 STATUSES = ("healthy", "faulty", "unknown_fault")
@@ -472,14 +472,19 @@ def test_the_fleet_page_shows_the_oldest_open_alarms_and_counts_the_rest(fleet_s
     org, theirs = Org.create(fleet_server.server), Org.create(fleet_server.server)
     with clients(org) as (admin, _, _), clients(theirs) as (their_admin, _, _):
         sid, their_sid = create_structure(admin)["id"], create_structure(their_admin)["id"]
-    rows = [
-        {"structure_id": structure_id, "rule_kind": "severity", "rule": {"threshold": 10.0}}
-        | {"fault_mode": f"mode{i}"}
-        | {"state": "open", "triggered_at": T0, "evaluated_through": T0}
-        for structure_id, count in ((sid, FLEET_ALARMS + 2), (their_sid, 3))
-        for i in range(count)
-    ]
     with fleet_server.engine.begin() as connection:
+        owner = dict(
+            connection.execute(
+                select(Structure.id, Structure.organisation_id).where(Structure.id.in_((sid, their_sid)))
+            ).all()
+        )
+        rows = [
+            {"structure_id": structure_id, "organisation_id": owner[structure_id], "rule_kind": "severity"}
+            | {"rule": {"threshold": 10.0}, "fault_mode": f"mode{i}"}
+            | {"state": "open", "triggered_at": T0, "evaluated_through": T0}
+            for structure_id, count in ((sid, FLEET_ALARMS + 2), (their_sid, 3))
+            for i in range(count)
+        ]
         ids = list(connection.scalars(insert(Alarm).returning(Alarm.id, sort_by_parameter_order=True), rows))
     with logged_in(fleet_server.server, org.keys["viewer"]) as client:
         page = client.get(DASHBOARD)

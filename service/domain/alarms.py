@@ -567,7 +567,11 @@ def count_unresolved(session: Session, principal: Principal) -> int:
 def _unresolved_of(query: Select[Any], principal: Principal, structure_id: int | None) -> Select[Any]:
     query = query.where(Alarm.state != "resolved")
     if structure_id is None:
-        return query.where(Alarm.organisation_id == principal.organisation_id)
+        # Through the structures, each probing the index of its unresolved alarms: by the
+        # organisation's index, every alarm it ever had would be read and its state filtered.
+        return query.join(Structure, Structure.id == Alarm.structure_id).where(
+            Structure.organisation_id == principal.organisation_id
+        )
     return query.where(Alarm.structure_id == structure_id)
 
 
