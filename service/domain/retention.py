@@ -45,6 +45,7 @@ from service.domain.schedules import Defer
 from service.schemas import Retention, RetentionOut
 from service.security import Principal
 from service.tables import (
+    SETTLED,
     Delivery,
     Organisation,
     Record,
@@ -250,7 +251,9 @@ def _delete_records(session: Session, organisation_id: int, horizon: dt.datetime
 
 
 def _delete_deliveries(session: Session, organisation_id: int, horizon: dt.datetime, batch: int) -> int:
-    settled = (Delivery.organisation_id == organisation_id, Delivery.status != "pending")
+    # SETTLED itself, the partial index's own predicate, which a planner can match to the index
+    # whatever the statement's parameters (PostgreSQL's generic plans of prepared statements too).
+    settled = (Delivery.organisation_id == organisation_id, SETTLED)
     chosen = session.scalars(
         select(Delivery.id).where(*settled, Delivery.created_at < horizon).limit(batch)
     ).all()
