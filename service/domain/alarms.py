@@ -51,7 +51,7 @@ from service.schemas import (
     SeverityRule,
 )
 from service.security import Principal
-from service.tables import Alarm, AlarmTransition, ApiKey, Structure, Verdict, utcnow
+from service.tables import UNRESOLVED, Alarm, AlarmTransition, ApiKey, Structure, Verdict, utcnow
 from service.tables import AlarmRule as StoredRule
 
 # Records a rule is evaluated over: the persistence and severity rules need a few, the CUSUM's
@@ -403,9 +403,7 @@ def _mode_count(points: list[Point]) -> int:
 
 
 def _unresolved(session: Session, structure_id: int) -> dict[tuple[str, str | None], Alarm]:
-    alarms = session.scalars(
-        select(Alarm).where(Alarm.structure_id == structure_id, Alarm.state != "resolved")
-    )
+    alarms = session.scalars(select(Alarm).where(Alarm.structure_id == structure_id, UNRESOLVED))
     return {(alarm.rule_kind, alarm.fault_mode): alarm for alarm in alarms}
 
 
@@ -565,7 +563,9 @@ def count_unresolved(session: Session, principal: Principal) -> int:
 
 
 def _unresolved_of(query: Select[Any], principal: Principal, structure_id: int | None) -> Select[Any]:
-    query = query.where(Alarm.state != "resolved")
+    # UNRESOLVED itself, the partial indexes' predicate: as a bound parameter, a generic plan
+    # (a statement prepared after several runs) could not use them.
+    query = query.where(UNRESOLVED)
     if structure_id is None:
         # Through the structures, each probing the index of its unresolved alarms: by the
         # organisation's index, every alarm it ever had would be read and its state filtered.
