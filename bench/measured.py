@@ -6,6 +6,8 @@ For every benchmark and output it prints the free-run RMS on the test records of
   picks on the estimation records' check blocks, the parameters then refined by output error on
   all the estimation records;
 - the declared model (least squares) and the refined one, after the loop;
+- the refined structure's free run over the estimation records' check parts, beside the noise
+  between their periods where they repeat their excitation (:mod:`models.periods`);
 
 beside the figures published for the benchmark, and the time the loop took. Run from the
 project root (about half an hour on 2 cores; ``--only silverbox`` etc. for one benchmark)::
@@ -35,7 +37,7 @@ from models.assessment import assess
 from models.effects import linear_terms
 from models.errors import InputError
 from models.output_error import fit_output_error
-from models.refinement import FINAL_EVALUATIONS, choose_linear, refine_records
+from models.refinement import FINAL_EVALUATIONS, Refinement, choose_linear, refine_records
 from models.scoring import fit_model
 from models.terms import Term, max_lag
 from service.recordfiles import SILVERBOX, Layout, read_record
@@ -137,6 +139,7 @@ def main() -> None:
         "declared",
         "refined",
         "effects",
+        "check / noise floor",
         "loop",
         "published",
     ):
@@ -166,10 +169,20 @@ def main() -> None:
                 if first
                 else f"{comparison.after.free_run_rms:.4g}",
                 effects if first else "",
+                _check_and_floor(result) if first else "",
                 f"{seconds:.0f} s" if first else "",
                 benchmark.published if first else "",
             )
         console.print(table)
+
+
+def _check_and_floor(result: Refinement) -> str:
+    """The refined structure's free-run RMS over the check records and, when they repeat their
+    excitation, the noise between their periods: the least any model can leave there."""
+    floor = result.noise_floor
+    if floor is None:
+        return f"{result.check_rms:.4g} / (no periods)"
+    return f"{result.check_rms:.4g} / {floor.rms:.4g} ± {floor.standard_error:.1g}"
 
 
 if __name__ == "__main__":

@@ -33,12 +33,17 @@ nothing was added, the refined model is the declared structure's output-error fi
 The estimation data may be several records: no lag crosses a record boundary; from three
 records on, whole records are checked (:func:`split_for_checking`). Free runs are compiled
 (:mod:`models.simulation`).
+
+Where the checked records repeat their excitation, the spread between periods gives the noise no
+model can simulate (:mod:`models.periods`). Reported beside the check blocks' free run, it says how
+much of that figure any model could still take off: on the Wiener–Hammerstein records, whose
+process noise is 86 mV RMS, the linear model's figure is within half a per cent of it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal, get_args
 
 import numpy as np
@@ -48,6 +53,7 @@ from models.effects import Effect, candidate_effects, linear_terms, offset_terms
 from models.errors import InputError
 from models.narx import NARX, Saturation
 from models.output_error import comes_to_rest, fit_output_error, free_run_at_rest
+from models.periods import PeriodNoise, pooled_period_noise
 from models.scoring import EffectScore, Records, Saturating, fit_model, score_effects
 from models.signals import checked_records
 from models.simulation import FreeRun
@@ -110,7 +116,10 @@ class Refinement:
     added; ``refined`` is then the process part of a NARMAX). ``orders`` are the linear model's
     (ny, nx, input delay) the loop chose when no structure was declared. ``withdrawn``: the final
     check took back every effect the rounds added (module docstring), and ``refined`` is the
-    declared structure.
+    declared structure. ``check_rms`` is the refined structure's free-run RMS over the check
+    blocks, its parameters by ``estimator`` fitted on the fit blocks; ``noise_floor`` the noise
+    between the checked records' periods when they repeat their excitation (None otherwise): the
+    least any model's free run over them can leave.
     """
 
     declared: NARX
@@ -120,6 +129,8 @@ class Refinement:
     estimator: Literal["least squares", "output error"] = "least squares"
     orders: tuple[int, int, int] | None = None
     withdrawn: bool = False
+    check_rms: float = np.inf
+    noise_floor: PeriodNoise | None = None
 
     @property
     def kept(self) -> tuple[Round, ...]:
@@ -190,6 +201,10 @@ class RefinementReport:
                 if (score := step.added) is not None
             ],
             "effects_withdrawn": list(result.effects_withdrawn),
+            "check_free_run_rms": _finite(result.check_rms),
+            "noise_floor": None
+            if (floor := result.noise_floor) is None
+            else _floor_dict(floor, result.check_rms),
             "before": assessment_dict(self.before),
             "after": assessment_dict(self.after),
             "tests": [
@@ -306,6 +321,14 @@ def _model_dict(model: NARX) -> dict[str, Any]:
         # The limits a saturating model clips to (None: none), and whether a state or a sensor does.
         "output_limits": None if limits is None else [_finite(v) for v in limits],
         "saturation": None if limits is None else model.saturation,
+    }
+
+
+def _floor_dict(floor: PeriodNoise, check_rms: float) -> dict[str, Any]:
+    """The noise floor, its standard error, and the part of the check blocks' free run above it."""
+    return asdict(floor) | {
+        "standard_error": floor.standard_error,
+        "check_model_error": _finite(floor.beneath(check_rms)),
     }
 
 
@@ -432,7 +455,17 @@ def refine(
             tuned = None if found is start else found
         if tuned is not None and comes_to_rest(tuned, records):
             refined, estimator = tuned, "output error"
-    return Refinement(declared_model, refined, noise, tuple(rounds), estimator, orders, withdrawn)
+    return Refinement(
+        declared_model,
+        refined,
+        noise,
+        tuple(rounds),
+        estimator,
+        orders,
+        withdrawn,
+        checks.error(current, tuned=estimator == "output error"),
+        pooled_period_noise(checked_whole(records)),
+    )
 
 
 def _restless_then_rms(judged: tuple[float, bool]) -> tuple[bool, float]:
@@ -506,7 +539,7 @@ def split_for_checking(records: Records) -> tuple[Segments, Segments]:
     if len(records) >= 3:
         return (
             [(x, y, 0) for index, (x, y) in enumerate(records) if index % 3 != 1],
-            [(x, y, 0) for x, y in records[1::3]],
+            [(x, y, 0) for x, y in checked_whole(records)],
         )
     fit: Segments = []
     check: Segments = []
@@ -519,6 +552,12 @@ def split_for_checking(records: Records) -> tuple[Segments, Segments]:
             fit.append((x[a:b], y[a:b], int(a)))
             check.append((x[b:c], y[b:c], int(b)))
     return fit, check
+
+
+def checked_whole(records: Records) -> Records:
+    """The records the check parts come from (:func:`split_for_checking`): from three records on
+    every third one, the second first; fewer, all (a part of each)."""
+    return list(records[1::3]) if len(records) >= 3 else list(records)
 
 
 @dataclass(frozen=True)

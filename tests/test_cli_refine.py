@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_cli import PNG_MAGIC, invoke, run
+from test_periods import measured
 
 from models.narx import NARX, fit_narx
 from models.terms import parse_terms
@@ -17,7 +18,7 @@ from simulator.theory import EXACT_TERMS
 
 REPORT_KEYS = {
     "declared", "orders_chosen", "effects_added", "effects_withdrawn", "before", "after", "tests", "refined",
-    "notes", "data",
+    "notes", "data", "check_free_run_rms", "noise_floor",
 }  # fmt: skip
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics"}
 
@@ -247,3 +248,21 @@ def test_bad_record_protocols_are_refused(simulated_records: Path, args, message
     result = invoke("refine", *args, "--declared", "2dof", cwd=simulated_records, check=False)
     assert result.returncode == 2 and message in " ".join(result.stderr.split()), result.stderr
     assert result.stdout == ""
+
+
+def test_records_that_repeat_their_excitation_report_the_noise_between_periods(tmp_path: Path):
+    """Three records of four periods of a multisine through a second-order system, with white
+    output noise 0.3: the right linear model's check figure is at the noise floor, and the
+    report says so, in words and in its JSON."""
+    for seed, name in enumerate(("e1", "e2", "e3"), start=31):
+        x, _, y = measured(periods=4, sigma=0.3, seed=seed)
+        np.savetxt(
+            tmp_path / f"{name}.csv", np.column_stack([x, y]), delimiter=",", header="x,y", comments=""
+        )
+    args = ("refine", "e1.csv", "e2.csv", "--declared", "linear:2,2", "--validate", "e3.csv")
+    printed = invoke(*args, cwd=tmp_path).stdout
+    assert "noise between the checked records' periods (6 of 512 samples)" in printed, printed
+    assert "the check figure is at that floor" in printed, printed
+    floor = json.loads(invoke(*args, "--json", cwd=tmp_path).stdout)["noise_floor"]
+    assert floor["periods"] == 6 and floor["period"] == 512 and floor["check_model_error"] == 0.0
+    assert abs(floor["rms"] - 0.3) < 3 * floor["standard_error"]

@@ -250,6 +250,23 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             markup=False,
         )
     stdout.print(f"refined parameters by {report['refined']['estimator']}")
+    floor = report["noise_floor"]
+    check = report["check_free_run_rms"]
+    if floor is not None and check is not None:
+        beneath = floor["check_model_error"]
+        stdout.print(
+            f"check blocks' free run {check:.4g} RMS; the noise between the checked records' periods "
+            f"({floor['periods']} of {floor['period']} samples), which no model can simulate, is "
+            f"{floor['rms']:.4g} ± {floor['standard_error']:.2g}: "
+            + (
+                f"about {beneath:.2g} RMS of the check figure is the model's own error, all that any "
+                "model could still take off"
+                if beneath
+                else "the check figure is at that floor, and no model can be told better on these records"
+            ),
+            highlight=False,
+            markup=False,
+        )
     stdout.print(f"{'one-step RMS':^23} {'free-run RMS':^23}  Ljung–Box p")
     stdout.print(f"{'before':>11} {'after':>11} {'before':>11} {'after':>11}  {'after':>11}  judged on")
     for item in report["tests"]:
