@@ -21,6 +21,7 @@ import pytest
 from api_helpers import (
     API,
     CUSUM_TRAINING_K,
+    FS,
     Org,
     clients,
     create_structure,
@@ -247,6 +248,31 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
     assert criteria == [effect["decided_by"] for effect in report["effects_added"]]
     drawn(page, "errors")
     shot(page, "6-refinement")
+
+
+def test_a_refinement_on_a_periodic_record_states_the_noise_floor(page, server: LiveServer):
+    """A record repeating a multisine: the page says, in view, what noise no model can simulate."""
+    from test_periods import PERIOD, measured
+
+    org = Org.create(server)
+    x, _, y = measured(periods=6, sigma=0.3, seed=12)
+    with clients(org) as (admin, ingest, _):
+        structure_id = create_structure(admin, "periodic rig")["id"]
+        body = npz_bytes(x=x, y=y, fs=FS)
+        record_id = post_record(ingest, structure_id, body, "application/x-npz").json()["id"]
+        baseline = admin.post(
+            f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": [record_id]}
+        )
+        body = {"record_id": record_id, "base_model_id": baseline.json()["id"]}
+        refinement = admin.post(f"{API}/structures/{structure_id}/refinements", json=body).json()
+    page.goto(f"{server.url}{DASHBOARD}/login")
+    log_in(page, org.keys["viewer"])
+    page.wait_for_url(f"{server.url}{DASHBOARD}")
+    page.goto(f"{server.url}{DASHBOARD}/refinements/{refinement['id']}")
+    floor = page.locator("#noise-floor")
+    assert floor.is_visible()
+    assert f"(3 of {PERIOD} samples)" in floor.inner_text()
+    shot(page, "6-refinement-noise-floor")
 
 
 def test_an_alarm_appears_after_uploads_is_acknowledged_then_resolved(page, server: LiveServer):
