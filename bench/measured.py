@@ -37,7 +37,7 @@ from models.assessment import assess
 from models.effects import linear_terms
 from models.errors import InputError
 from models.output_error import fit_output_error
-from models.refinement import FINAL_EVALUATIONS, Refinement, choose_linear, refine_records
+from models.refinement import SETTLED_EVALUATIONS, Refinement, choose_linear, refine_records
 from models.scoring import fit_model
 from models.terms import Term, max_lag
 from service.recordfiles import SILVERBOX, Layout, read_record
@@ -108,7 +108,7 @@ def best_linear(benchmark: Benchmark) -> tuple[tuple[int, int, int], dict[str, f
     orders, terms = choose_linear(benchmark.estimation)
     model, _ = fit_model(benchmark.estimation, terms, 0, max_lag(terms))
     try:
-        model = fit_output_error(model, benchmark.estimation, FINAL_EVALUATIONS).model
+        model = fit_output_error(model, benchmark.estimation, SETTLED_EVALUATIONS).model
     except InputError:  # its least-squares start diverges: output error cannot start from it
         return orders, dict.fromkeys(benchmark.tests, np.inf)
     return orders, {
@@ -155,8 +155,8 @@ def main() -> None:
         seconds = time.perf_counter() - started
         result = report.refinement
         effects = ", ".join(f"{s.added.name} ({s.criterion})" for s in result.kept if s.added) or "none"
-        if result.withdrawn:
-            effects = f"withdrawn: {', '.join(result.effects_withdrawn)}"
+        if result.effects_withdrawn:
+            effects = f"withdrawn: {', '.join(result.effects_withdrawn)}; kept: {effects}"
         for index, (name, comparison) in enumerate(zip(benchmark.tests, report.tests, strict=True)):
             first = index == 0
             table.add_row(

@@ -13,7 +13,7 @@ from models.effects import candidate_effects, linear_terms, output_limits
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import fit_output_error
-from models.refinement import FINAL_EVALUATIONS, refine_record, refine_records
+from models.refinement import SETTLED_EVALUATIONS, refine_record, refine_records
 from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from simulator.simulate import BOUC_WEN_BETA, BOUC_WEN_GAMMA, Effects, Scenario, simulate
@@ -211,7 +211,7 @@ def test_a_static_nonlinearity_between_two_filters_is_named_first_and_the_free_r
     first = parse_terms(report.refinement.effects_added[0].terms)
     assert first and all({f.signal for f in t.factors} == {"x"} and t.degree in (2, 3) for t in first)
     assert report.after.free_run_rms <= report.before.free_run_rms / 2, (report.before, report.after)
-    linear = fit_output_error(fit_narx(estimation, declared), estimation, FINAL_EVALUATIONS).model
+    linear = fit_output_error(fit_narx(estimation, declared), estimation, SETTLED_EVALUATIONS).model
     assert report.after.free_run_rms <= assess(linear, x[8000:], y[8000:]).free_run_rms / 2
 
 

@@ -231,11 +231,12 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
     if report["effects_withdrawn"]:
         stdout.print(
             f"withdrawn: {', '.join(report['effects_withdrawn'])} — with output-error parameters the "
-            "declared model simulates the check blocks as well without them",
+            "declared model simulates the check blocks as well without them (from three records on: "
+            "on one fold at least)",
             highlight=False,
             markup=False,
         )
-    elif not report["effects_added"]:
+    if not report["effects_added"]:
         stdout.print("no effect lowers the error enough: nothing added")
     for number, effect in enumerate(report["effects_added"], start=1):
         evidence = effect["evidence"]
