@@ -34,10 +34,11 @@ from rich.progress import track
 from rich.table import Table
 
 from models.assessment import assess
+from models.checking import SETTLED_EVALUATIONS
 from models.effects import linear_terms
 from models.errors import InputError
 from models.output_error import fit_output_error
-from models.refinement import SETTLED_EVALUATIONS, Refinement, choose_linear, refine_records
+from models.refinement import Refinement, choose_linear, refine_records
 from models.scoring import fit_model
 from models.terms import Term, max_lag
 from service.recordfiles import SILVERBOX, Layout, read_record

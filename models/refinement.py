@@ -11,7 +11,7 @@ loop chooses), each round
 3. checks the significant effects, best first, on the **simulation error**: the model with the
    effect is fitted on part of the estimation data and run free over the rest (the check
    blocks, each free run started from its first measured outputs). The first effect that lowers
-   that free run by more than its standard error (:func:`check_noise`; moving-average noise,
+   that free run by more than its standard error (:func:`models.checking.check_noise`; moving-average noise,
    which is there to unbias the parameters, need only not make it worse) is added — decided by
    the one-step criterion;
 4. if no effect is significant on e (on slow, finely sampled data the one-step residual carries
@@ -42,7 +42,7 @@ squares is consistent and the better one-step predictor, and may simulate as wel
 nothing was added, the refined model is the declared structure's output-error fit itself.
 
 The estimation data may be several records: no lag crosses a record boundary; from three
-records on, whole records are checked (:func:`split_for_checking`). Free runs are compiled
+records on, whole records are checked (:mod:`models.checking`). Free runs are compiled
 (:mod:`models.simulation`).
 
 Where the checked records repeat their excitation, the spread between periods gives the noise no
@@ -60,14 +60,25 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from models.assessment import Assessment, assess, assessment_dict, check_test_length
+from models.checking import (
+    CHECK_EVALUATIONS,
+    MIN_BLOCK,
+    SETTLED_EVALUATIONS,
+    CheckSplit,
+    Segments,
+    Structure,
+    by_output_error,
+    check_noise,
+    checked_whole,
+    grown_by_zeros,
+)
 from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
 from models.errors import InputError
 from models.narx import NARX, Saturation
-from models.output_error import comes_to_rest, fit_output_error, free_run_at_rest
+from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
-from models.scoring import EffectScore, Records, Saturating, Scores, fit_model, score_effects
+from models.scoring import EffectScore, Records, Scores, fit_model, score_effects
 from models.signals import checked_records
-from models.simulation import FreeRun
 from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 
 DEFAULT_ALPHA = 0.01
@@ -79,19 +90,6 @@ MAX_ROUNDS = 10
 # by up to 8 % by chance; the effects the one-step residual misses (a plateau, a drain) take far
 # more off it.
 SIMULATION_GAIN = 0.2
-# With fewer than three records each is cut into 3·CHECK_BLOCKS blocks, every third one a check
-# block, so that fit and check parts cover the record alike (a growing amplitude, say). A sine
-# sweep's blocks hold different frequencies, though: from three records on, whole records are
-# checked instead.
-CHECK_BLOCKS = 3
-MIN_BLOCK = 200  # samples of the shortest block; shorter records get fewer blocks
-# Output-error searches within the loop are bounded; a settled one runs until it stops gaining
-# (MINPACK's tolerances), within this bound: the final one on all the data, and those that judge a
-# family across folds. On F-16's sweeps the linear (10, 10, 1) model of acceleration 2 cut at 30
-# evaluations runs free over the check sweep at 0.535 m/s², settled (about 130) at 0.326, and any
-# family searched longer than the model it is compared with "gains" by the extra evaluations alone.
-CHECK_EVALUATIONS = 30
-SETTLED_EVALUATIONS = 400
 # From three records on, a family is added on the simulation error across folds (step 5) when its
 # settled model lowers the checked records' free run by this share on every fold; the best
 # FOLD_TRIALS families of the first fold, by bounded searches, are tried on all of them.
@@ -100,7 +98,6 @@ FOLD_TRIALS = 3
 MAX_LINEAR_ORDER = 10  # the largest order tried when no structure is declared
 
 Criterion = Literal["one-step", "simulation", "simulation across folds"]
-Segments = list[tuple[np.ndarray, np.ndarray, int]]  # (x, y, first sample's index in its record)
 
 
 @dataclass(frozen=True)
@@ -443,7 +440,7 @@ def refine(
         # (F-16's sweeps: effects added on least-squares check gains of tenths of a per cent).
         if current != declared_structure:
             checks.settled(declared_structure)
-            start = _grown(checks, declared_structure, current)
+            start = checks.grown(declared_structure, current)
             if _on_every_fold(declared_structure, current, folds, start, gain=0.0) is None:
                 withdrawn = len(rounds)
                 current = declared_structure
@@ -474,7 +471,7 @@ def refine(
     # output. The check blocks tell which simulates better.
     if output_error and checks.error(current, tuned=True) < check:
         everything: Segments = [(x, y, 0) for x, y in records]
-        declared_tuned = _output_error(declared_model, everything, SETTLED_EVALUATIONS)
+        declared_tuned = by_output_error(declared_model, everything, SETTLED_EVALUATIONS)
         if current == declared_structure:
             # Nothing was added: the declared structure's output-error fit, not a second search
             # from other starts, which ends at another optimum of the same structure, better or
@@ -490,9 +487,9 @@ def refine(
             # squares (F-16's sweeps, Wiener–Hammerstein's records).
             starts = [refined, replace(refined, theta=checks.tuned(current).theta)]
             if declared_tuned is not declared_model:
-                starts.append(_grown_by_zeros(declared_tuned, refined))
+                starts.append(grown_by_zeros(declared_tuned, refined))
             start = min(starts, key=lambda model: _restless_then_rms(free_run_at_rest(model, records)))
-            found = _output_error(start, everything, SETTLED_EVALUATIONS)
+            found = by_output_error(start, everything, SETTLED_EVALUATIONS)
             # The search keeps a start that comes to rest from leaving it; a start that did not
             # (least squares' fit on all the data can differ from the check's) is no better.
             tuned = None if found is start else found
@@ -525,28 +522,6 @@ def _restless_then_rms(judged: tuple[float, bool]) -> tuple[bool, float]:
     return not at_rest, rms
 
 
-def _grown_by_zeros(model: NARX, structure: NARX) -> NARX:
-    """``structure`` (grown from ``model``'s terms) with ``model``'s parameters on the terms they
-    share and zero on the others."""
-    theta = dict(zip((term.name for term in model.terms), model.theta, strict=True))
-    return replace(structure, theta=np.array([theta.get(term.name, 0.0) for term in structure.terms]))
-
-
-def _free_run_rms(model: NARX, segments: Segments) -> float:
-    """Free-run RMS of ``model`` over ``segments``, each run started from its first measured
-    outputs; infinite when a run diverges or no segment is longer than the model's lags."""
-    L = model.max_lag
-    squares, count = 0.0, 0
-    for x, y, t0 in segments:
-        if len(y) <= L:
-            continue
-        error = model.run_free(FreeRun.build(model.terms, x, t0), y)[L:] - y[L:]
-        squares += float(error @ error)
-        count += error.size
-    rms = np.sqrt(squares / count) if count else np.inf
-    return float(rms) if np.isfinite(rms) else np.inf
-
-
 def choose_linear(
     records: Records, max_order: int = MAX_LINEAR_ORDER, checks: CheckSplit | None = None
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
@@ -572,55 +547,6 @@ def choose_linear(
     return (n, n, d), linear_terms(n, n, d)
 
 
-def check_noise(check: Segments) -> float:
-    """The standard error of a free-run RMS over the ``check`` parts, as a share of it: 1/√(2N)
-    for N independent Gaussian errors (fewer independent ones only widen it)."""
-    return float(1 / np.sqrt(2 * sum(len(y) for _, y, _ in check)))
-
-
-def split_for_checking(records: Records, fold: int = 1) -> tuple[Segments, Segments]:
-    """The estimation data split into the parts a candidate is fitted on and the check parts its
-    free run is judged on, each part with its first sample's index in its record.
-
-    Three records or more: every third record (the second, fifth, … for ``fold`` 1; the first,
-    fourth, … for 0; the third, sixth, … for 2) is checked whole and the others are fitted, a
-    split across experiments alike in design (a sweep or multisine at several levels, say).
-    Fewer: each record is cut into 3·k equal blocks (k = ``CHECK_BLOCKS``, fewer for short
-    records); blocks 3i and 3i+1 are fitted, block 3i+2 is checked.
-    """
-    if len(records) >= 3:
-        return (
-            [(x, y, 0) for index, (x, y) in enumerate(records) if index % 3 != fold],
-            [(x, y, 0) for x, y in records[fold::3]],
-        )
-    fit: Segments = []
-    check: Segments = []
-    for x, y in records:
-        n = len(y)
-        blocks = int(np.clip(n // (3 * MIN_BLOCK), 1, CHECK_BLOCKS))
-        edges = np.linspace(0, n, 3 * blocks + 1).astype(int)
-        for i in range(blocks):
-            a, b, c = edges[3 * i], edges[3 * i + 2], edges[3 * i + 3]
-            fit.append((x[a:b], y[a:b], int(a)))
-            check.append((x[b:c], y[b:c], int(b)))
-    return fit, check
-
-
-def checked_whole(records: Records) -> Records:
-    """The records the check parts come from (:func:`split_for_checking`): from three records on
-    every third one, the second first; fewer, all (a part of each)."""
-    return list(records[1::3]) if len(records) >= 3 else list(records)
-
-
-@dataclass(frozen=True)
-class Structure:
-    """A model structure as the loop grows it: terms, moving-average order, output saturation."""
-
-    terms: tuple[Term, ...]
-    noise_lags: int = 0
-    saturating: Saturating | None = None
-
-
 def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records: Records) -> list[Structure]:
     """The structures adding the scored effect may give: one, but two for output saturation
     (of the state or of the sensor), which adds limits rather than terms."""
@@ -632,96 +558,6 @@ def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records
     if score.noise_lags:
         return [replace(current, noise_lags=score.noise_lags)]
     return [replace(current, terms=current.terms + parse_terms(score.terms))]
-
-
-@dataclass
-class CheckSplit:
-    """The estimation data's fit and check parts (:func:`split_for_checking`), and the check
-    parts' free-run RMS of every structure judged on them, kept: the loop asks again for the
-    current model's (each round, the final choice of estimator)."""
-
-    fit: Segments
-    check: Segments
-    _errors: dict[tuple[Structure, bool], float] = field(default_factory=dict)
-    _tuned: dict[Structure, NARX] = field(default_factory=dict)
-    _settled: set[Structure] = field(default_factory=set)
-
-    @classmethod
-    def of(cls, records: Records, fold: int = 1) -> CheckSplit:
-        return cls(*split_for_checking(records, fold))
-
-    def error(self, structure: Structure, tuned: bool = False) -> float:
-        """Free-run RMS over the check parts of ``structure`` fitted on the fit parts (its
-        parameters by output error if ``tuned``); each run starts from its part's first measured
-        outputs. Infinite when the fit is impossible or a run diverges."""
-        key = (structure, tuned)
-        if key not in self._errors:
-            self._errors[key] = self._judge(structure, tuned)
-        return self._errors[key]
-
-    def tuned(self, structure: Structure) -> NARX:
-        """``structure`` fitted on the fit parts by output error (as :meth:`error` judges it with
-        ``tuned``); the least-squares fit where output error gains nothing."""
-        if structure not in self._tuned:
-            self._tuned[structure] = _output_error(self.fitted(structure), self.fit, CHECK_EVALUATIONS)
-        return self._tuned[structure]
-
-    def search(self, structure: Structure, start: NARX | None, evaluations: int) -> float:
-        """Search ``structure``'s parameters by output error on the fit parts from ``start`` (a
-        model of its terms; None: its least-squares fit), for at most ``evaluations``, and keep
-        the result as its output-error fit (:meth:`tuned`). Returns :meth:`error` of it."""
-        try:
-            start = self.fitted(structure) if start is None else start
-        except InputError:
-            return np.inf
-        self._tuned[structure] = _output_error(start, self.fit, evaluations)
-        self._errors[(structure, True)] = self._simulates(self._tuned[structure])
-        return self._errors[(structure, True)]
-
-    def settled(self, structure: Structure, start: NARX | None = None) -> float:
-        """:meth:`error` of ``structure``'s output-error fit searched until it stops gaining
-        (:meth:`search` to ``SETTLED_EVALUATIONS``), once."""
-        if structure not in self._settled:
-            self.search(structure, start, SETTLED_EVALUATIONS)
-            self._settled.add(structure)
-        return self.error(structure, tuned=True)
-
-    def _judge(self, structure: Structure, tuned: bool) -> float:
-        try:
-            model = self.tuned(structure) if tuned else self.fitted(structure)
-        except InputError:
-            return np.inf
-        return self._simulates(model)
-
-    def _simulates(self, model: NARX) -> float:
-        # A model that does not come to rest once the excitation stops is as good as diverged,
-        # however well it simulates while driven.
-        if not comes_to_rest(model, [(x, y) for x, y, _ in self.fit], [t for *_, t in self.fit]):
-            return np.inf
-        return _free_run_rms(model, self.check)
-
-    def fitted(self, structure: Structure) -> NARX:
-        model, _ = fit_model(
-            [(x, y) for x, y, _ in self.fit],
-            structure.terms,
-            structure.noise_lags,
-            max_lag(structure.terms),
-            [t for *_, t in self.fit],
-            structure.saturating,
-        )
-        return model
-
-
-def _output_error(model: NARX, segments: Segments, evaluations: int) -> NARX:
-    """``model`` with its parameters refined by output error on ``segments`` when that lowers
-    its free-run error there; ``model`` itself when its free run diverges or nothing is gained."""
-    try:
-        fit = fit_output_error(
-            model, [(x, y) for x, y, _ in segments], evaluations, t0=[t for *_, t in segments]
-        )
-    except InputError:
-        return model
-    return fit.model if fit.rms < fit.start_rms else model
 
 
 def _by_simulation(
@@ -786,7 +622,7 @@ def _across_folds(
             continue
         names = tuple(name for label in score.ranked for name in label)
         structure = replace(current, terms=current.terms + parse_terms(names))
-        error = primary.search(structure, _grown(primary, current, structure), CHECK_EVALUATIONS)
+        error = primary.search(structure, primary.grown(current, structure), CHECK_EVALUATIONS)
         if error <= (1 - FOLD_GAIN) * base:
             trials.append((error, replace(score, terms=names), structure))
     passed: list[tuple[float, EffectScore, Structure, tuple[float, float]]] = []
@@ -816,20 +652,11 @@ def _on_every_fold(
     errors = []
     for fold in folds:
         before = fold.settled(current)
-        start = first_start if fold is folds[0] else _grown(fold, current, structure)
+        start = first_start if fold is folds[0] else fold.grown(current, structure)
         errors.append((before, fold.settled(structure, start)))
         if not errors[-1][1] < (1 - gain) * before:
             return None
     return errors
-
-
-def _grown(checks: CheckSplit, current: Structure, structure: Structure) -> NARX | None:
-    """``structure`` with ``current``'s output-error fit on ``checks``' fit parts and zero on the
-    terms it adds; None (start from least squares) when ``structure`` cannot be fitted there."""
-    try:
-        return _grown_by_zeros(checks.tuned(current), checks.fitted(structure))
-    except InputError:
-        return None
 
 
 def _check_length(records: Records, terms: tuple[Term, ...], offered: Sequence[Effect]) -> None:

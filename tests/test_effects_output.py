@@ -9,11 +9,12 @@ import pytest
 from scipy import signal
 
 from models.assessment import assess
+from models.checking import SETTLED_EVALUATIONS
 from models.effects import candidate_effects, linear_terms, output_limits
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import fit_output_error
-from models.refinement import SETTLED_EVALUATIONS, refine_record, refine_records
+from models.refinement import refine_record, refine_records
 from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from simulator.simulate import BOUC_WEN_BETA, BOUC_WEN_GAMMA, Effects, Scenario, simulate

@@ -6,20 +6,12 @@ import numpy as np
 import pytest
 from scipy import linalg, signal, stats
 
+from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
-from models.refinement import (
-    SETTLED_EVALUATIONS,
-    CheckSplit,
-    Structure,
-    check_noise,
-    refine,
-    refine_record,
-    refine_records,
-    split_for_checking,
-)
+from models.refinement import refine, refine_record, refine_records
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from service.recordfiles import parse_silverbox
