@@ -236,7 +236,7 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
-    if not report["effects_added"]:
+    elif not report["effects_added"]:
         stdout.print("no effect lowers the error enough: nothing added")
     for number, effect in enumerate(report["effects_added"], start=1):
         evidence = effect["evidence"]
