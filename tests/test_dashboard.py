@@ -507,6 +507,20 @@ def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: 
         page = client.get(f"{DASHBOARD}/refinements/{refinement['id']}")
     assert page.status_code == 200
     assert f"{report['after']['free_run_rms']:.4g}" in page.text and f"record {ids[1]}" in page.text
+    assert 'id="withdrawn"' not in page.text
+
+    # A report whose effects the final check took back: the page names them, and that nothing is kept.
+    with api_server.app.state.sessions() as session:
+        stored = session.get(Refinement, refinement["id"])
+        assert stored is not None
+        withdrawn = [effect["name"] for effect in report["effects_added"]]
+        stored.report = stored.report | {"effects_added": [], "effects_withdrawn": withdrawn}
+        session.commit()
+    with logged_in(api_server, org.keys["viewer"]) as client:
+        page = client.get(f"{DASHBOARD}/refinements/{refinement['id']}")
+    assert page.status_code == 200
+    assert f"Withdrawn: {', '.join(withdrawn)}." in page.text
+    assert "No effect was added: the declared model stands." in page.text
 
 
 def test_the_refinement_page_gives_the_noise_between_periods_of_a_periodic_record(api_server: LiveServer):
