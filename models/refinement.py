@@ -161,8 +161,11 @@ class Refinement:
 
     @property
     def effects_withdrawn(self) -> tuple[str, ...]:
-        """The names of the effects the final check took back."""
-        return tuple(r.added.name for r in self.rounds[: self.withdrawn] if r.added is not None)
+        """The names of the effects the final check took back, each once (moving-average noise
+        is often added over several rounds)."""
+        return tuple(
+            dict.fromkeys(r.added.name for r in self.rounds[: self.withdrawn] if r.added is not None)
+        )
 
 
 @dataclass(frozen=True)

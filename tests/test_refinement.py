@@ -470,3 +470,6 @@ def test_from_three_records_effects_that_do_not_simulate_better_on_every_fold_ar
         result.effects_added,
     )
     assert result.refined.terms == declared and result.estimator == "output error"
+    # Each effect named once, however many rounds added it (moving-average noise took two here).
+    names = [step.added.name for step in result.rounds[: result.withdrawn] if step.added is not None]
+    assert sorted(result.effects_withdrawn) == sorted(set(names)), (result.effects_withdrawn, names)
