@@ -167,7 +167,7 @@ def split_for_checking(records: Records, fold: int = 1) -> tuple[Segments, Segme
     if len(records) >= 3:
         return (
             [(x, y, 0) for index, (x, y) in enumerate(records) if index % 3 != fold],
-            [(x, y, 0) for x, y in records[fold::3]],
+            [(x, y, 0) for x, y in checked_whole(records, fold)],
         )
     fit: Segments = []
     check: Segments = []
@@ -182,10 +182,10 @@ def split_for_checking(records: Records, fold: int = 1) -> tuple[Segments, Segme
     return fit, check
 
 
-def checked_whole(records: Records) -> Records:
+def checked_whole(records: Records, fold: int = 1) -> Records:
     """The records the check parts come from (:func:`split_for_checking`): from three records on
-    every third one, the second first; fewer, all (a part of each)."""
-    return list(records[1::3]) if len(records) >= 3 else list(records)
+    every third one, from the one ``fold`` counts from 0; fewer, all (a part of each)."""
+    return list(records[fold::3]) if len(records) >= 3 else list(records)
 
 
 def free_run_rms(model: NARX, segments: Segments) -> float:
