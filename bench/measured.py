@@ -41,7 +41,7 @@ from models.output_error import fit_output_error
 from models.refinement import Refinement, choose_linear, refine_records
 from models.scoring import fit_model
 from models.terms import Term, max_lag
-from service.recordfiles import SILVERBOX, Layout, read_record
+from service.recordfiles import SILVERBOX, Layout, read_record, read_record_set
 
 DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
 Records = list[tuple[np.ndarray, np.ndarray]]
@@ -71,15 +71,14 @@ def silverbox(declared: tuple[Term, ...] | None, label: str) -> Benchmark:
 
 
 def wiener_hammerstein() -> Benchmark:
+    # The files hold their realisations side by side: u and y name groups, one record a pair.
     folder = DATA / "wiener-hammerstein"
-    estimation = [
-        read_record(folder / "WH_EstimationExample.csv", Layout(f"u{k}", f"y{k}")) for k in range(1, 11)
-    ]
-    tests = [read_record(folder / "WH_TestDataset.csv", Layout(f"u{k}", f"y{k}")) for k in (1, 2)]
+    estimation = read_record_set(folder / "WH_EstimationExample.csv", Layout("u", "y"))
+    (_, multisine), (_, swept) = read_record_set(folder / "WH_TestDataset.csv", Layout("u", "y"))
     return Benchmark(
         "Wiener–Hammerstein, orders chosen",
-        [(r.x, r.y) for r in estimation],
-        {"multisine": (tests[0].x, tests[0].y), "swept sine": (tests[1].x, tests[1].y)},
+        [(r.x, r.y) for _, r in estimation],
+        {"multisine": (multisine.x, multisine.y), "swept sine": (swept.x, swept.y)},
         None,
         0,
         "issue 14: linear(6,6) by least squares 47 mV, by output error 34 mV",

@@ -30,8 +30,10 @@ import struct
 import tokenize
 import zipfile
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -110,6 +112,8 @@ class Layout:
 
 
 DEFAULT_LAYOUT = Layout()
+NamedRecord = tuple[Layout, RecordFile]  # a record and the layout (signal names) it was read with
+Parsed = TypeVar("Parsed", RecordFile, tuple[NamedRecord, ...])
 # How a name selects a signal, for the command line's and the API's help.
 NAMING_HELP = (
     "NAMEk is the k-th column of a group (a header cell followed by empty ones) or the k-th row or "
@@ -120,6 +124,15 @@ SILVERBOX = Layout("V1", "V2", SILVERBOX_FS)
 
 class RecordTooLargeError(InputError):
     """The record would unpack to more than the allowed number of bytes."""
+
+
+class WholeGroupError(InputError):
+    """A name denotes a whole group of ``count`` signals (CSV columns under one header cell, a MAT
+    matrix), spelt ``group`` in the file, where one signal was wanted; ``asked`` is the name given."""
+
+    def __init__(self, group: str, count: int, asked: str) -> None:
+        super().__init__(f"{group!r} holds {count} signals: name one of them, {group}1 … {group}{count}")
+        self.group, self.count, self.asked = group, count, asked
 
 
 def record_samples(max_bytes: int, channels: int = 1) -> int:
@@ -144,16 +157,31 @@ def read_record(path: str | Path, layout: Layout = DEFAULT_LAYOUT) -> RecordFile
     """Read a ``.csv``, ``.npz`` or ``.mat`` record, with a message naming the file on any failure."""
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in READABLE:
-        raise InputError(f"{path}: unknown record format {suffix or '(none)'}; use .csv, .npz or .mat")
+    return _naming(path, lambda data: parse_record(data, suffix, layout))
+
+
+def read_record_set(path: str | Path, layout: Layout = DEFAULT_LAYOUT) -> tuple[NamedRecord, ...]:
+    """The records a ``.csv``, ``.npz`` or ``.mat`` file holds (:func:`parse_record_set`), with a
+    message naming the file on any failure."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    return _naming(path, lambda data: parse_record_set(data, suffix, layout))
+
+
+def _naming(path: Path, parse: Callable[[bytes], Parsed]) -> Parsed:
+    """``parse`` of the file's bytes; any InputError's message names the file (its type and
+    attributes kept: the API answers a record too large with 413)."""
+    if path.suffix.lower() not in READABLE:
+        raise InputError(f"{path}: unknown record format {path.suffix or '(none)'}; use .csv, .npz or .mat")
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read the file ({exc.strerror})") from None
     try:
-        return parse_record(data, suffix, layout)
+        return parse(data)
     except InputError as exc:
-        raise type(exc)(f"{path}: {exc}") from None
+        exc.args = (f"{path}: {exc}",)
+        raise
 
 
 def parse_record(
@@ -178,6 +206,40 @@ def parse_record(
         )
     record = parse_npz(data, max_bytes, layout.channels)
     return record if record.fs is not None else replace(record, fs=layout.fs)
+
+
+def parse_record_set(data: bytes, suffix: str, layout: Layout = DEFAULT_LAYOUT) -> tuple[NamedRecord, ...]:
+    """The records a file holds, each with the layout that reads it: one, or k when ``layout.x``
+    and ``layout.y`` each name a whole group of k signals (CSV columns under one header cell, a
+    MAT matrix), the pairs (x1, y1) … (xk, yk) — a benchmark's realisations side by side, as the
+    Wiener–Hammerstein estimation file's ten and its test file's two.
+
+    A group for one of x and y and a single signal (or a group of another size) for the other is
+    refused: which signal goes with which would be a guess.
+    """
+    try:
+        return ((layout, parse_record(data, suffix, layout)),)
+    except WholeGroupError as whole:
+        inputs = whole
+    pairing = "; or, to read a record from each pair, name two groups of as many signals as x and y"
+    if inputs.asked != layout.x or layout.channels:
+        raise InputError(f"{inputs}{pairing}") from None
+    try:
+        parse_record(data, suffix, replace(layout, x=f"{inputs.group}1"))
+    except WholeGroupError as whole:
+        outputs = whole
+    else:
+        raise InputError(f"{inputs}{pairing}") from None
+    if outputs.count != inputs.count:
+        raise InputError(
+            f"{inputs.group!r} holds {inputs.count} signals and {outputs.group!r} {outputs.count}: "
+            f"as records, x and y must pair one to one (or name one of each, such as "
+            f"{inputs.group}1 and {outputs.group}1)"
+        ) from None
+    pairs = [
+        replace(layout, x=f"{inputs.group}{k}", y=f"{outputs.group}{k}") for k in range(1, inputs.count + 1)
+    ]
+    return tuple((pair, parse_record(data, suffix, pair)) for pair in pairs)
 
 
 def parse_csv(
@@ -406,7 +468,7 @@ def _resolve(name: str, counts: dict[str, int | None], missing: str) -> tuple[st
         count = counts[own]
         if count is None or count == 1:
             return own, 0
-        raise InputError(f"{own!r} holds {count} signals: name one of them, {own}1 … {own}{count}")
+        raise WholeGroupError(own, count, name)
     match = _NUMBERED.fullmatch(name)
     base = _named(match["base"], counts) if match else None
     if match and base is not None:

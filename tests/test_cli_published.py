@@ -56,18 +56,19 @@ def plain_report(files) -> dict:
 @pytest.mark.parametrize("name", ["named.csv", "named.mat"])
 def test_refine_reads_named_signals_as_the_plain_record(files, plain_report, name):
     named = json.loads(run("refine", name, "--x", "Force", "--y", "Acc2", *REFINE, cwd=files).stdout)
-    # The same report but for the file names it quotes.
-    assert without_paths(named) == without_paths(plain_report) and named["data"]["fs"] == 1500.0
+    # The same report but for the file and signal names it quotes.
+    assert without_sources(named) == without_sources(plain_report) and named["data"]["fs"] == 1500.0
 
 
-def without_paths(report: dict) -> dict:
-    """``report`` without the file names it quotes (a copy: the fixture's report is shared)."""
-    data = report["data"] | {
-        "estimation": [
-            {k: v for k, v in item.items() if k != "path"} for item in report["data"]["estimation"]
-        ]
-    }
-    tests = [{k: v for k, v in item.items() if k != "path"} for item in report["tests"]]
+def without_sources(report: dict) -> dict:
+    """``report`` without the file and signal names it quotes (a copy: the fixture's report is
+    shared)."""
+
+    def unnamed(item: dict) -> dict:
+        return {k: v for k, v in item.items() if k not in ("path", "x", "y")}
+
+    data = report["data"] | {"estimation": [unnamed(item) for item in report["data"]["estimation"]]}
+    tests = [unnamed(item) for item in report["tests"]]
     return report | {"data": data, "tests": tests}
 
 

@@ -45,7 +45,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
         assert max(effect["evidence"]["p_values"]) < effect["evidence"]["level"]
     # The official split, and the linear ARX as declared.
     assert report["data"]["estimation"] == [
-        {"path": str(silverbox_dir / "SNLS80mV.csv"), "samples": [40650, 105712]}
+        {"path": str(silverbox_dir / "SNLS80mV.csv"), "x": "V1", "y": "V2", "samples": [40650, 105712]}
     ]
     arrow, schroeder = report["tests"]
     assert arrow["samples"] == [100, 40575] and arrow["before"] == report["before"]
@@ -130,17 +130,25 @@ def free_run_rms(model: NARX, folder: Path, name: str, transient: int = 0) -> fl
     return float(np.sqrt(np.mean((model.simulate(x, y)[L:] - y[L:]) ** 2)))
 
 
-def test_several_estimation_records_and_each_validation_record_judged_whole(simulated_records: Path):
-    report = json.loads(
+@pytest.fixture(scope="module")
+def two_record_report(simulated_records: Path) -> dict:
+    """The JSON report of the loop on e1 and e2, judged on v1 and v2."""
+    return json.loads(
         run(
             "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "v2.csv", "--json",
             cwd=simulated_records,
         ).stdout
     )  # fmt: skip
+
+
+def test_several_estimation_records_and_each_validation_record_judged_whole(
+    simulated_records: Path, two_record_report: dict
+):
+    report = two_record_report
     assert set(report) == REPORT_KEYS
     assert report["data"]["estimation"] == [
-        {"path": "e1.csv", "samples": [0, 6000]},
-        {"path": "e2.csv", "samples": [0, 6000]},
+        {"path": "e1.csv", "x": "x", "y": "y", "samples": [0, 6000]},
+        {"path": "e2.csv", "x": "x", "y": "y", "samples": [0, 6000]},
     ]
     # Estimation on both records at once: the declared model is the least-squares fit on both,
     # not on either alone.
@@ -181,6 +189,46 @@ def test_several_estimation_records_and_each_validation_record_judged_whole(simu
     for row, test in zip(rows, report["tests"], strict=True):
         assert float(row[2]) == pytest.approx(test["before"]["free_run_rms"], rel=1e-3)
         assert float(row[3]) == pytest.approx(test["after"]["free_run_rms"], rel=1e-3)
+
+
+def side_by_side(folder: Path, names: list[str], path: Path) -> None:
+    """The named records in one CSV, as the Wiener–Hammerstein benchmark publishes its
+    realisations: a group of columns ``"u",,…`` of their x, one ``"y",,…`` of their y, and fs."""
+    records = [read_record(folder / f"{name}.csv") for name in names]
+    padding = "," * (len(names) - 1)
+    columns = np.column_stack([*(r.x for r in records), *(r.y for r in records)])
+    rows = [",".join(f"{value:.17g}" for value in row) + "," for row in columns]
+    rows[0] += f"{records[0].fs:g}"
+    path.write_text("\n".join([f'"u"{padding},"y"{padding},"fs"', *rows]) + "\n")
+
+
+def test_the_realisations_of_one_file_are_records_as_separate_files_are(
+    simulated_records: Path, two_record_report: dict
+):
+    side_by_side(simulated_records, ["e1", "e2"], simulated_records / "estimation.csv")
+    side_by_side(simulated_records, ["v1", "v2"], simulated_records / "test.csv")
+    grouped = json.loads(
+        run(
+            "refine", "estimation.csv", "--x", "u", "--y", "y", "--declared", "2dof",
+            "--validate", "test.csv", "--json", cwd=simulated_records,
+        ).stdout
+    )  # fmt: skip
+    separate = two_record_report
+    assert grouped["data"]["estimation"] == [
+        {"path": "estimation.csv", "x": "u1", "y": "y1", "samples": [0, 6000]},
+        {"path": "estimation.csv", "x": "u2", "y": "y2", "samples": [0, 6000]},
+    ]
+    assert [(t["path"], t["x"], t["y"]) for t in grouped["tests"]] == [
+        ("test.csv", "u1", "y1"),
+        ("test.csv", "u2", "y2"),
+    ]
+    sources = ("path", "x", "y")
+    for key in ("declared", "refined", "effects_added", "check_free_run_rms"):
+        assert grouped[key] == separate[key], key
+    for one, other in zip(grouped["tests"], separate["tests"], strict=True):
+        assert {k: v for k, v in one.items() if k not in sources} == {
+            k: v for k, v in other.items() if k not in sources
+        }
 
 
 def test_transient_samples_are_dropped_from_every_record(simulated_records: Path):

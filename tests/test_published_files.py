@@ -32,8 +32,10 @@ from service.recordfiles import (
     header_groups,
     parse_csv,
     parse_mat,
+    parse_record_set,
     parse_silverbox,
     read_record,
+    read_record_set,
 )
 
 LIMIT = 16 * 2**20  # the service's default upload limit
@@ -124,6 +126,48 @@ def test_wiener_hammerstein_groups_name_their_columns(wh_dir, file, k, samples):
     np.testing.assert_array_equal(record.x, reference[:, width + k - 1])
     np.testing.assert_array_equal(record.y, reference[:, 2 * width + k - 1])
     assert record.fs == 78125.0 == reference[0, 3 * width]
+
+
+@pytest.mark.parametrize(("file", "count"), [("WH_EstimationExample.csv", 10), ("WH_TestDataset.csv", 2)])
+def test_groups_named_for_both_x_and_y_are_records_pair_by_pair(wh_dir, file, count):
+    """``u`` and ``y`` on a file of realisations side by side: one record a pair, (u_k, y_k), as
+    each is read alone; one signal named of each is one record."""
+    path = wh_dir / file
+    records = read_record_set(path, Layout("u", "y"))
+    pairs = [(f"u{k}", f"y{k}") for k in range(1, count + 1)]
+    assert [(layout.x, layout.y) for layout, _ in records] == pairs
+    for k, (_, record) in enumerate(records, start=1):
+        alone = read_record(path, Layout(f"u{k}", f"y{k}"))
+        np.testing.assert_array_equal(record.x, alone.x)
+        np.testing.assert_array_equal(record.y, alone.y)
+        assert record.fs == alone.fs == 78125.0
+    ((layout, record),) = read_record_set(path, Layout("u2", "y2"))
+    assert layout == Layout("u2", "y2")
+    np.testing.assert_array_equal(record.y, read_record(path, Layout("u2", "y2")).y)
+
+
+def test_matrices_named_for_both_x_and_y_are_records_row_by_row():
+    forces, accelerations = np.arange(600.0).reshape(2, 300), -np.arange(600.0).reshape(2, 300)
+    data = mat_file(matrix("Force", forces), matrix("Acc", accelerations), matrix("Fs", np.array([[400.0]])))
+    records = parse_record_set(data, ".mat", Layout("Force", "Acc"))
+    assert [(layout.x, layout.y) for layout, _ in records] == [("Force1", "Acc1"), ("Force2", "Acc2")]
+    for k, (_, record) in enumerate(records):
+        np.testing.assert_array_equal(record.x, forces[k])
+        np.testing.assert_array_equal(record.y, accelerations[k])
+        assert record.fs == 400.0
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b'"a",,"b",,,\n1,2,3,4,5\n', "'a' holds 2 signals and 'b' 3: as records, x and y must pair"),
+        (b'"a",,"b"\n1,2,3\n', "'a' holds 2 signals: name one of them, a1 … a2; or, to read a record from"),
+        (b'"a","b",\n1,2,3\n', "'b' holds 2 signals: name one of them, b1 … b2; or, to read a record from"),
+    ],
+)  # fmt: skip
+def test_groups_that_do_not_pair_one_to_one_are_refused(content, message):
+    with pytest.raises(InputError, match=re.escape(message)):
+        parse_record_set(content, ".csv", Layout("a", "b"))
 
 
 def test_silverbox_is_sugar_for_v1_v2_at_its_rate(silverbox_dir):

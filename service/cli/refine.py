@@ -5,7 +5,9 @@ Two protocols. **Parts of one record** (one record, no ``--validate``; or ``--es
 on the estimation part and both models are judged on the test part, then on each ``--validate``
 record whole. **Whole records** (several estimation records, or one with ``--validate``):
 estimation on all of them at once (no lag crosses a record's boundary), each ``--validate``
-record judged whole. ``--transient`` drops the first samples of every record in both.
+record judged whole. ``--transient`` drops the first samples of every record in both. A file
+holds one record, or one for each pair of signals when ``--x`` and ``--y`` name groups of as many
+(:func:`service.recordfiles.parse_record_set`).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from models.refinement import DEFAULT_ALPHA, Comparison, RefinementReport, refin
 from models.terms import Term
 from service.cli.console import stdout
 from service.cli.modelfiles import XName, YName, common_rate, read_terms, signal_layout
-from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record
+from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
 from simulator.theory import EXACT_TERMS
 
 # The Silverbox benchmark's official split (shared/data/README.md): estimation and arrow test,
@@ -56,12 +58,23 @@ class DataFormat(StrEnum):
 
 @dataclass(frozen=True)
 class _Record:
-    """A record as the loop sees it: its file, signals (transient dropped) and sampling rate."""
+    """A record as the loop sees it: its file, the names of its signals there, the signals
+    (transient dropped) and the sampling rate."""
 
     path: Path
+    layout: Layout
     x: np.ndarray
     y: np.ndarray
     fs: float | None
+
+    @property
+    def source(self) -> dict[str, Any]:
+        """Where the record comes from, for the report."""
+        return {"path": str(self.path), "x": self.layout.x, "y": self.layout.y}
+
+    @property
+    def name(self) -> str:
+        return f"{self.path}{_signals(self.source)}"
 
 
 def refine_command(
@@ -69,7 +82,8 @@ def refine_command(
         list[Path],
         typer.Argument(
             help="Estimation record(s): .csv or .npz as 'narxwatch simulate' writes, a CSV or MAT file "
-            "(--x, --y)."
+            "(--x, --y). Where --x and --y name groups of as many signals (u and y of the "
+            "Wiener–Hammerstein files, ten realisations side by side), each pair is a record."
         ),
     ],
     declared: Annotated[str | None, typer.Option(help=DECLARED_HELP)] = None,
@@ -115,9 +129,9 @@ def refine_command(
     layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
     if transient < 0:
         raise InputError(f"--transient must be 0 or more, got {transient}")
-    checked = [_read(path, layout, fs, transient) for path in (*data, *(validate or []))]
-    rate = common_rate([(str(record.path), record.fs) for record in checked])
-    fitted, held = checked[: len(data)], checked[len(data) :]
+    fitted = [record for path in data for record in _read(path, layout, fs, transient)]
+    held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
+    rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
     start = initial if initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
     terms = _declared(declared)
     if len(fitted) == 1 and (not held or estimation is not None or test is not None or silverbox):
@@ -128,8 +142,8 @@ def refine_command(
         report = refine_record(record.x, record.y, terms, est, part, start, alpha, rate)
         c, d = part
         report = RefinementReport(report.refinement, report.tests + _judged(report, held, start, rate))
-        judged = [{"path": str(record.path), "samples": [c, d]}] + [_whole(r) for r in held]
-        protocol = {"estimation": [{"path": str(record.path), "samples": list(est)}]}
+        judged = [record.source | {"samples": [c, d]}] + [_whole(r) for r in held]
+        protocol = {"estimation": [record.source | {"samples": list(est)}]}
         plotted = (record.x[c:d], record.y[c:d])
     else:
         for option, value in (("--estimation", estimation), ("--test", test)):
@@ -164,16 +178,19 @@ def refine_command(
     _print(document, plot)
 
 
-def _read(path: Path, layout: Layout, fs: float | None, transient: int) -> _Record:
-    record = read_record(path, layout)
-    if transient >= len(record.y):
-        raise InputError(f"{path}: --transient {transient} drops all of its {len(record.y)} samples")
-    rate = record.fs if record.fs is not None else fs
-    return _Record(path, record.x[transient:], record.y[transient:], rate)
+def _read(path: Path, layout: Layout, fs: float | None, transient: int) -> list[_Record]:
+    """The file's records (one, or one from each pair of groups x and y name), transient dropped."""
+    records = []
+    for pair, record in read_record_set(path, layout):
+        if transient >= len(record.y):
+            raise InputError(f"{path}: --transient {transient} drops all of its {len(record.y)} samples")
+        rate = record.fs if record.fs is not None else fs
+        records.append(_Record(path, pair, record.x[transient:], record.y[transient:], rate))
+    return records
 
 
 def _whole(record: _Record) -> dict[str, Any]:
-    return {"path": str(record.path), "samples": [0, len(record.y)]}
+    return record.source | {"samples": [0, len(record.y)]}
 
 
 def _judged(
@@ -279,7 +296,8 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         ]
         stdout.print(
             " ".join(f"{cell:>11}" for cell in cells)
-            + f"  {item['after']['ljung_box_p'] or 0:>11.3g}  {item['path']} [{first}:{last}]",
+            + f"  {item['after']['ljung_box_p'] or 0:>11.3g}  {item['path']}{_signals(item)}"
+            f" [{first}:{last}]",
             highlight=False,
             markup=False,
         )
@@ -287,6 +305,11 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         stdout.print(f"note: {note}", highlight=False, markup=False)
     if plot is not None:
         stdout.print(f"figure -> {plot}")
+
+
+def _signals(source: dict[str, Any]) -> str:
+    """The signals a record was read from, where they are not the plain x and y."""
+    return "" if (source["x"], source["y"]) == ("x", "y") else f" ({source['x']}, {source['y']})"
 
 
 def _number(value: float | None) -> str:
