@@ -21,18 +21,19 @@ loop chooses), each round
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Otherwise the loop stops.
 
-The refined structure must simulate the check blocks better than the declared one, both with
-their parameters by output error; otherwise the declared structure is kept.
+After the rounds, the refined structure must simulate the check blocks better than the declared
+one, both with their parameters by output error (from three records on, on every fold below);
+otherwise what the rounds added is withdrawn and the declared structure kept.
 
-5. From three records on, the structure kept is then grown on the simulation error across
-   folds: each third of the records in turn is checked and the rest fitted. Every family's terms
-   are added at zero to the current model's output-error fit; the best families on the first
-   fold are searched until they stop gaining on every fold, and of those whose free run over the
-   checked records falls by ``FOLD_GAIN`` on all three, the one that falls most on average is
-   added — decided by the simulation across folds. This repeats until no family passes. (On
-   F-16's sweeps the rounds above add nothing that lasts: least squares ranks the families
-   there, and every cubic-stiffness model it fits diverges; grown from the settled linear
-   model, cubic stiffness gains 8–29 % on every fold.)
+**Across folds.** From three records on, the structure kept is then grown on the simulation error
+across folds: each third of the records in turn is checked and the rest fitted. Every family's
+terms are added at zero to the current model's output-error fit; the best families on the first
+fold are searched until they stop gaining on every fold, and of those whose free run over the
+checked records falls by ``FOLD_GAIN`` on all three, the one that falls most on average is added
+— decided by the simulation across folds. This repeats until no family passes. (On F-16's sweeps
+the rounds above add nothing that lasts: least squares ranks the families there, and every
+cubic-stiffness model it fits diverges; grown from the settled linear model, cubic stiffness
+gains 8–29 % on every fold.)
 
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
@@ -90,9 +91,9 @@ MAX_ROUNDS = 10
 # by up to 8 % by chance; the effects the one-step residual misses (a plateau, a drain) take far
 # more off it.
 SIMULATION_GAIN = 0.2
-# From three records on, a family is added on the simulation error across folds (step 5) when its
-# settled model lowers the checked records' free run by this share on every fold; the best
-# FOLD_TRIALS families of the first fold, by bounded searches, are tried on all of them.
+# From three records on, a family is added on the simulation error across folds (module
+# docstring) when its settled model lowers the checked records' free run by this share on every
+# fold; the best FOLD_TRIALS families of the first fold, by bounded searches, are tried on all.
 FOLD_GAIN = 0.05
 FOLD_TRIALS = 3
 MAX_LINEAR_ORDER = 10  # the largest order tried when no structure is declared
@@ -612,7 +613,7 @@ def _repairs_only_bias(
 def _across_folds(
     offered: Sequence[Effect], scores: Sequence[EffectScore], current: Structure, folds: Sequence[CheckSplit]
 ) -> tuple[EffectScore, Structure, tuple[float, float]] | None:
-    """The family added on the simulation error across folds (module docstring, step 5), if one
+    """The family added on the simulation error across folds (module docstring), if one
     lowers every fold's free run by ``FOLD_GAIN``: its score with all its terms, the structure,
     and the first fold's free-run RMS before and after, both settled.
 
