@@ -125,8 +125,49 @@ def test_train_and_select_read_named_signals(files):
             "CSV line 5: 'volts' in column 'Acc2' is not a number",
         ),
         (["select", "plain.csv", "--x", "Force"], "no column 'Force'; its columns are x, y"),
+        (
+            ["train", "baseline", "named.csv", "--x", "Force", "--y", "Acc", "--out", "m.json"],
+            "'Acc' holds 2 signals: name one of them, Acc1 … Acc2; or, to read a record from each pair",
+        ),
     ],
 )  # fmt: skip
 def test_bad_names_are_refused_with_what_to_fix(files, args, message):
     result = invoke(*args, cwd=files, check=False)
     assert result.returncode == 2 and message in result.stderr, result.stderr
+
+
+def test_a_file_of_realisations_is_read_as_its_records_by_train_and_select(tmp_path: Path):
+    """Force and Acc as 2×N matrices, one realisation a row: ``--x Force --y Acc`` gives the two
+    records the two separate files give, to a baseline, to a fault mode (two experiments at the
+    file's k) and to a selection."""
+    realisations = {k: [simulated("k2", k, [7, k + 40, i], n=3000) for i in range(2)] for k in (-16, 0, 16)}
+    for k, pair in realisations.items():
+        matrices = {"Force": np.stack([r.x for r in pair]), "Acc": np.stack([r.y for r in pair])}
+        scipy.io.savemat(tmp_path / f"k{k}.mat", matrices | {"Fs": pair[0].fs})
+        for i, record in enumerate(pair):
+            write_record(tmp_path / f"k{k}_{i}.csv", record.x, record.y, record.fs)
+    signals = ("--x", "Force", "--y", "Acc")
+    run("train", "baseline", "k0.mat", *signals, "--terms", TERMS, "--out", "grouped.json", cwd=tmp_path)
+    expected = fit_narx([(r.x, r.y) for r in realisations[0]], parse_terms(TERMS.split(",")))
+    baseline = json.loads((tmp_path / "grouped.json").read_text())
+    np.testing.assert_array_equal(baseline["theta"], expected.theta)
+
+    (tmp_path / "grouped.csv").write_text("path,k\n" + "".join(f"k{k}.mat,{k}\n" for k in realisations))
+    (tmp_path / "separate.csv").write_text(
+        "path,k\n" + "".join(f"k{k}_{i}.csv,{k}\n" for k in realisations for i in range(2))
+    )
+    for manifest, options in (("grouped", signals), ("separate", ())):
+        run(
+            "train", "fault-mode", "--name", "k2", "--experiments", f"{manifest}.csv", "--terms", TERMS,
+            *options, "--out", f"{manifest}_k2.json", cwd=tmp_path,
+        )  # fmt: skip
+    grouped, separate = (json.loads((tmp_path / f"{m}_k2.json").read_text()) for m in ("grouped", "separate"))
+    assert grouped.pop("metadata")["experiments"] == [{"path": f"k{k}.mat", "k": k} for k in realisations]
+    separate.pop("metadata")
+    assert grouped == separate
+
+    options = ("--degree", "1", "--ny", "2", "--nx", "2", "--n-terms", "3", "--json")
+    from_groups = json.loads(run("select", "k0.mat", *signals, *options, cwd=tmp_path).stdout)
+    from_files = json.loads(run("select", "k0_0.csv", "k0_1.csv", *options, cwd=tmp_path).stdout)
+    assert from_groups.pop("records") == ["k0.mat"] and from_files.pop("records") == ["k0_0.csv", "k0_1.csv"]
+    assert from_groups == from_files

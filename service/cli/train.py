@@ -15,6 +15,7 @@ from service.cli.modelfiles import (
     XName,
     YName,
     read_manifest,
+    read_record_sets,
     read_records,
     read_terms,
     signal_layout,
@@ -67,11 +68,12 @@ def fault_mode(
 ) -> None:
     """Identify a fault mode as a functional NARX model from experiments at several magnitudes."""
     rows = read_manifest(experiments)
-    loaded, fs = read_records([path for path, _ in rows], signal_layout(x, y))
+    # A file of several realisations (x and y naming groups) gives that many experiments at its k.
+    sets, fs = read_record_sets([path for path, _ in rows], signal_layout(x, y))
     ks = [k for _, k in rows]
     k_range = (min(ks) if k_min is None else k_min, max(ks) if k_max is None else k_max)
     model = fit_fnarx(
-        [(r.x, r.y, k) for r, k in zip(loaded, ks, strict=True)],
+        [(r.x, r.y, k) for found, k in zip(sets, ks, strict=True) for r in found],
         read_terms(terms),
         name=name,
         family=basis,  # type: ignore[arg-type]  # checked by FunctionalBasis
