@@ -10,9 +10,11 @@ For every benchmark and output it prints the free-run RMS on the test records of
   between their periods where they repeat their excitation (:mod:`models.periods`);
 
 beside the figures published for the benchmark, and the time the loop took. Run from the
-project root (about half an hour on 2 cores; ``--only silverbox`` etc. for one benchmark)::
+project root (``--only silverbox`` etc. for one benchmark; ``--jobs`` benchmarks at once, each in
+its own process, the longest first: about 40 minutes with two on 2 cores, F-16's accelerations
+2 and 3 taking most of it)::
 
-    .venv/bin/python -m bench.measured [--only NAME]
+    .venv/bin/python -m bench.measured [--only NAME] [--jobs N]
 
 Protocols: Silverbox estimates on samples [40650, 105712) of SNLS80mV and tests on the arrow
 [100, 40575), each free run started from 50 measured samples; Wiener–Hammerstein estimates on
@@ -25,7 +27,10 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -116,21 +121,59 @@ def best_linear(benchmark: Benchmark) -> tuple[tuple[int, int, int], dict[str, f
     }
 
 
+def rows(build: Callable[[], Benchmark]) -> list[tuple[str, ...]]:
+    """The table's rows for one benchmark: its best linear model, then the loop, timed."""
+    benchmark = build()
+    orders, linear = best_linear(benchmark)
+    started = time.perf_counter()
+    report = refine_records(
+        benchmark.estimation, list(benchmark.tests.values()), benchmark.declared, benchmark.initial
+    )
+    seconds = time.perf_counter() - started
+    result = report.refinement
+    effects = ", ".join(f"{s.added.name} ({s.criterion})" for s in result.kept if s.added) or "none"
+    if result.effects_withdrawn:
+        effects = f"withdrawn: {', '.join(result.effects_withdrawn)}; kept: {effects}"
+    table = []
+    for index, (name, comparison) in enumerate(zip(benchmark.tests, report.tests, strict=True)):
+        first = index == 0
+        table.append(
+            (
+                benchmark.name if first else "",
+                name,
+                f"{linear[name]:.4g} {orders}",
+                f"{comparison.before.free_run_rms:.4g}"
+                + (f" {result.orders}" if first and result.orders else ""),
+                f"{comparison.after.free_run_rms:.4g} ({result.estimator})"
+                if first
+                else f"{comparison.after.free_run_rms:.4g}",
+                effects if first else "",
+                _check_and_floor(result) if first else "",
+                f"{seconds:.0f} s" if first else "",
+                benchmark.published if first else "",
+            )
+        )
+    return table
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--only", choices=["silverbox", "wh", "f16"], help="one benchmark only")
-    only = parser.parse_args().only
-    builders = []
-    if only in (None, "silverbox"):
-        builders += [
-            lambda: silverbox(linear_terms(4, 4), "from linear:4,4"),
-            lambda: silverbox(linear_terms(10, 10), "from linear:10,10"),
-            lambda: silverbox(None, "orders chosen"),
-        ]
+    parser.add_argument("--jobs", type=int, default=1, help="benchmarks run at once, each in a process")
+    arguments = parser.parse_args()
+    only = arguments.only
+    # Longest first, so that the processes finish together; the table keeps this order.
+    builders: list[Callable[[], Benchmark]] = []
+    if only in (None, "f16"):
+        builders += [partial(f16, output) for output in (3, 2, 1)]
     if only in (None, "wh"):
         builders.append(wiener_hammerstein)
-    if only in (None, "f16"):
-        builders += [lambda output=output: f16(output) for output in (1, 2, 3)]
+    if only in (None, "silverbox"):
+        builders += [
+            partial(silverbox, linear_terms(4, 4), "from linear:4,4"),
+            partial(silverbox, linear_terms(10, 10), "from linear:10,10"),
+            partial(silverbox, None, "orders chosen"),
+        ]
     table = Table(title="Free-run RMS on the test records (output units: V or m/s²)")
     for column in (
         "benchmark",
@@ -145,35 +188,14 @@ def main() -> None:
     ):
         table.add_column(column)
     console = Console(width=220)
-    for build in track(builders, description="benchmarks", console=console):
-        benchmark = build()
-        orders, linear = best_linear(benchmark)
-        started = time.perf_counter()
-        report = refine_records(
-            benchmark.estimation, list(benchmark.tests.values()), benchmark.declared, benchmark.initial
-        )
-        seconds = time.perf_counter() - started
-        result = report.refinement
-        effects = ", ".join(f"{s.added.name} ({s.criterion})" for s in result.kept if s.added) or "none"
-        if result.effects_withdrawn:
-            effects = f"withdrawn: {', '.join(result.effects_withdrawn)}; kept: {effects}"
-        for index, (name, comparison) in enumerate(zip(benchmark.tests, report.tests, strict=True)):
-            first = index == 0
-            table.add_row(
-                benchmark.name if first else "",
-                name,
-                f"{linear[name]:.4g} {orders}",
-                f"{comparison.before.free_run_rms:.4g}"
-                + (f" {result.orders}" if first and result.orders else ""),
-                f"{comparison.after.free_run_rms:.4g} ({result.estimator})"
-                if first
-                else f"{comparison.after.free_run_rms:.4g}",
-                effects if first else "",
-                _check_and_floor(result) if first else "",
-                f"{seconds:.0f} s" if first else "",
-                benchmark.published if first else "",
-            )
-        console.print(table)
+    with ProcessPoolExecutor(max(arguments.jobs, 1)) as pool:
+        running = [pool.submit(rows, build) for build in builders]
+        for _ in track(as_completed(running), total=len(running), description="benchmarks", console=console):
+            pass
+    for job in running:
+        for row in job.result():
+            table.add_row(*row)
+    console.print(table)
 
 
 def _check_and_floor(result: Refinement) -> str:
