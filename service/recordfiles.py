@@ -220,9 +220,11 @@ def parse_record_set(data: bytes, suffix: str, layout: Layout = DEFAULT_LAYOUT) 
     try:
         return ((layout, parse_record(data, suffix, layout)),)
     except WholeGroupError as whole:
+        if layout.channels:  # the responses of one record: no pairs to read
+            raise
         inputs = whole
     pairing = "; or, to read a record from each pair, name two groups of as many signals as x and y"
-    if inputs.asked != layout.x or layout.channels:
+    if inputs.asked != layout.x:
         raise InputError(f"{inputs}{pairing}") from None
     try:
         parse_record(data, suffix, replace(layout, x=f"{inputs.group}1"))
