@@ -30,7 +30,7 @@ import struct
 import tokenize
 import zipfile
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeVar
@@ -241,7 +241,10 @@ def parse_record_set(data: bytes, suffix: str, layout: Layout = DEFAULT_LAYOUT) 
     pairs = [
         replace(layout, x=f"{inputs.group}{k}", y=f"{outputs.group}{k}") for k in range(1, inputs.count + 1)
     ]
-    return tuple((pair, parse_record(data, suffix, pair)) for pair in pairs)
+    # Read at once (a parse a pair would read a wide file as many times); only CSV and MAT files
+    # have groups.
+    records = _parse_csv(data, None, pairs) if suffix == ".csv" else _parse_mat(data, None, pairs)
+    return tuple(zip(pairs, records, strict=True))
 
 
 def parse_csv(
@@ -256,6 +259,13 @@ def parse_csv(
     so that x and y of different lengths are told as such. With ``max_samples``, more rows than
     that are refused, grossly so before the text is split.
     """
+    (record,) = _parse_csv(data, max_samples, (layout,))
+    return record
+
+
+def _parse_csv(data: bytes | str, max_samples: int | None, layouts: Sequence[Layout]) -> list[RecordFile]:
+    """:func:`parse_csv` with each of ``layouts``, the text split and its columns read once."""
+    layout = layouts[0]
     try:
         text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
     except UnicodeDecodeError:
@@ -291,11 +301,11 @@ def parse_csv(
         for name, width in widths.items()
     )
     wanted = []
-    for name in (layout.x, *layout.responses):
-        group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
-        wanted.append((name, groups[group][k]))
-    x, *responses = _read_columns(lines, first, count, wanted, max_samples)
-    y = _check_lengths(layout, x, responses)
+    for each in layouts:
+        for name in (each.x, *each.responses):
+            group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
+            wanted.append((name, groups[group][k]))
+    columns = iter(_read_columns(lines, first, count, wanted, max_samples))
     rate_name = next((name for name in groups if name.lower() == "fs" and widths[name] == 1), None)
     fs = comment_fs
     if rate_name is not None:
@@ -303,7 +313,12 @@ def parse_csv(
         cell = first_row[column].strip() if column < len(first_row) else ""
         if cell:
             fs = _agreed_rate(comment_fs, _sampling_rate(cell), f"the column {rate_name!r}")
-    return RecordFile(x, y, fs if fs is not None else layout.fs, conditions, layout.channels)
+    records = []
+    for each in layouts:
+        x, *responses = (next(columns) for _ in range(1 + len(each.responses)))
+        y = _check_lengths(each, x, responses)
+        records.append(RecordFile(x, y, fs if fs is not None else each.fs, conditions, each.channels))
+    return records
 
 
 def _condition_comment(match: re.Match[str], number: int) -> Condition:
@@ -407,10 +422,16 @@ def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAUL
     hold at most :func:`record_samples` samples, checked on their declared dimensions before
     any of their data is inflated.
     """
+    (record,) = _parse_mat(data, max_bytes, (layout,))
+    return record
+
+
+def _parse_mat(data: bytes, max_bytes: int | None, layouts: Sequence[Layout]) -> list[RecordFile]:
+    """:func:`parse_mat` with each of ``layouts``, each variable loaded once."""
     mat = matfiles.list_mat(data)
     counts = {name: _signal_count(variable.shape) for name, variable in mat.variables.items()}
     wanted = []
-    for name in (layout.x, *layout.responses):
+    for name in (name for each in layouts for name in (each.x, *each.responses)):
         variable, k = _resolve(
             name, counts, f"the MAT file has no variable {name!r}; it holds {mat.describe()}"
         )
@@ -431,13 +452,19 @@ def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAUL
             f"({declared} bytes as float64)"
         )
     arrays = matfiles.load_variables(mat, list(chosen.values()))
-    x, *responses = (_signal(arrays[variable.name], k) for variable, k in wanted)
-    y = _check_lengths(layout, x, responses)
-    channels = len(responses)
-    if max_bytes is not None and x.size > record_samples(max_bytes, channels):
-        raise too_many_samples("the MAT file's signals have", record_samples(max_bytes, channels), channels)
-    fs = _sampling_rate(arrays[rate.name]) if rate is not None else layout.fs
-    return RecordFile(x, y, fs, channels=layout.channels)
+    signals = iter(_signal(arrays[variable.name], k) for variable, k in wanted)
+    records = []
+    for each in layouts:
+        x, *responses = (next(signals) for _ in range(1 + len(each.responses)))
+        y = _check_lengths(each, x, responses)
+        channels = len(responses)
+        if max_bytes is not None and x.size > record_samples(max_bytes, channels):
+            raise too_many_samples(
+                "the MAT file's signals have", record_samples(max_bytes, channels), channels
+            )
+        fs = _sampling_rate(arrays[rate.name]) if rate is not None else each.fs
+        records.append(RecordFile(x, y, fs, channels=each.channels))
+    return records
 
 
 def _signal_count(shape: tuple[int, ...]) -> int | None:
