@@ -17,6 +17,11 @@ from service.recordfiles import DEFAULT_LAYOUT, NAMING_HELP, Layout, RecordFile,
 from simulator.theory import EXACT_TERMS
 
 _SIGNAL_HELP = "The CSV column or MAT variable that holds {role} (default: {role}); " + NAMING_HELP + "."
+# For the commands that take several records: how a file of realisations side by side is read.
+RECORD_SET_HELP = (
+    "Where --x and --y name groups of as many signals (u and y of the Wiener–Hammerstein files, ten "
+    "realisations side by side), each pair is a record."
+)
 XName = Annotated[str | None, typer.Option("--x", help=_SIGNAL_HELP.format(role="x"))]
 YName = Annotated[str | None, typer.Option("--y", help=_SIGNAL_HELP.format(role="y"))]
 

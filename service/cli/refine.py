@@ -27,7 +27,7 @@ from models.errors import InputError
 from models.refinement import DEFAULT_ALPHA, Comparison, RefinementReport, refine_record, refine_records
 from models.terms import Term
 from service.cli.console import stdout
-from service.cli.modelfiles import XName, YName, common_rate, read_terms, signal_layout
+from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
 from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
 from simulator.theory import EXACT_TERMS
 
@@ -82,8 +82,7 @@ def refine_command(
         list[Path],
         typer.Argument(
             help="Estimation record(s): .csv or .npz as 'narxwatch simulate' writes, a CSV or MAT file "
-            "(--x, --y). Where --x and --y name groups of as many signals (u and y of the "
-            "Wiener–Hammerstein files, ten realisations side by side), each pair is a record."
+            f"(--x, --y). {RECORD_SET_HELP}"
         ),
     ],
     declared: Annotated[str | None, typer.Option(help=DECLARED_HELP)] = None,

@@ -27,7 +27,7 @@ from models.semp import (
 )
 from models.validation import Validation, validate
 from service.cli.console import stderr, stdout
-from service.cli.modelfiles import XName, YName, read_records, signal_layout, write_json
+from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, read_records, signal_layout, write_json
 from service.recordfiles import Layout
 
 Signals = list[tuple[np.ndarray, np.ndarray]]
@@ -36,7 +36,9 @@ SIMULATION = "simulation"
 
 
 def select(
-    records: Annotated[list[Path], typer.Argument(help="Records to select from (.csv, .npz or .mat).")],
+    records: Annotated[
+        list[Path], typer.Argument(help=f"Records to select from (.csv, .npz or .mat). {RECORD_SET_HELP}")
+    ],
     x: XName = None,
     y: YName = None,
     degree: Annotated[int, typer.Option(help="Largest total degree of the candidate monomials.")] = 3,

@@ -12,6 +12,7 @@ from models.fnarx import fit_fnarx
 from models.narx import fit_narx
 from service.cli.console import stdout
 from service.cli.modelfiles import (
+    RECORD_SET_HELP,
     XName,
     YName,
     read_manifest,
@@ -32,7 +33,9 @@ TERMS_HELP = (
 
 @app.command("baseline")
 def baseline(
-    records: Annotated[list[Path], typer.Argument(help="Healthy records (.csv, .npz or .mat).")],
+    records: Annotated[
+        list[Path], typer.Argument(help=f"Healthy records (.csv, .npz or .mat). {RECORD_SET_HELP}")
+    ],
     out: Annotated[Path, typer.Option("--out", help="Model file to write (.json).")],
     terms: Annotated[str | None, typer.Option(help=TERMS_HELP)] = None,
     x: XName = None,
@@ -52,7 +55,13 @@ def baseline(
 @app.command("fault-mode")
 def fault_mode(
     name: Annotated[str, typer.Option(help="Fault-mode name, e.g. k2.")],
-    experiments: Annotated[Path, typer.Option(help="Manifest CSV with columns path,k.")],
+    experiments: Annotated[
+        Path,
+        typer.Option(
+            help="Manifest CSV with columns path,k: each file's records (--x and --y naming groups of as "
+            "many signals: one a pair) are experiments at its k."
+        ),
+    ],
     out: Annotated[Path, typer.Option("--out", help="Model file to write (.json).")],
     terms: Annotated[str | None, typer.Option(help=TERMS_HELP)] = None,
     basis: Annotated[str, typer.Option(help=f"Functional basis: {', '.join(FAMILIES)}.")] = "chebyshev2",
