@@ -74,6 +74,7 @@ class _Record:
 
     @property
     def name(self) -> str:
+        """The record as messages name it: its file, and its signals where not the plain x and y."""
         return f"{self.path}{_signals(self.source)}"
 
 
