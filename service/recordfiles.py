@@ -130,9 +130,16 @@ class WholeGroupError(InputError):
     """A name denotes a whole group of ``count`` signals (CSV columns under one header cell, a MAT
     matrix), spelt ``group`` in the file, where one signal was wanted; ``asked`` is the name given."""
 
-    def __init__(self, group: str, count: int, asked: str) -> None:
-        super().__init__(f"{group!r} holds {count} signals: name one of them, {group}1 … {group}{count}")
-        self.group, self.count, self.asked = group, count, asked
+    group: str
+    count: int
+    asked: str
+
+    @classmethod
+    def of(cls, group: str, count: int, asked: str) -> WholeGroupError:
+        # Set as attributes, not constructor arguments: the error then pickles as any exception.
+        error = cls(f"{group!r} holds {count} signals: name one of them, {group}1 … {group}{count}")
+        error.group, error.count, error.asked = group, count, asked
+        return error
 
 
 def record_samples(max_bytes: int, channels: int = 1) -> int:
@@ -497,7 +504,7 @@ def _resolve(name: str, counts: dict[str, int | None], missing: str) -> tuple[st
         count = counts[own]
         if count is None or count == 1:
             return own, 0
-        raise WholeGroupError(own, count, name)
+        raise WholeGroupError.of(own, count, name)
     match = _NUMBERED.fullmatch(name)
     base = _named(match["base"], counts) if match else None
     if match and base is not None:
