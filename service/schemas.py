@@ -340,12 +340,14 @@ class RefinementCreate(Strict):
     """Refine a baseline version on stored records. On one record (``record_id``): its
     estimation samples [a, b) fit, its test samples [c, d) judge (default: the first two thirds
     and the last third). On several (``record_ids``): all of them fit at once, and each of
-    ``test_record_ids`` is judged whole; ``transient`` samples are dropped at the start of each."""
+    ``test_record_ids`` is judged whole; ``transient`` samples are dropped at the start of each.
+    Without ``base_model_id`` (a structure no baseline describes yet) the loop starts from the
+    linear model whose orders simulate best, and reports them."""
 
     record_id: Id | None = None
     record_ids: Annotated[list[Id], Field(min_length=1, max_length=MAX_REFINEMENT_RECORDS)] | None = None
     test_record_ids: Annotated[list[Id], Field(min_length=1, max_length=MAX_REFINEMENT_RECORDS)] | None = None
-    base_model_id: Id
+    base_model_id: Id | None = None
     estimation: SampleRange | None = None
     test: SampleRange | None = None
     transient: Annotated[StrictInt, Field(ge=0, le=10_000_000)] = 0
@@ -381,14 +383,15 @@ class RefinementCreate(Strict):
 
 class RefinementOut(BaseModel):
     """``record_id`` is the first of ``record_ids``, the records fitted; ``test_record_ids`` are
-    those judged whole (none when a test part of the one record judged)."""
+    those judged whole (none when a test part of the one record judged). ``base_model`` is None
+    when the loop started from the linear orders it chose (``report.orders_chosen``)."""
 
     id: int
     structure_id: int
     record_id: int
     record_ids: list[int]
     test_record_ids: list[int]
-    base_model: ModelRef
+    base_model: ModelRef | None  # None: the loop chose a linear model's orders
     refined_model: ModelRef | None
     created_at: dt.datetime
     report: dict[str, Any]

@@ -309,12 +309,14 @@ class VerdictModel(Base):
 
 
 class Refinement(Base):
-    """One pass of the refinement loop on stored records, starting from a baseline version.
+    """One pass of the refinement loop on stored records, starting from a baseline version
+    (``base_model_id``) or, with none, from the linear orders the loop chose.
 
     ``records`` lists the records it was fitted on and those it was judged on, whole;
     ``record_id`` is the first record fitted. ``refined_model_id`` names the new, inactive
-    version the effects it added produced (None when no effect was significant); ``report``
-    holds the effects with their evidence and the held-out errors before and after.
+    version the effects it added produced, or the linear model chosen when there was no base
+    (None when a base was given and no effect was significant); ``report`` holds the effects
+    with their evidence and the held-out errors before and after.
     """
 
     __tablename__ = "refinements"
@@ -322,14 +324,16 @@ class Refinement(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     structure_id: Mapped[int] = mapped_column(ForeignKey("structures.id", ondelete="CASCADE"), index=True)
     record_id: Mapped[int] = mapped_column(ForeignKey("records.id", ondelete="CASCADE"))
-    base_model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id", ondelete="RESTRICT"))
+    base_model_id: Mapped[int | None] = mapped_column(
+        ForeignKey("model_versions.id", ondelete="RESTRICT"), nullable=True
+    )
     refined_model_id: Mapped[int | None] = mapped_column(
         ForeignKey("model_versions.id", ondelete="RESTRICT"), nullable=True
     )
     report: Mapped[dict[str, Any]] = mapped_column(Document)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
 
-    base_model: Mapped[ModelVersion] = relationship(foreign_keys=[base_model_id])
+    base_model: Mapped[ModelVersion | None] = relationship(foreign_keys=[base_model_id])
     refined_model: Mapped[ModelVersion | None] = relationship(foreign_keys=[refined_model_id])
     records: Mapped[list[RefinementRecord]] = relationship(
         order_by="RefinementRecord.position", cascade="all, delete-orphan"

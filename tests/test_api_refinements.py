@@ -19,8 +19,10 @@ from api_helpers import (
     post_record,
     train_fault_mode,
 )
+from dashboard_helpers import logged_in
 from live import LiveServer
 
+from models.effects import linear_terms
 from models.narx import fit_narx
 from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
 
@@ -122,6 +124,45 @@ def test_a_missing_effect_is_named_and_the_refined_model_stored_inactive(rig: Ri
         listed = viewer.get(refinements_url(rig.structure_id)).json()
         assert listed[0] == refinement
         assert viewer.get(f"{API}/refinements/{refinement['id']}").json() == refinement
+
+
+def test_with_no_base_model_the_loop_chooses_linear_orders_and_stores_their_model(api_server: LiveServer):
+    """A structure no baseline describes yet (issue 14, deliverable 5, as ``narxwatch refine``
+    without ``--declared``): the loop starts from the linear orders it chooses and reports them;
+    the refined model is stored as the structure's first baseline, inactive; the dashboard says
+    where the loop started."""
+    org = Org.create(api_server)
+    with clients(org) as (admin, ingest, viewer):
+        structure_id = create_structure(admin, "measured")["id"]
+        ids = [upload_record(ingest, structure_id, simulated(QUADRATIC, seed, 2000)) for seed in (21, 22, 23)]
+        response = admin.post(
+            refinements_url(structure_id), json={"record_ids": ids[:2], "test_record_ids": ids[2:]}
+        )
+        assert response.status_code == 201, response.text
+        refinement = response.json()
+        report = refinement["report"]
+        assert refinement["base_model"] is None
+        ny, nx, delay = report["orders_chosen"]
+        assert report["declared"]["terms"] == [term.name for term in linear_terms(ny, nx, delay)]
+        refined = refinement["refined_model"]
+        assert (refined["name"], refined["version"]) == ("baseline", 1)
+        (model,) = viewer.get(f"{API}/structures/{structure_id}/models").json()
+        assert (model["id"], model["active"], model["terms"]) == (
+            refined["id"],
+            False,
+            report["refined"]["terms"],
+        )
+        assert model["training"]["refined_from"] is None
+        assert model["training"]["orders_chosen"] == [ny, nx, delay]
+        assert viewer.get(f"{API}/refinements/{refinement['id']}").json() == refinement
+    with logged_in(api_server, org.keys["viewer"]) as client:
+        page = client.get(f"/dashboard/refinements/{refinement['id']}")
+        structure_page = client.get(f"/dashboard/structures/{structure_id}")
+    assert page.status_code == 200
+    started = f"from the linear model whose orders the loop chose, ny = {ny}, nx = {nx}, input delay {delay}"
+    assert started in page.text and f"to baseline v{refined['version']}" in page.text
+    assert structure_page.status_code == 200
+    assert f"linear ({ny}, {nx}), delay {delay}: orders chosen" in structure_page.text
 
 
 def test_a_clean_record_adds_nothing_and_stores_no_model(rig: Rig):

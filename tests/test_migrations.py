@@ -277,6 +277,21 @@ def _channels(url: str) -> list[tuple[object, bool]]:
     return [(names, bool(null)) for names, null in stored]
 
 
+def downgraded_once_deleted(url: str, revision: str, refused: str, delete: str) -> None:
+    """Downgrading to ``revision`` is refused with a message matching ``refused`` and changes
+    nothing; once the rows the ``delete`` statement removes are gone, it goes through."""
+    before = schema_and_revision(url)
+    with pytest.raises(RuntimeError, match=refused):
+        command.downgrade(alembic_config(url), revision)
+    assert schema_and_revision(url) == before
+    engine = make_engine(url)
+    with engine.begin() as connection:
+        connection.execute(text(delete))
+    engine.dispose()
+    command.downgrade(alembic_config(url), revision)
+    assert schema_and_revision(url)[1] == [revision]
+
+
 def test_0015_is_undone_only_once_no_record_of_several_channels_is_stored(fresh_url):
     """Downgrading past 0015 drops the channels the older schema cannot hold: refused, naming how
     many records, while any is stored (and nothing changes); once they are deleted it goes
@@ -285,16 +300,8 @@ def test_0015_is_undone_only_once_no_record_of_several_channels_is_stored(fresh_
     upgrade_database(fresh_url)
     _structure_with_records(fresh_url, None, ["a1", "a2"], None)
     assert [null for _, null in _channels(fresh_url)] == [True, False, True]
-    before = schema_and_revision(fresh_url)
-    with pytest.raises(RuntimeError, match=r"^1 record\(s\) of several channels are stored"):
-        command.downgrade(alembic_config(fresh_url), "0014")
-    assert schema_and_revision(fresh_url) == before
-    engine = make_engine(fresh_url)
-    with engine.begin() as connection:
-        connection.execute(text("DELETE FROM records WHERE channels IS NOT NULL"))
-    engine.dispose()
-    command.downgrade(alembic_config(fresh_url), "0014")
-    assert schema_and_revision(fresh_url)[1] == ["0014"]
+    refused = r"^1 record\(s\) of several channels are stored"
+    downgraded_once_deleted(fresh_url, "0014", refused, "DELETE FROM records WHERE channels IS NOT NULL")
     engine = make_engine(fresh_url)
     with engine.connect() as connection:
         assert connection.execute(text("SELECT COUNT(*) FROM records")).scalar() == 2
@@ -397,4 +404,38 @@ def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(fresh_url)
             (1, 1)
         ]
         assert connection.execute(text("SELECT latest_verdict_id FROM structure_states")).scalar_one() == 1
+    engine.dispose()
+
+
+def test_0020_is_undone_only_once_no_refinement_without_a_base_model_is_stored(fresh_url):
+    """A refinement from the linear orders the loop chose has no base model, which the schema
+    before 0020 cannot hold: downgrading is refused, naming how many, while one is stored (and
+    nothing changes); once it is deleted it goes through and keeps the refinement from a base."""
+    upgrade_database(fresh_url)
+    _structure_with_records(fresh_url, None)
+    engine = make_engine(fresh_url)
+    now = utcnow()
+    with engine.begin() as connection:
+        connection.execute(
+            tables.ModelVersion.__table__.insert().values(
+                id=1, structure_id=1, kind="baseline", name="baseline", version=1, document={}, training={},
+                statistics={}, active=True, created_at=now,
+            )
+        )  # fmt: skip
+        record_id = connection.execute(text("SELECT id FROM records")).scalar_one()
+        for refinement_id, base in ((1, 1), (2, None)):
+            connection.execute(
+                tables.Refinement.__table__.insert().values(
+                    id=refinement_id, structure_id=1, record_id=record_id, base_model_id=base, report={},
+                    created_at=now,
+                )
+            )  # fmt: skip
+    engine.dispose()
+    refused = r"^1 refinement\(s\) without a base model are stored"
+    downgraded_once_deleted(fresh_url, "0019", refused, "DELETE FROM refinements WHERE base_model_id IS NULL")
+    schema, _ = schema_and_revision(fresh_url)
+    assert ("base_model_id", "INTEGER", False) in schema["refinements"]["columns"]
+    engine = make_engine(fresh_url)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT id, base_model_id FROM refinements")).all() == [(1, 1)]
     engine.dispose()

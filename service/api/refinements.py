@@ -59,7 +59,7 @@ def refinement_out(refinement: Refinement) -> RefinementOut:
         record_id=refinement.record_id,
         record_ids=refinement.record_ids_of("estimation"),
         test_record_ids=refinement.record_ids_of("test"),
-        base_model=_ref(refinement.base_model),
+        base_model=_ref(refinement.base_model) if refinement.base_model is not None else None,
         refined_model=_ref(refinement.refined_model) if refinement.refined_model is not None else None,
         created_at=refinement.created_at,
         report=refinement.report,

@@ -8,14 +8,15 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
 from models.assessment import check_test_length
-from models.effects import candidate_effects
+from models.effects import candidate_effects, linear_terms
 from models.errors import InputError
 from models.narx import NARX
-from models.refinement import check_parts, reach, refine_record, refine_records
+from models.refinement import MAX_LINEAR_ORDER, check_parts, reach, refine_record, refine_records
 from models.terms import Term
 from service.config import Settings
 from service.domain.errors import NotFoundError
 from service.domain.modelling import (
+    BASELINE,
     bounded_document,
     check_cost,
     check_one_response,
@@ -46,8 +47,8 @@ class _Plan:
     structure: Structure
     records: list[Record]
     tests: list[Record]
-    base: ModelVersion
-    terms: tuple[Term, ...]
+    base: ModelVersion | None
+    terms: tuple[Term, ...] | None  # None: the loop chooses a linear model's orders
     estimation: tuple[int, int] | None
     test: tuple[int, int] | None
     cells: int
@@ -62,8 +63,9 @@ def create_refinement(
     job: str | None = None,
 ) -> Refinement:
     """Refine, then store the report and, if an effect was added, the refined model as a new
-    inactive version of the base model's name. A queued refinement's report is marked
-    with its ``job`` token (see :func:`refinement_of_job`).
+    inactive version of the base model's name (with no base, the refined model always: the
+    linear model chosen, or what the loop added to it, as a new inactive baseline). A queued
+    refinement's report is marked with its ``job`` token (see :func:`refinement_of_job`).
 
     The loop runs before the first write, so the write lock is held only for the inserts.
     """
@@ -95,10 +97,11 @@ def create_refinement(
         | ({"job": job} if job is not None else {})
     )
     refined = None
-    if report.refinement.effects_added:
+    if report.refinement.effects_added or base is None:
         model = report.refinement.refined
         training = {
-            "refined_from": base.id,
+            "refined_from": base.id if base is not None else None,
+            "orders_chosen": document["orders_chosen"],
             "record_ids": [r.id for r in plan.records],
             **(
                 {"estimation": list(plan.estimation)}
@@ -116,8 +119,8 @@ def create_refinement(
         refined = new_version(
             session,
             structure,
-            base.kind,
-            base.name,
+            "baseline",
+            base.name if base is not None else BASELINE,
             bounded_document(model.to_document(), settings),
             training,
             statistics,
@@ -173,20 +176,8 @@ def _planned(
     records = owned_records(session, principal, structure, fitted_ids + test_ids)
     check_one_response(records, structure, "a refinement")
     fitted, tests = records[: len(fitted_ids)], records[len(fitted_ids) :]
-    base = session.get(ModelVersion, body.base_model_id)
-    if base is None or base.structure_id != structure.id:
-        raise NotFoundError("model version", body.base_model_id)
-    if base.kind != "baseline":
-        raise InputError(
-            f"model version {base.id} is a {base.kind.replace('_', '-')} model; refinement starts from a "
-            "baseline NARX version"
-        )
-    if base.document.get("kind") == "pooled":
-        raise InputError(
-            f"model version {base.id} is a pooled baseline; refinement starts from a baseline NARX "
-            "identified at one condition"
-        )
-    terms = NARX.from_document(base.document).terms
+    base = None if body.base_model_id is None else _base(session, structure, body.base_model_id)
+    terms = None if base is None else NARX.from_document(base.document).terms
     estimation = test = None
     if body.record_id is not None:
         n = fitted[0].n_samples
@@ -205,10 +196,30 @@ def _planned(
                 check_test_length(record.n_samples - body.transient, start_up)
             except InputError as exc:
                 raise InputError(f"test record {record.id}: {exc}") from None
-    regressors = len(terms) + sum(effect.regressors for effect in candidate_effects(terms))
+    # With no base, priced as the largest linear model the loop may choose.
+    start = terms or linear_terms(MAX_LINEAR_ORDER, MAX_LINEAR_ORDER, 0)
+    regressors = len(start) + sum(effect.regressors for effect in candidate_effects(start))
     cells = sum(record.n_samples for record in records) * regressors
     check_cost(cells, regressors, settings, "this refinement")
     return _Plan(structure, fitted, tests, base, terms, estimation, test, cells)
+
+
+def _base(session: Session, structure: Structure, model_id: int) -> ModelVersion:
+    """The baseline NARX version a refinement starts from, refused if it is anything else."""
+    base = session.get(ModelVersion, model_id)
+    if base is None or base.structure_id != structure.id:
+        raise NotFoundError("model version", model_id)
+    if base.kind != "baseline":
+        raise InputError(
+            f"model version {base.id} is a {base.kind.replace('_', '-')} model; refinement starts from a "
+            "baseline NARX version"
+        )
+    if base.document.get("kind") == "pooled":
+        raise InputError(
+            f"model version {base.id} is a pooled baseline; refinement starts from a baseline NARX "
+            "identified at one condition"
+        )
+    return base
 
 
 def list_refinements(session: Session, principal: Principal, structure_id: int) -> list[Refinement]:
