@@ -1,4 +1,5 @@
-"""Refinements: the loop of SPEC §7 run on stored records from a baseline version, kept with its report."""
+"""Refinements: the loop of SPEC §7 run on stored records from a baseline version (or, with none,
+from the linear orders it chooses), kept with its report."""
 
 from __future__ import annotations
 
