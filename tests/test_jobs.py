@@ -32,7 +32,7 @@ from api_helpers import (
 )
 from job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
 from live import LiveServer
-from sqlalchemy import func, select, text, update
+from sqlalchemy import event, func, select, text, update
 from test_cli import NARXWATCH
 from workers import workers
 
@@ -238,6 +238,35 @@ def test_a_job_whose_error_is_final_fails_at_once_with_its_reason(long_lags: Mon
         assert (failure.record_id, failure.model_set) == (short, str(model_id))
         assert "too short" in failure.reason
         assert backend.get_job(session, organisation + 1, job_id) is None, "another organisation's job"
+
+
+def test_a_queued_inspection_reads_the_active_models_once(long_lags: Monitored):
+    """The job read the structure's active versions, then the inspection read them again: two
+    queries where one gives the models it inspects with and the model set a refusal is marked under."""
+    ids = [long_lags.store("none", 0.0, [8, i], n=TOO_SHORT) for i in range(2)]
+    backend = long_lags.backend()
+    organisation = long_lags.principal.organisation_id
+    engine = long_lags.sessions.kw["bind"]
+    reads: list[str] = []
+
+    def count(conn, cursor, statement: str, *args) -> None:
+        if statement.lstrip().upper().startswith("SELECT") and "FROM model_versions" in statement:
+            reads.append(statement)
+
+    for record_id in ids:  # the first parses the model (kept once parsed); the second is counted
+        reads.clear()
+        with transaction(long_lags.sessions) as session:
+            backend.defer(session, INSPECT_RECORD, organisation, record_id=record_id)
+        event.listen(engine, "before_cursor_execute", count)
+        try:
+            backend.work(once=True)
+        finally:
+            event.remove(engine, "before_cursor_execute", count)
+    assert len(reads) == 1, reads
+    with long_lags.sessions() as session:
+        (model_id,) = session.scalars(select(ModelVersion.id).where(ModelVersion.active))
+        marks = session.execute(select(InspectionFailure.record_id, InspectionFailure.model_set)).all()
+        assert sorted(marks) == [(record_id, str(model_id)) for record_id in ids]
 
 
 def test_a_job_whose_error_is_not_final_is_queued_again_with_its_reason(long_lags: Monitored):

@@ -155,8 +155,12 @@ def inspect_stored(session: Session, principal: Principal, record_id: int, setti
     return inspect_record(session, record, structure, settings)
 
 
-def inspect_record(session: Session, record: Record, structure: Structure, settings: Settings) -> Verdict:
-    """The verdict of a stored record under the structure's active fault-mode models.
+def inspect_record(
+    session: Session, record: Record, structure: Structure, settings: Settings, active: Active | None = None
+) -> Verdict:
+    """The verdict of a stored record under the structure's active fault-mode models (``active``
+    when the caller has read them: a job marks a record the models cannot inspect under the same
+    model set it inspected it with).
 
     A verdict the record has under the same models is returned before its signals are read:
     inspecting it again would cost as much as the first time and change nothing. Otherwise
@@ -164,7 +168,8 @@ def inspect_record(session: Session, record: Record, structure: Structure, setti
     with the inserts.
     """
     channels = record.channels or ()
-    active = models_to_inspect_with(session, structure, bool(channels))
+    if active is None:
+        active = models_to_inspect_with(session, structure, bool(channels))
     existing = _find(session, record.id, model_set([version for version, _ in active]))
     if existing is not None:
         return existing

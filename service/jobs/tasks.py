@@ -44,8 +44,8 @@ def inspect_record(session: Session, settings: Settings, record_id: int) -> None
         return
     structure = session.get(Structure, record.structure_id)
     assert structure is not None  # a record's structure is a foreign key
-    model_set = _model_set(session, structure, bool(record.channels))
-    failure = _inspect(session, settings, record, structure, model_set)
+    active = inspections.models_to_inspect_with(session, structure, bool(record.channels))
+    failure = _inspect(session, settings, record, structure, active)
     if failure is not None:
         raise failure
 
@@ -63,15 +63,17 @@ def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at:
         return
     structure = session.get(Structure, schedule.structure_id)
     assert structure is not None
-    model_sets = _model_sets(session, structure)
+    # The models are read once: every record of the run is inspected (or marked) under them.
+    actives = _actives(session, structure)
+    model_sets = {kind: inspections.model_set([v for v, _ in active]) for kind, active in actives.items()}
     unexpected: Exception | None = None
     marked = 0
-    for record_id, model_set in _records_to_inspect(session, schedule.action, structure.id, model_sets):
+    for record_id, several in _records_to_inspect(session, schedule.action, structure.id, model_sets):
         record = session.get(Record, record_id)
         if record is None:  # deleted since the list was read
             continue
         try:
-            marked += _inspect(session, settings, record, structure, model_set) is not None
+            marked += _inspect(session, settings, record, structure, actives[several]) is not None
         except Exception as exc:
             session.rollback()
             log.exception("schedule %s: record %s could not be inspected; going on", schedule_id, record_id)
@@ -87,36 +89,31 @@ def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at:
         raise unexpected
 
 
-def _model_set(session: Session, structure: Structure, several: bool) -> str:
-    """The model set a record of one response, or of ``several`` channels, is inspected with."""
-    active = inspections.models_to_inspect_with(session, structure, several)
-    return inspections.model_set([v for v, _ in active])
-
-
-def _model_sets(session: Session, structure: Structure) -> dict[bool, str]:
-    """The model set of each kind of record (of ``several`` channels or not) the structure has
-    active models for. A structure may have models for one kind only (vector ones, say); a
-    conflict if it has none for either, and the job fails, saying so."""
-    sets: dict[bool, str] = {}
+def _actives(session: Session, structure: Structure) -> dict[bool, inspections.Active]:
+    """The active models of each kind of record (of ``several`` channels or not) the structure
+    has models for. A structure may have models for one kind only (vector ones, say); a conflict
+    if it has none for either, and the job fails, saying so."""
+    actives: dict[bool, inspections.Active] = {}
     refusals: list[ConflictError] = []
     for several in (False, True):
         try:
-            sets[several] = _model_set(session, structure, several)
+            actives[several] = inspections.models_to_inspect_with(session, structure, several)
         except ConflictError as refusal:
             refusals.append(refusal)
-    if not sets:
+    if not actives:
         raise refusals[0]
-    return sets
+    return actives
 
 
 def _inspect(
-    session: Session, settings: Settings, record: Record, structure: Structure, model_set: str
+    session: Session, settings: Settings, record: Record, structure: Structure, active: inspections.Active
 ) -> InputError | None:
-    """Inspect one record and commit its verdict; or, if the models (``model_set``) cannot
-    inspect it, commit a mark saying why and return the refusal."""
+    """Inspect one record under the ``active`` models and commit its verdict; or, if they cannot
+    inspect it, commit a mark under their model set saying why and return the refusal."""
     record_id = record.id  # read now: after the rollback below, reading it would reload the row
+    model_set = inspections.model_set([version for version, _ in active])
     try:
-        inspections.inspect_record(session, record, structure, settings)
+        inspections.inspect_record(session, record, structure, settings, active)
         session.commit()
         return None
     except InputError as refusal:
@@ -130,10 +127,10 @@ def _inspect(
 
 def _records_to_inspect(
     session: Session, action: str, structure_id: int, model_sets: dict[bool, str]
-) -> list[tuple[int, str]]:
-    """The action's records with the model set each is inspected with (``model_sets``, by kind),
-    less those of a kind no active model inspects and those their model set already failed to
-    inspect."""
+) -> list[tuple[int, bool]]:
+    """The action's records, each with its kind (of several channels or not), less those of a
+    kind no active model inspects and those their kind's model set (``model_sets``) already
+    failed to inspect."""
     # Records whose signals the retention pruned cannot be inspected again.
     of_structure = select(Record.id, Record.channels).where(
         Record.structure_id == structure_id, Record.signals_pruned_at.is_(None)
@@ -143,7 +140,7 @@ def _records_to_inspect(
     else:
         chosen = of_structure.where(~exists().where(Verdict.record_id == Record.id)).order_by(Record.id)
     candidates = [
-        (record_id, model_sets[bool(channels)])
+        (record_id, bool(channels))
         for record_id, channels in session.execute(chosen)
         if bool(channels) in model_sets
     ]
@@ -151,7 +148,7 @@ def _records_to_inspect(
         InspectionFailure.record_id.in_([record_id for record_id, _ in candidates])
     )
     skipped = {(record_id, model_set) for record_id, model_set in session.execute(failed)}
-    return [candidate for candidate in candidates if candidate not in skipped]
+    return [(record, kind) for record, kind in candidates if (record, model_sets[kind]) not in skipped]
 
 
 def train_model(
