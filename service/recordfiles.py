@@ -30,7 +30,7 @@ import struct
 import tokenize
 import zipfile
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeVar
@@ -126,22 +126,6 @@ class RecordTooLargeError(InputError):
     """The record would unpack to more than the allowed number of bytes."""
 
 
-class WholeGroupError(InputError):
-    """A name denotes a whole group of ``count`` signals (CSV columns under one header cell, a MAT
-    matrix), spelt ``group`` in the file, where one signal was wanted; ``asked`` is the name given."""
-
-    group: str
-    count: int
-    asked: str
-
-    @classmethod
-    def of(cls, group: str, count: int, asked: str) -> WholeGroupError:
-        # Set as attributes, not constructor arguments: the error then pickles as any exception.
-        error = cls(f"{group!r} holds {count} signals: name one of them, {group}1 … {group}{count}")
-        error.group, error.count, error.asked = group, count, asked
-        return error
-
-
 def record_samples(max_bytes: int, channels: int = 1) -> int:
     """The most samples a record within ``max_bytes`` holds: x and its ``channels`` responses as
     float64, as an NPZ has them.
@@ -162,33 +146,29 @@ def too_many_samples(what: str, max_samples: int, channels: int = 1) -> RecordTo
 
 def read_record(path: str | Path, layout: Layout = DEFAULT_LAYOUT) -> RecordFile:
     """Read a ``.csv``, ``.npz`` or ``.mat`` record, with a message naming the file on any failure."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    return _naming(path, lambda data: parse_record(data, suffix, layout))
+    return _naming(Path(path), lambda data, suffix: parse_record(data, suffix, layout))
 
 
 def read_record_set(path: str | Path, layout: Layout = DEFAULT_LAYOUT) -> tuple[NamedRecord, ...]:
     """The records a ``.csv``, ``.npz`` or ``.mat`` file holds (:func:`parse_record_set`), with a
     message naming the file on any failure."""
-    path = Path(path)
+    return _naming(Path(path), lambda data, suffix: parse_record_set(data, suffix, layout))
+
+
+def _naming(path: Path, parse: Callable[[bytes, str], Parsed]) -> Parsed:
+    """``parse`` of the file's bytes and its lower-case suffix; any InputError's message names the
+    file (its type kept: the API answers a record too large with 413)."""
     suffix = path.suffix.lower()
-    return _naming(path, lambda data: parse_record_set(data, suffix, layout))
-
-
-def _naming(path: Path, parse: Callable[[bytes], Parsed]) -> Parsed:
-    """``parse`` of the file's bytes; any InputError's message names the file (its type and
-    attributes kept: the API answers a record too large with 413)."""
-    if path.suffix.lower() not in READABLE:
-        raise InputError(f"{path}: unknown record format {path.suffix or '(none)'}; use .csv, .npz or .mat")
+    if suffix not in READABLE:
+        raise InputError(f"{path}: unknown record format {suffix or '(none)'}; use .csv, .npz or .mat")
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read the file ({exc.strerror})") from None
     try:
-        return parse(data)
+        return parse(data, suffix)
     except InputError as exc:
-        exc.args = (f"{path}: {exc}",)
-        raise
+        raise type(exc)(f"{path}: {exc}") from None
 
 
 def parse_record(
@@ -222,36 +202,46 @@ def parse_record_set(data: bytes, suffix: str, layout: Layout = DEFAULT_LAYOUT) 
     Wiener–Hammerstein estimation file's ten and its test file's two.
 
     A group for one of x and y and a single signal (or a group of another size) for the other is
-    refused: which signal goes with which would be a guess.
+    refused: which signal goes with which would be a guess. The file is read once, whatever k.
     """
-    try:
+    # Only CSV columns and MAT variables come in groups; a record of several channels reads its
+    # responses as one record.
+    if layout.channels or suffix not in (".csv", ".mat"):
         return ((layout, parse_record(data, suffix, layout)),)
-    except WholeGroupError as whole:
-        if layout.channels:  # the responses of one record: no pairs to read
-            raise
-        inputs = whole
-    pairing = "; or, to read a record from each pair, name two groups of as many signals as x and y"
-    if inputs.asked != layout.x:
-        raise InputError(f"{inputs}{pairing}") from None
-    try:
-        parse_record(data, suffix, replace(layout, x=f"{inputs.group}1"))
-    except WholeGroupError as whole:
-        outputs = whole
-    else:
-        raise InputError(f"{inputs}{pairing}") from None
-    if outputs.count != inputs.count:
+    return tuple((_parse_csv if suffix == ".csv" else _parse_mat)(data, None, layout, paired=True))
+
+
+def _pairs(layout: Layout, counts: dict[str, int | None]) -> list[Layout]:
+    """The layouts of the records :func:`parse_record_set` reads, from the signals each name
+    of the file holds (``counts``): ``layout`` itself unless x or y names a whole group."""
+
+    def group(name: str) -> tuple[str, int] | None:
+        own = _named(name, counts)
+        count = None if own is None else counts[own]
+        return (own, count) if own is not None and count is not None and count > 1 else None
+
+    inputs, outputs = group(layout.x), group(layout.y)
+    if inputs is None and outputs is None:
+        return [layout]
+    if inputs is None or outputs is None:
+        whole = inputs if outputs is None else outputs
+        assert whole is not None  # not both None, as returned above
         raise InputError(
-            f"{inputs.group!r} holds {inputs.count} signals and {outputs.group!r} {outputs.count}: "
-            f"as records, x and y must pair one to one (or name one of each, such as "
-            f"{inputs.group}1 and {outputs.group}1)"
-        ) from None
-    pairs = [
-        replace(layout, x=f"{inputs.group}{k}", y=f"{outputs.group}{k}") for k in range(1, inputs.count + 1)
-    ]
-    # Read at once (a parse a pair would read a wide file as many times); only CSV and MAT files
-    # have groups.
-    records = _parse_csv(data, None, pairs) if suffix == ".csv" else _parse_mat(data, None, pairs)
-    return tuple(zip(pairs, records, strict=True))
+            _whole_group(*whole) + "; or, to read a record from each pair, name two groups of as many "
+            "signals as x and y"
+        )
+    (x, k), (y, m) = inputs, outputs
+    if k != m:
+        raise InputError(
+            f"{x!r} holds {k} signals and {y!r} {m}: as records, x and y must pair one to one (or name "
+            f"one of each, such as {x}1 and {y}1)"
+        )
+    return [replace(layout, x=f"{x}{i}", y=f"{y}{i}") for i in range(1, k + 1)]
+
+
+def _whole_group(group: str, count: int) -> str:
+    """The refusal of a name that covers a whole group where one signal was wanted."""
+    return f"{group!r} holds {count} signals: name one of them, {group}1 … {group}{count}"
 
 
 def parse_csv(
@@ -266,13 +256,15 @@ def parse_csv(
     so that x and y of different lengths are told as such. With ``max_samples``, more rows than
     that are refused, grossly so before the text is split.
     """
-    (record,) = _parse_csv(data, max_samples, (layout,))
+    ((_, record),) = _parse_csv(data, max_samples, layout)
     return record
 
 
-def _parse_csv(data: bytes | str, max_samples: int | None, layouts: Sequence[Layout]) -> list[RecordFile]:
-    """:func:`parse_csv` with each of ``layouts``, the text split and its columns read once."""
-    layout = layouts[0]
+def _parse_csv(
+    data: bytes | str, max_samples: int | None, layout: Layout, paired: bool = False
+) -> list[NamedRecord]:
+    """:func:`parse_csv`; ``paired``, the records of :func:`parse_record_set`, the text split and
+    their columns read once."""
     try:
         text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
     except UnicodeDecodeError:
@@ -307,6 +299,7 @@ def _parse_csv(data: bytes | str, max_samples: int | None, layouts: Sequence[Lay
         name if width == 1 else f"{name} ({width} columns, {name}1 … {name}{width})"
         for name, width in widths.items()
     )
+    layouts = _pairs(layout, widths) if paired else [layout]
     wanted = []
     for each in layouts:
         for name in (each.x, *each.responses):
@@ -320,12 +313,10 @@ def _parse_csv(data: bytes | str, max_samples: int | None, layouts: Sequence[Lay
         cell = first_row[column].strip() if column < len(first_row) else ""
         if cell:
             fs = _agreed_rate(comment_fs, _sampling_rate(cell), f"the column {rate_name!r}")
-    records = []
-    for each in layouts:
-        x, *responses = (next(columns) for _ in range(1 + len(each.responses)))
-        y = _check_lengths(each, x, responses)
-        records.append(RecordFile(x, y, fs if fs is not None else each.fs, conditions, each.channels))
-    return records
+    return [
+        (each, RecordFile(x, y, fs if fs is not None else each.fs, conditions, each.channels))
+        for each, x, y in _signals_of(layouts, columns)
+    ]
 
 
 def _condition_comment(match: re.Match[str], number: int) -> Condition:
@@ -429,14 +420,16 @@ def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAUL
     hold at most :func:`record_samples` samples, checked on their declared dimensions before
     any of their data is inflated.
     """
-    (record,) = _parse_mat(data, max_bytes, (layout,))
+    ((_, record),) = _parse_mat(data, max_bytes, layout)
     return record
 
 
-def _parse_mat(data: bytes, max_bytes: int | None, layouts: Sequence[Layout]) -> list[RecordFile]:
-    """:func:`parse_mat` with each of ``layouts``, each variable loaded once."""
+def _parse_mat(data: bytes, max_bytes: int | None, layout: Layout, paired: bool = False) -> list[NamedRecord]:
+    """:func:`parse_mat`; ``paired``, the records of :func:`parse_record_set`, each variable
+    loaded once."""
     mat = matfiles.list_mat(data)
     counts = {name: _signal_count(variable.shape) for name, variable in mat.variables.items()}
+    layouts = _pairs(layout, counts) if paired else [layout]
     wanted = []
     for name in (name for each in layouts for name in (each.x, *each.responses)):
         variable, k = _resolve(
@@ -459,18 +452,16 @@ def _parse_mat(data: bytes, max_bytes: int | None, layouts: Sequence[Layout]) ->
             f"({declared} bytes as float64)"
         )
     arrays = matfiles.load_variables(mat, list(chosen.values()))
-    signals = iter(_signal(arrays[variable.name], k) for variable, k in wanted)
     records = []
-    for each in layouts:
-        x, *responses = (next(signals) for _ in range(1 + len(each.responses)))
-        y = _check_lengths(each, x, responses)
-        channels = len(responses)
+    signals = (_signal(arrays[variable.name], k) for variable, k in wanted)
+    for each, x, y in _signals_of(layouts, signals):
+        channels = len(each.responses)
         if max_bytes is not None and x.size > record_samples(max_bytes, channels):
             raise too_many_samples(
                 "the MAT file's signals have", record_samples(max_bytes, channels), channels
             )
         fs = _sampling_rate(arrays[rate.name]) if rate is not None else each.fs
-        records.append(RecordFile(x, y, fs, channels=each.channels))
+        records.append((each, RecordFile(x, y, fs, channels=each.channels)))
     return records
 
 
@@ -504,7 +495,7 @@ def _resolve(name: str, counts: dict[str, int | None], missing: str) -> tuple[st
         count = counts[own]
         if count is None or count == 1:
             return own, 0
-        raise WholeGroupError.of(own, count, name)
+        raise InputError(_whole_group(own, count))
     match = _NUMBERED.fullmatch(name)
     base = _named(match["base"], counts) if match else None
     if match and base is not None:
@@ -523,6 +514,17 @@ def _named(name: str, counts: dict[str, int | None]) -> str | None:
         return name
     alike = [other for other in counts if other.lower() == name.lower()]
     return alike[0] if len(alike) == 1 else None
+
+
+def _signals_of(
+    layouts: Sequence[Layout], signals: Iterable[np.ndarray]
+) -> Iterator[tuple[Layout, np.ndarray, np.ndarray]]:
+    """Each layout with its x and y (:func:`_check_lengths`), from the ``signals`` read for the
+    layouts in turn: x, then its responses."""
+    signals = iter(signals)
+    for each in layouts:
+        x, *responses = (next(signals) for _ in range(1 + len(each.responses)))
+        yield each, x, _check_lengths(each, x, responses)
 
 
 def _check_lengths(layout: Layout, x: np.ndarray, responses: list[np.ndarray]) -> np.ndarray:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import pickle
 import re
 import subprocess
 import sys
@@ -30,7 +29,6 @@ from service.recordfiles import (
     SILVERBOX,
     Layout,
     RecordTooLargeError,
-    WholeGroupError,
     header_groups,
     parse_csv,
     parse_mat,
@@ -170,15 +168,6 @@ def test_matrices_named_for_both_x_and_y_are_records_row_by_row():
 def test_groups_that_do_not_pair_one_to_one_are_refused(content, message):
     with pytest.raises(InputError, match=re.escape(message)):
         parse_record_set(content, ".csv", Layout("a", "b"))
-
-
-def test_a_group_named_for_one_signal_is_an_error_that_crosses_processes(wh_dir):
-    """The error says which group, and survives pickling with it (as from a worker process)."""
-    with pytest.raises(WholeGroupError) as raised:
-        read_record(wh_dir / WH_EST, Layout("u", "y1"))
-    copy = pickle.loads(pickle.dumps(raised.value))
-    assert (type(copy), str(copy)) == (WholeGroupError, str(raised.value))
-    assert (copy.group, copy.count, copy.asked) == ("u", 10, "u")
 
 
 def test_silverbox_is_sugar_for_v1_v2_at_its_rate(silverbox_dir):
