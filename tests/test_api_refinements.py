@@ -21,9 +21,16 @@ from api_helpers import (
 )
 from dashboard_helpers import logged_in
 from live import LiveServer
+from sqlalchemy import select
 
-from models.effects import linear_terms
+from models.effects import candidate_effects, linear_terms
 from models.narx import fit_narx
+from models.refinement import MAX_LINEAR_ORDER
+from models.terms import Term, parse_terms
+from service.domain import refinements
+from service.schemas import RefinementCreate
+from service.security import Principal, Role
+from service.tables import Organisation
 from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
 
 SAMPLES = 12_000
@@ -163,6 +170,29 @@ def test_with_no_base_model_the_loop_chooses_linear_orders_and_stores_their_mode
     assert started in page.text and f"to baseline v{refined['version']}" in page.text
     assert structure_page.status_code == 200
     assert f"linear ({ny}, {nx}), delay {delay}: orders chosen" in structure_page.text
+
+
+def test_a_refinement_without_a_base_is_priced_as_the_widest_linear_start(rig: Rig, api_server: LiveServer):
+    """The cells bound and the queue see the widest start the loop may choose (ny = nx = 10, delay
+    0, with every family offered for it), not a cheaper guess; with a base, its own terms."""
+    fitted, judged = [rig.effect_record, rig.clean_record], rig.judged[:1]
+    samples = 2 * SAMPLES + SHORT
+
+    def regressors(terms: tuple[Term, ...]) -> int:
+        return len(terms) + sum(effect.regressors for effect in candidate_effects(terms))
+
+    with api_server.app.state.sessions() as session:
+        organisation = session.scalar(select(Organisation.id).where(Organisation.name == rig.org.name))
+        principal = Principal(organisation, Role.admin, key_id=0)
+        for base, terms in (
+            (None, linear_terms(MAX_LINEAR_ORDER, MAX_LINEAR_ORDER, 0)),
+            (rig.baseline["id"], parse_terms(rig.baseline["terms"])),
+        ):
+            body = RefinementCreate(record_ids=fitted, test_record_ids=judged, base_model_id=base)
+            cells = refinements.refinement_cells(
+                session, principal, rig.structure_id, body, api_server.app.state.settings
+            )
+            assert cells == samples * regressors(terms)
 
 
 def test_a_clean_record_adds_nothing_and_stores_no_model(rig: Rig):
