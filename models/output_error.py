@@ -22,6 +22,7 @@ acceleration 1 (cubic damping terms over ten lags) diverged there on two test le
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
@@ -134,9 +135,8 @@ def fit_output_error(
     penalty = 100.0 * (scale + float(np.max(np.abs(initial))))
     penalised_steps = 0
 
-    def penalised(theta: np.ndarray) -> np.ndarray:
+    def penalised(theta: np.ndarray, outputs: list[np.ndarray]) -> np.ndarray:
         nonlocal penalised_steps
-        outputs = simulated(theta)
         residuals = errors(outputs)
         if at_rest and not ring_downs.settle(start, theta, recursion_states(start, theta, runs, outputs)):
             penalised_steps += 1
@@ -147,20 +147,38 @@ def fit_output_error(
         return residuals
 
     state = start.output_limits if start.saturation == "state" else None
+    n_rows, n_par = initial.size, start.theta.size
 
-    def jacobian(theta: np.ndarray) -> np.ndarray:
-        # Exact sensitivities of the free run (one pass a record); the penalty is flat, and so is
-        # a sensor's reading where it is clipped.
-        blocks = []
+    @functools.lru_cache(maxsize=2)
+    def compressed_at(key: bytes) -> np.ndarray:
+        # One pass a record gives the free run and its exact sensitivities; the penalty is flat,
+        # and so is a sensor's reading where it is clipped.
+        theta = np.frombuffer(key)
+        augmented = np.empty((n_rows, n_par + 1), order="F")
+        outputs, row = [], 0
         for run, ya in runs:
             simulated, sensitivities = run.run_with_sensitivities(theta, ya, state)
             if start.output_limits is not None and state is None:
                 sensitivities[
                     (simulated <= start.output_limits[0]) | (simulated >= start.output_limits[1])
                 ] = 0.0
-            blocks.append(sensitivities[L:])
-        stacked = blocks[0] if len(blocks) == 1 else np.vstack(blocks)
-        return np.nan_to_num(stacked, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+            augmented[row : row + simulated.size - L, :n_par] = sensitivities[L:]
+            row += simulated.size - L
+            outputs.append(simulated)
+        augmented[:, n_par] = penalised(theta, outputs)
+        np.nan_to_num(augmented, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+        return np.linalg.qr(augmented, mode="r")
+
+    # The search sees the free-run problem compressed to its triangular factor: with [J r] = Q·T,
+    # T = [[R, q], [0, ρ]], the residual (q, ρ) and Jacobian (R, 0) have the norm, gradient Jᵀr
+    # and Gauss–Newton matrix JᵀJ of the N free-run residuals, which is all Levenberg–Marquardt
+    # reads: the search takes the same steps, and MINPACK's unblocked QR of the tall Jacobian
+    # (and its copies) run on p + 1 rows where LAPACK's blocked one has run on N.
+    def residual(theta: np.ndarray) -> np.ndarray:
+        return compressed_at(np.asarray(theta, dtype=np.float64).tobytes())[:, n_par]
+
+    def jacobian(theta: np.ndarray) -> np.ndarray:
+        return compressed_at(np.asarray(theta, dtype=np.float64).tobytes())[:, :n_par]
 
     # MINPACK cuts its trust region tenfold on every step into the penalty and lets it grow at most
     # twofold a step after, so a search that met the penalty can crawl to its step-size test
@@ -170,7 +188,7 @@ def fit_output_error(
     while True:
         met_penalty = penalised_steps
         result = optimize.least_squares(
-            penalised, theta, jac=jacobian, x_scale="jac", max_nfev=max_evaluations - evaluations, method="lm"
+            residual, theta, jac=jacobian, x_scale="jac", max_nfev=max_evaluations - evaluations, method="lm"
         )
         evaluations += int(result.nfev)
         theta = result.x

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import optimize
 
 from models.errors import InputError
 from models.narx import NARX, fit_narx
@@ -55,6 +56,25 @@ def test_several_records_are_simulated_each_from_its_own_start() -> None:
     records = [output_error_record(1500, 1.0, seed)[:2] for seed in (21, 22, 23)]
     fit = fit_output_error(fit_narx(records, TERMS), records)
     assert np.all(np.abs(fit.model.theta - TRUE) < 4 * fit.model.standard_errors())
+
+
+def test_the_search_ends_where_levenberg_marquardt_on_every_free_run_residual_does() -> None:
+    """The search sees the free-run problem compressed to its triangular factor (p + 1 rows);
+    MINPACK on the N residuals themselves, with a finite-difference Jacobian (an independent
+    computation), must end at the same θ and the same error."""
+    records = [output_error_record(1500, 1.0, seed)[:2] for seed in (41, 42)]
+    terms = [*TERMS, "y[t-1]^3", "x[t-2]"]
+    start = fit_narx(records, terms)
+    fit = fit_output_error(start, records)
+    runs = [(FreeRun.build(start.terms, x, 0), y) for x, y in records]
+
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        return np.concatenate([start.run_free(run, y, theta)[2:] - y[2:] for run, y in runs])
+
+    full = optimize.least_squares(residuals, start.theta, method="lm", x_scale="jac")
+    assert np.allclose(fit.model.theta, full.x, rtol=1e-5, atol=1e-7), (fit.model.theta, full.x)
+    assert fit.rms == pytest.approx(np.sqrt(np.mean(full.fun**2)), rel=1e-9)
+    assert fit.rms < 0.95 * fit.start_rms  # the search did move: the comparison means something
 
 
 def test_a_starting_model_whose_free_run_diverges_is_refused() -> None:
