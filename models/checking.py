@@ -50,12 +50,14 @@ class Structure:
 @dataclass
 class CheckSplit:
     """The estimation data's fit and check parts (:func:`split_for_checking`), and the check
-    parts' free-run RMS of every structure judged on them, kept: the loop asks again for the
-    current model's (each round, the final choice of estimator)."""
+    parts' free-run RMS of every structure judged on them, kept with its fits: the loop asks
+    again for the current model's (each round, the final choice of estimator), and an
+    output-error search starts from the least-squares fit the judgement made."""
 
     fit: Segments
     check: Segments
     _errors: dict[tuple[Structure, bool], float] = field(default_factory=dict)
+    _fitted: dict[Structure, NARX] = field(default_factory=dict)
     _tuned: dict[Structure, NARX] = field(default_factory=dict)
     _settled: set[Structure] = field(default_factory=set)
 
@@ -125,15 +127,16 @@ class CheckSplit:
     def fitted(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by least squares (its process part by extended
         least squares when it has moving-average terms); raises InputError where it cannot be."""
-        model, _ = fit_model(
-            [(x, y) for x, y, _ in self.fit],
-            structure.terms,
-            structure.noise_lags,
-            max_lag(structure.terms),
-            [t for *_, t in self.fit],
-            structure.saturating,
-        )
-        return model
+        if structure not in self._fitted:
+            self._fitted[structure], _ = fit_model(
+                [(x, y) for x, y, _ in self.fit],
+                structure.terms,
+                structure.noise_lags,
+                max_lag(structure.terms),
+                [t for *_, t in self.fit],
+                structure.saturating,
+            )
+        return self._fitted[structure]
 
 
 def by_output_error(model: NARX, segments: Segments, evaluations: int) -> NARX:

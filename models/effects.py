@@ -401,7 +401,7 @@ def profile_search(
         if not np.all(np.isfinite(norms)) or not np.all(norms > 0):
             return float(residual @ residual)
         columns = columns / norms
-        for _ in range(2):  # Gram–Schmidt twice (see models.refinement)
+        for _ in range(2):  # Gram–Schmidt twice (see models.scoring._orthogonal_part)
             columns = columns - model_basis @ (model_basis.T @ columns)
         fit, *_ = linalg.lstsq(columns, residual, lapack_driver="gelsd")
         remaining = residual - columns @ fit

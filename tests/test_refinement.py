@@ -12,6 +12,7 @@ from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
 from models.refinement import refine, refine_record, refine_records
+from models.scoring import _orthogonal_part
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from service.recordfiles import parse_silverbox
@@ -189,6 +190,26 @@ def test_score_and_f_statistic_agree_with_an_svd_refit():
     assert first.level == pytest.approx(0.01 / first.candidates)
 
 
+def test_a_candidate_nearly_in_the_models_span_is_projected_off_it_to_working_precision():
+    """Gram–Schmidt once leaves a column that lies nearly in the model's span with a remainder
+    that is not orthogonal to it (its error ~ eps·‖column‖, large against a remainder of 1e-9);
+    the columns that lost most of their norm are projected again. Both kinds in one call: the
+    remainders must be orthogonal to the model and equal to those of an SVD least-squares fit."""
+    rng = np.random.default_rng(7)
+    Q, _ = linalg.qr(rng.normal(size=(5000, 20)), mode="economic")
+    nearly = Q @ rng.normal(size=20) + 1e-9 * rng.normal(size=5000)
+    apart = rng.normal(size=5000)
+    columns = np.column_stack([nearly, apart])
+    remainders = _orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+    once = nearly - Q @ (Q.T @ nearly)
+    assert np.max(np.abs(Q.T @ once)) / np.linalg.norm(once) > 1e-9  # once is not enough here
+    for remainder in remainders.T:
+        assert np.max(np.abs(Q.T @ remainder)) < 1e-13 * np.linalg.norm(remainder)
+    for column, remainder in zip((columns / np.linalg.norm(columns, axis=0)).T, remainders.T, strict=True):
+        fitted = Q @ linalg.lstsq(Q, column, lapack_driver="gelsd")[0]
+        assert np.allclose(remainder, column - fitted, rtol=0, atol=1e-12)
+
+
 def test_candidate_effects_leave_out_terms_the_model_has():
     declared = parse_terms(["y[t-1]", "y[t-2]", "y[t-1]^3", "x[t-1]", "1"])
     effects = {effect.name: effect for effect in candidate_effects(declared)}
@@ -285,6 +306,22 @@ def test_with_nothing_declared_the_loop_chooses_the_linear_orders_of_the_system(
     free_run = result.refined.simulate(x[4000:], clean[4000:])[3:] - clean[4003:]
     least_squares = result.declared.simulate(x[4000:], clean[4000:])[3:] - clean[4003:]
     assert np.sqrt(np.mean(free_run**2)) < np.sqrt(np.mean(least_squares**2))
+
+
+def test_the_check_split_fits_a_structure_once_and_searches_from_that_fit():
+    """Each round asks for the current structure's check figure again, and the output-error
+    search after the rounds starts from the least-squares fit the judgement made: on Silverbox
+    that fit (extended least squares, 30 steps over 43 000 rows) was made twice."""
+    x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
+    checks = CheckSplit.of([(x[:ESTIMATION], y[:ESTIMATION])])
+    structure = Structure(tuple(parse_terms(EXACT_TERMS)), noise_lags=2)
+    least_squares = checks.fitted(structure)
+    assert np.isfinite(checks.error(structure))
+    assert checks.fitted(structure) is least_squares
+    refit = CheckSplit.of([(x[:ESTIMATION], y[:ESTIMATION])]).fitted(structure)
+    assert np.array_equal(refit.theta, least_squares.theta)  # the kept fit is the fit
+    tuned = checks.tuned(structure)
+    assert checks.fitted(structure) is least_squares and tuned.terms == least_squares.terms
 
 
 def test_from_three_records_on_whole_records_are_checked():
