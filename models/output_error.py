@@ -52,8 +52,9 @@ class OutputErrorFit:
     evaluations : free runs computed by the search (over its fresh starts, each after MINPACK
         stopped at its step-size test having met the penalty).
     status : ``scipy.optimize.least_squares``' termination status (> 0: converged). The search is
-        Levenberg–Marquardt (MINPACK): its QR of the tall Jacobian costs half what the
-        trust-region method's SVD does, with the same optimum (Silverbox: 0.95 s against 2.2 s).
+        Levenberg–Marquardt (MINPACK), on the problem compressed to p + 1 rows (in the function):
+        it took half the time of the trust-region method's SVD of the tall Jacobian, with the same
+        optimum, before the compression (Silverbox: 0.95 s against 2.2 s).
     """
 
     model: NARX
@@ -77,8 +78,8 @@ def fit_output_error(
         diverge on any record.
     records : (x, y) pairs in the units of the model; each free run starts from its record's
         first L = ``start.max_lag`` measured outputs.
-    max_evaluations : bound on the search's evaluations of V (each a free run on every record;
-        the Jacobian comes from the runs' sensitivities, one more pass per iteration).
+    max_evaluations : bound on the search's evaluations of V (each a free run on every record
+        that also gives the run's sensitivities, the Jacobian).
     t0 : where each record starts in the time base of sinusoidal terms (one for all, or one a
         record).
 
