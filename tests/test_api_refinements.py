@@ -241,14 +241,19 @@ def test_roles_and_organisations(rig: Rig, api_server: LiveServer):
         for client in (ingest, viewer):
             response = client.post(refinements_url(rig.structure_id), json=body)
             assert response.status_code == 403 and "admin" in detail(response)
+    # The organisation's own refinement, stored here (not one an earlier test left): a stranger
+    # must not see it.
+    with clients(rig.org) as (owner, _, _):
+        clean = {"record_id": rig.clean_record, "base_model_id": rig.baseline["id"], "test": [6000, SAMPLES]}
+        response = owner.post(refinements_url(rig.structure_id), json=clean)
+        assert response.status_code == 201, response.text
+        refinement_id = response.json()["id"]
     stranger = Org.create(api_server)
     with clients(stranger) as (admin, _, viewer):
         assert admin.post(refinements_url(rig.structure_id), json=body).status_code == 404
         assert viewer.get(refinements_url(rig.structure_id)).status_code == 404
         own = viewer.get(refinements_url(rig.structure_id)).json()
         assert "structure" in own["detail"]
-        with clients(rig.org) as (_, _, owner):
-            refinement_id = owner.get(refinements_url(rig.structure_id)).json()[0]["id"]
         assert viewer.get(f"{API}/refinements/{refinement_id}").status_code == 404
     with clients(rig.org) as (_, _, viewer):
         assert viewer.get(f"{API}/refinements/{UNKNOWN}").status_code == 404
