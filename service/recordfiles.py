@@ -195,7 +195,9 @@ def parse_record(
     return record if record.fs is not None else replace(record, fs=layout.fs)
 
 
-def parse_record_set(data: bytes, suffix: str, layout: Layout = DEFAULT_LAYOUT) -> tuple[NamedRecord, ...]:
+def parse_record_set(
+    data: bytes, suffix: str, layout: Layout = DEFAULT_LAYOUT, max_bytes: int | None = None
+) -> tuple[NamedRecord, ...]:
     """The records a file holds, each with the layout that reads it: one, or k when ``layout.x``
     and ``layout.y`` each name a whole group of k signals (CSV columns under one header cell, a
     MAT matrix), the pairs (x1, y1) … (xk, yk) — a benchmark's realisations side by side, as the
@@ -203,12 +205,17 @@ def parse_record_set(data: bytes, suffix: str, layout: Layout = DEFAULT_LAYOUT) 
 
     A group for one of x and y and a single signal (or a group of another size) for the other is
     refused: which signal goes with which would be a guess. The file is read once, whatever k.
+    ``max_bytes`` bounds each record as for :func:`parse_record`, and a MAT file's variables
+    together.
     """
     # Only CSV columns and MAT variables come in groups; a record of several channels reads its
     # responses as one record.
     if layout.channels or suffix not in (".csv", ".mat"):
-        return ((layout, parse_record(data, suffix, layout)),)
-    return tuple((_parse_csv if suffix == ".csv" else _parse_mat)(data, None, layout, paired=True))
+        return ((layout, parse_record(data, suffix, layout, max_bytes)),)
+    if suffix == ".csv":
+        samples = None if max_bytes is None else record_samples(max_bytes)
+        return tuple(_parse_csv(data, samples, layout, paired=True))
+    return tuple(_parse_mat(data, max_bytes, layout, paired=True))
 
 
 def _pairs(layout: Layout, counts: dict[str, int | None]) -> list[Layout]:

@@ -54,6 +54,7 @@ POLICY = {
     ("POST", "/api/v1/structures/{structure_id}/models/vector-fault-modes"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/models/{model_id}/activate"): "admin",
     ("POST", "/api/v1/structures/{structure_id}/records"): "ingest",
+    ("POST", "/api/v1/structures/{structure_id}/record-sets"): "ingest",
     ("POST", "/api/v1/records/{record_id}/inspect"): "ingest",
     ("GET", "/api/v1/verdicts/{verdict_id}"): "viewer",
     ("POST", "/api/v1/structures/{structure_id}/refinements"): "admin",
@@ -228,7 +229,7 @@ def api_routes(server: LiveServer) -> list[tuple[str, str]]:
         if path.startswith(API)
         for method in item
     )
-    assert routes == documented and len(routes) == 42, routes
+    assert routes == documented and len(routes) == 43, routes
     return routes
 
 
@@ -404,8 +405,8 @@ def test_a_role_failure_does_not_reveal_whether_an_id_exists(
                 needed = POLICY[method, path]
                 assert f"this needs a key of role '{needed}' or higher; yours is '{role}'" in text
                 checked += 1
-    # viewer: 25 admin and 2 ingest routes; ingest: 25 admin routes.
-    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 58
+    # viewer: 25 admin and 3 ingest routes; ingest: 25 admin routes.
+    assert checked == sum(RANK[role] < RANK[needed] for needed in POLICY.values() for role in ROLES) == 59
 
 
 # --- what each role may do, on our own objects -------------------------------------------------

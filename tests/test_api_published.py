@@ -10,10 +10,12 @@ import io
 import resource
 from dataclasses import dataclass
 
+import httpx
 import numpy as np
 import pytest
 import scipy.io
 from api_helpers import (
+    API,
     FS,
     Org,
     clients,
@@ -188,3 +190,82 @@ def test_mat_bomb_is_refused_before_it_is_inflated(site: Site, ingest):
         assert response.status_code == 413, response.text
         assert "the MAT variables x, y unpack to more than the upload limit" in detail(response)
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before < 200 * 2**20
+
+
+def post_set(client: httpx.Client, structure_id: int, body: bytes | str, media: str, **names: str):
+    return client.post(
+        f"{API}/structures/{structure_id}/record-sets",
+        content=body,
+        headers={"Content-Type": media},
+        params=names,
+    )
+
+
+def test_a_file_of_realisations_uploads_as_its_records_in_one_request(site: Site, ingest):
+    """Wiener–Hammerstein's estimation file with x = u, y = y: its ten records (u1, y1) …
+    (u10, y10), in that order, each the record an independent read gives (uploaded alone as an
+    NPZ it is recognised as stored); the file again: 200, the same records, none created."""
+    with clients(site.org) as (admin, _, _):
+        wh = create_structure(admin, "wh-set", fs=78125.0)["id"]
+    response = post_set(ingest, wh, WH_CSV.read_bytes(), "text/csv", x="u", y="y")
+    assert response.status_code == 201, response.text
+    stored = response.json()
+    assert len(stored) == 10 and all(r["created"] and r["n_samples"] == 8192 for r in stored)
+    assert len({r["id"] for r in stored}) == 10
+    columns = np.genfromtxt(WH_CSV, delimiter=",", skip_header=1)  # r1…r10, u1…u10, y1…y10, fs
+    for k in (1, 4, 10):
+        alone = npz_bytes(x=columns[:, 9 + k], y=columns[:, 19 + k], fs=78125.0)
+        again = post_record(ingest, wh, alone, "application/x-npz")
+        assert again.status_code == 200 and again.json()["id"] == stored[k - 1]["id"], again.text
+    repeated = post_set(ingest, wh, WH_CSV.read_bytes(), "text/csv", x="u", y="y")
+    assert repeated.status_code == 200, repeated.text
+    assert [r["id"] for r in repeated.json()] == [r["id"] for r in stored]
+    assert not any(r["created"] for r in repeated.json())
+
+
+def test_mat_matrices_upload_as_the_records_of_their_rows(site: Site, ingest):
+    force, acc = rng.normal(size=(2, 300)), rng.normal(0, 1e-3, (2, 300))
+    response = post_set(ingest, site.rig, _mat(F=force, A=acc, fs=FS), MAT, x="F", y="A")
+    assert response.status_code == 201, response.text
+    for k, record in enumerate(response.json()):
+        again = post_record(ingest, site.rig, npz_bytes(x=force[k], y=acc[k], fs=FS), "application/x-npz")
+        assert again.status_code == 200 and again.json()["id"] == record["id"]
+
+
+PAIRS = '"F",,"A",\n' + "".join(
+    f"{f:.17g},{g:.17g},{a:.17g},{b:.17g}\n" for f, g, a, b in zip(FORCE, FORCE[::-1], *ACC[:2], strict=True)
+)
+# The second record's response beyond what cubic terms over 300 samples may hold: refused when it
+# is stored, after the first record was (in the same transaction).
+TOO_LARGE = PAIRS.replace(f"{ACC[1, 7]:.17g}\n", f"{1e40:.17g}\n")
+BAD_SETS = {
+    "group-and-one": (PAIRS, "text/csv", {"x": "F", "y": "A2"}, 422, "to read a record from each pair"),
+    "second-record": (TOO_LARGE, "text/csv", {"x": "F", "y": "A"}, 422, "the record (F2, A2) of the set:"),
+    "json": (raw_json(json_body(300)), "application/json", {}, 415, "a record set is a CSV"),
+    "npz": (npz_bytes(x=FORCE, y=ACC[0], fs=FS), "application/x-npz", {}, 415, "a record set is a CSV"),
+}
+
+
+@pytest.mark.parametrize(
+    ("body", "media", "names", "status", "message"), list(BAD_SETS.values()), ids=list(BAD_SETS)
+)
+def test_a_refused_record_set_stores_none_of_its_records(
+    site: Site, ingest, body, media, names, status, message
+):
+    with nothing_written(site.org, site.rig):
+        response = post_set(ingest, site.rig, body, media, **names)
+        assert response.status_code == status, response.text
+        assert message in detail(response), detail(response)
+    if names == {"x": "F", "y": "A"}:
+        assert "no record of the set was stored" in detail(response)
+        assert post_set(ingest, site.rig, PAIRS, "text/csv", **names).status_code == 201  # the file, mended
+
+
+def test_record_sets_are_uploaded_by_ingest_keys_of_the_structures_organisation(site: Site, api_server):
+    with nothing_written(site.org, site.rig), clients(site.org) as (_, _, viewer):
+        response = post_set(viewer, site.rig, PAIRS, "text/csv", x="F", y="A")
+        assert response.status_code == 403, response.text
+    stranger = Org.create(api_server)
+    with nothing_written(site.org, site.rig), clients(stranger) as (_, ingest, _):
+        response = post_set(ingest, site.rig, PAIRS, "text/csv", x="F", y="A")
+        assert response.status_code == 404 and "structure" in detail(response), response.text

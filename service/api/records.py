@@ -10,13 +10,14 @@ from fastapi import APIRouter, BackgroundTasks, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
+from models.errors import InputError
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
 from service.api.expensive import BUSY, slot
 from service.api.params import IdPath, utc
-from service.api.uploads import REQUEST_BODY, parse_upload, signal_layout
+from service.api.uploads import RECORD_SET_BODY, REQUEST_BODY, parse_upload, parse_upload_set, signal_layout
 from service.channels import MAX_CHANNELS
 from service.config import Settings
-from service.domain import inspections, records
+from service.domain import inspections, records, structures
 from service.domain.ingest import Ingested, QueueInspection, ingest_record
 from service.jobs import JobBackend
 from service.jobs.tasks import INSPECT_RECORD
@@ -27,6 +28,10 @@ from service.security import Principal
 router = APIRouter(tags=["records"])
 
 SIGNAL_HELP = "The CSV column or MAT variable that holds {role}; " + NAMING_HELP
+SET_SIGNAL_HELP = (
+    "The CSV column group or MAT matrix that holds {role} of every record of the set, or one column or "
+    "variable for a set of one record; " + NAMING_HELP
+)
 NAME_LENGTH = 200
 
 
@@ -107,6 +112,49 @@ async def upload_record(
     return _record_out(ingested)
 
 
+@router.post(
+    "/structures/{structure_id}/record-sets",
+    status_code=status.HTTP_201_CREATED,
+    openapi_extra={"requestBody": RECORD_SET_BODY},
+    responses={
+        200: {"model": list[RecordOut], "description": "Every record of the set had been uploaded before"}
+    },
+)
+async def upload_record_set(
+    request: Request,
+    response: Response,
+    structure_id: IdPath,
+    principal: Ingest,
+    session: SessionDep,
+    settings: SettingsDep,
+    acquired_at: Annotated[
+        dt.datetime | None, Query(description="Acquisition time of every record (ISO 8601 with zone)")
+    ] = None,
+    x: Annotated[str, Query(max_length=NAME_LENGTH, description=SET_SIGNAL_HELP.format(role="x"))] = "x",
+    y: Annotated[str, Query(max_length=NAME_LENGTH, description=SET_SIGNAL_HELP.format(role="y"))] = "y",
+) -> list[RecordOut]:
+    """Upload a file of realisations side by side as its records: where x and y each name a group
+    of k signals (CSV columns under one header cell, k×N MAT matrices), the k records (x1, y1) …
+    (xk, yk), in that order, stored in one transaction — all of them or, if any is refused, none.
+    A record uploaded before is returned as stored. Records of a set are not inspected here: they
+    are a benchmark's estimation and validation data (POST .../refinements takes their ids)."""
+    body = await request.body()  # bounded by the BodyLimitMiddleware
+    ingested = await run_in_threadpool(
+        _parse_and_ingest_set,
+        body,
+        request.headers.get("content-type", ""),
+        acquired_at,
+        session,
+        principal,
+        settings,
+        structure_id,
+        signal_layout(x, [y], NAME_LENGTH),
+    )
+    if not any(item.created for item in ingested):
+        response.status_code = status.HTTP_200_OK
+    return [_record_out(item) for item in ingested]
+
+
 @router.post("/records/{record_id}/inspect", responses=BUSY)
 def inspect_record(
     request: Request, record_id: IdPath, principal: Ingest, session: SessionDep, settings: SettingsDep
@@ -151,6 +199,44 @@ def _parse_and_ingest(
         upload.conditions,
         upload.channels,
     )
+
+
+def _parse_and_ingest_set(
+    body: bytes,
+    content_type: str,
+    acquired_at: dt.datetime | None,
+    session: Session,
+    principal: Principal,
+    settings: Settings,
+    structure_id: int,
+    layout: Layout,
+) -> list[Ingested]:
+    # The structure first: a body is parsed only for a structure the key may upload to.
+    structures.get_structure(session, principal, structure_id)
+    uploads = parse_upload_set(body, content_type, acquired_at, settings.max_upload_bytes, layout)
+    when = utc(acquired_at, "acquired_at")
+    ingested = []
+    for signals, upload in uploads:
+        try:
+            ingested.append(
+                ingest_record(
+                    session,
+                    principal,
+                    settings,
+                    structure_id,
+                    upload.x,
+                    upload.y,
+                    upload.fs,
+                    when,
+                    inspect=False,
+                    conditions=upload.conditions,
+                )
+            )
+        except InputError as exc:  # which of the k records, and that none was stored
+            raise InputError(
+                f"the record ({signals.x}, {signals.y}) of the set: {exc}; no record of the set was stored"
+            ) from None
+    return ingested
 
 
 def _queue_inspection(jobs: JobBackend, organisation_id: int) -> QueueInspection:

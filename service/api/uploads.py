@@ -12,7 +12,14 @@ from pydantic import ValidationError
 from models.errors import InputError
 from service.channels import checked_channels
 from service.conditions import MAX_CONDITIONS, UNIT_LENGTH, Condition, checked_conditions
-from service.recordfiles import DEFAULT_LAYOUT, Layout, parse_record, record_samples, too_many_samples
+from service.recordfiles import (
+    DEFAULT_LAYOUT,
+    Layout,
+    parse_record,
+    parse_record_set,
+    record_samples,
+    too_many_samples,
+)
 from service.schemas import ChannelUpload, RecordUpload
 
 JSON = "application/json"
@@ -39,6 +46,12 @@ REQUEST_BODY = {
         "application/x-npz": {"schema": {"type": "string", "format": "binary"}},
         MAT: {"schema": {"type": "string", "format": "binary", "description": "MATLAB v4/v5/v7 MAT file"}},
     },
+}
+
+
+RECORD_SET_BODY = {
+    "required": True,
+    "content": {media: REQUEST_BODY["content"][media] for media in (CSV, MAT)},
 }
 
 
@@ -97,6 +110,25 @@ def parse_upload(
         )
     parsed = parse_record(body, suffix, layout, max_bytes)
     return Upload(parsed.x, parsed.y, parsed.fs, acquired_at, parsed.conditions, parsed.channels)
+
+
+def parse_upload_set(
+    body: bytes, content_type: str, acquired_at: dt.datetime | None, max_bytes: int, layout: Layout
+) -> tuple[tuple[Layout, Upload], ...]:
+    """The records of a CSV or MAT body, each with the signals that hold it
+    (:func:`service.recordfiles.parse_record_set`): k when the layout's x and y each name a group
+    of k signals. 415 for any other media type, each record bounded as an upload is."""
+    media = content_type.split(";")[0].strip().lower()
+    if media not in (CSV, MAT):
+        raise HTTPException(
+            status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+            f"a record set is a CSV ({CSV}) or a MAT file ({MAT}) holding the records' signals side by "
+            f"side; got {media or '(none)'!r} (upload a single record to .../records)",
+        )
+    return tuple(
+        (named, Upload(record.x, record.y, record.fs, acquired_at, record.conditions))
+        for named, record in parse_record_set(body, FILE_FORMATS[media], layout, max_bytes)
+    )
 
 
 def _with_channels(
