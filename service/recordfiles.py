@@ -312,7 +312,7 @@ def _parse_csv(
         for name in (each.x, *each.responses):
             group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
             wanted.append((name, groups[group][k]))
-    columns = iter(_read_columns(lines, first, count, wanted, max_samples))
+    columns = iter(_read_columns(lines, first, count, wanted, max_samples, len(layout.responses)))
     rate_name = next((name for name in groups if name.lower() == "fs" and widths[name] == 1), None)
     fs = comment_fs
     if rate_name is not None:
@@ -381,11 +381,17 @@ def _drop_trailing_comma(groups: dict[str, list[int]], count: int, first_row: li
 
 
 def _read_columns(
-    lines: list[str], first: int, count: int, wanted: list[tuple[str, int]], max_samples: int | None
+    lines: list[str],
+    first: int,
+    count: int,
+    wanted: list[tuple[str, int]],
+    max_samples: int | None,
+    channels: int,
 ) -> list[np.ndarray]:
     """The numbers of each wanted (name, column), each down to its first empty cell, from the
     non-blank lines from ``first`` on. Cells past the header's ``count`` may only be empty
-    (trailing commas). Only the wanted cells' numbers are kept, 8 bytes each."""
+    (trailing commas). Only the wanted cells' numbers are kept, 8 bytes each. ``max_samples``
+    bounds each record, of ``channels`` responses (the pairs of a set are records apart)."""
     values = [array.array("d") for _ in wanted]
     ends: list[int | None] = [None] * len(wanted)  # the line of a column's first empty cell
     columns = list(enumerate(wanted))
@@ -397,7 +403,7 @@ def _read_columns(
         if len(cells) > count and any(cell.strip() for cell in cells[count:]):
             raise InputError(f"CSV line {number}: expected {count} values, found {len(cells)}")
         if rows == max_samples:
-            raise too_many_samples("the CSV has", max_samples, len(wanted) - 1)
+            raise too_many_samples("the CSV has", max_samples, channels)
         rows += 1
         for index, (name, column) in columns:
             cell = cells[column] if column < len(cells) else ""

@@ -269,3 +269,15 @@ def test_record_sets_are_uploaded_by_ingest_keys_of_the_structures_organisation(
     with nothing_written(site.org, site.rig), clients(stranger) as (_, ingest, _):
         response = post_set(ingest, site.rig, PAIRS, "text/csv", x="F", y="A")
         assert response.status_code == 404 and "structure" in detail(response), response.text
+
+
+def test_a_record_set_is_bounded_as_each_of_its_records_is(site: Site, ingest):
+    """Short numbers in a set: "0,0,0,0" rows hold two records of limit/16 + 1 samples each
+    within half the body limit; every record of a set holds at most limit/16 samples."""
+    most = site.server.settings.max_upload_bytes // 16
+    body = b'"F",,"A",\n' + b"0,1,0,1\n" * (most + 1)
+    assert len(body) < site.server.settings.max_upload_bytes
+    with nothing_written(site.org, site.rig):
+        response = post_set(ingest, site.rig, body, "text/csv", x="F", y="A")
+        assert response.status_code == 413, response.text
+        assert f"a record may hold at most {most} samples" in detail(response)
