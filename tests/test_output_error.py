@@ -59,9 +59,9 @@ def test_several_records_are_simulated_each_from_its_own_start() -> None:
 
 
 def test_the_search_ends_where_levenberg_marquardt_on_every_free_run_residual_does() -> None:
-    """The search sees the free-run problem compressed to its triangular factor (p + 1 rows);
-    MINPACK on the N residuals themselves, with a finite-difference Jacobian (an independent
-    computation), must end at the same θ and the same error."""
+    """The search's Jacobian comes from the free run's sensitivities; MINPACK on the same
+    residuals with a finite-difference Jacobian (an independent computation) must end at the
+    same θ and the same error."""
     records = [output_error_record(1500, 1.0, seed)[:2] for seed in (41, 42)]
     terms = [*TERMS, "y[t-1]^3", "x[t-2]"]
     start = fit_narx(records, terms)
