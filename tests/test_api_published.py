@@ -31,6 +31,8 @@ from conftest import DATA_DIR
 from live import LiveServer
 from mat_bombs import mat_file, matrix, v73_file, zeros_bomb
 
+from service.schemas import MAX_REFINEMENT_RECORDS
+
 MAT = "application/x-matlab-data"
 F16_MAT = DATA_DIR / "f16-gvt" / "F16Data_SineSw_Level3.mat"
 WH_CSV = DATA_DIR / "wiener-hammerstein" / "WH_EstimationExample.csv"
@@ -281,3 +283,17 @@ def test_a_record_set_is_bounded_as_each_of_its_records_is(site: Site, ingest):
         response = post_set(ingest, site.rig, body, "text/csv", x="F", y="A")
         assert response.status_code == 413, response.text
         assert f"a record may hold at most {most} samples" in detail(response)
+
+
+def test_a_record_set_holds_at_most_as_many_records_as_a_refinement_fits(site: Site, ingest):
+    """Each record of a set is checked and inserted under the write lock: 101 pairs of short
+    columns (a few kB) would cost 101 ingests in one request. A set holds at most the 100 records a
+    refinement fits (``MAX_REFINEMENT_RECORDS``); one more is a 422 naming the bound, nothing stored."""
+    pairs = MAX_REFINEMENT_RECORDS + 1
+    columns = rng.normal(size=(300, 2 * pairs))
+    body = ",".join(['"F"'] + [""] * (pairs - 1) + ['"A"'] + [""] * (pairs - 1)) + "\n"
+    body += "".join(",".join(f"{v:.6g}" for v in row) + "\n" for row in columns)
+    with nothing_written(site.org, site.rig):
+        response = post_set(ingest, site.rig, body, "text/csv", x="F", y="A")
+        assert response.status_code == 422, response.text
+        assert f"holds {pairs} records; a set may hold at most {MAX_REFINEMENT_RECORDS}," in detail(response)

@@ -20,7 +20,7 @@ from service.recordfiles import (
     record_samples,
     too_many_samples,
 )
-from service.schemas import ChannelUpload, RecordUpload
+from service.schemas import MAX_REFINEMENT_RECORDS, ChannelUpload, RecordUpload
 
 JSON = "application/json"
 CSV = "text/csv"
@@ -117,7 +117,9 @@ def parse_upload_set(
 ) -> tuple[tuple[Layout, Upload], ...]:
     """The records of a CSV or MAT body, each with the signals that hold it
     (:func:`service.recordfiles.parse_record_set`): k when the layout's x and y each name a group
-    of k signals. 415 for any other media type, each record bounded as an upload is."""
+    of k signals. 415 for any other media type, each record bounded as an upload is, and k by
+    the records a refinement fits (each is checked and inserted under the write lock: short
+    columns would otherwise make thousands of records of one body)."""
     media = content_type.split(";")[0].strip().lower()
     if media not in (CSV, MAT):
         raise HTTPException(
@@ -125,9 +127,15 @@ def parse_upload_set(
             f"a record set is a CSV ({CSV}) or a MAT file ({MAT}) holding the records' signals side by "
             f"side; got {media or '(none)'!r} (upload a single record to .../records)",
         )
+    records = parse_record_set(body, FILE_FORMATS[media], layout, max_bytes)
+    if len(records) > MAX_REFINEMENT_RECORDS:
+        raise InputError(
+            f"the file holds {len(records)} records; a set may hold at most {MAX_REFINEMENT_RECORDS}, "
+            "as many as a refinement fits: upload it in parts"
+        )
     return tuple(
         (named, Upload(record.x, record.y, record.fs, acquired_at, record.conditions))
-        for named, record in parse_record_set(body, FILE_FORMATS[media], layout, max_bytes)
+        for named, record in records
     )
 
 
