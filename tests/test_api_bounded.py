@@ -18,6 +18,7 @@ from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 
 import httpx
+import numpy as np
 import pytest
 from api_helpers import (
     API,
@@ -431,3 +432,42 @@ def test_history_and_verdicts_never_read_model_documents(api_server: LiveServer)
         assert any("model_versions" in s for s in seen)
         read = [s for s in seen if "model_versions.document" in s]
         assert not read, f"a model document was read: {read}"
+
+
+def record_set_csv(records: int, samples: int, seed: int) -> str:
+    """A CSV of ``records`` realisations side by side: the groups x and y, as Wiener–Hammerstein's
+    files hold theirs."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.standard_normal((2, samples, records)) * 1e-3
+    header = ",".join(["x"] + [""] * (records - 1) + ["y"] + [""] * (records - 1))
+    rows = (",".join(f"{v:.9g}" for v in (*xs, *ys)) for xs, ys in zip(x, y, strict=True))
+    return "\n".join([header, *rows])
+
+
+def test_a_record_set_reads_the_structure_and_its_models_once_however_many_records_it_holds(
+    api_server: LiveServer,
+):
+    """A set of k records looked the structure and its active models up once a record: a hundred
+    identical reads of the models for a set of a hundred, while the first records' inserts held
+    the write lock. Every record is now checked before the first is written, against one read."""
+    org = Org.create(api_server)
+    with clients(org) as (admin, ingest, _):
+        rig = create_structure(admin)["id"]
+        train_fault_mode(admin, ingest, rig, "k2", seed=26)
+        reads = []
+        # The first set reads the models' documents too, which the server then keeps.
+        for records, seed in ((2, 1), (2, 2), (6, 3)):
+            with statements(api_server) as seen:
+                stored = ingest.post(
+                    f"{API}/structures/{rig}/record-sets",
+                    content=record_set_csv(records, 500, seed),
+                    headers={"Content-Type": "text/csv"},
+                )
+            assert stored.status_code == 201, stored.text
+            assert len(stored.json()) == records
+            reads.append(sum("model_versions" in s for s in seen))
+            inserts = [s for s in seen if s.lstrip().upper().startswith("INSERT INTO RECORDS")]
+            assert len(inserts) == records, inserts
+            first_insert = seen.index(inserts[0])
+            assert not any("model_versions" in s for s in seen[first_insert:]), "models read after a write"
+        assert reads[1] == reads[2] > 0, reads

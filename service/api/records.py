@@ -10,7 +10,6 @@ from fastapi import APIRouter, BackgroundTasks, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
-from models.errors import InputError
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
 from service.api.expensive import BUSY, slot
 from service.api.params import IdPath, utc
@@ -18,7 +17,7 @@ from service.api.uploads import RECORD_SET_BODY, REQUEST_BODY, parse_upload, par
 from service.channels import MAX_CHANNELS
 from service.config import Settings
 from service.domain import inspections, records, structures
-from service.domain.ingest import Ingested, QueueInspection, ingest_record
+from service.domain.ingest import Ingested, QueueInspection, SetRecord, ingest_record, ingest_record_set
 from service.jobs import JobBackend
 from service.jobs.tasks import INSPECT_RECORD
 from service.recordfiles import NAMING_HELP, Layout
@@ -214,29 +213,13 @@ def _parse_and_ingest_set(
     # The structure first: a body is parsed only for a structure the key may upload to.
     structures.get_structure(session, principal, structure_id)
     uploads = parse_upload_set(body, content_type, acquired_at, settings.max_upload_bytes, layout)
-    when = utc(acquired_at, "acquired_at")
-    ingested = []
-    for signals, upload in uploads:
-        try:
-            ingested.append(
-                ingest_record(
-                    session,
-                    principal,
-                    settings,
-                    structure_id,
-                    upload.x,
-                    upload.y,
-                    upload.fs,
-                    when,
-                    inspect=False,
-                    conditions=upload.conditions,
-                )
-            )
-        except InputError as exc:  # which of the k records, and that none was stored
-            raise InputError(
-                f"the record ({signals.x}, {signals.y}) of the set: {exc}; no record of the set was stored"
-            ) from None
-    return ingested
+    members = [
+        SetRecord(f"({signals.x}, {signals.y})", upload.x, upload.y, upload.fs, upload.conditions)
+        for signals, upload in uploads
+    ]
+    return ingest_record_set(
+        session, principal, settings, structure_id, members, utc(acquired_at, "acquired_at")
+    )
 
 
 def _queue_inspection(jobs: JobBackend, organisation_id: int) -> QueueInspection:

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from numpy.typing import ArrayLike
 from sqlalchemy.orm import Session
 
+from models.errors import InputError
 from models.inspection import checked_for_inspection
 from models.pooled import PooledModel
 from models.signals import minimum_samples
@@ -97,6 +98,50 @@ def ingest_record(
             queue(session, record.id)
             queued = True
     return Ingested(record, created, verdict, queued)
+
+
+@dataclass(frozen=True)
+class SetRecord:
+    """A record of a set (a file of realisations side by side), named as refusals name it."""
+
+    label: str  # its signals, "(F2, A2)"
+    x: ArrayLike
+    y: ArrayLike
+    fs: float | None
+    conditions: Sequence[Condition] = ()
+
+
+def ingest_record_set(
+    session: Session,
+    principal: Principal,
+    settings: Settings,
+    structure_id: int,
+    members: Sequence[SetRecord],
+    acquired_at: dt.datetime | None,
+) -> list[Ingested]:
+    """Store the records of a set, not inspected (they are a benchmark's estimation and validation
+    data), in their order: all of them or, when one is refused, none, the refusal naming it.
+
+    Every record is checked, as :func:`ingest_record` checks one it does not inspect, before the
+    first is written, against one look-up of the structure and of the degree its records must
+    hold: the write lock is then held for the inserts alone, not for a hundred records' checks.
+    """
+    structure = structures.get_structure(session, principal, structure_id)
+    degree = _degree_to_hold(session, structure)
+    checked = []
+    for member in members:
+        try:
+            rate = records.checked_rate(structure, member.fs)
+            x, y = records.checked_signals(member.x, member.y, (), minimum_samples(settings.lags), degree)
+        except InputError as exc:
+            raise InputError(
+                f"the record {member.label} of the set: {exc}; no record of the set was stored"
+            ) from None
+        checked.append((x, y, rate, member.conditions))
+    return [
+        Ingested(*records.store_record(session, structure, x, y, rate, acquired_at, conditions), None, False)
+        for x, y, rate, conditions in checked
+    ]
 
 
 def _degree_to_hold(session: Session, structure: Structure) -> int:
