@@ -40,7 +40,9 @@ estimation records (:func:`models.output_error.fit_output_error`), which removes
 noise on the measured output gives least squares, when on the check blocks the output-error fit
 simulates better than the least-squares one (where the noise is a force on the structure, least
 squares is consistent and the better one-step predictor, and may simulate as well). When
-nothing was added, the refined model is the declared structure's output-error fit itself.
+nothing was added, the refined model is the declared structure's output-error fit itself; when
+families were added across folds, it is made as each fold made the model it judged (the folds
+validate that procedure), their terms grown at zero from the fit before them.
 
 The estimation data may be several records: no lag crosses a record boundary; from three
 records on, whole records are checked (:mod:`models.checking`). Free runs are compiled
@@ -436,6 +438,7 @@ def refine(
         withdrawn = len(rounds)
         current = declared_structure
         check = checks.error(current)
+    before_folds, grown_across_folds = current, []
     if output_error and folds:
         for _ in range(max_rounds):
             offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
@@ -452,6 +455,7 @@ def refine(
             if found is None:
                 break
             score, current, errors = found
+            grown_across_folds.append(current)
             rounds.append(replace(step, added=score, check_rms=errors))
             check = checks.error(current)
     refined, noise = fit_model(
@@ -470,6 +474,10 @@ def refine(
             # worse on other records by chance (F-16's acceleration 2 from the linear orders the
             # loop chose: 5–7 % worse than that fit on two test levels).
             tuned = None if declared_tuned is declared_model else declared_tuned
+        elif grown_across_folds:
+            tuned = _as_the_folds_judged(
+                records, before_folds, grown_across_folds, declared_structure, declared_tuned
+            )
         else:
             # The search starts from whichever simulates the estimation data best: the
             # least-squares fit; the output-error fit on the fit parts the check just made (near
@@ -650,6 +658,45 @@ def _across_folds(
         return None
     _, score, structure, first_fold = min(passed, key=lambda trial: trial[0])
     return score, structure, first_fold
+
+
+def _as_the_folds_judged(
+    records: Records,
+    before: Structure,
+    grown: Sequence[Structure],
+    declared: Structure,
+    declared_tuned: NARX,
+) -> NARX:
+    """The output-error fit on all the ``records`` of the structure grown across folds, made as
+    each fold made the model it judged: ``before``'s settled fit (the declared structure's is
+    ``declared_tuned``), then each of the ``grown`` structures in turn, its added terms at zero
+    from the fit before it, searched until it stops gaining.
+
+    The folds validate a procedure, not a model: the model delivered is that procedure applied to
+    all the data (Hastie, Tibshirani & Friedman, *The Elements of Statistical Learning*, §7.10).
+    Searched from the first fold's fit instead, whose search began on two thirds of the records,
+    F-16's acceleration 3 with power-law stiffness ended 0.7 % lower on the estimation records and
+    60 % higher on the test sweep below their levels (0.344 against 0.215 m/s²).
+    """
+    everything: Segments = [(x, y, 0) for x, y in records]
+
+    def fitted(structure: Structure) -> NARX:
+        return fit_model(
+            records,
+            structure.terms,
+            structure.noise_lags,
+            max_lag(structure.terms),
+            saturating=structure.saturating,
+        )[0]
+
+    model = (
+        declared_tuned
+        if before == declared
+        else by_output_error(fitted(before), everything, SETTLED_EVALUATIONS)
+    )
+    for structure in grown:
+        model = by_output_error(grown_by_zeros(model, fitted(structure)), everything, SETTLED_EVALUATIONS)
+    return model
 
 
 def _on_every_fold(
