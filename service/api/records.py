@@ -211,15 +211,13 @@ def _parse_and_ingest_set(
     layout: Layout,
 ) -> list[Ingested]:
     # The structure first: a body is parsed only for a structure the key may upload to.
-    structures.get_structure(session, principal, structure_id)
+    structure = structures.get_structure(session, principal, structure_id)
     uploads = parse_upload_set(body, content_type, acquired_at, settings.max_upload_bytes, layout)
     members = [
         SetRecord(f"({signals.x}, {signals.y})", upload.x, upload.y, upload.fs, upload.conditions)
         for signals, upload in uploads
     ]
-    return ingest_record_set(
-        session, principal, settings, structure_id, members, utc(acquired_at, "acquired_at")
-    )
+    return ingest_record_set(session, settings, structure, members, utc(acquired_at, "acquired_at"))
 
 
 def _queue_inspection(jobs: JobBackend, organisation_id: int) -> QueueInspection:

@@ -113,20 +113,19 @@ class SetRecord:
 
 def ingest_record_set(
     session: Session,
-    principal: Principal,
     settings: Settings,
-    structure_id: int,
+    structure: Structure,
     members: Sequence[SetRecord],
     acquired_at: dt.datetime | None,
 ) -> list[Ingested]:
-    """Store the records of a set, not inspected (they are a benchmark's estimation and validation
-    data), in their order: all of them or, when one is refused, none, the refusal naming it.
+    """Store the records of a set on ``structure`` (looked up for the caller's key), not inspected
+    (they are a benchmark's estimation and validation data), in their order: all of them or, when
+    one is refused, none, the refusal naming it.
 
     Every record is checked, as :func:`ingest_record` checks one it does not inspect, before the
-    first is written, against one look-up of the structure and of the degree its records must
-    hold: the write lock is then held for the inserts alone, not for a hundred records' checks.
+    first is written, against one look-up of the degree its records must hold: the write lock is
+    then held for the inserts alone, not for a hundred records' checks.
     """
-    structure = structures.get_structure(session, principal, structure_id)
     degree = _degree_to_hold(session, structure)
     checked = []
     for member in members:
