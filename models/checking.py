@@ -5,7 +5,8 @@ by its free run over the rest.
 records; from three records on, whole records, in three folds); :class:`CheckSplit` fits a
 :class:`Structure` on the fit parts, by least squares or by output error (bounded or settled),
 and keeps the check parts' free-run RMS of every structure it judged. A model that does not come
-to rest once the excitation stops counts as diverged.
+to rest once the excitation stops, or diverges from a measured state of the fit parts, counts as
+diverged.
 """
 
 from __future__ import annotations
@@ -118,8 +119,8 @@ class CheckSplit:
         return self._simulates(model)
 
     def _simulates(self, model: NARX) -> float:
-        # A model that does not come to rest once the excitation stops is as good as diverged,
-        # however well it simulates while driven.
+        # A model that does not come to rest once the excitation stops, or diverges from a
+        # measured state, is as good as diverged, however well it simulates from the parts' starts.
         if not comes_to_rest(model, [(x, y) for x, y, _ in self.fit], [t for *_, t in self.fit]):
             return np.inf
         return free_run_rms(model, self.check)

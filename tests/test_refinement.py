@@ -148,8 +148,10 @@ def test_nothing_is_added_to_unrelated_white_signals_whose_output_error_fit_is_r
     output-error fit on the fit blocks did not come to rest, its check figure was infinite, and
     offset, power-law stiffness and Coulomb friction each passed the simulation criterion against
     it (a 20 % gain on infinity). A family decided on simulation must beat the current structure's
-    best check figure, least squares' here."""
-    rng = np.random.default_rng(103)
+    best check figure, least squares' here. (Seed 117: on seeds 103 and 120, which showed it
+    first, the search now ends at a fit that comes to rest, searched again where its end diverged
+    from a measured state.)"""
+    rng = np.random.default_rng(117)
     x, y = rng.normal(0.0, 1.0, 4000)[:2666], rng.normal(0.0, 1e-3, 4000)[:2666]
     checks = CheckSplit.of([(x, y)])
     declared = Structure(EXACT_TERMS)
