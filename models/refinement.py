@@ -631,9 +631,9 @@ def _across_folds(
     least squares diverges over F-16's check sweep). The first fold ranks the families by bounded
     searches; the best ``FOLD_TRIALS`` are settled on every fold, the first fold first, and of
     those that gain on all of them the one whose free run falls most, on average over the folds
-    as a share of the current model's, is added (on F-16's acceleration 3 that is power-law
-    stiffness). The refined model is then fitted on all the records as the folds fitted theirs
-    (:func:`_as_the_folds_judged`).
+    as a share of the current model's, is added (on F-16's acceleration 3 that was power-law
+    stiffness, until the models were held to measured states). The refined model is then fitted
+    on all the records as the folds fitted theirs (:func:`_as_the_folds_judged`).
     """
     primary = folds[0]
     if not np.isfinite(base := primary.settled(current)):
