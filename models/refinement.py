@@ -271,20 +271,23 @@ def refine_records(
     initial: int = 0,
     alpha: float = DEFAULT_ALPHA,
     fs: float | None = None,
+    transient: int = 0,
 ) -> RefinementReport:
     """Refine on several estimation records, assess both models on each test record, whole.
 
     Each test run starts from its record's first ``initial`` measured outputs (at least the
-    model's lags). A model with sinusoidal terms is phase-locked to the estimation record's
-    first sample; on a test record its sinusoids count time from that record's first sample.
+    model's lags); its first ``transient`` samples are run through but not scored
+    (:func:`models.assessment.assess`). A model with sinusoidal terms is phase-locked to the
+    estimation record's first sample; on a test record its sinusoids count time from that
+    record's first sample.
     """
     if not tests:
         raise InputError("at least one test record is needed to judge the refined model")
-    if initial < 0:
-        raise InputError(f"the initial samples must be 0 or more, got {initial}")
+    if initial < 0 or transient < 0:
+        raise InputError(f"the initial and transient samples must be 0 or more, got {initial}, {transient}")
     for number, (_, y) in enumerate(tests, start=1):
         try:
-            check_test_length(len(y), max(initial, reach(declared)))
+            check_test_length(len(y), max(initial, reach(declared), transient))
         except InputError as exc:
             raise InputError(f"test record {number}: {exc}") from None
     result = refine(estimation, declared, alpha=alpha)
@@ -299,16 +302,22 @@ def refine_records(
             "the refined model's periodic terms keep the phase of the estimation record's first "
             "sample; the test records share no time base with it, so those terms are not validated there"
         )
-    comparisons = tuple(_compare(result, x, y, initial, fs, 0) for x, y in tests)
+    comparisons = tuple(_compare(result, x, y, initial, fs, 0, transient) for x, y in tests)
     return RefinementReport(result, comparisons, tuple(notes))
 
 
 def _compare(
-    result: Refinement, x: np.ndarray, y: np.ndarray, initial: int, fs: float | None, t0: int
+    result: Refinement,
+    x: np.ndarray,
+    y: np.ndarray,
+    initial: int,
+    fs: float | None,
+    t0: int,
+    transient: int = 0,
 ) -> Comparison:
     return Comparison(
-        assess(result.declared, x, y, initial, fs, t0),
-        assess(result.refined, x, y, initial, fs, t0, result.noise),
+        assess(result.declared, x, y, initial, fs, t0, transient=transient),
+        assess(result.refined, x, y, initial, fs, t0, result.noise, transient=transient),
     )
 
 

@@ -231,7 +231,7 @@ def test_the_realisations_of_one_file_are_records_as_separate_files_are(
         }
 
 
-def test_transient_samples_are_dropped_from_every_record(simulated_records: Path):
+def test_the_transient_is_not_fitted_and_a_judged_record_is_run_through_it(simulated_records: Path):
     report = json.loads(
         run(
             "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--transient", "1000",
@@ -239,18 +239,34 @@ def test_transient_samples_are_dropped_from_every_record(simulated_records: Path
         ).stdout
     )  # fmt: skip
     assert report["data"]["transient"] == 1000 and report["data"]["initial"] == 20
-    assert [e["samples"] for e in report["data"]["estimation"]] == [[0, 5000], [0, 5000]]
+    assert [e["samples"] for e in report["data"]["estimation"]] == [[1000, 6000], [1000, 6000]]
     fitted = declared_fit(simulated_records, ["e1", "e2"], transient=1000)
     np.testing.assert_allclose(report["declared"]["theta"], fitted.theta, rtol=1e-9)
     (test,) = report["tests"]
-    assert test["samples"] == [0, 5000]
-    # The free run starts from the first 20 measured outputs of v1 after its transient.
+    assert test["samples"] == [1000, 6000]
+    # The free run starts from v1's first 20 measured outputs, as the record does, and runs
+    # through the transient; the samples after it are scored.
     record = read_record(simulated_records / "v1.csv")
-    x, y = record.x[1000:], record.y[1000:]
     start = 20 - fitted.max_lag
-    simulated = fitted.simulate(x[start:], y[start:])[fitted.max_lag :]
-    expected = float(np.sqrt(np.mean((simulated - y[20:]) ** 2)))
+    simulated = fitted.simulate(record.x[start:], record.y[start:])
+    expected = float(np.sqrt(np.mean((simulated[1000 - start :] - record.y[1000:]) ** 2)))
     assert test["before"]["free_run_rms"] == pytest.approx(expected, rel=1e-9)
+
+
+def test_parts_of_one_record_count_after_its_transient_and_are_reported_as_the_file_numbers_them(
+    simulated_records: Path,
+):
+    report = json.loads(
+        run(
+            "refine", "e1.csv", "--declared", "2dof", "--transient", "1000", "--estimation", "0:3000",
+            "--test", "3000:5000", "--json", cwd=simulated_records,
+        ).stdout
+    )  # fmt: skip
+    assert [e["samples"] for e in report["data"]["estimation"]] == [[1000, 4000]]
+    assert [t["samples"] for t in report["tests"]] == [[4000, 6000]]
+    record = read_record(simulated_records / "e1.csv")
+    fitted = fit_narx([(record.x[1000:4000], record.y[1000:4000])], EXACT_TERMS)
+    np.testing.assert_allclose(report["declared"]["theta"], fitted.theta, rtol=1e-9)
 
 
 def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_records: Path):
@@ -288,7 +304,10 @@ def test_records_at_different_rates_are_refused_naming_each(simulated_records: P
             ["e1.csv", "e2.csv", "--validate", "v1.csv", "--estimation", "0:3000"],
             "picks a part of one record",
         ),
-        (["e1.csv", "--validate", "v1.csv", "--transient", "6000"], "e1.csv: --transient 6000 drops all"),
+        (
+            ["e1.csv", "--validate", "v1.csv", "--transient", "6000"],
+            "e1.csv: --transient 6000 leaves nothing of its 6000 samples",
+        ),
         (["e1.csv", "--validate", "v1.csv", "--transient", "-1"], "--transient must be 0 or more"),
     ],
 )

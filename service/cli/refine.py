@@ -5,7 +5,9 @@ Two protocols. **Parts of one record** (one record, no ``--validate``; or ``--es
 on the estimation part and both models are judged on the test part, then on each ``--validate``
 record whole. **Whole records** (several estimation records, or one with ``--validate``):
 estimation on all of them at once (no lag crosses a record's boundary), each ``--validate``
-record judged whole. ``--transient`` drops the first samples of every record in both. A file
+record judged whole. ``--transient`` names the first samples of every record its transient: the
+loop does not fit them, and a record judged whole is run through them from its start and scored
+after them (a record that begins at rest with its excitation, as the structure did). A file
 holds one record, or one for each pair of signals when ``--x`` and ``--y`` name groups of as many
 (:func:`service.recordfiles.parse_record_set`).
 """
@@ -58,8 +60,8 @@ class DataFormat(StrEnum):
 
 @dataclass(frozen=True)
 class _Record:
-    """A record as the loop sees it: its file, the names of its signals there, the signals
-    (transient dropped) and the sampling rate."""
+    """A record as its file holds it: the file, the names of its signals there, the signals
+    and the sampling rate."""
 
     path: Path
     layout: Layout
@@ -109,8 +111,9 @@ def refine_command(
     transient: Annotated[
         int,
         typer.Option(
-            help="Samples dropped at the start of every record (a benchmark's transient, e.g. the F-16 "
-            "multisine's first period, 8192); --estimation and --test count from there."
+            help="Samples at the start of every record that hold its transient (e.g. the F-16 multisine's "
+            "first period, 8192): not fitted; a record judged whole is run through them from its start "
+            "and scored after them; --estimation and --test count from there."
         ),
     ] = 0,
     initial: Annotated[
@@ -131,34 +134,37 @@ def refine_command(
         raise InputError(f"--transient must be 0 or more, got {transient}")
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
     held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
+    cut = [(record.x[transient:], record.y[transient:]) for record in fitted]
     rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
     start = initial if initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
     terms = _declared(declared)
     if len(fitted) == 1 and (not held or estimation is not None or test is not None or silverbox):
         (record,) = fitted
-        n = len(record.y)
+        ((x_cut, y_cut),) = cut
+        n = len(y_cut)
         est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
-        report = refine_record(record.x, record.y, terms, est, part, start, alpha, rate)
+        report = refine_record(x_cut, y_cut, terms, est, part, start, alpha, rate)
         c, d = part
-        report = RefinementReport(report.refinement, report.tests + _judged(report, held, start, rate))
-        judged = [record.source | {"samples": [c, d]}] + [_whole(r) for r in held]
-        protocol = {"estimation": [record.source | {"samples": list(est)}]}
-        plotted = (record.x[c:d], record.y[c:d])
+        tests = report.tests + _judged(report, held, start, rate, transient)
+        report = RefinementReport(report.refinement, tests)
+        # Samples as the files number them.
+        judged = [record.source | {"samples": [transient + c, transient + d]}]
+        judged += [_whole(r, transient) for r in held]
+        protocol = {"estimation": [record.source | {"samples": [transient + est[0], transient + est[1]]}]}
+        plotted = (x_cut[c:d], y_cut[c:d])
     else:
         for option, value in (("--estimation", estimation), ("--test", test)):
             if value is not None:
                 raise InputError(
                     f"{option} picks a part of one record; with several estimation records (or --validate) "
-                    "each record is used whole: drop its start with --transient"
+                    "each record is used whole, after the transient --transient gives"
                 )
         if not held:
             raise InputError("with several estimation records, name the records to judge on: --validate VAL…")
-        report = refine_records(
-            [(r.x, r.y) for r in fitted], [(r.x, r.y) for r in held], terms, start, alpha, rate
-        )
-        judged = [_whole(r) for r in held]
-        protocol = {"estimation": [_whole(r) for r in fitted]}
+        report = refine_records(cut, [(r.x, r.y) for r in held], terms, start, alpha, rate, transient)
+        judged = [_whole(r, transient) for r in held]
+        protocol = {"estimation": [_whole(r, transient) for r in fitted]}
         plotted = (held[0].x, held[0].y)
     document = report.to_dict()
     document["tests"] = [where | item for where, item in zip(judged, document["tests"], strict=True)]
@@ -179,29 +185,32 @@ def refine_command(
 
 
 def _read(path: Path, layout: Layout, fs: float | None, transient: int) -> list[_Record]:
-    """The file's records (one, or one from each pair of groups x and y name), transient dropped."""
+    """The file's records (one, or one from each pair of groups x and y name), each longer than
+    its transient."""
     records = []
     for pair, record in read_record_set(path, layout):
         if transient >= len(record.y):
-            raise InputError(f"{path}: --transient {transient} drops all of its {len(record.y)} samples")
+            raise InputError(f"{path}: --transient {transient} leaves nothing of its {len(record.y)} samples")
         rate = record.fs if record.fs is not None else fs
-        records.append(_Record(path, pair, record.x[transient:], record.y[transient:], rate))
+        records.append(_Record(path, pair, record.x, record.y, rate))
     return records
 
 
-def _whole(record: _Record) -> dict[str, Any]:
-    return record.source | {"samples": [0, len(record.y)]}
+def _whole(record: _Record, transient: int) -> dict[str, Any]:
+    """Where a record used whole comes from, and the samples fitted or scored: those after its
+    transient."""
+    return record.source | {"samples": [transient, len(record.y)]}
 
 
 def _judged(
-    report: RefinementReport, records: list[_Record], initial: int, fs: float | None
+    report: RefinementReport, records: list[_Record], initial: int, fs: float | None, transient: int
 ) -> tuple[Comparison, ...]:
-    """Both models judged on each record whole, without refitting."""
+    """Both models judged on each record whole, run through its transient, without refitting."""
     result = report.refinement
     return tuple(
         Comparison(
-            assess(result.declared, record.x, record.y, initial, fs),
-            assess(result.refined, record.x, record.y, initial, fs, noise=result.noise),
+            assess(result.declared, record.x, record.y, initial, fs, transient=transient),
+            assess(result.refined, record.x, record.y, initial, fs, noise=result.noise, transient=transient),
         )
         for record in records
     )

@@ -80,11 +80,12 @@ def create_refinement(
         judged = [{"record_id": record.id, "samples": list(plan.test)}]
         data = {"estimation": list(plan.estimation), "test": list(plan.test)}
     else:
+        # The loop does not fit the transient; the tests are run through it and scored after it.
         cut = body.transient
         fitted = [(x[cut:], y[cut:]) for x, y in map(signals, plan.records)]
-        held = [(x[cut:], y[cut:]) for x, y in map(signals, plan.tests)]
-        report = refine_records(fitted, held, plan.terms, body.initial, body.alpha, fs)
-        judged = [{"record_id": r.id, "samples": [0, r.n_samples - cut]} for r in plan.tests]
+        held = [signals(record) for record in plan.tests]
+        report = refine_records(fitted, held, plan.terms, body.initial, body.alpha, fs, cut)
+        judged = [{"record_id": r.id, "samples": [cut, r.n_samples]} for r in plan.tests]
         data = {"transient": cut}
     document = report.to_dict()
     document["tests"] = [where | test for where, test in zip(judged, document["tests"], strict=True)]
@@ -189,12 +190,13 @@ def _planned(
         for record in records:
             if record.n_samples <= body.transient:
                 raise InputError(
-                    f"record {record.id} has {record.n_samples} samples; the transient drops {body.transient}"
+                    f"record {record.id} has {record.n_samples} samples; a transient of "
+                    f"{body.transient} leaves nothing of it"
                 )
-        start_up = max(body.initial, reach(terms))
+        start_up = max(body.initial, reach(terms), body.transient)
         for record in tests:
             try:
-                check_test_length(record.n_samples - body.transient, start_up)
+                check_test_length(record.n_samples, start_up)
             except InputError as exc:
                 raise InputError(f"test record {record.id}: {exc}") from None
     # With no base, priced as the largest linear model the loop may choose.
