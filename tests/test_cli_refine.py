@@ -74,7 +74,7 @@ def test_simulated_quadratic_stiffness_is_named_and_the_table_printed(tmp_path):
         "simulate", "--n", "12000", "--seed", "3", "--disturbance-std", "200",
         "--effect", "quadratic_stiffness2=3e5", "--out", "record.csv", cwd=tmp_path,
     )  # fmt: skip
-    report = json.loads(run("refine", "record.csv", "--declared", "2dof", "--json", cwd=tmp_path).stdout)
+    report = refine_report("record.csv", "--declared", "2dof", cwd=tmp_path)
     assert report["effects_added"][0]["name"] == "quadratic_stiffness"
     assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
     table = run("refine", "record.csv", "--declared", "2dof", cwd=tmp_path).stdout
@@ -130,14 +130,16 @@ def free_run_rms(model: NARX, folder: Path, name: str, transient: int = 0) -> fl
     return float(np.sqrt(np.mean((model.simulate(x, y)[L:] - y[L:]) ** 2)))
 
 
+def refine_report(*args: str, cwd: Path) -> dict:
+    """The JSON report of ``narxwatch refine`` with ``args``, run in ``cwd``."""
+    return json.loads(run("refine", *args, "--json", cwd=cwd).stdout)
+
+
 @pytest.fixture(scope="module")
 def two_record_report(simulated_records: Path) -> dict:
     """The JSON report of the loop on e1 and e2, judged on v1 and v2."""
-    return json.loads(
-        run(
-            "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "v2.csv", "--json",
-            cwd=simulated_records,
-        ).stdout
+    return refine_report(
+        "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "v2.csv", cwd=simulated_records
     )  # fmt: skip
 
 
@@ -207,11 +209,9 @@ def test_the_realisations_of_one_file_are_records_as_separate_files_are(
 ):
     side_by_side(simulated_records, ["e1", "e2"], simulated_records / "estimation.csv")
     side_by_side(simulated_records, ["v1", "v2"], simulated_records / "test.csv")
-    grouped = json.loads(
-        run(
-            "refine", "estimation.csv", "--x", "u", "--y", "y", "--declared", "2dof",
-            "--validate", "test.csv", "--json", cwd=simulated_records,
-        ).stdout
+    grouped = refine_report(
+        "estimation.csv", "--x", "u", "--y", "y", "--declared", "2dof",
+        "--validate", "test.csv", cwd=simulated_records
     )  # fmt: skip
     separate = two_record_report
     assert grouped["data"]["estimation"] == [
@@ -232,11 +232,9 @@ def test_the_realisations_of_one_file_are_records_as_separate_files_are(
 
 
 def test_the_transient_is_not_fitted_and_a_judged_record_is_run_through_it(simulated_records: Path):
-    report = json.loads(
-        run(
-            "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--transient", "1000",
-            "--initial", "20", "--json", cwd=simulated_records,
-        ).stdout
+    report = refine_report(
+        "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--transient", "1000",
+        "--initial", "20", cwd=simulated_records
     )  # fmt: skip
     assert report["data"]["transient"] == 1000 and report["data"]["initial"] == 20
     assert [e["samples"] for e in report["data"]["estimation"]] == [[1000, 6000], [1000, 6000]]
@@ -256,11 +254,9 @@ def test_the_transient_is_not_fitted_and_a_judged_record_is_run_through_it(simul
 def test_parts_of_one_record_count_after_its_transient_and_are_reported_as_the_file_numbers_them(
     simulated_records: Path,
 ):
-    report = json.loads(
-        run(
-            "refine", "e1.csv", "--declared", "2dof", "--transient", "1000", "--estimation", "0:3000",
-            "--test", "3000:5000", "--json", cwd=simulated_records,
-        ).stdout
+    report = refine_report(
+        "e1.csv", "--declared", "2dof", "--transient", "1000", "--estimation", "0:3000",
+        "--test", "3000:5000", cwd=simulated_records
     )  # fmt: skip
     assert [e["samples"] for e in report["data"]["estimation"]] == [[1000, 4000]]
     assert [t["samples"] for t in report["tests"]] == [[4000, 6000]]
