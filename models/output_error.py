@@ -216,11 +216,27 @@ def fit_output_error(
         return OutputErrorFit(start, start_rms, start_rms, evaluations, int(result.status))
     n, p = final.size, theta.size
     sigma2 = float(final @ final) / max(n - p, 1)
-    covariance = sigma2 * np.linalg.pinv(result.jac.T @ result.jac)
-    model = replace(start, theta=theta, covariance=covariance, sigma2=sigma2, n_obs=n)
+    model = replace(
+        start, theta=theta, covariance=sigma2 * gauss_newton_inverse(result.jac), sigma2=sigma2, n_obs=n
+    )
     return OutputErrorFit(
         model, start_rms, float(np.sqrt(np.mean(final**2))), evaluations, int(result.status)
     )
+
+
+def gauss_newton_inverse(jacobian: np.ndarray) -> np.ndarray:
+    """(JᵀJ)⁺, the pseudo-inverse of the Gauss–Newton matrix of the Jacobian J (rows: the free
+    run's samples; columns: θ), which times σ² is θ's asymptotic covariance.
+
+    Computed on J's columns scaled to a largest entry of one, J = J_s·D, as D⁻¹(J_sᵀJ_s)⁺D⁻¹:
+    the same matrix where JᵀJ is representable and of full rank, and a finite one where it is
+    not. A free run's sensitivities can exceed 10¹⁵⁴ while the run itself stays finite, and JᵀJ
+    then overflows (F-16's multisines, estimated whole: LAPACK's SVD failed on it in the middle
+    of the loop; on other such matrices the pseudo-inverse comes back as zeros)."""
+    scale = np.max(np.abs(jacobian), axis=0, initial=0.0)
+    scale[scale == 0.0] = 1.0
+    scaled = jacobian / scale
+    return np.linalg.pinv(scaled.T @ scaled) / scale[:, None] / scale[None, :]
 
 
 # Where and for how long the excitation is switched off to see the free run come to rest: at this

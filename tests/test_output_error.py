@@ -16,7 +16,14 @@ from scipy import optimize
 from models.checking import CHECK_EVALUATIONS, CheckSplit, Structure
 from models.errors import InputError
 from models.narx import NARX, fit_narx
-from models.output_error import RESTLESS, RING_DOWN, STILL, comes_to_rest, fit_output_error
+from models.output_error import (
+    RESTLESS,
+    RING_DOWN,
+    STILL,
+    comes_to_rest,
+    fit_output_error,
+    gauss_newton_inverse,
+)
 from models.simulation import FreeRun
 from models.terms import parse_terms
 from service.recordfiles import Layout, read_record
@@ -301,3 +308,27 @@ def test_free_run_sensitivities_equal_finite_differences_of_the_free_run() -> No
         # sign(…) jumps where dy changes sign: at a step this small no simulated dy comes near
         # enough to zero for the perturbed runs to land on different sides of a jump.
         assert np.allclose(S[:, j], central, rtol=1e-5, atol=1e-7 * np.max(np.abs(central))), j
+
+
+def test_the_covariance_of_a_search_whose_sensitivities_overflow_the_gauss_newton_matrix_is_finite() -> None:
+    """Found on F-16's multisines estimated whole: a fold's search ended at θ whose free run was
+    finite and whose sensitivities exceeded 10¹⁵⁴, so that JᵀJ overflowed and LAPACK's SVD, asked
+    for its pseudo-inverse, failed in the middle of the loop (on other inputs it returns zeros).
+    Scaled by columns the inverse is the textbook one: (J·D)ᵀ(J·D) = D·JᵀJ·D."""
+    J = np.random.default_rng(3).standard_normal((500, 3))
+    textbook = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(gauss_newton_inverse(J), textbook, rtol=1e-10)
+    huge = J * np.array([1.0, 1e160, 1.0])
+    kept = np.ix_([0, 2], [0, 2])
+    # Unscaled, the pseudo-inverse either fails (as it did on F-16) or is wrong: here all zeros.
+    with np.errstate(over="ignore", invalid="ignore"):
+        try:
+            naive = np.linalg.pinv(huge.T @ huge)
+            naive_fails = not np.allclose(naive[kept], textbook[kept], rtol=1e-3)
+        except np.linalg.LinAlgError:
+            naive_fails = True
+    assert naive_fails
+    inverse = gauss_newton_inverse(huge)
+    assert np.all(np.isfinite(inverse))
+    np.testing.assert_allclose(inverse[kept], textbook[kept], rtol=1e-10)
+    np.testing.assert_allclose(inverse[0, 1] * 1e160, textbook[0, 1], rtol=1e-10)
