@@ -22,9 +22,9 @@ the ten multisine realisations and tests on the test file's multisine and swept 
 estimates on the sine sweeps of levels 3, 5 and 7 together and tests on levels 2, 4 and 6.
 
 ``--only f16-multisine`` runs F-16's other excitation by the same split: the full-grid multisines
-of levels 3, 5 and 7, each without its first period (its transient), tested on 2, 4 and 6, each
-run from its start and scored after its first period. The loop was not developed on them; they
-are not part of the default run.
+of levels 3, 5 and 7, tested on 2, 4 and 6, every record used whole (the loop fits through the
+first period, which holds the transient) and each test scored after its first period. The loop
+was not developed on them; they are not part of the default run.
 """
 
 from __future__ import annotations
@@ -99,17 +99,15 @@ def wiener_hammerstein() -> Benchmark:
 
 def f16(output: int, multisine: bool = False) -> Benchmark:
     """F-16's benchmark by its split, on the sine sweeps or on the full-grid multisines (their
-    first period holds the transient: the estimation records are taken without it, the test
-    records are run through it and scored after it)."""
+    first period holds the transient: the tests are scored after it)."""
     folder = DATA / "f16-gvt"
     layout = Layout("Force", f"Acceleration{output}")
 
     def level(number: int, suffix: str = "") -> tuple[np.ndarray, np.ndarray]:
         if multisine:
             record = read_record(folder / f"F16Data_FullMSine_Level{number}{suffix}.csv", layout)
-            cut = 0 if suffix else F16_PERIOD
-            return record.x[cut:], record.y[cut:]
-        record = read_record(folder / f"F16Data_SineSw_Level{number}{suffix}.mat", layout)
+        else:
+            record = read_record(folder / f"F16Data_SineSw_Level{number}{suffix}.mat", layout)
         return record.x, record.y
 
     return Benchmark(

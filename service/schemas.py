@@ -340,8 +340,9 @@ class RefinementCreate(Strict):
     """Refine a baseline version on stored records. On one record (``record_id``): its
     estimation samples [a, b) fit, its test samples [c, d) judge (default: the first two thirds
     and the last third). On several (``record_ids``): all of them fit at once, and each of
-    ``test_record_ids`` is judged whole; the first ``transient`` samples of each record are not
-    fitted, and a test record is run through them from its start and scored after them.
+    ``test_record_ids`` is judged whole; the first ``transient`` samples of each record hold its
+    transient: every record is fitted through them and run from its start, and a test record is
+    scored after them.
     Without ``base_model_id`` (a structure no baseline describes yet) the loop starts from the
     linear model whose orders simulate best, and reports them."""
 
@@ -368,10 +369,7 @@ class RefinementCreate(Strict):
         elif self.test_record_ids is None:
             raise ValueError("with record_ids, give test_record_ids: the records the models are judged on")
         elif self.estimation is not None or self.test is not None:
-            raise ValueError(
-                "estimation and test parts go with record_id; record_ids are fitted whole (after the "
-                "transient, if one is given)"
-            )
+            raise ValueError("estimation and test parts go with record_id; record_ids are fitted whole")
         return self
 
     @property

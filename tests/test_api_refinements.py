@@ -282,11 +282,9 @@ def test_several_records_are_fitted_at_once_and_each_test_record_judged_whole(ri
             "alpha": 0.01,
             "job": None,
         }
-        # The base model's structure fitted on both records at once, their transients dropped:
-        # least squares on the two, computed here from the simulated signals.
-        declared = fit_narx(
-            [(x[500:], y[500:]) for x, y in (rig.signals[i] for i in rig.fitted)], rig.baseline["terms"]
-        )
+        # The base model's structure fitted on both records at once, whole (through the
+        # transient): least squares on the two, computed here from the simulated signals.
+        declared = fit_narx([rig.signals[i] for i in rig.fitted], rig.baseline["terms"])
         np.testing.assert_allclose(report["declared"]["theta"], declared.theta, rtol=1e-9)
         # Each test record judged whole: its free run from its first 10 measured outputs, through
         # the transient, scored after it.

@@ -116,16 +116,16 @@ def simulated_records(tmp_path_factory) -> Path:
     return folder
 
 
-def declared_fit(folder: Path, names: list[str], transient: int = 0) -> NARX:
+def declared_fit(folder: Path, names: list[str]) -> NARX:
     """SPEC §2's structure fitted by least squares on the named records, independently of refine."""
     records = [read_record(folder / f"{name}.csv") for name in names]
-    return fit_narx([(r.x[transient:], r.y[transient:]) for r in records], EXACT_TERMS)
+    return fit_narx([(r.x, r.y) for r in records], EXACT_TERMS)
 
 
-def free_run_rms(model: NARX, folder: Path, name: str, transient: int = 0) -> float:
-    """The model's free run over the whole record (after the transient), from its first L outputs."""
+def free_run_rms(model: NARX, folder: Path, name: str) -> float:
+    """The model's free run over the whole record, from its first L outputs."""
     record = read_record(folder / f"{name}.csv")
-    x, y = record.x[transient:], record.y[transient:]
+    x, y = record.x, record.y
     L = model.max_lag
     return float(np.sqrt(np.mean((model.simulate(x, y)[L:] - y[L:]) ** 2)))
 
@@ -231,14 +231,14 @@ def test_the_realisations_of_one_file_are_records_as_separate_files_are(
         }
 
 
-def test_the_transient_is_not_fitted_and_a_judged_record_is_run_through_it(simulated_records: Path):
+def test_records_are_fitted_through_the_transient_and_judged_after_it(simulated_records: Path):
     report = refine_report(
         "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--transient", "1000",
         "--initial", "20", cwd=simulated_records
     )  # fmt: skip
     assert report["data"]["transient"] == 1000 and report["data"]["initial"] == 20
-    assert [e["samples"] for e in report["data"]["estimation"]] == [[1000, 6000], [1000, 6000]]
-    fitted = declared_fit(simulated_records, ["e1", "e2"], transient=1000)
+    assert [e["samples"] for e in report["data"]["estimation"]] == [[0, 6000], [0, 6000]]
+    fitted = declared_fit(simulated_records, ["e1", "e2"])
     np.testing.assert_allclose(report["declared"]["theta"], fitted.theta, rtol=1e-9)
     (test,) = report["tests"]
     assert test["samples"] == [1000, 6000]

@@ -5,9 +5,10 @@ Two protocols. **Parts of one record** (one record, no ``--validate``; or ``--es
 on the estimation part and both models are judged on the test part, then on each ``--validate``
 record whole. **Whole records** (several estimation records, or one with ``--validate``):
 estimation on all of them at once (no lag crosses a record's boundary), each ``--validate``
-record judged whole. ``--transient`` names the first samples of every record its transient: the
-loop does not fit them, and a record judged whole is run through them from its start and scored
-after them (a record that begins at rest with its excitation, as the structure did). A file
+record judged whole. ``--transient`` names the first samples of every record its transient:
+records used whole are fitted through it and every free run starts at the record's start, at rest
+with the structure, and is scored after it; on parts of one record, the parts count from its end.
+A file
 holds one record, or one for each pair of signals when ``--x`` and ``--y`` name groups of as many
 (:func:`service.recordfiles.parse_record_set`).
 """
@@ -112,8 +113,8 @@ def refine_command(
         int,
         typer.Option(
             help="Samples at the start of every record that hold its transient (e.g. the F-16 multisine's "
-            "first period, 8192): not fitted; a record judged whole is run through them from its start "
-            "and scored after them; --estimation and --test count from there."
+            "first period, 8192): records used whole are fitted through them and run from their start, "
+            "and scored after them; on one record's parts, --estimation and --test count from there."
         ),
     ] = 0,
     initial: Annotated[
@@ -134,13 +135,12 @@ def refine_command(
         raise InputError(f"--transient must be 0 or more, got {transient}")
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
     held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
-    cut = [(record.x[transient:], record.y[transient:]) for record in fitted]
     rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
     start = initial if initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
     terms = _declared(declared)
     if len(fitted) == 1 and (not held or estimation is not None or test is not None or silverbox):
         (record,) = fitted
-        ((x_cut, y_cut),) = cut
+        x_cut, y_cut = record.x[transient:], record.y[transient:]
         n = len(y_cut)
         est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
@@ -158,13 +158,19 @@ def refine_command(
             if value is not None:
                 raise InputError(
                     f"{option} picks a part of one record; with several estimation records (or --validate) "
-                    "each record is used whole, after the transient --transient gives"
+                    "each record is used whole (--transient: samples not scored)"
                 )
         if not held:
             raise InputError("with several estimation records, name the records to judge on: --validate VAL…")
-        report = refine_records(cut, [(r.x, r.y) for r in held], terms, start, alpha, rate, transient)
+        # The loop fits whole records: a NARX model holds through the transient, and its check runs
+        # then start where the records do, at rest. Started mid-record from L measured outputs
+        # instead, F-16's multisines' check runs favoured least squares over output error, whose
+        # slow mode carries those readings' noise (README: "Free runs started mid-record").
+        report = refine_records(
+            [(r.x, r.y) for r in fitted], [(r.x, r.y) for r in held], terms, start, alpha, rate, transient
+        )
         judged = [_whole(r, transient) for r in held]
-        protocol = {"estimation": [_whole(r, transient) for r in fitted]}
+        protocol = {"estimation": [_whole(r, 0) for r in fitted]}
         plotted = (held[0].x, held[0].y)
     document = report.to_dict()
     document["tests"] = [where | item for where, item in zip(judged, document["tests"], strict=True)]
@@ -196,10 +202,9 @@ def _read(path: Path, layout: Layout, fs: float | None, transient: int) -> list[
     return records
 
 
-def _whole(record: _Record, transient: int) -> dict[str, Any]:
-    """Where a record used whole comes from, and the samples fitted or scored: those after its
-    transient."""
-    return record.source | {"samples": [transient, len(record.y)]}
+def _whole(record: _Record, first: int) -> dict[str, Any]:
+    """Where a record used whole comes from, and the samples fitted or scored: from ``first`` on."""
+    return record.source | {"samples": [first, len(record.y)]}
 
 
 def _judged(

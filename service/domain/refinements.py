@@ -80,9 +80,10 @@ def create_refinement(
         judged = [{"record_id": record.id, "samples": list(plan.test)}]
         data = {"estimation": list(plan.estimation), "test": list(plan.test)}
     else:
-        # The loop does not fit the transient; the tests are run through it and scored after it.
+        # Whole records, fitted through the transient and run from their start (as in `narxwatch
+        # refine`); the tests are scored after it.
         cut = body.transient
-        fitted = [(x[cut:], y[cut:]) for x, y in map(signals, plan.records)]
+        fitted = [signals(record) for record in plan.records]
         held = [signals(record) for record in plan.tests]
         report = refine_records(fitted, held, plan.terms, body.initial, body.alpha, fs, cut)
         judged = [{"record_id": r.id, "samples": [cut, r.n_samples]} for r in plan.tests]
