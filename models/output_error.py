@@ -201,9 +201,11 @@ def fit_output_error(
     # from them: on its way to a model that does, it may pass through θ that do not (held from the
     # start, the search on the rig's record above stops at 38.5 mm, not 2.8).
     theta, result, evaluations = search(holding=False)
-    if held and not ring_downs.holds(start, theta):
+    holds = not held or ring_downs.holds(start, theta)
+    if not holds:
         theta, result, more = search(holding=True)
         evaluations += more
+        holds = ring_downs.holds(start, theta)
     outputs = simulated(theta)
     final = errors(outputs)
     start_rms = float(np.sqrt(np.mean(initial**2)))
@@ -211,7 +213,7 @@ def fit_output_error(
         not np.all(np.isfinite(final))
         or float(np.sqrt(np.mean(final**2))) >= start_rms
         or (at_rest and not ring_downs.settle(start, theta, recursion_states(start, theta, runs, outputs)))
-        or (held and not ring_downs.holds(start, theta))
+        or not holds
     ):
         return OutputErrorFit(start, start_rms, start_rms, evaluations, int(result.status))
     n, p = final.size, theta.size
