@@ -261,7 +261,7 @@ def refine_record(
     a, b = estimation
     c, d = test
     result = refine([(x[a:b], y[a:b])], declared, alpha=alpha, output_error=output_error)
-    return RefinementReport(result, (_compare(result, x[c:d], y[c:d], initial, fs, c - a),))
+    return RefinementReport(result, (compare(result, x[c:d], y[c:d], initial, fs, c - a),))
 
 
 def refine_records(
@@ -302,11 +302,11 @@ def refine_records(
             "the refined model's periodic terms keep the phase of the estimation record's first "
             "sample; the test records share no time base with it, so those terms are not validated there"
         )
-    comparisons = tuple(_compare(result, x, y, initial, fs, 0, transient) for x, y in tests)
+    comparisons = tuple(compare(result, x, y, initial, fs, 0, transient) for x, y in tests)
     return RefinementReport(result, comparisons, tuple(notes))
 
 
-def _compare(
+def compare(
     result: Refinement,
     x: np.ndarray,
     y: np.ndarray,
@@ -315,6 +315,8 @@ def _compare(
     t0: int,
     transient: int = 0,
 ) -> Comparison:
+    """Both of ``result``'s models, declared and refined, assessed on (x, y)
+    (:func:`models.assessment.assess`)."""
     return Comparison(
         assess(result.declared, x, y, initial, fs, t0, transient=transient),
         assess(result.refined, x, y, initial, fs, t0, result.noise, transient=transient),

@@ -24,10 +24,16 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from models.assessment import assess
 from models.effects import linear_terms
 from models.errors import InputError
-from models.refinement import DEFAULT_ALPHA, Comparison, RefinementReport, refine_record, refine_records
+from models.refinement import (
+    DEFAULT_ALPHA,
+    Comparison,
+    RefinementReport,
+    compare,
+    refine_record,
+    refine_records,
+)
 from models.terms import Term
 from service.cli.console import stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
@@ -211,14 +217,7 @@ def _judged(
     report: RefinementReport, records: list[_Record], initial: int, fs: float | None, transient: int
 ) -> tuple[Comparison, ...]:
     """Both models judged on each record whole, run through its transient, without refitting."""
-    result = report.refinement
-    return tuple(
-        Comparison(
-            assess(result.declared, record.x, record.y, initial, fs, transient=transient),
-            assess(result.refined, record.x, record.y, initial, fs, noise=result.noise, transient=transient),
-        )
-        for record in records
-    )
+    return tuple(compare(report.refinement, r.x, r.y, initial, fs, 0, transient) for r in records)
 
 
 def _declared(spec: str | None) -> tuple[Term, ...] | None:
