@@ -75,6 +75,7 @@ from models.checking import (
     checked_whole,
     grown_by_zeros,
 )
+from models.coverage import Coverage, coverage
 from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
 from models.errors import InputError
 from models.narx import NARX, Saturation
@@ -173,10 +174,12 @@ class Refinement:
 
 @dataclass(frozen=True)
 class Comparison:
-    """The declared and the refined model judged on one held-out record (or part)."""
+    """The declared and the refined model judged on one held-out record (or part), and how much
+    of it lies outside the estimation data (:func:`models.coverage.coverage`)."""
 
     before: Assessment
     after: Assessment
+    coverage: Coverage
 
 
 @dataclass(frozen=True)
@@ -232,7 +235,12 @@ class RefinementReport:
             "before": assessment_dict(self.before),
             "after": assessment_dict(self.after),
             "tests": [
-                {"before": assessment_dict(test.before), "after": assessment_dict(test.after)}
+                {
+                    "before": assessment_dict(test.before),
+                    "after": assessment_dict(test.after),
+                    "coverage": asdict(test.coverage)
+                    | {"extrapolates": test.coverage.extrapolates, "description": test.coverage.describe()},
+                }
                 for test in self.tests
             ],
             "refined": _model_dict(result.refined)
@@ -260,8 +268,9 @@ def refine_record(
     check_parts(len(x), declared, estimation, test, initial)
     a, b = estimation
     c, d = test
-    result = refine([(x[a:b], y[a:b])], declared, alpha=alpha, output_error=output_error)
-    return RefinementReport(result, (compare(result, x[c:d], y[c:d], initial, fs, c - a),))
+    estimation_part = [(x[a:b], y[a:b])]
+    result = refine(estimation_part, declared, alpha=alpha, output_error=output_error)
+    return RefinementReport(result, (compare(result, estimation_part, x[c:d], y[c:d], initial, fs, c - a),))
 
 
 def refine_records(
@@ -302,12 +311,13 @@ def refine_records(
             "the refined model's periodic terms keep the phase of the estimation record's first "
             "sample; the test records share no time base with it, so those terms are not validated there"
         )
-    comparisons = tuple(compare(result, x, y, initial, fs, 0, transient) for x, y in tests)
+    comparisons = tuple(compare(result, estimation, x, y, initial, fs, 0, transient) for x, y in tests)
     return RefinementReport(result, comparisons, tuple(notes))
 
 
 def compare(
     result: Refinement,
+    estimation: Records,
     x: np.ndarray,
     y: np.ndarray,
     initial: int,
@@ -316,10 +326,12 @@ def compare(
     transient: int = 0,
 ) -> Comparison:
     """Both of ``result``'s models, declared and refined, assessed on (x, y)
-    (:func:`models.assessment.assess`)."""
+    (:func:`models.assessment.assess`), and how much of its scored samples lies outside the
+    ``estimation`` records the models were fitted on (:func:`models.coverage.coverage`)."""
     return Comparison(
         assess(result.declared, x, y, initial, fs, t0, transient=transient),
         assess(result.refined, x, y, initial, fs, t0, result.noise, transient=transient),
+        coverage(estimation, x[transient:], y[transient:]),
     )
 
 

@@ -3,7 +3,7 @@ model stored as an inactive version, every refinement listed, and bad requests l
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import httpx
 import numpy as np
@@ -23,6 +23,7 @@ from dashboard_helpers import logged_in
 from live import LiveServer
 from sqlalchemy import select
 
+from models.coverage import coverage
 from models.effects import candidate_effects, linear_terms
 from models.narx import fit_narx
 from models.refinement import MAX_LINEAR_ORDER
@@ -299,6 +300,12 @@ def test_several_records_are_fitted_at_once_and_each_test_record_judged_whole(ri
                 np.sqrt(np.mean((run - y[500:]) ** 2)), rel=1e-9
             )
             assert test["after"]["one_step_rms"] <= test["before"]["one_step_rms"] / 2
+            # Its scored samples against the records fitted, whole.
+            shares = coverage([rig.signals[i] for i in rig.fitted], x[500:], y[500:])
+            assert test["coverage"] == asdict(shares) | {
+                "extrapolates": shares.extrapolates,
+                "description": shares.describe(),
+            }
         assert report["effects_added"][0]["name"] == "quadratic_stiffness"
         assert all(effect["decided_by"] in ("one-step", "simulation") for effect in report["effects_added"])
         models = {m["id"]: m for m in viewer.get(f"{API}/structures/{rig.structure_id}/models").json()}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from test_cli import PNG_MAGIC, invoke, run
 from test_periods import measured
 
+from models.coverage import coverage
 from models.narx import NARX, fit_narx
 from models.terms import parse_terms
 from service.recordfiles import read_record
@@ -106,12 +108,14 @@ def test_a_file_that_is_not_silverbox_is_named(tmp_path: Path):
 @pytest.fixture(scope="module")
 def simulated_records(tmp_path_factory) -> Path:
     """Four 6000-sample records of the 2-DOF rig with an undeclared quadratic spring, written by
-    `narxwatch simulate`: e1, e2 to estimate on, v1, v2 to judge on."""
+    `narxwatch simulate`: e1, e2 to estimate on, v1, v2 to judge on; and loud, whose force is
+    twice as strong."""
     folder = tmp_path_factory.mktemp("records")
-    for seed, name in enumerate(("e1", "e2", "v1", "v2"), start=21):
+    for seed, name in enumerate(("e1", "e2", "v1", "v2", "loud"), start=21):
         invoke(
             "simulate", "--n", "6000", "--seed", str(seed), "--disturbance-std", "200",
-            "--effect", "quadratic_stiffness2=3e5", "--out", f"{name}.csv", cwd=folder,
+            "--effect", "quadratic_stiffness2=3e5", "--out", f"{name}.csv",
+            *(("--excitation-std", "50000") if name == "loud" else ()), cwd=folder,
         )  # fmt: skip
     return folder
 
@@ -120,6 +124,11 @@ def declared_fit(folder: Path, names: list[str]) -> NARX:
     """SPEC §2's structure fitted by least squares on the named records, independently of refine."""
     records = [read_record(folder / f"{name}.csv") for name in names]
     return fit_narx([(r.x, r.y) for r in records], EXACT_TERMS)
+
+
+def signals(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    record = read_record(folder / f"{name}.csv")
+    return record.x, record.y
 
 
 def free_run_rms(model: NARX, folder: Path, name: str) -> float:
@@ -174,21 +183,38 @@ def test_several_estimation_records_and_each_validation_record_judged_whole(
             free_run_rms(refined, simulated_records, name), rel=1e-9
         )
         assert test["after"]["one_step_rms"] <= test["before"]["one_step_rms"] / 2
+        # Judged against the records fitted, both whole: as strong a force, within their range.
+        shares = coverage(
+            [signals(simulated_records, "e1"), signals(simulated_records, "e2")],
+            *signals(simulated_records, name),
+        )
+        assert test["coverage"] == asdict(shares) | {"extrapolates": False, "description": shares.describe()}
     assert report["before"] == report["tests"][0]["before"]
     assert report["effects_added"][0]["name"] == "quadratic_stiffness"
     assert {effect["decided_by"] for effect in report["effects_added"]} <= {"one-step", "simulation"}
     assert report["refined"]["estimator"] in ("least squares", "output error")
     assert report["orders_chosen"] is None
 
-    # --validate repeated says the same; the table names each effect's criterion and each record.
+    # --validate repeated says the same; the table names each effect's criterion and each record,
+    # and says which record judges the models beyond the data they were fitted on.
     table = run(
         "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--validate", "v2.csv",
-        cwd=simulated_records,
+        "loud.csv", cwd=simulated_records,
     ).stdout  # fmt: skip
     assert "1. quadratic_stiffness" in table and "decided by the one-step criterion" in table
     rows = [line.split() for line in table.splitlines() if line.endswith("[0:6000]")]
-    assert [row[-2] for row in rows] == ["v1.csv", "v2.csv"]
-    for row, test in zip(rows, report["tests"], strict=True):
+    assert [row[-2] for row in rows] == ["v1.csv", "v2.csv", "loud.csv"]
+    loud = coverage(
+        [signals(simulated_records, "e1"), signals(simulated_records, "e2")],
+        *signals(simulated_records, "loud"),
+    )
+    assert loud.extrapolates
+    notes = [line for line in table.splitlines() if "outside the estimation data" in line]
+    assert notes == [
+        f"note: loud.csv lies partly outside the estimation data ({loud.describe()}): its figures judge "
+        "the models where they extrapolate"
+    ]
+    for row, test in zip(rows[:2], report["tests"], strict=True):
         assert float(row[2]) == pytest.approx(test["before"]["free_run_rms"], rel=1e-3)
         assert float(row[3]) == pytest.approx(test["after"]["free_run_rms"], rel=1e-3)
 

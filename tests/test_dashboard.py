@@ -26,6 +26,7 @@ from dashboard_helpers import (
     monitored_structure,
 )
 from live import LiveServer
+from markupsafe import escape
 from sqlalchemy import update
 
 from service.dashboard.auth import form_token
@@ -490,6 +491,9 @@ def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: 
     assert declared["y"] == [report["before"]["one_step_rms"], report["before"]["free_run_rms"]]
     assert refined["y"] == [report["after"]["one_step_rms"], report["after"]["free_run_rms"]]
     assert refined["y"][0] < declared["y"][0]
+    # Whether the test part lies within the data fitted: the same record's other part, so it does.
+    assert not report["tests"][0]["coverage"]["extrapolates"]
+    assert str(escape(report["tests"][0]["coverage"]["description"])) in page.text
 
     # A report stored before refinements judged several records: one test, as before/after.
     from service.tables import Refinement
@@ -507,6 +511,7 @@ def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: 
         page = client.get(f"{DASHBOARD}/refinements/{refinement['id']}")
     assert page.status_code == 200
     assert f"{report['after']['free_run_rms']:.4g}" in page.text and f"record {ids[1]}" in page.text
+    assert "not measured" in page.text  # nor was the coverage of its test part
     assert 'id="withdrawn"' not in page.text
 
     # A report whose effects the final check took back: the page names them, and that nothing is kept.

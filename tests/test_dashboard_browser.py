@@ -212,13 +212,19 @@ def test_a_wrong_key_stays_on_the_login_page_with_the_reason(page, server: LiveS
 
 def test_a_refinement_on_several_records_shows_each_test_record_and_each_criterion(page, server: LiveServer):
     """Two records fitted, two judged: the page names the records fitted, gives each judged record
-    its declared and refined errors, and says which criterion decided each effect."""
+    its declared and refined errors and whether it lies within the data fitted, and says which
+    criterion decided each effect."""
     org = Org.create(server)
     with clients(org) as (admin, ingest, _):
         structure_id = create_structure(admin, "rig refined on several records")["id"]
         ids = []
         for seed in range(4):
-            scenario = Scenario(disturbance_std=200.0, effects=Effects.parse(["quadratic_stiffness2=3e5"]))
+            # The last record judged is driven twice as hard as those fitted.
+            scenario = Scenario(
+                excitation_std=50e3 if seed == 3 else 25e3,
+                disturbance_std=200.0,
+                effects=Effects.parse(["quadratic_stiffness2=3e5"]),
+            )
             record = simulate(scenario, 6000, np.random.SeedSequence([53, seed]))
             body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
             ids.append(post_record(ingest, structure_id, body, "application/x-npz").json()["id"])
@@ -244,6 +250,12 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
         assert f"record {record_id}" in declared.inner_text()
         for row, figures in ((declared, test["before"]), (refined, test["after"])):
             assert f"{figures['free_run_rms']:.4g}" in row.inner_text()
+    coverage = page.locator("#errors td.coverage").all_inner_texts()
+    assert [test["coverage"]["extrapolates"] for test in report["tests"]] == [False, True]
+    assert coverage == [
+        "within the estimation records' band and range",
+        f"extrapolates: {report['tests'][1]['coverage']['description']}",
+    ]
     criteria = page.locator("#effects td.criterion").all_inner_texts()
     assert criteria == [effect["decided_by"] for effect in report["effects_added"]]
     drawn(page, "errors")

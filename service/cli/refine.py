@@ -8,6 +8,7 @@ estimation on all of them at once (no lag crosses a record's boundary), each ``-
 record judged whole. ``--transient`` names the first samples of every record its transient:
 records used whole are fitted through it and every free run starts at the record's start, at rest
 with the structure, and is scored after it; on parts of one record, the parts count from its end.
+Every record judged says how much of it lies outside the data fitted (:mod:`models.coverage`).
 A file
 holds one record, or one for each pair of signals when ``--x`` and ``--y`` name groups of as many
 (:func:`service.recordfiles.parse_record_set`).
@@ -34,6 +35,7 @@ from models.refinement import (
     refine_record,
     refine_records,
 )
+from models.scoring import Records
 from models.terms import Term
 from service.cli.console import stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
@@ -152,7 +154,8 @@ def refine_command(
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
         report = refine_record(x_cut, y_cut, terms, est, part, start, alpha, rate)
         c, d = part
-        tests = report.tests + _judged(report, held, start, rate, transient)
+        fitted_part = [(x_cut[slice(*est)], y_cut[slice(*est)])]
+        tests = report.tests + _judged(report, fitted_part, held, start, rate, transient)
         report = RefinementReport(report.refinement, tests)
         # Samples as the files number them.
         judged = [record.source | {"samples": [transient + c, transient + d]}]
@@ -214,10 +217,15 @@ def _whole(record: _Record, first: int) -> dict[str, Any]:
 
 
 def _judged(
-    report: RefinementReport, records: list[_Record], initial: int, fs: float | None, transient: int
+    report: RefinementReport,
+    estimation: Records,
+    records: list[_Record],
+    initial: int,
+    fs: float | None,
+    transient: int,
 ) -> tuple[Comparison, ...]:
     """Both models judged on each record whole, run through its transient, without refitting."""
-    return tuple(compare(report.refinement, r.x, r.y, initial, fs, 0, transient) for r in records)
+    return tuple(compare(report.refinement, estimation, r.x, r.y, initial, fs, 0, transient) for r in records)
 
 
 def _declared(spec: str | None) -> tuple[Term, ...] | None:
@@ -314,6 +322,14 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
+    for item in report["tests"]:
+        if item["coverage"]["extrapolates"]:
+            stdout.print(
+                f"note: {item['path']}{_signals(item)} lies partly outside the estimation data "
+                f"({item['coverage']['description']}): its figures judge the models where they extrapolate",
+                highlight=False,
+                markup=False,
+            )
     for note in report["notes"]:
         stdout.print(f"note: {note}", highlight=False, markup=False)
     if plot is not None:
