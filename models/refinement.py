@@ -56,7 +56,7 @@ process noise is 86 mV RMS, the linear model's figure is within half a per cent 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal, get_args
 
@@ -87,6 +87,9 @@ from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 
 DEFAULT_ALPHA = 0.01
 MAX_ROUNDS = 10
+# Told each stage of the loop as it begins, in words ("round 2: scoring 17 families"): a loop on
+# long records runs for minutes, and a caller shows where it is.
+Stage = Callable[[str], None]
 # A family added on the simulation error alone must lower the check blocks' free-run RMS by this
 # share at least: SEMP's threshold (Piroddi & Spinelli 2003), here relative. Where an unmeasured
 # force drives much of the output, the free run over a few thousand check samples is a noisy
@@ -259,17 +262,20 @@ def refine_record(
     alpha: float = DEFAULT_ALPHA,
     fs: float | None = None,
     output_error: bool = True,
+    progress: Stage | None = None,
 ) -> RefinementReport:
     """Refine on samples ``estimation`` = (a, b) of one record, assess both models on ``test``.
 
     The first ``initial`` test samples only start the predictions (benchmark protocols
-    prescribe such a start, e.g. 50 samples for Silverbox). ``output_error`` as for :func:`refine`.
+    prescribe such a start, e.g. 50 samples for Silverbox). ``output_error`` and ``progress`` as
+    for :func:`refine`.
     """
     check_parts(len(x), declared, estimation, test, initial)
     a, b = estimation
     c, d = test
     estimation_part = [(x[a:b], y[a:b])]
-    result = refine(estimation_part, declared, alpha=alpha, output_error=output_error)
+    result = refine(estimation_part, declared, alpha=alpha, output_error=output_error, progress=progress)
+    _told(progress)("judging both models on the test part")
     return RefinementReport(result, (compare(result, estimation_part, x[c:d], y[c:d], initial, fs, c - a),))
 
 
@@ -281,6 +287,7 @@ def refine_records(
     alpha: float = DEFAULT_ALPHA,
     fs: float | None = None,
     transient: int = 0,
+    progress: Stage | None = None,
 ) -> RefinementReport:
     """Refine on several estimation records, assess both models on each test record, whole.
 
@@ -288,7 +295,7 @@ def refine_records(
     model's lags); its first ``transient`` samples are run through but not scored
     (:func:`models.assessment.assess`). A model with sinusoidal terms is phase-locked to the
     estimation record's first sample; on a test record its sinusoids count time from that
-    record's first sample.
+    record's first sample. ``progress`` as for :func:`refine`.
     """
     if not tests:
         raise InputError("at least one test record is needed to judge the refined model")
@@ -299,7 +306,7 @@ def refine_records(
             check_test_length(len(y), max(initial, reach(declared), transient))
         except InputError as exc:
             raise InputError(f"test record {number}: {exc}") from None
-    result = refine(estimation, declared, alpha=alpha)
+    result = refine(estimation, declared, alpha=alpha, progress=progress)
     notes = []
     if len(estimation) > 1:
         notes.append(
@@ -311,8 +318,11 @@ def refine_records(
             "the refined model's periodic terms keep the phase of the estimation record's first "
             "sample; the test records share no time base with it, so those terms are not validated there"
         )
-    comparisons = tuple(compare(result, estimation, x, y, initial, fs, 0, transient) for x, y in tests)
-    return RefinementReport(result, comparisons, tuple(notes))
+    comparisons = []
+    for number, (x, y) in enumerate(tests, start=1):
+        _told(progress)(f"judging both models on test record {number} of {len(tests)}")
+        comparisons.append(compare(result, estimation, x, y, initial, fs, 0, transient))
+    return RefinementReport(result, tuple(comparisons), tuple(notes))
 
 
 def compare(
@@ -379,6 +389,11 @@ def _floor_dict(floor: PeriodNoise, check_rms: float) -> dict[str, Any]:
     }
 
 
+def _told(progress: Stage | None) -> Stage:
+    """``progress``, or a stage that tells no one."""
+    return progress if progress is not None else lambda stage: None
+
+
 def _finite(value: float) -> float | None:
     return value if np.isfinite(value) else None
 
@@ -390,6 +405,7 @@ def refine(
     alpha: float = DEFAULT_ALPHA,
     max_rounds: int = MAX_ROUNDS,
     output_error: bool = True,
+    progress: Stage | None = None,
 ) -> Refinement:
     """Refine the declared structure on the estimation ``records`` (x, y pairs) until no effect
     helps (module docstring).
@@ -399,14 +415,16 @@ def refine(
     terms: sized to the declared lags, so that the loop explains the residual with the declared
     dynamics rather than by lengthening them round after round. An offset's terms follow the
     model as it grows. ``output_error`` False keeps least-squares parameters throughout.
+    ``progress`` is told each stage as it begins.
     """
+    tell = _told(progress)
     if not 0 < alpha < 1:
         raise InputError(f"alpha must lie in (0, 1), got {alpha}")
     records = [(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)) for x, y in records]
     orders = None
     checks = CheckSplit.of(records)
     if declared is None:
-        orders, terms = choose_linear(records, checks=checks)
+        orders, terms = choose_linear(records, checks=checks, progress=tell)
     else:
         terms = parse_terms(declared)
     families = list(effects) if effects is not None else candidate_effects(terms)
@@ -417,13 +435,14 @@ def refine(
     check = checks.error(current)
     margin = check_noise(checks.check)
     rounds: list[Round] = []
-    for _ in range(max_rounds):
+    for number in range(1, max_rounds + 1):
         offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
         # A saturating model is not offered saturation again.
         offered = [e for e in offered if not (e.kind == "saturation" and current.saturating is not None)]
         if not offered:
             break
         kinds = {effect.name: effect.kind for effect in offered}
+        tell(f"round {number}: scoring {len(offered)} {'family' if len(offered) == 1 else 'families'}")
         scores = score_effects(
             records, current.terms, current.noise_lags, offered, alpha, saturating=current.saturating
         )
@@ -431,6 +450,7 @@ def refine(
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
         for score in sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change):
+            tell(f"round {number}: {score.name} on the check blocks")
             error, structure = min(
                 ((checks.error(option), option) for option in _with(score, kinds, current, records)),
                 key=lambda trial: trial[0],
@@ -440,6 +460,7 @@ def refine(
                 break
             rejected.append(score.name)
         if decided is None and output_error:
+            tell(f"round {number}: the families on the simulation error")
             decided = _by_simulation(
                 offered, _ranked(records, current, offered, alpha).scores, current, checks
             )
@@ -453,14 +474,12 @@ def refine(
     declared_structure = Structure(terms)
     folds = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)] if len(records) >= 3 else []
     withdrawn = 0
-    if (
-        output_error
-        and current != declared_structure
-        and _repairs_only_bias(declared_structure, current, check, folds or [checks])
-    ):
-        withdrawn = len(rounds)
-        current = declared_structure
-        check = checks.error(current)
+    if output_error and current != declared_structure:
+        tell("the effects added, checked by output error")
+        if _repairs_only_bias(declared_structure, current, check, folds or [checks]):
+            withdrawn = len(rounds)
+            current = declared_structure
+            check = checks.error(current)
     before_folds, grown_across_folds = current, []
     if output_error and folds:
         for _ in range(max_rounds):
@@ -474,7 +493,7 @@ def refine(
                 None,
                 "simulation across folds",
             )
-            found = _across_folds(offered, scores.scores, current, folds)
+            found = _across_folds(offered, scores.scores, current, folds, tell)
             if found is None:
                 break
             score, current, errors = found
@@ -489,6 +508,7 @@ def refine(
     # and gives the best one-step predictor; output error when the noise is on the measured
     # output. The check blocks tell which simulates better.
     if output_error and checks.error(current, tuned=True) < check:
+        tell("output-error fit on all the records")
         everything: Segments = [(x, y, 0) for x, y in records]
         declared_tuned = by_output_error(declared_model, everything, SETTLED_EVALUATIONS)
         if current == declared_structure:
@@ -546,7 +566,10 @@ def _restless_then_rms(judged: tuple[float, bool]) -> tuple[bool, float]:
 
 
 def choose_linear(
-    records: Records, max_order: int = MAX_LINEAR_ORDER, checks: CheckSplit | None = None
+    records: Records,
+    max_order: int = MAX_LINEAR_ORDER,
+    checks: CheckSplit | None = None,
+    progress: Stage | None = None,
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
     """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``)
     that simulates best over the check blocks, its parameters by output error.
@@ -554,16 +577,17 @@ def choose_linear(
     Every candidate is fitted by least squares on the fit blocks, then by output error (least
     squares' noise bias would otherwise favour needlessly high orders); the smallest order whose
     free run over the check blocks is within one standard error of the best wins. Returns
-    (n, n, d) and the terms.
+    (n, n, d) and the terms; ``progress`` is told each candidate as it is fitted.
     """
     if max_order < 1:
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
     checks = checks or CheckSplit.of(records)
-    errors = {
-        (n, d): checks.error(Structure(linear_terms(n, n, d)), tuned=True)
-        for d in (1, 0)
-        for n in range(1, max_order + 1)
-    }
+    tell = _told(progress)
+    errors = {}
+    for d in (1, 0):
+        for n in range(1, max_order + 1):
+            tell(f"linear orders: ARX({n}, {n}), input delay {d}")
+            errors[(n, d)] = checks.error(Structure(linear_terms(n, n, d)), tuned=True)
     # The one-standard-error rule: the smallest order within one standard error of the best RMS.
     best = min(errors.values()) * (1 + check_noise(checks.check))
     n, d = min((nd for nd, error in errors.items() if error <= best), key=lambda nd: nd[0])
@@ -642,7 +666,11 @@ def _repairs_only_bias(
 
 
 def _across_folds(
-    offered: Sequence[Effect], scores: Sequence[EffectScore], current: Structure, folds: Sequence[CheckSplit]
+    offered: Sequence[Effect],
+    scores: Sequence[EffectScore],
+    current: Structure,
+    folds: Sequence[CheckSplit],
+    tell: Stage,
 ) -> tuple[EffectScore, Structure, tuple[float, float]] | None:
     """The family added on the simulation error across folds (module docstring), if one
     lowers every fold's free run by ``FOLD_GAIN``: its score with all its terms, the structure,
@@ -656,7 +684,8 @@ def _across_folds(
     those that gain on all of them the one whose free run falls most, on average over the folds
     as a share of the current model's, is added (on F-16's acceleration 3 that was power-law
     stiffness, until the models were held to measured states). The refined model is then fitted
-    on all the records as the folds fitted theirs (:func:`_as_the_folds_judged`).
+    on all the records as the folds fitted theirs (:func:`_as_the_folds_judged`). ``tell`` is told
+    each family as its searches begin.
     """
     primary = folds[0]
     if not np.isfinite(base := primary.settled(current)):
@@ -667,11 +696,13 @@ def _across_folds(
             continue
         names = tuple(name for label in score.ranked for name in label)
         structure = replace(current, terms=current.terms + parse_terms(names))
+        tell(f"across folds: {score.name} on the first fold")
         error = primary.search(structure, primary.grown(current, structure), CHECK_EVALUATIONS)
         if error <= (1 - FOLD_GAIN) * base:
             trials.append((error, replace(score, terms=names), structure))
     passed: list[tuple[float, EffectScore, Structure, tuple[float, float]]] = []
     for _, score, structure in sorted(trials, key=lambda trial: trial[0])[:FOLD_TRIALS]:
+        tell(f"across folds: {score.name} on every fold")
         errors = _on_every_fold(current, structure, folds, primary.tuned(structure), FOLD_GAIN)
         if errors is not None:
             passed.append(

@@ -2,17 +2,23 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import pty
 import re
+import subprocess
+import threading
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cli import PNG_MAGIC, invoke, run
+from test_cli import NARXWATCH, PNG_MAGIC, invoke, run
 from test_periods import measured
 
 from models.coverage import coverage
+from models.effects import candidate_effects
 from models.narx import NARX, fit_narx
 from models.terms import parse_terms
 from service.recordfiles import read_record
@@ -76,11 +82,49 @@ def test_simulated_quadratic_stiffness_is_named_and_the_table_printed(tmp_path):
         "simulate", "--n", "12000", "--seed", "3", "--disturbance-std", "200",
         "--effect", "quadratic_stiffness2=3e5", "--out", "record.csv", cwd=tmp_path,
     )  # fmt: skip
-    report = refine_report("record.csv", "--declared", "2dof", cwd=tmp_path)
+    quiet = run("refine", "record.csv", "--declared", "2dof", "--json", cwd=tmp_path)
+    report = json.loads(quiet.stdout)
     assert report["effects_added"][0]["name"] == "quadratic_stiffness"
     assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
-    table = run("refine", "record.csv", "--declared", "2dof", cwd=tmp_path).stdout
+    assert "round 1" not in quiet.stderr, "no stages where stderr is not a terminal"
+    # On a terminal the loop shows each stage as it runs (on stderr); the table goes to stdout.
+    table, terminal = run_on_terminal("refine", "record.csv", "--declared", "2dof", cwd=tmp_path)
     assert "1. quadratic_stiffness" in table and "before" in table and "after" in table
+    assert report["effects_added"][0]["decided_by"] == "one-step"
+    stages = (
+        f"round 1: scoring {len(candidate_effects(EXACT_TERMS))} families",
+        "round 1: quadratic_stiffness on the check blocks",
+        "round 2: scoring",
+        "judging both models on the test part",
+    )
+    assert all(stage in terminal for stage in stages), terminal[-2000:]
+    assert "round 1" not in table
+
+
+def run_on_terminal(*args: str, cwd: Path) -> tuple[str, str]:
+    """The console script with its stderr on a pseudo-terminal and its stdout on a pipe: what it
+    printed to each (the terminal's text with its control sequences)."""
+    assert NARXWATCH, "the narxwatch console script is not installed next to this Python"
+    controller, terminal = pty.openpty()
+    shown = bytearray()
+
+    def drain() -> None:  # a full terminal buffer would block the writer
+        with contextlib.suppress(OSError):  # EIO once the writer has gone
+            while chunk := os.read(controller, 4096):
+                shown.extend(chunk)
+
+    reader = threading.Thread(target=drain)
+    reader.start()
+    try:
+        result = subprocess.run(
+            [NARXWATCH, *args], cwd=cwd, stdout=subprocess.PIPE, stderr=terminal, text=True, timeout=300
+        )
+    finally:
+        os.close(terminal)
+        reader.join(timeout=10)
+        os.close(controller)
+    assert result.returncode == 0, shown.decode(errors="replace")
+    return result.stdout, shown.decode(errors="replace")
 
 
 @pytest.mark.parametrize(

@@ -304,8 +304,14 @@ def test_with_nothing_declared_the_loop_chooses_the_linear_orders_of_the_system(
         [0.0, 1.0, 0.5, 0.25], [1.0, -1.6, 1.06, -0.24], x
     )  # poles 0.43, 0.58 ± 0.46j (|0.75|)
     y = clean + 0.3 * np.std(clean) * rng.standard_normal(n)
-    result = refine([(x[:4000], y[:4000])], None)
+    stages: list[str] = []
+    result = refine([(x[:4000], y[:4000])], None, progress=stages.append)
     assert result.orders == (3, 3, 1), result.orders
+    # Told each stage as it began: every linear candidate, then the rounds, then the final fit.
+    candidates = [f"linear orders: ARX({n}, {n}), input delay {d}" for d in (1, 0) for n in range(1, 11)]
+    assert stages[:20] == candidates
+    assert stages[20] == f"round 1: scoring {len(candidate_effects(linear_terms(3, 3)))} families"
+    assert stages[-1] == "output-error fit on all the records" and result.estimator == "output error"
     assert result.refined.max_lag >= 3
     free_run = result.refined.simulate(x[4000:], clean[4000:])[3:] - clean[4003:]
     least_squares = result.declared.simulate(x[4000:], clean[4000:])[3:] - clean[4003:]
@@ -476,13 +482,26 @@ def test_from_three_records_a_family_that_every_fold_simulates_better_is_added_a
     estimation = [(x, y) for x, y, _ in records]
     declared = linear_terms(2, 2)
     families = [effect for effect in candidate_effects(declared) if effect.name == "cubic_stiffness"]
-    result = refine(estimation, declared, effects=families)
+    stages: list[str] = []
+    result = refine(estimation, declared, effects=families, progress=stages.append)
     decided = [step.criterion for step in result.rounds if step.added is not None]
+    assert stages[0] == "round 1: scoring 1 family"
     if cubic == 0.0:
         assert decided == [], decided
         return
     assert "cubic_stiffness" in result.rounds[0].rejected
     assert decided == ["simulation across folds"], decided
+    order = [
+        stages.index(stage)
+        for stage in (
+            "round 1: cubic_stiffness on the check blocks",
+            "round 1: the families on the simulation error",
+            "across folds: cubic_stiffness on the first fold",
+            "across folds: cubic_stiffness on every fold",
+            "output-error fit on all the records",
+        )
+    ]
+    assert order == sorted(order), stages
     assert all(term.endswith("^3") for term in result.effects_added[0].terms)
     x, _, clean = hardening_mode(cubic, 1.75, 9)
     linear = fit_output_error(fit_narx(estimation, declared), estimation, SETTLED_EVALUATIONS).model

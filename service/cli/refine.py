@@ -17,6 +17,8 @@ holds one record, or one for each pair of signals when ``--x`` and ``--y`` name 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
@@ -24,6 +26,7 @@ from typing import Annotated, Any
 
 import numpy as np
 import typer
+from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
 from models.effects import linear_terms
 from models.errors import InputError
@@ -31,13 +34,14 @@ from models.refinement import (
     DEFAULT_ALPHA,
     Comparison,
     RefinementReport,
+    Stage,
     compare,
     refine_record,
     refine_records,
 )
 from models.scoring import Records
 from models.terms import Term
-from service.cli.console import stdout
+from service.cli.console import stderr, stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
 from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
 from simulator.theory import EXACT_TERMS
@@ -152,11 +156,12 @@ def refine_command(
         n = len(y_cut)
         est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
-        report = refine_record(x_cut, y_cut, terms, est, part, start, alpha, rate)
-        c, d = part
         fitted_part = [(x_cut[slice(*est)], y_cut[slice(*est)])]
-        tests = report.tests + _judged(report, fitted_part, held, start, rate, transient)
+        with _stages() as stage:
+            report = refine_record(x_cut, y_cut, terms, est, part, start, alpha, rate, progress=stage)
+            tests = report.tests + _judged(report, fitted_part, held, start, rate, transient, stage)
         report = RefinementReport(report.refinement, tests)
+        c, d = part
         # Samples as the files number them.
         judged = [record.source | {"samples": [transient + c, transient + d]}]
         judged += [_whole(r, transient) for r in held]
@@ -175,9 +180,17 @@ def refine_command(
         # then start where the records do, at rest. Started mid-record from L measured outputs
         # instead, F-16's multisines' check runs favoured least squares over output error, whose
         # slow mode carries those readings' noise (README: "Free runs started mid-record").
-        report = refine_records(
-            [(r.x, r.y) for r in fitted], [(r.x, r.y) for r in held], terms, start, alpha, rate, transient
-        )
+        with _stages() as stage:
+            report = refine_records(
+                [(r.x, r.y) for r in fitted],
+                [(r.x, r.y) for r in held],
+                terms,
+                start,
+                alpha,
+                rate,
+                transient,
+                progress=stage,
+            )
         judged = [_whole(r, transient) for r in held]
         protocol = {"estimation": [_whole(r, 0) for r in fitted]}
         plotted = (held[0].x, held[0].y)
@@ -223,9 +236,31 @@ def _judged(
     initial: int,
     fs: float | None,
     transient: int,
+    stage: Stage,
 ) -> tuple[Comparison, ...]:
     """Both models judged on each record whole, run through its transient, without refitting."""
-    return tuple(compare(report.refinement, estimation, r.x, r.y, initial, fs, 0, transient) for r in records)
+    comparisons = []
+    for r in records:
+        stage(f"judging both models on {r.path.name}")
+        comparisons.append(compare(report.refinement, estimation, r.x, r.y, initial, fs, 0, transient))
+    return tuple(comparisons)
+
+
+@contextmanager
+def _stages() -> Iterator[Stage]:
+    """The loop's stage as it runs, with a spinner and the time taken, on a terminal (nothing on
+    a pipe or file); gone once the report is printed."""
+    with Progress(
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        TimeElapsedColumn(),
+        console=stderr,
+        transient=True,
+        disable=not stderr.is_terminal,
+    ) as bar:
+        task = bar.add_task("starting the loop", total=None)
+        # Drawn at once: a stage shorter than the bar's refresh would otherwise not be seen at all.
+        yield lambda stage: bar.update(task, description=stage, refresh=True)
 
 
 def _declared(spec: str | None) -> tuple[Term, ...] | None:
