@@ -318,9 +318,9 @@ def refine_records(
             "the refined model's periodic terms keep the phase of the estimation record's first "
             "sample; the test records share no time base with it, so those terms are not validated there"
         )
-    comparisons = []
+    tell, comparisons = _told(progress), []
     for number, (x, y) in enumerate(tests, start=1):
-        _told(progress)(f"judging both models on test record {number} of {len(tests)}")
+        tell(f"judging both models on test record {number} of {len(tests)}")
         comparisons.append(compare(result, estimation, x, y, initial, fs, 0, transient))
     return RefinementReport(result, tuple(comparisons), tuple(notes))
 
