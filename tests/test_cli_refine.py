@@ -55,6 +55,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     assert report["data"]["estimation"] == [
         {"path": str(silverbox_dir / "SNLS80mV.csv"), "x": "V1", "y": "V2", "samples": [40650, 105712]}
     ]
+    assert report["data"]["unit"] == "V"  # the benchmark's signals are voltages
     arrow, schroeder = report["tests"]
     assert arrow["samples"] == [100, 40575] and arrow["before"] == report["before"]
     assert report["declared"]["terms"][:4] == ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]"]
@@ -88,8 +89,14 @@ def test_simulated_quadratic_stiffness_is_named_and_the_table_printed(tmp_path):
     assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
     assert "round 1" not in quiet.stderr, "no stages where stderr is not a terminal"
     # On a terminal the loop shows each stage as it runs (on stderr); the table goes to stdout.
-    table, terminal = run_on_terminal("refine", "record.csv", "--declared", "2dof", cwd=tmp_path)
+    table, terminal = run_on_terminal(
+        "refine", "record.csv", "--declared", "2dof", "--unit", "m", cwd=tmp_path
+    )
     assert "1. quadratic_stiffness" in table and "before" in table and "after" in table
+    # The unit given is printed with the figures: the table's columns and each effect's check figures.
+    assert "one-step RMS [m]" in table and "free-run RMS [m]" in table
+    assert re.search(r"check blocks' free run \S+ → \S+ m;", table), table
+    assert "[m]" not in quiet.stdout and json.loads(quiet.stdout)["data"]["unit"] is None
     assert report["effects_added"][0]["decided_by"] == "one-step"
     stages = (
         f"round 1: scoring {len(candidate_effects(EXACT_TERMS))} families",

@@ -51,6 +51,7 @@ from simulator.theory import EXACT_TERMS
 SILVERBOX_ESTIMATION = (40650, 105712)
 SILVERBOX_TEST = (100, 40575)
 SILVERBOX_INITIAL = 50
+SILVERBOX_UNIT = "V"  # both of its signals are voltages
 # ``--declared`` naming SPEC §2's structure of the simulated 2-DOF rig.
 RIG = "2dof"
 
@@ -139,9 +140,14 @@ def refine_command(
     plot: Annotated[
         Path | None, typer.Option(help="Write a PNG of the residuals and the free run on the first test.")
     ] = None,
+    unit: Annotated[
+        str | None,
+        typer.Option(help="The output's unit, for the figures printed and plotted (Silverbox: V)."),
+    ] = None,
 ) -> None:
     """Fit the declared model, trace its residual to the effects it lacks, add them, compare."""
     silverbox = data_format is DataFormat.silverbox
+    unit = unit or (SILVERBOX_UNIT if silverbox else None)
     layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
     if transient < 0:
         raise InputError(f"--transient must be 0 or more, got {transient}")
@@ -201,11 +207,12 @@ def refine_command(
         "initial": start,
         "fs": rate,
         "alpha": alpha,
+        "unit": unit,
     }
     if plot is not None:
         from service.cli.refine_figure import write_refinement_figure  # matplotlib only when asked
 
-        write_refinement_figure(report, *plotted, start, rate, plot)
+        write_refinement_figure(report, *plotted, start, rate, plot, layout.y, unit)
     if as_json:
         stdout.print_json(json.dumps(document))
         return
@@ -293,6 +300,8 @@ def _span(spec: str | None, n: int, default: tuple[int, int], option: str) -> tu
 
 
 def _print(report: dict[str, Any], plot: Path | None) -> None:
+    unit = report["data"]["unit"]
+    per = f" {unit}" if unit else ""  # after a figure
     orders = report["orders_chosen"]
     if orders is not None:
         ny, nx, delay = orders
@@ -317,7 +326,8 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         p_values = evidence["p_values"]
         stdout.print(
             f"{number}. {effect['name']} ({effect['description']}): {', '.join(effect['terms'])}"
-            f" — decided by the {effect['decided_by']} criterion (check blocks' free run {before} → {after};"
+            f" — decided by the {effect['decided_by']} criterion"
+            f" (check blocks' free run {before} → {after}{per};"
             f" explains {evidence['explained_fraction']:.1%} of the residual"
             + (f", smallest p {_p(min(p_values))}, level {evidence['level']:.1e})" if p_values else ")"),
             highlight=False,
@@ -329,11 +339,11 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
     if floor is not None and check is not None:
         beneath = floor["check_model_error"]
         stdout.print(
-            f"check blocks' free run {check:.4g} RMS; the noise between the checked records' periods "
+            f"check blocks' free run {check:.4g}{per} RMS; the noise between the checked records' periods "
             f"({floor['periods']} of {floor['period']} samples), which no model can simulate, is "
-            f"{floor['rms']:.4g} ± {floor['standard_error']:.2g}: "
+            f"{floor['rms']:.4g} ± {floor['standard_error']:.2g}{per}: "
             + (
-                f"about {beneath:.2g} RMS of the check figure is the model's own error, all that any "
+                f"about {beneath:.2g}{per} RMS of the check figure is the model's own error, all that any "
                 "model could still take off"
                 if beneath
                 else "the check figure is at that floor, and no model can be told better on these records"
@@ -341,7 +351,8 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
-    stdout.print(f"{'one-step RMS':^23} {'free-run RMS':^23}  Ljung–Box p")
+    rms = f" [{unit}]" if unit else ""
+    stdout.print(f"{'one-step RMS' + rms:^23} {'free-run RMS' + rms:^23}  Ljung–Box p", markup=False)
     stdout.print(f"{'before':>11} {'after':>11} {'before':>11} {'after':>11}  {'after':>11}  judged on")
     for item in report["tests"]:
         first, last = item["samples"]

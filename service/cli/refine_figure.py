@@ -16,14 +16,22 @@ SHOWN = 800  # samples of the free run shown: the end of the test, where errors 
 
 
 def write_refinement_figure(
-    report: RefinementReport, x: np.ndarray, y: np.ndarray, initial: int, fs: float | None, path: Path
+    report: RefinementReport,
+    x: np.ndarray,
+    y: np.ndarray,
+    initial: int,
+    fs: float | None,
+    path: Path,
+    output: str = "y",
+    unit: str | None = None,
 ) -> Path:
     """Three panels on the held-out data (x, y), whose first ``initial`` samples start the models:
     the residual autocorrelation with its band, the residual spectrum with its background and
-    significant peaks, and the measured output against both models' free runs."""
+    significant peaks, and the measured output (named ``output``, in ``unit`` where stated)
+    against both models' free runs, over time where the sampling rate ``fs`` [Hz] is known."""
     figure, (correlation, spectrum, run) = plt.subplots(3, 1, figsize=(9, 10), constrained_layout=True)
     shown = slice(max(initial, len(y) - SHOWN), len(y))
-    samples = np.arange(shown.start, shown.stop)
+    samples = np.arange(shown.start, shown.stop) / (fs or 1.0)
     run.plot(samples, y[shown], color="k", lw=1.6, label="measured")
     models = (("declared", report.refinement.declared, report.before, "C3"),
               ("refined", report.refinement.refined, report.after, "C0"))  # fmt: skip
@@ -40,18 +48,23 @@ def write_refinement_figure(
         start = max(initial - model.max_lag, 0)
         simulated = model.simulate(x[start:], y[start:])
         run.plot(samples, simulated[shown.start - start :], color=colour, lw=0.8, label=f"{label} (free run)")
-    unit = "Hz" if fs else "cycles/sample"
+    frequency = "Hz" if fs else "cycles/sample"
+    squared = f"{unit if unit.isalpha() else f'({unit})'}²/{frequency}" if unit else f"per {frequency}"
     correlation.set(
         xlabel="lag [samples]",
         ylabel="residual autocorrelation",
         title="Residual whiteness (shaded: the band that decides for all lags at once)",
     )
     spectrum.set(
-        xlabel=f"frequency [{unit}]",
-        ylabel="residual PSD",
+        xlabel=f"frequency [{frequency}]",
+        ylabel=f"residual PSD [{squared}]",
         title="Residual spectrum (Welch); dashed: significance threshold; labels: significant peaks",
     )
-    run.set(xlabel="sample", ylabel="response", title="Measured and simulated output (end of the test data)")
+    run.set(
+        xlabel="time [s]" if fs else "sample",
+        ylabel=f"{output} [{unit}]" if unit else f"{output} (unit not stated: --unit)",
+        title="Measured and simulated output (end of the test data)",
+    )
     for axes in (correlation, spectrum, run):
         axes.legend(fontsize=8)
     path.parent.mkdir(parents=True, exist_ok=True)
