@@ -172,6 +172,8 @@ def fit_output_error(
                 ] = 0.0
             blocks.append(sensitivities[L:])
         stacked = blocks[0] if len(blocks) == 1 else np.vstack(blocks)
+        if np.isfinite(stacked).all():  # nearly always, and the test costs a tenth of the replacement
+            return stacked
         return np.nan_to_num(stacked, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
 
     def search(holding: bool) -> tuple[np.ndarray, optimize.OptimizeResult, int]:
