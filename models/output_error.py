@@ -55,7 +55,7 @@ class OutputErrorFit:
     start_rms, rms : free-run RMS over the records before (equation-error start) and after, in
         the output's units.
     evaluations : free runs computed by the search (over its fresh starts, each after MINPACK
-        stopped at its step-size or reduction test having met the penalty, and over its second search, held
+        stopped at its step-size test having met the penalty, and over its second search, held
         to the restarts from measured outputs, where the first ended at θ that diverge there).
     status : ``scipy.optimize.least_squares``' termination status (> 0: converged). The search is
         Levenberg–Marquardt (MINPACK): its QR of the tall Jacobian costs half what the
@@ -179,9 +179,9 @@ def fit_output_error(
     def search(holding: bool) -> tuple[np.ndarray, optimize.OptimizeResult, int]:
         # MINPACK cuts its trust region tenfold on every step into the penalty and lets it grow at
         # most twofold a step after, so a search that met the penalty can crawl to its step-size
-        # or its reduction test (status 3 or 2) far from the optimum: on the rig with an
-        # unmeasured force, 32.5 mm of free-run RMS where 2.8 mm is reachable. A fresh search
-        # from where it stopped starts with a full region.
+        # test (status 3) far from the optimum: on the rig with an unmeasured force, 32.5 mm of
+        # free-run RMS where 2.8 mm is reachable. A fresh search from where it stopped starts with
+        # a full region.
         theta, evaluations = start.theta, 0
         while True:
             met_penalty = penalised_steps
@@ -192,13 +192,11 @@ def fit_output_error(
                 x_scale="jac",
                 max_nfev=max_evaluations - evaluations,
                 method="lm",
-                ftol=REDUCTION,
                 args=(holding,),
             )
             evaluations += int(result.nfev)
             theta = result.x
-            crawled = result.status in (2, 3) and penalised_steps > met_penalty
-            if not crawled or evaluations >= max_evaluations:
+            if result.status != 3 or penalised_steps == met_penalty or evaluations >= max_evaluations:
                 return theta, result, evaluations
 
     # The search is held to the restarts from measured outputs only where its end does not hold
@@ -245,11 +243,6 @@ def gauss_newton_inverse(jacobian: np.ndarray) -> np.ndarray:
     return np.linalg.pinv(scaled.T @ scaled) / scale[:, None] / scale[None, :]
 
 
-# The search stops when a step, taken or predicted, lowers V by less than this share of it
-# (MINPACK's ftol, 1e-8 by default): V's own standard error over N samples is a share √(2/N) of
-# it, 0.6 % over Silverbox's 65 000 estimation samples, where the last 18 of the loop's final
-# search's 20 evaluations took 0.02 % off V between them, in 3 s.
-REDUCTION = 1e-5
 # Where and for how long the excitation is switched off to see the free run come to rest: at this
 # many points spread over the records, shared by their lengths (each record's end one of them),
 # for this many samples. Shared, not per record: a record cut into blocks (the refinement's check
