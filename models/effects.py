@@ -45,6 +45,7 @@ import numpy as np
 from scipy import linalg, optimize
 
 from models.errors import InputError
+from models.regression import orthogonal_part
 from models.spectrum import excited_intervals, residual_spectrum
 from models.terms import WAVES, Factor, Term, regressor_matrix
 
@@ -400,9 +401,7 @@ def profile_search(
         norms = np.linalg.norm(columns, axis=0)
         if not np.all(np.isfinite(norms)) or not np.all(norms > 0):
             return float(residual @ residual)
-        columns = columns / norms
-        for _ in range(2):  # Gram–Schmidt twice (see models.scoring._orthogonal_part)
-            columns = columns - model_basis @ (model_basis.T @ columns)
+        columns = orthogonal_part(columns / norms, model_basis)
         fit, *_ = linalg.lstsq(columns, residual, lapack_driver="gelsd")
         remaining = residual - columns @ fit
         return float(remaining @ remaining)

@@ -29,6 +29,7 @@ from scipy import linalg, signal, special
 from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
+from models.regression import orthogonal_part
 from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
@@ -193,24 +194,11 @@ def _lagged(series: np.ndarray, lags: Sequence[int], starts: np.ndarray) -> np.n
     return columns
 
 
-def _orthogonal_part(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """Columns minus their projection on the orthonormal Q, by Gram–Schmidt. Once loses
-    orthogonality when a column lies nearly in Q's span; a column that kept less than 1/√2 of its
-    norm is projected again, and twice is enough (Kahan–Parlett; Giraud, Langou & Rozložník,
-    *Comput. Math. Appl.* 50, 2005). On Silverbox's loop three columns in four need only once."""
-    norms = np.linalg.norm(columns, axis=0)
-    columns = columns - Q @ (Q.T @ columns)
-    again = np.linalg.norm(columns, axis=0) < norms / np.sqrt(2)
-    if np.any(again):
-        columns[:, again] -= Q @ (Q.T @ columns[:, again])
-    return columns
-
-
 def _orthonormal(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """An orthonormal basis of the columns' part orthogonal to Q (empty for no columns)."""
     if columns.shape[1] == 0:
         return columns
-    columns = _orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+    columns = orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
     basis, triangle = linalg.qr(columns, mode="economic")
     return basis[:, np.abs(np.diag(triangle)) > 1e-10]
 
@@ -229,9 +217,9 @@ def _score(
     """An effect's score against the residual once the model (Q) and ``given`` (orthonormal,
     orthogonal to Q) are accounted for; the indices of the columns it chose, and those columns
     (orthogonal to Q)."""
-    columns = _orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+    columns = orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
     chosen_from = columns.copy()
-    columns = _orthogonal_part(columns, given)
+    columns = orthogonal_part(columns, given)
     target = residual - given @ (given.T @ residual)
     dof -= given.shape[1]
     order, count, f_values, p_values, explained = _forward(columns, target, dof, level, rank)

@@ -14,7 +14,6 @@ from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
 from models.refinement import refine, refine_record, refine_records
-from models.scoring import _orthogonal_part
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from service.recordfiles import parse_silverbox
@@ -192,26 +191,6 @@ def test_score_and_f_statistic_agree_with_an_svd_refit():
     assert first.added.f_statistics[0] == pytest.approx(f_value, rel=1e-6)
     assert first.added.p_values[0] == pytest.approx(stats.f.sf(f_value, 1, dof), rel=1e-5, abs=1e-300)
     assert first.level == pytest.approx(0.01 / first.candidates)
-
-
-def test_a_candidate_nearly_in_the_models_span_is_projected_off_it_to_working_precision():
-    """Gram–Schmidt once leaves a column that lies nearly in the model's span with a remainder
-    that is not orthogonal to it (its error ~ eps·‖column‖, large against a remainder of 1e-9);
-    the columns that lost most of their norm are projected again. Both kinds in one call: the
-    remainders must be orthogonal to the model and equal to those of an SVD least-squares fit."""
-    rng = np.random.default_rng(7)
-    Q, _ = linalg.qr(rng.normal(size=(5000, 20)), mode="economic")
-    nearly = Q @ rng.normal(size=20) + 1e-9 * rng.normal(size=5000)
-    apart = rng.normal(size=5000)
-    columns = np.column_stack([nearly, apart])
-    remainders = _orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
-    once = nearly - Q @ (Q.T @ nearly)
-    assert np.max(np.abs(Q.T @ once)) / np.linalg.norm(once) > 1e-9  # once is not enough here
-    for remainder in remainders.T:
-        assert np.max(np.abs(Q.T @ remainder)) < 1e-13 * np.linalg.norm(remainder)
-    for column, remainder in zip((columns / np.linalg.norm(columns, axis=0)).T, remainders.T, strict=True):
-        fitted = Q @ linalg.lstsq(Q, column, lapack_driver="gelsd")[0]
-        assert np.allclose(remainder, column - fitted, rtol=0, atol=1e-12)
 
 
 def test_candidate_effects_leave_out_terms_the_model_has():

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import statsmodels.api as sm
 from conftest import scaled_lstsq
+from scipy import linalg
 
 from models.errors import InputError
-from models.regression import least_squares
+from models.regression import least_squares, orthogonal_part
 
 EPS = np.finfo(float).eps
 
@@ -120,3 +121,23 @@ def test_overflowing_regressor_is_named() -> None:
     Phi = np.column_stack([np.linspace(1, 2, 50), np.full(50, np.inf)])
     with pytest.raises(InputError, match="regressor b overflows"):
         least_squares(Phi, np.ones(50), ["a", "b"])
+
+
+def test_a_candidate_nearly_in_the_models_span_is_projected_off_it_to_working_precision():
+    """Gram–Schmidt once leaves a column that lies nearly in the model's span with a remainder
+    that is not orthogonal to it (its error ~ eps·‖column‖, large against a remainder of 1e-9);
+    the columns that lost most of their norm are projected again. Both kinds in one call: the
+    remainders must be orthogonal to the model and equal to those of an SVD least-squares fit."""
+    rng = np.random.default_rng(7)
+    Q, _ = linalg.qr(rng.normal(size=(5000, 20)), mode="economic")
+    nearly = Q @ rng.normal(size=20) + 1e-9 * rng.normal(size=5000)
+    apart = rng.normal(size=5000)
+    columns = np.column_stack([nearly, apart])
+    remainders = orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+    once = nearly - Q @ (Q.T @ nearly)
+    assert np.max(np.abs(Q.T @ once)) / np.linalg.norm(once) > 1e-9  # once is not enough here
+    for remainder in remainders.T:
+        assert np.max(np.abs(Q.T @ remainder)) < 1e-13 * np.linalg.norm(remainder)
+    for column, remainder in zip((columns / np.linalg.norm(columns, axis=0)).T, remainders.T, strict=True):
+        fitted = Q @ linalg.lstsq(Q, column, lapack_driver="gelsd")[0]
+        assert np.allclose(remainder, column - fitted, rtol=0, atol=1e-12)
