@@ -353,6 +353,17 @@ def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_r
     assert f"declared: {', '.join(lags).replace('x[t-0]', 'x[t]')}\n" in table
 
 
+def test_a_unit_is_plotted_as_the_text_given(simulated_records: Path, tmp_path: Path):
+    # A '$' pair would be parsed by matplotlib as mathtext, and "$\\frac$" fail to draw.
+    figure = tmp_path / "refine.png"
+    result = run(
+        "refine", str(simulated_records / "e1.csv"), "--declared", "2dof", "--validate",
+        str(simulated_records / "v1.csv"), "--plot", str(figure), "--unit", "$\\frac$", cwd=tmp_path,
+    )  # fmt: skip
+    assert "free-run RMS [$\\frac$]" in result.stdout
+    assert figure.read_bytes().startswith(PNG_MAGIC)
+
+
 def test_records_at_different_rates_are_refused_naming_each(simulated_records: Path, tmp_path: Path):
     text = (simulated_records / "v1.csv").read_text()
     assert text.startswith("# fs=1500")

@@ -29,6 +29,8 @@ def write_refinement_figure(
     the residual autocorrelation with its band, the residual spectrum with its background and
     significant peaks, and the measured output (named ``output``, in ``unit`` where stated)
     against both models' free runs, over time where the sampling rate ``fs`` [Hz] is known."""
+    # Names and units are the user's text, not mathtext: a '$' pair would be parsed, and fail.
+    output, unit = output.replace("$", r"\$"), unit and unit.replace("$", r"\$")
     figure, (correlation, spectrum, run) = plt.subplots(3, 1, figsize=(9, 10), constrained_layout=True)
     shown = slice(max(initial, len(y) - SHOWN), len(y))
     samples = np.arange(shown.start, shown.stop) / (fs or 1.0)
