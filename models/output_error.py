@@ -35,10 +35,11 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import optimize
+from scipy import linalg, optimize
 
 from models.errors import InputError
 from models.narx import NARX
+from models.regression import triangular_factor
 from models.signals import checked_records
 from models.simulation import FreeRun
 from models.terms import Term, max_degree, max_lag, record_origins
@@ -160,21 +161,55 @@ def fit_output_error(
 
     state = start.output_limits if start.saturation == "state" else None
 
-    def jacobian(theta: np.ndarray, _holding: bool) -> np.ndarray:
+    def sensitivities(theta: np.ndarray) -> np.ndarray:
         # Exact sensitivities of the free run (one pass a record); the penalty is flat, and so is
         # a sensor's reading where it is clipped.
         blocks = []
         for run, ya in runs:
-            simulated, sensitivities = run.run_with_sensitivities(theta, ya, state)
+            simulated, derivatives = run.run_with_sensitivities(theta, ya, state)
             if start.output_limits is not None and state is None:
-                sensitivities[
-                    (simulated <= start.output_limits[0]) | (simulated >= start.output_limits[1])
-                ] = 0.0
-            blocks.append(sensitivities[L:])
+                derivatives[(simulated <= start.output_limits[0]) | (simulated >= start.output_limits[1])] = (
+                    0.0
+                )
+            blocks.append(derivatives[L:])
         stacked = blocks[0] if len(blocks) == 1 else np.vstack(blocks)
         if np.isfinite(stacked).all():  # nearly always, and the test costs a tenth of the replacement
             return stacked
         return np.nan_to_num(stacked, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+
+    # MINPACK sees the free-run error through an equivalent problem of p + 1 rows: its iterates
+    # depend on the residual r and Jacobian J only through ‖r‖, JᵀJ and Jᵀr, which these keep. At
+    # every θ the residual is ‖r‖·e₁; at the iterates the Jacobian is [R; 0] of the QR of J, with
+    # Qᵀr and the rest of r, [Qᵀr; ρ], rotated onto e₁, so that ‖e₁‖r‖ + J̃p‖ = ‖r + Jp‖ for
+    # every step p. MINPACK would factor the tall J itself, unblocked: that QR was half of
+    # Silverbox's output-error searches, and blockwise (:func:`triangular_factor`) it costs a third.
+    last: dict[bytes, np.ndarray] = {}
+
+    def compressed(theta: np.ndarray, holding: bool) -> np.ndarray:
+        residuals = penalised(theta, holding)
+        last.clear()
+        last[theta.tobytes()] = residuals
+        folded = np.zeros(theta.size + 1)
+        folded[0] = np.linalg.norm(residuals)
+        return folded
+
+    def jacobian(theta: np.ndarray, holding: bool) -> np.ndarray:
+        residuals = last.get(theta.tobytes())
+        if residuals is None:
+            residuals = penalised(theta, holding)
+        J = sensitivities(theta)
+        # Columns scaled to a largest entry of one: sensitivities can exceed 10¹⁵⁴ where the run
+        # stays finite (gauss_newton_inverse), and their squares must not overflow in the QR.
+        scale = np.max(np.abs(J), axis=0, initial=0.0)
+        scale[scale == 0.0] = 1.0
+        augmented = np.empty((J.shape[0], J.shape[1] + 1))
+        np.divide(J, scale, out=augmented[:, :-1])
+        augmented[:, -1] = residuals
+        R = triangular_factor(augmented)
+        triangle, along = R[:-1, :-1] * scale, R[:, -1]  # [Qᵀr; ±ρ]
+        rotation, top = linalg.qr(along[:, None])  # along = rotation·(±‖r‖·e₁)
+        rotation[:, 0] *= np.sign(top[0, 0]) or 1.0
+        return rotation.T @ np.vstack([triangle, np.zeros((1, theta.size))])
 
     def search(holding: bool) -> tuple[np.ndarray, optimize.OptimizeResult, int]:
         # MINPACK cuts its trust region tenfold on every step into the penalty and lets it grow at
@@ -186,7 +221,7 @@ def fit_output_error(
         while True:
             met_penalty = penalised_steps
             result = optimize.least_squares(
-                penalised,
+                compressed,
                 theta,
                 jac=jacobian,
                 x_scale="jac",

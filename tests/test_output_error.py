@@ -87,6 +87,31 @@ def test_the_search_ends_where_levenberg_marquardt_on_every_free_run_residual_do
     assert fit.rms < 0.95 * fit.start_rms  # the search did move: the comparison means something
 
 
+def test_the_search_takes_the_steps_minpack_takes_on_the_tall_problem() -> None:
+    """MINPACK is given the free-run error folded to p + 1 rows (‖r‖·e₁ and the rotated
+    triangular factor of J); on the tall residual with the same sensitivities it must take the
+    same steps: the same number of evaluations and the same θ to rounding."""
+    records = [output_error_record(1500, 1.0, seed)[:2] for seed in (43, 44)]
+    terms = [*TERMS, "x[t-2]"]  # linear and stable along the way: no step meets the penalty
+    start = fit_narx(records, terms)
+    fit = fit_output_error(start, records)
+    runs = [(FreeRun.build(start.terms, x, 0), y) for x, y in records]
+
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        return np.concatenate([start.run_free(run, y, theta)[2:] - y[2:] for run, y in runs])
+
+    def jacobian(theta: np.ndarray) -> np.ndarray:
+        return np.vstack([run.run_with_sensitivities(theta, y)[1][2:] for run, y in runs])
+
+    tall = optimize.least_squares(residuals, start.theta, jac=jacobian, method="lm", x_scale="jac")
+    assert fit.evaluations == tall.nfev
+    assert np.allclose(fit.model.theta, tall.x, rtol=1e-9, atol=0), (fit.model.theta, tall.x)
+    assert fit.rms < 0.95 * fit.start_rms  # the search did move: the comparison means something
+    # θ's covariance from the folded Jacobian is the tall one's: σ̂²(JᵀJ)⁻¹.
+    sigma2 = float(tall.fun @ tall.fun) / (tall.fun.size - tall.x.size)
+    assert np.allclose(fit.model.covariance, sigma2 * np.linalg.inv(tall.jac.T @ tall.jac), rtol=1e-6)
+
+
 def test_a_starting_model_whose_free_run_diverges_is_refused() -> None:
     x, y, _ = output_error_record(1000, 0.1, seed=31)
     unstable = NARX(tuple(parse_terms(TERMS)), np.array([2.1, -0.9, 1.0]), np.zeros((3, 3)))  # pole at 1.35

@@ -9,7 +9,7 @@ from conftest import scaled_lstsq
 from scipy import linalg
 
 from models.errors import InputError
-from models.regression import least_squares, orthogonal_part
+from models.regression import least_squares, orthogonal_part, triangular_factor
 
 EPS = np.finfo(float).eps
 
@@ -141,3 +141,17 @@ def test_a_candidate_nearly_in_the_models_span_is_projected_off_it_to_working_pr
     for column, remainder in zip((columns / np.linalg.norm(columns, axis=0)).T, remainders.T, strict=True):
         fitted = Q @ linalg.lstsq(Q, column, lapack_driver="gelsd")[0]
         assert np.allclose(remainder, column - fitted, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("rows", [5000, 4096, 2049])
+def test_the_blockwise_triangular_factor_is_that_of_one_qr(rows: int) -> None:
+    """TSQR's R agrees with LAPACK's on the whole matrix up to its rows' signs, whatever the last
+    block holds (a full block, or one row, fewer than the columns)."""
+    rng = np.random.default_rng(rows)
+    A = rng.normal(size=(rows, 30)) * np.logspace(0, 6, 30)  # columns over six decades
+    R = triangular_factor(A, block=2048)
+    reference = linalg.qr(A, mode="r")[0][:30]
+    signs = np.sign(np.diag(R) * np.diag(reference))
+    assert R.shape == (30, 30)
+    error = np.abs(signs[:, None] * R - reference)
+    assert np.all(error <= 1e-13 * np.linalg.norm(A, axis=0))  # each column to its own scale
