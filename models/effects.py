@@ -196,7 +196,7 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             "a level estimated",
             (),
             "estimated",
-            lambda x, y, e, terms, lag: hysteresis_terms(lags_y, x, y, e, terms, lag),
+            functools.partial(hysteresis_terms, lags_y),
         ),
         Effect(
             "unmeasured_nonlinearity",
@@ -211,30 +211,28 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             "a restoring force or outflow ∝ |y|^p·sign y, p estimated: a tank draining through an orifice",
             (),
             "estimated",
-            lambda x, y, e, terms, lag: power_law_terms(
-                "y", lags_y, STIFFNESS_EXPONENTS, x, y, e, terms, lag
-            ),
+            functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS),
         ),
         Effect(
             "power_law_damping",
             "damping ∝ |dy|^p·sign dy, p estimated: flow through an orifice, turbulent drag",
             (),
             "estimated",
-            lambda x, y, e, terms, lag: power_law_terms("dy", lags_y, DAMPING_EXPONENTS, x, y, e, terms, lag),
+            functools.partial(power_law_terms, "dy", lags_y, DAMPING_EXPONENTS),
         ),
         Effect(
             "input_dead_zone",
             "a dead zone in the actuator: no force until the command exceeds a width, estimated",
             (),
             "estimated",
-            lambda x, y, e, terms, lag: input_play_terms("deadzone", x_lags, x, y, e, terms, lag),
+            functools.partial(input_play_terms, "deadzone", x_lags),
         ),
         Effect(
             "input_backlash",
             "backlash (play) in the actuator's drive, of a width estimated",
             (),
             "estimated",
-            lambda x, y, e, terms, lag: input_play_terms("backlash", x_lags, x, y, e, terms, lag),
+            functools.partial(input_play_terms, "backlash", x_lags),
         ),
         Effect(
             "output_saturation",
@@ -474,7 +472,7 @@ def unmeasured_cube(cubics: Sequence[Term]) -> Combiner:
     y's lags, far better conditioned).
     """
     lags = range(1, max(f.lag for t in cubics for f in t.factors if f.signal == "y") + 1)
-    return lambda records, e, terms, lag: combination_terms("y", lags, (3,), cubics, records, e, terms, lag)
+    return functools.partial(combination_terms, "y", lags, (3,), cubics)
 
 
 def filtered_input_powers(lags: Sequence[int], monomials: Sequence[Term]) -> Combiner:
@@ -496,9 +494,7 @@ def filtered_input_powers(lags: Sequence[int], monomials: Sequence[Term]) -> Com
     lags, where the input nonlinearity's powers of each lag alone hold a static nonlinearity
     before the dynamics (Hammerstein).
     """
-    return lambda records, e, terms, lag: combination_terms(
-        "x", lags, (2, 3), monomials, records, e, terms, lag
-    )
+    return functools.partial(combination_terms, "x", lags, (2, 3), monomials)
 
 
 def combination_terms(

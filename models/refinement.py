@@ -81,7 +81,7 @@ from models.errors import InputError
 from models.narx import NARX, Saturation
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
-from models.scoring import EffectScore, Records, Scores, fit_model, score_effects
+from models.scoring import EffectScore, Records, Scores, Workers, fit_model, score_effects
 from models.signals import checked_records
 from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 
@@ -263,18 +263,21 @@ def refine_record(
     fs: float | None = None,
     output_error: bool = True,
     progress: Stage | None = None,
+    workers: Workers = map,
 ) -> RefinementReport:
     """Refine on samples ``estimation`` = (a, b) of one record, assess both models on ``test``.
 
     The first ``initial`` test samples only start the predictions (benchmark protocols
-    prescribe such a start, e.g. 50 samples for Silverbox). ``output_error`` and ``progress`` as
-    for :func:`refine`.
+    prescribe such a start, e.g. 50 samples for Silverbox). ``output_error``, ``progress`` and
+    ``workers`` as for :func:`refine`.
     """
     check_parts(len(x), declared, estimation, test, initial)
     a, b = estimation
     c, d = test
     estimation_part = [(x[a:b], y[a:b])]
-    result = refine(estimation_part, declared, alpha=alpha, output_error=output_error, progress=progress)
+    result = refine(
+        estimation_part, declared, alpha=alpha, output_error=output_error, progress=progress, workers=workers
+    )
     _told(progress)("judging both models on the test part")
     return RefinementReport(result, (compare(result, estimation_part, x[c:d], y[c:d], initial, fs, c - a),))
 
@@ -288,6 +291,7 @@ def refine_records(
     fs: float | None = None,
     transient: int = 0,
     progress: Stage | None = None,
+    workers: Workers = map,
 ) -> RefinementReport:
     """Refine on several estimation records, assess both models on each test record, whole.
 
@@ -295,7 +299,7 @@ def refine_records(
     model's lags); its first ``transient`` samples are run through but not scored
     (:func:`models.assessment.assess`). A model with sinusoidal terms is phase-locked to the
     estimation record's first sample; on a test record its sinusoids count time from that
-    record's first sample. ``progress`` as for :func:`refine`.
+    record's first sample. ``progress`` and ``workers`` as for :func:`refine`.
     """
     if not tests:
         raise InputError("at least one test record is needed to judge the refined model")
@@ -306,7 +310,7 @@ def refine_records(
             check_test_length(len(y), max(initial, reach(declared), transient))
         except InputError as exc:
             raise InputError(f"test record {number}: {exc}") from None
-    result = refine(estimation, declared, alpha=alpha, progress=progress)
+    result = refine(estimation, declared, alpha=alpha, progress=progress, workers=workers)
     notes = []
     if len(estimation) > 1:
         notes.append(
@@ -406,6 +410,7 @@ def refine(
     max_rounds: int = MAX_ROUNDS,
     output_error: bool = True,
     progress: Stage | None = None,
+    workers: Workers = map,
 ) -> Refinement:
     """Refine the declared structure on the estimation ``records`` (x, y pairs) until no effect
     helps (module docstring).
@@ -415,7 +420,8 @@ def refine(
     terms: sized to the declared lags, so that the loop explains the residual with the declared
     dynamics rather than by lengthening them round after round. An offset's terms follow the
     model as it grows. ``output_error`` False keeps least-squares parameters throughout.
-    ``progress`` is told each stage as it begins.
+    ``progress`` is told each stage as it begins. ``workers`` builds each round's candidate
+    regressors (:data:`models.scoring.Workers`); the refinement is the same whichever.
     """
     tell = _told(progress)
     if not 0 < alpha < 1:
@@ -444,7 +450,13 @@ def refine(
         kinds = {effect.name: effect.kind for effect in offered}
         tell(f"round {number}: scoring {len(offered)} {'family' if len(offered) == 1 else 'families'}")
         scores = score_effects(
-            records, current.terms, current.noise_lags, offered, alpha, saturating=current.saturating
+            records,
+            current.terms,
+            current.noise_lags,
+            offered,
+            alpha,
+            saturating=current.saturating,
+            workers=workers,
         )
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
@@ -462,7 +474,7 @@ def refine(
         if decided is None and output_error:
             tell(f"round {number}: the families on the simulation error")
             decided = _by_simulation(
-                offered, _ranked(records, current, offered, alpha).scores, current, checks
+                offered, _ranked(records, current, offered, alpha, workers).scores, current, checks
             )
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
@@ -484,7 +496,7 @@ def refine(
     if output_error and folds:
         for _ in range(max_rounds):
             offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
-            scores = _ranked(records, current, offered, alpha)
+            scores = _ranked(records, current, offered, alpha, workers)
             step = Round(
                 scores.residual_rms,
                 scores.level,
@@ -551,11 +563,20 @@ def refine(
     )
 
 
-def _ranked(records: Records, current: Structure, offered: Sequence[Effect], alpha: float) -> Scores:
+def _ranked(
+    records: Records, current: Structure, offered: Sequence[Effect], alpha: float, workers: Workers
+) -> Scores:
     """Every offered family's score with all its regressors ranked by error reduction, significant
     or not: what the simulation criteria try."""
     return score_effects(
-        records, current.terms, current.noise_lags, offered, alpha, rank=True, saturating=current.saturating
+        records,
+        current.terms,
+        current.noise_lags,
+        offered,
+        alpha,
+        rank=True,
+        saturating=current.saturating,
+        workers=workers,
     )
 
 

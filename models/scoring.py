@@ -19,9 +19,11 @@ signals or of the residual) reaches across the boundary between two.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from itertools import pairwise
+from typing import Any
 
 import numpy as np
 from scipy import linalg, signal, special
@@ -33,6 +35,9 @@ from models.regression import orthogonal_part
 from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
+# A map-like callable, workers(function, items), as scipy's optimisers take one: the builtin map,
+# or a process pool's, which builds each family's candidates in a process of its own.
+Workers = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
 Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limits, and how
 NOISE_LAGS_OFFERED = 4  # moving-average lags a round offers beyond those the model has
 # Extended least squares settles in 13–15 iterations on simulated records; on long measured ones
@@ -110,9 +115,11 @@ def score_effects(
     alpha: float,
     rank: bool = False,
     saturating: Saturating | None = None,
+    workers: Workers = map,
 ) -> Scores:
     """Score each effect against the current model's residual on the estimation records; with
-    ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``)."""
+    ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``). The
+    families' candidate regressors are built by ``workers`` (:data:`Workers`), the same whichever."""
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
     Phi, target, starts = stacked_regressors(terms, records, lag)
@@ -142,13 +149,18 @@ def score_effects(
     every_row = np.zeros(inside.size)
     every_row[inside] = residual
     every_start = stacked_starts(records, lag)
-    candidates = [
-        (labels, columns[inside])
-        for labels, columns in (
-            _candidates(e, terms, noise_lags, theta, every_row, every_start, alpha, records, lag)
-            for e in effects
-        )
-    ]
+    build = partial(
+        _candidates,
+        terms=terms,
+        noise_lags=noise_lags,
+        theta=theta,
+        residual=every_row,
+        starts=every_start,
+        alpha=alpha,
+        records=records,
+        lag=lag,
+    )
+    candidates = [(labels, columns[inside]) for labels, columns in workers(build, effects)]
     total = sum(columns.shape[1] for _, columns in candidates)
     level = alpha / max(total, 1)
     # A smooth residual predicts itself, and a coloured one makes spurious regressors look

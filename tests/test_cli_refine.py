@@ -142,6 +142,7 @@ def run_on_terminal(*args: str, cwd: Path) -> tuple[str, str]:
         (["--test", "100:999999"], "does not lie within"),
         (["--declared", "y[t-1],z[t-2]"], "cannot read term"),
         (["--initial", "-1"], "initial samples must be 0 or more"),
+        (["--jobs", "0"], "--jobs must be 1 or more"),
     ],
 )
 def test_bad_options_are_refused_with_a_message(silverbox_dir, tmp_path, args, message):
@@ -362,6 +363,20 @@ def test_a_unit_is_plotted_as_the_text_given(simulated_records: Path, tmp_path: 
     )  # fmt: skip
     assert "free-run RMS [$\\frac$]" in result.stdout
     assert figure.read_bytes().startswith(PNG_MAGIC)
+
+
+def test_the_report_is_the_same_whatever_the_processes_building_the_candidates(simulated_records: Path):
+    """The candidates of each round built in two processes (the effects' finders and combiners
+    sent to them) or in this one: the same effects, parameters and figures, to the last digit."""
+    reports = [
+        invoke(
+            "refine", "e1.csv", "e2.csv", "--validate", "v1.csv", "--declared", "2dof", "--json",
+            "--jobs", jobs, cwd=simulated_records,
+        ).stdout
+        for jobs in ("1", "2")
+    ]  # fmt: skip
+    assert reports[0] == reports[1]
+    assert json.loads(reports[0])["effects_added"]  # the loop did find something to add
 
 
 def test_records_at_different_rates_are_refused_naming_each(simulated_records: Path, tmp_path: Path):

@@ -17,7 +17,9 @@ holds one record, or one for each pair of signals when ``--x`` and ``--y`` name 
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import StrEnum
@@ -39,7 +41,7 @@ from models.refinement import (
     refine_record,
     refine_records,
 )
-from models.scoring import Records
+from models.scoring import Records, Workers
 from models.terms import Term
 from service.cli.console import stderr, stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
@@ -144,6 +146,13 @@ def refine_command(
         str | None,
         typer.Option(help="The output's unit, for the figures printed and plotted (Silverbox: V)."),
     ] = None,
+    jobs: Annotated[
+        int | None,
+        typer.Option(
+            help="Processes that build each round's candidate regressors, the report the same whatever "
+            "their number (default: the CPUs this command may use)."
+        ),
+    ] = None,
 ) -> None:
     """Fit the declared model, trace its residual to the effects it lacks, add them, compare."""
     silverbox = data_format is DataFormat.silverbox
@@ -151,6 +160,8 @@ def refine_command(
     layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
     if transient < 0:
         raise InputError(f"--transient must be 0 or more, got {transient}")
+    if jobs is not None and jobs < 1:
+        raise InputError(f"--jobs must be 1 or more, got {jobs}")
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
     held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
     rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
@@ -163,8 +174,10 @@ def refine_command(
         est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
         fitted_part = [(x_cut[slice(*est)], y_cut[slice(*est)])]
-        with _stages() as stage:
-            report = refine_record(x_cut, y_cut, terms, est, part, start, alpha, rate, progress=stage)
+        with _stages() as stage, _workers(jobs or _usable_cpus()) as workers:
+            report = refine_record(
+                x_cut, y_cut, terms, est, part, start, alpha, rate, progress=stage, workers=workers
+            )
             tests = report.tests + _judged(report, fitted_part, held, start, rate, transient, stage)
         report = RefinementReport(report.refinement, tests)
         c, d = part
@@ -186,7 +199,7 @@ def refine_command(
         # then start where the records do, at rest. Started mid-record from L measured outputs
         # instead, F-16's multisines' check runs favoured least squares over output error, whose
         # slow mode carries those readings' noise (README: "Free runs started mid-record").
-        with _stages() as stage:
+        with _stages() as stage, _workers(jobs or _usable_cpus()) as workers:
             report = refine_records(
                 [(r.x, r.y) for r in fitted],
                 [(r.x, r.y) for r in held],
@@ -196,6 +209,7 @@ def refine_command(
                 rate,
                 transient,
                 progress=stage,
+                workers=workers,
             )
         judged = [_whole(r, transient) for r in held]
         protocol = {"estimation": [_whole(r, 0) for r in fitted]}
@@ -268,6 +282,22 @@ def _stages() -> Iterator[Stage]:
         task = bar.add_task("starting the loop", total=None)
         # Drawn at once: a stage shorter than the bar's refresh would otherwise not be seen at all.
         yield lambda stage: bar.update(task, description=stage, refresh=True)
+
+
+@contextmanager
+def _workers(jobs: int) -> Iterator[Workers]:
+    """The map that builds each round's candidate regressors: in ``jobs`` processes, or in this
+    one for 1."""
+    if jobs == 1:
+        yield map
+        return
+    with ProcessPoolExecutor(jobs) as pool:
+        yield pool.map
+
+
+def _usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity where the system has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _declared(spec: str | None) -> tuple[Term, ...] | None:
