@@ -59,8 +59,9 @@ class OutputErrorFit:
         stopped at its step-size test having met the penalty, and over its second search, held
         to the restarts from measured outputs, where the first ended at θ that diverge there).
     status : ``scipy.optimize.least_squares``' termination status (> 0: converged). The search is
-        Levenberg–Marquardt (MINPACK): its QR of the tall Jacobian costs half what the
-        trust-region method's SVD does, with the same optimum (Silverbox: 0.95 s against 2.2 s).
+        Levenberg–Marquardt (MINPACK), on the free-run error folded to p + 1 rows (see the
+        search's Jacobian): the same steps as on the tall residual, without MINPACK's own QR of
+        the tall Jacobian, which cost half of Silverbox's searches.
     """
 
     model: NARX
@@ -168,30 +169,30 @@ def fit_output_error(
         for run, ya in runs:
             simulated, derivatives = run.run_with_sensitivities(theta, ya, state)
             if start.output_limits is not None and state is None:
-                derivatives[(simulated <= start.output_limits[0]) | (simulated >= start.output_limits[1])] = (
-                    0.0
-                )
+                low, high = start.output_limits
+                derivatives[(simulated <= low) | (simulated >= high)] = 0.0
             blocks.append(derivatives[L:])
         stacked = blocks[0] if len(blocks) == 1 else np.vstack(blocks)
         if np.isfinite(stacked).all():  # nearly always, and the test costs a tenth of the replacement
             return stacked
         return np.nan_to_num(stacked, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
 
-    # MINPACK sees the free-run error through an equivalent problem of p + 1 rows: its iterates
-    # depend on the residual r and Jacobian J only through ‖r‖, JᵀJ and Jᵀr, which these keep. At
-    # every θ the residual is ‖r‖·e₁; at the iterates the Jacobian is [R; 0] of the QR of J, with
-    # Qᵀr and the rest of r, [Qᵀr; ρ], rotated onto e₁, so that ‖e₁‖r‖ + J̃p‖ = ‖r + Jp‖ for
-    # every step p. MINPACK would factor the tall J itself, unblocked: that QR was half of
-    # Silverbox's output-error searches, and blockwise (:func:`triangular_factor`) it costs a third.
-    last: dict[bytes, np.ndarray] = {}
+    # MINPACK is given the free-run error folded to p + 1 rows. Its steps depend on the residual r
+    # and the Jacobian J only through ‖r‖, JᵀJ and Jᵀr (J's column norms among them), and the fold
+    # keeps all three: at every θ the residual is ‖r‖·e₁, a free run and no sensitivities, and at
+    # the points kept the Jacobian is [R; 0] of J = QR with [Qᵀr; ρ], the rest of r, rotated onto
+    # e₁, so that ‖‖r‖·e₁ + J̃p‖ = ‖r + Jp‖ for every step p. Given the tall J, MINPACK factors it
+    # unblocked, half of Silverbox's output-error searches; blockwise (:func:`triangular_factor`)
+    # the factor costs a third of that.
+    last: dict[bytes, np.ndarray] = {}  # the residual at the θ last run, which MINPACK keeps
 
-    def compressed(theta: np.ndarray, holding: bool) -> np.ndarray:
+    def folded(theta: np.ndarray, holding: bool) -> np.ndarray:
         residuals = penalised(theta, holding)
         last.clear()
         last[theta.tobytes()] = residuals
-        folded = np.zeros(theta.size + 1)
-        folded[0] = np.linalg.norm(residuals)
-        return folded
+        error = np.zeros(theta.size + 1)
+        error[0] = np.linalg.norm(residuals)
+        return error
 
     def jacobian(theta: np.ndarray, holding: bool) -> np.ndarray:
         residuals = last.get(theta.tobytes())
@@ -221,7 +222,7 @@ def fit_output_error(
         while True:
             met_penalty = penalised_steps
             result = optimize.least_squares(
-                compressed,
+                folded,
                 theta,
                 jac=jacobian,
                 x_scale="jac",
