@@ -7,8 +7,10 @@ import json
 import os
 import pty
 import re
+import signal
 import subprocess
 import threading
+import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -377,6 +379,55 @@ def test_the_report_is_the_same_whatever_the_processes_building_the_candidates(s
     ]  # fmt: skip
     assert reports[0] == reports[1]
     assert json.loads(reports[0])["effects_added"]  # the loop did find something to add
+
+
+@pytest.mark.parametrize(
+    ("stop", "group", "code"),
+    [
+        (signal.SIGINT, True, 130),  # a terminal's Ctrl-C: the command's whole process group
+        (signal.SIGTERM, False, -signal.SIGTERM),  # timeout, a service manager: the command alone
+        (signal.SIGKILL, False, -signal.SIGKILL),  # killed outright
+    ],
+    ids=["ctrl-c", "sigterm", "sigkill"],
+)
+def test_a_stopped_command_leaves_no_worker_behind_and_prints_no_traceback(
+    silverbox_dir, tmp_path, stop, group, code
+):
+    """However ``refine`` is stopped, its worker processes end with it, and none prints a traceback
+    (each used to on Ctrl-C; after SIGTERM or SIGKILL they waited for work for ever)."""
+    assert NARXWATCH, "the narxwatch console script is not installed next to this Python"
+    command = [
+        NARXWATCH, "refine", str(silverbox_dir / "SNLS80mV.csv"), "--format", "silverbox",
+        "--declared", "linear:4,4", "--jobs", "2",
+    ]  # fmt: skip
+    started = subprocess.Popen(
+        command, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job has
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    children = Path(f"/proc/{started.pid}/task/{started.pid}/children")
+    deadline = time.monotonic() + 60
+    while len(children.read_text().split()) < 2:  # the loop has reached its first round
+        assert time.monotonic() < deadline and started.poll() is None, "no worker processes started"
+        time.sleep(0.05)
+    workers = [int(pid) for pid in children.read_text().split()]
+    if group:
+        os.killpg(started.pid, stop)
+    else:
+        os.kill(started.pid, stop)
+    with contextlib.suppress(subprocess.TimeoutExpired):  # a leftover worker holds the pipes open
+        started.communicate(timeout=10)
+    deadline = time.monotonic() + 5
+    while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    left = [pid for pid in workers if Path(f"/proc/{pid}").exists()]
+    with contextlib.suppress(ProcessLookupError):  # a leftover would outlive the test run otherwise
+        for pid in left:
+            os.kill(pid, signal.SIGKILL)
+    assert not left, f"workers {left} outlived the command"
+    _, stderr = started.communicate(timeout=10)
+    assert started.returncode == code
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
 
 
 def test_records_at_different_rates_are_refused_naming_each(simulated_records: Path, tmp_path: Path):

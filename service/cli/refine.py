@@ -18,6 +18,9 @@ from __future__ import annotations
 
 import json
 import os
+import signal
+import threading
+import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -287,12 +290,32 @@ def _stages() -> Iterator[Stage]:
 @contextmanager
 def _workers(jobs: int) -> Iterator[Workers]:
     """The map that builds each round's candidate regressors: in ``jobs`` processes, or in this
-    one for 1."""
+    one for 1. However the command ends — done, Ctrl-C, terminated or killed — its workers end
+    with it."""
     if jobs == 1:
         yield map
         return
-    with ProcessPoolExecutor(jobs) as pool:
-        yield pool.map
+    with ProcessPoolExecutor(jobs, initializer=_worker_start, initargs=(os.getpid(),)) as pool:
+        try:
+            yield pool.map
+        except BaseException:
+            pool.shutdown(cancel_futures=True)  # the families still queued are not built
+            raise
+
+
+def _worker_start(command: int) -> None:
+    """A worker's start. A terminal's Ctrl-C reaches the workers too: the command stops them,
+    rather than each printing its own traceback. A worker whose command ended without stopping
+    it (SIGTERM from ``timeout`` or a service manager, SIGKILL) leaves within a second, where it
+    would wait for work for ever."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    threading.Thread(target=_leave_when_orphaned, args=(command,), daemon=True).start()
+
+
+def _leave_when_orphaned(command: int) -> None:
+    while os.getppid() == command:
+        time.sleep(1.0)
+    os._exit(1)
 
 
 def _usable_cpus() -> int:
