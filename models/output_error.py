@@ -59,9 +59,10 @@ class OutputErrorFit:
         stopped at its step-size test having met the penalty, and over its second search, held
         to the restarts from measured outputs, where the first ended at θ that diverge there).
     status : ``scipy.optimize.least_squares``' termination status (> 0: converged). The search is
-        Levenberg–Marquardt (MINPACK), on the free-run error folded to p + 1 rows (see the
-        search's Jacobian): the same steps as on the tall residual, without MINPACK's own QR of
-        the tall Jacobian, which cost half of Silverbox's searches.
+        Levenberg–Marquardt (MINPACK), on the free-run error folded to p + 1 rows (‖r‖·e₁, and
+        at the points kept the triangular factor of J, rotated): the same steps as on the tall
+        residual, without MINPACK's own QR of the tall Jacobian, which cost half of Silverbox's
+        searches.
     """
 
     model: NARX
@@ -184,7 +185,8 @@ def fit_output_error(
     # e₁, so that ‖‖r‖·e₁ + J̃p‖ = ‖r + Jp‖ for every step p. Given the tall J, MINPACK factors it
     # unblocked, half of Silverbox's output-error searches; blockwise (:func:`triangular_factor`)
     # the factor costs a third of that.
-    last: dict[bytes, np.ndarray] = {}  # the residual at the θ last run, which MINPACK keeps
+    # MINPACK asks for the Jacobian at a θ just after running it: its residual is kept till then.
+    last: dict[bytes, np.ndarray] = {}
 
     def folded(theta: np.ndarray, holding: bool) -> np.ndarray:
         residuals = penalised(theta, holding)
