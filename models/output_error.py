@@ -203,8 +203,7 @@ def fit_output_error(
         J = sensitivities(theta)
         # Columns scaled to a largest entry of one: sensitivities can exceed 10¹⁵⁴ where the run
         # stays finite (gauss_newton_inverse), and their squares must not overflow in the QR.
-        scale = np.max(np.abs(J), axis=0, initial=0.0)
-        scale[scale == 0.0] = 1.0
+        scale = _column_scale(J)
         augmented = np.empty((J.shape[0], J.shape[1] + 1))
         np.divide(J, scale, out=augmented[:, :-1])
         augmented[:, -1] = residuals
@@ -275,10 +274,17 @@ def gauss_newton_inverse(jacobian: np.ndarray) -> np.ndarray:
     not. A free run's sensitivities can exceed 10¹⁵⁴ while the run itself stays finite, and JᵀJ
     then overflows (F-16's multisines, estimated whole: LAPACK's SVD failed on it in the middle
     of the loop; on other such matrices the pseudo-inverse comes back as zeros)."""
-    scale = np.max(np.abs(jacobian), axis=0, initial=0.0)
-    scale[scale == 0.0] = 1.0
+    scale = _column_scale(jacobian)
     scaled = jacobian / scale
     return np.linalg.pinv(scaled.T @ scaled) / scale[:, None] / scale[None, :]
+
+
+def _column_scale(jacobian: np.ndarray) -> np.ndarray:
+    """Each column's largest magnitude (one for a column of zeros): dividing by it keeps the
+    products of sensitivities that exceed 10¹⁵⁴ from overflowing."""
+    scale = np.max(np.abs(jacobian), axis=0, initial=0.0)
+    scale[scale == 0.0] = 1.0
+    return scale
 
 
 # Where and for how long the excitation is switched off to see the free run come to rest: at this

@@ -165,6 +165,7 @@ def refine_command(
         raise InputError(f"--transient must be 0 or more, got {transient}")
     if jobs is not None and jobs < 1:
         raise InputError(f"--jobs must be 1 or more, got {jobs}")
+    jobs = jobs or _usable_cpus()
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
     held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
     rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
@@ -177,7 +178,7 @@ def refine_command(
         est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
         fitted_part = [(x_cut[slice(*est)], y_cut[slice(*est)])]
-        with _stages() as stage, _workers(jobs or _usable_cpus()) as workers:
+        with _stages() as stage, _workers(jobs) as workers:
             report = refine_record(
                 x_cut, y_cut, terms, est, part, start, alpha, rate, progress=stage, workers=workers
             )
@@ -202,7 +203,7 @@ def refine_command(
         # then start where the records do, at rest. Started mid-record from L measured outputs
         # instead, F-16's multisines' check runs favoured least squares over output error, whose
         # slow mode carries those readings' noise (README: "Free runs started mid-record").
-        with _stages() as stage, _workers(jobs or _usable_cpus()) as workers:
+        with _stages() as stage, _workers(jobs) as workers:
             report = refine_records(
                 [(r.x, r.y) for r in fitted],
                 [(r.x, r.y) for r in held],
