@@ -145,6 +145,7 @@ def run_on_terminal(*args: str, cwd: Path) -> tuple[str, str]:
         (["--declared", "y[t-1],z[t-2]"], "cannot read term"),
         (["--initial", "-1"], "initial samples must be 0 or more"),
         (["--jobs", "0"], "--jobs must be 1 or more"),
+        (["--jobs", "100000"], "the CPUs this command may use; got 100000"),
     ],
 )
 def test_bad_options_are_refused_with_a_message(silverbox_dir, tmp_path, args, message):

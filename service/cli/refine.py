@@ -163,9 +163,13 @@ def refine_command(
     layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
     if transient < 0:
         raise InputError(f"--transient must be 0 or more, got {transient}")
-    if jobs is not None and jobs < 1:
-        raise InputError(f"--jobs must be 1 or more, got {jobs}")
-    jobs = jobs or _usable_cpus()
+    cpus = _usable_cpus()
+    if jobs is not None and not 1 <= jobs <= cpus:
+        # Each worker is a copy of this process: more than the CPUs only costs memory.
+        raise InputError(
+            f"--jobs must be 1 or more and at most {cpus}, the CPUs this command may use; got {jobs}"
+        )
+    jobs = jobs or cpus
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
     held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
     rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
