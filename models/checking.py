@@ -11,14 +11,16 @@ diverged.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
 from models.errors import InputError
 from models.narx import NARX
 from models.output_error import comes_to_rest, fit_output_error
-from models.scoring import Records, Saturating, fit_model
+from models.scoring import Records, Saturating, Workers, fit_model
 from models.simulation import FreeRun
 from models.terms import Term, max_lag
 
@@ -74,6 +76,24 @@ class CheckSplit:
         if key not in self._errors:
             self._errors[key] = self._judge(structure, tuned)
         return self._errors[key]
+
+    def judge(
+        self, structures: Sequence[Structure], workers: Workers = map, tuned: bool = False
+    ) -> Iterator[float]:
+        """:meth:`error` of each of ``structures`` in turn, lazily; those not judged yet are
+        judged by ``workers`` (:data:`models.scoring.Workers`), each in a split of its own with
+        these parts, and what they fitted kept here: the figures are the same whichever."""
+        unjudged = [s for s in dict.fromkeys(structures) if (s, tuned) not in self._errors]
+        judged = workers(partial(_judged, self.fit, self.check, tuned), unjudged)
+        for structure in structures:
+            if (structure, tuned) not in self._errors:
+                for fitted, tuned_models, errors in judged:
+                    self._fitted |= fitted
+                    self._tuned |= tuned_models
+                    self._errors |= errors
+                    if (structure, tuned) in self._errors:
+                        break
+            yield self._errors[(structure, tuned)]
 
     def tuned(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by output error (as :meth:`error` judges it with
@@ -138,6 +158,16 @@ class CheckSplit:
                 structure.saturating,
             )
         return self._fitted[structure]
+
+
+def _judged(
+    fit: Segments, check: Segments, tuned: bool, structure: Structure
+) -> tuple[dict[Structure, NARX], dict[Structure, NARX], dict[tuple[Structure, bool], float]]:
+    """What :meth:`CheckSplit.error` of ``structure`` fits and finds on these parts: the
+    least-squares and output-error fits, and the figures."""
+    checks = CheckSplit(fit, check)
+    checks.error(structure, tuned)
+    return checks._fitted, checks._tuned, checks._errors
 
 
 def by_output_error(model: NARX, segments: Segments, evaluations: int) -> NARX:

@@ -56,7 +56,7 @@ process noise is 86 mV RMS, the linear model's figure is within half a per cent 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal, get_args
 
@@ -103,6 +103,10 @@ SIMULATION_GAIN = 0.2
 FOLD_GAIN = 0.05
 FOLD_TRIALS = 3
 MAX_LINEAR_ORDER = 10  # the largest order tried when no structure is declared
+# Families judged at once on the check blocks, in a round (the workers' judgements run side by
+# side): of Silverbox's ten rounds from linear:4,4, four add the first family judged, and the
+# others the second to the fourth.
+JUDGED_AT_ONCE = 2
 
 Criterion = Literal["one-step", "simulation", "simulation across folds"]
 
@@ -430,7 +434,7 @@ def refine(
     orders = None
     checks = CheckSplit.of(records)
     if declared is None:
-        orders, terms = choose_linear(records, checks=checks, progress=tell)
+        orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
     else:
         terms = parse_terms(declared)
     families = list(effects) if effects is not None else candidate_effects(terms)
@@ -461,12 +465,17 @@ def refine(
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
-        for score in sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change):
-            tell(f"round {number}: {score.name} on the check blocks")
-            error, structure = min(
-                ((checks.error(option), option) for option in _with(score, kinds, current, records)),
-                key=lambda trial: trial[0],
-            )
+        significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
+        for score, error, structure in _judged_in_turn(
+            significant,
+            kinds,
+            current,
+            records,
+            checks,
+            workers,
+            tell,
+            f"round {number}",
+        ):
             if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
                 decided = (score, "one-step", structure, error)
                 break
@@ -474,7 +483,7 @@ def refine(
         if decided is None and output_error:
             tell(f"round {number}: the families on the simulation error")
             decided = _by_simulation(
-                offered, _ranked(records, current, offered, alpha, workers).scores, current, checks
+                offered, _ranked(records, current, offered, alpha, workers).scores, current, checks, workers
             )
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
@@ -591,6 +600,7 @@ def choose_linear(
     max_order: int = MAX_LINEAR_ORDER,
     checks: CheckSplit | None = None,
     progress: Stage | None = None,
+    workers: Workers = map,
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
     """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``)
     that simulates best over the check blocks, its parameters by output error.
@@ -598,17 +608,19 @@ def choose_linear(
     Every candidate is fitted by least squares on the fit blocks, then by output error (least
     squares' noise bias would otherwise favour needlessly high orders); the smallest order whose
     free run over the check blocks is within one standard error of the best wins. Returns
-    (n, n, d) and the terms; ``progress`` is told each candidate as it is fitted.
+    (n, n, d) and the terms; ``progress`` is told each candidate as it is fitted, ``workers``
+    fit them (:data:`models.scoring.Workers`).
     """
     if max_order < 1:
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
     checks = checks or CheckSplit.of(records)
     tell = _told(progress)
+    orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
+    judged = checks.judge([Structure(linear_terms(n, n, d)) for n, d in orders], workers, tuned=True)
     errors = {}
-    for d in (1, 0):
-        for n in range(1, max_order + 1):
-            tell(f"linear orders: ARX({n}, {n}), input delay {d}")
-            errors[(n, d)] = checks.error(Structure(linear_terms(n, n, d)), tuned=True)
+    for (n, d), error in zip(orders, judged, strict=True):
+        tell(f"linear orders: ARX({n}, {n}), input delay {d}")
+        errors[(n, d)] = error
     # The one-standard-error rule: the smallest order within one standard error of the best RMS.
     best = min(errors.values()) * (1 + check_noise(checks.check))
     n, d = min((nd for nd, error in errors.items() if error <= best), key=lambda nd: nd[0])
@@ -628,28 +640,65 @@ def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records
     return [replace(current, terms=current.terms + parse_terms(score.terms))]
 
 
+def _judged_in_turn(
+    scores: Sequence[EffectScore],
+    kinds: dict[str, str],
+    current: Structure,
+    records: Records,
+    checks: CheckSplit,
+    workers: Workers,
+    tell: Stage,
+    stage: str,
+) -> Iterator[tuple[EffectScore, float, Structure]]:
+    """Each scored family in turn with its check blocks' free-run RMS and structure, the best
+    of those adding it may give (:func:`_with`); ``tell`` is told each, in the ``stage``, as its
+    judgement is read.
+    ``JUDGED_AT_ONCE`` families are judged at a time by ``workers``: the round ends at the first
+    that passes, and a family judged beside it is judged in vain."""
+    for first in range(0, len(scores), JUDGED_AT_ONCE):
+        batch = [
+            (score, _with(score, kinds, current, records)) for score in scores[first : first + JUDGED_AT_ONCE]
+        ]
+        errors = checks.judge([option for _, options in batch for option in options], workers)
+        for score, options in batch:
+            tell(f"{stage}: {score.name} on the check blocks")
+            error, structure = min(((next(errors), option) for option in options), key=lambda trial: trial[0])
+            yield score, error, structure
+
+
 def _by_simulation(
     offered: Sequence[Effect],
     scores: Sequence[EffectScore],
     current: Structure,
     checks: CheckSplit,
+    workers: Workers,
 ) -> tuple[EffectScore, Criterion, Structure, float] | None:
     """The family added on the simulation error alone, if one lowers the check blocks' free
     run enough (module docstring, step 4): its score with the terms that won, the structure, and
-    the check blocks' free-run RMS with it (least squares, as the other rounds report it)."""
+    the check blocks' free-run RMS with it (least squares, as the other rounds report it). The
+    structures are judged by ``workers``."""
+    families = [
+        (
+            score,
+            [
+                tuple(name for label in score.ranked[:k] for name in label)
+                for k in range(1, len(score.ranked) + 1)
+            ],
+        )
+        for effect, score in zip(offered, scores, strict=True)
+        if effect.kind not in ("noise", "periodic", "saturation") and score.ranked
+    ]
+    grown = {
+        names: replace(current, terms=current.terms + parse_terms(names))
+        for _, prefixes in families
+        for names in prefixes
+    }
+    errors = dict(zip(grown, checks.judge(list(grown.values()), workers), strict=True))
     trials: list[tuple[float, EffectScore, Structure]] = []
-    for effect, score in zip(offered, scores, strict=True):
-        if effect.kind in ("noise", "periodic", "saturation") or not score.ranked:
-            continue
-        best: tuple[float, EffectScore, Structure] | None = None
-        for k in range(1, len(score.ranked) + 1):
-            names = tuple(name for label in score.ranked[:k] for name in label)
-            structure = replace(current, terms=current.terms + parse_terms(names))
-            error = checks.error(structure)
-            if best is None or error < best[0]:
-                best = (error, replace(score, terms=names), structure)
-        if best is not None and np.isfinite(best[0]):
-            trials.append(best)
+    for score, prefixes in families:
+        names = min(prefixes, key=errors.__getitem__)
+        if np.isfinite(errors[names]):
+            trials.append((errors[names], replace(score, terms=names), grown[names]))
     if not trials:
         return None
     # The current structure's best simulation, whichever its parameters: its output-error fit can
@@ -658,8 +707,10 @@ def _by_simulation(
     baseline = min(checks.error(current, tuned=True), checks.error(current))
     # Output error for the two best only: each costs a search, and a family whose least-squares
     # model is far behind does not overtake by its parameters alone.
-    for error, score, structure in sorted(trials, key=lambda trial: trial[0])[:2]:
-        if checks.error(structure, tuned=True) <= (1 - SIMULATION_GAIN) * baseline:
+    best = sorted(trials, key=lambda trial: trial[0])[:2]
+    tuned = checks.judge([structure for *_, structure in best], workers, tuned=True)
+    for (error, score, structure), tuned_error in zip(best, tuned, strict=True):
+        if tuned_error <= (1 - SIMULATION_GAIN) * baseline:
             return score, "simulation", structure, error
     return None
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from functools import partial
-from itertools import pairwise
+from itertools import chain, pairwise
 from typing import Any
 
 import numpy as np
@@ -39,6 +39,9 @@ Records = Sequence[tuple[np.ndarray, np.ndarray]]
 # or a process pool's, which builds each family's candidates in a process of its own.
 Workers = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
 Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limits, and how
+# The kinds of effect whose regressors a search over the residual finds (Effect): each takes
+# tenths of a second where the others take milliseconds.
+SEARCHED = frozenset({"combined", "estimated", "periodic"})
 NOISE_LAGS_OFFERED = 4  # moving-average lags a round offers beyond those the model has
 # Extended least squares settles in 13–15 iterations on simulated records; on long measured ones
 # its last digits wander for longer without changing what the loop decides.
@@ -160,9 +163,13 @@ def score_effects(
         records=records,
         lag=lag,
     )
-    candidates = [(labels, columns[inside]) for labels, columns in workers(build, effects)]
-    total = sum(columns.shape[1] for _, columns in candidates)
-    level = alpha / max(total, 1)
+    # The families found by a search over the residual (a combination of lags, an estimated
+    # power, the periodogram's lines) take nearly all of a round's building: they go to the
+    # workers first, and the others, fixed functions of the signals, are built here meanwhile;
+    # each family is projected off the model as it comes, and tested once all are in (the level
+    # counts every candidate).
+    searched = [i for i, effect in enumerate(effects) if effect.kind in SEARCHED]
+    found = workers(build, [effects[i] for i in searched])
     # A smooth residual predicts itself, and a coloured one makes spurious regressors look
     # significant: effects of the signals are judged after the residual's own recent past has
     # had its say, and moving-average noise after the signals' effects have had theirs. Each
@@ -170,21 +177,28 @@ def score_effects(
     own_past = _orthonormal(
         _lagged(residual, range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED), starts), Q
     )
+    built = chain(
+        ((i, build(effect)) for i, effect in enumerate(effects) if i not in searched),
+        zip(searched, found, strict=True),
+    )
+    candidates = {i: _projected(labels, columns[inside], Q) for i, (labels, columns) in built}
+    total = sum(columns.shape[1] for _, columns in candidates.values())
+    level = alpha / max(total, 1)
     scores: dict[int, EffectScore] = {}
     explaining: list[np.ndarray] = []
-    for index, (effect, (labels, columns)) in enumerate(zip(effects, candidates, strict=True)):
+    for index, effect in enumerate(effects):
         if effect.kind != "noise":
+            labels, columns = candidates[index]
             score, _, chosen_columns = _score(
-                effect, labels, columns, residual, Q, own_past, n_obs - n_par, level, rank
+                effect, labels, columns, residual, own_past, n_obs - n_par, level, rank
             )
             scores[index] = score
             explaining.append(chosen_columns)
     signals = _orthonormal(np.hstack([np.empty((n_obs, 0)), *explaining]), Q)
-    for index, (effect, (labels, columns)) in enumerate(zip(effects, candidates, strict=True)):
+    for index, effect in enumerate(effects):
         if effect.kind == "noise":
-            score, chosen, _ = _score(
-                effect, labels, columns, residual, Q, signals, n_obs - n_par, level, rank
-            )
+            labels, columns = candidates[index]
+            score, chosen, _ = _score(effect, labels, columns, residual, signals, n_obs - n_par, level, rank)
             # The moving-average order becomes the longest lag that entered.
             scores[index] = replace(score, noise_lags=noise_lags + 1 + max(chosen) if chosen else 0)
     ordered = [scores[i] for i in range(len(effects))]
@@ -215,22 +229,27 @@ def _orthonormal(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return basis[:, np.abs(np.diag(triangle)) > 1e-10]
 
 
+def _projected(
+    labels: list[tuple[str, ...]], columns: np.ndarray, Q: np.ndarray
+) -> tuple[list[tuple[str, ...]], np.ndarray]:
+    """A family's candidate columns, each of unit norm, minus their projection on the model (Q)."""
+    return labels, orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+
+
 def _score(
     effect: Effect,
     labels: list[tuple[str, ...]],
     columns: np.ndarray,
     residual: np.ndarray,
-    Q: np.ndarray,
     given: np.ndarray,
     dof: int,
     level: float,
     rank: bool,
 ) -> tuple[EffectScore, list[int], np.ndarray]:
-    """An effect's score against the residual once the model (Q) and ``given`` (orthonormal,
-    orthogonal to Q) are accounted for; the indices of the columns it chose, and those columns
-    (orthogonal to Q)."""
-    columns = orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
-    chosen_from = columns.copy()
+    """An effect's score against the residual once the model and ``given`` (orthonormal,
+    orthogonal to the model) are accounted for, its ``columns`` already orthogonal to the model
+    (:func:`_projected`); the indices of the columns it chose, and those columns."""
+    chosen_from = columns
     columns = orthogonal_part(columns, given)
     target = residual - given @ (given.T @ residual)
     dof -= given.shape[1]

@@ -40,8 +40,10 @@ class FreeRun:
     ----------
     exogenous : (N, E) columns of the terms without output factors; ``exogenous_terms`` their
         indices among the terms.
-    known : (N, R) the non-output part of each autoregressive term (ones if it has none);
-        ``recursive_terms`` their indices.
+    known : (N, K) the non-output part of the autoregressive terms that have one (an input
+        factor, a sinusoid); ``known_column`` (R,) each autoregressive term's column there, −1
+        for a term of the output alone, whose part is one (most terms: kept out, their columns
+        of ones would be most of what a run reads); ``recursive_terms`` their indices.
     factor_start : (R + 1,) where each autoregressive term's output factors begin in the
         flattened ``difference``/``lag``/``function``/``power``/``parameter`` arrays (one entry a
         factor; a difference factor reads ŷ[t−lag] − ŷ[t−lag−1]; ``parameter`` is a power law's
@@ -55,6 +57,7 @@ class FreeRun:
     exogenous: np.ndarray
     recursive_terms: np.ndarray
     known: np.ndarray
+    known_column: np.ndarray
     factor_start: np.ndarray
     difference: np.ndarray
     factor_lag: np.ndarray
@@ -77,17 +80,20 @@ class FreeRun:
         exogenous: list[np.ndarray] = []
         recursive_terms: list[int] = []
         known: list[np.ndarray] = []
+        known_column: list[int] = []
         factors: list[Factor] = []
         starts = [0]
         for index, term in enumerate(terms):
-            column = np.ones(n)
             output_factors = [f for f in term.factors if f.autoregressive]
-            for factor in term.factors:
-                if not factor.autoregressive:
-                    column = column * factor.values(lagged_x, lagged_x, times)  # reads x or t only
+            others = [f for f in term.factors if not f.autoregressive]
+            column = np.ones(n)
+            for factor in others:
+                column = column * factor.values(lagged_x, lagged_x, times)  # reads x or t only
             if output_factors:
                 recursive_terms.append(index)
-                known.append(column)
+                known_column.append(len(known) if others else -1)
+                if others:
+                    known.append(column)
                 factors.extend(output_factors)
                 starts.append(len(factors))
             else:
@@ -100,6 +106,7 @@ class FreeRun:
             exogenous=np.column_stack(exogenous) if exogenous else np.zeros((n, 0)),
             recursive_terms=np.asarray(recursive_terms, dtype=np.int64),
             known=np.column_stack(known) if known else np.zeros((n, 0)),
+            known_column=np.asarray(known_column, dtype=np.int64),
             factor_start=np.asarray(starts, dtype=np.int64),
             difference=np.asarray([f.signal == "dy" for f in factors], dtype=np.bool_),
             factor_lag=np.asarray([f.lag for f in factors], dtype=np.int64),
@@ -152,6 +159,7 @@ class FreeRun:
                 theta[self.recursive_terms],
                 self.recursive_terms,
                 self.known,
+                self.known_column,
                 self.factor_start,
                 self.difference,
                 self.factor_lag,
@@ -175,6 +183,7 @@ def _recursion(
     coefficients: np.ndarray,
     columns: np.ndarray,
     known: np.ndarray,
+    known_column: np.ndarray,
     factor_start: np.ndarray,
     difference: np.ndarray,
     factor_lag: np.ndarray,
@@ -211,7 +220,7 @@ def _recursion(
         slope[:] = 0.0
         for j in range(terms):
             first, last = factor_start[j], factor_start[j + 1]
-            product = known[t, j]
+            product = 1.0 if known_column[j] < 0 else known[t, known_column[j]]
             for f in range(first, last):
                 k = factor_lag[f]
                 if function[f] == 5:
@@ -235,12 +244,14 @@ def _recursion(
                 value = 1.0
                 for _ in range(power[f]):
                     value *= base
+                product *= value
+                if not with_sensitivities:
+                    continue
                 derivative = power[f] * rate
                 for _ in range(power[f] - 1):
                     derivative *= base
                 values[f] = value
                 slopes[f] = derivative
-                product *= value
             total += coefficients[j] * product
             if not with_sensitivities:
                 continue
@@ -248,7 +259,7 @@ def _recursion(
             for f in range(first, last):
                 if slopes[f] == 0.0:
                     continue
-                others = known[t, j]
+                others = 1.0 if known_column[j] < 0 else known[t, known_column[j]]
                 for g in range(first, last):
                     if g != f:
                         others *= values[g]

@@ -368,13 +368,18 @@ def test_a_unit_is_plotted_as_the_text_given(simulated_records: Path, tmp_path: 
     assert figure.read_bytes().startswith(PNG_MAGIC)
 
 
-def test_the_report_is_the_same_whatever_the_processes_building_the_candidates(simulated_records: Path):
-    """The candidates of each round built in two processes (the effects' finders and combiners
-    sent to them) or in this one: the same effects, parameters and figures, to the last digit."""
+@pytest.mark.parametrize("declared", [["--declared", "2dof"], []], ids=["declared", "orders-chosen"])
+def test_the_report_is_the_same_whatever_the_processes_building_the_candidates(
+    simulated_records: Path, declared: list[str]
+):
+    """The candidates of each round built, and the structures judged on the check blocks (the
+    linear orders, each round's families, the simulation error's prefixes), in two processes
+    (the effects' finders and combiners sent to them) or in this one: the same effects,
+    parameters and figures, to the last digit."""
     reports = [
         invoke(
-            "refine", "e1.csv", "e2.csv", "--validate", "v1.csv", "--declared", "2dof", "--json",
-            "--jobs", jobs, cwd=simulated_records,
+            "refine", "e1.csv", "e2.csv", "--validate", "v1.csv", *declared, "--json", "--jobs", jobs,
+            cwd=simulated_records,
         ).stdout
         for jobs in ("1", "2")
     ]  # fmt: skip

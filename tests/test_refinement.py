@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -311,6 +312,33 @@ def test_the_check_split_fits_a_structure_once_and_searches_from_that_fit():
     assert np.array_equal(refit.theta, least_squares.theta)  # the kept fit is the fit
     tuned = checks.tuned(structure)
     assert checks.fitted(structure) is least_squares and tuned.terms == least_squares.terms
+
+
+def test_structures_judged_in_processes_are_judged_as_in_this_one():
+    """A round's families are judged side by side in worker processes (CheckSplit.judge): the
+    figures, and the fits kept for the searches after, are those this process makes, and the
+    judgements come back in the order asked, each structure judged once."""
+    x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
+    records = [(x[:ESTIMATION], y[:ESTIMATION])]
+    exact = tuple(parse_terms(EXACT_TERMS))
+    structures = [
+        Structure(exact[:4]),
+        Structure(exact, noise_lags=2),  # extended least squares
+        Structure(exact),
+        Structure(exact[:4]),  # asked again: judged once
+    ]
+    here = CheckSplit.of(records)
+    expected = [here.error(structure) for structure in structures]
+    tuned = here.error(structures[0], tuned=True)
+    there = CheckSplit.of(records)
+    with ProcessPoolExecutor(2) as pool:
+        assert list(there.judge(structures, pool.map)) == expected
+        assert list(there.judge(structures[:1], pool.map, tuned=True)) == [tuned]
+    assert len(set(expected)) == 3 and all(np.isfinite(expected))
+    assert set(there._fitted) == set(structures) and set(there._tuned) == {structures[0]}  # kept
+    for structure in structures:
+        assert np.array_equal(there.fitted(structure).theta, here.fitted(structure).theta)
+    assert np.array_equal(there.tuned(structures[0]).theta, here.tuned(structures[0]).theta)
 
 
 def test_from_three_records_on_whole_records_are_checked():
