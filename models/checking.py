@@ -95,6 +95,20 @@ class CheckSplit:
                         break
             yield self._errors[(structure, tuned)]
 
+    def search_grown(
+        self, current: Structure, structures: Sequence[Structure], evaluations: int, workers: Workers = map
+    ) -> Iterator[float]:
+        """:meth:`search` of each of ``structures`` (grown from ``current``) from :meth:`grown`, for
+        at most ``evaluations``, in turn and lazily, the searches made by ``workers`` as
+        :meth:`judge` makes its judgements."""
+        start = self.tuned(current)
+        searched = workers(partial(_searched, self.fit, self.check, current, start, evaluations), structures)
+        for structure, (fitted, tuned, errors) in zip(structures, searched, strict=True):
+            self._fitted |= fitted
+            self._tuned |= tuned
+            self._errors |= errors
+            yield self._errors[(structure, True)]
+
     def tuned(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by output error (as :meth:`error` judges it with
         ``tuned``); the least-squares fit where output error gains nothing."""
@@ -167,6 +181,17 @@ def _judged(
     least-squares and output-error fits, and the figures."""
     checks = CheckSplit(fit, check)
     checks.error(structure, tuned)
+    return checks._fitted, checks._tuned, checks._errors
+
+
+def _searched(
+    fit: Segments, check: Segments, current: Structure, tuned: NARX, evaluations: int, structure: Structure
+) -> tuple[dict[Structure, NARX], dict[Structure, NARX], dict[tuple[Structure, bool], float]]:
+    """What :meth:`CheckSplit.search` of ``structure`` from :meth:`CheckSplit.grown` of
+    ``current`` (whose output-error fit is ``tuned``) fits and finds on these parts."""
+    checks = CheckSplit(fit, check, _tuned={current: tuned})
+    checks.search(structure, checks.grown(current, structure), evaluations)
+    del checks._tuned[current]
     return checks._fitted, checks._tuned, checks._errors
 
 

@@ -58,6 +58,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from typing import Any, Literal, get_args
 
 import numpy as np
@@ -497,6 +498,9 @@ def refine(
     withdrawn = 0
     if output_error and current != declared_structure:
         tell("the effects added, checked by output error")
+        list(
+            checks.judge([current, declared_structure], workers, tuned=True)
+        )  # the two searches side by side
         if _repairs_only_bias(declared_structure, current, check, folds or [checks]):
             withdrawn = len(rounds)
             current = declared_structure
@@ -514,24 +518,31 @@ def refine(
                 None,
                 "simulation across folds",
             )
-            found = _across_folds(offered, scores.scores, current, folds, tell)
+            found = _across_folds(offered, scores.scores, current, folds, tell, workers)
             if found is None:
                 break
             score, current, errors = found
             grown_across_folds.append(current)
             rounds.append(replace(step, added=score, check_rms=errors))
             check = checks.error(current)
+    # Least squares is consistent when the noise enters the equation (a force on the structure)
+    # and gives the best one-step predictor; output error when the noise is on the measured
+    # output. The check blocks tell which simulates better.
+    by_simulation = output_error and checks.error(current, tuned=True) < check
+    everything: Segments = [(x, y, 0) for x, y in records]
+    # The declared model's output-error fit on all the records, searched by a worker while this
+    # process makes the least-squares fit (with the builtin map, when it is asked for).
+    declared_search = workers(
+        _call,
+        [partial(by_output_error, declared_model, everything, SETTLED_EVALUATIONS)] if by_simulation else [],
+    )
     refined, noise = fit_model(
         records, current.terms, current.noise_lags, max_lag(current.terms), saturating=current.saturating
     )
     estimator: Literal["least squares", "output error"] = "least squares"
-    # Least squares is consistent when the noise enters the equation (a force on the structure)
-    # and gives the best one-step predictor; output error when the noise is on the measured
-    # output. The check blocks tell which simulates better.
-    if output_error and checks.error(current, tuned=True) < check:
+    if by_simulation:
         tell("output-error fit on all the records")
-        everything: Segments = [(x, y, 0) for x, y in records]
-        declared_tuned = by_output_error(declared_model, everything, SETTLED_EVALUATIONS)
+        (declared_tuned,) = declared_search
         if current == declared_structure:
             # Nothing was added: the declared structure's output-error fit, not a second search
             # from other starts, which ends at another optimum of the same structure, better or
@@ -625,6 +636,11 @@ def choose_linear(
     best = min(errors.values()) * (1 + check_noise(checks.check))
     n, d = min((nd for nd, error in errors.items() if error <= best), key=lambda nd: nd[0])
     return (n, n, d), linear_terms(n, n, d)
+
+
+def _call(function: Callable[[], Any]) -> Any:
+    """``function()``: what a worker runs to call a function prepared with its arguments."""
+    return function()
 
 
 def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records: Records) -> list[Structure]:
@@ -743,6 +759,7 @@ def _across_folds(
     current: Structure,
     folds: Sequence[CheckSplit],
     tell: Stage,
+    workers: Workers,
 ) -> tuple[EffectScore, Structure, tuple[float, float]] | None:
     """The family added on the simulation error across folds (module docstring), if one
     lowers every fold's free run by ``FOLD_GAIN``: its score with all its terms, the structure,
@@ -756,20 +773,23 @@ def _across_folds(
     those that gain on all of them the one whose free run falls most, on average over the folds
     as a share of the current model's, is added (on F-16's acceleration 3 that was power-law
     stiffness, until the models were held to measured states). The refined model is then fitted
-    on all the records as the folds fitted theirs (:func:`_as_the_folds_judged`). ``tell`` is told
-    each family as its searches begin.
+    on all the records as the folds fitted theirs (:func:`_as_the_folds_judged`). The first fold's
+    searches are made by ``workers``; ``tell`` is told each family as its search is read, and as
+    its searches on every fold begin.
     """
     primary = folds[0]
     if not np.isfinite(base := primary.settled(current)):
         return None
+    families = [
+        (score, tuple(name for label in score.ranked for name in label))
+        for effect, score in zip(offered, scores, strict=True)
+        if effect.kind not in ("noise", "periodic", "saturation") and score.ranked
+    ]
+    structures = [replace(current, terms=current.terms + parse_terms(names)) for _, names in families]
+    searched = primary.search_grown(current, structures, CHECK_EVALUATIONS, workers)
     trials: list[tuple[float, EffectScore, Structure]] = []
-    for effect, score in zip(offered, scores, strict=True):
-        if effect.kind in ("noise", "periodic", "saturation") or not score.ranked:
-            continue
-        names = tuple(name for label in score.ranked for name in label)
-        structure = replace(current, terms=current.terms + parse_terms(names))
+    for (score, names), structure, error in zip(families, structures, searched, strict=True):
         tell(f"across folds: {score.name} on the first fold")
-        error = primary.search(structure, primary.grown(current, structure), CHECK_EVALUATIONS)
         if error <= (1 - FOLD_GAIN) * base:
             trials.append((error, replace(score, terms=names), structure))
     passed: list[tuple[float, EffectScore, Structure, tuple[float, float]]] = []
