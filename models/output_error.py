@@ -123,7 +123,7 @@ def fit_output_error(
         (FreeRun.build(start.terms, xa, origin), ya)
         for (xa, ya), origin in zip(checked, origins, strict=True)
     ]
-    ring_downs = RingDowns.build(start.terms, checked, origins)
+    ring_downs = RingDowns.build(start.terms, checked, origins, [run for run, _ in runs])
 
     def simulated(theta: np.ndarray) -> list[np.ndarray]:
         return [start.run_free(run, ya, theta) for run, ya in runs]
@@ -353,12 +353,18 @@ class RingDowns:
 
     @classmethod
     def build(
-        cls, terms: Sequence[Term], records: Sequence[tuple[np.ndarray, np.ndarray]], origins: Sequence[int]
+        cls,
+        terms: Sequence[Term],
+        records: Sequence[tuple[np.ndarray, np.ndarray]],
+        origins: Sequence[int],
+        driven: Sequence[FreeRun],
     ) -> RingDowns:
+        """The ring-downs and restarts of ``terms`` on ``records`` (x, y), whose times start at
+        ``origins``; ``driven`` are the records' free runs, whose rows the restarts are."""
         L = max_lag(terms)
         total = sum(len(y) for _, y in records)
         runs, restarts = [], []
-        for index, ((x, y), origin) in enumerate(zip(records, origins, strict=True)):
+        for index, ((x, y), origin, record_run) in enumerate(zip(records, origins, driven, strict=True)):
             if len(y) <= L:
                 continue
             share = max(1, round(SWITCH_OFFS * len(y) / total))
@@ -367,8 +373,7 @@ class RingDowns:
                 runs.append((index, int(c), FreeRun.build(terms, unforced, origin + int(c) - L)))
             starts = max(1, round(RESTARTS * len(y) / total))
             for c in np.unique(np.linspace(L, len(y), 2 * starts + 1)[1::2].astype(int)):
-                driven = x[c - L : c + RING_DOWN]
-                restarts.append((FreeRun.build(terms, driven, origin + int(c) - L), y[c - L : c]))
+                restarts.append((record_run.rows(int(c) - L, min(int(c) + RING_DOWN, len(y))), y[c - L : c]))
         bound = RESTLESS * max((float(np.max(np.abs(y))) for _, y in records), default=0.0)
         at_rest = [_at_rest(term) for term in terms]
         smooth = (
@@ -497,6 +502,6 @@ def free_run_at_rest(
     if not np.all(np.isfinite(errors)):
         return np.inf, False
     states = recursion_states(model, model.theta, runs, outputs)
-    ring_downs = RingDowns.build(model.terms, records, origins)
+    ring_downs = RingDowns.build(model.terms, records, origins, [run for run, _ in runs])
     at_rest = ring_downs.holds(model, model.theta) and ring_downs.settle(model, model.theta, states)
     return float(np.sqrt(np.mean(errors**2))), at_rest

@@ -19,7 +19,7 @@ after it, as a tank's level stays at its overflow or a mass against its end stop
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -113,6 +113,14 @@ class FreeRun:
             function=np.asarray([FUNCTION_CODES[f.function] for f in factors], dtype=np.int64),
             power=np.asarray([f.power for f in factors], dtype=np.int64),
             parameter=np.asarray([f.parameter for f in factors], dtype=np.float64),
+        )
+
+    def rows(self, first: int, last: int) -> FreeRun:
+        """The run over samples ``first`` … ``last`` − 1 alone, started there from its first L:
+        the same as built on that part of the input, whose rows from the L-th on see the same
+        lagged input and times."""
+        return replace(
+            self, n=last - first, exogenous=self.exogenous[first:last], known=self.known[first:last]
         )
 
     def run(

@@ -335,6 +335,40 @@ def test_free_run_sensitivities_equal_finite_differences_of_the_free_run() -> No
         assert np.allclose(S[:, j], central, rtol=1e-5, atol=1e-7 * np.max(np.abs(central))), j
 
 
+def test_a_run_over_some_rows_of_a_record_is_the_run_built_on_that_part_of_it() -> None:
+    """A restart from measured outputs (RingDowns) reads its rows of the record's run instead of
+    building its own: the same run to the last digit — with the input's lags, a sinusoid of time,
+    a hysteresis variable, the constant — and with its sensitivities."""
+    rng = np.random.default_rng(9)
+    x, y = rng.standard_normal(900), rng.standard_normal(900)
+    terms = parse_terms(
+        [
+            "y[t-1]",
+            "y[t-2]",
+            "x[t-3]",
+            "y[t-1]*x[t-1]",
+            "y[t-2]^3",
+            "sin(2pi*0.013*t)",
+            "boucwen(y[t-1],0.5)",
+            "1",
+        ]
+    )
+    theta = np.array([1.2, -0.5, 0.8, 0.05, -0.02, 0.1, 0.03, 0.05])
+    whole = FreeRun.build(terms, x, t0=7)
+    for first, last in [(200, 400), (0, 900), (880, 900)]:
+        part = FreeRun.build(terms, x[first:last], t0=7 + first)
+        rows = whole.rows(first, last)
+        assert np.array_equal(rows.run(theta, y[first:]), part.run(theta, y[first:]), equal_nan=True)
+        for ours, theirs in zip(
+            rows.run_with_sensitivities(theta, y[first:]),
+            part.run_with_sensitivities(theta, y[first:]),
+            strict=True,
+        ):
+            assert np.array_equal(ours, theirs, equal_nan=True)
+    # Not trivially: before its L-th row the part sees zeros where the record's rows see its input.
+    assert np.any(whole.rows(200, 400).known[:3] != FreeRun.build(terms, x[200:400], t0=207).known[:3])
+
+
 def test_the_covariance_of_a_search_whose_sensitivities_overflow_the_gauss_newton_matrix_is_finite() -> None:
     """Found on F-16's multisines estimated whole: a fold's search ended at θ whose free run was
     finite and whose sensitivities exceeded 10¹⁵⁴, so that JᵀJ overflowed and LAPACK's SVD, asked
