@@ -498,9 +498,8 @@ def refine(
     withdrawn = 0
     if output_error and current != declared_structure:
         tell("the effects added, checked by output error")
-        list(
-            checks.judge([current, declared_structure], workers, tuned=True)
-        )  # the two searches side by side
+        # The two output-error searches the check compares, side by side.
+        list(checks.judge([current, declared_structure], workers, tuned=True))
         if _repairs_only_bias(declared_structure, current, check, folds or [checks]):
             withdrawn = len(rounds)
             current = declared_structure
@@ -629,9 +628,9 @@ def choose_linear(
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
     judged = checks.judge([Structure(linear_terms(n, n, d)) for n, d in orders], workers, tuned=True)
     errors = {}
-    for (n, d), error in zip(orders, judged, strict=True):
+    for n, d in orders:
         tell(f"linear orders: ARX({n}, {n}), input delay {d}")
-        errors[(n, d)] = error
+        errors[(n, d)] = next(judged)
     # The one-standard-error rule: the smallest order within one standard error of the best RMS.
     best = min(errors.values()) * (1 + check_noise(checks.check))
     n, d = min((nd for nd, error in errors.items() if error <= best), key=lambda nd: nd[0])
@@ -774,8 +773,8 @@ def _across_folds(
     as a share of the current model's, is added (on F-16's acceleration 3 that was power-law
     stiffness, until the models were held to measured states). The refined model is then fitted
     on all the records as the folds fitted theirs (:func:`_as_the_folds_judged`). The first fold's
-    searches are made by ``workers``; ``tell`` is told each family as its search is read, and as
-    its searches on every fold begin.
+    searches are made by ``workers``; ``tell`` is told each family as its searches begin (or, made
+    by workers, are waited for).
     """
     primary = folds[0]
     if not np.isfinite(base := primary.settled(current)):
@@ -788,8 +787,9 @@ def _across_folds(
     structures = [replace(current, terms=current.terms + parse_terms(names)) for _, names in families]
     searched = primary.search_grown(current, structures, CHECK_EVALUATIONS, workers)
     trials: list[tuple[float, EffectScore, Structure]] = []
-    for (score, names), structure, error in zip(families, structures, searched, strict=True):
+    for (score, names), structure in zip(families, structures, strict=True):
         tell(f"across folds: {score.name} on the first fold")
+        error = next(searched)
         if error <= (1 - FOLD_GAIN) * base:
             trials.append((error, replace(score, terms=names), structure))
     passed: list[tuple[float, EffectScore, Structure, tuple[float, float]]] = []
