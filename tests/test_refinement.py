@@ -317,7 +317,8 @@ def test_the_check_split_fits_a_structure_once_and_searches_from_that_fit():
 def test_structures_judged_in_processes_are_judged_as_in_this_one():
     """A round's families are judged side by side in worker processes (CheckSplit.judge): the
     figures, and the fits kept for the searches after, are those this process makes, and the
-    judgements come back in the order asked, each structure judged once."""
+    judgements come back in the order asked, each structure judged once; so are the first fold's
+    searches across folds (CheckSplit.search_grown)."""
     x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
     records = [(x[:ESTIMATION], y[:ESTIMATION])]
     exact = tuple(parse_terms(EXACT_TERMS))
@@ -330,15 +331,24 @@ def test_structures_judged_in_processes_are_judged_as_in_this_one():
     here = CheckSplit.of(records)
     expected = [here.error(structure) for structure in structures]
     tuned = here.error(structures[0], tuned=True)
+    # The searches across folds: each grown structure from the current one's output-error fit.
+    grown = [Structure(exact[:4] + exact[4:5]), Structure(exact[:4] + exact[5:6])]
+    searched = [here.search(structure, here.grown(structures[0], structure), 10) for structure in grown]
     there = CheckSplit.of(records)
     with ProcessPoolExecutor(2) as pool:
         assert list(there.judge(structures, pool.map)) == expected
         assert list(there.judge(structures[:1], pool.map, tuned=True)) == [tuned]
+        assert list(there.search_grown(structures[0], grown, 10, pool.map)) == searched
     assert len(set(expected)) == 3 and all(np.isfinite(expected))
-    assert set(there._fitted) == set(structures) and set(there._tuned) == {structures[0]}  # kept
-    for structure in structures:
+    assert set(there._fitted) == set(structures + grown) and set(there._tuned) == {
+        structures[0],
+        *grown,
+    }  # kept
+    for structure in structures + grown:
         assert np.array_equal(there.fitted(structure).theta, here.fitted(structure).theta)
-    assert np.array_equal(there.tuned(structures[0]).theta, here.tuned(structures[0]).theta)
+    for structure in [structures[0], *grown]:
+        assert np.array_equal(there.tuned(structure).theta, here.tuned(structure).theta)
+    assert searched[0] != searched[1] and all(np.isfinite(searched))
 
 
 def test_from_three_records_on_whole_records_are_checked():
