@@ -50,6 +50,11 @@ class Structure:
     saturating: Saturating | None = None
 
 
+# What a split made for a structure judged in a split of its own (in a worker): the least-squares
+# and output-error fits, and the check figures.
+Found = tuple[dict[Structure, NARX], dict[Structure, NARX], dict[tuple[Structure, bool], float]]
+
+
 @dataclass
 class CheckSplit:
     """The estimation data's fit and check parts (:func:`split_for_checking`), and the check
@@ -87,10 +92,8 @@ class CheckSplit:
         judged = workers(partial(_judged, self.fit, self.check, tuned), unjudged)
         for structure in structures:
             if (structure, tuned) not in self._errors:
-                for fitted, tuned_models, errors in judged:
-                    self._fitted |= fitted
-                    self._tuned |= tuned_models
-                    self._errors |= errors
+                for found in judged:
+                    self._keep(found)
                     if (structure, tuned) in self._errors:
                         break
             yield self._errors[(structure, tuned)]
@@ -103,11 +106,16 @@ class CheckSplit:
         :meth:`judge` makes its judgements."""
         start = self.tuned(current)
         searched = workers(partial(_searched, self.fit, self.check, current, start, evaluations), structures)
-        for structure, (fitted, tuned, errors) in zip(structures, searched, strict=True):
-            self._fitted |= fitted
-            self._tuned |= tuned
-            self._errors |= errors
+        for structure, found in zip(structures, searched, strict=True):
+            self._keep(found)
             yield self._errors[(structure, True)]
+
+    def _keep(self, found: Found) -> None:
+        """What a split of its own made for a structure (:func:`_judged`, :func:`_searched`)."""
+        fitted, tuned, errors = found
+        self._fitted |= fitted
+        self._tuned |= tuned
+        self._errors |= errors
 
     def tuned(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by output error (as :meth:`error` judges it with
@@ -174,9 +182,7 @@ class CheckSplit:
         return self._fitted[structure]
 
 
-def _judged(
-    fit: Segments, check: Segments, tuned: bool, structure: Structure
-) -> tuple[dict[Structure, NARX], dict[Structure, NARX], dict[tuple[Structure, bool], float]]:
+def _judged(fit: Segments, check: Segments, tuned: bool, structure: Structure) -> Found:
     """What :meth:`CheckSplit.error` of ``structure`` fits and finds on these parts: the
     least-squares and output-error fits, and the figures."""
     checks = CheckSplit(fit, check)
@@ -186,7 +192,7 @@ def _judged(
 
 def _searched(
     fit: Segments, check: Segments, current: Structure, tuned: NARX, evaluations: int, structure: Structure
-) -> tuple[dict[Structure, NARX], dict[Structure, NARX], dict[tuple[Structure, bool], float]]:
+) -> Found:
     """What :meth:`CheckSplit.search` of ``structure`` from :meth:`CheckSplit.grown` of
     ``current`` (whose output-error fit is ``tuned``) fits and finds on these parts."""
     checks = CheckSplit(fit, check, _tuned={current: tuned})
