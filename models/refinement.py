@@ -425,8 +425,10 @@ def refine(
     terms: sized to the declared lags, so that the loop explains the residual with the declared
     dynamics rather than by lengthening them round after round. An offset's terms follow the
     model as it grows. ``output_error`` False keeps least-squares parameters throughout.
-    ``progress`` is told each stage as it begins. ``workers`` builds each round's candidate
-    regressors (:data:`models.scoring.Workers`); the refinement is the same whichever.
+    ``progress`` is told each stage as it begins. ``workers`` run the loop's independent pieces
+    (:data:`models.scoring.Workers`): each round's searched candidates, the structures judged on
+    the check parts, the output-error searches not needed one after the other; the refinement is
+    the same whichever.
     """
     tell = _told(progress)
     if not 0 < alpha < 1:
@@ -498,9 +500,7 @@ def refine(
     withdrawn = 0
     if output_error and current != declared_structure:
         tell("the effects added, checked by output error")
-        # The two output-error searches the check compares, side by side.
-        list(checks.judge([current, declared_structure], workers, tuned=True))
-        if _repairs_only_bias(declared_structure, current, check, folds or [checks]):
+        if _repairs_only_bias(declared_structure, current, check, folds or [checks], workers):
             withdrawn = len(rounds)
             current = declared_structure
             check = checks.error(current)
@@ -655,6 +655,16 @@ def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records
     return [replace(current, terms=current.terms + parse_terms(score.terms))]
 
 
+def _simulated(offered: Sequence[Effect], scores: Sequence[EffectScore]) -> list[EffectScore]:
+    """The scored families the simulation criteria grow the model by: those with ranked terms,
+    neither noise, a sinusoid of the record's time, nor saturation."""
+    return [
+        score
+        for effect, score in zip(offered, scores, strict=True)
+        if effect.kind not in ("noise", "periodic", "saturation") and score.ranked
+    ]
+
+
 def _judged_in_turn(
     scores: Sequence[EffectScore],
     kinds: dict[str, str],
@@ -667,9 +677,8 @@ def _judged_in_turn(
 ) -> Iterator[tuple[EffectScore, float, Structure]]:
     """Each scored family in turn with its check blocks' free-run RMS and structure, the best
     of those adding it may give (:func:`_with`); ``tell`` is told each, in the ``stage``, as its
-    judgement is read.
-    ``JUDGED_AT_ONCE`` families are judged at a time by ``workers``: the round ends at the first
-    that passes, and a family judged beside it is judged in vain."""
+    judgement is read. ``JUDGED_AT_ONCE`` families are judged at a time by ``workers``: the round
+    ends at the first that passes, and a family judged beside it is judged in vain."""
     for first in range(0, len(scores), JUDGED_AT_ONCE):
         batch = [
             (score, _with(score, kinds, current, records)) for score in scores[first : first + JUDGED_AT_ONCE]
@@ -700,8 +709,7 @@ def _by_simulation(
                 for k in range(1, len(score.ranked) + 1)
             ],
         )
-        for effect, score in zip(offered, scores, strict=True)
-        if effect.kind not in ("noise", "periodic", "saturation") and score.ranked
+        for score in _simulated(offered, scores)
     ]
     grown = {
         names: replace(current, terms=current.terms + parse_terms(names))
@@ -731,7 +739,7 @@ def _by_simulation(
 
 
 def _repairs_only_bias(
-    declared: Structure, current: Structure, check: float, folds: Sequence[CheckSplit]
+    declared: Structure, current: Structure, check: float, folds: Sequence[CheckSplit], workers: Workers
 ) -> bool:
     """Whether what the rounds added to ``declared`` should be withdrawn: with output-error
     parameters the declared structure simulates the check parts at least as well as ``current``
@@ -741,10 +749,12 @@ def _repairs_only_bias(
     Effects that helped least-squares parameters but not output-error ones repaired the noise's
     bias, not the dynamics (F-16's acceleration 2: friction and backlash added on tenths of a per
     cent, 12–39 % worse on the test levels once tuned); and on sweeps, effects added on one check
-    record's gains of tenths of a per cent need not carry over to the others.
+    record's gains of tenths of a per cent need not carry over to the others. The two searches
+    on the check parts are made side by side by ``workers``.
     """
     checks = folds[0]
-    if checks.error(declared, tuned=True) <= min(check, checks.error(current, tuned=True)):
+    current_error, declared_error = checks.judge([current, declared], workers, tuned=True)
+    if declared_error <= min(check, current_error):
         return True
     if len(folds) == 1:
         return False
@@ -781,8 +791,7 @@ def _across_folds(
         return None
     families = [
         (score, tuple(name for label in score.ranked for name in label))
-        for effect, score in zip(offered, scores, strict=True)
-        if effect.kind not in ("noise", "periodic", "saturation") and score.ranked
+        for score in _simulated(offered, scores)
     ]
     structures = [replace(current, terms=current.terms + parse_terms(names)) for _, names in families]
     searched = primary.search_grown(current, structures, CHECK_EVALUATIONS, workers)

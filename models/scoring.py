@@ -36,7 +36,7 @@ from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
 # A map-like callable, workers(function, items), as scipy's optimisers take one: the builtin map,
-# or a process pool's, which builds each family's candidates in a process of its own.
+# or a process pool's, which runs each call in a process of its own.
 Workers = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
 Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limits, and how
 # The kinds of effect whose regressors a search over the residual finds (Effect): each takes

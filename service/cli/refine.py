@@ -152,8 +152,8 @@ def refine_command(
     jobs: Annotated[
         int | None,
         typer.Option(
-            help="Processes that build each round's candidate regressors, the report the same whatever "
-            "their number (default: the CPUs this command may use)."
+            help="Processes that run the loop's independent pieces (candidates, judgements, searches), "
+            "the report the same whatever their number (default: the CPUs this command may use)."
         ),
     ] = None,
 ) -> None:
@@ -294,8 +294,8 @@ def _stages() -> Iterator[Stage]:
 
 @contextmanager
 def _workers(jobs: int) -> Iterator[Workers]:
-    """The map that builds each round's candidate regressors: in ``jobs`` processes, or in this
-    one for 1. However the command ends — done, Ctrl-C, terminated or killed — its workers end
+    """The map the loop runs its independent pieces with: in ``jobs`` processes, or in this one
+    for 1. However the command ends — done, Ctrl-C, terminated or killed — its workers end
     with it."""
     if jobs == 1:
         yield map
