@@ -215,6 +215,31 @@ def test_a_model_that_diverges_from_the_measured_states_it_is_started_from_does_
     assert comes_to_rest(model, [(x, y)]) is at_rest
 
 
+OSCILLATOR_TERMS = tuple(parse_terms(["y[t-1]", "y[t-2]", "x[t-1]", "y[t-1]^3"]))
+
+
+def oscillator(cycles: float, escape: float | None = None) -> NARX:
+    """y[t] = a₁·y[t−1] + a₂·y[t−2] + x[t−1] + c·y[t−1]³, poles at 0.999·e^(±iω), ω = 2π·cycles;
+    with ``escape``, a softening cubic whose unforced motion escapes beyond that amplitude (there
+    c·y² cancels the stiffness 2 − a₁), else none."""
+    omega, radius = 2 * np.pi * cycles, 0.999
+    a1 = 2 * radius * np.cos(omega)
+    cubic = 0.0 if escape is None else (2 - a1) / escape**2
+    return NARX(OSCILLATOR_TERMS, np.array([a1, -(radius**2), 1.0, cubic]), np.zeros((4, 4)))
+
+
+def glitched_record(model: NARX) -> tuple[np.ndarray, np.ndarray, int]:
+    """``model`` driven from rest to 0.3 by white noise, read with noise of 10⁻³ and one glitch
+    of +1 just before the 21st restart of :class:`RingDowns` (returned: the restart's sample)."""
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal(8000)
+    x *= 0.3 / np.max(np.abs(model.simulate(x, np.zeros(2))))
+    y = model.simulate(x, np.zeros(2)) + 1e-3 * rng.standard_normal(x.size)
+    glitch = int(np.linspace(2, x.size, 2 * RESTARTS + 1)[41])
+    y[glitch - 1] += 1.0
+    return x, y, glitch
+
+
 @pytest.mark.parametrize(("cycles", "at_rest"), [(0.01, True), (0.02, False)])
 def test_a_state_the_linear_part_rings_from_beyond_the_bound_does_not_judge_the_other_terms(
     cycles: float, at_rest: bool
@@ -224,26 +249,16 @@ def test_a_state_the_linear_part_rings_from_beyond_the_bound_does_not_judge_the_
     7.4), and a cubic term of coefficient 10⁻⁸ beside it diverged from those two alone, so that
     every search that grew a cubic from it was refused at its first step.
 
-    Here an oscillator of ``cycles`` a sample (pole radius 0.999) with a softening cubic, whose
-    unforced motion escapes beyond an amplitude of 5 (there the cubic cancels the stiffness
-    2 − a₁), is driven to 0.3 and read with one glitch of +1 at a restart. From the glitch its
-    linear part rings to 1/sin ω times it (theory: the free response to a state error (0, 1) is
+    Here an oscillator of ``cycles`` a sample with a softening cubic escaping beyond 5, read with
+    one glitch at a restart (:func:`glitched_record`). From the glitch its linear part rings to
+    1/sin ω times it (theory: the free response to a state error (0, 1) is
     r^k·sin((k+1)ω)/sin ω): 16 at 0.01 cycles, beyond ten times the largest reading, where the
     cubic's divergence says nothing of the records; 8 at 0.02, within that bound, where it does."""
-    omega, radius = 2 * np.pi * cycles, 0.999
-    a1, a2 = 2 * radius * np.cos(omega), -(radius**2)
-    terms = tuple(parse_terms(["y[t-1]", "y[t-2]", "x[t-1]", "y[t-1]^3"]))
-    linear = NARX(terms, np.array([a1, a2, 1.0, 0.0]), np.zeros((4, 4)))
-    rng = np.random.default_rng(5)
-    x = rng.standard_normal(8000)
-    x *= 0.3 / np.max(np.abs(linear.simulate(x, np.zeros(2))))
-    y = linear.simulate(x, np.zeros(2)) + 1e-3 * rng.standard_normal(x.size)
-    glitch = int(np.linspace(2, x.size, 2 * RESTARTS + 1)[41])  # the 21st restart's first sample
-    y[glitch - 1] += 1.0
+    linear, softening = oscillator(cycles), oscillator(cycles, escape=5.0)
+    x, y, glitch = glitched_record(linear)
     rung = linear.simulate(x[glitch - 2 :], y[glitch - 2 : glitch])
-    assert np.max(np.abs(rung)) == pytest.approx(1 / np.sin(omega), rel=0.05)
+    assert np.max(np.abs(rung)) == pytest.approx(1 / np.sin(2 * np.pi * cycles), rel=0.05)
     assert bool(np.max(np.abs(rung)) > RESTLESS * np.max(np.abs(y))) is at_rest
-    softening = NARX(terms, np.array([a1, a2, 1.0, (2 - a1) / 5.0**2]), np.zeros((4, 4)))
     assert not np.all(np.isfinite(softening.simulate(x[glitch - 2 :], y[glitch - 2 : glitch])))
     assert np.max(np.abs(softening.simulate(x, y[:2]))) < 0.5  # from the record's start it holds
     assert comes_to_rest(linear, [(x, y)])
@@ -257,17 +272,9 @@ def test_a_search_cannot_exempt_itself_from_a_restart_by_the_linear_part_it_move
     cycles (its linear part rings from the glitch to 8, within the bound): a model at 0.01 cycles
     with the softening cubic diverges from that restart and its own linear part rings beyond the
     bound there. Judged by its own linear part it holds; by the start's, as a search judges it, not."""
-    omega, radius = 2 * np.pi * 0.02, 0.999
-    terms = tuple(parse_terms(["y[t-1]", "y[t-2]", "x[t-1]", "y[t-1]^3"]))
-    start = NARX(terms, np.array([2 * radius * np.cos(omega), -(radius**2), 1.0, 0.0]), np.zeros((4, 4)))
-    rng = np.random.default_rng(5)
-    x = rng.standard_normal(8000)
-    x *= 0.3 / np.max(np.abs(start.simulate(x, np.zeros(2))))
-    y = start.simulate(x, np.zeros(2)) + 1e-3 * rng.standard_normal(x.size)
-    y[int(np.linspace(2, x.size, 2 * RESTARTS + 1)[41]) - 1] += 1.0
-    slower = 2 * radius * np.cos(np.pi * 0.02)
-    moved = np.array([slower, -(radius**2), 1.0, (2 - slower) / 5.0**2])
-    ring_downs = RingDowns.build(terms, [(x, y)], [0], [FreeRun.build(terms, x, 0)])
+    start, moved = oscillator(0.02), oscillator(0.01, escape=5.0).theta
+    x, y, _ = glitched_record(start)
+    ring_downs = RingDowns.build(OSCILLATOR_TERMS, [(x, y)], [0], [FreeRun.build(OSCILLATOR_TERMS, x, 0)])
     assert ring_downs.holds(start, start.theta, start.theta)
     assert ring_downs.holds(start, moved, moved)
     assert not ring_downs.holds(start, moved, start.theta)
