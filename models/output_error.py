@@ -163,21 +163,25 @@ def fit_output_error(
         return residuals
 
     state = start.output_limits if start.saturation == "state" else None
+    # The Jacobian's buffers, written afresh at each θ: each record's sensitivities, and the
+    # scaled Jacobian beside the residual that is factored (new arrays of Silverbox's 65 000 × 51
+    # would cost a third of a Jacobian in their pages' first writes and copies).
+    p = start.theta.size
+    derivatives = [np.empty((run.n, p)) for run, _ in runs]
+    augmented = np.empty((sum(run.n - L for run, _ in runs), p + 1))
+    rows = np.cumsum([0] + [run.n - L for run, _ in runs])
 
-    def sensitivities(theta: np.ndarray) -> np.ndarray:
+    def sensitivities(theta: np.ndarray) -> list[np.ndarray]:
         # Exact sensitivities of the free run (one pass a record); the penalty is flat, and so is
         # a sensor's reading where it is clipped.
         blocks = []
-        for run, ya in runs:
-            simulated, derivatives = run.run_with_sensitivities(theta, ya, state)
+        for (run, ya), into in zip(runs, derivatives, strict=True):
+            simulated, block = run.run_with_sensitivities(theta, ya, state, into)
             if start.output_limits is not None and state is None:
                 low, high = start.output_limits
-                derivatives[(simulated <= low) | (simulated >= high)] = 0.0
-            blocks.append(derivatives[L:])
-        stacked = blocks[0] if len(blocks) == 1 else np.vstack(blocks)
-        if np.isfinite(stacked).all():  # nearly always, and the test costs a tenth of the replacement
-            return stacked
-        return np.nan_to_num(stacked, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+                block[(simulated <= low) | (simulated >= high)] = 0.0
+            blocks.append(block[L:])
+        return blocks
 
     # MINPACK is given the free-run error folded to p + 1 rows. Its steps depend on the residual r
     # and the Jacobian J only through ‖r‖, JᵀJ and Jᵀr (J's column norms among them), and the fold
@@ -201,12 +205,21 @@ def fit_output_error(
         residuals = last.get(theta.tobytes())
         if residuals is None:
             residuals = penalised(theta, holding)
-        J = sensitivities(theta)
+        blocks = sensitivities(theta)
         # Columns scaled to a largest entry of one: sensitivities can exceed 10¹⁵⁴ where the run
         # stays finite (gauss_newton_inverse), and their squares must not overflow in the QR.
-        scale = _column_scale(J)
-        augmented = np.empty((J.shape[0], J.shape[1] + 1))
-        np.divide(J, scale, out=augmented[:, :-1])
+        # The largest magnitudes from each column's largest and smallest entries, two passes
+        # with no copy; a NaN or an infinity among them (a diverging trial, rarely) is read as no
+        # sensitivity, as the flat penalty is.
+        high = np.max([block.max(axis=0) for block in blocks], axis=0)
+        low = np.min([block.min(axis=0) for block in blocks], axis=0)
+        scale = np.maximum(high, -low)
+        if not np.isfinite(scale).all():
+            blocks = [np.nan_to_num(block, nan=0.0, posinf=0.0, neginf=0.0) for block in blocks]
+            scale = np.max([np.abs(block).max(axis=0) for block in blocks], axis=0)
+        scale[scale == 0.0] = 1.0
+        for block, first, end in zip(blocks, rows[:-1], rows[1:], strict=True):
+            np.divide(block, scale, out=augmented[first:end, :-1])
         augmented[:, -1] = residuals
         R = triangular_factor(augmented)
         triangle, along = R[:-1, :-1] * scale, R[:, -1]  # [Qᵀr; ±ρ]
