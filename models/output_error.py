@@ -208,16 +208,12 @@ def fit_output_error(
         blocks = sensitivities(theta)
         # Columns scaled to a largest entry of one: sensitivities can exceed 10¹⁵⁴ where the run
         # stays finite (gauss_newton_inverse), and their squares must not overflow in the QR.
-        # The largest magnitudes from each column's largest and smallest entries, two passes
-        # with no copy; a NaN or an infinity among them (a diverging trial, rarely) is read as no
-        # sensitivity, as the flat penalty is.
-        high = np.max([block.max(axis=0) for block in blocks], axis=0)
-        low = np.min([block.min(axis=0) for block in blocks], axis=0)
-        scale = np.maximum(high, -low)
+        # A NaN or an infinity (a diverging trial, rarely) is read as no sensitivity, as the
+        # flat penalty is.
+        scale = _column_scale(*blocks)
         if not np.isfinite(scale).all():
             blocks = [np.nan_to_num(block, nan=0.0, posinf=0.0, neginf=0.0) for block in blocks]
-            scale = np.max([np.abs(block).max(axis=0) for block in blocks], axis=0)
-        scale[scale == 0.0] = 1.0
+            scale = _column_scale(*blocks)
         for block, first, end in zip(blocks, rows[:-1], rows[1:], strict=True):
             np.divide(block, scale, out=augmented[first:end, :-1])
         augmented[:, -1] = residuals
@@ -293,10 +289,14 @@ def gauss_newton_inverse(jacobian: np.ndarray) -> np.ndarray:
     return np.linalg.pinv(scaled.T @ scaled) / scale[:, None] / scale[None, :]
 
 
-def _column_scale(jacobian: np.ndarray) -> np.ndarray:
-    """Each column's largest magnitude (one for a column of zeros): dividing by it keeps the
-    products of sensitivities that exceed 10¹⁵⁴ from overflowing."""
-    scale = np.max(np.abs(jacobian), axis=0, initial=0.0)
+def _column_scale(*blocks: np.ndarray) -> np.ndarray:
+    """Each column's largest magnitude over the ``blocks`` (rows of one matrix; one for a column
+    of zeros): dividing by it keeps the products of sensitivities that exceed 10¹⁵⁴ from
+    overflowing. From the columns' largest and smallest entries, two passes with no copy of
+    |J|; NaN where a column holds one."""
+    high = np.max([block.max(axis=0, initial=0.0) for block in blocks], axis=0)
+    low = np.min([block.min(axis=0, initial=0.0) for block in blocks], axis=0)
+    scale = np.maximum(high, -low)
     scale[scale == 0.0] = 1.0
     return scale
 
