@@ -89,7 +89,12 @@ class CheckSplit:
         judged by ``workers`` (:data:`models.scoring.Workers`), each in a split of its own with
         these parts, and what they fitted kept here: the figures are the same whichever."""
         unjudged = [s for s in dict.fromkeys(structures) if (s, tuned) not in self._errors]
-        judged = workers(partial(_judged, self.fit, self.check, tuned), unjudged)
+        # Each with the least-squares fit made here, where one was: an output-error search
+        # starts from it, and a worker would make it again (extended least squares on Silverbox's
+        # 51 terms: a third of a second before the search).
+        judged = workers(
+            partial(_judged, self.fit, self.check, tuned), [(s, self._fitted.get(s)) for s in unjudged]
+        )
         for structure in structures:
             if (structure, tuned) not in self._errors:
                 for found in judged:
@@ -182,10 +187,12 @@ class CheckSplit:
         return self._fitted[structure]
 
 
-def _judged(fit: Segments, check: Segments, tuned: bool, structure: Structure) -> Found:
-    """What :meth:`CheckSplit.error` of ``structure`` fits and finds on these parts: the
-    least-squares and output-error fits, and the figures."""
-    checks = CheckSplit(fit, check)
+def _judged(fit: Segments, check: Segments, tuned: bool, job: tuple[Structure, NARX | None]) -> Found:
+    """What :meth:`CheckSplit.error` of a structure fits and finds on these parts, ``job`` being
+    the structure and its least-squares fit there if one was made: the least-squares and
+    output-error fits, and the figures."""
+    structure, fitted = job
+    checks = CheckSplit(fit, check, _fitted={} if fitted is None else {structure: fitted})
     checks.error(structure, tuned)
     return checks._fitted, checks._tuned, checks._errors
 

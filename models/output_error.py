@@ -147,10 +147,34 @@ def fit_output_error(
     # anything a finite run reaches, so that the search backs away from an unstable θ.
     penalty = 100.0 * (scale + float(np.max(np.abs(initial))))
     penalised_steps = 0
+    state = start.output_limits if start.saturation == "state" else None
+    # The Jacobian's buffers: each record's sensitivities, and the scaled Jacobian beside the
+    # residual that is factored (a fresh array of Silverbox's 65 000 × 51 costs 4 ms in its
+    # pages' first writes, about a tenth of the sensitivities).
+    p = start.theta.size
+    derivatives = [np.empty((run.n, p)) for run, _ in runs]
+    augmented = np.empty((sum(run.n - L for run, _ in runs), p + 1))
+    rows = np.cumsum([0] + [run.n - L for run, _ in runs])
+
+    def sensitive(theta: np.ndarray) -> list[np.ndarray]:
+        # The free runs (what simulated(θ) reports) with their exact sensitivities written into
+        # the buffers (one pass a record): MINPACK asks for the Jacobian at the θ it has just
+        # run whenever it keeps the step, nearly every step, and a run alone costs half a run with
+        # sensitivities (22 against 47 ms on Silverbox's 65 000 × 51). The penalty is flat, and so
+        # is a sensor's reading where it is clipped.
+        outputs = []
+        for (run, ya), into in zip(runs, derivatives, strict=True):
+            output, block = run.run_with_sensitivities(theta, ya, state, into)
+            if start.output_limits is not None and state is None:
+                low, high = start.output_limits
+                block[(output <= low) | (output >= high)] = 0.0
+                output = np.clip(output, low, high)
+            outputs.append(output)
+        return outputs
 
     def penalised(theta: np.ndarray, holding: bool) -> np.ndarray:
         nonlocal penalised_steps
-        outputs = simulated(theta)
+        outputs = sensitive(theta)
         residuals = errors(outputs)
         if (
             at_rest and not ring_downs.settle(start, theta, recursion_states(start, theta, runs, outputs))
@@ -162,35 +186,14 @@ def fit_output_error(
             return np.where(np.isfinite(residuals), residuals, penalty)
         return residuals
 
-    state = start.output_limits if start.saturation == "state" else None
-    # The Jacobian's buffers, written afresh at each θ: each record's sensitivities, and the
-    # scaled Jacobian beside the residual that is factored (a fresh array of Silverbox's
-    # 65 000 × 51 costs 4 ms in its pages' first writes, about a tenth of the sensitivities).
-    p = start.theta.size
-    derivatives = [np.empty((run.n, p)) for run, _ in runs]
-    augmented = np.empty((sum(run.n - L for run, _ in runs), p + 1))
-    rows = np.cumsum([0] + [run.n - L for run, _ in runs])
-
-    def sensitivities(theta: np.ndarray) -> list[np.ndarray]:
-        # Exact sensitivities of the free run (one pass a record); the penalty is flat, and so is
-        # a sensor's reading where it is clipped.
-        blocks = []
-        for (run, ya), into in zip(runs, derivatives, strict=True):
-            simulated, block = run.run_with_sensitivities(theta, ya, state, into)
-            if start.output_limits is not None and state is None:
-                low, high = start.output_limits
-                block[(simulated <= low) | (simulated >= high)] = 0.0
-            blocks.append(block[L:])
-        return blocks
-
     # MINPACK is given the free-run error folded to p + 1 rows. Its steps depend on the residual r
     # and the Jacobian J only through ‖r‖, JᵀJ and Jᵀr (J's column norms among them), and the fold
-    # keeps all three: at every θ the residual is ‖r‖·e₁, a free run and no sensitivities, and at
-    # the points kept the Jacobian is [R; 0] of J = QR with [Qᵀr; ρ], the rest of r, rotated onto
-    # e₁, so that ‖‖r‖·e₁ + J̃p‖ = ‖r + Jp‖ for every step p. Given the tall J, MINPACK factors it
-    # unblocked, half of Silverbox's output-error searches; blockwise (:func:`triangular_factor`)
-    # the factor costs a third of that.
-    # MINPACK asks for the Jacobian at a θ just after running it: its residual is kept till then.
+    # keeps all three: at every θ the residual is ‖r‖·e₁, and at the points kept the Jacobian is
+    # [R; 0] of J = QR with [Qᵀr; ρ], the rest of r, rotated onto e₁, so that
+    # ‖‖r‖·e₁ + J̃p‖ = ‖r + Jp‖ for every step p. Given the tall J, MINPACK factors it unblocked,
+    # half of Silverbox's output-error searches; blockwise (:func:`triangular_factor`) the factor
+    # costs a third of that. Kept: the residual at the θ last run, whose sensitivities the
+    # buffers hold.
     last: dict[bytes, np.ndarray] = {}
 
     def folded(theta: np.ndarray, holding: bool) -> np.ndarray:
@@ -202,10 +205,10 @@ def fit_output_error(
         return error
 
     def jacobian(theta: np.ndarray, holding: bool) -> np.ndarray:
-        residuals = last.get(theta.tobytes())
-        if residuals is None:
-            residuals = penalised(theta, holding)
-        blocks = sensitivities(theta)
+        if theta.tobytes() not in last:
+            folded(theta, holding)
+        residuals = last[theta.tobytes()]
+        blocks = [into[L:] for into in derivatives]
         # Columns scaled to a largest entry of one: sensitivities can exceed 10¹⁵⁴ where the run
         # stays finite (gauss_newton_inverse), and their squares must not overflow in the QR.
         # A NaN or an infinity (a diverging trial, rarely) is read as no sensitivity, as the

@@ -269,19 +269,26 @@ def refine_record(
     output_error: bool = True,
     progress: Stage | None = None,
     workers: Workers = map,
+    threads: Workers = map,
 ) -> RefinementReport:
     """Refine on samples ``estimation`` = (a, b) of one record, assess both models on ``test``.
 
     The first ``initial`` test samples only start the predictions (benchmark protocols
     prescribe such a start, e.g. 50 samples for Silverbox). ``output_error``, ``progress`` and
-    ``workers`` as for :func:`refine`.
+    ``workers`` and ``threads`` as for :func:`refine`.
     """
     check_parts(len(x), declared, estimation, test, initial)
     a, b = estimation
     c, d = test
     estimation_part = [(x[a:b], y[a:b])]
     result = refine(
-        estimation_part, declared, alpha=alpha, output_error=output_error, progress=progress, workers=workers
+        estimation_part,
+        declared,
+        alpha=alpha,
+        output_error=output_error,
+        progress=progress,
+        workers=workers,
+        threads=threads,
     )
     _told(progress)("judging both models on the test part")
     return RefinementReport(result, (compare(result, estimation_part, x[c:d], y[c:d], initial, fs, c - a),))
@@ -297,6 +304,7 @@ def refine_records(
     transient: int = 0,
     progress: Stage | None = None,
     workers: Workers = map,
+    threads: Workers = map,
 ) -> RefinementReport:
     """Refine on several estimation records, assess both models on each test record, whole.
 
@@ -304,7 +312,7 @@ def refine_records(
     model's lags); its first ``transient`` samples are run through but not scored
     (:func:`models.assessment.assess`). A model with sinusoidal terms is phase-locked to the
     estimation record's first sample; on a test record its sinusoids count time from that
-    record's first sample. ``progress`` and ``workers`` as for :func:`refine`.
+    record's first sample. ``progress``, ``workers`` and ``threads`` as for :func:`refine`.
     """
     if not tests:
         raise InputError("at least one test record is needed to judge the refined model")
@@ -315,7 +323,7 @@ def refine_records(
             check_test_length(len(y), max(initial, reach(declared), transient))
         except InputError as exc:
             raise InputError(f"test record {number}: {exc}") from None
-    result = refine(estimation, declared, alpha=alpha, progress=progress, workers=workers)
+    result = refine(estimation, declared, alpha=alpha, progress=progress, workers=workers, threads=threads)
     notes = []
     if len(estimation) > 1:
         notes.append(
@@ -416,6 +424,7 @@ def refine(
     output_error: bool = True,
     progress: Stage | None = None,
     workers: Workers = map,
+    threads: Workers = map,
 ) -> Refinement:
     """Refine the declared structure on the estimation ``records`` (x, y pairs) until no effect
     helps (module docstring).
@@ -427,8 +436,9 @@ def refine(
     model as it grows. ``output_error`` False keeps least-squares parameters throughout.
     ``progress`` is told each stage as it begins. ``workers`` run the loop's independent pieces
     (:data:`models.scoring.Workers`): each round's searched candidates, the structures judged on
-    the check parts, the output-error searches not needed one after the other; the refinement is
-    the same whichever.
+    the check parts, the output-error searches not needed one after the other; ``threads``, a map
+    over threads of this process, test each round's families (:func:`score_effects`). The
+    refinement is the same whichever.
     """
     tell = _told(progress)
     if not 0 < alpha < 1:
@@ -464,6 +474,7 @@ def refine(
             alpha,
             saturating=current.saturating,
             workers=workers,
+            threads=threads,
         )
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
@@ -485,9 +496,8 @@ def refine(
             rejected.append(score.name)
         if decided is None and output_error:
             tell(f"round {number}: the families on the simulation error")
-            decided = _by_simulation(
-                offered, _ranked(records, current, offered, alpha, workers).scores, current, checks, workers
-            )
+            ranked = _ranked(records, current, offered, alpha, workers, threads)
+            decided = _by_simulation(offered, ranked.scores, current, checks, workers)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
@@ -508,7 +518,7 @@ def refine(
     if output_error and folds:
         for _ in range(max_rounds):
             offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
-            scores = _ranked(records, current, offered, alpha, workers)
+            scores = _ranked(records, current, offered, alpha, workers, threads)
             step = Round(
                 scores.residual_rms,
                 scores.level,
@@ -583,7 +593,12 @@ def refine(
 
 
 def _ranked(
-    records: Records, current: Structure, offered: Sequence[Effect], alpha: float, workers: Workers
+    records: Records,
+    current: Structure,
+    offered: Sequence[Effect],
+    alpha: float,
+    workers: Workers,
+    threads: Workers,
 ) -> Scores:
     """Every offered family's score with all its regressors ranked by error reduction, significant
     or not: what the simulation criteria try."""
@@ -596,6 +611,7 @@ def _ranked(
         rank=True,
         saturating=current.saturating,
         workers=workers,
+        threads=threads,
     )
 
 

@@ -36,7 +36,7 @@ from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
 # A map-like callable, workers(function, items), as scipy's optimisers take one: the builtin map,
-# or a process pool's, which runs each call in a process of its own.
+# or a process pool's, which runs each call in a process of its own (or a thread pool's).
 Workers = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
 Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limits, and how
 # The kinds of effect whose regressors a search over the residual finds (Effect): each takes
@@ -119,10 +119,14 @@ def score_effects(
     rank: bool = False,
     saturating: Saturating | None = None,
     workers: Workers = map,
+    threads: Workers = map,
 ) -> Scores:
     """Score each effect against the current model's residual on the estimation records; with
     ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``). The
-    families' candidate regressors are built by ``workers`` (:data:`Workers`), the same whichever."""
+    searched families' candidate regressors are built by ``workers`` (:data:`Workers`), and the
+    families tested by ``threads``, a map over threads of this process (the tests are numpy's
+    work on columns of the records' length, too large to send to a process, and numpy lets go of
+    the interpreter while it works): the same whichever."""
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
     Phi, target, starts = stacked_regressors(terms, records, lag)
@@ -186,14 +190,14 @@ def score_effects(
     level = alpha / max(total, 1)
     scores: dict[int, EffectScore] = {}
     explaining: list[np.ndarray] = []
-    for index, effect in enumerate(effects):
-        if effect.kind != "noise":
-            labels, columns = candidates[index]
-            score, _, chosen_columns = _score(
-                effect, labels, columns, residual, own_past, n_obs - n_par, level, rank
-            )
-            scores[index] = score
-            explaining.append(chosen_columns)
+    of_the_signals = [i for i, effect in enumerate(effects) if effect.kind != "noise"]
+    tested = threads(
+        lambda i: _score(effects[i], *candidates[i], residual, own_past, n_obs - n_par, level, rank),
+        of_the_signals,
+    )
+    for index, (score, _, chosen_columns) in zip(of_the_signals, tested, strict=True):
+        scores[index] = score
+        explaining.append(chosen_columns)
     signals = _orthonormal(np.hstack([np.empty((n_obs, 0)), *explaining]), Q)
     for index, effect in enumerate(effects):
         if effect.kind == "noise":

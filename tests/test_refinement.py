@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -15,6 +15,7 @@ from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
 from models.refinement import refine, refine_record, refine_records
+from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from service.recordfiles import parse_silverbox
@@ -349,6 +350,40 @@ def test_structures_judged_in_processes_are_judged_as_in_this_one():
     for structure in [structures[0], *grown]:
         assert np.array_equal(there.tuned(structure).theta, here.tuned(structure).theta)
     assert searched[0] != searched[1] and all(np.isfinite(searched))
+
+
+def test_a_judgement_by_output_error_searches_from_the_fit_kept_here():
+    """A structure judged with its output-error fit in a split of its own (a worker's) is
+    searched from the least-squares fit this split kept, not from one the worker makes again:
+    given another start, it ends elsewhere."""
+    x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
+    records = [(x[:ESTIMATION], y[:ESTIMATION])]
+    structure = Structure(tuple(parse_terms(EXACT_TERMS))[:4])
+    here = CheckSplit.of(records)
+    fitted = here.fitted(structure)
+    (expected,) = here.judge([structure], map, tuned=True)
+    moved = CheckSplit.of(records)
+    moved._fitted[structure] = replace(fitted, theta=fitted.theta * (1 + 1e-6))
+    (judged,) = moved.judge([structure], map, tuned=True)
+    assert np.isfinite(judged) and judged != expected
+    assert not np.array_equal(moved.tuned(structure).theta, here.tuned(structure).theta)
+
+
+@pytest.mark.parametrize("rank", [False, True])
+def test_families_tested_in_threads_score_as_in_one(rank: bool):
+    """Each round's families are tested in threads of the loop's process (score_effects'
+    ``threads``): every score, to the last digit and in the order offered, is the one a single
+    thread gives, with moving-average terms in the model and its noise family tested after."""
+    x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
+    records = [(x[:ESTIMATION], y[:ESTIMATION])]
+    terms = tuple(parse_terms(EXACT_TERMS))[:4]
+    effects = candidate_effects(terms)
+    alone = score_effects(records, terms, 1, effects, 0.01, rank=rank)
+    with ThreadPoolExecutor(2) as pool:
+        threaded = score_effects(records, terms, 1, effects, 0.01, rank=rank, threads=pool.map)
+    assert threaded == alone
+    assert [score.name for score in threaded.scores] == [effect.name for effect in effects]
+    assert sum(score.significant for score in alone.scores) >= 2
 
 
 def test_from_three_records_on_whole_records_are_checked():

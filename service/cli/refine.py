@@ -22,7 +22,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import StrEnum
@@ -153,7 +153,8 @@ def refine_command(
         int | None,
         typer.Option(
             help="Processes that run the loop's independent pieces (candidates, judgements, searches), "
-            "the report the same whatever their number (default: the CPUs this command may use)."
+            "and threads that test the candidates, the report the same whatever their number "
+            "(default: the CPUs this command may use)."
         ),
     ] = None,
 ) -> None:
@@ -182,9 +183,19 @@ def refine_command(
         est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
         fitted_part = [(x_cut[slice(*est)], y_cut[slice(*est)])]
-        with _stages() as stage, _workers(jobs) as workers:
+        with _stages() as stage, _workers(jobs) as (workers, threads):
             report = refine_record(
-                x_cut, y_cut, terms, est, part, start, alpha, rate, progress=stage, workers=workers
+                x_cut,
+                y_cut,
+                terms,
+                est,
+                part,
+                start,
+                alpha,
+                rate,
+                progress=stage,
+                workers=workers,
+                threads=threads,
             )
             tests = report.tests + _judged(report, fitted_part, held, start, rate, transient, stage)
         report = RefinementReport(report.refinement, tests)
@@ -207,7 +218,7 @@ def refine_command(
         # then start where the records do, at rest. Started mid-record from L measured outputs
         # instead, F-16's multisines' check runs favoured least squares over output error, whose
         # slow mode carries those readings' noise (README: "Free runs started mid-record").
-        with _stages() as stage, _workers(jobs) as workers:
+        with _stages() as stage, _workers(jobs) as (workers, threads):
             report = refine_records(
                 [(r.x, r.y) for r in fitted],
                 [(r.x, r.y) for r in held],
@@ -218,6 +229,7 @@ def refine_command(
                 transient,
                 progress=stage,
                 workers=workers,
+                threads=threads,
             )
         judged = [_whole(r, transient) for r in held]
         protocol = {"estimation": [_whole(r, 0) for r in fitted]}
@@ -293,16 +305,20 @@ def _stages() -> Iterator[Stage]:
 
 
 @contextmanager
-def _workers(jobs: int) -> Iterator[Workers]:
-    """The map the loop runs its independent pieces with: in ``jobs`` processes, or in this one
-    for 1. However the command ends — done, Ctrl-C, terminated or killed — its workers end
+def _workers(jobs: int) -> Iterator[tuple[Workers, Workers]]:
+    """The maps the loop runs its independent pieces with: in ``jobs`` processes, and in as many
+    threads of this process for its own numpy work (``models.refinement.refine``); the builtin
+    map for 1. However the command ends — done, Ctrl-C, terminated or killed — its workers end
     with it."""
     if jobs == 1:
-        yield map
+        yield map, map
         return
-    with ProcessPoolExecutor(jobs, initializer=_worker_start, initargs=(os.getpid(),)) as pool:
+    with (
+        ProcessPoolExecutor(jobs, initializer=_worker_start, initargs=(os.getpid(),)) as pool,
+        ThreadPoolExecutor(jobs) as threads,
+    ):
         try:
-            yield pool.map
+            yield pool.map, threads.map
         except BaseException:
             pool.shutdown(cancel_futures=True)  # the families still queued are not built
             raise
