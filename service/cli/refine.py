@@ -318,18 +318,36 @@ def _workers(jobs: int) -> Iterator[tuple[Workers, Workers]]:
         ThreadPoolExecutor(jobs) as threads,
     ):
         try:
+            _start(pool)
             yield pool.map, threads.map
         except BaseException:
             pool.shutdown(cancel_futures=True)  # the families still queued are not built
             raise
 
 
+def _start(pool: ProcessPoolExecutor) -> None:
+    """Start the pool's workers, with Ctrl-C held off until each ignores it (:func:`_worker_start`).
+
+    A pool that forks its workers does so at its first task, all of them, and then starts the
+    thread that will tell them to stop. A Ctrl-C in between (the workers forked, that thread not
+    started) left the command waiting for ever at its exit for workers nobody told to stop; and
+    one that reached a worker still starting printed its traceback. Held off here, it reaches the
+    command once the pool is whole, and the workers not at all."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        pool.submit(int).result()
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _worker_start(command: int) -> None:
     """A worker's start. A terminal's Ctrl-C reaches the workers too: the command stops them,
-    rather than each printing its own traceback. A worker whose command ended without stopping
-    it (SIGTERM from ``timeout`` or a service manager, SIGKILL) leaves within a second, where it
-    would wait for work for ever."""
+    rather than each printing its own traceback (a worker is forked with it held off, and the
+    one that came meanwhile is dropped as it is unblocked). A worker whose command ended without
+    stopping it (SIGTERM from ``timeout`` or a service manager, SIGKILL) leaves within a second,
+    where it would wait for work for ever."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     threading.Thread(target=_leave_when_orphaned, args=(command,), daemon=True).start()
 
 
