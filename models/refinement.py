@@ -274,7 +274,7 @@ def refine_record(
     """Refine on samples ``estimation`` = (a, b) of one record, assess both models on ``test``.
 
     The first ``initial`` test samples only start the predictions (benchmark protocols
-    prescribe such a start, e.g. 50 samples for Silverbox). ``output_error``, ``progress`` and
+    prescribe such a start, e.g. 50 samples for Silverbox). ``output_error``, ``progress``,
     ``workers`` and ``threads`` as for :func:`refine`.
     """
     check_parts(len(x), declared, estimation, test, initial)
