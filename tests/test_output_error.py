@@ -27,7 +27,7 @@ from models.output_error import (
     gauss_newton_inverse,
 )
 from models.simulation import FreeRun
-from models.terms import parse_terms
+from models.terms import parse_terms, regressor_matrix
 from service.recordfiles import Layout, read_record
 from simulator.simulate import Scenario, simulate
 from simulator.theory import EXACT_TERMS
@@ -368,7 +368,9 @@ def test_records_too_short_for_the_model_are_refused() -> None:
 def test_free_run_sensitivities_equal_finite_differences_of_the_free_run() -> None:
     """∂ŷ/∂θ from the sensitivity recursion against central differences of the free run itself,
     for every kind of factor the kernel differentiates: powers, products across lags, abs and
-    sign of a difference, the input, a sinusoid and the constant."""
+    sign of a difference, signed and absolute powers, the input, a sinusoid and the constant;
+    and the same feature of ŷ read at several lags (y[t−1]³ and y[t−2]³, spow(dy, 1.5) at lags 1
+    and 2), which the kernel computes once a sample and reads back at each lag."""
     rng = np.random.default_rng(5)
     x = rng.standard_normal(600)
     terms = parse_terms(
@@ -383,14 +385,22 @@ def test_free_run_sensitivities_equal_finite_differences_of_the_free_run() -> No
             "abs(dy[t-1])^2*y[t-2]",
             "sin(2pi*0.013*t)",
             "1",
+            "y[t-2]^3",
+            "spow(dy[t-1],1.5)",
+            "spow(dy[t-2],1.5)*x[t-1]",
+            "apow(y[t-2],2.5)",
         ]
     )
-    theta = np.array([1.2, -0.5, 0.8, -0.05, 0.02, -0.03, 0.01, 0.02, 0.1, 0.05])
+    theta = np.array([1.2, -0.5, 0.8, -0.05, 0.02, -0.03, 0.01, 0.02, 0.1, 0.05, 0.03, -0.04, 0.02, -0.03])
     y0 = rng.standard_normal(3)
     run = FreeRun.build(terms, x, t0=7)
     simulated, S = run.run_with_sensitivities(theta, y0)
     assert np.allclose(simulated, run.run(theta, y0), rtol=0, atol=0)
     assert np.all(np.isfinite(simulated)) and np.max(np.abs(simulated)) < 10  # a stable, busy run
+    # Each sample is the model's equation on the samples before it, its regressors computed by
+    # the least-squares code from the simulated output.
+    Phi, _ = regressor_matrix(terms, x, simulated, t0=7)
+    np.testing.assert_allclose(simulated[3:], Phi @ theta, rtol=1e-12, atol=1e-14)
     for j in range(theta.size):
         step = 1e-6 * max(1.0, abs(theta[j]))
         up, down = theta.copy(), theta.copy()
