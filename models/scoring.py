@@ -31,7 +31,7 @@ from scipy import linalg, signal, special
 from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
-from models.regression import orthogonal_part
+from models.regression import orthogonal_part, span_basis
 from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
@@ -198,7 +198,9 @@ def score_effects(
     for index, (score, _, chosen_columns) in zip(of_the_signals, tested, strict=True):
         scores[index] = score
         explaining.append(chosen_columns)
-    signals = _orthonormal(np.hstack([np.empty((n_obs, 0)), *explaining]), Q)
+    # The chosen columns are orthogonal to the model already (_projected): a basis of their span
+    # is all the noise family's test needs.
+    signals = span_basis(np.hstack([np.empty((n_obs, 0)), *explaining]))
     for index, effect in enumerate(effects):
         if effect.kind == "noise":
             labels, columns = candidates[index]

@@ -9,7 +9,7 @@ from conftest import scaled_lstsq
 from scipy import linalg
 
 from models.errors import InputError
-from models.regression import least_squares, orthogonal_part, triangular_factor
+from models.regression import SPAN_TOLERANCE, least_squares, orthogonal_part, span_basis, triangular_factor
 
 EPS = np.finfo(float).eps
 
@@ -141,6 +141,25 @@ def test_a_candidate_nearly_in_the_models_span_is_projected_off_it_to_working_pr
     for column, remainder in zip((columns / np.linalg.norm(columns, axis=0)).T, remainders.T, strict=True):
         fitted = Q @ linalg.lstsq(Q, column, lapack_driver="gelsd")[0]
         assert np.allclose(remainder, column - fitted, rtol=0, atol=1e-12)
+
+
+def test_the_span_basis_projects_as_an_svd_basis_does_and_leaves_out_repeated_columns():
+    """The noise family is tested against a basis of the span of every other family's chosen
+    columns (models.scoring): the basis must be orthonormal to rounding, project any vector as
+    scipy's SVD basis of the same span does, and leave out a column that repeats others (two
+    families choosing one regressor), keeping one that is only nearly collinear (κ ≈ 10⁵)."""
+    rng = np.random.default_rng(11)
+    base = rng.normal(size=(20_000, 30)) * np.logspace(0, 3, 30)  # columns over three decades
+    nearly = base[:, 0] + 1e-5 * np.linalg.norm(base[:, 0]) * rng.normal(size=20_000) / np.sqrt(20_000)
+    columns = np.column_stack([base, 2.5 * base[:, 3] - base[:, 7], nearly])
+    basis = span_basis(columns)
+    reference = linalg.orth(columns / np.linalg.norm(columns, axis=0), rcond=SPAN_TOLERANCE)
+    assert basis.shape == reference.shape == (20_000, 31)  # the repeat left out, the near one kept
+    assert np.max(np.abs(basis.T @ basis - np.eye(31))) < 1e-13
+    vectors = rng.normal(size=(20_000, 5))
+    projected = basis @ (basis.T @ vectors)
+    assert np.allclose(projected, reference @ (reference.T @ vectors), rtol=0, atol=1e-10)
+    assert span_basis(np.empty((50, 0))).shape == (50, 0)
 
 
 @pytest.mark.parametrize("rows", [5000, 4096, 2049])
