@@ -48,7 +48,7 @@ class FreeRun:
         for a term of the output alone, whose part is one (most terms: kept out, their columns
         of ones would be most of what a run reads); ``recursive_terms`` their indices.
     factor_start : (R + 1,) where each autoregressive term's output factors begin in the
-        flattened ``difference``/``lag``/``function``/``power``/``parameter`` arrays (one entry a
+        flattened ``difference``/``lag``/``function``/``parameter`` arrays (one entry a
         factor; a difference factor reads ŷ[t−lag] − ŷ[t−lag−1]; ``parameter`` is a power law's
         exponent, a Bouc–Wen variable's saturation level; the kernel runs that variable of ŷ from
         the first sample on).
@@ -70,7 +70,6 @@ class FreeRun:
     difference: np.ndarray
     factor_lag: np.ndarray
     function: np.ndarray
-    power: np.ndarray
     parameter: np.ndarray
     factor_feature: np.ndarray
     feature_difference: np.ndarray
@@ -134,7 +133,6 @@ class FreeRun:
             difference=np.asarray([f.signal == "dy" for f in factors], dtype=np.bool_),
             factor_lag=np.asarray([f.lag for f in factors], dtype=np.int64),
             function=np.asarray([FUNCTION_CODES[f.function] for f in factors], dtype=np.int64),
-            power=np.asarray([f.power for f in factors], dtype=np.int64),
             parameter=np.asarray([f.parameter for f in factors], dtype=np.float64),
             factor_feature=np.asarray(factor_feature, dtype=np.int64),
             feature_difference=np.asarray([key[0] for key in features], dtype=np.bool_),
@@ -208,7 +206,6 @@ class FreeRun:
                 self.difference,
                 self.factor_lag,
                 self.function,
-                self.power,
                 self.parameter,
                 low,
                 high,
@@ -237,7 +234,6 @@ def _recursion(
     difference: np.ndarray,
     factor_lag: np.ndarray,
     function: np.ndarray,
-    power: np.ndarray,
     parameter: np.ndarray,
     low: float,
     high: float,
