@@ -20,7 +20,8 @@ import numpy as np
 from models.errors import InputError
 from models.narx import NARX
 from models.output_error import comes_to_rest, fit_output_error
-from models.scoring import Records, Saturating, Workers, fit_model
+from models.regression import Workers
+from models.scoring import Records, Saturating, fit_model
 from models.simulation import FreeRun
 from models.terms import Term, max_lag
 
@@ -86,7 +87,7 @@ class CheckSplit:
         self, structures: Sequence[Structure], workers: Workers = map, tuned: bool = False
     ) -> Iterator[float]:
         """:meth:`error` of each of ``structures`` in turn, lazily; those not judged yet are
-        judged by ``workers`` (:data:`models.scoring.Workers`), each in a split of its own with
+        judged by ``workers`` (:data:`models.regression.Workers`), each in a split of its own with
         these parts, and what they fitted kept here: the figures are the same whichever."""
         unjudged = [s for s in dict.fromkeys(structures) if (s, tuned) not in self._errors]
         # Each with the least-squares fit made here, where one was: an output-error search
@@ -208,13 +209,13 @@ def _searched(
     return checks._fitted, checks._tuned, checks._errors
 
 
-def by_output_error(model: NARX, segments: Segments, evaluations: int) -> NARX:
+def by_output_error(model: NARX, segments: Segments, evaluations: int, threads: Workers = map) -> NARX:
     """``model`` with its parameters refined by output error on ``segments`` when that lowers
-    its free-run error there; ``model`` itself when its free run diverges or nothing is gained."""
+    its free-run error there; ``model`` itself when its free run diverges or nothing is gained.
+    ``threads`` as for :func:`models.output_error.fit_output_error`."""
     try:
-        fit = fit_output_error(
-            model, [(x, y) for x, y, _ in segments], evaluations, t0=[t for *_, t in segments]
-        )
+        records = [(x, y) for x, y, _ in segments]
+        fit = fit_output_error(model, records, evaluations, t0=[t for *_, t in segments], threads=threads)
     except InputError:
         return model
     return fit.model if fit.rms < fit.start_rms else model

@@ -40,7 +40,7 @@ from scipy import linalg, optimize
 
 from models.errors import InputError
 from models.narx import NARX
-from models.regression import triangular_factor
+from models.regression import Workers, triangular_factor
 from models.signals import checked_records
 from models.simulation import FreeRun
 from models.terms import Term, max_degree, max_lag, record_origins
@@ -78,6 +78,7 @@ def fit_output_error(
     records: Iterable[tuple[ArrayLike, ArrayLike]],
     max_evaluations: int = 200,
     t0: int | Sequence[int] = 0,
+    threads: Workers = map,
 ) -> OutputErrorFit:
     """Refine ``start`` (an equation-error fit, say) by minimising its free-run error on ``records``.
 
@@ -92,6 +93,9 @@ def fit_output_error(
         that where the search is run again, held to the restarts from measured outputs.
     t0 : where each record starts in the time base of sinusoidal terms (one for all, or one a
         record).
+    threads : a map over threads of this process (:data:`models.regression.Workers`) that
+        factors the Jacobian's blocks (:func:`models.regression.triangular_factor`); the fit is
+        the same whichever.
 
     Returns
     -------
@@ -220,7 +224,7 @@ def fit_output_error(
         for block, first, end in zip(blocks, rows[:-1], rows[1:], strict=True):
             np.divide(block, scale, out=augmented[first:end, :-1])
         augmented[:, -1] = residuals
-        R = triangular_factor(augmented)
+        R = triangular_factor(augmented, threads=threads)
         triangle, along = R[:-1, :-1] * scale, R[:, -1]  # [Qᵀr; ±ρ]
         rotation, top = linalg.qr(along[:, None])  # along = rotation·(±‖r‖·e₁)
         rotation[:, 0] *= np.sign(top[0, 0]) or 1.0

@@ -82,7 +82,8 @@ from models.errors import InputError
 from models.narx import NARX, Saturation
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
-from models.scoring import EffectScore, Records, Scores, Workers, fit_model, score_effects
+from models.regression import Workers
+from models.scoring import EffectScore, Records, Scores, fit_model, score_effects
 from models.signals import checked_records
 from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 
@@ -435,7 +436,7 @@ def refine(
     dynamics rather than by lengthening them round after round. An offset's terms follow the
     model as it grows. ``output_error`` False keeps least-squares parameters throughout.
     ``progress`` is told each stage as it begins. ``workers`` run the loop's independent pieces
-    (:data:`models.scoring.Workers`): each round's searched candidates, the structures judged on
+    (:data:`models.regression.Workers`): each round's searched candidates, the structures judged on
     the check parts, the output-error searches not needed one after the other; ``threads``, a map
     over threads of this process, test each round's families (:func:`score_effects`). The
     refinement is the same whichever.
@@ -507,6 +508,11 @@ def refine(
         check = error
     declared_structure = Structure(terms)
     folds = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)] if len(records) >= 3 else []
+    # The least-squares fit on all the records of the structure the rounds grew, made by a thread
+    # while the workers check that structure by output error below, where this process would
+    # wait (a third of a second on Silverbox's NARMAX): unless those checks change the structure,
+    # it is the refined model's, or its search's start.
+    ahead = {current: threads(_call, [partial(_fitted_on_all, records, current)])}
     withdrawn = 0
     if output_error and current != declared_structure:
         tell("the effects added, checked by output error")
@@ -545,9 +551,7 @@ def refine(
         _call,
         [partial(by_output_error, declared_model, everything, SETTLED_EVALUATIONS)] if by_simulation else [],
     )
-    refined, noise = fit_model(
-        records, current.terms, current.noise_lags, max_lag(current.terms), saturating=current.saturating
-    )
+    ((refined, noise),) = ahead[current] if current in ahead else [_fitted_on_all(records, current)]
     estimator: Literal["least squares", "output error"] = "least squares"
     if by_simulation:
         tell("output-error fit on all the records")
@@ -560,7 +564,7 @@ def refine(
             tuned = None if declared_tuned is declared_model else declared_tuned
         elif grown_across_folds:
             tuned = _as_the_folds_judged(
-                records, before_folds, grown_across_folds, declared_structure, declared_tuned
+                records, before_folds, grown_across_folds, declared_structure, declared_tuned, threads
             )
         else:
             # The search starts from whichever simulates the estimation data best: the
@@ -573,7 +577,7 @@ def refine(
             if declared_tuned is not declared_model:
                 starts.append(grown_by_zeros(declared_tuned, refined))
             start = min(starts, key=lambda model: _restless_then_rms(free_run_at_rest(model, records)))
-            found = by_output_error(start, everything, SETTLED_EVALUATIONS)
+            found = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
             # The search keeps a start that comes to rest from leaving it; a start that did not
             # (least squares' fit on all the data can differ from the check's) is no better.
             tuned = None if found is start else found
@@ -635,7 +639,7 @@ def choose_linear(
     squares' noise bias would otherwise favour needlessly high orders); the smallest order whose
     free run over the check blocks is within one standard error of the best wins. Returns
     (n, n, d) and the terms; ``progress`` is told each candidate as it is fitted, ``workers``
-    fit them (:data:`models.scoring.Workers`).
+    fit them (:data:`models.regression.Workers`).
     """
     if max_order < 1:
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
@@ -651,6 +655,12 @@ def choose_linear(
     best = min(errors.values()) * (1 + check_noise(checks.check))
     n, d = min((nd for nd, error in errors.items() if error <= best), key=lambda nd: nd[0])
     return (n, n, d), linear_terms(n, n, d)
+
+
+def _fitted_on_all(records: Records, structure: Structure) -> tuple[NARX, np.ndarray]:
+    """``structure``'s least-squares fit on all the ``records`` (:func:`fit_model`)."""
+    lag = max_lag(structure.terms)
+    return fit_model(records, structure.terms, structure.noise_lags, lag, saturating=structure.saturating)
 
 
 def _call(function: Callable[[], Any]) -> Any:
@@ -837,11 +847,12 @@ def _as_the_folds_judged(
     grown: Sequence[Structure],
     declared: Structure,
     declared_tuned: NARX,
+    threads: Workers,
 ) -> NARX:
     """The output-error fit on all the ``records`` of the structure grown across folds, made as
     each fold made the model it judged: ``before``'s settled fit (the declared structure's is
     ``declared_tuned``), then each of the ``grown`` structures in turn, its added terms at zero
-    from the fit before it, searched until it stops gaining.
+    from the fit before it, searched until it stops gaining (the Jacobians factored by ``threads``).
 
     The folds validate a procedure, not a model: the model delivered is that procedure applied to
     all the data (Hastie, Tibshirani & Friedman, *The Elements of Statistical Learning*, §7.10).
@@ -850,23 +861,14 @@ def _as_the_folds_judged(
     60 % higher on the test sweep below their levels (0.344 against 0.215 m/s²).
     """
     everything: Segments = [(x, y, 0) for x, y in records]
-
-    def fitted(structure: Structure) -> NARX:
-        return fit_model(
-            records,
-            structure.terms,
-            structure.noise_lags,
-            max_lag(structure.terms),
-            saturating=structure.saturating,
-        )[0]
-
     model = (
         declared_tuned
         if before == declared
-        else by_output_error(fitted(before), everything, SETTLED_EVALUATIONS)
+        else by_output_error(_fitted_on_all(records, before)[0], everything, SETTLED_EVALUATIONS, threads)
     )
     for structure in grown:
-        model = by_output_error(grown_by_zeros(model, fitted(structure)), everything, SETTLED_EVALUATIONS)
+        start = grown_by_zeros(model, _fitted_on_all(records, structure)[0])
+        model = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
     return model
 
 

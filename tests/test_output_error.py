@@ -8,6 +8,8 @@ minimising it is consistent, and its estimate must lie within a few standard err
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 from conftest import DATA_DIR
@@ -112,6 +114,19 @@ def test_the_search_takes_the_steps_minpack_takes_on_the_tall_problem() -> None:
     # θ's covariance from the folded Jacobian is the tall one's: σ̂²(JᵀJ)⁻¹.
     sigma2 = float(tall.fun @ tall.fun) / (tall.fun.size - tall.x.size)
     assert np.allclose(fit.model.covariance, sigma2 * np.linalg.inv(tall.jac.T @ tall.jac), rtol=1e-6)
+
+
+def test_a_search_whose_jacobians_are_factored_in_threads_is_the_same_search() -> None:
+    """The Jacobian's blocks factored by two threads (``threads``): the same steps, to the last
+    bit, on records long enough for several blocks."""
+    records = [output_error_record(3000, 1.0, seed)[:2] for seed in (45, 46)]
+    start = fit_narx(records, [*TERMS, "y[t-1]^3", "x[t-2]"])
+    alone = fit_output_error(start, records)
+    with ThreadPoolExecutor(2) as pool:
+        threaded = fit_output_error(start, records, threads=pool.map)
+    assert threaded.evaluations == alone.evaluations > 2
+    np.testing.assert_array_equal(threaded.model.theta, alone.model.theta)
+    np.testing.assert_array_equal(threaded.model.covariance, alone.model.covariance)
 
 
 def test_a_starting_model_whose_free_run_diverges_is_refused() -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 import statsmodels.api as sm
@@ -165,7 +167,8 @@ def test_the_span_basis_projects_as_an_svd_basis_does_and_leaves_out_repeated_co
 @pytest.mark.parametrize("rows", [5000, 4096, 2049])
 def test_the_blockwise_triangular_factor_is_that_of_one_qr(rows: int) -> None:
     """TSQR's R agrees with LAPACK's on the whole matrix up to its rows' signs, whatever the last
-    block holds (a full block, or one row, fewer than the columns)."""
+    block holds (a full block, or one row, fewer than the columns); its blocks factored by two
+    threads, it is the same to the last bit."""
     rng = np.random.default_rng(rows)
     A = rng.normal(size=(rows, 30)) * np.logspace(0, 6, 30)  # columns over six decades
     R = triangular_factor(A, block=2048)
@@ -174,3 +177,5 @@ def test_the_blockwise_triangular_factor_is_that_of_one_qr(rows: int) -> None:
     assert R.shape == (30, 30)
     error = np.abs(signs[:, None] * R - reference)
     assert np.all(error <= 1e-13 * np.linalg.norm(A, axis=0))  # each column to its own scale
+    with ThreadPoolExecutor(2) as pool:
+        np.testing.assert_array_equal(triangular_factor(A, block=2048, threads=pool.map), R)

@@ -44,7 +44,8 @@ from models.refinement import (
     refine_record,
     refine_records,
 )
-from models.scoring import Records, Workers
+from models.regression import Workers
+from models.scoring import Records
 from models.terms import Term
 from service.cli.console import stderr, stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
