@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy import signal
+from scipy import linalg, signal
 
 from models.assessment import assess
 from models.checking import SETTLED_EVALUATIONS
-from models.effects import candidate_effects, integer_powers, linear_terms, output_limits
+from models.effects import _search_part, candidate_effects, integer_powers, linear_terms, output_limits
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import fit_output_error
@@ -295,3 +295,22 @@ def test_integer_powers_are_the_products_a_factor_computes_and_pow_to_its_roundi
         assert np.array_equal(column, factor.values(lambda k: u, lambda k: u, np.arange(u.size)))
     for column, degree in zip(powers.T, degrees, strict=True):
         np.testing.assert_allclose(column, u**degree, rtol=2.5 * np.finfo(float).eps, atol=0)
+
+
+def test_a_search_reads_the_basis_of_its_own_model_over_its_own_rows() -> None:
+    """The searched families of a round share the model's basis over the rows they search (it is
+    kept from one search to the next): each search, after one on another model or another record,
+    reads a basis of its own model's regressors over its own rows (against scipy's QR of them),
+    which no search can write to."""
+    rng = np.random.default_rng(4)
+    first, second = (rng.standard_normal((2, 3000)) for _ in range(2))
+    linear, grown = linear_terms(2, 2), (*linear_terms(2, 2), *parse_terms(["y[t-1]^3"]))
+    lag = 2
+    for (x, y), terms in [(first, linear), (first, grown), (second, grown), (first, linear)]:
+        residual = rng.standard_normal(len(y) - lag)
+        *_, basis = _search_part(x, y, residual, terms, lag)
+        Phi, _ = regressor_matrix(list(terms), x, y, lag)
+        reference = linalg.qr(Phi, mode="economic")[0]
+        np.testing.assert_allclose(np.abs(basis.T @ reference), np.eye(len(terms)), atol=1e-10)
+        with pytest.raises(ValueError, match="read-only"):
+            basis[0, 0] = 0.0
