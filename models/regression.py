@@ -122,10 +122,14 @@ def orthogonal_part(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
     # Squared norms by einsum, which reads the columns once where np.linalg.norm squares a copy
     # of them first (a quarter of the time): only the test below reads them.
     squared = np.einsum("ij,ij->j", columns, columns)
-    columns = columns - Q @ (Q.T @ columns)
+    # Qᵀ·columns as (columnsᵀ·Q)ᵀ: for a few columns OpenBLAS takes a quarter less time this way
+    # round with a Q in Fortran order, as scipy's QR makes it (2.7 against 3.5 ms for four columns
+    # of Silverbox's 65 000 × 51), half with one in C order; Silverbox's report is the same to
+    # the last bit.
+    columns = columns - Q @ (columns.T @ Q).T
     again = np.einsum("ij,ij->j", columns, columns) < squared / 2
     if np.any(again):
-        columns[:, again] -= Q @ (Q.T @ columns[:, again])
+        columns[:, again] -= Q @ (columns[:, again].T @ Q).T
     return columns
 
 
