@@ -92,7 +92,9 @@ def fit_narmax(
     fitted_by_process = Q1 @ projected
     residuals = target - fitted_by_process
     previous = None
-    lagged = np.empty((target.size, noise_lags))
+    # Each residual column contiguous (Fortran order): its norm and its products with Q1 read
+    # it in one stretch, a quarter of an iteration's time on Silverbox's 65 000 rows.
+    lagged = np.empty((target.size, noise_lags), order="F")
     converged = False
     iterations = 0
     while iterations < max_iter and not converged:
@@ -148,7 +150,7 @@ def _extended_step(
     noise_scale = np.linalg.norm(lagged, axis=0)
     noise_scale[noise_scale == 0] = 1.0
     E = lagged / noise_scale
-    coupling = Q1.T @ E
+    coupling = (E.T @ Q1).T  # Q1ᵀE, which OpenBLAS computes faster this way round
     try:
         R2 = linalg.cholesky(E.T @ E - coupling.T @ coupling)
     except linalg.LinAlgError:
