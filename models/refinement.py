@@ -513,6 +513,14 @@ def refine(
     # wait (a third of a second on Silverbox's NARMAX): unless those checks change the structure,
     # it is the refined model's, or its search's start.
     ahead = {current: threads(_call, [partial(_fitted_on_all, records, current)])}
+    # The declared model's output-error fit on all the records, which the final search may start
+    # from, searched by a worker meanwhile, where that search waited for it (0.4 s on Silverbox);
+    # with the builtin map, only when asked for. Unused when least squares simulates better.
+    everything: Segments = [(x, y, 0) for x, y in records]
+    declared_search = workers(
+        _call,
+        [partial(by_output_error, declared_model, everything, SETTLED_EVALUATIONS)] if output_error else [],
+    )
     withdrawn = 0
     if output_error and current != declared_structure:
         tell("the effects added, checked by output error")
@@ -544,13 +552,6 @@ def refine(
     # and gives the best one-step predictor; output error when the noise is on the measured
     # output. The check blocks tell which simulates better.
     by_simulation = output_error and checks.error(current, tuned=True) < check
-    everything: Segments = [(x, y, 0) for x, y in records]
-    # The declared model's output-error fit on all the records, searched by a worker while this
-    # process makes the least-squares fit (with the builtin map, when it is asked for).
-    declared_search = workers(
-        _call,
-        [partial(by_output_error, declared_model, everything, SETTLED_EVALUATIONS)] if by_simulation else [],
-    )
     ((refined, noise),) = ahead[current] if current in ahead else [_fitted_on_all(records, current)]
     estimator: Literal["least squares", "output error"] = "least squares"
     if by_simulation:
