@@ -512,7 +512,7 @@ def refine(
     # while the workers check that structure by output error below, where this process would
     # wait (a third of a second on Silverbox's NARMAX): unless those checks change the structure,
     # it is the refined model's, or its search's start.
-    ahead = {current: threads(_call, [partial(_fitted_on_all, records, current)])}
+    by_the_rounds, fitted_ahead = current, threads(_call, [partial(_fitted_on_all, records, current)])
     # The declared model's output-error fit on all the records, which the final search may start
     # from, searched by a worker meanwhile, where that search waited for it (0.4 s on Silverbox);
     # with the builtin map, only when asked for. Unused when least squares simulates better.
@@ -552,7 +552,7 @@ def refine(
     # and gives the best one-step predictor; output error when the noise is on the measured
     # output. The check blocks tell which simulates better.
     by_simulation = output_error and checks.error(current, tuned=True) < check
-    ((refined, noise),) = ahead[current] if current in ahead else [_fitted_on_all(records, current)]
+    ((refined, noise),) = fitted_ahead if current == by_the_rounds else [_fitted_on_all(records, current)]
     estimator: Literal["least squares", "output error"] = "least squares"
     if by_simulation:
         tell("output-error fit on all the records")
