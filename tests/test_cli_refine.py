@@ -145,7 +145,7 @@ def run_on_terminal(*args: str, cwd: Path) -> tuple[str, str]:
         (["--declared", "y[t-1],z[t-2]"], "cannot read term"),
         (["--initial", "-1"], "initial samples must be 0 or more"),
         (["--jobs", "0"], "--jobs must be 1 or more"),
-        (["--jobs", "100000"], "the CPUs this command may use; got 100000"),
+        (["--jobs", "100000"], "twice the CPUs this command may use; got 100000"),
     ],
 )
 def test_bad_options_are_refused_with_a_message(silverbox_dir, tmp_path, args, message):
@@ -385,6 +385,27 @@ def test_the_report_is_the_same_whatever_the_processes_building_the_candidates(
     ]  # fmt: skip
     assert reports[0] == reports[1]
     assert json.loads(reports[0])["effects_added"]  # the loop did find something to add
+
+
+def test_two_jobs_run_on_one_cpu_and_more_than_two_a_cpu_are_refused(simulated_records: Path):
+    """On a machine of one CPU (the command pinned to one), ``--jobs 2`` runs, to the same report
+    as one process, where it was refused as more processes than CPUs; twice the CPUs is the most."""
+    one_cpu = min(os.sched_getaffinity(0))
+    command = [
+        NARXWATCH, "refine", "e1.csv", "e2.csv", "--validate", "v1.csv", "--declared", "2dof", "--json",
+    ]  # fmt: skip
+    pinned = [
+        subprocess.run(
+            [*command, "--jobs", jobs], cwd=simulated_records, capture_output=True, text=True, timeout=300,
+            preexec_fn=lambda: os.sched_setaffinity(0, {one_cpu}),
+        )
+        for jobs in ("2", "3")
+    ]  # fmt: skip
+    assert pinned[0].returncode == 0, pinned[0].stderr
+    alone = invoke(*command[1:], "--jobs", "1", cwd=simulated_records).stdout
+    assert pinned[0].stdout == alone
+    assert pinned[1].returncode == 2 and pinned[1].stdout == ""
+    assert "at most 2, twice the CPUs this command may use; got 3" in " ".join(pinned[1].stderr.split())
 
 
 @pytest.mark.parametrize(

@@ -60,6 +60,9 @@ SILVERBOX_INITIAL = 50
 SILVERBOX_UNIT = "V"  # both of its signals are voltages
 # ``--declared`` naming SPEC §2's structure of the simulated 2-DOF rig.
 RIG = "2dof"
+# Each worker is a copy of this process: beyond a CPU's share, more only cost memory. More than
+# one a CPU is allowed all the same, so that two workers run (slower) on a machine of one CPU.
+JOBS_PER_CPU = 2
 
 DECLARED_HELP = (
     "The declared structure: comma-separated terms, a JSON file with a 'terms' list (a model or "
@@ -166,10 +169,10 @@ def refine_command(
     if transient < 0:
         raise InputError(f"--transient must be 0 or more, got {transient}")
     cpus = _usable_cpus()
-    if jobs is not None and not 1 <= jobs <= cpus:
-        # Each worker is a copy of this process: more than the CPUs only costs memory.
+    if jobs is not None and not 1 <= jobs <= JOBS_PER_CPU * cpus:
         raise InputError(
-            f"--jobs must be 1 or more and at most {cpus}, the CPUs this command may use; got {jobs}"
+            f"--jobs must be 1 or more and at most {JOBS_PER_CPU * cpus}, twice the CPUs this command "
+            f"may use; got {jobs}"
         )
     jobs = jobs or cpus
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
