@@ -45,7 +45,7 @@ import numpy as np
 from scipy import fft, linalg, optimize
 
 from models.errors import InputError
-from models.regression import orthogonal_part
+from models.regression import divided_columns, orthogonal_part
 from models.spectrum import excited_intervals, residual_spectrum
 from models.terms import WAVES, Factor, Term, regressor_matrix
 
@@ -662,7 +662,7 @@ def _model_basis(terms: tuple[Term, ...], lag: int, x: bytes, y: bytes) -> np.nd
     them, as bytes), read-only. Kept for the next call: a round's searched families read the same
     rows with the same model, and each took 20 ms to make it (Silverbox's 51 terms)."""
     Phi, _ = regressor_matrix(list(terms), np.frombuffer(x), np.frombuffer(y), lag)
-    basis, _ = linalg.qr(Phi / np.linalg.norm(Phi, axis=0), mode="economic")
+    basis, _ = linalg.qr(divided_columns(Phi, np.linalg.norm(Phi, axis=0)), mode="economic", overwrite_a=True)
     basis.flags.writeable = False
     return basis
 

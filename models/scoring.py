@@ -30,7 +30,7 @@ from scipy import linalg, signal, special
 from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
-from models.regression import Workers, orthogonal_part, span_basis
+from models.regression import Workers, divided_columns, orthogonal_part, span_basis
 from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
@@ -145,7 +145,7 @@ def score_effects(
         )
         Phi = np.hstack([Phi, _lagged(innovations, range(1, noise_lags + 1), starts)])
     scale = np.linalg.norm(Phi, axis=0)
-    Q, R = linalg.qr(Phi / scale, mode="economic")
+    Q, R = linalg.qr(divided_columns(Phi, scale), mode="economic", overwrite_a=True)
     projection = Q.T @ target
     residual = target - Q @ projection
     theta = (linalg.solve_triangular(R, projection) / scale)[: len(terms)]
