@@ -296,6 +296,12 @@ def _parse_csv(
     if index == len(lines):
         raise InputError(f"the CSV has no header line naming its columns (such as '{layout.x},{layout.y}')")
     groups, count = header_groups(lines[index])
+    if count == 1 and (separator := next((s for s in ";\t" if s in lines[index]), None)):
+        # What a spreadsheet set to a decimal comma exports; tab-separated text reads the same.
+        raise InputError(
+            f"the header {lines[index][:80]!r} is one column: its values are separated by {separator!r}, "
+            "where a CSV's are by ','; export the file comma-separated, with '.' as the decimal mark"
+        )
     first = next((number for number in range(index + 1, len(lines)) if lines[number].strip()), None)
     if first is None:
         raise InputError("the CSV has a header but no data rows")

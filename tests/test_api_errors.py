@@ -194,6 +194,10 @@ def _csv_rows(n: int = 300) -> list[str]:
 MALFORMED_CSV = {
     "bad-header": (lambda rows: "a,b\n" + "\n".join(rows), "the CSV has no column 'x'; its columns are a, b"),
     "no-header": (lambda rows: "# fs=1500\n", "the CSV has no header line naming its columns"),
+    "semicolons": (
+        lambda rows: "x;y\n" + "\n".join(row.replace(",", ";") for row in rows),
+        "its values are separated by ';', where a CSV's are by ','",
+    ),
     "header-only": (lambda rows: "x,y\n", "the CSV has a header but no data rows"),
     "non-numeric-line": (
         lambda rows: "x,y\n" + "\n".join([*rows[:3], "1.0,abc", *rows[3:]]),

@@ -72,6 +72,9 @@ def test_csv_without_fs_comment_and_with_quoted_header():
         (b"# fs=abc\nx,y\n1,2\n", "not a number"),
         (b"# fs=-5\nx,y\n1,2\n", "positive"),
         (b"\xff\xfe\x00x", "not UTF-8"),
+        # Spreadsheets set to a decimal comma export ';' between values; tab-separated text too.
+        (b"x;y\n0,5;1,25\n", "values are separated by ';', where a CSV's are by ','"),
+        (b"x\ty\n0.5\t1.25\n", "values are separated by '\\\\t', where a CSV's are by ','"),
     ],
 )
 def test_malformed_csv_is_refused_with_the_reason(content, message):
