@@ -328,8 +328,8 @@ def refine_records(
     notes = []
     if len(estimation) > 1:
         notes.append(
-            "periodic disturbances were not looked for: a sinusoid of time found in several records "
-            "with no common time base would have no phase on the next one"
+            "periodic disturbances were not looked for: a sinusoid of time is fitted on one stretch of "
+            "samples, and the estimation data are several"
         )
     if any(factor.signal in WAVES for term in result.refined.terms for factor in term.factors):
         notes.append(

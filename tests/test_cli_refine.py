@@ -24,6 +24,7 @@ from models.effects import candidate_effects
 from models.narx import NARX, fit_narx
 from models.terms import parse_terms
 from service.recordfiles import read_record
+from simulator.recordfile import dump_csv
 from simulator.theory import EXACT_TERMS
 
 REPORT_KEYS = {
@@ -344,6 +345,35 @@ def test_parts_of_one_record_count_after_its_transient_and_are_reported_as_the_f
     record = read_record(simulated_records / "e1.csv")
     fitted = fit_narx([(record.x[1000:4000], record.y[1000:4000])], EXACT_TERMS)
     np.testing.assert_allclose(report["declared"]["theta"], fitted.theta, rtol=1e-9)
+
+
+def test_estimation_parts_leave_out_a_glitch_between_them(simulated_records: Path, tmp_path: Path):
+    # One sample of y at ten times the record's largest, as a sensor's glitch leaves: least squares
+    # over a part holding it is pulled far from the fit without it.
+    record = read_record(simulated_records / "e1.csv")
+    glitched = record.y.copy()
+    glitched[2000] = 10 * np.abs(record.y).max()
+    (tmp_path / "glitched.csv").write_text(dump_csv(record.x, glitched, record.fs))
+    split = ("--declared", "2dof", "--test", "4000:6000", "--estimation")
+    whole = refine_report("glitched.csv", *split, "0:4000", cwd=tmp_path)
+    parts = refine_report("glitched.csv", *split, "0:1990,2010:4000", cwd=tmp_path)
+    assert [e["samples"] for e in parts["data"]["estimation"]] == [[0, 1990], [2010, 4000]]
+    # The parts are fitted as records of their own: no lag reaches across the gap into the glitch.
+    apart = fit_narx([(record.x[a:b], record.y[a:b]) for a, b in ((0, 1990), (2010, 4000))], EXACT_TERMS)
+    np.testing.assert_allclose(parts["declared"]["theta"], apart.theta, rtol=1e-9)
+    without_glitch = fit_narx([(record.x[:4000], record.y[:4000])], EXACT_TERMS)
+    assert not np.allclose(whole["declared"]["theta"], without_glitch.theta, rtol=1e-2)
+    # The report is that of the record without the glitch, cut the same way.
+    clean = refine_report(str(simulated_records / "e1.csv"), *split, "0:1990,2010:4000", cwd=tmp_path)
+    assert parts["tests"][0]["after"] == clean["tests"][0]["after"]
+    assert parts["refined"] == clean["refined"] and parts["effects_added"] == clean["effects_added"]
+    # Fitted across the glitch, the declared model's one-step error on the test part is thousands of
+    # times larger, and its free run there diverges (the report's None).
+    (across,), (around,) = whole["tests"], parts["tests"]
+    assert around["before"]["one_step_rms"] < across["before"]["one_step_rms"] / 1000
+    assert across["before"]["free_run_rms"] is None and around["before"]["free_run_rms"] is not None
+    refused = invoke("refine", "glitched.csv", *split, "0:3000,2000:4000", cwd=tmp_path, check=False)
+    assert refused.returncode == 2 and "2000:4000 starts before 0:3000 ends" in refused.stderr
 
 
 def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_records: Path):

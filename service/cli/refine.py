@@ -2,8 +2,9 @@
 
 Two protocols. **Parts of one record** (one record, no ``--validate``; or ``--estimation``/
 ``--test`` given; or ``--format silverbox``, whose benchmark prescribes its split): the loop runs
-on the estimation part and both models are judged on the test part, then on each ``--validate``
-record whole. **Whole records** (several estimation records, or one with ``--validate``):
+on the estimation part (or parts, ``--estimation A:B,C:D``, fitted as records of their own: a
+glitch between them is left out) and both models are judged on the test part, then on each
+``--validate`` record whole. **Whole records** (several estimation records, or one with ``--validate``):
 estimation on all of them at once (no lag crosses a record's boundary), each ``--validate``
 record judged whole. ``--transient`` names the first samples of every record its transient:
 records used whole are fitted through it and every free run starts at the record's start, at rest
@@ -24,8 +25,9 @@ import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
+from itertools import pairwise
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -122,7 +124,9 @@ def refine_command(
     estimation: Annotated[
         str | None,
         typer.Option(
-            help="Estimation samples A:B of the one record (default: first 2/3; Silverbox: official)."
+            help="Estimation samples A:B of the one record (default: first 2/3; Silverbox: official); "
+            "A:B,C:D,… fits the parts as records of their own, no lag crossing from one to the next, "
+            "to leave out the samples between them (a glitch)."
         ),
     ] = None,
     test: Annotated[
@@ -184,30 +188,45 @@ def refine_command(
         (record,) = fitted
         x_cut, y_cut = record.x[transient:], record.y[transient:]
         n = len(y_cut)
-        est = _span(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3), "--estimation")
+        parts = _parts(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3))
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
-        fitted_part = [(x_cut[slice(*est)], y_cut[slice(*est)])]
-        with _stages() as stage, _workers(jobs) as (workers, threads):
-            report = refine_record(
-                x_cut,
-                y_cut,
-                terms,
-                est,
-                part,
-                start,
-                alpha,
-                rate,
-                progress=stage,
-                workers=workers,
-                threads=threads,
-            )
-            tests = report.tests + _judged(report, fitted_part, held, start, rate, transient, stage)
-        report = RefinementReport(report.refinement, tests)
+        fitted_parts = [(x_cut[a:b], y_cut[a:b]) for a, b in parts]
         c, d = part
+        with _stages() as stage, _workers(jobs) as (workers, threads):
+            if len(parts) == 1:
+                report = refine_record(
+                    x_cut,
+                    y_cut,
+                    terms,
+                    parts[0],
+                    part,
+                    start,
+                    alpha,
+                    rate,
+                    progress=stage,
+                    workers=workers,
+                    threads=threads,
+                )
+            else:
+                report = refine_records(
+                    fitted_parts,
+                    [(x_cut[c:d], y_cut[c:d])],
+                    terms,
+                    start,
+                    alpha,
+                    rate,
+                    progress=stage,
+                    workers=workers,
+                    threads=threads,
+                )
+            tests = report.tests + _judged(report, fitted_parts, held, start, rate, transient, stage)
+        report = replace(report, tests=tests)
         # Samples as the files number them.
         judged = [record.source | {"samples": [transient + c, transient + d]}]
         judged += [_whole(r, transient) for r in held]
-        protocol = {"estimation": [record.source | {"samples": [transient + est[0], transient + est[1]]}]}
+        protocol = {
+            "estimation": [record.source | {"samples": [transient + a, transient + b]} for a, b in parts]
+        }
         plotted = (x_cut[c:d], y_cut[c:d])
     else:
         for option, value in (("--estimation", estimation), ("--test", test)):
@@ -380,6 +399,18 @@ def _declared(spec: str | None) -> tuple[Term, ...] | None:
             raise InputError(f"cannot read {spec!r}: write linear:NY,NX, e.g. linear:4,4") from None
         return linear_terms(ny, nx)
     return read_terms(spec)
+
+
+def _parts(spec: str | None, n: int, default: tuple[int, int]) -> list[tuple[int, int]]:
+    """The estimation parts ``--estimation`` names, A:B or A:B,C:D,…, in order and apart."""
+    parts = [_span(each, n, default, "--estimation") for each in (spec.split(",") if spec else [None])]
+    for (a, b), (c, d) in pairwise(parts):
+        if c < b:
+            raise InputError(
+                f"--estimation parts must follow one another without overlapping: {c}:{d} starts "
+                f"before {a}:{b} ends"
+            )
+    return parts
 
 
 def _span(spec: str | None, n: int, default: tuple[int, int], option: str) -> tuple[int, int]:
