@@ -193,32 +193,12 @@ def refine_command(
         fitted_parts = [(x_cut[a:b], y_cut[a:b]) for a, b in parts]
         c, d = part
         with _stages() as stage, _workers(jobs) as (workers, threads):
+            running = {"progress": stage, "workers": workers, "threads": threads}
             if len(parts) == 1:
-                report = refine_record(
-                    x_cut,
-                    y_cut,
-                    terms,
-                    parts[0],
-                    part,
-                    start,
-                    alpha,
-                    rate,
-                    progress=stage,
-                    workers=workers,
-                    threads=threads,
-                )
+                report = refine_record(x_cut, y_cut, terms, parts[0], part, start, alpha, rate, **running)
             else:
-                report = refine_records(
-                    fitted_parts,
-                    [(x_cut[c:d], y_cut[c:d])],
-                    terms,
-                    start,
-                    alpha,
-                    rate,
-                    progress=stage,
-                    workers=workers,
-                    threads=threads,
-                )
+                tested = [(x_cut[c:d], y_cut[c:d])]
+                report = refine_records(fitted_parts, tested, terms, start, alpha, rate, **running)
             tests = report.tests + _judged(report, fitted_parts, held, start, rate, transient, stage)
         report = replace(report, tests=tests)
         # Samples as the files number them.
