@@ -374,6 +374,9 @@ def test_estimation_parts_leave_out_a_glitch_between_them(simulated_records: Pat
     assert across["before"]["free_run_rms"] is None and around["before"]["free_run_rms"] is not None
     refused = invoke("refine", "glitched.csv", *split, "0:3000,2000:4000", cwd=tmp_path, check=False)
     assert refused.returncode == 2 and "2000:4000 starts before 0:3000 ends" in refused.stderr
+    waves = ("--declared", "y[t-1],x[t-1],sin(2pi*0.01*t)", "--estimation", "0:1990,2010:4000")
+    refused = invoke("refine", "glitched.csv", *waves, cwd=tmp_path, check=False)
+    assert refused.returncode == 2 and "sinusoid of time is fitted on one stretch" in refused.stderr
 
 
 def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_records: Path):

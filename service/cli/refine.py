@@ -48,7 +48,7 @@ from models.refinement import (
 )
 from models.regression import Workers
 from models.scoring import Records
-from models.terms import Term
+from models.terms import WAVES, Term
 from service.cli.console import stderr, stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
 from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
@@ -190,6 +190,11 @@ def refine_command(
         n = len(y_cut)
         parts = _parts(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3))
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
+        if len(parts) > 1 and any(f.signal in WAVES for term in terms or () for f in term.factors):
+            # Each part would count its time from its own start, and the sinusoid's phase with it.
+            raise InputError(
+                "a declared sinusoid of time is fitted on one stretch of samples: give one --estimation part"
+            )
         fitted_parts = [(x_cut[a:b], y_cut[a:b]) for a, b in parts]
         c, d = part
         with _stages() as stage, _workers(jobs) as (workers, threads):
