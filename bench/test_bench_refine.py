@@ -70,7 +70,7 @@ def test_refinement_loop(benchmark, silverbox) -> None:
 
 @pytest.mark.benchmark(group="refine: Silverbox, linear ARX(4,4) (target <= 15 s end to end)")
 def test_refinement_with_assessment(benchmark, silverbox) -> None:
-    args = (silverbox.x, silverbox.y, linear_terms(4, 4), ESTIMATION, ARROW, INITIAL, 0.01, silverbox.fs)
+    args = (silverbox.x, silverbox.y, linear_terms(4, 4), [ESTIMATION], ARROW, INITIAL, 0.01, silverbox.fs)
     report = benchmark.pedantic(refine_record, args=args, rounds=3, iterations=1)
     assert report.after.free_run_rms <= 2.5e-3
 

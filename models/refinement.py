@@ -59,6 +59,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
+from itertools import pairwise
 from typing import Any, Literal, get_args
 
 import numpy as np
@@ -262,7 +263,7 @@ def refine_record(
     x: np.ndarray,
     y: np.ndarray,
     declared: Sequence[str | Term] | None,
-    estimation: tuple[int, int],
+    estimation: Sequence[tuple[int, int]],
     test: tuple[int, int],
     initial: int = 0,
     alpha: float = DEFAULT_ALPHA,
@@ -272,16 +273,16 @@ def refine_record(
     workers: Workers = map,
     threads: Workers = map,
 ) -> RefinementReport:
-    """Refine on samples ``estimation`` = (a, b) of one record, assess both models on ``test``.
+    """Refine on the ``estimation`` parts (a, b) of one record, assess both models on ``test``.
 
-    The first ``initial`` test samples only start the predictions (benchmark protocols
-    prescribe such a start, e.g. 50 samples for Silverbox). ``output_error``, ``progress``,
-    ``workers`` and ``threads`` as for :func:`refine`.
+    Several parts are fitted as records of their own, no lag reaching from one to the next, so
+    that what lies between them (a glitch) is left out. The first ``initial`` test samples only
+    start the predictions (benchmark protocols prescribe such a start, e.g. 50 samples for
+    Silverbox). ``output_error``, ``progress``, ``workers`` and ``threads`` as for :func:`refine`.
     """
     check_parts(len(x), declared, estimation, test, initial)
-    a, b = estimation
     c, d = test
-    estimation_part = [(x[a:b], y[a:b])]
+    estimation_part = [(x[a:b], y[a:b]) for a, b in estimation]
     result = refine(
         estimation_part,
         declared,
@@ -292,7 +293,9 @@ def refine_record(
         threads=threads,
     )
     _told(progress)("judging both models on the test part")
-    return RefinementReport(result, (compare(result, estimation_part, x[c:d], y[c:d], initial, fs, c - a),))
+    t0 = c - estimation[0][0]  # the test part's time from the first part's start
+    comparison = compare(result, estimation_part, x[c:d], y[c:d], initial, fs, t0)
+    return RefinementReport(result, (comparison,), _notes(result, len(estimation)))
 
 
 def refine_records(
@@ -325,22 +328,27 @@ def refine_records(
         except InputError as exc:
             raise InputError(f"test record {number}: {exc}") from None
     result = refine(estimation, declared, alpha=alpha, progress=progress, workers=workers, threads=threads)
-    notes = []
-    if len(estimation) > 1:
-        notes.append(
-            "periodic disturbances were not looked for: a sinusoid of time is fitted on one stretch of "
-            "samples, and the estimation data are several"
-        )
-    if any(factor.signal in WAVES for term in result.refined.terms for factor in term.factors):
-        notes.append(
-            "the refined model's periodic terms keep the phase of the estimation record's first "
-            "sample; the test records share no time base with it, so those terms are not validated there"
-        )
     tell, comparisons = _told(progress), []
     for number, (x, y) in enumerate(tests, start=1):
         tell(f"judging both models on test record {number} of {len(tests)}")
         comparisons.append(compare(result, estimation, x, y, initial, fs, 0, transient))
-    return RefinementReport(result, tuple(comparisons), tuple(notes))
+    notes = _notes(result, len(estimation))
+    if any(factor.signal in WAVES for term in result.refined.terms for factor in term.factors):
+        notes += (
+            "the refined model's periodic terms keep the phase of the estimation record's first "
+            "sample; the test records share no time base with it, so those terms are not validated there",
+        )
+    return RefinementReport(result, tuple(comparisons), notes)
+
+
+def _notes(result: Refinement, stretches: int) -> tuple[str, ...]:
+    """What the report says of the loop on ``stretches`` records or parts of one."""
+    if stretches == 1:
+        return ()
+    return (
+        "periodic disturbances were not looked for: a sinusoid of time is fitted on one stretch of "
+        "samples, and the estimation data are several",
+    )
 
 
 def compare(
@@ -366,15 +374,30 @@ def compare(
 def check_parts(
     n: int,
     declared: Sequence[str | Term] | None,
-    estimation: tuple[int, int],
+    estimation: Sequence[tuple[int, int]],
     test: tuple[int, int],
     initial: int = 0,
 ) -> None:
-    """Refuse estimation and test parts that do not fit a record of ``n`` samples, or a test part
-    too short to judge the models on: checked before the loop, which takes far longer."""
-    for label, (first, last) in (("estimation", estimation), ("test", test)):
+    """Refuse estimation and test parts that do not fit a record of ``n`` samples, estimation
+    parts that overlap or are out of order, a sinusoid of time declared with several (each part
+    would count its time, and the sinusoid's phase, from its own start), or a test part too short
+    to judge the models on: checked before the loop, which takes far longer."""
+    if not estimation:
+        raise InputError("give at least one estimation part")
+    for label, (first, last) in [*(("estimation", part) for part in estimation), ("test", test)]:
         if not 0 <= first < last <= n:
             raise InputError(f"the {label} samples {first}:{last} do not lie within the record's {n} samples")
+    for (a, b), (c, d) in pairwise(estimation):
+        if c < b:
+            raise InputError(
+                f"the estimation parts must follow one another without overlapping: {c}:{d} starts "
+                f"before {a}:{b} ends"
+            )
+    terms = parse_terms(declared) if declared else ()
+    if len(estimation) > 1 and any(factor.signal in WAVES for term in terms for factor in term.factors):
+        raise InputError(
+            "a declared sinusoid of time is fitted on one stretch of samples: give one estimation part"
+        )
     if initial < 0:
         raise InputError(f"the initial samples must be 0 or more, got {initial}")
     check_test_length(test[1] - test[0], max(initial, reach(declared)))

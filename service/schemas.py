@@ -339,10 +339,11 @@ MAX_REFINEMENT_RECORDS = 100  # of each kind: the cells bound limits their total
 class RefinementCreate(Strict):
     """Refine a baseline version on stored records. On one record (``record_id``): its
     estimation samples [a, b) fit, its test samples [c, d) judge (default: the first two thirds
-    and the last third). On several (``record_ids``): all of them fit at once, and each of
-    ``test_record_ids`` is judged whole; the first ``transient`` samples of each record hold its
-    transient: every record is fitted through them and run from its start, and a test record is
-    scored after them.
+    and the last third); estimation parts [[a, b], [c, d], …] are fitted as records of their own,
+    no lag reaching from one to the next, so that what lies between them (a glitch) is left out.
+    On several (``record_ids``): all of them fit at once, and each of ``test_record_ids`` is judged
+    whole; the first ``transient`` samples of each record hold its transient: every record is
+    fitted through them and run from its start, and a test record is scored after them.
     Without ``base_model_id`` (a structure no baseline describes yet) the loop starts from the
     linear model whose orders simulate best, and reports them."""
 
@@ -350,7 +351,11 @@ class RefinementCreate(Strict):
     record_ids: Annotated[list[Id], Field(min_length=1, max_length=MAX_REFINEMENT_RECORDS)] | None = None
     test_record_ids: Annotated[list[Id], Field(min_length=1, max_length=MAX_REFINEMENT_RECORDS)] | None = None
     base_model_id: Id | None = None
-    estimation: SampleRange | None = None
+    estimation: (
+        SampleRange
+        | Annotated[list[SampleRange], Field(min_length=1, max_length=MAX_REFINEMENT_RECORDS)]
+        | None
+    ) = None
     test: SampleRange | None = None
     transient: Annotated[StrictInt, Field(ge=0, le=10_000_000)] = 0
     initial: Annotated[StrictInt, Field(ge=0, le=100_000)] = 0
@@ -371,6 +376,16 @@ class RefinementCreate(Strict):
         elif self.estimation is not None or self.test is not None:
             raise ValueError("estimation and test parts go with record_id; record_ids are fitted whole")
         return self
+
+    @property
+    def estimation_parts(self) -> list[tuple[int, int]] | None:
+        """``estimation`` as a list of parts (one [a, b) is one part)."""
+        given = self.estimation
+        if given is None:
+            return None
+        if isinstance(given[0], int):
+            return [(given[0], given[1])]
+        return [(a, b) for a, b in given]
 
     @property
     def estimation_record_ids(self) -> list[int]:

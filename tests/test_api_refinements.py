@@ -3,7 +3,7 @@ model stored as an inactive version, every refinement listed, and bad requests l
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import httpx
 import numpy as np
@@ -208,6 +208,31 @@ def test_a_clean_record_adds_nothing_and_stores_no_model(rig: Rig):
         assert viewer.get(f"{API}/structures/{rig.structure_id}/models").json() == before
 
 
+def test_estimation_parts_leave_out_a_glitch_between_them(rig: Rig):
+    # The effect record's signals (the same seed) with one sample of y at ten times their largest.
+    record = simulated(QUADRATIC, seed=4)
+    glitched = record.y.copy()
+    glitched[4000] = 10 * np.abs(record.y).max()
+    parts = [[0, 3990], [4010, 8000]]
+    with clients(rig.org) as (admin, ingest, _):
+        glitch_id = upload_record(ingest, rig.structure_id, replace(record, y=glitched))
+        reports = {}
+        for record_id in (glitch_id, rig.effect_record):
+            body = {"record_id": record_id, "base_model_id": rig.baseline["id"], "estimation": parts}
+            response = admin.post(refinements_url(rig.structure_id), json=body)
+            assert response.status_code == 201, response.text
+            reports[record_id] = response.json()["report"]
+    report = reports[glitch_id]
+    assert report["data"]["estimation"] == parts and report["data"]["test"] == [8000, SAMPLES]
+    # Each part a record of its own: no lag reaches across the gap into the glitch.
+    terms = parse_terms(report["declared"]["terms"])
+    apart = fit_narx([(record.x[a:b], record.y[a:b]) for a, b in parts], terms)
+    np.testing.assert_allclose(report["declared"]["theta"], apart.theta, rtol=1e-9)
+    # The refinement of the record without the glitch, cut the same way.
+    assert report["effects_added"] == reports[rig.effect_record]["effects_added"]
+    assert report["refined"] == reports[rig.effect_record]["refined"]
+
+
 @pytest.mark.parametrize(
     ("change", "status", "fragment"),
     [
@@ -216,6 +241,8 @@ def test_a_clean_record_adds_nothing_and_stores_no_model(rig: Rig):
         ({"base_model_id": "k2"}, 422, "baseline NARX"),
         ({"record_id": "other"}, 422, "another structure"),
         ({"estimation": [0, 10**9]}, 422, "do not lie within"),
+        ({"estimation": [[0, 5000], [4000, 8000]]}, 422, "4000:8000 starts before 0:5000 ends"),
+        ({"estimation": [[0, 4000], [5000]]}, 422, "estimation"),
         ({"test": [500, 100]}, 422, "do not lie within"),
         ({"estimation": [0, 30]}, 422, "the estimation records have 24 equations (30 samples)"),
         ({"test": [8000, 8100]}, 422, "the test part has 100 samples"),

@@ -43,7 +43,7 @@ def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, s
     scenario = Scenario(disturbance_std=200.0, effects=Effects.parse([spec]))
     record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
     report = refine_record(
-        record.x, record.y, EXACT_TERMS, (0, ESTIMATION), (ESTIMATION, ESTIMATION + HELD_OUT), fs=record.fs
+        record.x, record.y, EXACT_TERMS, [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT), fs=record.fs
     )
     names = [e.name for e in report.refinement.effects_added]
     assert names and names[0] == effect, names
@@ -241,7 +241,7 @@ def test_a_static_nonlinearity_before_the_dynamics_is_the_input_nonlinearity() -
     lags, which no single combination's powers hold: the per-lag input nonlinearity is named
     first, not the filtered one."""
     x, y = wiener_hammerstein(seed=1, n=12_000, hammerstein=True)
-    report = refine_record(x, y, linear_terms(2, 3), (0, 8000), (8000, 12_000))
+    report = refine_record(x, y, linear_terms(2, 3), [(0, 8000)], (8000, 12_000))
     names = [e.name for e in report.refinement.effects_added]
     assert names and names[0] == "input_nonlinearity", names
 

@@ -88,7 +88,7 @@ UNDECLARED = [
 @pytest.mark.parametrize(("effect", "scenario", "share"), UNDECLARED, ids=[name for name, *_ in UNDECLARED])
 def test_an_undeclared_effect_is_named_first_and_the_one_step_error_falls(effect, scenario, share):
     record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
-    estimation, test = (0, ESTIMATION), (ESTIMATION, ESTIMATION + HELD_OUT)
+    estimation, test = [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT)
     # The one-step criterion and least-squares parameters alone, as Step 4 built the loop: its
     # figures are one-step errors, which output-error parameters do not minimise.
     report = refine_record(
@@ -115,7 +115,7 @@ SIMULATED = [
 @pytest.mark.parametrize(("effect", "effects"), SIMULATED, ids=[name for name, _ in SIMULATED])
 def test_an_undeclared_effect_is_named_first_and_the_held_out_free_run_at_least_halves(effect, effects):
     record = simulate(Scenario(disturbance_std=20.0, effects=effects), ESTIMATION + HELD_OUT, seed=1)
-    estimation, test = (0, ESTIMATION), (ESTIMATION, ESTIMATION + HELD_OUT)
+    estimation, test = [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT)
     report = refine_record(record.x, record.y, EXACT_TERMS, estimation, test, fs=record.fs)
     assert report.refinement.effects_added[0].name == effect, [
         e.name for e in report.refinement.effects_added
@@ -237,10 +237,10 @@ def test_sensor_offset_is_named_first_and_the_one_step_error_halves():
         (lambda: linear_terms(0, 2), "ny >= 1"),
         (lambda: linear_terms(2, 2, delay=-1), "delay >= 0"),
         (lambda: refine([(np.ones(100), np.ones(100))], ["y[t-1]"], alpha=1.5), "alpha"),
-        (lambda: refine_record(*NOISE, EXACT_TERMS, (0, 40), (1000, 3000)), "estimation records have"),
-        (lambda: refine_record(*NOISE, EXACT_TERMS, (0, 2000), (2000, 2150)), "test part has 150 samples"),
-        (lambda: refine_record(*NOISE, EXACT_TERMS, (0, 4000), (0, 3000)), "estimation samples 0:4000"),
-        (lambda: refine_record(*NOISE, EXACT_TERMS, (0, 2000), (2000, 3000), -1), "0 or more"),
+        (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 40)], (1000, 3000)), "estimation records have"),
+        (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 2000)], (2000, 2150)), "test part has 150 samples"),
+        (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 4000)], (0, 3000)), "estimation samples 0:4000"),
+        (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 2000)], (2000, 3000), -1), "0 or more"),
     ],
 )
 def test_bad_arguments_are_refused_clearly(call, message):

@@ -27,7 +27,6 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from enum import StrEnum
-from itertools import pairwise
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -48,7 +47,7 @@ from models.refinement import (
 )
 from models.regression import Workers
 from models.scoring import Records
-from models.terms import WAVES, Term
+from models.terms import Term
 from service.cli.console import stderr, stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
 from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
@@ -190,20 +189,22 @@ def refine_command(
         n = len(y_cut)
         parts = _parts(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3))
         part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
-        if len(parts) > 1 and any(f.signal in WAVES for term in terms or () for f in term.factors):
-            # Each part would count its time from its own start, and the sinusoid's phase with it.
-            raise InputError(
-                "a declared sinusoid of time is fitted on one stretch of samples: give one --estimation part"
-            )
         fitted_parts = [(x_cut[a:b], y_cut[a:b]) for a, b in parts]
         c, d = part
         with _stages() as stage, _workers(jobs) as (workers, threads):
-            running = {"progress": stage, "workers": workers, "threads": threads}
-            if len(parts) == 1:
-                report = refine_record(x_cut, y_cut, terms, parts[0], part, start, alpha, rate, **running)
-            else:
-                tested = [(x_cut[c:d], y_cut[c:d])]
-                report = refine_records(fitted_parts, tested, terms, start, alpha, rate, **running)
+            report = refine_record(
+                x_cut,
+                y_cut,
+                terms,
+                parts,
+                part,
+                start,
+                alpha,
+                rate,
+                progress=stage,
+                workers=workers,
+                threads=threads,
+            )
             tests = report.tests + _judged(report, fitted_parts, held, start, rate, transient, stage)
         report = replace(report, tests=tests)
         # Samples as the files number them.
@@ -387,15 +388,9 @@ def _declared(spec: str | None) -> tuple[Term, ...] | None:
 
 
 def _parts(spec: str | None, n: int, default: tuple[int, int]) -> list[tuple[int, int]]:
-    """The estimation parts ``--estimation`` names, A:B or A:B,C:D,…, in order and apart."""
-    parts = [_span(each, n, default, "--estimation") for each in (spec.split(",") if spec else [None])]
-    for (a, b), (c, d) in pairwise(parts):
-        if c < b:
-            raise InputError(
-                f"--estimation parts must follow one another without overlapping: {c}:{d} starts "
-                f"before {a}:{b} ends"
-            )
-    return parts
+    """The estimation parts ``--estimation`` names, A:B or A:B,C:D,… (the loop refuses parts that
+    overlap)."""
+    return [_span(each, n, default, "--estimation") for each in (spec.split(",") if spec else [None])]
 
 
 def _span(spec: str | None, n: int, default: tuple[int, int], option: str) -> tuple[int, int]:

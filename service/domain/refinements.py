@@ -50,7 +50,7 @@ class _Plan:
     tests: list[Record]
     base: ModelVersion | None
     terms: tuple[Term, ...] | None  # None: the loop chooses a linear model's orders
-    estimation: tuple[int, int] | None
+    estimation: list[tuple[int, int]] | None
     test: tuple[int, int] | None
     cells: int
 
@@ -78,7 +78,7 @@ def create_refinement(
         x, y = signals(record)
         report = refine_record(x, y, plan.terms, plan.estimation, plan.test, body.initial, body.alpha, fs)
         judged = [{"record_id": record.id, "samples": list(plan.test)}]
-        data = {"estimation": list(plan.estimation), "test": list(plan.test)}
+        data = {"estimation": _as_given(plan.estimation), "test": list(plan.test)}
     else:
         # Whole records, fitted through the transient and run from their start (as in `narxwatch
         # refine`); the tests are scored after it.
@@ -107,7 +107,7 @@ def create_refinement(
             "orders_chosen": document["orders_chosen"],
             "record_ids": [r.id for r in plan.records],
             **(
-                {"estimation": list(plan.estimation)}
+                {"estimation": _as_given(plan.estimation)}
                 if plan.estimation is not None
                 else {"transient": body.transient}
             ),
@@ -184,7 +184,7 @@ def _planned(
     estimation = test = None
     if body.record_id is not None:
         n = fitted[0].n_samples
-        estimation = (body.estimation[0], body.estimation[1]) if body.estimation else (0, 2 * n // 3)
+        estimation = body.estimation_parts or [(0, 2 * n // 3)]
         test = (body.test[0], body.test[1]) if body.test else (2 * n // 3, n)
         check_parts(n, terms, estimation, test, body.initial)
     else:
@@ -206,6 +206,11 @@ def _planned(
     cells = sum(record.n_samples for record in records) * regressors
     check_cost(cells, regressors, settings, "this refinement")
     return _Plan(structure, fitted, tests, base, terms, estimation, test, cells)
+
+
+def _as_given(parts: list[tuple[int, int]]) -> list[int] | list[list[int]]:
+    """Estimation parts as a request gives them: one as [a, b], several as [[a, b], [c, d], …]."""
+    return list(parts[0]) if len(parts) == 1 else [list(part) for part in parts]
 
 
 def _base(session: Session, structure: Structure, model_id: int) -> ModelVersion:
