@@ -295,7 +295,7 @@ def refine_record(
     _told(progress)("judging both models on the test part")
     t0 = c - estimation[0][0]  # the test part's time from the first part's start
     comparison = compare(result, estimation_part, x[c:d], y[c:d], initial, fs, t0)
-    return RefinementReport(result, (comparison,), _notes(result, len(estimation)))
+    return RefinementReport(result, (comparison,), _notes(len(estimation)))
 
 
 def refine_records(
@@ -332,7 +332,7 @@ def refine_records(
     for number, (x, y) in enumerate(tests, start=1):
         tell(f"judging both models on test record {number} of {len(tests)}")
         comparisons.append(compare(result, estimation, x, y, initial, fs, 0, transient))
-    notes = _notes(result, len(estimation))
+    notes = _notes(len(estimation))
     if any(factor.signal in WAVES for term in result.refined.terms for factor in term.factors):
         notes += (
             "the refined model's periodic terms keep the phase of the estimation record's first "
@@ -341,8 +341,8 @@ def refine_records(
     return RefinementReport(result, tuple(comparisons), notes)
 
 
-def _notes(result: Refinement, stretches: int) -> tuple[str, ...]:
-    """What the report says of the loop on ``stretches`` records or parts of one."""
+def _notes(stretches: int) -> tuple[str, ...]:
+    """What the report says of a loop on ``stretches`` records, or parts of one."""
     if stretches == 1:
         return ()
     return (
