@@ -333,7 +333,7 @@ def refine_records(
         tell(f"judging both models on test record {number} of {len(tests)}")
         comparisons.append(compare(result, estimation, x, y, initial, fs, 0, transient))
     notes = _notes(len(estimation))
-    if any(factor.signal in WAVES for term in result.refined.terms for factor in term.factors):
+    if _of_time(result.refined.terms):
         notes += (
             "the refined model's periodic terms keep the phase of the estimation record's first "
             "sample; the test records share no time base with it, so those terms are not validated there",
@@ -349,6 +349,11 @@ def _notes(stretches: int) -> tuple[str, ...]:
         "periodic disturbances were not looked for: a sinusoid of time is fitted on one stretch of "
         "samples, and the estimation data are several",
     )
+
+
+def _of_time(terms: Sequence[Term]) -> bool:
+    """Whether any of ``terms`` holds a sinusoid of time."""
+    return any(factor.signal in WAVES for term in terms for factor in term.factors)
 
 
 def compare(
@@ -393,8 +398,7 @@ def check_parts(
                 f"the estimation parts must follow one another without overlapping: {c}:{d} starts "
                 f"before {a}:{b} ends"
             )
-    terms = parse_terms(declared) if declared else ()
-    if len(estimation) > 1 and any(factor.signal in WAVES for term in terms for factor in term.factors):
+    if len(estimation) > 1 and declared and _of_time(parse_terms(declared)):
         raise InputError(
             "a declared sinusoid of time is fitted on one stretch of samples: give one estimation part"
         )
