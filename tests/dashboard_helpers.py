@@ -23,7 +23,7 @@ from api_helpers import (
     upload_simulated,
     verdicts,
 )
-from live import LiveServer
+from live import LiveServer, http_client
 
 DASHBOARD = "/dashboard"
 COOKIE = "narxwatch_session"
@@ -82,9 +82,10 @@ def logged_in(server: LiveServer, key: str) -> httpx.Client:
     The cookie is Secure. Browsers send such cookies to http://127.0.0.1 (a secure context);
     httpx sends them over HTTPS only, so it is handed over here as a browser would.
     """
-    response = httpx.post(f"{server.url}{DASHBOARD}/login", data={"api_key": key, "next": DASHBOARD})
+    with http_client(base_url=server.url) as anonymous:
+        response = anonymous.post(f"{DASHBOARD}/login", data={"api_key": key, "next": DASHBOARD})
     assert response.status_code == 303, response.text
-    return httpx.Client(base_url=server.url, cookies={COOKIE: response.cookies[COOKIE]}, timeout=60)
+    return http_client(base_url=server.url, cookies={COOKIE: response.cookies[COOKIE]}, timeout=60)
 
 
 def charts(page: httpx.Response) -> dict[str, Any]:

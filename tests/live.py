@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import socket
+import ssl
 import subprocess
 import threading
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import httpx
 import uvicorn
@@ -18,19 +20,29 @@ from service.config import Settings
 from service.db import transaction
 from service.security import Role, create_key
 
+# httpx builds a TLS context for every client, reading the CA bundle (about 70 ms on a slow
+# machine), though the test clients speak plain HTTP on loopback: they share this one.
+TLS = ssl.create_default_context()
+
+
+def http_client(**options: Any) -> httpx.Client:
+    """An httpx client for the test servers, sharing one TLS context (``TLS``)."""
+    return httpx.Client(verify=TLS, **options)
+
 
 def wait_until_serving(base: str, process: subprocess.Popen, timeout: float, why: Callable[[], str]) -> None:
     """Poll ``base``/healthz until a separately started ``narxwatch serve`` answers; fail with
     ``why()`` if it exits or ``timeout`` seconds pass first."""
     deadline = time.monotonic() + timeout
-    while True:
-        try:
-            if httpx.get(f"{base}/healthz").status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        assert time.monotonic() < deadline and process.poll() is None, why()
-        time.sleep(0.1)
+    with http_client(base_url=base) as http:
+        while True:
+            try:
+                if http.get("/healthz").status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline and process.poll() is None, why()
+            time.sleep(0.1)
 
 
 def free_port() -> int:
@@ -78,7 +90,7 @@ class LiveServer:
 
     def client(self, key: str | None = None) -> httpx.Client:
         headers = {"Authorization": f"Bearer {key}"} if key else {}
-        return httpx.Client(base_url=self.url, headers=headers, timeout=60)
+        return http_client(base_url=self.url, headers=headers, timeout=60)
 
 
 @dataclass

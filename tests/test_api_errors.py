@@ -36,7 +36,7 @@ from api_helpers import (
     records_url,
     train_fault_mode,
 )
-from live import LiveServer
+from live import LiveServer, http_client
 
 from models.signals import minimum_samples
 from service.config import Settings
@@ -762,7 +762,7 @@ def test_missing_or_invalid_api_key(site: Site, api_server, authorization, messa
         ("POST", f"/structures/{site.rig}/records", raw_json(json_body(300))),
         ("POST", f"/records/{site.training[0]['record_id']}/inspect", None),
     ]
-    with nothing_written(site.org, site.rig), httpx.Client(base_url=api_server.url, timeout=60) as anonymous:
+    with nothing_written(site.org, site.rig), http_client(base_url=api_server.url, timeout=60) as anonymous:
         for method, path, content in requests:
             response = anonymous.request(
                 method, API + path, content=content, headers={**headers, "Content-Type": "application/json"}

@@ -25,7 +25,7 @@ from dashboard_helpers import (
     logged_in,
     monitored_structure,
 )
-from live import LiveServer
+from live import LiveServer, http_client
 from markupsafe import escape
 from sqlalchemy import update
 
@@ -63,7 +63,7 @@ def row_ids(page: httpx.Response, attribute: str) -> list[int]:
 
 def test_a_logged_out_visitor_is_sent_to_the_login_page(api_server: LiveServer, monitored: Monitored):
     structure_id, record_id = monitored.structure["id"], monitored.records[0]["id"]
-    with httpx.Client(base_url=api_server.url) as anonymous:
+    with http_client(base_url=api_server.url) as anonymous:
         for path in (
             DASHBOARD,
             f"{DASHBOARD}/structures/{structure_id}?status=faulty",
@@ -87,7 +87,7 @@ def test_logging_in_sets_a_secure_http_only_cookie_that_is_not_the_key(
     api_server: LiveServer, monitored: Monitored
 ):
     key = monitored.org.keys["viewer"]
-    with httpx.Client(base_url=api_server.url) as client:
+    with http_client(base_url=api_server.url) as client:
         wanted = f"{DASHBOARD}/structures/{monitored.structure['id']}"
         response = client.post(f"{DASHBOARD}/login", data={"api_key": key, "next": wanted})
     assert response.status_code == 303 and response.headers["location"] == wanted
@@ -105,7 +105,7 @@ def test_logging_in_sets_a_secure_http_only_cookie_that_is_not_the_key(
     ids=["empty", "unknown", "malformed", "header", "oversize"],
 )
 def test_a_bad_key_is_refused_with_a_message_and_no_session(api_server: LiveServer, key: str):
-    with httpx.Client(base_url=api_server.url) as client:
+    with http_client(base_url=api_server.url) as client:
         response = client.post(f"{DASHBOARD}/login", data={"api_key": key, "next": DASHBOARD})
         assert response.status_code in (401, 422)
         assert COOKIE not in response.cookies
@@ -122,7 +122,7 @@ def test_every_role_may_log_in(api_server: LiveServer, monitored: Monitored):
 
 def test_next_never_leads_off_the_dashboard(api_server: LiveServer, monitored: Monitored):
     key = monitored.org.keys["viewer"]
-    with httpx.Client(base_url=api_server.url) as client:
+    with http_client(base_url=api_server.url) as client:
         for target in (
             "https://evil.example/dashboard",
             "//evil.example/x",
@@ -144,7 +144,7 @@ def test_logging_out_ends_the_session_on_the_server(api_server: LiveServer, moni
             f"{COOKIE}=" in response.headers["set-cookie"]
             and "max-age=0" in response.headers["set-cookie"].lower()
         )
-    with httpx.Client(base_url=api_server.url, cookies={COOKIE: token}) as replay:
+    with http_client(base_url=api_server.url, cookies={COOKIE: token}) as replay:
         assert replay.get(DASHBOARD).status_code == 303, "a cookie kept after logout opens nothing"
 
 
@@ -167,7 +167,7 @@ def test_revoking_the_key_ends_its_logins(api_server: LiveServer):
 
 
 def test_plotly_js_is_served_from_the_installed_package(api_server: LiveServer):
-    with httpx.Client(base_url=api_server.url) as anonymous:
+    with http_client(base_url=api_server.url) as anonymous:
         response = anonymous.get(f"{DASHBOARD}/static/plotly.min.js")
     assert response.status_code == 200 and "javascript" in response.headers["content-type"]
     assert response.content == (Path(plotly.__file__).parent / "package_data" / "plotly.min.js").read_bytes()
@@ -199,7 +199,7 @@ def test_a_forged_host_header_never_becomes_a_link_or_a_redirect(
     api_server: LiveServer, monitored: Monitored, viewer: httpx.Client
 ):
     forged = {"Host": FORGED_HOST}
-    with httpx.Client(base_url=api_server.url, headers=forged) as anonymous:
+    with http_client(base_url=api_server.url, headers=forged) as anonymous:
         redirect = anonymous.get(DASHBOARD)
         assert redirect.status_code == 303 and redirect.headers["location"].startswith(f"{DASHBOARD}/login")
         assert_relative_links(anonymous.get(f"{DASHBOARD}/login"))
@@ -216,7 +216,7 @@ def test_a_forged_host_header_never_becomes_a_link_or_a_redirect(
 def test_pages_forbid_framing_caching_inline_and_foreign_scripts(
     api_server: LiveServer, monitored: Monitored, viewer: httpx.Client
 ):
-    with httpx.Client(base_url=api_server.url) as anonymous:
+    with http_client(base_url=api_server.url) as anonymous:
         pages = [anonymous.get(f"{DASHBOARD}/login")] + [viewer.get(p) for p in dashboard_pages(monitored)]
     for page in pages:
         policy = {
@@ -569,7 +569,7 @@ def test_a_login_ends_when_it_expires(api_server: LiveServer):
         found = find_login(session, lasting)
         assert found is not None and found.organisation == org.name
         assert find_login(session, expired) is None
-    with httpx.Client(base_url=api_server.url, cookies={COOKIE: expired}) as client:
+    with http_client(base_url=api_server.url, cookies={COOKIE: expired}) as client:
         assert client.get(DASHBOARD).status_code == 303
 
 

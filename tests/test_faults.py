@@ -26,7 +26,7 @@ from api_helpers import (
     verdicts_of,
     wait_for,
 )
-from live import LiveServer
+from live import LiveServer, http_client
 from workers import Worker, workers
 
 from service.config import Settings
@@ -188,7 +188,7 @@ def test_the_same_record_uploaded_at_once_is_stored_once(tenant):
     answers: list[httpx.Response] = []
 
     def upload() -> None:
-        with httpx.Client(
+        with http_client(
             base_url=str(tenant.ingest.base_url), headers=tenant.ingest.headers, timeout=60
         ) as client:
             start.wait()

@@ -35,7 +35,7 @@ from api_helpers import (
     wait_for,
 )
 from dashboard_helpers import DASHBOARD, logged_in
-from live import LiveServer
+from live import LiveServer, http_client
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import Engine, func, insert, select, text
 
@@ -89,7 +89,7 @@ def counted(engine: Engine) -> dict[str, object]:
 
 
 def scraped(server: LiveServer) -> dict[str, object]:
-    with httpx.Client(base_url=server.url) as client:
+    with http_client(base_url=server.url) as client:
         response = client.get("/metrics")
     assert response.status_code == 200, response.text
     samples = {

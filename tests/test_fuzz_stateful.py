@@ -69,7 +69,7 @@ from hypothesis.stateful import (
     rule,
     run_state_machine_as_test,
 )
-from live import LiveServer
+from live import LiveServer, http_client
 from schemathesis import GenerationMode
 from sqlalchemy import text
 
@@ -149,7 +149,7 @@ class World:
             for method in item
             if method in {"get", "post", "put", "patch", "delete"}
         )
-        self.http = httpx.Client(base_url=server.url, timeout=120)
+        self.http = http_client(base_url=server.url, timeout=120)
         self.orgs = (self._organisation("a"), self._organisation("b"))
         self.keyholder = self._organisation("k")
         self.violations: dict[tuple[str, str, str], Violation] = {}
@@ -205,7 +205,7 @@ class World:
                 "connection dropped", method, route, "", f"{described}: {exc!r} (before it: {self.previous})"
             )
             self.http.close()
-            self.http = httpx.Client(base_url=self.server.url, timeout=120)
+            self.http = http_client(base_url=self.server.url, timeout=120)
             return None
         self.previous = f"{described} → {response.status_code}"
         self.check_answer(
@@ -345,7 +345,7 @@ def _structure_of(response: httpx.Response) -> int:
 def seed(world: World, org: Organisation, seed_value: int) -> None:
     """A trained structure with records, a verdict, a baseline, a refinement and a schedule."""
     headers = {"Authorization": f"Bearer {org.keys['admin']}"}
-    with httpx.Client(base_url=world.server.url, headers=headers, timeout=120) as admin:
+    with http_client(base_url=world.server.url, headers=headers, timeout=120) as admin:
         name = f"{org.name}-rig"
         structure = create_structure(admin, name)
         sid = structure["id"]

@@ -35,7 +35,7 @@ import httpx
 import numpy as np
 import pytest
 from api_helpers import API, create_structure, json_body
-from live import LiveServer, free_port, wait_until_serving
+from live import LiveServer, free_port, http_client, wait_until_serving
 from sqlalchemy import exc, select
 from test_cli import NARXWATCH
 
@@ -157,7 +157,7 @@ async def time_victim(served: Served, slow: list[asyncio.Task]) -> list[tuple[fl
 
 def test_slow_bodies_get_408_and_never_slow_another_organisation(served: Served):
     headers = {"Authorization": f"Bearer {served.attacker_admin}"}
-    with httpx.Client(base_url=served.url, headers=headers) as admin:
+    with http_client(base_url=served.url, headers=headers) as admin:
         structure_id = create_structure(admin)["id"]
     path = f"{API}/structures/{structure_id}/records"
     body = json.dumps(json_body(2000, seed=5)).encode()  # ~80 kB: hours at 2 bytes per piece

@@ -32,7 +32,7 @@ from api_helpers import (
     simulated,
     upload_simulated,
 )
-from live import free_port, wait_until_serving
+from live import free_port, http_client, wait_until_serving
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.db import make_engine, session_factory, transaction
@@ -55,7 +55,7 @@ class Served:
         if key is not None:
             headers["Authorization"] = f"Bearer {key}"
         # A new connection per client: the kernel hands each to either worker process.
-        return httpx.Client(base_url=self.url, headers=headers, timeout=60)
+        return http_client(base_url=self.url, headers=headers, timeout=60)
 
     def scrape(self) -> dict[tuple[str, Labels], float]:
         """Every sample of ``/metrics``, as (name, labels) -> value."""
