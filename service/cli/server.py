@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-import uvicorn
 from rich.table import Table
 from rich.text import Text
 from sqlalchemy.orm import Session, sessionmaker
@@ -50,6 +49,8 @@ def serve(
     fresh temporary folder, removed at exit, unless the variable names one.
     """
     # Imported here, as the app is: the other commands of this module need neither.
+    import uvicorn
+
     from service.observability.metrics import MULTIPROCESS_DIR
 
     settings = get_settings()
