@@ -85,7 +85,7 @@ from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
 from models.regression import Workers
 from models.scoring import EffectScore, Records, Scores, fit_model, score_effects
-from models.signals import checked_records
+from models.signals import GLITCH_FACTOR, checked_records, glitches
 from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 
 DEFAULT_ALPHA = 0.01
@@ -110,6 +110,8 @@ MAX_LINEAR_ORDER = 10  # the largest order tried when no structure is declared
 # side): of Silverbox's ten rounds from linear:4,4, four add the first family judged, and the
 # others the second to the fourth.
 JUDGED_AT_ONCE = 2
+# Glitches a report names by their sample; more are counted.
+GLITCHES_NAMED = 5
 
 Criterion = Literal["one-step", "simulation", "simulation across folds"]
 
@@ -295,7 +297,12 @@ def refine_record(
     _told(progress)("judging both models on the test part")
     t0 = c - estimation[0][0]  # the test part's time from the first part's start
     comparison = compare(result, estimation_part, x[c:d], y[c:d], initial, fs, t0)
-    return RefinementReport(result, (comparison,), _notes(len(estimation)))
+    notes = _notes(len(estimation)) + _glitch_notes(
+        [y for _, y in estimation_part],
+        lambda part, index: f"y[{estimation[part][0] + index}]",
+        "leave it out with estimation parts around it",
+    )
+    return RefinementReport(result, (comparison,), notes)
 
 
 def refine_records(
@@ -332,7 +339,11 @@ def refine_records(
     for number, (x, y) in enumerate(tests, start=1):
         tell(f"judging both models on test record {number} of {len(tests)}")
         comparisons.append(compare(result, estimation, x, y, initial, fs, 0, transient))
-    notes = _notes(len(estimation))
+    notes = _notes(len(estimation)) + _glitch_notes(
+        [y for _, y in estimation],
+        lambda record, index: f"y[{index}]" + (f" of record {record + 1}" if len(estimation) > 1 else ""),
+        "cut it out of its record",
+    )
     if _of_time(result.refined.terms):
         notes += (
             "the refined model's periodic terms keep the phase of the estimation record's first "
@@ -348,6 +359,30 @@ def _notes(stretches: int) -> tuple[str, ...]:
     return (
         "periodic disturbances were not looked for: a sinusoid of time is fitted on one stretch of "
         "samples, and the estimation data are several",
+    )
+
+
+def _glitch_notes(
+    outputs: Sequence[np.ndarray], label: Callable[[int, int], str], cure: str
+) -> tuple[str, ...]:
+    """A note naming the estimation data's glitches (:func:`models.signals.glitches`, over all of
+    ``outputs`` together), each by ``label(output's number from 0, sample within it)``; ``cure``
+    says how the caller leaves a glitch out."""
+    everything = np.concatenate(outputs)
+    found = glitches(everything)
+    if not found.size:
+        return ()
+    ends = np.cumsum([len(y) for y in outputs])
+    named = []
+    for index in found[:GLITCHES_NAMED]:
+        part = int(np.searchsorted(ends, index, side="right"))
+        named.append(f"{label(part, int(index - (ends[part - 1] if part else 0)))} = {everything[index]:.4g}")
+    more = f" and {found.size - GLITCHES_NAMED} more samples" if found.size > GLITCHES_NAMED else ""
+    verb = "lies" if found.size == 1 else "lie"
+    return (
+        f"{', '.join(named)}{more} {verb} more than {GLITCH_FACTOR:g} times as far from the estimation "
+        "data's median output as 99 % of its samples do, as a glitch does; least squares gives such "
+        f"a sample the weight of thousands: if it is one, {cure}",
     )
 
 

@@ -372,6 +372,11 @@ def test_estimation_parts_leave_out_a_glitch_between_them(simulated_records: Pat
     (across,), (around,) = whole["tests"], parts["tests"]
     assert around["before"]["one_step_rms"] < across["before"]["one_step_rms"] / 1000
     assert across["before"]["free_run_rms"] is None and around["before"]["free_run_rms"] is not None
+    # The report fitted across the glitch names it by its sample in the record; around it, none.
+    (note,) = [note for note in whole["notes"] if "as a glitch does" in note]
+    assert note.startswith(f"y[2000] = {glitched[2000]:.4g} lies more than 6 times as far")
+    assert note.endswith("if it is one, leave it out with estimation parts around it")
+    assert not [note for note in parts["notes"] + clean["notes"] if "glitch" in note]
     refused = invoke("refine", "glitched.csv", *split, "0:3000,2000:4000", cwd=tmp_path, check=False)
     assert refused.returncode == 2 and "2000:4000 starts before 0:3000 ends" in refused.stderr
     waves = ("--declared", "y[t-1],x[t-1],sin(2pi*0.01*t)", "--estimation", "0:1990,2010:4000")

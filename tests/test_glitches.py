@@ -1,0 +1,75 @@
+"""Glitches: samples so far out that they are more likely a sensor's fault than response
+(``models.signals.glitches``), and the refinement report's note naming them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.io
+from conftest import DATA_DIR
+
+from models.refinement import refine_records
+from models.signals import GLITCH_FACTOR, glitches
+from service.recordfiles import parse_silverbox
+from simulator.simulate import Scenario, simulate
+
+
+def measured_signals() -> dict[str, np.ndarray]:
+    """Inputs and outputs of the three benchmarks in ../shared/data, none developed on here."""
+    silverbox = parse_silverbox((DATA_DIR / "silverbox" / "SNLS80mV.csv").read_bytes())
+    sweep = scipy.io.loadmat(DATA_DIR / "f16-gvt" / "F16Data_SineSw_Level7.mat")
+    wiener = np.genfromtxt(DATA_DIR / "wiener-hammerstein" / "WH_EstimationExample.csv", delimiter=",")[1:]
+    signals = {"Silverbox V1": silverbox.x, "Silverbox V2": silverbox.y, "F-16 force": sweep["Force"].ravel()}
+    signals |= {f"F-16 acceleration {k + 1}": sweep["Acceleration"][k] for k in range(3)}
+    # Columns r×10, u×10, y×10, fs: the ten measured inputs and outputs.
+    signals |= {f"Wiener–Hammerstein column {k}": wiener[:, k] for k in range(10, 30)}
+    return signals
+
+
+def test_measured_signals_hold_none_and_a_sample_at_ten_times_the_largest_is_found():
+    signals = measured_signals()
+    assert len(signals) == 26
+    for name, values in signals.items():
+        assert glitches(values).size == 0, name
+        glitched = values.copy()
+        glitched[len(values) // 3] = 10 * np.abs(values).max()
+        assert glitches(glitched).tolist() == [len(values) // 3], name
+
+
+def test_gaussian_and_laplacian_noise_hold_none_and_the_rule_is_the_percentile_times_the_factor():
+    rng = np.random.default_rng(7)
+    for values in (rng.normal(3.0, 2.0, 1_000_000), rng.laplace(-1.0, 0.5, 1_000_000)):
+        assert glitches(values).size == 0
+    values = rng.normal(0.0, 1.0, 10_000)
+    spread = np.quantile(np.abs(values - np.median(values)), 0.99)
+    # A fifth either side of the bound: setting three samples moves the percentile far less.
+    values[[10, 20, 30]] = np.median(values) + GLITCH_FACTOR * spread * np.array([1.2, -1.2, 0.8])
+    assert glitches(values).tolist() == [10, 20]
+    assert glitches(np.zeros(100)).size == 0
+
+
+def simulated(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    record = simulate(Scenario(disturbance_std=20.0), 3000, seed)
+    return record.x, record.y.copy()
+
+
+def test_the_report_names_each_glitch_by_its_record_and_sample():
+    records = [simulated(seed) for seed in (5, 6)]
+    (x1, y1), (x2, y2) = records
+    y2 = y2.copy()
+    y2[1234] = 10 * np.abs(y2).max()
+    report = refine_records([(x1, y1), (x2, y2)], [(x1, y1)], ["y[t-1]", "y[t-2]", "x[t-1]"], initial=2)
+    (note,) = [note for note in report.notes if "as a glitch does" in note]
+    assert note.startswith(f"y[1234] of record 2 = {y2[1234]:.4g} lies more than 6 times as far")
+    assert note.endswith("if it is one, cut it out of its record")
+    clean = refine_records(records, [(x1, y1)], ["y[t-1]", "y[t-2]", "x[t-1]"], initial=2)
+    assert not [note for note in clean.notes if "glitch" in note]
+
+
+@pytest.mark.parametrize("count", [5, 7])
+def test_five_glitches_are_named_and_the_rest_counted(count: int):
+    x, y = simulated(8)
+    y[100 : 100 + 10 * count : 10] = 10 * np.abs(y).max()
+    report = refine_records([(x, y)], [(x, y)], ["y[t-1]", "y[t-2]", "x[t-1]"], initial=2)
+    (note,) = [note for note in report.notes if "as a glitch does" in note]
+    assert note.count("y[") == 5 and ("and 2 more samples lie more" in note) == (count == 7)
