@@ -245,6 +245,8 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
         assert page.locator(f"p.muted a[href='/dashboard/records/{record_id}']").count() == 1
     rows = page.locator("#errors tbody tr")
     assert rows.count() == 4, "a declared and a refined row for each record judged"
+    # The report's notes, here that two records were fitted and no periodic disturbance sought.
+    assert report["notes"] and page.locator("#notes li").all_inner_texts() == report["notes"]
     for number, (record_id, test) in enumerate(zip(ids[2:], report["tests"], strict=True)):
         declared, refined = rows.nth(2 * number), rows.nth(2 * number + 1)
         assert f"record {record_id}" in declared.inner_text()
