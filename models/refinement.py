@@ -381,8 +381,8 @@ def _glitch_notes(
     verb = "lies" if found.size == 1 else "lie"
     return (
         f"{', '.join(named)}{more} {verb} more than {GLITCH_FACTOR:g} times as far from the estimation "
-        "data's median output as 99 % of its samples do, as a glitch does; least squares gives such "
-        f"a sample the weight of thousands: if it is one, {cure}",
+        "data's median output as 99 % of its samples do, as a glitch does; least squares weighs such "
+        f"a sample as hundreds of others: if it is one, {cure}",
     )
 
 
