@@ -298,8 +298,8 @@ def refine_record(
     t0 = c - estimation[0][0]  # the test part's time from the first part's start
     comparison = compare(result, estimation_part, x[c:d], y[c:d], initial, fs, t0)
     notes = _notes(len(estimation)) + _glitch_notes(
-        [y for _, y in estimation_part],
-        lambda part, index: f"y[{estimation[part][0] + index}]",
+        estimation_part,
+        lambda signal, part, index: f"{signal}[{estimation[part][0] + index}]",
         "leave it out with estimation parts around it",
     )
     return RefinementReport(result, (comparison,), notes)
@@ -339,9 +339,10 @@ def refine_records(
     for number, (x, y) in enumerate(tests, start=1):
         tell(f"judging both models on test record {number} of {len(tests)}")
         comparisons.append(compare(result, estimation, x, y, initial, fs, 0, transient))
+    several = len(estimation) > 1
     notes = _notes(len(estimation)) + _glitch_notes(
-        [y for _, y in estimation],
-        lambda record, index: f"y[{index}]" + (f" of record {record + 1}" if len(estimation) > 1 else ""),
+        estimation,
+        lambda signal, record, index: f"{signal}[{index}]" + (f" of record {record + 1}" if several else ""),
         "cut it out of its record",
     )
     if _of_time(result.refined.terms):
@@ -362,28 +363,30 @@ def _notes(stretches: int) -> tuple[str, ...]:
     )
 
 
-def _glitch_notes(
-    outputs: Sequence[np.ndarray], label: Callable[[int, int], str], cure: str
-) -> tuple[str, ...]:
-    """A note naming the estimation data's glitches (:func:`models.signals.glitches`, over all of
-    ``outputs`` together), each by ``label(output's number from 0, sample within it)``; ``cure``
-    says how the caller leaves a glitch out."""
-    everything = np.concatenate(outputs)
-    found = glitches(everything)
-    if not found.size:
-        return ()
-    ends = np.cumsum([len(y) for y in outputs])
-    named = []
-    for index in found[:GLITCHES_NAMED]:
-        part = int(np.searchsorted(ends, index, side="right"))
-        named.append(f"{label(part, int(index - (ends[part - 1] if part else 0)))} = {everything[index]:.4g}")
-    more = f" and {found.size - GLITCHES_NAMED} more samples" if found.size > GLITCHES_NAMED else ""
-    verb = "lies" if found.size == 1 else "lie"
-    return (
-        f"{', '.join(named)}{more} {verb} more than {GLITCH_FACTOR:g} times as far from the estimation "
-        "data's median output as 99 % of its samples do, as a glitch does; least squares weighs such "
-        f"a sample as hundreds of others: if it is one, {cure}",
-    )
+def _glitch_notes(records: Records, label: Callable[[str, int, int], str], cure: str) -> tuple[str, ...]:
+    """A note for each signal, x and y, naming its glitches in the estimation ``records``
+    (:func:`models.signals.glitches`, over all of them together), each by ``label(signal, record's
+    number from 0, sample within it)``; ``cure`` says how the caller leaves a glitch out."""
+    notes = []
+    ends = np.cumsum([len(y) for _, y in records])
+    for signal, what, column in (("x", "input", 0), ("y", "output", 1)):
+        everything = np.concatenate([record[column] for record in records])
+        found = glitches(everything)
+        if not found.size:
+            continue
+        named = []
+        for index in found[:GLITCHES_NAMED]:
+            part = int(np.searchsorted(ends, index, side="right"))
+            where = label(signal, part, int(index - (ends[part - 1] if part else 0)))
+            named.append(f"{where} = {everything[index]:.4g}")
+        more = f" and {found.size - GLITCHES_NAMED} more samples" if found.size > GLITCHES_NAMED else ""
+        verb = "lies" if found.size == 1 else "lie"
+        notes.append(
+            f"{', '.join(named)}{more} {verb} more than {GLITCH_FACTOR:g} times as far from the estimation "
+            f"data's median {what} as 99 % of its samples do, as a glitch does; least squares weighs such "
+            f"a sample as hundreds of others: if it is one, {cure}"
+        )
+    return tuple(notes)
 
 
 def _of_time(terms: Sequence[Term]) -> bool:

@@ -53,16 +53,20 @@ def simulated(seed: int) -> tuple[np.ndarray, np.ndarray]:
     return record.x, record.y.copy()
 
 
-def test_the_report_names_each_glitch_by_its_record_and_sample():
+def test_the_report_names_each_glitch_by_its_signal_record_and_sample():
     records = [simulated(seed) for seed in (5, 6)]
     (x1, y1), (x2, y2) = records
-    y2 = y2.copy()
-    y2[1234] = 10 * np.abs(y2).max()
-    report = refine_records([(x1, y1), (x2, y2)], [(x1, y1)], ["y[t-1]", "y[t-2]", "x[t-1]"], initial=2)
-    (note,) = [note for note in report.notes if "as a glitch does" in note]
-    assert note.startswith(f"y[1234] of record 2 = {y2[1234]:.4g} lies more than 6 times as far")
-    assert note.endswith("if it is one, cut it out of its record")
-    clean = refine_records(records, [(x1, y1)], ["y[t-1]", "y[t-2]", "x[t-1]"], initial=2)
+    glitched_x, glitched_y = x1.copy(), y2.copy()
+    glitched_x[321] = 10 * np.abs(x1).max()
+    glitched_y[1234] = 10 * np.abs(y2).max()
+    declared = ["y[t-1]", "y[t-2]", "x[t-1]"]
+    report = refine_records([(glitched_x, y1), (x2, glitched_y)], [(x1, y1)], declared, initial=2)
+    on_x, on_y = [note for note in report.notes if "as a glitch does" in note]
+    assert on_x.startswith(f"x[321] of record 1 = {glitched_x[321]:.4g} lies more than 6 times as far")
+    assert "median input" in on_x
+    assert on_y.startswith(f"y[1234] of record 2 = {glitched_y[1234]:.4g} lies more than 6 times as far")
+    assert "median output" in on_y and on_y.endswith("if it is one, cut it out of its record")
+    clean = refine_records(records, [(x1, y1)], declared, initial=2)
     assert not [note for note in clean.notes if "glitch" in note]
 
 
