@@ -316,6 +316,7 @@ def refine_records(
     progress: Stage | None = None,
     workers: Workers = map,
     threads: Workers = map,
+    names: Sequence[str] | None = None,
 ) -> RefinementReport:
     """Refine on several estimation records, assess both models on each test record, whole.
 
@@ -323,7 +324,9 @@ def refine_records(
     model's lags); its first ``transient`` samples are run through but not scored
     (:func:`models.assessment.assess`). A model with sinusoidal terms is phase-locked to the
     estimation record's first sample; on a test record its sinusoids count time from that
-    record's first sample. ``progress``, ``workers`` and ``threads`` as for :func:`refine`.
+    record's first sample. ``progress``, ``workers`` and ``threads`` as for :func:`refine`;
+    ``names`` are how the notes call the estimation records (a file, a stored record's id;
+    by default "record k", k from 1, where there are several).
     """
     if not tests:
         raise InputError("at least one test record is needed to judge the refined model")
@@ -339,10 +342,11 @@ def refine_records(
     for number, (x, y) in enumerate(tests, start=1):
         tell(f"judging both models on test record {number} of {len(tests)}")
         comparisons.append(compare(result, estimation, x, y, initial, fs, 0, transient))
-    several = len(estimation) > 1
+    if names is None and len(estimation) > 1:
+        names = [f"record {number}" for number in range(1, len(estimation) + 1)]
     notes = _notes(len(estimation)) + _glitch_notes(
         estimation,
-        lambda signal, record, index: f"{signal}[{index}]" + (f" of record {record + 1}" if several else ""),
+        lambda signal, record, index: f"{signal}[{index}]" + (f" of {names[record]}" if names else ""),
         "cut it out of its record",
     )
     if _of_time(result.refined.terms):

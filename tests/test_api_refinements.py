@@ -287,6 +287,23 @@ def test_roles_and_organisations(rig: Rig, api_server: LiveServer):
         assert viewer.get(f"{API}/refinements/{UNKNOWN}").status_code == 404
 
 
+def test_a_glitch_in_one_of_several_records_is_named_by_the_record(rig: Rig):
+    record = simulated(QUADRATIC, seed=31, n=SHORT)
+    glitched = replace(record, y=record.y.copy())
+    glitched.y[1234] = 10 * np.abs(record.y).max()
+    with clients(rig.org) as (admin, ingest, _):
+        glitch_id = upload_record(ingest, rig.structure_id, glitched)
+        body = {"record_ids": [rig.fitted[0], glitch_id], "test_record_ids": rig.judged[:1]}
+        response = admin.post(
+            refinements_url(rig.structure_id), json=body | {"base_model_id": rig.baseline["id"]}
+        )
+        assert response.status_code == 201, response.text
+    (note,) = [note for note in response.json()["report"]["notes"] if "as a glitch does" in note]
+    assert note.startswith(
+        f"y[1234] of record {glitch_id} = {glitched.y[1234]:.4g} lies more than 6 times as far"
+    )
+
+
 def test_several_records_are_fitted_at_once_and_each_test_record_judged_whole(rig: Rig):
     body = {
         "record_ids": rig.fitted,

@@ -384,6 +384,21 @@ def test_estimation_parts_leave_out_a_glitch_between_them(simulated_records: Pat
     assert refused.returncode == 2 and "sinusoid of time is fitted on one stretch" in refused.stderr
 
 
+def test_a_glitch_in_one_of_several_records_is_named_by_its_file(simulated_records: Path, tmp_path: Path):
+    # Their first 2500 samples: the loop's length is not what is checked.
+    for name in ("e1", "e2", "v1"):
+        record = read_record(simulated_records / f"{name}.csv")
+        x = record.x[:2500].copy()
+        if name == "e2":
+            x[777] = 10 * np.abs(x).max()
+            glitch = x[777]
+        (tmp_path / f"{name}.csv").write_text(dump_csv(x, record.y[:2500], record.fs))
+    declared = ("--declared", "y[t-1],y[t-2],x[t-1]", "--jobs", "1")
+    result = invoke("refine", "e1.csv", "e2.csv", "--validate", "v1.csv", *declared, cwd=tmp_path)
+    assert f"note: x[777] of e2.csv = {glitch:.4g} lies more than 6 times as far" in result.stdout
+    assert "median input" in result.stdout and "y[" not in result.stdout.split("note: x[777]")[1]
+
+
 def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_records: Path):
     # The table is printed from the JSON report's "orders_chosen" and "declared" (one loop, not two).
     table = run("refine", "e1.csv", "e2.csv", "--validate", "v1.csv", cwd=simulated_records).stdout

@@ -85,7 +85,8 @@ def create_refinement(
         cut = body.transient
         fitted = [signals(record) for record in plan.records]
         held = [signals(record) for record in plan.tests]
-        report = refine_records(fitted, held, plan.terms, body.initial, body.alpha, fs, cut)
+        names = [f"record {record.id}" for record in plan.records]
+        report = refine_records(fitted, held, plan.terms, body.initial, body.alpha, fs, cut, names=names)
         judged = [{"record_id": r.id, "samples": [cut, r.n_samples]} for r in plan.tests]
         data = {"transient": cut}
     document = report.to_dict()
