@@ -227,7 +227,6 @@ def refine_command(
         # then start where the records do, at rest. Started mid-record from L measured outputs
         # instead, F-16's multisines' check runs favoured least squares over output error, whose
         # slow mode carries those readings' noise (README: "Free runs started mid-record").
-        protocol = {"estimation": [_whole(r, 0) for r in fitted]}
         with _stages() as stage, _workers(jobs) as (workers, threads):
             report = refine_records(
                 [(r.x, r.y) for r in fitted],
@@ -240,9 +239,10 @@ def refine_command(
                 progress=stage,
                 workers=workers,
                 threads=threads,
-                names=[f"{item['path']}{_signals(item)}" for item in protocol["estimation"]],
+                names=[r.name for r in fitted],
             )
         judged = [_whole(r, transient) for r in held]
+        protocol = {"estimation": [_whole(r, 0) for r in fitted]}
         plotted = (held[0].x, held[0].y)
     document = report.to_dict()
     document["tests"] = [where | item for where, item in zip(judged, document["tests"], strict=True)]
