@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import os
+import ssl
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, IPvAnyNetwork, SecretStr
+from pydantic import Field, FilePath, IPvAnyNetwork, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -87,6 +88,10 @@ class Settings(BaseSettings):
     # ``webhook_allowed_networks`` (JSON list, e.g. '["10.1.0.0/16"]') admits chosen ranges.
     webhook_allow_private: bool = False
     webhook_allowed_networks: list[IPvAnyNetwork] = []
+    # A PEM file of further certificate authorities that webhook receivers' and the SMTP relay's
+    # certificates may be signed by (an organisation's private CA for admitted internal ranges),
+    # trusted beside certifi's and the system's.
+    notification_ca_file: FilePath | None = None
     # One attempt (connect, send, answer; or an SMTP conversation) ends after this many seconds.
     notification_timeout_seconds: float = Field(10.0, gt=0, le=120)
     # A failed delivery is tried again after 30 s, 1, 2, 4 … min, up to this many attempts in all
@@ -106,6 +111,17 @@ class Settings(BaseSettings):
     smtp_password: SecretStr | None = None
     smtp_from: str = "narxwatch@localhost"
     smtp_starttls: bool = True
+
+    @field_validator("notification_ca_file")
+    @classmethod
+    def _holds_certificates(cls, path: Path | None) -> Path | None:
+        """Refused at start, not at each delivery: a file no TLS context can load."""
+        if path is not None:
+            try:
+                ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_verify_locations(path)
+            except ssl.SSLError as exc:
+                raise ValueError(f"{path} holds no PEM certificate ({exc.reason or exc})") from exc
+        return path
 
 
 @lru_cache

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import ssl
 import threading
 import time
 from collections.abc import Iterable
@@ -18,9 +19,12 @@ from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
+import trustme
 from aiosmtpd.controller import Controller
 from aiosmtpd.smtp import SMTP, Envelope, Session
 from live import free_port
+
+HOST = "127.0.0.1"
 
 TOLERANCE = 300  # seconds a signature's timestamp may be old (Stripe's default)
 HANG = 0  # an "answer" that holds the request until ``release`` is set, then answers 200
@@ -52,10 +56,12 @@ class Request:
 @dataclass
 class Receiver:
     """``with Receiver(secret, [500, 500, 200]) as receiver:`` serves on ``receiver.url`` until
-    the block ends; once the answers are used up it answers 200."""
+    the block ends; once the answers are used up it answers 200. With ``authority``, over HTTPS,
+    its certificate for 127.0.0.1 signed by that certificate authority."""
 
     secret: str
     answers: Iterable[int] = ()
+    authority: trustme.CA | None = None
     requests: list[Request] = field(default_factory=list)
     applied: dict[str, dict[str, Any]] = field(default_factory=dict)  # events acted on, by key
     release: threading.Event = field(default_factory=threading.Event)
@@ -80,7 +86,10 @@ class Receiver:
             def log_message(self, *args: Any) -> None:
                 pass
 
-        self._server = ThreadingHTTPServer(("127.0.0.1", free_port()), Handler)
+        self._server = ThreadingHTTPServer((HOST, free_port()), Handler)
+        if self.authority is not None:
+            serving = _serving_tls(self.authority)
+            self._server.socket = serving.wrap_socket(self._server.socket, server_side=True)
         self._server.daemon_threads = True
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
 
@@ -102,7 +111,8 @@ class Receiver:
 
     @property
     def url(self) -> str:
-        return f"http://127.0.0.1:{self._server.server_address[1]}/hooks/narxwatch"
+        scheme = "http" if self.authority is None else "https"
+        return f"{scheme}://{HOST}:{self._server.server_address[1]}/hooks/narxwatch"
 
     def __enter__(self) -> Receiver:
         self._thread.start()
@@ -116,14 +126,16 @@ class Receiver:
 
 class Mailbox:
     """A real SMTP server (aiosmtpd) on loopback keeping the messages it accepts; after
-    ``refuse_next(n)`` it answers ``451`` (try again later) to the next ``n``."""
+    ``refuse_next(n)`` it answers ``451`` (try again later) to the next ``n``. With ``authority``
+    it takes mail only after STARTTLS, its certificate signed by that certificate authority."""
 
-    def __init__(self) -> None:
+    def __init__(self, authority: trustme.CA | None = None) -> None:
         self.messages: list[Envelope] = []
         self.refused = 0
         self._refuse = 0
         self.port = free_port()
-        self._controller = Controller(self, hostname="127.0.0.1", port=self.port)
+        tls = {} if authority is None else {"tls_context": _serving_tls(authority), "require_starttls": True}
+        self._controller = Controller(self, hostname=HOST, port=self.port, **tls)
 
     async def handle_DATA(self, server: SMTP, session: Session, envelope: Envelope) -> str:  # noqa: N802
         if self.refused < self._refuse:
@@ -141,3 +153,10 @@ class Mailbox:
 
     def __exit__(self, *_: object) -> None:
         self._controller.stop()
+
+
+def _serving_tls(authority: trustme.CA) -> ssl.SSLContext:
+    """A server's TLS context, its certificate for ``HOST`` signed by ``authority``."""
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    authority.issue_cert(HOST).configure_cert(context)
+    return context

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import psycopg
 import pytest
+import trustme
 from api_helpers import (
     API,
     Org,
@@ -38,6 +39,7 @@ from api_helpers import (
     wait_for,
 )
 from live import LiveServer, free_port
+from pydantic import ValidationError
 from receivers import HANG, Mailbox, Receiver, verify
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
@@ -239,6 +241,73 @@ def test_redirects_are_not_followed(outbox: Outbox):
     (delivery,) = outbox.deliveries()
     assert (delivery.status, delivery.last_status_code) == ("pending", 307)
     assert "redirects are not followed" in (delivery.last_error or "")
+
+
+@pytest.fixture(scope="module")
+def authority() -> trustme.CA:
+    """A private certificate authority, as an organisation's internal receivers are signed by."""
+    return trustme.CA()
+
+
+@pytest.fixture
+def authority_file(authority: trustme.CA, tmp_path: Path) -> Path:
+    path = tmp_path / "private-ca.pem"
+    authority.cert_pem.write_to_path(str(path))
+    return path
+
+
+def test_a_webhook_over_https_is_delivered_once_its_certificate_authority_is_trusted(
+    outbox: Outbox, authority: trustme.CA, authority_file: Path
+):
+    """A receiver whose certificate a private CA signed: refused while only certifi's and the
+    system's authorities are trusted (nothing sent), delivered signed once the operator names
+    the CA (NARXWATCH_NOTIFICATION_CA_FILE)."""
+    with Receiver(SECRET, authority=authority) as receiver:
+        assert receiver.url.startswith("https://")
+        outbox.webhook(receiver.url, ["alarm.opened"])
+        with transaction(outbox.sessions) as session:
+            notifications.notify(session, outbox.organisation_id, "alarm.opened", PAYLOAD)
+        assert outbox.run_jobs() == 1
+        assert receiver.requests == []
+        (delivery,) = outbox.deliveries()
+        assert (delivery.status, delivery.attempts) == ("pending", 1)
+        assert "CERTIFICATE_VERIFY_FAILED" in (delivery.last_error or ""), delivery.last_error
+        outbox.settings = outbox.settings.model_copy(update={"notification_ca_file": authority_file})
+        assert outbox.run_jobs(now=utcnow() + dt.timedelta(minutes=1)) == 1
+        (request,) = receiver.requests
+        assert request.signed and request.document()["data"] == PAYLOAD
+    (delivery,) = outbox.deliveries()
+    assert (delivery.status, delivery.attempts, delivery.last_status_code) == ("delivered", 2, 200)
+
+
+def test_an_email_goes_through_starttls_once_the_relays_certificate_authority_is_trusted(
+    outbox: Outbox, authority: trustme.CA, authority_file: Path
+):
+    """A relay that takes mail only after STARTTLS, its certificate signed by a private CA."""
+    with Mailbox(authority=authority) as box:
+        outbox.settings = outbox.settings.model_copy(update={"smtp_port": box.port, "smtp_starttls": True})
+        outbox.subscription(["alarm.opened"])
+        with transaction(outbox.sessions) as session:
+            notifications.notify(session, outbox.organisation_id, "alarm.opened", PAYLOAD)
+        assert outbox.run_jobs() == 1
+        assert box.messages == []
+        (delivery,) = outbox.deliveries()
+        assert "CERTIFICATE_VERIFY_FAILED" in (delivery.last_error or ""), delivery.last_error
+        outbox.settings = outbox.settings.model_copy(update={"notification_ca_file": authority_file})
+        assert outbox.run_jobs(now=utcnow() + dt.timedelta(minutes=1)) == 1
+        (message,) = box.messages
+        assert message.rcpt_tos == ["a@example.com"]
+    (delivery,) = outbox.deliveries()
+    assert (delivery.status, delivery.attempts) == ("delivered", 2)
+
+
+def test_a_certificate_authority_file_that_holds_no_certificate_is_refused_at_start(tmp_path: Path):
+    missing, empty = tmp_path / "missing.pem", tmp_path / "empty.pem"
+    empty.write_text("not a certificate\n")
+    with pytest.raises(ValidationError, match="notification_ca_file"):
+        Settings(notification_ca_file=missing)  # type: ignore[arg-type]
+    with pytest.raises(ValidationError, match=r"empty\.pem holds no PEM certificate"):
+        Settings(notification_ca_file=empty)  # type: ignore[arg-type]
 
 
 def test_an_attempt_ends_by_its_deadline_however_slowly_the_receiver_answers(outbox: Outbox):
