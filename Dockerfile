@@ -19,7 +19,7 @@ RUN pip install . "psycopg[binary]>=3.2"
 # the XDG data directory, $XDG_DATA_HOME/narxwatch/narxwatch.db.
 ENV XDG_DATA_HOME=/app/var
 RUN useradd --system --uid 10001 --user-group --home-dir /app --shell /usr/sbin/nologin narxwatch \
-    && mkdir -p /app/var/keys \
+    && mkdir -p /app/var/keys /app/var/sealing \
     && chown -R narxwatch:narxwatch /app/var
 USER narxwatch
 

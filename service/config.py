@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import base64
+import binascii
 import os
 import ssl
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, FilePath, IPvAnyNetwork, SecretStr, field_validator
+from pydantic import Field, FilePath, IPvAnyNetwork, SecretStr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from service.errors import SettingsError
 
 
 def _data_home() -> Path:
@@ -22,6 +26,16 @@ def _data_home() -> Path:
 
 DEFAULT_DATABASE = _data_home() / "narxwatch" / "narxwatch.db"
 
+KEY_FORM = "32 bytes in URL-safe base64 (a Fernet key)"
+
+
+def is_key(key: str) -> bool:
+    """Whether ``key`` can seal secrets (``service.sealing``): 32 bytes in URL-safe base64."""
+    try:
+        return len(base64.urlsafe_b64decode(key.encode("ascii"))) == 32
+    except (binascii.Error, UnicodeEncodeError):
+        return False
+
 
 class Settings(BaseSettings):
     """Everything the service reads from its environment.
@@ -31,7 +45,10 @@ class Settings(BaseSettings):
     ``postgresql+psycopg://user:password@host/db``.
     """
 
-    model_config = SettingsConfigDict(env_prefix="NARXWATCH_", env_file=".env", extra="ignore")
+    # Errors name the setting, never its value: it may be a password or a key.
+    model_config = SettingsConfigDict(
+        env_prefix="NARXWATCH_", env_file=".env", extra="ignore", hide_input_in_errors=True
+    )
 
     database_url: str = f"sqlite:///{DEFAULT_DATABASE}"
     max_upload_bytes: int = Field(16 * 1024 * 1024, gt=0)
@@ -92,6 +109,11 @@ class Settings(BaseSettings):
     # certificates may be signed by (an organisation's private CA for admitted internal ranges),
     # trusted beside certifi's and the system's.
     notification_ca_file: FilePath | None = None
+    # The keys sealing the secrets the service reads back (webhooks' signing secrets;
+    # service.sealing): JSON list, the first sealing, every one unsealing. Unset: those of
+    # ``secret_key_file`` (one a line), created with a new key where it does not exist.
+    secret_keys: list[SecretStr] = []
+    secret_key_file: Path = DEFAULT_DATABASE.parent / "secret.key"
     # One attempt (connect, send, answer; or an SMTP conversation) ends after this many seconds.
     notification_timeout_seconds: float = Field(10.0, gt=0, le=120)
     # A failed delivery is tried again after 30 s, 1, 2, 4 … min, up to this many attempts in all
@@ -123,7 +145,22 @@ class Settings(BaseSettings):
                 raise ValueError(f"{path} holds no PEM certificate ({exc.reason or exc})") from exc
         return path
 
+    @field_validator("secret_keys")
+    @classmethod
+    def _are_keys(cls, keys: list[SecretStr]) -> list[SecretStr]:
+        for position, key in enumerate(keys, 1):
+            if not is_key(key.get_secret_value()):
+                raise ValueError(f"key {position} of {len(keys)} is not {KEY_FORM}")
+        return keys
+
 
 @lru_cache
 def get_settings() -> Settings:
-    return Settings()
+    """The settings of this process; :class:`SettingsError` names every invalid one."""
+    try:
+        return Settings()
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"NARXWATCH_{str(error['loc'][0]).upper()}: {error['msg']}" for error in exc.errors()
+        )
+        raise SettingsError(f"invalid settings: {problems}") from None

@@ -17,3 +17,7 @@ class DatabaseNotReadyError(Exception):
 class DatabaseUnreachableError(DatabaseNotReadyError):
     """The database did not answer (a server starting, restarting or away): unlike a missing or
     old schema, something that may mend itself."""
+
+
+class SettingsError(Exception):
+    """A setting read from the environment is invalid; the message names each by its variable."""

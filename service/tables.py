@@ -559,8 +559,10 @@ class AlarmTransition(Base):
 class Webhook(Base):
     """An organisation's HTTPS (or HTTP) endpoint told of the ``events`` it wants.
 
-    ``secret`` signs every delivery (``service.domain.notifications``), so it is kept as given,
-    not hashed; the API never shows it again after creation."""
+    ``secret`` signs every delivery (``service.domain.notifications``), so it is kept to be read
+    back, not hashed: sealed under the server's keys (``service.sealing``), a Fernet token of at
+    most 356 characters for the longest secret the API takes (200); the API never shows it
+    again after creation."""
 
     __tablename__ = "webhooks"
 
@@ -569,7 +571,7 @@ class Webhook(Base):
         ForeignKey("organisations.id", ondelete="CASCADE"), index=True
     )
     url: Mapped[str] = mapped_column(String(2000))
-    secret: Mapped[str] = mapped_column(String(200))
+    secret: Mapped[str] = mapped_column(String(400))
     events: Mapped[list[str]] = mapped_column(Document)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
 

@@ -55,7 +55,8 @@ def test_the_services_start_in_order_and_share_the_simulators_key(compose: dict)
         "seed": {"condition": "service_completed_successfully"},
     }
     key_file = seed["command"][seed["command"].index("--key-file") + 1]
-    keys = next(iter(compose["volumes"].keys() & {v.split(":")[0] for v in seed["volumes"]}))
+    (keys,) = [v.split(":")[0] for v in simulator["volumes"]]
+    assert keys in compose["volumes"]
     assert key_file.startswith(mounted(seed, keys) + "/")
     assert simulator["environment"]["NARXWATCH_SIM_API_KEY_FILE"] == key_file
     assert mounted(simulator, keys) == mounted(seed, keys)
@@ -64,6 +65,18 @@ def test_the_services_start_in_order_and_share_the_simulators_key(compose: dict)
     assert seed["environment"]["NARXWATCH_DATABASE_URL"] == database, (
         "the seed service seeds the api's database"
     )
+
+
+def test_every_service_of_the_service_reads_one_sealing_key_file_on_a_volume_they_share(compose: dict):
+    """The API seals webhooks' secrets and the workers unseal them to sign each delivery: each
+    with a key of its own, nothing a worker sent would be signed. The migrations seal too."""
+    services = compose["services"]
+    ours = [name for name, service in services.items() if service.get("command", [""])[0] == "narxwatch"]
+    assert {"migrate", "api", "worker-1", "worker-2"} <= set(ours)
+    key_files = {services[name]["environment"]["NARXWATCH_SECRET_KEY_FILE"] for name in ours}
+    (key_file,) = key_files
+    folders = {mounted(services[name], "sealing") for name in ours}
+    assert folders == {str(Path(key_file).parent)} and "sealing" in compose["volumes"]
 
 
 @pytest.fixture(scope="module")

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 import uuid
 
 import pytest
 from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
+from cryptography.fernet import Fernet
 from sqlalchemy import JSON, Connection, inspect, select, text
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -438,4 +440,37 @@ def test_0020_is_undone_only_once_no_refinement_without_a_base_model_is_stored(f
     engine = make_engine(fresh_url)
     with engine.connect() as connection:
         assert connection.execute(text("SELECT id, base_model_id FROM refinements")).all() == [(1, 1)]
+    engine.dispose()
+
+
+def test_0021_seals_the_webhooks_secrets_under_the_servers_keys_and_undoes_it(fresh_url, monkeypatch):
+    """Secrets stored as given before 0021 are sealed by it (none left readable in the table, each
+    opened by the server's key alone), and downgrading gives them back as they were."""
+    key = Fernet.generate_key().decode()
+    monkeypatch.setenv("NARXWATCH_SECRET_KEYS", json.dumps([key]))
+    secrets = {1: "whsec_" + "a" * 40, 2: "s" * 200}  # the longest the API takes
+    upgrade_database(fresh_url, "0020")
+    engine = make_engine(fresh_url)
+    now = dt.datetime.now(dt.UTC)
+    with engine.begin() as connection:
+        connection.execute(
+            text("INSERT INTO organisations (id, name, created_at) VALUES (1, 'o', :t)"), {"t": now}
+        )
+        for webhook_id, secret in secrets.items():
+            connection.execute(
+                text("INSERT INTO webhooks (id, organisation_id, url, secret, events, created_at) "
+                     "VALUES (:i, 1, 'https://93.184.215.14/hook', :s, '[\"alarm.opened\"]', :t)"),
+                {"i": webhook_id, "s": secret, "t": now},
+            )  # fmt: skip
+
+    def stored() -> dict[int, str]:
+        with engine.connect() as connection:
+            return {i: secret for i, secret in connection.execute(text("SELECT id, secret FROM webhooks"))}
+
+    upgrade_database(fresh_url)
+    sealed = stored()
+    assert all(secrets[i] not in sealed[i] for i in secrets)
+    assert {i: Fernet(key).decrypt(token.encode()).decode() for i, token in sealed.items()} == secrets
+    command.downgrade(alembic_config(fresh_url), "0020")
+    assert stored() == secrets
     engine.dispose()

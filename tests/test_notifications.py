@@ -38,8 +38,9 @@ from api_helpers import (
     train_fault_mode,
     wait_for,
 )
+from cryptography.fernet import Fernet
 from live import LiveServer, free_port
-from pydantic import ValidationError
+from pydantic import SecretStr, ValidationError
 from receivers import HANG, Mailbox, Receiver, verify
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
@@ -51,6 +52,7 @@ from service.domain import notifications, renotify
 from service.jobs.distributed import conninfo
 from service.jobs.embedded import EmbeddedBackend, claim, defer, run
 from service.migrate import upgrade_database
+from service.sealing import seal, unseal
 from service.tables import (
     Alarm,
     Delivery,
@@ -104,7 +106,8 @@ class Outbox:
 
     def webhook(self, url: str, events: list[str]) -> int:
         with transaction(self.sessions) as session:
-            webhook = Webhook(organisation_id=self.organisation_id, url=url, secret=SECRET, events=events)
+            sealed = seal(SECRET, self.settings)
+            webhook = Webhook(organisation_id=self.organisation_id, url=url, secret=sealed, events=events)
             session.add(webhook)
             session.flush()
             return webhook.id
@@ -308,6 +311,52 @@ def test_a_certificate_authority_file_that_holds_no_certificate_is_refused_at_st
         Settings(notification_ca_file=missing)  # type: ignore[arg-type]
     with pytest.raises(ValidationError, match=r"empty\.pem holds no PEM certificate"):
         Settings(notification_ca_file=empty)  # type: ignore[arg-type]
+
+
+def test_a_secret_sealed_under_a_key_the_server_lost_is_not_sent_and_a_rotation_keeps_every_secret(
+    outbox: Outbox,
+):
+    """A webhook sealed under key A: a server given only key B makes no attempt it could not sign
+    (the log says which setting to mend); given B then A, it delivers; resealed under B, B alone
+    opens it. Each delivery signed with the secret as given."""
+    keys = {name: SecretStr(Fernet.generate_key().decode()) for name in "AB"}
+
+    def holding(*names: str) -> Settings:
+        return outbox.settings.model_copy(update={"secret_keys": [keys[name] for name in names]})
+
+    def announce_and_deliver(now: dt.datetime | None = None) -> None:
+        with transaction(outbox.sessions) as session:
+            notifications.notify(session, outbox.organisation_id, "alarm.opened", PAYLOAD)
+        assert outbox.run_jobs(now) >= 1
+
+    with Receiver(SECRET) as receiver:
+        outbox.settings = holding("A")
+        outbox.webhook(receiver.url, ["alarm.opened"])
+        outbox.settings = holding("B")
+        announce_and_deliver()
+        assert receiver.requests == []
+        (delivery,) = outbox.deliveries()
+        assert delivery.status == "pending" and "NARXWATCH_SECRET_KEYS" in (delivery.last_error or "")
+        outbox.settings = holding("B", "A")
+        assert outbox.run_jobs(now=utcnow() + dt.timedelta(minutes=1)) == 1
+        with transaction(outbox.sessions) as session:
+            assert notifications.reseal_secrets(session, outbox.settings) == 1
+        outbox.settings = holding("B")
+        announce_and_deliver()
+        assert len(receiver.requests) == 2 and all(request.signed for request in receiver.requests)
+    assert [d.status for d in outbox.deliveries()] == ["delivered", "delivered"]
+
+
+def test_a_webhooks_secret_is_stored_sealed_and_never_shown_again(api_server: LiveServer):
+    """What a copy of the database holds is no secret: only the server's key opens it."""
+    with clients(Org.create(api_server)) as (admin, _, _):
+        created = admin.post(f"{API}/webhooks", json=GOOD)
+        assert created.status_code == 201, created.text
+        listed = admin.get(f"{API}/webhooks")
+    with api_server.app.state.sessions() as session:
+        stored = session.get_one(Webhook, created.json()["id"]).secret
+    assert SECRET not in stored and SECRET not in created.text + listed.text
+    assert unseal(stored, api_server.settings) == SECRET
 
 
 def test_an_attempt_ends_by_its_deadline_however_slowly_the_receiver_answers(outbox: Outbox):

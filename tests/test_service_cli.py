@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import json
 import os
 import shutil
 import signal
@@ -14,10 +15,14 @@ from pathlib import Path
 
 import httpx
 import pytest
+from cryptography.fernet import Fernet
 from live import free_port, wait_until_serving
+from sqlalchemy import insert, select
 from test_cli import invoke
 
 from service.config import get_settings
+from service.db import make_engine
+from service.tables import Organisation, Webhook, utcnow
 
 BIN = Path(sys.executable).parent
 NARXWATCH = shutil.which("narxwatch", path=str(BIN))
@@ -82,6 +87,7 @@ def prefix(key: str) -> str:
 
 def test_keys_list_shows_every_key_but_never_the_key_or_its_hash(seeded):
     org = f"list-{uuid.uuid4().hex[:8]}"
+    run("keys", "create", "--org", f"other-{org}", "--role", "viewer", env=seeded)  # listed, not ours
     made = {
         role: run("keys", "create", "--org", org, "--role", role, env=seeded).stdout.strip() for role in ROLES
     }
@@ -282,3 +288,66 @@ def test_an_unreachable_database_server_is_a_one_line_error_without_the_password
     (line,) = result.stderr.strip().splitlines()
     assert "cannot open the database at postgresql+psycopg://narxwatch:***@127.0.0.1:1/narxwatch" in line
     assert "s3cret" not in result.stderr
+
+
+# --- The keys webhooks' secrets are sealed under ---------------------------------------------------
+
+
+def test_the_embedded_default_makes_its_sealing_key_beside_its_database_for_its_owner_alone(newcomer):
+    env, workdir, database = newcomer
+    run("db", "upgrade", env=env, cwd=workdir)
+    run("worker", "--once", env=env, cwd=workdir)  # a worker reads the keys as it starts
+    key_file = database.parent / "secret.key"
+    assert key_file.stat().st_mode & 0o777 == 0o600
+    (key,) = key_file.read_text().split()
+    assert Fernet(key).decrypt(Fernet(key).encrypt(b"x")) == b"x"
+    assert list(workdir.iterdir()) == []
+
+
+def test_db_reseal_seals_every_secret_under_the_first_key_or_changes_nothing(newcomer):
+    env, workdir, database = newcomer
+    run("db", "upgrade", env=env, cwd=workdir)
+    old, new = (Fernet.generate_key().decode() for _ in range(2))
+    secrets = ["whsec_" + letter * 32 for letter in "xy"]
+    engine = make_engine(f"sqlite:///{database}")
+    with engine.begin() as connection:
+        connection.execute(insert(Organisation).values(id=1, name="o", created_at=utcnow()))
+        for secret in secrets:
+            sealed = Fernet(old).encrypt(secret.encode()).decode()
+            values = {"url": "https://93.184.215.14/hook", "events": ["alarm.opened"], "created_at": utcnow()}
+            connection.execute(insert(Webhook).values(organisation_id=1, secret=sealed, **values))
+
+    def stored() -> list[str]:
+        with engine.connect() as connection:
+            return list(connection.scalars(select(Webhook.secret).order_by(Webhook.id)))
+
+    before = stored()
+    refused = run("db", "reseal", env=env | {"NARXWATCH_SECRET_KEYS": json.dumps([new])}, check=False)
+    assert refused.returncode == 2, refused.stderr
+    assert "webhook 1: " in refused.stderr and "NARXWATCH_SECRET_KEYS" in refused.stderr
+    assert stored() == before
+    done = run("db", "reseal", env=env | {"NARXWATCH_SECRET_KEYS": json.dumps([new, old])}, cwd=workdir)
+    assert "2 webhook secret(s) sealed under the first key" in done.stdout
+    assert [Fernet(new).decrypt(token.encode()).decode() for token in stored()] == secrets
+    engine.dispose()
+
+
+def test_a_worker_given_a_key_file_that_holds_no_key_stops_at_its_start_naming_the_file(newcomer, tmp_path):
+    env, workdir, _ = newcomer
+    run("db", "upgrade", env=env, cwd=workdir)
+    wrong = tmp_path / "secret.key"
+    wrong.write_text("hunter2\n")
+    result = run("worker", "--once", env=env | {"NARXWATCH_SECRET_KEY_FILE": str(wrong)}, check=False)
+    assert result.returncode == 2, result.stderr
+    (line,) = result.stderr.strip().splitlines()
+    assert str(wrong) in line and "one key a line" in line and "hunter2" not in line
+
+
+def test_invalid_settings_are_one_line_naming_each_variable_and_never_its_value(newcomer):
+    env, workdir, _ = newcomer
+    env |= {"NARXWATCH_SECRET_KEYS": '["hunter2"]', "NARXWATCH_SMTP_PORT": "seventy"}
+    result = run("keys", "list", env=env, cwd=workdir, check=False)
+    assert result.returncode == 2, result.stderr
+    (line,) = result.stderr.strip().splitlines()
+    assert "NARXWATCH_SECRET_KEYS: " in line and "NARXWATCH_SMTP_PORT: " in line
+    assert "hunter2" not in result.stderr and "seventy" not in result.stderr

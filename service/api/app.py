@@ -19,7 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from swagger_ui_bundle import swagger_ui_path
 
 from models.errors import InputError
-from service import dashboard
+from service import dashboard, sealing
 from service.api import (
     alarms,
     health,
@@ -56,6 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if settings.upgrade_on_start:
             upgrade_database(settings.database_url)
+        sealing.check_keys(settings)
         app.state.jobs.start()
         yield
         app.state.jobs.stop()

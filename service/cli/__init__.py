@@ -9,7 +9,7 @@ import typer
 
 from models.errors import InputError
 from service.cli.console import fail
-from service.errors import DatabaseNotReadyError
+from service.errors import DatabaseNotReadyError, SettingsError
 
 # Each command's module and attribute: a command (a function) or a group of them (a Typer app).
 # Only the module of the command being run is imported — `narxwatch refine` does not load the
@@ -56,12 +56,12 @@ def build_app(command: str | None = None) -> typer.Typer:
 
 
 def main() -> None:
-    """Console-script entry point: input errors and a database not ready end with their message,
-    not a traceback."""
+    """Console-script entry point: input errors, invalid settings and a database not ready end
+    with their message, not a traceback."""
     try:
         args = files_after_options(sys.argv[1:])
         build_app(args[0] if args and args[0] in COMMANDS else None)(args=args)
-    except (InputError, DatabaseNotReadyError) as exc:
+    except (InputError, DatabaseNotReadyError, SettingsError) as exc:
         fail(str(exc))
 
 

@@ -108,6 +108,12 @@ def worker(
         _wait_for_current_schema(settings.database_url)
     except KeyboardInterrupt:
         return
+    from service import sealing
+
+    try:
+        sealing.check_keys(settings)
+    except ValueError as exc:
+        fail(str(exc))
     configure_logging("INFO", json=settings.log_format == "json")
     backend = job_backend(settings, session_factory(make_engine(settings.database_url)), in_service=False)
     if not once:
@@ -198,6 +204,23 @@ def db_prune(
             highlight=False,
             soft_wrap=True,
         )
+
+
+@db_app.command("reseal")
+def db_reseal() -> None:
+    """Seal every webhook's signing secret again under the first of the server's keys
+    (NARXWATCH_SECRET_KEYS, or the key file): the last step of a key's rotation, after which the
+    keys behind the first may go. All or none: a secret no key opens leaves every one as it was."""
+    from service.domain import notifications
+    from service.domain.errors import ConflictError
+
+    settings = get_settings()
+    try:
+        with transaction(ready_sessions()) as session:
+            resealed = notifications.reseal_secrets(session, settings)
+    except (ConflictError, ValueError) as exc:
+        fail(str(exc))
+    stdout.print(f"{resealed} webhook secret(s) sealed under the first key", markup=False, soft_wrap=True)
 
 
 @db_app.command("vacuum")

@@ -25,7 +25,7 @@ from pydantic_core import to_jsonable_python
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
-from service import senders
+from service import sealing, senders
 from service.config import Settings
 from service.domain.errors import ConflictError, NotFoundError
 from service.schemas import EmailSubscriptionCreate, Event, WebhookCreate
@@ -155,7 +155,12 @@ def _sender(session: Session, delivery: Delivery, settings: Settings) -> Callabl
         webhook = session.get(Webhook, delivery.webhook_id)
         if webhook is None:
             return None
-        url, secret, delivery_id = webhook.url, webhook.secret, delivery.id
+        try:
+            secret = sealing.unseal(webhook.secret, settings)
+        except sealing.UnsealError as exc:
+            refused = senders.Outcome(False, None, str(exc))
+            return lambda: refused
+        url, delivery_id = webhook.url, delivery.id
         return lambda: senders.post_webhook(url, secret, delivery_id, message, settings)
     subscription = session.get(EmailSubscription, delivery.email_subscription_id)
     if subscription is None:
@@ -175,11 +180,26 @@ def create_webhook(
     senders.check_webhook_url(body.url, settings)
     _check_room(session, Webhook, principal.organisation_id, "webhooks")
     webhook = Webhook(
-        organisation_id=principal.organisation_id, url=body.url, secret=body.secret, events=body.events
+        organisation_id=principal.organisation_id,
+        url=body.url,
+        secret=sealing.seal(body.secret, settings),
+        events=body.events,
     )
     session.add(webhook)
     session.flush()
     return webhook
+
+
+def reseal_secrets(session: Session, settings: Settings) -> int:
+    """Seal every webhook's secret again under the first of the server's keys (a rotation's
+    last step); the number resealed. A secret no key opens is a ConflictError naming its webhook."""
+    webhooks = session.scalars(select(Webhook).order_by(Webhook.id)).all()
+    for webhook in webhooks:
+        try:
+            webhook.secret = sealing.reseal(webhook.secret, settings)
+        except sealing.UnsealError as exc:
+            raise ConflictError(f"webhook {webhook.id}: {exc}") from exc
+    return len(webhooks)
 
 
 def create_email_subscription(
