@@ -21,6 +21,7 @@ from pathlib import Path
 from cryptography.fernet import Fernet, InvalidToken, MultiFernet
 
 from service.config import KEY_FORM, Settings, is_key
+from service.errors import SettingsError
 
 
 class UnsealError(Exception):
@@ -56,7 +57,8 @@ def reseal(token: str, settings: Settings) -> str:
 
 def check_keys(settings: Settings) -> None:
     """Read the server's keys now (making the key file where there is none), so that a process
-    started with keys it cannot read fails at its start, not at its first webhook."""
+    started with keys it cannot read fails at its start (:class:`SettingsError`), not at its
+    first webhook."""
     _keys(settings)
 
 
@@ -89,5 +91,5 @@ def _key_file(path: Path) -> list[str]:
             os.unlink(draft)
     keys = [line.strip() for line in path.read_text().splitlines() if line.strip()]
     if not keys or not all(is_key(key) for key in keys):
-        raise ValueError(f"{path} must hold one key a line, each {KEY_FORM}")
+        raise SettingsError(f"NARXWATCH_SECRET_KEY_FILE: {path} must hold one key a line, each {KEY_FORM}")
     return keys

@@ -332,15 +332,20 @@ def test_db_reseal_seals_every_secret_under_the_first_key_or_changes_nothing(new
     engine.dispose()
 
 
-def test_a_worker_given_a_key_file_that_holds_no_key_stops_at_its_start_naming_the_file(newcomer, tmp_path):
+@pytest.mark.parametrize("command", [["worker", "--once"], ["serve", "--port", "8000"]], ids=lambda c: c[0])
+def test_a_process_given_a_key_file_that_holds_no_key_stops_at_its_start_naming_the_file(
+    newcomer, tmp_path, command
+):
     env, workdir, _ = newcomer
     run("db", "upgrade", env=env, cwd=workdir)
     wrong = tmp_path / "secret.key"
     wrong.write_text("hunter2\n")
-    result = run("worker", "--once", env=env | {"NARXWATCH_SECRET_KEY_FILE": str(wrong)}, check=False)
+    env |= {"NARXWATCH_SECRET_KEY_FILE": str(wrong), "NARXWATCH_LOG_FORMAT": "text"}
+    result = run(*command, env=env, cwd=workdir, check=False)
     assert result.returncode == 2, result.stderr
-    (line,) = result.stderr.strip().splitlines()
-    assert str(wrong) in line and "one key a line" in line and "hunter2" not in line
+    last = result.stderr.strip().splitlines()[-1]  # serve logs its upgrade before it
+    assert last.startswith("error: NARXWATCH_SECRET_KEY_FILE: ") and str(wrong) in last, result.stderr
+    assert "one key a line" in last and "hunter2" not in result.stderr
 
 
 def test_invalid_settings_are_one_line_naming_each_variable_and_never_its_value(newcomer):

@@ -51,6 +51,7 @@ def serve(
     # Imported here, as the app is: the other commands of this module need neither.
     import uvicorn
 
+    from service import sealing
     from service.observability.metrics import MULTIPROCESS_DIR
 
     settings = get_settings()
@@ -60,6 +61,7 @@ def serve(
     configure_logging("INFO", json=json_logs)
     if settings.upgrade_on_start:
         upgrade_database(settings.database_url)
+    sealing.check_keys(settings)  # here, where a key file it cannot read ends in one line
     # Upgraded once here: the workers must not race each other to do it again.
     os.environ["NARXWATCH_UPGRADE_ON_START"] = "false"
     metrics_dir = None
@@ -110,10 +112,7 @@ def worker(
         return
     from service import sealing
 
-    try:
-        sealing.check_keys(settings)
-    except ValueError as exc:
-        fail(str(exc))
+    sealing.check_keys(settings)
     configure_logging("INFO", json=settings.log_format == "json")
     backend = job_backend(settings, session_factory(make_engine(settings.database_url)), in_service=False)
     if not once:
@@ -218,7 +217,7 @@ def db_reseal() -> None:
     try:
         with transaction(ready_sessions()) as session:
             resealed = notifications.reseal_secrets(session, settings)
-    except (ConflictError, ValueError) as exc:
+    except ConflictError as exc:
         fail(str(exc))
     stdout.print(f"{resealed} webhook secret(s) sealed under the first key", markup=False, soft_wrap=True)
 
