@@ -7,7 +7,10 @@ compressed element: every variable is listed with its name, class and dimensions
 variables a record needs are handed to loadmat, after their declared sizes were checked against
 the limit, as a new in-memory file holding nothing else (compressed ones inflated here, at most
 to their declared size). Only real numeric matrices are handed over, so loadmat never builds
-cells, structs, objects or sparse matrices; a MAT file never unpickles anything.
+cells, structs, objects or sparse matrices; a MAT file never unpickles anything. A scalar
+struct's numeric fields (``data.u``; ``yout.signals.values`` through nested structs, as
+Simulink logs them) are read alike: the struct's element is walked in order, inflated as it is
+read within a bound, and each field's element is handed over as a variable of its own.
 
 The element layout is MathWorks' "MAT-File Format" (v5: a 128-byte header, then tagged data
 elements; v4: a 20-byte header per variable). v7.3 files are HDF5 and are refused with advice.
@@ -19,8 +22,8 @@ import io
 import math
 import struct
 import zlib
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.io
@@ -29,6 +32,7 @@ from models.errors import InputError
 
 # v5 data types and array classes (MAT-File Format, tables 1-2 and 1-3).
 MI_INT8, MI_INT32, MI_UINT32, MI_MATRIX, MI_COMPRESSED = 1, 5, 6, 14, 15
+STRUCT_CLASS = 2
 # The data types a numeric matrix's values may be stored in: (u)int8…(u)int64, single, double.
 # scipy's reader indexes a table by this code unchecked: another code crashed the process (SIGBUS).
 NUMBER_TYPES = frozenset({1, 2, 3, 4, 5, 6, 7, 9, 12, 13})
@@ -64,6 +68,7 @@ HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 V4_ITEM_BYTES = {0: 8, 1: 4, 2: 4, 3: 2, 4: 2, 5: 1}
 V4_CLASSES = {0: "double", 1: "single", 2: "int32", 3: "int16", 4: "uint16", 5: "uint8"}
 INFLATE_CHUNK = 1 << 16
+MAX_STRUCT_DEPTH = 8  # structs within structs a field's name may pass through
 
 
 @dataclass(frozen=True)
@@ -77,6 +82,8 @@ class MatVariable:
     start: int
     end: int
     compressed: bool
+    # A struct's field: its miMATRIX element, read out of the struct's and named for loadmat.
+    element: bytes | None = None
 
     def describe(self) -> str:
         return f"{self.name} ({'×'.join(str(size) for size in self.shape)} {self.class_name})"
@@ -120,6 +127,11 @@ def load_variables(mat: MatFile, variables: Sequence[MatVariable]) -> dict[str, 
     then inflated beyond what its dimensions can hold, so memory stays within a few times that.
     """
     for variable in variables:
+        if variable.class_name == "struct":
+            raise InputError(
+                f"MAT variable {variable.describe()} is a struct: name one of its fields, "
+                f"as {variable.name}.FIELD"
+            )
         if not variable.numeric:
             raise InputError(f"MAT variable {variable.describe()} is not a real numeric array")
     if mat.version == 4:
@@ -261,6 +273,8 @@ def _v5_element(mat: MatFile, variable: MatVariable) -> bytes:
     Its data (in its stored type) takes at most 8 bytes a value, within the checked float64 size;
     the header around it at most :data:`VARIABLE_HEADER_BYTES`.
     """
+    if variable.element is not None:
+        return variable.element
     if not variable.compressed:
         return mat.data[variable.start : variable.end]
     (size,) = struct.unpack_from(
@@ -295,6 +309,189 @@ def _inflate(data: bytes, start: int, end: int, limit: int) -> bytes:
     except zlib.error as exc:
         raise InputError(f"a compressed MAT variable is damaged ({exc})") from None
     return bytes(out)
+
+
+# --- struct fields ----------------------------------------------------------------------------
+
+
+def with_fields(mat: MatFile, names: Iterable[str], budget: int | None = None) -> MatFile:
+    """``mat`` with the fields of the scalar structs that dotted ``names`` begin with listed as
+    variables of their own, named by their path (``data.u``, ``yout.signals.values``), so that
+    they are found, bounded and loaded as variables are. Other structs are not walked.
+
+    A struct's element is read in order, inflated as it is read where it is compressed, and at
+    most ``budget`` bytes of it (None: no bound); numeric fields' elements are kept, every other
+    field is listed by its header alone and skipped.
+    """
+    roots = {name.split(".", 1)[0] for name in names if "." in name}
+    found: dict[str, MatVariable] = {}
+    for variable in mat.variables.values():
+        if variable.name in roots and mat.version == 5 and variable.class_name == "struct":
+            reader = _Reader(mat.data, variable, budget)
+            _, size = struct.unpack(mat.byte_order + "2I", reader.read(8))  # a matrix: listed as one
+            _walk_struct(reader, mat.byte_order, variable, variable.name, size, found, depth=1)
+    clash = sorted(found.keys() & mat.variables.keys())
+    if clash:
+        raise InputError(f"the MAT file names both a variable and a struct's field {', '.join(clash)}")
+    return replace(mat, variables=mat.variables | found)
+
+
+class _Reader:
+    """A variable's miMATRIX element read in order: from the file, or inflated as it is read
+    where the variable is compressed; more than ``budget`` bytes in all is refused."""
+
+    def __init__(self, data: bytes, variable: MatVariable, budget: int | None) -> None:
+        self._name = variable.name
+        self._budget = budget
+        self._read = 0
+        self._pending = b""
+        if variable.compressed:
+            self._inflater: zlib._Decompress | None = zlib.decompressobj()
+            self._source = memoryview(data)[variable.start + 8 : variable.end]
+        else:
+            self._inflater = None
+            self._source = memoryview(data)[variable.start : variable.end]
+
+    def read(self, size: int) -> bytes:
+        """The next ``size`` bytes; InputError where the element ends before them."""
+        self._read += size
+        if self._budget is not None and self._read > self._budget:
+            raise InputError(
+                f"the MAT struct {self._name!r} unpacks to more than {self._budget} bytes before the "
+                "fields named are read: save those signals as variables of their own"
+            )
+        if self._inflater is None:
+            chunk = bytes(self._source[:size])
+            self._source = self._source[size:]
+        else:
+            chunk = self._inflated(size)
+        if len(chunk) < size:
+            raise InputError(f"the MAT struct {self._name!r} ends inside one of its fields")
+        return chunk
+
+    def skip(self, size: int) -> None:
+        while size > 0:
+            step = min(size, INFLATE_CHUNK)
+            self.read(step)
+            size -= step
+
+    def _inflated(self, size: int) -> bytes:
+        assert self._inflater is not None
+        out = bytearray(self._pending)
+        try:
+            while len(out) < size and not self._inflater.eof:
+                tail = self._inflater.unconsumed_tail
+                if not tail:
+                    if not self._source:
+                        break
+                    tail, self._source = self._source[:INFLATE_CHUNK], self._source[INFLATE_CHUNK:]
+                out += self._inflater.decompress(tail, size - len(out))
+        except zlib.error as exc:
+            raise InputError(f"the compressed MAT struct {self._name!r} is damaged ({exc})") from None
+        self._pending = bytes(out[size:])
+        return bytes(out[:size])
+
+
+Subelement = tuple[int, bytes, bytes]  # data type, data, the raw bytes read (tag and padding)
+
+
+def _read_subelement(reader: _Reader, order: str) -> Subelement:
+    """The next data element of a struct's stream (:func:`_subelement`, read in order)."""
+    tag = reader.read(8)
+    (word,) = struct.unpack_from(order + "I", tag)
+    if word >> 16:  # a small element: its data in the tag's last four bytes
+        size = word >> 16
+        if size > 4:
+            raise InputError("a MAT struct holds a malformed data element")
+        return word & 0xFFFF, tag[4 : 4 + size], tag
+    (size,) = struct.unpack_from(order + "I", tag, 4)
+    if size > VARIABLE_HEADER_BYTES:
+        raise InputError("a MAT struct holds a header element longer than a header can be")
+    data = reader.read(-(-size // 8) * 8)
+    return word, data[:size], tag + data
+
+
+def _dimensions(dims: Subelement, order: str) -> tuple[int, ...]:
+    kind, data, _ = dims
+    if kind != MI_INT32 or len(data) % 4 or len(data) < 8:
+        raise InputError("a MAT struct holds a field with malformed dimensions")
+    return struct.unpack(order + f"{len(data) // 4}i", data)
+
+
+def _walk_struct(
+    reader: _Reader,
+    order: str,
+    root: MatVariable,
+    path: str,
+    size: int,
+    found: dict[str, MatVariable],
+    depth: int,
+    header: list[Subelement] | None = None,
+) -> None:
+    """List the fields of the struct whose element (``size`` bytes after its tag) ``reader`` is
+    at, each by ``path``.field: numeric ones with their element, structs walked in turn (to
+    ``MAX_STRUCT_DEPTH``), the others by their header alone. ``header``: its flags, dimensions
+    and name, where they were read already."""
+    header = header or [_read_subelement(reader, order) for _ in range(3)]
+    shape = _dimensions(header[1], order)
+    if math.prod(shape) != 1:
+        raise InputError(
+            f"the MAT struct {path!r} is an array of {'×'.join(map(str, shape))} structs; "
+            "only a single struct's fields are read"
+        )
+    length, names = (_read_subelement(reader, order) for _ in range(2))
+    (width,) = struct.unpack(order + "i", length[1]) if len(length[1]) == 4 else (0,)
+    if length[0] != MI_INT32 or names[0] != MI_INT8 or width <= 0 or len(names[1]) % width:
+        raise InputError(f"the MAT struct {path!r} has malformed field names")
+    used = sum(len(raw) for _, _, raw in (*header, length, names))
+    for offset in range(0, len(names[1]), width):
+        field = names[1][offset : offset + width].rstrip(b"\x00").decode("latin1")
+        kind, field_size = struct.unpack(order + "2I", reader.read(8))
+        used += 8 + field_size
+        if kind != MI_MATRIX or used > size:
+            raise InputError(f"the MAT struct {path!r} has a malformed field {field!r}")
+        _read_field(reader, order, root, f"{path}.{field}", field_size, found, depth)
+
+
+def _read_field(
+    reader: _Reader,
+    order: str,
+    root: MatVariable,
+    path: str,
+    size: int,
+    found: dict[str, MatVariable],
+    depth: int,
+) -> None:
+    """One field's element (``size`` bytes after its tag), listed as the variable ``path``."""
+    if len(found) == MAX_VARIABLES:
+        raise _too_many()
+    if size == 0:  # an empty field: MATLAB writes its tag alone
+        found[path] = MatVariable(path, (0, 0), "empty", False, root.start, root.end, root.compressed)
+        return
+    header = [_read_subelement(reader, order) for _ in range(3)]
+    flags, dims, _ = header
+    head = b"".join(raw for _, _, raw in header)
+    if len(head) > size or flags[0] != MI_UINT32 or len(flags[1]) != 8:
+        raise InputError(f"the MAT struct field {path!r} has a malformed header")
+    (word,) = struct.unpack_from(order + "I", flags[1])
+    if word & 0xFF == STRUCT_CLASS and depth < MAX_STRUCT_DEPTH:
+        # The struct's own header is read: walk the rest as a struct whose header is this one.
+        _walk_struct(reader, order, root, path, size, found, depth + 1, header)
+        return
+    label = path.encode("latin1")
+    body = (
+        flags[2] + dims[2] + struct.pack(order + "2I", MI_INT8, len(label)) + label + bytes(-len(label) % 8)
+    )
+    if word & 0xFF in NUMERIC_CLASSES and not word & COMPLEX_FLAG:
+        values = math.prod(_dimensions(dims, order)) * np.float64().nbytes
+        if size - len(head) > values + VARIABLE_HEADER_BYTES:
+            raise InputError(f"the MAT struct field {path!r} declares more bytes than its values can hold")
+        body += reader.read(size - len(head))
+    else:  # listed by its header, as variables are, and skipped
+        reader.skip(size - len(head))
+    element = struct.pack(order + "2I", MI_MATRIX, len(body)) + body
+    variable = _v5_header(element[:VARIABLE_HEADER_BYTES], order, root.start, root.end, False)
+    found[path] = replace(variable, element=element if variable.numeric else None)
 
 
 # --- v4 ---------------------------------------------------------------------------------------

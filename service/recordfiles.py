@@ -56,6 +56,10 @@ _FS_COMMENT = re.compile(r"^#\s*fs\s*=\s*(?P<fs>\S+)\s*$", re.IGNORECASE)
 _CONDITION_COMMENT = re.compile(r"^#\s*(?P<name>[^\s=]+)\s*=\s*(?P<value>\S*)(?:\s+(?P<unit>.*?))?\s*$")
 _NUMBERED = re.compile(r"(?P<base>.*?)(?P<k>\d+)")
 READABLE = (".csv", ".npz", ".mat")
+# A MAT struct is read in order up to its fields named, its other fields skipped but inflated: at
+# most this many times the bytes the signals may take (a Simulink log with its time beside x and
+# y takes one and a half).
+STRUCT_BUDGET = 4
 
 # An NPZ record holds these members and, beside them, a scalar member per condition.
 NPZ_MEMBERS = ("x.npy", "y.npy", "fs.npy")
@@ -447,12 +451,17 @@ def _parse_mat(data: bytes, max_bytes: int | None, layout: Layout, paired: bool 
     """:func:`parse_mat`; ``paired``, the records of :func:`parse_record_set`, each variable
     loaded once."""
     mat = matfiles.list_mat(data)
+    # A struct walked for its fields may be read to a few times what the signals may take.
+    budget = None if max_bytes is None else STRUCT_BUDGET * max_bytes
+    mat = matfiles.with_fields(mat, [layout.x, *layout.responses], budget)
     counts = {name: _signal_count(variable.shape) for name, variable in mat.variables.items()}
     layouts = _pairs(layout, counts) if paired else [layout]
+    structs = [v.name for v in mat.variables.values() if v.class_name == "struct"]
+    fields = f"; a struct's fields are named as {structs[0]}.FIELD" if structs else ""
     wanted = []
     for name in (name for each in layouts for name in (each.x, *each.responses)):
         variable, k = _resolve(
-            name, counts, f"the MAT file has no variable {name!r}; it holds {mat.describe()}"
+            name, counts, f"the MAT file has no variable {name!r}; it holds {mat.describe()}{fields}"
         )
         if counts[variable] is None:
             raise InputError(

@@ -181,6 +181,25 @@ def test_named_upload_is_stored(site: Site, ingest):
     assert response.json()["n_samples"] == 300 and response.json()["fs"] == FS
 
 
+def test_a_simulink_log_uploads_by_its_fields_paths(site: Site, ingest):
+    """x and y named as a struct's fields (MATLAB's "Structure With Time"): the record stored is
+    the NPZ of the same signals (same id); a field the struct lacks is a 422 listing its fields."""
+    force = {"time": np.arange(300) / FS, "signals": {"values": FORCE[:, None]}}
+    response_log = {"time": np.arange(300) / FS, "signals": {"values": ACC.T}}
+    body = _mat(force=force, response=response_log, fs=FS)  # type: ignore[arg-type]
+    response = post_record(
+        ingest, site.rig, body, MAT, x="force.signals.values", y="response.signals.values3"
+    )
+    assert response.status_code == 201, response.text
+    again = post_record(ingest, site.rig, npz_bytes(x=FORCE, y=ACC[2], fs=FS), "application/x-npz")
+    assert again.status_code == 200 and again.json()["id"] == response.json()["id"]
+    with nothing_written(site.org, site.rig):
+        missing = post_record(ingest, site.rig, body, MAT, x="force.signals.values", y="response.values")
+        assert missing.status_code == 422, missing.text
+        assert "no variable 'response.values'" in detail(missing)
+        assert "response.signals.values (300×3 double)" in detail(missing)
+
+
 def test_mat_bomb_is_refused_before_it_is_inflated(site: Site, ingest):
     """A 4 MB MAT file whose variable declares 4·10⁹ bytes of zeros: 413, and the server's peak
     memory does not grow by anything like it."""

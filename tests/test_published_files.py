@@ -22,7 +22,16 @@ import scipy.io
 from conftest import DATA_DIR
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from mat_bombs import compressed, huge_cell, mat_file, matrix, v73_file, zeros_bomb
+from mat_bombs import (
+    compressed,
+    huge_cell,
+    mat_file,
+    matrix,
+    struct_bomb,
+    struct_element,
+    v73_file,
+    zeros_bomb,
+)
 
 from models.errors import InputError
 from service.recordfiles import (
@@ -197,6 +206,64 @@ def test_mat_v4_and_compressed_v5_read_alike(tmp_path):
     np.testing.assert_array_equal(read_record(tmp_path / "tall.mat", Layout("u", "a3")).y, acceleration[2])
 
 
+def test_a_structs_fields_are_read_by_their_path_as_variables_are(tmp_path):
+    """A field of a struct (``data.u``), of a struct within it, and the rows of a matrix field,
+    from compressed and uncompressed files alike, as Simulink logs them ("Structure With Time")."""
+    time = np.arange(200) / 400.0
+    force, responses = np.sin(time * 60), np.vstack([np.cos(time * 60), time**2])
+    variables = {
+        "force": {"time": time, "signals": {"values": force[:, None], "label": "F"}},
+        "yout": {"time": time, "signals": {"values": responses.T, "dimensions": 2.0}},
+        "fs": 400.0,
+    }
+    for options in ({"do_compression": True}, {"do_compression": False}):
+        path = tmp_path / f"simulink{options}.mat"
+        scipy.io.savemat(path, variables, **options)
+        record = read_record(path, Layout("force.signals.values", "yout.signals.values2"))
+        np.testing.assert_array_equal(record.x, force)
+        np.testing.assert_array_equal(record.y, responses[1])
+        assert record.fs == 400.0
+    independent = scipy.io.loadmat(path, simplify_cells=True)["yout"]["signals"]["values"][:, 0]
+    np.testing.assert_array_equal(
+        read_record(path, Layout("force.time", "yout.signals.values1")).y, independent
+    )
+
+
+@pytest.mark.parametrize(
+    ("layout", "message"),
+    [
+        (
+            Layout("data.u", "data.z"),
+            r"no variable 'data\.z'; it holds data \(1×1 struct\), fs \(1×1 double\), "
+            r"data\.u \(1×300 double\), data\.note \(1×2 char\), data\.inner\.y \(1×300 double\); "
+            r"a struct's fields are named as data\.FIELD",
+        ),
+        (Layout("u", "y"), r"no variable 'u'; it holds data \(1×1 struct\), fs \(1×1 double\); a struct's"),
+        (
+            Layout("data", "data.u"),
+            r"data \(1×1 struct\) is a struct: name one of its fields, as data\.FIELD",
+        ),
+        (Layout("data.u", "data.note"), r"data\.note \(1×2 char\) is not a real numeric array"),
+        (Layout("data.u", "data.inner"), r"no variable 'data\.inner'; it holds .* data\.inner\.y "),
+        (Layout("data.u", "fs.y"), r"no variable 'fs\.y'"),
+    ],
+)
+def test_a_struct_field_that_is_not_a_signal_is_named_with_what_the_struct_holds(layout, message):
+    values = np.arange(300.0)
+    stream = io.BytesIO()
+    scipy.io.savemat(stream, {"data": {"u": values, "note": "hi", "inner": {"y": values**2}}, "fs": 10.0})
+    with pytest.raises(InputError, match=message):
+        parse_mat(stream.getvalue(), LIMIT, layout)
+
+
+def test_an_array_of_structs_is_refused_naming_its_dimensions():
+    stream = io.BytesIO()
+    both = np.array([(np.ones(5), np.ones(5))] * 2, dtype=[("u", object), ("y", object)])
+    scipy.io.savemat(stream, {"runs": both})
+    with pytest.raises(InputError, match=r"'runs' is an array of 1×2 structs; only a single struct's"):
+        parse_mat(stream.getvalue(), LIMIT, Layout("runs.u", "runs.y"))
+
+
 # --- errors that say what to fix ----------------------------------------------------------------
 
 
@@ -355,6 +422,20 @@ def test_mat_variable_whose_data_outgrows_its_dimensions_is_refused_before_infla
     assert peak_allocation(lambda: parse_mat(bomb, LIMIT)) < 2**20
 
 
+def test_a_struct_whose_fields_inflate_beyond_a_bound_is_refused_as_it_is_walked():
+    """A compressed struct of a few hundred kilobytes whose first field inflates to 400 MB of
+    zeros before the fields named: refused once four times the upload limit is inflated, its
+    memory within a megabyte; without a bound (a local file) the fields after it are read."""
+    bomb = mat_file(struct_bomb("data", 400 * 2**20, {"u": np.arange(5.0)[None], "y": np.ones((1, 5))}))
+    assert len(bomb) < 500_000
+    with pytest.raises(InputError, match=r"the MAT struct 'data' unpacks to more than 67108864 bytes"):
+        parse_mat(bomb, LIMIT, Layout("data.u", "data.y"))
+    assert peak_allocation(lambda: parse_mat(bomb, LIMIT, Layout("data.u", "data.y"))) < 2**20
+    fields = {"junk": np.zeros((1, 2**18)), "u": np.arange(5.0)[None], "y": np.ones((1, 5))}
+    honest = mat_file(compressed(struct_element("data", fields)))
+    np.testing.assert_array_equal(parse_mat(honest, None, Layout("data.u", "data.y")).x, np.arange(5.0))
+
+
 def test_variables_not_named_are_never_inflated_nor_built():
     """A bomb and a cell array of 2³¹ − 1 cells (16 GB of object pointers to a reader that trusts
     its dimensions) beside x and y: the record reads, within a megabyte."""
@@ -474,6 +555,33 @@ def test_mat_parser_never_crashes_on_a_damaged_file(valid, where, cut, patch):
     data = valid[:at] + patch + valid[at + cut :]
     try:
         record = parse_mat(data, LIMIT, Layout("Force", "Acc2"))
+    except InputError:
+        return
+    assert record.x.dtype == record.y.dtype == np.float64 and record.x.shape == record.y.shape
+
+
+def _struct_file(compress: bool) -> bytes:
+    stream = io.BytesIO()
+    fields = {"u": np.ones(20), "inner": {"y": np.ones((2, 20)), "note": "hi"}, "e": np.zeros((0, 0))}
+    scipy.io.savemat(stream, {"data": fields, "fs": 400.0}, do_compression=compress)
+    return stream.getvalue()
+
+
+VALID_STRUCTS = [_struct_file(compress=True), _struct_file(compress=False)]
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    st.sampled_from(VALID_STRUCTS),
+    st.floats(0, 1),
+    st.integers(0, 16),
+    st.binary(min_size=1, max_size=16),
+)
+def test_the_struct_walk_never_crashes_on_a_damaged_file(valid, where, cut, patch):
+    at = int(where * (len(valid) - 1))
+    data = valid[:at] + patch + valid[at + cut :]
+    try:
+        record = parse_mat(data, LIMIT, Layout("data.u", "data.inner.y2"))
     except InputError:
         return
     assert record.x.dtype == record.y.dtype == np.float64 and record.x.shape == record.y.shape
