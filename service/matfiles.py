@@ -327,9 +327,9 @@ def with_fields(mat: MatFile, names: Iterable[str], budget: int | None = None) -
     found: dict[str, MatVariable] = {}
     for variable in mat.variables.values():
         if variable.name in roots and mat.version == 5 and variable.class_name == "struct":
-            reader = _Reader(mat.data, variable, budget)
-            _, size = struct.unpack(mat.byte_order + "2I", reader.read(8))  # a matrix: listed as one
-            _walk_struct(reader, mat.byte_order, variable, variable.name, size, found, depth=1)
+            walk = _Walk(_Reader(mat.data, variable, budget), mat.byte_order, variable, found)
+            _, size = struct.unpack(mat.byte_order + "2I", walk.reader.read(8))  # a matrix: listed as one
+            walk.struct(variable.name, size, depth=1)
     clash = sorted(found.keys() & mat.variables.keys())
     if clash:
         raise InputError(f"the MAT file names both a variable and a struct's field {', '.join(clash)}")
@@ -395,103 +395,92 @@ class _Reader:
 Subelement = tuple[int, bytes, bytes]  # data type, data, the raw bytes read (tag and padding)
 
 
-def _read_subelement(reader: _Reader, order: str) -> Subelement:
-    """The next data element of a struct's stream (:func:`_subelement`, read in order)."""
-    tag = reader.read(8)
-    (word,) = struct.unpack_from(order + "I", tag)
-    if word >> 16:  # a small element: its data in the tag's last four bytes
-        size = word >> 16
-        if size > 4:
-            raise InputError("a MAT struct holds a malformed data element")
-        return word & 0xFFFF, tag[4 : 4 + size], tag
-    (size,) = struct.unpack_from(order + "I", tag, 4)
-    if size > VARIABLE_HEADER_BYTES:
-        raise InputError("a MAT struct holds a header element longer than a header can be")
-    data = reader.read(-(-size // 8) * 8)
-    return word, data[:size], tag + data
+@dataclass
+class _Walk:
+    """One struct variable's walk (:func:`with_fields`): its element read in order, the file's
+    byte order, and the fields found, by path."""
 
+    reader: _Reader
+    order: str
+    root: MatVariable
+    found: dict[str, MatVariable]
 
-def _dimensions(dims: Subelement, order: str) -> tuple[int, ...]:
-    kind, data, _ = dims
-    if kind != MI_INT32 or len(data) % 4 or len(data) < 8:
-        raise InputError("a MAT struct holds a field with malformed dimensions")
-    return struct.unpack(order + f"{len(data) // 4}i", data)
+    def struct(self, path: str, size: int, depth: int, header: list[Subelement] | None = None) -> None:
+        """List the fields of the struct whose element (``size`` bytes after its tag) the reader
+        is at, each by ``path``.field: numeric ones with their element, structs walked in turn
+        (to ``MAX_STRUCT_DEPTH``), the others by their header alone. ``header``: its flags,
+        dimensions and name, where they were read already."""
+        header = header or [self._subelement() for _ in range(3)]
+        shape = self._dimensions(header[1])
+        if math.prod(shape) != 1:
+            raise InputError(
+                f"the MAT struct {path!r} is an array of {'×'.join(map(str, shape))} structs; "
+                "only a single struct's fields are read"
+            )
+        length, names = self._subelement(), self._subelement()
+        (width,) = struct.unpack(self.order + "i", length[1]) if len(length[1]) == 4 else (0,)
+        if length[0] != MI_INT32 or names[0] != MI_INT8 or width <= 0 or len(names[1]) % width:
+            raise InputError(f"the MAT struct {path!r} has malformed field names")
+        used = sum(len(raw) for _, _, raw in (*header, length, names))
+        for offset in range(0, len(names[1]), width):
+            field = names[1][offset : offset + width].rstrip(b"\x00").decode("latin1")
+            kind, field_size = struct.unpack(self.order + "2I", self.reader.read(8))
+            used += 8 + field_size
+            if kind != MI_MATRIX or used > size:
+                raise InputError(f"the MAT struct {path!r} has a malformed field {field!r}")
+            self.field(f"{path}.{field}", field_size, depth)
 
+    def field(self, path: str, size: int, depth: int) -> None:
+        """One field's element (``size`` bytes after its tag), listed as the variable ``path``."""
+        if len(self.found) == MAX_VARIABLES:
+            raise _too_many()
+        root = self.root
+        if size == 0:  # an empty field: MATLAB writes its tag alone
+            self.found[path] = MatVariable(path, (0, 0), "empty", False, root.start, root.end, False)
+            return
+        header = [self._subelement() for _ in range(3)]
+        flags, dims, _ = header
+        head = b"".join(raw for _, _, raw in header)
+        if len(head) > size or flags[0] != MI_UINT32 or len(flags[1]) != 8:
+            raise InputError(f"the MAT struct field {path!r} has a malformed header")
+        (word,) = struct.unpack_from(self.order + "I", flags[1])
+        if word & 0xFF == STRUCT_CLASS and depth < MAX_STRUCT_DEPTH:
+            self.struct(path, size, depth + 1, header)
+            return
+        label = path.encode("latin1")
+        named = struct.pack(self.order + "2I", MI_INT8, len(label)) + label + bytes(-len(label) % 8)
+        body = flags[2] + dims[2] + named
+        if word & 0xFF in NUMERIC_CLASSES and not word & COMPLEX_FLAG:
+            values = math.prod(self._dimensions(dims)) * np.float64().nbytes
+            if size - len(head) > values + VARIABLE_HEADER_BYTES:
+                raise InputError(f"the MAT struct field {path!r} declares more bytes than its values hold")
+            body += self.reader.read(size - len(head))
+        else:  # listed by its header, as variables are, and skipped
+            self.reader.skip(size - len(head))
+        element = struct.pack(self.order + "2I", MI_MATRIX, len(body)) + body
+        variable = _v5_header(element[:VARIABLE_HEADER_BYTES], self.order, root.start, root.end, False)
+        self.found[path] = replace(variable, element=element if variable.numeric else None)
 
-def _walk_struct(
-    reader: _Reader,
-    order: str,
-    root: MatVariable,
-    path: str,
-    size: int,
-    found: dict[str, MatVariable],
-    depth: int,
-    header: list[Subelement] | None = None,
-) -> None:
-    """List the fields of the struct whose element (``size`` bytes after its tag) ``reader`` is
-    at, each by ``path``.field: numeric ones with their element, structs walked in turn (to
-    ``MAX_STRUCT_DEPTH``), the others by their header alone. ``header``: its flags, dimensions
-    and name, where they were read already."""
-    header = header or [_read_subelement(reader, order) for _ in range(3)]
-    shape = _dimensions(header[1], order)
-    if math.prod(shape) != 1:
-        raise InputError(
-            f"the MAT struct {path!r} is an array of {'×'.join(map(str, shape))} structs; "
-            "only a single struct's fields are read"
-        )
-    length, names = (_read_subelement(reader, order) for _ in range(2))
-    (width,) = struct.unpack(order + "i", length[1]) if len(length[1]) == 4 else (0,)
-    if length[0] != MI_INT32 or names[0] != MI_INT8 or width <= 0 or len(names[1]) % width:
-        raise InputError(f"the MAT struct {path!r} has malformed field names")
-    used = sum(len(raw) for _, _, raw in (*header, length, names))
-    for offset in range(0, len(names[1]), width):
-        field = names[1][offset : offset + width].rstrip(b"\x00").decode("latin1")
-        kind, field_size = struct.unpack(order + "2I", reader.read(8))
-        used += 8 + field_size
-        if kind != MI_MATRIX or used > size:
-            raise InputError(f"the MAT struct {path!r} has a malformed field {field!r}")
-        _read_field(reader, order, root, f"{path}.{field}", field_size, found, depth)
+    def _subelement(self) -> Subelement:
+        """The next data element (:func:`_subelement`, read in order)."""
+        tag = self.reader.read(8)
+        (word,) = struct.unpack_from(self.order + "I", tag)
+        if word >> 16:  # a small element: its data in the tag's last four bytes
+            size = word >> 16
+            if size > 4:
+                raise InputError("a MAT struct holds a malformed data element")
+            return word & 0xFFFF, tag[4 : 4 + size], tag
+        (size,) = struct.unpack_from(self.order + "I", tag, 4)
+        if size > VARIABLE_HEADER_BYTES:
+            raise InputError("a MAT struct holds a header element longer than a header can be")
+        data = self.reader.read(-(-size // 8) * 8)
+        return word, data[:size], tag + data
 
-
-def _read_field(
-    reader: _Reader,
-    order: str,
-    root: MatVariable,
-    path: str,
-    size: int,
-    found: dict[str, MatVariable],
-    depth: int,
-) -> None:
-    """One field's element (``size`` bytes after its tag), listed as the variable ``path``."""
-    if len(found) == MAX_VARIABLES:
-        raise _too_many()
-    if size == 0:  # an empty field: MATLAB writes its tag alone
-        found[path] = MatVariable(path, (0, 0), "empty", False, root.start, root.end, root.compressed)
-        return
-    header = [_read_subelement(reader, order) for _ in range(3)]
-    flags, dims, _ = header
-    head = b"".join(raw for _, _, raw in header)
-    if len(head) > size or flags[0] != MI_UINT32 or len(flags[1]) != 8:
-        raise InputError(f"the MAT struct field {path!r} has a malformed header")
-    (word,) = struct.unpack_from(order + "I", flags[1])
-    if word & 0xFF == STRUCT_CLASS and depth < MAX_STRUCT_DEPTH:
-        # The struct's own header is read: walk the rest as a struct whose header is this one.
-        _walk_struct(reader, order, root, path, size, found, depth + 1, header)
-        return
-    label = path.encode("latin1")
-    body = (
-        flags[2] + dims[2] + struct.pack(order + "2I", MI_INT8, len(label)) + label + bytes(-len(label) % 8)
-    )
-    if word & 0xFF in NUMERIC_CLASSES and not word & COMPLEX_FLAG:
-        values = math.prod(_dimensions(dims, order)) * np.float64().nbytes
-        if size - len(head) > values + VARIABLE_HEADER_BYTES:
-            raise InputError(f"the MAT struct field {path!r} declares more bytes than its values can hold")
-        body += reader.read(size - len(head))
-    else:  # listed by its header, as variables are, and skipped
-        reader.skip(size - len(head))
-    element = struct.pack(order + "2I", MI_MATRIX, len(body)) + body
-    variable = _v5_header(element[:VARIABLE_HEADER_BYTES], order, root.start, root.end, False)
-    found[path] = replace(variable, element=element if variable.numeric else None)
+    def _dimensions(self, dims: Subelement) -> tuple[int, ...]:
+        kind, data, _ = dims
+        if kind != MI_INT32 or len(data) % 4 or len(data) < 8:
+            raise InputError("a MAT struct holds a field with malformed dimensions")
+        return struct.unpack(self.order + f"{len(data) // 4}i", data)
 
 
 # --- v4 ---------------------------------------------------------------------------------------

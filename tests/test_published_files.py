@@ -543,23 +543,6 @@ def test_a_variable_whose_values_have_an_unknown_data_type_is_refused_not_a_cras
     )
 
 
-@settings(max_examples=400, deadline=None)
-@given(
-    st.sampled_from([VALID_MAT, VALID_V4]),
-    st.floats(0, 1),
-    st.integers(0, 16),
-    st.binary(min_size=1, max_size=16),
-)
-def test_mat_parser_never_crashes_on_a_damaged_file(valid, where, cut, patch):
-    at = int(where * (len(valid) - 1))
-    data = valid[:at] + patch + valid[at + cut :]
-    try:
-        record = parse_mat(data, LIMIT, Layout("Force", "Acc2"))
-    except InputError:
-        return
-    assert record.x.dtype == record.y.dtype == np.float64 and record.x.shape == record.y.shape
-
-
 def _struct_file(compress: bool) -> bytes:
     stream = io.BytesIO()
     fields = {"u": np.ones(20), "inner": {"y": np.ones((2, 20)), "note": "hi"}, "e": np.zeros((0, 0))}
@@ -570,18 +553,27 @@ def _struct_file(compress: bool) -> bytes:
 VALID_STRUCTS = [_struct_file(compress=True), _struct_file(compress=False)]
 
 
-@settings(max_examples=400, deadline=None)
+# Each valid file with the names read from it: flat variables (v5, v4) and a struct's fields.
+VALID_FILES = [
+    (VALID_MAT, Layout("Force", "Acc2")),
+    (VALID_V4, Layout("Force", "Acc2")),
+    *((valid, Layout("data.u", "data.inner.y2")) for valid in VALID_STRUCTS),
+]
+
+
+@settings(max_examples=800, deadline=None)
 @given(
-    st.sampled_from(VALID_STRUCTS),
+    st.sampled_from(VALID_FILES),
     st.floats(0, 1),
     st.integers(0, 16),
     st.binary(min_size=1, max_size=16),
 )
-def test_the_struct_walk_never_crashes_on_a_damaged_file(valid, where, cut, patch):
-    at = int(where * (len(valid) - 1))
-    data = valid[:at] + patch + valid[at + cut :]
+def test_mat_parser_never_crashes_on_a_damaged_file(valid, where, cut, patch):
+    (content, layout) = valid
+    at = int(where * (len(content) - 1))
+    data = content[:at] + patch + content[at + cut :]
     try:
-        record = parse_mat(data, LIMIT, Layout("data.u", "data.inner.y2"))
+        record = parse_mat(data, LIMIT, layout)
     except InputError:
         return
     assert record.x.dtype == record.y.dtype == np.float64 and record.x.shape == record.y.shape
