@@ -20,6 +20,7 @@ import threading
 import time
 import uuid
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from email import policy
 from pathlib import Path
 
@@ -46,13 +47,13 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 from workers import Worker, workers
 
-from service.config import Settings
+from service.config import DEFAULT_DATABASE, Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import notifications, renotify
 from service.jobs.distributed import conninfo
 from service.jobs.embedded import EmbeddedBackend, claim, defer, run
 from service.migrate import upgrade_database
-from service.sealing import seal, unseal
+from service.sealing import check_keys, seal, unseal
 from service.tables import (
     Alarm,
     Delivery,
@@ -345,6 +346,22 @@ def test_a_secret_sealed_under_a_key_the_server_lost_is_not_sent_and_a_rotation_
         announce_and_deliver()
         assert len(receiver.requests) == 2 and all(request.signed for request in receiver.requests)
     assert [d.status for d in outbox.deliveries()] == ["delivered", "delivered"]
+
+
+def test_the_key_file_is_made_once_for_its_owner_alone_whoever_starts_first(tmp_path: Path):
+    """Eight processes' worth of threads reading a key file no one has made yet: one key, kept
+    where the default database is by default, readable by its owner alone."""
+    settings = Settings(secret_key_file=tmp_path / "narxwatch" / "secret.key")
+    with ThreadPoolExecutor(8) as pool:
+        list(pool.map(lambda _: check_keys(settings), range(8)))
+    (key,) = settings.secret_key_file.read_text().split()
+    assert settings.secret_key_file.stat().st_mode & 0o777 == 0o600
+    assert (
+        unseal(seal(SECRET, settings), settings.model_copy(update={"secret_keys": [SecretStr(key)]}))
+        == SECRET
+    )
+    assert list(settings.secret_key_file.parent.iterdir()) == [settings.secret_key_file]  # no drafts left
+    assert Settings.model_fields["secret_key_file"].default == DEFAULT_DATABASE.parent / "secret.key"
 
 
 def test_a_webhooks_secret_is_stored_sealed_and_never_shown_again(api_server: LiveServer):

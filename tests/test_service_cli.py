@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import uuid
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
@@ -22,6 +23,7 @@ from test_cli import invoke
 
 from service.config import get_settings
 from service.db import make_engine
+from service.migrate import upgrade_database
 from service.tables import Organisation, Webhook, utcnow
 
 BIN = Path(sys.executable).parent
@@ -293,23 +295,26 @@ def test_an_unreachable_database_server_is_a_one_line_error_without_the_password
 # --- The keys webhooks' secrets are sealed under ---------------------------------------------------
 
 
-def test_the_embedded_default_makes_its_sealing_key_beside_its_database_for_its_owner_alone(newcomer):
-    env, workdir, database = newcomer
-    run("db", "upgrade", env=env, cwd=workdir)
-    run("worker", "--once", env=env, cwd=workdir)  # a worker reads the keys as it starts
-    key_file = database.parent / "secret.key"
-    assert key_file.stat().st_mode & 0o777 == 0o600
-    (key,) = key_file.read_text().split()
-    assert Fernet(key).decrypt(Fernet(key).encrypt(b"x")) == b"x"
-    assert list(workdir.iterdir()) == []
+@pytest.fixture
+def in_process(monkeypatch, tmp_path) -> Iterator[Callable[..., subprocess.CompletedProcess[str]]]:
+    """``invoke`` with the given NARXWATCH_ settings, read afresh (the settings are cached)."""
+
+    def command(*args: str, check: bool = True, **settings: str) -> subprocess.CompletedProcess[str]:
+        for name, value in settings.items():
+            monkeypatch.setenv(f"NARXWATCH_{name.upper()}", value)
+        get_settings.cache_clear()
+        return invoke(*args, cwd=tmp_path, check=check)
+
+    yield command
+    get_settings.cache_clear()
 
 
-def test_db_reseal_seals_every_secret_under_the_first_key_or_changes_nothing(newcomer):
-    env, workdir, database = newcomer
-    run("db", "upgrade", env=env, cwd=workdir)
+def test_db_reseal_seals_every_secret_under_the_first_key_or_changes_nothing(in_process, tmp_path):
+    url = f"sqlite:///{tmp_path / 'sealed.db'}"
+    upgrade_database(url)
     old, new = (Fernet.generate_key().decode() for _ in range(2))
     secrets = ["whsec_" + letter * 32 for letter in "xy"]
-    engine = make_engine(f"sqlite:///{database}")
+    engine = make_engine(url)
     with engine.begin() as connection:
         connection.execute(insert(Organisation).values(id=1, name="o", created_at=utcnow()))
         for secret in secrets:
@@ -322,11 +327,11 @@ def test_db_reseal_seals_every_secret_under_the_first_key_or_changes_nothing(new
             return list(connection.scalars(select(Webhook.secret).order_by(Webhook.id)))
 
     before = stored()
-    refused = run("db", "reseal", env=env | {"NARXWATCH_SECRET_KEYS": json.dumps([new])}, check=False)
+    refused = in_process("db", "reseal", check=False, database_url=url, secret_keys=json.dumps([new]))
     assert refused.returncode == 2, refused.stderr
     assert "webhook 1: " in refused.stderr and "NARXWATCH_SECRET_KEYS" in refused.stderr
     assert stored() == before
-    done = run("db", "reseal", env=env | {"NARXWATCH_SECRET_KEYS": json.dumps([new, old])}, cwd=workdir)
+    done = in_process("db", "reseal", secret_keys=json.dumps([new, old]))
     assert "2 webhook secret(s) sealed under the first key" in done.stdout
     assert [Fernet(new).decrypt(token.encode()).decode() for token in stored()] == secrets
     engine.dispose()
@@ -336,8 +341,8 @@ def test_db_reseal_seals_every_secret_under_the_first_key_or_changes_nothing(new
 def test_a_process_given_a_key_file_that_holds_no_key_stops_at_its_start_naming_the_file(
     newcomer, tmp_path, command
 ):
-    env, workdir, _ = newcomer
-    run("db", "upgrade", env=env, cwd=workdir)
+    env, workdir, database = newcomer
+    upgrade_database(f"sqlite:///{database}")
     wrong = tmp_path / "secret.key"
     wrong.write_text("hunter2\n")
     env |= {"NARXWATCH_SECRET_KEY_FILE": str(wrong), "NARXWATCH_LOG_FORMAT": "text"}
