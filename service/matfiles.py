@@ -291,24 +291,32 @@ def _v5_element(mat: MatFile, variable: MatVariable) -> bytes:
 
 
 def _inflate(data: bytes, start: int, end: int, limit: int) -> bytes:
-    """At most ``limit`` bytes inflated from the zlib stream in ``data[start:end]``, fed in
-    chunks so that no more than a chunk of input is pending at any time."""
-    inflater = zlib.decompressobj()
-    out = bytearray()
-    view = memoryview(data)
-    position = start
-    try:
-        while len(out) < limit and not inflater.eof:
-            pending = inflater.unconsumed_tail
-            if not pending:
-                if position >= end:
-                    break
-                pending = view[position : min(end, position + INFLATE_CHUNK)]
-                position += len(pending)
-            out += inflater.decompress(pending, limit - len(out))
-    except zlib.error as exc:
-        raise InputError(f"a compressed MAT variable is damaged ({exc})") from None
-    return bytes(out)
+    """At most ``limit`` bytes inflated from the zlib stream in ``data[start:end]``."""
+    return _Inflating(memoryview(data)[start:end]).take(limit)
+
+
+class _Inflating:
+    """A zlib stream inflated on demand, fed in chunks so that no more than a chunk of input is
+    pending at any time."""
+
+    def __init__(self, source: memoryview) -> None:
+        self._inflater = zlib.decompressobj()
+        self._source = source
+
+    def take(self, limit: int) -> bytes:
+        """The next ``limit`` bytes, fewer where the stream ends."""
+        out = bytearray()
+        try:
+            while len(out) < limit and not self._inflater.eof:
+                pending = self._inflater.unconsumed_tail
+                if not pending:
+                    if not self._source:
+                        break
+                    pending, self._source = self._source[:INFLATE_CHUNK], self._source[INFLATE_CHUNK:]
+                out += self._inflater.decompress(pending, limit - len(out))
+        except zlib.error as exc:
+            raise InputError(f"a compressed MAT variable is damaged ({exc})") from None
+        return bytes(out)
 
 
 # --- struct fields ----------------------------------------------------------------------------
@@ -344,13 +352,9 @@ class _Reader:
         self._name = variable.name
         self._budget = budget
         self._read = 0
-        self._pending = b""
-        if variable.compressed:
-            self._inflater: zlib._Decompress | None = zlib.decompressobj()
-            self._source = memoryview(data)[variable.start + 8 : variable.end]
-        else:
-            self._inflater = None
-            self._source = memoryview(data)[variable.start : variable.end]
+        view = memoryview(data)
+        self._inflating = _Inflating(view[variable.start + 8 : variable.end]) if variable.compressed else None
+        self._source = view[variable.start : variable.end]
 
     def read(self, size: int) -> bytes:
         """The next ``size`` bytes; InputError where the element ends before them."""
@@ -360,11 +364,10 @@ class _Reader:
                 f"the MAT struct {self._name!r} unpacks to more than {self._budget} bytes before the "
                 "fields named are read: save those signals as variables of their own"
             )
-        if self._inflater is None:
-            chunk = bytes(self._source[:size])
-            self._source = self._source[size:]
+        if self._inflating is not None:
+            chunk = self._inflating.take(size)
         else:
-            chunk = self._inflated(size)
+            chunk, self._source = bytes(self._source[:size]), self._source[size:]
         if len(chunk) < size:
             raise InputError(f"the MAT struct {self._name!r} ends inside one of its fields")
         return chunk
@@ -374,22 +377,6 @@ class _Reader:
             step = min(size, INFLATE_CHUNK)
             self.read(step)
             size -= step
-
-    def _inflated(self, size: int) -> bytes:
-        assert self._inflater is not None
-        out = bytearray(self._pending)
-        try:
-            while len(out) < size and not self._inflater.eof:
-                tail = self._inflater.unconsumed_tail
-                if not tail:
-                    if not self._source:
-                        break
-                    tail, self._source = self._source[:INFLATE_CHUNK], self._source[INFLATE_CHUNK:]
-                out += self._inflater.decompress(tail, size - len(out))
-        except zlib.error as exc:
-            raise InputError(f"the compressed MAT struct {self._name!r} is damaged ({exc})") from None
-        self._pending = bytes(out[size:])
-        return bytes(out[:size])
 
 
 Subelement = tuple[int, bytes, bytes]  # data type, data, the raw bytes read (tag and padding)
