@@ -353,8 +353,9 @@ class _Reader:
         self._budget = budget
         self._read = 0
         view = memoryview(data)
+        # Compressed: inflated from after the element's tag; otherwise the element as it lies.
         self._inflating = _Inflating(view[variable.start + 8 : variable.end]) if variable.compressed else None
-        self._source = view[variable.start : variable.end]
+        self._source = view[variable.start : variable.end] if not variable.compressed else view[:0]
 
     def read(self, size: int) -> bytes:
         """The next ``size`` bytes; InputError where the element ends before them."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from functools import cache
 from pathlib import Path
 
@@ -41,16 +42,18 @@ def seal(secret: str, settings: Settings) -> str:
 
 def unseal(token: str, settings: Settings) -> str:
     """The secret ``token`` seals; :class:`UnsealError` when no key of the server's opens it."""
-    try:
-        return _keys(settings).decrypt(token.encode("ascii")).decode()
-    except (InvalidToken, UnicodeEncodeError) as exc:
-        raise UnsealError from exc
+    return _opened(_keys(settings).decrypt, token).decode()
 
 
 def reseal(token: str, settings: Settings) -> str:
     """``token`` sealed again under the first key (a rotation); :class:`UnsealError` as unseal."""
+    return _opened(_keys(settings).rotate, token).decode("ascii")
+
+
+def _opened(opening: Callable[[bytes], bytes], token: str) -> bytes:
+    """``opening`` (which must open the token first) applied to ``token``, or UnsealError."""
     try:
-        return _keys(settings).rotate(token.encode("ascii")).decode("ascii")
+        return opening(token.encode("ascii"))
     except (InvalidToken, UnicodeEncodeError) as exc:
         raise UnsealError from exc
 

@@ -52,6 +52,20 @@ def seeded(tmp_path_factory) -> dict[str, str]:
     return env
 
 
+@pytest.fixture
+def in_process(monkeypatch, tmp_path) -> Iterator[Callable[..., subprocess.CompletedProcess[str]]]:
+    """``invoke`` with the given NARXWATCH_ settings, read afresh (the settings are cached)."""
+
+    def command(*args: str, check: bool = True, **settings: str) -> subprocess.CompletedProcess[str]:
+        for name, value in settings.items():
+            monkeypatch.setenv(f"NARXWATCH_{name.upper()}", value)
+        get_settings.cache_clear()
+        return invoke(*args, cwd=tmp_path, check=check)
+
+    yield command
+    get_settings.cache_clear()
+
+
 def test_demo_seed_is_idempotent(seeded):
     assert "k2 experiments" in seeded["FIRST_SEED"]
     # The second run finds the demo and trains nothing.
@@ -130,25 +144,20 @@ def test_keys_create_expires_after_a_duration_or_at_a_time(seeded):
             assert listed == expected, expires
 
 
-def test_keys_create_refuses_an_expiry_it_cannot_keep(seeded, tmp_path, monkeypatch):
+def test_keys_create_refuses_an_expiry_it_cannot_keep(seeded, in_process):
     org = f"refused-{uuid.uuid4().hex[:8]}"
-    # In this process, on the seeded database: a key that was not refused would be stored there.
-    monkeypatch.setenv("NARXWATCH_DATABASE_URL", seeded["NARXWATCH_DATABASE_URL"])
     refusals = {
         "2020-01-01": "has passed; give a time in the future",
         "tomorrow": "give a duration (90m, 12h, 30d, 2w) or an ISO date or time",
         "2099-01-31T10:30:00": "give the time a zone",
         "99999999999d": "lies beyond the year 9999",
     }
-    get_settings.cache_clear()
-    try:
-        for expires, message in refusals.items():
-            args = ("keys", "create", "--org", org, "--role", "viewer", "--expires", expires)
-            result = invoke(*args, cwd=tmp_path, check=False)
-            assert result.returncode == 2 and message in result.stderr, (expires, result.stderr)
-            assert "Traceback" not in result.stderr and result.stdout == ""
-    finally:
-        get_settings.cache_clear()
+    for expires, message in refusals.items():
+        args = ("keys", "create", "--org", org, "--role", "viewer", "--expires", expires)
+        # In this process, on the seeded database: a key that was not refused would be stored there.
+        result = in_process(*args, check=False, database_url=seeded["NARXWATCH_DATABASE_URL"])
+        assert result.returncode == 2 and message in result.stderr, (expires, result.stderr)
+        assert "Traceback" not in result.stderr and result.stdout == ""
     assert run("keys", "list", "--org", org, env=seeded, check=False).returncode == 2, (
         "a refused key was stored"
     )
@@ -293,20 +302,6 @@ def test_an_unreachable_database_server_is_a_one_line_error_without_the_password
 
 
 # --- The keys webhooks' secrets are sealed under ---------------------------------------------------
-
-
-@pytest.fixture
-def in_process(monkeypatch, tmp_path) -> Iterator[Callable[..., subprocess.CompletedProcess[str]]]:
-    """``invoke`` with the given NARXWATCH_ settings, read afresh (the settings are cached)."""
-
-    def command(*args: str, check: bool = True, **settings: str) -> subprocess.CompletedProcess[str]:
-        for name, value in settings.items():
-            monkeypatch.setenv(f"NARXWATCH_{name.upper()}", value)
-        get_settings.cache_clear()
-        return invoke(*args, cwd=tmp_path, check=check)
-
-    yield command
-    get_settings.cache_clear()
 
 
 def test_db_reseal_seals_every_secret_under_the_first_key_or_changes_nothing(in_process, tmp_path):
