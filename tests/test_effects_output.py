@@ -53,6 +53,42 @@ def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, s
         assert estimated == pytest.approx(parameter, rel=0.02 if effect == "power_law_damping" else 0.01)
 
 
+# The same records in other units (force in kN and displacement in µm; and the other way round):
+# every threshold of the loop is relative, so it must add the same effects in the same order, by
+# the same criteria, and report its figures and the parameters it estimates in the new units (the
+# dead zone's half-width in units of x, the plateaus in units of y). Least squares scales to
+# rounding (its free run, a lightly damped recursion, carries that rounding to 10⁻⁹ of it); the
+# output-error searches end in flat valleys where rounding alone moves their ends (by 10⁻⁷ to
+# 10⁻⁵ of the free run here), far below the check's standard error (0.8 %) that the loop decides
+# by: an absolute threshold anywhere would show at that scale.
+@pytest.mark.parametrize(
+    ("spec", "x_scale", "y_scale"), [("dead_zone=10000", 1e-3, 1e6), ("sensor_range=0.08", 1e4, 1e-3)]
+)
+def test_the_loop_decides_alike_whatever_the_units_of_the_signals(spec, x_scale, y_scale):
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects.parse([spec])), ESTIMATION + HELD_OUT, seed=1
+    )
+    split = [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT)
+    plain = refine_record(record.x, record.y, EXACT_TERMS, *split, fs=record.fs)
+    scaled = refine_record(x_scale * record.x, y_scale * record.y, EXACT_TERMS, *split, fs=record.fs)
+    decisions = [(r.added.name, r.criterion) for r in plain.refinement.kept]
+    assert decisions and [(r.added.name, r.criterion) for r in scaled.refinement.kept] == decisions
+    assert scaled.before.free_run_rms == pytest.approx(y_scale * plain.before.free_run_rms, rel=1e-7)
+    assert scaled.before.one_step_rms == pytest.approx(y_scale * plain.before.one_step_rms, rel=1e-9)
+    for judged, judged_scaled in zip(plain.refinement.rounds, scaled.refinement.rounds, strict=True):
+        np.testing.assert_allclose(judged_scaled.check_rms, np.multiply(y_scale, judged.check_rms), rtol=1e-5)
+    assert scaled.after.free_run_rms == pytest.approx(y_scale * plain.after.free_run_rms, rel=1e-4)
+    assert scaled.after.free_run_rms <= plain.before.free_run_rms * y_scale / 2
+    if spec.startswith("dead_zone"):
+        half_widths = [
+            Term.parse(r.refinement.effects_added[0].terms[0]).factors[0].parameter for r in (plain, scaled)
+        ]
+        assert half_widths[1] == pytest.approx(x_scale * half_widths[0], rel=1e-9)
+    else:
+        limits = [r.refinement.refined.output_limits for r in (plain, scaled)]
+        np.testing.assert_allclose(limits[1], np.multiply(y_scale, limits[0]), rtol=1e-9)
+
+
 @pytest.mark.parametrize(
     "name",
     [
