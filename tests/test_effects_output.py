@@ -53,7 +53,7 @@ def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, s
         assert estimated == pytest.approx(parameter, rel=0.02 if effect == "power_law_damping" else 0.01)
 
 
-# The same records in other units (force in kN and displacement in µm; and the other way round):
+# The same records in other units (force in kN and displacement in µm; in 0.1 mN and km):
 # every threshold of the loop is relative, so it must add the same effects in the same order, by
 # the same criteria, and report its figures and the parameters it estimates in the new units (the
 # dead zone's half-width in units of x, the plateaus in units of y). Least squares scales to
