@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.io
 from api_helpers import simulated
-from test_cli import invoke, run
+from test_cli import invoke
 
 from models.narx import fit_narx
 from models.terms import parse_terms
@@ -50,12 +50,12 @@ REFINE = ("--declared", "2dof", "--json")
 
 @pytest.fixture(scope="module")
 def plain_report(files) -> dict:
-    return json.loads(run("refine", "plain.csv", *REFINE, cwd=files).stdout)
+    return json.loads(invoke("refine", "plain.csv", *REFINE, cwd=files).stdout)
 
 
 @pytest.mark.parametrize("name", ["named.csv", "named.mat"])
 def test_refine_reads_named_signals_as_the_plain_record(files, plain_report, name):
-    named = json.loads(run("refine", name, "--x", "Force", "--y", "Acc2", *REFINE, cwd=files).stdout)
+    named = json.loads(invoke("refine", name, "--x", "Force", "--y", "Acc2", *REFINE, cwd=files).stdout)
     # The same report but for the file and signal names it quotes.
     assert without_sources(named) == without_sources(plain_report) and named["data"]["fs"] == 1500.0
 
@@ -74,7 +74,7 @@ def without_sources(report: dict) -> dict:
 
 def test_train_and_select_read_named_signals(files):
     record = simulated("none", 0.0, 41, n=4000)
-    run(
+    invoke(
         "train",
         "baseline",
         "named.mat",
@@ -93,8 +93,10 @@ def test_train_and_select_read_named_signals(files):
     np.testing.assert_array_equal(document["theta"], expected.theta)
     assert document["metadata"]["fs"] == 1500.0
     options = ("--degree", "1", "--ny", "2", "--nx", "2", "--n-terms", "3", "--json")
-    plain = json.loads(run("select", "plain.csv", *options, cwd=files).stdout)
-    named = json.loads(run("select", "named.csv", "--x", "Force", "--y", "Acc2", *options, cwd=files).stdout)
+    plain = json.loads(invoke("select", "plain.csv", *options, cwd=files).stdout)
+    named = json.loads(
+        invoke("select", "named.csv", "--x", "Force", "--y", "Acc2", *options, cwd=files).stdout
+    )
     assert named.pop("records") == ["named.csv"] and plain.pop("records") == ["plain.csv"]
     assert named == plain
 
@@ -147,7 +149,7 @@ def test_a_file_of_realisations_is_read_as_its_records_by_train_and_select(tmp_p
         for i, record in enumerate(pair):
             write_record(tmp_path / f"k{k}_{i}.csv", record.x, record.y, record.fs)
     signals = ("--x", "Force", "--y", "Acc")
-    run("train", "baseline", "k0.mat", *signals, "--terms", TERMS, "--out", "grouped.json", cwd=tmp_path)
+    invoke("train", "baseline", "k0.mat", *signals, "--terms", TERMS, "--out", "grouped.json", cwd=tmp_path)
     expected = fit_narx([(r.x, r.y) for r in realisations[0]], parse_terms(TERMS.split(",")))
     baseline = json.loads((tmp_path / "grouped.json").read_text())
     np.testing.assert_array_equal(baseline["theta"], expected.theta)
@@ -157,7 +159,7 @@ def test_a_file_of_realisations_is_read_as_its_records_by_train_and_select(tmp_p
         "path,k\n" + "".join(f"k{k}_{i}.csv,{k}\n" for k in realisations for i in range(2))
     )
     for manifest, options in (("grouped", signals), ("separate", ())):
-        run(
+        invoke(
             "train", "fault-mode", "--name", "k2", "--experiments", f"{manifest}.csv", "--terms", TERMS,
             *options, "--out", f"{manifest}_k2.json", cwd=tmp_path,
         )  # fmt: skip
@@ -167,7 +169,7 @@ def test_a_file_of_realisations_is_read_as_its_records_by_train_and_select(tmp_p
     assert grouped == separate
 
     options = ("--degree", "1", "--ny", "2", "--nx", "2", "--n-terms", "3", "--json")
-    from_groups = json.loads(run("select", "k0.mat", *signals, *options, cwd=tmp_path).stdout)
-    from_files = json.loads(run("select", "k0_0.csv", "k0_1.csv", *options, cwd=tmp_path).stdout)
+    from_groups = json.loads(invoke("select", "k0.mat", *signals, *options, cwd=tmp_path).stdout)
+    from_files = json.loads(invoke("select", "k0_0.csv", "k0_1.csv", *options, cwd=tmp_path).stdout)
     assert from_groups.pop("records") == ["k0.mat"] and from_files.pop("records") == ["k0_0.csv", "k0_1.csv"]
     assert from_groups == from_files

@@ -1,4 +1,6 @@
-"""``narxwatch refine`` as a user runs it: Silverbox and simulated records with an undeclared effect."""
+"""``narxwatch refine`` on Silverbox and on simulated records with an undeclared effect: through the
+console script's entry point in this process (``test_cli.invoke``), and as a process where the
+process is what is tested (a terminal, one CPU, signals)."""
 
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cli import NARXWATCH, PNG_MAGIC, invoke, run
+from test_cli import NARXWATCH, PNG_MAGIC, invoke
 from test_periods import measured
 
 from models.coverage import coverage
@@ -36,7 +38,7 @@ ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics"}
 
 def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     figure = tmp_path / "refine.png"
-    result = run(
+    result = invoke(
         "refine", str(silverbox_dir / "SNLS80mV.csv"), "--format", "silverbox", "--declared", "linear:4,4",
         "--validate", str(silverbox_dir / "Schroeder80mV.csv"), "--json", "--plot", str(figure), cwd=tmp_path,
     )  # fmt: skip
@@ -82,11 +84,11 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
 
 
 def test_simulated_quadratic_stiffness_is_named_and_the_table_printed(tmp_path):
-    run(
+    invoke(
         "simulate", "--n", "12000", "--seed", "3", "--disturbance-std", "200",
         "--effect", "quadratic_stiffness2=3e5", "--out", "record.csv", cwd=tmp_path,
     )  # fmt: skip
-    quiet = run("refine", "record.csv", "--declared", "2dof", "--json", cwd=tmp_path)
+    quiet = invoke("refine", "record.csv", "--declared", "2dof", "--json", cwd=tmp_path)
     report = json.loads(quiet.stdout)
     assert report["effects_added"][0]["name"] == "quadratic_stiffness"
     assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
@@ -157,7 +159,7 @@ def test_bad_options_are_refused_with_a_message(silverbox_dir, tmp_path, args, m
 
 def test_a_file_that_is_not_silverbox_is_named(tmp_path: Path):
     (tmp_path / "other.csv").write_text("a,b\n1,2\n")
-    result = run("refine", "other.csv", "--format", "silverbox", cwd=tmp_path, check=False)
+    result = invoke("refine", "other.csv", "--format", "silverbox", cwd=tmp_path, check=False)
     assert result.returncode == 2 and "other.csv" in result.stderr and "V1" in result.stderr
 
 
@@ -197,7 +199,7 @@ def free_run_rms(model: NARX, folder: Path, name: str) -> float:
 
 def refine_report(*args: str, cwd: Path) -> dict:
     """The JSON report of ``narxwatch refine`` with ``args``, run in ``cwd``."""
-    return json.loads(run("refine", *args, "--json", cwd=cwd).stdout)
+    return json.loads(invoke("refine", *args, "--json", cwd=cwd).stdout)
 
 
 @pytest.fixture(scope="module")
@@ -253,7 +255,7 @@ def test_several_estimation_records_and_each_validation_record_judged_whole(
 
     # --validate repeated says the same; the table names each effect's criterion and each record,
     # and says which record judges the models beyond the data they were fitted on.
-    table = run(
+    table = invoke(
         "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--validate", "v2.csv",
         "loud.csv", cwd=simulated_records,
     ).stdout  # fmt: skip
@@ -401,7 +403,7 @@ def test_a_glitch_in_one_of_several_records_is_named_by_its_file(simulated_recor
 
 def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_records: Path):
     # The table is printed from the JSON report's "orders_chosen" and "declared" (one loop, not two).
-    table = run("refine", "e1.csv", "e2.csv", "--validate", "v1.csv", cwd=simulated_records).stdout
+    table = invoke("refine", "e1.csv", "e2.csv", "--validate", "v1.csv", cwd=simulated_records).stdout
     chosen = re.search(r"the loop chose the linear model ny = (\d+), nx = (\d+), input delay (\d)", table)
     assert chosen, table
     ny, nx, delay = (int(group) for group in chosen.groups())
@@ -413,7 +415,7 @@ def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_r
 def test_a_unit_is_plotted_as_the_text_given(simulated_records: Path, tmp_path: Path):
     # A '$' pair would be parsed by matplotlib as mathtext, and "$\\frac$" fail to draw.
     figure = tmp_path / "refine.png"
-    result = run(
+    result = invoke(
         "refine", str(simulated_records / "e1.csv"), "--declared", "2dof", "--validate",
         str(simulated_records / "v1.csv"), "--plot", str(figure), "--unit", "$\\frac$", cwd=tmp_path,
     )  # fmt: skip
@@ -519,7 +521,7 @@ def test_records_at_different_rates_are_refused_naming_each(simulated_records: P
     assert text.startswith("# fs=1500")
     (tmp_path / "slow.csv").write_text(text.replace("# fs=1500", "# fs=1000", 1))
     figure = tmp_path / "refine.png"
-    result = run(
+    result = invoke(
         "refine", str(simulated_records / "e1.csv"), "--declared", "2dof",
         "--validate", str(tmp_path / "slow.csv"), "--plot", str(figure), cwd=tmp_path, check=False,
     )  # fmt: skip

@@ -1,4 +1,5 @@
-"""``narxwatch select``, run as a user runs it: on records written by ``narxwatch simulate``."""
+"""``narxwatch select`` on records written by ``narxwatch simulate``: its help from the installed
+console script, the rest through the script's entry point in this process (``test_cli.invoke``)."""
 
 from __future__ import annotations
 
@@ -46,7 +47,7 @@ def test_help() -> None:
 def test_json_terms_feed_train_baseline(workdir) -> None:
     """Two records, BIC, held-out errors on a third; the JSON (stdout and --out) is a terms file
     for ``train baseline --terms``, which then fits exactly the selected structure."""
-    result = run(
+    result = invoke(
         "select", "a.csv", "b.npz", "--holdout", "held.csv", "--json", "--out", "selected.json", cwd=workdir
     )
     document = json.loads(result.stdout)
@@ -62,19 +63,21 @@ def test_json_terms_feed_train_baseline(workdir) -> None:
     assert held["one_step"]["samples"] == 4996 and held["k_step"]["steps"] == 10
     assert held["one_step"]["nrmse"] < held["k_step"]["nrmse"] < held["free_run"]["nrmse"] < 0.2
     assert document["fs"] == 1500.0 and document["holdout"] == {"records": ["held.csv"], "split": None}
-    run("train", "baseline", "a.csv", "--terms", "selected.json", "--out", "model.json", cwd=workdir)
+    invoke("train", "baseline", "a.csv", "--terms", "selected.json", "--out", "model.json", cwd=workdir)
     model = json.loads((workdir / "model.json").read_text())
     assert model["terms"] == terms
 
 
 def test_table_output_and_split(workdir) -> None:
     """Without --holdout the last quarter of each record is held out."""
-    result = run("select", "a.csv", "--n-terms", "6", cwd=workdir)
+    result = invoke("select", "a.csv", "--n-terms", "6", cwd=workdir)
     assert "y[t-1]" in result.stdout and "x[t-4]" in result.stdout  # names survive the table
     assert "stopped by n_terms" in result.stdout and "free run" in result.stdout
-    document = json.loads(run("select", "a.csv", "--n-terms", "6", "--json", cwd=workdir).stdout)
+    document = json.loads(invoke("select", "a.csv", "--n-terms", "6", "--json", cwd=workdir).stdout)
     assert document["n_obs"] == 15000 - 4 and document["held_out"]["one_step"]["samples"] == 5000 - 4
-    none = json.loads(run("select", "a.csv", "--n-terms", "6", "--split", "0", "--json", cwd=workdir).stdout)
+    none = json.loads(
+        invoke("select", "a.csv", "--n-terms", "6", "--split", "0", "--json", cwd=workdir).stdout
+    )
     assert none["held_out"] is None and none["n_obs"] == 20000 - 4
     assert none["holdout"] == {"records": [], "split": 0.0}
 
@@ -82,14 +85,14 @@ def test_table_output_and_split(workdir) -> None:
 def test_dictionary_options(workdir) -> None:
     """--delay 4 --nx 1 --degree 1 leaves 1 + 4 + 1 candidates; --err-tolerance with --prune;
     --include forces a term in first."""
-    result = run(
+    result = invoke(
         "select", "a.csv", "--degree", "1", "--nx", "1", "--delay", "4", "--no-constant",
         "--err-tolerance", "1e-10", "--prune", "--include", "x[t-4]", "--json", cwd=workdir,
     )  # fmt: skip
     document = json.loads(result.stdout)
     assert document["n_candidates"] == 5
     assert document["terms"][0] == "x[t-4]" and set(document["terms"]) <= {*LINEAR}
-    extra = run(
+    extra = invoke(
         "select", "a.csv", "--degree", "1", "--extra", "y[t-2]^3", "--n-terms", "7", "--json", cwd=workdir
     )
     assert json.loads(extra.stdout)["n_candidates"] == 1 + 8 + 1
@@ -101,7 +104,9 @@ def test_simulation_criterion(workdir) -> None:
     linear part of SPEC §2 and the cubic spring, and its held-out free run is no worse than that
     of FROLS's structure (measured: 3.19e-3 against 3.47e-3 m). The JSON names the criterion and
     is a terms file for ``train baseline``."""
-    result = run("select", "a.csv", "--criterion", "simulation", "--json", "--out", "semp.json", cwd=workdir)
+    result = invoke(
+        "select", "a.csv", "--criterion", "simulation", "--json", "--out", "semp.json", cwd=workdir
+    )
     document = json.loads(result.stdout)
     assert document == json.loads((workdir / "semp.json").read_text())
     assert document["criterion"] == "simulation" and document["stopped_by"] == "no_improvement"
@@ -113,35 +118,35 @@ def test_simulation_criterion(workdir) -> None:
     assert {step["action"] for step in path[1:]} <= {"add", "prune"}
     assert document["simulation_rms"] == pytest.approx(path[-1]["rms"])
     assert document["simulation_rms"] < 0.1 * path[0]["rms"]
-    frols = json.loads(run("select", "a.csv", "--json", cwd=workdir).stdout)
+    frols = json.loads(invoke("select", "a.csv", "--json", cwd=workdir).stdout)
     held, frols_held = document["held_out"]["free_run"], frols["held_out"]["free_run"]
     assert held["samples"] == frols_held["samples"] == 5000 - 4
     assert held["rms"] <= frols_held["rms"]
     assert document["judged"] == {"records": [], "share": 0.25} and "judged" not in frols
-    other = run(
+    other = invoke(
         "select", "a.csv", "--criterion", "simulation", "--judged", "b.npz", "--holdout", "held.csv",
         "--json", cwd=workdir,
     )  # fmt: skip
     judged_on_b = json.loads(other.stdout)
     assert judged_on_b["judged"] == {"records": ["b.npz"], "share": None}
     assert judged_on_b["judged_samples"] == 10000 - 4 and set(LINEAR) <= set(judged_on_b["terms"])
-    table = run("select", "a.csv", "--criterion", "simulation", cwd=workdir).stdout
+    table = invoke("select", "a.csv", "--criterion", "simulation", cwd=workdir).stdout
     assert "simulation path" in table and "y[t-1]^3" in table and "stopped by no_improvement" in table
-    run("train", "baseline", "a.csv", "--terms", "semp.json", "--out", "semp-model.json", cwd=workdir)
+    invoke("train", "baseline", "a.csv", "--terms", "semp.json", "--out", "semp-model.json", cwd=workdir)
     assert json.loads((workdir / "semp-model.json").read_text())["terms"] == terms
 
 
 def test_output_error_refines_the_selected_theta(workdir) -> None:
     """--output-error keeps the selected terms and replaces θ by the output-error fit on the
     selection records, whose free-run RMS there is never above the least-squares start's."""
-    plain = json.loads(run("select", "a.csv", "--n-terms", "6", "--json", cwd=workdir).stdout)
-    result = run("select", "a.csv", "--n-terms", "6", "--output-error", "--json", cwd=workdir)
+    plain = json.loads(invoke("select", "a.csv", "--n-terms", "6", "--json", cwd=workdir).stdout)
+    result = invoke("select", "a.csv", "--n-terms", "6", "--output-error", "--json", cwd=workdir)
     refined = json.loads(result.stdout)
     assert plain["output_error"] is None
     assert refined["terms"] == plain["terms"] and refined["theta"] != plain["theta"]
     fit = refined["output_error"]
     assert fit["rms"] <= fit["start_rms"] and fit["evaluations"] >= 1
-    table = run("select", "a.csv", "--n-terms", "6", "--output-error", cwd=workdir).stdout
+    table = invoke("select", "a.csv", "--n-terms", "6", "--output-error", cwd=workdir).stdout
     assert "θ refined by output error" in table
 
 
@@ -180,7 +185,7 @@ def test_bad_settings_are_refused_with_a_message(workdir, args, message) -> None
 
 def test_bad_records_are_refused_with_a_message(workdir) -> None:
     (workdir / "short.csv").write_text("x,y\n" + "".join(f"{i % 7},{i % 5}\n" for i in range(60)))
-    result = run("select", "short.csv", "--split", "0", cwd=workdir, check=False)
+    result = invoke("select", "short.csv", "--split", "0", cwd=workdir, check=False)
     assert result.returncode == 2 and "cannot rank 165 candidate terms" in result.stderr
     values = np.arange(300.0)
     lines = [f"{np.sin(v)},{'nan' if v == 17 else np.cos(v)}" for v in values]

@@ -1,4 +1,6 @@
-"""``narxwatch db upgrade``, ``keys create``, ``demo-seed`` and ``serve``, run as a user runs them."""
+"""``narxwatch db upgrade``, ``keys``, ``demo-seed`` and ``serve``: seeding, serving and every
+refusal of a missing or unreachable database run as a user runs them (the console script); the
+keys commands on the seeded database through its entry point in this process."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ import subprocess
 import sys
 import uuid
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 
 import httpx
@@ -66,6 +69,13 @@ def in_process(monkeypatch, tmp_path) -> Iterator[Callable[..., subprocess.Compl
     get_settings.cache_clear()
 
 
+@pytest.fixture
+def on_seeded(seeded, in_process) -> Callable[..., subprocess.CompletedProcess[str]]:
+    """A command run in this process on the seeded database (the keys commands: the database is
+    what they are about, not the process, and a new process spends two seconds on imports)."""
+    return partial(in_process, database_url=seeded["NARXWATCH_DATABASE_URL"])
+
+
 def test_demo_seed_is_idempotent(seeded):
     assert "k2 experiments" in seeded["FIRST_SEED"]
     # The second run finds the demo and trains nothing.
@@ -73,10 +83,10 @@ def test_demo_seed_is_idempotent(seeded):
     assert "is structure 1" in seeded["SECOND_SEED"]
 
 
-def test_keys_create_prints_a_working_key_once(seeded):
-    key = run("keys", "create", "--org", "demo", "--role", "viewer", env=seeded).stdout.strip()
+def test_keys_create_prints_a_working_key_once(on_seeded):
+    key = on_seeded("keys", "create", "--org", "demo", "--role", "viewer").stdout.strip()
     assert key.startswith("nw_") and len(key) > 40
-    other = run("keys", "create", "--org", "demo", "--role", "viewer", env=seeded).stdout.strip()
+    other = on_seeded("keys", "create", "--org", "demo", "--role", "viewer").stdout.strip()
     assert other != key
 
 
@@ -86,9 +96,9 @@ def test_keys_create_refuses_an_unknown_role(tmp_path):
     assert result.returncode == 2 and "unknown role 'root'" in result.stderr
 
 
-def listing(env: dict[str, str], *args: str) -> dict[str, list[str]]:
+def listing(command: Callable[..., subprocess.CompletedProcess[str]], *args: str) -> dict[str, list[str]]:
     """``narxwatch keys list``'s rows, by prefix: id, organisation, prefix, role, then the times."""
-    return rows_of(run("keys", "list", *args, env=env).stdout)
+    return rows_of(command("keys", "list", *args).stdout)
 
 
 def rows_of(text: str) -> dict[str, list[str]]:
@@ -101,14 +111,12 @@ def prefix(key: str) -> str:
     return key.split("_")[1]
 
 
-def test_keys_list_shows_every_key_but_never_the_key_or_its_hash(seeded):
+def test_keys_list_shows_every_key_but_never_the_key_or_its_hash(on_seeded):
     org = f"list-{uuid.uuid4().hex[:8]}"
-    run("keys", "create", "--org", f"other-{org}", "--role", "viewer", env=seeded)  # listed, not ours
-    made = {
-        role: run("keys", "create", "--org", org, "--role", role, env=seeded).stdout.strip() for role in ROLES
-    }
-    text = run("keys", "list", env=seeded).stdout
-    everyone, ours = rows_of(text), listing(seeded, "--org", org)
+    on_seeded("keys", "create", "--org", f"other-{org}", "--role", "viewer")  # listed, not ours
+    made = {role: on_seeded("keys", "create", "--org", org, "--role", role).stdout.strip() for role in ROLES}
+    text = on_seeded("keys", "list").stdout
+    everyone, ours = rows_of(text), listing(on_seeded, "--org", org)
     assert set(ours) == {prefix(key) for key in made.values()} and set(ours) < set(everyone)
     for role, key in made.items():
         row = ours[prefix(key)]
@@ -117,11 +125,11 @@ def test_keys_list_shows_every_key_but_never_the_key_or_its_hash(seeded):
         assert dt.datetime.fromisoformat(f"{row[4]}T{row[5]}+00:00") <= dt.datetime.now(dt.UTC)
     for key in made.values():
         assert key not in text and hashlib.sha256(key.encode()).hexdigest() not in text
-    unknown = run("keys", "list", "--org", "no-such-org", env=seeded, check=False)
+    unknown = on_seeded("keys", "list", "--org", "no-such-org", check=False)
     assert unknown.returncode == 2 and "organisation 'no-such-org' has no keys" in unknown.stderr
 
 
-def test_keys_create_expires_after_a_duration_or_at_a_time(seeded):
+def test_keys_create_expires_after_a_duration_or_at_a_time(on_seeded):
     org = f"expiring-{uuid.uuid4().hex[:8]}"
     expiries = {
         "90m": dt.timedelta(minutes=90),
@@ -132,9 +140,9 @@ def test_keys_create_expires_after_a_duration_or_at_a_time(seeded):
     made = {}
     for expires in expiries:
         before = dt.datetime.now(dt.UTC).replace(second=0, microsecond=0)
-        created = run("keys", "create", "--org", org, "--role", "viewer", "--expires", expires, env=seeded)
+        created = on_seeded("keys", "create", "--org", org, "--role", "viewer", "--expires", expires)
         made[expires] = (prefix(created.stdout.strip()), before, dt.datetime.now(dt.UTC))
-    rows = listing(seeded, "--org", org)
+    rows = listing(on_seeded, "--org", org)
     for expires, expected in expiries.items():
         key, before, after = made[expires]
         listed = dt.datetime.fromisoformat(f"{rows[key][6]}T{rows[key][7]}+00:00")  # to the minute
@@ -144,7 +152,7 @@ def test_keys_create_expires_after_a_duration_or_at_a_time(seeded):
             assert listed == expected, expires
 
 
-def test_keys_create_refuses_an_expiry_it_cannot_keep(seeded, in_process):
+def test_keys_create_refuses_an_expiry_it_cannot_keep(on_seeded):
     org = f"refused-{uuid.uuid4().hex[:8]}"
     refusals = {
         "2020-01-01": "has passed; give a time in the future",
@@ -155,37 +163,35 @@ def test_keys_create_refuses_an_expiry_it_cannot_keep(seeded, in_process):
     for expires, message in refusals.items():
         args = ("keys", "create", "--org", org, "--role", "viewer", "--expires", expires)
         # In this process, on the seeded database: a key that was not refused would be stored there.
-        result = in_process(*args, check=False, database_url=seeded["NARXWATCH_DATABASE_URL"])
+        result = on_seeded(*args, check=False)
         assert result.returncode == 2 and message in result.stderr, (expires, result.stderr)
         assert "Traceback" not in result.stderr and result.stdout == ""
-    assert run("keys", "list", "--org", org, env=seeded, check=False).returncode == 2, (
-        "a refused key was stored"
-    )
+    assert on_seeded("keys", "list", "--org", org, check=False).returncode == 2, "a refused key was stored"
 
 
-def test_keys_revoke_by_prefix_or_id(seeded):
+def test_keys_revoke_by_prefix_or_id(on_seeded):
     org = f"revoke-{uuid.uuid4().hex[:8]}"
     first, second, kept = (
-        run("keys", "create", "--org", org, "--role", "ingest", env=seeded).stdout.strip() for _ in range(3)
+        on_seeded("keys", "create", "--org", org, "--role", "ingest").stdout.strip() for _ in range(3)
     )
-    rows = listing(seeded, "--org", org)
-    by_prefix = run("keys", "revoke", prefix(first), env=seeded).stdout
+    rows = listing(on_seeded, "--org", org)
+    by_prefix = on_seeded("keys", "revoke", prefix(first)).stdout
     assert f"key {rows[prefix(first)][0]} ({prefix(first)}, ingest of '{org}') revoked at" in by_prefix
-    by_id = run("keys", "revoke", rows[prefix(second)][0], env=seeded).stdout
+    by_id = on_seeded("keys", "revoke", rows[prefix(second)][0]).stdout
     assert f"({prefix(second)}, ingest of '{org}') revoked at" in by_id
-    after = listing(seeded, "--org", org)
+    after = listing(on_seeded, "--org", org)
     for key in (first, second):
         revoked = dt.datetime.fromisoformat(f"{after[prefix(key)][-2]}T{after[prefix(key)][-1]}+00:00")
         assert revoked <= dt.datetime.now(dt.UTC)
     assert after[prefix(kept)][-1] == "-"
     for unknown in ("999999", "0123456789ab"):
-        result = run("keys", "revoke", unknown, env=seeded, check=False)
+        result = on_seeded("keys", "revoke", unknown, check=False)
         assert result.returncode == 2 and f"API key {unknown} not found" in result.stderr, result.stderr
 
 
-def test_serve_answers_with_the_seeded_demo(seeded):
+def test_serve_answers_with_the_seeded_demo(seeded, on_seeded):
     port = free_port()
-    admin = run("keys", "create", "--org", "demo", "--role", "admin", env=seeded).stdout.strip()
+    admin = on_seeded("keys", "create", "--org", "demo", "--role", "admin").stdout.strip()
     server = subprocess.Popen(
         [NARXWATCH, "serve", "--port", str(port)],
         env=seeded,
@@ -206,10 +212,10 @@ def test_serve_answers_with_the_seeded_demo(seeded):
             ("k2", True),
         ]
         # A key revoked on the command line is refused by the running service at once.
-        key = run("keys", "create", "--org", "demo", "--role", "viewer", env=seeded).stdout.strip()
+        key = on_seeded("keys", "create", "--org", "demo", "--role", "viewer").stdout.strip()
         viewer = {"Authorization": f"Bearer {key}"}
         assert httpx.get(f"{base}/api/v1/structures", headers=viewer).status_code == 200
-        run("keys", "revoke", prefix(key), env=seeded)
+        on_seeded("keys", "revoke", prefix(key))
         assert httpx.get(f"{base}/api/v1/structures", headers=viewer).status_code == 401
     finally:
         server.send_signal(signal.SIGINT)
