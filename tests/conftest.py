@@ -65,32 +65,35 @@ DISTURBANCE_STD = 800.0
 
 
 # The files that take half a minute or more of a worker's time, longest first (measured in a
-# `make test` run on the 2-core machine): the schema fuzzing, the CLI run as subprocesses, the
-# stateful fuzz run, the refinement loop, the database failures. `make test` hands whole files
-# to two pytest-xdist workers in collection order (--no-loadscope-reorder); these go first so
-# that no long file starts when the other worker is nearly done (the stateful fuzz run, last
-# under xdist's own order, left one worker idle for its last 100 s).
+# `make test` run on the 2-core machine, 2026-11-29): the refinement loop through the command
+# line and in process, the stateful fuzz run, the schema fuzzing, the database failures.
+# `make test` hands whole files to two pytest-xdist workers in collection order
+# (--no-loadscope-reorder); these go first so that no long file starts when the other worker is
+# nearly done (the stateful fuzz run, last under xdist's own order, left one worker idle for its
+# last 100 s).
 LONGEST_FILES = (
-    "test_api_schema.py",
     "test_cli_refine.py",
+    "test_refinement.py",
     "test_fuzz_stateful.py",
-    "test_service_cli.py",
-    "test_cli.py",
-    "test_sim_client.py",
+    "test_api_schema.py",
+    "test_api_refinements.py",
     "test_notifications.py",
     "test_faults.py",
-    "test_api_errors.py",
-    "test_cli_select.py",
-    "test_refinement.py",
-    "test_api_refinements.py",
-    "test_dashboard_browser.py",
-    "test_schedules.py",
-    "test_api_access.py",
-    "test_localisation.py",
-    "test_upload_hardening.py",
-    "test_retention.py",
-    "test_lifecycle.py",
     "test_effects_output.py",
+    "test_schedules.py",
+    "test_dashboard_browser.py",
+    "test_service_cli.py",
+    "test_api_errors.py",
+    "test_sim_client.py",
+    "test_api_bounded.py",
+    "test_jobs.py",
+    "test_lifecycle.py",
+    "test_localisation.py",
+    "test_retention.py",
+    "test_dashboard.py",
+    "test_cli.py",
+    "test_sim_scenarios.py",
+    "test_fleet_scale.py",
 )
 
 

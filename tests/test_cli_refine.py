@@ -5,6 +5,7 @@ process is what is tested (a terminal, one CPU, signals)."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import pty
@@ -423,6 +424,13 @@ def test_a_unit_is_plotted_as_the_text_given(simulated_records: Path, tmp_path: 
     assert figure.read_bytes().startswith(PNG_MAGIC)
 
 
+@functools.cache
+def in_one_process(*args: str, cwd: Path) -> str:
+    """The JSON report of ``narxwatch refine`` with ``args`` and ``--jobs 1``, made once a process
+    (the tests that compare other runs with it share it)."""
+    return invoke("refine", *args, "--json", "--jobs", "1", cwd=cwd).stdout
+
+
 @pytest.mark.parametrize("declared", [["--declared", "2dof"], []], ids=["declared", "orders-chosen"])
 def test_the_report_is_the_same_whatever_the_processes_building_the_candidates(
     simulated_records: Path, declared: list[str]
@@ -431,13 +439,11 @@ def test_the_report_is_the_same_whatever_the_processes_building_the_candidates(
     linear orders, each round's families, the simulation error's prefixes), in two processes
     (the effects' finders and combiners sent to them) or in this one: the same effects,
     parameters and figures, to the last digit."""
+    args = ("e1.csv", "e2.csv", "--validate", "v1.csv", *declared)
     reports = [
-        invoke(
-            "refine", "e1.csv", "e2.csv", "--validate", "v1.csv", *declared, "--json", "--jobs", jobs,
-            cwd=simulated_records,
-        ).stdout
-        for jobs in ("1", "2")
-    ]  # fmt: skip
+        in_one_process(*args, cwd=simulated_records),
+        invoke("refine", *args, "--json", "--jobs", "2", cwd=simulated_records).stdout,
+    ]
     assert reports[0] == reports[1]
     assert json.loads(reports[0])["effects_added"]  # the loop did find something to add
 
@@ -457,7 +463,9 @@ def test_two_jobs_run_on_one_cpu_and_more_than_two_a_cpu_are_refused(simulated_r
         for jobs in ("2", "3")
     ]  # fmt: skip
     assert pinned[0].returncode == 0, pinned[0].stderr
-    alone = invoke(*command[1:], "--jobs", "1", cwd=simulated_records).stdout
+    alone = in_one_process(
+        "e1.csv", "e2.csv", "--validate", "v1.csv", "--declared", "2dof", cwd=simulated_records
+    )
     assert pinned[0].stdout == alone
     assert pinned[1].returncode == 2 and pinned[1].stdout == ""
     assert "at most 2, twice the CPUs this command may use; got 3" in " ".join(pinned[1].stderr.split())

@@ -4,6 +4,8 @@ two filters — their terms, their free run, and the loop naming each when it is
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 from scipy import linalg, signal
@@ -14,7 +16,7 @@ from models.effects import _search_part, candidate_effects, integer_powers, line
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import fit_output_error
-from models.refinement import refine_record, refine_records
+from models.refinement import RefinementReport, refine_record, refine_records
 from models.scoring import score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from simulator.simulate import BOUC_WEN_BETA, BOUC_WEN_GAMMA, Effects, Scenario, simulate
@@ -38,13 +40,20 @@ PLANTED = [
 ]
 
 
+@functools.cache
+def planted(spec: str, x_scale: float = 1.0, y_scale: float = 1.0) -> RefinementReport:
+    """The loop on the rig's record with one planted effect, its signals in units scaled by
+    ``x_scale`` and ``y_scale``; made once a process (the tests below share the plain runs)."""
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects.parse([spec])), ESTIMATION + HELD_OUT, seed=1
+    )
+    split = [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT)
+    return refine_record(x_scale * record.x, y_scale * record.y, EXACT_TERMS, *split, fs=record.fs)
+
+
 @pytest.mark.parametrize(("effect", "spec", "parameter"), PLANTED, ids=[name for name, *_ in PLANTED])
 def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, spec, parameter):
-    scenario = Scenario(disturbance_std=200.0, effects=Effects.parse([spec]))
-    record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
-    report = refine_record(
-        record.x, record.y, EXACT_TERMS, [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT), fs=record.fs
-    )
+    report = planted(spec)
     names = [e.name for e in report.refinement.effects_added]
     assert names and names[0] == effect, names
     assert report.after.free_run_rms <= report.before.free_run_rms / 2, (report.before, report.after)
@@ -65,12 +74,7 @@ def test_a_planted_effect_is_named_first_and_the_free_run_error_halves(effect, s
     ("spec", "x_scale", "y_scale"), [("dead_zone=10000", 1e-3, 1e6), ("sensor_range=0.08", 1e4, 1e-3)]
 )
 def test_the_loop_decides_alike_whatever_the_units_of_the_signals(spec, x_scale, y_scale):
-    record = simulate(
-        Scenario(disturbance_std=200.0, effects=Effects.parse([spec])), ESTIMATION + HELD_OUT, seed=1
-    )
-    split = [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT)
-    plain = refine_record(record.x, record.y, EXACT_TERMS, *split, fs=record.fs)
-    scaled = refine_record(x_scale * record.x, y_scale * record.y, EXACT_TERMS, *split, fs=record.fs)
+    plain, scaled = planted(spec), planted(spec, x_scale, y_scale)
     decisions = [(r.added.name, r.criterion) for r in plain.refinement.kept]
     assert decisions and [(r.added.name, r.criterion) for r in scaled.refinement.kept] == decisions
     assert scaled.before.free_run_rms == pytest.approx(y_scale * plain.before.free_run_rms, rel=1e-7)
