@@ -19,6 +19,7 @@ import sys
 import tempfile
 from functools import cache
 from pathlib import Path
+from typing import Literal, get_args, get_origin
 
 from mkdocs.structure.files import File
 
@@ -117,6 +118,8 @@ def default_text(field) -> str:
 
 
 def type_text(annotation) -> str:
+    if get_origin(annotation) is Literal:
+        return " or ".join(f"`{choice}`" for choice in get_args(annotation))
     text = getattr(annotation, "__name__", None) if not getattr(annotation, "__args__", None) else None
     text = text or str(annotation).replace("typing.", "")
     for long, short in (("pydantic.types.", ""), ("pathlib.", ""), ("ipaddress.", ""), ("NoneType", "None")):
@@ -147,7 +150,7 @@ def settings_markdown() -> str:
         for position, name in enumerate(names):
             field = Settings.model_fields[name]
             text = field.description or (comment if position == 0 else "with the setting above")
-            text = text or UNCOMMENTED.get(name, "")
+            text = (text or UNCOMMENTED.get(name, "")).replace("<", "&lt;")
             allowed = ", ".join(filter(None, [type_text(field.annotation), constraint_text(field)]))
             rows.append(
                 f"| `NARXWATCH_{name.upper()}` | `{default_text(field)}` | {allowed.replace('|', '&#124;')} "
@@ -189,10 +192,16 @@ def cli_markdown() -> str:
 # HTTP paths ----------------------------------------------------------------------------------------
 
 
+def operation_text(operation: dict) -> str:
+    """The first sentence of the route's docstring, else the name FastAPI made of its function."""
+    description = " ".join((operation.get("description") or "").split())
+    first = re.split(r"(?<=[.;:])\s", description, maxsplit=1)[0].rstrip(";:")
+    return (first or operation.get("summary", "")).replace("|", "&#124;")
+
+
 def paths_markdown() -> str:
-    rows = ["| method | path | what it does |", "|---|---|---|"]
+    rows = ["| route | what it does |", "|---|---|"]
     for path, operations in openapi()["paths"].items():
         for method, operation in operations.items():
-            summary = operation.get("summary", "")
-            rows.append(f"| {method.upper()} | `{path}` | {summary} |")
+            rows.append(f"| `{method.upper()} {path}` | {operation_text(operation)} |")
     return "\n".join(rows)
