@@ -48,7 +48,7 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
         self.header_deadline: asyncio.TimerHandle | None = None
         self.head_begun = False  # bytes of a head that is not complete yet were received
 
-    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+    def connection_made(self, transport: asyncio.Transport) -> None:
         super().connection_made(transport)
         self._arm_header_deadline()
 
