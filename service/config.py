@@ -57,6 +57,13 @@ class Settings(BaseSettings):
     # every few seconds never trips a per-read one. 30 s carries a typical record (≤ 2 MB) over
     # a 1 Mbit/s link and the largest allowed body over 5 Mbit/s.
     body_timeout_seconds: float = Field(30.0, gt=0)
+    # A request's head (request line and headers) must be complete within this many seconds of
+    # the connection's opening, or of the previous response's end, or the connection is closed
+    # (service.api.protocol). A head is a few hundred bytes to a few kB: one round trip, or a
+    # few retransmissions on a lossy link. Longer than uvicorn's idle keep-alive wait (5 s), which
+    # so still ends idle connections as before; a client trickling heads to hold connections
+    # must open each anew this often.
+    header_timeout_seconds: float = Field(10.0, gt=0)
     # The longest a request waits for a database connection when all are in use; then it is
     # answered 503 with Retry-After. Well under a client's patience (typically 10–30 s).
     pool_timeout_seconds: float = Field(5.0, gt=0)
