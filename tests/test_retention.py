@@ -100,7 +100,7 @@ def judged(site: Site, record: dict, *statuses: str) -> list[int]:
                 z_critical=1.96, q_critical_detection=40.0, detected_by=[], modes=[MODE],
             )  # fmt: skip
             verdict_id = session.execute(insert(Verdict).returning(Verdict.id), values).scalar_one()
-            fleet.count_verdict(session, verdict_id, record["structure_id"], acquired_at, status)
+            fleet.count_verdict(session, verdict_id, record["structure_id"], acquired_at, status, utcnow())
             ids.append(verdict_id)
     return ids
 
@@ -351,7 +351,7 @@ def test_a_verdict_stored_while_its_record_is_pruned_is_counted_once(site: Site)
         z_critical=1.96, q_critical_detection=40.0, detected_by=[], modes=[MODE],
     )  # fmt: skip
     verdict_id = inspecting.execute(insert(Verdict).returning(Verdict.id), values).scalar_one()
-    fleet.count_verdict(inspecting, verdict_id, sid, acquired_at, "faulty")
+    fleet.count_verdict(inspecting, verdict_id, sid, acquired_at, "faulty", utcnow())
     pruned: list[retention.Pruned] = []
 
     def pruning() -> None:
