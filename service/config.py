@@ -67,6 +67,10 @@ class Settings(BaseSettings):
     # The longest a request waits for a database connection when all are in use; then it is
     # answered 503 with Retry-After. Well under a client's patience (typically 10–30 s).
     pool_timeout_seconds: float = Field(5.0, gt=0)
+    # How far an upload's acquired_at may lie ahead of the server's clock: the clocks of the systems
+    # that acquire records drift, a little. A later time is refused (422): a record from the future
+    # would stand for its structure's latest, and hide every fault acquired before its date.
+    max_clock_skew_seconds: float = Field(300.0, ge=0)
     alpha: float = Field(0.05, gt=0, lt=0.5)
     lags: int = Field(40, ge=2)
     upgrade_on_start: bool = True
