@@ -94,7 +94,7 @@ class Settings(BaseSettings):
     # turn it off only behind a plain-HTTP proxy on a trusted network.
     dashboard_session_hours: float = Field(12.0, gt=0, le=24 * 30)
     session_cookie_secure: bool = True
-    # Bounded cost of the expensive routes (README "Bounded cost"). A cell is one sample times
+    # Bounded cost of the expensive routes (docs: reference/limits.md). A cell is one sample times
     # one coefficient (a term, times the basis functions of a fault mode, plus a refinement's
     # candidate regressors): a fit peaks at about 40 bytes a cell (12 M cells: 0.5 GB, 14 s),
     # and its time grows with them. Above ``queue_training_cells`` it runs as a job (202).
