@@ -65,7 +65,8 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     arrow, schroeder = report["tests"]
     assert arrow["samples"] == [100, 40575] and arrow["before"] == report["before"]
     assert report["declared"]["terms"][:4] == ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]"]
-    # The Silverbox table of docs/benchmarks/measured.md: one-step 1.20 → 0.187 mV, free run 14.39 → 0.227 mV on the full arrow
+    # The Silverbox table of docs/benchmarks/measured.md: one-step 1.20 → 0.187 mV, free run
+    # 14.39 → 0.227 mV on the full arrow
     # (parameters by output error, which trades one-step error for free-run error), with a margin
     # of about 10 % for arithmetic differences between machines.
     assert 1.1e-3 < report["before"]["one_step_rms"] < 1.3e-3 and report["after"]["one_step_rms"] <= 0.21e-3

@@ -1,7 +1,8 @@
 """Localisation rates (SPEC §5.4) over many records, with both fault modes (k2 and k1) active.
 
 The chain names the mode with the smallest residual variance and localises the fault to it when
-that mode's Ljung–Box test accepts it (models/inspection.py, docs/explanation/decisions.md, "Localisation"). On a
+that mode's Ljung–Box test accepts it (models/inspection.py; docs/explanation/decisions.md,
+"Localisation"). On a
 record of a fault that is detected and whose true mode has the smallest residual variance (the
 premise, checked record by record; it fails in under 1 % of these records), the fault is therefore
 localised to the true mode exactly when the true mode's Q test accepts: with probability 1 − α_LB,

@@ -57,7 +57,8 @@ def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silv
     test_x, test_y = x[SILVERBOX_ARROW], y[SILVERBOX_ARROW]
     before = held_out_errors(result.declared, test_x, test_y, SILVERBOX_INITIAL).free_run.rms
     after = held_out_errors(result.refined, test_x, test_y, SILVERBOX_INITIAL).free_run.rms
-    # Linear ARX 14.39 mV (docs/benchmarks/measured.md); after four rounds 0.390 mV, with a margin of about 10 % for
+    # Linear ARX 14.39 mV (docs/benchmarks/measured.md); after four rounds 0.390 mV, with a
+    # margin of about 10 % for
     # arithmetic differences between machines, not for a worse model.
     assert 13e-3 < before < 16e-3, f"linear ARX free run {before * 1e3:.2f} mV"
     assert after <= 0.43e-3, f"refined free run {after * 1e3:.3f} mV"
