@@ -174,13 +174,17 @@ async def slow_upload(port: int, path: str, key: str, body: bytes, patience: flo
         writer.close()
 
 
-async def time_victim(served: Served, slow: list[asyncio.Task]) -> list[tuple[float, int | None]]:
-    """``GET /structures`` of the other organisation, one after another while the slow uploads last."""
+async def time_victim(
+    served: Served, slow: list[asyncio.Task], at_least: float = 0.0
+) -> list[tuple[float, int | None]]:
+    """``GET /structures`` of the other organisation, one after another while the slow uploads last
+    (and ``at_least`` seconds in all, so that requests refused quickly still leave enough timings)."""
     timings: list[tuple[float, int | None]] = []
     headers = {"Authorization": f"Bearer {served.victim}"}
+    until = time.monotonic() + at_least
     async with httpx.AsyncClient(base_url=served.url, headers=headers, timeout=10) as client:
         await asyncio.sleep(0.5)  # every slow client has sent its headers and its first bytes
-        while not all(task.done() for task in slow):
+        while not all(task.done() for task in slow) or time.monotonic() < until:
             started = time.monotonic()
             try:
                 status: int | None = (await client.get(f"{API}/structures")).status_code
