@@ -51,7 +51,13 @@ class Settings(BaseSettings):
     )
 
     database_url: str = f"sqlite:///{DEFAULT_DATABASE}"
+    # The largest body of a record upload (a record or a record set): 413 beyond it, refused on its
+    # declared length before it is read.
     max_upload_bytes: int = Field(16 * 1024 * 1024, gt=0)
+    # The largest body of every other request: JSON documents of a few kilobytes (a training's
+    # thousand experiments take about 40 kB), parsed before the route runs, at some 25 times
+    # their size for nested arrays (service.api.limits).
+    max_request_bytes: int = Field(1024 * 1024, gt=0)
     # The whole body of a request must arrive within this many seconds of its headers, or the
     # request is answered 408: a total, not a per-read bound, since a client trickling 2 bytes
     # every few seconds never trips a per-read one. 30 s carries a typical record (≤ 2 MB) over

@@ -50,7 +50,7 @@ import pytest
 import uvloop
 from api_helpers import API, create_structure, json_body
 from live import LiveServer, free_port, http_client, wait_until_serving
-from sqlalchemy import exc, select
+from sqlalchemy import exc, func, select
 from test_cli import NARXWATCH
 
 from service.config import Settings
@@ -59,7 +59,7 @@ from service.domain import structures
 from service.migrate import upgrade_database
 from service.schemas import StructureCreate
 from service.security import Role, authenticate, create_key
-from service.tables import Organisation, Structure
+from service.tables import Organisation, Record, Structure
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOW_CLIENTS = 40
@@ -474,7 +474,8 @@ def test_every_route_bounds_its_body_in_time_and_size(tmp_path: Path, route: str
     a body too slow is 408, a chunked body past the limit 413 (not the 400 FastAPI's body
     parsing makes of other errors); both close the connection, whose body is left unread."""
     database = f"sqlite:///{tmp_path / 'narxwatch.db'}"
-    settings = Settings(database_url=database, body_timeout_seconds=1.0, max_upload_bytes=4000)
+    limits = {"max_upload_bytes": 4000, "max_request_bytes": 4000}
+    settings = Settings(database_url=database, body_timeout_seconds=1.0, **limits)
     with LiveServer(settings) as server:
         key = server.key(Role.admin)
         path = f"{API}/structures"
@@ -487,6 +488,38 @@ def test_every_route_bounds_its_body_in_time_and_size(tmp_path: Path, route: str
         large = raw_post(server.port, path, key, [b" " * 1000] * 5, 0.0, declared=None)
         assert large.startswith(b"HTTP/1.1 413 "), large
         assert b"connection: close" in large.lower()
+
+
+def test_only_record_uploads_take_bodies_the_size_of_a_record(tmp_path: Path):
+    """Every other route takes a small JSON document (NARXWATCH_MAX_REQUEST_BYTES), refused before
+    it is parsed, authenticated or not: FastAPI parses it before the route, and nested empty
+    arrays cost Python some 25 times their text. Uploads of records and record sets take up to
+    NARXWATCH_MAX_UPLOAD_BYTES."""
+    database = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    settings = Settings(database_url=database, max_request_bytes=2000, max_upload_bytes=8000)
+    nested = b"[" + b"[]," * 1700 + b"[]]"  # 5 kB
+    document = b'{"x": "' + b"a" * 5000 + b'"}'
+    with (
+        LiveServer(settings) as server,
+        server.client(server.key(Role.admin)) as admin,
+        server.client() as anonymous,
+    ):
+        structure_id = create_structure(admin)["id"]
+        headers = {"Content-Type": "application/json"}
+        for client in (admin, anonymous):
+            refused = client.post(f"{API}/structures", content=nested, headers=headers)
+            assert refused.status_code == 413, refused.text
+            assert "2000 bytes (NARXWATCH_MAX_REQUEST_BYTES)" in refused.json()["detail"]
+        for route in ("records", "record-sets"):
+            path = f"{API}/structures/{structure_id}/{route}"
+            read = admin.post(path, content=document, headers=headers)
+            assert read.status_code in (415, 422), read.text  # read, and refused for what it holds
+            too_large = admin.post(path, content=document * 2, headers=headers)
+            assert too_large.status_code == 413, too_large.text
+            assert "8000 bytes (NARXWATCH_MAX_UPLOAD_BYTES)" in too_large.json()["detail"]
+        with server.app.state.engine.connect() as connection:
+            assert connection.scalar(select(func.count()).select_from(Record)) == 0
+            assert connection.scalar(select(func.count()).select_from(Structure)) == 1
 
 
 REFUSE_AT_COMMIT = """

@@ -132,8 +132,6 @@ def type_text(annotation) -> str:
 UNCOMMENTED = {
     "database_url": "The database: a SQLite file in the user's data directory by default, "
     "`postgresql+psycopg://user:password@host/db` in production.",
-    "max_upload_bytes": "The largest request body on any route (16 MiB): 413 beyond it, refused on its "
-    "declared length before it is read.",
     "alpha": "α, the significance level of an inspection: its overall false-alarm rate.",
     "lags": "h, the lags of the residuals' Ljung–Box test.",
     "upgrade_on_start": "`narxwatch serve` upgrades the schema as it starts; off, it stops with one line "
