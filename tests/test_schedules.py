@@ -382,9 +382,8 @@ def test_reinspect_latest_takes_the_latest_record_acquired_up_to_now(request, tm
     present = monitored.store("k2", 12.0, [85, 0])
     future = monitored.store("none", 0.0, [85, 1])
     with transaction(monitored.sessions) as session:
-        session.execute(
-            update(Record).where(Record.id == future).values(acquired_at=dt.datetime(9999, 12, 31, tzinfo=dt.UTC))
-        )
+        year_9999 = dt.datetime(9999, 12, 31, tzinfo=dt.UTC)
+        session.execute(update(Record).where(Record.id == future).values(acquired_at=year_9999))
     schedule_id = add_schedule(monitored, T0)
     with transaction(monitored.sessions) as session:
         session.execute(update(Schedule).where(Schedule.id == schedule_id).values(action="reinspect_latest"))
