@@ -196,7 +196,7 @@ def parse_record(
     at most :func:`record_samples` samples.
     """
     if layout.channels:
-        checked_channels(layout.channels)
+        layout = replace(layout, channels=checked_channels(layout.channels))
     if suffix == ".csv":
         samples = None if max_bytes is None else record_samples(max_bytes, len(layout.responses))
         return parse_csv(data, samples, layout)

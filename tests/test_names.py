@@ -19,6 +19,7 @@ from service.conditions import Condition, checked_conditions
 from service.db import make_engine, session_factory, transaction
 from service.migrate import upgrade_database
 from service.names import normalised_name
+from service.recordfiles import Layout, parse_record
 from service.schemas import (
     ChannelUpload,
     FaultModeTrain,
@@ -122,6 +123,14 @@ def test_channel_and_condition_names_are_trimmed():
     assert condition == Condition("temperature", 12.5, "\u00b0C")
     with pytest.raises(InputError, match="given twice"):
         checked_conditions([Condition("speed", 1.0), Condition("speed ", 2.0)])
+
+
+def test_channels_named_on_the_command_line_are_read_by_their_normalised_names():
+    """``--y " a1" --y b2`` reads the columns a1 and b2, named so, as an upload naming them does."""
+    data = b"x,a1,b2\n" + b"".join(b"%d,%d,%d\n" % (i, 2 * i, 3 * i) for i in range(300))
+    record = parse_record(data, ".csv", Layout(fs=100.0, channels=(" a1", "b2\u00a0")))
+    assert record.channels == ("a1", "b2")
+    assert record.y.tolist()[:3] == [[0, 0], [2, 3], [4, 6]]
 
 
 def test_an_organisation_created_with_a_key_gets_a_normalised_name_or_none(tmp_path: Path):
