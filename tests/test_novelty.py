@@ -1,0 +1,142 @@
+"""Baseline-only monitoring (models/novelty.py): a structure that is not the rig, watched by the
+simulation error of a baseline selected for it, with sensor noise on both measured signals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from models.errors import InputError
+from models.narx import NARX, fit_narx
+from models.novelty import NoveltyReference, judge_record, novelty_reference, start_up_of
+from models.output_error import fit_output_error
+from models.pooled import check_baseline
+from models.refinement import choose_linear
+from models.terms import parse_terms
+from simulator.chain import ChainParameters, ChainScenario, simulate_chain
+
+# Three masses, a driving-point accelerometer at 1 kHz: heavily damped, as the explicit scheme needs.
+CHAIN = ChainParameters.build(3, [10.0, 20.0, 15.0], [50e3, 80e3, 30e3], [2000.0], ts=1e-3)
+FORCE = 1000.0  # N
+NOISE = 0.01  # of each healthy signal's RMS, on x and on y
+ALPHA = 0.05
+TEST_LEVEL = 1e-3  # the chance a correct detector fails the rate assertions
+
+
+def scenario(fault: str = "none", k: float = 0.0) -> ChainScenario:
+    clean = ChainScenario(CHAIN, excitation_std=FORCE, outputs=(1,), response="acceleration")
+    y_rms = float(np.std(simulate_chain(clean, 20_000, 1).responses["y1"]))
+    return ChainScenario(
+        CHAIN, fault, k, excitation_std=FORCE, outputs=(1,), response="acceleration",
+        y_noise_std=NOISE * y_rms, x_noise_std=NOISE * FORCE,
+    )  # fmt: skip
+
+
+def record(s: ChainScenario, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    simulated = simulate_chain(s, n, seed)
+    return simulated.x, simulated.responses["y1"]
+
+
+@pytest.fixture(scope="module")
+def baseline() -> tuple[NARX, NoveltyReference, list[tuple[np.ndarray, np.ndarray]]]:
+    healthy = scenario()
+    training = [record(healthy, 8000, 100 + i) for i in range(10)]
+    (_, _, delay), terms = choose_linear(training, max_order=8)
+    assert delay == 0  # an accelerometer feels the force at once
+    model = fit_output_error(fit_narx(training, terms), training).model
+    return model, novelty_reference(model, training), training
+
+
+def test_healthy_records_flagged_at_the_designed_rate_and_a_loosened_spring_found(baseline) -> None:
+    model, reference, _ = baseline
+    healthy, loose = scenario(), scenario("k2", 8.0)
+    verdicts = [
+        judge_record(model, reference, *record(healthy, 4000, 10_000 + i), alpha=ALPHA) for i in range(200)
+    ]
+    flagged = sum(v.status == "anomaly" for v in verdicts)
+    assert stats.binom.ppf(TEST_LEVEL, 200, ALPHA) <= flagged <= stats.binom.ppf(1 - TEST_LEVEL, 200, ALPHA)
+    assert all(v.free_run == "settled" for v in verdicts)
+    severities = [v.severity for v in verdicts]
+    assert abs(np.mean(severities) - 1.0) < 3 * np.std(severities) / np.sqrt(200)
+
+    faulty = [
+        judge_record(model, reference, *record(loose, 4000, 20_000 + i), alpha=ALPHA) for i in range(50)
+    ]
+    assert sum(v.status == "anomaly" for v in faulty) >= 45
+    assert np.median([v.severity for v in faulty]) > 1.05
+
+
+def test_the_one_step_residual_flags_every_healthy_record_of_a_noisy_accelerometer(baseline) -> None:
+    """Why the simulation error: the equation-error baseline check of the same structure, on the
+    same records, finds nothing but the sensor noise its one-step residual amplifies."""
+    _, _, training = baseline
+    equation_error = fit_narx(
+        training, parse_terms([f"y[t-{i}]" for i in range(1, 9)] + [f"x[t-{i}]" for i in range(8)])
+    )
+    healthy = scenario()
+    flagged = [
+        check_baseline(equation_error, *record(healthy, 4000, 30_000 + i)).fault_detected for i in range(10)
+    ]
+    assert sum(flagged) >= 9
+
+
+def test_reference_document_round_trip(baseline) -> None:
+    _, reference, _ = baseline
+    assert NoveltyReference.from_document(reference.to_document()) == reference
+    with pytest.raises(InputError, match="schema version"):
+        NoveltyReference.from_document(reference.to_document() | {"schema_version": 99})
+
+
+def cubic_model() -> NARX:
+    """y[t] = 0.5·y[t−1] + 0.05·y[t−1]³ + x[t−1]: stable for small motions, divergent for large."""
+    terms = parse_terms(["y[t-1]", "y[t-1]^3", "x[t-1]"])
+    return NARX(terms, np.array([0.5, 0.05, 1.0]), np.zeros((3, 3)), 0.0, 0)
+
+
+def simulated_by(model: NARX, scale: float, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    x = scale * rng.standard_normal(n)
+    y = model.simulate(x, np.zeros(1)) + 0.05 * rng.standard_normal(n)
+    return x, y
+
+
+def test_a_record_whose_free_run_diverges_is_an_anomaly_that_says_so() -> None:
+    model = cubic_model()
+    reference = novelty_reference(model, [simulated_by(model, 0.3, 2000, i) for i in range(3)], folds=1)
+    x, y = simulated_by(model, 0.3, 2000, 9)
+    assert judge_record(model, reference, x, y).status == "healthy"
+    verdict = judge_record(model, reference, 30 * x, y)
+    assert (verdict.status, verdict.free_run) == ("anomaly", "diverged")
+    assert verdict.diverged_at is not None and verdict.diverged_at < 2000
+    assert verdict.to_dict()["statistic"] is None
+
+
+def test_a_baseline_that_diverges_on_its_own_records_is_refused() -> None:
+    model = cubic_model()
+    with pytest.raises(InputError, match="diverges on its healthy record 1"):
+        novelty_reference(model, [(30 * x, y) for x, y in [simulated_by(model, 0.3, 2000, 0)]], folds=1)
+
+
+def test_a_marginally_stable_baseline_is_judged_and_says_so() -> None:
+    integrator = NARX(parse_terms(["y[t-1]", "x[t-1]"]), np.array([1.0, 0.01]), np.zeros((2, 2)), 0.0, 0)
+    radius, start_up, marginal = start_up_of(integrator)
+    assert (radius, start_up, marginal) == (1.0, 1, True)
+    rng = np.random.default_rng(3)
+    records = [
+        (x, integrator.simulate(x, np.zeros(1)) + 0.01 * rng.standard_normal(1000))
+        for x in rng.standard_normal((3, 1000))
+    ]
+    reference = novelty_reference(integrator, records, folds=1)
+    verdict = judge_record(integrator, reference, *records[0])
+    assert verdict.free_run == "marginal"
+    assert np.isfinite(verdict.statistic)
+
+
+def test_start_up_covers_the_ring_down_of_a_noisy_start() -> None:
+    """A start error on y[t−1] of a first-order model 0.99 rings down as 0.99ᵗ: what is left after
+    S, Σ_{s≥S} 0.99^{2s} = 0.99^{2S}/(1 − 0.99²), is below one hundredth."""
+    model = NARX(parse_terms(["y[t-1]", "x[t-1]"]), np.array([0.99, 1.0]), np.zeros((2, 2)), 0.0, 0)
+    _, start_up, marginal = start_up_of(model)
+    left = lambda s: 0.99 ** (2 * s) / (1 - 0.99**2)  # noqa: E731
+    assert not marginal and left(start_up) < 0.01 <= left(start_up - 1)
