@@ -16,20 +16,31 @@ resolution the rule looks only at records acquired later, so that the evidence a
 resolved on does not open it again. The CUSUM restarts from zero after each signal, as its design
 assumes (``models.alarms``); it starts from zero at the oldest record evaluated.
 
+The records the rules look at, the newest verdict of each of the structure's newest ``WINDOW``
+records, are kept in its ``AlarmWindow`` row, updated in the transaction of each verdict: the
+rules run over that row, not over the history read again. A verdict is put in its place by
+acquisition time, then id (a record uploaded late, or a re-inspection, changes the window as it
+changes the history); a structure without a row (before its first verdict after the migration, or
+after the retention deleted verdicts it held) has it built from its history.
+
 Evaluations of one structure run one after another (its row lock on PostgreSQL, the single
-writer on SQLite), and the database refuses a second unresolved alarm of the same key anyway.
+writer on SQLite), so each reads the window the previous one committed; the database refuses a
+second unresolved alarm of the same key anyway.
 """
 
 from __future__ import annotations
 
+import bisect
 import datetime as dt
+import json
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import cache
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Select, delete, exists, func, select
+from sqlalchemy import Select, bindparam, delete, exists, func, insert, select, update
 from sqlalchemy.orm import Session, aliased, selectinload
 
 from models import alarms as rules_math
@@ -51,7 +62,16 @@ from service.schemas import (
     SeverityRule,
 )
 from service.security import Principal
-from service.tables import UNRESOLVED, Alarm, AlarmTransition, ApiKey, Structure, Verdict, utcnow
+from service.tables import (
+    UNRESOLVED,
+    Alarm,
+    AlarmTransition,
+    AlarmWindow,
+    ApiKey,
+    Structure,
+    Verdict,
+    utcnow,
+)
 from service.tables import AlarmRule as StoredRule
 
 # Records a rule is evaluated over: the persistence and severity rules need a few, the CUSUM's
@@ -75,11 +95,43 @@ class Point:
     """A record's newest verdict, as the rules read it."""
 
     record_id: int
+    verdict_id: int
     acquired_at: dt.datetime
     status: str
     reference_mode: str | None
     interval: tuple[float, float] | None
     modes: dict[str, tuple[float, float, float]]  # name → (k̂, σ̂k, σ̂k of the record alone)
+
+    @property
+    def order(self) -> tuple[dt.datetime, int]:
+        """Where the point stands in its structure's history: by acquisition, then verdict id."""
+        return self.acquired_at, self.verdict_id
+
+
+def point(
+    verdict_id: int,
+    record_id: int,
+    acquired_at: dt.datetime,
+    status: str,
+    reference_mode: str | None,
+    interval_low: float | None,
+    interval_high: float | None,
+    modes: list[dict[str, Any]],
+) -> Point:
+    """A verdict's point, from its columns: the fault modes whose z = k̂/σ̂k is a number."""
+    return Point(
+        record_id=record_id,
+        verdict_id=verdict_id,
+        acquired_at=acquired_at.astimezone(dt.UTC),
+        status=status,
+        reference_mode=reference_mode,
+        interval=(interval_low, interval_high) if interval_low is not None else None,  # type: ignore[arg-type]
+        modes={
+            m["name"]: (m["k_hat"], m["sigma_k"], m["sigma_k_record"])
+            for m in modes
+            if m["sigma_k"] > 0 and math.isfinite(m["k_hat"] / m["sigma_k"])
+        },
+    )
 
 
 @dataclass(frozen=True)
@@ -107,10 +159,29 @@ class CusumSeries:
 # --- rules ------------------------------------------------------------------------------------
 
 
+# The statements run after every verdict, built once (their compiled forms are cached by
+# SQLAlchemy; building the expressions anew cost more than running them).
+RULES_OF = select(StoredRule.parameters).where(StoredRule.structure_id == bindparam("structure_id"))
+WINDOW_OF = select(AlarmWindow.points).where(AlarmWindow.structure_id == bindparam("structure_id"))
+NEW_WINDOW = insert(AlarmWindow)
+KEEP_WINDOW = (
+    update(AlarmWindow.__table__)
+    .where(AlarmWindow.__table__.c.structure_id == bindparam("structure"))
+    .values(points=bindparam("window"))
+)
+UNRESOLVED_OF = select(Alarm).where(Alarm.structure_id == bindparam("structure_id"), UNRESOLVED)
+RESOLVED_THROUGH = (
+    select(Alarm.rule_kind, Alarm.fault_mode, func.max(Alarm.evaluated_through))
+    .where(Alarm.structure_id == bindparam("structure_id"), Alarm.state == "resolved")
+    .group_by(Alarm.rule_kind, Alarm.fault_mode)
+)
+LOCK = select(Structure.id).where(Structure.id == bindparam("structure_id")).with_for_update(key_share=True)
+
+
 def rules_of(session: Session, structure_id: int) -> tuple[list[AlarmRule], bool]:
     """The structure's rules and whether they are the defaults (it has none of its own)."""
-    stored = session.scalars(select(StoredRule).where(StoredRule.structure_id == structure_id))
-    rules = [AlarmRules.model_validate({"rules": [row.parameters]}).rules[0] for row in stored]
+    stored = session.scalars(RULES_OF, {"structure_id": structure_id})
+    rules = [AlarmRules.model_validate({"rules": [parameters]}).rules[0] for parameters in stored]
     if not rules:
         return list(DEFAULT_RULES), True
     return sorted(rules, key=lambda rule: [r.kind for r in DEFAULT_RULES].index(rule.kind)), False
@@ -148,7 +219,7 @@ def _rules_out(session: Session, structure_id: int, rules: list[AlarmRule], defa
     cusum = next((rule for rule in rules if isinstance(rule, CusumRule)), None)
     design, problem = None, None
     if cusum is not None:
-        points = _newest_points(session, structure_id, WINDOW)
+        points = window(session, structure_id)
         try:
             design = CusumDesignOut(modes=_mode_count(points), **vars(cusum_design(cusum, points)))
         except InputError as refusal:
@@ -213,15 +284,15 @@ def _common_share(points: list[Point]) -> float:
 # --- evaluation -------------------------------------------------------------------------------
 
 
-def evaluate(session: Session, structure: Structure) -> None:
+def evaluate(session: Session, structure: Structure, verdict: Point | None = None) -> None:
     """Run the structure's rules over its recent verdicts; open, keep or resolve its alarms.
 
-    Called in the transaction that stored a verdict (and when the rules change), after the
-    verdict's insert: only flushes. Every transition is announced through
+    Called in the transaction that stored a verdict, ``verdict`` (and when the rules change,
+    with none), after the verdict's insert: only flushes. Every transition is announced through
     :func:`service.domain.notifications.notify`, delivered after the commit.
     """
     lock(session, structure.id)
-    points = _newest_points(session, structure.id, WINDOW)
+    points = window(session, structure.id, verdict)
     if not points:
         return
     rules, _ = rules_of(session, structure.id)
@@ -297,8 +368,7 @@ def _firings(
 
     if isinstance(rule, PersistenceRule):
         chosen = after(None)
-        flags = [p.status in FLAGGED for p in chosen]
-        fired = [rules_math.persistence(flags[: i + 1], rule.k, rule.m) for i in range(len(chosen))]
+        fired = rules_math.persistence_path([p.status in FLAGGED for p in chosen], rule.k, rule.m)
         if chosen:
             yield Firing(None, chosen, fired, {})
         return
@@ -342,7 +412,7 @@ def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
     none when the structure has no CUSUM rule."""
     rules, _ = rules_of(session, structure_id)
     rule = next((r for r in rules if isinstance(r, CusumRule)), None)
-    points = _newest_points(session, structure_id, WINDOW)
+    points = window(session, structure_id)
     if rule is None or not points:
         return []
     try:
@@ -357,13 +427,82 @@ def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
     ]
 
 
-def _newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
+def window(session: Session, structure_id: int, verdict: Point | None = None) -> list[Point]:
+    """The points the structure's rules run over (:func:`newest_points`), from its kept window
+    with ``verdict``, just stored, put in its place; the window is kept so. Built from the
+    history when the structure has none kept: the history holds ``verdict`` already. Read-only
+    without ``verdict``: a structure without a kept window is read from its history then."""
+    kept = session.execute(WINDOW_OF, {"structure_id": structure_id}).scalar_one_or_none()
+    if kept is None:
+        points = newest_points(session, structure_id, WINDOW)
+        if verdict is not None:
+            rows = [_row(p) for p in points]
+            session.execute(NEW_WINDOW, {"structure_id": structure_id, "points": _dumps(rows)})
+        return points
+    rows = json.loads(kept)
+    if verdict is not None and _merge(rows, _row(verdict)):
+        session.execute(KEEP_WINDOW, {"structure": structure_id, "window": _dumps(rows)})
+    return [_point_of(row) for row in rows]
+
+
+# A kept point: [record id, verdict id, acquired_at in µs since the epoch, status, reference mode,
+# interval or None, [[mode, k̂, σ̂k, σ̂k of the record alone], …]]. Microseconds, the resolution
+# of the databases' timestamps, keep acquired_at exact and cheap to read.
+_RECORD, _VERDICT, _AT = 0, 1, 2
+EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+MICROSECOND = dt.timedelta(microseconds=1)
+
+
+def _merge(rows: list[list[Any]], new: list[Any]) -> bool:
+    """Put the kept point ``new`` of a verdict just stored in its place among ``rows`` (a
+    structure's newest records' newest verdicts, oldest first), keeping the newest ``WINDOW``;
+    False when that leaves them as they are: a later verdict of its record is there already
+    (stored concurrently, committed first), or the window is full of newer ones. Its record's
+    earlier verdict, if there, gives way to it."""
+    order = (new[_AT], new[_VERDICT])
+    earlier = next((i for i, row in enumerate(rows) if row[_RECORD] == new[_RECORD]), None)
+    if earlier is not None:
+        if rows[earlier][_VERDICT] > new[_VERDICT]:
+            return False
+        del rows[earlier]
+    elif len(rows) >= WINDOW and order < (rows[0][_AT], rows[0][_VERDICT]):
+        return False
+    rows.insert(bisect.bisect([(row[_AT], row[_VERDICT]) for row in rows], order), new)
+    del rows[:-WINDOW]
+    return True
+
+
+def _row(p: Point) -> list[Any]:
+    modes = [[name, *figures] for name, figures in p.modes.items()]
+    at = (p.acquired_at - EPOCH) // MICROSECOND
+    return [p.record_id, p.verdict_id, at, p.status, p.reference_mode, p.interval, modes]
+
+
+def _point_of(row: list[Any]) -> Point:
+    record_id, verdict_id, at, status, reference_mode, interval, modes = row
+    return Point(
+        record_id=record_id,
+        verdict_id=verdict_id,
+        acquired_at=EPOCH + dt.timedelta(microseconds=at),
+        status=status,
+        reference_mode=reference_mode,
+        interval=(interval[0], interval[1]) if interval is not None else None,
+        modes={name: (k_hat, sigma, alone) for name, k_hat, sigma, alone in modes},
+    )
+
+
+def _dumps(rows: list[list[Any]]) -> str:
+    return json.dumps(rows, separators=(",", ":"))
+
+
+def newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
     """The newest verdict of each of the structure's newest ``count`` inspected records, oldest
     first (a re-inspection with new models re-judges a record: its earlier verdicts are passed
-    over, each through the index on the record)."""
+    over, each through the index on the record), read from its history."""
     later = aliased(Verdict)
     rows = session.execute(
         select(
+            Verdict.id,
             Verdict.record_id,
             Verdict.acquired_at,
             Verdict.status,
@@ -379,21 +518,7 @@ def _newest_points(session: Session, structure_id: int, count: int) -> list[Poin
         .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
         .limit(count)
     ).all()
-    return [
-        Point(
-            record_id=row.record_id,
-            acquired_at=row.acquired_at,
-            status=row.status,
-            reference_mode=row.reference_mode,
-            interval=(row.interval_low, row.interval_high) if row.interval_low is not None else None,
-            modes={
-                m["name"]: (m["k_hat"], m["sigma_k"], m["sigma_k_record"])
-                for m in row.modes
-                if m["sigma_k"] > 0 and np.isfinite(m["k_hat"] / m["sigma_k"])
-            },
-        )
-        for row in reversed(rows)
-    ]
+    return [point(*row) for row in reversed(rows)]
 
 
 def _mode_count(points: list[Point]) -> int:
@@ -403,17 +528,28 @@ def _mode_count(points: list[Point]) -> int:
 
 
 def _unresolved(session: Session, structure_id: int) -> dict[tuple[str, str | None], Alarm]:
-    alarms = session.scalars(select(Alarm).where(Alarm.structure_id == structure_id, UNRESOLVED))
+    alarms = session.scalars(UNRESOLVED_OF, {"structure_id": structure_id})
     return {(alarm.rule_kind, alarm.fault_mode): alarm for alarm in alarms}
 
 
 def _resolved_through(session: Session, structure_id: int) -> dict[tuple[str, str | None], dt.datetime]:
-    rows = session.execute(
-        select(Alarm.rule_kind, Alarm.fault_mode, func.max(Alarm.evaluated_through))
-        .where(Alarm.structure_id == structure_id, Alarm.state == "resolved")
-        .group_by(Alarm.rule_kind, Alarm.fault_mode)
-    )
+    rows = session.execute(RESOLVED_THROUGH, {"structure_id": structure_id})
     return {(kind, mode): through for kind, mode, through in rows}
+
+
+def forget_windows(session: Session, structure_ids: set[int]) -> None:
+    """Drop the kept windows of structures whose verdicts are about to be deleted (by the
+    retention), each rebuilt from what is left of its history the next time its rules run. The
+    structures are locked first, in order of id, as :func:`lock` locks one: no evaluation reads
+    a window, or builds one from a history, that the deletion is changing."""
+    ordered = sorted(structure_ids)
+    session.execute(
+        select(Structure.id)
+        .where(Structure.id.in_(ordered))
+        .order_by(Structure.id)
+        .with_for_update(key_share=True)
+    )
+    session.execute(delete(AlarmWindow).where(AlarmWindow.structure_id.in_(ordered)))
 
 
 def lock(session: Session, structure_id: int) -> None:
@@ -425,7 +561,7 @@ def lock(session: Session, structure_id: int) -> None:
     takes both, so that none waits for the other in a cycle: a stored verdict's alarms, then its
     counts (``inspections.store_verdict``); an upload inspected at once locks it before storing
     its record (``ingest``)."""
-    session.execute(select(Structure.id).where(Structure.id == structure_id).with_for_update(key_share=True))
+    session.execute(LOCK, {"structure_id": structure_id})
 
 
 # --- lifecycle --------------------------------------------------------------------------------
