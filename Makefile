@@ -18,7 +18,7 @@ TEST_WORKERS ?= 2
 # each took 17 min instead of 14 (the refinement tests three times the CPU).
 BLAS_THREADS := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
-.PHONY: run test slow lint bench reproduce clean
+.PHONY: run test slow lint bench reproduce docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -44,11 +44,16 @@ $(BENCH_STAMP): pyproject.toml
 reproduce: $(STAMP)
 	$(BIN)/narxwatch reproduce --out var/reproduce
 
-test: $(STAMP)
+test: $(STAMP) docs
 	$(BIN)/ruff check .
 	bash scripts/ensure-postgres.sh
 	bash scripts/ensure-chromium.sh
 	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
+
+# The documentation site, into var/site/ (git-ignored). --strict: a broken link, a missing anchor
+# or a reference to code that is gone fails the build, and so `make test`.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 # The Monte Carlo studies marked slow (reduced versions of bench/'s), kept out of `make test`'s
 # fifteen minutes.

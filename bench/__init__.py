@@ -1,1 +1,1 @@
-"""Speed benchmarks (see README.md); a package so its conftest never shadows tests/conftest.py."""
+"""Speed benchmarks (see docs/benchmarks/); a package so its conftest never shadows tests/conftest.py."""

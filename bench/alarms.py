@@ -224,7 +224,7 @@ def drift_study(
 
 
 def report(healthy: HealthyResult, drifts: list[DriftResult], seed: int) -> str:
-    """The two tables README quotes, in Markdown."""
+    """The two tables docs/explanation/alarms-design.md quotes, in Markdown."""
     structures = len(healthy.designs)
     low, high = cusum_count_range(healthy.designs, round(healthy.records / structures), 0.99, seed)
     at_alpha = persistence_alarm_rate(SETTINGS.alpha, 3, 5) * RECORDS_PER_YEAR

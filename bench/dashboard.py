@@ -193,7 +193,7 @@ def seed(server: LiveServer, n_verdicts: int, distinct: int) -> Seeded:
                 if not created:
                     raise SystemExit(f"copy {copy} of record {source} was stored before")
                 verdict = inspections.store_verdict(
-                    session, record, structure_row, evaluations[source], new_record=True
+                    session, record, structure_row, evaluations[source], settings, new_record=True
                 )
                 statuses[verdict.status] = statuses.get(verdict.status, 0) + 1
                 with_k_hat += verdict.k_hat is not None and verdict.reference_mode is not None

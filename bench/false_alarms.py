@@ -1,4 +1,4 @@
-"""The detection figures README quotes ("Decisions the paper leaves open"), computed.
+"""The detection figures docs/explanation/decisions.md quotes, computed.
 
     .venv/bin/python bench/false_alarms.py [--records 3000] [--estimated 1000] [--white 20000]
 

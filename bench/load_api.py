@@ -140,6 +140,7 @@ class Server:
             sys.executable, "-m", "uvicorn", SERVER_APP, "--factory",
             "--host", "127.0.0.1", "--port", str(self.port),
             "--workers", str(workers), "--log-level", "info",
+            "--http", "service.api.protocol:HeaderTimeoutProtocol",  # as `narxwatch serve`
         ]  # fmt: skip
         if not access_log:
             command.append("--no-access-log")

@@ -20,6 +20,7 @@ import re
 from collections.abc import Sequence
 
 from models.errors import InputError
+from service.names import normalised_name
 
 MAX_CHANNELS = 8
 NAME_LENGTH = 32
@@ -28,14 +29,16 @@ RESERVED = ("x", "fs")
 
 
 def checked_channels(names: Sequence[str]) -> tuple[str, ...]:
-    """The channel names of a record of several responses, in the order given, after checking
-    their number, each name against the rule and that none is given twice."""
+    """The channel names of a record of several responses, in the order given and normalised
+    (``service.names``), after checking their number, each name against the rule and that none
+    is given twice."""
     if len(names) > MAX_CHANNELS:
         raise InputError(
             f"the record has {len(names)} response channels; a record may have at most {MAX_CHANNELS}"
         )
     if len(names) < 2:
         raise InputError("a record of several channels needs at least two; give one response as y")
+    names = [normalised_name(name, "channel name") for name in names]
     for name in names:
         if not NAME_RULE.fullmatch(name) or name.lower() in RESERVED:
             raise InputError(

@@ -21,9 +21,10 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from models.errors import InputError
+from service.names import normalised_name
 
 MAX_CONDITIONS = 16
 NAME_LENGTH = 32
@@ -46,7 +47,8 @@ class Condition:
 
 
 def checked_conditions(conditions: Iterable[Condition]) -> tuple[Condition, ...]:
-    """The conditions sorted by name, after checking each against the rules above.
+    """The conditions sorted by name, their names normalised (``service.names``), after checking
+    each against the rules above.
 
     Counting stops at one past the limit, so an endless list costs no more than a short one.
     """
@@ -54,7 +56,8 @@ def checked_conditions(conditions: Iterable[Condition]) -> tuple[Condition, ...]
     for condition in conditions:
         if len(seen) == MAX_CONDITIONS:
             raise too_many_conditions()
-        name = condition.name
+        name = normalised_name(condition.name, "condition name")
+        condition = replace(condition, name=name)
         if name in seen:
             raise InputError(f"the condition {_shown(name)} is given twice; give each condition once")
         check_condition(condition)

@@ -51,15 +51,32 @@ class Settings(BaseSettings):
     )
 
     database_url: str = f"sqlite:///{DEFAULT_DATABASE}"
+    # The largest body of a record upload (a record or a record set): 413 beyond it, refused on its
+    # declared length before it is read.
     max_upload_bytes: int = Field(16 * 1024 * 1024, gt=0)
+    # The largest body of every other request: JSON documents of a few kilobytes (a training's
+    # thousand experiments take about 40 kB), parsed before the route runs, at some 25 times
+    # their size for nested arrays (service.api.limits).
+    max_request_bytes: int = Field(1024 * 1024, gt=0)
     # The whole body of a request must arrive within this many seconds of its headers, or the
     # request is answered 408: a total, not a per-read bound, since a client trickling 2 bytes
     # every few seconds never trips a per-read one. 30 s carries a typical record (≤ 2 MB) over
     # a 1 Mbit/s link and the largest allowed body over 5 Mbit/s.
     body_timeout_seconds: float = Field(30.0, gt=0)
+    # A request's head (request line and headers) must be complete within this many seconds of
+    # the connection's opening, or of the previous response's end, or the connection is closed
+    # (service.api.protocol). A head is a few hundred bytes to a few kB: one round trip, or a
+    # few retransmissions on a lossy link. Longer than uvicorn's idle keep-alive wait (5 s), which
+    # so still ends idle connections as before; a client trickling heads to hold connections
+    # must open each anew this often.
+    header_timeout_seconds: float = Field(10.0, gt=0)
     # The longest a request waits for a database connection when all are in use; then it is
     # answered 503 with Retry-After. Well under a client's patience (typically 10–30 s).
     pool_timeout_seconds: float = Field(5.0, gt=0)
+    # How far an upload's acquired_at may lie ahead of the server's clock: the clocks of the systems
+    # that acquire records drift, a little. A later time is refused (422): a record from the future
+    # would stand for its structure's latest, and hide every fault acquired before its date.
+    max_clock_skew_seconds: float = Field(300.0, ge=0)
     alpha: float = Field(0.05, gt=0, lt=0.5)
     lags: int = Field(40, ge=2)
     upgrade_on_start: bool = True
@@ -83,7 +100,7 @@ class Settings(BaseSettings):
     # turn it off only behind a plain-HTTP proxy on a trusted network.
     dashboard_session_hours: float = Field(12.0, gt=0, le=24 * 30)
     session_cookie_secure: bool = True
-    # Bounded cost of the expensive routes (README "Bounded cost"). A cell is one sample times
+    # Bounded cost of the expensive routes (docs: reference/limits.md). A cell is one sample times
     # one coefficient (a term, times the basis functions of a fault mode, plus a refinement's
     # candidate regressors): a fit peaks at about 40 bytes a cell (12 M cells: 0.5 GB, 14 s),
     # and its time grows with them. Above ``queue_training_cells`` it runs as a job (202).
@@ -99,6 +116,15 @@ class Settings(BaseSettings):
     # machine of few cores two per worker process left another organisation's reads a p95 just
     # over a second under bench/abuse.py's attack.
     max_concurrent_expensive: int = Field(1, ge=1)
+    # Upload bodies (CSV, JSON, NPZ, MAT) parsed at once in one process, whoever sends them; more
+    # wait for a parse to end, at most ``parse_wait_seconds``, then are answered 503 with
+    # Retry-After. A parse holds a few times its body in memory and, being mostly Python, the
+    # interpreter lock: a second one in the same process parses no faster, it doubles the memory
+    # and halves what the process's other requests get of the CPU. One per process: with a
+    # worker process a core, as many parses as cores. The wait carries a queue of the largest
+    # bodies (a second or so each) and stays well under a client's patience.
+    max_concurrent_parses: int = Field(1, ge=1)
+    parse_wait_seconds: float = Field(10.0, gt=0)
     # Notifications (service.domain.notifications). Webhook targets must resolve to global
     # addresses (no loopback, private, link-local … ranges: SSRF), checked when a webhook is
     # created and again at each delivery; ``webhook_allow_private`` lifts that, and

@@ -96,7 +96,7 @@ def _history(session: Session, structure: Structure, settings: Settings, study: 
         evaluation = inspections.evaluate(models, settings, run.x, run.y, {})
         acquired = now - (HISTORY_RECORDS - 1 - index) * HISTORY_STEP
         record, _ = records.store_record(session, structure, run.x, run.y, run.fs, acquired)
-        inspections.store_verdict(session, record, structure, evaluation, new_record=True)
+        inspections.store_verdict(session, record, structure, evaluation, settings, new_record=True)
 
 
 def has_keys(session: Session, organisation_name: str) -> bool:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import array
 import csv
 import io
+import itertools
 import math
 import re
 import struct
@@ -77,6 +78,17 @@ CENTRAL_DIRECTORY_BYTES = 4096
 # Lines a CSV may have beyond its rows (the fs comment, the header, blank lines), counted before
 # it is split into lines.
 CSV_SLACK_LINES = 64
+# Columns a CSV may have, counted on a line's separators before anything is built per cell: a
+# set of as many records as a refinement fits with a reference signal beside each x and y (as
+# Wiener–Hammerstein's r, u, y groups), and room for a time column, fs and other channels.
+MAX_CSV_COLUMNS = 512
+# Characters a CSV line may have: that many cells of up to 64 characters (a float64 takes 24).
+MAX_CSV_LINE = 64 * MAX_CSV_COLUMNS
+# What str.splitlines ends a line at, besides "\n": counted with it, the lines of a text are
+# known before it is split.
+_LINE_BREAKS = ("\r", "\v", "\f", "\x1c", "\x1d", "\x1e", "\x85", "\u2028", "\u2029")
+# A CSV is split into lines a block of about this many characters at a time.
+_CSV_BLOCK = 1 << 16
 # Why a member that is more than one number is refused, for a file of several channels (y1, y2, …).
 _AS_CONDITION = "; every member beside x, y and fs is an operating condition"
 _END_OF_CENTRAL_DIRECTORY = struct.Struct("<4s4H2LH")
@@ -184,7 +196,7 @@ def parse_record(
     at most :func:`record_samples` samples.
     """
     if layout.channels:
-        checked_channels(layout.channels)
+        layout = replace(layout, channels=checked_channels(layout.channels))
     if suffix == ".csv":
         samples = None if max_bytes is None else record_samples(max_bytes, len(layout.responses))
         return parse_csv(data, samples, layout)
@@ -280,36 +292,36 @@ def _parse_csv(
         text = data.decode("utf-8-sig") if isinstance(data, bytes) else data
     except UnicodeDecodeError:
         raise InputError("the CSV is not UTF-8 text") from None
-    if max_samples is not None and text.count("\n") > max_samples + CSV_SLACK_LINES:
+    if max_samples is not None and _line_count(text) > max_samples + CSV_SLACK_LINES:
         raise too_many_samples("the CSV has", max_samples, len(layout.responses))
-    lines = text.splitlines()
+    lines = _csv_lines(text)
     comment_fs: float | None = None
     stated: list[Condition] = []
-    index = 0
-    while index < len(lines) and (lines[index].startswith("#") or not lines[index].strip()):
-        line = lines[index].strip()
+    for number, header in lines:
+        if not (header.startswith("#") or not header.strip()):
+            break
+        line = header.strip()
         match = _FS_COMMENT.match(line)
         if match:
             comment_fs = _sampling_rate(match["fs"])
         elif match := _CONDITION_COMMENT.match(line):
             if len(stated) == MAX_CONDITIONS:  # a million such lines cost no more than seventeen
                 raise too_many_conditions()
-            stated.append(_condition_comment(match, index + 1))
-        index += 1
-    conditions = checked_conditions(stated)
-    if index == len(lines):
+            stated.append(_condition_comment(match, number))
+    else:
         raise InputError(f"the CSV has no header line naming its columns (such as '{layout.x},{layout.y}')")
-    groups, count = header_groups(lines[index])
-    if count == 1 and (separator := next((s for s in ";\t" if s in lines[index]), None)):
+    conditions = checked_conditions(stated)
+    groups, count = header_groups(header)
+    if count == 1 and (separator := next((s for s in ";\t" if s in header), None)):
         # What a spreadsheet set to a decimal comma exports; tab-separated text reads the same.
         raise InputError(
-            f"the header {lines[index][:80]!r} is one column: its values are separated by {separator!r}, "
+            f"the header {header[:80]!r} is one column: its values are separated by {separator!r}, "
             "where a CSV's are by ','; export the file comma-separated, with '.' as the decimal mark"
         )
-    first = next((number for number in range(index + 1, len(lines)) if lines[number].strip()), None)
+    first = next(((number, line) for number, line in lines if line.strip()), None)
     if first is None:
         raise InputError("the CSV has a header but no data rows")
-    first_row = lines[first].split(",")
+    first_row = first[1].split(",", count)
     _drop_trailing_comma(groups, count, first_row)
     widths = {name: len(columns) for name, columns in groups.items()}
     listing = "its columns are " + ", ".join(
@@ -322,7 +334,8 @@ def _parse_csv(
         for name in (each.x, *each.responses):
             group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
             wanted.append((name, groups[group][k]))
-    columns = iter(_read_columns(lines, first, count, wanted, max_samples, len(layout.responses)))
+    rows = itertools.chain([first], lines)
+    columns = iter(_read_columns(rows, count, wanted, max_samples, len(layout.responses)))
     rate_name = next((name for name in groups if name.lower() == "fs" and widths[name] == 1), None)
     fs = comment_fs
     if rate_name is not None:
@@ -358,8 +371,10 @@ def header_groups(line: str) -> tuple[dict[str, list[int]], int]:
     """The column groups a CSV header names (name → column indices) and its number of columns.
 
     An empty cell continues the group named to its left (cells before the first name belong to
-    none).
+    none). A header of more than :data:`MAX_CSV_COLUMNS` is refused on its separators, before
+    any cell is built (the rows are split into at most as many cells as it has).
     """
+    _check_columns(line, "the CSV header")
     try:
         cells = [cell.strip().strip('"').strip() for cell in next(csv.reader([line]), [])]
     except csv.Error as exc:
@@ -379,6 +394,16 @@ def header_groups(line: str) -> tuple[dict[str, list[int]], int]:
     return groups, len(cells)
 
 
+def _check_columns(line: str, where: str) -> None:
+    """Refuse a CSV line of more than :data:`MAX_CSV_COLUMNS` columns on its separators alone:
+    splitting it would build an object a cell."""
+    if (separators := line.count(",")) >= MAX_CSV_COLUMNS:
+        raise InputError(
+            f"{where} has {separators + 1} columns; a record file may have at most {MAX_CSV_COLUMNS} "
+            "(x and y or channels, the column groups of a record set, time, fs)"
+        )
+
+
 def _drop_trailing_comma(groups: dict[str, list[int]], count: int, first_row: list[str]) -> None:
     """An empty last header cell over an empty cell in the first row is a trailing comma (as
     MATLAB's writers end every line), not a further column of the group to its left."""
@@ -391,30 +416,31 @@ def _drop_trailing_comma(groups: dict[str, list[int]], count: int, first_row: li
 
 
 def _read_columns(
-    lines: list[str],
-    first: int,
+    rows: Iterable[tuple[int, str]],
     count: int,
     wanted: list[tuple[str, int]],
     max_samples: int | None,
     channels: int,
 ) -> list[np.ndarray]:
     """The numbers of each wanted (name, column), each down to its first empty cell, from the
-    non-blank lines from ``first`` on. Cells past the header's ``count`` may only be empty
-    (trailing commas). Only the wanted cells' numbers are kept, 8 bytes each. ``max_samples``
-    bounds each record, of ``channels`` responses (the pairs of a set are records apart)."""
+    non-blank ``rows`` (line number, line). Cells past the header's ``count`` may only be empty
+    (trailing commas); a line is split into at most ``count`` cells and the rest, so that no
+    line costs more than its header's columns. Only the wanted cells' numbers are kept, 8 bytes
+    each. ``max_samples`` bounds each record, of ``channels`` responses (the pairs of a set are
+    records apart)."""
     values = [array.array("d") for _ in wanted]
     ends: list[int | None] = [None] * len(wanted)  # the line of a column's first empty cell
     columns = list(enumerate(wanted))
-    rows = 0
-    for number, line in enumerate(lines[first:], start=first + 1):
+    read = 0
+    for number, line in rows:
         if not line.strip():
             continue
-        cells = line.split(",")
-        if len(cells) > count and any(cell.strip() for cell in cells[count:]):
-            raise InputError(f"CSV line {number}: expected {count} values, found {len(cells)}")
-        if rows == max_samples:
+        cells = line.split(",", count)
+        if len(cells) > count and cells[count].replace(",", "").strip():
+            raise InputError(f"CSV line {number}: expected {count} values, found {line.count(',') + 1}")
+        if read == max_samples:
             raise too_many_samples("the CSV has", max_samples, channels)
-        rows += 1
+        read += 1
         for index, (name, column) in columns:
             cell = cells[column] if column < len(cells) else ""
             try:
@@ -432,7 +458,39 @@ def _read_columns(
                     f"on line {ends[index]}"
                 )
             values[index].append(value)
-    return [np.frombuffer(column, dtype=np.float64).copy() for column in values]
+    arrays = []
+    for index, column in enumerate(values):  # each let go once copied: one column's copy at a time
+        arrays.append(np.frombuffer(column, dtype=np.float64).copy())
+        values[index] = array.array("d")
+    return arrays
+
+
+def _line_count(text: str) -> int:
+    """The lines ``text.splitlines()`` would make, counted without making them."""
+    breaks = text.count("\n") + sum(text.count(mark) for mark in _LINE_BREAKS) - text.count("\r\n")
+    return breaks + (not text.endswith(("\n", *_LINE_BREAKS)))
+
+
+def _csv_lines(text: str) -> Iterator[tuple[int, str]]:
+    """The lines of a CSV (as ``str.splitlines`` ends them) with their numbers, from 1, split a
+    block at a time so that they are never all held at once; a line longer than
+    :data:`MAX_CSV_LINE` is refused on its length."""
+    number = 0
+    start = 0
+    while start < len(text):
+        # A block ends after a "\n", where a line ends whatever precedes it ("\r\n" included).
+        newline = text.find("\n", start + _CSV_BLOCK)
+        end = len(text) if newline < 0 else newline + 1
+        for line in text[start:end].splitlines():
+            number += 1
+            if len(line) > MAX_CSV_LINE:
+                _check_columns(line, f"CSV line {number}")  # the bound a wide header passes first
+                raise InputError(
+                    f"CSV line {number} has {len(line)} characters; a line of a record file may have at "
+                    f"most {MAX_CSV_LINE} ({MAX_CSV_COLUMNS} columns of up to 64 characters)"
+                )
+            yield number, line
+        start = end
 
 
 def parse_mat(data: bytes, max_bytes: int | None = None, layout: Layout = DEFAULT_LAYOUT) -> RecordFile:

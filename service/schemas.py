@@ -28,15 +28,29 @@ from service.channels import MAX_CHANNELS
 from service.channels import NAME_LENGTH as CHANNEL_NAME_LENGTH
 from service.conditions import NAME_LENGTH, NAME_RULE, Condition
 from service.jobs import JobState
+from service.names import normalised_name
 from service.tables import MAX_ID
 
+
+def _normalised(value: object) -> object:
+    # Before the length and pattern checks, which then see the name as it will be stored; what is
+    # not a string is left to the strict string check.
+    return normalised_name(value) if isinstance(value, str) else value
+
+
+# Every name a user gives goes through ``service.names.normalised_name`` (NFC, trimmed, nothing
+# invisible or reordering), then its field's own rule.
+Normalised = BeforeValidator(_normalised)
 STRUCTURE_NAME_LENGTH = 200
-NAME_PATTERN = r"^[^\x00-\x1f]*$"  # no control characters (PostgreSQL's text refuses NUL)
-Name = Annotated[str, Field(min_length=1, max_length=STRUCTURE_NAME_LENGTH, pattern=NAME_PATTERN)]
+# The structure-name filter of listings: no control characters (PostgreSQL's text refuses NUL).
+NAME_PATTERN = r"^[^\x00-\x1f]*$"
+Name = Annotated[str, Normalised, Field(min_length=1, max_length=STRUCTURE_NAME_LENGTH)]
 # Fault-mode names: the same rule wherever one is given (bodies, history filters, dashboard).
 MODE_NAME_PATTERN = r"^[A-Za-z0-9_.\-]+$"
 MODE_NAME_LENGTH = 100
-ModeName = Annotated[str, Field(min_length=1, max_length=MODE_NAME_LENGTH, pattern=MODE_NAME_PATTERN)]
+ModeName = Annotated[
+    str, Normalised, Field(min_length=1, max_length=MODE_NAME_LENGTH, pattern=MODE_NAME_PATTERN)
+]
 Id = Annotated[StrictInt, Field(ge=1, le=MAX_ID)]
 Magnitude = Annotated[FiniteFloat, Field(ge=-1e6, le=1e6)]
 SamplingRate = Annotated[FiniteFloat, Field(gt=0, le=1e9)]
@@ -118,7 +132,9 @@ class FaultModeTrain(Strict):
     terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
 
 
-ConditionName = Annotated[str, Field(min_length=1, max_length=NAME_LENGTH, pattern=f"^{NAME_RULE.pattern}$")]
+ConditionName = Annotated[
+    str, Normalised, Field(min_length=1, max_length=NAME_LENGTH, pattern=f"^{NAME_RULE.pattern}$")
+]
 PooledVariables = Annotated[list[ConditionName], Field(min_length=1, max_length=MAX_VARIABLES)]
 PooledDegree = Annotated[StrictInt, Field(ge=0, le=MAX_DEGREE)]
 POOLED_VARIABLES_HELP = (
@@ -200,7 +216,7 @@ CONDITIONS_HELP = (
 class ChannelUpload(Strict):
     """One response channel of a record of several: its name and its samples."""
 
-    name: Annotated[str, Field(min_length=1, max_length=CHANNEL_NAME_LENGTH)]
+    name: Annotated[str, Normalised, Field(min_length=1, max_length=CHANNEL_NAME_LENGTH)]
     y: Annotated[list[FiniteFloat], Field(min_length=1)]
 
 

@@ -19,6 +19,7 @@ from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
+from service.names import normalised_name
 from service.tables import ApiKey, Organisation, utcnow
 
 KEY_PREFIX = "nw"
@@ -58,7 +59,9 @@ class KeyRefusedError(Exception):
 def create_key(
     session: Session, organisation_name: str, role: Role, expires_at: dt.datetime | None = None
 ) -> str:
-    """Create a key (and its organisation if new); the key is returned once and never stored."""
+    """Create a key (and its organisation if new, its name normalised: ``service.names``); the
+    key is returned once and never stored."""
+    organisation_name = normalised_name(organisation_name, "organisation name")
     organisation = session.scalar(select(Organisation).where(Organisation.name == organisation_name))
     if organisation is None:
         organisation = Organisation(name=organisation_name)

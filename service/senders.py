@@ -5,9 +5,10 @@ the HMAC-SHA256 under the webhook's secret of ``f"{t}.{body}"``; a receiver reco
 refuses a stale ``t`` (replays). ``Idempotency-Key`` is the same on every attempt of a delivery.
 
 Webhook targets are checked against SSRF when a webhook is created and again at each attempt
-(DNS may have changed): the host's every address must be global, unless the operator allows
-private ranges. The connection then goes to an address so checked (no second lookup an attacker
-could answer differently), with TLS still verified against the host's name. That, and one
+(DNS may have changed): the host's every address must be public (``admitted``: an IPv6 address
+that carries an IPv4 one is judged by what it carries), unless the operator allows others. The
+connection then goes to an address so checked (no second lookup an attacker could answer
+differently), with TLS still verified against the host's name. That, and one
 deadline for the whole attempt (a per-read timeout alone lets a trickling peer hold a worker for
 hours), is why this module speaks to httpcore, httpx's transport, below httpx's API, which offers
 neither. Redirects are not followed (a redirect is a failed attempt) and at most
@@ -25,7 +26,7 @@ import smtplib
 import socket
 import ssl
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from email.message import EmailMessage
 from functools import cache
@@ -43,6 +44,7 @@ ANSWER_BYTES = 1024  # of an answer's body, kept in the log of a failed attempt 
 USER_AGENT = "narxwatch-webhooks/1"
 
 Address = ipaddress.IPv4Address | ipaddress.IPv6Address
+Reading = Callable[[ipaddress.IPv6Address], list[ipaddress.IPv4Address]]  # the IPv4s an address carries
 
 
 @dataclass(frozen=True)
@@ -79,15 +81,95 @@ def signature(secret: str, timestamp: int, body: bytes) -> str:
 
 # --- SSRF --------------------------------------------------------------------------------------
 
+_V4, _V6 = ipaddress.IPv4Network, ipaddress.IPv6Network
 
-def _admitted(address: Address, settings: Settings) -> bool:
-    if settings.webhook_allow_private:
+NOT_PUBLIC: tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...] = (
+    _V4("0.0.0.0/8"),  # "this network" (RFC 791, RFC 6890)
+    _V4("10.0.0.0/8"),  # private (RFC 1918)
+    _V4("100.64.0.0/10"),  # shared address space, carrier-grade NAT (RFC 6598)
+    _V4("127.0.0.0/8"),  # loopback (RFC 1122)
+    _V4("169.254.0.0/16"),  # link-local, where clouds serve instance metadata (RFC 3927)
+    _V4("172.16.0.0/12"),  # private (RFC 1918)
+    _V4("192.0.0.0/24"),  # IETF protocol assignments (RFC 6890)
+    _V4("192.0.2.0/24"),  # documentation (RFC 5737)
+    _V4("192.168.0.0/16"),  # private (RFC 1918)
+    _V4("198.18.0.0/15"),  # benchmarking (RFC 2544)
+    _V4("198.51.100.0/24"),  # documentation (RFC 5737)
+    _V4("203.0.113.0/24"),  # documentation (RFC 5737)
+    _V4("224.0.0.0/4"),  # multicast (RFC 5771)
+    _V4("240.0.0.0/4"),  # reserved, and the limited broadcast address (RFC 1112, RFC 919)
+    _V6("::/128"),  # unspecified (RFC 4291)
+    _V6("::1/128"),  # loopback (RFC 4291)
+    _V6("100::/64"),  # discard-only (RFC 6666)
+    _V6("2001:2::/48"),  # benchmarking (RFC 5180)
+    _V6("2001:db8::/32"),  # documentation (RFC 3849)
+    _V6("3fff::/20"),  # documentation (RFC 9637)
+    _V6("fc00::/7"),  # unique-local (RFC 4193)
+    _V6("fe80::/10"),  # link-local (RFC 4291)
+    _V6("fec0::/10"),  # site-local, deprecated but still routed by some networks (RFC 3879)
+    _V6("ff00::/8"),  # multicast (RFC 4291)
+)
+
+
+def _rfc6052(*prefix_lengths: int) -> Reading:
+    """The IPv4 addresses an address carries after a translation prefix of each length (RFC 6052
+    §2.2: the 32 bits that follow the prefix, stepping over bits 64–71)."""
+
+    def read(address: ipaddress.IPv6Address) -> list[ipaddress.IPv4Address]:
+        bits = int(address) >> 64 << 56 | int(address) & (1 << 56) - 1  # bits 64–71 left out
+        return [
+            ipaddress.IPv4Address(bits >> (88 - (length if length <= 64 else length - 8)) & 0xFFFF_FFFF)
+            for length in prefix_lengths
+        ]
+
+    return read
+
+
+CARRIERS: tuple[tuple[ipaddress.IPv6Network, Reading], ...] = (
+    (_V6("::/96"), _rfc6052(96)),  # IPv4-compatible, deprecated (RFC 4291 §2.5.5.1)
+    (_V6("::ffff:0:0/96"), _rfc6052(96)),  # IPv4-mapped (RFC 4291 §2.5.5.2)
+    (_V6("::ffff:0:0:0/96"), _rfc6052(96)),  # IPv4-translated, SIIT (RFC 2765 §2.1)
+    (_V6("64:ff9b::/96"), _rfc6052(96)),  # NAT64's well-known prefix (RFC 6052 §2.1)
+    # NAT64's local-use prefix (RFC 8215): the translator's prefix may be any RFC 6052 length
+    # within it, which the address does not tell, so every reading is judged.
+    (_V6("64:ff9b:1::/48"), _rfc6052(48, 56, 64, 96)),
+    (_V6("2002::/16"), lambda address: [address.sixtofour]),  # 6to4 (RFC 3056 §2)
+    (_V6("2001::/32"), lambda address: list(address.teredo)),  # Teredo: server, client (RFC 4380 §4)
+)
+
+
+def _not_public(address: Address) -> bool:
+    return any(address in network for network in NOT_PUBLIC)
+
+
+def carried_ipv4(address: Address) -> list[ipaddress.IPv4Address]:
+    """The IPv4 addresses an IPv6 address embeds or is translated to (``CARRIERS``); none for
+    any other address, nor for one ``NOT_PUBLIC`` already names (::1 is loopback, not 0.0.0.1)."""
+    if isinstance(address, ipaddress.IPv6Address) and not _not_public(address):
+        for network, read in CARRIERS:
+            if address in network:
+                return read(address)  # type: ignore[return-value]
+    return []
+
+
+def admitted(address: Address, settings: Settings) -> bool:
+    """Whether a webhook may dial ``address``: the operator's allowance admits it
+    (``webhook_allow_private``, or ``webhook_allowed_networks`` holds it); else it is in no
+    ``NOT_PUBLIC`` range, every IPv4 it carries (``carried_ipv4``) is admitted, and one that
+    carries none is global in Python's reading of the IANA special-purpose registries as well.
+
+    An address that carries an IPv4 reaches that IPv4 on a network that translates (NAT64, SIIT,
+    6to4, Teredo), where Python counts it as global or, as for 6to4 and Teredo, private whatever
+    it carries: so it is judged by what it carries, and one carrying public IPv4 addresses only is
+    admitted as they would be.
+    """
+    if settings.webhook_allow_private or any(address in net for net in settings.webhook_allowed_networks):
         return True
-    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
-        address = address.ipv4_mapped  # ::ffff:127.0.0.1 is loopback
-    if any(address in network for network in settings.webhook_allowed_networks):
-        return True
-    return address.is_global and not address.is_multicast
+    if _not_public(address):
+        return False
+    if carried := carried_ipv4(address):
+        return all(admitted(ipv4, settings) for ipv4 in carried)
+    return address.is_global
 
 
 def checked_url(url: str) -> tuple[str, str, int]:
@@ -110,17 +192,20 @@ def checked_url(url: str) -> tuple[str, str, int]:
 
 
 def vetted_addresses(host: str, port: int, settings: Settings) -> list[Address]:
-    """The host's addresses, all of them admitted (``_admitted``); ``InputError`` naming one
-    that is not, or saying the host has none."""
+    """The host's addresses, all of them admitted (``admitted``); ``InputError`` naming one
+    that is not (and the IPv4 addresses it carries), or saying the host has none."""
     try:
         found = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except (OSError, UnicodeError, ValueError) as exc:  # gaierror; IDNA; a name no resolver takes
         raise InputError(f"the webhook host {host!r} cannot be resolved: {exc}") from None
     addresses = list(dict.fromkeys(ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in found))
-    refused = [address for address in addresses if not _admitted(address, settings)]
+    refused = [address for address in addresses if not admitted(address, settings)]
     if refused or not addresses:
+        named = str(refused[0]) if refused else "nothing"
+        if carried := carried_ipv4(refused[0]) if refused else []:
+            named += f" (carrying {', '.join(map(str, carried))})"
         raise InputError(
-            f"the webhook host {host!r} resolves to {refused[0] if refused else 'nothing'}, which is not a "
+            f"the webhook host {host!r} resolves to {named}, which is not a "
             "public address: private, loopback and link-local targets are refused unless the operator "
             "allows them (NARXWATCH_WEBHOOK_ALLOW_PRIVATE, NARXWATCH_WEBHOOK_ALLOWED_NETWORKS)"
         )

@@ -11,7 +11,10 @@ hand-built regressor matrix, and column-scaled least squares via ``numpy.linalg.
 
 from __future__ import annotations
 
+import ipaddress
 import os
+import socket
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -95,6 +98,36 @@ LONGEST_FILES = (
     "test_sim_scenarios.py",
     "test_fleet_scale.py",
 )
+
+
+# --- Nothing leaves the machine ------------------------------------------------------------------
+# Every test talks to servers it started on loopback (the app, receivers, SMTP, PostgreSQL): a
+# connection anywhere else is a mistake, a webhook test whose allowance let a delivery out most
+# of all. Python's socket calls in the test process (httpcore's, smtplib's, the tests' own) are
+# refused one to any other address; libpq's and Chromium's connections are not Python's and are
+# not seen, nor are those of the `narxwatch` processes a test starts. An audit hook stays for the
+# life of the process, so it is installed once, here.
+
+
+def _dial_loopback_only(event: str, args: tuple) -> None:
+    if event not in ("socket.connect", "socket.sendto"):
+        return
+    sock, address = args[0], args[1]
+    if sock.family not in (socket.AF_INET, socket.AF_INET6):
+        return  # AF_UNIX and the like stay on this machine
+    host = str(address[0])
+    try:
+        ip = ipaddress.ip_address(host.split("%")[0])
+    except ValueError:
+        admitted = host == "localhost"
+    else:
+        mapped = getattr(ip, "ipv4_mapped", None)
+        admitted = ip.is_loopback or (mapped is not None and mapped.is_loopback)
+    if not admitted:
+        raise PermissionError(f"the tests dial loopback only, not {host} (tests/conftest.py)")
+
+
+sys.addaudithook(_dial_loopback_only)
 
 
 @pytest.hookimpl(trylast=True)

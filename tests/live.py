@@ -16,6 +16,7 @@ import httpx
 import uvicorn
 
 from service.api.app import create_app
+from service.api.protocol import header_timeout_protocol
 from service.config import Settings
 from service.db import transaction
 from service.security import Role, create_key
@@ -58,7 +59,13 @@ class LiveServer:
         self.settings = settings
         self.app = create_app(settings)
         self.port = free_port()
-        config = uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning")
+        config = uvicorn.Config(
+            self.app,
+            host="127.0.0.1",
+            port=self.port,
+            log_level="warning",
+            http=header_timeout_protocol(settings.header_timeout_seconds),  # as `narxwatch serve`
+        )
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._server.run, name="narxwatch-live", daemon=True)
 

@@ -674,9 +674,37 @@ def test_duplicate_structure_name(site: Site, admin, api_server):
         assert stranger.post(f"{API}/structures", json={"name": "rig", "fs": 2000.0}).status_code == 201
 
 
+def test_structure_names_are_stored_trimmed_and_composed(api_server):
+    """Surrounding spaces go and combining accents are composed (NFC) before a name is stored or
+    compared: " rig " is the existing "rig", and "e" + U+0301 is stored as U+00E9."""
+    with Org.create(api_server).client("admin") as admin:
+        created = admin.post(f"{API}/structures", json={"name": "  Pump 3 ", "fs": FS})
+        decomposed = admin.post(f"{API}/structures", json={"name": "Cafe\u0301", "fs": FS})
+        for response, name in ((created, "Pump 3"), (decomposed, "Caf\u00e9")):
+            assert response.status_code == 201, response.text
+            assert response.json()["name"] == name
+            assert admin.get(f"{API}/structures/{response.json()['id']}").json()["name"] == name
+        assert admin.post(f"{API}/structures", json={"name": "rig", "fs": FS}).status_code == 201
+        listed = admin.get(f"{API}/structures").json()
+        assert_refused(admin.post(f"{API}/structures", json={"name": " rig ", "fs": FS}), 409, "named 'rig'")
+        assert admin.post(f"{API}/structures", json={"name": "Caf\u00e9", "fs": FS}).status_code == 409
+        assert admin.get(f"{API}/structures").json() == listed
+
+
 STRUCTURE_ERRORS = {
-    "empty-name": ({"name": "", "fs": FS}, "at least 1 character"),
-    "control-character-in-name": ({"name": "a\nb", "fs": FS}, "should match pattern"),
+    "empty-name": ({"name": "", "fs": FS}, "cannot be empty"),
+    "control-character-in-name": ({"name": "a\nb", "fs": FS}, "U+000A"),
+    # Names that would not show what they are (service.names): each refusal names the character.
+    "space-only-name": ({"name": " ", "fs": FS}, "a name cannot be empty or only whitespace"),
+    "byte-order-mark-name": (
+        {"name": "\ufeff", "fs": FS},
+        "no-break space): U+FEFF",
+    ),
+    "right-to-left-override-in-name": (
+        {"name": "pump\u202egnp.exe", "fs": FS},
+        "U+202E (RIGHT-TO-LEFT OVERRIDE) is character 5 of the name given",
+    ),
+    "zero-width-space-in-name": ({"name": "pump\u200b3", "fs": FS}, "invisible format character: U+200B"),
     "zero-fs": ({"name": "z", "fs": 0}, "greater than 0"),
     "string-fs": ({"name": "z", "fs": "1500"}, "valid number"),
     "unknown-field": ({"name": "z", "fs": FS, "owner": "me"}, "Extra inputs are not permitted"),

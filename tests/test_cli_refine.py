@@ -46,7 +46,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     report = json.loads(result.stdout)
     assert set(report) == REPORT_KEYS
     assert set(report["before"]) == set(report["after"]) == ASSESSMENT_KEYS
-    # README lists what the loop adds, in this order.
+    # docs/benchmarks/measured.md lists what the loop adds, in this order.
     names = [effect["name"] for effect in report["effects_added"]]
     assert names == [
         "missing_lags", "cubic_damping", "offset", "cubic_stiffness", "quadratic_stiffness",
@@ -65,7 +65,8 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     arrow, schroeder = report["tests"]
     assert arrow["samples"] == [100, 40575] and arrow["before"] == report["before"]
     assert report["declared"]["terms"][:4] == ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]"]
-    # README's Silverbox table: one-step 1.20 → 0.187 mV, free run 14.39 → 0.227 mV on the full arrow
+    # The Silverbox table of docs/benchmarks/measured.md: one-step 1.20 → 0.187 mV, free run
+    # 14.39 → 0.227 mV on the full arrow
     # (parameters by output error, which trades one-step error for free-run error), with a margin
     # of about 10 % for arithmetic differences between machines.
     assert 1.1e-3 < report["before"]["one_step_rms"] < 1.3e-3 and report["after"]["one_step_rms"] <= 0.21e-3
@@ -77,7 +78,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     assert set(before["correlation_tests"]) >= {"phi_ee", "phi_ue", "phi_u2'e"}
     # The refined model, not refitted, on the independent Schroeder-phase multisine record.
     assert schroeder["path"].endswith("Schroeder80mV.csv") and schroeder["samples"] == [0, 131072]
-    # README: 18.92 → 0.282 mV.
+    # docs/benchmarks/measured.md: 18.92 → 0.282 mV.
     assert (
         17e-3 < schroeder["before"]["free_run_rms"] < 21e-3 and schroeder["after"]["free_run_rms"] <= 0.31e-3
     )

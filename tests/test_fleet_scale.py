@@ -26,18 +26,24 @@ from api_helpers import (
     Org,
     clients,
     create_structure,
+    csv_text,
     detail,
     json_body,
+    noise,
+    nothing_written,
     npz_bytes,
     post_record,
     simulated,
     train_fault_mode,
+    upload_simulated,
+    verdicts,
     wait_for,
 )
 from dashboard_helpers import DASHBOARD, logged_in
 from live import LiveServer, http_client
 from prometheus_client.parser import text_string_to_metric_families
-from sqlalchemy import Engine, func, insert, select, text
+from sqlalchemy import Engine, func, insert, select, text, update
+from test_api_bounded import record_set_csv
 
 from service.config import Settings
 from service.db import make_engine
@@ -46,6 +52,8 @@ from service.tables import Alarm, Job, JobCount, Record, Structure, StructureSta
 
 T0 = dt.datetime(2026, 6, 1, 6, 0, tzinfo=dt.UTC)
 STATUSES = ("healthy", "faulty", "unknown_fault")
+SKEW = dt.timedelta(seconds=Settings.model_fields["max_clock_skew_seconds"].default)  # the servers' here
+FUTURE = dt.datetime(9999, 12, 31, tzinfo=dt.UTC)
 
 
 @dataclass
@@ -109,7 +117,9 @@ def scraped(server: LiveServer) -> dict[str, object]:
 
 def walked(engine: Engine, structure_id: int) -> dict[str, object]:
     """A structure's standing walked from its verdicts in Python: the newest (by acquisition,
-    then id), and the acquisition time of the first of the unbroken run of its status at the end."""
+    then id) of those acquired up to the server's clock plus the skew allowed, and the
+    acquisition time of the first of the unbroken run of its status at the end; counts of all."""
+    limit = dt.datetime.now(dt.UTC) + SKEW
     with engine.connect() as connection:
         rows = connection.execute(
             select(Verdict.id, Verdict.acquired_at, Verdict.status).where(
@@ -119,7 +129,9 @@ def walked(engine: Engine, structure_id: int) -> dict[str, object]:
         records = connection.scalar(
             select(func.count()).select_from(Record).where(Record.structure_id == structure_id)
         )
-    ordered = sorted(rows, key=lambda row: (row.acquired_at, row.id))
+    ordered = sorted(
+        (row for row in rows if row.acquired_at <= limit), key=lambda row: (row.acquired_at, row.id)
+    )
     latest = ordered[-1] if ordered else None
     since = None
     for row in reversed(ordered):
@@ -303,6 +315,139 @@ def test_a_job_whose_claim_was_taken_over_is_counted_once(fleet_server: Fleet):
         done = session.scalar(select(JobCount.count).where(JobCount.state == "done"))
     assert done == done_before + 1
     assert scraped(fleet_server.server) == counted(fleet_server.engine)
+
+
+# --- acquisition times past the server's clock ------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def clocked(fleet_server: Fleet) -> tuple[Org, int]:
+    """An organisation and its structure with a k2 model, which inspects what it is sent."""
+    org = Org.create(fleet_server.server)
+    with clients(org) as (admin, ingest, _):
+        sid = create_structure(admin, "clocked")["id"]
+        train_fault_mode(admin, ingest, sid, "k2", seed=71)
+    return org, sid
+
+
+def _send(ingest: httpx.Client, sid: int, route: str, when: str, seed: int) -> httpx.Response:
+    """A record (a set of two on the route "set") acquired at ``when``, on one of the ways in."""
+    if route == "set":
+        body = record_set_csv(2, 500, seed)
+        return ingest.post(f"{API}/structures/{sid}/record-sets", content=body, params={"acquired_at": when},
+                           headers={"Content-Type": "text/csv"})  # fmt: skip
+    if route == "csv":
+        return post_record(ingest, sid, csv_text(*noise(2000, seed)), "text/csv", acquired_at=when)
+    inspect = "queue" if route == "json, queued" else "true"
+    return post_record(ingest, sid, json_body(2000, seed=seed, acquired_at=when), inspect=inspect)
+
+
+@pytest.mark.parametrize("route", ["json", "json, queued", "csv", "set"])
+def test_an_acquisition_time_past_the_servers_clock_is_refused_before_anything_is_written(
+    fleet_server: Fleet, clocked: tuple[Org, int], route: str
+):
+    """9999-12-31, or a minute more than the skew allowed ahead of the server's clock: 422 naming
+    the server's clock (ISO 8601, UTC) and the setting, nothing stored or queued. Half the skew
+    ahead is a clock a little fast: stored at the time given and, inspected now or by a job,
+    the structure's latest verdict."""
+    org, sid = clocked
+    seed = 90 + ["json", "json, queued", "csv", "set"].index(route)
+    beyond = (dt.datetime.now(dt.UTC) + SKEW + dt.timedelta(minutes=1)).isoformat()
+    with clients(org) as (_, ingest, viewer):
+        for when in ("9999-12-31T00:00:00Z", beyond):
+            with nothing_written(org, sid):
+                response = _send(ingest, sid, route, when, seed)
+            assert response.status_code == 422, response.text
+            message = detail(response)
+            assert "NARXWATCH_MAX_CLOCK_SKEW_SECONDS (300 s)" in message and "in the future" in message
+            clock = re.search(r"later than the server's clock \((\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ)\)", message)
+            assert clock is not None, message
+            off = dt.datetime.fromisoformat(clock[1]) - dt.datetime.now(dt.UTC)
+            assert abs(off) < dt.timedelta(minutes=1)
+        fast = dt.datetime.now(dt.UTC).replace(microsecond=0) + SKEW / 2
+        response = _send(ingest, sid, route, fast.isoformat(), seed)
+        assert response.status_code in (201, 202), response.text
+        answers = response.json() if route == "set" else [response.json()]
+        assert [dt.datetime.fromisoformat(a["acquired_at"]) for a in answers] == [fast] * len(answers)
+        if route.startswith("json"):
+
+            def latest() -> dict | None:
+                found = viewer.get(f"{API}/structures/{sid}/summary").json()["latest"]
+                return found if found and found["record_id"] == answers[0]["id"] else None
+
+            judged = wait_for(latest, 60, "the verdict of the record a little ahead")
+            assert dt.datetime.fromisoformat(judged["acquired_at"]) == fast  # type: ignore[index]
+
+
+def test_a_record_from_the_future_already_stored_hides_no_fault(fleet_server: Fleet):
+    """A structure healthy yesterday whose database holds a healthy record dated 9999-12-31, as
+    an upload stored it before acquisition times were checked (its state too: the latest, healthy
+    since 9999). A 30 % k2 fault acquired now makes it faulty since now in the fleet list, the
+    summary and the dashboard; a healthy record uploaded late then leaves that run as it is."""
+    org = Org.create(fleet_server.server)
+    with clients(org) as (admin, ingest, viewer):
+        sid = create_structure(admin, "a clock once wrong")["id"]
+        train_fault_mode(admin, ingest, sid, "k2", seed=72)
+        yesterday = (dt.datetime.now(dt.UTC) - dt.timedelta(days=1)).isoformat()
+        upload_simulated(ingest, sid, simulated("none", 0.0, 73), inspect="true", acquired_at=yesterday)
+        future = _stored_from_the_future(fleet_server.engine, sid, "healthy")
+        fault = upload_simulated(ingest, sid, simulated("k2", 30.0, 74), inspect="true")
+        assert fault["verdict"]["status"] == "faulty"
+        now = dt.datetime.fromisoformat(fault["acquired_at"])
+
+        def standing() -> tuple[str, dt.datetime]:
+            item = next(s for s in viewer.get(f"{API}/structures").json() if s["id"] == sid)
+            return item["status"], dt.datetime.fromisoformat(item["since"])
+
+        assert standing() == ("faulty", now)
+        summary = viewer.get(f"{API}/structures/{sid}/summary").json()
+        assert summary["latest"]["id"] == fault["verdict"]["id"]
+        assert summary["trend"][-1]["verdict_id"] == fault["verdict"]["id"]
+        assert summary["counts"] == {"healthy": 2, "faulty": 1, "unknown_fault": 0}  # the future one counted
+        assert future in {v["id"] for v in verdicts(viewer, sid)}  # and listed in the history
+        assert_exact(fleet_server, sid)
+        with logged_in(fleet_server.server, org.keys["viewer"]) as client:
+            page = client.get(f"{DASHBOARD}/structures/{sid}").text
+            card = re.search(r'<section class="card status-(\w+)" id="standing">.*?</section>', page, re.S)
+            row = re.search(
+                rf'<tr class="status-(\w+)" data-structure-id="{sid}">.*?</tr>',
+                client.get(DASHBOARD).text,
+                re.S,
+            )
+        since = now.strftime("%Y-%m-%d %H:%M:%S UTC")
+        for shown in (card, row):
+            assert (
+                shown is not None
+                and shown[1] == "faulty"
+                and since in shown[0]
+                and "9999-12-31" not in shown[0]
+            )
+
+        late = (now - dt.timedelta(hours=12)).isoformat()
+        upload_simulated(ingest, sid, simulated("none", 0.0, 75), inspect="true", acquired_at=late)
+        assert standing() == ("faulty", now)
+        assert_exact(fleet_server, sid)
+
+
+def _stored_from_the_future(engine: Engine, structure_id: int, status: str) -> int:
+    """A record acquired on 9999-12-31 and its verdict written into the tables, and the structure's
+    state as the code before acquisition times were checked left it: that verdict its latest,
+    ``status`` since 9999. Its verdict's id."""
+    with engine.begin() as connection:
+        record = dict(structure_id=structure_id, fs=1500.0, n_samples=3, acquired_at=FUTURE,
+                      sha256=uuid.uuid4().hex * 2, x=b"", y=b"")  # fmt: skip
+        record_id = connection.execute(insert(Record).returning(Record.id), record).scalar_one()
+        verdict = dict(record_id=record_id, structure_id=structure_id, acquired_at=FUTURE, model_set="future",
+                       status=status, fault_detected=status != "healthy", alpha=0.05, lags=40, n_samples=3,
+                       z_critical=1.96, q_critical_detection=40.0, detected_by=[], modes=[])  # fmt: skip
+        verdict_id = connection.execute(insert(Verdict).returning(Verdict.id), verdict).scalar_one()
+        connection.execute(
+            update(StructureState)
+            .where(StructureState.structure_id == structure_id)
+            .values(status=status, since=FUTURE, latest_verdict_id=verdict_id, latest_acquired_at=FUTURE)
+            .values({status: getattr(StructureState, status) + 1, "records": StructureState.records + 1})
+        )
+    return verdict_id
 
 
 # --- the fleet a page at a time -------------------------------------------------------------

@@ -6,6 +6,16 @@ and the SQLite writer gate taken by the engine.
   while another organisation's client times ``GET /structures``. The slow clients must get 408
   and the other organisation no 5xx and a p95 of at most a second: a request that holds a pooled
   connection while its body trickles in starves every other.
+- Slow heads: 3 000 connections that trickle a request head they never end, against the same
+  server with ``NARXWATCH_HEADER_TIMEOUT_SECONDS`` short and the soft limit on open files a
+  systemd service gets by default: each is closed by the server once the deadline has passed,
+  and the other organisation, opening a new connection for every request, is served throughout
+  within the slow-body bound. Without the deadline a head could be trickled for ever, and the
+  connections held used up the server's file descriptors, so that it accepted no one else.
+- The head's deadline runs from a connection's opening and from the end of each response on a
+  keep-alive connection, and stops when the head is complete: a connection that says nothing is
+  closed silently, a next head trickled after a response is answered 408 and closed, and heads
+  each sent within the deadline are all served, however long the connection lives.
 - On a route whose body FastAPI parses and on one that reads it itself, a body too slow is 408
   and a chunked body past the limit 413.
 - A full connection pool is a 503 with ``Retry-After`` after ``NARXWATCH_POOL_TIMEOUT_SECONDS``.
@@ -17,8 +27,11 @@ and the SQLite writer gate taken by the engine.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import os
+import random
+import resource
 import signal
 import socket
 import subprocess
@@ -27,16 +40,17 @@ import textwrap
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
+import uvloop
 from api_helpers import API, create_structure, json_body
 from live import LiveServer, free_port, http_client, wait_until_serving
-from sqlalchemy import exc, select
+from sqlalchemy import exc, func, select
 from test_cli import NARXWATCH
 
 from service.config import Settings
@@ -45,7 +59,7 @@ from service.domain import structures
 from service.migrate import upgrade_database
 from service.schemas import StructureCreate
 from service.security import Role, authenticate, create_key
-from service.tables import Organisation, Structure
+from service.tables import Organisation, Record, Structure
 
 ROOT = Path(__file__).resolve().parents[1]
 SLOW_CLIENTS = 40
@@ -53,6 +67,22 @@ BODY_TIMEOUT = 3.0  # NARXWATCH_BODY_TIMEOUT_SECONDS of the served app: short, s
 TRICKLE_PAUSE = 0.1  # seconds between two 2-byte pieces of a slow body
 VICTIM_P95 = 1.0  # seconds
 POOL_TIMEOUT = 0.5  # NARXWATCH_POOL_TIMEOUT_SECONDS of the pool test
+SLOW_HEADS = 3000
+HEADER_TIMEOUT = 2.0  # NARXWATCH_HEADER_TIMEOUT_SECONDS of the served app
+HEAD_PAUSE = 0.5  # seconds between two pieces of a slow head
+# A slow connection is seen closed this long after its deadline at most: the client's clock runs
+# from before it connects, and it notices the end late while thousands of connections share its
+# event loop, on a machine whose two cores other work shares.
+CLOSE_MARGIN = 2.0
+EARLY = 0.005  # the server's event loop keeps time in milliseconds: its timers may end this early
+# The soft limit on open files of a systemd service (LimitNOFILE's default): the server raises it
+# to the hard limit, or 3 000 connections would leave it no descriptor to accept another.
+SERVICE_OPEN_FILES = 1024
+
+
+def _service_open_files() -> None:
+    _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (SERVICE_OPEN_FILES, hard))
 
 
 @dataclass
@@ -84,13 +114,18 @@ def served(database_url: str, tmp_path: Path) -> Iterator[Served]:
         **os.environ,
         "NARXWATCH_DATABASE_URL": database_url,
         "NARXWATCH_BODY_TIMEOUT_SECONDS": str(BODY_TIMEOUT),
+        "NARXWATCH_HEADER_TIMEOUT_SECONDS": str(HEADER_TIMEOUT),
         "NARXWATCH_LOG_FORMAT": "text",
     }
     port = free_port()
     log = tmp_path / "serve.log"
     with log.open("w") as output:
         server = subprocess.Popen(
-            [NARXWATCH, "serve", "--port", str(port), "--workers", "1"], env=env, stderr=output, stdout=output
+            [NARXWATCH, "serve", "--port", str(port), "--workers", "1"],
+            env=env,
+            stderr=output,
+            stdout=output,
+            preexec_fn=_service_open_files,
         )
     try:
         wait_until_serving(f"http://127.0.0.1:{port}", server, 120, log.read_text)
@@ -139,13 +174,17 @@ async def slow_upload(port: int, path: str, key: str, body: bytes, patience: flo
         writer.close()
 
 
-async def time_victim(served: Served, slow: list[asyncio.Task]) -> list[tuple[float, int | None]]:
-    """``GET /structures`` of the other organisation, one after another while the slow uploads last."""
+async def time_victim(
+    served: Served, slow: list[asyncio.Task], at_least: float = 0.0
+) -> list[tuple[float, int | None]]:
+    """``GET /structures`` of the other organisation, one after another while the slow uploads last
+    (and ``at_least`` seconds in all, so that requests refused quickly still leave enough timings)."""
     timings: list[tuple[float, int | None]] = []
     headers = {"Authorization": f"Bearer {served.victim}"}
+    until = time.monotonic() + at_least
     async with httpx.AsyncClient(base_url=served.url, headers=headers, timeout=10) as client:
         await asyncio.sleep(0.5)  # every slow client has sent its headers and its first bytes
-        while not all(task.done() for task in slow):
+        while not all(task.done() for task in slow) or time.monotonic() < until:
             started = time.monotonic()
             try:
                 status: int | None = (await client.get(f"{API}/structures")).status_code
@@ -181,6 +220,204 @@ def test_slow_bodies_get_408_and_never_slow_another_organisation(served: Served)
     assert p95 <= VICTIM_P95, f"the other organisation's p95 was {p95:.2f} s"
     assert statuses == [408] * SLOW_CLIENTS, f"slow clients answered {sorted(statuses, key=str)}"
     assert elapsed < BODY_TIMEOUT + 10, f"the slow bodies were cut after {elapsed:.1f} s"
+
+
+def slow_head_pieces() -> Iterator[bytes]:
+    """A request head 3 bytes at a time, header after header, never ending."""
+    head = itertools.chain(
+        [b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n"],
+        (b"X-Slow-%d: 1\r\n" % n for n in itertools.count()),
+    )
+    for line in head:
+        yield from (line[start : start + 3] for start in range(0, len(line), 3))
+
+
+@dataclass
+class Closed:
+    """How a connection trickling a head ended: ``after`` seconds from when the deadline began
+    (None: still open when the client gave up), with what the server wrote."""
+
+    after: float | None
+    received: bytes
+
+
+async def trickle_head(
+    reader: asyncio.StreamReader, writer: asyncio.StreamWriter, began: float, patience: float
+) -> Closed:
+    """Send a head that never ends, ``HEAD_PAUSE`` s between pieces, until the server closes the
+    connection (end of stream or reset) or ``patience`` s pass; ``began``: when its deadline did,
+    at the latest (``time.monotonic``)."""
+
+    async def trickle() -> None:
+        await asyncio.sleep(random.uniform(0, HEAD_PAUSE))  # the pieces of all spread over a pause
+        try:
+            for piece in slow_head_pieces():
+                writer.write(piece)
+                await writer.drain()
+                await asyncio.sleep(HEAD_PAUSE)
+        except ConnectionError:  # closed by the server
+            pass
+
+    sending = asyncio.create_task(trickle())
+    received = b""
+    try:
+        async with asyncio.timeout(patience):
+            while chunk := await reader.read(4096):
+                received += chunk
+    except TimeoutError:
+        return Closed(None, received)
+    except ConnectionError:
+        pass
+    finally:
+        sending.cancel()
+        writer.close()
+    return Closed(time.monotonic() - began, received)
+
+
+async def slow_head(port: int, patience: float) -> Closed:
+    began = time.monotonic()  # before connecting: the server's deadline runs from its accepting
+    return await trickle_head(*await asyncio.open_connection("127.0.0.1", port), began, patience)
+
+
+def time_victim_on_new_connections(served: Served, going: Callable[[int], bool]) -> list[float]:
+    """``GET /structures`` of the other organisation, each on a new connection, one after another
+    while ``going(requests timed so far)``. Fails at the first answer that is not 200. Called in a
+    thread of its own, its clock not slowed by the event loop of thousands of slow connections."""
+    timings: list[float] = []
+    headers = {"Authorization": f"Bearer {served.victim}"}
+    one_use = httpx.Limits(max_keepalive_connections=0)  # the server must accept a new one each time
+    with http_client(base_url=served.url, headers=headers, timeout=10, limits=one_use) as client:
+        while going(len(timings)):
+            started = time.monotonic()
+            response = client.get(f"{API}/structures")
+            assert response.status_code == 200, f"the other organisation got {response.status_code}"
+            timings.append(time.monotonic() - started)
+    return timings
+
+
+@pytest.fixture
+def many_open_files() -> Iterator[None]:
+    """Room in this process for the slow connections' sockets, beside its own files."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    needed = SLOW_HEADS + 500
+    assert hard == resource.RLIM_INFINITY or hard >= needed, f"the hard limit on open files is {hard}"
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, needed), hard))
+    yield
+    resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+def test_slow_heads_are_closed_at_the_deadline_and_never_slow_another_organisation(
+    served: Served, many_open_files: None
+):
+    baseline = time_victim_on_new_connections(served, lambda timed: timed < 20)
+    patience = HEADER_TIMEOUT + 8
+    attacking = threading.Event()
+    attacking.set()
+    timings: list[float] = []
+    victim_failed: list[Exception] = []
+
+    def victim() -> None:
+        try:
+            timings.extend(time_victim_on_new_connections(served, lambda _: attacking.is_set()))
+        except Exception as error:  # failed in this thread: reported in the test's
+            victim_failed.append(error)
+
+    async def attack() -> list[Closed]:
+        waves = []
+        for _ in range(SLOW_HEADS // 300):  # opened a wave at a time: no burst past the backlog
+            waves += [asyncio.create_task(slow_head(served.port, patience)) for _ in range(300)]
+            await asyncio.sleep(0.1)
+        return list(await asyncio.gather(*waves))
+
+    timer = threading.Thread(target=victim)
+    timer.start()
+    try:
+        closed = uvloop.run(attack())
+    finally:
+        attacking.clear()
+        timer.join()
+    assert not victim_failed, f"the other organisation failed: {victim_failed[0]!r}"
+    assert len(timings) >= 10, f"only {len(timings)} requests of the other organisation were timed"
+    p95, before = (float(np.percentile(sample, 95)) for sample in (timings, baseline))
+    assert p95 <= VICTIM_P95, f"the other organisation's p95 was {p95:.2f} s ({before:.2f} s unattacked)"
+    held = sum(end.after is None for end in closed)
+    assert not held, f"{held} of {SLOW_HEADS} slow heads were still open after {patience:.0f} s"
+    seconds = sorted(end.after for end in closed if end.after is not None)
+    assert seconds[0] >= HEADER_TIMEOUT - EARLY and seconds[-1] <= HEADER_TIMEOUT + CLOSE_MARGIN, (
+        f"closed after {seconds[0]:.3f} to {seconds[-1]:.2f} s (median {seconds[len(seconds) // 2]:.2f} s)"
+    )
+    answers = {end.received.partition(b"\r\n")[0] for end in closed}
+    assert answers <= {b"", b"HTTP/1.1 408 Request Timeout"}, answers
+
+
+async def read_answer(reader: asyncio.StreamReader) -> tuple[int, bytes]:
+    """The status and body of one answer on a keep-alive connection."""
+    head = await reader.readuntil(b"\r\n\r\n")
+    lines = head.decode().split("\r\n")
+    length = next(int(line.split(":")[1]) for line in lines if line.lower().startswith("content-length:"))
+    return int(lines[0].split()[1]), await reader.readexactly(length)
+
+
+async def paced_requests(port: int, count: int) -> list[int]:
+    """``count`` requests on one connection, each head trickled over most of the deadline."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    statuses = []
+    for _ in range(count):
+        for line in (b"GET /healthz HTTP/1.1\r\n", b"Host: 127.0.0.1\r\n", b"\r\n"):
+            writer.write(line)
+            await asyncio.sleep(0.6 * HEADER_TIMEOUT / 3)
+        statuses.append((await read_answer(reader))[0])
+    writer.close()
+    return statuses
+
+
+async def answered_then_trickled(port: int, patience: float) -> tuple[int, Closed]:
+    """One request answered on a keep-alive connection, then a next head trickled."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    began = time.monotonic()  # before the answer, whose end starts the deadline
+    writer.write(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    status, _ = await read_answer(reader)
+    return status, await trickle_head(reader, writer, began, patience)
+
+
+async def silent(port: int, patience: float) -> Closed:
+    """A connection that sends nothing."""
+    began = time.monotonic()
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        received = await asyncio.wait_for(reader.read(), patience)
+    except TimeoutError:
+        return Closed(None, b"")
+    finally:
+        writer.close()
+    return Closed(time.monotonic() - began, received)
+
+
+def test_the_head_deadline_runs_from_the_opening_and_from_each_answer(tmp_path: Path):
+    settings = Settings(
+        database_url=f"sqlite:///{tmp_path / 'narxwatch.db'}", header_timeout_seconds=HEADER_TIMEOUT
+    )
+    patience = HEADER_TIMEOUT + 8
+
+    async def scenario() -> tuple[list[int], tuple[int, Closed], Closed]:
+        return await asyncio.gather(
+            paced_requests(server.port, 3),
+            answered_then_trickled(server.port, patience),
+            silent(server.port, patience),
+        )
+
+    with LiveServer(settings) as server:
+        paced, (answered, trickled), quiet = asyncio.run(scenario())
+    assert paced == [200] * 3  # 3 heads in 1.2 s each: longer than one deadline in all, and served
+    assert answered == 200
+    for closed in (trickled, quiet):
+        assert closed.after is not None, "the connection was still open"
+        assert HEADER_TIMEOUT - EARLY <= closed.after <= HEADER_TIMEOUT + CLOSE_MARGIN, (
+            f"closed after {closed.after:.3f} s"
+        )
+    assert trickled.received.startswith(b"HTTP/1.1 408 "), trickled.received
+    assert b"NARXWATCH_HEADER_TIMEOUT_SECONDS" in trickled.received
+    assert quiet.received == b"", quiet.received  # nothing asked, nothing answered: as keep-alive's end
 
 
 def test_a_full_pool_is_a_503_with_retry_after(database_url: str):
@@ -237,7 +474,8 @@ def test_every_route_bounds_its_body_in_time_and_size(tmp_path: Path, route: str
     a body too slow is 408, a chunked body past the limit 413 (not the 400 FastAPI's body
     parsing makes of other errors); both close the connection, whose body is left unread."""
     database = f"sqlite:///{tmp_path / 'narxwatch.db'}"
-    settings = Settings(database_url=database, body_timeout_seconds=1.0, max_upload_bytes=4000)
+    limits = {"max_upload_bytes": 4000, "max_request_bytes": 4000}
+    settings = Settings(database_url=database, body_timeout_seconds=1.0, **limits)
     with LiveServer(settings) as server:
         key = server.key(Role.admin)
         path = f"{API}/structures"
@@ -250,6 +488,38 @@ def test_every_route_bounds_its_body_in_time_and_size(tmp_path: Path, route: str
         large = raw_post(server.port, path, key, [b" " * 1000] * 5, 0.0, declared=None)
         assert large.startswith(b"HTTP/1.1 413 "), large
         assert b"connection: close" in large.lower()
+
+
+def test_only_record_uploads_take_bodies_the_size_of_a_record(tmp_path: Path):
+    """Every other route takes a small JSON document (NARXWATCH_MAX_REQUEST_BYTES), refused before
+    it is parsed, authenticated or not: FastAPI parses it before the route, and nested empty
+    arrays cost Python some 25 times their text. Uploads of records and record sets take up to
+    NARXWATCH_MAX_UPLOAD_BYTES."""
+    database = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    settings = Settings(database_url=database, max_request_bytes=2000, max_upload_bytes=8000)
+    nested = b"[" + b"[]," * 1700 + b"[]]"  # 5 kB
+    document = b'{"x": "' + b"a" * 5000 + b'"}'
+    with (
+        LiveServer(settings) as server,
+        server.client(server.key(Role.admin)) as admin,
+        server.client() as anonymous,
+    ):
+        structure_id = create_structure(admin)["id"]
+        headers = {"Content-Type": "application/json"}
+        for client in (admin, anonymous):
+            refused = client.post(f"{API}/structures", content=nested, headers=headers)
+            assert refused.status_code == 413, refused.text
+            assert "2000 bytes (NARXWATCH_MAX_REQUEST_BYTES)" in refused.json()["detail"]
+        for route in ("records", "record-sets"):
+            path = f"{API}/structures/{structure_id}/{route}"
+            read = admin.post(path, content=document, headers=headers)
+            assert read.status_code in (415, 422), read.text  # read, and refused for what it holds
+            too_large = admin.post(path, content=document * 2, headers=headers)
+            assert too_large.status_code == 413, too_large.text
+            assert "8000 bytes (NARXWATCH_MAX_UPLOAD_BYTES)" in too_large.json()["detail"]
+        with server.app.state.engine.connect() as connection:
+            assert connection.scalar(select(func.count()).select_from(Record)) == 0
+            assert connection.scalar(select(func.count()).select_from(Structure)) == 1
 
 
 REFUSE_AT_COMMIT = """

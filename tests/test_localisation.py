@@ -1,7 +1,8 @@
 """Localisation rates (SPEC §5.4) over many records, with both fault modes (k2 and k1) active.
 
 The chain names the mode with the smallest residual variance and localises the fault to it when
-that mode's Ljung–Box test accepts it (models/inspection.py, README "Localisation"). On a
+that mode's Ljung–Box test accepts it (models/inspection.py; docs/explanation/decisions.md,
+"Localisation"). On a
 record of a fault that is detected and whose true mode has the smallest residual variance (the
 premise, checked record by record; it fails in under 1 % of these records), the fault is therefore
 localised to the true mode exactly when the true mode's Q test accepts: with probability 1 − α_LB,
@@ -13,7 +14,7 @@ its own small, coloured error to every residual. The count localised is then Bin
 and each test asserts the count such a binomial reaches with probability 1 − 10⁻⁴ (84 % of 400).
 Measured with these seeds: 368/400 (k2, 3 %), 370/396 (k1, −10 %), 379/400 (k1, 30 %).
 
-Choosing the mode by the smallest Q instead (the rule README argues against) localises 263/400 and
+Choosing the mode by the smallest Q instead (the rule the docs argue against) localises 263/400 and
 274/396 of the first two correctly — a wrong stiffness mode's residual is often white, because the
 excitation is white, only larger — and fails both tests.
 """

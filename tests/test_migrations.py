@@ -476,13 +476,86 @@ def test_0021_seals_the_webhooks_secrets_under_the_servers_keys_and_undoes_it(fr
     engine.dispose()
 
 
+def test_0022_reads_each_state_again_without_the_verdicts_acquired_in_the_future(fresh_url):
+    """A structure whose state took a verdict dated 9999 for its latest (before acquisition times
+    were checked) stands after 0022 on the newest verdict acquired up to the server's clock plus
+    the skew allowed, its run read from those alone; one with only a future verdict is
+    uninspected. The counts, and the states of structures without such a verdict, stay."""
+    upgrade_database(fresh_url, "0021")
+    engine = make_engine(fresh_url)
+    now = utcnow()
+    day = dt.timedelta(days=1)
+    t0 = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
+    future = dt.datetime(9999, 12, 31, tzinfo=dt.UTC)
+    soon = now + dt.timedelta(seconds=60)  # within the default skew: the present
+    table = Base.metadata.tables
+    # (verdict id, structure, acquired, status), and each structure's state as the code before left it.
+    history = [
+        (1, 1, t0 + day, "healthy"), (2, 1, t0 + 2 * day, "faulty"), (3, 1, t0 + 3 * day, "faulty"),
+        (4, 1, soon, "faulty"), (5, 1, future, "healthy"), (6, 2, future, "faulty"), (7, 3, t0, "healthy"),
+    ]  # fmt: skip
+    states = {
+        1: dict(status="healthy", since=future, latest_verdict_id=5, latest_acquired_at=future, healthy=2,
+                faulty=3),
+        2: dict(status="faulty", since=future, latest_verdict_id=6, latest_acquired_at=future, faulty=1),
+        3: dict(status="healthy", since=t0 - day, latest_verdict_id=7, latest_acquired_at=t0, healthy=1),
+    }  # fmt: skip
+    with engine.begin() as connection:
+        connection.execute(table["organisations"].insert().values(id=1, name="o", created_at=now))
+        for structure_id in states:
+            connection.execute(
+                table["structures"].insert().values(
+                    id=structure_id, organisation_id=1, name=f"s{structure_id}", fs=1500.0, description="",
+                    created_at=now,
+                )
+            )  # fmt: skip
+        for verdict_id, structure_id, acquired, status in history:
+            connection.execute(
+                table["records"].insert().values(
+                    id=verdict_id, structure_id=structure_id, fs=1500.0, n_samples=3, acquired_at=acquired,
+                    created_at=now, sha256=f"{verdict_id:064d}", x=b"", y=b"",
+                )
+            )  # fmt: skip
+            connection.execute(
+                table["verdicts"].insert().values(
+                    id=verdict_id, record_id=verdict_id, structure_id=structure_id, acquired_at=acquired,
+                    created_at=now, model_set="1", status=status, fault_detected=status != "healthy",
+                    alpha=0.05, lags=4, n_samples=3, z_critical=1.96, q_critical_detection=1.0,
+                    detected_by=[], modes=[],
+                )
+            )  # fmt: skip
+        for structure_id, state in states.items():
+            records = sum(1 for _, s, _, _ in history if s == structure_id)
+            connection.execute(
+                table["structure_states"].insert().values(
+                    structure_id=structure_id, organisation_id=1, records=records,
+                    **{"healthy": 0, "faulty": 0, "unknown_fault": 0} | state,
+                )
+            )  # fmt: skip
+    upgrade_database(fresh_url)
+    with Session(engine) as session:
+        after = {s.structure_id: s for s in session.scalars(select(tables.StructureState))}
+    engine.dispose()
+    standing = {
+        structure_id: (s.status, s.since, s.latest_verdict_id, s.latest_acquired_at)
+        for structure_id, s in after.items()
+    }
+    assert standing == {
+        1: ("faulty", t0 + 2 * day, 4, soon),
+        2: (None, None, None, None),
+        3: ("healthy", t0 - day, 7, t0),  # no future verdict: left as it was, however it was read
+    }
+    tallies = {structure_id: (s.records, s.healthy, s.faulty) for structure_id, s in after.items()}
+    assert tallies == {1: (5, 2, 3), 2: (1, 0, 1), 3: (1, 1, 0)}
+
+
 def test_0023_keeps_no_window_until_the_rules_run_then_builds_it_from_the_history(fresh_url):
     """A structure judged before 0023 has no kept window: its next verdict's evaluation builds it
     from the history, so the rules count the verdicts stored before the upgrade (here the two
     faulty ones that, with a third, make persistence's 3 of 5). Downgrading drops the table."""
     from service.domain import alarms
 
-    upgrade_database(fresh_url, "0021")
+    upgrade_database(fresh_url, "0022")
     engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     t0 = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
@@ -524,7 +597,7 @@ def test_0023_keeps_no_window_until_the_rules_run_then_builds_it_from_the_histor
     assert window == alarms.newest_points(Session(engine), 1, alarms.WINDOW)
     assert opened == [("persistence", 3)]  # one faulty verdict alone fires no rule
 
-    command.downgrade(alembic_config(fresh_url), "0021")
+    command.downgrade(alembic_config(fresh_url), "0022")
     with engine.connect() as connection:
         left = set(inspect(connection).get_table_names())
     engine.dispose()

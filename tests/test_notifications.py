@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import email
+import ipaddress
 import itertools
 import json
 import os
@@ -47,6 +48,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 from workers import Worker, workers
 
+from service import senders
 from service.config import DEFAULT_DATABASE, Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import notifications, renotify
@@ -215,6 +217,47 @@ def test_the_target_is_checked_again_at_each_attempt(outbox: Outbox):
     (delivery,) = outbox.deliveries()
     assert delivery.status == "pending" and delivery.attempts == 1
     assert "not a public address" in (delivery.last_error or ""), delivery.last_error
+
+
+def test_an_address_that_carries_a_loopback_ipv4_is_checked_again_at_each_attempt(outbox: Outbox):
+    """Webhooks whose hosts carry 127.0.0.1 in each IPv6 form that embeds or translates an IPv4,
+    stored while the operator admitted them: once the allowance is withdrawn the attempt is
+    refused before anything is dialled, each log naming its address."""
+    urls = {form: f"http://[{embed(LOOPBACK_IPV4)}]:9100/hook" for form, embed in EMBEDDINGS.items()}
+    for url in urls.values():
+        outbox.webhook(url, ["alarm.opened"])
+    with transaction(outbox.sessions) as session:
+        notifications.notify(session, outbox.organisation_id, "alarm.opened", PAYLOAD)
+    outbox.settings = outbox.settings.model_copy(update={"webhook_allowed_networks": []})
+    assert outbox.run_jobs() == len(urls)
+    deliveries = outbox.deliveries()
+    assert [(d.status, d.attempts) for d in deliveries] == [("pending", 1)] * len(urls)
+    for url, delivery in zip(urls.values(), deliveries, strict=True):
+        host = url.split("[")[1].split("]")[0]
+        assert "not a public address" in (delivery.last_error or ""), (url, delivery.last_error)
+        assert str(ipaddress.ip_address(host)) in (delivery.last_error or ""), (url, delivery.last_error)
+
+
+def test_the_test_process_dials_nothing_but_loopback(outbox: Outbox):
+    """The guard of tests/conftest.py: a delivery the operator let go anywhere
+    (``webhook_allow_private``) to a routable address is refused at the socket, at once (the
+    documentation address 192.0.2.1 would otherwise take the whole timeout), while loopback still
+    answers."""
+    with pytest.raises(PermissionError, match=r"loopback only, not 192\.0\.2\.1"):
+        socket.create_connection(("192.0.2.1", 80), timeout=5)
+    with (
+        socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as udp,
+        pytest.raises(PermissionError, match="loopback only, not 2001:db8::1"),
+    ):
+        udp.sendto(b"x", ("2001:db8::1", 53))
+    anywhere = outbox.settings.model_copy(update={"webhook_allow_private": True})
+    message = senders.Message("k", "alarm.opened", utcnow(), PAYLOAD)
+    started = time.monotonic()
+    outcome = senders.post_webhook("http://192.0.2.1/hook", SECRET, 1, message, anywhere)
+    assert not outcome.delivered and "loopback only, not 192.0.2.1" in (outcome.error or ""), outcome
+    assert time.monotonic() - started < anywhere.notification_timeout_seconds
+    with Receiver(SECRET) as receiver:
+        assert senders.post_webhook(receiver.url, SECRET, 1, message, outbox.settings).delivered
 
 
 def test_redirects_are_not_followed(outbox: Outbox):
@@ -648,6 +691,140 @@ def test_an_embedded_worker_killed_during_a_delivery_does_not_lose_it(tmp_path: 
 
 # --- the API's refusals and tenancy (default settings: private targets refused, no SMTP) --------
 
+
+def _ipv6(value: int) -> str:
+    return str(ipaddress.IPv6Address(value))
+
+
+def _teredo(server: str, client: str) -> str:
+    """A Teredo address (RFC 4380 §4): prefix, server, flags, port and client, the last two
+    obfuscated (every bit flipped)."""
+    server_bits, client_bits = int(ipaddress.IPv4Address(server)), int(ipaddress.IPv4Address(client))
+    return _ipv6(0x2001_0000 << 96 | server_bits << 64 | (3544 ^ 0xFFFF) << 32 | client_bits ^ 0xFFFF_FFFF)
+
+
+LOOPBACK_IPV4 = "127.0.0.1"
+PUBLIC_IPV4 = "8.8.8.8"
+# Each IPv6 form that embeds or translates an IPv4 address, written from the RFCs (not with the
+# service's code): the IPv4 it carries → the address.
+EMBEDDINGS = {
+    "IPv4-compatible ::/96": lambda v4: _ipv6(int(ipaddress.IPv4Address(v4))),
+    "IPv4-mapped ::ffff:0:0/96": lambda v4: _ipv6(0xFFFF << 32 | int(ipaddress.IPv4Address(v4))),
+    "IPv4-translated ::ffff:0:0:0/96": lambda v4: _ipv6(0xFFFF << 48 | int(ipaddress.IPv4Address(v4))),
+    "NAT64 64:ff9b::/96": lambda v4: _ipv6(0x64_FF9B << 96 | int(ipaddress.IPv4Address(v4))),
+    "NAT64 local-use 64:ff9b:1::/48": lambda v4: _ipv6(0x64_FF9B_0001 << 80 | int(ipaddress.IPv4Address(v4))),
+    "6to4 2002::/16": lambda v4: _ipv6(0x2002 << 112 | int(ipaddress.IPv4Address(v4)) << 80 | 1),
+    "Teredo server": lambda v4: _teredo(v4, PUBLIC_IPV4),
+    "Teredo client": lambda v4: _teredo(PUBLIC_IPV4, v4),
+}
+INTERNAL_IPV4 = [LOOPBACK_IPV4, "10.0.0.1", "169.254.169.254", "192.168.1.1"]
+
+
+@pytest.mark.parametrize("form", EMBEDDINGS)
+def test_a_webhook_whose_address_carries_an_internal_ipv4_is_refused_naming_it(tenant, form):
+    """Every form, carrying loopback, a private address, the cloud metadata address: a 422 naming
+    the address and the IPv4 it carries. Carrying a public IPv4 it is admitted as that IPv4 would
+    be, except in the local-use NAT64 prefix, whose other readings (RFC 6052 §2.2, by the
+    operator's prefix length) carry 0.0.0.0 here."""
+    for v4 in INTERNAL_IPV4:
+        address = EMBEDDINGS[form](v4)
+        response = tenant.admin.post(f"{API}/webhooks", json={**GOOD, "url": f"http://[{address}]:9100/"})
+        assert response.status_code == 422, (address, response.text)
+        assert address in detail(response) and v4 in detail(response), detail(response)
+    assert tenant.admin.get(f"{API}/webhooks").json() == []
+    public = EMBEDDINGS[form](PUBLIC_IPV4)
+    response = tenant.admin.post(f"{API}/webhooks", json={**GOOD, "url": f"http://[{public}]/hooks"})
+    if form.startswith("NAT64 local-use"):
+        assert response.status_code == 422 and "0.0.0.0" in detail(response), response.text
+    else:
+        assert response.status_code == 201, (public, response.text)
+        assert tenant.admin.delete(f"{API}/webhooks/{response.json()['id']}").status_code == 204
+
+
+@pytest.mark.parametrize(
+    "address",
+    [
+        "fec0::1",  # site-local
+        "fd12:3456::1",  # unique-local
+        "fe80::1",  # link-local
+        "2001:db8::1",  # documentation
+        "3fff::1",  # documentation
+        "2001:2::1",  # benchmarking
+        "ff02::1",  # multicast
+        "192.0.2.1",  # documentation
+        "198.51.100.7",  # documentation
+        "203.0.113.9",  # documentation
+        "198.18.0.1",  # benchmarking
+        "100.64.0.1",  # shared (carrier-grade NAT)
+        "0.1.2.3",  # "this network"
+        "224.0.0.1",  # multicast
+        "240.0.0.1",  # reserved
+        "255.255.255.255",  # broadcast
+    ],
+)
+def test_special_purpose_ranges_are_refused_at_creation(tenant, address):
+    host = f"[{address}]" if ":" in address else address
+    response = tenant.admin.post(f"{API}/webhooks", json={**GOOD, "url": f"https://{host}/hooks"})
+    assert response.status_code == 422, response.text
+    assert f"resolves to {address}," in detail(response) and "not a public address" in detail(response)
+
+
+NO_ALLOWANCE = Settings(webhook_allowed_networks=[])
+
+
+@pytest.mark.parametrize(
+    ("address", "admitted"),
+    [
+        *((EMBEDDINGS[form](v4), False) for form in EMBEDDINGS for v4 in INTERNAL_IPV4),
+        *((EMBEDDINGS[form](PUBLIC_IPV4), True) for form in EMBEDDINGS if "local-use" not in form),
+        ("64:ff9b:1::808:808", False),  # read with a /48 prefix it carries 0.0.0.0
+        ("64:ff9b:1:808:8:808:808:808", True),  # 8.8.8.8 whatever the local prefix's length
+        ("64:ff9b:1:7f00:0:100:808:808", False),  # 8.8.8.8 at /96, 127.0.0.1 at /48
+        (_teredo("10.0.0.1", "192.168.1.1"), False),
+        ("::", False),
+        ("::1", False),
+        ("::ffff:0:0", False),  # carries 0.0.0.0
+        ("2001:4860:4860::8888", True),
+        ("2606:4700:4700::1111", True),
+        ("8.8.8.8", True),
+        ("93.184.215.14", True),
+        ("fec0::1", False),
+        ("fc00::1", False),
+        ("fe80::1", False),
+        ("2001:db8::1", False),
+        ("3fff:fff::1", False),
+        ("2001:2::1", False),
+        ("ff0e::1", False),
+        ("100.64.0.1", False),
+        ("198.19.255.255", False),
+        ("192.0.0.8", False),
+        ("233.252.0.1", False),
+        ("250.1.2.3", False),
+    ],
+)
+def test_the_ssrf_rule_judges_an_address_by_its_range_and_every_ipv4_it_carries(address, admitted):
+    assert senders.admitted(ipaddress.ip_address(address), NO_ALLOWANCE) is admitted
+
+
+@pytest.mark.parametrize(
+    ("address", "allowed", "admitted"),
+    [
+        (EMBEDDINGS["NAT64 64:ff9b::/96"](LOOPBACK_IPV4), ["127.0.0.0/8"], True),  # by the IPv4 it carries
+        (_teredo("10.0.0.1", "192.168.1.1"), ["10.0.0.0/8"], False),  # one of two carried admitted
+        (_teredo("10.0.0.1", "192.168.1.1"), ["10.0.0.0/8", "192.168.0.0/16"], True),
+        ("fec0::1", ["fec0::/10"], True),
+        ("64:ff9b:1::a00:1", ["64:ff9b:1::/48"], True),  # an operator's own local-use translator
+        ("198.18.0.1", ["10.0.0.0/8"], False),
+    ],
+)
+def test_the_operators_allowance_admits_what_it_names(address, allowed, admitted):
+    settings = Settings(webhook_allowed_networks=allowed)  # type: ignore[arg-type]
+    assert senders.admitted(ipaddress.ip_address(address), settings) is admitted
+    assert senders.admitted(
+        ipaddress.ip_address(address), settings.model_copy(update={"webhook_allow_private": True})
+    )
+
+
 GOOD = {"url": "https://93.184.215.14/hooks", "secret": SECRET, "events": ["alarm.opened"]}
 
 
@@ -666,6 +843,13 @@ GOOD = {"url": "https://93.184.215.14/hooks", "secret": SECRET, "events": ["alar
         ({"url": "http://[::ffff:127.0.0.1]/hooks"}, "not a public address"),
         ({"url": "http://[fd00::1]/hooks"}, "not a public address"),
         ({"url": "http://0.0.0.0/hooks"}, "not a public address"),
+        # IPv6 forms that carry a private IPv4 (loopback, metadata), and ranges Python counts as global.
+        ({"url": "http://[::7f00:1]:9100/"}, "::7f00:1"),
+        ({"url": "http://[::ffff:0:7f00:1]:9100/"}, "::ffff:0:7f00:1"),
+        ({"url": "http://[64:ff9b::7f00:1]:9100/"}, "64:ff9b::7f00:1"),
+        ({"url": "http://[64:ff9b::a9fe:a9fe]/latest/meta-data"}, "64:ff9b::a9fe:a9fe"),
+        ({"url": "http://[2002:7f00:1::1]:9100/"}, "2002:7f00:1::1"),
+        ({"url": "http://[fec0::1]/hooks"}, "fec0::1"),
         # Other spellings of 127.0.0.1: the addresses a name resolves to are checked, not its text.
         ({"url": "http://2130706433/hooks"}, "not a public address"),
         ({"url": "http://0x7f.1/hooks"}, "not a public address"),

@@ -19,9 +19,13 @@ from npz_bombs import bomb_member, bomb_npz, cut_off_header_npz, npy, npy_header
 from models.errors import InputError
 from service.conditions import MAX_CONDITIONS, Condition
 from service.recordfiles import (
+    MAX_CSV_COLUMNS,
+    MAX_CSV_LINE,
+    Layout,
     RecordTooLargeError,
     parse_csv,
     parse_npz,
+    parse_record_set,
     parse_silverbox,
     read_record,
     record_samples,
@@ -386,3 +390,55 @@ def test_csv_with_more_rows_than_a_record_may_hold_is_refused_before_parsing():
     with pytest.raises(RecordTooLargeError, match=message):
         parse_csv(rows + b"0,1\n", max_samples=1000)
     assert record_samples(16 * 2**20) == 2**20  # x and y as float64, as an NPZ within the limit holds them
+
+
+# --- CSV shapes whose cells would cost many times the text: refused on its separators ----------
+
+WIDE = 8 * 2**20  # bytes of each hostile body, as an upload of half the default limit
+AT_MOST = "; a record file may have at most 512"
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        (b"x,y" + b",c" * (WIDE // 2) + b"\n1,2\n", "CSV line 1 has 4194306 columns" + AT_MOST),
+        (b"x,y" + b"," * WIDE + b"\n1,2\n", "CSV line 1 has 8388610 columns" + AT_MOST),
+        (b"x,y" + b",c" * 600 + b"\n1,2\n", "the CSV header has 602 columns" + AT_MOST),
+        (b"x,y\n" + b"1," * (WIDE // 2) + b"2\n", "CSV line 2 has 4194305 columns" + AT_MOST),
+        (b"x,y\n1,2" + b"0" * WIDE + b"\n", "CSV line 2 has 8388611 characters; a line of a record file may"),
+        (b"x,y\n1,2," + b" 3," * 600 + b"\n", "CSV line 2: expected 2 values, found 603"),
+        (b"x,y\n" + b"1,2\r" * (WIDE // 4), "the CSV has more than 1048576 samples"),
+    ],
+    ids=["wide-header", "empty-columns", "600-columns", "wide-row", "long-line", "wide-trailing", "cr-lines"],
+)
+def test_a_csv_wider_or_longer_than_a_record_is_refused_in_a_few_times_its_size(body, message):
+    """A header of a million columns cost thirty times its size (a dict entry and a list per
+    cell) and seconds before it was refused; a row alike, and lines ended by "\\r" (which the
+    count of "\\n" before splitting missed) one string each. Each is refused with the bound it
+    passed, having cost at most the decoded text, the block it lies in and the line."""
+    with pytest.raises(InputError, match=re.escape(message)):
+        parse_csv(body, record_samples(LIMIT))
+    assert peak_allocation(lambda: parse_csv(body, record_samples(LIMIT))) < 3.5 * len(body) + 2**16
+
+
+def test_the_widest_csv_a_record_set_needs_is_read():
+    """As many pairs as a refinement fits, each beside its reference (Wiener–Hammerstein's r, u,
+    y groups), fs and the trailing comma MATLAB writes: within the column bound."""
+    pairs = 100
+    header = ",".join(f'"{name}"' + "," * (pairs - 1) for name in "ruy") + ',"fs",'
+    rows = "".join(",".join(str(row + c) for c in range(3 * pairs)) + ",1500,\n" for row in range(3))
+    assert header.count(",") < MAX_CSV_COLUMNS and len(rows.splitlines()[0]) < MAX_CSV_LINE
+    records = parse_record_set((header + "\n" + rows).encode(), ".csv", Layout("u", "y"), LIMIT)
+    assert len(records) == pairs
+    (last, record) = records[-1]
+    assert (last.x, last.y, record.fs) == ("u100", "y100", 1500.0)
+    np.testing.assert_array_equal(record.y, [299, 300, 301])
+
+
+def test_short_rows_cost_at_most_their_numbers_beside_the_text():
+    """Rows of "0,1" are 4 bytes a sample and 16 bytes as float64: the lines are split a block at
+    a time, never all held as strings (which cost 60 bytes a line more)."""
+    body = b"x,y\n" + b"0,1\n" * 2**18
+    record = parse_csv(body, record_samples(LIMIT))
+    assert record.x.size == 2**18
+    assert peak_allocation(lambda: parse_csv(body, record_samples(LIMIT))) < 8 * len(body)

@@ -57,7 +57,8 @@ def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silv
     test_x, test_y = x[SILVERBOX_ARROW], y[SILVERBOX_ARROW]
     before = held_out_errors(result.declared, test_x, test_y, SILVERBOX_INITIAL).free_run.rms
     after = held_out_errors(result.refined, test_x, test_y, SILVERBOX_INITIAL).free_run.rms
-    # Linear ARX 14.39 mV (README); after four rounds 0.390 mV, with a margin of about 10 % for
+    # Linear ARX 14.39 mV (docs/benchmarks/measured.md); after four rounds 0.390 mV, with a
+    # margin of about 10 % for
     # arithmetic differences between machines, not for a worse model.
     assert 13e-3 < before < 16e-3, f"linear ARX free run {before * 1e3:.2f} mV"
     assert after <= 0.43e-3, f"refined free run {after * 1e3:.3f} mV"
@@ -66,9 +67,9 @@ def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silv
 # One undeclared effect at a time, sized so that it, not the disturbance, dominates the declared
 # model's residual; "quadratic_stiffness2" etc. act on the measured mass (simulator.simulate).
 # The last figure bounds the held-out one-step RMS after refinement as a share of the one before:
-# README's figure for the effect (seed 1 gives 0.008, 0.055, 0.211, 0.338, 0.270, 0.429) with a
+# The docs' figure for the effect (seed 1 gives 0.008, 0.055, 0.211, 0.338, 0.270, 0.429) with a
 # margin of about 20 % for arithmetic differences between machines (0.012 for Coulomb friction's
-# 0.01, as README rounds it).
+# 0.01, as the docs round it).
 UNDECLARED = [
     ("coulomb_friction", Scenario(disturbance_std=200.0, effects=Effects(coulomb2=300.0)), 0.012),
     ("quadratic_damping", Scenario(disturbance_std=200.0, effects=Effects(quadratic_damping2=2e3)), 0.065),

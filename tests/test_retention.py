@@ -28,6 +28,7 @@ from dashboard_helpers import DASHBOARD, logged_in
 from sqlalchemy import Engine, insert, select
 from sqlalchemy.orm import Session, sessionmaker
 from test_fleet_scale import (
+    FUTURE,
     STATUSES,
     Fleet,
     counted,
@@ -100,7 +101,7 @@ def judged(site: Site, record: dict, *statuses: str) -> list[int]:
                 z_critical=1.96, q_critical_detection=40.0, detected_by=[], modes=[MODE],
             )  # fmt: skip
             verdict_id = session.execute(insert(Verdict).returning(Verdict.id), values).scalar_one()
-            fleet.count_verdict(session, verdict_id, record["structure_id"], acquired_at, status)
+            fleet.count_verdict(session, verdict_id, record["structure_id"], acquired_at, status, utcnow())
             ids.append(verdict_id)
     return ids
 
@@ -217,6 +218,42 @@ def test_pruning_takes_what_the_policy_says_and_keeps_every_count_exact(site: Si
     with site.sessions() as session:  # a second pruning finds nothing more
         again = retention.prune(session, organisation_id(site, org), now=NOW)
     assert (again.signals, again.verdicts, again.records, again.batches) == (0, 0, 0, 0)
+
+
+def test_a_verdict_from_the_future_stands_neither_when_the_latest_nor_when_the_run_is_pruned(site: Site):
+    """Each structure also holds a healthy verdict dated 9999-12-31 (its record stored before
+    acquisition times were checked), counted as the inspection counts it now: never the latest.
+    Pruning one whose other verdicts are all past the horizon leaves it uninspected, not healthy
+    since 9999; pruning the start of another's faulty run starts the run later, the healthy
+    verdict after it notwithstanding."""
+    org = Org.create(site.fleet.server)
+    with clients(org) as (admin, ingest, _):
+        gone = create_structure(admin, "gone")["id"]
+        spanning = create_structure(admin, "spanning")["id"]
+        history(site, ingest, gone, OLD)
+        history(site, ingest, spanning, [(70.5, ("faulty",)), (1.5, ("faulty",))])
+        assert admin.put(f"{API}/retention", json={"signal_days": 30, "verdict_days": 60}).status_code == 200
+    for structure_id in (gone, spanning):
+        with transaction(site.sessions) as session:
+            values = dict(structure_id=structure_id, fs=1500.0, n_samples=3, acquired_at=FUTURE,
+                          sha256=uuid.uuid4().hex * 2, x=b"", y=b"")  # fmt: skip
+            record_id = session.execute(insert(Record).returning(Record.id), values).scalar_one()
+            fleet.count_record(session, structure_id)
+        judged(
+            site,
+            {"id": record_id, "structure_id": structure_id, "acquired_at": FUTURE.isoformat()},
+            "healthy",
+        )
+    assert_exact(site, org, gone, spanning)
+    assert (kept(site.fleet.engine, spanning)["status"], kept(site.fleet.engine, spanning)["since"]) == (
+        "faulty",
+        NOW - 70.5 * DAY,
+    )
+    with site.sessions() as session:
+        retention.prune(session, organisation_id(site, org), now=NOW)
+    assert_exact(site, org, gone, spanning)
+    assert kept(site.fleet.engine, gone)["status"] is None and kept(site.fleet.engine, gone)["healthy"] == 1
+    assert kept(site.fleet.engine, spanning)["since"] == NOW - 1.5 * DAY
 
 
 def test_batches_are_bounded_and_uploads_go_on_between_them(site: Site):
@@ -351,7 +388,7 @@ def test_a_verdict_stored_while_its_record_is_pruned_is_counted_once(site: Site)
         z_critical=1.96, q_critical_detection=40.0, detected_by=[], modes=[MODE],
     )  # fmt: skip
     verdict_id = inspecting.execute(insert(Verdict).returning(Verdict.id), values).scalar_one()
-    fleet.count_verdict(inspecting, verdict_id, sid, acquired_at, "faulty")
+    fleet.count_verdict(inspecting, verdict_id, sid, acquired_at, "faulty", utcnow())
     pruned: list[retention.Pruned] = []
 
     def pruning() -> None:

@@ -35,7 +35,16 @@ from service.domain.schedules import RETRY_UNSWEPT, RUN_SCHEDULE, following
 from service.jobs import embedded
 from service.jobs.tasks import INSPECT_RECORD
 from service.migrate import upgrade_database
-from service.tables import InspectionFailure, Job, ModelVersion, Organisation, Schedule, Structure, Verdict
+from service.tables import (
+    InspectionFailure,
+    Job,
+    ModelVersion,
+    Organisation,
+    Record,
+    Schedule,
+    Structure,
+    Verdict,
+)
 
 T0 = dt.datetime(2026, 11, 21, 10, 7, 30, tzinfo=dt.UTC)
 
@@ -363,3 +372,25 @@ def test_three_workers_run_a_due_schedule_once(empty_database: str, tmp_path: Pa
         assert all(worker.alive() for worker in running), [w.output()[-2000:] for w in running]
     assert sorted(v["record_id"] for v in found if v["record_id"] in pending) == pending
     assert run_schedule_count(empty_database, schedule["id"]) == 1
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_reinspect_latest_takes_the_latest_record_acquired_up_to_now(request, tmp_path: Path, kind: str):
+    """A record stored with a date in the future (before such dates were refused) is not the
+    structure's latest: the run inspects the newest record acquired up to the server's clock."""
+    monitored = Monitored.create(database_url(kind, tmp_path, request), EXACT_TERM_NAMES)
+    present = monitored.store("k2", 12.0, [85, 0])
+    future = monitored.store("none", 0.0, [85, 1])
+    with transaction(monitored.sessions) as session:
+        year_9999 = dt.datetime(9999, 12, 31, tzinfo=dt.UTC)
+        session.execute(update(Record).where(Record.id == future).values(acquired_at=year_9999))
+    schedule_id = add_schedule(monitored, T0)
+    with transaction(monitored.sessions) as session:
+        session.execute(update(Schedule).where(Schedule.id == schedule_id).values(action="reinspect_latest"))
+    backend = monitored.backend()
+    with monitored.sessions() as session:
+        assert schedules.sweep(session, backend.defer) == 1
+    backend.work(once=True)
+    with monitored.sessions() as session:
+        inspected = set(session.scalars(select(Verdict.record_id)))
+    assert present in inspected and future not in inspected

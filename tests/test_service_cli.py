@@ -357,8 +357,10 @@ def test_a_process_given_a_key_file_that_holds_no_key_stops_at_its_start_naming_
 def test_invalid_settings_are_one_line_naming_each_variable_and_never_its_value(newcomer):
     env, workdir, _ = newcomer
     env |= {"NARXWATCH_SECRET_KEYS": '["hunter2"]', "NARXWATCH_SMTP_PORT": "seventy"}
+    env |= {"NARXWATCH_MAX_CLOCK_SKEW_SECONDS": "-1"}
     result = run("keys", "list", env=env, cwd=workdir, check=False)
     assert result.returncode == 2, result.stderr
     (line,) = result.stderr.strip().splitlines()
     assert "NARXWATCH_SECRET_KEYS: " in line and "NARXWATCH_SMTP_PORT: " in line
+    assert "NARXWATCH_MAX_CLOCK_SKEW_SECONDS: Input should be greater than or equal to 0" in line
     assert "hunter2" not in result.stderr and "seventy" not in result.stderr

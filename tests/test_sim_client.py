@@ -172,7 +172,7 @@ def test_scenario_iv_prints_a_line_per_run_and_a_tally(trained: Trained):
 
 def test_stream_posts_count_records_every_period(trained: Trained):
     before = len(verdicts(trained))
-    start = "2030-01-01T00:00:00+00:00"
+    start = "2024-01-01T00:00:00+00:00"
     result = post(
         trained, "stream", "--every", "0.2", "--count", "3", "--acquired-at", start, "--format", "csv"
     )
@@ -180,7 +180,7 @@ def test_stream_posts_count_records_every_period(trained: Trained):
     assert len(lines) == 3 and all(VERDICT_LINE.match(line) for line in lines)
     assert tally.startswith("stream: 3 records, ")
     assert len(verdicts(trained)) == before + 3
-    streamed = verdicts(trained, start=start, end="2030-01-01T00:00:01+00:00")
+    streamed = verdicts(trained, start=start, end="2024-01-01T00:00:01+00:00")
     offsets = sorted(
         dt.datetime.fromisoformat(v["acquired_at"]) - dt.datetime.fromisoformat(start) for v in streamed
     )
@@ -194,7 +194,7 @@ def test_a_streamed_records_temperature_is_stored_as_its_condition(trained: Trai
     """Each record of a stream over the seasons arrives with the temperature it was simulated at,
     to the last digit, as the condition ``temperature`` of its stored record and verdict (an NPZ
     body states no unit)."""
-    start = dt.datetime(2031, 1, 1, 3, tzinfo=dt.UTC)
+    start = dt.datetime(2025, 1, 1, 3, tzinfo=dt.UTC)
     every = 91 * 86400 + 6 * 3600
     args = ["stream", "--temperature", "10", "--daily-amplitude", "5", "--seasonal-amplitude", "15"]
     args += ["--every", str(every), "--count", "2", "--no-wait", "--acquired-at", start.isoformat()]

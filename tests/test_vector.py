@@ -54,7 +54,8 @@ def test_the_fit_recovers_the_schemes_matrices_where_no_noise_enters():
 
 
 def test_five_sensors_localise_what_one_cannot():
-    """The study of bench/vector_localisation.py at a tenth of its size (README: 250/250 with all
+    """The study of bench/vector_localisation.py at a tenth of its size
+    (docs/explanation/vector-models.md: 250/250 with all
     five sensors, 40/250 with mass 1 alone): 20 records, k uniform over 3 … 8 %."""
     everything = [fit_vector_fnarx(s, experiments(s, slice(0, 5)), lags=2) for s in SPRINGS]
     alone = [fit_vector_fnarx(s, experiments(s, slice(0, 1)), lags=10) for s in SPRINGS]

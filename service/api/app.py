@@ -12,10 +12,12 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import compile_path
 from swagger_ui_bundle import swagger_ui_path
 
 from models.errors import InputError
@@ -34,8 +36,8 @@ from service.api import (
     schedules,
     structures,
 )
-from service.api.expensive import Slots
-from service.api.limits import BodyLimitMiddleware
+from service.api.expensive import Parses, Slots
+from service.api.limits import BodyLimit, BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
 from service.domain.errors import ConflictError, NotFoundError
@@ -75,6 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.sessions = session_factory(app.state.engine)
     app.state.jobs = job_backend(settings, app.state.sessions, in_service=True)
     app.state.expensive = Slots(settings.max_concurrent_expensive)
+    app.state.parses = Parses(settings.max_concurrent_parses, settings.parse_wait_seconds)
     app.include_router(health.router)
     app.include_router(metrics.router)
     routers = (
@@ -94,8 +97,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     dashboard.install(app)
     _add_docs(app)
     _add_error_handlers(app, settings)
+    # The routes' own patterns, under the prefix they are served at.
+    record_routes = [route for route in records.router.routes if isinstance(route, APIRoute)]
+    uploads = [
+        compile_path(API_PREFIX + route.path)[0]
+        for route in record_routes
+        if route.endpoint in (records.upload_record, records.upload_record_set)
+    ]
     app.add_middleware(
-        BodyLimitMiddleware, limit=settings.max_upload_bytes, timeout=settings.body_timeout_seconds
+        BodyLimitMiddleware,
+        limit=BodyLimit(settings.max_request_bytes, "NARXWATCH_MAX_REQUEST_BYTES"),
+        upload_limit=BodyLimit(settings.max_upload_bytes, "NARXWATCH_MAX_UPLOAD_BYTES"),
+        uploads=uploads,
+        timeout=settings.body_timeout_seconds,
     )
     # The last added runs first: a request gets its id, then is timed and logged whole.
     app.add_middleware(ObserveRequests)

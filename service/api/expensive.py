@@ -1,10 +1,13 @@
-"""Requests that cost much: a cap on those one organisation runs at once, and work handed to a job.
+"""Requests that cost much: a cap on those one organisation runs at once, a cap on the upload
+bodies parsed at once, and work handed to a job.
 
 Trainings, refinements and inspections of stored records take seconds and hold a thread and a
 pooled connection while they run. Each organisation may run ``max_concurrent_expensive`` of
 them at once in one process; more are answered 429, so that one organisation's burst cannot
 take every thread and connection from the others. Work above ``queue_training_cells`` is not
 run in its request at all: it is queued as a job and answered 202 with the job's address.
+Upload bodies are parsed ``max_concurrent_parses`` at a time in one process, whoever sends them
+(:class:`Parses`).
 """
 
 from __future__ import annotations
@@ -12,11 +15,13 @@ from __future__ import annotations
 import threading
 import uuid
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
+import anyio
 from fastapi import HTTPException, Request, status
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from sqlalchemy.orm import Session
 from starlette.background import BackgroundTask
@@ -27,6 +32,8 @@ from service.security import Principal
 
 JOBS_PATH = "/api/v1/jobs"
 RETRY_AFTER_SECONDS = 5
+Params = ParamSpec("Params")
+Result = TypeVar("Result")
 
 
 class Slots:
@@ -61,6 +68,43 @@ class Slots:
             return self._running[organisation_id]
 
 
+class Parses:
+    """The upload bodies this process parses at once: at most ``limit``, whoever sends them.
+
+    A parse holds a few times its body in memory and the interpreter lock while it runs: without
+    a bound, one key's burst of uploads took the process's memory by gigabytes and other
+    organisations' reads to seconds. A parse beyond the limit waits on the event loop, holding
+    no thread and no pooled connection, at most ``wait`` seconds for one to end, then is
+    answered 503 with Retry-After: a queue bounded in time rather than a refusal at once, since
+    a slot turns over within a second or so.
+    """
+
+    def __init__(self, limit: int, wait: float) -> None:
+        self.limit = limit
+        self.wait = wait
+        self._semaphore = anyio.Semaphore(limit)  # tied to the serving event loop at its first use
+
+    async def run(
+        self, parse: Callable[Params, Result], *args: Params.args, **kwargs: Params.kwargs
+    ) -> Result:
+        """``parse(*args, **kwargs)`` on a worker thread, in one of the slots."""
+        try:
+            with anyio.fail_after(self.wait):
+                await self._semaphore.acquire()
+        except TimeoutError:
+            raise HTTPException(
+                status.HTTP_503_SERVICE_UNAVAILABLE,
+                f"the server is parsing as many uploads at once as it may ({self.limit}, "
+                f"NARXWATCH_MAX_CONCURRENT_PARSES) and none ended within {self.wait:g} s "
+                f"(NARXWATCH_PARSE_WAIT_SECONDS); retry in {RETRY_AFTER_SECONDS} s",
+                headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
+            ) from None
+        try:
+            return await run_in_threadpool(parse, *args, **kwargs)
+        finally:  # after the thread has ended, even if the request was cancelled meanwhile
+            self._semaphore.release()
+
+
 def slot(request: Request, principal: Principal) -> Any:
     """``with slot(request, principal):`` around the expensive part of a request."""
     return request.app.state.expensive.held(principal.organisation_id)
@@ -92,6 +136,9 @@ BUSY: dict[int | str, dict[str, Any]] = {
     429: {
         "description": "The organisation runs as many expensive requests as it may: retry after Retry-After"
     }
+}
+PARSES_BUSY: dict[int | str, dict[str, Any]] = {
+    503: {"description": "The server parses as many uploads as it may at once: retry after Retry-After"}
 }
 ACCEPTED = BUSY | {
     202: {"model": JobAccepted, "description": "Queued as a job: too large to run within a request"}

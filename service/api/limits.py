@@ -2,7 +2,11 @@
 
 A declared ``Content-Length`` over the limit is answered 413 at once; a body without one is
 counted as it arrives and refused as soon as it passes the limit, so no request, on any route
-and whether authenticated or not, can make the server hold more than the limit. The whole body
+and whether authenticated or not, can make the server hold more than the limit. Record uploads
+may be large (``max_upload_bytes``); every other body is a small JSON document
+(``max_request_bytes``), which FastAPI parses on the event loop before the route, and before
+authentication: nested empty arrays cost Python some 25 times their text, so an upload-sized
+body on any route would cost hundreds of megabytes and stall the process. The whole body
 must also arrive within ``body_timeout`` seconds of the request's headers, or it is answered 408:
 a client trickling its body cannot keep a request (and what it holds) alive for long.
 
@@ -14,6 +18,9 @@ app's handler answers them like every other error, closing the connection whose 
 from __future__ import annotations
 
 import json
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import anyio
 from starlette.exceptions import HTTPException
@@ -22,9 +29,17 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 CLOSE = {"Connection": "close"}  # the unread rest of the body makes the connection unusable
 
 
+@dataclass(frozen=True)
+class BodyLimit:
+    """A largest body, and the setting that sets it (named in the refusal)."""
+
+    bytes: int
+    setting: str
+
+
 class BodyTooLargeError(HTTPException):
-    def __init__(self, limit: int) -> None:
-        detail = f"the request body exceeds the limit of {limit} bytes (NARXWATCH_MAX_UPLOAD_BYTES)"
+    def __init__(self, limit: BodyLimit) -> None:
+        detail = f"the request body exceeds the limit of {limit.bytes} bytes ({limit.setting})"
         super().__init__(413, detail, headers=CLOSE)
 
 
@@ -38,21 +53,39 @@ class BodyTimeoutError(HTTPException):
 
 
 class BodyLimitMiddleware:
-    def __init__(self, app: ASGIApp, limit: int, timeout: float) -> None:
+    """``uploads``: the paths (routes' ``path_regex``) whose bodies are records, bounded by
+    ``upload_limit``; every other body is bounded by ``limit``."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        limit: BodyLimit,
+        upload_limit: BodyLimit,
+        uploads: Sequence[re.Pattern[str]],
+        timeout: float,
+    ) -> None:
         self.app = app
-        self.limit = limit
+        self.default_limit = limit
+        self.upload_limit = upload_limit
+        self.uploads = tuple(uploads)
         self.timeout = timeout
+
+    def limit_of(self, path: str) -> BodyLimit:
+        if any(upload.match(path) for upload in self.uploads):
+            return self.upload_limit
+        return self.default_limit
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        limit = self.limit_of(scope["path"])
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None and not declared.isdigit():
             await _answer(send, HTTPException(400, "the Content-Length header is not a number", CLOSE))
             return
-        if declared is not None and int(declared) > self.limit:
-            await _answer(send, BodyTooLargeError(self.limit))
+        if declared is not None and int(declared) > limit.bytes:
+            await _answer(send, BodyTooLargeError(limit))
             return
         deadline = anyio.current_time() + self.timeout
         received = 0
@@ -69,8 +102,8 @@ class BodyLimitMiddleware:
                 raise BodyTimeoutError(self.timeout) from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.limit:
-                    raise BodyTooLargeError(self.limit)
+                if received > limit.bytes:
+                    raise BodyTooLargeError(limit)
                 complete = not message.get("more_body", False)
             return message
 

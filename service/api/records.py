@@ -11,11 +11,19 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
-from service.api.expensive import BUSY, slot
+from service.api.expensive import BUSY, PARSES_BUSY, slot
 from service.api.params import IdPath, utc
-from service.api.uploads import RECORD_SET_BODY, REQUEST_BODY, parse_upload, parse_upload_set, signal_layout
+from service.api.uploads import (
+    RECORD_SET_BODY,
+    REQUEST_BODY,
+    Upload,
+    parse_upload,
+    parse_upload_set,
+    signal_layout,
+)
 from service.channels import MAX_CHANNELS
 from service.config import Settings
+from service.db import transaction
 from service.domain import inspections, records, structures
 from service.domain.ingest import Ingested, QueueInspection, SetRecord, ingest_record, ingest_record_set
 from service.jobs import JobBackend
@@ -44,7 +52,8 @@ class InspectMode(StrEnum):
     "/structures/{structure_id}/records",
     status_code=status.HTTP_201_CREATED,
     openapi_extra={"requestBody": REQUEST_BODY},
-    responses={
+    responses=PARSES_BUSY
+    | {
         200: {
             "model": RecordOut,
             "description": "The same data had been uploaded before (with inspect=queue: and the active "
@@ -90,18 +99,16 @@ async def upload_record(
         else None
     )
     # Parsing a large body and checking it take a good part of a second: never on the event loop.
-    ingested = await run_in_threadpool(
-        _parse_and_ingest,
+    upload = await request.app.state.parses.run(
+        parse_upload,
         body,
         request.headers.get("content-type", ""),
         acquired_at,
-        session,
-        principal,
-        settings,
-        structure_id,
-        inspect is InspectMode.true,
-        queue,
+        settings.max_upload_bytes,
         signal_layout(x, y, NAME_LENGTH),
+    )
+    ingested = await run_in_threadpool(
+        _ingest, upload, session, principal, settings, structure_id, inspect is InspectMode.true, queue
     )
     if ingested.queued:
         response.status_code = status.HTTP_202_ACCEPTED
@@ -115,9 +122,8 @@ async def upload_record(
     "/structures/{structure_id}/record-sets",
     status_code=status.HTTP_201_CREATED,
     openapi_extra={"requestBody": RECORD_SET_BODY},
-    responses={
-        200: {"model": list[RecordOut], "description": "Every record of the set had been uploaded before"}
-    },
+    responses=PARSES_BUSY
+    | {200: {"model": list[RecordOut], "description": "Every record of the set had been uploaded before"}},
 )
 async def upload_record_set(
     request: Request,
@@ -138,16 +144,20 @@ async def upload_record_set(
     A record uploaded before is returned as stored. Records of a set are not inspected here: they
     are a benchmark's estimation and validation data (POST .../refinements takes their ids)."""
     body = await request.body()  # bounded by the BodyLimitMiddleware
-    ingested = await run_in_threadpool(
-        _parse_and_ingest_set,
+    layout = signal_layout(x, [y], NAME_LENGTH)
+    # A body is parsed only for a structure the key may upload to, looked up in a session of its
+    # own: the request's would hold a pooled connection while the parse waits for its turn.
+    await run_in_threadpool(_check_structure, request, principal, structure_id)
+    uploads = await request.app.state.parses.run(
+        parse_upload_set,
         body,
         request.headers.get("content-type", ""),
         acquired_at,
-        session,
-        principal,
-        settings,
-        structure_id,
-        signal_layout(x, [y], NAME_LENGTH),
+        settings.max_upload_bytes,
+        layout,
+    )
+    ingested = await run_in_threadpool(
+        _ingest_set, uploads, acquired_at, session, principal, settings, structure_id
     )
     if not any(item.created for item in ingested):
         response.status_code = status.HTTP_200_OK
@@ -170,20 +180,15 @@ def get_verdict(verdict_id: IdPath, principal: Viewer, session: SessionDep) -> V
     return inspections.verdict_out(inspections.get_verdict(session, principal, verdict_id))
 
 
-def _parse_and_ingest(
-    body: bytes,
-    content_type: str,
-    acquired_at: dt.datetime | None,
+def _ingest(
+    upload: Upload,
     session: Session,
     principal: Principal,
     settings: Settings,
     structure_id: int,
     inspect: bool,
     queue: QueueInspection | None,
-    layout: Layout,
 ) -> Ingested:
-    upload = parse_upload(body, content_type, acquired_at, settings.max_upload_bytes, layout)
-    when = utc(upload.acquired_at, "acquired_at")
     return ingest_record(
         session,
         principal,
@@ -192,7 +197,7 @@ def _parse_and_ingest(
         upload.x,
         upload.y,
         upload.fs,
-        when,
+        utc(upload.acquired_at, "acquired_at"),
         inspect,
         queue,
         upload.conditions,
@@ -200,19 +205,20 @@ def _parse_and_ingest(
     )
 
 
-def _parse_and_ingest_set(
-    body: bytes,
-    content_type: str,
+def _check_structure(request: Request, principal: Principal, structure_id: int) -> None:
+    with transaction(request.app.state.sessions) as session:
+        structures.get_structure(session, principal, structure_id)
+
+
+def _ingest_set(
+    uploads: tuple[tuple[Layout, Upload], ...],
     acquired_at: dt.datetime | None,
     session: Session,
     principal: Principal,
     settings: Settings,
     structure_id: int,
-    layout: Layout,
 ) -> list[Ingested]:
-    # The structure first: a body is parsed only for a structure the key may upload to.
     structure = structures.get_structure(session, principal, structure_id)
-    uploads = parse_upload_set(body, content_type, acquired_at, settings.max_upload_bytes, layout)
     members = [
         SetRecord(f"({signals.x}, {signals.y})", upload.x, upload.y, upload.fs, upload.conditions)
         for signals, upload in uploads

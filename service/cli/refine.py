@@ -226,7 +226,8 @@ def refine_command(
         # The loop fits whole records: a NARX model holds through the transient, and its check runs
         # then start where the records do, at rest. Started mid-record from L measured outputs
         # instead, F-16's multisines' check runs favoured least squares over output error, whose
-        # slow mode carries those readings' noise (README: "Free runs started mid-record").
+        # slow mode carries those readings' noise (docs/benchmarks/measured.md, "Free runs started
+        # mid-record").
         with _stages() as stage, _workers(jobs) as (workers, threads):
             report = refine_records(
                 [(r.x, r.y) for r in fitted],

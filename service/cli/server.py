@@ -3,10 +3,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import logging
 import os
 import re
+import resource
 import shutil
 import tempfile
 import time
@@ -52,6 +54,7 @@ def serve(
     import uvicorn
 
     from service import sealing
+    from service.api.protocol import HeaderTimeoutProtocol
     from service.observability.metrics import MULTIPROCESS_DIR
 
     settings = get_settings()
@@ -68,6 +71,7 @@ def serve(
     if workers > 1 and not os.environ.get(MULTIPROCESS_DIR):
         # Set before uvicorn starts the workers: prometheus-client picks its mode at import.
         metrics_dir = os.environ[MULTIPROCESS_DIR] = tempfile.mkdtemp(prefix="narxwatch-metrics-")
+    _open_files_to_the_hard_limit()  # before the workers start: they inherit it
     log.info("narxwatch API on http://%s:%s (docs: http://%s:%s/docs)", host, port, host, port)
     try:
         uvicorn.run(
@@ -76,6 +80,7 @@ def serve(
             host=host,
             port=port,
             workers=workers,
+            http=HeaderTimeoutProtocol,  # NARXWATCH_HEADER_TIMEOUT_SECONDS bounds each request's head
             # uvicorn kills a worker that does not answer its supervisor's ping within this time
             # (5 s by default): importing the app on a loaded machine, or a long numerical step
             # holding the GIL, can take longer than that without anything being wrong.
@@ -87,6 +92,21 @@ def serve(
     finally:
         if metrics_dir is not None:
             shutil.rmtree(metrics_dir, ignore_errors=True)
+
+
+def _open_files_to_the_hard_limit() -> None:
+    """Raise this process's soft limit on open files to its hard limit.
+
+    Every connection holds a file descriptor until it is closed, and the soft limit a service
+    is often given (1024 under systemd) is soon reached by many slow or idle clients: then the
+    server can accept no one else until some go. Python's event loops wait with epoll, so many
+    descriptors cost nothing more; the hard limit stays the administrator's bound.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    # An unlimited hard limit is refused (above what the kernel allows): the soft one then stays.
+    with contextlib.suppress(ValueError, OSError):
+        if soft != hard:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
 
 
 def worker(

@@ -22,6 +22,7 @@ from service.cli.modelfiles import (
     signal_layout,
     write_json,
 )
+from service.names import normalised_name
 
 app = typer.Typer(help="Estimate models from records.", no_args_is_help=True)
 
@@ -84,7 +85,7 @@ def fault_mode(
     model = fit_fnarx(
         [(r.x, r.y, k) for found, k in zip(sets, ks, strict=True) for r in found],
         read_terms(terms),
-        name=name,
+        name=normalised_name(name, "fault-mode name"),
         family=basis,  # type: ignore[arg-type]  # checked by FunctionalBasis
         size=degree + 1,
         k_range=k_range,

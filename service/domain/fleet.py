@@ -114,7 +114,12 @@ def count_record(session: Session, structure_id: int) -> None:
 
 
 def count_verdict(
-    session: Session, verdict_id: int, structure_id: int, acquired_at: dt.datetime, status: Status
+    session: Session,
+    verdict_id: int,
+    structure_id: int,
+    acquired_at: dt.datetime,
+    status: Status,
+    limit: dt.datetime,
 ) -> None:
     """A verdict just inserted, added to its structure's state.
 
@@ -124,6 +129,16 @@ def count_verdict(
     goes on if its status is the same, else starts with it. An older one (a record uploaded late)
     leaves the latest alone but may shorten or lengthen the current run, which is then read again
     from the history: rare, and an indexed range of one structure's verdicts.
+
+    A verdict acquired after ``limit`` (``records.acquisition_limit``: the server's clock plus the
+    skew allowed) is counted but never becomes the latest, nor part of the run: it is a record
+    stored before uploads' acquisition times were checked, or under a larger skew, and the
+    structure's standing is what was acquired up to now. A record dated 9999 would otherwise be
+    the latest for ever, every fault acquired after it reading as the status it had. So the
+    verdicts past the latest are exactly those that were in the future when counted, and the
+    run is read from the verdicts up to the latest alone. A latest itself past ``limit`` (the
+    state of a database written before, or the skew since lowered) is read again from the
+    history up to ``limit``.
     """
     state = session.execute(LOCK_STATE, {"structure": structure_id}).one_or_none()
     if state is None:
@@ -132,22 +147,24 @@ def count_verdict(
         state.latest_acquired_at,
         state.latest_verdict_id,
     )
-    if newer:
+    values: dict[str, Any]
+    if state.latest_acquired_at is not None and state.latest_acquired_at > limit:
+        values = _newest(session, structure_id, limit)
+    elif acquired_at > limit:
+        values = {}
+    elif newer:
         since = state.since if status == state.status else acquired_at
         session.execute(
             COUNT_NEWEST[status],
             {"structure": structure_id, "since": since, "verdict": verdict_id, "acquired_at": acquired_at},
         )
         return
+    else:
+        values = dict(since=_since(session, structure_id, state.status, state.latest_acquired_at))
     session.execute(
         update(StructureState)
         .where(StructureState.structure_id == structure_id)
-        .values(
-            {
-                status: getattr(StructureState, status) + 1,
-                "since": _since(session, structure_id, state.status),
-            }
-        )
+        .values({status: getattr(StructureState, status) + 1, **values})
     )
 
 
@@ -170,6 +187,7 @@ def lock_states(session: Session, structure_ids: Iterable[int]) -> dict[int, Row
             StructureState.structure_id,
             StructureState.status,
             StructureState.latest_verdict_id,
+            StructureState.latest_acquired_at,
             StructureState.since,
         )
         .where(StructureState.structure_id.in_(sorted(set(structure_ids))))
@@ -183,8 +201,11 @@ def uncount_verdicts(session: Session, locked: dict[int, Row[Any]], removed: Seq
     """Verdicts just deleted, taken off their structures' states (locked by :func:`lock_states`).
 
     Each status count goes down by as many as were deleted. If the latest verdict went, the
-    newest left becomes the latest (none: the structure is uninspected again); if verdicts of
-    the current run went, the run is read again from the history, which now starts later."""
+    newest left up to its acquisition time becomes the latest (none: the structure is uninspected
+    again); if verdicts of the current run went, the run is read again from the history, which
+    now starts later. Neither reads past the latest: the verdicts there were in the future when
+    counted (:func:`count_verdict`), and the retention, which deletes the oldest, must not make
+    one of them the latest."""
     by_structure: dict[int, list[Removed]] = {}
     for verdict in removed:
         by_structure.setdefault(verdict.structure_id, []).append(verdict)
@@ -195,9 +216,9 @@ def uncount_verdicts(session: Session, locked: dict[int, Row[Any]], removed: Seq
             for status, n in Counter(v.status for v in gone).items()
         }
         if state.latest_verdict_id in {v.id for v in gone}:
-            values |= _newest(session, structure_id)
+            values |= _newest(session, structure_id, state.latest_acquired_at)
         elif state.since is not None and max(v.acquired_at for v in gone) >= state.since:
-            values["since"] = _since(session, structure_id, state.status)
+            values["since"] = _since(session, structure_id, state.status, state.latest_acquired_at)
         session.execute(
             update(StructureState).where(StructureState.structure_id == structure_id).values(**values)
         )
@@ -213,11 +234,11 @@ def uncount_records(session: Session, structure_ids: Sequence[int]) -> None:
         )
 
 
-def _newest(session: Session, structure_id: int) -> dict[str, Any]:
-    """The state's latest-verdict columns read from the structure's remaining verdicts."""
+def _newest(session: Session, structure_id: int, until: dt.datetime) -> dict[str, Any]:
+    """The state's latest-verdict columns read from the structure's verdicts acquired up to ``until``."""
     newest = session.execute(
         select(Verdict.id, Verdict.status, Verdict.acquired_at)
-        .where(Verdict.structure_id == structure_id)
+        .where(Verdict.structure_id == structure_id, Verdict.acquired_at <= until)
         .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
         .limit(1)
     ).first()
@@ -225,18 +246,22 @@ def _newest(session: Session, structure_id: int) -> dict[str, Any]:
         return dict(status=None, since=None, latest_verdict_id=None, latest_acquired_at=None)
     return dict(
         status=newest.status,
-        since=_since(session, structure_id, newest.status),
+        since=_since(session, structure_id, newest.status, newest.acquired_at),
         latest_verdict_id=newest.id,
         latest_acquired_at=newest.acquired_at,
     )
 
 
-def _since(session: Session, structure_id: int, status: str) -> dt.datetime | None:
-    """When the structure's current run of ``status`` began, read from its verdicts."""
+def _since(session: Session, structure_id: int, status: str, until: dt.datetime) -> dt.datetime | None:
+    """When the run of ``status`` that ends with the latest verdict (acquired at ``until``) began,
+    read from the structure's verdicts. Those acquired later are not the structure's yet
+    (:func:`count_verdict`): a verdict of another status among them would end the run before it
+    began. The first verdict after the last of another status is the latest or earlier, so only
+    that last one needs the bound."""
     of_structure = Verdict.structure_id == structure_id
     other = session.execute(
         select(Verdict.acquired_at, Verdict.id)
-        .where(of_structure, Verdict.status != status)
+        .where(of_structure, Verdict.status != status, Verdict.acquired_at <= until)
         .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
         .limit(1)
     ).first()

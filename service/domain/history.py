@@ -63,18 +63,28 @@ def history(
 
 
 def summary(session: Session, principal: Principal, structure_id: int) -> Summary:
-    """Counts by status (kept on write, in the structure's state), the latest verdict and the trend."""
+    """Counts by status (kept on write, in the structure's state), the latest verdict and the trend.
+
+    The latest is the state's, and the trend ends with it: a verdict acquired after it was in
+    the future when stored (``fleet.count_verdict``), and is no part of where the structure stands.
+    """
     structure = get_structure(session, principal, structure_id)
-    counts = fleet.structure_status(session, structure).counts
-    newest = list(
-        session.scalars(
-            select(Verdict)
-            .where(Verdict.structure_id == structure_id)
-            .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
-            .limit(TREND_POINTS)
-            .options(MODEL_REFS, CONDITIONS)
+    status = fleet.structure_status(session, structure)
+    latest = status.latest
+    newest = (
+        list(
+            session.scalars(
+                select(Verdict)
+                .where(Verdict.structure_id == structure_id, Verdict.acquired_at <= latest.acquired_at)
+                .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
+                .limit(TREND_POINTS)
+                .options(MODEL_REFS, CONDITIONS)
+            )
         )
+        if latest is not None
+        else []
     )
+    counts = status.counts
     trend = [
         TrendPoint(
             verdict_id=v.id,

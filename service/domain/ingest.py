@@ -54,10 +54,11 @@ def ingest_record(
     (committed by the caller).
 
     Everything that can refuse the record runs before the first write, cheapest first: the
-    sampling rate, then one check of the signals against what they will face (the inspection's
-    own check with ``inspect``, the same check without the inspection when queueing, so that a
-    queued job cannot fail on what the upload could have refused, and the shortest storable
-    record otherwise). The verdict is computed before the first write too, so the write lock
+    sampling rate and the acquisition time (none later than the server's clock allows), then one
+    check of the signals against what they will face (the inspection's own check with
+    ``inspect``, the same check without the inspection when queueing, so that a queued job
+    cannot fail on what the upload could have refused, and the shortest storable record
+    otherwise). The verdict is computed before the first write too, so the write lock
     (SQLite's, and the writer gate in front of it) is held only for the inserts and their commit.
     A record queued again is queued only when it has no verdict from the active models. A record
     of several ``channels`` (checked, naming y's columns) is inspected by the active vector models,
@@ -65,6 +66,7 @@ def ingest_record(
     """
     structure = structures.get_structure(session, principal, structure_id)
     rate = records.checked_rate(structure, fs)
+    acquired_at = records.checked_acquired_at(acquired_at, settings)
     evaluation = None
     active: list[ModelVersion] = []
     if inspect or queue is not None:
@@ -89,7 +91,9 @@ def ingest_record(
         alarms.lock(session, structure.id)  # before the state row that storing the record locks
     record, created = records.store_record(session, structure, x, y, rate, acquired_at, conditions, channels)
     verdict = (
-        inspections.store_verdict(session, record, structure, evaluation, created) if evaluation else None
+        inspections.store_verdict(session, record, structure, evaluation, settings, created)
+        if evaluation
+        else None
     )
     queued = False
     if queue is not None:
@@ -126,6 +130,7 @@ def ingest_record_set(
     first is written, against one look-up of the degree its records must hold: the write lock is
     then held for the inserts alone, not for a hundred records' checks.
     """
+    acquired_at = records.checked_acquired_at(acquired_at, settings)
     degree = _degree_to_hold(session, structure)
     checked = []
     for member in members:

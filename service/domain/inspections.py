@@ -24,7 +24,13 @@ from service.db import insert_unless_exists
 from service.domain import alarms, fleet
 from service.domain.errors import ConflictError
 from service.domain.modelling import active_fault_modes, active_pooled_baseline
-from service.domain.records import as_conditions, checked_signals, condition_values, signals
+from service.domain.records import (
+    acquisition_limit,
+    as_conditions,
+    checked_signals,
+    condition_values,
+    signals,
+)
 from service.domain.structures import get_owned, get_structure
 from service.schemas import ModelRef, VerdictOut
 from service.security import Principal
@@ -174,11 +180,16 @@ def inspect_record(
     if existing is not None:
         return existing
     evaluation = evaluate(active, settings, *signals(record), condition_values(record.conditions), channels)
-    return store_verdict(session, record, structure, evaluation)
+    return store_verdict(session, record, structure, evaluation, settings)
 
 
 def store_verdict(
-    session: Session, record: Record, structure: Structure, evaluation: Evaluation, new_record: bool = False
+    session: Session,
+    record: Record,
+    structure: Structure,
+    evaluation: Evaluation,
+    settings: Settings,
+    new_record: bool = False,
 ) -> Verdict:
     """Persist an evaluation as the record's verdict, unless one with the same models exists.
 
@@ -237,7 +248,14 @@ def store_verdict(
     alarms.evaluate(session, structure, stored)
     # Counted last: the state row, which every upload of the structure updates, is then locked
     # only until the commit, not through the alarms' evaluation (alarms.lock: the lock order).
-    fleet.count_verdict(session, inserted.id, structure.id, record.acquired_at, result.status)
+    fleet.count_verdict(
+        session,
+        inserted.id,
+        structure.id,
+        record.acquired_at,
+        result.status,
+        acquisition_limit(settings),
+    )
     return Verdict(
         id=inserted.id,
         created_at=inserted.created_at,

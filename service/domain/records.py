@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session, selectinload
 from models.errors import InputError
 from models.signals import checked_record
 from service.conditions import Condition
+from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import fleet
 from service.domain.errors import ConflictError
@@ -41,6 +42,33 @@ def checked_rate(structure: Structure, fs: float | None) -> float:
         f"the record is sampled at {fs:.15g} Hz but structure {structure.name!r} is monitored at "
         f"{structure.fs:.15g} Hz; resample it or register a structure at that rate"
     )
+
+
+def acquisition_limit(settings: Settings, now: dt.datetime | None = None) -> dt.datetime:
+    """The latest acquisition time a record may have: the server's clock (``now``) plus the skew
+    allowed to the clocks that acquire records (``max_clock_skew_seconds``). No record acquired later
+    is stored (:func:`checked_acquired_at`), and no verdict acquired later stands for its structure
+    (``service.domain.fleet.count_verdict``)."""
+    return (now or utcnow()) + dt.timedelta(seconds=settings.max_clock_skew_seconds)
+
+
+def checked_acquired_at(acquired_at: dt.datetime | None, settings: Settings) -> dt.datetime | None:
+    """An upload's acquisition time (UTC; None: now), refused when it lies beyond
+    :func:`acquisition_limit`: a clock set wrong, or a typing error (9999 for 2025). Stored, such a
+    record would be its structure's newest until the clock caught up with it, and the structure
+    would read as it does on that date whatever was acquired in between."""
+    now = utcnow()
+    if acquired_at is not None and acquired_at > acquisition_limit(settings, now):
+        raise InputError(
+            f"acquired_at {_iso(acquired_at)} is later than the server's clock ({_iso(now)}) by more "
+            f"than NARXWATCH_MAX_CLOCK_SKEW_SECONDS ({settings.max_clock_skew_seconds:g} s) allows: "
+            "a record cannot be acquired in the future; check the clock of the system that acquired it"
+        )
+    return acquired_at
+
+
+def _iso(moment: dt.datetime) -> str:
+    return moment.astimezone(dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
 def content_hash(x: np.ndarray, y: np.ndarray, fs: float, channels: Sequence[str] = ()) -> str:

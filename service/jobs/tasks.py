@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session, defer
 from models.errors import InputError
 from service.config import Settings
 from service.db import insert_unless_exists
-from service.domain import inspections, modelling, notifications, refinements, retention
+from service.domain import inspections, modelling, notifications, records, refinements, retention
 from service.domain.errors import ConflictError
 from service.domain.schedules import RUN_SCHEDULE
 from service.schemas import RefinementCreate
@@ -68,7 +68,8 @@ def run_schedule(session: Session, settings: Settings, schedule_id: int, due_at:
     model_sets = {kind: inspections.model_set([v for v, _ in active]) for kind, active in actives.items()}
     unexpected: Exception | None = None
     marked = 0
-    for record_id, several in _records_to_inspect(session, schedule.action, structure.id, model_sets):
+    limit = records.acquisition_limit(settings)
+    for record_id, several in _records_to_inspect(session, schedule.action, structure.id, model_sets, limit):
         record = session.get(Record, record_id)
         if record is None:  # deleted since the list was read
             continue
@@ -126,17 +127,20 @@ def _inspect(
 
 
 def _records_to_inspect(
-    session: Session, action: str, structure_id: int, model_sets: dict[bool, str]
+    session: Session, action: str, structure_id: int, model_sets: dict[bool, str], limit: dt.datetime
 ) -> list[tuple[int, bool]]:
     """The action's records, each with its kind (of several channels or not), less those of a
     kind no active model inspects and those their kind's model set (``model_sets``) already
-    failed to inspect."""
+    failed to inspect. The latest is the latest acquired up to ``limit``
+    (``records.acquisition_limit``): one stored with a date in the future, before such dates
+    were refused, is not what the structure is now."""
     # Records whose signals the retention pruned cannot be inspected again.
     of_structure = select(Record.id, Record.channels).where(
         Record.structure_id == structure_id, Record.signals_pruned_at.is_(None)
     )
     if action == "reinspect_latest":
-        chosen = of_structure.order_by(Record.acquired_at.desc(), Record.id.desc()).limit(1)
+        present = of_structure.where(Record.acquired_at <= limit)
+        chosen = present.order_by(Record.acquired_at.desc(), Record.id.desc()).limit(1)
     else:
         chosen = of_structure.where(~exists().where(Verdict.record_id == Record.id)).order_by(Record.id)
     candidates = [
