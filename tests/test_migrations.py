@@ -549,10 +549,11 @@ def test_0022_reads_each_state_again_without_the_verdicts_acquired_in_the_future
     assert tallies == {1: (5, 2, 3), 2: (1, 0, 1), 3: (1, 1, 0)}
 
 
-def test_0023_keeps_no_window_until_the_rules_run_then_builds_it_from_the_history(fresh_url):
-    """A structure judged before 0023 has no kept window: its next verdict's evaluation builds it
-    from the history, so the rules count the verdicts stored before the upgrade (here the two
-    faulty ones that, with a third, make persistence's 3 of 5). Downgrading drops the table."""
+def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_history(fresh_url):
+    """A structure judged before 0023 has no kept rule state: its next verdict's evaluation builds
+    it from the history, so the rules count the verdicts stored before the upgrade (here the two
+    faulty ones that, with a third, make persistence's 3 of 5), and the next goes on from it.
+    Downgrading drops the table."""
     from service.domain import alarms
 
     upgrade_database(fresh_url, "0022")
@@ -579,7 +580,7 @@ def test_0023_keeps_no_window_until_the_rules_run_then_builds_it_from_the_histor
             )  # fmt: skip
     upgrade_database(fresh_url)
     with Session(engine) as session:
-        assert session.scalars(select(tables.AlarmWindow)).all() == []
+        assert session.scalars(select(tables.AlarmState)).all() == []
         at = t0 + 3 * dt.timedelta(hours=1)
         session.execute(
             table["verdicts"].insert().values(
@@ -591,14 +592,15 @@ def test_0023_keeps_no_window_until_the_rules_run_then_builds_it_from_the_histor
         structure = session.get(tables.Structure, 1)
         alarms.evaluate(session, structure, alarms.point(3, 3, at, "faulty", None, None, None, []))
         session.commit()
-        window = alarms.window(session, 1)
+        kept = alarms.Kept.loads(session.scalar(select(tables.AlarmState.state)))
+        rebuilt = alarms._replay(session, 1, list(alarms.DEFAULT_RULES))
         opened = session.execute(select(tables.Alarm.rule_kind, tables.Alarm.record_id)).all()
-    assert [p.verdict_id for p in window] == [1, 2, 3]
-    assert window == alarms.newest_points(Session(engine), 1, alarms.WINDOW)
+    assert kept.tracks["persistence"].flags == [True, True, True] and kept == rebuilt
+    assert kept.newest == [3, 3, alarms._microseconds(at)]
     assert opened == [("persistence", 3)]  # one faulty verdict alone fires no rule
 
     command.downgrade(alembic_config(fresh_url), "0022")
     with engine.connect() as connection:
         left = set(inspect(connection).get_table_names())
     engine.dispose()
-    assert "alarm_windows" not in left and "verdicts" in left
+    assert "alarm_states" not in left and "verdicts" in left

@@ -8,33 +8,41 @@ verdict's own σ̂k, designed for a stated number of false alarms a year, and *s
 interval wholly beyond a magnitude). A structure without rules of its own is watched by the
 defaults.
 
-Each rule fires or not at each record of the structure's recent history (the newest verdict of
-each record, so a re-inspection with new models re-judges it). An alarm opens when a rule fires
-on a record among the newest ``clear_after`` and none of its (structure, rule, fault mode) is
-unresolved; it resolves by itself once ``clear_after`` records in a row have not fired; after a
-resolution the rule looks only at records acquired later, so that the evidence an alarm was
-resolved on does not open it again. The CUSUM restarts from zero after each signal, as its design
-assumes (``models.alarms``); it starts from zero at the oldest record evaluated.
+Each rule fires or not at each record of the structure, in order of acquisition (the newest
+verdict of each record, so a re-inspection with new models re-judges it). An alarm opens when a
+rule fires on a record among the newest ``clear_after`` and none of its (structure, rule, fault
+mode) is unresolved; it resolves by itself once ``clear_after`` records in a row have not fired;
+after a resolution the rule counts only records acquired later, so that the evidence an alarm
+was resolved on does not open it again. The CUSUM is a running one over the records, restarting
+from zero only at its signals, as its design assumes (``models.alarms``), and where its alarm
+resolved. Its design takes the fault modes of the newest verdict (the charts sharing the
+structure's false alarms) and the median common share of σ̂k² of the newest ``WINDOW`` healthy
+verdicts (of all verdicts until one is healthy), both as they stood at each record.
 
-The records the rules look at, the newest verdict of each of the structure's newest ``WINDOW``
-records, are kept in its ``AlarmWindow`` row, updated in the transaction of each verdict: the
-rules run over that row, not over the history read again. A verdict is put in its place by
-acquisition time, then id (a record uploaded late, or a re-inspection, changes the window as it
-changes the history); a structure without a row (before its first verdict after the migration, or
-after the retention deleted verdicts it held) has it built from its history.
+What each rule needs to go on is kept in the structure's ``AlarmState`` row (:class:`Kept`),
+updated in the transaction of each verdict: per rule and fault mode a :class:`Track` (a CUSUM's
+two sums and where its drift began, persistence's last m outcomes, the current run of firings,
+the unresolved alarm), the design's inputs, and the newest verdict counted. A verdict newer than
+that one, of a record with no other verdict (an upload, the common case), moves each track one
+record on, whatever the length of the history. Any other verdict — a record uploaded late, a
+re-inspection, a verdict whose later sibling was committed first — and a structure without a
+kept state (after the migration, after the retention deleted verdicts, after an alarm was
+resolved by hand) or whose rules changed, has the state rebuilt from the history
+(:func:`_replay`): the newest verdict of each of the newest ``WINDOW`` records counted in order,
+each track from its rule's last resolution on. That rebuild is also the reference the kept state
+is tested against; it differs from the running state only where a CUSUM had not come back to
+zero within those ``WINDOW`` records.
 
 Evaluations of one structure run one after another (its row lock on PostgreSQL, the single
-writer on SQLite), so each reads the window the previous one committed; the database refuses a
+writer on SQLite), so each reads the state the previous one committed; the database refuses a
 second unresolved alarm of the same key anyway.
 """
 
 from __future__ import annotations
 
-import bisect
 import datetime as dt
 import json
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import cache
 from typing import Any
@@ -65,8 +73,8 @@ from service.security import Principal
 from service.tables import (
     UNRESOLVED,
     Alarm,
+    AlarmState,
     AlarmTransition,
-    AlarmWindow,
     ApiKey,
     Structure,
     Verdict,
@@ -135,18 +143,6 @@ def point(
 
 
 @dataclass(frozen=True)
-class Firing:
-    """Where a rule fired: ``fired`` per record of ``points``; for the CUSUM, the index of the
-    first record of each signal's drift, and its statistic (the larger side) after each record."""
-
-    fault_mode: str | None
-    points: list[Point]
-    fired: list[bool]
-    drift_starts: dict[int, int]
-    statistic: list[float] = field(default_factory=list)
-
-
-@dataclass(frozen=True)
 class CusumSeries:
     """A fault mode's CUSUM as the rules ran it, for the structure's k̂ chart."""
 
@@ -162,12 +158,21 @@ class CusumSeries:
 # The statements run after every verdict, built once (their compiled forms are cached by
 # SQLAlchemy; building the expressions anew cost more than running them).
 RULES_OF = select(StoredRule.parameters).where(StoredRule.structure_id == bindparam("structure_id"))
-WINDOW_OF = select(AlarmWindow.points).where(AlarmWindow.structure_id == bindparam("structure_id"))
-NEW_WINDOW = insert(AlarmWindow)
-KEEP_WINDOW = (
-    update(AlarmWindow.__table__)
-    .where(AlarmWindow.__table__.c.structure_id == bindparam("structure"))
-    .values(points=bindparam("window"))
+STATE_OF = select(AlarmState.state).where(AlarmState.structure_id == bindparam("structure_id"))
+NEW_STATE = insert(AlarmState)
+KEEP_STATE = (
+    update(AlarmState.__table__)
+    .where(AlarmState.__table__.c.structure_id == bindparam("structure"))
+    .values(state=bindparam("state"))
+)
+# An unresolved alarm's newest record counted, one row per alarm (executemany).
+THROUGH = (
+    update(Alarm.__table__)
+    .where(Alarm.__table__.c.id == bindparam("alarm"))
+    .values(evaluated_through=bindparam("through"))
+)
+OTHER_VERDICT = select(Verdict.id).where(
+    Verdict.record_id == bindparam("record_id"), Verdict.id != bindparam("verdict_id")
 )
 UNRESOLVED_OF = select(Alarm).where(Alarm.structure_id == bindparam("structure_id"), UNRESOLVED)
 RESOLVED_THROUGH = (
@@ -180,11 +185,19 @@ LOCK = select(Structure.id).where(Structure.id == bindparam("structure_id")).wit
 
 def rules_of(session: Session, structure_id: int) -> tuple[list[AlarmRule], bool]:
     """The structure's rules and whether they are the defaults (it has none of its own)."""
-    stored = session.scalars(RULES_OF, {"structure_id": structure_id})
-    rules = [AlarmRules.model_validate({"rules": [parameters]}).rules[0] for parameters in stored]
+    rules = [
+        _rule(json.dumps(parameters, sort_keys=True))
+        for parameters in session.scalars(RULES_OF, {"structure_id": structure_id})
+    ]
     if not rules:
         return list(DEFAULT_RULES), True
     return sorted(rules, key=lambda rule: [r.kind for r in DEFAULT_RULES].index(rule.kind)), False
+
+
+@cache
+def _rule(parameters: str) -> AlarmRule:
+    """A stored rule's parameters, validated once: every verdict reads its structure's rules."""
+    return AlarmRules.model_validate({"rules": [json.loads(parameters)]}).rules[0]
 
 
 def get_rules(session: Session, principal: Principal, structure_id: int) -> AlarmRulesOut:
@@ -199,7 +212,7 @@ def set_rules(session: Session, principal: Principal, structure_id: int, body: A
     structure = get_structure(session, principal, structure_id)
     for rule in body.rules:
         if isinstance(rule, CusumRule):  # a design that exists without the models' error, or a 422
-            cusum_design(rule, [])
+            cusum_design(rule, 1, 0.0)
     lock(session, structure_id)
     session.execute(delete(StoredRule).where(StoredRule.structure_id == structure_id))
     session.add_all(
@@ -219,9 +232,9 @@ def _rules_out(session: Session, structure_id: int, rules: list[AlarmRule], defa
     cusum = next((rule for rule in rules if isinstance(rule, CusumRule)), None)
     design, problem = None, None
     if cusum is not None:
-        points = window(session, structure_id)
+        kept = _standing(session, structure_id, rules)
         try:
-            design = CusumDesignOut(modes=_mode_count(points), **vars(cusum_design(cusum, points)))
+            design = CusumDesignOut(modes=kept.modes, **vars(cusum_design(cusum, kept.modes, kept.share())))
         except InputError as refusal:
             problem = str(refusal)
     return AlarmRulesOut(
@@ -229,19 +242,20 @@ def _rules_out(session: Session, structure_id: int, rules: list[AlarmRule], defa
     )
 
 
-def cusum_design(rule: CusumRule, points: list[Point]) -> rules_math.CusumDesign:
-    """The CUSUM each fault mode is watched with, for the models of the verdicts ``points``.
+def cusum_design(rule: CusumRule, modes: int, share: float) -> rules_math.CusumDesign:
+    """The CUSUM each fault mode is watched with, for ``modes`` fault modes (those the newest
+    verdict was judged against: one before any) and the common share ``share`` (:meth:`Kept.share`).
 
     The structure's false alarms a year are shared among its charts (their rates add up at most),
     so each runs as many times longer in control as there are modes; and the share of σ̂k² that
-    the models' own error makes common to all records (``_common_share``, to two decimals as
-    ``models.alarms.default_rules`` takes it) raises the threshold
-    that keeps that rate. ``InputError`` says why when no CUSUM within ``MAX_THRESHOLD`` can be
-    designed: then the CUSUM does not run (the rules' API says why), and the other rules still do.
+    the models' own error makes common to all records (to two decimals as
+    ``models.alarms.default_rules`` takes it) raises the threshold that keeps that rate.
+    ``InputError`` says why when no CUSUM within ``MAX_THRESHOLD`` can be designed: then the CUSUM
+    does not run (the rules' API says why), and the other rules still do.
     """
     records_per_year = 365.0 * rule.records_per_day
-    arl = _mode_count(points) * records_per_year / rule.false_alarms_per_year
-    design = _design(arl, rule.shift, round(_common_share(points), 2))
+    arl = modes * records_per_year / rule.false_alarms_per_year
+    design = _design(arl, rule.shift, round(share, 2))
     if isinstance(design, str):
         raise InputError(design)
     return design
@@ -269,124 +283,169 @@ def _design(arl: float, shift: float, share: float) -> rules_math.CusumDesign | 
         return str(refusal)
 
 
-def _common_share(points: list[Point]) -> float:
-    """The median over the healthy records (all, if none is) of the largest mode's common share:
-    the models' error grows away from the healthy state, and a design for the healthy structure
-    must not move because a fault is under way."""
-    healthy = [p for p in points if p.status == "healthy" and p.modes]
-    shares = [
-        max(rules_math.common_share(sigma, alone) for _, sigma, alone in point.modes.values())
-        for point in healthy or [p for p in points if p.modes]
-    ]
-    return float(np.median(shares)) if shares else 0.0
+# --- kept state -------------------------------------------------------------------------------
 
 
-# --- evaluation -------------------------------------------------------------------------------
+@dataclass
+class Track:
+    """One rule's state for one fault mode (``None``: persistence, which has none) of a structure.
 
-
-def evaluate(session: Session, structure: Structure, verdict: Point | None = None) -> None:
-    """Run the structure's rules over its recent verdicts; open, keep or resolve its alarms.
-
-    Called in the transaction that stored a verdict, ``verdict`` (and when the rules change,
-    with none), after the verdict's insert: only flushes. Every transition is announced through
-    :func:`service.domain.notifications.notify`, delivered after the commit.
+    Times are microseconds since the epoch (the databases' resolution: exact, and cheap to keep).
+    ``after``: only records acquired later count (the ``evaluated_through`` of the rule's last
+    resolved alarm); ``through``: the newest record counted; ``quiet``: records counted since the
+    last firing (all of them, if none fired); ``first``: the current run of firings' first one,
+    as [record id, acquired, drift start or None]; ``alarm``: the unresolved alarm's id.
+    Persistence keeps its last m outcomes (``flags``); the CUSUM its two sums, where each side's
+    current run away from zero began (None: at the next record) and its statistic at the last
+    record counted (the larger side, before a signal's restart).
     """
-    lock(session, structure.id)
-    points = window(session, structure.id, verdict)
-    if not points:
-        return
-    rules, _ = rules_of(session, structure.id)
-    unresolved = _unresolved(session, structure.id)
-    since = _resolved_through(session, structure.id)
-    for rule in rules:
-        for firing in _firings(rule, points, since):
-            key = (rule.kind, firing.fault_mode)
-            _apply(session, structure, rule, firing, points, unresolved.get(key))
 
+    alarm: int | None = None
+    after: int | None = None
+    through: int | None = None
+    quiet: int = 0
+    first: list[Any] | None = None
+    flags: list[bool] = field(default_factory=list)
+    up: float = 0.0
+    low: float = 0.0
+    up_from: int | None = None
+    low_from: int | None = None
+    statistic: float = 0.0
 
-def _apply(
-    session: Session,
-    structure: Structure,
-    rule: AlarmRule,
-    firing: Firing,
-    points: list[Point],
-    alarm: Alarm | None,
-) -> None:
-    fired = [i for i, f in enumerate(firing.fired) if f]
-    newest = firing.points[-1]
-    quiet = len(firing.points) - 1 - fired[-1] if fired else len(firing.points)
-    if alarm is not None:
-        alarm.evaluated_through = max(alarm.evaluated_through, newest.acquired_at)
-        if quiet >= rule.clear_after:
-            _resolve(session, structure, alarm, "cleared", None, None)
-        return
-    if not fired or quiet >= rule.clear_after:
-        return
-    first = fired[-1]  # the first firing of the current run: no quiet stretch of clear_after since
-    for earlier in reversed(fired[:-1]):
-        if first - earlier > rule.clear_after:
-            break
-        first = earlier
-    trigger = firing.points[first]
-    drift = firing.drift_starts.get(first)
-    alarm = Alarm(
-        structure_id=structure.id,
-        organisation_id=structure.organisation_id,
-        rule_kind=rule.kind,
-        rule=_rule_document(rule, points),
-        fault_mode=firing.fault_mode,
-        state="open",
-        opened_at=utcnow(),
-        record_id=trigger.record_id,
-        triggered_at=trigger.acquired_at,
-        drift_started_at=firing.points[drift].acquired_at if drift is not None else None,
-        evaluated_through=newest.acquired_at,
-    )
-    alarm.transitions.append(AlarmTransition(from_state=None, to_state="open", at=alarm.opened_at))
-    session.add(alarm)
-    session.flush()
-    _announce(session, structure, alarm, "alarm.opened")
-
-
-def _rule_document(rule: AlarmRule, points: list[Point]) -> dict[str, Any]:
-    """The rule as it fired; a CUSUM's with the design it ran with."""
-    document = rule.model_dump(mode="json")
-    if isinstance(rule, CusumRule):
-        document["design"] = vars(cusum_design(rule, points)) | {"modes": _mode_count(points)}
-    return document
-
-
-def _firings(
-    rule: AlarmRule, points: list[Point], since: dict[tuple[str, str | None], dt.datetime]
-) -> Iterator[Firing]:
-    """For each fault mode the rule watches, whether it fired at each record acquired after the
-    last resolution of its alarm."""
-
-    def after(mode: str | None) -> list[Point]:
-        start = since.get((rule.kind, mode))
-        return [p for p in points if start is None or p.acquired_at > start]
-
-    if isinstance(rule, PersistenceRule):
-        chosen = after(None)
-        fired = rules_math.persistence_path([p.status in FLAGGED for p in chosen], rule.k, rule.m)
-        if chosen:
-            yield Firing(None, chosen, fired, {})
-        return
-    if isinstance(rule, CusumRule):
-        try:
-            design = cusum_design(rule, points)
-        except InputError:  # GET …/alarm-rules and the structure's page say why
-            return
-    for mode in sorted({name for p in points for name in p.modes}):
-        chosen = after(mode)
-        if isinstance(rule, SeverityRule):
-            chosen_fired = [_severe(p, mode, rule.threshold) for p in chosen]
-            if chosen:
-                yield Firing(mode, chosen, chosen_fired, {})
+    def count(self, fired: bool, at: int, record_id: int, drift: int | None, clear_after: int) -> None:
+        """One more record: a firing starts a run, or goes on with the current one if fewer than
+        ``clear_after`` records have not fired since the last."""
+        self.through = at
+        if fired:
+            if self.first is None or self.quiet >= clear_after:
+                self.first = [record_id, at, drift]
+            self.quiet = 0
         else:
-            with_mode = [p for p in chosen if mode in p.modes]
-            if with_mode:
-                yield _cusum_firing(mode, with_mode, design)
+            self.quiet += 1
+
+
+@dataclass
+class Kept:
+    """Where a structure's rules stand (its ``AlarmState`` row).
+
+    ``rules``: the rules' parameters it was built under (other rules: built again); ``newest``: the
+    newest verdict counted, [record id, verdict id, acquired]; ``modes``: the fault modes that
+    verdict was judged against (one before any), the CUSUM charts sharing the false alarms;
+    ``shares``: the common shares of σ̂k² of the newest ``WINDOW`` healthy verdicts (of all
+    verdicts, until one is healthy: ``healthy``), whose median the CUSUM is designed for; and a
+    :class:`Track` per rule kind and fault mode (``"cusum k2"``, ``"persistence"``).
+    """
+
+    rules: list[dict[str, Any]]
+    newest: list[int] | None = None
+    modes: int = 1
+    shares: list[float] = field(default_factory=list)
+    healthy: bool = False
+    tracks: dict[str, Track] = field(default_factory=dict)
+
+    def share(self) -> float:
+        """The median of ``shares``: the models' error grows away from the healthy state, and a
+        design for the healthy structure must not move because a fault is under way."""
+        return float(np.median(self.shares)) if self.shares else 0.0
+
+    def dumps(self) -> str:
+        document = vars(self) | {"tracks": {key: vars(track) for key, track in self.tracks.items()}}
+        return json.dumps(document, separators=(",", ":"))
+
+    @classmethod
+    def loads(cls, text: str) -> Kept:
+        document = json.loads(text)
+        document["tracks"] = {key: Track(**track) for key, track in document["tracks"].items()}
+        return cls(**document)
+
+
+def _key(kind: str, mode: str | None) -> str:
+    return kind if mode is None else f"{kind} {mode}"
+
+
+def _microseconds(at: dt.datetime) -> int:
+    return (at - EPOCH) // MICROSECOND
+
+
+def _moment(at: int) -> dt.datetime:
+    return EPOCH + dt.timedelta(microseconds=at)
+
+
+EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+MICROSECOND = dt.timedelta(microseconds=1)
+
+
+def _fingerprint(rules: list[AlarmRule]) -> list[dict[str, Any]]:
+    return [rule.model_dump(mode="json") for rule in rules]
+
+
+def _step(kept: Kept, rules: list[AlarmRule], p: Point) -> list[str]:
+    """Count the verdict ``p``, newer than every verdict counted, in ``kept``; the keys of the
+    tracks that counted it (a rule's track counts only the records acquired after its last
+    resolution, a CUSUM's only those judged against its fault mode)."""
+    at = _microseconds(p.acquired_at)
+    kept.newest = [p.record_id, p.verdict_id, at]
+    if p.modes:
+        kept.modes = len(p.modes)
+        share = max(rules_math.common_share(sigma, alone) for _, sigma, alone in p.modes.values())
+        if p.status == "healthy" and not kept.healthy:
+            kept.shares, kept.healthy = [], True
+        if p.status == "healthy" or not kept.healthy:
+            kept.shares = [*kept.shares[1 - WINDOW :], share] if WINDOW > 1 else [share]
+    else:
+        kept.modes = 1
+    counted: list[str] = []
+
+    def track(kind: str, mode: str | None) -> Track | None:
+        key = _key(kind, mode)
+        kept_track = kept.tracks.setdefault(key, Track())
+        if kept_track.after is not None and at <= kept_track.after:
+            return None
+        counted.append(key)
+        return kept_track
+
+    for rule in rules:
+        if isinstance(rule, PersistenceRule):
+            if (t := track(rule.kind, None)) is not None:
+                t.flags = [*t.flags, p.status in FLAGGED][-rule.m :]
+                t.count(sum(t.flags) >= rule.k, at, p.record_id, None, rule.clear_after)
+        elif isinstance(rule, SeverityRule):
+            known = {key.split(" ", 1)[1] for key in kept.tracks if key.startswith("severity ")}
+            for mode in sorted(known | set(p.modes)):
+                if (t := track(rule.kind, mode)) is not None:
+                    t.count(_severe(p, mode, rule.threshold), at, p.record_id, None, rule.clear_after)
+        else:
+            try:
+                design = cusum_design(rule, kept.modes, kept.share())
+            except InputError:  # GET …/alarm-rules and the structure's page say why
+                continue
+            for mode in sorted(p.modes):
+                if (t := track(rule.kind, mode)) is not None:
+                    _cusum_step(t, p, mode, at, design, rule.clear_after)
+    return counted
+
+
+def _cusum_step(
+    t: Track, p: Point, mode: str, at: int, design: rules_math.CusumDesign, clear_after: int
+) -> None:
+    """The two-sided CUSUM one record on (``models.alarms.cusum_chart``, one step of it): a
+    signal restarts both sums from zero, as the design assumes."""
+    k_hat, sigma, _ = p.modes[mode]
+    z = k_hat / sigma
+    r, h = design.reference, design.threshold
+    t.up_from = at if t.up_from is None else t.up_from
+    t.low_from = at if t.low_from is None else t.low_from
+    t.up, t.low = max(0.0, t.up + z - r), max(0.0, t.low - z - r)
+    t.statistic = max(t.up, t.low)
+    fired = t.up > h or t.low > h
+    drift = (t.up_from if t.up > h else t.low_from) if fired else None
+    if fired:
+        t.up = t.low = 0.0
+        t.up_from = t.low_from = None
+    else:
+        t.up_from = None if t.up == 0.0 else t.up_from
+        t.low_from = None if t.low == 0.0 else t.low_from
+    t.count(fired, at, p.record_id, drift, clear_after)
 
 
 def _severe(point: Point, mode: str, threshold: float) -> bool:
@@ -396,103 +455,155 @@ def _severe(point: Point, mode: str, threshold: float) -> bool:
     return rules_math.severity(low, high, threshold) or rules_math.severity(low, high, -threshold)
 
 
-def _cusum_firing(mode: str, points: list[Point], design: rules_math.CusumDesign) -> Firing:
-    """The chart's signals, restarting from zero after each one (as its design assumes)."""
-    z = np.array([k_hat / sigma for k_hat, sigma, _ in (p.modes[mode] for p in points)])
-    chart = rules_math.cusum_chart(z, design)
-    fired = [False] * len(points)
-    for at in chart.alarms:
-        fired[at] = True
-    drift_starts = dict(zip(chart.alarms, chart.drift_starts, strict=True))
-    return Firing(mode, points, fired, drift_starts, chart.statistic.tolist())
+def _replay(
+    session: Session, structure_id: int, rules: list[AlarmRule], series: dict[str, list[Any]] | None = None
+) -> Kept:
+    """Where the rules stand, built from the history: the newest verdict of each of the
+    structure's newest ``WINDOW`` records counted in order from an empty state, each rule's track
+    from the last resolution of its alarm on. ``series`` collects each CUSUM track's statistic."""
+    kept = Kept(_fingerprint(rules))
+    for (kind, mode), through in _resolved_through(session, structure_id).items():
+        kept.tracks[_key(kind, mode)] = Track(after=_microseconds(through))
+    for (kind, mode), alarm in _unresolved(session, structure_id).items():
+        kept.tracks.setdefault(_key(kind, mode), Track()).alarm = alarm.id
+    for p in newest_points(session, structure_id, WINDOW):
+        counted = _step(kept, rules, p)
+        if series is not None:
+            for key in counted:
+                if key.startswith("cusum "):
+                    series.setdefault(key, []).append((p.acquired_at, kept.tracks[key].statistic))
+    return kept
 
 
-def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
-    """Each fault mode's CUSUM statistic over the records the rules look at, with its threshold;
-    none when the structure has no CUSUM rule."""
-    rules, _ = rules_of(session, structure_id)
-    rule = next((r for r in rules if isinstance(r, CusumRule)), None)
-    points = window(session, structure_id)
-    if rule is None or not points:
-        return []
-    try:
-        threshold = cusum_design(rule, points).threshold
-    except InputError:
-        return []
-    return [
-        CusumSeries(
-            firing.fault_mode or "", [p.acquired_at for p in firing.points], firing.statistic, threshold
-        )
-        for firing in _firings(rule, points, _resolved_through(session, structure_id))
-    ]
-
-
-def window(session: Session, structure_id: int, verdict: Point | None = None) -> list[Point]:
-    """The points the structure's rules run over (:func:`newest_points`), from its kept window
-    with ``verdict``, just stored, put in its place; the window is kept so. Built from the
-    history when the structure has none kept: the history holds ``verdict`` already. Read-only
-    without ``verdict``: a structure without a kept window is read from its history then."""
-    kept = session.execute(WINDOW_OF, {"structure_id": structure_id}).scalar_one_or_none()
-    if kept is None:
-        points = newest_points(session, structure_id, WINDOW)
-        if verdict is not None:
-            rows = [_row(p) for p in points]
-            session.execute(NEW_WINDOW, {"structure_id": structure_id, "points": _dumps(rows)})
-        return points
-    rows = json.loads(kept)
-    if verdict is not None and _merge(rows, _row(verdict)):
-        session.execute(KEEP_WINDOW, {"structure": structure_id, "window": _dumps(rows)})
-    return [_point_of(row) for row in rows]
-
-
-# A kept point: [record id, verdict id, acquired_at in µs since the epoch, status, reference mode,
-# interval or None, [[mode, k̂, σ̂k, σ̂k of the record alone], …]]. Microseconds, the resolution
-# of the databases' timestamps, keep acquired_at exact and cheap to read.
-_RECORD, _VERDICT, _AT = 0, 1, 2
-EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
-MICROSECOND = dt.timedelta(microseconds=1)
-
-
-def _merge(rows: list[list[Any]], new: list[Any]) -> bool:
-    """Put the kept point ``new`` of a verdict just stored in its place among ``rows`` (a
-    structure's newest records' newest verdicts, oldest first), keeping the newest ``WINDOW``;
-    False when that leaves them as they are: a later verdict of its record is there already
-    (stored concurrently, committed first), or the window is full of newer ones. Its record's
-    earlier verdict, if there, gives way to it."""
-    order = (new[_AT], new[_VERDICT])
-    earlier = next((i for i, row in enumerate(rows) if row[_RECORD] == new[_RECORD]), None)
-    if earlier is not None:
-        if rows[earlier][_VERDICT] > new[_VERDICT]:
-            return False
-        del rows[earlier]
-    elif len(rows) >= WINDOW and order < (rows[0][_AT], rows[0][_VERDICT]):
-        return False
-    rows.insert(bisect.bisect([(row[_AT], row[_VERDICT]) for row in rows], order), new)
-    del rows[:-WINDOW]
-    return True
-
-
-def _row(p: Point) -> list[Any]:
-    modes = [[name, *figures] for name, figures in p.modes.items()]
-    at = (p.acquired_at - EPOCH) // MICROSECOND
-    return [p.record_id, p.verdict_id, at, p.status, p.reference_mode, p.interval, modes]
-
-
-def _point_of(row: list[Any]) -> Point:
-    record_id, verdict_id, at, status, reference_mode, interval, modes = row
-    return Point(
-        record_id=record_id,
-        verdict_id=verdict_id,
-        acquired_at=EPOCH + dt.timedelta(microseconds=at),
-        status=status,
-        reference_mode=reference_mode,
-        interval=(interval[0], interval[1]) if interval is not None else None,
-        modes={name: (k_hat, sigma, alone) for name, k_hat, sigma, alone in modes},
+def _standing(session: Session, structure_id: int, rules: list[AlarmRule]) -> Kept:
+    """The kept state if it is that of these rules, else built from the history (not kept)."""
+    text = session.execute(STATE_OF, {"structure_id": structure_id}).scalar_one_or_none()
+    kept = Kept.loads(text) if text is not None else None
+    return (
+        kept
+        if kept is not None and kept.rules == _fingerprint(rules)
+        else _replay(session, structure_id, rules)
     )
 
 
-def _dumps(rows: list[list[Any]]) -> str:
-    return json.dumps(rows, separators=(",", ":"))
+# --- evaluation -------------------------------------------------------------------------------
+
+
+def evaluate(
+    session: Session, structure: Structure, verdict: Point | None = None, new_record: bool = False
+) -> None:
+    """Count ``verdict``, just stored, in the structure's kept rule state; open, keep or resolve its
+    alarms.
+
+    Called in the transaction that stored the verdict, after its insert (``new_record``: its
+    record was stored by the same transaction, so has no other verdict), and when the rules
+    change, with none: only flushes. A verdict newer than every one counted, of a record with no
+    other verdict, is counted on the kept state: each rule's track one record on. Any other (a
+    record uploaded late, a re-inspection, a structure without a kept state or whose rules
+    changed) has the state rebuilt from the history (:func:`_replay`). Every transition is
+    announced through :func:`service.domain.notifications.notify`, delivered after the commit.
+    """
+    lock(session, structure.id)
+    rules, _ = rules_of(session, structure.id)
+    text = session.execute(STATE_OF, {"structure_id": structure.id}).scalar_one_or_none()
+    kept = Kept.loads(text) if text is not None else None
+    if (
+        verdict is not None
+        and kept is not None
+        and kept.newest is not None
+        and kept.rules == _fingerprint(rules)
+        and _after_newest(verdict, kept.newest)
+        and (new_record or session.execute(OTHER_VERDICT, vars(verdict)).first() is None)
+    ):
+        counted = _step(kept, rules, verdict)
+    else:
+        kept = _replay(session, structure.id, rules)
+        counted = [key for key, track in kept.tracks.items() if track.through is not None]
+    _apply(session, structure, rules, kept, counted)
+    if text is None:
+        session.execute(NEW_STATE, {"structure_id": structure.id, "state": kept.dumps()})
+    else:
+        session.execute(KEEP_STATE, {"structure": structure.id, "state": kept.dumps()})
+
+
+def _after_newest(p: Point, newest: list[int]) -> bool:
+    record_id, verdict_id, at = newest
+    return p.record_id != record_id and (_microseconds(p.acquired_at), p.verdict_id) > (at, verdict_id)
+
+
+def _apply(
+    session: Session, structure: Structure, rules: list[AlarmRule], kept: Kept, counted: list[str]
+) -> None:
+    """Each counted track's alarm: kept (its ``evaluated_through`` the newest record counted),
+    resolved once ``clear_after`` records in a row have not fired (the track then starts again
+    from the records acquired later), or opened on the first firing of a current run."""
+    by_kind = {rule.kind: rule for rule in rules}
+    through = []
+    for key in counted:
+        kind, _, mode = key.partition(" ")
+        rule, t = by_kind.get(kind), kept.tracks[key]
+        if rule is None or t.through is None:
+            continue
+        if t.alarm is not None:
+            if t.quiet < rule.clear_after:
+                through.append({"alarm": t.alarm, "through": _moment(t.through)})
+                continue
+            alarm = session.get_one(Alarm, t.alarm)
+            alarm.evaluated_through = max(alarm.evaluated_through, _moment(t.through))
+            _resolve(session, structure, alarm, "cleared", None, None)
+            kept.tracks[key] = Track(after=_microseconds(alarm.evaluated_through))
+        elif t.first is not None and t.quiet < rule.clear_after:
+            t.alarm = _open(session, structure, rule, kept, mode or None, t)
+    if through:
+        session.execute(THROUGH, through)
+
+
+def _open(
+    session: Session, structure: Structure, rule: AlarmRule, kept: Kept, mode: str | None, t: Track
+) -> int:
+    assert t.first is not None and t.through is not None
+    record_id, triggered, drift = t.first
+    document = rule.model_dump(mode="json")
+    if isinstance(rule, CusumRule):
+        document["design"] = vars(cusum_design(rule, kept.modes, kept.share())) | {"modes": kept.modes}
+    alarm = Alarm(
+        structure_id=structure.id,
+        organisation_id=structure.organisation_id,
+        rule_kind=rule.kind,
+        rule=document,
+        fault_mode=mode,
+        state="open",
+        opened_at=utcnow(),
+        record_id=record_id,
+        triggered_at=_moment(triggered),
+        drift_started_at=_moment(drift) if drift is not None else None,
+        evaluated_through=_moment(t.through),
+    )
+    alarm.transitions.append(AlarmTransition(from_state=None, to_state="open", at=alarm.opened_at))
+    session.add(alarm)
+    session.flush()
+    _announce(session, structure, alarm, "alarm.opened")
+    return alarm.id
+
+
+def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
+    """Each fault mode's CUSUM statistic over the records the rules look at (the newest
+    ``WINDOW``, counted from the history as :func:`_replay` counts them), with its threshold;
+    none when the structure has no CUSUM rule."""
+    rules, _ = rules_of(session, structure_id)
+    rule = next((r for r in rules if isinstance(r, CusumRule)), None)
+    if rule is None:
+        return []
+    series: dict[str, list[Any]] = {}
+    kept = _replay(session, structure_id, rules, series)
+    try:
+        threshold = cusum_design(rule, kept.modes, kept.share()).threshold
+    except InputError:
+        return []
+    return [
+        CusumSeries(key.split(" ", 1)[1], [at for at, _ in values], [s for _, s in values], threshold)
+        for key, values in sorted(series.items())
+    ]
 
 
 def newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
@@ -521,12 +632,6 @@ def newest_points(session: Session, structure_id: int, count: int) -> list[Point
     return [point(*row) for row in reversed(rows)]
 
 
-def _mode_count(points: list[Point]) -> int:
-    """The fault modes the newest verdict was judged against (one before any verdict): the
-    number of CUSUM charts that share the structure's false alarms."""
-    return max(1, len(points[-1].modes)) if points else 1
-
-
 def _unresolved(session: Session, structure_id: int) -> dict[tuple[str, str | None], Alarm]:
     alarms = session.scalars(UNRESOLVED_OF, {"structure_id": structure_id})
     return {(alarm.rule_kind, alarm.fault_mode): alarm for alarm in alarms}
@@ -537,11 +642,12 @@ def _resolved_through(session: Session, structure_id: int) -> dict[tuple[str, st
     return {(kind, mode): through for kind, mode, through in rows}
 
 
-def forget_windows(session: Session, structure_ids: set[int]) -> None:
-    """Drop the kept windows of structures whose verdicts are about to be deleted (by the
-    retention), each rebuilt from what is left of its history the next time its rules run. The
-    structures are locked first, in order of id, as :func:`lock` locks one: no evaluation reads
-    a window, or builds one from a history, that the deletion is changing."""
+def forget_states(session: Session, structure_ids: set[int]) -> None:
+    """Drop the kept rule states of structures whose verdicts are about to be deleted (by the
+    retention) or whose alarm was resolved by hand, each rebuilt from what is left of its
+    history the next time its rules run. The structures are locked first, in order of id, as
+    :func:`lock` locks one: no evaluation reads a state, or builds one from a history, that the
+    deletion is changing."""
     ordered = sorted(structure_ids)
     session.execute(
         select(Structure.id)
@@ -549,7 +655,7 @@ def forget_windows(session: Session, structure_ids: set[int]) -> None:
         .order_by(Structure.id)
         .with_for_update(key_share=True)
     )
-    session.execute(delete(AlarmWindow).where(AlarmWindow.structure_id.in_(ordered)))
+    session.execute(delete(AlarmState).where(AlarmState.structure_id.in_(ordered)))
 
 
 def lock(session: Session, structure_id: int) -> None:
@@ -586,7 +692,12 @@ def acknowledge(session: Session, principal: Principal, alarm_id: int, note: str
 
 
 def resolve(session: Session, principal: Principal, alarm_id: int, note: str) -> Alarm:
+    """Resolve an alarm by hand. Its structure is locked first, as an evaluation locks it, and the
+    alarm read again under the lock; the rules' kept state is dropped, to be rebuilt from the
+    history, whose rule then counts only the records acquired after the alarm's last evaluation."""
     alarm = _get(session, principal, alarm_id)
+    forget_states(session, {alarm.structure_id})
+    session.refresh(alarm)
     if alarm.state == "resolved":
         raise ConflictError(f"alarm {alarm_id} is resolved already ({alarm.resolution})")
     structure = get_structure(session, principal, alarm.structure_id)

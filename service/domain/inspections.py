@@ -244,8 +244,8 @@ def store_verdict(
         values["interval_high"],
         values["modes"],
     )
-    # In the same transaction: the verdict and its alarms (and their window), or neither.
-    alarms.evaluate(session, structure, stored)
+    # In the same transaction: the verdict and its alarms (and the rules' kept state), or neither.
+    alarms.evaluate(session, structure, stored, new_record)
     # Counted last: the state row, which every upload of the structure updates, is then locked
     # only until the commit, not through the alarms' evaluation (alarms.lock: the lock order).
     fleet.count_verdict(

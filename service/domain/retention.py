@@ -199,7 +199,7 @@ def _delete_verdicts(session: Session, organisation_id: int, horizon: dt.datetim
     ).all()
     if not chosen:
         return 0
-    alarms.forget_windows(session, {row.structure_id for row in chosen})
+    alarms.forget_states(session, {row.structure_id for row in chosen})
     locked = fleet.lock_states(session, (row.structure_id for row in chosen))
     # What was deleted, as returned: a concurrent pruning may have taken some of these already.
     removed = [

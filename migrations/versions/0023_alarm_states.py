@@ -1,14 +1,14 @@
-"""the verdicts each structure's alarm rules run over, kept on write
+"""where each structure's alarm rules stand, kept on write
 
 Revision ID: 0023
-Revises: 0021
+Revises: 0022
 Create Date: 2026-11-30 09:00:00.000000
 
 The alarm rules ran after every verdict over the structure's newest verdicts read again from its
-history; ``alarm_windows`` keeps those verdicts, as the rules read them, in one row per structure,
-written in each verdict's transaction (``service.domain.alarms``). The table starts empty: a
-structure's row is built from its history the first time its rules run after this revision, from
-the same verdicts the rules read before, so its alarms go on as they would have.
+history; ``alarm_states`` keeps, in one row per structure, what each rule needs to go on from the
+newest verdict it counted (``service.domain.alarms``), written in each verdict's transaction. The
+table starts empty: a structure's row is built from its history the first time its rules run
+after this revision, from the verdicts the rules read before, so its alarms go on from there.
 """
 
 from __future__ import annotations
@@ -24,13 +24,13 @@ depends_on = None
 
 def upgrade() -> None:
     op.create_table(
-        "alarm_windows",
+        "alarm_states",
         sa.Column("structure_id", sa.Integer(), autoincrement=False, nullable=False),
-        sa.Column("points", sa.Text(), nullable=False),
+        sa.Column("state", sa.Text(), nullable=False),
         sa.ForeignKeyConstraint(["structure_id"], ["structures.id"], ondelete="CASCADE"),
         sa.PrimaryKeyConstraint("structure_id"),
     )
 
 
 def downgrade() -> None:
-    op.drop_table("alarm_windows")
+    op.drop_table("alarm_states")
