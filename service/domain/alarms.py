@@ -44,7 +44,7 @@ import datetime as dt
 import json
 import math
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, lru_cache
 from typing import Any
 
 import numpy as np
@@ -194,9 +194,10 @@ def rules_of(session: Session, structure_id: int) -> tuple[list[AlarmRule], bool
     return sorted(rules, key=lambda rule: [r.kind for r in DEFAULT_RULES].index(rule.kind)), False
 
 
-@cache
+@lru_cache(maxsize=1024)
 def _rule(parameters: str) -> AlarmRule:
-    """A stored rule's parameters, validated once: every verdict reads its structure's rules."""
+    """A stored rule's parameters, validated once: every verdict reads its structure's rules.
+    Bounded: admins may store any number of distinct rules."""
     return AlarmRules.model_validate({"rules": [json.loads(parameters)]}).rules[0]
 
 
