@@ -53,6 +53,7 @@ Annals of Statistics 14, 1379–1387.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
@@ -251,7 +252,8 @@ def _gauss_hermite(n: int) -> tuple[np.ndarray, np.ndarray]:
 def common_share(sigma_k: float, sigma_k_record: float) -> float:
     """The fraction of a verdict's σ̂_k² common to every record of its structure: the fault-mode
     model's own estimation error, (σ̂_k² − σ̂_k,record²)/σ̂_k² (``models.inspection.ModeResult``)."""
-    if not (np.isfinite(sigma_k) and np.isfinite(sigma_k_record)) or sigma_k <= 0 or sigma_k_record < 0:
+    # math.isfinite: the service asks this of every healthy verdict it keeps, at every verdict.
+    if not (math.isfinite(sigma_k) and math.isfinite(sigma_k_record)) or sigma_k <= 0 or sigma_k_record < 0:
         raise InputError(f"σ̂k must be positive and finite; got {sigma_k} and {sigma_k_record}")
     return float(max(0.0, 1.0 - (sigma_k_record / sigma_k) ** 2))
 
@@ -416,6 +418,27 @@ def persistence(flags: Sequence[bool], k: int, m: int) -> bool:
         raise InputError(f"persistence needs 1 ≤ k ≤ m; got k = {k}, m = {m}")
     window = list(flags)[-m:]
     return sum(bool(f) for f in window) >= k
+
+
+def persistence_path(flags: Sequence[bool], k: int, m: int) -> list[bool]:
+    """:func:`persistence` after each flag in turn, in one pass: element i is
+    ``persistence(flags[: i + 1], k, m)``.
+
+    Examples
+    --------
+    >>> persistence_path([True, False, True, True, False, False, False], k=2, m=3)
+    [False, False, True, True, True, False, False]
+    """
+    if k < 1 or m < k:
+        raise InputError(f"persistence needs 1 ≤ k ≤ m; got k = {k}, m = {m}")
+    window = [bool(f) for f in flags]
+    held, path = 0, []
+    for i, flag in enumerate(window):
+        held += flag
+        if i >= m:
+            held -= window[i - m]
+        path.append(held >= k)
+    return path
 
 
 def severity(lower: float, upper: float, threshold: float) -> bool:

@@ -469,6 +469,24 @@ class AlarmRule(Base):
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
+class AlarmState(Base):
+    """Where a structure's alarm rules stand, kept in the transaction of each verdict
+    (``service.domain.alarms``): per rule and fault mode, what the rule needs of the records it
+    has counted (a CUSUM's two sums, persistence's last m outcomes, the current run of firings,
+    the unresolved alarm), and the newest verdict counted. A verdict newer than that one updates
+    it without reading the history; a structure without a row (after the migration, or after the
+    retention dropped it with verdicts, or an alarm resolved by hand) has it rebuilt from its
+    history the next time its rules run."""
+
+    __tablename__ = "alarm_states"
+
+    structure_id: Mapped[int] = mapped_column(
+        ForeignKey("structures.id", ondelete="CASCADE"), primary_key=True, autoincrement=False
+    )
+    # JSON as text: written whole and read whole, never queried inside.
+    state: Mapped[str] = mapped_column(Text)
+
+
 class Alarm(Base):
     """A rule that fired on a structure's verdicts, from open through acknowledged to resolved.
 

@@ -547,3 +547,60 @@ def test_0022_reads_each_state_again_without_the_verdicts_acquired_in_the_future
     }
     tallies = {structure_id: (s.records, s.healthy, s.faulty) for structure_id, s in after.items()}
     assert tallies == {1: (5, 2, 3), 2: (1, 0, 1), 3: (1, 1, 0)}
+
+
+def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_history(fresh_url):
+    """A structure judged before 0023 has no kept rule state: its next verdict's evaluation builds
+    it from the history, so the rules count the verdicts stored before the upgrade (here the two
+    faulty ones that, with a third, make persistence's 3 of 5), and the next goes on from it.
+    Downgrading drops the table."""
+    from service.domain import alarms
+
+    upgrade_database(fresh_url, "0022")
+    engine = make_engine(fresh_url)
+    now = dt.datetime.now(dt.UTC)
+    t0 = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
+    table = Base.metadata.tables
+    with engine.begin() as connection:
+        _organisation_and_structure(connection, now)
+        for n in (1, 2, 3):
+            connection.execute(
+                table["records"].insert().values(
+                    id=n, structure_id=1, fs=1500.0, n_samples=3, acquired_at=t0 + n * dt.timedelta(hours=1),
+                    created_at=now, sha256=f"{n:064d}", x=b"", y=b"",
+                )
+            )  # fmt: skip
+        for n, status in ((1, "faulty"), (2, "faulty")):
+            connection.execute(
+                table["verdicts"].insert().values(
+                    id=n, record_id=n, structure_id=1, acquired_at=t0 + n * dt.timedelta(hours=1),
+                    created_at=now, model_set="1", status=status, fault_detected=True, alpha=0.05, lags=4,
+                    n_samples=3, z_critical=1.96, q_critical_detection=1.0, detected_by=[], modes=[],
+                )
+            )  # fmt: skip
+    upgrade_database(fresh_url)
+    with Session(engine) as session:
+        assert session.scalars(select(tables.AlarmState)).all() == []
+        at = t0 + 3 * dt.timedelta(hours=1)
+        session.execute(
+            table["verdicts"].insert().values(
+                id=3, record_id=3, structure_id=1, acquired_at=at, created_at=now, model_set="1",
+                status="faulty", fault_detected=True, alpha=0.05, lags=4, n_samples=3, z_critical=1.96,
+                q_critical_detection=1.0, detected_by=[], modes=[],
+            )
+        )  # fmt: skip
+        structure = session.get(tables.Structure, 1)
+        alarms.evaluate(session, structure, alarms.point(3, 3, at, "faulty", None, None, None, []))
+        session.commit()
+        kept = alarms.Kept.loads(session.scalar(select(tables.AlarmState.state)))
+        rebuilt = alarms._replay(session, 1, list(alarms.DEFAULT_RULES))
+        opened = session.execute(select(tables.Alarm.rule_kind, tables.Alarm.record_id)).all()
+    assert kept.tracks["persistence"].flags == [True, True, True] and kept == rebuilt
+    assert kept.newest == [3, 3, alarms._microseconds(at)]
+    assert opened == [("persistence", 3)]  # one faulty verdict alone fires no rule
+
+    command.downgrade(alembic_config(fresh_url), "0022")
+    with engine.connect() as connection:
+        left = set(inspect(connection).get_table_names())
+    engine.dispose()
+    assert "alarm_states" not in left and "verdicts" in left

@@ -8,28 +8,47 @@ verdict's own σ̂k, designed for a stated number of false alarms a year, and *s
 interval wholly beyond a magnitude). A structure without rules of its own is watched by the
 defaults.
 
-Each rule fires or not at each record of the structure's recent history (the newest verdict of
-each record, so a re-inspection with new models re-judges it). An alarm opens when a rule fires
-on a record among the newest ``clear_after`` and none of its (structure, rule, fault mode) is
-unresolved; it resolves by itself once ``clear_after`` records in a row have not fired; after a
-resolution the rule looks only at records acquired later, so that the evidence an alarm was
-resolved on does not open it again. The CUSUM restarts from zero after each signal, as its design
-assumes (``models.alarms``); it starts from zero at the oldest record evaluated.
+Each rule fires or not at each record of the structure, in order of acquisition (the newest
+verdict of each record, so a re-inspection with new models re-judges it). An alarm opens when a
+rule fires on a record among the newest ``clear_after`` and none of its (structure, rule, fault
+mode) is unresolved; it resolves by itself once ``clear_after`` records in a row have not fired;
+after a resolution the rule counts only records acquired later, so that the evidence an alarm
+was resolved on does not open it again. The CUSUM is a running one over the records, restarting
+from zero only at its signals, as its design assumes (``models.alarms``), and where its alarm
+resolved. Its design takes the fault modes of the newest verdict (the charts sharing the
+structure's false alarms) and the median common share of σ̂k² of the newest ``WINDOW`` healthy
+verdicts (of all verdicts until one is healthy), both as they stood at each record.
+
+What each rule needs to go on is kept in the structure's ``AlarmState`` row (:class:`Kept`),
+updated in the transaction of each verdict: per rule and fault mode a :class:`Track` (a CUSUM's
+two sums and where its drift began, persistence's last m outcomes, the current run of firings,
+the unresolved alarm), the design's inputs, and the newest verdict counted. A verdict newer than
+that one, of a record with no other verdict (an upload, the common case), moves each track one
+record on, whatever the length of the history. Any other verdict — a record uploaded late, a
+re-inspection, a verdict whose later sibling was committed first — and a structure without a
+kept state (after the migration, after the retention deleted verdicts, after an alarm was
+resolved by hand) or whose rules changed, has the state rebuilt from the history
+(:func:`_replay`): the newest verdict of each of the newest ``WINDOW`` records counted in order,
+each track from its rule's last resolution on. That rebuild is also the reference the kept state
+is tested against; it differs from the running state only where a CUSUM had not come back to
+zero within those ``WINDOW`` records.
 
 Evaluations of one structure run one after another (its row lock on PostgreSQL, the single
-writer on SQLite), and the database refuses a second unresolved alarm of the same key anyway.
+writer on SQLite), so each reads the state the previous one committed; the database refuses a
+second unresolved alarm of the same key anyway.
 """
 
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterator
+import json
+import math
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, lru_cache
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Select, delete, exists, func, select
+from sqlalchemy import Select, bindparam, delete, exists, func, insert, select, update
 from sqlalchemy.orm import Session, aliased, selectinload
 
 from models import alarms as rules_math
@@ -51,7 +70,16 @@ from service.schemas import (
     SeverityRule,
 )
 from service.security import Principal
-from service.tables import UNRESOLVED, Alarm, AlarmTransition, ApiKey, Structure, Verdict, utcnow
+from service.tables import (
+    UNRESOLVED,
+    Alarm,
+    AlarmState,
+    AlarmTransition,
+    ApiKey,
+    Structure,
+    Verdict,
+    utcnow,
+)
 from service.tables import AlarmRule as StoredRule
 
 # Records a rule is evaluated over: the persistence and severity rules need a few, the CUSUM's
@@ -75,23 +103,43 @@ class Point:
     """A record's newest verdict, as the rules read it."""
 
     record_id: int
+    verdict_id: int
     acquired_at: dt.datetime
     status: str
     reference_mode: str | None
     interval: tuple[float, float] | None
     modes: dict[str, tuple[float, float, float]]  # name → (k̂, σ̂k, σ̂k of the record alone)
 
+    @property
+    def order(self) -> tuple[dt.datetime, int]:
+        """Where the point stands in its structure's history: by acquisition, then verdict id."""
+        return self.acquired_at, self.verdict_id
 
-@dataclass(frozen=True)
-class Firing:
-    """Where a rule fired: ``fired`` per record of ``points``; for the CUSUM, the index of the
-    first record of each signal's drift, and its statistic (the larger side) after each record."""
 
-    fault_mode: str | None
-    points: list[Point]
-    fired: list[bool]
-    drift_starts: dict[int, int]
-    statistic: list[float] = field(default_factory=list)
+def point(
+    verdict_id: int,
+    record_id: int,
+    acquired_at: dt.datetime,
+    status: str,
+    reference_mode: str | None,
+    interval_low: float | None,
+    interval_high: float | None,
+    modes: list[dict[str, Any]],
+) -> Point:
+    """A verdict's point, from its columns: the fault modes whose z = k̂/σ̂k is a number."""
+    return Point(
+        record_id=record_id,
+        verdict_id=verdict_id,
+        acquired_at=acquired_at.astimezone(dt.UTC),
+        status=status,
+        reference_mode=reference_mode,
+        interval=(interval_low, interval_high) if interval_low is not None else None,  # type: ignore[arg-type]
+        modes={
+            m["name"]: (m["k_hat"], m["sigma_k"], m["sigma_k_record"])
+            for m in modes
+            if m["sigma_k"] > 0 and math.isfinite(m["k_hat"] / m["sigma_k"])
+        },
+    )
 
 
 @dataclass(frozen=True)
@@ -107,13 +155,50 @@ class CusumSeries:
 # --- rules ------------------------------------------------------------------------------------
 
 
+# The statements run after every verdict, built once (their compiled forms are cached by
+# SQLAlchemy; building the expressions anew cost more than running them).
+RULES_OF = select(StoredRule.parameters).where(StoredRule.structure_id == bindparam("structure_id"))
+STATE_OF = select(AlarmState.state).where(AlarmState.structure_id == bindparam("structure_id"))
+NEW_STATE = insert(AlarmState)
+KEEP_STATE = (
+    update(AlarmState.__table__)
+    .where(AlarmState.__table__.c.structure_id == bindparam("structure"))
+    .values(state=bindparam("state"))
+)
+# An unresolved alarm's newest record counted, one row per alarm (executemany).
+THROUGH = (
+    update(Alarm.__table__)
+    .where(Alarm.__table__.c.id == bindparam("alarm"))
+    .values(evaluated_through=bindparam("through"))
+)
+OTHER_VERDICT = select(Verdict.id).where(
+    Verdict.record_id == bindparam("record_id"), Verdict.id != bindparam("verdict_id")
+)
+UNRESOLVED_OF = select(Alarm).where(Alarm.structure_id == bindparam("structure_id"), UNRESOLVED)
+RESOLVED_THROUGH = (
+    select(Alarm.rule_kind, Alarm.fault_mode, func.max(Alarm.evaluated_through))
+    .where(Alarm.structure_id == bindparam("structure_id"), Alarm.state == "resolved")
+    .group_by(Alarm.rule_kind, Alarm.fault_mode)
+)
+LOCK = select(Structure.id).where(Structure.id == bindparam("structure_id")).with_for_update(key_share=True)
+
+
 def rules_of(session: Session, structure_id: int) -> tuple[list[AlarmRule], bool]:
     """The structure's rules and whether they are the defaults (it has none of its own)."""
-    stored = session.scalars(select(StoredRule).where(StoredRule.structure_id == structure_id))
-    rules = [AlarmRules.model_validate({"rules": [row.parameters]}).rules[0] for row in stored]
+    rules = [
+        _rule(json.dumps(parameters, sort_keys=True))
+        for parameters in session.scalars(RULES_OF, {"structure_id": structure_id})
+    ]
     if not rules:
         return list(DEFAULT_RULES), True
     return sorted(rules, key=lambda rule: [r.kind for r in DEFAULT_RULES].index(rule.kind)), False
+
+
+@lru_cache(maxsize=1024)
+def _rule(parameters: str) -> AlarmRule:
+    """A stored rule's parameters, validated once: every verdict reads its structure's rules.
+    Bounded: admins may store any number of distinct rules."""
+    return AlarmRules.model_validate({"rules": [json.loads(parameters)]}).rules[0]
 
 
 def get_rules(session: Session, principal: Principal, structure_id: int) -> AlarmRulesOut:
@@ -128,7 +213,7 @@ def set_rules(session: Session, principal: Principal, structure_id: int, body: A
     structure = get_structure(session, principal, structure_id)
     for rule in body.rules:
         if isinstance(rule, CusumRule):  # a design that exists without the models' error, or a 422
-            cusum_design(rule, [])
+            cusum_design(rule, 1, 0.0)
     lock(session, structure_id)
     session.execute(delete(StoredRule).where(StoredRule.structure_id == structure_id))
     session.add_all(
@@ -148,9 +233,9 @@ def _rules_out(session: Session, structure_id: int, rules: list[AlarmRule], defa
     cusum = next((rule for rule in rules if isinstance(rule, CusumRule)), None)
     design, problem = None, None
     if cusum is not None:
-        points = _newest_points(session, structure_id, WINDOW)
+        kept = _standing(session, structure_id, rules)
         try:
-            design = CusumDesignOut(modes=_mode_count(points), **vars(cusum_design(cusum, points)))
+            design = CusumDesignOut(modes=kept.modes, **vars(cusum_design(cusum, kept.modes, kept.share())))
         except InputError as refusal:
             problem = str(refusal)
     return AlarmRulesOut(
@@ -158,19 +243,20 @@ def _rules_out(session: Session, structure_id: int, rules: list[AlarmRule], defa
     )
 
 
-def cusum_design(rule: CusumRule, points: list[Point]) -> rules_math.CusumDesign:
-    """The CUSUM each fault mode is watched with, for the models of the verdicts ``points``.
+def cusum_design(rule: CusumRule, modes: int, share: float) -> rules_math.CusumDesign:
+    """The CUSUM each fault mode is watched with, for ``modes`` fault modes (those the newest
+    verdict was judged against: one before any) and the common share ``share`` (:meth:`Kept.share`).
 
     The structure's false alarms a year are shared among its charts (their rates add up at most),
     so each runs as many times longer in control as there are modes; and the share of σ̂k² that
-    the models' own error makes common to all records (``_common_share``, to two decimals as
-    ``models.alarms.default_rules`` takes it) raises the threshold
-    that keeps that rate. ``InputError`` says why when no CUSUM within ``MAX_THRESHOLD`` can be
-    designed: then the CUSUM does not run (the rules' API says why), and the other rules still do.
+    the models' own error makes common to all records (to two decimals as
+    ``models.alarms.default_rules`` takes it) raises the threshold that keeps that rate.
+    ``InputError`` says why when no CUSUM within ``MAX_THRESHOLD`` can be designed: then the CUSUM
+    does not run (the rules' API says why), and the other rules still do.
     """
     records_per_year = 365.0 * rule.records_per_day
-    arl = _mode_count(points) * records_per_year / rule.false_alarms_per_year
-    design = _design(arl, rule.shift, round(_common_share(points), 2))
+    arl = modes * records_per_year / rule.false_alarms_per_year
+    design = _design(arl, rule.shift, round(share, 2))
     if isinstance(design, str):
         raise InputError(design)
     return design
@@ -198,125 +284,169 @@ def _design(arl: float, shift: float, share: float) -> rules_math.CusumDesign | 
         return str(refusal)
 
 
-def _common_share(points: list[Point]) -> float:
-    """The median over the healthy records (all, if none is) of the largest mode's common share:
-    the models' error grows away from the healthy state, and a design for the healthy structure
-    must not move because a fault is under way."""
-    healthy = [p for p in points if p.status == "healthy" and p.modes]
-    shares = [
-        max(rules_math.common_share(sigma, alone) for _, sigma, alone in point.modes.values())
-        for point in healthy or [p for p in points if p.modes]
-    ]
-    return float(np.median(shares)) if shares else 0.0
+# --- kept state -------------------------------------------------------------------------------
 
 
-# --- evaluation -------------------------------------------------------------------------------
+@dataclass
+class Track:
+    """One rule's state for one fault mode (``None``: persistence, which has none) of a structure.
 
-
-def evaluate(session: Session, structure: Structure) -> None:
-    """Run the structure's rules over its recent verdicts; open, keep or resolve its alarms.
-
-    Called in the transaction that stored a verdict (and when the rules change), after the
-    verdict's insert: only flushes. Every transition is announced through
-    :func:`service.domain.notifications.notify`, delivered after the commit.
+    Times are microseconds since the epoch (the databases' resolution: exact, and cheap to keep).
+    ``after``: only records acquired later count (the ``evaluated_through`` of the rule's last
+    resolved alarm); ``through``: the newest record counted; ``quiet``: records counted since the
+    last firing (all of them, if none fired); ``first``: the current run of firings' first one,
+    as [record id, acquired, drift start or None]; ``alarm``: the unresolved alarm's id.
+    Persistence keeps its last m outcomes (``flags``); the CUSUM its two sums, where each side's
+    current run away from zero began (None: at the next record) and its statistic at the last
+    record counted (the larger side, before a signal's restart).
     """
-    lock(session, structure.id)
-    points = _newest_points(session, structure.id, WINDOW)
-    if not points:
-        return
-    rules, _ = rules_of(session, structure.id)
-    unresolved = _unresolved(session, structure.id)
-    since = _resolved_through(session, structure.id)
-    for rule in rules:
-        for firing in _firings(rule, points, since):
-            key = (rule.kind, firing.fault_mode)
-            _apply(session, structure, rule, firing, points, unresolved.get(key))
 
+    alarm: int | None = None
+    after: int | None = None
+    through: int | None = None
+    quiet: int = 0
+    first: list[Any] | None = None
+    flags: list[bool] = field(default_factory=list)
+    up: float = 0.0
+    low: float = 0.0
+    up_from: int | None = None
+    low_from: int | None = None
+    statistic: float = 0.0
 
-def _apply(
-    session: Session,
-    structure: Structure,
-    rule: AlarmRule,
-    firing: Firing,
-    points: list[Point],
-    alarm: Alarm | None,
-) -> None:
-    fired = [i for i, f in enumerate(firing.fired) if f]
-    newest = firing.points[-1]
-    quiet = len(firing.points) - 1 - fired[-1] if fired else len(firing.points)
-    if alarm is not None:
-        alarm.evaluated_through = max(alarm.evaluated_through, newest.acquired_at)
-        if quiet >= rule.clear_after:
-            _resolve(session, structure, alarm, "cleared", None, None)
-        return
-    if not fired or quiet >= rule.clear_after:
-        return
-    first = fired[-1]  # the first firing of the current run: no quiet stretch of clear_after since
-    for earlier in reversed(fired[:-1]):
-        if first - earlier > rule.clear_after:
-            break
-        first = earlier
-    trigger = firing.points[first]
-    drift = firing.drift_starts.get(first)
-    alarm = Alarm(
-        structure_id=structure.id,
-        organisation_id=structure.organisation_id,
-        rule_kind=rule.kind,
-        rule=_rule_document(rule, points),
-        fault_mode=firing.fault_mode,
-        state="open",
-        opened_at=utcnow(),
-        record_id=trigger.record_id,
-        triggered_at=trigger.acquired_at,
-        drift_started_at=firing.points[drift].acquired_at if drift is not None else None,
-        evaluated_through=newest.acquired_at,
-    )
-    alarm.transitions.append(AlarmTransition(from_state=None, to_state="open", at=alarm.opened_at))
-    session.add(alarm)
-    session.flush()
-    _announce(session, structure, alarm, "alarm.opened")
-
-
-def _rule_document(rule: AlarmRule, points: list[Point]) -> dict[str, Any]:
-    """The rule as it fired; a CUSUM's with the design it ran with."""
-    document = rule.model_dump(mode="json")
-    if isinstance(rule, CusumRule):
-        document["design"] = vars(cusum_design(rule, points)) | {"modes": _mode_count(points)}
-    return document
-
-
-def _firings(
-    rule: AlarmRule, points: list[Point], since: dict[tuple[str, str | None], dt.datetime]
-) -> Iterator[Firing]:
-    """For each fault mode the rule watches, whether it fired at each record acquired after the
-    last resolution of its alarm."""
-
-    def after(mode: str | None) -> list[Point]:
-        start = since.get((rule.kind, mode))
-        return [p for p in points if start is None or p.acquired_at > start]
-
-    if isinstance(rule, PersistenceRule):
-        chosen = after(None)
-        flags = [p.status in FLAGGED for p in chosen]
-        fired = [rules_math.persistence(flags[: i + 1], rule.k, rule.m) for i in range(len(chosen))]
-        if chosen:
-            yield Firing(None, chosen, fired, {})
-        return
-    if isinstance(rule, CusumRule):
-        try:
-            design = cusum_design(rule, points)
-        except InputError:  # GET …/alarm-rules and the structure's page say why
-            return
-    for mode in sorted({name for p in points for name in p.modes}):
-        chosen = after(mode)
-        if isinstance(rule, SeverityRule):
-            chosen_fired = [_severe(p, mode, rule.threshold) for p in chosen]
-            if chosen:
-                yield Firing(mode, chosen, chosen_fired, {})
+    def count(self, fired: bool, at: int, record_id: int, drift: int | None, clear_after: int) -> None:
+        """One more record: a firing starts a run, or goes on with the current one if fewer than
+        ``clear_after`` records have not fired since the last."""
+        self.through = at
+        if fired:
+            if self.first is None or self.quiet >= clear_after:
+                self.first = [record_id, at, drift]
+            self.quiet = 0
         else:
-            with_mode = [p for p in chosen if mode in p.modes]
-            if with_mode:
-                yield _cusum_firing(mode, with_mode, design)
+            self.quiet += 1
+
+
+@dataclass
+class Kept:
+    """Where a structure's rules stand (its ``AlarmState`` row).
+
+    ``rules``: the rules' parameters it was built under (other rules: built again); ``newest``: the
+    newest verdict counted, [record id, verdict id, acquired]; ``modes``: the fault modes that
+    verdict was judged against (one before any), the CUSUM charts sharing the false alarms;
+    ``shares``: the common shares of σ̂k² of the newest ``WINDOW`` healthy verdicts (of all
+    verdicts, until one is healthy: ``healthy``), whose median the CUSUM is designed for; and a
+    :class:`Track` per rule kind and fault mode (``"cusum k2"``, ``"persistence"``).
+    """
+
+    rules: list[dict[str, Any]]
+    newest: list[int] | None = None
+    modes: int = 1
+    shares: list[float] = field(default_factory=list)
+    healthy: bool = False
+    tracks: dict[str, Track] = field(default_factory=dict)
+
+    def share(self) -> float:
+        """The median of ``shares``: the models' error grows away from the healthy state, and a
+        design for the healthy structure must not move because a fault is under way."""
+        return float(np.median(self.shares)) if self.shares else 0.0
+
+    def dumps(self) -> str:
+        document = vars(self) | {"tracks": {key: vars(track) for key, track in self.tracks.items()}}
+        return json.dumps(document, separators=(",", ":"))
+
+    @classmethod
+    def loads(cls, text: str) -> Kept:
+        document = json.loads(text)
+        document["tracks"] = {key: Track(**track) for key, track in document["tracks"].items()}
+        return cls(**document)
+
+
+def _key(kind: str, mode: str | None) -> str:
+    return kind if mode is None else f"{kind} {mode}"
+
+
+def _microseconds(at: dt.datetime) -> int:
+    return (at - EPOCH) // MICROSECOND
+
+
+def _moment(at: int) -> dt.datetime:
+    return EPOCH + dt.timedelta(microseconds=at)
+
+
+EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+MICROSECOND = dt.timedelta(microseconds=1)
+
+
+def _fingerprint(rules: list[AlarmRule]) -> list[dict[str, Any]]:
+    return [rule.model_dump(mode="json") for rule in rules]
+
+
+def _step(kept: Kept, rules: list[AlarmRule], p: Point) -> list[str]:
+    """Count the verdict ``p``, newer than every verdict counted, in ``kept``; the keys of the
+    tracks that counted it (a rule's track counts only the records acquired after its last
+    resolution, a CUSUM's only those judged against its fault mode)."""
+    at = _microseconds(p.acquired_at)
+    kept.newest = [p.record_id, p.verdict_id, at]
+    if p.modes:
+        kept.modes = len(p.modes)
+        share = max(rules_math.common_share(sigma, alone) for _, sigma, alone in p.modes.values())
+        if p.status == "healthy" and not kept.healthy:
+            kept.shares, kept.healthy = [], True
+        if p.status == "healthy" or not kept.healthy:
+            kept.shares = [*kept.shares[1 - WINDOW :], share] if WINDOW > 1 else [share]
+    else:
+        kept.modes = 1
+    counted: list[str] = []
+
+    def track(kind: str, mode: str | None) -> Track | None:
+        key = _key(kind, mode)
+        kept_track = kept.tracks.setdefault(key, Track())
+        if kept_track.after is not None and at <= kept_track.after:
+            return None
+        counted.append(key)
+        return kept_track
+
+    for rule in rules:
+        if isinstance(rule, PersistenceRule):
+            if (t := track(rule.kind, None)) is not None:
+                t.flags = [*t.flags, p.status in FLAGGED][-rule.m :]
+                t.count(sum(t.flags) >= rule.k, at, p.record_id, None, rule.clear_after)
+        elif isinstance(rule, SeverityRule):
+            known = {key.split(" ", 1)[1] for key in kept.tracks if key.startswith("severity ")}
+            for mode in sorted(known | set(p.modes)):
+                if (t := track(rule.kind, mode)) is not None:
+                    t.count(_severe(p, mode, rule.threshold), at, p.record_id, None, rule.clear_after)
+        else:
+            try:
+                design = cusum_design(rule, kept.modes, kept.share())
+            except InputError:  # GET …/alarm-rules and the structure's page say why
+                continue
+            for mode in sorted(p.modes):
+                if (t := track(rule.kind, mode)) is not None:
+                    _cusum_step(t, p, mode, at, design, rule.clear_after)
+    return counted
+
+
+def _cusum_step(
+    t: Track, p: Point, mode: str, at: int, design: rules_math.CusumDesign, clear_after: int
+) -> None:
+    """The two-sided CUSUM one record on (``models.alarms.cusum_chart``, one step of it): a
+    signal restarts both sums from zero, as the design assumes."""
+    k_hat, sigma, _ = p.modes[mode]
+    z = k_hat / sigma
+    r, h = design.reference, design.threshold
+    t.up_from = at if t.up_from is None else t.up_from
+    t.low_from = at if t.low_from is None else t.low_from
+    t.up, t.low = max(0.0, t.up + z - r), max(0.0, t.low - z - r)
+    t.statistic = max(t.up, t.low)
+    fired = t.up > h or t.low > h
+    drift = (t.up_from if t.up > h else t.low_from) if fired else None
+    if fired:
+        t.up = t.low = 0.0
+        t.up_from = t.low_from = None
+    else:
+        t.up_from = None if t.up == 0.0 else t.up_from
+        t.low_from = None if t.low == 0.0 else t.low_from
+    t.count(fired, at, p.record_id, drift, clear_after)
 
 
 def _severe(point: Point, mode: str, threshold: float) -> bool:
@@ -326,44 +456,165 @@ def _severe(point: Point, mode: str, threshold: float) -> bool:
     return rules_math.severity(low, high, threshold) or rules_math.severity(low, high, -threshold)
 
 
-def _cusum_firing(mode: str, points: list[Point], design: rules_math.CusumDesign) -> Firing:
-    """The chart's signals, restarting from zero after each one (as its design assumes)."""
-    z = np.array([k_hat / sigma for k_hat, sigma, _ in (p.modes[mode] for p in points)])
-    chart = rules_math.cusum_chart(z, design)
-    fired = [False] * len(points)
-    for at in chart.alarms:
-        fired[at] = True
-    drift_starts = dict(zip(chart.alarms, chart.drift_starts, strict=True))
-    return Firing(mode, points, fired, drift_starts, chart.statistic.tolist())
+def _replay(
+    session: Session, structure_id: int, rules: list[AlarmRule], series: dict[str, list[Any]] | None = None
+) -> Kept:
+    """Where the rules stand, built from the history: the newest verdict of each of the
+    structure's newest ``WINDOW`` records counted in order from an empty state, each rule's track
+    from the last resolution of its alarm on. ``series`` collects each CUSUM track's statistic."""
+    kept = Kept(_fingerprint(rules))
+    for (kind, mode), through in _resolved_through(session, structure_id).items():
+        kept.tracks[_key(kind, mode)] = Track(after=_microseconds(through))
+    for (kind, mode), alarm in _unresolved(session, structure_id).items():
+        kept.tracks.setdefault(_key(kind, mode), Track()).alarm = alarm.id
+    for p in newest_points(session, structure_id, WINDOW):
+        counted = _step(kept, rules, p)
+        if series is not None:
+            for key in counted:
+                if key.startswith("cusum "):
+                    series.setdefault(key, []).append((p.acquired_at, kept.tracks[key].statistic))
+    return kept
+
+
+def _standing(session: Session, structure_id: int, rules: list[AlarmRule]) -> Kept:
+    """The kept state if it is that of these rules, else built from the history (not kept)."""
+    text = session.execute(STATE_OF, {"structure_id": structure_id}).scalar_one_or_none()
+    kept = Kept.loads(text) if text is not None else None
+    return (
+        kept
+        if kept is not None and kept.rules == _fingerprint(rules)
+        else _replay(session, structure_id, rules)
+    )
+
+
+# --- evaluation -------------------------------------------------------------------------------
+
+
+def evaluate(
+    session: Session, structure: Structure, verdict: Point | None = None, new_record: bool = False
+) -> None:
+    """Count ``verdict``, just stored, in the structure's kept rule state; open, keep or resolve its
+    alarms.
+
+    Called in the transaction that stored the verdict, after its insert (``new_record``: its
+    record was stored by the same transaction, so has no other verdict), and when the rules
+    change, with none: only flushes. A verdict newer than every one counted, of a record with no
+    other verdict, is counted on the kept state: each rule's track one record on. Any other (a
+    record uploaded late, a re-inspection, a structure without a kept state or whose rules
+    changed) has the state rebuilt from the history (:func:`_replay`). Every transition is
+    announced through :func:`service.domain.notifications.notify`, delivered after the commit.
+    """
+    lock(session, structure.id)
+    rules, _ = rules_of(session, structure.id)
+    text = session.execute(STATE_OF, {"structure_id": structure.id}).scalar_one_or_none()
+    kept = Kept.loads(text) if text is not None else None
+    if (
+        verdict is not None
+        and kept is not None
+        and kept.newest is not None
+        and kept.rules == _fingerprint(rules)
+        and _after_newest(verdict, kept.newest)
+        and (new_record or session.execute(OTHER_VERDICT, vars(verdict)).first() is None)
+    ):
+        counted = _step(kept, rules, verdict)
+    else:
+        kept = _replay(session, structure.id, rules)
+        counted = [key for key, track in kept.tracks.items() if track.through is not None]
+    _apply(session, structure, rules, kept, counted)
+    if text is None:
+        session.execute(NEW_STATE, {"structure_id": structure.id, "state": kept.dumps()})
+    else:
+        session.execute(KEEP_STATE, {"structure": structure.id, "state": kept.dumps()})
+
+
+def _after_newest(p: Point, newest: list[int]) -> bool:
+    record_id, verdict_id, at = newest
+    return p.record_id != record_id and (_microseconds(p.acquired_at), p.verdict_id) > (at, verdict_id)
+
+
+def _apply(
+    session: Session, structure: Structure, rules: list[AlarmRule], kept: Kept, counted: list[str]
+) -> None:
+    """Each counted track's alarm: kept (its ``evaluated_through`` the newest record counted),
+    resolved once ``clear_after`` records in a row have not fired (the track then starts again
+    from the records acquired later), or opened on the first firing of a current run."""
+    by_kind = {rule.kind: rule for rule in rules}
+    through = []
+    for key in counted:
+        kind, _, mode = key.partition(" ")
+        rule, t = by_kind.get(kind), kept.tracks[key]
+        if rule is None or t.through is None:
+            continue
+        if t.alarm is not None:
+            if t.quiet < rule.clear_after:
+                through.append({"alarm": t.alarm, "through": _moment(t.through)})
+                continue
+            alarm = session.get_one(Alarm, t.alarm)
+            alarm.evaluated_through = max(alarm.evaluated_through, _moment(t.through))
+            _resolve(session, structure, alarm, "cleared", None, None)
+            kept.tracks[key] = Track(after=_microseconds(alarm.evaluated_through))
+        elif t.first is not None and t.quiet < rule.clear_after:
+            t.alarm = _open(session, structure, rule, kept, mode or None, t)
+    if through:
+        session.execute(THROUGH, through)
+
+
+def _open(
+    session: Session, structure: Structure, rule: AlarmRule, kept: Kept, mode: str | None, t: Track
+) -> int:
+    assert t.first is not None and t.through is not None
+    record_id, triggered, drift = t.first
+    document = rule.model_dump(mode="json")
+    if isinstance(rule, CusumRule):
+        document["design"] = vars(cusum_design(rule, kept.modes, kept.share())) | {"modes": kept.modes}
+    alarm = Alarm(
+        structure_id=structure.id,
+        organisation_id=structure.organisation_id,
+        rule_kind=rule.kind,
+        rule=document,
+        fault_mode=mode,
+        state="open",
+        opened_at=utcnow(),
+        record_id=record_id,
+        triggered_at=_moment(triggered),
+        drift_started_at=_moment(drift) if drift is not None else None,
+        evaluated_through=_moment(t.through),
+    )
+    alarm.transitions.append(AlarmTransition(from_state=None, to_state="open", at=alarm.opened_at))
+    session.add(alarm)
+    session.flush()
+    _announce(session, structure, alarm, "alarm.opened")
+    return alarm.id
 
 
 def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
-    """Each fault mode's CUSUM statistic over the records the rules look at, with its threshold;
+    """Each fault mode's CUSUM statistic over the records the rules look at (the newest
+    ``WINDOW``, counted from the history as :func:`_replay` counts them), with its threshold;
     none when the structure has no CUSUM rule."""
     rules, _ = rules_of(session, structure_id)
     rule = next((r for r in rules if isinstance(r, CusumRule)), None)
-    points = _newest_points(session, structure_id, WINDOW)
-    if rule is None or not points:
+    if rule is None:
         return []
+    series: dict[str, list[Any]] = {}
+    kept = _replay(session, structure_id, rules, series)
     try:
-        threshold = cusum_design(rule, points).threshold
+        threshold = cusum_design(rule, kept.modes, kept.share()).threshold
     except InputError:
         return []
     return [
-        CusumSeries(
-            firing.fault_mode or "", [p.acquired_at for p in firing.points], firing.statistic, threshold
-        )
-        for firing in _firings(rule, points, _resolved_through(session, structure_id))
+        CusumSeries(key.split(" ", 1)[1], [at for at, _ in values], [s for _, s in values], threshold)
+        for key, values in sorted(series.items())
     ]
 
 
-def _newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
+def newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
     """The newest verdict of each of the structure's newest ``count`` inspected records, oldest
     first (a re-inspection with new models re-judges a record: its earlier verdicts are passed
-    over, each through the index on the record)."""
+    over, each through the index on the record), read from its history."""
     later = aliased(Verdict)
     rows = session.execute(
         select(
+            Verdict.id,
             Verdict.record_id,
             Verdict.acquired_at,
             Verdict.status,
@@ -379,41 +630,33 @@ def _newest_points(session: Session, structure_id: int, count: int) -> list[Poin
         .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())
         .limit(count)
     ).all()
-    return [
-        Point(
-            record_id=row.record_id,
-            acquired_at=row.acquired_at,
-            status=row.status,
-            reference_mode=row.reference_mode,
-            interval=(row.interval_low, row.interval_high) if row.interval_low is not None else None,
-            modes={
-                m["name"]: (m["k_hat"], m["sigma_k"], m["sigma_k_record"])
-                for m in row.modes
-                if m["sigma_k"] > 0 and np.isfinite(m["k_hat"] / m["sigma_k"])
-            },
-        )
-        for row in reversed(rows)
-    ]
-
-
-def _mode_count(points: list[Point]) -> int:
-    """The fault modes the newest verdict was judged against (one before any verdict): the
-    number of CUSUM charts that share the structure's false alarms."""
-    return max(1, len(points[-1].modes)) if points else 1
+    return [point(*row) for row in reversed(rows)]
 
 
 def _unresolved(session: Session, structure_id: int) -> dict[tuple[str, str | None], Alarm]:
-    alarms = session.scalars(select(Alarm).where(Alarm.structure_id == structure_id, UNRESOLVED))
+    alarms = session.scalars(UNRESOLVED_OF, {"structure_id": structure_id})
     return {(alarm.rule_kind, alarm.fault_mode): alarm for alarm in alarms}
 
 
 def _resolved_through(session: Session, structure_id: int) -> dict[tuple[str, str | None], dt.datetime]:
-    rows = session.execute(
-        select(Alarm.rule_kind, Alarm.fault_mode, func.max(Alarm.evaluated_through))
-        .where(Alarm.structure_id == structure_id, Alarm.state == "resolved")
-        .group_by(Alarm.rule_kind, Alarm.fault_mode)
-    )
+    rows = session.execute(RESOLVED_THROUGH, {"structure_id": structure_id})
     return {(kind, mode): through for kind, mode, through in rows}
+
+
+def forget_states(session: Session, structure_ids: set[int]) -> None:
+    """Drop the kept rule states of structures whose verdicts are about to be deleted (by the
+    retention) or whose alarm was resolved by hand, each rebuilt from what is left of its
+    history the next time its rules run. The structures are locked first, in order of id, as
+    :func:`lock` locks one: no evaluation reads a state, or builds one from a history, that the
+    deletion is changing."""
+    ordered = sorted(structure_ids)
+    session.execute(
+        select(Structure.id)
+        .where(Structure.id.in_(ordered))
+        .order_by(Structure.id)
+        .with_for_update(key_share=True)
+    )
+    session.execute(delete(AlarmState).where(AlarmState.structure_id.in_(ordered)))
 
 
 def lock(session: Session, structure_id: int) -> None:
@@ -425,7 +668,7 @@ def lock(session: Session, structure_id: int) -> None:
     takes both, so that none waits for the other in a cycle: a stored verdict's alarms, then its
     counts (``inspections.store_verdict``); an upload inspected at once locks it before storing
     its record (``ingest``)."""
-    session.execute(select(Structure.id).where(Structure.id == structure_id).with_for_update(key_share=True))
+    session.execute(LOCK, {"structure_id": structure_id})
 
 
 # --- lifecycle --------------------------------------------------------------------------------
@@ -450,7 +693,12 @@ def acknowledge(session: Session, principal: Principal, alarm_id: int, note: str
 
 
 def resolve(session: Session, principal: Principal, alarm_id: int, note: str) -> Alarm:
+    """Resolve an alarm by hand. Its structure is locked first, as an evaluation locks it, and the
+    alarm read again under the lock; the rules' kept state is dropped, to be rebuilt from the
+    history, whose rule then counts only the records acquired after the alarm's last evaluation."""
     alarm = _get(session, principal, alarm_id)
+    forget_states(session, {alarm.structure_id})
+    session.refresh(alarm)
     if alarm.state == "resolved":
         raise ConflictError(f"alarm {alarm_id} is resolved already ({alarm.resolution})")
     structure = get_structure(session, principal, alarm.structure_id)

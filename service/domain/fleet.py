@@ -17,7 +17,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
 
-from sqlalchemy import Row, and_, func, or_, select, update
+from sqlalchemy import Row, and_, bindparam, func, or_, select, update
 from sqlalchemy.orm import Session, joinedload
 
 from models.errors import InputError
@@ -41,6 +41,37 @@ LISTED = joinedload(StructureState.latest).load_only(
     Verdict.interval_low,
     Verdict.interval_high,
 )
+
+
+# The statements of every upload, built once (their compiled forms are cached by SQLAlchemy;
+# building the expressions anew cost more than running them).
+OF_STRUCTURE = StructureState.structure_id == bindparam("structure")
+COUNT_RECORD = update(StructureState).where(OF_STRUCTURE).values(records=StructureState.records + 1)
+LOCK_STATE = (
+    select(
+        StructureState.status,
+        StructureState.since,
+        StructureState.latest_verdict_id,
+        StructureState.latest_acquired_at,
+    )
+    .where(OF_STRUCTURE)
+    .with_for_update()
+)
+# A verdict newer than the latest, by status: its count up by one, and it the latest.
+COUNT_NEWEST = {
+    status: update(StructureState)
+    .where(OF_STRUCTURE)
+    .values(
+        {
+            status: getattr(StructureState, status) + 1,
+            "status": status,
+            "since": bindparam("since"),
+            "latest_verdict_id": bindparam("verdict"),
+            "latest_acquired_at": bindparam("acquired_at"),
+        }
+    )
+    for status in STATUSES
+}
 
 
 @dataclass(frozen=True)
@@ -77,11 +108,7 @@ def count_record(session: Session, structure_id: int) -> None:
     """One more record stored for the structure. An increment in the database (``records + 1``),
     so concurrent uploads never lose one: each waits for the other's row lock, then adds to its
     committed value."""
-    counted = session.execute(
-        update(StructureState)
-        .where(StructureState.structure_id == structure_id)
-        .values(records=StructureState.records + 1)
-    )
+    counted = session.execute(COUNT_RECORD, {"structure": structure_id})
     if counted.rowcount != 1:
         raise RuntimeError(f"structure {structure_id} has no state row: run `narxwatch db upgrade`")
 
@@ -113,19 +140,9 @@ def count_verdict(
     state of a database written before, or the skew since lowered) is read again from the
     history up to ``limit``.
     """
-    state = session.execute(
-        select(
-            StructureState.status,
-            StructureState.since,
-            StructureState.latest_verdict_id,
-            StructureState.latest_acquired_at,
-        )
-        .where(StructureState.structure_id == structure_id)
-        .with_for_update()
-    ).one_or_none()
+    state = session.execute(LOCK_STATE, {"structure": structure_id}).one_or_none()
     if state is None:
         raise RuntimeError(f"structure {structure_id} has no state row: run `narxwatch db upgrade`")
-    counts = {status: getattr(StructureState, status) + 1}
     newer = state.latest_verdict_id is None or (acquired_at, verdict_id) > (
         state.latest_acquired_at,
         state.latest_verdict_id,
@@ -137,13 +154,17 @@ def count_verdict(
         values = {}
     elif newer:
         since = state.since if status == state.status else acquired_at
-        values = dict(
-            status=status, since=since, latest_verdict_id=verdict_id, latest_acquired_at=acquired_at
+        session.execute(
+            COUNT_NEWEST[status],
+            {"structure": structure_id, "since": since, "verdict": verdict_id, "acquired_at": acquired_at},
         )
+        return
     else:
         values = dict(since=_since(session, structure_id, state.status, state.latest_acquired_at))
     session.execute(
-        update(StructureState).where(StructureState.structure_id == structure_id).values(**counts, **values)
+        update(StructureState)
+        .where(StructureState.structure_id == structure_id)
+        .values({status: getattr(StructureState, status) + 1, **values})
     )
 
 

@@ -234,7 +234,18 @@ def store_verdict(
         insert(VerdictModel.__table__),
         [{"verdict_id": inserted.id, "model_version_id": v.id} for v in versions],
     )
-    alarms.evaluate(session, structure)  # in the same transaction: the verdict and its alarms, or neither
+    stored = alarms.point(
+        inserted.id,
+        record.id,
+        record.acquired_at,
+        result.status,
+        result.reference_mode,
+        values["interval_low"],
+        values["interval_high"],
+        values["modes"],
+    )
+    # In the same transaction: the verdict and its alarms (and the rules' kept state), or neither.
+    alarms.evaluate(session, structure, stored, new_record)
     # Counted last: the state row, which every upload of the structure updates, is then locked
     # only until the commit, not through the alarms' evaluation (alarms.lock: the lock order).
     fleet.count_verdict(

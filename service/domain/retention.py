@@ -40,7 +40,7 @@ from sqlalchemy import Select, delete, exists, func, select, update
 from sqlalchemy.orm import Session
 
 from service.db import insert_unless_exists
-from service.domain import fleet
+from service.domain import alarms, fleet
 from service.domain.schedules import Defer
 from service.schemas import Retention, RetentionOut
 from service.security import Principal
@@ -199,6 +199,7 @@ def _delete_verdicts(session: Session, organisation_id: int, horizon: dt.datetim
     ).all()
     if not chosen:
         return 0
+    alarms.forget_states(session, {row.structure_id for row in chosen})
     locked = fleet.lock_states(session, (row.structure_id for row in chosen))
     # What was deleted, as returned: a concurrent pruning may have taken some of these already.
     removed = [
