@@ -466,7 +466,7 @@ def explain(url: str, structure_id: int) -> None:
         ),
         "summary": lambda s: history.summary(s, principal, structure_id),
         "structure page (dashboard)": lambda s: views.structure_page(
-            s, principal, structure_id, views.HistoryFilter()
+            s, principal, structure_id, views.HistoryFilter(), dt.datetime.now(dt.UTC)
         ),
         "alarms": lambda s: alarms.list_alarms(s, principal),
         "alarms of the structure": lambda s: alarms.list_alarms(s, principal, structure_id=structure_id),

@@ -30,6 +30,9 @@ from service.tables import Alarm, AlarmState, Organisation, Record, Structure, V
 
 T0 = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
 HOUR = dt.timedelta(hours=1)
+# The latest acquisition that stands for a structure (the server's clock plus the skew): well after
+# every record of these tests but the one dated in the future.
+PRESENT = T0 + 10_000 * HOUR
 
 
 @pytest.fixture(scope="module")
@@ -103,13 +106,13 @@ def _kept(session: Session, structure: Structure) -> alarms.Kept:
 
 
 def _from_history(session: Session, structure: Structure) -> alarms.Kept:
-    return alarms._replay(session, structure.id, alarms.rules_of(session, structure.id)[0])
+    return alarms._replay(session, structure.id, alarms.rules_of(session, structure.id)[0], PRESENT)
 
 
 def _store(session: Session, structure: Structure, hours: float, status: str, z: dict[str, float]) -> None:
     record_id = _record(session, structure, T0 + hours * HOUR)
     point = _insert_verdict(session, structure, record_id, status, z, "a")
-    alarms.evaluate(session, structure, point, new_record=True)
+    alarms.evaluate(session, structure, PRESENT, point, new_record=True)
     session.commit()
 
 
@@ -153,7 +156,7 @@ def test_the_kept_state_gives_the_alarms_the_history_gives(plan, migrated, tmp_p
             point = _insert_verdict(session, target, record_id, status, z, f"set{index}")
             if session is history:
                 session.execute(delete(AlarmState))
-            alarms.evaluate(session, target, point, new_record=not again)
+            alarms.evaluate(session, target, PRESENT, point, new_record=not again)
             session.commit()
         if not again:
             records.append(record_id)
@@ -175,7 +178,7 @@ def test_a_verdict_newer_than_every_one_counted_is_counted_without_reading_the_h
     record_id = _record(session, structure, T0 + 40 * HOUR)
     point = _insert_verdict(session, structure, record_id, "faulty", {"k2": 0.3}, "a")
     statements.clear()
-    alarms.evaluate(session, structure, point, new_record=True)
+    alarms.evaluate(session, structure, PRESENT, point, new_record=True)
     session.commit()
     assert [s for s in statements if "verdicts" in s] == [] and len(statements) <= 6, statements
     assert _kept(session, structure) == _from_history(session, structure)
@@ -189,8 +192,8 @@ def test_a_verdict_whose_record_has_a_later_one_counted_changes_nothing(migrated
     record_id = _record(session, structure, T0)
     first = _insert_verdict(session, structure, record_id, "healthy", {"k2": 0.1}, "a")
     second = _insert_verdict(session, structure, record_id, "faulty", {"k2": 5.0}, "b")
-    alarms.evaluate(session, structure, second)
-    alarms.evaluate(session, structure, first)
+    alarms.evaluate(session, structure, PRESENT, second)
+    alarms.evaluate(session, structure, PRESENT, first)
     session.commit()
     state = _kept(session, structure)
     assert state.newest is not None and state.newest[1] == second.verdict_id
@@ -251,3 +254,23 @@ def test_persistence_in_one_pass_is_persistence_after_each_verdict(size):
         flags = [(seed * 7919 + i * i * 31) % 5 < 2 for i in range(size)]
         for k, m in ((1, 1), (2, 3), (3, 5), (5, 5)):
             assert persistence_path(flags, k, m) == [persistence(flags[: i + 1], k, m) for i in range(size)]
+
+
+def test_a_verdict_dated_in_the_future_never_stands_for_the_present(migrated, tmp_path):
+    """A healthy verdict stored with a date in the future (before such dates were refused) was the
+    newest counted: the faults acquired since are not late records behind it, and it counts as no
+    quiet record that would clear their alarm."""
+    session, structure = _database(migrated, tmp_path / "s.db")
+    record_id = _record(session, structure, dt.datetime(9999, 12, 31, tzinfo=dt.UTC))
+    future = _insert_verdict(session, structure, record_id, "healthy", {"k2": 0.1}, "a")
+    alarms.evaluate(session, structure, dt.datetime.max.replace(tzinfo=dt.UTC), future, new_record=True)
+    session.commit()
+    for hours in range(4):
+        _store(session, structure, hours, "faulty", {"k2": 5.0})
+    state = _kept(session, structure)
+    assert state.newest is not None and state.newest[0] != record_id
+    assert state.tracks["persistence"].flags == [True] * 4
+    opened = [(row[0], row[2], row[4]) for row in _alarms(session)]
+    assert {kind for kind, state, _ in opened if state == "open"} == {"cusum", "persistence"}
+    assert record_id not in {trigger for _, _, trigger in opened}
+    assert state == _from_history(session, structure)

@@ -590,10 +590,11 @@ def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_hi
             )
         )  # fmt: skip
         structure = session.get(tables.Structure, 1)
-        alarms.evaluate(session, structure, alarms.point(3, 3, at, "faulty", None, None, None, []))
+        limit = at + dt.timedelta(days=1)
+        alarms.evaluate(session, structure, limit, alarms.point(3, 3, at, "faulty", None, None, None, []))
         session.commit()
         kept = alarms.Kept.loads(session.scalar(select(tables.AlarmState.state)))
-        rebuilt = alarms._replay(session, 1, list(alarms.DEFAULT_RULES))
+        rebuilt = alarms._replay(session, 1, list(alarms.DEFAULT_RULES), limit)
         opened = session.execute(select(tables.Alarm.rule_kind, tables.Alarm.record_id)).all()
     assert kept.tracks["persistence"].flags == [True, True, True] and kept == rebuilt
     assert kept.newest == [3, 3, alarms._microseconds(at)]

@@ -7,9 +7,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from service.api.deps import Admin, SessionDep, Viewer
+from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
 from service.api.params import IdPath, utc
 from service.domain import alarms
+from service.domain.records import acquisition_limit
 from service.schemas import (
     MAX_ID,
     MODE_NAME_LENGTH,
@@ -81,14 +82,16 @@ def resolve_alarm(
 
 
 @router.get("/structures/{structure_id}/alarm-rules")
-def get_alarm_rules(structure_id: IdPath, principal: Viewer, session: SessionDep) -> AlarmRulesOut:
+def get_alarm_rules(
+    structure_id: IdPath, principal: Viewer, session: SessionDep, settings: SettingsDep
+) -> AlarmRulesOut:
     """The structure's alarm rules (the defaults until an admin sets them) and the CUSUM's design."""
-    return alarms.get_rules(session, principal, structure_id)
+    return alarms.get_rules(session, principal, structure_id, acquisition_limit(settings))
 
 
 @router.put("/structures/{structure_id}/alarm-rules")
 def set_alarm_rules(
-    structure_id: IdPath, body: AlarmRules, principal: Admin, session: SessionDep
+    structure_id: IdPath, body: AlarmRules, principal: Admin, session: SessionDep, settings: SettingsDep
 ) -> AlarmRulesOut:
     """Replace the structure's alarm rules (kinds left out stop firing) and judge its history by them."""
-    return alarms.set_rules(session, principal, structure_id, body)
+    return alarms.set_rules(session, principal, structure_id, body, acquisition_limit(settings))

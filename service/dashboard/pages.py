@@ -30,6 +30,7 @@ from service.domain import alarms
 from service.domain.fleet import checked_standing
 from service.domain.history import Status
 from service.domain.logins import Login, close_login, open_login
+from service.domain.records import acquisition_limit
 from service.schemas import (
     MODE_NAME_LENGTH,
     MODE_NAME_PATTERN,
@@ -167,6 +168,7 @@ def structure(
     structure_id: IdPath,
     login: LoginDep,
     session: SessionDep,
+    settings: SettingsDep,
     status_filter: Annotated[str | None, Query(alias="status", max_length=20)] = None,
     fault_mode: Annotated[str | None, Query(max_length=200)] = None,
     start: Annotated[str | None, Query(max_length=40)] = None,
@@ -180,7 +182,8 @@ def structure(
         end=_moment(end, "to"),
         cursor=cursor or None,
     )
-    context = views.structure_page(session, login.principal, structure_id, filters)
+    limit = acquisition_limit(settings)
+    context = views.structure_page(session, login.principal, structure_id, filters, limit)
     return render(request, "structure.html", {"login": login} | context)
 
 

@@ -95,8 +95,9 @@ def fleet_page(session: Session, principal: Principal, filters: FleetFilter) -> 
 
 
 def structure_page(
-    session: Session, principal: Principal, structure_id: int, filters: HistoryFilter
+    session: Session, principal: Principal, structure_id: int, filters: HistoryFilter, limit: dt.datetime
 ) -> dict[str, Any]:
+    """``limit``: the latest acquisition that stands for the structure (``records.acquisition_limit``)."""
     structure = structures.get_structure(session, principal, structure_id)
     status = fleet.structure_status(session, structure)
     points = timeline.timeline(session, structure_id)
@@ -125,7 +126,7 @@ def structure_page(
             "k_hat": figures.k_hat_figure(
                 points.points,
                 level,
-                alarms.cusum_series(session, structure_id),
+                alarms.cusum_series(session, structure_id, limit),
                 alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items,
             ),
             "q": figures.q_figure(points.points),
@@ -142,7 +143,7 @@ def structure_page(
     return {
         "structure": structure,
         "alarms": structure_alarms,
-        "cusum_problem": alarms.get_rules(session, principal, structure_id).cusum_problem,
+        "cusum_problem": alarms.get_rules(session, principal, structure_id, limit).cusum_problem,
         "names": {structure.id: structure.name},
         "status": status,
         "timeline": points,

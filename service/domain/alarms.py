@@ -201,15 +201,18 @@ def _rule(parameters: str) -> AlarmRule:
     return AlarmRules.model_validate({"rules": [json.loads(parameters)]}).rules[0]
 
 
-def get_rules(session: Session, principal: Principal, structure_id: int) -> AlarmRulesOut:
+def get_rules(session: Session, principal: Principal, structure_id: int, limit: dt.datetime) -> AlarmRulesOut:
     get_structure(session, principal, structure_id)
     rules, defaults = rules_of(session, structure_id)
-    return _rules_out(session, structure_id, rules, defaults)
+    return _rules_out(session, structure_id, rules, defaults, limit)
 
 
-def set_rules(session: Session, principal: Principal, structure_id: int, body: AlarmRules) -> AlarmRulesOut:
-    """Replace the structure's rules and judge its history by them at once; unresolved alarms of
-    a kind no longer watched are resolved as ``rule_removed``."""
+def set_rules(
+    session: Session, principal: Principal, structure_id: int, body: AlarmRules, limit: dt.datetime
+) -> AlarmRulesOut:
+    """Replace the structure's rules and judge its history by them at once (the verdicts acquired
+    up to ``limit``, as :func:`evaluate` reads them); unresolved alarms of a kind no longer
+    watched are resolved as ``rule_removed``."""
     structure = get_structure(session, principal, structure_id)
     for rule in body.rules:
         if isinstance(rule, CusumRule):  # a design that exists without the models' error, or a 422
@@ -225,15 +228,17 @@ def set_rules(session: Session, principal: Principal, structure_id: int, body: A
     for alarm in _unresolved(session, structure_id).values():
         if alarm.rule_kind not in kinds:
             _resolve(session, structure, alarm, "rule_removed", None, None)
-    evaluate(session, structure)
-    return _rules_out(session, structure_id, body.rules, False)
+    evaluate(session, structure, limit)
+    return _rules_out(session, structure_id, body.rules, False, limit)
 
 
-def _rules_out(session: Session, structure_id: int, rules: list[AlarmRule], defaults: bool) -> AlarmRulesOut:
+def _rules_out(
+    session: Session, structure_id: int, rules: list[AlarmRule], defaults: bool, limit: dt.datetime
+) -> AlarmRulesOut:
     cusum = next((rule for rule in rules if isinstance(rule, CusumRule)), None)
     design, problem = None, None
     if cusum is not None:
-        kept = _standing(session, structure_id, rules)
+        kept = _standing(session, structure_id, rules, limit)
         try:
             design = CusumDesignOut(modes=kept.modes, **vars(cusum_design(cusum, kept.modes, kept.share())))
         except InputError as refusal:
@@ -457,17 +462,22 @@ def _severe(point: Point, mode: str, threshold: float) -> bool:
 
 
 def _replay(
-    session: Session, structure_id: int, rules: list[AlarmRule], series: dict[str, list[Any]] | None = None
+    session: Session,
+    structure_id: int,
+    rules: list[AlarmRule],
+    limit: dt.datetime,
+    series: dict[str, list[Any]] | None = None,
 ) -> Kept:
     """Where the rules stand, built from the history: the newest verdict of each of the
-    structure's newest ``WINDOW`` records counted in order from an empty state, each rule's track
-    from the last resolution of its alarm on. ``series`` collects each CUSUM track's statistic."""
+    structure's newest ``WINDOW`` records acquired up to ``limit`` counted in order from an empty
+    state, each rule's track from the last resolution of its alarm on. ``series`` collects each
+    CUSUM track's statistic."""
     kept = Kept(_fingerprint(rules))
     for (kind, mode), through in _resolved_through(session, structure_id).items():
         kept.tracks[_key(kind, mode)] = Track(after=_microseconds(through))
     for (kind, mode), alarm in _unresolved(session, structure_id).items():
         kept.tracks.setdefault(_key(kind, mode), Track()).alarm = alarm.id
-    for p in newest_points(session, structure_id, WINDOW):
+    for p in newest_points(session, structure_id, WINDOW, limit):
         counted = _step(kept, rules, p)
         if series is not None:
             for key in counted:
@@ -476,14 +486,14 @@ def _replay(
     return kept
 
 
-def _standing(session: Session, structure_id: int, rules: list[AlarmRule]) -> Kept:
+def _standing(session: Session, structure_id: int, rules: list[AlarmRule], limit: dt.datetime) -> Kept:
     """The kept state if it is that of these rules, else built from the history (not kept)."""
     text = session.execute(STATE_OF, {"structure_id": structure_id}).scalar_one_or_none()
     kept = Kept.loads(text) if text is not None else None
     return (
         kept
         if kept is not None and kept.rules == _fingerprint(rules)
-        else _replay(session, structure_id, rules)
+        else _replay(session, structure_id, rules, limit)
     )
 
 
@@ -491,7 +501,11 @@ def _standing(session: Session, structure_id: int, rules: list[AlarmRule]) -> Ke
 
 
 def evaluate(
-    session: Session, structure: Structure, verdict: Point | None = None, new_record: bool = False
+    session: Session,
+    structure: Structure,
+    limit: dt.datetime,
+    verdict: Point | None = None,
+    new_record: bool = False,
 ) -> None:
     """Count ``verdict``, just stored, in the structure's kept rule state; open, keep or resolve its
     alarms.
@@ -501,7 +515,9 @@ def evaluate(
     change, with none: only flushes. A verdict newer than every one counted, of a record with no
     other verdict, is counted on the kept state: each rule's track one record on. Any other (a
     record uploaded late, a re-inspection, a structure without a kept state or whose rules
-    changed) has the state rebuilt from the history (:func:`_replay`). Every transition is
+    changed, or whose newest counted verdict lies past ``limit``: stored with a date in the future
+    before such dates were refused, it would stand for the structure's present) has the state
+    rebuilt from the history acquired up to ``limit`` (:func:`_replay`). Every transition is
     announced through :func:`service.domain.notifications.notify`, delivered after the commit.
     """
     lock(session, structure.id)
@@ -512,13 +528,14 @@ def evaluate(
         verdict is not None
         and kept is not None
         and kept.newest is not None
+        and kept.newest[2] <= _microseconds(limit)
         and kept.rules == _fingerprint(rules)
         and _after_newest(verdict, kept.newest)
         and (new_record or session.execute(OTHER_VERDICT, vars(verdict)).first() is None)
     ):
         counted = _step(kept, rules, verdict)
     else:
-        kept = _replay(session, structure.id, rules)
+        kept = _replay(session, structure.id, rules, limit)
         counted = [key for key, track in kept.tracks.items() if track.through is not None]
     _apply(session, structure, rules, kept, counted)
     if text is None:
@@ -587,16 +604,16 @@ def _open(
     return alarm.id
 
 
-def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
+def cusum_series(session: Session, structure_id: int, limit: dt.datetime) -> list[CusumSeries]:
     """Each fault mode's CUSUM statistic over the records the rules look at (the newest
-    ``WINDOW``, counted from the history as :func:`_replay` counts them), with its threshold;
-    none when the structure has no CUSUM rule."""
+    ``WINDOW`` acquired up to ``limit``, counted from the history as :func:`_replay` counts them),
+    with its threshold; none when the structure has no CUSUM rule."""
     rules, _ = rules_of(session, structure_id)
     rule = next((r for r in rules if isinstance(r, CusumRule)), None)
     if rule is None:
         return []
     series: dict[str, list[Any]] = {}
-    kept = _replay(session, structure_id, rules, series)
+    kept = _replay(session, structure_id, rules, limit, series)
     try:
         threshold = cusum_design(rule, kept.modes, kept.share()).threshold
     except InputError:
@@ -607,10 +624,10 @@ def cusum_series(session: Session, structure_id: int) -> list[CusumSeries]:
     ]
 
 
-def newest_points(session: Session, structure_id: int, count: int) -> list[Point]:
-    """The newest verdict of each of the structure's newest ``count`` inspected records, oldest
-    first (a re-inspection with new models re-judges a record: its earlier verdicts are passed
-    over, each through the index on the record), read from its history."""
+def newest_points(session: Session, structure_id: int, count: int, limit: dt.datetime) -> list[Point]:
+    """The newest verdict of each of the structure's newest ``count`` inspected records acquired
+    up to ``limit``, oldest first (a re-inspection with new models re-judges a record: its earlier
+    verdicts are passed over, each through the index on the record), read from its history."""
     later = aliased(Verdict)
     rows = session.execute(
         select(
@@ -625,6 +642,7 @@ def newest_points(session: Session, structure_id: int, count: int) -> list[Point
         )
         .where(
             Verdict.structure_id == structure_id,
+            Verdict.acquired_at <= limit,
             ~exists().where(later.record_id == Verdict.record_id, later.id > Verdict.id),
         )
         .order_by(Verdict.acquired_at.desc(), Verdict.id.desc())

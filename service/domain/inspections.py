@@ -245,7 +245,8 @@ def store_verdict(
         values["modes"],
     )
     # In the same transaction: the verdict and its alarms (and the rules' kept state), or neither.
-    alarms.evaluate(session, structure, stored, new_record)
+    limit = acquisition_limit(settings)
+    alarms.evaluate(session, structure, limit, stored, new_record)
     # Counted last: the state row, which every upload of the structure updates, is then locked
     # only until the commit, not through the alarms' evaluation (alarms.lock: the lock order).
     fleet.count_verdict(
@@ -254,7 +255,7 @@ def store_verdict(
         structure.id,
         record.acquired_at,
         result.status,
-        acquisition_limit(settings),
+        limit,
     )
     return Verdict(
         id=inserted.id,
