@@ -13,7 +13,7 @@ BENCH_STAMP := $(BENCH_VENV)/.installed
 # the longest first, in tests/conftest.py's order, which xdist would otherwise replace by the
 # number of tests in each file (--no-loadscope-reorder).
 TEST_WORKERS ?= 2
-# One BLAS thread a process, as narxwatch's own processes run (service/__init__.py); pytest's
+# One BLAS thread a process, as narxwatch's own processes run (models/blas.py); pytest's
 # plugins import numpy before a conftest could set it, and two busy workers with two BLAS threads
 # each took 17 min instead of 14 (the refinement tests three times the CPU).
 BLAS_THREADS := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
@@ -46,6 +46,7 @@ reproduce: $(STAMP)
 
 test: $(STAMP) docs
 	$(BIN)/ruff check .
+	$(BIN)/lint-imports
 	bash scripts/ensure-postgres.sh
 	bash scripts/ensure-chromium.sh
 	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
@@ -63,6 +64,7 @@ slow: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/lint-imports
 
 bench: $(STAMP) $(BENCH_STAMP)
 	$(BIN)/pytest bench --benchmark-only --benchmark-columns=min,median,max,rounds

@@ -61,13 +61,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-import service  # noqa: E402, F401  (first: one BLAS thread, as in narxwatch's processes)
+from models.blas import one_blas_thread
 
-# isort: split
-import httpx  # noqa: E402
-import numpy as np  # noqa: E402
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
+import httpx
+import numpy as np
 
-from bench.load_api import console_script, free_port, make_payloads, run_cli  # noqa: E402
+from bench.load_api import console_script, free_port, make_payloads, run_cli
 
 HOST = "127.0.0.1"
 API = "/api/v1"

@@ -18,7 +18,7 @@ structure's own common share of σ̂k² (from its first verdict):
     the design's own count distribution puts 99 % of counts in (for the CUSUM, a Poisson count per
     chart whose rate is that of the structure's model offset β ~ N(0, c), drawn anew each time).
 (b) A drift of ``--rate`` % a day in k2 from onset after a healthy week (``narxwatch-sim stream
-    --scenario drift``'s course, simulator.client.Stream): the median delay from the onset to
+    --scenario drift``'s course, simulator.client.scheduler.Stream): the median delay from the onset to
     each rule's first alarm, in days.
 
 Seeds are fixed: a rerun prints the same figures. Progress goes to stderr, the table to stdout.
@@ -32,9 +32,9 @@ import time
 from dataclasses import dataclass
 from functools import cache
 
-import service  # noqa: F401  (first: the single BLAS thread narxwatch's processes run with)
+from models.blas import one_blas_thread
 
-# isort: split
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
 import numpy as np
 from scipy import stats
 
@@ -50,7 +50,7 @@ from models.alarms import (
     two_sided_arl,
 )
 from models.inspection import Verdict, inspect
-from simulator.client import Course, ScenarioOptions, Stream
+from simulator.client.scheduler import Course, ScenarioOptions, Stream
 from simulator.paper import train_fault_modes
 from simulator.simulate import Scenario, simulate
 from simulator.study import StudySettings

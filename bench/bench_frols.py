@@ -25,9 +25,9 @@ a fresh process (VmHWM). It exits with status 1 if the terms disagree or a targe
 
 from __future__ import annotations
 
-import service  # noqa: F401  (first: the single BLAS thread narxwatch's processes run with)
+from models.blas import one_blas_thread
 
-# isort: split
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
 import subprocess
 import sys
 import textwrap

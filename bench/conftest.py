@@ -16,9 +16,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import service  # noqa: F401  (first: it sets the single BLAS thread narxwatch's processes run with)
+from models.blas import one_blas_thread
 
-# isort: split
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
 import numpy as np
 import pytest
 

@@ -67,21 +67,21 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-import service  # noqa: E402, F401  (first: one BLAS thread, as in narxwatch's processes)
+from models.blas import one_blas_thread
 
-# isort: split
-import httpx  # noqa: E402
-import numpy as np  # noqa: E402
-from api_helpers import Org, create_structure, simulated, train_fault_mode  # noqa: E402
-from dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, DASHBOARD, charts, logged_in  # noqa: E402
-from live import LiveServer  # noqa: E402
-from rich.console import Console  # noqa: E402
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: E402
-from rich.table import Table  # noqa: E402
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
+import httpx
+import numpy as np
+from api_helpers import Org, create_structure, simulated, train_fault_mode
+from dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, DASHBOARD, charts, logged_in
+from live import LiveServer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
 
-from service.config import Settings  # noqa: E402
-from service.domain import inspections, records  # noqa: E402
-from service.tables import Structure  # noqa: E402
+from service.config import Settings
+from service.domain import inspections, records
+from service.tables import Structure
 
 TARGET_SECONDS = 1.0
 TARGET_VERDICTS = 10_000

@@ -19,9 +19,9 @@ import argparse
 import os
 from pathlib import Path
 
-import service  # noqa: F401  (first: the single BLAS thread narxwatch's processes run with)
+from models.blas import one_blas_thread
 
-# isort: split
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
 import matplotlib
 
 matplotlib.use("Agg")
@@ -29,7 +29,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from models.vector import fit_vector_fnarx, modal_parameters, simulate_vector
-from service.recordfiles import Layout, read_record
+from recordfiles.reader import Layout, read_record
 
 DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
 ESTIMATION, TEST = (3, 5, 7), (2, 4, 6)

@@ -26,9 +26,9 @@ import argparse
 import sys
 import time
 
-import service  # noqa: F401  (first: the single BLAS thread narxwatch's processes run with)
+from models.blas import one_blas_thread
 
-# isort: split
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
 import numpy as np
 from scipy import stats
 

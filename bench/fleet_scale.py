@@ -61,9 +61,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import service  # noqa: F401  (first: the single BLAS thread narxwatch's processes run with)
+from models.blas import one_blas_thread
 
-# isort: split
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
 import httpx
 import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
@@ -75,7 +75,7 @@ from service.dashboard import views
 from service.db import make_engine, session_factory, transaction
 from service.demo import ORGANISATION, seed_demo
 from service.domain import alarms, fleet, history
-from service.jobs import job_backend
+from service.jobs.backends import job_backend
 from service.migrate import upgrade_database
 from service.observability.metrics import DatabaseCollector
 from service.schemas import PersistenceRule

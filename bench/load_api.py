@@ -61,14 +61,14 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-import service  # noqa: E402, F401  (first: one BLAS thread, as in narxwatch's processes)
+from models.blas import one_blas_thread
 
-# isort: split
-import httpx  # noqa: E402
-import numpy as np  # noqa: E402
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
+import httpx
+import numpy as np
 
-from simulator.simulate import simulate  # noqa: E402
-from simulator.study import CASES, StudySettings  # noqa: E402
+from simulator.simulate import simulate
+from simulator.study import CASES, StudySettings
 
 TARGET_P50_MS = 20.0
 TARGET_THROUGHPUT = 150.0

@@ -35,12 +35,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 # isort: split
-import httpx  # noqa: E402
-import numpy as np  # noqa: E402
-import psycopg  # noqa: E402
+import httpx
+import numpy as np
+import psycopg
 
-from bench.load_api import console_script, free_port, make_payloads, run_cli  # noqa: E402
-from service.jobs.distributed import conninfo  # noqa: E402
+from bench.load_api import console_script, free_port, make_payloads, run_cli
+from service.jobs.distributed import conninfo
 
 
 def spawn(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:

@@ -51,7 +51,7 @@ from models.output_error import fit_output_error
 from models.refinement import Refinement, choose_linear, refine_records
 from models.scoring import fit_model
 from models.terms import Term, max_lag
-from service.recordfiles import SILVERBOX, Layout, read_record, read_record_set
+from recordfiles.reader import SILVERBOX, Layout, read_record, read_record_set
 
 DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
 Records = list[tuple[np.ndarray, np.ndarray]]

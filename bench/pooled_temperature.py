@@ -31,9 +31,9 @@ from __future__ import annotations
 
 import argparse
 
-import service  # noqa: F401  (first: the single BLAS thread narxwatch's processes run with)
+from models.blas import one_blas_thread
 
-# isort: split
+one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
 import numpy as np
 from scipy import stats
 

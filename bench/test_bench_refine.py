@@ -19,7 +19,7 @@ import pytest
 
 from models.effects import linear_terms
 from models.refinement import refine, refine_record
-from service.recordfiles import parse_silverbox
+from recordfiles.reader import parse_silverbox
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
 

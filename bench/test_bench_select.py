@@ -27,7 +27,7 @@ from models.narx import NARX
 from models.output_error import fit_output_error
 from models.selection import select_narx
 from models.semp import select_by_simulation
-from service.recordfiles import parse_silverbox
+from recordfiles.reader import parse_silverbox
 
 DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
 SNLS80MV = DATA / "silverbox" / "SNLS80mV.csv"

@@ -24,11 +24,11 @@ from models.basis import FAMILIES
 from models.inspection import ModeResult, Status
 from models.pooled import MAX_DEGREE, MAX_VARIABLES
 from models.vector import VectorModeFigures
-from service.channels import MAX_CHANNELS
-from service.channels import NAME_LENGTH as CHANNEL_NAME_LENGTH
-from service.conditions import NAME_LENGTH, NAME_RULE, Condition
-from service.jobs import JobState
-from service.names import normalised_name
+from recordfiles.channels import MAX_CHANNELS
+from recordfiles.channels import NAME_LENGTH as CHANNEL_NAME_LENGTH
+from recordfiles.conditions import NAME_LENGTH, NAME_RULE, Condition
+from recordfiles.names import normalised_name
+from service.jobs.types import JobState
 from service.tables import MAX_ID
 
 
@@ -38,7 +38,7 @@ def _normalised(value: object) -> object:
     return normalised_name(value) if isinstance(value, str) else value
 
 
-# Every name a user gives goes through ``service.names.normalised_name`` (NFC, trimmed, nothing
+# Every name a user gives goes through ``recordfiles.names.normalised_name`` (NFC, trimmed, nothing
 # invisible or reordering), then its field's own rule.
 Normalised = BeforeValidator(_normalised)
 STRUCTURE_NAME_LENGTH = 200
@@ -222,8 +222,8 @@ class ChannelUpload(Strict):
 
 class RecordUpload(Strict):
     """A record as JSON: excitation x [N], response y [m] or several named response ``channels``
-    (``service.channels``), sampling rate fs [Hz], and the operating conditions it was acquired
-    under (checked by ``service.conditions.checked_conditions``)."""
+    (``recordfiles.channels``), sampling rate fs [Hz], and the operating conditions it was acquired
+    under (checked by ``recordfiles.conditions.checked_conditions``)."""
 
     x: Annotated[list[FiniteFloat], Field(min_length=1)]
     y: Annotated[list[FiniteFloat], Field(min_length=1)] | None = None

@@ -19,7 +19,7 @@ from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
-from service.names import normalised_name
+from recordfiles.names import normalised_name
 from service.tables import ApiKey, Organisation, utcnow
 
 KEY_PREFIX = "nw"
@@ -59,7 +59,7 @@ class KeyRefusedError(Exception):
 def create_key(
     session: Session, organisation_name: str, role: Role, expires_at: dt.datetime | None = None
 ) -> str:
-    """Create a key (and its organisation if new, its name normalised: ``service.names``); the
+    """Create a key (and its organisation if new, its name normalised: ``recordfiles.names``); the
     key is returned once and never stored."""
     organisation_name = normalised_name(organisation_name, "organisation name")
     organisation = session.scalar(select(Organisation).where(Organisation.name == organisation_name))

@@ -24,7 +24,7 @@ from sqlalchemy import (
 from sqlalchemy.dialects.postgresql import BYTEA, JSONB
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
-from service.conditions import NAME_LENGTH, UNIT_LENGTH
+from recordfiles.conditions import NAME_LENGTH, UNIT_LENGTH
 from service.db import Base
 
 Document = JSON().with_variant(JSONB(), "postgresql")
@@ -152,7 +152,7 @@ SIGNALS_KEPT = text("signals_pruned_at IS NULL")
 class Record(Base):
     """An excitation/response record; x and y are stored as .npy bytes.
 
-    A record of several response channels (``service.channels``) has y of shape (N, K) and the
+    A record of several response channels (``recordfiles.channels``) has y of shape (N, K) and the
     channels' names in ``channels``, in y's column order; one of one response has y of shape (N,)
     and ``channels`` None.
 
@@ -189,7 +189,7 @@ class Record(Base):
 
 
 class RecordCondition(Base):
-    """One operating condition of a record (``service.conditions``): a row per name, so that a
+    """One operating condition of a record (``recordfiles.conditions``): a row per name, so that a
     structure's records can be found and ordered by a condition's value through the index."""
 
     __tablename__ = "record_conditions"

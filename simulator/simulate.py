@@ -12,7 +12,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
@@ -25,9 +25,6 @@ from simulator.physics import (
     check_stable,
 )
 from simulator.temperature import Thermal
-
-if TYPE_CHECKING:
-    from simulator.chain import ChainScenario
 
 # Undeclared effects by name: (field, unit, meaning). ``sine`` takes AMPLITUDE@FREQUENCY.
 MAX_NOISE_COLOUR = 50  # moving-average coefficients of the measurement noise
@@ -248,7 +245,22 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
     return SimulatedRecord(x, y, scenario.fs, scenario, seed, {name: measured[name] for name in names})
 
 
-def check_levels(scenario: Scenario | ChainScenario, n: int) -> None:
+class Levels(Protocol):
+    """What :func:`check_levels` reads of a scenario, the rig's or the chain's (``simulator.chain``)."""
+
+    @property
+    def excitation_std(self) -> float: ...
+    @property
+    def disturbance_std(self) -> float: ...
+    @property
+    def y_noise_std(self) -> float: ...
+    @property
+    def x_noise_std(self) -> float: ...
+    @property
+    def noise_colour(self) -> tuple[float, ...]: ...
+
+
+def check_levels(scenario: Levels, n: int) -> None:
     """Refuse a record length, excitation or noise that cannot be simulated."""
     if n < 1:
         raise InputError(f"a record needs at least one sample, got n = {n}")

@@ -17,7 +17,8 @@ from models.signals import checked_record, minimum_samples
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import modelling, records, structures
-from service.jobs import JobBackend, job_backend
+from service.jobs.backends import job_backend
+from service.jobs.types import JobBackend
 from service.migrate import upgrade_database
 from service.schemas import Experiment, FaultModeTrain, StructureCreate
 from service.security import Principal, Role

@@ -1,6 +1,6 @@
 """MAT v5 files built byte by byte (MathWorks' "MAT-File Format"), hostile ones included.
 
-Independent of ``service.matfiles``: a 128-byte header, then tagged elements. A compressed
+Independent of ``recordfiles.matfiles``: a 128-byte header, then tagged elements. A compressed
 bomb holds a variable whose header declares hundreds of megabytes of zeros; as for the NPZ
 bombs (``npz_bombs``), a megabyte of zeros is deflated once, ending in a full flush, and the
 compressed block repeated, so that building one takes milliseconds.

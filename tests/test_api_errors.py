@@ -694,7 +694,7 @@ def test_structure_names_are_stored_trimmed_and_composed(api_server):
 STRUCTURE_ERRORS = {
     "empty-name": ({"name": "", "fs": FS}, "cannot be empty"),
     "control-character-in-name": ({"name": "a\nb", "fs": FS}, "U+000A"),
-    # Names that would not show what they are (service.names): each refusal names the character.
+    # Names that would not show what they are (recordfiles.names): each refusal names the character.
     "space-only-name": ({"name": " ", "fs": FS}, "a name cannot be empty or only whitespace"),
     "byte-order-mark-name": (
         {"name": "\ufeff", "fs": FS},

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from live import LiveServer, Tenant
 
-from simulator.recordfile import dump_csv
+from recordfiles.writer import dump_csv
 from simulator.simulate import simulate
 from simulator.study import StudySettings
 

@@ -23,7 +23,7 @@ from live import LiveServer
 
 from service.config import Settings
 from service.db import make_engine, session_factory
-from service.jobs import job_backend
+from service.jobs.backends import job_backend
 
 JOBS = f"{API}/jobs"
 

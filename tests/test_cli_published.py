@@ -14,7 +14,7 @@ from test_cli import invoke
 
 from models.narx import fit_narx
 from models.terms import parse_terms
-from simulator.recordfile import write_record
+from recordfiles.writer import write_record
 
 TERMS = "y[t-1],y[t-2],x[t-1],x[t-2]"
 

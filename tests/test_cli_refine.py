@@ -26,8 +26,8 @@ from models.coverage import coverage
 from models.effects import candidate_effects
 from models.narx import NARX, fit_narx
 from models.terms import parse_terms
-from service.recordfiles import read_record
-from simulator.recordfile import dump_csv
+from recordfiles.reader import read_record
+from recordfiles.writer import dump_csv
 from simulator.theory import EXACT_TERMS
 
 REPORT_KEYS = {

@@ -31,7 +31,7 @@ from api_helpers import (
 )
 from live import LiveServer
 
-from service.conditions import MAX_CONDITIONS
+from recordfiles.conditions import MAX_CONDITIONS
 
 NPZ = "application/x-npz"
 CSV = "text/csv"

@@ -9,7 +9,7 @@ from conftest import DATA_DIR
 
 from models.coverage import EXTRAPOLATING, WELCH_SAMPLES, Coverage, coverage
 from models.errors import InputError
-from service.recordfiles import Layout, read_record
+from recordfiles.reader import Layout, read_record
 
 PERIOD = WELCH_SAMPLES  # a multisine of this period puts every line on a Welch bin
 

@@ -10,7 +10,7 @@ from conftest import DATA_DIR
 
 from models.refinement import refine_records
 from models.signals import GLITCH_FACTOR, glitches
-from service.recordfiles import parse_silverbox
+from recordfiles.reader import parse_silverbox
 from simulator.simulate import Scenario, simulate
 
 

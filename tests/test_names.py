@@ -1,4 +1,4 @@
-"""Names people give, normalised and safe to display (service.names), in every field that takes
+"""Names people give, normalised and safe to display (recordfiles.names), in every field that takes
 one: the request bodies' schemas, the channel and condition names of records however they come,
 and organisations created with a key. Structures, the one free-text name, are tested over HTTP in
 test_api_errors.py."""
@@ -14,12 +14,12 @@ from pydantic import BaseModel, ValidationError
 from sqlalchemy import select
 
 from models.errors import InputError
-from service.channels import checked_channels
-from service.conditions import Condition, checked_conditions
+from recordfiles.channels import checked_channels
+from recordfiles.conditions import Condition, checked_conditions
+from recordfiles.names import normalised_name
+from recordfiles.reader import Layout, parse_record
 from service.db import make_engine, session_factory, transaction
 from service.migrate import upgrade_database
-from service.names import normalised_name
-from service.recordfiles import Layout, parse_record
 from service.schemas import (
     ChannelUpload,
     FaultModeTrain,

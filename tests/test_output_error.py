@@ -32,7 +32,7 @@ from models.output_error import (
 )
 from models.simulation import FreeRun
 from models.terms import parse_terms, regressor_matrix
-from service.recordfiles import Layout, read_record
+from recordfiles.reader import Layout, read_record
 from simulator.chain import ChainParameters, ChainScenario, simulate_chain
 from simulator.simulate import Scenario, simulate
 from simulator.theory import EXACT_TERMS

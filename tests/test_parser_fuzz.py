@@ -18,9 +18,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from models.errors import InputError
+from recordfiles.reader import RecordFile, parse_csv, parse_npz, parse_silverbox
+from recordfiles.writer import dump_csv, dump_npz
 from service.api.uploads import parse_upload
-from service.recordfiles import RecordFile, parse_csv, parse_npz, parse_silverbox
-from simulator.recordfile import dump_csv, dump_npz
 
 LIMIT = 1 << 20
 FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -34,7 +34,7 @@ from mat_bombs import (
 )
 
 from models.errors import InputError
-from service.recordfiles import (
+from recordfiles.reader import (
     SILVERBOX,
     Layout,
     RecordTooLargeError,
@@ -530,7 +530,7 @@ def test_a_variable_whose_values_have_an_unknown_data_type_is_refused_not_a_cras
     child = (
         "import sys\n"
         "from models.errors import InputError\n"
-        "from service.recordfiles import Layout, parse_mat\n"
+        "from recordfiles.reader import Layout, parse_mat\n"
         "try:\n"
         f"    parse_mat(sys.stdin.buffer.read(), {LIMIT}, Layout('Force', 'Acc2'))\n"
         "except InputError as error:\n"

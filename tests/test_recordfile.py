@@ -17,8 +17,8 @@ from conftest import SILVERBOX_SHA256
 from npz_bombs import bomb_member, bomb_npz, cut_off_header_npz, npy, npy_header, stored, zip_archive
 
 from models.errors import InputError
-from service.conditions import MAX_CONDITIONS, Condition
-from service.recordfiles import (
+from recordfiles.conditions import MAX_CONDITIONS, Condition
+from recordfiles.reader import (
     MAX_CSV_COLUMNS,
     MAX_CSV_LINE,
     Layout,
@@ -30,7 +30,7 @@ from service.recordfiles import (
     read_record,
     record_samples,
 )
-from simulator.recordfile import dump_csv, dump_npz, write_record
+from recordfiles.writer import dump_csv, dump_npz, write_record
 
 
 @pytest.fixture

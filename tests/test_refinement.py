@@ -18,7 +18,7 @@ from models.refinement import refine, refine_record, refine_records
 from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
-from service.recordfiles import parse_silverbox
+from recordfiles.reader import parse_silverbox
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
 

@@ -26,7 +26,7 @@ import scipy.signal
 from live import free_port
 
 from models.errors import InputError
-from service.recordfiles import Layout, read_record
+from recordfiles.reader import Layout, read_record
 from simulator.chain import ChainParameters, ChainScenario, integrate, simulate_chain
 from simulator.client import main
 from simulator.physics import PhysicalParameters, UnstableSimulationError

@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 from live import LiveServer, Tenant, free_port
 
+from recordfiles.reader import read_record
 from service.cli.modelfiles import read_manifest
-from service.recordfiles import read_record
 from service.security import Role
 from simulator.simulate import Scenario, simulate
 from simulator.study import StudySettings

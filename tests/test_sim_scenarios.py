@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.recordfiles import read_record
-from simulator.client import Course, ScenarioOptions, Stream
+from recordfiles.reader import read_record
+from simulator.client.scheduler import Course, ScenarioOptions, Stream
 from simulator.simulate import simulate
 from simulator.study import StudySettings
 

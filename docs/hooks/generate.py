@@ -174,7 +174,7 @@ def cli_markdown() -> str:
     import typer
 
     from service.cli import build_app
-    from simulator.client import app as sim_app
+    from simulator.client.commands import app as sim_app
 
     out = []
     for root, app in (("narxwatch", build_app()), ("narxwatch-sim", sim_app)):

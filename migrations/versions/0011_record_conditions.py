@@ -5,7 +5,7 @@ Revises: 0010
 Create Date: 2026-11-25 21:50:00.000000
 
 A record may state the conditions it was acquired under (temperature, excitation level, speed;
-``service.conditions``). They are rows of a child table, one per record and name, rather than a
+``recordfiles.conditions``). They are rows of a child table, one per record and name, rather than a
 JSON column of the record: a structure's records are to be selected and ordered by a condition's
 value (k̂ against temperature, the records of a model's training range), which the index on
 (structure_id, name, value) answers in both databases, where a JSON document would be read

@@ -21,6 +21,7 @@ from starlette.routing import compile_path
 from swagger_ui_bundle import swagger_ui_path
 
 from models.errors import InputError
+from recordfiles.reader import RecordTooLargeError
 from service import dashboard, sealing
 from service.api import (
     alarms,
@@ -41,11 +42,10 @@ from service.api.limits import BodyLimit, BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
 from service.domain.errors import ConflictError, NotFoundError
-from service.jobs import job_backend
+from service.jobs.backends import job_backend
 from service.migrate import upgrade_database
 from service.observability.logs import REQUEST_ID_HEADER, is_sane_request_id
 from service.observability.requests import ObserveRequests
-from service.recordfiles import RecordTooLargeError
 
 API_PREFIX = "/api/v1"
 DOCS = "/docs"

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Query, Request
 from service.api.deps import Admin, SessionDep
 from service.api.params import IdPath
 from service.domain.errors import NotFoundError
-from service.jobs import JobBackend, JobInfo, JobState
+from service.jobs.types import JobBackend, JobInfo, JobState
 from service.schemas import MAX_ID, JobOut, JobPage
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])

@@ -10,6 +10,8 @@ from fastapi import APIRouter, BackgroundTasks, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session
 
+from recordfiles.channels import MAX_CHANNELS
+from recordfiles.reader import NAMING_HELP, Layout
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
 from service.api.expensive import BUSY, PARSES_BUSY, slot
 from service.api.params import IdPath, utc
@@ -21,14 +23,12 @@ from service.api.uploads import (
     parse_upload_set,
     signal_layout,
 )
-from service.channels import MAX_CHANNELS
 from service.config import Settings
 from service.db import transaction
 from service.domain import inspections, records, structures
 from service.domain.ingest import Ingested, QueueInspection, SetRecord, ingest_record, ingest_record_set
-from service.jobs import JobBackend
 from service.jobs.tasks import INSPECT_RECORD
-from service.recordfiles import NAMING_HELP, Layout
+from service.jobs.types import JobBackend
 from service.schemas import RecordOut, VerdictOut
 from service.security import Principal
 

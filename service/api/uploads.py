@@ -10,9 +10,9 @@ from fastapi import HTTPException, status
 from pydantic import ValidationError
 
 from models.errors import InputError
-from service.channels import checked_channels
-from service.conditions import MAX_CONDITIONS, UNIT_LENGTH, Condition, checked_conditions
-from service.recordfiles import (
+from recordfiles.channels import checked_channels
+from recordfiles.conditions import MAX_CONDITIONS, UNIT_LENGTH, Condition, checked_conditions
+from recordfiles.reader import (
     DEFAULT_LAYOUT,
     Layout,
     parse_record,
@@ -26,7 +26,7 @@ JSON = "application/json"
 CSV = "text/csv"
 NPZ_TYPES = ("application/x-npz", "application/zip", "application/octet-stream")
 MAT = "application/x-matlab-data"  # as mime.types names .mat files
-# The record file format (service.recordfiles) of each media type but JSON.
+# The record file format (recordfiles.reader) of each media type but JSON.
 FILE_FORMATS = {CSV: ".csv", MAT: ".mat"} | dict.fromkeys(NPZ_TYPES, ".npz")
 # Commas of a JSON record beyond those between its samples: between the fields, and three for each
 # condition with any its unit holds.
@@ -76,7 +76,7 @@ def parse_upload(
 
     ``max_bytes`` bounds the arrays an NPZ or MAT file may unpack to, as the body limit bounds
     the body, and so the samples of a record in any format
-    (:func:`service.recordfiles.record_samples`). ``layout`` names the CSV columns or MAT
+    (:func:`recordfiles.reader.record_samples`). ``layout`` names the CSV columns or MAT
     variables that hold x and y.
     """
     media = content_type.split(";")[0].strip().lower()
@@ -116,7 +116,7 @@ def parse_upload_set(
     body: bytes, content_type: str, acquired_at: dt.datetime | None, max_bytes: int, layout: Layout
 ) -> tuple[tuple[Layout, Upload], ...]:
     """The records of a CSV or MAT body, each with the signals that hold it
-    (:func:`service.recordfiles.parse_record_set`): k when the layout's x and y each name a group
+    (:func:`recordfiles.reader.parse_record_set`): k when the layout's x and y each name a group
     of k signals. 415 for any other media type, each record bounded as an upload is, and k by
     the records a refinement fits (each is checked and inserted under the write lock: short
     columns would otherwise make thousands of records of one body)."""

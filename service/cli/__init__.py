@@ -7,6 +7,7 @@ from importlib import import_module
 
 import typer
 
+from models.blas import one_blas_thread
 from models.errors import InputError
 from service.cli.console import fail
 from service.errors import DatabaseNotReadyError, SettingsError
@@ -58,6 +59,9 @@ def build_app(command: str | None = None) -> typer.Typer:
 def main() -> None:
     """Console-script entry point: input errors, invalid settings and a database not ready end
     with their message, not a traceback."""
+    # Before a command's module loads numpy, which neither this module nor what it imports does
+    # (tests/test_layers.py); `narxwatch serve`'s workers inherit the environment.
+    one_blas_thread()
     try:
         args = files_after_options(sys.argv[1:])
         build_app(args[0] if args and args[0] in COMMANDS else None)(args=args)

@@ -12,9 +12,9 @@ from rich.table import Table
 from models.errors import InputError
 from models.inspection import Verdict
 from models.inspection import inspect as run_inspection
+from recordfiles.reader import read_record
 from service.cli.console import stdout
 from service.cli.modelfiles import XName, YName, read_fault_mode, signal_layout
-from service.recordfiles import read_record
 
 STATUS_STYLE = {"healthy": "green", "faulty": "red", "unknown_fault": "magenta"}
 

@@ -13,7 +13,7 @@ import typer
 from models.errors import InputError
 from models.fnarx import FNARX
 from models.terms import Term, parse_terms
-from service.recordfiles import DEFAULT_LAYOUT, NAMING_HELP, Layout, RecordFile, read_record_set
+from recordfiles.reader import DEFAULT_LAYOUT, NAMING_HELP, Layout, RecordFile, read_record_set
 from simulator.theory import EXACT_TERMS
 
 _SIGNAL_HELP = "The CSV column or MAT variable that holds {role} (default: {role}); " + NAMING_HELP + "."
@@ -81,7 +81,7 @@ def read_record_sets(
     paths: Sequence[Path], layout: Layout = DEFAULT_LAYOUT
 ) -> tuple[list[tuple[RecordFile, ...]], float | None]:
     """Each file's records — one, or one a pair of signals where x and y name groups of as many
-    (:func:`service.recordfiles.parse_record_set`) — and their common sampling rate; records
+    (:func:`recordfiles.reader.parse_record_set`) — and their common sampling rate; records
     stating different rates are refused."""
     sets = [tuple(record for _, record in read_record_set(path, layout)) for path in paths]
     rates = [(str(path), record.fs) for path, found in zip(paths, sets, strict=True) for record in found]

@@ -12,7 +12,7 @@ with the structure, and is scored after it; on parts of one record, the parts co
 Every record judged says how much of it lies outside the data fitted (:mod:`models.coverage`).
 A file
 holds one record, or one for each pair of signals when ``--x`` and ``--y`` name groups of as many
-(:func:`service.recordfiles.parse_record_set`).
+(:func:`recordfiles.reader.parse_record_set`).
 """
 
 from __future__ import annotations
@@ -48,9 +48,9 @@ from models.refinement import (
 from models.regression import Workers
 from models.scoring import Records
 from models.terms import Term
+from recordfiles.reader import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
 from service.cli.console import stderr, stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
-from service.recordfiles import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
 from simulator.theory import EXACT_TERMS
 
 # The Silverbox benchmark's official split (shared/data/README.md): estimation and arrow test,

@@ -26,9 +26,9 @@ from models.semp import (
     select_by_simulation,
 )
 from models.validation import Validation, validate
+from recordfiles.reader import Layout
 from service.cli.console import stderr, stdout
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, read_records, signal_layout, write_json
-from service.recordfiles import Layout
 
 Signals = list[tuple[np.ndarray, np.ndarray]]
 # The criterion that judges candidates on the free run instead of the one-step error.

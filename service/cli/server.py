@@ -121,7 +121,7 @@ def worker(
     and its verdict is stored once. On PostgreSQL this is a Procrastinate worker; on SQLite it
     serves a service started with NARXWATCH_EMBEDDED_WORKER=false.
     """
-    from service.jobs import backend_name, job_backend
+    from service.jobs.backends import backend_name, job_backend
 
     settings = get_settings()
     if backend_name(settings) == "embedded" and concurrency > 1:
@@ -150,7 +150,7 @@ def _wait_for_current_schema(database_url: str) -> None:
     """Check the schema as every command does, but wait for a database that does not answer: a
     worker started while its server starts or restarts (or is away) must come up by itself, as a
     running worker that loses the database does. A missing or old schema is refused at once."""
-    from service.jobs import RESTART_FIRST, RESTART_MAX
+    from service.jobs.types import RESTART_FIRST, RESTART_MAX
 
     delay = RESTART_FIRST
     while True:

@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from recordfiles.writer import write_record
 from service.cli.console import stdout
 from simulator.options import (
     DisturbanceStd,
@@ -23,7 +24,6 @@ from simulator.options import (
     parse_colour,
 )
 from simulator.physics import PhysicalParameters
-from simulator.recordfile import write_record
 from simulator.simulate import Effects, Scenario
 from simulator.simulate import simulate as run_simulation
 

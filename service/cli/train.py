@@ -10,6 +10,7 @@ import typer
 from models.basis import FAMILIES
 from models.fnarx import fit_fnarx
 from models.narx import fit_narx
+from recordfiles.names import normalised_name
 from service.cli.console import stdout
 from service.cli.modelfiles import (
     RECORD_SET_HELP,
@@ -22,7 +23,6 @@ from service.cli.modelfiles import (
     signal_layout,
     write_json,
 )
-from service.names import normalised_name
 
 app = typer.Typer(help="Estimate models from records.", no_args_is_help=True)
 

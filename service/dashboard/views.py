@@ -14,7 +14,7 @@ from models.fnarx import FNARX
 from models.pooled import PooledModel
 from models.validation import one_step_fit
 from models.vector import VectorFNARX
-from service.channels import matched
+from recordfiles.channels import matched
 from service.dashboard import figures
 from service.domain import alarms, fleet, history, modelling, records, refinements, structures, timeline
 from service.domain.history import Status

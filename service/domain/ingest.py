@@ -15,7 +15,7 @@ from models.pooled import PooledModel
 from models.signals import minimum_samples
 from models.terms import max_degree
 from models.vector import VectorFNARX
-from service.conditions import Condition
+from recordfiles.conditions import Condition
 from service.config import Settings
 from service.domain import alarms, inspections, records, structures
 from service.domain.modelling import active_fault_modes

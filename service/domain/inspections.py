@@ -18,7 +18,7 @@ from models.narx import NARX
 from models.pooled import PooledModel, baseline_verdict, check_baseline
 from models.signals import minimum_samples
 from models.vector import VectorFNARX, VectorModeFigures, inspect_vector, vector_verdict
-from service import channels as channel_rules
+from recordfiles import channels as channel_rules
 from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import alarms, fleet

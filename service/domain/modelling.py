@@ -17,7 +17,7 @@ from models.narx import fit_narx
 from models.pooled import MAGNITUDE, MAX_VARIABLES, PooledExperiment, PooledModel, fit_pooled
 from models.terms import parse_terms
 from models.vector import VectorFNARX, fit_vector_fnarx
-from service.channels import matched
+from recordfiles.channels import matched
 from service.config import Settings
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.records import condition_values, signals

@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from models.errors import InputError
 from models.signals import checked_record
-from service.conditions import Condition
+from recordfiles.conditions import Condition
 from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import fleet
@@ -97,8 +97,8 @@ def store_record(
 
     The signals are stored as given: validate them first, with ``models.signals.checked_record``
     or through the inspection (``models.inspection.inspect`` checks what it inspects), the rate
-    with :func:`checked_rate`, the conditions with ``service.conditions.checked_conditions`` and the
-    channels, names of y's columns when it has several, with ``service.channels.checked_channels``.
+    with :func:`checked_rate`, the conditions with ``recordfiles.conditions.checked_conditions`` and the
+    channels, names of y's columns when it has several, with ``recordfiles.channels.checked_channels``.
     Checking here too would validate every upload twice.
 
     The data identify a record, its conditions do not: a record is the same record whatever an

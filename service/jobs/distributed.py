@@ -30,8 +30,16 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
 from service.domain import notifications, renotify, retention, schedules
-from service.jobs import FINAL_ERRORS, RESTART_FIRST, RESTART_MAX, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
+from service.jobs.types import (
+    FINAL_ERRORS,
+    RESTART_FIRST,
+    RESTART_MAX,
+    JobInfo,
+    JobState,
+    QueueStats,
+    error_text,
+)
 from service.tables import JobError, utcnow
 
 

@@ -24,8 +24,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
 from service.domain import notifications, renotify, retention, schedules
-from service.jobs import FINAL_ERRORS, JOB_STATES, JobInfo, JobState, QueueStats, error_text
 from service.jobs.tasks import TASKS
+from service.jobs.types import FINAL_ERRORS, JOB_STATES, JobInfo, JobState, QueueStats, error_text
 from service.tables import Job, JobCount, utcnow
 
 MAX_ATTEMPTS = 5

@@ -25,7 +25,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from service.domain.fleet import STATUSES
-from service.jobs import QueueStats
+from service.jobs.types import QueueStats
 from service.tables import StructureState
 
 MULTIPROCESS_DIR = "PROMETHEUS_MULTIPROC_DIR"

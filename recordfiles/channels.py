@@ -20,7 +20,7 @@ import re
 from collections.abc import Sequence
 
 from models.errors import InputError
-from service.names import normalised_name
+from recordfiles.names import normalised_name
 
 MAX_CHANNELS = 8
 NAME_LENGTH = 32
@@ -30,7 +30,7 @@ RESERVED = ("x", "fs")
 
 def checked_channels(names: Sequence[str]) -> tuple[str, ...]:
     """The channel names of a record of several responses, in the order given and normalised
-    (``service.names``), after checking their number, each name against the rule and that none
+    (``recordfiles.names``), after checking their number, each name against the rule and that none
     is given twice."""
     if len(names) > MAX_CHANNELS:
         raise InputError(

@@ -24,7 +24,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
 from models.errors import InputError
-from service.names import normalised_name
+from recordfiles.names import normalised_name
 
 MAX_CONDITIONS = 16
 NAME_LENGTH = 32
@@ -47,7 +47,7 @@ class Condition:
 
 
 def checked_conditions(conditions: Iterable[Condition]) -> tuple[Condition, ...]:
-    """The conditions sorted by name, their names normalised (``service.names``), after checking
+    """The conditions sorted by name, their names normalised (``recordfiles.names``), after checking
     each against the rules above.
 
     Counting stops at one past the limit, so an endless list costs no more than a short one.

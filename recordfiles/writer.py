@@ -1,13 +1,13 @@
 """Writing record files: excitation x and the response(s) with their sampling rate, as CSV or NPZ.
 
-The single-response layouts are the ones ``service.recordfiles`` reads: CSV with a first comment
+The single-response layouts are the ones ``recordfiles.reader`` reads: CSV with a first comment
 line ``# fs=1500``, a header ``x,y`` and one ``x,y`` pair a line; NPZ with arrays ``x`` and ``y``
 and a scalar ``fs``. A record of several response channels (the chain's masses, the rig's two)
 names them in place of ``y`` (columns or members ``y1,y2,…``), and a record's operating
 conditions (its temperature in °C) follow the rate as comment lines ``# temperature=12.5 °C``
-(the syntax of ``service.recordfiles``, with the unit of :data:`UNITS`) or as scalar NPZ members
-of that name, which the format gives no unit. The simulator only writes records; reading them (from uploads
-and from files given to the command line) belongs to the service.
+(the syntax of ``recordfiles.reader``, with the unit of :data:`UNITS`) or as scalar NPZ members
+of that name, which the format gives no unit. The simulator writes records with it; the service
+reads them (uploads, and files given to the command line) with :mod:`recordfiles.reader`.
 """
 
 from __future__ import annotations

@@ -5,9 +5,9 @@ CSV: optional comment lines (``# fs=1500``, conditions ``# temperature=12.5 °C`
 naming the columns, then one row of values a line; ``narxwatch simulate`` writes the header
 ``x,y``. NPZ: arrays ``x`` and ``y``, a scalar ``fs`` and a scalar member per condition (no
 unit), loaded without pickle. MAT: variables of a MATLAB v4/v5 file
-(:mod:`service.matfiles`), with the sampling rate in a variable ``fs`` or ``Fs``. Parsing works
+(:mod:`recordfiles.matfiles`), with the sampling rate in a variable ``fs`` or ``Fs``. Parsing works
 on bytes so that an upload and a file given to the command line go through the same checks; the
-simulator writes the CSV and NPZ layouts (``simulator.recordfile``).
+simulator writes the CSV and NPZ layouts (``recordfiles.writer``).
 
 Published files are read as they are (:class:`Layout` names the signals to take as x and y):
 Silverbox's ``"V1","V2",`` (fs = 10⁷/2¹⁴ Hz), F-16's ``"Force",…,"Acceleration3","Fs",`` and
@@ -39,9 +39,9 @@ from typing import TypeVar
 import numpy as np
 
 from models.errors import InputError
-from service import matfiles
-from service.channels import checked_channels
-from service.conditions import (
+from recordfiles import matfiles
+from recordfiles.channels import checked_channels
+from recordfiles.conditions import (
     MAX_CONDITIONS,
     Condition,
     check_name,
@@ -98,9 +98,9 @@ _ZIP64_LOCATOR = b"PK\x06\x07"
 @dataclass(frozen=True)
 class RecordFile:
     """Signals read from a file; ``fs`` is None when the file does not state it. ``conditions``
-    are checked (:func:`service.conditions.checked_conditions`) and sorted by name. A record of
+    are checked (:func:`recordfiles.conditions.checked_conditions`) and sorted by name. A record of
     several responses has y of shape (N, K), its columns named by ``channels``
-    (:mod:`service.channels`); one of one response has y of shape (N,) and no channels."""
+    (:mod:`recordfiles.channels`); one of one response has y of shape (N,) and no channels."""
 
     x: np.ndarray
     y: np.ndarray

@@ -1,0 +1,75 @@
+"""No module of the project imports itself through others, and importing one changes nothing.
+
+The layering between packages is import-linter's (``[tool.importlinter]`` in pyproject.toml, run
+by ``make test``); its acyclic contract compares packages, and this test the modules: a circle of
+imports, even one closed inside a function or under ``TYPE_CHECKING``, makes every module on it
+load all the others and ties them into one piece that cannot be read, tested or moved alone.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+import tomllib
+from pathlib import Path
+
+import grimp
+import pytest
+
+from models.blas import VARIABLES
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["root_packages"]
+
+
+def import_cycles(graph: grimp.ImportGraph) -> list[list[str]]:
+    """One circle through each direct import that is on one: the import, then the way back."""
+    cycles = []
+    for importer in sorted(graph.modules):
+        for imported in sorted(graph.find_modules_directly_imported_by(importer)):
+            back = graph.find_shortest_chain(importer=imported, imported=importer)
+            if back is not None:
+                cycles.append([importer, *back])
+    return cycles
+
+
+def test_no_module_imports_itself_through_others() -> None:
+    graph = grimp.build_graph(*PACKAGES, cache_dir=None)
+    assert import_cycles(graph) == []
+
+
+def test_a_circle_is_found() -> None:
+    """The check itself: a circle of three modules is reported, a chain of three is not."""
+    graph = grimp.ImportGraph()
+    graph.add_import(importer="p.a", imported="p.b")
+    graph.add_import(importer="p.b", imported="p.c")
+    assert import_cycles(graph) == []
+    graph.add_import(importer="p.c", imported="p.a")
+    assert ["p.a", "p.b", "p.c", "p.a"] in import_cycles(graph)
+
+
+@pytest.mark.parametrize("entry_point", ["service.cli", "simulator.client"])
+@pytest.mark.parametrize(("given", "expected"), [({}, "1 1 1"), ({"OPENBLAS_NUM_THREADS": "3"}, "3 1 1")])
+def test_the_entry_points_ask_for_one_blas_thread_before_numpy_loads(entry_point, given, expected):
+    """Importing the packages sets nothing and loads no numpy; the console scripts' ``main`` sets
+    one thread for each BLAS the user left alone, before a command loads numpy (BLAS reads the
+    variables then, once). In a fresh process, as a console script starts."""
+    child = textwrap.dedent(f"""
+        import os, sys
+        import models, recordfiles, service, simulator, {entry_point}
+        assert not set({VARIABLES!r}) - set({list(given)!r}) & set(os.environ), "an import set them"
+        assert "numpy" not in sys.modules, "numpy loaded before main could set the threads"
+        sys.argv = ["main", "--help"]
+        try:
+            {entry_point}.main()
+        except SystemExit:
+            pass
+        assert "numpy" in sys.modules
+        print(*(os.environ[variable] for variable in {VARIABLES!r}), file=sys.stderr)
+    """)
+    env = {name: value for name, value in os.environ.items() if name not in VARIABLES} | given
+    run = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr.strip().splitlines()[-1] == expected
