@@ -22,28 +22,40 @@ and a baseline fitted so trades model error for a quiet start (a bias that grows
 excitation squared). The baseline is to be fitted so too (``fit_output_error(…,
 start_from="estimated")``), and must be linear in its output.
 
-The statistic (units: the response's squared units, as ratios here, so none): the error's power
-in B = ⌈M/2⌉ − 1 bands, against the healthy error's. A fault moves the error where it moves the
-response, near the modes it changes, and there it stands out of the sensor noise far more than in
-the total variance, which the noise over the whole band dilutes.
+The statistic: does the excitation explain the error? A change of the structure's linear
+dynamics adds (G_record − G_baseline)·x to the error, a filtered copy of the measured excitation.
+To first order in the change of θ that copy lies in the span of the free run's sensitivities
+J = ∂ŷ/∂θ, column i the term's regressor φ_i along the run through the linear part 1/A(q):
+ε = J·β + noise, and a healthy record has β = 0 but for the baseline's own estimation error.
+The test is the regression of the error on J (a matched filter for every change the model class
+can express), so it gathers the fault's whole coherent difference, where a spectrum of the
+error alone sees only its excess power over the noise's.
 
-- reference (:func:`novelty_reference`): the healthy records' free-run errors from sample L on,
-  out of sample (each from the baseline's terms fitted on the other records), cut into K₀
-  segments of M samples; P̂₀(b) the mean over them of the periodogram
-  I(b) = |Σ_t ε[t]·e^{−2πibt/M}|²/M, b = 1 … B; σ̂²₀ = Σε²/n₀ the total;
-- a record's P̂(b), the mean over its K = ⌊(N − L)/M⌋ segments. For a Gaussian stationary error
-  whose correlation is short beside M, I(b) ≈ S(b)·χ²₂/2, independent over bands and
-  segments, so P̂(b) ≈ S(b)·χ²_ν/ν with ν = 2K, P̂₀(b) ≈ S(b)·χ²_{ν₀}/ν₀ with ν₀ = 2K₀, and
-  F(b) = P̂(b)/P̂₀(b) ≈ F(ν, ν₀) whatever the error's spectrum S;
-- the statistic max_b F(b) against the Šidák threshold F_{(1−α)^{1/B}}(ν, ν₀): all B bands stay
-  below it with probability 1 − α. A record is an ``anomaly`` above it: one-sided, since a
-  change of the structure adds to the error. p-value 1 − (1 − p_min)^B. ν scales with the record's
-  length and ν₀ carries the reference's own uncertainty, so the rate holds for records shorter or
-  longer than the training ones, and for other excitation levels as long as the sensor noise is
-  a floor (its variance does not grow with the signal) and the baseline is at that floor.
-- severity: s²/σ̂²₀, s² = mean ε²[t], t = L … N−1: how many times a healthy record's
-  simulation-error variance the record's is; 1 when healthy, whatever the record's length, so
-  a person can trend it.
+- whitening: an AR(Q) filter w(q) = 1 − Σ c_k q⁻ᵏ fitted by least squares to the healthy
+  records' errors (out of sample: each from ``model``'s terms refitted on the other records);
+  the error, J and the start's responses S (:class:`models.output_error.EstimatedStart`) of a
+  record are all passed through it, so that the regression's residual is near white and the
+  F distribution below exact (generalised least squares);
+- ẽ and J̃ are projected off S̃ (the start is a nuisance, estimated with the record);
+- the directions: the healthy records' projected, whitened sensitivities stacked, J̃₀, give
+  the baseline's information J̃₀ᵀJ̃₀ = V·Σ²·Vᵀ (singular values of the scaled columns); the
+  r directions whose singular value exceeds ``RANK_TOLERANCE`` of the largest form
+  D = V_r·Σ_r⁻¹, so that the baseline's estimation error in u = D⁺θ has covariance σ²·I;
+- a record: K = J̃·D (n × r), g = Kᵀẽ, G = KᵀK; the record's estimate û = G⁻¹g of the change has
+  covariance σ²·G⁻¹ about the baseline's error, itself σ²·I; so under a healthy record
+  û ~ N(0, σ²·(G⁻¹ + I)) and
+
+      T = ûᵀ(G⁻¹ + I)⁻¹û / (r·s²) = gᵀ(G + G²)⁻¹g / (r·s²) ~ F(r, n − R − r),
+
+  s² = (ẽᵀẽ − gᵀG⁻¹g)/(n − R − r) the record's residual variance, n its whitened samples and R
+  the start's columns. A record is an ``anomaly`` when T exceeds F_{1−α}(r, n − R − r). The
+  record's own s² scales the statistic, so it holds at any excitation level as long as the
+  baseline is at the noise floor; the I in (G⁻¹ + I) keeps the rate for records longer than
+  the training ones, where the baseline's own error would otherwise be found.
+- severity: s²_ε/σ̂²₀, s²_ε = mean ε²[t], t = L … N−1, σ̂²₀ the healthy records' (out of
+  sample): how many times a healthy record's simulation-error variance the record's is; 1 when
+  healthy, whatever the record's length, so a person can trend it. It also moves for changes
+  the excitation does not explain (the sensor's noise, say), which T does not test.
 
 A baseline whose linear part does not ring down within ``MAX_START_UP`` samples (a root on or
 outside the unit circle, or too near it) is ``marginal``: its verdicts say so, for its free-run
@@ -59,27 +71,32 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import special
+from scipy import signal, special
 from scipy.linalg import solve_discrete_lyapunov
 
 from models.errors import InputError
 from models.narx import NARX
-from models.output_error import estimated_start_error, fit_output_error
+from models.output_error import EstimatedStart, estimated_start_error, fit_output_error
 from models.signals import checked_record, checked_records
-from models.terms import max_degree
+from models.terms import max_degree, regressor_matrix
 
 Status = Literal["healthy", "anomaly"]
 FreeRunState = Literal["settled", "marginal", "diverged"]
-DOCUMENT_VERSION = 2
+DOCUMENT_VERSION = 3
 # What is left of a start error after the start-up, in all, as a share of one sample's variance.
 START_UP_SHARE = 1e-2
 # The longest start-up a baseline may need before it counts as marginal.
 MAX_START_UP = 50_000
 # Error samples a record needs after its initial outputs, at least, for its statistic.
 MIN_SAMPLES = 100
-# Samples of a segment: 15 bands, each as wide as a heavily damped mode, and each with many
-# segments' degrees of freedom in a record of a few thousand samples.
-SEGMENT = 32
+# Q, the whitening filter's order: the healthy error of a baseline at its noise floor is near
+# white, and what colour is left is short.
+WHITENING_ORDER = 10
+# Directions of θ the healthy records determine worse than this, relative to the best (a
+# singular value of the scaled sensitivities), are left out: a fast-sampled model's autoregressive
+# sensitivities are nearly collinear, and a change along what they cannot tell apart moves the
+# response by less than the rounding of the others.
+RANK_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -90,10 +107,9 @@ class NoveltyReference:
     Attributes
     ----------
     sigma2 : σ̂²₀, the healthy free-run error variance [response units²].
-    band_power : P̂₀(b), b = 1 … ⌈M/2⌉ − 1, the healthy error's mean periodogram in each band
-        [response units²] (band b centred on b/M of the sampling rate).
-    segment : M, the samples of a segment.
-    n_segments : K₀, the healthy segments averaged.
+    whitening : c_1 … c_Q of the whitening filter w(q) = 1 − Σ c_k q⁻ᵏ.
+    directions : D (p × r), the directions of θ a record's sensitivities are tested along,
+        scaled so that the baseline's estimation error along them has covariance σ²·I.
     n_samples : n₀, the healthy error samples pooled; ``n_records`` the healthy records.
     start_up : L, the samples at a record's start left out (its free run's initial outputs).
     radius : the largest root modulus of the baseline's linear part at rest.
@@ -101,9 +117,8 @@ class NoveltyReference:
     """
 
     sigma2: float
-    band_power: tuple[float, ...]
-    segment: int
-    n_segments: int
+    whitening: tuple[float, ...]
+    directions: tuple[tuple[float, ...], ...]
     n_samples: int
     n_records: int
     start_up: int
@@ -111,13 +126,14 @@ class NoveltyReference:
     marginal: bool
 
     @property
-    def dof(self) -> float:
-        """ν₀ = 2K₀, each band power's degrees of freedom."""
-        return 2.0 * self.n_segments
+    def rank(self) -> int:
+        """r, the directions tested: the statistic's numerator degrees of freedom."""
+        return len(self.directions[0]) if self.directions else 0
 
     def to_document(self) -> dict[str, Any]:
         document = asdict(self)
-        document["band_power"] = list(self.band_power)
+        document["whitening"] = list(self.whitening)
+        document["directions"] = [list(row) for row in self.directions]
         return {"kind": "novelty_reference", "schema_version": DOCUMENT_VERSION, **document}
 
     @classmethod
@@ -132,9 +148,8 @@ class NoveltyReference:
         try:
             return cls(
                 sigma2=float(document["sigma2"]),
-                band_power=tuple(float(v) for v in document["band_power"]),
-                segment=int(document["segment"]),
-                n_segments=int(document["n_segments"]),
+                whitening=tuple(float(v) for v in document["whitening"]),
+                directions=tuple(tuple(float(v) for v in row) for row in document["directions"]),
                 n_samples=int(document["n_samples"]),
                 n_records=int(document["n_records"]),
                 start_up=int(document["start_up"]),
@@ -155,13 +170,11 @@ class NoveltyVerdict:
     free_run : ``settled``; ``marginal`` (the baseline's free run does not ring down: the
         design rate does not hold); ``diverged`` (the free run left every bound at sample
         ``diverged_at``: an anomaly, its statistics infinite).
-    statistic : F = s²/r; ``threshold`` F_{1−α}(ν, ν₀); ``p_value`` P(F(ν, ν₀) > F).
-    severity : s²/σ̂²₀, the record's simulation-error variance over the healthy one.
-    sigma2 : s² [response units²]; ``expected_sigma2`` r, a healthy record's expected s².
-    dof, reference_dof : ν = 2K and ν₀ = 2K₀, a band power's degrees of freedom.
-    n_samples : the record's samples; ``used_samples`` n = N − L those judged.
-    band : the band of the largest ratio, its centre as a fraction of the sampling rate
-        (None for a diverged run).
+    statistic : T; ``threshold`` F_{1−α}(r, ν); ``p_value`` P(F(r, ν) > T).
+    severity : s²_ε/σ̂²₀, the record's simulation-error variance over the healthy one.
+    sigma2 : s²_ε [response units²]; ``expected_sigma2`` σ̂²₀, a healthy record's.
+    dof, residual_dof : r and ν = n − R − r, the statistic's degrees of freedom.
+    n_samples : the record's samples; ``used_samples`` N − L those judged.
     """
 
     status: Status
@@ -173,12 +186,11 @@ class NoveltyVerdict:
     sigma2: float
     expected_sigma2: float
     dof: float
-    reference_dof: float
+    residual_dof: float
     alpha: float
     n_samples: int
     used_samples: int
     diverged_at: int | None
-    band: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible; infinite figures (a diverged free run) as None."""
@@ -193,26 +205,22 @@ def novelty_reference(
     records: Iterable[tuple[ArrayLike, ArrayLike]],
     *,
     folds: int = 2,
-    segment: int = SEGMENT,
 ) -> NoveltyReference:
     """The healthy free-run error of ``model`` on the healthy ``records`` (x, y) it was trained
-    on: σ̂²₀ and the band powers P̂₀(b) over segments of ``segment`` samples (module docstring).
+    on: σ̂²₀, the whitening filter and the directions D (module docstring).
 
     The errors are taken out of sample: the records are cut into ``folds`` groups, and each
     group's errors come from ``model``'s terms refitted by output error (from the estimated
     start) on the other groups, started from ``model``'s θ. In sample, the fit has already shaped
-    its error to its own records' noise: the reference comes out low, and every later healthy
-    record looks a little worse than the records the baseline learnt from. With one fold (or one
-    record) the errors are ``model``'s own.
+    its error to its own records' noise: σ̂²₀ comes out low. With one fold (or one record) the
+    errors are ``model``'s own. The directions are ``model``'s sensitivities on all the records.
 
     Refused when a free run diverges on one of the healthy records: the baseline cannot then say
     what a healthy record's simulation error is.
     """
-    if not (isinstance(segment, int) and segment >= 4):
-        raise InputError(f"the segment must be a whole number of at least 4 samples, got {segment}")
     radius, _, marginal = start_up_of(model)
     L = model.max_lag
-    checked = checked_records(records, L + max(MIN_SAMPLES, segment), degree=max_degree(model.terms))
+    checked = checked_records(records, L + MIN_SAMPLES, degree=max_degree(model.terms))
     groups = min(int(folds), len(checked))
     if groups < 1:
         raise InputError(f"folds must be a whole number of at least 1, got {folds}")
@@ -237,12 +245,19 @@ def novelty_reference(
         raise InputError(
             "the baseline reproduces its healthy records exactly: there is no error to test against"
         )
-    periodograms = np.concatenate([_periodograms(e, segment) for e in errors])
+    whitening = _whitening_filter(errors, WHITENING_ORDER)
+    sensitivities = np.vstack(
+        [_regression(model, whitening, x, y, estimated_start_error(model, x, y))[1] for x, y in checked]
+    )
+    scale = np.linalg.norm(sensitivities, axis=0)
+    scale[scale == 0] = 1.0
+    _, singular, vt = np.linalg.svd(sensitivities / scale, full_matrices=False)
+    kept = singular > RANK_TOLERANCE * singular[0]
+    directions = (vt[kept].T / singular[kept]) / scale[:, None]
     return NoveltyReference(
         sigma2=sigma2,
-        band_power=tuple(float(v) for v in periodograms.mean(axis=0)),
-        segment=segment,
-        n_segments=periodograms.shape[0],
+        whitening=tuple(float(v) for v in whitening),
+        directions=tuple(tuple(float(v) for v in row) for row in directions),
         n_samples=n0,
         n_records=len(errors),
         start_up=L,
@@ -258,42 +273,42 @@ def judge_record(
     its ``reference`` at false-alarm rate ``alpha`` (module docstring)."""
     if not 0 < alpha < 0.5:
         raise InputError(f"alpha must lie in (0, 0.5), got {alpha}")
-    L, M = reference.start_up, reference.segment
-    xa, ya = checked_record(x, y, L + max(MIN_SAMPLES, M), degree=max_degree(model.terms))
-    n = ya.size - L
-    bands = len(reference.band_power)
-    nu, nu0 = 2.0 * (n // M), reference.dof
-    # Šidák: each band at 1 − (1 − α)^(1/B), so that all B stay below theirs with probability 1 − α.
-    threshold = float(special.fdtri(nu, nu0, (1 - alpha) ** (1 / bands)))
+    L, Q, r = reference.start_up, len(reference.whitening), reference.rank
+    xa, ya = checked_record(x, y, L + MIN_SAMPLES, degree=max_degree(model.terms))
+    used = ya.size - L
+    nu = float(used - Q - _linear_part(model).size - r)
+    threshold = float(special.fdtri(r, nu, 1 - alpha))
     free_run: FreeRunState = "marginal" if reference.marginal else "settled"
-    error = estimated_start_error(model, xa, ya)
-    if not np.all(np.isfinite(error)):
-        diverged_at = int(np.argmax(~np.isfinite(error)))
+    run_error = estimated_start_error(model, xa, ya)
+    if not np.all(np.isfinite(run_error)):
+        diverged_at = int(np.argmax(~np.isfinite(run_error)))
         return NoveltyVerdict(
             "anomaly", "diverged", np.inf, threshold, 0.0, np.inf, np.inf, reference.sigma2,
-            nu, nu0, alpha, ya.size, n, diverged_at, None,
+            r, nu, alpha, ya.size, used, diverged_at,
         )  # fmt: skip
-    tail = error[L:]
-    ratios = _periodograms(tail, M).mean(axis=0) / np.asarray(reference.band_power)
-    worst = int(np.argmax(ratios))
-    statistic = float(ratios[worst])
-    sigma2 = float(tail @ tail) / n
+    error, sensitivities = _regression(model, np.asarray(reference.whitening), xa, ya, run_error)
+    K = sensitivities @ np.asarray(reference.directions)
+    g, G = K.T @ error, K.T @ K
+    explained = float(g @ np.linalg.solve(G, g))
+    s2 = (float(error @ error) - explained) / nu
+    statistic = float(g @ np.linalg.solve(G + G @ G, g)) / (r * s2)
+    tail = run_error[L:]
+    sigma2 = float(tail @ tail) / used
     return NoveltyVerdict(
         status="anomaly" if statistic > threshold else "healthy",
         free_run=free_run,
         statistic=statistic,
         threshold=threshold,
-        p_value=float(-np.expm1(bands * np.log1p(-special.fdtrc(nu, nu0, statistic)))),
+        p_value=float(special.fdtrc(r, nu, statistic)),
         severity=sigma2 / reference.sigma2,
         sigma2=sigma2,
         expected_sigma2=reference.sigma2,
-        dof=nu,
-        reference_dof=nu0,
+        dof=float(r),
+        residual_dof=nu,
         alpha=alpha,
         n_samples=ya.size,
-        used_samples=n,
+        used_samples=used,
         diverged_at=None,
-        band=(worst + 1) / M,
     )
 
 
@@ -343,10 +358,32 @@ def _linear_part(model: NARX) -> np.ndarray:
     return np.trim_zeros(a, "b")
 
 
-def _periodograms(error: np.ndarray, segment: int) -> np.ndarray:
-    """(K, M/2 − 1): the periodogram |Σ_t ε[t]·e^{−2πibt/M}|²/M of each of the K whole
-    segments of M samples, at the bands b = 1 … ⌈M/2⌉ − 1 (neither 0 nor the Nyquist band, whose
-    periodograms have one degree of freedom, not two)."""
-    K = error.size // segment
-    spectra = np.fft.rfft(error[: K * segment].reshape(K, segment), axis=1)
-    return np.abs(spectra[:, 1 : (segment + 1) // 2]) ** 2 / segment
+def _whitening_filter(errors: list[np.ndarray], order: int) -> np.ndarray:
+    """c_1 … c_Q of the AR(Q) model e[t] = Σ c_k·e[t−k] + w[t] fitted by least squares to the
+    healthy ``errors`` pooled."""
+    lagged = [np.column_stack([e[order - k : e.size - k] for k in range(1, order + 1)]) for e in errors]
+    targets = [e[order:] for e in errors]
+    return np.linalg.lstsq(np.vstack(lagged), np.concatenate(targets), rcond=None)[0]
+
+
+def _regression(
+    model: NARX, whitening: np.ndarray, x: np.ndarray, y: np.ndarray, error: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(ẽ, J̃) of one record whose free-run ``error`` from the estimated start settles: the error
+    and the run's sensitivities to θ from sample L on, whitened by w(q) (their first Q samples
+    dropped) and projected off the start's whitened responses S̃ (module docstring)."""
+    L, Q = model.max_lag, whitening.size
+    start = EstimatedStart.of(model.terms, model.theta, y.size).responses[: y.size - L]
+    w = np.concatenate(([1.0], -whitening))
+
+    def whitened(series: np.ndarray) -> np.ndarray:
+        return signal.lfilter(w, [1.0], series, axis=0)[Q:]
+
+    S = whitened(start)
+    regressors = regressor_matrix(model.terms, x, y - error)[0]
+    # ∂ŷ/∂θ_i = φ_i / A(q): the regressor along the run through the linear part, from rest (what
+    # the start would add, S spans).
+    J = signal.lfilter([1.0], np.concatenate(([1.0], -_linear_part(model))), regressors, axis=0)
+    projected = np.column_stack([whitened(error[L:]), whitened(J)])
+    projected -= S @ np.linalg.lstsq(S, projected, rcond=None)[0]
+    return projected[:, 0], projected[:, 1:]

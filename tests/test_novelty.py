@@ -75,9 +75,9 @@ def test_healthy_records_flagged_at_the_designed_rate_and_a_loosened_spring_foun
     severities = [v.severity for v in verdicts]
     assert abs(np.mean(severities) - 1.0) < 3 * np.std(severities) / np.sqrt(200)
 
-    # Power for an 8 % loss: k2's moves the error far above the noise in its bands, k1's less
-    # (bench/novelty_rates.py measures both); the bounds leave a few standard deviations.
-    for spring, least in (("k2", 38), ("k1", 20)):
+    # Power for an 8 % loss of k1 or k2: the change the excitation explains stands far out of
+    # the noise (bench/novelty_rates.py measures it); the bounds leave a few records' margin.
+    for spring, least in (("k2", 38), ("k1", 38)):
         faulty = flagged(model, reference, scenario(spring, 8.0), 4000, 40, 20_000)
         assert sum(v.status == "anomaly" for v in faulty) >= least, spring
         assert np.median([v.severity for v in faulty]) > 1.0
