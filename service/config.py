@@ -116,15 +116,17 @@ class Settings(BaseSettings):
     # machine of few cores two per worker process left another organisation's reads a p95 just
     # over a second under bench/abuse.py's attack.
     max_concurrent_expensive: int = Field(1, ge=1)
-    # Upload bodies (CSV, JSON, NPZ, MAT) parsed at once in one process, whoever sends them; more
-    # wait for a parse to end, at most ``parse_wait_seconds``, then are answered 503 with
-    # Retry-After. A parse holds a few times its body in memory and, being mostly Python, the
-    # interpreter lock: a second one in the same process parses no faster, it doubles the memory
-    # and halves what the process's other requests get of the CPU. One per process: with a
-    # worker process a core, as many parses as cores. The wait carries a queue of the largest
-    # bodies (a second or so each) and stays well under a client's patience.
-    max_concurrent_parses: int = Field(1, ge=1)
-    parse_wait_seconds: float = Field(10.0, gt=0)
+    # Record uploads worked on at once in one process (their bodies parsed, checked, inspected
+    # and stored), whoever sends them; more wait for one to end, at most
+    # ``upload_wait_seconds``, then are answered 503 with Retry-After. A parse holds a few times
+    # its body in memory, and parsing and inspecting are mostly Python, which holds the
+    # interpreter lock: a second upload in the same process runs no faster, it doubles the
+    # memory, costs the threads' switching, and halves what the process's other requests get of
+    # the CPU. One per process: with a worker process a core, as many uploads as cores. The
+    # wait carries a queue of the largest bodies (a second or so each) and stays well under a
+    # client's patience.
+    max_concurrent_uploads: int = Field(1, ge=1)
+    upload_wait_seconds: float = Field(10.0, gt=0)
     # Notifications (service.domain.notifications). Webhook targets must resolve to global
     # addresses (no loopback, private, link-local … ranges: SSRF), checked when a webhook is
     # created and again at each delivery; ``webhook_allow_private`` lifts that, and

@@ -193,6 +193,16 @@ class _GatedCursor(sqlite3.Cursor):
         return super().executemany(sql, parameters)
 
 
+def hold_writer_gate(session: Session) -> None:
+    """Take the SQLite file's writer gate now, not at the transaction's first write: what the
+    transaction computes from here on (an upload's acquisition time, say) then follows the order
+    in which its writers commit. Nothing on other databases, where a row lock orders the writers
+    of one structure."""
+    connection = session.connection().connection.dbapi_connection
+    if isinstance(connection, GatedConnection):
+        connection.take_gate()
+
+
 # The tables whose rows the retention empties or deletes, and the state rows it updates.
 PRUNED_TABLES = (
     "records",

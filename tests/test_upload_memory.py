@@ -8,8 +8,8 @@
   reads seconds. Every upload must be refused with a 4xx, the server's memory (the resident
   sets of its processes) grow by at most 600 MB, and the other organisation's p95 stay within
   half a second.
-- Parses beyond ``NARXWATCH_MAX_CONCURRENT_PARSES`` wait at most
-  ``NARXWATCH_PARSE_WAIT_SECONDS``, then are answered 503 with Retry-After.
+- Parses beyond ``NARXWATCH_MAX_CONCURRENT_UPLOADS`` wait at most
+  ``NARXWATCH_UPLOAD_WAIT_SECONDS``, then are answered 503 with Retry-After.
 """
 
 from __future__ import annotations
@@ -226,17 +226,17 @@ def test_wide_headers_at_once_are_refused_within_bounded_memory(served: Served, 
 
 # --- parses beyond the bound wait, then are answered 503 --------------------------------------
 
-PARSE_WAIT = 0.3  # NARXWATCH_PARSE_WAIT_SECONDS of the served app: well under one large parse
+UPLOAD_WAIT = 0.3  # NARXWATCH_UPLOAD_WAIT_SECONDS of the served app: well under one large parse
 
 
 def test_a_parse_waiting_beyond_its_bound_is_a_503_with_retry_after(tmp_path: Path):
     """One parse at a time: while a 13 MB CSV is parsed (a second or so), a second upload waits
-    ``PARSE_WAIT`` s for its turn and is answered 503 with Retry-After, and the first is
+    ``UPLOAD_WAIT`` s for its turn and is answered 503 with Retry-After, and the first is
     answered as it would have been alone; once it has ended, an upload is parsed again."""
     settings = Settings(
         database_url=f"sqlite:///{tmp_path / 'narxwatch.db'}",
-        max_concurrent_parses=1,
-        parse_wait_seconds=PARSE_WAIT,
+        max_concurrent_uploads=1,
+        upload_wait_seconds=UPLOAD_WAIT,
     )
     x, y = noise(300_000)
     large = (csv_text(x, y) + "1.0,abc\n").encode()  # refused at its last line, after the whole parse
@@ -255,14 +255,14 @@ def test_a_parse_waiting_beyond_its_bound_is_a_503_with_retry_after(tmp_path: Pa
         first, second = asyncio.run(both())
         assert second.status_code == 503, second.text
         assert int(second.headers["Retry-After"]) >= 1
-        assert "NARXWATCH_MAX_CONCURRENT_PARSES" in second.json()["detail"]
+        assert "NARXWATCH_MAX_CONCURRENT_UPLOADS" in second.json()["detail"]
         assert first.status_code == 422 and "'abc' in column 'y' is not a number" in first.text
-        assert time.monotonic() - started > PARSE_WAIT
+        assert time.monotonic() - started > UPLOAD_WAIT
         again = admin.post(path, content=b"x,y\n1,abc\n", headers=headers)
         assert again.status_code == 422 and "'abc' in column 'y' is not a number" in again.text
 
 
-@pytest.mark.parametrize(("name", "value"), [("max_concurrent_parses", 0), ("parse_wait_seconds", 0)])
+@pytest.mark.parametrize(("name", "value"), [("max_concurrent_uploads", 0), ("upload_wait_seconds", 0)])
 def test_the_parse_bound_is_a_validated_setting(monkeypatch, name: str, value: float):
     monkeypatch.setenv(f"NARXWATCH_{name.upper()}", str(value))
     with pytest.raises(ValueError, match=name):

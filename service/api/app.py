@@ -37,7 +37,7 @@ from service.api import (
     schedules,
     structures,
 )
-from service.api.expensive import Parses, Slots
+from service.api.expensive import Slots, Uploads
 from service.api.limits import BodyLimit, BodyLimitMiddleware
 from service.config import Settings, get_settings
 from service.db import make_engine, session_factory
@@ -77,7 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.sessions = session_factory(app.state.engine)
     app.state.jobs = job_backend(settings, app.state.sessions, in_service=True)
     app.state.expensive = Slots(settings.max_concurrent_expensive)
-    app.state.parses = Parses(settings.max_concurrent_parses, settings.parse_wait_seconds)
+    app.state.uploads = Uploads(settings.max_concurrent_uploads, settings.upload_wait_seconds)
     app.include_router(health.router)
     app.include_router(metrics.router)
     routers = (

@@ -1,13 +1,13 @@
-"""Requests that cost much: a cap on those one organisation runs at once, a cap on the upload
-bodies parsed at once, and work handed to a job.
+"""Requests that cost much: a cap on those one organisation runs at once, a cap on the uploads
+worked on at once, and work handed to a job.
 
 Trainings, refinements and inspections of stored records take seconds and hold a thread and a
 pooled connection while they run. Each organisation may run ``max_concurrent_expensive`` of
 them at once in one process; more are answered 429, so that one organisation's burst cannot
 take every thread and connection from the others. Work above ``queue_training_cells`` is not
 run in its request at all: it is queued as a job and answered 202 with the job's address.
-Upload bodies are parsed ``max_concurrent_parses`` at a time in one process, whoever sends them
-(:class:`Parses`).
+Record uploads are worked on ``max_concurrent_uploads`` at a time in one process, whoever sends
+them (:class:`Uploads`).
 """
 
 from __future__ import annotations
@@ -68,15 +68,17 @@ class Slots:
             return self._running[organisation_id]
 
 
-class Parses:
-    """The upload bodies this process parses at once: at most ``limit``, whoever sends them.
+class Uploads:
+    """The uploads this process works on at once (parse, check, inspect, store): at most
+    ``limit``, whoever sends them.
 
-    A parse holds a few times its body in memory and the interpreter lock while it runs: without
-    a bound, one key's burst of uploads took the process's memory by gigabytes and other
-    organisations' reads to seconds. A parse beyond the limit waits on the event loop, holding
-    no thread and no pooled connection, at most ``wait`` seconds for one to end, then is
-    answered 503 with Retry-After: a queue bounded in time rather than a refusal at once, since
-    a slot turns over within a second or so.
+    A parse holds a few times its body in memory, and parsing and inspecting hold the
+    interpreter lock while they run: without a bound, one key's burst of uploads took the
+    process's memory by gigabytes and other organisations' reads to seconds, and uploads
+    interleaved on threads cost a fifth more CPU each than one after another. An upload beyond
+    the limit waits on the event loop, holding no thread and no pooled connection, at most
+    ``wait`` seconds for one to end, then is answered 503 with Retry-After: a queue bounded in
+    time rather than a refusal at once, since a slot turns over within a second or so.
     """
 
     def __init__(self, limit: int, wait: float) -> None:
@@ -85,22 +87,22 @@ class Parses:
         self._semaphore = anyio.Semaphore(limit)  # tied to the serving event loop at its first use
 
     async def run(
-        self, parse: Callable[Params, Result], *args: Params.args, **kwargs: Params.kwargs
+        self, upload: Callable[Params, Result], *args: Params.args, **kwargs: Params.kwargs
     ) -> Result:
-        """``parse(*args, **kwargs)`` on a worker thread, in one of the slots."""
+        """``upload(*args, **kwargs)`` on a worker thread, in one of the slots."""
         try:
             with anyio.fail_after(self.wait):
                 await self._semaphore.acquire()
         except TimeoutError:
             raise HTTPException(
                 status.HTTP_503_SERVICE_UNAVAILABLE,
-                f"the server is parsing as many uploads at once as it may ({self.limit}, "
-                f"NARXWATCH_MAX_CONCURRENT_PARSES) and none ended within {self.wait:g} s "
-                f"(NARXWATCH_PARSE_WAIT_SECONDS); retry in {RETRY_AFTER_SECONDS} s",
+                f"the server is working on as many uploads at once as it may ({self.limit}, "
+                f"NARXWATCH_MAX_CONCURRENT_UPLOADS) and none ended within {self.wait:g} s "
+                f"(NARXWATCH_UPLOAD_WAIT_SECONDS); retry in {RETRY_AFTER_SECONDS} s",
                 headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
             ) from None
         try:
-            return await run_in_threadpool(parse, *args, **kwargs)
+            return await run_in_threadpool(upload, *args, **kwargs)
         finally:  # after the thread has ended, even if the request was cancelled meanwhile
             self._semaphore.release()
 
@@ -137,8 +139,8 @@ BUSY: dict[int | str, dict[str, Any]] = {
         "description": "The organisation runs as many expensive requests as it may: retry after Retry-After"
     }
 }
-PARSES_BUSY: dict[int | str, dict[str, Any]] = {
-    503: {"description": "The server parses as many uploads as it may at once: retry after Retry-After"}
+UPLOADS_BUSY: dict[int | str, dict[str, Any]] = {
+    503: {"description": "The server works on as many uploads as it may at once: retry after Retry-After"}
 }
 ACCEPTED = BUSY | {
     202: {"model": JobAccepted, "description": "Queued as a job: too large to run within a request"}

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 from recordfiles.channels import MAX_CHANNELS
 from recordfiles.reader import NAMING_HELP, Layout
 from service.api.deps import Ingest, SessionDep, SettingsDep, Viewer
-from service.api.expensive import BUSY, PARSES_BUSY, slot
+from service.api.expensive import BUSY, UPLOADS_BUSY, slot
 from service.api.params import IdPath, utc
 from service.api.uploads import (
     RECORD_SET_BODY,
@@ -52,7 +52,7 @@ class InspectMode(StrEnum):
     "/structures/{structure_id}/records",
     status_code=status.HTTP_201_CREATED,
     openapi_extra={"requestBody": REQUEST_BODY},
-    responses=PARSES_BUSY
+    responses=UPLOADS_BUSY
     | {
         200: {
             "model": RecordOut,
@@ -98,18 +98,19 @@ async def upload_record(
         if inspect is InspectMode.queue
         else None
     )
+    content_type = request.headers.get("content-type", "")
+    layout = signal_layout(x, y, NAME_LENGTH)
+
+    def parse_and_ingest() -> Ingested:
+        upload = parse_upload(body, content_type, acquired_at, settings.max_upload_bytes, layout)
+        ingested = _ingest(
+            upload, session, principal, settings, structure_id, inspect is InspectMode.true, queue
+        )
+        session.commit()  # here, holding the writer gate no longer than the write (get_session)
+        return ingested
+
     # Parsing a large body and checking it take a good part of a second: never on the event loop.
-    upload = await request.app.state.parses.run(
-        parse_upload,
-        body,
-        request.headers.get("content-type", ""),
-        acquired_at,
-        settings.max_upload_bytes,
-        signal_layout(x, y, NAME_LENGTH),
-    )
-    ingested = await run_in_threadpool(
-        _ingest, upload, session, principal, settings, structure_id, inspect is InspectMode.true, queue
-    )
+    ingested = await request.app.state.uploads.run(parse_and_ingest)
     if ingested.queued:
         response.status_code = status.HTTP_202_ACCEPTED
         background.add_task(request.app.state.jobs.wake)  # after the commit: the worker then sees it
@@ -122,7 +123,7 @@ async def upload_record(
     "/structures/{structure_id}/record-sets",
     status_code=status.HTTP_201_CREATED,
     openapi_extra={"requestBody": RECORD_SET_BODY},
-    responses=PARSES_BUSY
+    responses=UPLOADS_BUSY
     | {200: {"model": list[RecordOut], "description": "Every record of the set had been uploaded before"}},
 )
 async def upload_record_set(
@@ -148,17 +149,15 @@ async def upload_record_set(
     # A body is parsed only for a structure the key may upload to, looked up in a session of its
     # own: the request's would hold a pooled connection while the parse waits for its turn.
     await run_in_threadpool(_check_structure, request, principal, structure_id)
-    uploads = await request.app.state.parses.run(
-        parse_upload_set,
-        body,
-        request.headers.get("content-type", ""),
-        acquired_at,
-        settings.max_upload_bytes,
-        layout,
-    )
-    ingested = await run_in_threadpool(
-        _ingest_set, uploads, acquired_at, session, principal, settings, structure_id
-    )
+    content_type = request.headers.get("content-type", "")
+
+    def parse_and_ingest() -> list[Ingested]:
+        uploads = parse_upload_set(body, content_type, acquired_at, settings.max_upload_bytes, layout)
+        ingested = _ingest_set(uploads, acquired_at, session, principal, settings, structure_id)
+        session.commit()  # here, holding the writer gate no longer than the write (get_session)
+        return ingested
+
+    ingested = await request.app.state.uploads.run(parse_and_ingest)
     if not any(item.created for item in ingested):
         response.status_code = status.HTTP_200_OK
     return [_record_out(item) for item in ingested]

@@ -53,6 +53,7 @@ from sqlalchemy.orm import Session, aliased, selectinload
 
 from models import alarms as rules_math
 from models.errors import InputError
+from service.db import hold_writer_gate
 from service.domain import notifications
 from service.domain.errors import ConflictError
 from service.domain.structures import get_owned, get_structure
@@ -685,8 +686,14 @@ def lock(session: Session, structure_id: int) -> None:
     Taken before the structure's state row (``service.domain.fleet``) by every transaction that
     takes both, so that none waits for the other in a cycle: a stored verdict's alarms, then its
     counts (``inspections.store_verdict``); an upload inspected at once locks it before storing
-    its record (``ingest``)."""
+    its record (``ingest``).
+
+    On SQLite the writer gate is taken here too: a record stored without an acquisition time is
+    stamped after it, so records of one structure are stamped in the order their verdicts are
+    counted, and concurrent uploads are counted on the kept state rather than each replayed as
+    a late record."""
     session.execute(LOCK, {"structure_id": structure_id})
+    hold_writer_gate(session)
 
 
 # --- lifecycle --------------------------------------------------------------------------------
