@@ -19,19 +19,26 @@ LJUNG_BOX_LAGS = 40
 SPECTRUM_SAMPLES = 256
 
 
+# The residual tests :func:`assess` skips on a part too short for them, as reports name them.
+RESIDUAL_TESTS = ("ljung_box", "billings_voon", "billings_zhu", "spectrum")
+
+
 @dataclass(frozen=True)
 class Assessment:
     """A model's errors on held-out data: one-step and free-run RMS, and the diagnostics of its
-    one-step prediction error (:func:`models.diagnostics.residual_report`)."""
+    one-step prediction error (:func:`models.diagnostics.residual_report`); None, with the tests
+    named in ``skipped``, on a part too short for them."""
 
     one_step_rms: float
     free_run_rms: float
-    diagnostics: ResidualReport
+    diagnostics: ResidualReport | None
+    skipped: tuple[str, ...] = ()
 
     @property
     def ljung_box_p(self) -> float:
-        """Whiteness of the one-step prediction error: a small p-value means structure is left."""
-        return self.diagnostics.ljung_box.p_value
+        """Whiteness of the one-step prediction error: a small p-value means structure is left
+        (NaN where the test was skipped)."""
+        return self.diagnostics.ljung_box.p_value if self.diagnostics is not None else float("nan")
 
 
 def assess(
@@ -58,13 +65,15 @@ def assess(
     output-error model with a root at 0.998 ran free at 4.15 m/s² RMS so, 0.444 from the start).
     With moving-average ``noise`` coefficients c_1 … c_q (a NARMAX), the one-step prediction
     error is the innovation ε = r / C(q), C(q) = 1 + Σ c_i q⁻ⁱ, of the process residual r, started
-    from rest; the free run uses the process model alone.
+    from rest; the free run uses the process model alone. A part too short for the residual tests
+    (:func:`residual_tests_fit`) is scored by its errors alone, the tests named as skipped: a
+    benchmark's test window can be a hundred samples (the coupled electric drives').
     """
     if transient < 0:
         raise InputError(f"the transient must be 0 or more samples, got {transient}")
     start_up = max(initial, model.max_lag)
     scored = max(start_up, transient)
-    check_test_length(len(y), scored, lags)
+    check_test_length(len(y), scored)
     start = start_up - model.max_lag
     xs, ys = np.asarray(x, dtype=np.float64)[start:], np.asarray(y, dtype=np.float64)[start:]
     error = model.residuals(xs, ys, t0 + start)
@@ -76,20 +85,33 @@ def assess(
     skip = scored - start_up
     error, simulated, xs, ys = error[skip:], simulated[skip:], xs[L + skip :], ys[L + skip :]
     free_run = float(np.sqrt(np.mean((simulated - ys) ** 2)))
-    diagnostics = residual_report(xs, ys, error, fs or 1.0, lags)
+    tested = residual_tests_fit(len(y), scored, lags)
     return Assessment(
-        float(np.sqrt(np.mean(error**2))), free_run if np.isfinite(free_run) else float("inf"), diagnostics
+        float(np.sqrt(np.mean(error**2))),
+        free_run if np.isfinite(free_run) else float("inf"),
+        residual_report(xs, ys, error, fs or 1.0, lags) if tested else None,
+        () if tested else RESIDUAL_TESTS,
     )
 
 
-def check_test_length(n: int, start_up: int, lags: int = LJUNG_BOX_LAGS) -> None:
-    """Refuse a test part too short to judge a model on: ``start_up`` samples start it (or run
-    through its transient), and the residual tests and spectrum need the rest."""
-    needed = max(minimum_samples(lags, start_up), start_up + SPECTRUM_SAMPLES)
-    if n < needed:
+def residual_tests_fit(n: int, start_up: int, lags: int = LJUNG_BOX_LAGS) -> bool:
+    """Whether a test part of ``n`` samples, ``start_up`` of them starting the model (or run
+    through its transient), holds enough for the residual tests and spectrum."""
+    return n >= residual_samples(start_up, lags)
+
+
+def residual_samples(start_up: int, lags: int = LJUNG_BOX_LAGS) -> int:
+    """The samples a test part needs for the residual tests and spectrum after ``start_up``."""
+    return max(minimum_samples(lags, start_up), start_up + SPECTRUM_SAMPLES)
+
+
+def check_test_length(n: int, start_up: int) -> None:
+    """Refuse a test part with nothing to judge a model on once ``start_up`` samples have started
+    it (or run through its transient)."""
+    if n <= start_up:
         raise InputError(
-            f"the test part has {n} samples; judging a model needs at least {needed} "
-            f"({start_up} to start it and {needed - start_up} for the residual tests and spectrum)"
+            f"the test part has {n} samples; judging a model needs at least {start_up + 1} "
+            f"({start_up} to start it and at least one to score)"
         )
 
 
@@ -103,5 +125,8 @@ def assessment_dict(assessment: Assessment) -> dict[str, Any]:
         "one_step_rms": finite(assessment.one_step_rms),
         "free_run_rms": finite(assessment.free_run_rms),
         "ljung_box_p": finite(assessment.ljung_box_p),
-        "diagnostics": assessment.diagnostics.as_dict(series=False),
+        "diagnostics": None
+        if assessment.diagnostics is None
+        else assessment.diagnostics.as_dict(series=False),
+        "skipped_tests": list(assessment.skipped),
     }

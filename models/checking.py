@@ -235,7 +235,8 @@ def split_for_checking(records: Records, fold: int = 1) -> tuple[Segments, Segme
     fourth, … for 0; the third, sixth, … for 2) is checked whole and the others are fitted, a
     split across experiments alike in design (a sweep or multisine at several levels, say).
     Fewer: each record is cut into 3·k equal blocks (k = ``CHECK_BLOCKS``, fewer for short
-    records); blocks 3i and 3i+1 are fitted, block 3i+2 is checked.
+    records); for ``fold`` 1 blocks 3i and 3i+1 are fitted, block 3i+2 is checked (for 0, block
+    3i; for 2, block 3i+1), contiguous fitted blocks fitted as one part.
     """
     if len(records) >= 3:
         return (
@@ -248,10 +249,17 @@ def split_for_checking(records: Records, fold: int = 1) -> tuple[Segments, Segme
         n = len(y)
         blocks = int(np.clip(n // (3 * MIN_BLOCK), 1, CHECK_BLOCKS))
         edges = np.linspace(0, n, 3 * blocks + 1).astype(int)
-        for i in range(blocks):
-            a, b, c = edges[3 * i], edges[3 * i + 2], edges[3 * i + 3]
-            fit.append((x[a:b], y[a:b], int(a)))
-            check.append((x[b:c], y[b:c], int(b)))
+        checked = (fold + 1) % 3
+        runs: list[tuple[int, int]] = []  # the fitted stretches, contiguous blocks joined
+        for i in range(3 * blocks):
+            a, b = int(edges[i]), int(edges[i + 1])
+            if i % 3 == checked:
+                check.append((x[a:b], y[a:b], a))
+            elif runs and runs[-1][1] == a:
+                runs[-1] = (runs[-1][0], b)
+            else:
+                runs.append((a, b))
+        fit += [(x[a:b], y[a:b], a) for a, b in runs]
     return fit, check
 
 

@@ -304,21 +304,26 @@ def test_what_queued_work_would_fail_on_is_refused_before_it_is_queued(bounded: 
 
 
 def test_refinement_of_a_record_too_short_for_its_test_part(bounded: Bounded):
-    """700 samples leave a test part of 234: enough for the residual tests' 208, too few for the
-    residual spectrum, which answered "smoothing_bins must be odd … got 31". The part must also
-    start any model the loop may reach: lags up to 6 from SPEC §2's structure (missing lags)."""
+    """A test part must start any model the loop may reach (lags up to 6 from SPEC §2's
+    structure, missing lags) and leave a sample to score; one too short for the residual tests
+    and spectrum (234 samples, which answered "smoothing_bins must be odd … got 31") is judged by
+    its errors, the tests skipped (models.assessment.assess)."""
     with bounded.org.client("admin") as admin:
         baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
         assert baseline.status_code == 201, baseline.text
-        body = {"record_id": bounded.record[700], "base_model_id": baseline.json()["id"]}
+        body = {
+            "record_id": bounded.record[700],
+            "base_model_id": baseline.json()["id"],
+            "estimation": [0, 694],
+            "test": [694, 700],
+        }
         with nothing_written(bounded.org, bounded.rig):
             response = admin.post(f"{API}/structures/{bounded.rig}/refinements", json=body)
-            assert_refused(response, 422, "the test part has 234 samples; judging a model needs at least 262")
-            assert "smoothing_bins" not in detail(response)
-        body["test"] = [700 - 262, 700]
-        body["estimation"] = [0, 700 - 262]
+            assert_refused(response, 422, "the test part has 6 samples; judging a model needs at least 7")
+        del body["estimation"], body["test"]
         response = admin.post(f"{API}/structures/{bounded.rig}/refinements", json=body)
         assert response.status_code == 201, response.text
+        assert "smoothing_bins" not in response.text
 
 
 # --- one organisation's expensive requests cannot crowd out another's --------------------------

@@ -34,7 +34,7 @@ REPORT_KEYS = {
     "declared", "orders_chosen", "effects_added", "effects_withdrawn", "before", "after", "tests", "refined",
     "notes", "data", "check_free_run_rms", "noise_floor",
 }  # fmt: skip
-ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics"}
+ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests"}
 
 
 def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):

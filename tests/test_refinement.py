@@ -14,7 +14,7 @@ from models.effects import candidate_effects, linear_terms, offset_direction, of
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
-from models.refinement import refine, refine_record, refine_records
+from models.refinement import _is_start, choose_linear, refine, refine_record, refine_records
 from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
@@ -239,7 +239,7 @@ def test_sensor_offset_is_named_first_and_the_one_step_error_halves():
         (lambda: linear_terms(2, 2, delay=-1), "delay >= 0"),
         (lambda: refine([(np.ones(100), np.ones(100))], ["y[t-1]"], alpha=1.5), "alpha"),
         (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 40)], (1000, 3000)), "estimation records have"),
-        (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 2000)], (2000, 2150)), "test part has 150 samples"),
+        (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 2000)], (2000, 2004)), "test part has 4 samples"),
         (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 4000)], (0, 3000)), "estimation samples 0:4000"),
         (lambda: refine_record(*NOISE, EXACT_TERMS, [(0, 2000)], (2000, 3000), -1), "0 or more"),
     ],
@@ -632,3 +632,53 @@ def test_from_three_records_effects_that_do_not_simulate_better_on_every_fold_ar
     # Each effect named once, however many rounds added it (moving-average noise took two here).
     names = [step.added.name for step in result.rounds[: result.withdrawn] if step.added is not None]
     assert sorted(result.effects_withdrawn) == sorted(set(names)), (result.effects_withdrawn, names)
+
+
+# The 2-DOF rig observed at mass 2 is of fourth order (SPEC §2's structure: y[t-1…t-4]); a
+# planted nonlinearity the start lacks must not move the linear orders chosen with nothing
+# declared (a dead zone of 10 kN chose ARX(3, 3), or ARX(2, 2) extrapolating y's own past).
+PLANTED = [
+    ("none", 1),
+    pytest.param(
+        "dead_zone=10000",
+        1,
+        marks=pytest.mark.xfail(
+            strict=True, reason="ARX(6, 6) simulates the held-out blocks more than 5 % better: not yet held"
+        ),
+    ),
+    ("dead_zone=10000", 2),
+    ("dead_zone=5000", 3),
+    ("backlash=3000", 2),
+    ("quadratic_damping2=2000", 3),
+]
+
+
+@pytest.mark.parametrize(("effect", "seed"), PLANTED)
+def test_with_nothing_declared_a_planted_effect_leaves_the_start_at_the_rigs_order(effect, seed):
+    effects = Effects.parse([effect]) if effect != "none" else Effects()
+    record = simulate(Scenario(disturbance_std=800.0, effects=effects), 2400, seed)
+    orders, _ = choose_linear([(record.x[:1600], record.y[:1600])])
+    assert orders == (4, 4, 1), orders
+
+
+def test_a_model_the_input_barely_drives_is_no_start():
+    """y[t] = 2.0003 y[t-1] − 1.0005 y[t-2] + 2·10⁻¹¹ x[t-1] + …: the order-2 least-squares fit
+    on a rig record with a 10 kN dead zone, which only extrapolates the output's own past."""
+    record = simulate(Scenario(disturbance_std=800.0), 2400, seed=1)
+    checks = CheckSplit.of([(record.x, record.y)])
+    terms = linear_terms(2, 2, 1)
+    extrapolating = NARX(terms, np.array([2.0003, -1.0005, 2e-11, 2e-11]), np.zeros((4, 4)))
+    assert not _is_start(extrapolating, checks)
+    assert _is_start(checks.fitted(Structure(linear_terms(4, 4, 1))), checks)
+
+
+def test_a_test_part_too_short_for_the_residual_tests_is_scored_and_says_which_it_skipped():
+    """A hundred scored samples, as the coupled electric drives' benchmark tests on: the free
+    run and one-step errors are scored, the residual tests named as skipped, not refused."""
+    record = simulate(Scenario(disturbance_std=200.0), 600, seed=3)
+    report = refine_record(record.x, record.y, EXACT_TERMS, [(0, 496)], (496, 600), initial=4, fs=record.fs)
+    assert np.isfinite(report.before.free_run_rms) and np.isfinite(report.after.free_run_rms)
+    assert report.after.skipped == ("ljung_box", "billings_voon", "billings_zhu", "spectrum")
+    document = report.to_dict()
+    assert document["tests"][0]["after"]["diagnostics"] is None
+    assert any("too short for the residual tests" in note for note in document["notes"]), document["notes"]

@@ -472,7 +472,7 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         ]
         stdout.print(
             " ".join(f"{cell:>11}" for cell in cells)
-            + f"  {item['after']['ljung_box_p'] or 0:>11.3g}  {item['path']}{_signals(item)}"
+            + f"  {_p_cell(item['after'])}  {item['path']}{_signals(item)}"
             f" [{first}:{last}]",
             highlight=False,
             markup=False,
@@ -494,6 +494,13 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
 def _signals(source: dict[str, Any]) -> str:
     """The signals a record was read from, where they are not the plain x and y."""
     return "" if (source["x"], source["y"]) == ("x", "y") else f" ({source['x']}, {source['y']})"
+
+
+def _p_cell(assessment: dict[str, Any]) -> str:
+    """The Ljung–Box p-value's cell: "skipped" on a test part too short for the test."""
+    if assessment["skipped_tests"]:
+        return f"{'skipped':>11}"
+    return f"{assessment['ljung_box_p'] or 0:>11.3g}"
 
 
 def _number(value: float | None) -> str:
