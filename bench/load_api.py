@@ -70,7 +70,7 @@ import numpy as np
 from simulator.simulate import simulate
 from simulator.study import CASES, StudySettings
 
-TARGET_P50_MS = 20.0
+TARGET_P50_MS = 15.0
 TARGET_THROUGHPUT = 150.0
 SAMPLES = 2000
 NOOP_PATH = "/bench/noop"  # bench/noop_app.py (not imported here: the client needs no FastAPI)
