@@ -717,6 +717,7 @@ def choose_linear(
     checks: CheckSplit | None = None,
     progress: Stage | None = None,
     workers: Workers = map,
+    margin: float = ORDER_GAIN,
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
     """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``)
     that simulates the held-out data best for its size.
@@ -729,10 +730,11 @@ def choose_linear(
     A model the input barely drives is no start (:func:`_is_start`): on a rig record with a
     large dead zone, least squares' best predictor of order 2 extrapolates the output's own past,
     y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all, where the input drives none), the smallest is
-    chosen whose figure is within ``ORDER_GAIN`` of the best, or above it by no more than the
-    standard error of their difference across the rotations: an effect the linear model lacks
-    lowers the free run of larger orders a little and unevenly (the best
-    linear approximation of the nonlinearity), not by a new mode. Returns (n, n, d) and the
+    chosen whose figure is within ``margin`` (relative) of the best, or above it by no more than
+    the standard error of their difference across the rotations: for the loop's start, an effect
+    the linear model lacks lowers the free run of larger orders a little and unevenly (the best
+    linear approximation of the nonlinearity), not by a new mode. A baseline to monitor a
+    structure by wants the model that simulates best, ``margin`` 0. Returns (n, n, d) and the
     terms; ``progress`` is told each candidate as its figures are read, ``workers`` fit them
     (:data:`models.regression.Workers`).
     """
@@ -763,7 +765,7 @@ def choose_linear(
     def near_best(nd: tuple[int, int]) -> bool:
         difference = figures[nd] - figures[best]
         spread = float(np.std(difference, ddof=1) / np.sqrt(difference.size))
-        return mean[nd] <= (1 + ORDER_GAIN) * mean[best] or float(np.mean(difference)) <= spread
+        return mean[nd] <= (1 + margin) * mean[best] or float(np.mean(difference)) <= spread
 
     # The smallest by parameters (x[t] is one more than a delay of one), then by order.
     n, d = min(

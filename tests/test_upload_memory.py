@@ -226,7 +226,7 @@ def test_wide_headers_at_once_are_refused_within_bounded_memory(served: Served, 
 
 # --- parses beyond the bound wait, then are answered 503 --------------------------------------
 
-UPLOAD_WAIT = 0.3  # NARXWATCH_UPLOAD_WAIT_SECONDS of the served app: well under one large parse
+UPLOAD_WAIT = 0.15  # NARXWATCH_UPLOAD_WAIT_SECONDS of the served app: well under one large parse
 
 
 def test_a_parse_waiting_beyond_its_bound_is_a_503_with_retry_after(tmp_path: Path):
@@ -247,7 +247,7 @@ def test_a_parse_waiting_beyond_its_bound_is_a_503_with_retry_after(tmp_path: Pa
         async def both() -> list[httpx.Response]:
             async with httpx.AsyncClient(base_url=server.url, headers=admin.headers, timeout=60) as client:
                 first = asyncio.create_task(client.post(path, content=large, headers=headers))
-                await asyncio.sleep(0.2)  # the first body has arrived and its parse begun
+                await asyncio.sleep(0.1)  # the first body has arrived and its parse begun
                 second = client.post(path, content=b"x,y\n1,abc\n", headers=headers)
                 return list(await asyncio.gather(first, second))
 
