@@ -2,7 +2,11 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed
+# One environment in two layers, each with its stamp: what running needs (`make run`), then the
+# test and documentation tools on top (`make test`, `make docs`, …), so that `make test` after
+# `make run` adds only the tools.
+RUN_STAMP  := $(VENV)/.installed-run
+TEST_STAMP := $(VENV)/.installed-test
 # SysIdentPy, the independent FROLS bench/bench_frols.py compares with, caps numpy below the
 # version narxwatch runs on: it gets an environment of its own instead of downgrading .venv.
 BENCH_VENV  := .venv-bench
@@ -20,18 +24,23 @@ BLAS_THREADS := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 .PHONY: run test slow lint bench reproduce docs clean
 
-$(STAMP): pyproject.toml
+$(RUN_STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
-	touch $(STAMP)
+	$(BIN)/pip install --quiet -e .
+	touch $@
 
-run: $(STAMP)
+$(TEST_STAMP): $(RUN_STAMP)
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $@
+
+run: $(RUN_STAMP)
 	$(BIN)/narxwatch db upgrade
 	$(BIN)/narxwatch demo-seed
 	@echo
 	@echo "narxwatch is starting on http://127.0.0.1:8000  (API docs: http://127.0.0.1:8000/docs)"
 	@echo "demo admin key (shown once): $$($(BIN)/narxwatch keys create --org demo --role admin)"
+	@echo "in another terminal, 'source .venv/bin/activate' puts narxwatch and narxwatch-sim on your PATH"
 	@echo
 	$(BIN)/narxwatch serve --host 127.0.0.1 --port 8000
 
@@ -41,10 +50,10 @@ $(BENCH_STAMP): pyproject.toml
 	$(BENCH_VENV)/bin/pip install --quiet -e '.[bench]'
 	touch $(BENCH_STAMP)
 
-reproduce: $(STAMP)
+reproduce: $(RUN_STAMP)
 	$(BIN)/narxwatch reproduce --out var/reproduce
 
-test: $(STAMP) docs
+test: $(TEST_STAMP) docs
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
 	bash scripts/ensure-postgres.sh
@@ -53,20 +62,20 @@ test: $(STAMP) docs
 
 # The documentation site, into var/site/ (git-ignored). --strict: a broken link, a missing anchor
 # or a reference to code that is gone fails the build, and so `make test`.
-docs: $(STAMP)
+docs: $(TEST_STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 # The Monte Carlo studies marked slow (reduced versions of bench/'s), kept out of `make test`'s
 # fifteen minutes.
-slow: $(STAMP)
+slow: $(TEST_STAMP)
 	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) -m slow
 
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/lint-imports
 
-bench: $(STAMP) $(BENCH_STAMP)
+bench: $(TEST_STAMP) $(BENCH_STAMP)
 	$(BIN)/pytest bench --benchmark-only --benchmark-columns=min,median,max,rounds
 	$(BENCH_VENV)/bin/python bench/bench_frols.py
 	$(BIN)/python bench/dashboard.py

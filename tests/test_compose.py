@@ -128,3 +128,27 @@ def test_the_simulator_posts_with_the_key_the_seed_service_wrote(compose: dict, 
     assert result.returncode == 0, result.stderr
     assert "stream: 2 records" in result.stdout, result.stdout
     assert len(re.findall(r"record \d+  (?:healthy|faulty|unknown)", result.stdout)) == 2, result.stdout
+
+
+def test_the_seed_service_says_how_to_make_an_admin_key_and_that_key_creates_structures(
+    compose: dict, seeded: dict
+):
+    """The seed's key is an ingest key, which cannot create a structure: its first start prints
+    the command for an admin key, which docker-compose.yml's header gives as run in the api service."""
+    first, second = seeded["runs"]
+    (printed,) = re.findall(r"narxwatch keys create --org \S+ --role admin", first.stdout)
+    assert printed not in second.stdout
+    assert f"docker compose exec api {printed}" in (ROOT / "docker-compose.yml").read_text()
+    env = {**os.environ, "NARXWATCH_DATABASE_URL": seeded["url"]}
+    made = subprocess.run(
+        in_container(printed.split(), {}), env=env, capture_output=True, text=True, timeout=120
+    )
+    assert made.returncode == 0, made.stderr
+    with (
+        LiveServer(Settings(database_url=seeded["url"])) as server,
+        server.client(made.stdout.strip()) as admin,
+    ):
+        created = admin.post("/api/v1/structures", json={"name": "my rig", "fs": 1500.0})
+        assert created.status_code == 201, created.text
+        listed = admin.get("/api/v1/structures").json()
+    assert {structure["name"] for structure in listed} >= {"my rig"} and len(listed) >= 2, "the demo's too"

@@ -361,3 +361,49 @@ def test_record_with_coloured_measurement_noise_is_the_simulators(tmp_path: Path
     np.testing.assert_array_equal(read_record(tmp_path / "record_0001_none_0.npz").x, expected.x)
     refused = run_sim("record", "--noise-colour", "1.5,x", "--out", str(tmp_path))
     assert refused.returncode == 2 and "--noise-colour '1.5,x'" in refused.stderr
+
+
+@pytest.mark.parametrize(
+    ("role", "args", "message"),
+    [
+        (
+            Role.ingest,
+            ["structures", "create", "--name", "rig", "--fs", "1500"],
+            "403 Forbidden: this needs a key of role 'admin' or higher",
+        ),
+        (Role.admin, ["structures", "create", "--name", "rig", "--fs", "-1"], "422 Unprocessable"),
+        (Role.ingest, ["upload", "healthy.csv", "--structure", "999999"], "404 Not Found: structure 999999"),
+        (Role.admin, ["train", "baseline", "--structure", "999999", "--records", "1"], "404 Not Found"),
+    ],
+    ids=["ingest creates", "negative fs", "unknown structure", "train unknown structure"],
+)
+def test_own_structure_commands_print_the_services_refusal_and_exit_1(
+    api_server: LiveServer, tenant: Tenant, role, args, message, tmp_path: Path
+):
+    (tmp_path / "healthy.csv").write_text("x,y\n1,2\n3,4\n")
+    result = run_sim(*args, key=api_server.key(role, tenant.name), url=api_server.url, cwd=tmp_path)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert message in result.stderr and "Traceback" not in result.stderr and result.stdout == ""
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["upload", "record.txt", "--structure", "1"],
+            "send a record file ending in .csv, .json, .npz, .mat",
+        ),
+        (["upload", "missing.csv", "--structure", "1"], "missing.csv: cannot read it"),
+        (
+            ["train", "fault-mode", "--structure", "1", "--name", "k2", "--records", "1,2", "--k", "0"],
+            "--records names 2 records and --k 1 magnitudes",
+        ),
+        (["train", "baseline", "--structure", "1", "--records", "one"], "--records takes record ids"),
+    ],
+    ids=["suffix", "missing file", "counts differ", "not ids"],
+)
+def test_own_structure_commands_refuse_unusable_input_with_exit_2(args, message, tmp_path: Path):
+    (tmp_path / "record.txt").write_text("x,y\n")
+    result = run_sim(*args, key="nw_x_y", url=f"http://127.0.0.1:{free_port()}", cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr and "Traceback" not in result.stderr

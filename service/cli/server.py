@@ -382,6 +382,12 @@ def demo_seed(
         key_file.chmod(0o600)  # the owner's only, before the key is in it
         key_file.write_text(key + "\n")
         stdout.print(f"demo ingest key (also in {key_file}; shown once): {key}")
+        # An ingest key uploads and inspects; creating structures and training need an admin's.
+        stdout.print(
+            "to create structures and train models, make an admin key where narxwatch runs: "
+            f"narxwatch keys create --org {ORGANISATION} --role admin",
+            markup=False,
+        )
     stdout.print(f"demo structure {STRUCTURE!r} is structure {structure.id}")
 
 

@@ -37,6 +37,7 @@ from simulator.client.scheduler import (
     now,
     start_time,
 )
+from simulator.client.structures import register
 from simulator.options import (
     ChainOptions,
     CubicValues,
@@ -318,6 +319,9 @@ def stream_command(
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     with open_destination(target, simulation.temperature is not None) as destination:
         deliver_stream(stream.plans(), destination, Report(json_lines))
+
+
+register(app)
 
 
 def run() -> None:

@@ -79,15 +79,24 @@ class Posted:
         return self.verdict
 
     def text(self, plan: Plan) -> Text:
-        verdict = self.verdict
-        line = Text(f"{utc_text(verdict['acquired_at'])}  record {self.record['id']}  ")
-        line.append(verdict["status"], style=STATUS_STYLES.get(verdict["status"], ""))
-        fields = [*magnitude_fields(verdict), whiteness_field(verdict)]
-        if verdict["detected_by"]:
-            fields.append("detected by " + ", ".join(verdict["detected_by"]))
-        fields.append(f"({plan.describe()}{'' if self.record['created'] else ', uploaded before'})")
-        line.append("  " + "  ".join(fields))
-        return line
+        return verdict_text(self.verdict, self.record["id"], describe(plan.describe(), self.record))
+
+
+def describe(source: str, record: dict[str, Any]) -> str:
+    """Where a posted record came from, and whether the service had it already."""
+    return f"{source}{'' if record['created'] else ', uploaded before'}"
+
+
+def verdict_text(verdict: dict[str, Any], record_id: int, source: str) -> Text:
+    """One verdict on one line: time, record, status, the mode with k̂, whiteness, and ``source``."""
+    line = Text(f"{utc_text(verdict['acquired_at'])}  record {record_id}  ")
+    line.append(verdict["status"], style=STATUS_STYLES.get(verdict["status"], ""))
+    fields = [*magnitude_fields(verdict), whiteness_field(verdict)]
+    if verdict["detected_by"]:
+        fields.append("detected by " + ", ".join(verdict["detected_by"]))
+    fields.append(f"({source})")
+    line.append("  " + "  ".join(fields))
+    return line
 
 
 def magnitude_fields(verdict: dict[str, Any]) -> list[str]:
@@ -301,6 +310,17 @@ class Target:
             )
 
 
+def connect(url: str, key: str | None, otherwise: str = "") -> Service:
+    """The service at ``url`` with ``key``, or the key in ``NARXWATCH_SIM_API_KEY_FILE``'s file."""
+    key = key or key_from_file()
+    if not key:
+        raise InputError(
+            f"talking to the service needs an API key: pass --key or set NARXWATCH_SIM_API_KEY or {KEY_FILE}"
+            + otherwise
+        )
+    return Service(url, key)
+
+
 @contextmanager
 def open_destination(target: Target, temperature: bool = False) -> Iterator[Destination]:
     """A file writer for ``--out`` (with a manifest column for the records' temperature), else
@@ -308,12 +328,7 @@ def open_destination(target: Target, temperature: bool = False) -> Iterator[Dest
     if target.out is not None:
         yield Writer(target.out, target.format or Format.csv, temperature)
         return
-    key = target.key or key_from_file()
-    if not key:
-        raise InputError(
-            f"posting needs an API key: pass --key or set NARXWATCH_SIM_API_KEY or {KEY_FILE} (or use --out)"
-        )
-    service = Service(target.url, key)
+    service = connect(target.url, target.key, " (or use --out)")
     try:
         structure_id = target.structure
         if structure_id is None:

@@ -1,0 +1,256 @@
+"""``narxwatch-sim``'s commands for a structure of one's own: create it, upload its record files,
+train its models from them and read its verdicts, over the same HTTP client, options and errors as
+the simulated feeds (:mod:`~simulator.client.destinations`).
+
+Each command prints what the service made, one line each; ``--quiet`` prints only the ids, in the
+form the next command takes them (``--structure ID``, ``--records 1,2,3``), so that a shell script
+can carry them on.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from models.errors import InputError
+from simulator.client.destinations import (
+    DEFAULT_URL,
+    Key,
+    Url,
+    connect,
+    describe,
+    stdout,
+    verdict_text,
+)
+from simulator.client.http import API, Service
+
+# The media type each record file is sent as, by its suffix (the service's own names for them).
+MEDIA_TYPES = {
+    ".csv": "text/csv",
+    ".json": "application/json",
+    ".npz": "application/x-npz",
+    ".mat": "application/x-matlab-data",
+}
+
+Structure = Annotated[int, typer.Option("--structure", min=1, help="Structure id.")]
+Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="Print only the ids, for the next command.")]
+
+
+def id_list(text: str) -> list[int]:
+    """``1,2,3`` as ids, as ``upload --quiet`` prints them."""
+    try:
+        ids = [int(part) for part in text.replace(",", " ").split()]
+    except ValueError:
+        raise InputError(
+            f"--records takes record ids separated by commas, e.g. 1,2,3; got {text!r}"
+        ) from None
+    if not ids:
+        raise InputError("--records names no record")
+    return ids
+
+
+def number_list(text: str) -> list[float]:
+    try:
+        return [float(part) for part in text.replace(",", " ").split()]
+    except ValueError:
+        raise InputError(
+            f"--k takes magnitudes in percent separated by commas, e.g. -8,0,8; got {text!r}"
+        ) from None
+
+
+Records = Annotated[str, typer.Option("--records", help="Record ids, separated by commas: 1,2,3.")]
+Terms = Annotated[
+    str | None,
+    typer.Option(help="Model terms separated by commas (default: the service's, the paper's 8 terms)."),
+]
+
+
+@contextmanager
+def service(url: str, key: str | None) -> Iterator[Service]:
+    client = connect(url, key)
+    try:
+        yield client
+    finally:
+        client.close()
+
+
+structures_app = typer.Typer(
+    help="Create and list structures (an admin key creates them).",
+    no_args_is_help=True,
+    rich_markup_mode=None,
+)
+train_app = typer.Typer(
+    help="Train a structure's models from its stored records (admin key).",
+    no_args_is_help=True,
+    rich_markup_mode=None,
+)
+
+
+@structures_app.command("create")
+def create_structure(
+    name: Annotated[str, typer.Option(help="The structure's name.")],
+    fs: Annotated[float, typer.Option(help="Sampling rate [Hz] every record of it must have.")],
+    description: Annotated[str, typer.Option(help="Free text.")] = "",
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+    quiet: Quiet = False,
+) -> None:
+    """Create a structure and print its id."""
+    with service(url, key) as client:
+        made = client.request(
+            "POST", f"{API}/structures", json={"name": name, "fs": fs, "description": description}
+        )
+    stdout.print(
+        made["id"] if quiet else f"structure {made['id']} {made['name']!r}, fs = {made['fs']:g} Hz",
+        markup=False,
+    )
+
+
+@structures_app.command("list")
+def list_structures(url: Url = DEFAULT_URL, key: Key = None) -> None:
+    """The structures the key can see (the first page), each with its latest status."""
+    with service(url, key) as client:
+        listed = client.request("GET", f"{API}/structures")
+    for structure in listed:
+        status = structure["status"] or "no verdict yet"
+        stdout.print(
+            f"structure {structure['id']} {structure['name']!r}, fs = {structure['fs']:g} Hz, {status}",
+            markup=False,
+        )
+
+
+def upload_command(
+    files: Annotated[list[Path], typer.Argument(help="Record files: .csv, .json, .npz or .mat.")],
+    structure: Structure,
+    inspect: Annotated[bool, typer.Option(help="Inspect each record and print its verdict.")] = False,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+    quiet: Quiet = False,
+) -> None:
+    """Upload record files to a structure, print each record's id (and, with --inspect, its verdict).
+
+    --quiet prints only the ids, separated by commas, as --records takes them.
+    """
+    bodies = [(path, read_body(path)) for path in files]  # every file readable before any is sent
+    ids = []
+    with service(url, key) as client:
+        for path, (content, media_type) in bodies:
+            record = client.request(
+                "POST",
+                f"{API}/structures/{structure}/records",
+                params={"inspect": "true"} if inspect else {},
+                content=content,
+                headers={"Content-Type": media_type},
+            )
+            ids.append(record["id"])
+            if quiet:
+                continue
+            if inspect:
+                stdout.print(verdict_text(record["verdict"], record["id"], describe(str(path), record)))
+            else:
+                stdout.print(f"record {record['id']}  ({describe(str(path), record)})", markup=False)
+    if quiet:
+        stdout.print(",".join(str(record_id) for record_id in ids), markup=False)
+
+
+def read_body(path: Path) -> tuple[bytes, str]:
+    media_type = MEDIA_TYPES.get(path.suffix.lower())
+    if media_type is None:
+        raise InputError(f"{path}: send a record file ending in {', '.join(MEDIA_TYPES)}")
+    try:
+        return path.read_bytes(), media_type
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read it ({exc.strerror})") from None
+
+
+def trained(answer: dict[str, Any]) -> None:
+    """A model version made, or a training queued as a job (a large one)."""
+    if "job_id" in answer:
+        stdout.print(f"{answer['detail']}: job {answer['job_id']}, {answer['location']}", markup=False)
+        return
+    model = "baseline" if answer["kind"] == "baseline" else f"fault mode {answer['name']}"
+    stdout.print(
+        f"{model} version {answer['version']} (model {answer['id']}), "
+        f"{len(answer['terms'])} terms, {'active' if answer['active'] else 'inactive'}",
+        markup=False,
+    )
+
+
+def term_list(terms: str | None) -> dict[str, Any]:
+    return {} if terms is None else {"terms": [term.strip() for term in terms.split(",") if term.strip()]}
+
+
+@train_app.command("baseline")
+def train_baseline(
+    structure: Structure,
+    records: Records,
+    terms: Terms = None,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+) -> None:
+    """Identify the healthy structure's NARX from its stored healthy records."""
+    body = {"record_ids": id_list(records), **term_list(terms)}
+    with service(url, key) as client:
+        trained(client.request("POST", f"{API}/structures/{structure}/models/baseline", json=body))
+
+
+@train_app.command("fault-mode")
+def train_fault_mode(
+    structure: Structure,
+    name: Annotated[str, typer.Option(help="Fault-mode name, e.g. k2.")],
+    records: Records,
+    k: Annotated[
+        str, typer.Option("--k", help="Each record's fault magnitude [%], in the order of --records.")
+    ],
+    terms: Terms = None,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+) -> None:
+    """Identify a fault mode as a functional NARX from stored records at known magnitudes; it
+    becomes the mode records are inspected with, over the range of --k."""
+    ids, magnitudes = id_list(records), number_list(k)
+    if len(ids) != len(magnitudes):
+        raise InputError(
+            f"--records names {len(ids)} records and --k {len(magnitudes)} magnitudes: give one each"
+        )
+    body = {
+        "name": name,
+        "k_min": min(magnitudes),
+        "k_max": max(magnitudes),
+        "experiments": [{"record_id": i, "k": value} for i, value in zip(ids, magnitudes, strict=True)],
+        **term_list(terms),
+    }
+    with service(url, key) as client:
+        trained(client.request("POST", f"{API}/structures/{structure}/models/fault-modes", json=body))
+
+
+def verdicts_command(
+    structure: Structure,
+    limit: Annotated[int, typer.Option(min=1, max=1000, help="How many, the latest first.")] = 20,
+    json_lines: Annotated[
+        bool, typer.Option("--json", help="Print each verdict as one line of JSON.")
+    ] = False,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+) -> None:
+    """A structure's latest verdicts, the latest first."""
+    with service(url, key) as client:
+        page = client.request("GET", f"{API}/structures/{structure}/verdicts", params={"limit": limit})
+    for verdict in page["items"]:
+        if json_lines:
+            print(json.dumps(verdict), flush=True)
+        else:
+            stdout.print(verdict_text(verdict, verdict["record_id"], f"verdict {verdict['id']}"))
+
+
+def register(app: typer.Typer) -> None:
+    """Add these commands to ``narxwatch-sim``."""
+    app.add_typer(structures_app, name="structures")
+    app.command("upload")(upload_command)
+    app.add_typer(train_app, name="train")
+    app.command("verdicts")(verdicts_command)
