@@ -19,6 +19,16 @@ resolved. Its design takes the fault modes of the newest verdict (the charts sha
 structure's false alarms) and the median common share of σ̂k² of the newest ``WINDOW`` healthy
 verdicts (of all verdicts until one is healthy), both as they stood at each record.
 
+A fault mode whose k̂ sits at the limit of the range its model searches (the verdict's
+``at_range_limit``) was not measured: the search stopped at the edge, and z = k̂/σ̂k there says how
+far the edge is, not the fault. Such a record does not step that mode's CUSUM (its sums and the
+records it counted stay as they were; a fault that large is for the persistence and severity rules,
+or for a model trained over a wider range), and the rules' API names the mode and says why while
+the newest record is one. When no CUSUM can be designed for the structure as it stands (the rules
+changed, or the models' common error grew), the CUSUM does not run, the rules' API says why, and
+its unresolved alarms are resolved as ``rule_not_running`` with that reason: no alarm stays open
+on a chart that stopped.
+
 What each rule needs to go on is kept in the structure's ``AlarmState`` row (:class:`Kept`),
 updated in the transaction of each verdict: per rule and fault mode a :class:`Track` (a CUSUM's
 two sums and where its drift began, persistence's last m outcomes, the current run of firings,
