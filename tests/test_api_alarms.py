@@ -377,10 +377,12 @@ def test_verdicts_stored_at_once_open_one_alarm(api_server: LiveServer):
     assert alarm["state"] == "open"
 
 
-def test_a_cusum_the_models_cannot_serve_does_not_run_and_says_why(rig: Rig):
+def test_a_cusum_the_models_cannot_serve_does_not_run_and_says_why(api_server: LiveServer):
     """Models trained on three experiments carry an error, the same in every record, of about a
     quarter of σ̂k²: no threshold within 16 σ keeps one false alarm a year. The CUSUM then does not
     run (the structure's verdicts are stored as ever), and the rules' answer says what to change."""
+    rig = new_rig(api_server, seed=68, rules=[PERSISTENCE])
+    assert statuses([rig.upload(0.0, 16)]) == ["healthy"]  # the models' error, as verdicts measure it
     with clients(rig.org) as (admin, _, viewer):
         url = f"{API}/structures/{rig.structure_id}/alarm-rules"
         stored = admin.put(url, json={"rules": [{"kind": "cusum"}]})
