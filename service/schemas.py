@@ -707,6 +707,10 @@ class AlarmRulesOut(BaseModel):
     rules: list[AlarmRule]
     cusum_design: CusumDesignOut | None
     cusum_problem: str | None = Field(description="Why the CUSUM rule does not run, when it does not")
+    cusum_skipped: dict[str, str] = Field(
+        default_factory=dict,
+        description="The fault modes whose CUSUM the newest record did not step, each with why",
+    )
 
 
 class AlarmOut(BaseModel):
@@ -727,7 +731,7 @@ class AlarmOut(BaseModel):
     acknowledgement_note: str | None
     resolved_at: dt.datetime | None
     resolved_by: str | None
-    resolution: Literal["cleared", "by_hand", "rule_removed"] | None
+    resolution: Literal["cleared", "by_hand", "rule_removed", "rule_not_running"] | None
     resolution_note: str | None
 
 

@@ -35,7 +35,7 @@ from sqlalchemy import event, text
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from models.alarms import design_cusum
+from models.alarms import DESIGN_SHIFT, design_cusum, in_control_arl
 from service.db import make_engine
 from service.domain import alarms
 from service.migrate import upgrade_database
@@ -377,10 +377,12 @@ def test_verdicts_stored_at_once_open_one_alarm(api_server: LiveServer):
     assert alarm["state"] == "open"
 
 
-def test_a_cusum_the_models_cannot_serve_does_not_run_and_says_why(rig: Rig):
+def test_a_cusum_the_models_cannot_serve_does_not_run_and_says_why(api_server: LiveServer):
     """Models trained on three experiments carry an error, the same in every record, of about a
     quarter of σ̂k²: no threshold within 16 σ keeps one false alarm a year. The CUSUM then does not
     run (the structure's verdicts are stored as ever), and the rules' answer says what to change."""
+    rig = new_rig(api_server, seed=68, rules=[PERSISTENCE])
+    assert statuses([rig.upload(0.0, 16)]) == ["healthy"]  # the models' error, as verdicts measure it
     with clients(rig.org) as (admin, _, viewer):
         url = f"{API}/structures/{rig.structure_id}/alarm-rules"
         stored = admin.put(url, json={"rules": [{"kind": "cusum"}]})
@@ -464,3 +466,64 @@ def test_an_organisation_s_alarms_are_listed_without_reading_another_s(postgres_
         ).scalar_one()
     assert _rows_read(plan["Plan"], "alarms") <= 51, plan
     engine.dispose()
+
+
+def test_a_k_hat_at_the_model_s_range_limit_does_not_feed_its_cusum_and_the_rules_say_why(
+    api_server: LiveServer,
+):
+    """A fault beyond the range the fault-mode model searches pins k̂ at the range's edge: where
+    the search stopped, not a measurement, and z = k̂/σ̂k there is whatever the edge makes it. The
+    record does not step that mode's CUSUM (which would signal on it at once), and the rules'
+    answer says why; the next record measured within the range counts again."""
+    rig = new_rig(api_server, seed=66, rules=[{"kind": "cusum"}], magnitudes=CUSUM_TRAINING_K)
+    healthy = [rig.upload(0.0, 10) for _ in range(2)]
+    beyond = rig.upload(60.0, 11)
+    (mode,) = beyond["verdict"]["modes"]
+    assert mode["at_range_limit"] and mode["k_hat"] == pytest.approx(32.0, abs=0.01), mode
+    assert abs(mode["k_hat"] / mode["sigma_k"]) > 20, "a z the CUSUM would have signalled on at once"
+    assert rig.alarms(rule_kind="cusum") == []
+    url = f"{API}/structures/{rig.structure_id}/alarm-rules"
+    with rig.org.client("viewer") as viewer:
+        answer = viewer.get(url).json()
+        assert answer["cusum_design"] is not None and answer["cusum_problem"] is None
+        (reason,) = answer["cusum_skipped"].values()
+        assert list(answer["cusum_skipped"]) == ["k2"] and "limit of the range" in reason, reason
+    assert statuses([*healthy, rig.upload(0.0, 12)]) == ["healthy"] * 3
+    with rig.org.client("viewer") as viewer:
+        assert viewer.get(url).json()["cusum_skipped"] == {}
+
+
+def test_a_cusum_alarm_is_resolved_when_its_rule_stops_running(api_server: LiveServer):
+    """A CUSUM alarm stayed open after the rules' answer said the CUSUM does not run. Rules whose
+    CUSUM the structure's models cannot serve (a false-alarm rate whose threshold, for the models'
+    common error, lies beyond 16 σ) resolve it as ``rule_not_running``, announced as any
+    resolution; the persistence rule's alarm, still running, stays open."""
+    rules = [{"kind": "persistence", "k": 1, "m": 1}, {"kind": "cusum"}]
+    rig = new_rig(api_server, seed=67, rules=rules, magnitudes=CUSUM_TRAINING_K)
+    records = [rig.upload(0.0, 13), rig.upload(FAULT_K, 14)]
+    assert statuses(records) == ["healthy", "faulty"]
+    (cusum,) = rig.alarms(rule_kind="cusum", state="open")
+    (persistence,) = rig.alarms(rule_kind="persistence", state="open")
+    with rig.org.client("viewer") as viewer:
+        url = f"{API}/structures/{rig.structure_id}/alarm-rules"
+        share = viewer.get(url).json()["cusum_design"]["common_share"]
+    # Ten times the run length the largest threshold keeps, for this share: no design; for
+    # independent records (share 0: the rules' check) there is one.
+    reach = in_control_arl(alarms.MAX_THRESHOLD, DESIGN_SHIFT / 2, share)
+    strict = {"kind": "cusum", "false_alarms_per_year": 365 * 4.0 / (10 * reach)}
+    with clients(rig.org) as (admin, _, viewer):
+        stored = admin.put(url, json={"rules": [rules[0], strict]})
+        assert stored.status_code == 200, stored.text
+        answer = stored.json()
+        assert answer["cusum_design"] is None and "threshold beyond 16 σ" in answer["cusum_problem"]
+        resolved = viewer.get(f"{API}/alarms/{cusum['id']}").json()
+    assert resolved["state"] == "resolved" and resolved["resolution"] == "rule_not_running"
+    assert "threshold beyond 16 σ" in resolved["resolution_note"]
+    assert [(t["from_state"], t["to_state"], t["by"]) for t in resolved["transitions"]] == [
+        (None, "open", None),
+        ("open", "resolved", None),
+    ]
+    assert rig.alarms(rule_kind="persistence", state="open") == [persistence]
+    # Records on: the CUSUM still does not run, and opens nothing.
+    assert statuses([rig.upload(FAULT_K, 15)]) == ["faulty"]
+    assert rig.alarms(rule_kind="cusum", state="open") == []

@@ -19,6 +19,16 @@ resolved. Its design takes the fault modes of the newest verdict (the charts sha
 structure's false alarms) and the median common share of σ̂k² of the newest ``WINDOW`` healthy
 verdicts (of all verdicts until one is healthy), both as they stood at each record.
 
+A fault mode whose k̂ sits at the limit of the range its model searches (the verdict's
+``at_range_limit``) was not measured: the search stopped at the edge, and z = k̂/σ̂k there says how
+far the edge is, not the fault. Such a record does not step that mode's CUSUM (its sums and the
+records it counted stay as they were; a fault that large is for the persistence and severity rules,
+or for a model trained over a wider range), and the rules' API names the mode and says why while
+the newest record is one. When no CUSUM can be designed for the structure as it stands (the rules
+changed, or the models' common error grew), the CUSUM does not run, the rules' API says why, and
+its unresolved alarms are resolved as ``rule_not_running`` with that reason: no alarm stays open
+on a chart that stopped.
+
 What each rule needs to go on is kept in the structure's ``AlarmState`` row (:class:`Kept`),
 updated in the transaction of each verdict: per rule and fault mode a :class:`Track` (a CUSUM's
 two sums and where its drift began, persistence's last m outcomes, the current run of firings,
@@ -110,6 +120,7 @@ class Point:
     reference_mode: str | None
     interval: tuple[float, float] | None
     modes: dict[str, tuple[float, float, float]]  # name → (k̂, σ̂k, σ̂k of the record alone)
+    pinned: frozenset[str] = frozenset()  # the modes whose k̂ sits at its model's range limit
 
     @property
     def order(self) -> tuple[dt.datetime, int]:
@@ -140,6 +151,7 @@ def point(
             for m in modes
             if m["sigma_k"] > 0 and math.isfinite(m["k_hat"] / m["sigma_k"])
         },
+        pinned=frozenset(m["name"] for m in modes if m.get("at_range_limit")),
     )
 
 
@@ -237,15 +249,31 @@ def _rules_out(
     session: Session, structure_id: int, rules: list[AlarmRule], defaults: bool, limit: dt.datetime
 ) -> AlarmRulesOut:
     cusum = next((rule for rule in rules if isinstance(rule, CusumRule)), None)
-    design, problem = None, None
+    design, problem, skipped = None, None, {}
     if cusum is not None:
         kept = _standing(session, structure_id, rules, limit)
         try:
             design = CusumDesignOut(modes=kept.modes, **vars(cusum_design(cusum, kept.modes, kept.share())))
         except InputError as refusal:
             problem = str(refusal)
+        else:
+            skipped = {mode: _pinned_reason(mode, k_hat) for mode, k_hat in kept.pinned.items()}
     return AlarmRulesOut(
-        structure_id=structure_id, defaults=defaults, rules=rules, cusum_design=design, cusum_problem=problem
+        structure_id=structure_id,
+        defaults=defaults,
+        rules=rules,
+        cusum_design=design,
+        cusum_problem=problem,
+        cusum_skipped=skipped,
+    )
+
+
+def _pinned_reason(mode: str, k_hat: float) -> str:
+    return (
+        f"the newest record's estimate for fault mode {mode!r}, k̂ = {k_hat:g} %, sits at the limit of "
+        "the range its model searches: the search stopped there, it did not measure the magnitude. "
+        "The record does not step this mode's CUSUM; a record measured within the range does. A "
+        "fault this large is for the other rules, or for a model trained over a wider range"
     )
 
 
@@ -349,6 +377,7 @@ class Kept:
     shares: list[float] = field(default_factory=list)
     healthy: bool = False
     tracks: dict[str, Track] = field(default_factory=dict)
+    pinned: dict[str, float] = field(default_factory=dict)
 
     def share(self) -> float:
         """The median of ``shares``: the models' error grows away from the healthy state, and a
@@ -392,6 +421,7 @@ def _step(kept: Kept, rules: list[AlarmRule], p: Point) -> list[str]:
     resolution, a CUSUM's only those judged against its fault mode)."""
     at = _microseconds(p.acquired_at)
     kept.newest = [p.record_id, p.verdict_id, at]
+    kept.pinned = {mode: p.modes[mode][0] for mode in sorted(p.pinned & p.modes.keys())}
     if p.modes:
         kept.modes = len(p.modes)
         share = max(rules_math.common_share(sigma, alone) for _, sigma, alone in p.modes.values())
@@ -426,7 +456,7 @@ def _step(kept: Kept, rules: list[AlarmRule], p: Point) -> list[str]:
                 design = cusum_design(rule, kept.modes, kept.share())
             except InputError:  # GET …/alarm-rules and the structure's page say why
                 continue
-            for mode in sorted(p.modes):
+            for mode in sorted(p.modes.keys() - p.pinned):  # a k̂ pinned at the range limit is no z
                 if (t := track(rule.kind, mode)) is not None:
                     _cusum_step(t, p, mode, at, design, rule.clear_after)
     return counted
@@ -569,12 +599,35 @@ def _apply(
                 continue
             alarm = session.get_one(Alarm, t.alarm)
             alarm.evaluated_through = max(alarm.evaluated_through, _moment(t.through))
-            _resolve(session, structure, alarm, "cleared", None, None)
-            kept.tracks[key] = Track(after=_microseconds(alarm.evaluated_through))
+            _end(session, structure, kept, key, "cleared", None)
         elif t.first is not None and t.quiet < rule.clear_after:
             t.alarm = _open(session, structure, rule, kept, mode or None, t)
     if through:
         session.execute(THROUGH, through)
+    _stop_cusum(session, structure, rules, kept)
+
+
+def _stop_cusum(session: Session, structure: Structure, rules: list[AlarmRule], kept: Kept) -> None:
+    """Resolve the CUSUM's unresolved alarms as ``rule_not_running`` when no CUSUM can be designed
+    for the structure as it stands (the rules changed, or the models' common error grew): the
+    rules' answer says the CUSUM does not run, and no alarm stays open on a chart that stopped.
+    The note says why; should a design exist again, the charts count the records acquired later."""
+    rule = next((r for r in rules if isinstance(r, CusumRule)), None)
+    if rule is None:
+        return
+    try:
+        cusum_design(rule, kept.modes, kept.share())
+    except InputError as refusal:
+        for key, t in list(kept.tracks.items()):
+            if key.startswith("cusum ") and t.alarm is not None:
+                _end(session, structure, kept, key, "rule_not_running", str(refusal))
+
+
+def _end(session: Session, structure: Structure, kept: Kept, key: str, how: str, note: str | None) -> None:
+    """Resolve the track's alarm by the service; the track starts again after its last record."""
+    alarm = session.get_one(Alarm, kept.tracks[key].alarm)
+    _resolve(session, structure, alarm, how, None, note)
+    kept.tracks[key] = Track(after=_microseconds(alarm.evaluated_through))
 
 
 def _open(
@@ -734,7 +787,7 @@ def resolve(session: Session, principal: Principal, alarm_id: int, note: str) ->
 def _resolve(
     session: Session, structure: Structure, alarm: Alarm, how: str, key: ApiKey | None, note: str | None
 ) -> None:
-    """``key`` None: the service resolved it (the rule cleared, or was removed)."""
+    """``key`` None: the service resolved it (the rule cleared, was removed, or stopped running)."""
     now = utcnow()
     alarm.transitions.append(
         AlarmTransition(from_state=alarm.state, to_state="resolved", at=now, key=key, note=note)
