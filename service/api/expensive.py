@@ -17,7 +17,7 @@ import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any, ParamSpec, TypeVar
+from typing import Any, TypeVar
 
 import anyio
 from fastapi import HTTPException, Request, status
@@ -32,7 +32,6 @@ from service.security import Principal
 
 JOBS_PATH = "/api/v1/jobs"
 RETRY_AFTER_SECONDS = 5
-Params = ParamSpec("Params")
 Result = TypeVar("Result")
 
 
@@ -75,7 +74,7 @@ class Uploads:
     A parse holds a few times its body in memory, and parsing and inspecting hold the
     interpreter lock while they run: without a bound, one key's burst of uploads took the
     process's memory by gigabytes and other organisations' reads to seconds, and uploads
-    interleaved on threads cost a fifth more CPU each than one after another. An upload beyond
+    interleaved on threads cost more CPU each than one after another. An upload beyond
     the limit waits on the event loop, holding no thread and no pooled connection, at most
     ``wait`` seconds for one to end, then is answered 503 with Retry-After: a queue bounded in
     time rather than a refusal at once, since a slot turns over within a second or so.
@@ -86,10 +85,8 @@ class Uploads:
         self.wait = wait
         self._semaphore = anyio.Semaphore(limit)  # tied to the serving event loop at its first use
 
-    async def run(
-        self, upload: Callable[Params, Result], *args: Params.args, **kwargs: Params.kwargs
-    ) -> Result:
-        """``upload(*args, **kwargs)`` on a worker thread, in one of the slots."""
+    async def run(self, upload: Callable[[], Result]) -> Result:
+        """``upload()`` on a worker thread, in one of the slots."""
         try:
             with anyio.fail_after(self.wait):
                 await self._semaphore.acquire()
@@ -102,7 +99,7 @@ class Uploads:
                 headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
             ) from None
         try:
-            return await run_in_threadpool(upload, *args, **kwargs)
+            return await run_in_threadpool(upload)
         finally:  # after the thread has ended, even if the request was cancelled meanwhile
             self._semaphore.release()
 
