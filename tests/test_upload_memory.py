@@ -1,6 +1,6 @@
 """Uploads whose parse costs memory beyond their size, sent at once against a real server.
 
-- A header of a million columns (issue 15): twelve 8 MB CSVs whose header names 10⁶ columns,
+- A header of a million columns: twelve 8 MB CSVs whose header names 10⁶ columns,
   sent at once by one organisation's ingest key to a real ``narxwatch serve`` on SQLite and on
   PostgreSQL, while another organisation's client times ``GET /structures``; and twelve of
   16 MB to two worker processes on PostgreSQL. Each header cost the server about thirty times
