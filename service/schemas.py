@@ -249,9 +249,10 @@ class ChannelUpload(Strict):
 
 
 class RecordUpload(Strict):
-    """A record as JSON: excitation x [N], response y [m] or several named response ``channels``
-    (``recordfiles.channels``), sampling rate fs [Hz], and the operating conditions it was acquired
-    under (checked by ``recordfiles.conditions.checked_conditions``)."""
+    """A record as JSON: excitation x and response y (in the units its structure declares) or
+    several named response ``channels`` (``recordfiles.channels``), sampling rate fs [Hz], and
+    the operating conditions it was acquired under (checked by
+    ``recordfiles.conditions.checked_conditions``)."""
 
     x: Annotated[list[FiniteFloat], Field(min_length=1)]
     y: Annotated[list[FiniteFloat], Field(min_length=1)] | None = None
