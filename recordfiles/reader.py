@@ -15,8 +15,10 @@ MAT variables ``Force``, ``Acceleration`` (3×N), ``Fs``, and Wiener–Hammerste
 columns ``"r",,,…,"u",,,…,"y",,,…,"fs",``. One naming rule for both formats: a name is a column
 or a variable; where a name covers several signals (a header cell followed by empty ones, or a
 matrix), ``NAMEk`` is its k-th, counted from 1. A CSV column named ``fs`` (any case) gives the
-sampling rate in its first row. The trailing comma MATLAB's writers end each line with does not
-start a column (an empty last header cell over an empty first-row cell).
+sampling rate in its first row; where a CSV states none, a column named ``t`` or ``time`` gives
+it by its steps, when the layout asks (``Layout.times``: the command line does). The trailing
+comma MATLAB's writers end each line with does not start a column (an empty last header cell
+over an empty first-row cell).
 """
 
 from __future__ import annotations
