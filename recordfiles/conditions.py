@@ -25,10 +25,10 @@ from dataclasses import dataclass, replace
 
 from models.errors import InputError
 from recordfiles.names import normalised_name
+from recordfiles.quantities import UNIT_HELP, is_unit
 
 MAX_CONDITIONS = 16
 NAME_LENGTH = 32
-UNIT_LENGTH = 16
 NAME_RULE = re.compile(rf"[a-z][a-z0-9_]{{0,{NAME_LENGTH - 1}}}")
 RESERVED = ("x", "y", "fs")
 NAME_HELP = (
@@ -75,11 +75,9 @@ def check_condition(condition: Condition) -> None:
     check_name(name)
     if not math.isfinite(value):
         raise InputError(f"the condition {name!r} is {value}; a condition's value must be a finite number")
-    # Printable (no control, format or separator characters, so no hidden ones) and no space.
-    if unit is not None and not (0 < len(unit) <= UNIT_LENGTH and unit.isprintable() and " " not in unit):
+    if unit is not None and not is_unit(unit):
         raise InputError(
-            f"the unit {_shown(unit)} of condition {name!r} is not allowed: a unit is 1 to {UNIT_LENGTH} "
-            "printable characters without spaces (such as °C, m/s or %)"
+            f"the unit {_shown(unit)} of condition {name!r} is not allowed: a unit is {UNIT_HELP}"
         )
 
 

@@ -15,8 +15,10 @@ MAT variables ``Force``, ``Acceleration`` (3×N), ``Fs``, and Wiener–Hammerste
 columns ``"r",,,…,"u",,,…,"y",,,…,"fs",``. One naming rule for both formats: a name is a column
 or a variable; where a name covers several signals (a header cell followed by empty ones, or a
 matrix), ``NAMEk`` is its k-th, counted from 1. A CSV column named ``fs`` (any case) gives the
-sampling rate in its first row. The trailing comma MATLAB's writers end each line with does not
-start a column (an empty last header cell over an empty first-row cell).
+sampling rate in its first row; where a CSV states none, a column named ``t`` or ``time`` gives
+it by its steps, when the layout asks (``Layout.times``: the command line does). The trailing
+comma MATLAB's writers end each line with does not start a column (an empty last header cell
+over an empty first-row cell).
 """
 
 from __future__ import annotations
@@ -56,6 +58,13 @@ _FS_COMMENT = re.compile(r"^#\s*fs\s*=\s*(?P<fs>\S+)\s*$", re.IGNORECASE)
 # Any other comment line is prose, and ignored.
 _CONDITION_COMMENT = re.compile(r"^#\s*(?P<name>[^\s=]+)\s*=\s*(?P<value>\S*)(?:\s+(?P<unit>.*?))?\s*$")
 _NUMBERED = re.compile(r"(?P<base>.*?)(?P<k>\d+)")
+# A CSV column of acquisition times [s] is named so (in any case); its steps give the rate of a
+# file that states none (``Layout.times``).
+TIME_COLUMNS = ("t", "time")
+# Steps of a column of times may differ from their mean by this share: times written rounded (six
+# significant digits over a long record) differ by far less, a record with gaps or a variable-step
+# solver's log by more.
+TIME_STEP_TOLERANCE = 0.01
 READABLE = (".csv", ".npz", ".mat")
 # A MAT struct is read in order up to its fields named, its other fields skipped but inflated: at
 # most this many times the bytes the signals may take (a Simulink log with its time beside x and
@@ -114,12 +123,15 @@ class Layout:
     """Which signals of a file are x and y (CSV column, NPZ member or MAT variable names, ``NAMEk``
     for the k-th of a group or matrix), and the sampling rate to take when the file states none.
     ``channels``, when given, name the responses of a record of several, read instead of ``y``
-    and named as given."""
+    and named as given; ``times``, that a CSV stating no rate gives it by a column of times."""
 
     x: str = "x"
     y: str = "y"
     fs: float | None = None
     channels: tuple[str, ...] = ()
+    # Where a CSV states no rate, take it from its column of times (TIME_COLUMNS), if it has one.
+    # The command line does; the service does not, whose structures state their rate.
+    times: bool = False
 
     @property
     def responses(self) -> tuple[str, ...]:
@@ -334,8 +346,6 @@ def _parse_csv(
         for name in (each.x, *each.responses):
             group, k = _resolve(name, widths, f"the CSV has no column {name!r}; {listing}")
             wanted.append((name, groups[group][k]))
-    rows = itertools.chain([first], lines)
-    columns = iter(_read_columns(rows, count, wanted, max_samples, len(layout.responses)))
     rate_name = next((name for name in groups if name.lower() == "fs" and widths[name] == 1), None)
     fs = comment_fs
     if rate_name is not None:
@@ -343,6 +353,23 @@ def _parse_csv(
         cell = first_row[column].strip() if column < len(first_row) else ""
         if cell:
             fs = _agreed_rate(comment_fs, _sampling_rate(cell), f"the column {rate_name!r}")
+    signals = {name for name, _ in wanted}
+    time_name = next(
+        (
+            name
+            for name in groups
+            if name.lower() in TIME_COLUMNS and widths[name] == 1 and name not in signals
+        ),
+        None,
+    )
+    timed = fs is None and layout.times and time_name is not None
+    if timed:
+        wanted.append((time_name, groups[time_name][0]))
+    rows = itertools.chain([first], lines)
+    read = _read_columns(rows, count, wanted, max_samples, len(layout.responses))
+    if timed:
+        fs = rate_of_times(read.pop(), f"the column {time_name!r}")
+    columns = iter(read)
     return [
         (each, RecordFile(x, y, fs if fs is not None else each.fs, conditions, each.channels))
         for each, x, y in _signals_of(layouts, columns)
@@ -628,6 +655,22 @@ def _check_lengths(layout: Layout, x: np.ndarray, responses: list[np.ndarray]) -
                 f"x and {'y' if not layout.channels else 'every channel'} must be sampled together"
             )
     return np.column_stack(responses) if layout.channels else responses[0]
+
+
+def rate_of_times(t: np.ndarray, where: str) -> float:
+    """The sampling rate [Hz] of uniformly spaced times ``t`` [s]: (N − 1)/(t_N − t_1), from the
+    span rather than a step, so that times written rounded give the rate all but exactly.
+    ``where`` names the times in the message refusing any not uniformly spaced."""
+    if t.size < 2:
+        raise InputError(f"{where} holds {t.size} time(s); a sampling rate needs two or more")
+    mean = (t[-1] - t[0]) / (t.size - 1)
+    steps = np.diff(t)
+    if not (np.isfinite(mean) and mean > 0) or np.max(np.abs(steps - mean)) > TIME_STEP_TOLERANCE * mean:
+        raise InputError(
+            f"{where} does not step uniformly forward (steps from {steps.min():.6g} s to "
+            f"{steps.max():.6g} s), so it gives no sampling rate; state it with '# fs=' or --fs"
+        )
+    return _sampling_rate(1.0 / mean)
 
 
 def _agreed_rate(stated: float | None, found: float, where: str) -> float:

@@ -11,9 +11,10 @@ from sqlalchemy.orm import Session
 
 from service.config import Settings
 from service.domain import alarms, inspections, modelling, records, structures
-from service.schemas import BaselineTrain, Experiment, FaultModeTrain, StructureCreate
+from service.schemas import BaselineTrain, Experiment, FaultModeTrain, Signal, StructureCreate
 from service.security import Principal, Role
 from service.tables import ApiKey, Organisation, Structure, utcnow
+from simulator.physics import EXCITATION, RESPONSE
 from simulator.simulate import simulate
 from simulator.study import StudySettings
 
@@ -48,6 +49,8 @@ def seed_demo(
             name=STRUCTURE,
             fs=study.scenario().fs,
             description="Two masses, cubic spring on mass 2; force on mass 1, displacement of mass 2.",
+            excitation=Signal.model_validate(EXCITATION, from_attributes=True),
+            response=Signal.model_validate(RESPONSE, from_attributes=True),
         ),
     )
     seeds = np.random.SeedSequence(2026).spawn(1 + 2 * len(study.experiment_k))

@@ -28,6 +28,7 @@ from recordfiles.channels import MAX_CHANNELS
 from recordfiles.channels import NAME_LENGTH as CHANNEL_NAME_LENGTH
 from recordfiles.conditions import NAME_LENGTH, NAME_RULE, Condition
 from recordfiles.names import normalised_name
+from recordfiles.quantities import UNIT_HELP, Quantity, checked_unit
 from service.jobs.types import JobState
 from service.tables import MAX_ID
 
@@ -84,10 +85,33 @@ class Strict(BaseModel):
     model_config = ConfigDict(strict=True, extra="forbid")
 
 
+def _unit(value: object) -> object:
+    return checked_unit(value) if isinstance(value, str) else value
+
+
+class Signal(Strict):
+    """What a structure's excitation x or response y measures. Charts and reports label the
+    signal, and the residual e of the response, with them; nothing is assumed where they are
+    not given."""
+
+    quantity: Quantity = Field(description="What the signal measures; 'other' for none of these")
+    unit: Annotated[str | None, BeforeValidator(_unit)] = Field(
+        default=None, description=f"Its unit as the rig records it, {UNIT_HELP}; null when not stated"
+    )
+
+
 class StructureCreate(Strict):
     name: Name
     fs: SamplingRate
     description: Annotated[str, Field(max_length=2000, pattern=r"^[^\x00]*$")] = ""
+    excitation: Signal | None = Field(
+        default=None, description="What x measures, e.g. {quantity: force, unit: N}; null: not declared"
+    )
+    response: Signal | None = Field(
+        default=None,
+        description="What y (every response channel) measures, e.g. {quantity: acceleration, unit: m/s²}; "
+        "null: not declared",
+    )
 
 
 class StructureOut(BaseModel):
@@ -96,6 +120,10 @@ class StructureOut(BaseModel):
     fs: float
     description: str
     created_at: dt.datetime
+    excitation: Signal | None = Field(description="What x measures; null when not declared")
+    response: Signal | None = Field(
+        description="What y (every response channel) measures; null when not declared"
+    )
 
 
 class StructureListed(StructureOut):
@@ -221,9 +249,10 @@ class ChannelUpload(Strict):
 
 
 class RecordUpload(Strict):
-    """A record as JSON: excitation x [N], response y [m] or several named response ``channels``
-    (``recordfiles.channels``), sampling rate fs [Hz], and the operating conditions it was acquired
-    under (checked by ``recordfiles.conditions.checked_conditions``)."""
+    """A record as JSON: excitation x and response y (in the units its structure declares) or
+    several named response ``channels`` (``recordfiles.channels``), sampling rate fs [Hz], and
+    the operating conditions it was acquired under (checked by
+    ``recordfiles.conditions.checked_conditions``)."""
 
     x: Annotated[list[FiniteFloat], Field(min_length=1)]
     y: Annotated[list[FiniteFloat], Field(min_length=1)] | None = None

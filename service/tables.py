@@ -24,7 +24,8 @@ from sqlalchemy import (
 from sqlalchemy.dialects.postgresql import BYTEA, JSONB
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
-from recordfiles.conditions import NAME_LENGTH, UNIT_LENGTH
+from recordfiles.conditions import NAME_LENGTH
+from recordfiles.quantities import UNIT_LENGTH, SignalDeclaration
 from service.db import Base
 
 Document = JSON().with_variant(JSONB(), "postgresql")
@@ -113,6 +114,24 @@ class Structure(Base):
     fs: Mapped[float] = mapped_column(Float)
     description: Mapped[str] = mapped_column(Text, default="")
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
+    # What x and y measure (``recordfiles.quantities``); NULL when not declared, and a unit NULL
+    # when not stated. Every response channel of the structure is of the response's quantity.
+    excitation_quantity: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    excitation_unit: Mapped[str | None] = mapped_column(String(UNIT_LENGTH), nullable=True)
+    response_quantity: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    response_unit: Mapped[str | None] = mapped_column(String(UNIT_LENGTH), nullable=True)
+
+    @property
+    def excitation(self) -> SignalDeclaration | None:
+        return _declared(self.excitation_quantity, self.excitation_unit)
+
+    @property
+    def response(self) -> SignalDeclaration | None:
+        return _declared(self.response_quantity, self.response_unit)
+
+
+def _declared(quantity: str | None, unit: str | None) -> SignalDeclaration | None:
+    return None if quantity is None else SignalDeclaration(quantity, unit)  # type: ignore[arg-type]
 
 
 class ModelVersion(Base):

@@ -18,11 +18,15 @@ from typing import Literal
 import numpy as np
 
 from models.errors import InputError
+from recordfiles.quantities import SignalDeclaration
 from simulator.temperature import Thermal
 
 FaultMode = Literal["none", "k1", "k2"]
 FAULT_MODES: tuple[FaultMode, ...] = ("none", "k1", "k2")
 SPRINGS = ("k1", "k2", "k3")  # the stiffnesses temperature acts on (k3 the cubic spring)
+# What the rig's records hold, as a structure of it declares them.
+EXCITATION = SignalDeclaration("force", "N")
+RESPONSE = SignalDeclaration("displacement", "m")
 
 
 class UnstableSimulationError(InputError):

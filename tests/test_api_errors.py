@@ -691,6 +691,38 @@ def test_structure_names_are_stored_trimmed_and_composed(api_server):
         assert admin.get(f"{API}/structures").json() == listed
 
 
+def test_a_structure_declares_what_its_signals_measure(api_server):
+    """Created with the quantities and units of x and y (a unit normalised as names are), the
+    structure reads and lists them back, and the OpenAPI schema offers their vocabulary; one
+    created without them declares none, rather than the simulated rig's metres."""
+    declared = {
+        "excitation": {"quantity": "force", "unit": " N "},
+        "response": {"quantity": "acceleration", "unit": "m/s\u00b2"},
+    }
+    with Org.create(api_server).client("admin") as admin:
+        created = admin.post(f"{API}/structures", json={"name": "bridge", "fs": FS, **declared})
+        plain = admin.post(f"{API}/structures", json={"name": "plain", "fs": FS})
+        assert created.status_code == 201 and plain.status_code == 201, created.text + plain.text
+        stated = {
+            "excitation": {"quantity": "force", "unit": "N"},
+            "response": {"quantity": "acceleration", "unit": "m/s\u00b2"},
+        }
+        read = admin.get(f"{API}/structures/{created.json()['id']}").json()
+        listed = {s["name"]: s for s in admin.get(f"{API}/structures").json()}
+        assert {key: created.json()[key] for key in stated} == stated
+        assert {key: read[key] for key in stated} == stated
+        assert {key: listed["bridge"][key] for key in stated} == stated
+        assert (listed["plain"]["excitation"], listed["plain"]["response"]) == (None, None)
+        schema = admin.get("/openapi.json").json()["components"]["schemas"]
+    assert "displacement" in schema["Signal"]["properties"]["quantity"]["enum"]
+    assert {"excitation", "response"} <= set(schema["StructureOut"]["required"])
+
+
+def declaring(signal: str, quantity: str, unit: str) -> dict:
+    """A structure's body that declares the ``signal`` (excitation or response) as given."""
+    return {"name": "z", "fs": FS, signal: {"quantity": quantity, "unit": unit}}
+
+
 STRUCTURE_ERRORS = {
     "empty-name": ({"name": "", "fs": FS}, "cannot be empty"),
     "control-character-in-name": ({"name": "a\nb", "fs": FS}, "U+000A"),
@@ -708,6 +740,18 @@ STRUCTURE_ERRORS = {
     "zero-fs": ({"name": "z", "fs": 0}, "greater than 0"),
     "string-fs": ({"name": "z", "fs": "1500"}, "valid number"),
     "unknown-field": ({"name": "z", "fs": FS, "owner": "me"}, "Extra inputs are not permitted"),
+    "unit-with-space": (
+        declaring("response", "velocity", "m s"),
+        "the unit 'm s' is not allowed: a unit is 1 to 16 printable characters without spaces",
+    ),
+    "unit-too-long": (declaring("excitation", "force", "kilonewton-metres"), "a unit is 1 to 16 printable"),
+    "unit-empty": (declaring("response", "strain", " "), "unit cannot be empty"),
+    "unit-invisible": (
+        declaring("response", "strain", "\u200b\u00b5\u03b5"),
+        "invisible format character: U+200B",
+    ),
+    "unknown-quantity": (declaring("response", "mass", "kg"), "'pressure' or 'other'"),
+    "quantity-missing": ({"name": "z", "fs": FS, "excitation": {"unit": "N"}}, "Field required"),
 }
 
 

@@ -17,6 +17,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from test_cli import NARXWATCH, PNG_MAGIC, invoke
@@ -25,9 +26,12 @@ from test_periods import measured
 from models.coverage import coverage
 from models.effects import candidate_effects
 from models.narx import NARX, fit_narx
+from models.refinement import refine_record
 from models.terms import parse_terms
 from recordfiles.reader import read_record
 from recordfiles.writer import dump_csv
+from service.cli.modelfiles import signal_layout
+from service.cli.refine_figure import draw_refinement_figure
 from simulator.theory import EXACT_TERMS
 
 REPORT_KEYS = {
@@ -423,6 +427,55 @@ def test_a_unit_is_plotted_as_the_text_given(simulated_records: Path, tmp_path: 
     )  # fmt: skip
     assert "free-run RMS [$\\frac$]" in result.stdout
     assert figure.read_bytes().startswith(PNG_MAGIC)
+
+
+def test_the_plot_is_in_hz_from_the_files_times_and_per_sample_without_a_rate(
+    simulated_records: Path, tmp_path: Path
+):
+    """A CSV stating no rate but holding a column of times (written to six digits, as loggers
+    do): refine takes the rate from it, and the figure's residual spectrum runs in Hz up to the
+    Nyquist frequency and its free run over seconds. The same record with neither: in cycles per
+    sample up to 0.5, over samples."""
+    record = read_record(simulated_records / "e1.csv")
+    n, fs = len(record.y), record.fs
+    rows = zip(np.arange(n) / fs, record.x, record.y, strict=True)
+    (tmp_path / "timed.csv").write_text(
+        "Time,x,y\n" + "".join(f"{t:.6g},{a:.17g},{b:.17g}\n" for t, a, b in rows)
+    )
+    (tmp_path / "bare.csv").write_text(dump_csv(record.x, record.y, fs).split("\n", 1)[1])  # no '# fs='
+    report = json.loads(invoke("refine", "timed.csv", "--declared", "2dof", "--json", cwd=tmp_path).stdout)
+    # Six digits over the record's 4 s: its span, and so the rate, known to a few parts in 10⁶.
+    assert report["data"]["fs"] == pytest.approx(fs, rel=2e-6)
+    test = (2 * n // 3, n)
+    for name, nyquist, frequency, along in (
+        ("timed", report["data"]["fs"] / 2, "Hz", "time [s]"),
+        ("bare", 0.5, "cycles/sample", "sample"),
+    ):
+        read = read_record(tmp_path / f"{name}.csv", signal_layout(None, None))
+        refined = refine_record(read.x, read.y, EXACT_TERMS, [(0, test[0])], test, fs=read.fs)
+        figure = draw_refinement_figure(refined, read.x[slice(*test)], read.y[slice(*test)], 0, read.fs)
+        _, spectrum, run = figure.axes
+        assert spectrum.get_xlabel() == f"frequency [{frequency}]"
+        assert spectrum.get_xlim() == pytest.approx((0.0, nyquist))
+        drawn = max(line.get_xdata()[-1] for line in spectrum.get_lines())
+        assert drawn == pytest.approx(nyquist, rel=1e-7)
+        last = run.get_lines()[0].get_xdata()[-1]  # the test part's last sample
+        assert run.get_xlabel() == along and last == pytest.approx((n - test[0] - 1) / (read.fs or 1.0))
+        plt.close(figure)
+
+
+def test_a_column_of_times_that_does_not_step_uniformly_gives_no_rate(tmp_path: Path):
+    """Times with a gap (a record spliced from two) are refused, saying how to state the rate."""
+    t = np.r_[np.arange(100), np.arange(150, 250)] / 1500
+    (tmp_path / "gap.csv").write_text(
+        "t,x,y\n" + "".join(f"{value:.17g},{k},{-k}\n" for k, value in enumerate(t))
+    )
+    result = invoke("refine", "gap.csv", "--declared", "2dof", cwd=tmp_path, check=False)
+    assert result.returncode == 2
+    assert (
+        "the column 't' does not step uniformly forward" in result.stderr
+        and "'# fs=' or --fs" in result.stderr
+    )
 
 
 @functools.cache

@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import plotly
 import pytest
-from api_helpers import API, Org, clients, create_structure
+from api_helpers import API, FS, Org, clients, create_structure, simulated, train_fault_mode, upload_simulated
 from dashboard_helpers import (
     COOKIE,
     DASHBOARD,
@@ -29,7 +29,9 @@ from live import LiveServer, http_client
 from markupsafe import escape
 from sqlalchemy import update
 
+from recordfiles.quantities import SignalDeclaration
 from service.dashboard.auth import form_token
+from service.dashboard.figures import channel_figures, refinement_figure
 from service.tables import ApiKey, utcnow
 
 PAGE_SIZE = 25  # service.dashboard.views.HISTORY_PAGE
@@ -439,6 +441,58 @@ def test_the_record_page_shows_the_fit_the_verdict_was_judged_on(viewer: httpx.C
     assert upper["y"] == pytest.approx([1.959963984540054 / np.sqrt(n)] * len(rho))
     assert lower["y"] == pytest.approx([-b for b in upper["y"]])
     assert f"{mode['k_hat']:.4g}" in page.text and verdict["status"] in page.text
+
+
+def test_the_record_page_labels_y_and_e_as_the_structure_declares_them(
+    api_server: LiveServer, monitored: Monitored, viewer: httpx.Client
+):
+    """A structure that declares its response (acceleration in m/s²) has its record charts'
+    axes say so, y with its quantity and e in its unit, and its page says what x and y are; one
+    that declares nothing has plain "y" and "e", never the simulated rig's metres."""
+
+    def axes(page: httpx.Response) -> list[str]:
+        figures = charts(page)
+        return [figures[name]["layout"]["yaxis"]["title"]["text"] for name in ("response", "residual")]
+
+    assert axes(viewer.get(f"{DASHBOARD}/records/{monitored.verdicts[0]['record_id']}")) == ["y", "e"]
+    org = Org.create(api_server)
+    declared = {
+        "excitation": {"quantity": "force", "unit": "N"},
+        "response": {"quantity": "acceleration", "unit": "m/s²"},
+    }
+    with clients(org) as (admin, ingest, _):
+        created = admin.post(f"{API}/structures", json={"name": "declared", "fs": FS, **declared})
+        assert created.status_code == 201, created.text
+        structure_id = created.json()["id"]
+        train_fault_mode(admin, ingest, structure_id, "k2", seed=43)
+        record = upload_simulated(ingest, structure_id, simulated("k2", 10.0, [43, 7]), inspect="true")
+    with logged_in(api_server, org.keys["viewer"]) as client:
+        assert axes(client.get(f"{DASHBOARD}/records/{record['id']}")) == [
+            "acceleration y [m/s²]",
+            "e [m/s²]",
+        ]
+        structure_page = client.get(f"{DASHBOARD}/structures/{structure_id}")
+    assert "force x [N], acceleration y [m/s²]" in structure_page.text
+
+
+@pytest.mark.parametrize(
+    ("declared", "channel", "rms"),
+    [
+        (SignalDeclaration("strain", "µε"), "e_s1 [µε]", "RMS error of y [µε]"),
+        (SignalDeclaration("other"), "e_s1", "RMS error of y"),  # a quantity with no unit stated
+        (None, "e_s1", "RMS error of y"),
+    ],
+)
+def test_channel_and_refinement_charts_are_in_the_unit_of_the_response(declared, channel, rms):
+    """A vector verdict's channel residuals and a refinement's errors are in the unit the structure
+    declares its response (every channel) in, and in none where it states none."""
+    residual = np.array([[3.0, 1.0], [-3.0, 1.0]])
+    drawn = channel_figures(residual, ["s1", "s2"], FS, 2, 10, "k3 model", declared)["residual-s1"]
+    errors = refinement_figure({"one_step_rms": 1.0}, {"one_step_rms": 0.5}, declared)
+    assert drawn["layout"]["yaxis"]["title"]["text"] == channel
+    unit = f" {declared.unit}" if declared and declared.unit else ""
+    assert drawn["layout"]["title"]["text"].endswith(f"(RMS 3{unit})")
+    assert errors["layout"]["yaxis"]["title"]["text"] == rms
 
 
 def test_a_record_without_a_verdict_says_so(

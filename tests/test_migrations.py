@@ -605,3 +605,33 @@ def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_hi
         left = set(inspect(connection).get_table_names())
     engine.dispose()
     assert "alarm_states" not in left and "verdicts" in left
+
+
+def test_0025_leaves_the_structures_stored_before_it_undeclared_and_undoes_cleanly(fresh_url):
+    """Structures stored before 0025 keep their rows, with no quantity or unit declared (read as
+    none: plain x and y), and what refers to them stays; downgrading drops the declarations and
+    keeps the structures."""
+    upgrade_database(fresh_url, "0023")
+    engine = make_engine(fresh_url)
+    now = dt.datetime.now(dt.UTC)
+    with engine.begin() as connection:
+        _organisation_and_structure(connection, now)
+        connection.execute(
+            text("INSERT INTO structure_states (structure_id, organisation_id, records, healthy, faulty, "
+                 "unknown_fault) VALUES (1, 1, 0, 0, 0, 0)")
+        )  # fmt: skip
+    upgrade_database(fresh_url)
+    with Session(engine) as session:
+        structure = session.get(tables.Structure, 1)
+        assert (structure.name, structure.fs) == ("s", 1500.0)
+        assert structure.excitation is None and structure.response is None
+        structure.response_quantity, structure.response_unit = "acceleration", "m/s²"
+        session.commit()
+    command.downgrade(alembic_config(fresh_url), "0023")
+    with engine.connect() as connection:
+        columns = {c["name"] for c in inspect(connection).get_columns("structures")}
+        kept = connection.execute(text("SELECT id, name, fs FROM structures")).all()
+        states = connection.execute(text("SELECT structure_id FROM structure_states")).scalars().all()
+    engine.dispose()
+    assert not columns & {"excitation_quantity", "excitation_unit", "response_quantity", "response_unit"}
+    assert kept == [(1, "s", 1500.0)] and states == [1]

@@ -442,3 +442,18 @@ def test_short_rows_cost_at_most_their_numbers_beside_the_text():
     record = parse_csv(body, record_samples(LIMIT))
     assert record.x.size == 2**18
     assert peak_allocation(lambda: parse_csv(body, record_samples(LIMIT))) < 8 * len(body)
+
+
+def test_a_column_of_times_gives_the_rate_only_where_asked_and_none_is_stated():
+    """On the command line's layout a CSV that states no rate takes it from its column of times;
+    a stated rate stands (its times unread); the service's layout reads no times, and a column
+    named t that is read as a signal is a signal."""
+    times = Layout(times=True)
+    timed = "Time,x,y\n" + "".join(f"{k / 400:.6g},{k},{-k}\n" for k in range(1000))
+    assert parse_csv(timed, layout=times).fs == pytest.approx(400.0, rel=1e-9)
+    assert parse_csv(timed).fs is None
+    assert parse_csv("# fs=500\n" + "t,x,y\n0,1,2\n0,3,4\n", layout=times).fs == 500.0
+    as_signal = parse_csv("x,t\n1,0\n2,5\n", layout=Layout(y="t", times=True))
+    assert as_signal.fs is None and list(as_signal.y) == [0.0, 5.0]
+    with pytest.raises(InputError, match="the column 't' holds 1 time"):
+        parse_csv("t,x,y\n0,1,2\n", layout=times)

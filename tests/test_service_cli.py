@@ -27,7 +27,7 @@ from test_cli import invoke
 from service.config import get_settings
 from service.db import make_engine
 from service.migrate import upgrade_database
-from service.tables import Organisation, Webhook, utcnow
+from service.tables import Organisation, Structure, Webhook, utcnow
 
 BIN = Path(sys.executable).parent
 NARXWATCH = shutil.which("narxwatch", path=str(BIN))
@@ -81,6 +81,19 @@ def test_demo_seed_is_idempotent(seeded):
     # The second run finds the demo and trains nothing.
     assert "experiments" not in seeded["SECOND_SEED"]
     assert "is structure 1" in seeded["SECOND_SEED"]
+
+
+def test_the_demo_structure_declares_the_simulated_rigs_force_and_displacement(seeded):
+    """The demo's records are the simulator's (force on mass 1 [N], displacement of mass 2 [m]),
+    and its structure says so, as any structure of one's own would."""
+    engine = make_engine(seeded["NARXWATCH_DATABASE_URL"])
+    with engine.connect() as connection:
+        declared = connection.execute(
+            select(Structure.excitation_quantity, Structure.excitation_unit,
+                   Structure.response_quantity, Structure.response_unit)
+        ).one()  # fmt: skip
+    engine.dispose()
+    assert tuple(declared) == ("force", "N", "displacement", "m")
 
 
 def test_keys_create_prints_a_working_key_once(on_seeded):

@@ -363,6 +363,40 @@ def test_record_with_coloured_measurement_noise_is_the_simulators(tmp_path: Path
     assert refused.returncode == 2 and "--noise-colour '1.5,x'" in refused.stderr
 
 
+def test_structures_create_declares_what_x_and_y_measure(api_server: LiveServer, tenant: Tenant):
+    """--excitation/--response and their units reach the service, which stores them; create and
+    list print them, and a structure created without them declares none."""
+    key = api_server.key(Role.admin, tenant.name)
+    args = [
+        "--excitation",
+        "force",
+        "--excitation-unit",
+        "kN",
+        "--response",
+        "acceleration",
+        "--response-unit",
+        "g",
+    ]
+    made = run_sim(
+        "structures", "create", "--name", "bridge", "--fs", "200", *args, key=key, url=api_server.url
+    )
+    plain = run_sim(
+        "structures", "create", "--name", "plain", "--fs", "200", "-q", key=key, url=api_server.url
+    )
+    assert made.returncode == 0 and plain.returncode == 0, made.stderr + plain.stderr
+    assert made.stdout.strip().endswith("fs = 200 Hz, force x [kN], acceleration y [g]")
+    structure_id = int(made.stdout.split()[1])
+    stored = tenant.admin.get(f"/api/v1/structures/{structure_id}").json()
+    assert (stored["excitation"], stored["response"]) == (
+        {"quantity": "force", "unit": "kN"},
+        {"quantity": "acceleration", "unit": "g"},
+    )
+    assert tenant.admin.get(f"/api/v1/structures/{plain.stdout.strip()}").json()["response"] is None
+    listed = run_sim("structures", "list", key=key, url=api_server.url).stdout
+    assert "'bridge', fs = 200 Hz, force x [kN], acceleration y [g], no verdict yet" in listed
+    assert "'plain', fs = 200 Hz, no verdict yet" in listed
+
+
 @pytest.mark.parametrize(
     ("role", "args", "message"),
     [
@@ -372,10 +406,32 @@ def test_record_with_coloured_measurement_noise_is_the_simulators(tmp_path: Path
             "403 Forbidden: this needs a key of role 'admin' or higher",
         ),
         (Role.admin, ["structures", "create", "--name", "rig", "--fs", "-1"], "422 Unprocessable"),
+        (
+            Role.admin,
+            [
+                "structures",
+                "create",
+                "--name",
+                "rig",
+                "--fs",
+                "1500",
+                "--response",
+                "strain",
+                "--response-unit",
+                "µ ε",
+            ],
+            "the unit 'µ ε' is not allowed: a unit is 1 to 16 printable characters without spaces",
+        ),
         (Role.ingest, ["upload", "healthy.csv", "--structure", "999999"], "404 Not Found: structure 999999"),
         (Role.admin, ["train", "baseline", "--structure", "999999", "--records", "1"], "404 Not Found"),
     ],
-    ids=["ingest creates", "negative fs", "unknown structure", "train unknown structure"],
+    ids=[
+        "ingest creates",
+        "negative fs",
+        "unit with a space",
+        "unknown structure",
+        "train unknown structure",
+    ],
 )
 def test_own_structure_commands_print_the_services_refusal_and_exit_1(
     api_server: LiveServer, tenant: Tenant, role, args, message, tmp_path: Path
@@ -399,8 +455,16 @@ def test_own_structure_commands_print_the_services_refusal_and_exit_1(
             "--records names 2 records and --k 1 magnitudes",
         ),
         (["train", "baseline", "--structure", "1", "--records", "one"], "--records takes record ids"),
+        (
+            ["structures", "create", "--name", "r", "--fs", "1500", "--excitation-unit", "N"],
+            "--excitation-unit needs --excitation: say what the signal measures",
+        ),
+        (
+            ["structures", "create", "--name", "r", "--fs", "1500", "--response", "mass"],
+            "'mass' is not one of",
+        ),
     ],
-    ids=["suffix", "missing file", "counts differ", "not ids"],
+    ids=["suffix", "missing file", "counts differ", "not ids", "unit without quantity", "unknown quantity"],
 )
 def test_own_structure_commands_refuse_unusable_input_with_exit_2(args, message, tmp_path: Path):
     (tmp_path / "record.txt").write_text("x,y\n")

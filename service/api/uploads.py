@@ -11,7 +11,8 @@ from pydantic import ValidationError
 
 from models.errors import InputError
 from recordfiles.channels import checked_channels
-from recordfiles.conditions import MAX_CONDITIONS, UNIT_LENGTH, Condition, checked_conditions
+from recordfiles.conditions import MAX_CONDITIONS, Condition, checked_conditions
+from recordfiles.quantities import UNIT_LENGTH
 from recordfiles.reader import (
     DEFAULT_LAYOUT,
     Layout,

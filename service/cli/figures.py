@@ -11,7 +11,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from models.narx import z_quantile
+from recordfiles.quantities import signal_label
 from simulator.paper import StudyResult
+from simulator.physics import RESPONSE
 from simulator.simulate import simulate
 from simulator.theory import exact_trajectories
 
@@ -40,11 +42,11 @@ def _figure3(result: StudyResult, path: Path) -> Path:
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     top.plot(t, actual[SEGMENT], "-", lw=1.5, label="actual")
     top.plot(t, predicted[SEGMENT], "--", lw=1.2, label="one-step predicted")
-    top.set_ylabel("y [m]")
+    top.set_ylabel(signal_label("y", RESPONSE))
     top.legend(loc="upper right")
     top.set_title("Figure 3 — baseline NARX: (a) response, (b) prediction error")
     bottom.plot(t, (actual - predicted)[SEGMENT], lw=0.8)
-    bottom.set_ylabel("e [m]")
+    bottom.set_ylabel(signal_label("e", RESPONSE, quantity=False))
     bottom.set_xlabel("time [s]")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

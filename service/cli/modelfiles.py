@@ -27,8 +27,9 @@ YName = Annotated[str | None, typer.Option("--y", help=_SIGNAL_HELP.format(role=
 
 
 def signal_layout(x: str | None, y: str | None, base: Layout = DEFAULT_LAYOUT) -> Layout:
-    """The layout to read records with: ``base`` with the names given on the command line."""
-    return Layout(x if x is not None else base.x, y if y is not None else base.y, base.fs)
+    """The layout to read records with: ``base`` with the names given on the command line, the
+    rate of a CSV that states none from its column of times."""
+    return Layout(x if x is not None else base.x, y if y is not None else base.y, base.fs, times=True)
 
 
 def read_terms(spec: str | None) -> tuple[Term, ...]:

@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from models.refinement import RefinementReport
 
@@ -25,10 +26,29 @@ def write_refinement_figure(
     output: str = "y",
     unit: str | None = None,
 ) -> Path:
+    """:func:`draw_refinement_figure` as a PNG at ``path``."""
+    figure = draw_refinement_figure(report, x, y, initial, fs, output, unit)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def draw_refinement_figure(
+    report: RefinementReport,
+    x: np.ndarray,
+    y: np.ndarray,
+    initial: int,
+    fs: float | None,
+    output: str = "y",
+    unit: str | None = None,
+) -> Figure:
     """Three panels on the held-out data (x, y), whose first ``initial`` samples start the models:
     the residual autocorrelation with its band, the residual spectrum with its background and
     significant peaks, and the measured output (named ``output``, in ``unit`` where stated)
-    against both models' free runs, over time where the sampling rate ``fs`` [Hz] is known."""
+    against both models' free runs. Frequencies are in Hz and the free run over time where the
+    sampling rate ``fs`` [Hz] is known (the rate the report's spectra were computed at), in
+    cycles per sample and over samples where it is not."""
     # Names and units are the user's text, not mathtext: a '$' pair would be parsed, and fail.
     output, unit = output.replace("$", r"\$"), unit and unit.replace("$", r"\$")
     figure, (correlation, spectrum, run) = plt.subplots(3, 1, figsize=(9, 10), constrained_layout=True)
@@ -60,6 +80,7 @@ def write_refinement_figure(
         title="Residual whiteness (shaded: the band that decides for all lags at once)",
     )
     spectrum.set(
+        xlim=(0.0, (fs or 1.0) / 2),  # to the Nyquist frequency
         xlabel=f"frequency [{frequency}]",
         ylabel=f"residual PSD [{squared}]",
         title="Residual spectrum (Welch); dashed: significance threshold; labels: significant peaks",
@@ -71,7 +92,4 @@ def write_refinement_figure(
     )
     for axes in (correlation, spectrum, run):
         axes.legend(fontsize=8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return figure

@@ -15,6 +15,7 @@ import numpy as np
 
 from models.fnarx import FNARX
 from models.validation import OneStepFit
+from recordfiles.quantities import SignalDeclaration, signal_label
 from service.domain.alarms import CusumSeries
 from service.domain.timeline import TimelinePoint
 from service.schemas import AlarmOut
@@ -361,9 +362,12 @@ def trajectories_figure(model: FNARX, level: float = 0.95) -> Figure:
     return {"data": data, "layout": layout}
 
 
-def record_figures(fit: OneStepFit, fs: float, max_lag: int, shown: int, label: str) -> dict[str, Figure]:
+def record_figures(
+    fit: OneStepFit, fs: float, max_lag: int, shown: int, label: str, y: SignalDeclaration | None
+) -> dict[str, Figure]:
     """Measured vs one-step predicted response, the residual, and its autocorrelation with bands
-    (Figure 3). The first ``shown`` samples are drawn; the autocorrelation is of the whole residual."""
+    (Figure 3), y and e labelled as the structure declares its response ``y``. The first ``shown``
+    samples are drawn; the autocorrelation is of the whole residual."""
     t = (np.arange(min(shown, fit.measured.size)) + max_lag) / fs
     n = len(t)
     kind = _scatter(n)
@@ -382,7 +386,7 @@ def record_figures(fit: OneStepFit, fs: float, max_lag: int, shown: int, label: 
         "layout": _layout(
             "Response: measured and one-step predicted",
             "time [s]",
-            "y [m]",
+            signal_label("y", y),
             yaxis={"exponentformat": "e"},
             legend=legend,
         ),
@@ -397,7 +401,12 @@ def record_figures(fit: OneStepFit, fs: float, max_lag: int, shown: int, label: 
                 line={"color": "#1f77b4", "width": 1},
             )
         ],
-        "layout": _layout("One-step prediction error", "time [s]", "e [m]", yaxis={"exponentformat": "e"}),
+        "layout": _layout(
+            "One-step prediction error",
+            "time [s]",
+            signal_label("e", y, quantity=False),
+            yaxis={"exponentformat": "e"},
+        ),
     }
     test = fit.autocorrelation
     band_line = {"color": "#c62828", "dash": "dash", "width": 1}
@@ -419,10 +428,18 @@ def record_figures(fit: OneStepFit, fs: float, max_lag: int, shown: int, label: 
 
 
 def channel_figures(
-    residual: np.ndarray, channels: list[str], fs: float, lags: int, shown: int, label: str
+    residual: np.ndarray,
+    channels: list[str],
+    fs: float,
+    lags: int,
+    shown: int,
+    label: str,
+    y: SignalDeclaration | None,
 ) -> dict[str, Figure]:
     """A vector mode's one-step residual on each channel (``residual`` (n, K), columns named by
-    ``channels``), each with its RMS over the whole record; the first ``shown`` samples are drawn."""
+    ``channels``), each with its RMS over the whole record, in the unit the structure declares its
+    response ``y`` (every channel) in; the first ``shown`` samples are drawn."""
+    unit = f" {y.unit}" if y and y.unit else ""
     n = min(shown, len(residual))
     t = (np.arange(n) + lags) / fs
     kind = _scatter(n)
@@ -434,17 +451,18 @@ def channel_figures(
                 _lines(t, residual[:n, j], type=kind, name=f"e_{name}", line={"color": "#1f77b4", "width": 1})
             ],
             "layout": _layout(
-                f"Channel {name}: one-step residual of the {label} (RMS {rms:.3g})",
+                f"Channel {name}: one-step residual of the {label} (RMS {rms:.3g}{unit})",
                 "time [s]",
-                f"e_{name}",
+                signal_label(f"e_{name}", y, quantity=False),
                 yaxis={"exponentformat": "e"},
             ),
         }
     return out
 
 
-def refinement_figure(before: dict[str, Any], after: dict[str, Any]) -> Figure:
-    """Held-out one-step and free-run RMS error of the declared and the refined model."""
+def refinement_figure(before: dict[str, Any], after: dict[str, Any], y: SignalDeclaration | None) -> Figure:
+    """Held-out one-step and free-run RMS error of the declared and the refined model, in the unit
+    the structure declares its response ``y`` in."""
     measures = [("one_step_rms", "one-step RMS"), ("free_run_rms", "free-run RMS")]
     labels = [label for _, label in measures]
     data = [
@@ -462,7 +480,11 @@ def refinement_figure(before: dict[str, Any], after: dict[str, Any]) -> Figure:
     layout = {
         "title": {"text": "Error on held-out data, before and after"},
         "barmode": "group",
-        "yaxis": {"title": {"text": "RMS error [units of y]"}, "type": "log", "exponentformat": "e"},
+        "yaxis": {
+            "title": {"text": signal_label("RMS error of y", y, quantity=False)},
+            "type": "log",
+            "exponentformat": "e",
+        },
         "margin": MARGIN,
     }
     return {"data": data, "layout": layout}

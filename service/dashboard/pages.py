@@ -13,6 +13,7 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Resp
 from fastapi.templating import Jinja2Templates
 
 from models.errors import InputError
+from recordfiles.quantities import SignalDeclaration, signal_label
 from service.api.deps import SessionDep, SettingsDep
 from service.api.params import IdPath, utc
 from service.dashboard import figures, views
@@ -56,8 +57,15 @@ def _number(value: float | None, digits: int = 3) -> str:
     return "—" if value is None else f"{value:.{digits}g}"
 
 
+def _in_unit(text: str, response: SignalDeclaration | None) -> str:
+    """A figure of y or e named by ``text``, with the unit the structure declares its response in."""
+    return signal_label(text, response, quantity=False)
+
+
 templates.env.filters["when"] = _when
 templates.env.filters["number"] = _number
+templates.env.filters["in_unit"] = _in_unit
+templates.env.filters["signal"] = signal_label
 
 
 def render(

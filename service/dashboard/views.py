@@ -21,7 +21,7 @@ from service.domain.history import Status
 from service.domain.inspections import MODEL_REFS, verdict_out
 from service.schemas import ModeResult, VerdictOut
 from service.security import Principal
-from service.tables import ModelVersion, Record, Verdict
+from service.tables import ModelVersion, Record, Structure, Verdict
 
 # Samples of a record drawn on its page; longer records show their start (the residual's
 # autocorrelation is always of the whole record).
@@ -181,7 +181,7 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
     version = next(v for v in verdict.models if v.name == chosen.name)
     parsed = modelling.parsed_model(version)
     if isinstance(parsed, VectorFNARX):
-        return context | _channel_residuals(record, out, chosen, version, parsed)
+        return context | _channel_residuals(record, structure, out, chosen, version, parsed)
     fault_mode = (
         parsed.fnarx_at(records.condition_values(record.conditions))
         if isinstance(parsed, PooledModel)
@@ -196,13 +196,20 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
         "version": version,
         "fit": fit,
         "shown": min(RECORD_POINTS, fit.measured.size),
-        "charts": figures.record_figures(fit, record.fs, model.max_lag, RECORD_POINTS, label),
+        "charts": figures.record_figures(
+            fit, record.fs, model.max_lag, RECORD_POINTS, label, structure.response
+        ),
     }
     return context
 
 
 def _channel_residuals(
-    record: Record, out: VerdictOut, chosen: ModeResult, version: ModelVersion, model: VectorFNARX
+    record: Record,
+    structure: Structure,
+    out: VerdictOut,
+    chosen: ModeResult,
+    version: ModelVersion,
+    model: VectorFNARX,
 ) -> dict[str, Any]:
     """A vector verdict's page: the chosen mode's one-step residual at its k̂ on each channel, in
     the order the model names them."""
@@ -218,7 +225,9 @@ def _channel_residuals(
         "channels": channels,
         "residual_samples": len(residual),
         "shown": shown,
-        "charts": figures.channel_figures(residual, channels, record.fs, model.lags, RECORD_POINTS, label),
+        "charts": figures.channel_figures(
+            residual, channels, record.fs, model.lags, RECORD_POINTS, label, structure.response
+        ),
     }
 
 
@@ -247,5 +256,7 @@ def refinement_page(session: Session, principal: Principal, refinement_id: int) 
         "report": report,
         "tests": tests,
         "fitted": refinement.record_ids_of("estimation"),
-        "charts": {"errors": figures.refinement_figure(report["before"], report["after"])},
+        "charts": {
+            "errors": figures.refinement_figure(report["before"], report["after"], structure.response)
+        },
     }

@@ -22,7 +22,7 @@ from sqlalchemy.orm import Session, joinedload
 
 from models.errors import InputError
 from models.inspection import Status
-from service.schemas import MAX_ID, StructureListed
+from service.schemas import MAX_ID, StructureListed, StructureOut
 from service.security import Principal
 from service.tables import Structure, StructureState, Verdict
 
@@ -85,12 +85,9 @@ class StructureStatus:
     counts: dict[str, int]
 
     def listed(self) -> StructureListed:
-        s = self.structure
         status = self.latest.status if self.latest is not None else None
-        return StructureListed(
-            id=s.id, name=s.name, fs=s.fs, description=s.description, created_at=s.created_at,
-            status=status, since=self.since,
-        )  # fmt: skip
+        out = StructureOut.model_validate(self.structure, from_attributes=True)
+        return StructureListed(**dict(out), status=status, since=self.since)
 
 
 @dataclass(frozen=True)

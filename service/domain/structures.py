@@ -16,8 +16,16 @@ from service.tables import Structure
 
 
 def create_structure(session: Session, principal: Principal, body: StructureCreate) -> Structure:
+    excitation, response = body.excitation, body.response
     structure = Structure(
-        organisation_id=principal.organisation_id, name=body.name, fs=body.fs, description=body.description
+        organisation_id=principal.organisation_id,
+        name=body.name,
+        fs=body.fs,
+        description=body.description,
+        excitation_quantity=excitation and excitation.quantity,
+        excitation_unit=excitation and excitation.unit,
+        response_quantity=response and response.quantity,
+        response_unit=response and response.unit,
     )
     session.add(structure)
     try:

@@ -18,6 +18,7 @@ from typing import Annotated, Any
 import typer
 
 from models.errors import InputError
+from recordfiles.quantities import QUANTITIES, UNIT_HELP, Quantity, SignalDeclaration, signal_label
 from simulator.client.destinations import (
     DEFAULT_URL,
     Key,
@@ -64,6 +65,43 @@ def number_list(text: str) -> list[float]:
 
 
 Records = Annotated[str, typer.Option("--records", help="Record ids, separated by commas: 1,2,3.")]
+Excitation = Annotated[
+    Quantity | None,
+    typer.Option("--excitation", help=f"What x measures: {', '.join(QUANTITIES)} (default: not declared)."),
+]
+Response = Annotated[
+    Quantity | None,
+    typer.Option(
+        "--response",
+        help="What y (every response channel) measures, as --excitation (default: not declared).",
+    ),
+]
+ExcitationUnit = Annotated[str | None, typer.Option(help=f"The unit of x, {UNIT_HELP}; with --excitation.")]
+ResponseUnit = Annotated[str | None, typer.Option(help=f"The unit of y, {UNIT_HELP}; with --response.")]
+
+
+def declaration(signal: str, quantity: str | None, unit: str | None) -> dict[str, Any]:
+    """The body's declaration of ``signal`` (excitation or response), none when not given; its
+    unit is checked by the service, by the same rule as everywhere."""
+    if quantity is None:
+        if unit is not None:
+            raise InputError(
+                f"--{signal}-unit needs --{signal}: say what the signal measures, e.g. --{signal} force"
+            )
+        return {}
+    return {signal: {"quantity": quantity, "unit": unit}}
+
+
+def declared(structure: dict[str, Any]) -> str:
+    """What a structure says its x and y are, as ", force x [N], acceleration y [m/s²]"; nothing
+    where it declares neither."""
+    signals = [
+        signal_label(symbol, SignalDeclaration(**structure[key]) if structure.get(key) else None)
+        for symbol, key in (("x", "excitation"), ("y", "response"))
+    ]
+    return "" if signals == ["x", "y"] else ", " + ", ".join(signals)
+
+
 Terms = Annotated[
     str | None,
     typer.Option(help="Model terms separated by commas (default: the service's, the paper's 8 terms)."),
@@ -96,17 +134,29 @@ def create_structure(
     name: Annotated[str, typer.Option(help="The structure's name.")],
     fs: Annotated[float, typer.Option(help="Sampling rate [Hz] every record of it must have.")],
     description: Annotated[str, typer.Option(help="Free text.")] = "",
+    excitation: Excitation = None,
+    excitation_unit: ExcitationUnit = None,
+    response: Response = None,
+    response_unit: ResponseUnit = None,
     url: Url = DEFAULT_URL,
     key: Key = None,
     quiet: Quiet = False,
 ) -> None:
-    """Create a structure and print its id."""
+    """Create a structure and print its id; --excitation and --response declare what x and y
+    measure, for the dashboard's charts."""
+    body = {
+        "name": name,
+        "fs": fs,
+        "description": description,
+        **declaration("excitation", excitation, excitation_unit),
+        **declaration("response", response, response_unit),
+    }
     with service(url, key) as client:
-        made = client.request(
-            "POST", f"{API}/structures", json={"name": name, "fs": fs, "description": description}
-        )
+        made = client.request("POST", f"{API}/structures", json=body)
     stdout.print(
-        made["id"] if quiet else f"structure {made['id']} {made['name']!r}, fs = {made['fs']:g} Hz",
+        made["id"]
+        if quiet
+        else f"structure {made['id']} {made['name']!r}, fs = {made['fs']:g} Hz{declared(made)}",
         markup=False,
     )
 
@@ -119,7 +169,8 @@ def list_structures(url: Url = DEFAULT_URL, key: Key = None) -> None:
     for structure in listed:
         status = structure["status"] or "no verdict yet"
         stdout.print(
-            f"structure {structure['id']} {structure['name']!r}, fs = {structure['fs']:g} Hz, {status}",
+            f"structure {structure['id']} {structure['name']!r}, fs = {structure['fs']:g} Hz"
+            f"{declared(structure)}, {status}",
             markup=False,
         )
 
