@@ -25,11 +25,11 @@ from typing import Any
 import numpy as np
 
 from models.candidates import candidate_terms
-from models.checking import CheckSplit, Structure, check_noise
-from models.errors import InputError
+from models.checking import MIN_BLOCK, CheckSplit, Structure, check_noise
 from models.refinement import MAX_LINEAR_ORDER, choose_linear
 from models.scoring import Records
 from models.selection import select_narx
+from models.signals import checked_records
 from models.terms import Term, max_lag
 
 # The monomials offered beyond the linear terms: up to this degree, of y and x at the most recent
@@ -50,6 +50,9 @@ CHOICE_COLUMNS = (
     + _OFFERED
     + MAX_ADDED * (2 * MAX_LINEAR_ORDER + MAX_ADDED)
 )
+# The fewest samples of each record: the check split's held-out blocks (a third of a record or of
+# its blocks, or whole records from three on) are then longer than the largest order's lags.
+CHOICE_MIN_SAMPLES = 3 * MIN_BLOCK
 # The most terms a chosen baseline can have.
 MAX_CHOSEN_TERMS = 2 * MAX_LINEAR_ORDER + MAX_ADDED
 
@@ -88,9 +91,7 @@ class BaselineChoice:
 def choose_baseline_terms(records: Records, max_order: int = MAX_LINEAR_ORDER) -> BaselineChoice:
     """The terms of a baseline for the structure the healthy ``records`` (x, y pairs) come from
     (module docstring)."""
-    records = [(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)) for x, y in records]
-    if not records:
-        raise InputError("choosing a baseline's terms needs at least one healthy record")
+    records = list(checked_records(records, CHOICE_MIN_SAMPLES, degree=NONLINEAR_DEGREE))
     checks = CheckSplit.of(records)
     (ny, nx, delay), linear = choose_linear(records, max_order, checks=checks, margin=0.0)
     lags = min(ny, NONLINEAR_LAGS)

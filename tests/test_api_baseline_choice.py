@@ -135,7 +135,8 @@ def test_a_fault_mode_without_terms_or_a_baseline_is_refused(chain: Chain) -> No
 
 def test_a_choice_over_the_cost_bound_is_refused_before_it_starts(chain: Chain) -> None:
     """Choosing terms costs far more than fitting given ones: it is priced as such, and refused
-    whole before any signal is read; with its terms given, the same baseline trains."""
+    whole before any signal is read, as is a record too short to hold out part of; with its terms
+    given, the same baseline trains."""
     with clients(chain.org) as (admin, ingest, _):
         structure = create_structure(admin, "long chain records")["id"]
         ids = [upload(ingest, structure, "none", 0.0, n, 400 + i) for i, n in enumerate((2000, 10_000))]
@@ -145,6 +146,14 @@ def test_a_choice_over_the_cost_bound_is_refused_before_it_starts(chain: Chain) 
         message = detail(response)
         assert message.startswith("choosing this baseline's terms would fit 7044000 cells")
         assert "NARXWATCH_MAX_TRAINING_CELLS" in message and "or give the baseline's terms" in message
+        short = upload(ingest, structure, "none", 0.0, 500, 402)
+        with nothing_written(chain.org, structure):
+            response = admin.post(models_url(structure, "baseline"), json={"record_ids": [ids[0], short]})
+        assert response.status_code == 422, response.text
+        assert detail(response) == (
+            f"record {short} has 500 samples; choosing a baseline's terms holds out part of each record and "
+            "needs at least 600: use longer records, or give the baseline's terms"
+        )
         given = admin.post(
             models_url(structure, "baseline"), json={"record_ids": ids, "terms": ["y[t-1]", "x[t]"]}
         )

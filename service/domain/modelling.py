@@ -12,7 +12,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, defer
 
-from models.baseline_choice import CHOICE_COLUMNS, MAX_CHOSEN_TERMS, choose_baseline_terms
+from models.baseline_choice import CHOICE_COLUMNS, CHOICE_MIN_SAMPLES, MAX_CHOSEN_TERMS, choose_baseline_terms
 from models.errors import InputError
 from models.fnarx import FNARX, fit_fnarx
 from models.narx import fit_narx
@@ -362,9 +362,8 @@ def _training_records(
     if isinstance(body, VectorFaultModeTrain):
         return records, _vector_cells(records, body, settings)
     check_one_response(records, structure, "this training")
-    samples = sum(r.n_samples for r in records)
     if isinstance(body, BaselineTrain) and body.terms is None:
-        return records, _choice_cells(samples, settings)
+        return records, _choice_cells(records, settings)
     terms = len(given_or_baseline_terms(session, structure, body.terms)[0])
     if isinstance(body, BaselineTrain):
         size = 1
@@ -374,7 +373,7 @@ def _training_records(
         # The largest candidate of the degree search: its basis functions are fewer than the records.
         arguments = len(_pooled_variables(records, body)) + isinstance(body, PooledFaultModeTrain)
         size = min((body.max_degree + 1) ** arguments, len(records) - 1)
-    cells = samples * terms * size
+    cells = sum(r.n_samples for r in records) * terms * size
     check_cost(cells, terms * size, settings, "this training")
     return records, cells
 
@@ -416,10 +415,17 @@ def given_or_baseline_terms(
     return parse_terms(baseline.training["terms"]), {"terms_from": source}
 
 
-def _choice_cells(samples: int, settings: Settings) -> int:
-    """What choosing a baseline's terms costs in cells (``CHOICE_COLUMNS`` a sample), refused over
-    the limits before any signal is read."""
-    cells = samples * CHOICE_COLUMNS
+def _choice_cells(records: list[Record], settings: Settings) -> int:
+    """What choosing a baseline's terms costs in cells (``CHOICE_COLUMNS`` a sample), refused
+    over the limits or for a record too short to hold out part of, before any signal is read."""
+    short = next((r for r in records if r.n_samples < CHOICE_MIN_SAMPLES), None)
+    if short is not None:
+        raise InputError(
+            f"record {short.id} has {short.n_samples} samples; choosing a baseline's terms holds out part "
+            f"of each record and needs at least {CHOICE_MIN_SAMPLES}: use longer records, or give the "
+            "baseline's terms"
+        )
+    cells = sum(r.n_samples for r in records) * CHOICE_COLUMNS
     try:
         check_cost(cells, MAX_CHOSEN_TERMS, settings, "choosing this baseline's terms")
     except InputError as exc:
