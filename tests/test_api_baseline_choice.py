@@ -159,3 +159,15 @@ def test_a_choice_over_the_cost_bound_is_refused_before_it_starts(chain: Chain) 
         )
         assert given.status_code == 201, given.text
         assert "choice" not in given.json()["training"]
+
+
+def test_the_openapi_document_says_what_a_training_without_terms_does(chain: Chain) -> None:
+    with chain.org.client("viewer") as viewer:
+        schemas = viewer.get("/openapi.json").json()["components"]["schemas"]
+    assert (
+        "chosen for the structure from these healthy records"
+        in schemas["BaselineTrain"]["properties"]["terms"]["description"]
+    )
+    for body in ("FaultModeTrain", "PooledBaselineTrain", "PooledFaultModeTrain"):
+        assert "the structure's active baseline's" in schemas[body]["properties"]["terms"]["description"]
+    assert "choice" in schemas["ModelOut"]["properties"]["training"]["description"]

@@ -21,6 +21,7 @@ import pytest
 from api_helpers import (
     API,
     FS,
+    RIG_TERMS,
     Org,
     clients,
     create_structure,
@@ -530,7 +531,9 @@ def test_inspection_without_a_fault_mode_model(site: Site, ingest):
 def test_a_baseline_is_not_a_fault_mode_model(site: Site, admin, ingest):
     structure = create_structure(admin, "baseline-only")["id"]
     record = post_record(ingest, structure, json_body(2000)).json()["id"]
-    response = admin.post(f"{API}/structures/{structure}/models/baseline", json={"record_ids": [record]})
+    response = admin.post(
+        f"{API}/structures/{structure}/models/baseline", json={"record_ids": [record], "terms": RIG_TERMS}
+    )
     assert response.status_code == 201, response.text
     assert_refused(ingest.post(f"{API}/records/{record}/inspect"), 409, "no active fault-mode model")
 

@@ -66,7 +66,10 @@ def number_list(text: str) -> list[float]:
 Records = Annotated[str, typer.Option("--records", help="Record ids, separated by commas: 1,2,3.")]
 Terms = Annotated[
     str | None,
-    typer.Option(help="Model terms separated by commas (default: the service's, the paper's 8 terms)."),
+    typer.Option(
+        help="Model terms separated by commas (default: a baseline's are chosen for the structure from its "
+        "records; a fault mode's are the active baseline's)."
+    ),
 ]
 
 
