@@ -26,6 +26,7 @@ import numpy as np
 
 from models.candidates import candidate_terms
 from models.checking import MIN_BLOCK, CheckSplit, Structure, check_noise
+from models.effects import linear_terms
 from models.refinement import MAX_LINEAR_ORDER, choose_linear
 from models.scoring import Records
 from models.selection import select_narx
@@ -125,6 +126,31 @@ def choose_baseline_terms(records: Records, max_order: int = MAX_LINEAR_ORDER) -
         figure / spread if spread > 0 else np.inf,
         int(held.size),
     )
+
+
+def choose_delay(records: Records, ny: int, nx: int) -> tuple[int, dict[int, float]]:
+    """The input delay of a dictionary of ``ny`` output and ``nx`` input lags: 0 (x[t] … x[t-nx+1])
+    or 1 (x[t-1] … x[t-nx]), as :func:`models.refinement.choose_linear` judges a delay: each one's
+    linear ARX(ny, nx) run free over the held-out parts of the three rotations of the check split,
+    and 0, the extra x[t], only where its mean figure is lower by more than the standard error of
+    their difference across the rotations, or where only it simulates every rotation without
+    diverging. Returns the delay and each one's mean free-run RMS
+    (infinite where a model diverged). An acceleration feels the force at once: without x[t] its
+    model has to predict a force it has not seen."""
+    records = list(checked_records(records, 1))
+    folds = [CheckSplit.of(records, fold) for fold in (1, 0, 2)]
+    figures = {
+        delay: np.array([_simulated(checks, Structure(linear_terms(ny, nx, delay))) for checks in folds])
+        for delay in (1, 0)
+    }
+    if not np.all(np.isfinite(figures[0])):
+        delay = 1
+    elif not np.all(np.isfinite(figures[1])):
+        delay = 0  # only x[t] keeps the model from diverging
+    else:
+        gain = figures[1] - figures[0]
+        delay = 0 if float(np.mean(gain)) > float(np.std(gain, ddof=1) / np.sqrt(gain.size)) else 1
+    return delay, {d: float(np.mean(values)) for d, values in figures.items()}
 
 
 def _simulated(checks: CheckSplit, structure: Structure) -> float:

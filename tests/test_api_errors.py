@@ -555,7 +555,8 @@ def test_inspect_on_upload_is_all_or_nothing(site: Site, ingest):
 
 
 def _fault_mode(site: Site, **changes) -> dict:
-    return {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": site.training, **changes}
+    body = {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": site.training, "terms": RIG_TERMS}
+    return body | changes
 
 
 TRAINING_ERRORS = {
