@@ -27,7 +27,7 @@ import numpy as np
 from models.candidates import candidate_terms
 from models.checking import MIN_BLOCK, CheckSplit, Structure, check_noise
 from models.effects import linear_terms
-from models.refinement import MAX_LINEAR_ORDER, choose_linear
+from models.refinement import choose_linear
 from models.scoring import Records
 from models.selection import select_narx
 from models.signals import checked_records
@@ -38,6 +38,10 @@ from models.terms import Term, max_lag
 # first lags carry), with the constant (an offset).
 NONLINEAR_DEGREE = 3
 NONLINEAR_LAGS = 2
+# The largest linear order tried: that of a structure of three modes (the 3-DOF chain's), which
+# covers the few modes a monitored response is dominated by; higher orders chase the sensor noise
+# more than the dynamics, and the choice's cost grows with the square of this order.
+MAX_ORDER = 6
 # The most nonlinear terms the selection may add: each one judged is an output-error search.
 MAX_ADDED = 4
 _OFFERED = len(candidate_terms(NONLINEAR_DEGREE, NONLINEAR_LAGS, NONLINEAR_LAGS, 0)) - 2 * NONLINEAR_LAGS
@@ -46,16 +50,16 @@ _OFFERED = len(candidate_terms(NONLINEAR_DEGREE, NONLINEAR_LAGS, NONLINEAR_LAGS,
 # thirds of the samples each), the FROLS dictionary, and each grown structure judged. The
 # output-error searches that follow the fits grow with the same columns and samples.
 CHOICE_COLUMNS = (
-    2 * sum(2 * n for n in range(1, MAX_LINEAR_ORDER + 1)) * 2
-    + 2 * MAX_LINEAR_ORDER
+    2 * sum(2 * n for n in range(1, MAX_ORDER + 1)) * 2
+    + 2 * MAX_ORDER
     + _OFFERED
-    + MAX_ADDED * (2 * MAX_LINEAR_ORDER + MAX_ADDED)
+    + MAX_ADDED * (2 * MAX_ORDER + MAX_ADDED)
 )
 # The fewest samples of each record: the check split's held-out blocks (a third of a record or of
 # its blocks, or whole records from three on) are then longer than the largest order's lags.
 CHOICE_MIN_SAMPLES = 3 * MIN_BLOCK
 # The most terms a chosen baseline can have.
-MAX_CHOSEN_TERMS = 2 * MAX_LINEAR_ORDER + MAX_ADDED
+MAX_CHOSEN_TERMS = 2 * MAX_ORDER + MAX_ADDED
 
 
 @dataclass(frozen=True)
@@ -89,7 +93,7 @@ class BaselineChoice:
         }
 
 
-def choose_baseline_terms(records: Records, max_order: int = MAX_LINEAR_ORDER) -> BaselineChoice:
+def choose_baseline_terms(records: Records, max_order: int = MAX_ORDER) -> BaselineChoice:
     """The terms of a baseline for the structure the healthy ``records`` (x, y pairs) come from
     (module docstring)."""
     records = list(checked_records(records, CHOICE_MIN_SAMPLES, degree=NONLINEAR_DEGREE))

@@ -27,15 +27,16 @@ from api_helpers import (
 from live import LiveServer
 from test_novelty import record, scenario
 
+from models.baseline_choice import CHOICE_COLUMNS, MAX_ORDER
 from service.config import Settings
 from simulator.theory import EXACT_TERMS
 
 # The records are stored at the helpers' rate, not the chain's 1 kHz, so that the sentinel records
 # of nothing_written fit the structures: the models see samples, not seconds.
 HEALTHY = (2000, 2000, 2000)  # short healthy records: the choice takes seconds
-# The choice costs about 600 cells a sample (models.baseline_choice.CHOICE_COLUMNS): the healthy
-# records' 6000 samples fit within these limits, run within the request; 10 000 more do not.
-LIMITS = {"max_training_cells": 5_000_000, "queue_training_cells": 5_000_000}
+# The choice costs CHOICE_COLUMNS cells a sample: the healthy records' 6000 samples fit within
+# these limits, run within the request; 10 000 more do not.
+LIMITS = {"max_training_cells": 3_000_000, "queue_training_cells": 3_000_000}
 FAULT_K = (0.0, 10.0, 20.0)  # % loss of spring k2
 
 
@@ -90,7 +91,7 @@ def test_a_baseline_without_terms_is_chosen_for_the_structure(chain: Chain) -> N
     assert choice["delay"] == 0
     assert choice["terms"] == baseline["terms"]
     ny, nx = choice["orders"]["ny"], choice["orders"]["nx"]
-    assert 1 <= ny <= 10 and nx == ny
+    assert 1 <= ny <= MAX_ORDER and nx == ny
     assert {f"y[t-{ny}]", f"x[t-{nx - 1}]"} <= set(baseline["terms"])
     held_out = choice["held_out"]
     # A linear model with x[t] simulates the chain's acceleration to about 1.5 % of its spread:
@@ -144,7 +145,7 @@ def test_a_choice_over_the_cost_bound_is_refused_before_it_starts(chain: Chain) 
             response = admin.post(models_url(structure, "baseline"), json={"record_ids": ids})
         assert response.status_code == 422, response.text
         message = detail(response)
-        assert message.startswith("choosing this baseline's terms would fit 7044000 cells")
+        assert message.startswith(f"choosing this baseline's terms would fit {12_000 * CHOICE_COLUMNS} cells")
         assert "NARXWATCH_MAX_TRAINING_CELLS" in message and "or give the baseline's terms" in message
         short = upload(ingest, structure, "none", 0.0, 500, 402)
         with nothing_written(chain.org, structure):
