@@ -4,7 +4,7 @@ falls back on the paper rig's terms.
 
 Over HTTP against the real app, on a structure that is not the rig: a 3-DOF chain's driving-point
 accelerometer with 1 % sensor noise (the novelty tests' chain), whose acceleration the force
-reaches at once, so that a model without x[t] simulates it ten times worse.
+reaches at once, so that a model without x[t] has to predict a force it has not seen.
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def test_a_baseline_without_terms_is_chosen_for_the_structure(chain: Chain) -> N
     assert {f"y[t-{ny}]", f"x[t-{nx - 1}]"} <= set(baseline["terms"])
     held_out = choice["held_out"]
     # A linear model with x[t] simulates the chain's acceleration to about 1.5 % of its spread:
-    # the 1 % sensor noise on the output alone is most of that. Without x[t] it is about 12 %.
+    # the 1 % sensor noise on the output alone is most of that.
     assert held_out["free_run_nrmse"] < 0.05
     assert held_out["free_run_rms"] > 0 and held_out["samples"] > 1000
     assert set(choice["terms_added"]) <= set(baseline["terms"])
