@@ -761,6 +761,11 @@ def choose_linear(
     # best of all is the start: the loop may still find what the input does.
     mean = {nd: float(np.mean(e)) for nd, e in figures.items() if nd in admissible or not admissible}
     best = min(mean, key=mean.__getitem__)
+    if not np.isfinite(mean[best]):
+        raise InputError(
+            f"no linear model of order 1 to {max_order} could be fitted on these records and run free "
+            "over their held-out parts without diverging"
+        )
 
     def near_best(nd: tuple[int, int]) -> bool:
         difference = figures[nd] - figures[best]

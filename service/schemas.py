@@ -136,11 +136,24 @@ class StructureListed(StructureOut):
     )
 
 
+Terms = Annotated[list[TermName], Field(min_length=1, max_length=500)]
+CHOSEN_TERMS_HELP = (
+    "The model's terms, e.g. y[t-1], x[t], y[t-1]^3. Without them they are chosen for the structure from "
+    "these healthy records: the linear orders and input delay (0 lets x[t] in) that simulate held-out parts "
+    "of them best, then nonlinear terms only where they lower that free run; the version's training.choice "
+    "says what was chosen and how well it simulates the held-out parts"
+)
+BASELINE_TERMS_HELP = (
+    "The model's terms, e.g. y[t-1], x[t], y[t-1]^3. Without them, the structure's active baseline's "
+    "(train a baseline first); the version's training.terms_from names that baseline"
+)
+
+
 class BaselineTrain(Strict):
     """Train the healthy structure's NARX from stored records."""
 
     record_ids: Annotated[list[Id], Field(min_length=1, max_length=1000)]
-    terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
+    terms: Terms | None = Field(None, description=CHOSEN_TERMS_HELP)
 
 
 class Experiment(Strict):
@@ -157,7 +170,7 @@ class FaultModeTrain(Strict):
     degree: Annotated[StrictInt, Field(ge=1, le=8)] = 1
     basis: Literal[FAMILIES] = "chebyshev2"  # type: ignore[valid-type]
     experiments: Annotated[list[Experiment], Field(min_length=2, max_length=1000)]
-    terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
+    terms: Terms | None = Field(None, description=BASELINE_TERMS_HELP)
 
 
 ConditionName = Annotated[
@@ -177,7 +190,7 @@ class PooledBaselineTrain(Strict):
     operating conditions."""
 
     record_ids: Annotated[list[Id], Field(min_length=2, max_length=1000)]
-    terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
+    terms: Terms | None = Field(None, description=BASELINE_TERMS_HELP)
     variables: PooledVariables | None = Field(None, description=POOLED_VARIABLES_HELP)
     max_degree: PooledDegree = Field(2, description=POOLED_DEGREE_HELP)
 
@@ -188,7 +201,7 @@ class PooledFaultModeTrain(Strict):
 
     name: ModeName
     experiments: Annotated[list[Experiment], Field(min_length=2, max_length=1000)]
-    terms: Annotated[list[TermName], Field(min_length=1, max_length=500)] | None = None
+    terms: Terms | None = Field(None, description=BASELINE_TERMS_HELP)
     variables: PooledVariables | None = Field(None, description=POOLED_VARIABLES_HELP)
     max_degree: PooledDegree = Field(2, description=POOLED_DEGREE_HELP)
 
@@ -223,7 +236,13 @@ class ModelOut(BaseModel):
     active: bool
     created_at: dt.datetime
     terms: list[str]
-    training: dict[str, Any]
+    training: dict[str, Any] = Field(
+        description="How the version was trained: its records or experiments and its terms; for a "
+        "baseline whose terms were chosen, choice: the orders {ny, nx}, the input delay, the nonlinear "
+        "terms_added and held_out {free_run_rms, free_run_nrmse, samples}, the chosen structure's free run "
+        "over held-out parts of its records; for a model that took the active baseline's terms, terms_from "
+        "{model_id, name, version}"
+    )
     statistics: dict[str, Any]
 
 

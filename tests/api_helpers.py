@@ -26,6 +26,7 @@ from live import LiveServer
 from service.security import Role
 from simulator.simulate import SimulatedRecord, simulate
 from simulator.study import StudySettings
+from simulator.theory import EXACT_TERMS
 
 API = "/api/v1"
 FS = 1500.0
@@ -37,6 +38,9 @@ TRAINING_K = (-30.0, 0.0, 30.0)
 # enough for a CUSUM with a false-alarm rate of a year (service.domain.alarms.MAX_THRESHOLD).
 CUSUM_TRAINING_K = (-30.0, -22.5, -15.0, -7.5, 0.0, 7.5, 15.0, 22.5, 30.0)
 TRAINING_SAMPLES = 2000
+# The paper rig's structure (SPEC §2), which the rig's models here are trained with by name: a
+# training without terms chooses them (a baseline) or takes the active baseline's (a fault mode).
+RIG_TERMS = [term.name for term in EXACT_TERMS]
 _noise_seeds = itertools.count(1_000_000)
 
 # CPython 3.11 keeps the AST constructor's recursion depth in interpreter-wide state, so two
@@ -158,6 +162,7 @@ def train_fault_mode(
         "k_min": -32.0,
         "k_max": 32.0,
         "experiments": experiments(ingest, structure_id, mode, seed, magnitudes),
+        "terms": RIG_TERMS,
         **extra,
     }
     response = admin.post(f"{API}/structures/{structure_id}/models/fault-modes", json=body)

@@ -18,6 +18,7 @@ import httpx
 import pytest
 from api_helpers import (
     API,
+    RIG_TERMS,
     Org,
     clients,
     create_structure,
@@ -138,7 +139,7 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         training = experiments(ingest, sid, "k2", seed)
         response = admin.post(
             f"{API}/structures/{sid}/models/fault-modes",
-            json={"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": training},
+            json={"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": training, "terms": RIG_TERMS},
         )
         assert response.status_code == 201, response.text
         model_id = response.json()["id"]
@@ -147,7 +148,9 @@ def build_estate(server: LiveServer, seed: int) -> Estate:
         assert admin.put(f"{API}/structures/{sid}/alarm-rules", json=rules).status_code == 200
         record = upload_simulated(ingest, sid, simulated("k2", 10.0, [seed, 99]), inspect="true")
         (alarm,) = admin.get(f"{API}/alarms").json()["items"]
-        response = admin.post(f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record["id"]]})
+        response = admin.post(
+            f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record["id"]], "terms": RIG_TERMS}
+        )
         assert response.status_code == 201, response.text
         baseline_id = response.json()["id"]
         response = admin.post(
@@ -246,13 +249,19 @@ def body_for(path: str, estate: Estate | None) -> dict | None:
     if path.endswith("/structures"):
         return {"name": f"new-{uuid.uuid4().hex[:8]}", "fs": 1500.0}
     if path.endswith("/pooled-baseline"):
-        return {"record_ids": [experiment["record_id"] for experiment in estate.training]}
+        return {"record_ids": [experiment["record_id"] for experiment in estate.training], "terms": RIG_TERMS}
     if path.endswith("/pooled-fault-modes") or path.endswith("/vector-fault-modes"):
         return {"name": "k2", "experiments": estate.training}
     if path.endswith("/baseline"):
-        return {"record_ids": [estate.record_id]}
+        return {"record_ids": [estate.record_id], "terms": RIG_TERMS}
     if path.endswith("/fault-modes"):
-        return {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": estate.training}
+        return {
+            "name": "k2",
+            "k_min": -32.0,
+            "k_max": 32.0,
+            "experiments": estate.training,
+            "terms": RIG_TERMS,
+        }
     if path.endswith("/records"):
         return json_body(300)
     if path.endswith("/refinements"):
@@ -489,7 +498,8 @@ def test_admin_can_do_everything(ours: Estate):
         activated = admin.post(f"{API}/structures/{structure}/models/{model['id']}/activate")
         assert activated.status_code == 200 and activated.json()["active"] is True
         baseline = admin.post(
-            f"{API}/structures/{structure}/models/baseline", json={"record_ids": [record.json()["id"]]}
+            f"{API}/structures/{structure}/models/baseline",
+            json={"record_ids": [record.json()["id"]], "terms": RIG_TERMS},
         )
         assert baseline.status_code == 201, baseline.text
         assert viewer.get(f"{API}/verdicts/{verdict.json()['id']}").json() == verdict.json()

@@ -18,6 +18,7 @@ import pytest
 from api_helpers import (
     API,
     CUSUM_TRAINING_K,
+    RIG_TERMS,
     TRAINING_K,
     Org,
     clients,
@@ -87,6 +88,7 @@ def new_rig(
             "k_min": -32.0,
             "k_max": 32.0,
             "experiments": experiments(ingest, structure_id, "k2", seed, magnitudes),
+            "terms": RIG_TERMS,
         }
         response = admin.post(f"{API}/structures/{structure_id}/models/fault-modes", json=body)
         assert response.status_code == 201, response.text

@@ -127,7 +127,9 @@ def test_repeated_record_ids_are_refused(bounded: Bounded):
 def test_training_over_the_cell_limit_is_refused(bounded: Bounded):
     cells = 30_000 * len(EXACT)
     with nothing_written(bounded.org, bounded.rig), bounded.org.client("admin") as admin:
-        response = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[30_000]]})
+        response = admin.post(
+            baseline_url(bounded.rig), json={"record_ids": [bounded.record[30_000]], "terms": EXACT}
+        )
         assert_refused(
             response,
             422,
@@ -138,7 +140,9 @@ def test_training_over_the_cell_limit_is_refused(bounded: Bounded):
 
 def test_refinement_over_the_cell_limit_is_refused(bounded: Bounded):
     with bounded.org.client("admin") as admin:
-        baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
+        baseline = admin.post(
+            baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]], "terms": EXACT}
+        )
         assert baseline.status_code == 201, baseline.text
         body = {"record_id": bounded.record[30_000], "base_model_id": baseline.json()["id"]}
         with nothing_written(bounded.org, bounded.rig):
@@ -209,7 +213,7 @@ def run_again(server: LiveServer, job_id: int) -> None:
 def test_a_large_training_is_queued_and_its_job_stores_the_version(bounded: Bounded):
     record = bounded.record[15_000]  # 120 000 cells: over the queueing threshold, under the limit
     with clients(bounded.org) as (admin, _, viewer):
-        response = admin.post(baseline_url(bounded.rig), json={"record_ids": [record]})
+        response = admin.post(baseline_url(bounded.rig), json={"record_ids": [record], "terms": EXACT})
         job_id = assert_queued(response)
 
         def trained() -> list[dict]:
@@ -225,7 +229,9 @@ def test_a_large_training_is_queued_and_its_job_stores_the_version(bounded: Boun
 
 def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(bounded: Bounded):
     with clients(bounded.org) as (admin, _, viewer):
-        baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
+        baseline = admin.post(
+            baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]], "terms": EXACT}
+        )
         assert baseline.status_code == 201, baseline.text
         body = {"record_id": bounded.record[4000], "base_model_id": baseline.json()["id"]}
         response = admin.post(f"{API}/structures/{bounded.rig}/refinements", json=body)
@@ -247,7 +253,9 @@ def test_a_refinement_on_several_records_is_priced_on_all_of_them(bounded: Bound
     6000 × 34 = 204 000 cells, over the limit; 2000 + 700 fitted with 1000 judged, 125 800 cells,
     is queued though no record alone would be, and the job stores every record's role."""
     with clients(bounded.org) as (admin, ingest, viewer):
-        baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
+        baseline = admin.post(
+            baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]], "terms": EXACT}
+        )
         assert baseline.status_code == 201, baseline.text
         base = baseline.json()["id"]
         with nothing_written(bounded.org, bounded.rig):
@@ -287,7 +295,9 @@ def test_what_queued_work_would_fail_on_is_refused_before_it_is_queued(bounded: 
         ("fault-modes", {**fault_mode, "name": "k1", "k_min": 40.0}, "k_min (40.0) must be below k_max"),
     ]
     with bounded.org.client("admin") as admin:
-        baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
+        baseline = admin.post(
+            baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]], "terms": EXACT}
+        )
         assert baseline.status_code == 201, baseline.text
         refinement = {"record_id": bounded.record[4000], "base_model_id": baseline.json()["id"]}
         with nothing_written(bounded.org, bounded.rig):
@@ -309,7 +319,9 @@ def test_refinement_of_a_record_too_short_for_its_test_part(bounded: Bounded):
     and spectrum (234 samples, which answered "smoothing_bins must be odd … got 31") is judged by
     its errors, the tests skipped (models.assessment.assess)."""
     with bounded.org.client("admin") as admin:
-        baseline = admin.post(baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]]})
+        baseline = admin.post(
+            baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]], "terms": EXACT}
+        )
         assert baseline.status_code == 201, baseline.text
         body = {
             "record_id": bounded.record[700],
@@ -337,10 +349,10 @@ def test_expensive_requests_are_capped_per_organisation(bounded: Bounded):
     other = Org.create(bounded.server)
     with bounded.server.app.state.sessions() as session:
         organisation_id = session.scalar(select(Organisation.id).where(Organisation.name == bounded.org.name))
-    body = {"record_ids": [bounded.record[2000]]}
+    body = {"record_ids": [bounded.record[2000]], "terms": EXACT}
     with clients(bounded.org) as (admin, ingest, _), clients(other) as (other_admin, other_ingest, _):
         other_rig = create_structure(other_admin, "rig")["id"]
-        fault_mode = {"name": "k2", "k_min": -32.0, "k_max": 32.0}
+        fault_mode = {"name": "k2", "k_min": -32.0, "k_max": 32.0, "terms": EXACT}
         fault_mode["experiments"] = experiments(other_ingest, other_rig, "k2", seed=22)
         inspected = post_record(ingest, bounded.rig, json_body(300), inspect="true").json()
         with bounded.server.app.state.expensive.held(organisation_id):

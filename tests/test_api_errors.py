@@ -21,6 +21,7 @@ import pytest
 from api_helpers import (
     API,
     FS,
+    RIG_TERMS,
     Org,
     clients,
     create_structure,
@@ -530,7 +531,9 @@ def test_inspection_without_a_fault_mode_model(site: Site, ingest):
 def test_a_baseline_is_not_a_fault_mode_model(site: Site, admin, ingest):
     structure = create_structure(admin, "baseline-only")["id"]
     record = post_record(ingest, structure, json_body(2000)).json()["id"]
-    response = admin.post(f"{API}/structures/{structure}/models/baseline", json={"record_ids": [record]})
+    response = admin.post(
+        f"{API}/structures/{structure}/models/baseline", json={"record_ids": [record], "terms": RIG_TERMS}
+    )
     assert response.status_code == 201, response.text
     assert_refused(ingest.post(f"{API}/records/{record}/inspect"), 409, "no active fault-mode model")
 
@@ -552,7 +555,8 @@ def test_inspect_on_upload_is_all_or_nothing(site: Site, ingest):
 
 
 def _fault_mode(site: Site, **changes) -> dict:
-    return {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": site.training, **changes}
+    body = {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": site.training, "terms": RIG_TERMS}
+    return body | changes
 
 
 TRAINING_ERRORS = {

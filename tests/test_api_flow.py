@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from api_helpers import RIG_TERMS
 from live import LiveServer, Tenant
 
 from recordfiles.writer import dump_csv
@@ -61,7 +62,8 @@ def trained(api_server: LiveServer) -> Trained:
     record_id = upload_npz(tenant.ingest, structure_id, healthy).json()["id"]
     models = {}
     response = tenant.admin.post(
-        f"/api/v1/structures/{structure_id}/models/baseline", json={"record_ids": [record_id]}
+        f"/api/v1/structures/{structure_id}/models/baseline",
+        json={"record_ids": [record_id], "terms": RIG_TERMS},
     )
     assert response.status_code == 201, response.text
     models["baseline"] = response.json()

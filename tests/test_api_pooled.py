@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import pytest
 from api_helpers import (
     API,
+    RIG_TERMS,
     Org,
     clients,
     create_structure,
@@ -66,7 +67,8 @@ def bridge(sqlite_api_server: LiveServer) -> Bridge:
             for i, T in enumerate(TRAINING_TEMPERATURES)
         ]
         response = admin.post(
-            f"{API}/structures/{structure_id}/models/pooled-baseline", json={"record_ids": ids}
+            f"{API}/structures/{structure_id}/models/pooled-baseline",
+            json={"record_ids": ids, "terms": RIG_TERMS},
         )
         assert response.status_code == 201, response.text
         same = [
@@ -231,7 +233,7 @@ def test_pooled_fault_mode_estimates_k_at_the_records_temperature(sqlite_api_ser
         ]
         response = admin.post(
             f"{API}/structures/{structure_id}/models/pooled-fault-modes",
-            json={"name": "k2", "experiments": experiments, "max_degree": 1},
+            json={"name": "k2", "experiments": experiments, "max_degree": 1, "terms": RIG_TERMS},
         )
         assert response.status_code == 201, response.text
         version = response.json()
@@ -267,7 +269,7 @@ def test_a_large_pooled_training_is_queued_and_its_job_stores_the_version(tmp_pa
                 for i, T in enumerate((-10.0, 0.0, 10.0, 20.0, 30.0))
             ]
             url = f"{API}/structures/{structure_id}/models/pooled-baseline"
-            response = admin.post(url, json={"record_ids": ids, "max_degree": 1})
+            response = admin.post(url, json={"record_ids": ids, "max_degree": 1, "terms": RIG_TERMS})
             assert response.status_code == 202, response.text
 
             def trained() -> list[dict]:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from api_helpers import (
     API,
+    RIG_TERMS,
     Org,
     clients,
     create_structure,
@@ -81,7 +82,8 @@ def rig(api_server: LiveServer) -> Rig:
         structure_id = create_structure(admin, "rig")["id"]
         training = upload(ingest, structure_id, [], seed=1)
         response = admin.post(
-            f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": [training]}
+            f"{API}/structures/{structure_id}/models/baseline",
+            json={"record_ids": [training], "terms": RIG_TERMS},
         )
         assert response.status_code == 201, response.text
         baseline = response.json()
@@ -407,7 +409,9 @@ def test_another_organisations_records_are_never_seen(rig: Rig, api_server: Live
     with clients(stranger) as (admin, ingest, _):
         own = create_structure(admin, "stranger's rig")["id"]
         theirs = upload_record(ingest, own, simulated(QUADRATIC, 15, SHORT))
-        baseline = admin.post(f"{API}/structures/{own}/models/baseline", json={"record_ids": [theirs]}).json()
+        baseline = admin.post(
+            f"{API}/structures/{own}/models/baseline", json={"record_ids": [theirs], "terms": RIG_TERMS}
+        ).json()
         body = {"record_ids": [theirs], "test_record_ids": [rig.judged[0]], "base_model_id": baseline["id"]}
         with nothing_written(stranger, own):
             response = admin.post(refinements_url(own), json=body)

@@ -19,7 +19,16 @@ from dataclasses import dataclass
 
 import pytest
 import schemathesis
-from api_helpers import API, Org, clients, create_structure, json_body, post_record, train_fault_mode
+from api_helpers import (
+    API,
+    RIG_TERMS,
+    Org,
+    clients,
+    create_structure,
+    json_body,
+    post_record,
+    train_fault_mode,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from live import LiveServer
@@ -66,7 +75,9 @@ def target(api_server: LiveServer) -> Iterator[Target]:
         assert response.status_code == 201, response.text
         record = response.json()
         (alarm,) = admin.get(f"{API}/alarms", params={"structure_id": sid}).json()["items"]
-        response = admin.post(f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record["id"]]})
+        response = admin.post(
+            f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record["id"]], "terms": RIG_TERMS}
+        )
         assert response.status_code == 201, response.text
         body = {"record_id": record["id"], "base_model_id": response.json()["id"]}
         response = admin.post(f"{API}/structures/{sid}/refinements", json=body)

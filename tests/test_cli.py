@@ -21,6 +21,7 @@ import pytest
 from conftest import MODE_FIELDS, VERDICT_FIELDS
 
 from service.cli import main
+from simulator.theory import EXACT_TERMS
 
 NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -69,10 +70,11 @@ def workdir(tmp_path_factory) -> Path:
                 "simulate", "--fault", "k2", "--k", str(k), "--seed", str(10 + index), "--out", name, cwd=path
             )
             writer.writerow([name, k])
-    invoke("train", "baseline", "healthy.csv", "--out", "baseline.json", cwd=path)
+    invoke("train", "baseline", "healthy.csv", "--terms", "2dof", "--out", "baseline.json", cwd=path)
     invoke(
-        "train", "fault-mode", "--name", "k2", "--experiments", "manifest.csv", "--out", "k2.json", cwd=path
-    )
+        "train", "fault-mode", "--name", "k2", "--experiments", "manifest.csv", "--terms", "baseline.json",
+        "--out", "k2.json", cwd=path,
+    )  # fmt: skip
     return path
 
 
@@ -193,6 +195,26 @@ def test_train_with_explicit_terms(workdir, tmp_path):
         cwd=tmp_path,
     )
     assert json.loads((tmp_path / "linear.json").read_text())["terms"] == ["y[t-1]", "y[t-2]", "x[t-4]"]
+
+
+def test_train_without_terms_chooses_a_baseline_and_a_fault_mode_asks_for_them(workdir, tmp_path):
+    """No command assumes the paper rig's terms: a baseline without --terms has them chosen from
+    its records (on the rig's: fourth order or more, its input a sample late) and says what it
+    chose; a fault mode needs --terms, which its baseline's model file gives."""
+    result = invoke("train", "baseline", str(workdir / "healthy.csv"), "--out", "chosen.json", cwd=tmp_path)
+    choice = json.loads((tmp_path / "chosen.json").read_text())["metadata"]["choice"]
+    assert choice["delay"] == 1 and choice["orders"]["ny"] >= 4
+    assert choice["held_out"]["free_run_nrmse"] < 0.2
+    assert (
+        f"terms chosen: ARX({choice['orders']['ny']}, {choice['orders']['nx']}), input delay 1"
+        in result.stdout
+    )
+    manifest = str(workdir / "manifest.csv")
+    refused = invoke("train", "fault-mode", "--name", "k2", "--experiments", manifest, "--out", "k.json",
+                     cwd=workdir, check=False)  # fmt: skip
+    assert refused.returncode == 2 and "--terms" in refused.stderr
+    rig = json.loads((workdir / "baseline.json").read_text())
+    assert rig["terms"] == [term.name for term in EXACT_TERMS]  # --terms 2dof, by name
 
 
 def test_inspect_json_verdict_of_a_k2_fault(workdir):

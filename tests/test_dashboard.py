@@ -15,7 +15,17 @@ import httpx
 import numpy as np
 import plotly
 import pytest
-from api_helpers import API, FS, Org, clients, create_structure, simulated, train_fault_mode, upload_simulated
+from api_helpers import (
+    API,
+    FS,
+    RIG_TERMS,
+    Org,
+    clients,
+    create_structure,
+    simulated,
+    train_fault_mode,
+    upload_simulated,
+)
 from dashboard_helpers import (
     COOKIE,
     DASHBOARD,
@@ -527,7 +537,8 @@ def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: 
             body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
             ids.append(post_record(ingest, structure_id, body, "application/x-npz").json()["id"])
         baseline = admin.post(
-            f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": ids[:1]}
+            f"{API}/structures/{structure_id}/models/baseline",
+            json={"record_ids": ids[:1], "terms": RIG_TERMS},
         )
         body = {"record_id": ids[1], "base_model_id": baseline.json()["id"]}
         refinement = admin.post(f"{API}/structures/{structure_id}/refinements", json=body).json()
@@ -598,7 +609,8 @@ def test_the_refinement_page_gives_the_noise_between_periods_of_a_periodic_recor
             "id"
         ]
         baseline = admin.post(
-            f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": [record_id]}
+            f"{API}/structures/{structure_id}/models/baseline",
+            json={"record_ids": [record_id], "terms": RIG_TERMS},
         )
         body = {"record_id": record_id, "base_model_id": baseline.json()["id"]}
         refinement = admin.post(f"{API}/structures/{structure_id}/refinements", json=body).json()

@@ -22,6 +22,7 @@ from api_helpers import (
     API,
     CUSUM_TRAINING_K,
     FS,
+    RIG_TERMS,
     Org,
     clients,
     create_structure,
@@ -229,7 +230,8 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
             body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
             ids.append(post_record(ingest, structure_id, body, "application/x-npz").json()["id"])
         baseline = admin.post(
-            f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": ids[:1]}
+            f"{API}/structures/{structure_id}/models/baseline",
+            json={"record_ids": ids[:1], "terms": RIG_TERMS},
         )
         body = {"record_ids": ids[:2], "test_record_ids": ids[2:], "base_model_id": baseline.json()["id"]}
         response = admin.post(f"{API}/structures/{structure_id}/refinements", json=body)
@@ -275,7 +277,8 @@ def test_a_refinement_on_a_periodic_record_states_the_noise_floor(page, server: 
         body = npz_bytes(x=x, y=y, fs=FS)
         record_id = post_record(ingest, structure_id, body, "application/x-npz").json()["id"]
         baseline = admin.post(
-            f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": [record_id]}
+            f"{API}/structures/{structure_id}/models/baseline",
+            json={"record_ids": [record_id], "terms": RIG_TERMS},
         )
         body = {"record_id": record_id, "base_model_id": baseline.json()["id"]}
         refinement = admin.post(f"{API}/structures/{structure_id}/refinements", json=body).json()

@@ -51,6 +51,7 @@ import schemathesis
 from api_helpers import (
     API,
     FS,
+    RIG_TERMS,
     create_structure,
     csv_text,
     experiments,
@@ -354,7 +355,7 @@ def seed(world: World, org: Organisation, seed_value: int) -> None:
         runs = experiments(admin, sid, "k2", seed_value)
         for run in runs:
             org.own("record_id", run["record_id"], sid)
-        body = {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": runs}
+        body = {"name": "k2", "k_min": -32.0, "k_max": 32.0, "experiments": runs, "terms": RIG_TERMS}
         response = admin.post(f"{API}/structures/{sid}/models/fault-modes", json=body)
         assert response.status_code == 201, response.text
         world.register(org, "POST", f"{R}/models/fault-modes", response)
@@ -362,7 +363,9 @@ def seed(world: World, org: Organisation, seed_value: int) -> None:
         assert response.status_code == 201, response.text
         world.register(org, "POST", f"{R}/records", response)
         record_id = max(org.ids("record_id", sid))
-        response = admin.post(f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record_id]})
+        response = admin.post(
+            f"{API}/structures/{sid}/models/baseline", json={"record_ids": [record_id], "terms": RIG_TERMS}
+        )
         assert response.status_code == 201, response.text
         world.register(org, "POST", f"{R}/models/baseline", response)
         refinement = {"record_id": record_id, "base_model_id": response.json()["id"]}
@@ -465,12 +468,12 @@ def encode(encoding: str, x: np.ndarray, y: np.ndarray, fs: float) -> tuple[byte
 
 
 def _train_baseline_on(record_id: int) -> dict[str, Any]:
-    return {"json": {"record_ids": [record_id]}}
+    return {"json": {"record_ids": [record_id], "terms": RIG_TERMS}}
 
 
 def _train_mode_on(record_id: int, other_record: int) -> dict[str, Any]:
     runs = [{"record_id": record_id, "k": -10.0}, {"record_id": other_record, "k": 10.0}]
-    return {"json": {"name": "k9", "k_min": -32.0, "k_max": 32.0, "experiments": runs}}
+    return {"json": {"name": "k9", "k_min": -32.0, "k_max": 32.0, "experiments": runs, "terms": RIG_TERMS}}
 
 
 def _refine(record_id: int, model_id: int) -> dict[str, Any]:
@@ -640,10 +643,13 @@ class FuzzMachine(RuleBasedStateMachine):
         records = org.ids("record_id", sid)
         chosen = [_nth(records, index) for index in indices]
         if baseline:
-            route, body = f"{R}/models/baseline", {"record_ids": chosen}
+            route, body = f"{R}/models/baseline", {"record_ids": chosen, "terms": RIG_TERMS}
         else:
             runs = [{"record_id": r, "k": k * (i - 1)} for i, r in enumerate(chosen)]
-            route, body = f"{R}/models/fault-modes", {"name": mode, "k_min": -32.0, "k_max": 32.0}
+            route, body = (
+                f"{R}/models/fault-modes",
+                {"name": mode, "k_min": -32.0, "k_max": 32.0, "terms": RIG_TERMS},
+            )
             body["experiments"] = runs
         response = self.w.send(org, "admin", "POST", route, {"structure_id": sid}, json=body)
         self.w.register(org, "POST", route, response)

@@ -14,7 +14,16 @@ from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
-from api_helpers import API, Org, clients, create_structure, experiments, simulated, upload_simulated
+from api_helpers import (
+    API,
+    RIG_TERMS,
+    Org,
+    clients,
+    create_structure,
+    experiments,
+    simulated,
+    upload_simulated,
+)
 from live import LiveServer
 
 ACTIVATORS = 8
@@ -33,6 +42,7 @@ def test_a_training_racing_eight_activations_leaves_one_active_version(api_serve
             "k_min": -32.0,
             "k_max": 32.0,
             "experiments": experiments(ingest, sid, "k2", 61),
+            "terms": RIG_TERMS,
         }
         versions = [admin.post(f"{models}/fault-modes", json=body).json()["id"] for _ in range(2)]
         answers: Counter[int] = Counter()

@@ -25,6 +25,7 @@ import httpx
 import pytest
 from api_helpers import (
     API,
+    RIG_TERMS,
     create_structure,
     experiments,
     json_body,
@@ -118,7 +119,13 @@ def test_business_metrics_equal_what_the_api_lists(served: Served):
         training = experiments(ingest, sid, "k2", seed=71)
         response = admin.post(
             f"{API}/structures/{sid}/models/fault-modes",
-            json={"name": TENANT_MODE, "k_min": -32.0, "k_max": 32.0, "experiments": training},
+            json={
+                "name": TENANT_MODE,
+                "k_min": -32.0,
+                "k_max": 32.0,
+                "experiments": training,
+                "terms": RIG_TERMS,
+            },
         )
         assert response.status_code == 201, response.text
         records = {experiment["record_id"] for experiment in training}

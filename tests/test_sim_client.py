@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from api_helpers import RIG_TERMS
 from live import LiveServer, Tenant, free_port
 
 from recordfiles.reader import read_record
@@ -106,10 +107,8 @@ def trained(api_server: LiveServer):  # yields Trained
         for k in MAGNITUDES:
             record = simulate(SETTINGS.scenario(mode, k), 2000, next(seeds))
             experiments.append({"record_id": upload_npz(tenant.ingest, structure_id, record), "k": k})
-        response = tenant.admin.post(
-            f"/api/v1/structures/{structure_id}/models/fault-modes",
-            json={"name": mode, "k_min": -32.0, "k_max": 32.0, "experiments": experiments},
-        )
+        body = {"name": mode, "k_min": -32.0, "k_max": 32.0, "experiments": experiments, "terms": RIG_TERMS}
+        response = tenant.admin.post(f"/api/v1/structures/{structure_id}/models/fault-modes", json=body)
         assert response.status_code == 201, response.text
     yield Trained(api_server, tenant, structure_id, api_server.key(Role.ingest, tenant.name))
     for client in (tenant.admin, tenant.ingest, tenant.viewer):

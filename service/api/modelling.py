@@ -50,8 +50,9 @@ def train_baseline(
     session: SessionDep,
     settings: SettingsDep,
 ) -> ModelOut | JSONResponse:
-    """Identify the healthy structure's NARX from stored records (default: SPEC §2's 8 terms);
-    a large training is queued as a job (202)."""
+    """Identify the healthy structure's NARX from stored records, its terms as given or, without
+    them, chosen for the structure from these records (training.choice says how); a large training
+    is queued as a job (202)."""
     return _train(request, structure_id, body, principal, session, settings)
 
 
@@ -64,8 +65,8 @@ def train_fault_mode(
     session: SessionDep,
     settings: SettingsDep,
 ) -> ModelOut | JSONResponse:
-    """Identify a fault mode as a functional NARX; the new version becomes the active one.
-    A large training is queued as a job (202)."""
+    """Identify a fault mode as a functional NARX, its terms as given or the active baseline's; the
+    new version becomes the active one. A large training is queued as a job (202)."""
     return _train(request, structure_id, body, principal, session, settings)
 
 

@@ -32,10 +32,15 @@ def signal_layout(x: str | None, y: str | None, base: Layout = DEFAULT_LAYOUT) -
     return Layout(x if x is not None else base.x, y if y is not None else base.y, base.fs, times=True)
 
 
-def read_terms(spec: str | None) -> tuple[Term, ...]:
-    """Terms from a comma-separated list, or from a JSON file holding a ``terms`` list
-    (a model document or the output of ``narxwatch select --json``); default SPEC §2's."""
-    if spec is None:
+# Names the paper rig's exact structure (SPEC §2) where a command takes terms: asked for by name,
+# never assumed.
+RIG = "2dof"
+
+
+def read_terms(spec: str) -> tuple[Term, ...]:
+    """Terms from a comma-separated list, from a JSON file holding a ``terms`` list (a model
+    document or the output of ``narxwatch select --json``), or SPEC §2's named ``RIG``."""
+    if spec == RIG:
         return EXACT_TERMS
     path = Path(spec)
     if path.suffix.lower() == ".json":

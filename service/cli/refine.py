@@ -50,8 +50,7 @@ from models.scoring import Records
 from models.terms import Term
 from recordfiles.reader import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
 from service.cli.console import stderr, stdout
-from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, common_rate, read_terms, signal_layout
-from simulator.theory import EXACT_TERMS
+from service.cli.modelfiles import RECORD_SET_HELP, RIG, XName, YName, common_rate, read_terms, signal_layout
 
 # The Silverbox benchmark's official split (shared/data/README.md): estimation and arrow test,
 # each test run started from 50 measured outputs.
@@ -60,7 +59,6 @@ SILVERBOX_TEST = (100, 40575)
 SILVERBOX_INITIAL = 50
 SILVERBOX_UNIT = "V"  # both of its signals are voltages
 # ``--declared`` naming SPEC §2's structure of the simulated 2-DOF rig.
-RIG = "2dof"
 # Each worker is a copy of this process: beyond a CPU's share, more only cost memory. More than
 # one a CPU is allowed all the same, so that two workers run (slower) on a machine of one CPU.
 JOBS_PER_CPU = 2
@@ -377,8 +375,6 @@ def _declared(spec: str | None) -> tuple[Term, ...] | None:
     """The declared terms; None lets the loop choose a linear model's orders."""
     if spec is None:
         return None
-    if spec == RIG:
-        return EXACT_TERMS
     if spec.startswith("linear:"):
         orders = spec.removeprefix("linear:").split(",")
         try:

@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from models.baseline_choice import choose_baseline_terms
 from models.basis import FAMILIES
 from models.fnarx import fit_fnarx
 from models.narx import fit_narx
@@ -14,6 +15,7 @@ from recordfiles.names import normalised_name
 from service.cli.console import stdout
 from service.cli.modelfiles import (
     RECORD_SET_HELP,
+    RIG,
     XName,
     YName,
     read_manifest,
@@ -27,8 +29,16 @@ from service.cli.modelfiles import (
 app = typer.Typer(help="Estimate models from records.", no_args_is_help=True)
 
 TERMS_HELP = (
-    "Model structure: comma-separated term names (e.g. 'y[t-1],y[t-2]^3,x[t-4]') or a JSON file with a "
-    "'terms' list. Default: the exact 8-term structure of SPEC §2."
+    "Model structure: comma-separated term names (e.g. 'y[t-1],y[t-2]^3,x[t-4]'), a JSON file with a "
+    f"'terms' list (a baseline's model file, `narxwatch select --json`), or '{RIG}' for the paper rig's "
+    "8 terms (SPEC §2)."
+)
+FAULT_MODE_TERMS_HELP = (
+    TERMS_HELP + " A fault mode extends its baseline: --terms baseline.json takes its terms."
+)
+BASELINE_TERMS_HELP = (
+    TERMS_HELP + " Default: chosen for the structure from these records (the linear orders and input "
+    "delay that simulate held-out parts of them best, then nonlinear terms where they lower that)."
 )
 
 
@@ -38,15 +48,26 @@ def baseline(
         list[Path], typer.Argument(help=f"Healthy records (.csv, .npz or .mat). {RECORD_SET_HELP}")
     ],
     out: Annotated[Path, typer.Option("--out", help="Model file to write (.json).")],
-    terms: Annotated[str | None, typer.Option(help=TERMS_HELP)] = None,
+    terms: Annotated[str | None, typer.Option(help=BASELINE_TERMS_HELP)] = None,
     x: XName = None,
     y: YName = None,
 ) -> None:
     """Identify the healthy structure as a NARX model from one or more records."""
     loaded, fs = read_records(records, signal_layout(x, y))
-    model = fit_narx([(r.x, r.y) for r in loaded], read_terms(terms))
+    signals = [(r.x, r.y) for r in loaded]
+    choice = None if terms is not None else choose_baseline_terms(signals)
+    model = fit_narx(signals, read_terms(terms) if choice is None else choice.terms)
     document = model.to_document()
     document["metadata"] = {"fs": fs, "records": [str(p) for p in records]}
+    if choice is not None:
+        document["metadata"]["choice"] = choice.to_dict()
+        stdout.print(
+            f"terms chosen: ARX({choice.ny}, {choice.nx}), input delay {choice.delay}, "
+            f"{', '.join(t.name for t in choice.added) or 'no nonlinear term'} added; free-run NRMSE over "
+            f"held-out parts of the records {choice.held_out_nrmse:.2%}",
+            markup=False,
+            highlight=False,
+        )
     write_json(out, document)
     stdout.print(f"baseline NARX with {len(model.terms)} terms from {model.n_obs} equations -> {out}")
     for name, value, (low, high) in zip(model.term_names, model.theta, model.intervals(), strict=True):
@@ -64,7 +85,7 @@ def fault_mode(
         ),
     ],
     out: Annotated[Path, typer.Option("--out", help="Model file to write (.json).")],
-    terms: Annotated[str | None, typer.Option(help=TERMS_HELP)] = None,
+    terms: Annotated[str, typer.Option(help=FAULT_MODE_TERMS_HELP)],
     basis: Annotated[str, typer.Option(help=f"Functional basis: {', '.join(FAMILIES)}.")] = "chebyshev2",
     degree: Annotated[int, typer.Option(help="Degree of the basis (p = degree + 1 functions).")] = 1,
     k_min: Annotated[

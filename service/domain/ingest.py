@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from numpy.typing import ArrayLike
 from sqlalchemy.orm import Session
 
+from models.baseline_choice import NONLINEAR_DEGREE
 from models.errors import InputError
 from models.inspection import checked_for_inspection
 from models.pooled import PooledModel
@@ -21,7 +22,6 @@ from service.domain import alarms, inspections, records, structures
 from service.domain.modelling import active_fault_modes
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure, Verdict
-from simulator.theory import EXACT_TERMS
 
 QueueInspection = Callable[[Session, int], None]  # queue(session, record_id), in its transaction
 
@@ -150,9 +150,11 @@ def ingest_record_set(
 
 def _degree_to_hold(session: Session, structure: Structure) -> int:
     """The term degree a stored record's values must fit: the active fault-mode models' highest,
-    or, before the structure has any, that of the terms a training uses by default (SPEC §2's,
-    cubic). A record only its later inspection would refuse for its magnitude is refused now."""
+    or, before the structure has any, the highest a baseline's chosen terms may have
+    (:data:`models.baseline_choice.NONLINEAR_DEGREE`). A record only its later inspection would
+    refuse for its magnitude is refused now."""
     active = [
         model for _, model in active_fault_modes(session, structure) if not isinstance(model, VectorFNARX)
     ]
-    return max_degree([term for model in active for term in model.terms] or EXACT_TERMS)
+    terms = [term for model in active for term in model.terms]
+    return max_degree(terms) if terms else NONLINEAR_DEGREE

@@ -7,15 +7,17 @@ import threading
 from collections import Counter, OrderedDict
 from typing import Any
 
+import numpy as np
 from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, defer
 
+from models.baseline_choice import CHOICE_COLUMNS, CHOICE_MIN_SAMPLES, MAX_CHOSEN_TERMS, choose_baseline_terms
 from models.errors import InputError
 from models.fnarx import FNARX, fit_fnarx
 from models.narx import fit_narx
 from models.pooled import MAGNITUDE, MAX_VARIABLES, PooledExperiment, PooledModel, fit_pooled
-from models.terms import parse_terms
+from models.terms import Term, parse_terms
 from models.vector import VectorFNARX, fit_vector_fnarx
 from recordfiles.channels import matched
 from service.config import Settings
@@ -32,7 +34,6 @@ from service.schemas import (
 )
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure
-from simulator.theory import EXACT_TERMS
 
 BASELINE = "baseline"
 _CACHE_SIZE = 256
@@ -48,8 +49,10 @@ def train_baseline(
 ) -> ModelVersion:
     structure = get_structure(session, principal, structure_id)
     records, _ = _training_records(session, principal, structure, body, settings)
-    model = fit_narx([signals(r) for r in records], body.terms or EXACT_TERMS)
-    training = {"record_ids": body.record_ids, "terms": model.term_names}
+    histories = [signals(r) for r in records]
+    terms, chosen = baseline_terms(histories, body.terms)
+    model = fit_narx(histories, terms)
+    training = {"record_ids": body.record_ids, "terms": model.term_names, **chosen}
     statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
     document = bounded_document(model.to_document(), settings)
     return new_version(session, structure, "baseline", BASELINE, document, training, statistics)
@@ -60,9 +63,10 @@ def train_fault_mode(
 ) -> ModelVersion:
     structure = get_structure(session, principal, structure_id)
     records, _ = _training_records(session, principal, structure, body, settings)
+    terms, taken = given_or_baseline_terms(session, structure, body.terms)
     model = fit_fnarx(
         [(*signals(r), e.k) for r, e in zip(records, body.experiments, strict=True)],
-        body.terms or EXACT_TERMS,
+        terms,
         name=body.name,
         family=body.basis,
         size=body.degree + 1,
@@ -75,6 +79,7 @@ def train_fault_mode(
         "basis": body.basis,
         "degree": body.degree,
         "terms": model.term_names,
+        **taken,
     }
     statistics = {"experiment_sigma2": model.experiment_sigma2.tolist(), "n_obs": model.n_obs}
     document = bounded_document(model.to_document(), settings)
@@ -103,13 +108,13 @@ def train_pooled(
         PooledExperiment(*signals(r), condition_values(r.conditions), k)
         for r, k in zip(records, magnitudes, strict=True)
     ]
-    model = fit_pooled(
-        experiments, body.terms or EXACT_TERMS, name=name, variables=variables, max_degree=body.max_degree
-    )
+    terms, taken = given_or_baseline_terms(session, structure, body.terms)
+    model = fit_pooled(experiments, terms, name=name, variables=variables, max_degree=body.max_degree)
     training = given | {
         "variables": list(model.variables),
         "max_degree": body.max_degree,
         "terms": [term.name for term in model.terms],
+        **taken,
     }
     statistics = {
         "degrees": model.degrees,
@@ -357,7 +362,9 @@ def _training_records(
     if isinstance(body, VectorFaultModeTrain):
         return records, _vector_cells(records, body, settings)
     check_one_response(records, structure, "this training")
-    terms = len(parse_terms(body.terms or EXACT_TERMS))
+    if isinstance(body, BaselineTrain) and body.terms is None:
+        return records, _choice_cells(records, settings)
+    terms = len(given_or_baseline_terms(session, structure, body.terms)[0])
     if isinstance(body, BaselineTrain):
         size = 1
     elif isinstance(body, FaultModeTrain):
@@ -369,6 +376,61 @@ def _training_records(
     cells = sum(r.n_samples for r in records) * terms * size
     check_cost(cells, terms * size, settings, "this training")
     return records, cells
+
+
+def baseline_terms(
+    histories: list[tuple[np.ndarray, np.ndarray]], given: list[str] | None
+) -> tuple[tuple[Term, ...], dict[str, Any]]:
+    """A baseline's terms: those ``given``, or those chosen for the structure from its healthy
+    ``histories`` (:func:`models.baseline_choice.choose_baseline_terms`), with what the training
+    keeps of the choice (``choice``: the orders, delay, nonlinear terms added and the held-out
+    free run) so that a person sees why the model has the terms it has."""
+    if given:
+        return parse_terms(given), {}
+    choice = choose_baseline_terms(histories)
+    return choice.terms, {"choice": choice.to_dict()}
+
+
+def given_or_baseline_terms(
+    session: Session, structure: Structure, given: list[str] | None
+) -> tuple[tuple[Term, ...], dict[str, Any]]:
+    """A fault mode's or pooled model's terms: those ``given``, or the structure's active
+    baseline's, the model its fault modes extend; with what the training keeps of where they came
+    from (``terms_from``). No baseline and no terms is refused: no structure's terms are assumed."""
+    if given:
+        return parse_terms(given), {}
+    query = select(ModelVersion).where(
+        ModelVersion.structure_id == structure.id,
+        ModelVersion.name == BASELINE,
+        ModelVersion.active.is_(True),
+    )
+    baseline = session.scalar(query.options(defer(ModelVersion.document)))
+    if baseline is None:
+        raise ConflictError(
+            f"structure {structure.name!r} has no active baseline to take the terms from: train a baseline "
+            f"first (POST /api/v1/structures/{structure.id}/models/baseline chooses its terms from healthy "
+            "records) or give terms"
+        )
+    source = {"model_id": baseline.id, "name": baseline.name, "version": baseline.version}
+    return parse_terms(baseline.training["terms"]), {"terms_from": source}
+
+
+def _choice_cells(records: list[Record], settings: Settings) -> int:
+    """What choosing a baseline's terms costs in cells (``CHOICE_COLUMNS`` a sample), refused
+    over the limits or for a record too short to hold out part of, before any signal is read."""
+    short = next((r for r in records if r.n_samples < CHOICE_MIN_SAMPLES), None)
+    if short is not None:
+        raise InputError(
+            f"record {short.id} has {short.n_samples} samples; choosing a baseline's terms holds out part "
+            f"of each record and needs at least {CHOICE_MIN_SAMPLES}: use longer records, or give the "
+            "baseline's terms"
+        )
+    cells = sum(r.n_samples for r in records) * CHOICE_COLUMNS
+    try:
+        check_cost(cells, MAX_CHOSEN_TERMS, settings, "choosing this baseline's terms")
+    except InputError as exc:
+        raise InputError(f"{exc}, or give the baseline's terms") from None
+    return cells
 
 
 def check_one_response(records: list[Record], structure: Structure, what: str) -> None:

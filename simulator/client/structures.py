@@ -104,7 +104,10 @@ def declared(structure: dict[str, Any]) -> str:
 
 Terms = Annotated[
     str | None,
-    typer.Option(help="Model terms separated by commas (default: the service's, the paper's 8 terms)."),
+    typer.Option(
+        help="Model terms separated by commas (default: a baseline's are chosen for the structure from its "
+        "records; a fault mode's are the active baseline's)."
+    ),
 ]
 
 
