@@ -24,7 +24,7 @@ Figure = dict[str, Any]
 WEBGL_POINTS = 1500
 WEBGL_TRACE = "scattergl"
 TRAJECTORY_GRID = 65
-STATUS_COLOURS = {"healthy": "#2e7d32", "faulty": "#c62828", "unknown_fault": "#ef6c00"}
+STATUS_COLOURS = {"healthy": "#2e7d32", "faulty": "#c62828", "unknown_fault": "#ef6c00", "anomaly": "#6a1b9a"}
 # The dashboard's stylesheet gives alarm badges the same colours.
 ALARM_COLOURS = {"open": "#b71c1c", "acknowledged": "#f9a825", "resolved": "#78909c"}
 MODE_COLOURS = ("#1f77b4", "#9467bd", "#17becf", "#8c564b", "#e377c2", "#7f7f7f")
