@@ -659,12 +659,18 @@ def test_0024_counts_no_anomaly_before_and_is_undone_only_once_no_baseline_verdi
             )
         )  # fmt: skip
     engine.dispose()
-    refused = r"^1 verdict\(s\) of a healthy baseline alone are stored"
-    downgraded_once_deleted(fresh_url, "0023", refused, "DELETE FROM verdicts WHERE lags IS NULL")
-    schema, _ = schema_and_revision(fresh_url)
-    assert ("lags", "INTEGER", False) in schema["verdicts"]["columns"]
-    assert "novelty" not in {name for name, _, _ in schema["verdicts"]["columns"]}
-    assert "anomaly" not in {name for name, _, _ in schema["structure_states"]["columns"]}
+    downgraded_once_deleted(
+        fresh_url,
+        "0023",
+        r"^1 verdict\(s\) of a healthy baseline alone are stored",
+        "DELETE FROM verdicts WHERE lags IS NULL",
+    )
+    nullable = {
+        name: {column: null for column, _, null in kept["columns"]}
+        for name, kept in schema_and_revision(fresh_url)[0].items()
+    }
+    assert nullable["verdicts"]["lags"] is False and "novelty" not in nullable["verdicts"]
+    assert "anomaly" not in nullable["structure_states"]
     engine = make_engine(fresh_url)
     with engine.connect() as connection:
         assert connection.execute(text("SELECT id, status, lags FROM verdicts")).all() == [(1, "healthy", 40)]
