@@ -15,8 +15,10 @@ its healthy baseline alone (``models.novelty``), on SQLite and on PostgreSQL.
 
 from __future__ import annotations
 
+import uuid
 from dataclasses import dataclass
 
+import httpx
 import numpy as np
 import pytest
 from api_helpers import API, create_structure, detail, npz_bytes, post_record, stored, upload_simulated
@@ -47,9 +49,27 @@ def upload(client, structure_id: int, x: np.ndarray, y: np.ndarray, **params) ->
     )
 
 
+def healthy_training() -> list[tuple[np.ndarray, np.ndarray]]:
+    return [record(scenario(), SAMPLES, 100 + i) for i in range(TRAINING)]
+
+
+def chain_baseline(
+    admin: httpx.Client, ingest: httpx.Client, training: list[tuple[np.ndarray, np.ndarray]]
+) -> tuple[int, dict]:
+    """A new chain structure with the ``training`` records and a baseline trained from them: its
+    id and the baseline's version."""
+    structure_id = create_structure(admin, f"chain-{uuid.uuid4().hex[:8]}", fs=FS)["id"]
+    ids = [upload(ingest, structure_id, x, y)["id"] for x, y in training]
+    response = admin.post(
+        f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": ids, "terms": TERMS}
+    )
+    assert response.status_code == 201, response.text
+    return structure_id, response.json()
+
+
 @pytest.fixture(scope="module")
 def training() -> list[tuple[np.ndarray, np.ndarray]]:
-    return [record(scenario(), SAMPLES, 100 + i) for i in range(TRAINING)]
+    return healthy_training()
 
 
 @pytest.fixture(scope="module")
@@ -73,13 +93,7 @@ class Watched:
 @pytest.fixture(scope="module")
 def watched(api_server: LiveServer, training, judge) -> Watched:
     tenant = Tenant.create(api_server)
-    structure_id = create_structure(tenant.admin, "chain", fs=FS)["id"]
-    ids = [upload(tenant.ingest, structure_id, x, y)["id"] for x, y in training]
-    response = tenant.admin.post(
-        f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": ids, "terms": TERMS}
-    )
-    assert response.status_code == 201, response.text
-    baseline = response.json()
+    structure_id, baseline = chain_baseline(tenant.admin, tenant.ingest, training)
     signals = [record(scenario(), SAMPLES, 10_000 + i) for i in range(HEALTHY)]
     signals += [record(scenario("k2", 8.0), SAMPLES, 20_000 + i) for i in range(FAULTY)]
     verdicts = [upload(tenant.ingest, structure_id, x, y, inspect="true")["verdict"] for x, y in signals]
