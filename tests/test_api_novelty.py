@@ -30,6 +30,7 @@ from models.narx import NARX, fit_narx
 from models.novelty import NoveltyReference, judge_record, novelty_reference
 from models.output_error import fit_output_error
 from models.terms import parse_terms
+from simulator.client.destinations import verdict_text
 from simulator.simulate import simulate
 from simulator.study import StudySettings
 
@@ -38,8 +39,9 @@ from simulator.study import StudySettings
 # force at once.
 TERMS = [f"y[t-{i}]" for i in range(1, 9)] + ["x[t]"] + [f"x[t-{i}]" for i in range(1, 8)]
 FS = 1000.0  # the chain's sampling rate
-TRAINING, SAMPLES = 10, 4000
-HEALTHY, FAULTY = 30, 10
+# Ten healthy records as long as tests/test_novelty.py's, and records judged half as long.
+TRAINING, TRAINING_SAMPLES, SAMPLES = 10, 8000, 4000
+HEALTHY, FAULTY = 40, 10
 TEST_LEVEL = 1e-3  # the chance a correct service fails the rate assertion
 
 
@@ -50,7 +52,7 @@ def upload(client, structure_id: int, x: np.ndarray, y: np.ndarray, **params) ->
 
 
 def healthy_training() -> list[tuple[np.ndarray, np.ndarray]]:
-    return [record(scenario(), SAMPLES, 100 + i) for i in range(TRAINING)]
+    return [record(scenario(), TRAINING_SAMPLES, 100 + i) for i in range(TRAINING)]
 
 
 def chain_baseline(
@@ -153,6 +155,28 @@ def test_anomalies_reach_the_fleet_the_summary_and_the_alarms(watched: Watched) 
     assert [s["id"] for s in fleet] == [structure_id]
     alarms = viewer.get(f"{API}/alarms", params={"structure_id": structure_id, "limit": 1000}).json()
     assert [a["rule_kind"] for a in alarms["items"]] == ["persistence"]
+
+
+def test_the_openapi_document_shows_the_anomaly_and_the_baseline_s_figures(watched: Watched) -> None:
+    schemas = watched.tenant.viewer.get("/openapi.json").json()["components"]["schemas"]
+    verdict = schemas["VerdictOut"]["properties"]
+    assert "anomaly" in verdict["status"]["enum"]
+    assert {"anyOf": [{"$ref": "#/components/schemas/NoveltyFigures"}, {"type": "null"}]}.items() <= verdict[
+        "novelty"
+    ].items()
+    figures = schemas["NoveltyFigures"]["properties"]
+    assert {"statistic", "threshold", "p_value", "severity", "free_run"} <= set(figures)
+    assert "healthy" in figures["severity"]["description"]
+
+
+def test_the_simulator_client_prints_the_baseline_s_figures(watched: Watched) -> None:
+    """``narxwatch-sim``'s line for a verdict: the statistic against its threshold and the severity
+    where the chain's verdicts show the best mode's whiteness (there is no mode)."""
+    verdict = watched.faulty[-1]
+    figures = verdict["novelty"]
+    line = verdict_text(verdict, verdict["record_id"], "test").plain
+    assert f"record {verdict['record_id']}  {verdict['status']}  T = {figures['statistic']:.2f}" in line
+    assert f"severity {figures['severity']:.3f}" in line
 
 
 def test_a_baseline_nonlinear_in_its_output_says_why_it_cannot_judge_records_alone(
