@@ -21,7 +21,17 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 import pytest
-from api_helpers import API, create_structure, detail, npz_bytes, post_record, stored, upload_simulated
+from api_helpers import (
+    API,
+    create_structure,
+    detail,
+    npz_bytes,
+    post_record,
+    stored,
+    upload_simulated,
+    verdicts_of,
+    wait_for,
+)
 from live import LiveServer, Tenant
 from scipy import special, stats
 from test_novelty import ALPHA, record, scenario
@@ -195,6 +205,37 @@ def test_a_baseline_nonlinear_in_its_output_says_why_it_cannot_judge_records_alo
     refused = tenant.ingest.post(f"{API}/records/{record_id}/inspect")
     assert refused.status_code == 409, refused.text
     assert "cannot judge records alone" in detail(refused) and "linear in its output" in detail(refused)
+
+
+def test_a_queued_inspection_judges_as_one_on_upload(watched: Watched, judge) -> None:
+    """``?inspect=queue``: the job (the embedded worker on SQLite, ``narxwatch worker`` processes on
+    PostgreSQL) stores the same judgement."""
+    x, y = record(scenario(), SAMPLES, 45_000)
+    structure_id = watched.structure_id
+    response = post_record(
+        watched.tenant.ingest, structure_id, npz_bytes(x=x, y=y, fs=FS), "application/x-npz", inspect="queue"
+    )
+    assert response.status_code == 202, response.text
+    record_id = response.json()["id"]
+    queued = wait_for(lambda: verdicts_of(watched.tenant.viewer, structure_id, record_id), 60, "the verdict")
+    (verdict,) = queued  # type: ignore[misc]
+    assert verdict["novelty"]["statistic"] == pytest.approx(judge_record(*judge, x, y).statistic, rel=1e-6)
+
+
+@pytest.mark.parametrize("inspect", ["true", "queue"])
+def test_a_record_too_short_to_judge_is_refused(watched: Watched, inspect: str) -> None:
+    """The free run's initial outputs and ``MIN_SAMPLES`` after them: shorter is a 422 saying so,
+    whether the judgement runs on upload or is queued (its job could not judge it)."""
+    x, y = record(scenario(), 100, 46_000)
+    summary = f"{API}/structures/{watched.structure_id}/summary"
+    before = watched.tenant.viewer.get(summary).json()
+    body = npz_bytes(x=x, y=y, fs=FS)
+    response = post_record(
+        watched.tenant.ingest, watched.structure_id, body, "application/x-npz", inspect=inspect
+    )
+    assert response.status_code == 422, response.text
+    assert "100 samples is too short; this needs at least 108" in detail(response)
+    assert watched.tenant.viewer.get(summary).json() == before
 
 
 def test_fault_modes_keep_the_chain_s_verdict(watched: Watched) -> None:

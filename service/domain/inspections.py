@@ -12,10 +12,10 @@ from sqlalchemy.orm import Session, defer, selectinload
 
 from models.errors import InputError
 from models.fnarx import FNARX
-from models.inspection import ModeResult, inspect
+from models.inspection import ModeResult, checked_for_inspection, inspect
 from models.inspection import Verdict as InspectionVerdict
 from models.narx import NARX
-from models.novelty import NoveltyVerdict, judge_record
+from models.novelty import NoveltyVerdict, checked_for_judgement, judge_record
 from models.pooled import PooledModel, baseline_verdict, check_baseline
 from models.signals import minimum_samples
 from models.vector import VectorFNARX, VectorModeFigures, inspect_vector, vector_verdict
@@ -137,6 +137,17 @@ def vector_record(
     longest = max(model.lags for _, model in active if isinstance(model, VectorFNARX))
     xa, ya = checked_signals(x, y, channels, minimum_samples(lags, longest), degree=1)
     return xa, ya[:, order], names
+
+
+def checked_to_queue(
+    active: Active, x: ArrayLike, y: ArrayLike, conditions: Mapping[str, float], lags: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A record of one response checked as its queued inspection under the ``active`` models at
+    its ``conditions`` will check it: by the chain's rules, or a healthy baseline's alone."""
+    baseline = active[0][1]
+    if isinstance(baseline, NoveltyBaseline):
+        return checked_for_judgement(baseline.model, baseline.reference, x, y)
+    return checked_for_inspection(x, y, at_conditions(active, conditions), lags)
 
 
 def at_conditions(active: Active, conditions: Mapping[str, float]) -> list[FNARX | NARX]:
