@@ -192,7 +192,9 @@ def models_to_inspect_with(session: Session, structure: Structure, several: bool
     why = ""
     if baseline is not None:
         reason = (
-            baseline[0].statistics.get("novelty", {}).get("reason", "it was trained before baselines could")
+            baseline[0]
+            .statistics.get("novelty", {})
+            .get("reason", "it was trained without the reference that judging needs: train it again")
         )
         why = f", and its baseline cannot judge records alone ({reason})"
     raise ConflictError(
