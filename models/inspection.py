@@ -43,7 +43,9 @@ from models.narx import z_quantile
 from models.signals import Record, checked_record, minimum_samples
 from models.terms import max_degree, regressor_matrix
 
-Status = Literal["healthy", "faulty", "unknown_fault"]
+# Every status a verdict can have: ``anomaly`` is a healthy baseline's alone (models.novelty), a
+# record unlike its healthy records that no fault mode describes.
+Status = Literal["healthy", "faulty", "unknown_fault", "anomaly"]
 GRID_POINTS = 129
 ADEQUACY_SHARE = 0.02  # of α: 0.001 at α = 0.05
 
@@ -90,7 +92,9 @@ class Verdict:
     describes the record; they are None for an unknown fault (no model describes it, so no
     magnitude is estimated). ``z_critical`` is None when no fault mode was tested: a healthy
     baseline's check alone (:func:`models.pooled.baseline_verdict`); ``q_critical_detection`` is
-    None when no whiteness test detects: a vector inspection (:func:`models.vector.vector_verdict`).
+    None when no whiteness test detects: a vector inspection (:func:`models.vector.vector_verdict`);
+    ``lags`` is None when no Ljung–Box test is made: a healthy baseline's judgement alone
+    (:mod:`models.novelty`).
     """
 
     status: Status
@@ -101,7 +105,7 @@ class Verdict:
     sigma_k: float | None
     interval: tuple[float, float] | None
     alpha: float
-    lags: int
+    lags: int | None
     n_samples: int
     z_critical: float | None
     q_critical_detection: float | None

@@ -274,7 +274,7 @@ def judge_record(
     if not 0 < alpha < 0.5:
         raise InputError(f"alpha must lie in (0, 0.5), got {alpha}")
     L, Q, r = reference.start_up, len(reference.whitening), reference.rank
-    xa, ya = checked_record(x, y, L + MIN_SAMPLES, degree=max_degree(model.terms))
+    xa, ya = checked_for_judgement(model, reference, x, y)
     used = ya.size - L
     nu = float(used - Q - _linear_part(model).size - r)
     threshold = float(special.fdtri(r, nu, 1 - alpha))
@@ -310,6 +310,16 @@ def judge_record(
         used_samples=used,
         diverged_at=None,
     )
+
+
+def checked_for_judgement(
+    model: NARX, reference: NoveltyReference, x: ArrayLike, y: ArrayLike
+) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) as float64 vectors fit to be judged by :func:`judge_record`: ``MIN_SAMPLES`` after
+    the free run's initial outputs, and no value so large that the model's terms overflow. A
+    service that queues a judgement checks a record with this before storing it, so that the
+    queued judgement cannot fail on what the upload could have refused."""
+    return checked_record(x, y, reference.start_up + MIN_SAMPLES, degree=max_degree(model.terms))
 
 
 def start_up_of(model: NARX) -> tuple[float, int, bool]:

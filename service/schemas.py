@@ -299,21 +299,52 @@ class ModelRef(BaseModel):
     version: int
 
 
+class NoveltyFigures(BaseModel):
+    """A record judged against its structure's healthy baseline alone (``models.novelty``): its
+    free-run error regressed on the run's sensitivities, T ~ F(dof, residual_dof) for a healthy
+    record, an anomaly when T exceeds the threshold F_{1−α}. Figures a diverged free run makes
+    infinite are null."""
+
+    statistic: float | None = Field(description="T, the record's statistic")
+    threshold: float = Field(description="F_{1−α}(dof, residual_dof): an anomaly above it")
+    p_value: float = Field(description="P(F(dof, residual_dof) > T): the chance of so large a T when healthy")
+    severity: float | None = Field(
+        description="The record's free-run error variance over a healthy record's: 1 when healthy, whatever "
+        "the record's length; the figure to trend"
+    )
+    free_run: Literal["settled", "marginal", "diverged"] = Field(
+        description="settled; marginal (the baseline's free run does not ring down: the designed rate does "
+        "not hold); diverged (the free run left every bound at sample diverged_at: an anomaly)"
+    )
+    sigma2: float | None = Field(description="The record's free-run error variance [response units²]")
+    expected_sigma2: float = Field(description="A healthy record's, from the baseline's training records")
+    dof: float
+    residual_dof: float
+    used_samples: int = Field(description="The samples judged, after the free run's initial outputs")
+    diverged_at: int | None
+
+
 class VerdictOut(BaseModel):
     id: int
     record_id: int
     structure_id: int
     acquired_at: dt.datetime
     created_at: dt.datetime
-    status: Literal["healthy", "faulty", "unknown_fault"]
+    status: Status = Field(
+        description="healthy; faulty (localised to fault_mode and sized); unknown_fault (a fault no fault "
+        "mode describes); anomaly (a record unlike the healthy baseline's, for a structure judged by its "
+        "baseline alone: novelty has the figures)"
+    )
     fault_detected: bool
     fault_mode: str | None
     reference_mode: str | None
     k_hat: float | None
     sigma_k: float | None
     interval: tuple[float, float] | None
-    alpha: float
-    lags: int
+    alpha: float = Field(description="The designed false-alarm rate (NARXWATCH_ALPHA)")
+    lags: int | None = Field(
+        description="The Ljung–Box tests' lags; null for a verdict of a healthy baseline alone (none made)"
+    )
     n_samples: int
     z_critical: float | None = Field(
         description="The magnitude test's critical |k̂|/σ̂_k; null for a verdict of a pooled baseline alone, "
@@ -332,6 +363,11 @@ class VerdictOut(BaseModel):
         "vector residual, q, q_critical, p_value and accepted are Hosking's multivariate portmanteau test "
         "of it, and "
         "sigma_k_record equals sigma_k (Gauss–Newton on the record's own residual covariance)"
+    )
+    novelty: NoveltyFigures | None = Field(
+        None,
+        description="The figures of a verdict of a healthy baseline alone (status healthy or anomaly; its "
+        "version in model_versions); null for every other verdict",
     )
     model_versions: list[ModelRef]
     conditions: list[Condition] = Field(description=CONDITIONS_HELP)
@@ -678,7 +714,7 @@ Note = Annotated[str, Field(max_length=2000, pattern=NOTE_PATTERN)]
 
 
 class PersistenceRule(Strict):
-    """Fire when ``k`` of the last ``m`` verdicts are faulty or unknown (any fault mode)."""
+    """Fire when ``k`` of the last ``m`` verdicts are faulty, unknown or an anomaly (any fault mode)."""
 
     kind: Literal["persistence"]
     k: Annotated[StrictInt, Field(ge=1, le=1000)] = 3

@@ -246,7 +246,8 @@ class Verdict(Base):
     interval_low: Mapped[float | None] = mapped_column(Float, nullable=True)
     interval_high: Mapped[float | None] = mapped_column(Float, nullable=True)
     alpha: Mapped[float] = mapped_column(Float)
-    lags: Mapped[int] = mapped_column(Integer)
+    # None for a verdict of a healthy baseline alone, which has no Ljung–Box test
+    lags: Mapped[int | None] = mapped_column(Integer, nullable=True)
     n_samples: Mapped[int] = mapped_column(Integer)
     # None for a verdict of a pooled baseline alone, which has no magnitude test
     z_critical: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -254,6 +255,9 @@ class Verdict(Base):
     q_critical_detection: Mapped[float | None] = mapped_column(Float, nullable=True)
     detected_by: Mapped[list[str]] = mapped_column(Document)
     modes: Mapped[list[dict[str, Any]]] = mapped_column(Document)
+    # The figures of a verdict of a healthy baseline alone (models.novelty.NoveltyVerdict.to_dict);
+    # None for every other verdict.
+    novelty: Mapped[dict[str, Any] | None] = mapped_column(OptionalDocument, nullable=True)
 
     models: Mapped[list[ModelVersion]] = relationship(secondary="verdict_models")
     # The conditions of the verdict's record, which every verdict answer shows.
@@ -269,8 +273,8 @@ class StructureState(Base):
     (``service.domain.fleet``), so that neither the fleet views nor ``/metrics`` read its history.
 
     ``status`` is that of the ``latest`` verdict (newest acquisition, then newest id; None before
-    the first), ``since`` when its current run of that status began; ``records`` and the three
-    verdict counts are how many the structure has. ``organisation_id`` is the structure's, kept
+    the first), ``since`` when its current run of that status began; ``records`` and the verdict
+    counts, one a status, are how many the structure has. ``organisation_id`` is the structure's, kept
     here so that a page of the fleet is one range of an index: ``ix_structure_states_fleet``, or
     ``ix_structure_states_fleet_status`` for a page of one status. (No index holds the latest
     verdict's columns, which change at every verdict: PostgreSQL can then update the row in place.)
@@ -296,6 +300,7 @@ class StructureState(Base):
     healthy: Mapped[int] = mapped_column(BigInteger, default=0)
     faulty: Mapped[int] = mapped_column(BigInteger, default=0)
     unknown_fault: Mapped[int] = mapped_column(BigInteger, default=0)
+    anomaly: Mapped[int] = mapped_column(BigInteger, default=0)
 
     latest: Mapped[Verdict | None] = relationship()
 

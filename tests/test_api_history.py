@@ -236,7 +236,7 @@ def test_history_refuses_bad_filters(history: History, viewer):
         assert response.status_code == 422, response.text
         assert response.json()["detail"] == f"{name} needs a timezone, e.g. 2026-11-21T10:00:00Z"
     for params, location, fragment in (
-        ({"status": "broken"}, "status", "'healthy', 'faulty' or 'unknown_fault'"),
+        ({"status": "broken"}, "status", "'healthy', 'faulty', 'unknown_fault' or 'anomaly'"),
         ({"limit": 0}, "limit", "greater than or equal to 1"),
         ({"limit": 1001}, "limit", "less than or equal to 1000"),
         ({"start": "last tuesday"}, "start", "datetime"),
@@ -256,9 +256,10 @@ def test_summary_agrees_with_the_history(history: History, viewer):
     assert summary["structure_id"] == history.structure_id
     assert summary["total"] == len(items) == 10
     assert summary["counts"] == {
-        status: sum(v["status"] == status for v in items) for status in ("healthy", "faulty", "unknown_fault")
+        status: sum(v["status"] == status for v in items)
+        for status in ("healthy", "faulty", "unknown_fault", "anomaly")
     }
-    assert summary["counts"] == {"healthy": 3, "faulty": 5, "unknown_fault": 2}
+    assert summary["counts"] == {"healthy": 3, "faulty": 5, "unknown_fault": 2, "anomaly": 0}
     assert summary["latest"] == items[0]
     trend = summary["trend"]
     assert [p["verdict_id"] for p in trend] == ids(items)[::-1]  # oldest to newest
@@ -296,7 +297,7 @@ def test_summary_slope_of_a_growing_fault(api_server: LiveServer):
         assert empty == {
             "structure_id": sid,
             "total": 0,
-            "counts": {"healthy": 0, "faulty": 0, "unknown_fault": 0},
+            "counts": {"healthy": 0, "faulty": 0, "unknown_fault": 0, "anomaly": 0},
             "latest": None,
             "trend": [],
             "k_hat_slope_per_day": None,

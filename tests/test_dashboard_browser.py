@@ -43,6 +43,7 @@ from dashboard_helpers import (
     monitored_structure,
 )
 from live import LiveServer
+from test_api_novelty import SAMPLES, chain_baseline, healthy_training, record, scenario, upload
 
 from service.config import Settings
 from simulator.simulate import Effects, Scenario, simulate
@@ -200,6 +201,31 @@ def test_a_vector_verdict_shows_each_channels_residual(page, server: LiveServer)
         assert drawn(page, f"residual-{name}")["points"] == [len(x) - 2]
     assert "a1, a2, a3" in page.content() and "Hosking" in page.locator("#vector-note").inner_text()
     shot(page, "6-record-channels")
+
+
+def test_a_structure_judged_by_its_baseline_alone_trends_its_severity(page, server: LiveServer):
+    """A chain structure with a healthy baseline and no fault mode: its page shows it standing at
+    anomaly and draws each verdict's severity against the healthy level 1; a record's page shows the
+    baseline's figures."""
+    org = Org.create(server)
+    with clients(org) as (admin, ingest, _):
+        structure_id, _ = chain_baseline(admin, ingest, healthy_training())
+        judged = [record(scenario(), SAMPLES, 50_000 + i) for i in range(3)]
+        judged += [record(scenario("k2", 8.0), SAMPLES, 60_000 + i) for i in range(3)]
+        uploaded = [upload(ingest, structure_id, x, y, inspect="true") for x, y in judged]
+    assert uploaded[-1]["verdict"]["status"] == "anomaly"
+    page.goto(f"{server.url}{DASHBOARD}/structures/{structure_id}")
+    log_in(page, org.keys["viewer"])
+    page.wait_for_url(f"**{DASHBOARD}/structures/{structure_id}")
+    assert page.locator("#standing .badge").inner_text() == "anomaly"
+    severity = drawn(page, "severity")
+    assert severity["points"][:2] == [6, 2]  # a point per verdict, the healthy level's two ends
+    assert "healthy level (1)" in page.locator("#chart-severity").inner_text()
+    shot(page, "7-structure-severity")
+    page.goto(f"{server.url}{DASHBOARD}/records/{uploaded[-1]['id']}")
+    figures = page.locator("#novelty").inner_text()
+    assert "severity (healthy: 1)" in figures.lower() and "settled" in figures
+    assert "healthy baseline's judgement alone" in page.locator("#baseline-only").inner_text()
 
 
 def test_a_wrong_key_stays_on_the_login_page_with_the_reason(page, server: LiveServer):

@@ -47,11 +47,11 @@ from test_api_bounded import record_set_csv
 
 from service.config import Settings
 from service.db import make_engine
+from service.domain.fleet import STATUSES
 from service.jobs import embedded
 from service.tables import Alarm, Job, JobCount, Record, Structure, StructureState, Verdict
 
 T0 = dt.datetime(2026, 6, 1, 6, 0, tzinfo=dt.UTC)
-STATUSES = ("healthy", "faulty", "unknown_fault")
 SKEW = dt.timedelta(seconds=Settings.model_fields["max_clock_skew_seconds"].default)  # the servers' here
 FUTURE = dt.datetime(9999, 12, 31, tzinfo=dt.UTC)
 
@@ -403,7 +403,8 @@ def test_a_record_from_the_future_already_stored_hides_no_fault(fleet_server: Fl
         summary = viewer.get(f"{API}/structures/{sid}/summary").json()
         assert summary["latest"]["id"] == fault["verdict"]["id"]
         assert summary["trend"][-1]["verdict_id"] == fault["verdict"]["id"]
-        assert summary["counts"] == {"healthy": 2, "faulty": 1, "unknown_fault": 0}  # the future one counted
+        # the future one counted
+        assert summary["counts"] == {"healthy": 2, "faulty": 1, "unknown_fault": 0, "anomaly": 0}
         assert future in {v["id"] for v in verdicts(viewer, sid)}  # and listed in the history
         assert_exact(fleet_server, sid)
         with logged_in(fleet_server.server, org.keys["viewer"]) as client:

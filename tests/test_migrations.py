@@ -11,7 +11,7 @@ from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from cryptography.fernet import Fernet
-from sqlalchemy import JSON, Connection, inspect, select, text
+from sqlalchemy import JSON, Connection, column, inspect, select, table, text
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -19,6 +19,19 @@ from service import tables
 from service.db import Base, make_engine
 from service.migrate import alembic_config, is_ours, upgrade_database
 from service.tables import utcnow
+
+# structure_states as the schema before 0024 has it, without the declared table's default count of
+# anomalies, which an insert would name.
+STATES_BEFORE_0024 = table(
+    "structure_states",
+    *(
+        column(name)
+        for name in (
+            "structure_id", "organisation_id", "status", "since", "latest_verdict_id", "latest_acquired_at",
+            "records", "healthy", "faulty", "unknown_fault",
+        )
+    ),
+)  # fmt: skip
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -395,9 +408,9 @@ def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(fresh_url)
         )  # fmt: skip
         connection.execute(table["verdict_models"].insert().values(verdict_id=1, model_version_id=1))
         connection.execute(
-            table["structure_states"].insert().values(
+            STATES_BEFORE_0024.insert().values(
                 structure_id=1, organisation_id=1, status="healthy", since=now, latest_verdict_id=1,
-                latest_acquired_at=now, records=1, healthy=1,
+                latest_acquired_at=now, records=1, healthy=1, faulty=0, unknown_fault=0,
             )
         )  # fmt: skip
     upgrade_database(fresh_url)
@@ -527,7 +540,7 @@ def test_0022_reads_each_state_again_without_the_verdicts_acquired_in_the_future
         for structure_id, state in states.items():
             records = sum(1 for _, s, _, _ in history if s == structure_id)
             connection.execute(
-                table["structure_states"].insert().values(
+                STATES_BEFORE_0024.insert().values(
                     structure_id=structure_id, organisation_id=1, records=records,
                     **{"healthy": 0, "faulty": 0, "unknown_fault": 0} | state,
                 )
@@ -607,6 +620,63 @@ def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_hi
     assert "alarm_states" not in left and "verdicts" in left
 
 
+def test_0024_counts_no_anomaly_before_and_is_undone_only_once_no_baseline_verdict_is_stored(fresh_url):
+    """A structure's state from before 0024 counts no anomaly; a verdict of a healthy baseline
+    alone (no Ljung–Box lags, its figures in ``novelty``) can then be stored. The schema before
+    cannot hold one: downgrading is refused, naming how many, while one is stored; once it is
+    deleted it goes through and keeps the chain's verdict."""
+    upgrade_database(fresh_url, "0023")
+    _structure_with_records(fresh_url, None, None)
+    engine = make_engine(fresh_url)
+    now = utcnow()
+    table = Base.metadata.tables
+    chain = dict(
+        structure_id=1, acquired_at=now, created_at=now, model_set="1", alpha=0.05, n_samples=2,
+        z_critical=None, q_critical_detection=None, detected_by=[], modes=[],
+    )  # fmt: skip
+    with engine.begin() as connection:
+        connection.execute(
+            STATES_BEFORE_0024.insert().values(
+                structure_id=1, organisation_id=1, records=2, healthy=1, faulty=0, unknown_fault=0
+            )
+        )
+        first, second = connection.execute(text("SELECT id FROM records ORDER BY id")).scalars().all()
+        connection.execute(
+            text(
+                "INSERT INTO verdicts (id, record_id, structure_id, acquired_at, created_at, model_set, "
+                "status, fault_detected, alpha, lags, n_samples, detected_by, modes) "
+                "VALUES (1, :record, 1, :t, :t, '1', 'healthy', false, 0.05, 40, 2, '[]', '[]')"
+            ),
+            {"record": first, "t": now},
+        )
+    upgrade_database(fresh_url)
+    with engine.begin() as connection:
+        assert connection.execute(text("SELECT anomaly FROM structure_states")).scalar_one() == 0
+        connection.execute(
+            table["verdicts"].insert().values(
+                id=2, record_id=second, status="anomaly", fault_detected=True, lags=None,
+                novelty={"statistic": 9.0, "threshold": 1.6, "severity": 1.3}, **chain,
+            )
+        )  # fmt: skip
+    engine.dispose()
+    downgraded_once_deleted(
+        fresh_url,
+        "0023",
+        r"^1 verdict\(s\) of a healthy baseline alone are stored",
+        "DELETE FROM verdicts WHERE lags IS NULL",
+    )
+    nullable = {
+        name: {column: null for column, _, null in kept["columns"]}
+        for name, kept in schema_and_revision(fresh_url)[0].items()
+    }
+    assert nullable["verdicts"]["lags"] is False and "novelty" not in nullable["verdicts"]
+    assert "anomaly" not in nullable["structure_states"]
+    engine = make_engine(fresh_url)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT id, status, lags FROM verdicts")).all() == [(1, "healthy", 40)]
+    engine.dispose()
+
+
 def test_0025_leaves_the_structures_stored_before_it_undeclared_and_undoes_cleanly(fresh_url):
     """Structures stored before 0025 keep their rows, with no quantity or unit declared (read as
     none: plain x and y), and what refers to them stays; downgrading drops the declarations and
@@ -627,7 +697,7 @@ def test_0025_leaves_the_structures_stored_before_it_undeclared_and_undoes_clean
         assert structure.excitation is None and structure.response is None
         structure.response_quantity, structure.response_unit = "acceleration", "m/s²"
         session.commit()
-    command.downgrade(alembic_config(fresh_url), "0023")
+    command.downgrade(alembic_config(fresh_url), "0024")
     with engine.connect() as connection:
         columns = {c["name"] for c in inspect(connection).get_columns("structures")}
         kept = connection.execute(text("SELECT id, name, fs FROM structures")).all()

@@ -37,6 +37,7 @@ from live import free_port, http_client, wait_until_serving
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.db import make_engine, session_factory, transaction
+from service.domain.fleet import STATUSES
 from service.observability.metrics import exposition
 from service.security import Role, create_key
 
@@ -159,7 +160,7 @@ def test_business_metrics_equal_what_the_api_lists(served: Served):
         for labels, count in labelled(samples, "narxwatch_verdicts_total").items()
     }
     # Every status has its series, a status no verdict has yet at zero.
-    assert counted == {status: verdicts[status] for status in ("healthy", "faulty", "unknown_fault")}
+    assert counted == {status: verdicts[status] for status in STATUSES}
     assert sum(verdicts.values()) == 6
     assert {"faulty", "unknown_fault"} <= set(counted)
     # A fault mode's name is the tenant's to choose: it is no label value (unbounded, and it tells

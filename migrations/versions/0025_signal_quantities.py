@@ -1,7 +1,7 @@
 """structures declare what their excitation and response measure, and in which units
 
 Revision ID: 0025
-Revises: 0023
+Revises: 0024
 Create Date: 2026-12-06 09:30:00.000000
 
 Charts labelled every structure's response "y [m]" and its residual "e [m]", the units of the
@@ -16,7 +16,7 @@ import sqlalchemy as sa
 from alembic import op
 
 revision = "0025"
-down_revision = "0023"
+down_revision = "0024"
 branch_labels = None
 depends_on = None
 

@@ -16,7 +16,7 @@ from recordfiles.reader import read_record
 from service.cli.console import stdout
 from service.cli.modelfiles import XName, YName, read_fault_mode, signal_layout
 
-STATUS_STYLE = {"healthy": "green", "faulty": "red", "unknown_fault": "magenta"}
+STATUS_STYLE = {"healthy": "green", "faulty": "red", "unknown_fault": "magenta", "anomaly": "magenta"}
 
 
 def inspect(

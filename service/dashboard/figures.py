@@ -25,7 +25,7 @@ Figure = dict[str, Any]
 WEBGL_POINTS = 1500
 WEBGL_TRACE = "scattergl"
 TRAJECTORY_GRID = 65
-STATUS_COLOURS = {"healthy": "#2e7d32", "faulty": "#c62828", "unknown_fault": "#ef6c00"}
+STATUS_COLOURS = {"healthy": "#2e7d32", "faulty": "#c62828", "unknown_fault": "#ef6c00", "anomaly": "#6a1b9a"}
 # The dashboard's stylesheet gives alarm badges the same colours.
 ALARM_COLOURS = {"open": "#b71c1c", "acknowledged": "#f9a825", "resolved": "#78909c"}
 MODE_COLOURS = ("#1f77b4", "#9467bd", "#17becf", "#8c564b", "#e377c2", "#7f7f7f")
@@ -265,6 +265,23 @@ def _lines(x: Any, y: Any, **style: Any) -> dict[str, Any]:
     }
 
 
+def _level(x: Sequence[float], level: float, name: str, colour: str, hover: str) -> dict[str, Any]:
+    """A dashed line at ``level`` across the span of ``x`` (none for no points), hovered as ``hover``."""
+    ends = [x[0], x[-1]] if x else []
+    return _lines(
+        ends,
+        [level] * len(ends),
+        name=name,
+        line={"color": colour, "dash": "dash", "width": 1.5},
+        hovertemplate=hover + "<extra></extra>",
+    )
+
+
+def _over_time(title: str, y_title: str, **yaxis: Any) -> dict[str, Any]:
+    """The layout of a chart over acquisition time, its legend below."""
+    return _layout(title, "acquired (UTC)", y_title, xaxis={"type": "date"}, yaxis=yaxis, legend=LEGEND_BELOW)
+
+
 def _layout(title: str, x_title: str, y_title: str, **extra: Any) -> dict[str, Any]:
     """A single chart's layout: its title, axis titles and the common margins; ``extra`` adds to
     or replaces entries (``xaxis``/``yaxis`` keys merge into the axes)."""
@@ -302,24 +319,35 @@ def q_figure(points: Sequence[TimelinePoint]) -> Figure:
             }
         )
         critical = pairs[-1][1]["q_critical"]
-        data.append(
-            _lines(
-                [x[0], x[-1]],
-                [critical, critical],
-                name=f"critical value ({name})",
-                line={"color": colour, "dash": "dash", "width": 1.5},
-                hovertemplate="χ² critical %{y:.1f}<extra></extra>",
-            )
-        )
-    layout = _layout(
-        "Residual whiteness: Ljung–Box Q per fault-mode model",
-        "acquired (UTC)",
-        "Q",
-        xaxis={"type": "date"},
-        yaxis={"type": "log"},
-        legend=LEGEND_BELOW,
-    )
-    return {"data": data, "layout": layout}
+        data.append(_level(x, critical, f"critical value ({name})", colour, "χ² critical %{y:.1f}"))
+    return {
+        "data": data,
+        "layout": _over_time("Residual whiteness: Ljung–Box Q per fault-mode model", "Q", type="log"),
+    }
+
+
+def severity_figure(points: Sequence[TimelinePoint]) -> Figure:
+    """A healthy baseline's severity per verdict, coloured by status, against the healthy level 1:
+    how many times a healthy record's free-run error variance each record's is, the figure to
+    trend for a structure judged by its baseline alone. A diverged free run has none."""
+    chosen = [p for p in points if p.severity is not None]
+    x = [_ms(p.acquired_at) for p in chosen]
+    data = [
+        {
+            "type": _scatter(len(chosen)),
+            "mode": "markers",
+            "name": "severity",
+            "x": x,
+            "y": [p.severity for p in chosen],
+            "customdata": [p.record_id for p in chosen],
+            "marker": {"color": [STATUS_COLOURS[p.status] for p in chosen], "size": 7},
+            "hovertemplate": "severity %{y:.3f}<br>record %{customdata}<extra></extra>",
+        },
+        _level(x, 1.0, "healthy level (1)", STATUS_COLOURS["healthy"], "healthy level 1"),
+        *_status_legend(),
+    ]
+    title = "Severity: the record's free-run error variance over a healthy record's"
+    return {"data": data, "layout": _over_time(title, "severity (healthy: 1)", rangemode="tozero")}
 
 
 def trajectories_figure(model: FNARX, level: float = 0.95) -> Figure:

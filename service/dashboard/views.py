@@ -131,6 +131,11 @@ def structure_page(
             ),
             "q": figures.q_figure(points.points),
         }
+        | (
+            {"severity": figures.severity_figure(points.points)}
+            if any(p.severity is not None for p in points.points)
+            else {}
+        )
         | {
             f"k_hat-{name}": figures.k_hat_condition_figure(points.points, name, unit, level)
             for name, unit in points.units.items()

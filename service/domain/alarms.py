@@ -3,7 +3,7 @@ open → acknowledged → resolved, each transition stored and announced.
 
 One verdict is a test at level α, so one record deciding calls a fault about once in twenty
 healthy records. The rules (``models.alarms``) look across records instead: *persistence* (k of
-the last m verdicts faulty or unknown), a *CUSUM* per fault mode on z = k̂/σ̂k with each
+the last m verdicts faulty, unknown or an anomaly), a *CUSUM* per fault mode on z = k̂/σ̂k with each
 verdict's own σ̂k, designed for a stated number of false alarms a year, and *severity* (an
 interval wholly beyond a magnitude). A structure without rules of its own is watched by the
 defaults.
@@ -97,7 +97,9 @@ from service.tables import AlarmRule as StoredRule
 # in-control statistic returns to zero every few records, so its start this far back matters
 # little; and the evaluation after each verdict stays a few milliseconds.
 WINDOW = 200
-FLAGGED = ("faulty", "unknown_fault")
+# The statuses that find a fault: an anomaly (a healthy baseline's judgement alone) as much as the
+# chain's.
+FLAGGED = ("faulty", "unknown_fault", "anomaly")
 DEFAULT_RULES: tuple[AlarmRule, ...] = (
     PersistenceRule(kind="persistence", k=rules_math.PERSISTENCE_K, m=rules_math.PERSISTENCE_M),
     CusumRule(kind="cusum", records_per_day=rules_math.RECORDS_PER_DAY, shift=rules_math.DESIGN_SHIFT),

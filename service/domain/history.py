@@ -5,13 +5,13 @@ from __future__ import annotations
 import base64
 import binascii
 import datetime as dt
-from typing import Literal
 
 import numpy as np
 from sqlalchemy import and_, or_, select
 from sqlalchemy.orm import Session
 
 from models.errors import InputError
+from models.inspection import Status
 from service.domain import fleet
 from service.domain.inspections import CONDITIONS, MODEL_REFS, verdict_out
 from service.domain.records import as_conditions
@@ -20,7 +20,6 @@ from service.schemas import MAX_ID, Summary, TrendPoint, VerdictPage
 from service.security import Principal
 from service.tables import Verdict
 
-Status = Literal["healthy", "faulty", "unknown_fault"]
 TREND_POINTS = 100
 SECONDS_PER_DAY = 86_400.0
 

@@ -11,7 +11,6 @@ from sqlalchemy.orm import Session
 
 from models.baseline_choice import NONLINEAR_DEGREE
 from models.errors import InputError
-from models.inspection import checked_for_inspection
 from models.pooled import PooledModel
 from models.signals import minimum_samples
 from models.terms import max_degree
@@ -82,7 +81,7 @@ def ingest_record(
         if channels:  # checked as its job will check it; stored in the channel order uploaded
             inspections.vector_record(models, x, y, channels, settings.lags)
         else:
-            x, y = checked_for_inspection(x, y, inspections.at_conditions(models, values), settings.lags)
+            x, y = inspections.checked_to_queue(models, x, y, values, settings.lags)
         active = [version for version, _ in models]
     else:
         degree = 1 if channels else _degree_to_hold(session, structure)

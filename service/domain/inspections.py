@@ -12,9 +12,10 @@ from sqlalchemy.orm import Session, defer, selectinload
 
 from models.errors import InputError
 from models.fnarx import FNARX
-from models.inspection import ModeResult, inspect
+from models.inspection import ModeResult, checked_for_inspection, inspect
 from models.inspection import Verdict as InspectionVerdict
 from models.narx import NARX
+from models.novelty import NoveltyVerdict, checked_for_judgement, judge_record
 from models.pooled import PooledModel, baseline_verdict, check_baseline
 from models.signals import minimum_samples
 from models.vector import VectorFNARX, VectorModeFigures, inspect_vector, vector_verdict
@@ -23,7 +24,7 @@ from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import alarms, fleet
 from service.domain.errors import ConflictError
-from service.domain.modelling import active_fault_modes, active_pooled_baseline
+from service.domain.modelling import NoveltyBaseline, active_baseline, active_fault_modes
 from service.domain.records import (
     acquisition_limit,
     as_conditions,
@@ -32,7 +33,7 @@ from service.domain.records import (
     signals,
 )
 from service.domain.structures import get_owned, get_structure
-from service.schemas import ModelRef, VerdictOut
+from service.schemas import ModelRef, NoveltyFigures, VerdictOut
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure, Verdict, VerdictModel
 
@@ -46,14 +47,16 @@ CONDITIONS = selectinload(Verdict.conditions)
 
 @dataclass(frozen=True)
 class Evaluation:
-    """A verdict computed but not yet stored, with the model versions that gave it."""
+    """A verdict computed but not yet stored, with the model versions that gave it; ``novelty``
+    the figures of a healthy baseline's judgement alone (None for the others)."""
 
     versions: list[ModelVersion]
     model_set: str
     result: InspectionVerdict
+    novelty: NoveltyVerdict | None = None
 
 
-Active = list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX]]
+Active = list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX | NoveltyBaseline]]
 
 
 def evaluate(
@@ -66,11 +69,17 @@ def evaluate(
 ) -> Evaluation:
     """A record's verdict under the ``active`` models (:func:`models_to_inspect_with`) at its
     ``conditions``: the fault-mode chain (pooled modes evaluated there), or, for a structure
-    monitored by a pooled baseline alone, that baseline's check there; for a record of several
-    ``channels``, the vector inspection (:func:`vector_record`). Reads, never writes:
-    kept apart from storing so that an upload computes its verdict before its first write
-    (SQLite then holds its write lock only for the inserts)."""
+    monitored by a pooled baseline alone, that baseline's check there, or by a plain baseline
+    alone, its judgement (``models.novelty``: healthy or anomaly, at the false-alarm rate
+    ``settings.alpha``); for a record of several ``channels``, the vector inspection
+    (:func:`vector_record`). Reads, never writes: kept apart from storing so that an upload
+    computes its verdict before its first write (SQLite then holds its write lock only for the
+    inserts)."""
     models = [model for _, model in active]
+    versions = [version for version, _ in active]
+    if isinstance(models[0], NoveltyBaseline):
+        judged = judge_record(models[0].model, models[0].reference, x, y, alpha=settings.alpha)
+        return Evaluation(versions, model_set(versions), novelty_result(judged), judged)
     baseline = models[0] if isinstance(models[0], PooledModel) and not models[0].is_fault_mode else None
     if channels:
         vectors = [model for model in models if isinstance(model, VectorFNARX)]
@@ -82,8 +91,30 @@ def evaluate(
         result = baseline_verdict(check, len(x))
     else:
         result = inspect(x, y, at_conditions(active, conditions), alpha=settings.alpha, lags=settings.lags)
-    versions = [version for version, _ in active]
     return Evaluation(versions, model_set(versions), result)
+
+
+def novelty_result(judged: NoveltyVerdict) -> InspectionVerdict:
+    """A healthy baseline's judgement as a verdict: ``healthy`` or ``anomaly`` (a record unlike
+    the healthy ones that no fault mode describes, so no magnitude), detected by ``novelty``, the
+    test of its free-run error; no fault mode, no magnitude or Ljung–Box test."""
+    anomaly = judged.status == "anomaly"
+    return InspectionVerdict(
+        status=judged.status,
+        fault_detected=anomaly,
+        fault_mode=None,
+        reference_mode=None,
+        k_hat=None,
+        sigma_k=None,
+        interval=None,
+        alpha=judged.alpha,
+        lags=None,
+        n_samples=judged.n_samples,
+        z_critical=None,
+        q_critical_detection=None,
+        detected_by=("novelty",) if anomaly else (),
+        modes=(),
+    )
 
 
 def vector_record(
@@ -108,6 +139,17 @@ def vector_record(
     return xa, ya[:, order], names
 
 
+def checked_to_queue(
+    active: Active, x: ArrayLike, y: ArrayLike, conditions: Mapping[str, float], lags: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A record of one response checked as its queued inspection under the ``active`` models at
+    its ``conditions`` will check it: by the chain's rules, or a healthy baseline's alone."""
+    baseline = active[0][1]
+    if isinstance(baseline, NoveltyBaseline):
+        return checked_for_judgement(baseline.model, baseline.reference, x, y)
+    return checked_for_inspection(x, y, at_conditions(active, conditions), lags)
+
+
 def at_conditions(active: Active, conditions: Mapping[str, float]) -> list[FNARX | NARX]:
     """The models as they stand at a record's ``conditions``: each pooled one evaluated there,
     which refuses a record without a variable it needs or outside the range it was trained on;
@@ -127,8 +169,9 @@ def model_set(versions: list[ModelVersion]) -> str:
 
 
 def models_to_inspect_with(session: Session, structure: Structure, several: bool = False) -> Active:
-    """The structure's active fault-mode models or, when it has none, its active pooled baseline
-    alone; a conflict if it has neither. For a record of ``several`` channels, its active vector
+    """The structure's active fault-mode models or, when it has none, its active baseline alone if
+    that can inspect records (``modelling.active_baseline``); a conflict if it has neither, which
+    says why its baseline cannot. For a record of ``several`` channels, its active vector
     fault-mode models, a conflict if it has none; the others are not for such a record, nor the
     vector ones for a record of one response."""
     every = active_fault_modes(session, structure)
@@ -141,15 +184,23 @@ def models_to_inspect_with(session: Session, structure: Structure, several: bool
             )
         return vectors
     active = [(version, model) for version, model in every if not isinstance(model, VectorFNARX)]
-    baseline = None if active else active_pooled_baseline(session, structure)
+    if active:
+        return active
+    baseline = active_baseline(session, structure)
+    if baseline is not None and baseline[1] is not None:
+        return [(baseline[0], baseline[1])]
+    why = ""
     if baseline is not None:
-        return [baseline]
-    if not active:
-        raise ConflictError(
-            f"structure {structure.name!r} has no active fault-mode model: train one with "
-            f"POST /api/v1/structures/{structure.id}/models/fault-modes"
+        reason = (
+            baseline[0]
+            .statistics.get("novelty", {})
+            .get("reason", "it was trained without the reference that judging needs: train it again")
         )
-    return active
+        why = f", and its baseline cannot judge records alone ({reason})"
+    raise ConflictError(
+        f"structure {structure.name!r} has no active fault-mode model{why}: train one with "
+        f"POST /api/v1/structures/{structure.id}/models/fault-modes"
+    )
 
 
 def inspect_stored(session: Session, principal: Principal, record_id: int, settings: Settings) -> Verdict:
@@ -222,6 +273,7 @@ def store_verdict(
         q_critical_detection=result.q_critical_detection,
         detected_by=list(result.detected_by),
         modes=[asdict(mode) for mode in result.modes],
+        novelty=evaluation.novelty.to_dict() if evaluation.novelty is not None else None,
     )
     inserted = insert_unless_exists(session, Verdict, values, ["record_id", "model_set"])
     if inserted is None:  # the same inspection finished concurrently: keep the first
@@ -304,6 +356,7 @@ def verdict_out(verdict: Verdict) -> VerdictOut:
             VectorModeFigures(**mode) if "channel_rms" in mode else ModeResult(**mode)
             for mode in verdict.modes
         ],
+        novelty=NoveltyFigures(**verdict.novelty) if verdict.novelty is not None else None,
         model_versions=[
             ModelRef(id=m.id, name=m.name, version=m.version)
             for m in sorted(verdict.models, key=lambda m: m.name)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 from collections import Counter, OrderedDict
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -15,7 +16,9 @@ from sqlalchemy.orm import Session, defer
 from models.baseline_choice import CHOICE_COLUMNS, CHOICE_MIN_SAMPLES, MAX_CHOSEN_TERMS, choose_baseline_terms
 from models.errors import InputError
 from models.fnarx import FNARX, fit_fnarx
-from models.narx import fit_narx
+from models.narx import NARX, fit_narx
+from models.novelty import NoveltyReference, novelty_reference
+from models.output_error import fit_output_error
 from models.pooled import MAGNITUDE, MAX_VARIABLES, PooledExperiment, PooledModel, fit_pooled
 from models.terms import Term, parse_terms
 from models.vector import VectorFNARX, fit_vector_fnarx
@@ -36,25 +39,64 @@ from service.security import Principal
 from service.tables import ModelVersion, Record, Structure
 
 BASELINE = "baseline"
+# Where a plain baseline's document keeps the reference of its healthy free-run error.
+REFERENCE = "novelty_reference"
 _CACHE_SIZE = 256
+
+
+@dataclass(frozen=True)
+class NoveltyBaseline:
+    """A plain baseline fitted by output error with the reference of its healthy free-run error
+    (``models.novelty``): it judges a structure's records alone, when no fault mode does."""
+
+    model: NARX
+    reference: NoveltyReference
+
+    @classmethod
+    def from_document(cls, document: dict[str, Any]) -> NoveltyBaseline:
+        return cls(NARX.from_document(document), NoveltyReference.from_document(document[REFERENCE]))
+
+
+Parsed = FNARX | PooledModel | VectorFNARX | NoveltyBaseline
 # Versions are immutable, so a parsed model can be kept; keyed by id and creation time so that
 # two databases in one process (tests) never share an entry. Requests and the embedded worker
 # share it from several threads: an OrderedDict reordered by two at once can lose entries.
-_parsed: OrderedDict[tuple[int, str], FNARX | PooledModel | VectorFNARX] = OrderedDict()
+_parsed: OrderedDict[tuple[int, str], Parsed] = OrderedDict()
 _parsed_lock = threading.Lock()
 
 
 def train_baseline(
     session: Session, principal: Principal, structure_id: int, body: BaselineTrain, settings: Settings
 ) -> ModelVersion:
+    """The healthy structure's NARX, by least squares; then, if it is linear in its output, by
+    output error from the estimated start, with the reference of its healthy free-run error kept
+    in its document, so that it can judge the structure's records alone (``models.novelty``).
+    A baseline that cannot (nonlinear in its output, a free run that diverges) is stored as
+    fitted, and ``statistics["novelty"]`` says why."""
     structure = get_structure(session, principal, structure_id)
     records, _ = _training_records(session, principal, structure, body, settings)
-    histories = [signals(r) for r in records]
-    terms, chosen = baseline_terms(histories, body.terms)
-    model = fit_narx(histories, terms)
+    pairs = [signals(r) for r in records]
+    terms, chosen = baseline_terms(pairs, body.terms)
+    model = fit_narx(pairs, terms)
+    document = model.to_document()
+    try:
+        model = fit_output_error(model, pairs, start_from="estimated").model
+        reference = novelty_reference(model, pairs)
+    except InputError as refusal:
+        novelty: dict[str, Any] = {"judges_records": False, "reason": str(refusal)}
+    else:
+        document = model.to_document() | {REFERENCE: reference.to_document()}
+        novelty = {
+            "judges_records": True,
+            "fit": "output error from the estimated start",
+            "sigma2": reference.sigma2,
+            "directions": reference.rank,
+            "start_up": reference.start_up,
+            "marginal": reference.marginal,
+        }
     training = {"record_ids": body.record_ids, "terms": model.term_names, **chosen}
-    statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
-    document = bounded_document(model.to_document(), settings)
+    statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs, "novelty": novelty}
+    document = bounded_document(document, settings)
     return new_version(session, structure, "baseline", BASELINE, document, training, statistics)
 
 
@@ -276,32 +318,40 @@ def active_fault_modes(
     return [(version, parsed_model(version)) for version in session.scalars(query)]
 
 
-def active_pooled_baseline(session: Session, structure: Structure) -> tuple[ModelVersion, PooledModel] | None:
-    """The structure's active baseline with its parsed model, if it is a pooled one: a plain
-    baseline takes no part in inspections, which its fault modes make."""
+def active_baseline(
+    session: Session, structure: Structure
+) -> tuple[ModelVersion, PooledModel | NoveltyBaseline | None] | None:
+    """The structure's active baseline, if it has one, with its parsed model if it can inspect
+    records alone: a pooled baseline, or a plain one with the reference of its healthy free-run
+    error (:func:`train_baseline`; its ``statistics["novelty"]`` says why one has none). Without
+    fault modes it is what inspects the structure's records; with them it takes no part."""
     query = select(ModelVersion).where(
         ModelVersion.structure_id == structure.id,
         ModelVersion.kind == "baseline",
         ModelVersion.active.is_(True),
     )
     version = session.scalar(query.options(defer(ModelVersion.document)))
-    if version is None or version.training.get("variables") is None:
+    if version is None:
         return None
+    pooled = version.training.get("variables") is not None
+    if not pooled and not version.statistics.get("novelty", {}).get("judges_records"):
+        return version, None
     model = parsed_model(version)
-    return (version, model) if isinstance(model, PooledModel) else None
+    return version, model if isinstance(model, PooledModel | NoveltyBaseline) else None
 
 
-def parsed_model(version: ModelVersion) -> FNARX | PooledModel | VectorFNARX:
-    """The parsed model of a fault-mode, pooled or vector version, kept once parsed: versions never
-    change."""
+def parsed_model(version: ModelVersion) -> Parsed:
+    """The parsed model of a fault-mode, pooled or vector version, or of a plain baseline that
+    judges records alone, kept once parsed: versions never change."""
     key = (version.id, version.created_at.isoformat())
     with _parsed_lock:
         model = _parsed.get(key)
     if model is None:  # parsed outside the lock: two threads may both parse it, harmlessly
         document = version.document
-        kinds: dict[str, type[FNARX | PooledModel | VectorFNARX]] = {
+        kinds: dict[str, type[Parsed]] = {
             "pooled": PooledModel,
             "vector": VectorFNARX,
+            "narx": NoveltyBaseline,
         }
         model = kinds.get(document.get("kind", ""), FNARX).from_document(document)
         with _parsed_lock:

@@ -20,7 +20,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from service.domain.errors import ConflictError, NotFoundError
-from service.domain.modelling import active_fault_modes, active_pooled_baseline
+from service.domain.modelling import active_baseline, active_fault_modes
 from service.domain.structures import get_structure
 from service.schemas import ScheduleCreate
 from service.security import Principal
@@ -62,7 +62,8 @@ def create_schedule(
     session: Session, principal: Principal, structure_id: int, body: ScheduleCreate
 ) -> Schedule:
     structure = get_structure(session, principal, structure_id)
-    if not active_fault_modes(session, structure) and active_pooled_baseline(session, structure) is None:
+    baseline = active_baseline(session, structure)
+    if not active_fault_modes(session, structure) and (baseline is None or baseline[1] is None):
         raise ConflictError(
             f"structure {structure.name!r} has no active fault-mode model, so a schedule would have nothing "
             f"to inspect with: train one with POST /api/v1/structures/{structure.id}/models/fault-modes"

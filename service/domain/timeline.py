@@ -1,5 +1,5 @@
 """A structure's verdicts as columns over time, for its charts (k̂ with interval, Q per mode, k̂
-against each operating condition)."""
+against each operating condition, a healthy baseline's severity)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,14 @@ class TimelinePoint:
     interval_low: float | None
     interval_high: float | None
     modes: list[dict[str, Any]]
+    novelty: dict[str, Any] | None  # the figures of a healthy baseline's judgement alone
     conditions: dict[str, float] = field(default_factory=dict)  # the record's, by name
+
+    @property
+    def severity(self) -> float | None:
+        """A healthy baseline's severity (1 when healthy); None for the chain's verdicts and a free
+        run that diverged."""
+        return self.novelty.get("severity") if self.novelty is not None else None
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,7 @@ def timeline(session: Session, structure_id: int, limit: int = MAX_CHART_VERDICT
         Verdict.interval_low,
         Verdict.interval_high,
         Verdict.modes,
+        Verdict.novelty,
     )
     rows = session.execute(
         select(*columns)

@@ -30,7 +30,12 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 MANIFEST = "manifest.csv"
 MANIFEST_COLUMNS = ["path", "fault", "k", "seed"]
 TEMPERATURE_COLUMN = "temperature"  # added to the manifest's columns when records have a temperature
-STATUS_STYLES = {"healthy": "green", "faulty": "bold red", "unknown_fault": "bold yellow"}
+STATUS_STYLES = {
+    "healthy": "green",
+    "faulty": "bold red",
+    "unknown_fault": "bold yellow",
+    "anomaly": "bold magenta",
+}
 
 stdout = Console(soft_wrap=True, highlight=False)
 stderr = Console(stderr=True, soft_wrap=True, highlight=False)
@@ -88,10 +93,15 @@ def describe(source: str, record: dict[str, Any]) -> str:
 
 
 def verdict_text(verdict: dict[str, Any], record_id: int, source: str) -> Text:
-    """One verdict on one line: time, record, status, the mode with k̂, whiteness, and ``source``."""
+    """One verdict on one line: time, record, status, the mode with k̂, whiteness (or, for a
+    healthy baseline's judgement alone, its statistic and severity), and ``source``."""
     line = Text(f"{utc_text(verdict['acquired_at'])}  record {record_id}  ")
     line.append(verdict["status"], style=STATUS_STYLES.get(verdict["status"], ""))
-    fields = [*magnitude_fields(verdict), whiteness_field(verdict)]
+    fields = magnitude_fields(verdict)
+    if verdict.get("novelty"):
+        fields.append(novelty_field(verdict["novelty"]))
+    elif verdict["modes"]:  # a pooled baseline's check alone has none
+        fields.append(whiteness_field(verdict))
     if verdict["detected_by"]:
         fields.append("detected by " + ", ".join(verdict["detected_by"]))
     fields.append(f"({source})")
@@ -120,6 +130,16 @@ def whiteness_field(verdict: dict[str, Any]) -> str:
     best = min(verdict["modes"], key=lambda mode: mode["residual_variance"])
     sign = "<" if best["accepted"] else "≥"
     return f"Q({best['name']}) = {best['q']:.1f} {sign} {best['q_critical']:.1f}"
+
+
+def novelty_field(figures: dict[str, Any]) -> str:
+    """A healthy baseline's statistic T against its threshold, and the severity (1 when healthy);
+    a diverged free run has neither T nor severity."""
+    if figures["statistic"] is None:
+        return f"free run diverged at sample {figures['diverged_at']}"
+    statistic, threshold = figures["statistic"], figures["threshold"]
+    sign = ">" if statistic > threshold else "≤"
+    return f"T = {statistic:.2f} {sign} {threshold:.2f}  severity {figures['severity']:.3f}"
 
 
 def utc_text(stamp: str) -> str:
