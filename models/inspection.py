@@ -30,11 +30,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from functools import lru_cache
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import optimize, special
+from scipy import special
 
 from models.diagnostics import ljung_box
 from models.errors import InputError
@@ -288,11 +289,15 @@ def _estimate(
 
 
 def _minimise_sse(model: FNARX, Z: np.ndarray, target: np.ndarray) -> float:
-    """Bounded Brent search for argmin Σe²(k), started from the best point of a coarse grid.
+    """argmin Σe²(k) on the model's range, from the roots of the derivative near the best point
+    of a coarse grid.
 
-    Σe² is a polynomial in u (the normalised magnitude) of degree 2(p − 1), so every
-    evaluation is a Horner step. Its coefficients lose precision far from where they are
-    expanded, so they are expanded again around the best grid point before the search.
+    Σe² is a polynomial in u (the normalised magnitude) of degree 2(p − 1). Its coefficients lose
+    precision far from where they are expanded, so they are expanded again around the best grid
+    point u0, and the minimum within a grid step of it is the least of Σe² at the ends of that
+    interval and at the real parts of the roots of d(Σe²)/dδ that fall inside it (a complex
+    pair's real part is a harmless extra candidate). Exact up to the roots' rounding, where a
+    search comparing values stops at √(eps·Σe²/g) from the minimum (g the curvature).
     """
     basis = model.basis
     W = Z @ basis.power_coefficients  # predictions carried by the powers u⁰, u¹, …
@@ -300,46 +305,22 @@ def _minimise_sse(model: FNARX, Z: np.ndarray, target: np.ndarray) -> float:
     best = grid[int(np.argmin(np.polyval(_sse_polynomial(W, target, 0.0), grid)))]
     step = grid[1] - grid[0]
     around_best = _sse_polynomial(W, target, best)
-    coefficients = around_best.tolist()
-
-    def sse(d: float) -> float:  # Horner on floats: np.polyval costs ~6 µs a scalar call
-        value = 0.0
-        for c in coefficients:
-            value = value * d + c
-        return value
-
-    result = optimize.minimize_scalar(
-        sse,
-        bounds=(max(-1.0 - best, -step), min(1.0 - best, step)),
-        method="bounded",
-        options={"xatol": 1e-12},
-    )
-    u_hat = best + float(result.x)
-    if basis.is_affine and basis.size == 2:
-        _check_closed_form(around_best, best, u_hat)
-    return float(basis.k_min + (u_hat + 1.0) * (basis.k_max - basis.k_min) / 2)
+    low, high = max(-1.0 - best, -step), min(1.0 - best, step)
+    candidates = np.array([low, high])
+    derivative = np.polyder(around_best)
+    if np.any(derivative) and np.all(np.isfinite(derivative)):  # non-finite: refused after
+        candidates = np.concatenate([candidates, np.clip(np.roots(derivative).real, low, high)])
+    delta = float(candidates[int(np.argmin(np.polyval(around_best, candidates)))])
+    return float(basis.k_min + (best + delta + 1.0) * (basis.k_max - basis.k_min) / 2)
 
 
-def _check_closed_form(around_best: np.ndarray, best: float, u_hat: float) -> None:
-    """For an affine basis Σe² = g·δ² − 2c·δ + s0 has its minimum at δ = c/g.
-
-    A search that compares function values cannot locate a minimum closer than √(eps·S/g),
-    where S is the size of the values it compares: beyond that they are equal in floating
-    point. S is Σe²_min, or, for a near-perfect fit whose Σe²_min is far below the terms it is
-    computed from, the rounding of those terms (|s0| + |2c·δ| + g·δ²). That is the agreement
-    demanded, with a factor 10 of margin.
-    """
-    g, minus_2c, s0 = around_best[0], around_best[1], around_best[2]
-    if not g > 0:
-        return
-    closed = float(np.clip(best - minus_2c / (2 * g), -1.0, 1.0))
-    delta = closed - best
-    sse_min = float(np.polyval(around_best, delta))
-    terms = abs(s0) + abs(minus_2c * delta) + g * delta**2
-    scale = max(sse_min, terms, np.finfo(float).tiny)
-    resolution = np.sqrt(np.finfo(float).eps * scale / g)
-    if abs(closed - u_hat) > 10 * resolution + 1e-12:
-        raise ArithmeticError(f"Brent search (u = {u_hat}) disagrees with the closed form (u = {closed})")
+@lru_cache(maxsize=16)
+def _shift_table(p: int) -> tuple[np.ndarray, np.ndarray]:
+    """C(i, m) for m ≤ i (0 above) and the exponents i − m (0 above) of u^i = Σ_m C(i, m)·u0^{i−m}·δ^m."""
+    i, m = np.meshgrid(np.arange(p), np.arange(p), indexing="ij")
+    binomials, exponents = np.where(m <= i, special.comb(i, m), 0.0), np.maximum(i - m, 0)
+    binomials.flags.writeable = exponents.flags.writeable = False  # shared by every caller
+    return binomials, exponents
 
 
 def _sse_polynomial(W: np.ndarray, target: np.ndarray, u0: float) -> np.ndarray:
@@ -349,9 +330,8 @@ def _sse_polynomial(W: np.ndarray, target: np.ndarray, u0: float) -> np.ndarray:
     r − Σ_{m≥1} V_m·δ^m with r the residual at u0.
     """
     p = W.shape[1]
-    i, m = np.meshgrid(np.arange(p), np.arange(p), indexing="ij")
-    shift = np.where(m <= i, special.comb(i, m) * u0 ** np.maximum(i - m, 0), 0.0)
-    Ws = W @ shift
+    binomials, exponents = _shift_table(p)
+    Ws = W @ (binomials * u0**exponents)
     r = target - Ws[:, 0]
     V = Ws[:, 1:]
     cross = V.T @ r

@@ -8,10 +8,11 @@ import sqlite3
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from functools import lru_cache
 from pathlib import Path
 from typing import IO, Any
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import Engine, Executable, create_engine, event
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
@@ -70,10 +71,18 @@ def insert_unless_exists(
     starts a transaction only at the first write: that keeps SQLite's write lock short and lets
     writers wait for it instead of failing.
     """
+    statement = _insert_unless_exists(session.get_bind().dialect.name, model, tuple(unique), returning)
+    return session.execute(statement, values).one_or_none()
+
+
+@lru_cache(maxsize=64)
+def _insert_unless_exists(
+    dialect: str, model: type[Base], unique: tuple[str, ...], returning: tuple[str, ...]
+) -> Executable:
+    """Built once a kind: every upload inserts its record and its verdict."""
     table = model.__table__
-    dialect = session.get_bind().dialect.name
-    statement = _INSERTS[dialect](table).on_conflict_do_nothing(index_elements=unique)
-    return session.execute(statement.returning(*(table.c[name] for name in returning)), values).one_or_none()
+    statement = _INSERTS[dialect](table).on_conflict_do_nothing(index_elements=list(unique))
+    return statement.returning(*(table.c[name] for name in returning))
 
 
 class WriterGate:

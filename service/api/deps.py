@@ -31,11 +31,8 @@ def get_session(request: Request) -> Iterator[Session]:
     ``yield`` before it sends the response, so a commit that fails is answered as an error, never
     as the success the endpoint had prepared. The default scope would commit after the response.
 
-    The record uploads commit their own work, in the thread that wrote it: on SQLite a write
-    holds the file's writer gate (``service.db``) until its commit, and the way from the
-    endpoint's thread through the event loop to this commit, a few milliseconds when the loop
-    is receiving other uploads' bodies, held every other writer back. Their commit here then
-    finds nothing to write.
+    The record uploads take none: they open, write and commit theirs in the thread that parses
+    and inspects them (``service.api.records``, UPLOAD_SESSIONS).
     """
     with request.app.state.sessions() as session:
         yield session

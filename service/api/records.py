@@ -40,6 +40,12 @@ SET_SIGNAL_HELP = (
     "variable for a set of one record; " + NAMING_HELP
 )
 NAME_LENGTH = 200
+# UPLOAD_SESSIONS: an upload opens its session, writes and commits in the one worker thread that
+# parsed and inspected it, rather than taking the request's (SessionDep). On SQLite a write holds
+# the file's writer gate until its commit, and a commit reached back through the event loop, a few
+# milliseconds when the loop is receiving other uploads' bodies, held every other writer back; and
+# each trip of the request's session through the thread pool (opened, closed) costs an upload
+# more than its statements.
 
 
 class InspectMode(StrEnum):
@@ -68,7 +74,6 @@ async def upload_record(
     background: BackgroundTasks,
     structure_id: IdPath,
     principal: Ingest,
-    session: SessionDep,
     settings: SettingsDep,
     inspect: Annotated[
         InspectMode,
@@ -103,11 +108,10 @@ async def upload_record(
 
     def parse_and_ingest() -> Ingested:
         upload = parse_upload(body, content_type, acquired_at, settings.max_upload_bytes, layout)
-        ingested = _ingest(
-            upload, session, principal, settings, structure_id, inspect is InspectMode.true, queue
-        )
-        session.commit()  # here, holding the writer gate no longer than the write (get_session)
-        return ingested
+        with transaction(request.app.state.sessions) as session:  # see UPLOAD_SESSIONS
+            return _ingest(
+                upload, session, principal, settings, structure_id, inspect is InspectMode.true, queue
+            )
 
     # Parsing a large body and checking it take a good part of a second: never on the event loop.
     ingested = await request.app.state.uploads.run(parse_and_ingest)
@@ -131,7 +135,6 @@ async def upload_record_set(
     response: Response,
     structure_id: IdPath,
     principal: Ingest,
-    session: SessionDep,
     settings: SettingsDep,
     acquired_at: Annotated[
         dt.datetime | None, Query(description="Acquisition time of every record (ISO 8601 with zone)")
@@ -153,9 +156,8 @@ async def upload_record_set(
 
     def parse_and_ingest() -> list[Ingested]:
         uploads = parse_upload_set(body, content_type, acquired_at, settings.max_upload_bytes, layout)
-        ingested = _ingest_set(uploads, acquired_at, session, principal, settings, structure_id)
-        session.commit()  # here, holding the writer gate no longer than the write (get_session)
-        return ingested
+        with transaction(request.app.state.sessions) as session:  # see UPLOAD_SESSIONS
+            return _ingest_set(uploads, acquired_at, session, principal, settings, structure_id)
 
     ingested = await request.app.state.uploads.run(parse_and_ingest)
     if not any(item.created for item in ingested):

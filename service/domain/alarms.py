@@ -53,11 +53,11 @@ from __future__ import annotations
 import datetime as dt
 import json
 import math
+import statistics
 from dataclasses import dataclass, field
 from functools import cache, lru_cache
 from typing import Any
 
-import numpy as np
 from sqlalchemy import Select, bindparam, delete, exists, func, insert, select, update
 from sqlalchemy.orm import Session, aliased, selectinload
 
@@ -171,23 +171,21 @@ class CusumSeries:
 
 
 # The statements run after every verdict, built once (their compiled forms are cached by
-# SQLAlchemy; building the expressions anew cost more than running them).
-RULES_OF = select(StoredRule.parameters).where(StoredRule.structure_id == bindparam("structure_id"))
-STATE_OF = select(AlarmState.state).where(AlarmState.structure_id == bindparam("structure_id"))
-NEW_STATE = insert(AlarmState)
+# SQLAlchemy; building the expressions anew cost more than running them), on the tables rather
+# than the mapped classes, which would run the session's ORM machinery for a row or two.
+RULES, STATES, ALARMS = StoredRule.__table__, AlarmState.__table__, Alarm.__table__
+RULES_OF = select(RULES.c.parameters).where(RULES.c.structure_id == bindparam("structure_id"))
+STATE_OF = select(STATES.c.state).where(STATES.c.structure_id == bindparam("structure_id"))
+NEW_STATE = insert(STATES)
 KEEP_STATE = (
-    update(AlarmState.__table__)
-    .where(AlarmState.__table__.c.structure_id == bindparam("structure"))
-    .values(state=bindparam("state"))
+    update(STATES).where(STATES.c.structure_id == bindparam("structure")).values(state=bindparam("state"))
 )
 # An unresolved alarm's newest record counted, one row per alarm (executemany).
 THROUGH = (
-    update(Alarm.__table__)
-    .where(Alarm.__table__.c.id == bindparam("alarm"))
-    .values(evaluated_through=bindparam("through"))
+    update(ALARMS).where(ALARMS.c.id == bindparam("alarm")).values(evaluated_through=bindparam("through"))
 )
-OTHER_VERDICT = select(Verdict.id).where(
-    Verdict.record_id == bindparam("record_id"), Verdict.id != bindparam("verdict_id")
+OTHER_VERDICT = select(Verdict.__table__.c.id).where(
+    Verdict.__table__.c.record_id == bindparam("record_id"), Verdict.__table__.c.id != bindparam("verdict_id")
 )
 UNRESOLVED_OF = select(Alarm).where(Alarm.structure_id == bindparam("structure_id"), UNRESOLVED)
 RESOLVED_THROUGH = (
@@ -195,7 +193,11 @@ RESOLVED_THROUGH = (
     .where(Alarm.structure_id == bindparam("structure_id"), Alarm.state == "resolved")
     .group_by(Alarm.rule_kind, Alarm.fault_mode)
 )
-LOCK = select(Structure.id).where(Structure.id == bindparam("structure_id")).with_for_update(key_share=True)
+LOCK = (
+    select(Structure.__table__.c.id)
+    .where(Structure.__table__.c.id == bindparam("structure_id"))
+    .with_for_update(key_share=True)
+)
 
 
 def rules_of(session: Session, structure_id: int) -> tuple[list[AlarmRule], bool]:
@@ -384,7 +386,7 @@ class Kept:
     def share(self) -> float:
         """The median of ``shares``: the models' error grows away from the healthy state, and a
         design for the healthy structure must not move because a fault is under way."""
-        return float(np.median(self.shares)) if self.shares else 0.0
+        return float(statistics.median(self.shares)) if self.shares else 0.0  # numpy's costs more on a list
 
     def dumps(self) -> str:
         document = vars(self) | {"tracks": {key: vars(track) for key, track in self.tracks.items()}}
@@ -615,14 +617,14 @@ def _stop_cusum(session: Session, structure: Structure, rules: list[AlarmRule], 
     rules' answer says the CUSUM does not run, and no alarm stays open on a chart that stopped.
     The note says why; should a design exist again, the charts count the records acquired later."""
     rule = next((r for r in rules if isinstance(r, CusumRule)), None)
-    if rule is None:
+    open_alarms = [key for key, t in kept.tracks.items() if key.startswith("cusum ") and t.alarm is not None]
+    if rule is None or not open_alarms:
         return
     try:
         cusum_design(rule, kept.modes, kept.share())
     except InputError as refusal:
-        for key, t in list(kept.tracks.items()):
-            if key.startswith("cusum ") and t.alarm is not None:
-                _end(session, structure, kept, key, "rule_not_running", str(refusal))
+        for key in open_alarms:
+            _end(session, structure, kept, key, "rule_not_running", str(refusal))
 
 
 def _end(session: Session, structure: Structure, kept: Kept, key: str, how: str, note: str | None) -> None:

@@ -44,26 +44,23 @@ LISTED = joinedload(StructureState.latest).load_only(
 
 
 # The statements of every upload, built once (their compiled forms are cached by SQLAlchemy;
-# building the expressions anew cost more than running them).
-OF_STRUCTURE = StructureState.structure_id == bindparam("structure")
-COUNT_RECORD = update(StructureState).where(OF_STRUCTURE).values(records=StructureState.records + 1)
+# building the expressions anew cost more than running them), on the table rather than the mapped
+# class: an ORM-enabled update runs the session's bulk-update machinery, several times a Core one.
+STATES = StructureState.__table__
+OF_STRUCTURE = STATES.c.structure_id == bindparam("structure")
+COUNT_RECORD = update(STATES).where(OF_STRUCTURE).values(records=STATES.c.records + 1)
 LOCK_STATE = (
-    select(
-        StructureState.status,
-        StructureState.since,
-        StructureState.latest_verdict_id,
-        StructureState.latest_acquired_at,
-    )
+    select(STATES.c.status, STATES.c.since, STATES.c.latest_verdict_id, STATES.c.latest_acquired_at)
     .where(OF_STRUCTURE)
     .with_for_update()
 )
 # A verdict newer than the latest, by status: its count up by one, and it the latest.
 COUNT_NEWEST = {
-    status: update(StructureState)
+    status: update(STATES)
     .where(OF_STRUCTURE)
     .values(
         {
-            status: getattr(StructureState, status) + 1,
+            status: STATES.c[status] + 1,
             "status": status,
             "since": bindparam("since"),
             "latest_verdict_id": bindparam("verdict"),

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from sqlalchemy import func, select, update
+from sqlalchemy import bindparam, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, defer
 
@@ -300,22 +300,27 @@ def activate_model(session: Session, principal: Principal, structure_id: int, mo
     return version
 
 
+# The active versions of one kind, by name, without their documents (parsed_model reads one only
+# when it has not parsed it before). Built once: every inspection looks its models up.
+ACTIVE_OF_KIND = (
+    select(ModelVersion)
+    .where(
+        ModelVersion.structure_id == bindparam("structure_id"),
+        ModelVersion.kind == bindparam("kind"),
+        ModelVersion.active.is_(True),
+    )
+    .order_by(ModelVersion.name)
+    .options(defer(ModelVersion.document))
+)
+
+
 def active_fault_modes(
     session: Session, structure: Structure
 ) -> list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX]]:
     """The active fault-mode versions of a structure, by name, with their parsed models (vector ones,
     for records of several channels, included)."""
-    query = (
-        select(ModelVersion)
-        .where(
-            ModelVersion.structure_id == structure.id,
-            ModelVersion.kind == "fault_mode",
-            ModelVersion.active.is_(True),
-        )
-        .order_by(ModelVersion.name)
-        .options(defer(ModelVersion.document))
-    )
-    return [(version, parsed_model(version)) for version in session.scalars(query)]
+    versions = session.scalars(ACTIVE_OF_KIND, {"structure_id": structure.id, "kind": "fault_mode"})
+    return [(version, parsed_model(version)) for version in versions]
 
 
 def active_baseline(
@@ -325,12 +330,7 @@ def active_baseline(
     records alone: a pooled baseline, or a plain one with the reference of its healthy free-run
     error (:func:`train_baseline`; its ``statistics["novelty"]`` says why one has none). Without
     fault modes it is what inspects the structure's records; with them it takes no part."""
-    query = select(ModelVersion).where(
-        ModelVersion.structure_id == structure.id,
-        ModelVersion.kind == "baseline",
-        ModelVersion.active.is_(True),
-    )
-    version = session.scalar(query.options(defer(ModelVersion.document)))
+    version = session.scalars(ACTIVE_OF_KIND, {"structure_id": structure.id, "kind": "baseline"}).first()
     if version is None:
         return None
     pooled = version.training.get("variables") is not None
