@@ -70,12 +70,16 @@ from models.checking import (
     MIN_BLOCK,
     SETTLED_EVALUATIONS,
     CheckSplit,
+    Gain,
     Segments,
     Structure,
+    block_squares,
     by_output_error,
     check_noise,
     checked_whole,
+    free_run_rms,
     grown_by_zeros,
+    paired_gain,
 )
 from models.coverage import Coverage, coverage
 from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
@@ -118,6 +122,13 @@ INPUT_SHARE = 0.1
 JUDGED_AT_ONCE = 2
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
+# The share of each estimation record, at its end, that no choice of the loop sees: the refined
+# model and the start are fitted without it and compared on it (:func:`refine`). Held out only
+# where each record's tail is a block or more (records of 5·MIN_BLOCK samples), so that the
+# comparison has the blocks it needs and what is left keeps its check split.
+HELD_OUT_SHARE = 0.2
+# The level of that comparison, one-sided: a single comparison, made once, after the choices.
+HELD_OUT_ALPHA = 0.05
 
 Criterion = Literal["one-step", "simulation", "simulation across folds"]
 
@@ -144,6 +155,44 @@ class Round:
     # Significant effects passed over, best first, because adding them did not lower the model's
     # free run over the check blocks by more than its standard error (or made it diverge).
     rejected: tuple[str, ...] = ()
+    # The paired comparison on the check blocks (models.checking.paired_gain) of the candidate
+    # ``best`` names (the effect added, or else the best judged) with the model before: its gain
+    # and the threshold for the round's candidates, both as shares of the mean square before.
+    best: str | None = None
+    gain: float = np.nan
+    threshold: float = np.nan
+    tried: int = 0  # the structures the threshold accounts for
+    # The terms taken out after the addition: the model simulates the check blocks as well
+    # without them (:func:`_pruned`).
+    pruned: tuple[str, ...] = ()
+
+    def judged(self, name: str, gain: Gain) -> Round:
+        """This round with ``name``'s comparison: the effect added, or while none is, the one of
+        the largest gain judged."""
+        if self.added is None and self.best is not None and not gain.gain > self.gain:
+            return self
+        return replace(self, best=name, gain=gain.gain, threshold=gain.threshold, tried=gain.tried)
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """The refined model and the start compared on the held-out tails of the estimation records,
+    which no choice of the loop saw: both free-run RMS figures (the refined one infinite where it
+    diverged), the paired comparison over blocks (:func:`models.checking.paired_gain`, one
+    comparison), and whether the refined model was returned (``kept``); ``best_tried`` names
+    the effect that gained most on the check blocks, when the start was returned instead."""
+
+    samples: int
+    start_rms: float
+    refined_rms: float
+    gain: Gain
+    kept: bool
+    best_tried: str | None = None
+
+
+# An effect a round adds: its score, what decided it, the structure with it, the check blocks'
+# free-run RMS of that structure's least-squares fit and its paired gain there.
+Decision = tuple[EffectScore, Criterion, Structure, float, Gain]
 
 
 @dataclass(frozen=True)
@@ -159,7 +208,9 @@ class Refinement:
     rounds after them were decided across folds. ``check_rms`` is the refined structure's
     free-run RMS over the check blocks, its parameters by ``estimator`` fitted on the fit blocks;
     ``noise_floor`` the noise between the checked records' periods when they repeat their
-    excitation (None otherwise): the least any model's free run over them can leave.
+    excitation (None otherwise): the least any model's free run over them can leave. ``held_out``
+    is the comparison with the start on the records' held-out tails (None where the records were
+    too short to hold them out); where the start was returned, every round counts as withdrawn.
     """
 
     declared: NARX
@@ -171,6 +222,7 @@ class Refinement:
     withdrawn: int = 0
     check_rms: float = np.inf
     noise_floor: PeriodNoise | None = None
+    held_out: HeldOut | None = None
 
     @property
     def kept(self) -> tuple[Round, ...]:
@@ -219,8 +271,10 @@ class RefinementReport:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible: effects added in order with their evidence and the criterion that
-        decided each, errors before and after on every test record, and both models' terms and
-        parameters. Non-finite numbers (a diverged free run) become None."""
+        decided each, every round's selection (candidates, threshold, gain, terms pruned), the
+        comparison with the start on the held-out tails, errors before and after on every test
+        record, and both models' terms and parameters. Non-finite numbers (a diverged free run)
+        become None."""
         result = self.refinement
         return {
             "declared": _model_dict(result.declared),
@@ -240,12 +294,17 @@ class RefinementReport:
                         "level": step.level,
                         "candidate_terms": step.candidates,
                         "check_free_run_rms": [_finite(value) for value in step.check_rms],
+                        "gain": _finite(step.gain),
+                        "threshold": _finite(step.threshold),
                     },
+                    "pruned": list(step.pruned),
                 }
                 for step in result.kept
                 if (score := step.added) is not None
             ],
             "effects_withdrawn": list(result.effects_withdrawn),
+            "rounds": [_round_dict(step) for step in result.rounds],
+            "held_out": None if result.held_out is None else _held_out_dict(result.held_out),
             "check_free_run_rms": _finite(result.check_rms),
             "noise_floor": None
             if (floor := result.noise_floor) is None
@@ -263,8 +322,59 @@ class RefinementReport:
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
-            "notes": list(self.notes) + _skipped_notes(self.tests),
+            "notes": list(self.notes) + _held_out_notes(result) + _skipped_notes(self.tests),
         }
+
+
+def _round_dict(step: Round) -> dict[str, Any]:
+    """A round's selection: what was on offer, the best judged against the threshold its number
+    of comparisons sets, and what was added and pruned."""
+    return {
+        "decided_by": step.criterion,
+        "candidate_terms": step.candidates,
+        "structures_judged": step.tried,
+        "best": step.best,
+        "gain": _finite(step.gain),
+        "threshold": _finite(step.threshold),
+        "added": None if step.added is None else step.added.name,
+        "pruned": list(step.pruned),
+        "rejected": list(step.rejected),
+    }
+
+
+def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
+    return {
+        "samples": held_out.samples,
+        "start_free_run_rms": _finite(held_out.start_rms),
+        "refined_free_run_rms": _finite(held_out.refined_rms),
+        "gain": _finite(held_out.gain.gain),
+        "threshold": _finite(held_out.gain.threshold),
+        "diverged": held_out.gain.diverged,
+        "refined_returned": held_out.kept,
+        "best_tried": held_out.best_tried,
+    }
+
+
+def _held_out_notes(result: Refinement) -> list[str]:
+    """What the report says when the effects added were not compared with the start on data no
+    choice saw, or were and lost."""
+    held_out = result.held_out
+    if held_out is None:
+        if not result.effects_added:
+            return []
+        return [
+            "the estimation records are too short to hold a tail out: the effects added were not "
+            "compared with the start on data no choice of the loop saw"
+        ]
+    if held_out.kept:
+        return []
+    refined = "diverged" if held_out.gain.diverged else f"{held_out.refined_rms:.4g}"
+    return [
+        f"the data could not support the effects: over the held-out tails ({held_out.samples} samples "
+        f"no choice saw) the refined model ran free at {refined} against the start's "
+        f"{held_out.start_rms:.4g}, not better beyond its uncertainty; the start is returned "
+        f"(the best effect tried: {held_out.best_tried})"
+    ]
 
 
 def _skipped_notes(tests: Sequence[Comparison]) -> list[str]:
@@ -525,13 +635,104 @@ def refine(
     the check parts, the output-error searches not needed one after the other; ``threads``, a map
     over threads of this process, test each round's families (:func:`score_effects`). The
     refinement is the same whichever.
+
+    Where the records are long enough, the last ``HELD_OUT_SHARE`` of each is held out from every
+    choice: the loop runs on the rest, and the model it refines is returned only when its free
+    run over those tails is better than the start's beyond its uncertainty (one paired comparison
+    over blocks, :func:`models.checking.paired_gain`); otherwise the start is returned, its effects
+    counted as withdrawn, and ``held_out`` names the best effect tried. The check blocks chose the
+    effects among many candidates, and a gain chosen as the best of many is biased upward: only data
+    no choice saw tell whether it carries over.
     """
     tell = _told(progress)
     if not 0 < alpha < 1:
         raise InputError(f"alpha must lie in (0, 1), got {alpha}")
     records = [(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)) for x, y in records]
+    grow = partial(
+        _grown,
+        declared=declared,
+        effects=effects,
+        alpha=alpha,
+        max_rounds=max_rounds,
+        output_error=output_error,
+        tell=tell,
+        workers=workers,
+        threads=threads,
+    )
+    if min(len(y) for _, y in records) * HELD_OUT_SHARE < MIN_BLOCK:
+        return grow(records)[0]
+    cuts = [len(y) - int(len(y) * HELD_OUT_SHARE) for _, y in records]
+    heads = [(x[:cut], y[:cut]) for (x, y), cut in zip(records, cuts, strict=True)]
+    try:
+        result, start = grow(heads)
+    except InputError:
+        # Too few equations for the candidates once the tails are held out: refined on all of it,
+        # with nothing to compare on (the report says so).
+        return grow(records)[0]
+    tails: Segments = [(x[cut:], y[cut:], cut) for (x, y), cut in zip(records, cuts, strict=True)]
+    tell("the refined model and the start on the held-out tails")
+    return _judged_on(tails, result, start)
+
+
+# The model the loop starts from, fitted as the refined model is when nothing is added: the model,
+# its estimator, and its free-run RMS over the check blocks.
+Start = tuple[NARX, Literal["least squares", "output error"], float]
+
+
+def _judged_on(tails: Segments, result: Refinement, start: Start) -> Refinement:
+    """``result`` with the comparison of its refined model and the ``start`` on the held-out
+    ``tails``; the start instead, its effects withdrawn, when the refined model is not better
+    there beyond the uncertainty of the comparison."""
+    model, estimator, check = start
+    gain = paired_gain(block_squares(model, tails), block_squares(result.refined, tails), 1, HELD_OUT_ALPHA)
+    held_out = HeldOut(
+        sum(len(y) for _, y, _ in tails),
+        free_run_rms(model, tails),
+        free_run_rms(result.refined, tails),
+        gain,
+        kept=True,
+    )
+    refined = result.refined
+    # Moving-average noise alone, there to unbias the parameters, leaves the process structure
+    # as it was: it need only not make the free run worse.
+    noise_only = refined.terms == model.terms and refined.output_limits == model.output_limits
+    if not result.effects_added or gain.passed or (noise_only and gain.gain >= -gain.threshold):
+        return replace(result, held_out=held_out)
+    return replace(
+        result,
+        refined=model,
+        noise=np.empty(0),
+        estimator=estimator,
+        withdrawn=len(result.rounds),
+        check_rms=check,
+        held_out=replace(held_out, kept=False, best_tried=_best_tried(result.rounds)),
+    )
+
+
+def _best_tried(rounds: Sequence[Round]) -> str | None:
+    """The effect that gained most on the check blocks in any round."""
+    judged = [step for step in rounds if step.best is not None]
+    return max(judged, key=lambda step: step.gain).best if judged else None
+
+
+def _grown(
+    records: Records,
+    declared: Sequence[str | Term] | None,
+    effects: Sequence[Effect] | None,
+    alpha: float,
+    max_rounds: int,
+    output_error: bool,
+    tell: Stage,
+    workers: Workers,
+    threads: Workers,
+) -> tuple[Refinement, Start]:
+    """The loop of :func:`refine` on all of ``records``, and the model it starts from."""
     orders = None
     checks = CheckSplit.of(records)
+    # The three rotations of the check split, each part of the estimation data checked once: an
+    # effect's gain is judged on all of them (:func:`_gain`); from three records on, they are the
+    # folds the structure is grown across.
+    rotations = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)]
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
     else:
@@ -564,7 +765,7 @@ def refine(
         )
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
-        decided: tuple[EffectScore, Criterion, Structure, float] | None = None
+        decided: Decision | None = None
         significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
         for score, error, structure in _judged_in_turn(
             significant,
@@ -576,23 +777,43 @@ def refine(
             tell,
             f"round {number}",
         ):
-            if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-                decided = (score, "one-step", structure, error)
+            gain = _gain(rotations, current, structure, len(significant), alpha)
+            if structure.noise_lags > current.noise_lags:
+                # Moving-average noise is there to unbias the parameters: it need only not make
+                # the free run worse.
+                if error <= check:
+                    decided = (score, "one-step", structure, error, replace(gain, threshold=0.0))
+                    break
+            elif error <= (1 - margin) * check and gain.passed:
+                decided = (score, "one-step", structure, error, gain)
                 break
+            else:
+                step = step.judged(score.name, gain)
             rejected.append(score.name)
         if decided is None and output_error:
             tell(f"round {number}: the families on the simulation error")
             ranked = _ranked(records, current, offered, alpha, workers, threads)
-            decided = _by_simulation(offered, ranked.scores, current, checks, workers)
+            decided = _by_simulation(offered, ranked.scores, current, rotations, workers, alpha)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
-        score, criterion, current, error = decided
-        step = replace(step, added=score, criterion=criterion, check_rms=(check, error))
+        score, criterion, structure, error, gain = decided
+        pruned: tuple[str, ...] = ()
+        if structure.terms != current.terms:
+            tell(f"round {number}: pruning")
+            structure, pruned = _pruned(terms, current, structure, checks, criterion == "simulation", workers)
+            error = checks.error(structure) if pruned else error
+        step = replace(
+            step,
+            added=score,
+            criterion=criterion,
+            check_rms=(check, error),
+            pruned=pruned,
+        ).judged(score.name, gain)
         rounds.append(replace(step, rejected=tuple(rejected)))
-        check = error
+        current, check = structure, error
     declared_structure = Structure(terms)
-    folds = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)] if len(records) >= 3 else []
+    folds = rotations if len(records) >= 3 else []
     # The least-squares fit on all the records of the structure the rounds grew, made by a thread
     # while the workers check that structure by output error below, where this process would
     # wait (a third of a second on Silverbox's NARMAX): unless those checks change the structure,
@@ -626,12 +847,12 @@ def refine(
                 None,
                 "simulation across folds",
             )
-            found = _across_folds(offered, scores.scores, current, folds, tell, workers)
+            found = _across_folds(offered, scores.scores, current, folds, tell, workers, alpha)
             if found is None:
                 break
-            score, current, errors = found
+            score, current, errors, gain = found
             grown_across_folds.append(current)
-            rounds.append(replace(step, added=score, check_rms=errors))
+            rounds.append(replace(step, added=score, check_rms=errors).judged(score.name, gain))
             check = checks.error(current)
     # Least squares is consistent when the noise enters the equation (a force on the structure)
     # and gives the best one-step predictor; output error when the noise is on the measured
@@ -639,9 +860,9 @@ def refine(
     by_simulation = output_error and checks.error(current, tuned=True) < check
     ((refined, noise),) = fitted_ahead if current == by_the_rounds else [_fitted_on_all(records, current)]
     estimator: Literal["least squares", "output error"] = "least squares"
+    (declared_tuned,) = declared_search if output_error else [declared_model]
     if by_simulation:
         tell("output-error fit on all the records")
-        (declared_tuned,) = declared_search
         if current == declared_structure:
             # Nothing was added: the declared structure's output-error fit, not a second search
             # from other starts, which ends at another optimum of the same structure, better or
@@ -669,7 +890,7 @@ def refine(
             tuned = None if found is start else found
         if tuned is not None and comes_to_rest(tuned, records):
             refined, estimator = tuned, "output error"
-    return Refinement(
+    refinement = Refinement(
         declared_model,
         refined,
         noise,
@@ -680,6 +901,16 @@ def refine(
         checks.error(current, tuned=estimator == "output error"),
         pooled_period_noise(checked_whole(records)),
     )
+    # The start fitted as the refined model is when nothing is added (above).
+    start: Start = (declared_model, "least squares", checks.error(declared_structure))
+    if (
+        output_error
+        and declared_tuned is not declared_model
+        and checks.error(declared_structure, tuned=True) < checks.error(declared_structure)
+        and comes_to_rest(declared_tuned, records)
+    ):
+        start = (declared_tuned, "output error", checks.error(declared_structure, tuned=True))
+    return refinement, start
 
 
 def _ranked(
@@ -862,13 +1093,17 @@ def _by_simulation(
     offered: Sequence[Effect],
     scores: Sequence[EffectScore],
     current: Structure,
-    checks: CheckSplit,
+    rotations: Sequence[CheckSplit],
     workers: Workers,
-) -> tuple[EffectScore, Criterion, Structure, float] | None:
+    alpha: float,
+) -> Decision | None:
     """The family added on the simulation error alone, if one lowers the check blocks' free
-    run enough (module docstring, step 4): its score with the terms that won, the structure, and
-    the check blocks' free-run RMS with it (least squares, as the other rounds report it). The
-    structures are judged by ``workers``."""
+    run enough (module docstring, step 4) and beyond the threshold for the structures judged
+    (:func:`models.checking.paired_gain` at ``alpha``, every prefix of every family): its score
+    with the terms that won, the structure, the check blocks' free-run RMS with it (least squares,
+    as the other rounds report it) and its paired gain over the check split's ``rotations``. The
+    structures are judged by ``workers``, on the first rotation."""
+    checks = rotations[0]
     families = [
         (
             score,
@@ -895,15 +1130,79 @@ def _by_simulation(
     # The current structure's best simulation, whichever its parameters: its output-error fit can
     # fail to come to rest where its least-squares fit does (on unrelated white x and y the 2-DOF
     # structure's did), and against an infinite baseline any family would pass.
-    baseline = min(checks.error(current, tuned=True), checks.error(current))
+    by_tuned = checks.error(current, tuned=True) < checks.error(current)
+    baseline = checks.error(current, tuned=by_tuned)
     # Output error for the two best only: each costs a search, and a family whose least-squares
     # model is far behind does not overtake by its parameters alone.
     best = sorted(trials, key=lambda trial: trial[0])[:2]
     tuned = checks.judge([structure for *_, structure in best], workers, tuned=True)
     for (error, score, structure), tuned_error in zip(best, tuned, strict=True):
         if tuned_error <= (1 - SIMULATION_GAIN) * baseline:
-            return score, "simulation", structure, error
+            gain = _gain(rotations, current, structure, len(grown), alpha, (by_tuned, True))
+            if gain.passed:
+                return score, "simulation", structure, error, gain
     return None
+
+
+def _gain(
+    rotations: Sequence[CheckSplit],
+    current: Structure,
+    structure: Structure,
+    tried: int,
+    alpha: float,
+    tuned: tuple[bool, bool] = (False, False),
+) -> Gain:
+    """The paired gain of ``structure`` over ``current`` (:func:`models.checking.paired_gain`,
+    the best of ``tried``) on the blocks of every one of the check split's ``rotations``: three
+    times the blocks of one, so that the spread of the gain across blocks is estimated on all the
+    estimation data (SEMP judges on repeated splits alike). ``tuned`` says whether each model's
+    parameters are by output error (as settled or searched before, where they were)."""
+    before, after = (
+        np.concatenate([rotation.block_squares(model, is_tuned) for rotation in rotations])
+        for model, is_tuned in zip((current, structure), tuned, strict=True)
+    )
+    return paired_gain(before, after, tried, alpha)
+
+
+def _pruned(
+    start: Sequence[Term],
+    before: Structure,
+    grown: Structure,
+    checks: CheckSplit,
+    tuned: bool,
+    workers: Workers,
+) -> tuple[Structure, tuple[str, ...]]:
+    """``grown`` (``before`` with a family added) with every term taken out whose removal does not
+    worsen the check blocks' free run beyond its noise, and the names of those taken out.
+
+    SEMP's pruning (Piroddi & Spinelli 2003, :mod:`models.semp`): while some term m, neither the
+    start's nor the last of the family just added, leaves a model whose check figure J(M − m) is
+    within ``check_noise`` (relative) of J right after the addition, the one of least J(M − m) is
+    removed. Terms that entered with a family only because its terms are tried together (a cubic
+    of several lags, the monomials spanning a combination) and terms an earlier family added that
+    the new one makes redundant go; what pays stays. Judged as the addition was (by output error
+    when ``tuned``), the structures of a pass side by side by ``workers``.
+    """
+    limit = (1 + check_noise(checks.check)) * checks.error(grown, tuned)
+    added = [term for term in grown.terms if term not in before.terms]
+    current, pruned = grown, []
+    while True:
+        family_left = [term for term in added if term in current.terms]
+        removable = [
+            term
+            for term in current.terms
+            if term not in start and (term not in family_left or len(family_left) > 1)
+        ]
+        if not removable:
+            break
+        trials = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in removable]
+        errors = list(checks.judge(trials, workers, tuned))
+        least = int(np.argmin(errors))
+        if not errors[least] <= limit:
+            break
+        current = trials[least]
+        pruned.append(removable[least].name)
+    return current, tuple(pruned)
 
 
 def _repairs_only_bias(
@@ -937,10 +1236,13 @@ def _across_folds(
     folds: Sequence[CheckSplit],
     tell: Stage,
     workers: Workers,
-) -> tuple[EffectScore, Structure, tuple[float, float]] | None:
+    alpha: float,
+) -> tuple[EffectScore, Structure, tuple[float, float], Gain] | None:
     """The family added on the simulation error across folds (module docstring), if one
-    lowers every fold's free run by ``FOLD_GAIN``: its score with all its terms, the structure,
-    and the first fold's free-run RMS before and after, both settled.
+    lowers every fold's free run by ``FOLD_GAIN`` and the first fold's beyond the threshold for
+    the families searched (:func:`models.checking.paired_gain` at ``alpha``): its score with all its
+    terms, the structure, the first fold's free-run RMS before and after, both settled, and the
+    paired gain there.
 
     Each family's terms are all grown at zero from ``current``'s settled output-error fit, which
     simulates as that model does, so that a search cannot end worse than it, and none is asked to
@@ -969,18 +1271,20 @@ def _across_folds(
         error = next(searched)
         if error <= (1 - FOLD_GAIN) * base:
             trials.append((error, replace(score, terms=names), structure))
-    passed: list[tuple[float, EffectScore, Structure, tuple[float, float]]] = []
+    passed: list[tuple[float, EffectScore, Structure, tuple[float, float], Gain]] = []
     for _, score, structure in sorted(trials, key=lambda trial: trial[0])[:FOLD_TRIALS]:
         tell(f"across folds: {score.name} on every fold")
         errors = _on_every_fold(current, structure, folds, primary.tuned(structure), FOLD_GAIN)
-        if errors is not None:
-            passed.append(
-                (float(np.mean([after / before for before, after in errors])), score, structure, errors[0])
-            )
+        if errors is None:
+            continue
+        gain = _gain(folds, current, structure, len(structures), alpha, (True, True))
+        if gain.passed:
+            ratio = float(np.mean([after / before for before, after in errors]))
+            passed.append((ratio, score, structure, errors[0], gain))
     if not passed:
         return None
-    _, score, structure, first_fold = min(passed, key=lambda trial: trial[0])
-    return score, structure, first_fold
+    _, score, structure, first_fold, gain = min(passed, key=lambda trial: trial[0])
+    return score, structure, first_fold, gain
 
 
 def _as_the_folds_judged(
