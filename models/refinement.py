@@ -642,7 +642,8 @@ def refine(
     over blocks, :func:`models.checking.paired_gain`); otherwise the start is returned, its effects
     counted as withdrawn, and ``held_out`` names the best effect tried. The check blocks chose the
     effects among many candidates, and a gain chosen as the best of many is biased upward: only data
-    no choice saw tell whether it carries over.
+    no choice saw tell whether it carries over. The structure so judged has its parameters
+    estimated again on all the records (:func:`_on_all`).
     """
     tell = _told(progress)
     if not 0 < alpha < 1:
@@ -671,7 +672,32 @@ def refine(
         return grow(records)[0]
     tails: Segments = [(x[cut:], y[cut:], cut) for (x, y), cut in zip(records, cuts, strict=True)]
     tell("the refined model and the start on the held-out tails")
-    return _judged_on(tails, result, start)
+    return _on_all(_judged_on(tails, result, start), records, tell, threads)
+
+
+def _on_all(result: Refinement, records: Records, tell: Stage, threads: Workers) -> Refinement:
+    """``result`` with its models' parameters estimated again on all the ``records``, held-out
+    tails too: the tails judged the structure and its estimator, and the parameters gain from every
+    sample. The declared model by least squares; the refined one by its estimator, its output-error
+    search started as the loop starts it (from least squares where the structure is the declared
+    one; otherwise from the better simulating of that and the parameters the loop found), and kept
+    where it comes to rest (else the loop's own)."""
+    model = result.refined
+    limits = model.output_limits
+    saturating = None if limits is None else (limits, model.saturation)
+    declared, _ = _fitted_on_all(records, Structure(result.declared.terms))
+    refined, noise = _fitted_on_all(records, Structure(model.terms, result.noise.size, saturating))
+    if result.estimator == "output error":
+        tell("output-error fit on all the records")
+        start = refined
+        if model.terms != declared.terms:
+            starts = [refined, replace(refined, theta=model.theta)]
+            start = min(starts, key=lambda each: _restless_then_rms(free_run_at_rest(each, records)))
+        everything: Segments = [(x, y, 0) for x, y in records]
+        refined = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
+        if not comes_to_rest(refined, records):
+            refined, noise = model, result.noise
+    return replace(result, declared=declared, refined=refined, noise=noise)
 
 
 # The model the loop starts from, fitted as the refined model is when nothing is added: the model,
@@ -780,8 +806,8 @@ def _grown(
             gain = _gain(rotations, current, structure, len(significant), alpha)
             if structure.noise_lags > current.noise_lags:
                 # Moving-average noise is there to unbias the parameters: it need only not make
-                # the free run worse.
-                if error <= check:
+                # the free run worse beyond its noise.
+                if error <= (1 + margin) * check:
                     decided = (score, "one-step", structure, error, replace(gain, threshold=0.0))
                     break
             elif error <= (1 - margin) * check and gain.passed:
