@@ -35,6 +35,23 @@ the rounds above add nothing that lasts: least squares ranks the families there,
 cubic-stiffness model it fits diverges; grown from the settled linear model, cubic stiffness
 gains 8–29 % on every fold.)
 
+**Selection that survives many comparisons.** A round compares many structures on the same check
+blocks, and the best of many gains by chance: every family is added only when its gain also
+passes a paired comparison over the blocks of all three rotations of the check split (each part
+of the estimation data checked once) whose threshold grows with the number of structures
+compared — Student's t at the Bonferroni level α/m on the blocks' log ratios of free-run mean
+square (:func:`models.checking.paired_gain`). After each addition every term, of that family or
+an earlier one but not the start's, whose removal leaves the check blocks' free run within its
+noise is pruned (:func:`_pruned`, Piroddi & Spinelli's pruning). Each round reports the candidate
+terms on offer, the structures compared, the best one's gain, the threshold and what was pruned.
+
+**Never worse.** The last ``HELD_OUT_SHARE`` of each estimation record is held out from every
+choice (orders, effects, estimator): the loop runs on the rest, and the refined model is returned
+only when its free run over those tails is better than the start's beyond its uncertainty;
+otherwise the start is returned, every round counts as withdrawn, and the report names the best
+effect tried (:func:`refine`). Records too short to hold a tail out are refined whole, and the
+report says the effects were not compared on data no choice saw.
+
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
 noise on the measured output gives least squares, when on the check blocks the output-error fit
@@ -143,6 +160,9 @@ class Round:
     "simulation across folds" (its settled output-error model lowered the free run over the
     checked records of each of three folds by at least ``FOLD_GAIN``); ``check_rms`` is the check
     blocks' free-run RMS before and after the round (by output error, settled, across folds).
+    Whatever the criterion, an effect other than moving-average noise is added only when its
+    ``gain`` over the check split's rotations exceeds the ``threshold`` for the ``tried``
+    structures compared (:func:`models.checking.paired_gain`).
     """
 
     residual_rms: float
@@ -665,39 +685,61 @@ def refine(
     cuts = [len(y) - int(len(y) * HELD_OUT_SHARE) for _, y in records]
     heads = [(x[:cut], y[:cut]) for (x, y), cut in zip(records, cuts, strict=True)]
     try:
-        result, start = grow(heads)
+        result, start, folded = grow(heads)
     except InputError:
         # Too few equations for the candidates once the tails are held out: refined on all of it,
         # with nothing to compare on (the report says so).
         return grow(records)[0]
     tails: Segments = [(x[cut:], y[cut:], cut) for (x, y), cut in zip(records, cuts, strict=True)]
     tell("the refined model and the start on the held-out tails")
-    return _on_all(_judged_on(tails, result, start), records, tell, threads)
+    return _on_all(_judged_on(tails, result, start), folded, records, tell, threads)
 
 
-def _on_all(result: Refinement, records: Records, tell: Stage, threads: Workers) -> Refinement:
+def _on_all(
+    result: Refinement, folded: Folded | None, records: Records, tell: Stage, threads: Workers
+) -> Refinement:
     """``result`` with its models' parameters estimated again on all the ``records``, held-out
-    tails too: the tails judged the structure and its estimator, and the parameters gain from every
-    sample. The declared model by least squares; the refined one by its estimator, its output-error
-    search started as the loop starts it (from least squares where the structure is the declared
-    one; otherwise from the better simulating of that and the parameters the loop found), and kept
-    where it comes to rest (else the loop's own)."""
+    tails too, as the loop estimated them on the rest: the tails judged the structure and its
+    estimator, and the parameters gain from every sample (where the start was returned, its
+    structure is the declared one and ``folded`` goes unused). The declared model by least squares;
+    the refined one by its estimator: by output error from least squares where the structure is
+    the declared one; as the folds judged it where families were grown across folds (``folded``:
+    the structure before them and each grown, :func:`_as_the_folds_judged`); otherwise from the
+    best simulating of its least-squares fit, the parameters the loop found and the declared
+    output-error fit grown by zeros. Kept where it comes to rest, else the loop's own. The noise
+    floor is read on the whole records too."""
     model = result.refined
     limits = model.output_limits
     saturating = None if limits is None else (limits, model.saturation)
-    declared, _ = _fitted_on_all(records, Structure(result.declared.terms))
-    refined, noise = _fitted_on_all(records, Structure(model.terms, result.noise.size, saturating))
+    structure = Structure(model.terms, result.noise.size, saturating)
+    declared_structure = Structure(result.declared.terms)
+    declared, _ = _fitted_on_all(records, declared_structure)
+    refined, noise = _fitted_on_all(records, structure)
     if result.estimator == "output error":
         tell("output-error fit on all the records")
-        start = refined
-        if model.terms != declared.terms:
-            starts = [refined, replace(refined, theta=model.theta)]
-            start = min(starts, key=lambda each: _restless_then_rms(free_run_at_rest(each, records)))
         everything: Segments = [(x, y, 0) for x, y in records]
-        refined = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
+        declared_tuned = by_output_error(declared, everything, SETTLED_EVALUATIONS, threads)
+        if structure == declared_structure:
+            refined = declared_tuned
+        elif folded is not None:
+            before, grown = folded
+            refined = _as_the_folds_judged(
+                records, before, grown, declared_structure, declared_tuned, threads
+            )
+        else:
+            starts = [refined, replace(refined, theta=model.theta), grown_by_zeros(declared_tuned, refined)]
+            first = min(starts, key=lambda each: _restless_then_rms(free_run_at_rest(each, records)))
+            refined = by_output_error(first, everything, SETTLED_EVALUATIONS, threads)
         if not comes_to_rest(refined, records):
             refined, noise = model, result.noise
-    return replace(result, declared=declared, refined=refined, noise=noise)
+    # The noise between periods is the data's, not a choice: read on the whole of the checked
+    # records, whose periods a tail cut off would leave incomplete.
+    floor = pooled_period_noise(checked_whole(records))
+    return replace(result, declared=declared, refined=refined, noise=noise, noise_floor=floor)
+
+
+# The structure the loop grew across folds from, and each it grew (:func:`_as_the_folds_judged`).
+Folded = tuple[Structure, tuple[Structure, ...]]
 
 
 # The model the loop starts from, fitted as the refined model is when nothing is added: the model,
@@ -751,8 +793,9 @@ def _grown(
     tell: Stage,
     workers: Workers,
     threads: Workers,
-) -> tuple[Refinement, Start]:
-    """The loop of :func:`refine` on all of ``records``, and the model it starts from."""
+) -> tuple[Refinement, Start, Folded | None]:
+    """The loop of :func:`refine` on all of ``records``, the model it starts from, and the
+    structures grown across folds (None where none was)."""
     orders = None
     checks = CheckSplit.of(records)
     # The three rotations of the check split, each part of the estimation data checked once: an
@@ -936,7 +979,7 @@ def _grown(
         and comes_to_rest(declared_tuned, records)
     ):
         start = (declared_tuned, "output error", checks.error(declared_structure, tuned=True))
-    return refinement, start
+    return refinement, start, (before_folds, tuple(grown_across_folds)) if grown_across_folds else None
 
 
 def _ranked(

@@ -21,7 +21,15 @@ from models.effects import candidate_effects, linear_terms, offset_direction, of
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
-from models.refinement import _is_start, _pruned, choose_linear, refine, refine_record, refine_records
+from models.refinement import (
+    HELD_OUT_SHARE,
+    _is_start,
+    _pruned,
+    choose_linear,
+    refine,
+    refine_record,
+    refine_records,
+)
 from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
@@ -176,8 +184,10 @@ def test_score_and_f_statistic_agree_with_an_svd_refit():
     is not used: its pseudo-inverse leaves relative errors ~5e-8 in these sums of squares, which
     the F statistic's difference of two of them magnifies ~100×.)"""
     x, y = paper_record(["quadratic_stiffness2=3e5"], seed=2)
-    x, y = x[:ESTIMATION], y[:ESTIMATION]
-    first = refine([(x, y)], EXACT_TERMS, max_rounds=1).rounds[0]
+    first = refine([(x[:ESTIMATION], y[:ESTIMATION])], EXACT_TERMS, max_rounds=1).rounds[0]
+    # The loop scores on what it does not hold out.
+    seen = ESTIMATION - int(ESTIMATION * HELD_OUT_SHARE)
+    x, y = x[:seen], y[:seen]
     assert first.added is not None and first.added.name == "quadratic_stiffness"
     declared = parse_terms(EXACT_TERMS)
     lag = max(max_lag(e.terms) for e in candidate_effects(declared) if e.terms)
@@ -427,15 +437,17 @@ def test_the_refined_model_simulates_the_estimation_data_no_worse_than_the_decla
     model's output-error fit grown by the added terms at zero, so it cannot end worse than the
     latter (on the F-16 sweeps the search from least squares did: 0.184 against 0.156 m/s² on level
     2 for acceleration 1, bench/measured.py). (Seed 11 ended on least squares once the simulation
-    criterion stopped passing families against an infinite figure: 13 ends on output error.)"""
+    criterion stopped passing families against an infinite figure: 13 ends on output error. With
+    half the cube, 0.05·clean³, the model fitted without the held-out tails ends on least squares,
+    and no output-error search is made.)"""
     rng = np.random.default_rng(13)
     n = 6000
     x = rng.standard_normal(n)
     clean = signal.lfilter([0.0, 0.4, 0.2], [1.0, -1.5, 0.7], x)
-    y = clean + 0.05 * clean**3 + 0.5 * np.std(clean) * rng.standard_normal(n)
+    y = clean + 0.1 * clean**3 + 0.5 * np.std(clean) * rng.standard_normal(n)
     declared = linear_terms(2, 2)
     result = refine([(x, y)], declared)
-    assert result.estimator == "output error"
+    assert result.estimator == "output error" and result.effects_added
     least_squares_fit = fit_narx([(x, y)], declared)
     declared_tuned = fit_output_error(least_squares_fit, [(x, y)], SETTLED_EVALUATIONS).model
 
