@@ -770,7 +770,8 @@ def _judged_on(tails: Segments, result: Refinement, start: Start) -> Refinement:
     # Moving-average noise alone, there to unbias the parameters, leaves the process structure
     # as it was: it need only not make the free run worse.
     noise_only = refined.terms == model.terms and refined.output_limits == model.output_limits
-    if not result.effects_added or gain.passed or (noise_only and gain.gain >= -gain.threshold):
+    not_worse = noise_only and not gain.diverged and gain.gain >= -gain.threshold
+    if not result.effects_added or gain.passed or not_worse:
         return replace(result, held_out=held_out)
     return replace(
         result,

@@ -14,6 +14,7 @@ from models.checking import (
     CheckSplit,
     Structure,
     check_noise,
+    free_run_rms,
     paired_gain,
     split_for_checking,
 )
@@ -23,14 +24,18 @@ from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
 from models.refinement import (
     HELD_OUT_SHARE,
+    Refinement,
+    Round,
+    _held_out_notes,
     _is_start,
+    _judged_on,
     _pruned,
     choose_linear,
     refine,
     refine_record,
     refine_records,
 )
-from models.scoring import score_effects
+from models.scoring import EffectScore, score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
@@ -748,3 +753,29 @@ def test_terms_whose_removal_does_not_worsen_the_check_free_run_are_pruned():
     assert {term.name for term in idle} <= set(names), names
     assert set(pruned.terms) >= set(start) and len(set(pruned.terms) & set(cubes)) >= 2, pruned.terms
     assert checks.error(pruned) <= (1 + check_noise(checks.check)) * checks.error(grown)
+
+
+def test_a_refined_model_that_diverges_on_the_held_out_tails_is_reported_so_and_the_start_returned():
+    """Whether the model holds an effect's terms or only its moving-average noise (its process
+    part the start's terms, judged only not to be worse: a diverging run is)."""
+    record = simulate(Scenario(disturbance_std=200.0), 2400, seed=3)
+    head = [(record.x[:2000], record.y[:2000])]
+    start = fit_narx(head, EXACT_TERMS)
+    tails = [(record.x[2000:], record.y[2000:], 2000)]
+    grown = fit_narx(head, parse_terms(EXACT_TERMS) + parse_terms(["y[t-1]^3"]))
+    for diverging in (replace(grown, theta=grown.theta * 1.5), replace(start, theta=start.theta * 1.5)):
+        assert not np.isfinite(free_run_rms(diverging, tails)) and np.isfinite(free_run_rms(start, tails))
+        _held_out_diverged(start, diverging, tails)
+
+
+def _held_out_diverged(start: NARX, diverging: NARX, tails) -> None:
+    spring = EffectScore("cubic_stiffness", "a hardening spring", 0.5, -10.0, ("y[t-1]^3",), (30.0,), (1e-8,))
+    step = Round(1e-3, 1e-4, 40, (spring,), spring, "one-step", best="cubic_stiffness", gain=0.5)
+    result = Refinement(start, diverging, rounds=(step,), estimator="output error")
+    judged = _judged_on(tails, result, (start, "least squares", 0.01))
+    held_out = judged.held_out
+    assert held_out is not None and held_out.gain.diverged and not held_out.kept
+    assert judged.refined is start and judged.estimator == "least squares" and not judged.effects_added
+    assert judged.effects_withdrawn == ("cubic_stiffness",) and held_out.best_tried == "cubic_stiffness"
+    (note,) = _held_out_notes(judged)
+    assert "could not support" in note and "ran free at diverged" in note and "cubic_stiffness" in note, note
