@@ -11,9 +11,10 @@ loop chooses), each round
 3. checks the significant effects, best first, on the **simulation error**: the model with the
    effect is fitted on part of the estimation data and run free over the rest (the check
    blocks, each free run started from its first measured outputs). The first effect that lowers
-   that free run by more than its standard error (:func:`models.checking.check_noise`; moving-average noise,
-   which is there to unbias the parameters, need only not make it worse) is added — decided by
-   the one-step criterion;
+   that free run by more than its standard error (:func:`models.checking.check_noise`) and by more
+   than the round's threshold (below) is added — decided by the one-step criterion;
+   moving-average noise, which is there to unbias the parameters, need only not make it worse
+   beyond that standard error;
 4. if no effect is significant on e (on slow, finely sampled data the one-step residual carries
    little of the simulation error), or every significant one made the free run worse, each
    family's regressors are tried in the order of their error reduction, and the family whose
