@@ -12,7 +12,6 @@ hand-built regressor matrix, and column-scaled least squares via ``numpy.linalg.
 from __future__ import annotations
 
 import ipaddress
-import os
 import socket
 import sys
 from dataclasses import dataclass
@@ -20,18 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.prerequisites import SILVERBOX_SHA256, benchmark_data
 
 from models.fnarx import FNARX, fit_fnarx
 from simulator.physics import PhysicalParameters
 from simulator.simulate import Scenario, SimulatedRecord, simulate
 from simulator.theory import EXACT_TERMS
-
-# The shared measured data sets (../shared/data next to the project, see its README); never copied here.
-DATA_DIR = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
-SILVERBOX_SHA256 = {
-    "SNLS80mV.csv": "ae62d5a91230c10f76e6dd02c8a4fac3c9d4d8a95fbf50e87cb0c4885003e0f1",
-    "Schroeder80mV.csv": "b22cbcba9c59d9b4b1b379967b669dc32959e515b24784da3254505f8563e36c",
-}
 
 P = np.polynomial.polynomial  # ascending coefficients: c[0] + c[1]·q + c[2]·q² + …
 
@@ -218,12 +211,8 @@ def make_experiments(mode: str, magnitudes: np.ndarray, disturbance_std: float, 
 
 @pytest.fixture(scope="session")
 def silverbox_dir() -> Path:
-    """The Silverbox files; their absence is a failure, never a skip: the measured-data checks need them."""
-    folder = DATA_DIR / "silverbox"
-    missing = [name for name in SILVERBOX_SHA256 if not (folder / name).is_file()]
-    if missing:
-        pytest.fail(f"Silverbox data missing in {folder}: {', '.join(missing)} (set NARXWATCH_DATA_DIR)")
-    return folder
+    """The Silverbox files (skipped without them, failed with CI=true: ``benchmark_data``)."""
+    return benchmark_data("silverbox", *SILVERBOX_SHA256)
 
 
 @pytest.fixture(scope="session")

@@ -42,6 +42,7 @@ from dashboard_helpers import (
     monitored_structure,
 )
 from live import LiveServer
+from support.prerequisites import unavailable
 
 from service.config import Settings
 from simulator.simulate import Effects, Scenario, simulate
@@ -52,17 +53,10 @@ ARTIFACTS = Path(
 TIMEOUT_MS = 30_000
 
 
-def _in_ci() -> bool:
-    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
-
-
 @pytest.fixture(scope="module")
 def browser() -> Iterator[object]:
     if not CHROMIUM.exists():
-        message = f"{CHROMIUM} is not installed: run 'sudo bash scripts/ensure-chromium.sh'"
-        if _in_ci():
-            pytest.fail(message)
-        pytest.skip(message)
+        unavailable(f"{CHROMIUM} is not installed: run 'sudo bash scripts/ensure-chromium.sh'")
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:
