@@ -14,13 +14,14 @@ from __future__ import annotations
 import ipaddress
 import socket
 import sys
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
-from support.prerequisites import SILVERBOX_SHA256, benchmark_data
 
+from harness.prerequisites import SILVERBOX_SHA256, benchmark_data
 from models.fnarx import FNARX, fit_fnarx
 from simulator.physics import PhysicalParameters
 from simulator.simulate import Scenario, SimulatedRecord, simulate
@@ -255,7 +256,7 @@ def k1_model() -> FNARX:
     return fit_fnarx(experiments.runs, EXACT_TERMS, name="k1")
 
 
-# --- PostgreSQL for the API tests (tests/postgres.py) -------------------------------------------
+# --- PostgreSQL for the API tests (harness/postgres.py) -------------------------------------------
 # One throwaway server per test session. Outside CI a machine without PostgreSQL skips the tests
 # that use it, saying how to install it; with CI=true that is an error instead.
 
@@ -263,7 +264,7 @@ def k1_model() -> FNARX:
 @pytest.fixture(scope="session")
 def postgres_url():  # yields str
     """``postgresql+psycopg://narxwatch@127.0.0.1:PORT/narxwatch_test`` on a throwaway server."""
-    import postgres  # tests/postgres.py; imported here so the science tests never load it
+    from harness import postgres
 
     with postgres.postgres_server() as url:
         if url is None:
@@ -277,8 +278,7 @@ def postgres_url():  # yields str
 @pytest.fixture(scope="session")
 def sqlite_api_server(tmp_path_factory):
     """The real app on SQLite, served on loopback; the embedded job backend runs jobs on its thread."""
-    from live import LiveServer
-
+    from harness.live import LiveServer
     from service.config import Settings
 
     url = f"sqlite:///{tmp_path_factory.mktemp('api') / 'narxwatch.db'}"
@@ -290,10 +290,9 @@ def sqlite_api_server(tmp_path_factory):
 def postgresql_api_server(postgres_url, tmp_path_factory):
     """The real app on PostgreSQL, served on loopback; the distributed job backend runs queued jobs
     on two `narxwatch worker` processes."""
-    import postgres
-    from live import LiveServer
-    from workers import workers
-
+    from harness import postgres
+    from harness.live import LiveServer
+    from harness.workers import workers
     from service.config import Settings
 
     url = postgres.create_database(postgres_url, "narxwatch_api")
@@ -319,9 +318,32 @@ def api_server(request):
 @pytest.fixture
 def tenant(api_server):
     """A fresh organisation with an admin, an ingest and a viewer client."""
-    from live import Tenant
+    from harness.live import Tenant
 
     tenant = Tenant.create(api_server)
     yield tenant
     for client in (tenant.admin, tenant.ingest, tenant.viewer):
         client.close()
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def fleet_server(request, tmp_path_factory):  # yields harness.fleet.Fleet
+    """A server of its own on each database (the embedded job backend on PostgreSQL too), so that
+    nothing else writes while a test holds the state rows against the tables."""
+    from harness.fleet import Fleet
+    from harness.live import LiveServer
+    from service.config import Settings
+    from service.db import make_engine
+
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path_factory.mktemp('fleet') / 'narxwatch.db'}"
+    else:
+        from harness import postgres
+
+        url = postgres.create_database(
+            request.getfixturevalue("postgres_url"), f"fleet_{uuid.uuid4().hex[:12]}"
+        )
+    with LiveServer(Settings(database_url=url, job_backend="embedded")) as server:
+        engine = make_engine(url)
+        yield Fleet(server, engine)
+        engine.dispose()

@@ -16,7 +16,9 @@ from dataclasses import dataclass
 
 import httpx
 import pytest
-from api_helpers import (
+from sqlalchemy import select
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -31,9 +33,7 @@ from api_helpers import (
     upload_simulated,
     wait_for,
 )
-from live import LiveServer
-from sqlalchemy import select
-
+from harness.live import LiveServer
 from service.db import transaction
 from service.tables import EmailSubscription, Organisation
 

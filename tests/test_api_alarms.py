@@ -15,7 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from api_helpers import (
+from sqlalchemy import event, text
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from harness.api_helpers import (
     API,
     CUSUM_TRAINING_K,
     TRAINING_K,
@@ -30,11 +34,7 @@ from api_helpers import (
     train_fault_mode,
     wait_for,
 )
-from live import LiveServer
-from sqlalchemy import event, text
-from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
-
+from harness.live import LiveServer
 from models.alarms import DESIGN_SHIFT, design_cusum, in_control_arl
 from service.db import make_engine
 from service.domain import alarms
@@ -408,7 +408,7 @@ def test_an_organisation_s_alarms_are_listed_without_reading_another_s(postgres_
     another organisation's, and growing with them. The page is read from the organisation's own
     index: the listing's plan returns a page and one from the alarms table, however many alarms
     the other organisation has (20 000 here, newer than all of this one's)."""
-    import postgres
+    from harness import postgres
 
     url = postgres.create_database(postgres_url, f"alarms_{uuid.uuid4().hex}")
     upgrade_database(url)

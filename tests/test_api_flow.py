@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from live import LiveServer, Tenant
 
+from harness.live import LiveServer, Tenant
 from recordfiles.writer import dump_csv
 from simulator.simulate import simulate
 from simulator.study import StudySettings

@@ -7,7 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from api_helpers import (
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -18,9 +19,8 @@ from api_helpers import (
     simulated,
     train_fault_mode,
 )
-from job_helpers import LONG_LAG_TERMS, TOO_SHORT, database_url
-from live import LiveServer
-
+from harness.job_helpers import LONG_LAG_TERMS, TOO_SHORT, database_url
+from harness.live import LiveServer
 from service.config import Settings
 from service.db import make_engine, session_factory
 from service.jobs.backends import job_backend

@@ -9,11 +9,11 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 
-from api_helpers import API, Org, clients
-from dashboard_helpers import DASHBOARD, logged_in
-from live import LiveServer
 from sqlalchemy import func, select, update
 
+from harness.api_helpers import API, Org, clients
+from harness.dashboard_helpers import DASHBOARD, logged_in
+from harness.live import LiveServer
 from service.tables import ApiKey, DashboardSession
 
 FIELDS = {"id", "prefix", "role", "created_at", "expires_at", "last_used_at", "revoked_at"}

@@ -15,7 +15,8 @@ import httpx
 import numpy as np
 import pytest
 import scipy.io
-from api_helpers import (
+
+from harness.api_helpers import (
     API,
     FS,
     Org,
@@ -28,10 +29,9 @@ from api_helpers import (
     post_record,
     raw_json,
 )
-from live import LiveServer
-from mat_bombs import mat_file, matrix, v73_file, zeros_bomb
-from support.prerequisites import benchmark_file
-
+from harness.live import LiveServer
+from harness.mat_bombs import mat_file, matrix, v73_file, zeros_bomb
+from harness.prerequisites import benchmark_file
 from service.schemas import MAX_REFINEMENT_RECORDS
 
 MAT = "application/x-matlab-data"

@@ -8,7 +8,9 @@ from dataclasses import asdict, dataclass, replace
 import httpx
 import numpy as np
 import pytest
-from api_helpers import (
+from sqlalchemy import select
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -19,10 +21,8 @@ from api_helpers import (
     post_record,
     train_fault_mode,
 )
-from dashboard_helpers import logged_in
-from live import LiveServer
-from sqlalchemy import select
-
+from harness.dashboard_helpers import logged_in
+from harness.live import LiveServer
 from models.coverage import coverage
 from models.effects import candidate_effects, linear_terms
 from models.narx import fit_narx

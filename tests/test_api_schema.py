@@ -19,13 +19,13 @@ from dataclasses import dataclass
 
 import pytest
 import schemathesis
-from api_helpers import API, Org, clients, create_structure, json_body, post_record, train_fault_mode
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from live import LiveServer
 from schemathesis import GenerationMode
 from schemathesis.checks import not_a_server_error
 
+from harness.api_helpers import API, Org, clients, create_structure, json_body, post_record, train_fault_mode
+from harness.live import LiveServer
 from service.api.app import create_app
 from service.config import Settings
 

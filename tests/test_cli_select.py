@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cli import invoke, run
+
+from harness.cli import invoke, run
 
 LINEAR = ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]", "x[t-4]"]
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from support.prerequisites import benchmark_file
 
+from harness.prerequisites import benchmark_file
 from models.coverage import EXTRAPOLATING, WELCH_SAMPLES, Coverage, coverage
 from models.errors import InputError
 from recordfiles.reader import Layout, read_record

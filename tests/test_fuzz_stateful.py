@@ -48,7 +48,19 @@ import httpx
 import numpy as np
 import pytest
 import schemathesis
-from api_helpers import (
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import (
+    RuleBasedStateMachine,
+    initialize,
+    invariant,
+    rule,
+    run_state_machine_as_test,
+)
+from schemathesis import GenerationMode
+from sqlalchemy import text
+
+from harness.api_helpers import (
     API,
     FS,
     create_structure,
@@ -60,19 +72,7 @@ from api_helpers import (
     post_record,
     raw_json,
 )
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from hypothesis.stateful import (
-    RuleBasedStateMachine,
-    initialize,
-    invariant,
-    rule,
-    run_state_machine_as_test,
-)
-from live import LiveServer, http_client
-from schemathesis import GenerationMode
-from sqlalchemy import text
-
+from harness.live import LiveServer, http_client
 from service.security import Role
 
 # Runs of the state machine on each backend. The runs are the same on both (derandomised); what

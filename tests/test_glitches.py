@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.io
-from support.prerequisites import benchmark_file
 
+from harness.prerequisites import benchmark_file
 from models.refinement import refine_records
 from models.signals import GLITCH_FACTOR, glitches
 from recordfiles.reader import parse_silverbox

@@ -25,7 +25,7 @@ from service.tables import utcnow
 def fresh_url(request, tmp_path):
     if request.param == "sqlite":
         return f"sqlite:///{tmp_path / 'm.db'}"
-    import postgres
+    from harness import postgres
 
     return postgres.create_database(request.getfixturevalue("postgres_url"), f"migrations_{uuid.uuid4().hex}")
 

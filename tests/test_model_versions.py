@@ -14,8 +14,9 @@ from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
-from api_helpers import API, Org, clients, create_structure, experiments, simulated, upload_simulated
-from live import LiveServer
+
+from harness.api_helpers import API, Org, clients, create_structure, experiments, simulated, upload_simulated
+from harness.live import LiveServer
 
 ACTIVATORS = 8
 # Without the structure's row lock, PostgreSQL failed this test within 4 rounds in each of 9 runs

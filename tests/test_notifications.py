@@ -28,7 +28,12 @@ from pathlib import Path
 import psycopg
 import pytest
 import trustme
-from api_helpers import (
+from cryptography.fernet import Fernet
+from pydantic import SecretStr, ValidationError
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -40,14 +45,9 @@ from api_helpers import (
     train_fault_mode,
     wait_for,
 )
-from cryptography.fernet import Fernet
-from live import LiveServer, free_port
-from pydantic import SecretStr, ValidationError
-from receivers import HANG, Mailbox, Receiver, verify
-from sqlalchemy import func, select
-from sqlalchemy.orm import Session, sessionmaker
-from workers import Worker, workers
-
+from harness.live import LiveServer, free_port
+from harness.receivers import HANG, Mailbox, Receiver, verify
+from harness.workers import Worker, workers
 from service import senders
 from service.config import DEFAULT_DATABASE, Settings
 from service.db import make_engine, session_factory, transaction
@@ -474,7 +474,7 @@ def notifying(request, tmp_path_factory, mailbox: Mailbox) -> Iterator[LiveServe
         with LiveServer(settings) as server:
             yield server
         return
-    import postgres
+    from harness import postgres
 
     url = postgres.create_database(request.getfixturevalue("postgres_url"), f"notify_{uuid.uuid4().hex[:12]}")
     with LiveServer(fast_settings(url, **smtp)) as server, workers(url, 1, folder, **FAST, **smtp):
@@ -607,7 +607,7 @@ def test_a_worker_killed_during_a_delivery_does_not_lose_it(postgres_url: str, t
     """The receiver has acted on the event but not yet answered when the worker dies: the job
     runs again on another worker, the delivery is made again with the same key, and the
     receiver's application, which keeps the keys it has seen, acts once."""
-    import postgres
+    from harness import postgres
 
     url = postgres.create_database(postgres_url, f"notify_kill_{uuid.uuid4().hex[:12]}")
     with LiveServer(fast_settings(url)) as server, Receiver(SECRET, answers=[HANG]) as receiver:

@@ -13,8 +13,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 from scipy import optimize
-from support.prerequisites import benchmark_file
 
+from harness.prerequisites import benchmark_file
 from models.checking import CHECK_EVALUATIONS, CheckSplit, Structure
 from models.effects import linear_terms
 from models.errors import InputError

@@ -8,8 +8,8 @@ import itertools
 import numpy as np
 import pytest
 from scipy import signal
-from support.prerequisites import benchmark_file
 
+from harness.prerequisites import benchmark_file
 from models.effects import candidate_effects, linear_terms, periodic_terms
 from models.errors import InputError
 from models.narx import fit_narx

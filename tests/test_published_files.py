@@ -21,7 +21,8 @@ import pytest
 import scipy.io
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from mat_bombs import (
+
+from harness.mat_bombs import (
     compressed,
     huge_cell,
     mat_file,
@@ -31,8 +32,7 @@ from mat_bombs import (
     v73_file,
     zeros_bomb,
 )
-from support.prerequisites import benchmark_data
-
+from harness.prerequisites import benchmark_data
 from models.errors import InputError
 from recordfiles.reader import (
     SILVERBOX,

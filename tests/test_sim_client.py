@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from live import LiveServer, Tenant, free_port
 
+from harness.live import LiveServer, Tenant, free_port
 from recordfiles.reader import read_record
 from service.cli.modelfiles import read_manifest
 from service.security import Role

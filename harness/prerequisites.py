@@ -14,9 +14,10 @@ from pathlib import Path
 from typing import NoReturn
 
 import pytest
-from postgres import in_ci
 
-DATA_DIR = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[3] / "shared" / "data"))
+from harness.postgres import in_ci
+
+DATA_DIR = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
 SILVERBOX_SHA256 = {
     "SNLS80mV.csv": "ae62d5a91230c10f76e6dd02c8a4fac3c9d4d8a95fbf50e87cb0c4885003e0f1",
     "Schroeder80mV.csv": "b22cbcba9c59d9b4b1b379967b669dc32959e515b24784da3254505f8563e36c",
