@@ -289,16 +289,6 @@ def test_a_refused_record_set_stores_none_of_its_records(
         assert post_set(ingest, site.rig, PAIRS, "text/csv", **names).status_code == 201  # the file, mended
 
 
-def test_record_sets_are_uploaded_by_ingest_keys_of_the_structures_organisation(site: Site, api_server):
-    with nothing_written(site.org, site.rig), clients(site.org) as (_, _, viewer):
-        response = post_set(viewer, site.rig, PAIRS, "text/csv", x="F", y="A")
-        assert response.status_code == 403, response.text
-    stranger = Org.create(api_server)
-    with nothing_written(site.org, site.rig), clients(stranger) as (_, ingest, _):
-        response = post_set(ingest, site.rig, PAIRS, "text/csv", x="F", y="A")
-        assert response.status_code == 404 and "structure" in detail(response), response.text
-
-
 def test_a_record_set_is_bounded_as_each_of_its_records_is(site: Site, ingest):
     """Short numbers in a set: "0,0,0,0" rows hold two records of limit/16 + 1 samples each
     within half the body limit; every record of a set holds at most limit/16 samples."""
