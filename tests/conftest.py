@@ -72,7 +72,6 @@ LONGEST_FILES = (
     "test_cli_refine.py",
     "test_refinement.py",
     "test_fuzz_stateful.py",
-    "test_api_schema.py",
     "test_api_refinements.py",
     "test_notifications.py",
     "test_faults.py",
