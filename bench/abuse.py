@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/abuse.py [--quick] [--database sqlite|postgresql|both] [--seconds S]
 
-For each database (SQLite, then a throwaway PostgreSQL server from tests/postgres.py):
+For each database (SQLite, then a throwaway PostgreSQL server from harness/postgres.py):
 
 1. In a fresh temporary folder, ``narxwatch demo-seed`` (the victim: organisation ``demo`` with its
    trained structure) and keys: the victim's ingest and viewer keys, the attacker's ingest and
@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+sys.path.insert(0, str(ROOT))  # this checkout's bench and harness, run as a script
 
 from models.blas import one_blas_thread
 
@@ -596,7 +596,7 @@ def main(argv: list[str] | None = None) -> int:
             if name == "sqlite":
                 url = f"sqlite:///{folder / 'narxwatch.db'}"
             else:
-                import postgres
+                from harness import postgres
 
                 url = stack.enter_context(postgres.postgres_server("abuse"))
                 if url is None:

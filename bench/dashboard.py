@@ -4,10 +4,10 @@
 
 What it does, in order:
 
-1. Serves the real app (``tests/live.py``: uvicorn on a free loopback port, in a thread of this
+1. Serves the real app (``harness/live.py``: uvicorn on a free loopback port, in a thread of this
    process) on a fresh SQLite file in a temporary folder, or on ``--database-url`` (an existing
    database, e.g. ``postgresql+psycopg://…``; a new organisation is created in it).
-2. Over HTTP, as ``tests/dashboard_helpers.monitored_structure`` does: an organisation with a key
+2. Over HTTP, as ``harness/dashboard_helpers.monitored_structure`` does: an organisation with a key
    of each role, a structure, and a k2 fault-mode model trained from three simulated experiments.
 3. Seeds the history. ``--distinct`` (200) records are simulated along a degradation ramp (k2
    magnitude rising from 0 to 30 % over time, 300–600 samples each, above the inspection's
@@ -65,20 +65,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+sys.path.insert(0, str(ROOT))  # this checkout's bench and harness, run as a script
 
 from models.blas import one_blas_thread
 
 one_blas_thread()  # before numpy is imported: one BLAS thread, as in narxwatch's processes
 import httpx
 import numpy as np
-from api_helpers import Org, create_structure, simulated, train_fault_mode
-from dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, DASHBOARD, charts, logged_in
-from live import LiveServer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from harness.api_helpers import Org, create_structure, simulated, train_fault_mode
+from harness.dashboard_helpers import CHROMIUM, CHROMIUM_ARGS, DASHBOARD, charts, logged_in
+from harness.live import LiveServer
 from service.config import Settings
 from service.domain import inspections, records
 from service.tables import Structure

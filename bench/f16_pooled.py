@@ -16,7 +16,6 @@ and a plot (the benchmark's authors ask for frequency and damping against level)
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from models.blas import one_blas_thread
@@ -28,10 +27,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from harness.prerequisites import DATA_DIR
 from models.vector import fit_vector_fnarx, modal_parameters, simulate_vector
 from recordfiles.reader import Layout, read_record
 
-DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
 ESTIMATION, TEST = (3, 5, 7), (2, 4, 6)
 MAX_DAMPING = 0.2  # poles more damped than this are not reported as modes
 BAND = (1.0, 100.0)  # Hz
@@ -40,7 +39,7 @@ BAND = (1.0, 100.0)  # Hz
 def level(number: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Force [N], the three accelerations [m/s²] as (N, 3), and the rate [Hz] of a level's sweep."""
     suffix = "_Validation" if number in TEST else ""
-    path = DATA / "f16-gvt" / f"F16Data_SineSw_Level{number}{suffix}.mat"
+    path = DATA_DIR / "f16-gvt" / f"F16Data_SineSw_Level{number}{suffix}.mat"
     channels = [read_record(path, Layout("Force", f"Acceleration{o}")) for o in (1, 2, 3)]
     return channels[0].x, np.column_stack([c.y for c in channels]), float(channels[0].fs)
 

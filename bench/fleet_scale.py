@@ -6,7 +6,7 @@
 For each size N:M (structures : verdicts), in order:
 
 1. Two fresh databases: SQLite files in a temporary folder, or two on a throwaway PostgreSQL server
-   (``tests/postgres.py``: durability off, 32 MB of shared buffers; its binaries come from
+   (``harness/postgres.py``: durability off, 32 MB of shared buffers; its binaries come from
    ``bash scripts/ensure-postgres.sh``). Each is migrated and given the demo (``service.demo``: a
    structure with a baseline, k2 and k1 models and a week of inspected records) and an ingest key
    of its organisation. One stays so: the empty database.
@@ -514,7 +514,7 @@ def databases(backend: str, folder: Path) -> Iterator[tuple[str, str]]:
     if backend == "sqlite":
         yield f"sqlite:///{folder / 'fleet.db'}", f"sqlite:///{folder / 'empty.db'}"
         return
-    from tests.postgres import create_database, missing_reason, postgres_server
+    from harness.postgres import create_database, missing_reason, postgres_server
 
     with postgres_server("fleet") as url:
         if url is None:

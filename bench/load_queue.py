@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/load_queue.py [--records 2000] [--clients 4] [--workers 2] [--database-url URL]
 
-1. A throwaway PostgreSQL server (tests/postgres.py; its binaries come from Debian's postgresql
+1. A throwaway PostgreSQL server (harness/postgres.py; its binaries come from Debian's postgresql
    package, ``bash scripts/ensure-postgres.sh``) unless ``--database-url`` names one.
 2. ``narxwatch demo-seed`` (the trained demo structure) and an ingest key.
 3. ``narxwatch serve --workers 2`` (it only defers jobs) and ``--workers`` ``narxwatch worker``
@@ -32,7 +32,7 @@ from contextlib import ExitStack, suppress
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+sys.path.insert(0, str(ROOT))  # this checkout's bench and harness, run as a script
 
 # isort: split
 import httpx
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     with ExitStack() as stack:
         url = args.database_url
         if url is None:
-            import postgres
+            from harness import postgres
 
             url = stack.enter_context(postgres.postgres_server("load"))
             if url is None:

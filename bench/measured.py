@@ -30,19 +30,18 @@ was not developed on them; they are not part of the default run.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from functools import partial
-from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 from rich.progress import track
 from rich.table import Table
 
+from harness.prerequisites import DATA_DIR
 from models.assessment import assess
 from models.checking import SETTLED_EVALUATIONS
 from models.effects import linear_terms
@@ -53,7 +52,6 @@ from models.scoring import fit_model
 from models.terms import Term, max_lag
 from recordfiles.reader import SILVERBOX, Layout, read_record, read_record_set
 
-DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
 Records = list[tuple[np.ndarray, np.ndarray]]
 F16_PERIOD = 8192  # samples of one period of F-16's multisines; the first holds the transient
 
@@ -70,7 +68,7 @@ class Benchmark:
 
 
 def silverbox(declared: tuple[Term, ...] | None, label: str) -> Benchmark:
-    record = read_record(DATA / "silverbox" / "SNLS80mV.csv", SILVERBOX)
+    record = read_record(DATA_DIR / "silverbox" / "SNLS80mV.csv", SILVERBOX)
     x, y = record.x, record.y
     return Benchmark(
         f"Silverbox, {label}",
@@ -84,7 +82,7 @@ def silverbox(declared: tuple[Term, ...] | None, label: str) -> Benchmark:
 
 def wiener_hammerstein() -> Benchmark:
     # The files hold their realisations side by side: u and y name groups, one record a pair.
-    folder = DATA / "wiener-hammerstein"
+    folder = DATA_DIR / "wiener-hammerstein"
     estimation = read_record_set(folder / "WH_EstimationExample.csv", Layout("u", "y"))
     (_, multisine), (_, swept) = read_record_set(folder / "WH_TestDataset.csv", Layout("u", "y"))
     return Benchmark(
@@ -100,7 +98,7 @@ def wiener_hammerstein() -> Benchmark:
 def f16(output: int, multisine: bool = False) -> Benchmark:
     """F-16's benchmark by its split, on the sine sweeps or on the full-grid multisines (their
     first period holds the transient: the tests are scored after it)."""
-    folder = DATA / "f16-gvt"
+    folder = DATA_DIR / "f16-gvt"
     layout = Layout("Force", f"Acceleration{output}")
 
     def level(number: int, suffix: str = "") -> tuple[np.ndarray, np.ndarray]:

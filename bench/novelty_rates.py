@@ -1,6 +1,6 @@
 """False-alarm rate and power of baseline-only monitoring (models/novelty.py) over record lengths
 and excitation levels unlike the training records', on the noisy 3-DOF accelerometer of
-tests/test_novelty.py.
+harness/accelerometer.py.
 
     PYTHONPATH=. python bench/novelty_rates.py [records per cell]
 """
@@ -11,27 +11,15 @@ import sys
 
 import numpy as np
 
+from harness.accelerometer import record, scenario
 from models.narx import fit_narx
 from models.novelty import judge_record, novelty_reference
 from models.output_error import fit_output_error
 from models.refinement import choose_linear
-from simulator.chain import ChainScenario, simulate_chain
-from tests.test_novelty import CHAIN, FORCE, NOISE
 
 
 def main(count: int) -> None:
-    clean = ChainScenario(CHAIN, excitation_std=FORCE, outputs=(1,), response="acceleration")
-    y_rms = float(np.std(simulate_chain(clean, 20_000, 1).responses["y1"]))
-
-    def record(level: float, n: int, seed: int, fault: str = "none", k: float = 0.0) -> tuple:
-        scenario = ChainScenario(
-            CHAIN, fault, k, excitation_std=level * FORCE, outputs=(1,), response="acceleration",
-            y_noise_std=NOISE * y_rms, x_noise_std=NOISE * FORCE,
-        )  # fmt: skip
-        simulated = simulate_chain(scenario, n, seed)
-        return simulated.x, simulated.responses["y1"]
-
-    training = [record(1.0, 8000, 100 + i) for i in range(10)]
+    training = [record(scenario(), 8000, 100 + i) for i in range(10)]
     _, terms = choose_linear(training, max_order=8)
     model = fit_output_error(fit_narx(training, terms), training, start_from="estimated").model
     reference = novelty_reference(model, training)
@@ -41,16 +29,16 @@ def main(count: int) -> None:
     )
     print("level  length  flagged  rate   mean severity")
     for level in (0.5, 1.0, 2.0):
+        healthy = scenario(level=level)
         for n in (1000, 2000, 4000, 8000, 16000):
-            verdicts = [judge_record(model, reference, *record(level, n, 50_000 + i)) for i in range(count)]
+            verdicts = [judge_record(model, reference, *record(healthy, n, 50_000 + i)) for i in range(count)]
             flagged = sum(v.status == "anomaly" for v in verdicts)
             severity = np.mean([v.severity for v in verdicts])
             print(f"{level:5.1f}  {n:6d}  {flagged:7d}  {flagged / count:.3f}  {severity:.4f}")
     # k3 barely reaches mass 1's acceleration: not expected
     for spring, loss in (("k1", 8.0), ("k2", 8.0), ("k3", 8.0), ("k1", 2.0), ("k1", 4.0)):
-        verdicts = [
-            judge_record(model, reference, *record(1.0, 4000, 60_000 + i, spring, loss)) for i in range(count)
-        ]
+        faulty = scenario(spring, loss)
+        verdicts = [judge_record(model, reference, *record(faulty, 4000, 60_000 + i)) for i in range(count)]
         flagged = sum(v.status == "anomaly" for v in verdicts)
         print(f"{loss:.0f} % loss of {spring}, 4000 samples: {flagged}/{count} flagged")
 

@@ -1,6 +1,6 @@
 """One webhook delivery over HTTPS, as a job worker makes it (``service.senders.post_webhook``).
 
-The receiver is the tests' (``tests/receivers.py``): a real HTTPS server on loopback that checks
+The receiver is the tests' (``harness/receivers.py``): a real HTTPS server on loopback that checks
 every signature, its certificate signed by a private certificate authority the settings name
 (``NARXWATCH_NOTIFICATION_CA_FILE``). Each round is a whole attempt: the target's checks, a TLS
 handshake on a new connection, the signed POST and the answer. The receiver runs in this
@@ -11,15 +11,12 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import sys
 from pathlib import Path
 
 import pytest
 import trustme
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from receivers import Receiver
-
+from harness.receivers import Receiver
 from service.config import Settings
 from service.senders import Message, post_webhook
 

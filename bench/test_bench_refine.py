@@ -9,7 +9,6 @@ report). The in-process figures split it: the loop alone, and the loop with its 
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from harness.prerequisites import benchmark_file
 from models.effects import linear_terms
 from models.refinement import refine, refine_record
 from models.validation import validate
@@ -24,17 +24,13 @@ from recordfiles.reader import parse_silverbox
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
 
-DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
-SNLS80MV = DATA / "silverbox" / "SNLS80mV.csv"
 NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
 ESTIMATION, ARROW, INITIAL = (40650, 105712), (100, 40575), 50
 
 
 @pytest.fixture(scope="module")
 def silverbox():
-    if not SNLS80MV.is_file():
-        pytest.fail(f"Silverbox data missing: {SNLS80MV} (set NARXWATCH_DATA_DIR)")
-    return parse_silverbox(SNLS80MV.read_bytes())
+    return parse_silverbox(benchmark_file("silverbox", "SNLS80mV.csv").read_bytes())
 
 
 @pytest.mark.benchmark(group="refine: Silverbox, linear ARX(4,4) (target <= 15 s end to end)")
@@ -43,7 +39,7 @@ def test_narxwatch_refine_end_to_end(benchmark, tmp_path) -> None:
     command = [
         NARXWATCH,
         "refine",
-        str(SNLS80MV),
+        str(benchmark_file("silverbox", "SNLS80mV.csv")),
         "--format",
         "silverbox",
         "--declared",

@@ -13,7 +13,6 @@ arrow as the held-out record.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.prerequisites import benchmark_file
 from models.candidates import candidate_terms
 from models.narx import NARX
 from models.output_error import fit_output_error
@@ -29,8 +29,6 @@ from models.selection import select_narx
 from models.semp import select_by_simulation
 from recordfiles.reader import parse_silverbox
 
-DATA = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
-SNLS80MV = DATA / "silverbox" / "SNLS80mV.csv"
 NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
 ESTIMATION, ARROW, INITIAL = (40650, 105712), (100, 40575), 50
 GROUP = "select: Silverbox estimation part, 165 candidates (information)"
@@ -38,9 +36,7 @@ GROUP = "select: Silverbox estimation part, 165 candidates (information)"
 
 @pytest.fixture(scope="module")
 def silverbox():
-    if not SNLS80MV.is_file():
-        pytest.fail(f"Silverbox data missing: {SNLS80MV} (set NARXWATCH_DATA_DIR)")
-    return parse_silverbox(SNLS80MV.read_bytes())
+    return parse_silverbox(benchmark_file("silverbox", "SNLS80mV.csv").read_bytes())
 
 
 def arrow_rms(model: NARX, record) -> float:

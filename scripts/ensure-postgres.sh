@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Make sure PostgreSQL server binaries (initdb, pg_ctl) are installed, for the API tests that
-# start a throwaway server (tests/postgres.py). Quick and silent when they already are.
+# start a throwaway server (harness/postgres.py). Quick and silent when they already are.
 set -euo pipefail
 source "$(dirname "$0")/lib/ensure.sh"
 

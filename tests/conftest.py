@@ -12,26 +12,20 @@ hand-built regressor matrix, and column-scaled least squares via ``numpy.linalg.
 from __future__ import annotations
 
 import ipaddress
-import os
 import socket
 import sys
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from harness.prerequisites import SILVERBOX_SHA256, benchmark_data
 from models.fnarx import FNARX, fit_fnarx
 from simulator.physics import PhysicalParameters
 from simulator.simulate import Scenario, SimulatedRecord, simulate
 from simulator.theory import EXACT_TERMS
-
-# The shared measured data sets (../shared/data next to the project, see its README); never copied here.
-DATA_DIR = Path(os.environ.get("NARXWATCH_DATA_DIR", Path(__file__).resolve().parents[2] / "shared" / "data"))
-SILVERBOX_SHA256 = {
-    "SNLS80mV.csv": "ae62d5a91230c10f76e6dd02c8a4fac3c9d4d8a95fbf50e87cb0c4885003e0f1",
-    "Schroeder80mV.csv": "b22cbcba9c59d9b4b1b379967b669dc32959e515b24784da3254505f8563e36c",
-}
 
 P = np.polynomial.polynomial  # ascending coefficients: c[0] + c[1]·q + c[2]·q² + …
 
@@ -78,7 +72,6 @@ LONGEST_FILES = (
     "test_cli_refine.py",
     "test_refinement.py",
     "test_fuzz_stateful.py",
-    "test_api_schema.py",
     "test_api_refinements.py",
     "test_notifications.py",
     "test_faults.py",
@@ -218,12 +211,8 @@ def make_experiments(mode: str, magnitudes: np.ndarray, disturbance_std: float, 
 
 @pytest.fixture(scope="session")
 def silverbox_dir() -> Path:
-    """The Silverbox files; their absence is a failure, never a skip: the measured-data checks need them."""
-    folder = DATA_DIR / "silverbox"
-    missing = [name for name in SILVERBOX_SHA256 if not (folder / name).is_file()]
-    if missing:
-        pytest.fail(f"Silverbox data missing in {folder}: {', '.join(missing)} (set NARXWATCH_DATA_DIR)")
-    return folder
+    """The Silverbox files (skipped without them, failed with CI=true: ``benchmark_data``)."""
+    return benchmark_data("silverbox", *SILVERBOX_SHA256)
 
 
 @pytest.fixture(scope="session")
@@ -266,7 +255,7 @@ def k1_model() -> FNARX:
     return fit_fnarx(experiments.runs, EXACT_TERMS, name="k1")
 
 
-# --- PostgreSQL for the API tests (tests/postgres.py) -------------------------------------------
+# --- PostgreSQL for the API tests (harness/postgres.py) -------------------------------------------
 # One throwaway server per test session. Outside CI a machine without PostgreSQL skips the tests
 # that use it, saying how to install it; with CI=true that is an error instead.
 
@@ -274,7 +263,7 @@ def k1_model() -> FNARX:
 @pytest.fixture(scope="session")
 def postgres_url():  # yields str
     """``postgresql+psycopg://narxwatch@127.0.0.1:PORT/narxwatch_test`` on a throwaway server."""
-    import postgres  # tests/postgres.py; imported here so the science tests never load it
+    from harness import postgres
 
     with postgres.postgres_server() as url:
         if url is None:
@@ -288,8 +277,7 @@ def postgres_url():  # yields str
 @pytest.fixture(scope="session")
 def sqlite_api_server(tmp_path_factory):
     """The real app on SQLite, served on loopback; the embedded job backend runs jobs on its thread."""
-    from live import LiveServer
-
+    from harness.live import LiveServer
     from service.config import Settings
 
     url = f"sqlite:///{tmp_path_factory.mktemp('api') / 'narxwatch.db'}"
@@ -301,10 +289,9 @@ def sqlite_api_server(tmp_path_factory):
 def postgresql_api_server(postgres_url, tmp_path_factory):
     """The real app on PostgreSQL, served on loopback; the distributed job backend runs queued jobs
     on two `narxwatch worker` processes."""
-    import postgres
-    from live import LiveServer
-    from workers import workers
-
+    from harness import postgres
+    from harness.live import LiveServer
+    from harness.workers import workers
     from service.config import Settings
 
     url = postgres.create_database(postgres_url, "narxwatch_api")
@@ -330,9 +317,32 @@ def api_server(request):
 @pytest.fixture
 def tenant(api_server):
     """A fresh organisation with an admin, an ingest and a viewer client."""
-    from live import Tenant
+    from harness.live import Tenant
 
     tenant = Tenant.create(api_server)
     yield tenant
     for client in (tenant.admin, tenant.ingest, tenant.viewer):
         client.close()
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def fleet_server(request, tmp_path_factory):  # yields harness.fleet.Fleet
+    """A server of its own on each database (the embedded job backend on PostgreSQL too), so that
+    nothing else writes while a test holds the state rows against the tables."""
+    from harness.fleet import Fleet
+    from harness.live import LiveServer
+    from service.config import Settings
+    from service.db import make_engine
+
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path_factory.mktemp('fleet') / 'narxwatch.db'}"
+    else:
+        from harness import postgres
+
+        url = postgres.create_database(
+            request.getfixturevalue("postgres_url"), f"fleet_{uuid.uuid4().hex[:12]}"
+        )
+    with LiveServer(Settings(database_url=url, job_backend="embedded")) as server:
+        engine = make_engine(url)
+        yield Fleet(server, engine)
+        engine.dispose()

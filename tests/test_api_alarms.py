@@ -15,7 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from api_helpers import (
+from sqlalchemy import event, text
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from harness.api_helpers import (
     API,
     CUSUM_TRAINING_K,
     RIG_TERMS,
@@ -31,11 +35,7 @@ from api_helpers import (
     train_fault_mode,
     wait_for,
 )
-from live import LiveServer
-from sqlalchemy import event, text
-from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
-
+from harness.live import LiveServer
 from models.alarms import DESIGN_SHIFT, design_cusum, in_control_arl
 from service.db import make_engine
 from service.domain import alarms
@@ -261,24 +261,6 @@ def test_rules_default_until_set_and_bad_rules_are_refused_with_nothing_stored(a
         assert viewer.get(url).json() == stored.json() | {"defaults": False}
 
 
-def test_no_organisation_sees_or_touches_another_s_alarms(rig: Rig, api_server: LiveServer):
-    (alarm, *_) = rig.alarms()
-    other = Org.create(api_server)
-    with clients(other) as (admin, _, viewer):
-        assert viewer.get(f"{API}/alarms").json()["items"] == []
-        for response in (
-            viewer.get(f"{API}/alarms/{alarm['id']}"),
-            admin.post(f"{API}/alarms/{alarm['id']}/acknowledge", json={}),
-            admin.post(f"{API}/alarms/{alarm['id']}/resolve", json={}),
-            viewer.get(f"{API}/alarms", params={"structure_id": rig.structure_id}),
-            viewer.get(f"{API}/structures/{rig.structure_id}/alarm-rules"),
-            admin.put(f"{API}/structures/{rig.structure_id}/alarm-rules", json={"rules": [PERSISTENCE]}),
-        ):
-            assert response.status_code == 404, response.text
-    with rig.org.client("viewer") as viewer:
-        assert viewer.get(f"{API}/alarms/{alarm['id']}").json()["state"] == alarm["state"]
-
-
 def test_alarms_are_listed_newest_first_with_filters_and_pages(rig: Rig):
     everything = rig.alarms(limit=1000)
     assert len(everything) >= 2
@@ -410,7 +392,7 @@ def test_an_organisation_s_alarms_are_listed_without_reading_another_s(postgres_
     another organisation's, and growing with them. The page is read from the organisation's own
     index: the listing's plan returns a page and one from the alarms table, however many alarms
     the other organisation has (20 000 here, newer than all of this one's)."""
-    import postgres
+    from harness import postgres
 
     url = postgres.create_database(postgres_url, f"alarms_{uuid.uuid4().hex}")
     upgrade_database(url)

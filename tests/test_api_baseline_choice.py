@@ -13,7 +13,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import pytest
-from api_helpers import (
+
+from harness.accelerometer import record, scenario
+from harness.api_helpers import (
     API,
     FS,
     Org,
@@ -24,9 +26,7 @@ from api_helpers import (
     npz_bytes,
     post_record,
 )
-from live import LiveServer
-from test_novelty import record, scenario
-
+from harness.live import LiveServer
 from models.baseline_choice import CHOICE_COLUMNS, MAX_ORDER
 from service.config import Settings
 from simulator.theory import EXACT_TERMS

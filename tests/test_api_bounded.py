@@ -18,9 +18,10 @@ from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 
 import httpx
-import numpy as np
 import pytest
-from api_helpers import (
+from sqlalchemy import event, select, text
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -30,12 +31,11 @@ from api_helpers import (
     json_body,
     nothing_written,
     post_record,
+    record_set_csv,
     train_fault_mode,
     wait_for,
 )
-from live import LiveServer
-from sqlalchemy import event, select, text
-
+from harness.live import LiveServer
 from service.config import Settings
 from service.jobs.tasks import TASKS
 from service.tables import Organisation
@@ -76,8 +76,8 @@ def bounded(request, tmp_path_factory) -> Iterator[Bounded]:
                 LiveServer(Settings(database_url=f"sqlite:///{folder / 'narxwatch.db'}", **LIMITS))
             )
         else:
-            import postgres
-            from workers import workers
+            from harness import postgres
+            from harness.workers import workers
 
             name = f"narxwatch_bounded_{uuid.uuid4().hex[:8]}"  # may run twice per server under xdist
             url = postgres.create_database(request.getfixturevalue("postgres_url"), name)
@@ -449,16 +449,6 @@ def test_history_and_verdicts_never_read_model_documents(api_server: LiveServer)
         assert any("model_versions" in s for s in seen)
         read = [s for s in seen if "model_versions.document" in s]
         assert not read, f"a model document was read: {read}"
-
-
-def record_set_csv(records: int, samples: int, seed: int) -> str:
-    """A CSV of ``records`` realisations side by side: the groups x and y, as Wiener–Hammerstein's
-    files hold theirs."""
-    rng = np.random.default_rng(seed)
-    x, y = rng.standard_normal((2, samples, records)) * 1e-3
-    header = ",".join(["x"] + [""] * (records - 1) + ["y"] + [""] * (records - 1))
-    rows = (",".join(f"{v:.9g}" for v in (*xs, *ys)) for xs, ys in zip(x, y, strict=True))
-    return "\n".join([header, *rows])
 
 
 def test_a_record_set_reads_the_structure_and_its_models_once_however_many_records_it_holds(

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.io
-from api_helpers import (
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -34,7 +35,7 @@ from api_helpers import (
     stored,
     wait_for,
 )
-from channel_helpers import (
+from harness.channel_helpers import (
     FS,
     MODES,
     NAMES,
@@ -46,9 +47,8 @@ from channel_helpers import (
     channels_body,
     csv_text,
 )
-from dashboard_helpers import DASHBOARD, charts, logged_in
-from live import LiveServer
-
+from harness.dashboard_helpers import DASHBOARD, charts, logged_in
+from harness.live import LiveServer
 from models.vector import fit_vector_fnarx, inspect_vector
 from service.domain.schedules import RUN_SCHEDULE
 

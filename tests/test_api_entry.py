@@ -8,9 +8,9 @@ from pathlib import Path
 
 import httpx
 import pytest
-from live import LiveServer
 from swagger_ui_bundle import swagger_ui_path
 
+from harness.live import LiveServer
 from service.config import Settings
 
 ASSET_URLS = re.compile(r'(?:href|src)="([^"]*)"')

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 import pytest
-from api_helpers import (
+
+from harness.api_helpers import (
     API,
     FS,
     RIG_TERMS,
@@ -37,8 +38,7 @@ from api_helpers import (
     records_url,
     train_fault_mode,
 )
-from live import LiveServer, http_client
-
+from harness.live import LiveServer, http_client
 from models.signals import minimum_samples
 from service.config import Settings
 from simulator.theory import EXACT_TERMS

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from api_helpers import RIG_TERMS
-from live import LiveServer, Tenant
 
+from harness.api_helpers import RIG_TERMS
+from harness.live import LiveServer, Tenant
 from recordfiles.writer import dump_csv
 from simulator.simulate import simulate
 from simulator.study import StudySettings

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from api_helpers import (
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -24,7 +25,7 @@ from api_helpers import (
     train_fault_mode,
     upload_simulated,
 )
-from live import LiveServer
+from harness.live import LiveServer
 
 T0 = dt.datetime(2026, 3, 1, 6, 0, tzinfo=dt.UTC)
 DAY = dt.timedelta(days=1)

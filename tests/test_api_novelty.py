@@ -15,27 +15,37 @@ its healthy baseline alone (``models.novelty``), on SQLite and on PostgreSQL.
 
 from __future__ import annotations
 
-import uuid
 from dataclasses import dataclass
 
-import httpx
 import numpy as np
 import pytest
-from api_helpers import (
+from scipy import special, stats
+
+from harness.accelerometer import (
+    ALPHA,
+    FAULTY,
+    FS,
+    HEALTHY,
+    SAMPLES,
+    TERMS,
+    TEST_LEVEL,
+    chain_baseline,
+    healthy_training,
+    record,
+    scenario,
+    upload,
+)
+from harness.api_helpers import (
     API,
     create_structure,
     detail,
     npz_bytes,
     post_record,
-    stored,
     upload_simulated,
     verdicts_of,
     wait_for,
 )
-from live import LiveServer, Tenant
-from scipy import special, stats
-from test_novelty import ALPHA, record, scenario
-
+from harness.live import LiveServer, Tenant
 from models.narx import NARX, fit_narx
 from models.novelty import NoveltyReference, judge_record, novelty_reference
 from models.output_error import fit_output_error
@@ -43,40 +53,6 @@ from models.terms import parse_terms
 from simulator.client.destinations import verdict_text
 from simulator.simulate import simulate
 from simulator.study import StudySettings
-
-# The terms ``choose_linear(training, max_order=8, margin=0.0)`` picks for this chain
-# (tests/test_novelty.py's baseline): an ARX(8, 8) with no delay, the accelerometer feeling the
-# force at once.
-TERMS = [f"y[t-{i}]" for i in range(1, 9)] + ["x[t]"] + [f"x[t-{i}]" for i in range(1, 8)]
-FS = 1000.0  # the chain's sampling rate
-# Ten healthy records as long as tests/test_novelty.py's, and records judged half as long.
-TRAINING, TRAINING_SAMPLES, SAMPLES = 10, 8000, 4000
-HEALTHY, FAULTY = 40, 10
-TEST_LEVEL = 1e-3  # the chance a correct service fails the rate assertion
-
-
-def upload(client, structure_id: int, x: np.ndarray, y: np.ndarray, **params) -> dict:
-    return stored(
-        post_record(client, structure_id, npz_bytes(x=x, y=y, fs=FS), "application/x-npz", **params)
-    )
-
-
-def healthy_training() -> list[tuple[np.ndarray, np.ndarray]]:
-    return [record(scenario(), TRAINING_SAMPLES, 100 + i) for i in range(TRAINING)]
-
-
-def chain_baseline(
-    admin: httpx.Client, ingest: httpx.Client, training: list[tuple[np.ndarray, np.ndarray]]
-) -> tuple[int, dict]:
-    """A new chain structure with the ``training`` records and a baseline trained from them: its
-    id and the baseline's version."""
-    structure_id = create_structure(admin, f"chain-{uuid.uuid4().hex[:8]}", fs=FS)["id"]
-    ids = [upload(ingest, structure_id, x, y)["id"] for x, y in training]
-    response = admin.post(
-        f"{API}/structures/{structure_id}/models/baseline", json={"record_ids": ids, "terms": TERMS}
-    )
-    assert response.status_code == 201, response.text
-    return structure_id, response.json()
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import pytest
-from api_helpers import (
+from conftest import DISTURBANCE_STD
+
+from harness.api_helpers import (
     API,
     RIG_TERMS,
     Org,
@@ -24,10 +26,8 @@ from api_helpers import (
     stored,
     wait_for,
 )
-from conftest import DISTURBANCE_STD
-from dashboard_helpers import DASHBOARD, charts, logged_in
-from live import LiveServer
-
+from harness.dashboard_helpers import DASHBOARD, charts, logged_in
+from harness.live import LiveServer
 from models.narx import fit_narx
 from models.pooled import check_baseline
 from service.config import Settings

@@ -8,7 +8,9 @@ from dataclasses import asdict, dataclass, replace
 import httpx
 import numpy as np
 import pytest
-from api_helpers import (
+from sqlalchemy import select
+
+from harness.api_helpers import (
     API,
     RIG_TERMS,
     Org,
@@ -20,10 +22,8 @@ from api_helpers import (
     post_record,
     train_fault_mode,
 )
-from dashboard_helpers import logged_in
-from live import LiveServer
-from sqlalchemy import select
-
+from harness.dashboard_helpers import logged_in
+from harness.live import LiveServer
 from models.coverage import coverage
 from models.effects import candidate_effects, linear_terms
 from models.narx import fit_narx
@@ -265,30 +265,6 @@ def test_bad_refinement_requests_are_refused_and_write_nothing(rig: Rig, change,
         assert fragment in detail(response)
 
 
-def test_roles_and_organisations(rig: Rig, api_server: LiveServer):
-    body = {"record_id": rig.effect_record, "base_model_id": rig.baseline["id"]}
-    with nothing_written(rig.org, rig.structure_id), clients(rig.org) as (_, ingest, viewer):
-        for client in (ingest, viewer):
-            response = client.post(refinements_url(rig.structure_id), json=body)
-            assert response.status_code == 403 and "admin" in detail(response)
-    # The organisation's own refinement, stored here (not one an earlier test left): a stranger
-    # must not see it.
-    with clients(rig.org) as (owner, _, _):
-        clean = {"record_id": rig.clean_record, "base_model_id": rig.baseline["id"], "test": [6000, SAMPLES]}
-        response = owner.post(refinements_url(rig.structure_id), json=clean)
-        assert response.status_code == 201, response.text
-        refinement_id = response.json()["id"]
-    stranger = Org.create(api_server)
-    with clients(stranger) as (admin, _, viewer):
-        assert admin.post(refinements_url(rig.structure_id), json=body).status_code == 404
-        assert viewer.get(refinements_url(rig.structure_id)).status_code == 404
-        own = viewer.get(refinements_url(rig.structure_id)).json()
-        assert "structure" in own["detail"]
-        assert viewer.get(f"{API}/refinements/{refinement_id}").status_code == 404
-    with clients(rig.org) as (_, _, viewer):
-        assert viewer.get(f"{API}/refinements/{UNKNOWN}").status_code == 404
-
-
 def test_a_glitch_in_one_of_several_records_is_named_by_the_record(rig: Rig):
     record = simulated(QUADRATIC, seed=31, n=SHORT)
     glitched = replace(record, y=record.y.copy())
@@ -401,24 +377,3 @@ def test_bad_requests_on_several_records_are_refused_and_write_nothing(rig: Rig,
         response = admin.post(refinements_url(rig.structure_id), json=body)
         assert response.status_code == status, response.text
         assert fragment in detail(response)
-
-
-def test_another_organisations_records_are_never_seen(rig: Rig, api_server: LiveServer):
-    """A record of another organisation is answered as one that does not exist, either way."""
-    stranger = Org.create(api_server)
-    with clients(stranger) as (admin, ingest, _):
-        own = create_structure(admin, "stranger's rig")["id"]
-        theirs = upload_record(ingest, own, simulated(QUADRATIC, 15, SHORT))
-        baseline = admin.post(
-            f"{API}/structures/{own}/models/baseline", json={"record_ids": [theirs], "terms": RIG_TERMS}
-        ).json()
-        body = {"record_ids": [theirs], "test_record_ids": [rig.judged[0]], "base_model_id": baseline["id"]}
-        with nothing_written(stranger, own):
-            response = admin.post(refinements_url(own), json=body)
-        assert response.status_code == 404 and detail(response) == detail(
-            admin.post(refinements_url(own), json=body | {"test_record_ids": [UNKNOWN]})
-        ).replace(str(UNKNOWN), str(rig.judged[0]))
-    body = {"record_ids": rig.fitted, "test_record_ids": [theirs], "base_model_id": rig.baseline["id"]}
-    with nothing_written(rig.org, rig.structure_id), clients(rig.org) as (admin, _, _):
-        response = admin.post(refinements_url(rig.structure_id), json=body)
-        assert response.status_code == 404 and f"record {theirs}" in detail(response)

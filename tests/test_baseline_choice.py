@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from api_helpers import simulated
-from test_novelty import record, scenario
 
+from harness.accelerometer import record, scenario
+from harness.api_helpers import simulated
 from models.baseline_choice import CHOICE_MIN_SAMPLES, choose_baseline_terms
 from models.errors import InputError
 

@@ -7,53 +7,16 @@ texts and the records a fixture needs go through its entry point in the test's p
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import io
 import json
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import MODE_FIELDS, VERDICT_FIELDS
 
-from service.cli import main
+from harness.cli import PNG_MAGIC, invoke, run
 from simulator.theory import EXACT_TERMS
-
-NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
-PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-
-
-def run(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess[str]:
-    assert NARXWATCH, "the narxwatch console script is not installed next to this Python"
-    result = subprocess.run([NARXWATCH, *args], cwd=cwd, capture_output=True, text=True, timeout=300)
-    if check:
-        assert result.returncode == 0, result.stderr
-    return result
-
-
-def invoke(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess[str]:
-    """:func:`run` in this process: the console script's entry point with ``args`` in ``cwd``, its
-    exit code and what it wrote. An exception it lets through fails the test, as a traceback
-    would."""
-    stdout, stderr = io.StringIO(), io.StringIO()
-    argv = sys.argv
-    sys.argv = [NARXWATCH or "narxwatch", *args]
-    try:
-        with contextlib.chdir(cwd), contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-            main()
-        code = 0
-    except SystemExit as stopped:
-        code = stopped.code if isinstance(stopped.code, int) else int(stopped.code is not None)
-    finally:
-        sys.argv = argv
-    result = subprocess.CompletedProcess(list(args), code, stdout.getvalue(), stderr.getvalue())
-    if check:
-        assert result.returncode == 0, result.stderr
-    return result
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.io
-from api_helpers import simulated
-from test_cli import invoke
 
+from harness.api_helpers import simulated
+from harness.cli import invoke
 from models.narx import fit_narx
 from models.terms import parse_terms
 from recordfiles.writer import write_record

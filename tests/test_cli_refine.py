@@ -20,9 +20,9 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
-from test_cli import NARXWATCH, PNG_MAGIC, invoke
-from test_periods import measured
 
+from harness.cli import NARXWATCH, PNG_MAGIC, invoke
+from harness.multisines import measured
 from models.coverage import coverage
 from models.effects import candidate_effects
 from models.narx import NARX, fit_narx

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cli import invoke, run
-from test_novelty import record, scenario
+
+from harness.accelerometer import record, scenario
+from harness.cli import invoke, run
 
 LINEAR = ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]", "x[t-4]"]
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-from live import LiveServer
 
+from harness.live import LiveServer
 from service.config import Settings
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from api_helpers import (
+
+from harness.api_helpers import (
     API,
     FS,
     Org,
@@ -29,8 +30,7 @@ from api_helpers import (
     verdicts,
     wait_for,
 )
-from live import LiveServer
-
+from harness.live import LiveServer
 from recordfiles.conditions import MAX_CONDITIONS
 
 NPZ = "application/x-npz"

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import DATA_DIR
 
+from harness.prerequisites import benchmark_file
 from models.coverage import EXTRAPOLATING, WELCH_SAMPLES, Coverage, coverage
 from models.errors import InputError
 from recordfiles.reader import Layout, read_record
@@ -84,13 +84,10 @@ def test_the_f16_special_odd_multisines_lie_mostly_outside_the_full_grid_band():
     """The full-grid multisines excite 2–15 Hz; the special odd ones 1–60 Hz at 400 Hz. With a
     flat force spectrum, (60 − 15)/(60 − 1) = 76 % of the latter's power lies outside the former's
     band; within the band, the full grid's own test levels."""
-    folder = DATA_DIR / "f16-gvt"
     layout = Layout("Force", "Acceleration2")
 
     def signals(name: str) -> tuple[np.ndarray, np.ndarray]:
-        if not (folder / name).is_file():
-            pytest.fail(f"F-16 data missing: {folder / name} (set NARXWATCH_DATA_DIR)")
-        record = read_record(folder / name, layout)
+        record = read_record(benchmark_file("f16-gvt", name), layout)
         return record.x, record.y
 
     fitted = [signals(f"F16Data_FullMSine_Level{n}.csv") for n in (3, 5, 7)]

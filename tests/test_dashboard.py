@@ -1,7 +1,7 @@
 """The dashboard over HTTP, on SQLite and PostgreSQL: logins, isolation between organisations,
 and pages whose figures agree with the history API and with an independent recomputation.
 
-The structure watched was healthy, then developed a k2 fault (tests/dashboard_helpers.py); every
+The structure watched was healthy, then developed a k2 fault (harness/dashboard_helpers.py); every
 record went through the real inspection chain on upload.
 """
 
@@ -15,7 +15,10 @@ import httpx
 import numpy as np
 import plotly
 import pytest
-from api_helpers import (
+from markupsafe import escape
+from sqlalchemy import update
+
+from harness.api_helpers import (
     API,
     FS,
     RIG_TERMS,
@@ -26,7 +29,7 @@ from api_helpers import (
     train_fault_mode,
     upload_simulated,
 )
-from dashboard_helpers import (
+from harness.dashboard_helpers import (
     COOKIE,
     DASHBOARD,
     FAULT_K,
@@ -35,10 +38,7 @@ from dashboard_helpers import (
     logged_in,
     monitored_structure,
 )
-from live import LiveServer, http_client
-from markupsafe import escape
-from sqlalchemy import update
-
+from harness.live import LiveServer, http_client
 from recordfiles.quantities import SignalDeclaration
 from service.dashboard.auth import form_token
 from service.dashboard.figures import channel_figures, refinement_figure
@@ -508,7 +508,7 @@ def test_channel_and_refinement_charts_are_in_the_unit_of_the_response(declared,
 def test_a_record_without_a_verdict_says_so(
     api_server: LiveServer, monitored: Monitored, viewer: httpx.Client
 ):
-    from api_helpers import simulated, upload_simulated
+    from harness.api_helpers import simulated, upload_simulated
 
     with clients(monitored.org) as (_, ingest, _):
         stored = upload_simulated(ingest, monitored.structure["id"], simulated("k2", 0.0, [41, 999], 500))
@@ -523,8 +523,7 @@ def test_an_unknown_fault_mode_on_the_record_page_is_refused(viewer: httpx.Clien
 
 
 def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: LiveServer):
-    from api_helpers import npz_bytes, post_record
-
+    from harness.api_helpers import npz_bytes, post_record
     from simulator.simulate import Effects, Scenario, simulate
 
     org = Org.create(api_server)
@@ -598,8 +597,8 @@ def test_the_refinement_page_gives_the_noise_between_periods_of_a_periodic_recor
     output noise 0.3: the page gives the noise floor the refinement found on its estimation part
     (four periods, the first left out) and that the check figure is at it. A record that does not
     repeat (the test above) shows none."""
-    from api_helpers import FS, npz_bytes, post_record
-    from test_periods import PERIOD, measured
+    from harness.api_helpers import FS, npz_bytes, post_record
+    from harness.multisines import PERIOD, measured
 
     org = Org.create(api_server)
     x, _, y = measured(periods=6, sigma=0.3, seed=11)

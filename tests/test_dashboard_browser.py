@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from api_helpers import (
+
+from harness.accelerometer import SAMPLES, chain_baseline, healthy_training, record, scenario, upload
+from harness.api_helpers import (
     API,
     CUSUM_TRAINING_K,
     FS,
@@ -32,8 +34,8 @@ from api_helpers import (
     train_fault_mode,
     upload_simulated,
 )
-from channel_helpers import NAMES, build_site, chain_record, channels_body
-from dashboard_helpers import (
+from harness.channel_helpers import NAMES, build_site, chain_record, channels_body
+from harness.dashboard_helpers import (
     CHROMIUM,
     CHROMIUM_ARGS,
     DASHBOARD,
@@ -42,9 +44,8 @@ from dashboard_helpers import (
     Monitored,
     monitored_structure,
 )
-from live import LiveServer
-from test_api_novelty import SAMPLES, chain_baseline, healthy_training, record, scenario, upload
-
+from harness.live import LiveServer
+from harness.prerequisites import unavailable
 from service.config import Settings
 from simulator.simulate import Effects, Scenario, simulate
 
@@ -54,17 +55,10 @@ ARTIFACTS = Path(
 TIMEOUT_MS = 30_000
 
 
-def _in_ci() -> bool:
-    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
-
-
 @pytest.fixture(scope="module")
 def browser() -> Iterator[object]:
     if not CHROMIUM.exists():
-        message = f"{CHROMIUM} is not installed: run 'sudo bash scripts/ensure-chromium.sh'"
-        if _in_ci():
-            pytest.fail(message)
-        pytest.skip(message)
+        unavailable(f"{CHROMIUM} is not installed: run 'sudo bash scripts/ensure-chromium.sh'")
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:
@@ -294,7 +288,7 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
 
 def test_a_refinement_on_a_periodic_record_states_the_noise_floor(page, server: LiveServer):
     """A record repeating a multisine: the page says, in view, what noise no model can simulate."""
-    from test_periods import PERIOD, measured
+    from harness.multisines import PERIOD, measured
 
     org = Org.create(server)
     x, _, y = measured(periods=6, sigma=0.3, seed=12)

@@ -12,7 +12,8 @@ from pathlib import Path
 import httpx
 import psycopg
 import pytest
-from api_helpers import (
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -26,9 +27,8 @@ from api_helpers import (
     verdicts_of,
     wait_for,
 )
-from live import LiveServer, http_client
-from workers import Worker, workers
-
+from harness.live import LiveServer, http_client
+from harness.workers import Worker, workers
 from service.config import Settings
 from service.jobs.distributed import conninfo
 from service.migrate import upgrade_database
@@ -38,7 +38,7 @@ FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3
 
 @pytest.fixture
 def database(postgres_url: str) -> str:
-    import postgres
+    from harness import postgres
 
     return postgres.create_database(postgres_url, f"faults_{uuid.uuid4().hex[:12]}")
 
@@ -92,7 +92,7 @@ def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_uploa
     """While the database is down (stopped by an operator, or crashed) the API says so (503 on
     /readyz and on writes, never a 500); it recovers by itself, and every upload it acknowledged
     (202) is stored and inspected."""
-    import postgres
+    from harness import postgres
 
     with postgres.postgres_instance("restart", durable=True) as database:
         if database is None:
@@ -154,7 +154,7 @@ def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_uploa
 def test_a_worker_started_while_postgresql_is_down_waits_for_it_and_then_runs(tmp_path: Path):
     """A worker started while its database is stopped (a host booting, a server restarting)
     waits for it instead of exiting, then works: like a running worker that loses the database."""
-    import postgres
+    from harness import postgres
 
     with postgres.postgres_instance("late") as database:
         if database is None:

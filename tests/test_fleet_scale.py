@@ -15,13 +15,13 @@ import html as markup
 import re
 import threading
 import uuid
-from collections import Counter
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import httpx
 import pytest
-from api_helpers import (
+from sqlalchemy import Engine, insert, select, text, update
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -33,129 +33,19 @@ from api_helpers import (
     nothing_written,
     npz_bytes,
     post_record,
+    record_set_csv,
     simulated,
     train_fault_mode,
     upload_simulated,
     verdicts,
     wait_for,
 )
-from dashboard_helpers import DASHBOARD, logged_in
-from live import LiveServer, http_client
-from prometheus_client.parser import text_string_to_metric_families
-from sqlalchemy import Engine, func, insert, select, text, update
-from test_api_bounded import record_set_csv
-
-from service.config import Settings
-from service.db import make_engine
-from service.domain.fleet import STATUSES
+from harness.dashboard_helpers import DASHBOARD, logged_in
+from harness.fleet import FUTURE, SKEW, STATUSES, Fleet, counted, kept, scraped, walked
 from service.jobs import embedded
 from service.tables import Alarm, Job, JobCount, Record, Structure, StructureState, Verdict
 
 T0 = dt.datetime(2026, 6, 1, 6, 0, tzinfo=dt.UTC)
-SKEW = dt.timedelta(seconds=Settings.model_fields["max_clock_skew_seconds"].default)  # the servers' here
-FUTURE = dt.datetime(9999, 12, 31, tzinfo=dt.UTC)
-
-
-@dataclass
-class Fleet:
-    server: LiveServer
-    engine: Engine  # the test's own connection to the server's database
-
-
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
-def fleet_server(request, tmp_path_factory) -> Iterator[Fleet]:
-    if request.param == "sqlite":
-        url = f"sqlite:///{tmp_path_factory.mktemp('fleet') / 'narxwatch.db'}"
-    else:
-        import postgres
-
-        url = postgres.create_database(
-            request.getfixturevalue("postgres_url"), f"fleet_{uuid.uuid4().hex[:12]}"
-        )
-    with LiveServer(Settings(database_url=url, job_backend="embedded")) as server:
-        engine = make_engine(url)
-        yield Fleet(server, engine)
-        engine.dispose()
-
-
-# --- what the tables hold, computed without the state rows ------------------------------------
-
-
-def counted(engine: Engine) -> dict[str, object]:
-    """Records, verdicts by status and jobs by state, each a ``COUNT(*)`` of its table."""
-    with engine.connect() as connection:
-        records = connection.scalar(select(func.count()).select_from(Record))
-        verdicts = dict(
-            connection.execute(select(Verdict.status, func.count()).group_by(Verdict.status)).all()
-        )
-        jobs = dict(connection.execute(select(Job.status, func.count()).group_by(Job.status)).all())
-    return {
-        "records": records,
-        "verdicts": {status: verdicts.get(status, 0) for status in STATUSES},
-        "jobs": {state: jobs.get(state, 0) for state in ("queued", "running", "done", "failed")},
-    }
-
-
-def scraped(server: LiveServer) -> dict[str, object]:
-    with http_client(base_url=server.url) as client:
-        response = client.get("/metrics")
-    assert response.status_code == 200, response.text
-    samples = {
-        (sample.name, tuple(sorted(sample.labels.items()))): sample.value
-        for family in text_string_to_metric_families(response.text)
-        for sample in family.samples
-    }
-    return {
-        "records": samples["narxwatch_records_received_total", ()],
-        "verdicts": {s: samples["narxwatch_verdicts_total", (("status", s),)] for s in STATUSES},
-        "jobs": {
-            state: samples["narxwatch_jobs", (("state", state),)]
-            for state in ("queued", "running", "done", "failed")
-        },
-    }
-
-
-def walked(engine: Engine, structure_id: int) -> dict[str, object]:
-    """A structure's standing walked from its verdicts in Python: the newest (by acquisition,
-    then id) of those acquired up to the server's clock plus the skew allowed, and the
-    acquisition time of the first of the unbroken run of its status at the end; counts of all."""
-    limit = dt.datetime.now(dt.UTC) + SKEW
-    with engine.connect() as connection:
-        rows = connection.execute(
-            select(Verdict.id, Verdict.acquired_at, Verdict.status).where(
-                Verdict.structure_id == structure_id
-            )
-        ).all()
-        records = connection.scalar(
-            select(func.count()).select_from(Record).where(Record.structure_id == structure_id)
-        )
-    ordered = sorted(
-        (row for row in rows if row.acquired_at <= limit), key=lambda row: (row.acquired_at, row.id)
-    )
-    latest = ordered[-1] if ordered else None
-    since = None
-    for row in reversed(ordered):
-        if row.status != latest.status:
-            break
-        since = row.acquired_at
-    counts = Counter(row.status for row in rows)
-    return {
-        "latest_verdict_id": latest.id if latest else None,
-        "status": latest.status if latest else None,
-        "since": since,
-        "records": records,
-        **{status: counts[status] for status in STATUSES},
-    }
-
-
-def kept(engine: Engine, structure_id: int) -> dict[str, object]:
-    with engine.connect() as connection:
-        state = connection.execute(
-            select(StructureState).where(StructureState.structure_id == structure_id)
-        ).one()
-    return {
-        key: getattr(state, key) for key in ("latest_verdict_id", "status", "since", "records", *STATUSES)
-    }
 
 
 def assert_exact(fleet: Fleet, *structure_ids: int) -> None:

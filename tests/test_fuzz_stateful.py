@@ -20,9 +20,10 @@ What must hold on every answer, whatever came before:
   or a constant signal is refused with a 4xx, whatever the encoding (JSON, CSV, NPZ) and the
   ``inspect`` mode, and the number of stored records does not change.
 
-First every operation of the served schema is sent a few times with each organisation's admin
-key and own ids (key-management routes, which may revoke the key they are sent with, with a third
-organisation's), so that every route is reached whatever the state machine chooses; each run of
+First every operation of the served schema is fuzzed with each organisation's admin key, valid
+and invalid cases with its own ids or random ones (key-management routes, which may revoke the
+key they are sent with, with a third organisation's), so that every route is reached whatever the
+state machine chooses; each run of
 the state machine then starts with a tour (each overflowing input, each kind of foreign id, the
 own listings and each page once) before its steps. Routes outside the schema are listed in
 ``OTHER_ROUTES``: a new one must be added there.
@@ -48,7 +49,19 @@ import httpx
 import numpy as np
 import pytest
 import schemathesis
-from api_helpers import (
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import (
+    RuleBasedStateMachine,
+    initialize,
+    invariant,
+    rule,
+    run_state_machine_as_test,
+)
+from schemathesis import GenerationMode
+from sqlalchemy import text
+
+from harness.api_helpers import (
     API,
     FS,
     RIG_TERMS,
@@ -61,19 +74,7 @@ from api_helpers import (
     post_record,
     raw_json,
 )
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from hypothesis.stateful import (
-    RuleBasedStateMachine,
-    initialize,
-    invariant,
-    rule,
-    run_state_machine_as_test,
-)
-from live import LiveServer, http_client
-from schemathesis import GenerationMode
-from sqlalchemy import text
-
+from harness.live import LiveServer, http_client
 from service.security import Role
 
 # Runs of the state machine on each backend. The runs are the same on both (derandomised); what
@@ -83,7 +84,12 @@ EXAMPLES = {"sqlite": 12, "postgresql": 8}
 if "NARXWATCH_FUZZ_EXAMPLES" in os.environ:
     EXAMPLES = dict.fromkeys(EXAMPLES, int(os.environ["NARXWATCH_FUZZ_EXAMPLES"]))
 STEPS = int(os.environ.get("NARXWATCH_FUZZ_STEPS", "40"))
-SWEEP_EXAMPLES = 4
+# Cases per operation and organisation in the sweep, which is the fuzzing of the served schema:
+# each operation, valid and invalid, with the organisation's own ids and with random ones (random
+# ids mostly reach a 404; own ones reach the filters, parsers and training behind it). What only
+# PostgreSQL refuses (a NUL byte in text, an integer beyond its column) shows in the first few
+# dozen cases, so it gets fewer.
+SWEEP_EXAMPLES = {"sqlite": 20, "postgresql": 10}
 
 # The routes outside the OpenAPI schema (the dashboard and FastAPI's documentation pages).
 DASHBOARD_PAGES = (
@@ -917,24 +923,28 @@ class FuzzMachine(RuleBasedStateMachine):
             )
 
 
-def sweep(world: World) -> None:
-    """Each operation, valid and invalid, with each organisation's admin key and own ids: every
-    route is reached at least once, whichever steps the state machine chooses."""
+def sweep(world: World, examples: int) -> None:
+    """Each operation, valid and invalid, with each organisation's admin key and its own ids or
+    random ones, ``examples`` cases each: every route is reached, whichever steps the state
+    machine chooses. A key route keeps to the key holder's own ids: a random one could revoke the
+    key it is sent with."""
     for method, path in world.operations:
         operation = world.schema[path][method.lower()]
         for org in world.organisations_for(path):
             owned = FuzzMachine.owned_ids(org, path, 0) or None
+            ids = [owned] if owned is None or "key_id" in path else [owned, None]
             strategy = st.one_of(
-                operation.as_strategy(mode, path_parameters=owned)
+                operation.as_strategy(mode, path_parameters=fixed)
                 for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE)
+                for fixed in ids
             )
 
-            _send_each(world, org, strategy)
+            _send_each(world, org, strategy, examples)
 
 
-def _send_each(world: World, org: Organisation, strategy: st.SearchStrategy) -> None:
+def _send_each(world: World, org: Organisation, strategy: st.SearchStrategy, examples: int) -> None:
     @settings(
-        max_examples=SWEEP_EXAMPLES,
+        max_examples=examples,
         derandomize=True,
         database=None,
         deadline=None,
@@ -948,12 +958,13 @@ def _send_each(world: World, org: Organisation, strategy: st.SearchStrategy) -> 
 
 
 def test_every_route_with_two_organisations(world: World, request: pytest.FixtureRequest):
-    sweep(world)
+    backend = request.node.callspec.params["api_server"]
+    sweep(world, SWEEP_EXAMPLES[backend])
     FuzzMachine.world = world
     run_state_machine_as_test(
         FuzzMachine,
         settings=settings(
-            max_examples=EXAMPLES[request.node.callspec.params["api_server"]],
+            max_examples=EXAMPLES[backend],
             stateful_step_count=STEPS,
             derandomize=True,
             database=None,

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.io
-from conftest import DATA_DIR
 
+from harness.prerequisites import benchmark_file
 from models.refinement import refine_records
 from models.signals import GLITCH_FACTOR, glitches
 from recordfiles.reader import parse_silverbox
@@ -16,9 +16,10 @@ from simulator.simulate import Scenario, simulate
 
 def measured_signals() -> dict[str, np.ndarray]:
     """Inputs and outputs of the three benchmarks in ../shared/data, none developed on here."""
-    silverbox = parse_silverbox((DATA_DIR / "silverbox" / "SNLS80mV.csv").read_bytes())
-    sweep = scipy.io.loadmat(DATA_DIR / "f16-gvt" / "F16Data_SineSw_Level7.mat")
-    wiener = np.genfromtxt(DATA_DIR / "wiener-hammerstein" / "WH_EstimationExample.csv", delimiter=",")[1:]
+    silverbox = parse_silverbox(benchmark_file("silverbox", "SNLS80mV.csv").read_bytes())
+    sweep = scipy.io.loadmat(benchmark_file("f16-gvt", "F16Data_SineSw_Level7.mat"))
+    wh = benchmark_file("wiener-hammerstein", "WH_EstimationExample.csv")
+    wiener = np.genfromtxt(wh, delimiter=",")[1:]
     signals = {"Silverbox V1": silverbox.x, "Silverbox V2": silverbox.y, "F-16 force": sweep["Force"].ravel()}
     signals |= {f"F-16 acceleration {k + 1}": sweep["Acceleration"][k] for k in range(3)}
     # Columns r×10, u×10, y×10, fs: the ten measured inputs and outputs.

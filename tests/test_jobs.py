@@ -15,7 +15,9 @@ import time
 from pathlib import Path
 
 import pytest
-from api_helpers import (
+from sqlalchemy import event, func, select, text, update
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -30,12 +32,10 @@ from api_helpers import (
     verdicts_of,
     wait_for,
 )
-from job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
-from live import LiveServer
-from sqlalchemy import event, func, select, text, update
-from test_cli import NARXWATCH
-from workers import workers
-
+from harness.cli import NARXWATCH
+from harness.job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
+from harness.live import LiveServer
+from harness.workers import workers
 from models.fnarx import FNARX
 from models.inspection import inspect
 from service.config import Settings

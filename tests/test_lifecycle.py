@@ -48,11 +48,11 @@ import httpx
 import numpy as np
 import pytest
 import uvloop
-from api_helpers import API, create_structure, json_body
-from live import LiveServer, free_port, http_client, wait_until_serving
 from sqlalchemy import exc, func, select
-from test_cli import NARXWATCH
 
+from harness.api_helpers import API, create_structure, json_body, time_victim
+from harness.cli import NARXWATCH
+from harness.live import LiveServer, free_port, http_client, wait_until_serving
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import structures
@@ -101,7 +101,7 @@ class Served:
 def database_url(request, tmp_path) -> str:
     if request.param == "sqlite":
         return f"sqlite:///{tmp_path / 'narxwatch.db'}"
-    import postgres
+    from harness import postgres
 
     name = f"narxwatch_lifecycle_{uuid.uuid4().hex[:8]}"
     return postgres.create_database(request.getfixturevalue("postgres_url"), name)
@@ -174,26 +174,6 @@ async def slow_upload(port: int, path: str, key: str, body: bytes, patience: flo
         writer.close()
 
 
-async def time_victim(
-    served: Served, slow: list[asyncio.Task], at_least: float = 0.0
-) -> list[tuple[float, int | None]]:
-    """``GET /structures`` of the other organisation, one after another while the slow uploads last
-    (and ``at_least`` seconds in all, so that requests refused quickly still leave enough timings)."""
-    timings: list[tuple[float, int | None]] = []
-    headers = {"Authorization": f"Bearer {served.victim}"}
-    until = time.monotonic() + at_least
-    async with httpx.AsyncClient(base_url=served.url, headers=headers, timeout=10) as client:
-        await asyncio.sleep(0.5)  # every slow client has sent its headers and its first bytes
-        while not all(task.done() for task in slow) or time.monotonic() < until:
-            started = time.monotonic()
-            try:
-                status: int | None = (await client.get(f"{API}/structures")).status_code
-            except httpx.TimeoutException:
-                status = None
-            timings.append((time.monotonic() - started, status))
-    return timings
-
-
 def test_slow_bodies_get_408_and_never_slow_another_organisation(served: Served):
     headers = {"Authorization": f"Bearer {served.attacker_admin}"}
     with http_client(base_url=served.url, headers=headers) as admin:
@@ -207,7 +187,7 @@ def test_slow_bodies_get_408_and_never_slow_another_organisation(served: Served)
             asyncio.create_task(slow_upload(served.port, path, served.attacker, body, patience))
             for _ in range(SLOW_CLIENTS)
         ]
-        timings = await time_victim(served, slow)
+        timings = await time_victim(served.url, served.victim, slow)
         return list(await asyncio.gather(*slow)), timings
 
     started = time.monotonic()
@@ -534,7 +514,7 @@ EXECUTE FUNCTION refuse_at_commit();
 def test_a_failed_commit_is_never_answered_2xx(postgres_url: str):
     """The COMMIT itself fails (a deferred trigger): had the session been committed after the
     response was sent, the client would have had its 201 for a structure that does not exist."""
-    import postgres
+    from harness import postgres
 
     url = postgres.create_database(postgres_url, f"narxwatch_commit_{uuid.uuid4().hex[:8]}")
     with LiveServer(Settings(database_url=url)) as server, server.client(server.key(Role.admin)) as admin:

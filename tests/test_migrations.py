@@ -38,7 +38,7 @@ STATES_BEFORE_0024 = table(
 def fresh_url(request, tmp_path):
     if request.param == "sqlite":
         return f"sqlite:///{tmp_path / 'm.db'}"
-    import postgres
+    from harness import postgres
 
     return postgres.create_database(request.getfixturevalue("postgres_url"), f"migrations_{uuid.uuid4().hex}")
 

@@ -14,7 +14,8 @@ from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
-from api_helpers import (
+
+from harness.api_helpers import (
     API,
     RIG_TERMS,
     Org,
@@ -24,7 +25,7 @@ from api_helpers import (
     simulated,
     upload_simulated,
 )
-from live import LiveServer
+from harness.live import LiveServer
 
 ACTIVATORS = 8
 # Without the structure's row lock, PostgreSQL failed this test within 4 rounds in each of 9 runs

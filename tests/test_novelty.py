@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from harness.accelerometer import ALPHA, record, scenario
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.novelty import NoveltyReference, judge_record, novelty_reference, start_up_of
@@ -14,30 +15,9 @@ from models.output_error import fit_output_error
 from models.pooled import check_baseline
 from models.refinement import choose_linear
 from models.terms import parse_terms
-from simulator.chain import ChainParameters, ChainScenario, simulate_chain
+from simulator.chain import ChainScenario
 
-# Three masses, a driving-point accelerometer at 1 kHz: heavily damped, as the explicit scheme needs.
-CHAIN = ChainParameters.build(3, [10.0, 20.0, 15.0], [50e3, 80e3, 30e3], [2000.0], ts=1e-3)
-FORCE = 1000.0  # N
-NOISE = 0.01  # of each healthy signal's RMS, on x and on y
-ALPHA = 0.05
 TEST_LEVEL = 1e-3  # the chance a correct detector fails the rate assertions
-
-
-def scenario(fault: str = "none", k: float = 0.0, level: float = 1.0) -> ChainScenario:
-    """The chain at ``level`` times the training force, its sensors' noise a floor: 1 % of the
-    healthy signals' RMS at the training level, whatever the level."""
-    clean = ChainScenario(CHAIN, excitation_std=FORCE, outputs=(1,), response="acceleration")
-    y_rms = float(np.std(simulate_chain(clean, 20_000, 1).responses["y1"]))
-    return ChainScenario(
-        CHAIN, fault, k, excitation_std=level * FORCE, outputs=(1,), response="acceleration",
-        y_noise_std=NOISE * y_rms, x_noise_std=NOISE * FORCE,
-    )  # fmt: skip
-
-
-def record(s: ChainScenario, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    simulated = simulate_chain(s, n, seed)
-    return simulated.x, simulated.responses["y1"]
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,9 @@ from pathlib import Path
 
 import httpx
 import pytest
-from api_helpers import (
+from prometheus_client.parser import text_string_to_metric_families
+
+from harness.api_helpers import (
     API,
     RIG_TERMS,
     create_structure,
@@ -33,9 +35,7 @@ from api_helpers import (
     simulated,
     upload_simulated,
 )
-from live import free_port, http_client, wait_until_serving
-from prometheus_client.parser import text_string_to_metric_families
-
+from harness.live import free_port, http_client, wait_until_serving
 from service.db import make_engine, session_factory, transaction
 from service.domain.fleet import STATUSES
 from service.observability.metrics import exposition

@@ -12,9 +12,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from conftest import DATA_DIR
 from scipy import optimize
 
+from harness.prerequisites import benchmark_file
 from models.checking import CHECK_EVALUATIONS, CheckSplit, Structure
 from models.effects import linear_terms
 from models.errors import InputError
@@ -319,9 +319,7 @@ F16_POWER_LAW_THETA = [
 
 
 def test_the_f16_model_that_diverged_on_a_test_record_does_not_come_to_rest_on_its_own() -> None:
-    path = DATA_DIR / "f16-gvt" / "F16Data_FullMSine_Level5.csv"
-    if not path.is_file():
-        pytest.fail(f"F-16 data missing: {path} (set NARXWATCH_DATA_DIR)")
+    path = benchmark_file("f16-gvt", "F16Data_FullMSine_Level5.csv")
     record = read_record(path, Layout("Force", "Acceleration1"))
     x, y = record.x[8192:], record.y[8192:]  # the first period holds the transient
     terms = tuple(parse_terms(F16_POWER_LAW_TERMS))

@@ -7,9 +7,9 @@ import itertools
 
 import numpy as np
 import pytest
-from conftest import DATA_DIR
 from scipy import signal
 
+from harness.prerequisites import benchmark_file
 from models.effects import candidate_effects, linear_terms, periodic_terms
 from models.errors import InputError
 from models.narx import fit_narx
@@ -110,9 +110,7 @@ def test_bad_input_is_refused_with_what_to_fix():
 @pytest.fixture(scope="module")
 def f16():
     """Force and acceleration 2 of the F-16 multisine at level 3, the periods after the transient."""
-    path = DATA_DIR / "f16-gvt" / "F16Data_FullMSine_Level3.csv"
-    if not path.is_file():
-        pytest.fail(f"F-16 data missing: {path} (set NARXWATCH_DATA_DIR)")
+    path = benchmark_file("f16-gvt", "F16Data_FullMSine_Level3.csv")
     data = np.genfromtxt(path, delimiter=",", names=True)
     part = slice(F16_PERIOD, F16_PERIOD * (1 + F16_PERIODS))
     return data["Force"][part], data["Acceleration2"][part]

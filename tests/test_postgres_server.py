@@ -1,11 +1,12 @@
-"""The throwaway PostgreSQL server of tests/postgres.py works: connect, write, read, roll back."""
+"""The throwaway PostgreSQL server of harness/postgres.py works: connect, write, read, roll back."""
 
 from __future__ import annotations
 
-import postgres
 import pytest
 from sqlalchemy import Engine, create_engine, text
 from sqlalchemy.engine import make_url
+
+from harness import postgres
 
 
 @pytest.fixture(scope="module")

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.io
-from conftest import DATA_DIR
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from mat_bombs import (
+
+from harness.mat_bombs import (
     compressed,
     huge_cell,
     mat_file,
@@ -32,7 +32,7 @@ from mat_bombs import (
     v73_file,
     zeros_bomb,
 )
-
+from harness.prerequisites import benchmark_data
 from models.errors import InputError
 from recordfiles.reader import (
     SILVERBOX,
@@ -57,23 +57,14 @@ F16_SHA256 = {
 }
 
 
-def data_folder(name: str, files: list[str]) -> Path:
-    """A benchmark's folder; its absence is a failure, never a skip."""
-    folder = DATA_DIR / name
-    missing = [file for file in files if not (folder / file).is_file()]
-    if missing:
-        pytest.fail(f"benchmark data missing in {folder}: {', '.join(missing)} (set NARXWATCH_DATA_DIR)")
-    return folder
-
-
 @pytest.fixture(scope="module")
 def f16_dir() -> Path:
-    return data_folder("f16-gvt", [*F16_SHA256, "F16Data_SineSw_Level4_Validation.mat"])
+    return benchmark_data("f16-gvt", *F16_SHA256, "F16Data_SineSw_Level4_Validation.mat")
 
 
 @pytest.fixture(scope="module")
 def wh_dir() -> Path:
-    return data_folder("wiener-hammerstein", ["WH_EstimationExample.csv", "WH_TestDataset.csv"])
+    return benchmark_data("wiener-hammerstein", "WH_EstimationExample.csv", "WH_TestDataset.csv")
 
 
 def peak_allocation(action: Callable[[], object]) -> int:

@@ -12,8 +12,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from live import LiveServer
 
+from harness.live import LiveServer
 from service.security import Role
 
 README = Path(__file__).resolve().parent.parent / "README.md"

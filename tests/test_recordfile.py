@@ -12,10 +12,10 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-from api_helpers import npz_bytes
-from conftest import SILVERBOX_SHA256
-from npz_bombs import bomb_member, bomb_npz, cut_off_header_npz, npy, npy_header, stored, zip_archive
 
+from harness.api_helpers import npz_bytes
+from harness.npz_bombs import bomb_member, bomb_npz, cut_off_header_npz, npy, npy_header, stored, zip_archive
+from harness.prerequisites import SILVERBOX_SHA256
 from models.errors import InputError
 from recordfiles.conditions import MAX_CONDITIONS, Condition
 from recordfiles.reader import (

@@ -23,21 +23,12 @@ from pathlib import Path
 
 import httpx
 import pytest
-from api_helpers import API, Org, clients, create_structure, detail, json_body, post_record, wait_for
-from dashboard_helpers import DASHBOARD, logged_in
 from sqlalchemy import Engine, insert, select
 from sqlalchemy.orm import Session, sessionmaker
-from test_fleet_scale import (
-    FUTURE,
-    STATUSES,
-    Fleet,
-    counted,
-    fleet_server,  # noqa: F401  (the fixture ``site`` is built on)
-    kept,
-    scraped,
-    walked,
-)
 
+from harness.api_helpers import API, Org, clients, create_structure, detail, json_body, post_record, wait_for
+from harness.dashboard_helpers import DASHBOARD, logged_in
+from harness.fleet import FUTURE, STATUSES, Fleet, counted, kept, scraped, walked
 from models.inspection import ModeResult
 from service.db import session_factory, transaction
 from service.domain import fleet, retention
@@ -69,7 +60,7 @@ class Site:
 
 
 @pytest.fixture(scope="module")
-def site(fleet_server: Fleet) -> Site:  # noqa: F811  (the fixture imported above)
+def site(fleet_server: Fleet) -> Site:
     """A server of its own per database, as ``test_fleet_scale``'s, with the test's sessions on it."""
     url = fleet_server.engine.url.render_as_string(hide_password=False)
     return Site(fleet_server, url, session_factory(fleet_server.engine))

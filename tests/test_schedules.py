@@ -10,7 +10,9 @@ import uuid
 from pathlib import Path
 
 import pytest
-from api_helpers import (
+from sqlalchemy import func, select, text, update
+
+from harness.api_helpers import (
     API,
     Org,
     clients,
@@ -22,11 +24,9 @@ from api_helpers import (
     verdicts,
     wait_for,
 )
-from job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
-from live import LiveServer
-from sqlalchemy import func, select, text, update
-from workers import workers
-
+from harness.job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
+from harness.live import LiveServer
+from harness.workers import workers
 from models.signals import minimum_samples
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
@@ -330,7 +330,7 @@ def test_only_admins_change_schedules(tenant):
 def empty_database(request, tmp_path: Path) -> str:
     if request.param == "sqlite":
         return f"sqlite:///{tmp_path / 'three.db'}"
-    import postgres
+    from harness import postgres
 
     return postgres.create_database(request.getfixturevalue("postgres_url"), f"three_{uuid.uuid4().hex[:12]}")
 

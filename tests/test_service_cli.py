@@ -20,10 +20,10 @@ from pathlib import Path
 import httpx
 import pytest
 from cryptography.fernet import Fernet
-from live import free_port, wait_until_serving
 from sqlalchemy import insert, select
-from test_cli import invoke
 
+from harness.cli import invoke
+from harness.live import free_port, wait_until_serving
 from service.config import get_settings
 from service.db import make_engine
 from service.migrate import upgrade_database

@@ -23,8 +23,8 @@ import pytest
 import scipy.linalg
 import scipy.optimize
 import scipy.signal
-from live import free_port
 
+from harness.live import free_port
 from models.errors import InputError
 from recordfiles.reader import Layout, read_record
 from simulator.chain import ChainParameters, ChainScenario, integrate, simulate_chain

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from api_helpers import RIG_TERMS
-from live import LiveServer, Tenant, free_port
 
+from harness.api_helpers import RIG_TERMS
+from harness.live import LiveServer, Tenant, free_port
 from recordfiles.reader import read_record
 from service.cli.modelfiles import read_manifest
 from service.security import Role

@@ -18,7 +18,9 @@ from dataclasses import dataclass
 import httpx
 import numpy as np
 import pytest
-from api_helpers import (
+from sqlalchemy import select
+
+from harness.api_helpers import (
     API,
     FS,
     Org,
@@ -36,10 +38,8 @@ from api_helpers import (
     verdicts_of,
     wait_for,
 )
-from live import LiveServer
-from npz_bombs import bomb_npz, cut_off_header_npz
-from sqlalchemy import select
-
+from harness.live import LiveServer
+from harness.npz_bombs import bomb_npz, cut_off_header_npz
 from models.signals import magnitude_limit, minimum_samples
 from service.tables import Verdict
 

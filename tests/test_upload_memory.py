@@ -28,11 +28,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from api_helpers import API, create_structure, csv_text, noise
-from live import LiveServer, free_port, http_client, wait_until_serving
-from test_cli import NARXWATCH
-from test_lifecycle import time_victim
 
+from harness.api_helpers import API, create_structure, csv_text, noise, time_victim
+from harness.cli import NARXWATCH
+from harness.live import LiveServer, free_port, http_client, wait_until_serving
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.security import Role, create_key
@@ -135,7 +134,7 @@ def served(attack: Attack, tmp_path: Path, request) -> Iterator[Served]:
     if attack.database == "sqlite":
         database_url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
     else:
-        import postgres
+        from harness import postgres
 
         name = f"narxwatch_memory_{uuid.uuid4().hex[:8]}"
         database_url = postgres.create_database(request.getfixturevalue("postgres_url"), name)
@@ -194,7 +193,7 @@ def test_wide_headers_at_once_are_refused_within_bounded_memory(served: Served, 
     async def scenario() -> tuple[list[tuple[int, float]], list[tuple[float, int | None]]]:
         async with httpx.AsyncClient(base_url=served.url, headers=headers, timeout=120) as client:
             uploads = [asyncio.create_task(upload(client, path, body)) for _ in range(UPLOADS)]
-            timings = await time_victim(served, uploads, VICTIM_FLOOR)
+            timings = await time_victim(served.url, served.victim, uploads, VICTIM_FLOOR)
             return list(await asyncio.gather(*uploads)), timings
 
     # Each worker process warmed up first (its first upload and read import and connect): the

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from api_helpers import (
+
+from harness.api_helpers import (
     CUSUM_TRAINING_K,
     Org,
     create_structure,
@@ -23,7 +24,7 @@ from api_helpers import (
     upload_simulated,
     verdicts,
 )
-from live import LiveServer, http_client
+from harness.live import LiveServer, http_client
 
 DASHBOARD = "/dashboard"
 COOKIE = "narxwatch_session"

@@ -8,9 +8,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from api_helpers import API, Org, clients, create_structure, post_record, stored
-from live import LiveServer
 
+from harness.api_helpers import API, Org, clients, create_structure, post_record, stored
+from harness.live import LiveServer
 from simulator.chain import ChainParameters, ChainScenario, simulate_chain
 from simulator.options import DAMPING, MASS, STIFFNESS
 

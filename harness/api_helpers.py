@@ -7,6 +7,7 @@ Everything goes through the API of a :class:`live.LiveServer`; nothing here touc
 from __future__ import annotations
 
 import ast
+import asyncio
 import io
 import itertools
 import json
@@ -21,8 +22,8 @@ from typing import Any
 
 import httpx
 import numpy as np
-from live import LiveServer
 
+from harness.live import LiveServer
 from service.security import Role
 from simulator.simulate import SimulatedRecord, simulate
 from simulator.study import StudySettings
@@ -82,6 +83,16 @@ def npz_bytes(**arrays: Any) -> bytes:
 def csv_text(x: np.ndarray, y: np.ndarray, fs: float | None = FS) -> str:
     head = f"# fs={fs:g}\n" if fs is not None else ""
     return head + "x,y\n" + "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(x, y, strict=True))
+
+
+def record_set_csv(records: int, samples: int, seed: int) -> str:
+    """A CSV of ``records`` realisations side by side: the groups x and y, as Wiener–Hammerstein's
+    files hold theirs."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.standard_normal((2, samples, records)) * 1e-3
+    header = ",".join(["x"] + [""] * (records - 1) + ["y"] + [""] * (records - 1))
+    rows = (",".join(f"{v:.9g}" for v in (*xs, *ys)) for xs, ys in zip(x, y, strict=True))
+    return "\n".join([header, *rows])
 
 
 def raw_json(document: Any) -> bytes:
@@ -187,6 +198,27 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str) -> obje
             return value
         time.sleep(0.1)
     raise AssertionError(f"{what}: not within {timeout} s")
+
+
+async def time_victim(
+    url: str, victim: str, slow: list[asyncio.Task], at_least: float = 0.0
+) -> list[tuple[float, int | None]]:
+    """``GET /structures`` of another organisation (its key ``victim``), one after another while the
+    slow uploads last (and ``at_least`` seconds in all, so that requests refused quickly still leave
+    enough timings)."""
+    timings: list[tuple[float, int | None]] = []
+    headers = {"Authorization": f"Bearer {victim}"}
+    until = time.monotonic() + at_least
+    async with httpx.AsyncClient(base_url=url, headers=headers, timeout=10) as client:
+        await asyncio.sleep(0.5)  # every slow client has sent its headers and its first bytes
+        while not all(task.done() for task in slow) or time.monotonic() < until:
+            started = time.monotonic()
+            try:
+                status: int | None = (await client.get(f"{API}/structures")).status_code
+            except httpx.TimeoutException:
+                status = None
+            timings.append((time.monotonic() - started, status))
+    return timings
 
 
 def detail(response: httpx.Response) -> str:

@@ -9,7 +9,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from test_cli import NARXWATCH
+from harness.cli import NARXWATCH
 
 
 class Worker:

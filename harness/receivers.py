@@ -22,7 +22,8 @@ from typing import Any
 import trustme
 from aiosmtpd.controller import Controller
 from aiosmtpd.smtp import SMTP, Envelope, Session
-from live import free_port
+
+from harness.live import free_port
 
 HOST = "127.0.0.1"
 

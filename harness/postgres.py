@@ -201,7 +201,7 @@ def _start(binaries: Binaries, runner: _Runner, data: Path, log: Path, durable: 
     if durable:  # a server that is to be stopped under load keeps what it acknowledged
         settings.update(fsync="on", synchronous_commit="on", full_page_writes="on")
     with (data / "postgresql.conf").open("a") as conf:
-        conf.write("\n# throwaway test server (tests/postgres.py)\n")
+        conf.write("\n# throwaway test server (harness/postgres.py)\n")
         conf.writelines(f"{name} = {value}\n" for name, value in settings.items())
 
     # The port is free when picked but another process could take it before the server binds
@@ -236,7 +236,7 @@ def conninfo(url: str) -> str:
     """A libpq connection string for a ``postgresql+psycopg://user@host:port/db`` URL."""
     match = re.fullmatch(r"postgresql(?:\+psycopg)?://([^@/:]+)(?::[^@/]*)?@([^:/]+):(\d+)/(\w+)", url)
     if match is None:
-        raise ValueError(f"not a URL made by tests/postgres.py: {url}")
+        raise ValueError(f"not a URL made by harness/postgres.py: {url}")
     user, host, port, dbname = match.groups()
     return f"host={host} port={port} user={user} dbname={dbname}"
 
@@ -331,7 +331,7 @@ def postgres_server(database: str = DATABASE) -> Iterator[str | None]:
         yield None if server is None else server.url
 
 
-if __name__ == "__main__":  # manual check: python tests/postgres.py
+if __name__ == "__main__":  # manual check: python -m harness.postgres
     started = time.perf_counter()
     with postgres_server() as server_url:
         print(f"{server_url} up in {time.perf_counter() - started:.2f} s")

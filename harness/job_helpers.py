@@ -9,10 +9,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from api_helpers import TRAINING_K, simulated
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from harness.api_helpers import TRAINING_K, simulated
 from models.signals import checked_record, minimum_samples
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
@@ -36,7 +36,7 @@ def database_url(kind: str, tmp_path: Path, request: pytest.FixtureRequest) -> s
     """A new empty database: a SQLite file, or a database on the session's PostgreSQL server."""
     if kind == "sqlite":
         return f"sqlite:///{tmp_path / 'monitored.db'}"
-    import postgres
+    from harness import postgres
 
     return postgres.create_database(request.getfixturevalue("postgres_url"), f"jobs_{uuid.uuid4().hex[:12]}")
 
