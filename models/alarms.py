@@ -171,9 +171,13 @@ def _arl_nystrom(h: float, r: float, mu: float) -> float:
     A[:, :-1] = -stats.norm.pdf(x[None, :] - u[:, None] + shift) * w[None, :]
     A[:, -1] = -stats.norm.cdf(shift - u)  # the step to or below zero resets the chart
     A[np.arange(u.size), np.arange(u.size)] += 1.0
-    L = np.linalg.solve(A, np.ones(u.size))[-1]
-    # I − K is singular to working precision once L(0) nears 1/eps: such a chart never alarms
-    # in any service's lifetime, and its rate 1/ARL is zero to the precision anything here needs.
+    # I − K is singular to working precision once L(0) nears 1/eps, or exactly (the solve then
+    # refuses): such a chart never alarms in any service's lifetime, and its rate 1/ARL is zero to
+    # the precision anything here needs.
+    try:
+        L = np.linalg.solve(A, np.ones(u.size))[-1]
+    except np.linalg.LinAlgError:
+        return np.inf
     return L if np.isfinite(L) and 0 < L < NEVER else np.inf
 
 

@@ -249,6 +249,9 @@ def test_run_lengths_beyond_resolution_are_never_not_garbage():
     # precision and a plain solve returns a negative number.
     assert one_sided_arl(46.0, 0.5, 0.0) == np.inf
     assert two_sided_arl(100.0, 1.0, 0.3) == np.inf
+    # Exactly singular, not only to working precision: a large reference and common share (the
+    # stateful fuzz's alarm rules found it, as a 500 from an inspection).
+    assert in_control_arl(16.0, 10.0, 0.9) == np.inf
     # Long intervals get nodes enough: ARL at μ = 1.1 against r = 1 grows linearly with h.
     assert one_sided_arl(60.0, 1.0, 1.1) == pytest.approx(siegmund_arl(60.0, 1.0, 1.1), rel=0.01)
     with pytest.raises(InputError, match="beyond any service"):
