@@ -19,7 +19,6 @@ import pytest
 from harness.prerequisites import benchmark_file
 from models.effects import linear_terms
 from models.refinement import refine, refine_record
-from models.validation import validate
 from recordfiles.reader import parse_silverbox
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
@@ -86,30 +85,15 @@ def test_refinement_loop_on_100_000_samples(benchmark) -> None:
 @pytest.mark.benchmark(group="refine: 100 clean records (no effect added in >= 95)")
 def test_on_100_clean_records_no_effect_is_added_in_at_least_95(benchmark) -> None:
     """SPEC §2's structure on 100 records of the rig as it is (800 N unmeasured force, 8000
-    samples each): the loop must leave at least 95 alone (tests/test_refinement.py runs 20), and
-    no model it adds to may run free worse than the declared one over the next 4000 samples."""
-    added, worse = benchmark.pedantic(clean_records, args=(100,), rounds=1, iterations=1)
+    samples each): the loop must leave at least 95 alone (tests/test_refinement.py runs 20)."""
+
+    def count_added() -> int:
+        added = 0
+        for seed in range(100):
+            record = simulate(Scenario(disturbance_std=800.0), 12_000, seed=1000 + seed)
+            added += bool(refine([(record.x[:8000], record.y[:8000])], EXACT_TERMS).effects_added)
+        return added
+
+    added = benchmark.pedantic(count_added, rounds=1, iterations=1)
     benchmark.extra_info["records_with_an_effect_added"] = added
-    benchmark.extra_info["records_refined_worse"] = worse
     assert added <= 5, f"an effect was added to {added} of 100 clean records"
-    assert worse == 0, f"on {worse} records the model with effects ran free worse over the next samples"
-
-
-def clean_records(records: int, declared: tuple | None = EXACT_TERMS) -> tuple[int, int]:
-    """On ``records`` clean records of the rig (seeds 1000 …), refined on 8000 samples from
-    ``declared`` (None: the linear orders the loop chooses): how many the loop added an effect to,
-    and on how many of those the refined model ran free worse (or diverged) than the declared one
-    over the next 4000 samples, which no part of the loop saw. A smaller study:
-    ``python -c "from bench.test_bench_refine import clean_records; print(clean_records(10))"``."""
-    added = worse = 0
-    for seed in range(records):
-        record = simulate(Scenario(disturbance_std=800.0), 12_000, seed=1000 + seed)
-        result = refine([(record.x[:8000], record.y[:8000])], declared)
-        if result.effects_added:
-            added += 1
-            before, after = (
-                validate(model, [(record.x[8000:], record.y[8000:])]).free_run.rms
-                for model in (result.declared, result.refined)
-            )
-            worse += not after < before
-    return added, worse

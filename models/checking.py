@@ -16,7 +16,6 @@ from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
-from scipy import stats
 
 from models.errors import InputError
 from models.narx import NARX
@@ -39,12 +38,6 @@ MIN_BLOCK = 200  # samples of the shortest block; shorter records get fewer bloc
 # family searched longer than the model it is compared with "gains" by the extra evaluations alone.
 CHECK_EVALUATIONS = 30
 SETTLED_EVALUATIONS = 400
-# A paired comparison of two free runs (:func:`paired_gain`) cuts their errors into at most this
-# many blocks of at least COMPARISON_SAMPLES each: enough blocks for the spread of their
-# differences to be estimated, each long enough that the free run's correlated errors stay mostly
-# within one block.
-COMPARISON_BLOCKS = 20
-COMPARISON_SAMPLES = 50
 
 Segments = list[tuple[np.ndarray, np.ndarray, int]]  # (x, y, first sample's index in its record)
 
@@ -166,13 +159,6 @@ class CheckSplit:
             self._settled.add(structure)
         return self.error(structure, tuned=True)
 
-    def block_squares(self, structure: Structure, tuned: bool = False) -> np.ndarray:
-        """The check parts' free-run mean square, block by block (:func:`block_squares`), of the
-        model :meth:`error` judged; infinite where that figure is."""
-        if not np.isfinite(self.error(structure, tuned)):
-            return np.full(comparison_blocks(self.check), np.inf)
-        return block_squares(self.tuned(structure) if tuned else self.fitted(structure), self.check)
-
     def _judge(self, structure: Structure, tuned: bool) -> float:
         try:
             model = self.tuned(structure) if tuned else self.fitted(structure)
@@ -286,79 +272,16 @@ def checked_whole(records: Records, fold: int = 1) -> Records:
 def free_run_rms(model: NARX, segments: Segments) -> float:
     """Free-run RMS of ``model`` over ``segments``, each run started from its first measured
     outputs; infinite when a run diverges or no segment is longer than the model's lags."""
-    error = free_run_errors(model, segments)
-    rms = np.sqrt(error @ error / error.size) if error.size else np.inf
-    return float(rms) if np.isfinite(rms) else np.inf
-
-
-def free_run_errors(model: NARX, segments: Segments) -> np.ndarray:
-    """The free-run errors of ``model`` over ``segments`` one after the other, each run started
-    from its first measured outputs (samples L … of each, L the model's largest lag)."""
     L = model.max_lag
-    runs = [(FreeRun.build(model.terms, x, t0), y) for x, y, t0 in segments if len(y) > L]
-    return np.concatenate([np.empty(0)] + [model.run_free(run, y)[L:] - y[L:] for run, y in runs])
-
-
-def comparison_blocks(segments: Segments) -> int:
-    """How many blocks a paired comparison over ``segments`` cuts their errors into."""
-    samples = sum(len(y) for _, y, _ in segments)
-    return int(np.clip(samples // COMPARISON_SAMPLES, 3, COMPARISON_BLOCKS))
-
-
-def block_squares(model: NARX, segments: Segments) -> np.ndarray:
-    """``model``'s free-run errors over ``segments`` (:func:`free_run_errors`) cut into
-    :func:`comparison_blocks` contiguous blocks, each block's mean square; all infinite when a
-    run diverges. Two models' blocks hold the same samples when their largest lags agree; where
-    they do not, the few samples a longer lag skips shift the edges a little, alike for both."""
-    error = free_run_errors(model, segments)
-    blocks = comparison_blocks(segments)
-    if error.size < blocks or not np.all(np.isfinite(error)):
-        return np.full(blocks, np.inf)
-    return np.array([float(np.mean(part**2)) for part in np.array_split(error, blocks)])
-
-
-@dataclass(frozen=True)
-class Gain:
-    """A paired comparison of two free runs over the same blocks (:func:`paired_gain`).
-
-    ``gain`` is the fall of the blocks' mean square (their ratios' geometric mean) as a share of
-    the first's; ``threshold`` the share it must exceed to count, having been the best of
-    ``tried`` comparisons; ``diverged`` says the second's free run diverged (its gain is −∞)."""
-
-    gain: float
-    threshold: float
-    tried: int
-    diverged: bool = False
-
-    @property
-    def passed(self) -> bool:
-        return self.gain > self.threshold
-
-
-def paired_gain(before: np.ndarray, after: np.ndarray, tried: int, alpha: float) -> Gain:
-    """Whether the free run whose block mean squares are ``after`` is better than ``before``'s
-    beyond their uncertainty, having been chosen as the best of ``tried`` candidates.
-
-    Each block gives the log ratio d_k = ln(before_k / after_k); the K blocks are taken as
-    independent (long beside the free run's memory). Log ratios, not differences of squares: a
-    free run's error is heavy-tailed across blocks (a few where the excitation is large hold most
-    of it), and a difference of squares is then dominated by those few, a ratio is not. Under "no
-    better" the mean of d over its standard error is Student's t with K − 1 degrees of freedom;
-    the best of ``tried`` candidates shows the largest of ``tried`` such figures, so the level is
-    Bonferroni's α / m (m = ``tried``), and the mean must exceed t_{K−1}(1 − α/m) standard errors.
-    Both sides are reported as shares of the mean square, gain 1 − exp(−mean d) and threshold
-    1 − exp(−t·SE): the threshold grows with the candidates tried and the spread across blocks.
-    """
-    tried = max(int(tried), 1)
-    if not np.all(np.isfinite(after)):
-        return Gain(-np.inf, np.inf, tried, diverged=True)
-    if not np.all(np.isfinite(before)):
-        return Gain(1.0, 0.0, tried)
-    tiny = np.finfo(np.float64).tiny
-    ratio = np.log(np.maximum(before, tiny) / np.maximum(after, tiny))
-    error = float(np.std(ratio, ddof=1) / np.sqrt(ratio.size))
-    quantile = float(stats.t.ppf(1 - alpha / tried, ratio.size - 1))
-    return Gain(float(-np.expm1(-np.mean(ratio))), float(-np.expm1(-quantile * error)), tried)
+    squares, count = 0.0, 0
+    for x, y, t0 in segments:
+        if len(y) <= L:
+            continue
+        error = model.run_free(FreeRun.build(model.terms, x, t0), y)[L:] - y[L:]
+        squares += float(error @ error)
+        count += error.size
+    rms = np.sqrt(squares / count) if count else np.inf
+    return float(rms) if np.isfinite(rms) else np.inf
 
 
 def grown_by_zeros(model: NARX, structure: NARX) -> NARX:

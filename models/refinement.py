@@ -11,10 +11,9 @@ loop chooses), each round
 3. checks the significant effects, best first, on the **simulation error**: the model with the
    effect is fitted on part of the estimation data and run free over the rest (the check
    blocks, each free run started from its first measured outputs). The first effect that lowers
-   that free run by more than its standard error (:func:`models.checking.check_noise`) and by more
-   than the round's threshold (below) is added — decided by the one-step criterion;
-   moving-average noise, which is there to unbias the parameters, need only not make it worse
-   beyond that standard error;
+   that free run by more than its standard error (:func:`models.checking.check_noise`; moving-average noise,
+   which is there to unbias the parameters, need only not make it worse) is added — decided by
+   the one-step criterion;
 4. if no effect is significant on e (on slow, finely sampled data the one-step residual carries
    little of the simulation error), or every significant one made the free run worse, each
    family's regressors are tried in the order of their error reduction, and the family whose
@@ -35,23 +34,6 @@ checked records falls by ``FOLD_GAIN`` on all three, the one that falls most on 
 the rounds above add nothing that lasts: least squares ranks the families there, and every
 cubic-stiffness model it fits diverges; grown from the settled linear model, cubic stiffness
 gains 8–29 % on every fold.)
-
-**Selection that survives many comparisons.** A round compares many structures on the same check
-blocks, and the best of many gains by chance: every family is added only when its gain also
-passes a paired comparison over the blocks of all three rotations of the check split (each part
-of the estimation data checked once) whose threshold grows with the number of structures
-compared — Student's t at the Bonferroni level α/m on the blocks' log ratios of free-run mean
-square (:func:`models.checking.paired_gain`). After each addition every term, of that family or
-an earlier one but not the start's, whose removal leaves the check blocks' free run within its
-noise is pruned (:func:`_pruned`, Piroddi & Spinelli's pruning). Each round reports the candidate
-terms on offer, the structures compared, the best one's gain, the threshold and what was pruned.
-
-**Never worse.** The last ``HELD_OUT_SHARE`` of each estimation record is held out from every
-choice (orders, effects, estimator): the loop runs on the rest, and the refined model is returned
-only when its free run over those tails is better than the start's beyond its uncertainty;
-otherwise the start is returned, every round counts as withdrawn, and the report names the best
-effect tried (:func:`refine`). Records too short to hold a tail out are refined whole, and the
-report says the effects were not compared on data no choice saw.
 
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
@@ -88,16 +70,12 @@ from models.checking import (
     MIN_BLOCK,
     SETTLED_EVALUATIONS,
     CheckSplit,
-    Gain,
     Segments,
     Structure,
-    block_squares,
     by_output_error,
     check_noise,
     checked_whole,
-    free_run_rms,
     grown_by_zeros,
-    paired_gain,
 )
 from models.coverage import Coverage, coverage
 from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
@@ -140,19 +118,6 @@ INPUT_SHARE = 0.1
 JUDGED_AT_ONCE = 2
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
-# The share of each estimation record, at its end, that no choice of the loop sees: the refined
-# model and the start are fitted without it and compared on it (:func:`refine`). Held out only
-# where each record's tail is a block or more (records of 5·MIN_BLOCK samples), so that the
-# comparison has the blocks it needs and what is left keeps its check split.
-HELD_OUT_SHARE = 0.2
-# The level of that comparison, one-sided: a single comparison, made once, after the choices.
-HELD_OUT_ALPHA = 0.05
-# The level at which a round's best structure must beat the current one on the check split's
-# rotations, shared among the structures it was the best of (:func:`_gain`): a round adds an
-# effect to a model that lacks none with probability 5 % at most, as the loop must leave 95 of
-# 100 clean records alone. (At the loop's 1 % the rig's own cubic spring was missed on short
-# records, where the free run's gain varies much from block to block.)
-GAIN_ALPHA = 0.05
 
 Criterion = Literal["one-step", "simulation", "simulation across folds"]
 
@@ -167,9 +132,6 @@ class Round:
     "simulation across folds" (its settled output-error model lowered the free run over the
     checked records of each of three folds by at least ``FOLD_GAIN``); ``check_rms`` is the check
     blocks' free-run RMS before and after the round (by output error, settled, across folds).
-    Whatever the criterion, an effect other than moving-average noise is added only when its
-    ``gain`` over the check split's rotations exceeds the ``threshold`` for the ``tried``
-    structures compared (:func:`models.checking.paired_gain`).
     """
 
     residual_rms: float
@@ -182,44 +144,6 @@ class Round:
     # Significant effects passed over, best first, because adding them did not lower the model's
     # free run over the check blocks by more than its standard error (or made it diverge).
     rejected: tuple[str, ...] = ()
-    # The paired comparison on the check blocks (models.checking.paired_gain) of the candidate
-    # ``best`` names (the effect added, or else the best judged) with the model before: its gain
-    # and the threshold for the round's candidates, both as shares of the mean square before.
-    best: str | None = None
-    gain: float = np.nan
-    threshold: float = np.nan
-    tried: int = 0  # the structures the threshold accounts for
-    # The terms taken out after the addition: the model simulates the check blocks as well
-    # without them (:func:`_pruned`).
-    pruned: tuple[str, ...] = ()
-
-    def judged(self, name: str, gain: Gain) -> Round:
-        """This round with ``name``'s comparison: the effect added, or while none is, the one of
-        the largest gain judged."""
-        if self.added is None and self.best is not None and not gain.gain > self.gain:
-            return self
-        return replace(self, best=name, gain=gain.gain, threshold=gain.threshold, tried=gain.tried)
-
-
-@dataclass(frozen=True)
-class HeldOut:
-    """The refined model and the start compared on the held-out tails of the estimation records,
-    which no choice of the loop saw: both free-run RMS figures (the refined one infinite where it
-    diverged), the paired comparison over blocks (:func:`models.checking.paired_gain`, one
-    comparison), and whether the refined model was returned (``kept``); ``best_tried`` names
-    the effect that gained most on the check blocks, when the start was returned instead."""
-
-    samples: int
-    start_rms: float
-    refined_rms: float
-    gain: Gain
-    kept: bool
-    best_tried: str | None = None
-
-
-# An effect a round adds: its score, what decided it, the structure with it, the check blocks'
-# free-run RMS of that structure's least-squares fit and its paired gain there.
-Decision = tuple[EffectScore, Criterion, Structure, float, Gain]
 
 
 @dataclass(frozen=True)
@@ -235,9 +159,7 @@ class Refinement:
     rounds after them were decided across folds. ``check_rms`` is the refined structure's
     free-run RMS over the check blocks, its parameters by ``estimator`` fitted on the fit blocks;
     ``noise_floor`` the noise between the checked records' periods when they repeat their
-    excitation (None otherwise): the least any model's free run over them can leave. ``held_out``
-    is the comparison with the start on the records' held-out tails (None where the records were
-    too short to hold them out); where the start was returned, every round counts as withdrawn.
+    excitation (None otherwise): the least any model's free run over them can leave.
     """
 
     declared: NARX
@@ -249,7 +171,6 @@ class Refinement:
     withdrawn: int = 0
     check_rms: float = np.inf
     noise_floor: PeriodNoise | None = None
-    held_out: HeldOut | None = None
 
     @property
     def kept(self) -> tuple[Round, ...]:
@@ -298,10 +219,8 @@ class RefinementReport:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible: effects added in order with their evidence and the criterion that
-        decided each, every round's selection (candidates, threshold, gain, terms pruned), the
-        comparison with the start on the held-out tails, errors before and after on every test
-        record, and both models' terms and parameters. Non-finite numbers (a diverged free run)
-        become None."""
+        decided each, errors before and after on every test record, and both models' terms and
+        parameters. Non-finite numbers (a diverged free run) become None."""
         result = self.refinement
         return {
             "declared": _model_dict(result.declared),
@@ -321,17 +240,12 @@ class RefinementReport:
                         "level": step.level,
                         "candidate_terms": step.candidates,
                         "check_free_run_rms": [_finite(value) for value in step.check_rms],
-                        "gain": _finite(step.gain),
-                        "threshold": _finite(step.threshold),
                     },
-                    "pruned": list(step.pruned),
                 }
                 for step in result.kept
                 if (score := step.added) is not None
             ],
             "effects_withdrawn": list(result.effects_withdrawn),
-            "rounds": [_round_dict(step) for step in result.rounds],
-            "held_out": None if result.held_out is None else _held_out_dict(result.held_out),
             "check_free_run_rms": _finite(result.check_rms),
             "noise_floor": None
             if (floor := result.noise_floor) is None
@@ -349,59 +263,8 @@ class RefinementReport:
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
-            "notes": list(self.notes) + _held_out_notes(result) + _skipped_notes(self.tests),
+            "notes": list(self.notes) + _skipped_notes(self.tests),
         }
-
-
-def _round_dict(step: Round) -> dict[str, Any]:
-    """A round's selection: what was on offer, the best judged against the threshold its number
-    of comparisons sets, and what was added and pruned."""
-    return {
-        "decided_by": step.criterion,
-        "candidate_terms": step.candidates,
-        "structures_judged": step.tried,
-        "best": step.best,
-        "gain": _finite(step.gain),
-        "threshold": _finite(step.threshold),
-        "added": None if step.added is None else step.added.name,
-        "pruned": list(step.pruned),
-        "rejected": list(step.rejected),
-    }
-
-
-def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
-    return {
-        "samples": held_out.samples,
-        "start_free_run_rms": _finite(held_out.start_rms),
-        "refined_free_run_rms": _finite(held_out.refined_rms),
-        "gain": _finite(held_out.gain.gain),
-        "threshold": _finite(held_out.gain.threshold),
-        "diverged": held_out.gain.diverged,
-        "refined_returned": held_out.kept,
-        "best_tried": held_out.best_tried,
-    }
-
-
-def _held_out_notes(result: Refinement) -> list[str]:
-    """What the report says when the effects added were not compared with the start on data no
-    choice saw, or were and lost."""
-    held_out = result.held_out
-    if held_out is None:
-        if not result.effects_added:
-            return []
-        return [
-            "the estimation records are too short to hold a tail out: the effects added were not "
-            "compared with the start on data no choice of the loop saw"
-        ]
-    if held_out.kept:
-        return []
-    refined = "diverged" if held_out.gain.diverged else f"{held_out.refined_rms:.4g}"
-    return [
-        f"the data could not support the effects: over the held-out tails ({held_out.samples} samples "
-        f"no choice saw) the refined model ran free at {refined} against the start's "
-        f"{held_out.start_rms:.4g}, not better beyond its uncertainty; the start is returned "
-        f"(the best effect tried: {held_out.best_tried})"
-    ]
 
 
 def _skipped_notes(tests: Sequence[Comparison]) -> list[str]:
@@ -662,154 +525,13 @@ def refine(
     the check parts, the output-error searches not needed one after the other; ``threads``, a map
     over threads of this process, test each round's families (:func:`score_effects`). The
     refinement is the same whichever.
-
-    Where the records are long enough, the last ``HELD_OUT_SHARE`` of each is held out from every
-    choice: the loop runs on the rest, and the model it refines is returned only when its free
-    run over those tails is better than the start's beyond its uncertainty (one paired comparison
-    over blocks, :func:`models.checking.paired_gain`); otherwise the start is returned, its effects
-    counted as withdrawn, and ``held_out`` names the best effect tried. The check blocks chose the
-    effects among many candidates, and a gain chosen as the best of many is biased upward: only data
-    no choice saw tell whether it carries over. The structure so judged has its parameters
-    estimated again on all the records (:func:`_on_all`).
     """
     tell = _told(progress)
     if not 0 < alpha < 1:
         raise InputError(f"alpha must lie in (0, 1), got {alpha}")
     records = [(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)) for x, y in records]
-    grow = partial(
-        _grown,
-        declared=declared,
-        effects=effects,
-        alpha=alpha,
-        max_rounds=max_rounds,
-        output_error=output_error,
-        tell=tell,
-        workers=workers,
-        threads=threads,
-    )
-    if min(len(y) for _, y in records) * HELD_OUT_SHARE < MIN_BLOCK:
-        return grow(records)[0]
-    cuts = [len(y) - int(len(y) * HELD_OUT_SHARE) for _, y in records]
-    heads = [(x[:cut], y[:cut]) for (x, y), cut in zip(records, cuts, strict=True)]
-    try:
-        result, start, folded = grow(heads)
-    except InputError:
-        # Too few equations for the candidates once the tails are held out: refined on all of it,
-        # with nothing to compare on (the report says so).
-        return grow(records)[0]
-    tails: Segments = [(x[cut:], y[cut:], cut) for (x, y), cut in zip(records, cuts, strict=True)]
-    tell("the refined model and the start on the held-out tails")
-    return _on_all(_judged_on(tails, result, start), folded, records, tell, threads)
-
-
-def _on_all(
-    result: Refinement, folded: Folded | None, records: Records, tell: Stage, threads: Workers
-) -> Refinement:
-    """``result`` with its models' parameters estimated again on all the ``records``, held-out
-    tails too, as the loop estimated them on the rest: the tails judged the structure and its
-    estimator, and the parameters gain from every sample (where the start was returned, its
-    structure is the declared one and ``folded`` goes unused). The declared model by least squares;
-    the refined one by its estimator: by output error from least squares where the structure is
-    the declared one; as the folds judged it where families were grown across folds (``folded``:
-    the structure before them and each grown, :func:`_as_the_folds_judged`); otherwise from the
-    best simulating of its least-squares fit, the parameters the loop found and the declared
-    output-error fit grown by zeros. Kept where it comes to rest, else the loop's own. The noise
-    floor is read on the whole records too."""
-    model = result.refined
-    limits = model.output_limits
-    saturating = None if limits is None else (limits, model.saturation)
-    structure = Structure(model.terms, result.noise.size, saturating)
-    declared_structure = Structure(result.declared.terms)
-    declared, _ = _fitted_on_all(records, declared_structure)
-    refined, noise = _fitted_on_all(records, structure)
-    if result.estimator == "output error":
-        tell("output-error fit on all the records")
-        everything: Segments = [(x, y, 0) for x, y in records]
-        declared_tuned = by_output_error(declared, everything, SETTLED_EVALUATIONS, threads)
-        if structure == declared_structure:
-            refined = declared_tuned
-        elif folded is not None:
-            before, grown = folded
-            refined = _as_the_folds_judged(
-                records, before, grown, declared_structure, declared_tuned, threads
-            )
-        else:
-            starts = [refined, replace(refined, theta=model.theta), grown_by_zeros(declared_tuned, refined)]
-            first = min(starts, key=lambda each: _restless_then_rms(free_run_at_rest(each, records)))
-            refined = by_output_error(first, everything, SETTLED_EVALUATIONS, threads)
-        if not comes_to_rest(refined, records):
-            refined, noise = model, result.noise
-    # The noise between periods is the data's, not a choice: read on the whole of the checked
-    # records, whose periods a tail cut off would leave incomplete.
-    floor = pooled_period_noise(checked_whole(records))
-    return replace(result, declared=declared, refined=refined, noise=noise, noise_floor=floor)
-
-
-# The structure the loop grew across folds from, and each it grew (:func:`_as_the_folds_judged`).
-Folded = tuple[Structure, tuple[Structure, ...]]
-
-
-# The model the loop starts from, fitted as the refined model is when nothing is added: the model,
-# its estimator, and its free-run RMS over the check blocks.
-Start = tuple[NARX, Literal["least squares", "output error"], float]
-
-
-def _judged_on(tails: Segments, result: Refinement, start: Start) -> Refinement:
-    """``result`` with the comparison of its refined model and the ``start`` on the held-out
-    ``tails``; the start instead, its effects withdrawn, when the refined model is not better
-    there beyond the uncertainty of the comparison."""
-    model, estimator, check = start
-    gain = paired_gain(block_squares(model, tails), block_squares(result.refined, tails), 1, HELD_OUT_ALPHA)
-    held_out = HeldOut(
-        sum(len(y) for _, y, _ in tails),
-        free_run_rms(model, tails),
-        free_run_rms(result.refined, tails),
-        gain,
-        kept=True,
-    )
-    refined = result.refined
-    # Moving-average noise alone, there to unbias the parameters, leaves the process structure
-    # as it was: it need only not make the free run worse.
-    noise_only = refined.terms == model.terms and refined.output_limits == model.output_limits
-    not_worse = noise_only and not gain.diverged and gain.gain >= -gain.threshold
-    if not result.effects_added or gain.passed or not_worse:
-        return replace(result, held_out=held_out)
-    return replace(
-        result,
-        refined=model,
-        noise=np.empty(0),
-        estimator=estimator,
-        withdrawn=len(result.rounds),
-        check_rms=check,
-        held_out=replace(held_out, kept=False, best_tried=_best_tried(result.rounds)),
-    )
-
-
-def _best_tried(rounds: Sequence[Round]) -> str | None:
-    """The effect that gained most on the check blocks in any round."""
-    judged = [step for step in rounds if step.best is not None]
-    return max(judged, key=lambda step: step.gain).best if judged else None
-
-
-def _grown(
-    records: Records,
-    declared: Sequence[str | Term] | None,
-    effects: Sequence[Effect] | None,
-    alpha: float,
-    max_rounds: int,
-    output_error: bool,
-    tell: Stage,
-    workers: Workers,
-    threads: Workers,
-) -> tuple[Refinement, Start, Folded | None]:
-    """The loop of :func:`refine` on all of ``records``, the model it starts from, and the
-    structures grown across folds (None where none was)."""
     orders = None
     checks = CheckSplit.of(records)
-    # The three rotations of the check split, each part of the estimation data checked once: an
-    # effect's gain is judged on all of them (:func:`_gain`); from three records on, they are the
-    # folds the structure is grown across.
-    rotations = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)]
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
     else:
@@ -822,11 +544,8 @@ def _grown(
     check = checks.error(current)
     margin = check_noise(checks.check)
     rounds: list[Round] = []
-    # Terms pruned are not offered again: the model simulated as well without them, and offered
-    # again they would be added and pruned in turn.
-    dropped: tuple[Term, ...] = ()
     for number in range(1, max_rounds + 1):
-        offered = unused([_follow(effect, current.terms) for effect in families], current.terms + dropped)
+        offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
         # A saturating model is not offered saturation again.
         offered = [e for e in offered if not (e.kind == "saturation" and current.saturating is not None)]
         if not offered:
@@ -845,7 +564,7 @@ def _grown(
         )
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
-        decided: Decision | None = None
+        decided: tuple[EffectScore, Criterion, Structure, float] | None = None
         significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
         for score, error, structure in _judged_in_turn(
             significant,
@@ -857,45 +576,23 @@ def _grown(
             tell,
             f"round {number}",
         ):
-            gain = _gain(rotations, current, structure, len(significant))
-            if structure.noise_lags > current.noise_lags:
-                # Moving-average noise is there to unbias the parameters: it need only not make
-                # the free run worse beyond its noise.
-                if error <= (1 + margin) * check:
-                    decided = (score, "one-step", structure, error, replace(gain, threshold=0.0))
-                    break
-            elif error <= (1 - margin) * check and gain.passed:
-                decided = (score, "one-step", structure, error, gain)
+            if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
+                decided = (score, "one-step", structure, error)
                 break
-            else:
-                step = step.judged(score.name, gain)
             rejected.append(score.name)
         if decided is None and output_error:
             tell(f"round {number}: the families on the simulation error")
             ranked = _ranked(records, current, offered, alpha, workers, threads)
-            decided = _by_simulation(offered, ranked.scores, current, rotations, workers)
+            decided = _by_simulation(offered, ranked.scores, current, checks, workers)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
-        score, criterion, structure, error, gain = decided
-        pruned: tuple[str, ...] = ()
-        if structure.terms != current.terms:
-            tell(f"round {number}: pruning")
-            grown = structure
-            structure, pruned = _pruned(terms, current, grown, checks, criterion == "simulation", workers)
-            dropped += tuple(term for term in grown.terms if term not in structure.terms)
-            error = checks.error(structure) if pruned else error
-        step = replace(
-            step,
-            added=score,
-            criterion=criterion,
-            check_rms=(check, error),
-            pruned=pruned,
-        ).judged(score.name, gain)
+        score, criterion, current, error = decided
+        step = replace(step, added=score, criterion=criterion, check_rms=(check, error))
         rounds.append(replace(step, rejected=tuple(rejected)))
-        current, check = structure, error
+        check = error
     declared_structure = Structure(terms)
-    folds = rotations if len(records) >= 3 else []
+    folds = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)] if len(records) >= 3 else []
     # The least-squares fit on all the records of the structure the rounds grew, made by a thread
     # while the workers check that structure by output error below, where this process would
     # wait (a third of a second on Silverbox's NARMAX): unless those checks change the structure,
@@ -919,7 +616,7 @@ def _grown(
     before_folds, grown_across_folds = current, []
     if output_error and folds:
         for _ in range(max_rounds):
-            offered = unused([_follow(effect, current.terms) for effect in families], current.terms + dropped)
+            offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
             scores = _ranked(records, current, offered, alpha, workers, threads)
             step = Round(
                 scores.residual_rms,
@@ -932,9 +629,9 @@ def _grown(
             found = _across_folds(offered, scores.scores, current, folds, tell, workers)
             if found is None:
                 break
-            score, current, errors, gain = found
+            score, current, errors = found
             grown_across_folds.append(current)
-            rounds.append(replace(step, added=score, check_rms=errors).judged(score.name, gain))
+            rounds.append(replace(step, added=score, check_rms=errors))
             check = checks.error(current)
     # Least squares is consistent when the noise enters the equation (a force on the structure)
     # and gives the best one-step predictor; output error when the noise is on the measured
@@ -942,9 +639,9 @@ def _grown(
     by_simulation = output_error and checks.error(current, tuned=True) < check
     ((refined, noise),) = fitted_ahead if current == by_the_rounds else [_fitted_on_all(records, current)]
     estimator: Literal["least squares", "output error"] = "least squares"
-    (declared_tuned,) = declared_search if output_error else [declared_model]
     if by_simulation:
         tell("output-error fit on all the records")
+        (declared_tuned,) = declared_search
         if current == declared_structure:
             # Nothing was added: the declared structure's output-error fit, not a second search
             # from other starts, which ends at another optimum of the same structure, better or
@@ -972,7 +669,7 @@ def _grown(
             tuned = None if found is start else found
         if tuned is not None and comes_to_rest(tuned, records):
             refined, estimator = tuned, "output error"
-    refinement = Refinement(
+    return Refinement(
         declared_model,
         refined,
         noise,
@@ -983,16 +680,6 @@ def _grown(
         checks.error(current, tuned=estimator == "output error"),
         pooled_period_noise(checked_whole(records)),
     )
-    # The start fitted as the refined model is when nothing is added (above).
-    start: Start = (declared_model, "least squares", checks.error(declared_structure))
-    if (
-        output_error
-        and declared_tuned is not declared_model
-        and checks.error(declared_structure, tuned=True) < checks.error(declared_structure)
-        and comes_to_rest(declared_tuned, records)
-    ):
-        start = (declared_tuned, "output error", checks.error(declared_structure, tuned=True))
-    return refinement, start, (before_folds, tuple(grown_across_folds)) if grown_across_folds else None
 
 
 def _ranked(
@@ -1180,16 +867,13 @@ def _by_simulation(
     offered: Sequence[Effect],
     scores: Sequence[EffectScore],
     current: Structure,
-    rotations: Sequence[CheckSplit],
+    checks: CheckSplit,
     workers: Workers,
-) -> Decision | None:
+) -> tuple[EffectScore, Criterion, Structure, float] | None:
     """The family added on the simulation error alone, if one lowers the check blocks' free
-    run enough (module docstring, step 4) and beyond the threshold for the structures judged
-    (:func:`models.checking.paired_gain`, every prefix of every family): its score
-    with the terms that won, the structure, the check blocks' free-run RMS with it (least squares,
-    as the other rounds report it) and its paired gain over the check split's ``rotations``. The
-    structures are judged by ``workers``, on the first rotation."""
-    checks = rotations[0]
+    run enough (module docstring, step 4): its score with the terms that won, the structure, and
+    the check blocks' free-run RMS with it (least squares, as the other rounds report it). The
+    structures are judged by ``workers``."""
     families = [
         (
             score,
@@ -1216,78 +900,15 @@ def _by_simulation(
     # The current structure's best simulation, whichever its parameters: its output-error fit can
     # fail to come to rest where its least-squares fit does (on unrelated white x and y the 2-DOF
     # structure's did), and against an infinite baseline any family would pass.
-    by_tuned = checks.error(current, tuned=True) < checks.error(current)
-    baseline = checks.error(current, tuned=by_tuned)
+    baseline = min(checks.error(current, tuned=True), checks.error(current))
     # Output error for the two best only: each costs a search, and a family whose least-squares
     # model is far behind does not overtake by its parameters alone.
     best = sorted(trials, key=lambda trial: trial[0])[:2]
     tuned = checks.judge([structure for *_, structure in best], workers, tuned=True)
     for (error, score, structure), tuned_error in zip(best, tuned, strict=True):
         if tuned_error <= (1 - SIMULATION_GAIN) * baseline:
-            gain = _gain(rotations, current, structure, len(grown), (by_tuned, True))
-            if gain.passed:
-                return score, "simulation", structure, error, gain
+            return score, "simulation", structure, error
     return None
-
-
-def _gain(
-    rotations: Sequence[CheckSplit],
-    current: Structure,
-    structure: Structure,
-    tried: int,
-    tuned: tuple[bool, bool] = (False, False),
-) -> Gain:
-    """The paired gain of ``structure`` over ``current`` (:func:`models.checking.paired_gain`,
-    the best of ``tried``) on the blocks of every one of the check split's ``rotations``: three
-    times the blocks of one, so that the spread of the gain across blocks is estimated on all the
-    estimation data (SEMP judges on repeated splits alike). ``tuned`` says whether each model's
-    parameters are by output error (as settled or searched before, where they were)."""
-    before, after = (
-        np.concatenate([rotation.block_squares(model, is_tuned) for rotation in rotations])
-        for model, is_tuned in zip((current, structure), tuned, strict=True)
-    )
-    return paired_gain(before, after, tried, GAIN_ALPHA)
-
-
-def _pruned(
-    start: Sequence[Term],
-    before: Structure,
-    grown: Structure,
-    checks: CheckSplit,
-    tuned: bool,
-    workers: Workers,
-) -> tuple[Structure, tuple[str, ...]]:
-    """``grown`` (``before`` with a family added) with every term taken out whose removal does not
-    worsen the check blocks' free run beyond its noise, and the names of those taken out.
-
-    SEMP's pruning (Piroddi & Spinelli 2003, :mod:`models.semp`): while some term m, neither the
-    start's nor the last of the family just added, leaves a model whose check figure J(M − m) is
-    within ``check_noise`` (relative) of J right after the addition, the one of least J(M − m) is
-    removed. Terms that entered with a family only because its terms are tried together (a cubic
-    of several lags, the monomials spanning a combination) and terms an earlier family added that
-    the new one makes redundant go; what pays stays. Judged as the addition was (by output error
-    when ``tuned``), the structures of a pass side by side by ``workers``.
-    """
-    limit = (1 + check_noise(checks.check)) * checks.error(grown, tuned)
-    added = [term for term in grown.terms if term not in before.terms]
-    current, pruned = grown, []
-    while True:
-        family_left = [term for term in added if term in current.terms]
-        removable = [
-            term
-            for term in current.terms
-            if term not in start and (term not in family_left or len(family_left) > 1)
-        ]
-        if not removable:
-            break
-        trials = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in removable]
-        errors = list(checks.judge(trials, workers, tuned))
-        least = int(np.argmin(errors))
-        if not errors[least] <= limit:
-            break
-        current = trials[least]
-        pruned.append(removable[least].name)
-    return current, tuple(pruned)
 
 
 def _repairs_only_bias(
@@ -1321,12 +942,10 @@ def _across_folds(
     folds: Sequence[CheckSplit],
     tell: Stage,
     workers: Workers,
-) -> tuple[EffectScore, Structure, tuple[float, float], Gain] | None:
+) -> tuple[EffectScore, Structure, tuple[float, float]] | None:
     """The family added on the simulation error across folds (module docstring), if one
-    lowers every fold's free run by ``FOLD_GAIN`` and the first fold's beyond the threshold for
-    the families searched (:func:`models.checking.paired_gain`): its score with all its
-    terms, the structure, the first fold's free-run RMS before and after, both settled, and the
-    paired gain there.
+    lowers every fold's free run by ``FOLD_GAIN``: its score with all its terms, the structure,
+    and the first fold's free-run RMS before and after, both settled.
 
     Each family's terms are all grown at zero from ``current``'s settled output-error fit, which
     simulates as that model does, so that a search cannot end worse than it, and none is asked to
@@ -1355,20 +974,18 @@ def _across_folds(
         error = next(searched)
         if error <= (1 - FOLD_GAIN) * base:
             trials.append((error, replace(score, terms=names), structure))
-    passed: list[tuple[float, EffectScore, Structure, tuple[float, float], Gain]] = []
+    passed: list[tuple[float, EffectScore, Structure, tuple[float, float]]] = []
     for _, score, structure in sorted(trials, key=lambda trial: trial[0])[:FOLD_TRIALS]:
         tell(f"across folds: {score.name} on every fold")
         errors = _on_every_fold(current, structure, folds, primary.tuned(structure), FOLD_GAIN)
-        if errors is None:
-            continue
-        gain = _gain(folds, current, structure, len(structures), (True, True))
-        if gain.passed:
-            ratio = float(np.mean([after / before for before, after in errors]))
-            passed.append((ratio, score, structure, errors[0], gain))
+        if errors is not None:
+            passed.append(
+                (float(np.mean([after / before for before, after in errors])), score, structure, errors[0])
+            )
     if not passed:
         return None
-    _, score, structure, first_fold, gain = min(passed, key=lambda trial: trial[0])
-    return score, structure, first_fold, gain
+    _, score, structure, first_fold = min(passed, key=lambda trial: trial[0])
+    return score, structure, first_fold
 
 
 def _as_the_folds_judged(

@@ -36,7 +36,7 @@ from simulator.theory import EXACT_TERMS
 
 REPORT_KEYS = {
     "declared", "orders_chosen", "effects_added", "effects_withdrawn", "before", "after", "tests", "refined",
-    "notes", "data", "check_free_run_rms", "noise_floor", "rounds", "held_out",
+    "notes", "data", "check_free_run_rms", "noise_floor",
 }  # fmt: skip
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests"}
 
@@ -109,19 +109,6 @@ def test_simulated_quadratic_stiffness_is_named_and_the_table_printed(tmp_path):
     assert re.search(r"check blocks' free run \S+ → \S+ m;", table), table
     assert "[m]" not in quiet.stdout and json.loads(quiet.stdout)["data"]["unit"] is None
     assert report["effects_added"][0]["decided_by"] == "one-step"
-    # Each round's selection, and the refined model judged against the start on the held-out tails.
-    first = report["rounds"][0]
-    assert first["added"] == "quadratic_stiffness" and first["gain"] > first["threshold"] > 0, first
-    assert first["candidate_terms"] > first["structures_judged"] >= 1, first
-    held_out = report["held_out"]
-    assert held_out["refined_returned"] and held_out["samples"] == 1600, held_out  # a fifth of 8000
-    assert held_out["refined_free_run_rms"] < held_out["start_free_run_rms"], held_out
-    assert re.search(
-        r"1\. \d+ candidate terms, \d+ structures judged; quadratic_stiffness gains \S+% \(threshold \S+%\): "
-        r"added by the one-step criterion",
-        table,
-    ), table
-    assert re.search(r"held-out tails \(1600 samples no choice saw\): .* refined model is returned", table)
     stages = (
         f"round 1: scoring {len(candidate_effects(EXACT_TERMS))} families",
         "round 1: quadratic_stiffness on the check blocks",

@@ -9,33 +9,13 @@ import numpy as np
 import pytest
 from scipy import linalg, signal, stats
 
-from models.checking import (
-    SETTLED_EVALUATIONS,
-    CheckSplit,
-    Structure,
-    check_noise,
-    free_run_rms,
-    paired_gain,
-    split_for_checking,
-)
+from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
-from models.refinement import (
-    HELD_OUT_SHARE,
-    Refinement,
-    Round,
-    _held_out_notes,
-    _is_start,
-    _judged_on,
-    _pruned,
-    choose_linear,
-    refine,
-    refine_record,
-    refine_records,
-)
-from models.scoring import EffectScore, score_effects
+from models.refinement import _is_start, choose_linear, refine, refine_record, refine_records
+from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
@@ -189,10 +169,8 @@ def test_score_and_f_statistic_agree_with_an_svd_refit():
     is not used: its pseudo-inverse leaves relative errors ~5e-8 in these sums of squares, which
     the F statistic's difference of two of them magnifies ~100×.)"""
     x, y = paper_record(["quadratic_stiffness2=3e5"], seed=2)
-    first = refine([(x[:ESTIMATION], y[:ESTIMATION])], EXACT_TERMS, max_rounds=1).rounds[0]
-    # The loop scores on what it does not hold out.
-    seen = ESTIMATION - int(ESTIMATION * HELD_OUT_SHARE)
-    x, y = x[:seen], y[:seen]
+    x, y = x[:ESTIMATION], y[:ESTIMATION]
+    first = refine([(x, y)], EXACT_TERMS, max_rounds=1).rounds[0]
     assert first.added is not None and first.added.name == "quadratic_stiffness"
     declared = parse_terms(EXACT_TERMS)
     lag = max(max_lag(e.terms) for e in candidate_effects(declared) if e.terms)
@@ -442,17 +420,15 @@ def test_the_refined_model_simulates_the_estimation_data_no_worse_than_the_decla
     model's output-error fit grown by the added terms at zero, so it cannot end worse than the
     latter (on the F-16 sweeps the search from least squares did: 0.184 against 0.156 m/s² on level
     2 for acceleration 1, bench/measured.py). (Seed 11 ended on least squares once the simulation
-    criterion stopped passing families against an infinite figure: 13 ends on output error. With
-    half the cube, 0.05·clean³, the model fitted without the held-out tails ends on least squares,
-    and no output-error search is made.)"""
+    criterion stopped passing families against an infinite figure: 13 ends on output error.)"""
     rng = np.random.default_rng(13)
     n = 6000
     x = rng.standard_normal(n)
     clean = signal.lfilter([0.0, 0.4, 0.2], [1.0, -1.5, 0.7], x)
-    y = clean + 0.1 * clean**3 + 0.5 * np.std(clean) * rng.standard_normal(n)
+    y = clean + 0.05 * clean**3 + 0.5 * np.std(clean) * rng.standard_normal(n)
     declared = linear_terms(2, 2)
     result = refine([(x, y)], declared)
-    assert result.estimator == "output error" and result.effects_added
+    assert result.estimator == "output error"
     least_squares_fit = fit_narx([(x, y)], declared)
     declared_tuned = fit_output_error(least_squares_fit, [(x, y)], SETTLED_EVALUATIONS).model
 
@@ -706,76 +682,3 @@ def test_a_test_part_too_short_for_the_residual_tests_is_scored_and_says_which_i
     document = report.to_dict()
     assert document["tests"][0]["after"]["diagnostics"] is None
     assert any("too short for the residual tests" in note for note in document["notes"]), document["notes"]
-
-
-def test_an_effect_that_does_not_pay_on_data_no_choice_saw_is_not_returned():
-    """The rig's own record, nothing declared, 1600 samples: cubic stiffness (the rig's spring is
-    cubic) passed the one-step criterion on the check blocks, but the model with it ran free over
-    the next 1600 samples at 0.050 m against the linear start's 0.027. The loop returns a model
-    with an effect only when the effect pays on data no choice saw."""
-    record = simulate(Scenario(disturbance_std=800.0), 3200, seed=1)
-    result = refine([(record.x[:1600], record.y[:1600])], None)
-    before = held_out_errors(result.declared, record.x[1600:], record.y[1600:]).free_run.rms
-    after = held_out_errors(result.refined, record.x[1600:], record.y[1600:]).free_run.rms
-    assert not result.effects_added or after < before, (result.effects_added, before, after)
-    held_out = result.held_out
-    assert held_out is not None and held_out.samples == 320, held_out
-    if not held_out.kept:
-        assert held_out.best_tried is not None and not result.effects_added and result.effects_withdrawn
-
-
-def test_the_threshold_grows_with_the_candidates_tried():
-    """A gain that passes as the one comparison made does not as the best of hundreds; a free
-    run that diverges never passes, and a gain within the blocks' spread never does."""
-    rng = np.random.default_rng(5)
-    before = rng.chisquare(4, 20)
-    after = before * np.exp(-rng.normal(0.25, 0.3, 20))
-    one, many = paired_gain(before, after, 1, 0.01), paired_gain(before, after, 300, 0.01)
-    assert one.gain == many.gain and 0.1 < one.gain < 0.3
-    assert one.threshold < one.gain < many.threshold, (one, many)
-    assert one.passed and not many.passed
-    diverged = paired_gain(before, np.full(20, np.inf), 1, 0.01)
-    assert diverged.diverged and not diverged.passed
-    assert not paired_gain(before, before * np.exp(rng.normal(0.0, 0.3, 20)), 1, 0.01).passed
-
-
-def test_terms_whose_removal_does_not_worsen_the_check_free_run_are_pruned():
-    """The rig's cubic spring added with terms of no effect beside it: these are pruned, the
-    spring's cubes (some of them: y[t-k]³ of neighbouring lags are nearly collinear) kept, and
-    the check blocks' free run of what is left is within its noise of the grown model's."""
-    record = simulate(Scenario(disturbance_std=200.0), 2400, seed=1)
-    checks = CheckSplit.of([(record.x, record.y)])
-    start = parse_terms(["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]", "x[t-4]"])
-    cubes = parse_terms(["y[t-1]^3", "y[t-2]^3", "y[t-3]^3", "y[t-4]^3"])
-    idle = parse_terms(["x[t-2]^2", "y[t-1]*x[t-3]", "x[t-1]^3"])
-    grown = Structure(start + cubes + idle)
-    pruned, names = _pruned(start, Structure(start), grown, checks, tuned=False, workers=map)
-    assert {term.name for term in idle} <= set(names), names
-    assert set(pruned.terms) >= set(start) and len(set(pruned.terms) & set(cubes)) >= 2, pruned.terms
-    assert checks.error(pruned) <= (1 + check_noise(checks.check)) * checks.error(grown)
-
-
-def test_a_refined_model_that_diverges_on_the_held_out_tails_is_reported_so_and_the_start_returned():
-    """Whether the model holds an effect's terms or only its moving-average noise (its process
-    part the start's terms, judged only not to be worse: a diverging run is)."""
-    record = simulate(Scenario(disturbance_std=200.0), 2400, seed=3)
-    head = [(record.x[:2000], record.y[:2000])]
-    start = fit_narx(head, EXACT_TERMS)
-    tails = [(record.x[2000:], record.y[2000:], 2000)]
-    grown = fit_narx(head, parse_terms(EXACT_TERMS) + parse_terms(["y[t-1]^3"]))
-    for diverging in (replace(grown, theta=grown.theta * 1.5), replace(start, theta=start.theta * 1.5)):
-        assert not np.isfinite(free_run_rms(diverging, tails)) and np.isfinite(free_run_rms(start, tails))
-        _held_out_diverged(start, diverging, tails)
-
-
-def _held_out_diverged(start: NARX, diverging: NARX, tails) -> None:
-    spring = EffectScore("cubic_stiffness", "a hardening spring", 0.5, -10.0, ("y[t-1]^3",), (30.0,), (1e-8,))
-    step = Round(1e-3, 1e-4, 40, (spring,), spring, "one-step", best="cubic_stiffness", gain=0.5)
-    result = Refinement(start, diverging, rounds=(step,), estimator="output error")
-    judged = _judged_on(tails, result, (start, "least squares", 0.01))
-    held_out = judged.held_out
-    assert held_out is not None and held_out.gain.diverged and not held_out.kept
-    assert judged.refined is start and judged.estimator == "least squares" and not judged.effects_added
-    assert judged.effects_withdrawn == ("cubic_stiffness",) and held_out.best_tried == "cubic_stiffness"
-    (note,) = _held_out_notes(judged)
-    assert "could not support" in note and "ran free at diverged" in note and "cubic_stiffness" in note, note

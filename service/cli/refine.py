@@ -415,15 +415,7 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
         )
     stdout.print(f"declared: {', '.join(report['declared']['terms'])}", highlight=False, markup=False)
-    held_out = report["held_out"]
-    if held_out is not None and not held_out["refined_returned"]:
-        stdout.print(
-            f"withdrawn: {', '.join(report['effects_withdrawn'])} — the data could not support them: "
-            f"the start is returned (the best effect tried: {held_out['best_tried']})",
-            highlight=False,
-            markup=False,
-        )
-    elif report["effects_withdrawn"]:
+    if report["effects_withdrawn"]:
         stdout.print(
             f"withdrawn: {', '.join(report['effects_withdrawn'])} — with output-error parameters the "
             "declared model simulates the check blocks as well without them (from three records on: "
@@ -446,7 +438,6 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
-    _print_selection(report, per)
     stdout.print(f"refined parameters by {report['refined']['estimator']}")
     floor = report["noise_floor"]
     check = report["check_free_run_rms"]
@@ -494,38 +485,6 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         stdout.print(f"note: {note}", highlight=False, markup=False)
     if plot is not None:
         stdout.print(f"figure -> {plot}")
-
-
-def _print_selection(report: dict[str, Any], per: str) -> None:
-    """Each round's selection in a line (gain and threshold as shares of the check blocks' free-run
-    mean square), then the comparison with the start on the held-out tails."""
-    stdout.print("rounds (gain: the fall of the check blocks' free-run mean square, above the threshold):")
-    for number, step in enumerate(report["rounds"], start=1):
-        tried = f"{step['candidate_terms']} candidate terms, {step['structures_judged']} structures judged"
-        if step["best"] is None:
-            outcome = "no candidate judged"
-        else:
-            outcome = f"{step['best']} gains {_share(step['gain'])} (threshold {_share(step['threshold'])})"
-            outcome += f": added by the {step['decided_by']} criterion" if step["added"] else ": not added"
-            if step["pruned"]:
-                outcome += f", pruned {', '.join(step['pruned'])}"
-        stdout.print(f"  {number}. {tried}; {outcome}", highlight=False, markup=False)
-    held_out = report["held_out"]
-    if held_out is not None:
-        before, after = _number(held_out["start_free_run_rms"]), _number(held_out["refined_free_run_rms"])
-        verdict = "the refined model is returned" if held_out["refined_returned"] else "the start is returned"
-        stdout.print(
-            f"held-out tails ({held_out['samples']} samples no choice saw): "
-            f"free run {before} → {after}{per}, gain {_share(held_out['gain'])} "
-            f"(threshold {_share(held_out['threshold'])}): {verdict}",
-            highlight=False,
-            markup=False,
-        )
-
-
-def _share(value: float | None) -> str:
-    """A gain or threshold as a percentage; a diverged free run's gain has none."""
-    return f"{value:.1%}" if value is not None else "none (diverged)"
 
 
 def _signals(source: dict[str, Any]) -> str:
