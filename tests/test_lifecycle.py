@@ -48,6 +48,7 @@ import httpx
 import numpy as np
 import pytest
 import uvloop
+from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import exc, func, select
 
 from harness.api_helpers import API, create_structure, json_body, time_victim
@@ -386,8 +387,23 @@ def test_the_head_deadline_runs_from_the_opening_and_from_each_answer(tmp_path: 
             silent(server.port, patience),
         )
 
+    def timeouts(url: str) -> dict[str, float]:
+        """The head timeouts /metrics counts, by what had arrived of the head."""
+        (family,) = [
+            family
+            for family in text_string_to_metric_families(httpx.get(f"{url}/metrics").text)
+            if family.name == "narxwatch_http_header_timeouts"
+        ]
+        counts = {"part": 0.0, "none": 0.0}
+        counts |= {s.labels["head"]: s.value for s in family.samples if s.name.endswith("_total")}
+        return counts
+
     with LiveServer(settings) as server:
+        before = timeouts(server.url)
         paced, (answered, trickled), quiet = asyncio.run(scenario())
+        after = timeouts(server.url)
+    # One connection closed with part of a head, one that sent nothing: counted, not logged.
+    assert {head: after[head] - before[head] for head in after} == {"part": 1, "none": 1}
     assert paced == [200] * 3  # 3 heads in 1.2 s each: longer than one deadline in all, and served
     assert answered == 200
     for closed in (trickled, quiet):

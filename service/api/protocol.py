@@ -28,6 +28,7 @@ from uvicorn.protocols.http.httptools_impl import STATUS_LINE, HttpToolsProtocol
 from uvicorn.server import ServerState
 
 from service.config import get_settings
+from service.observability.metrics import HEADER_TIMEOUTS
 
 
 class HeaderTimeoutProtocol(HttpToolsProtocol):
@@ -87,6 +88,7 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
             return
         if self.head_begun:
             self.transport.write(self._request_timeout())
+        HEADER_TIMEOUTS.labels(head="part" if self.head_begun else "none").inc()
         self.transport.close()
 
     def _request_timeout(self) -> bytes:

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
-from prometheus_client import CollectorRegistry, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
 from prometheus_client.multiprocess import MultiProcessCollector
 from prometheus_client.registry import Collector
@@ -40,6 +40,16 @@ REQUEST_SECONDS = Histogram(
     "Time from an HTTP request's arrival to the end of its answer, by route template.",
     ["method", "route", "status"],
     buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0),
+    registry=_REQUESTS,
+)
+# Closed by the head's deadline (``service.api.protocol``): a burst of them is a slow-header
+# attack, or clients behind a link slower than NARXWATCH_HEADER_TIMEOUT_SECONDS allows. Counted,
+# not logged one by one: an attack would write a line per connection.
+HEADER_TIMEOUTS = Counter(
+    "narxwatch_http_header_timeouts",
+    "Connections closed because a request's head did not arrive within "
+    "NARXWATCH_HEADER_TIMEOUT_SECONDS, by what had arrived of it: part (answered 408) or none.",
+    ["head"],
     registry=_REQUESTS,
 )
 
@@ -99,7 +109,7 @@ def queue_metrics(stats: QueueStats) -> Iterator[Metric]:
 
 
 def request_metrics() -> Collector:
-    """This process's request histogram, or every process's in multiprocess mode."""
+    """This process's request histogram and head timeouts, or every process's in multiprocess mode."""
     directory = os.environ.get(MULTIPROCESS_DIR)
     return MultiProcessCollector(None, path=directory) if directory else _REQUESTS
 
