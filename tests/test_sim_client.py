@@ -28,6 +28,7 @@ from harness.api_helpers import RIG_TERMS
 from harness.live import LiveServer, Tenant, free_port
 from recordfiles.reader import read_record
 from service.cli.modelfiles import read_manifest
+from service.domain import fleet
 from service.security import Role
 from simulator.simulate import Scenario, simulate
 from simulator.study import StudySettings
@@ -394,6 +395,17 @@ def test_structures_create_declares_what_x_and_y_measure(api_server: LiveServer,
     listed = run_sim("structures", "list", key=key, url=api_server.url).stdout
     assert "'bridge', fs = 200 Hz, force x [kN], acceleration y [g], no verdict yet" in listed
     assert "'plain', fs = 200 Hz, no verdict yet" in listed
+
+
+def test_structures_list_prints_every_page(api_server: LiveServer):
+    """More structures than a page of the listing holds: every one printed, in the fleet's order."""
+    tenant = Tenant.create(api_server)
+    names = [f"s{i:03d}" for i in range(fleet.PAGE_SIZE + 1)]
+    for name in names:
+        assert tenant.admin.post("/api/v1/structures", json={"name": name, "fs": 100.0}).status_code == 201
+    listed = run_sim("structures", "list", key=api_server.key(Role.viewer, tenant.name), url=api_server.url)
+    assert listed.returncode == 0, listed.stderr
+    assert re.findall(r"'(s\d{3})'", listed.stdout) == names
 
 
 @pytest.mark.parametrize(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from typing import Any
 
 import httpx
@@ -34,6 +35,17 @@ class Service:
         self._http.close()
 
     def request(self, method: str, path: str, **options: Any) -> Any:
+        return self._json(self._send(method, path, **options), path)
+
+    def pages(self, path: str, **options: Any) -> Iterator[Any]:
+        """Every page of a listing, following its ``Link: <…>; rel="next"`` headers."""
+        following: str | None = path
+        while following is not None:
+            response = self._send("GET", following, **options)
+            yield self._json(response, path)
+            following, options = response.links.get("next", {}).get("url"), {}  # the link keeps the query
+
+    def _send(self, method: str, path: str, **options: Any) -> httpx.Response:
         try:
             response = self._http.request(method, path, **options)
         except httpx.TransportError as exc:
@@ -44,6 +56,9 @@ class Service:
         if response.is_error:
             answer = f"{response.status_code} {response.reason_phrase}"
             raise ServiceError(f"the service answered {answer}: {server_detail(response)}")
+        return response
+
+    def _json(self, response: httpx.Response, path: str) -> Any:
         try:
             return response.json()
         except ValueError:

@@ -166,9 +166,9 @@ def create_structure(
 
 @structures_app.command("list")
 def list_structures(url: Url = DEFAULT_URL, key: Key = None) -> None:
-    """The structures the key can see (the first page), each with its latest status."""
+    """The structures the key can see, each with its latest status."""
     with service(url, key) as client:
-        listed = client.request("GET", f"{API}/structures")
+        listed = [structure for page in client.pages(f"{API}/structures") for structure in page]
     for structure in listed:
         status = structure["status"] or "no verdict yet"
         stdout.print(
