@@ -71,7 +71,14 @@ def k_hat_figure(
         xaxis={"type": "date"},
         yaxis={"zeroline": True},
         legend=LEGEND_BELOW,
+        annotations=[_k_hat_zero()],
     )
+    if cusums:
+        # The threshold is drawn on the CUSUM's axis, whose zero is not k̂'s: named where it runs.
+        threshold = cusums[0].threshold
+        layout["annotations"].append(
+            _line_label(_threshold_name(threshold), threshold, ALARM_COLOURS["open"], yref="y2")
+        )
     if cusums or alarms:
         # Up to a few thresholds: a fault's statistic can run to hundreds of σ, and what matters is
         # where it crossed the threshold; beyond the top it leaves the chart.
@@ -111,6 +118,7 @@ def k_hat_condition_figure(
         "k̂ [%]",
         yaxis={"zeroline": True},
         legend=LEGEND_BELOW,
+        annotations=[_k_hat_zero()],
     )
     return {"data": data, "layout": layout}
 
@@ -196,7 +204,7 @@ def _cusum_traces(cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
             _lines(
                 [_ms(first), _ms(last)],
                 [threshold, threshold],
-                name=f"CUSUM threshold h = {threshold:.2f} σ",
+                name=_threshold_name(threshold),
                 yaxis="y2",
                 line={"color": ALARM_COLOURS["open"], "dash": "dash", "width": 1},
                 legendgroup="cusum",
@@ -253,6 +261,33 @@ def _alarm_traces(alarms: Sequence[AlarmOut], cusums: Sequence[CusumSeries]) -> 
     return data
 
 
+def _threshold_name(threshold: float) -> str:
+    return f"CUSUM threshold h = {threshold:.2f} σ"
+
+
+def _line_label(text: str, y: float, colour: str, yref: str = "y", side: str = "right") -> dict[str, Any]:
+    """An annotation naming the horizontal reference line at ``y`` (on axis ``yref``), written just
+    above it at the plot's ``side``: in the chart itself, so that no line reads as a data value
+    whatever the legend shows."""
+    return {
+        "text": text,
+        "xref": "paper",
+        "x": 0.0 if side == "left" else 1.0,
+        "xanchor": side,
+        "yref": yref,
+        "y": y,
+        "yanchor": "bottom",
+        "showarrow": False,
+        "font": {"size": 11, "color": colour},
+        "bgcolor": "rgba(255,255,255,0.7)",
+    }
+
+
+def _k_hat_zero() -> dict[str, Any]:
+    """The k̂ axis's zero line named: no fault, where a healthy record's k̂ scatters about."""
+    return _line_label("k̂ = 0 (no fault)", 0.0, "#555", side="left")
+
+
 def _lines(x: Any, y: Any, **style: Any) -> dict[str, Any]:
     """A line trace (``x`` and ``y`` sequences or arrays) with plotly attributes ``style`` (which may
     set ``type`` to "scattergl")."""
@@ -298,10 +333,12 @@ def _gap(high: float | None, low: float | None) -> float | None:
     return None if high is None or low is None else high - low
 
 
-def q_figure(points: Sequence[TimelinePoint]) -> Figure:
-    """The Ljung–Box Q of each fault mode's residual per verdict against its critical value (Figure 6)."""
+def q_figure(points: Sequence[TimelinePoint], alpha: float) -> Figure:
+    """The Ljung–Box Q of each fault mode's residual per verdict against its critical value at
+    level ``alpha`` (the newest verdict's), each critical value named in the chart (Figure 6)."""
     names = sorted({m["name"] for p in points for m in p.modes})
     data = []
+    annotations = []
     for index, name in enumerate(names):
         pairs = [(p, m) for p in points for m in p.modes if m["name"] == name]
         x = [_ms(p.acquired_at) for p, _ in pairs]
@@ -319,11 +356,14 @@ def q_figure(points: Sequence[TimelinePoint]) -> Figure:
             }
         )
         critical = pairs[-1][1]["q_critical"]
-        data.append(_level(x, critical, f"critical value ({name})", colour, "χ² critical %{y:.1f}"))
-    return {
-        "data": data,
-        "layout": _over_time("Residual whiteness: Ljung–Box Q per fault-mode model", "Q", type="log"),
-    }
+        label = f"Q critical (α = {alpha:g}, {name})"
+        data.append(_level(x, critical, label, colour, "χ² critical %{y:.1f}"))
+        # On a log axis an annotation's y is the exponent.
+        annotations.append(_line_label(label, float(np.log10(critical)), colour))
+    layout = _over_time(
+        "Residual whiteness: Ljung–Box Q per fault-mode model", "Ljung–Box Q (log scale)", type="log"
+    )
+    return {"data": data, "layout": layout | {"annotations": annotations}}
 
 
 def severity_figure(points: Sequence[TimelinePoint]) -> Figure:
@@ -347,7 +387,9 @@ def severity_figure(points: Sequence[TimelinePoint]) -> Figure:
         *_status_legend(),
     ]
     title = "Severity: the record's free-run error variance over a healthy record's"
-    return {"data": data, "layout": _over_time(title, "severity (healthy: 1)", rangemode="tozero")}
+    layout = _over_time(title, "severity (healthy: 1)", rangemode="tozero")
+    layout["annotations"] = [_line_label("healthy level (1)", 1.0, STATUS_COLOURS["healthy"])]
+    return {"data": data, "layout": layout}
 
 
 def trajectories_figure(model: FNARX, level: float = 0.95) -> Figure:
