@@ -134,16 +134,13 @@ def structure_page(
     cusums = alarms.cusum_series(session, structure_id, limit)
     charted = alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items
     # A chart with nothing to draw is left out: a structure judged by its baseline alone has no k̂
-    # and no fault mode's Q, only its severity.
+    # and no fault mode's Q, only its severity (which then marks the alarms).
+    k_hat = cusums or any(p.k_hat is not None for p in points.points)
     charts = (
-        (
-            {"k_hat": figures.k_hat_figure(points.points, level, cusums, charted)}
-            if cusums or charted or any(p.k_hat is not None for p in points.points)
-            else {}
-        )
+        ({"k_hat": figures.k_hat_figure(points.points, level, cusums, charted)} if k_hat else {})
         | ({"q": figures.q_figure(points.points, alpha)} if any(p.modes for p in points.points) else {})
         | (
-            {"severity": figures.severity_figure(points.points)}
+            {"severity": figures.severity_figure(points.points, () if k_hat else charted)}
             if any(p.severity is not None for p in points.points)
             else {}
         )
