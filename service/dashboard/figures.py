@@ -402,6 +402,12 @@ def severity_figure(points: Sequence[TimelinePoint], alarms: Sequence[AlarmOut] 
     layout["annotations"] = [_line_label("healthy level (1)", 1.0, STATUS_COLOURS["healthy"])]
     if alarms:  # the alarm lines' own axis, from the bottom of the plot to its top
         layout["yaxis2"] = {"overlaying": "y", "range": [0.0, 1.0], "visible": False}
+    # The legend's groups below the axis title, not over it.
+    layout |= {
+        "legend": LEGEND_BELOW | {"y": -0.15, "yanchor": "top"},
+        "margin": MARGIN | {"b": 60},
+        "height": 480,
+    }
     return {"data": data, "layout": layout}
 
 
