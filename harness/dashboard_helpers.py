@@ -25,6 +25,8 @@ from harness.api_helpers import (
     verdicts,
 )
 from harness.live import LiveServer, http_client
+from service.db import transaction
+from service.security import Role
 
 DASHBOARD = "/dashboard"
 COOKIE = "narxwatch_session"
@@ -75,6 +77,18 @@ def monitored_structure(
                 )
             )
         return Monitored(org, structure, records, verdicts(viewer, structure["id"]))
+
+
+def demo_structure(server: LiveServer) -> tuple[Org, int]:
+    """The demo organisation with a key of each role, and its structure, seeded in the server's
+    database as ``narxwatch demo-seed`` seeds it (once: seeding again finds it)."""
+    from service.demo import ORGANISATION, seed_demo
+
+    with transaction(server.app.state.sessions) as session:
+        structure_id = seed_demo(session, server.settings).id
+    return Org(
+        server, ORGANISATION, {role.name: server.key(role, ORGANISATION) for role in Role}
+    ), structure_id
 
 
 def logged_in(server: LiveServer, key: str) -> httpx.Client:

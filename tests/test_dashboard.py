@@ -35,13 +35,17 @@ from harness.dashboard_helpers import (
     FAULT_K,
     Monitored,
     charts,
+    demo_structure,
     logged_in,
     monitored_structure,
 )
 from harness.live import LiveServer, http_client
+from models.alarms import DESIGN_SHIFT, in_control_arl
 from recordfiles.quantities import SignalDeclaration
 from service.dashboard.auth import form_token
 from service.dashboard.figures import channel_figures, refinement_figure
+from service.dashboard.views import STRUCTURE_ALARMS
+from service.domain.alarms import MAX_THRESHOLD
 from service.tables import ApiKey, utcnow
 
 PAGE_SIZE = 25  # service.dashboard.views.HISTORY_PAGE
@@ -66,8 +70,9 @@ def ms(text: str) -> float:
     return parse(text).timestamp() * 1000.0
 
 
-def row_ids(page: httpx.Response, attribute: str) -> list[int]:
-    return [int(found) for found in re.findall(rf'{attribute}="(\d+)"', page.text)]
+def row_ids(page: httpx.Response | str, attribute: str) -> list[int]:
+    text = page if isinstance(page, str) else page.text
+    return [int(found) for found in re.findall(rf'{attribute}="(\d+)"', text)]
 
 
 # --- logging in and out ---------------------------------------------------------------------
@@ -367,6 +372,125 @@ def test_the_trajectories_are_the_models_coefficients(viewer: httpx.Client, moni
         assert k[0] == model.basis.k_min and k[-1] == model.basis.k_max
         theta = model.theta[index] @ np.array([model.basis.values(kk) for kk in k]).T
         np.testing.assert_allclose(trace["y"], theta, rtol=1e-12)
+
+
+# --- the structure page: its status first, alarms that say why ------------------------------
+
+
+def _between(text: str, start: str, end: str) -> str:
+    """The page's text from the element with id ``start`` to the next ``end`` after it ("" for none)."""
+    opening = text.find(f'id="{start}"')
+    return "" if opening < 0 else text[opening : text.index(end, opening)]
+
+
+def test_the_structure_page_opens_on_its_status_then_charts_then_alarms_that_say_why(
+    api_server: LiveServer,
+):
+    """The demo: a k2 fault that opens several alarms, one a CUSUM on k1 whose newest k̂ sits at the
+    limit of k1's range. The page gives the status first (with the alarms' count and the declared
+    signals), then the charts, then the alarms: a few in view, open ones first, the rest folded; the
+    k1 CUSUM's row and a line below the table say, in the rules' own words, why it is not stepped."""
+    org, structure_id = demo_structure(api_server)
+    with logged_in(api_server, org.keys["viewer"]) as client:
+        page = client.get(f"{DASHBOARD}/structures/{structure_id}")
+    assert page.status_code == 200
+    with org.client("viewer") as api:
+        rules = api.get(f"{API}/structures/{structure_id}/alarm-rules").json()
+        listed = api.get(f"{API}/alarms", params={"structure_id": structure_id}).json()["items"]
+    text = page.text
+    places = [
+        text.index(f'id="{name}"') for name in ("standing", "chart-k_hat", "chart-q", "alarms", "verdicts")
+    ]
+    assert places == sorted(places), "status, charts, alarms, verdicts: in that order"
+    standing = _between(text, "standing", "</section>")
+    unresolved = sorted((a for a in listed if a["state"] != "resolved"), key=lambda a: a["id"])
+    assert len(unresolved) > STRUCTURE_ALARMS and {a["state"] for a in unresolved} == {"open"}
+    assert f"{len(unresolved)} open · 0 acknowledged" in standing
+    assert 'id="signals"' in standing and "force x [N]" in standing
+    # A few alarms in view, the oldest first; the rest folded below them, none left out.
+    shown = row_ids(_between(text, "alarm-table", "</table>"), "data-alarm-id")
+    folded = row_ids(_between(text, "folded-alarms", "</details>"), "data-alarm-id")
+    assert shown == [a["id"] for a in unresolved[:STRUCTURE_ALARMS]]
+    assert folded == [a["id"] for a in unresolved[STRUCTURE_ALARMS:]]
+    # k1's k̂ is pinned at its range limit: the rules say why its CUSUM is not stepped, so does the page.
+    assert list(rules["cusum_skipped"]) == ["k1"]
+    reasons = _between(text, "alarm-reasons", "</ul>")
+    assert 'data-fault-mode="k1"' in reasons and str(escape(rules["cusum_skipped"]["k1"])) in reasons
+    (k1,) = [a for a in unresolved if a["rule_kind"] == "cusum" and a["fault_mode"] == "k1"]
+    row = text[text.index(f'data-alarm-id="{k1["id"]}"') :]
+    assert "does not step this CUSUM" in row[: row.index("</tr>")]
+
+
+def test_every_reference_line_is_named_in_its_chart(api_server: LiveServer):
+    """A threshold or reference line is named where it runs (an annotation on its own axis, at its
+    level), as in the legend: the CUSUM's threshold, on its axis, no longer reads as k̂ = 0, which is
+    named too; and each axis says its unit."""
+    org, structure_id = demo_structure(api_server)
+    with logged_in(api_server, org.keys["viewer"]) as client:
+        figures = charts(client.get(f"{DASHBOARD}/structures/{structure_id}"))
+    with org.client("viewer") as api:
+        design = api.get(f"{API}/structures/{structure_id}/alarm-rules").json()["cusum_design"]
+    levels = 0
+    for name, figure in figures.items():
+        layout = figure["layout"]
+        labels = [(a["text"], a["yref"], a["y"]) for a in layout.get("annotations", []) if "yref" in a]
+        for trace in figure["data"]:
+            y = trace["y"]
+            if trace.get("mode") != "lines" or len(y) != 2 or y[0] != y[1] or y[0] is None:
+                continue
+            axis = trace.get("yaxis", "y")
+            on_log = layout[axis.replace("y", "yaxis")].get("type") == "log"
+            level = np.log10(y[0]) if on_log else y[0]
+            assert any(
+                text == trace["name"] and yref == axis and at == pytest.approx(level)
+                for text, yref, at in labels
+            ), f"{name}: the line {trace['name']!r} is not named in the chart"
+            levels += 1
+    assert levels == 2, "the CUSUM threshold and the Q critical value"
+    k_hat = figures["k_hat"]["layout"]
+    threshold = f"CUSUM threshold h = {design['threshold']:.2f} σ"
+    assert ("k̂ = 0 (no fault)", "y", 0.0) in [(a["text"], a["yref"], a["y"]) for a in k_hat["annotations"]]
+    assert (threshold, "y2", design["threshold"]) in [
+        (a["text"], a["yref"], a["y"]) for a in k_hat["annotations"]
+    ]
+    assert k_hat["yaxis"]["title"]["text"] == "k̂ [%]"
+    assert k_hat["yaxis2"]["title"]["text"] == "CUSUM [σ]"
+    # k̂ and the CUSUM in panels of their own: the threshold's scale never lies over k̂'s.
+    assert k_hat["yaxis2"]["domain"][1] < k_hat["yaxis"]["domain"][0] and "overlaying" not in k_hat["yaxis2"]
+    # k1's and k2's Q have one critical value (the same lags): one line, named once.
+    assert [t["name"] for t in figures["q"]["data"] if t["mode"] == "lines"] == ["Q critical (α = 0.05)"]
+
+
+def test_an_alarm_whose_rule_stopped_running_is_listed_resolved_with_the_reason(api_server: LiveServer):
+    """Open alarms come before acknowledged ones. When the CUSUM can no longer be designed for the
+    structure's models, its alarm is resolved as ``rule_not_running``: the page says the CUSUM does
+    not run and why, and lists the alarm among the resolved ones with that reason in words."""
+    monitored = monitored_structure(api_server, seed=43)
+    structure_id = monitored.structure["id"]
+    url = f"{API}/structures/{structure_id}/alarm-rules"
+    with clients(monitored.org) as (admin, _, viewer):
+        unresolved = viewer.get(f"{API}/alarms", params={"structure_id": structure_id}).json()["items"]
+        oldest = min(a["id"] for a in unresolved if a["rule_kind"] != "cusum")  # the CUSUM's stops
+        assert admin.post(f"{API}/alarms/{oldest}/acknowledge", json={"note": "on it"}).status_code == 200
+        answer = viewer.get(url).json()
+        reach = in_control_arl(MAX_THRESHOLD, DESIGN_SHIFT / 2, answer["cusum_design"]["common_share"])
+        rules = [r for r in answer["rules"] if r["kind"] != "cusum"]
+        strict = {"kind": "cusum", "false_alarms_per_year": 365 * 4.0 / (10 * reach)}
+        stored = admin.put(url, json={"rules": [*rules, strict]})
+        assert stored.status_code == 200, stored.text
+        problem = stored.json()["cusum_problem"]
+    with logged_in(api_server, monitored.org.keys["viewer"]) as client:
+        text = client.get(f"{DASHBOARD}/structures/{structure_id}").text
+    in_view = _between(text, "alarm-table", "</table>")
+    states = re.findall(r'<tr class="alarm-(\w+)"', in_view)
+    assert states and states == sorted(states, key=lambda state: state != "open"), states
+    assert f'data-alarm-id="{oldest}"' in in_view and states[-1] == "acknowledged"
+    assert str(escape(problem)) in _between(text, "cusum-problem", "</li>")
+    resolved = _between(text, "resolved-alarms", "</details>")
+    (row,) = re.findall(
+        r'<tr data-alarm-id="\d+" data-resolution="rule_not_running">.*?</tr>', resolved, re.S
+    )
+    assert f"its rule stopped running: {escape(problem)}" in row
 
 
 def test_the_verdict_table_filters_and_pages_like_the_history_api(

@@ -42,6 +42,7 @@ from harness.dashboard_helpers import (
     FIRST_RECORD,
     RECORD_SAMPLES,
     Monitored,
+    demo_structure,
     monitored_structure,
 )
 from harness.live import LiveServer
@@ -212,6 +213,9 @@ def test_a_structure_judged_by_its_baseline_alone_trends_its_severity(page, serv
     log_in(page, org.keys["viewer"])
     page.wait_for_url(f"**{DASHBOARD}/structures/{structure_id}")
     assert page.locator("#standing .badge").inner_text() == "anomaly"
+    assert "severity (healthy: 1)" in page.locator("#standing").inner_text().lower()
+    # No k̂ and no fault mode's Q to draw: those charts are left out, not drawn empty.
+    assert page.locator("#chart-k_hat, #chart-q").count() == 0
     severity = drawn(page, "severity")
     assert severity["points"][:2] == [6, 2]  # a point per verdict, the healthy level's two ends
     assert "healthy level (1)" in page.locator("#chart-severity").inner_text()
@@ -220,6 +224,40 @@ def test_a_structure_judged_by_its_baseline_alone_trends_its_severity(page, serv
     figures = page.locator("#novelty").inner_text()
     assert "severity (healthy: 1)" in figures.lower() and "settled" in figures
     assert "healthy baseline's judgement alone" in page.locator("#baseline-only").inner_text()
+
+
+def test_the_demo_structure_s_first_screen_shows_its_status_then_its_charts(browser, server: LiveServer):
+    """On a 1280×800 screen the demo's structure page opens on its status and its k̂ and Q charts,
+    drawn with the CUSUM's threshold and k̂ = 0 named; its alarms (several, for one k2 fault) come
+    after the charts instead of pushing them off the first screen."""
+    org, structure_id = demo_structure(server)
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    context.set_default_timeout(TIMEOUT_MS)
+    page = context.new_page()
+    try:
+        page.goto(f"{server.url}{DASHBOARD}/structures/{structure_id}")
+        log_in(page, org.keys["viewer"])
+        page.wait_for_url(f"**{DASHBOARD}/structures/{structure_id}")
+        for chart in ("k_hat", "q"):  # drawn without scrolling: they are on the first screen
+            page.wait_for_selector(f"#chart-{chart}[data-drawn=true]")
+        box = {
+            name: page.locator(f"#{name}").bounding_box()
+            for name in ("standing", "chart-k_hat", "chart-q", "alarms")
+        }
+        assert box["standing"]["y"] + box["standing"]["height"] <= box["chart-k_hat"]["y"]
+        assert box["chart-k_hat"]["y"] == box["chart-q"]["y"] < 800 / 2, (
+            "the charts start in the first screen's upper half"
+        )
+        assert box["alarms"]["y"] >= box["chart-k_hat"]["y"] + box["chart-k_hat"]["height"]
+        drawn_text = page.locator("#chart-k_hat").inner_text()
+        assert "CUSUM threshold h =" in drawn_text and "k̂ = 0 (no fault)" in drawn_text
+        assert "Q critical (α = 0.05)" in page.locator("#chart-q").inner_text()
+        folder = ARTIFACTS / "dashboard"
+        folder.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=folder / "10-demo-first-screen.png")  # the first screen only
+        shot(page, "10-demo-structure")
+    finally:
+        context.close()
 
 
 def test_a_wrong_key_stays_on_the_login_page_with_the_reason(page, server: LiveServer):

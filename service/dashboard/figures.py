@@ -33,6 +33,7 @@ MODE_SYMBOLS = ("circle", "diamond", "square", "triangle-up", "cross", "x")
 MARGIN = {"l": 60, "r": 20, "t": 40, "b": 45}
 LEGEND_BELOW = {"orientation": "h", "y": -0.2}
 CUSUM_AXIS_THRESHOLDS = 3.0  # the CUSUM axis of the k̂ chart reaches this many thresholds
+CUSUM_PANEL = 0.3  # the share of the k̂ chart's height its CUSUM panel takes, at the bottom
 
 
 def _scatter(n: int) -> str:
@@ -54,7 +55,7 @@ def k_hat_figure(
     alarms: Sequence[AlarmOut] = (),
 ) -> Figure:
     """k̂ of each verdict with its interval, one trace per reference mode (Figure 5 over time);
-    on a second axis each fault mode's CUSUM statistic with its threshold, and the alarms: where
+    in a panel below it each fault mode's CUSUM statistic with its threshold, and the alarms: where
     each was raised (a solid line, coloured by its state) and where its drift began (dotted).
 
     Unknown faults carry no magnitude and are left out. The legend explains the markers'
@@ -71,25 +72,35 @@ def k_hat_figure(
         xaxis={"type": "date"},
         yaxis={"zeroline": True},
         legend=LEGEND_BELOW,
+        annotations=[_k_hat_zero()],
     )
+    if cusums:
+        # The threshold is drawn on the CUSUM's axis, whose zero is not k̂'s: named where it runs.
+        threshold = cusums[0].threshold
+        layout["annotations"].append(
+            _line_label(_threshold_name(threshold), threshold, ALARM_COLOURS["open"], yref="y2")
+        )
     if cusums or alarms:
-        # Up to a few thresholds: a fault's statistic can run to hundreds of σ, and what matters is
-        # where it crossed the threshold; beyond the top it leaves the chart.
+        # The CUSUM and the alarms in a panel of their own below k̂, sharing its time axis: drawn
+        # over k̂ on a second scale, the threshold lay wherever k̂'s scale put it, sometimes on k̂ = 0.
+        # Up to a few thresholds: a fault's statistic can run to hundreds of σ, and what
+        # matters is where it crossed the threshold; beyond the top it leaves the chart.
+        layout["yaxis"] |= {"domain": [CUSUM_PANEL + 0.08, 1.0]}
+        layout["xaxis"] |= {"anchor": "y2"}
         layout["yaxis2"] = {
-            "title": {"text": "CUSUM statistic [σ]" if cusums else ""},
+            "title": {"text": "CUSUM [σ]" if cusums else ""},
             "showticklabels": bool(cusums),
-            "overlaying": "y",
-            "side": "right",
+            "domain": [0.0, CUSUM_PANEL],
+            "anchor": "x",
             "range": [0.0, _alarm_axis_top(cusums)],
-            "showgrid": False,
             "zeroline": False,
             "tickmode": "auto",
-            "nticks": 5,
+            "nticks": 4,
         }
         # Room below the plot for the legend's three groups.
         layout |= {
-            "margin": MARGIN | {"r": 60, "b": 60},
-            "height": 540,
+            "margin": MARGIN | {"b": 60},
+            "height": 600,
             "legend": LEGEND_BELOW | {"y": -0.15, "yanchor": "top"},
         }
     return {"data": data, "layout": layout}
@@ -111,6 +122,7 @@ def k_hat_condition_figure(
         "k̂ [%]",
         yaxis={"zeroline": True},
         legend=LEGEND_BELOW,
+        annotations=[_k_hat_zero()],
     )
     return {"data": data, "layout": layout}
 
@@ -196,7 +208,7 @@ def _cusum_traces(cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
             _lines(
                 [_ms(first), _ms(last)],
                 [threshold, threshold],
-                name=f"CUSUM threshold h = {threshold:.2f} σ",
+                name=_threshold_name(threshold),
                 yaxis="y2",
                 line={"color": ALARM_COLOURS["open"], "dash": "dash", "width": 1},
                 legendgroup="cusum",
@@ -253,6 +265,33 @@ def _alarm_traces(alarms: Sequence[AlarmOut], cusums: Sequence[CusumSeries]) -> 
     return data
 
 
+def _threshold_name(threshold: float) -> str:
+    return f"CUSUM threshold h = {threshold:.2f} σ"
+
+
+def _line_label(text: str, y: float, colour: str, yref: str = "y", side: str = "right") -> dict[str, Any]:
+    """An annotation naming the horizontal reference line at ``y`` (on axis ``yref``), written just
+    above it at the plot's ``side``: in the chart itself, so that no line reads as a data value
+    whatever the legend shows."""
+    return {
+        "text": text,
+        "xref": "paper",
+        "x": 0.0 if side == "left" else 1.0,
+        "xanchor": side,
+        "yref": yref,
+        "y": y,
+        "yanchor": "bottom",
+        "showarrow": False,
+        "font": {"size": 11, "color": colour},
+        "bgcolor": "rgba(255,255,255,0.7)",
+    }
+
+
+def _k_hat_zero() -> dict[str, Any]:
+    """The k̂ axis's zero line named: no fault, where a healthy record's k̂ scatters about."""
+    return _line_label("k̂ = 0 (no fault)", 0.0, "#555", side="left")
+
+
 def _lines(x: Any, y: Any, **style: Any) -> dict[str, Any]:
     """A line trace (``x`` and ``y`` sequences or arrays) with plotly attributes ``style`` (which may
     set ``type`` to "scattergl")."""
@@ -298,38 +337,49 @@ def _gap(high: float | None, low: float | None) -> float | None:
     return None if high is None or low is None else high - low
 
 
-def q_figure(points: Sequence[TimelinePoint]) -> Figure:
-    """The Ljung–Box Q of each fault mode's residual per verdict against its critical value (Figure 6)."""
+def q_figure(points: Sequence[TimelinePoint], alpha: float) -> Figure:
+    """The Ljung–Box Q of each fault mode's residual per verdict against its critical value at
+    level ``alpha`` (the newest verdict's), each critical value named in the chart (Figure 6).
+    Modes whose critical values agree (the same lags) share one line: drawn once per mode, the
+    lines and their names would lie on top of each other."""
     names = sorted({m["name"] for p in points for m in p.modes})
     data = []
+    criticals: dict[float, list[str]] = {}
     for index, name in enumerate(names):
         pairs = [(p, m) for p in points for m in p.modes if m["name"] == name]
-        x = [_ms(p.acquired_at) for p, _ in pairs]
-        colour = _mode_colour(index)
         data.append(
             {
                 "type": _scatter(len(pairs)),
                 "mode": "markers",
                 "name": f"Q ({name} model)",
-                "x": x,
+                "x": [_ms(p.acquired_at) for p, _ in pairs],
                 "y": [m["q"] for _, m in pairs],
                 "customdata": [p.record_id for p, _ in pairs],
-                "marker": {"color": colour, "size": 5},
+                "marker": {"color": _mode_colour(index), "size": 5},
                 "hovertemplate": "Q %{y:.1f}<br>record %{customdata}<extra>" + name + "</extra>",
             }
         )
-        critical = pairs[-1][1]["q_critical"]
-        data.append(_level(x, critical, f"critical value ({name})", colour, "χ² critical %{y:.1f}"))
-    return {
-        "data": data,
-        "layout": _over_time("Residual whiteness: Ljung–Box Q per fault-mode model", "Q", type="log"),
-    }
+        criticals.setdefault(pairs[-1][1]["q_critical"], []).append(name)
+    judged = [_ms(p.acquired_at) for p in points if p.modes]
+    span = [judged[0], judged[-1]] if judged else []
+    annotations = []
+    for critical, modes in criticals.items():
+        label = f"Q critical (α = {alpha:g})" + (f", {', '.join(modes)}" if len(criticals) > 1 else "")
+        colour = _mode_colour(names.index(modes[0])) if len(modes) == 1 else "#555"
+        data.append(_level(span, critical, label, colour, "χ² critical %{y:.1f}"))
+        # On a log axis an annotation's y is the exponent.
+        annotations.append(_line_label(label, float(np.log10(critical)), colour))
+    layout = _over_time(
+        "Residual whiteness: Ljung–Box Q per fault-mode model", "Ljung–Box Q (log scale)", type="log"
+    )
+    return {"data": data, "layout": layout | {"annotations": annotations}}
 
 
-def severity_figure(points: Sequence[TimelinePoint]) -> Figure:
+def severity_figure(points: Sequence[TimelinePoint], alarms: Sequence[AlarmOut] = ()) -> Figure:
     """A healthy baseline's severity per verdict, coloured by status, against the healthy level 1:
     how many times a healthy record's free-run error variance each record's is, the figure to
-    trend for a structure judged by its baseline alone. A diverged free run has none."""
+    trend for a structure judged by its baseline alone. A diverged free run has none. Where each
+    alarm was raised is marked as on the k̂ chart, which such a structure has not."""
     chosen = [p for p in points if p.severity is not None]
     x = [_ms(p.acquired_at) for p in chosen]
     data = [
@@ -345,9 +395,20 @@ def severity_figure(points: Sequence[TimelinePoint]) -> Figure:
         },
         _level(x, 1.0, "healthy level (1)", STATUS_COLOURS["healthy"], "healthy level 1"),
         *_status_legend(),
+        *_alarm_traces(alarms, ()),
     ]
     title = "Severity: the record's free-run error variance over a healthy record's"
-    return {"data": data, "layout": _over_time(title, "severity (healthy: 1)", rangemode="tozero")}
+    layout = _over_time(title, "severity (healthy: 1)", rangemode="tozero")
+    layout["annotations"] = [_line_label("healthy level (1)", 1.0, STATUS_COLOURS["healthy"])]
+    if alarms:  # the alarm lines' own axis, from the bottom of the plot to its top
+        layout["yaxis2"] = {"overlaying": "y", "range": [0.0, 1.0], "visible": False}
+    # The legend's groups below the axis title, not over it.
+    layout |= {
+        "legend": LEGEND_BELOW | {"y": -0.15, "yanchor": "top"},
+        "margin": MARGIN | {"b": 60},
+        "height": 480,
+    }
+    return {"data": data, "layout": layout}
 
 
 def trajectories_figure(model: FNARX, level: float = 0.95) -> Figure:

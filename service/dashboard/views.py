@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,6 +33,10 @@ CHART_ALARMS = 100  # the newest alarms marked on the k̂ chart
 # The fleet page's open alarms: the oldest this many, with the count of all. Every structure's page
 # lists its own; a fleet with a tenth of 10 000 structures in alarm made a page of 460 KB.
 FLEET_ALARMS = 50
+# A structure's page lists this many unresolved alarms in view (open ones first), the rest folded
+# away, and its newest resolved ones folded too: the page opens on the status and the charts.
+STRUCTURE_ALARMS = 3
+RESOLVED_ALARMS = 10
 
 
 @dataclass(frozen=True)
@@ -119,20 +124,23 @@ def structure_page(
         for v in versions
         if v.active and v.kind == "fault_mode" and isinstance(modelling.parsed_model(v), FNARX)
     ]
-    level = f"{1 - status.latest.alpha:.0%}" if status.latest is not None else "95%"
-    structure_alarms = alarms.unresolved_alarms(session, principal, structure_id)
+    alpha = status.latest.alpha if status.latest is not None else 0.05
+    level = f"{1 - alpha:.0%}"
+    # A structure has at most one unresolved alarm per rule and fault mode: all of them are read.
+    unresolved = sorted(
+        alarms.unresolved_alarms(session, principal, structure_id), key=lambda a: a.state != "open"
+    )
+    rules = alarms.get_rules(session, principal, structure_id, limit)
+    cusums = alarms.cusum_series(session, structure_id, limit)
+    charted = alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items
+    # A chart with nothing to draw is left out: a structure judged by its baseline alone has no k̂
+    # and no fault mode's Q, only its severity (which then marks the alarms).
+    k_hat = cusums or any(p.k_hat is not None for p in points.points)
     charts = (
-        {
-            "k_hat": figures.k_hat_figure(
-                points.points,
-                level,
-                alarms.cusum_series(session, structure_id, limit),
-                alarms.list_alarms(session, principal, structure_id=structure_id, limit=CHART_ALARMS).items,
-            ),
-            "q": figures.q_figure(points.points),
-        }
+        ({"k_hat": figures.k_hat_figure(points.points, level, cusums, charted)} if k_hat else {})
+        | ({"q": figures.q_figure(points.points, alpha)} if any(p.modes for p in points.points) else {})
         | (
-            {"severity": figures.severity_figure(points.points)}
+            {"severity": figures.severity_figure(points.points, () if k_hat else charted)}
             if any(p.severity is not None for p in points.points)
             else {}
         )
@@ -145,10 +153,18 @@ def structure_page(
             for v in active_modes
         }
     )
+    resolved = alarms.list_alarms(
+        session, principal, structure_id=structure_id, state="resolved", limit=RESOLVED_ALARMS
+    )
     return {
         "structure": structure,
-        "alarms": structure_alarms,
-        "cusum_problem": alarms.get_rules(session, principal, structure_id, limit).cusum_problem,
+        "alarms": unresolved[:STRUCTURE_ALARMS],
+        "more_alarms": unresolved[STRUCTURE_ALARMS:],
+        "alarm_states": Counter(a.state for a in unresolved),
+        "resolved": resolved.items,
+        "more_resolved": resolved.next_cursor is not None,
+        "cusum_problem": rules.cusum_problem,
+        "cusum_skipped": rules.cusum_skipped,
         "names": {structure.id: structure.name},
         "status": status,
         "timeline": points,
