@@ -75,9 +75,16 @@ def simulate(
             )
         params = PhysicalParameters().replace(**parse_assignments(param or [], "parameter"))
         scenario = Scenario(
-            params, fault, k, excitation_std, disturbance_std, noise_std, x_noise_std, colour,  # type: ignore[arg-type]
+            params=params,
+            fault=fault,  # type: ignore[arg-type]  # checked by with_fault
+            k=k,
+            excitation_std=excitation_std,
+            disturbance_std=disturbance_std,
+            y_noise_std=noise_std,
+            x_noise_std=x_noise_std,
+            noise_colour=colour,
             effects=Effects.parse(effect or []),
-        )  # fmt: skip
+        )
         rig = run_simulation(scenario, n, seed)
         x, y, fs, unit = rig.x, rig.y, rig.fs, "m"
     else:
@@ -87,9 +94,17 @@ def simulate(
                 "--stiffness, --damping and --cubic"
             )
         chain_scenario = ChainScenario(
-            chain, fault, k, excitation_std, disturbance_std, noise_std, x_noise_std, colour,
-            outputs=parse_outputs(outputs, chain.n), response=response or "displacement",  # type: ignore[arg-type]
-        )  # fmt: skip
+            chain,
+            fault,
+            k,
+            excitation_std=excitation_std,
+            disturbance_std=disturbance_std,
+            y_noise_std=noise_std,
+            x_noise_std=x_noise_std,
+            noise_colour=colour,
+            outputs=parse_outputs(outputs, chain.n),
+            response=response or "displacement",  # type: ignore[arg-type]  # checked by ChainScenario
+        )
         x, y, fs = chain_signals(chain_scenario, noise_share, n, seed)
         unit = "m/s²" if chain_scenario.response == "acceleration" else "m"
     path = write_record(out, x, y, fs)
