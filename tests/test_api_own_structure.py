@@ -30,8 +30,9 @@ from models.baseline_choice import MAX_ORDER
 from service.security import Role
 
 # Ten healthy records of 2000 samples train the chosen baseline, and records of 1000 are judged:
-# the shortest at which the chosen baseline's estimation error leaves the rate at α (with ten of
-# 600 samples, a fifth of a second of this chain, about twice α is flagged).
+# short records at which the chosen baseline's estimation error leaves the rate at α. Ten training
+# records of 600 samples are too few: the noise on the measured force makes the baseline's error
+# larger than the statistic allows for, and about twice α is flagged.
 TRAINING, TRAINING_SAMPLES, SAMPLES = 10, 2000, 1000
 HEALTHY, FAULTY = 200, 40
 
