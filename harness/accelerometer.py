@@ -4,6 +4,7 @@ bench/novelty_rates.py watch it."""
 
 from __future__ import annotations
 
+import dataclasses
 import uuid
 
 import httpx
@@ -22,12 +23,10 @@ ALPHA = 0.05  # the designed false-alarm rate the tests judge at (the service's 
 def scenario(fault: str = "none", k: float = 0.0, level: float = 1.0) -> ChainScenario:
     """The chain at ``level`` times the training force, its sensors' noise a floor: 1 % of the
     healthy signals' RMS at the training level, whatever the level."""
-    clean = ChainScenario(CHAIN, excitation_std=FORCE, outputs=(1,), response="acceleration")
-    y_rms = float(np.std(simulate_chain(clean, 20_000, 1).responses["y1"]))
-    return ChainScenario(
-        CHAIN, fault, k, excitation_std=level * FORCE, outputs=(1,), response="acceleration",
-        y_noise_std=NOISE * y_rms, x_noise_std=NOISE * FORCE,
-    )  # fmt: skip
+    trained = ChainScenario(CHAIN, excitation_std=FORCE, outputs=(1,), response="acceleration")
+    return dataclasses.replace(
+        trained.with_sensor_noise(NOISE), fault=fault, k=k, excitation_std=level * FORCE
+    )
 
 
 def record(s: ChainScenario, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -31,6 +31,8 @@ from simulator.simulate import check_levels, measurement_noise
 from simulator.temperature import Thermal
 
 Response = Literal["displacement", "acceleration"]
+# The healthy samples whose RMS sets a sensor noise floor (:meth:`ChainScenario.with_sensor_noise`).
+NOISE_FLOOR_SAMPLES = 20_000
 RESPONSES: tuple[Response, ...] = ("displacement", "acceleration")
 MAX_MASSES = 50  # a chain's cost grows with n² per step; monitoring studies use a handful
 
@@ -256,6 +258,19 @@ class ChainScenario:
     @property
     def fs(self) -> float:
         return float(round(1 / self.params.ts))
+
+    def with_sensor_noise(self, share: float) -> ChainScenario:
+        """The scenario with white noise on the force and on each measured channel, ``share`` of
+        that signal's RMS when the chain is healthy and noise-free at this excitation: a sensor's
+        noise floor, so that a fault changes the response and not the noise added to it."""
+        if not 0 <= share < 1:
+            raise InputError(f"--noise-share must lie in [0, 1), a share of the RMS; got {share:g}")
+        clean = dataclasses.replace(
+            self, fault="none", k=0.0, y_noise_std=0.0, x_noise_std=0.0, temperature=None
+        )
+        responses = simulate_chain(clean, NOISE_FLOOR_SAMPLES, 1).responses.values()
+        y_rms = float(np.mean([np.std(channel) for channel in responses]))
+        return dataclasses.replace(self, y_noise_std=share * y_rms, x_noise_std=share * self.excitation_std)
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,13 @@ DisturbanceStd = Annotated[
 ]
 NoiseStd = Annotated[float, typer.Option(help="Std of white measurement noise on y [m].")]
 XNoiseStd = Annotated[float, typer.Option(help="Std of white measurement noise on x [N].")]
+NoiseShare = Annotated[
+    float | None,
+    typer.Option(
+        help="The chain's sensor noise: white noise on x and on each response channel, this share of the "
+        "signal's RMS when healthy and noise-free (0.01 for 1 %), the same floor whatever the fault.",
+    ),
+]
 NoiseColour = Annotated[
     str | None,
     typer.Option(

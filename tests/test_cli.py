@@ -97,9 +97,58 @@ def test_simulate_accepts_effects_and_parameters(tmp_path):
     assert (tmp_path / "e.csv").read_text() != (tmp_path / "p.csv").read_text()
 
 
+CHAIN = ["--masses", "3", "--mass", "10,20,15", "--stiffness", "50e3,80e3,30e3", "--damping", "2000"]
+ACCELEROMETER = [*CHAIN, "--response", "acceleration", "--outputs", "1", "--excitation-std", "1000"]
+
+
+def test_simulate_writes_a_chain_s_accelerometer_with_sensor_noise_a_share_of_its_rms(tmp_path):
+    """A structure that is not the rig: the chain's driving-point acceleration, its sensors' noise 1 %
+    of the healthy signals' RMS on x and on y, the same floor with a spring loosened."""
+    quiet = [*ACCELEROMETER, "--disturbance-std", "0", "--n", "3000", "--seed", "4"]
+    written = run("simulate", *quiet, "--out", "clean.npz", cwd=tmp_path)
+    assert "3000 samples at fs = 1500 Hz" in written.stdout and "m/s²" in written.stdout
+    run("simulate", *quiet, "--noise-share", "0.01", "--out", "noisy.npz", cwd=tmp_path)
+    invoke(
+        "simulate",
+        *quiet,
+        "--noise-share",
+        "0.01",
+        "--fault",
+        "k2",
+        "--k",
+        "8",
+        "--out",
+        "k2.npz",
+        cwd=tmp_path,
+    )
+    with np.load(tmp_path / "clean.npz") as clean, np.load(tmp_path / "noisy.npz") as noisy:
+        assert set(noisy.files) == {"x", "y", "fs"} and float(noisy["fs"]) == 1500.0
+        y_noise, x_noise = noisy["y"] - clean["y"], noisy["x"] - clean["x"]
+        assert 0.009 < np.std(y_noise) / np.std(clean["y"]) < 0.011
+        assert 0.009 < np.std(x_noise) / 1000.0 < 0.011
+        assert abs(np.corrcoef(y_noise[1:], y_noise[:-1])[0, 1]) < 0.1  # white
+    with np.load(tmp_path / "k2.npz") as faulty, np.load(tmp_path / "clean.npz") as clean:
+        assert not np.allclose(faulty["y"], clean["y"], rtol=0.01)  # the spring changed the response
+    # Displacement by default, every mass measured: a channel per mass.
+    every = run("simulate", *CHAIN, "--n", "500", "--seed", "1", "--out", "all.csv", cwd=tmp_path)
+    assert every.stdout.endswith(" m\n")
+    assert (tmp_path / "all.csv").read_text().splitlines()[1] == "x,y1,y2,y3"
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
+        (["--noise-share", "0.01"], "--noise-share and --outputs are options of the chain: give --masses N"),
+        ([*CHAIN, "--noise-share", "1.5"], "--noise-share must lie in [0, 1)"),
+        ([*CHAIN, "--noise-share", "0.01", "--noise-std", "1e-3"], "give it or --noise-std/--x-noise-std"),
+        (
+            [*CHAIN, "--response", "velocity"],
+            "--response 'velocity': choose one of displacement, acceleration",
+        ),
+        ([*CHAIN, "--fault", "k5"], "k5"),
+        ([*CHAIN, "--outputs", "4"], "--outputs must name distinct masses of the chain, 1 … 3"),
+        ([*CHAIN, "--param", "c1=800"], "--effect and --param act on the 2-DOF rig"),
+        (["--stiffness", "1e4"], "--stiffness: options of the chain, which needs its number of masses"),
         (["--effect", "gremlins=3"], "cannot read effect"),
         (["--effect", "coulomb1=lots"], "not a number"),
         (["--param", "m3=4"], "unknown parameter m3"),

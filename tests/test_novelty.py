@@ -8,6 +8,7 @@ import pytest
 from scipy import stats
 
 from harness.accelerometer import ALPHA, record, scenario
+from models.baseline_choice import MAX_ORDER, choose_baseline_terms
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.novelty import NoveltyReference, judge_record, novelty_reference, start_up_of
@@ -61,6 +62,20 @@ def test_healthy_records_flagged_at_the_designed_rate_and_a_loosened_spring_foun
         faulty = flagged(model, reference, scenario(spring, 8.0), 4000, 40, 20_000)
         assert sum(v.status == "anomaly" for v in faulty) >= least, spring
         assert np.median([v.severity for v in faulty]) > 1.0
+
+
+def test_a_baseline_whose_terms_are_chosen_for_the_structure_holds_the_rate() -> None:
+    """The terms a baseline trained without them gets (``choose_baseline_terms``: orders ≤ 6)
+    from ten healthy records of 2000 samples: healthy records half as long are flagged within the
+    binomial bounds of α, an 8 % loss of k2 at least 90 % of the time."""
+    training = [record(scenario(), 2000, 100 + i) for i in range(10)]
+    choice = choose_baseline_terms(training)
+    assert choice.delay == 0 and choice.ny <= MAX_ORDER
+    model = fit_output_error(fit_narx(training, list(choice.terms)), training, start_from="estimated").model
+    reference = novelty_reference(model, training)
+    assert within_rate(flagged(model, reference, scenario(), 1000, 200, 10_000))
+    faulty = flagged(model, reference, scenario("k2", 8.0), 1000, 40, 20_000)
+    assert sum(v.status == "anomaly" for v in faulty) >= 36
 
 
 def test_the_rate_holds_at_half_and_twice_the_training_excitation(baseline) -> None:

@@ -49,23 +49,29 @@ def test_monitor_your_own_structure_runs_as_printed(api_server: LiveServer, tmp_
     )
     assert result.returncode == 0, result.stdout + result.stderr
     lines = result.stdout.splitlines()
-    # The trainings print the model versions they made: the baseline and the k2 mode, in that order.
+    # The training prints the baseline it made, the terms chosen for the structure (x[t] among
+    # them: the accelerometer feels the force at once), and that it judges records alone.
     made = [line for line in lines if " version " in line]
-    assert [line.split(" version ")[0] for line in made] == ["baseline", "fault mode k2"], lines
-    # The inspected record (k2 loosened by 12 %) is found faulty in mode k2, with k̂ near 12,
-    # both when uploaded and in the verdicts read back.
-    verdicts = [line for line in lines if re.search(r"  record \d+  (healthy|faulty|unknown_fault)  ", line)]
-    assert len(verdicts) == 2, lines
-    for line in verdicts:
-        found = re.search(r"faulty  mode k2  k̂ = (-?[\d.]+) %", line)
-        assert found and 6 < float(found.group(1)) < 18, line
-    assert "new.csv" in verdicts[0]
+    assert [line.split(" version ")[0] for line in made] == ["baseline"], lines
+    (chosen,) = [line for line in lines if "terms chosen for the structure: " in line]
+    assert "x[t]" in chosen.split(": ", 1)[1].split(", "), chosen
+    assert "  judges records alone" in lines, lines
+    # The new healthy record is healthy and the loosened one an anomaly, with T against its
+    # threshold and the severity, both when uploaded and in the verdicts read back (newest first).
+    pattern = r"  record \d+  (healthy|anomaly)  T = ([\d.]+) ([>≤]) ([\d.]+)  severity ([\d.]+)"
+    verdicts = [found for line in lines if (found := re.search(pattern, line))]
+    assert [v.group(1) for v in verdicts] == ["healthy", "anomaly", "anomaly", "healthy"], lines
+    for verdict in verdicts:
+        status, statistic, sign, threshold, severity = verdict.groups()
+        assert (sign == ">") == (status == "anomaly") == (float(statistic) > float(threshold))
+        assert float(severity) > 0
+    assert "new.csv" in verdicts[0].string and "loosened.csv" in verdicts[1].string
     assert sorted(path.name for path in tmp_path.iterdir()) == sorted(
-        [f"healthy{i}.csv" for i in (1, 2, 3)] + [f"k2_{k}.csv" for k in (-16, -8, 0, 8, 16)] + ["new.csv"]
+        [f"healthy{i}.csv" for i in range(1, 11)] + ["new.csv", "loosened.csv"]
     )
 
 
 def test_the_section_block_is_found_and_holds_the_commands():
     script = section_script(README.read_text(), SECTION)
-    for command in ("structures create", "upload", "train baseline", "train fault-mode", "verdicts"):
+    for command in ("structures create", "upload", "train baseline", "verdicts"):
         assert f"narxwatch-sim {command}" in script

@@ -233,6 +233,17 @@ def trained(answer: dict[str, Any]) -> None:
         f"{len(answer['terms'])} terms, {'active' if answer['active'] else 'inactive'}",
         markup=False,
     )
+    choice = answer["training"].get("choice")
+    if choice:
+        stdout.print(f"  terms chosen for the structure: {', '.join(choice['terms'])}", markup=False)
+    novelty = (answer["statistics"] or {}).get("novelty")
+    if novelty:
+        judges = (
+            "judges records alone"
+            if novelty["judges_records"]
+            else f"cannot judge records alone: {novelty['reason']}"
+        )
+        stdout.print(f"  {judges}", markup=False)
 
 
 def term_list(terms: str | None) -> dict[str, Any]:
