@@ -7,7 +7,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy.orm import Session
 
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
-from service.api.expensive import ACCEPTED, queued, slot
+from service.api.expensive import ACCEPTED, run_or_queue
 from service.api.params import IdPath
 from service.config import Settings
 from service.domain import modelling
@@ -128,13 +128,17 @@ def _train(
     settings: Settings,
 ) -> ModelOut | JSONResponse:
     """Run a training within the request, in one of the organisation's slots, or queue it."""
-    cells = modelling.training_cells(session, principal, structure_id, body, settings)
-    if cells > settings.queue_training_cells:
-        job = {"structure_id": structure_id, "kind": modelling.training_kind(body), "body": body.model_dump()}
-        return queued(request, session, principal, TRAIN_MODEL, **job)
-    with slot(request, principal):
-        version = modelling.train(session, principal, structure_id, body, settings)
-    return model_out(version)
+    return run_or_queue(
+        request,
+        session,
+        principal,
+        modelling.training_cells(session, principal, structure_id, body, settings),
+        lambda: model_out(modelling.train(session, principal, structure_id, body, settings)),
+        TRAIN_MODEL,
+        structure_id=structure_id,
+        kind=modelling.training_kind(body),
+        body=body.model_dump(),
+    )
 
 
 @router.get("")
