@@ -27,7 +27,7 @@ import scipy.linalg
 
 from models.errors import InputError
 from simulator.physics import UnstableSimulationError
-from simulator.simulate import check_levels, measurement_noise
+from simulator.simulate import check_levels, excitation, measured_input, measurement_noise
 from simulator.temperature import Thermal
 
 Response = Literal["displacement", "acceleration"]
@@ -285,19 +285,15 @@ def simulate_chain(
     masses = scenario.measured
     params = scenario.structure
     check_stable(params)
-    rng = np.random.default_rng(seed)
+    rng, command, disturbance = excitation(scenario, n, seed)
     total = n + scenario.burn_in
-    command = rng.normal(0.0, scenario.excitation_std, total)
-    disturbance = rng.normal(0.0, scenario.disturbance_std, total) if scenario.disturbance_std else 0.0
     positions = integrate(params, command + disturbance)
     _check_diverged(params, positions, scenario)
     if scenario.response == "displacement":
         motion = positions[scenario.burn_in : total]
     else:
         motion = np.diff(positions, n=2, axis=0)[scenario.burn_in :] / params.ts**2
-    x = command[scenario.burn_in :].copy()
-    if scenario.x_noise_std:
-        x += measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
+    x = measured_input(rng, scenario, command, n)
     responses = {}
     for mass, name in zip(masses, scenario.channels, strict=True):
         channel = motion[:, mass - 1].copy()
