@@ -26,7 +26,7 @@ import numpy as np
 import scipy.linalg
 
 from models.errors import InputError
-from simulator.physics import UnstableSimulationError
+from simulator.physics import UnstableSimulationError, check_pole_radius
 from simulator.simulate import check_levels, excitation, measured_input, measurement_noise
 from simulator.temperature import Thermal
 
@@ -194,13 +194,12 @@ def spread(values: Sequence[float], n: int, option: str, with_end: bool = False)
 
 def check_stable(p: ChainParameters) -> None:
     """Refuse a chain on which the forward-difference scheme diverges from rest."""
-    radius = p.linear_pole_radius
-    if radius >= 1:
-        raise UnstableSimulationError(
-            f"the forward-difference scheme is unstable for this chain: a pole of the discretised "
-            f"system has modulus {radius:.4f} ≥ 1 at Ts = {p.ts:g} s. The explicit scheme needs "
-            "damping to dominate: more damping (--damping), less stiffness or heavier masses"
-        )
+    check_pole_radius(
+        p.linear_pole_radius,
+        p.ts,
+        "for this chain",
+        ": more damping (--damping), less stiffness or heavier masses",
+    )
 
 
 @dataclass(frozen=True)
