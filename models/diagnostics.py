@@ -8,7 +8,7 @@ runs Ljung–Box, the correlation tests of :mod:`models.correlation_tests` and t
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -49,6 +49,18 @@ class LjungBoxResult:
     def white(self) -> bool:
         return self.q < self.q_critical
 
+    @classmethod
+    def of(cls, q: float, df: int, lags: int, alpha: float, **more: int) -> Self:
+        """The statistic ``q`` compared with χ²_{1−α}(df); ``more``, a subclass's own fields."""
+        return cls(
+            q=q,
+            q_critical=float(special.chdtri(df, alpha)),
+            p_value=float(special.chdtrc(df, q)),
+            df=df,
+            lags=lags,
+            **more,
+        )
+
 
 def ljung_box(e: np.ndarray, lags: int = 40, alpha: float = 0.05, model_df: int = 1) -> LjungBoxResult:
     """Ljung–Box portmanteau test of residual whiteness (SPEC §5, step 4).
@@ -61,13 +73,7 @@ def ljung_box(e: np.ndarray, lags: int = 40, alpha: float = 0.05, model_df: int 
     rho = autocorrelation(np.asarray(e, dtype=np.float64), lags)[1:]
     q = float(n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, lags + 1))))
     df = lags - model_df
-    return LjungBoxResult(
-        q=q,
-        q_critical=float(special.chdtri(df, alpha)),
-        p_value=float(special.chdtrc(df, q)),
-        df=df,
-        lags=lags,
-    )
+    return LjungBoxResult.of(q, df, lags, alpha)
 
 
 @dataclass(frozen=True)
@@ -109,14 +115,7 @@ def hosking(e: ArrayLike, lags: int = 40, alpha: float = 0.05, model_df: int = 0
         ch = centred[h:].T @ centred[:-h] / n
         q += float(np.trace(ch.T @ c0_inv @ ch @ c0_inv)) / (n - h)
     q *= n**2
-    return HoskingResult(
-        q=q,
-        q_critical=float(special.chdtri(df, alpha)),
-        p_value=float(special.chdtrc(df, q)),
-        df=df,
-        lags=lags,
-        channels=channels,
-    )
+    return HoskingResult.of(q, df, lags, alpha, channels=channels)
 
 
 REPORT_TESTS = 9  # Ljung–Box, five Billings–Voon, two Billings–Zhu, the spectrum

@@ -22,7 +22,7 @@ from models.errors import InputError
 from models.narx import NARX, check_document, z_quantile
 from models.regression import least_squares
 from models.signals import checked_record
-from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix
+from models.terms import OverTerms, Term, max_degree, max_lag, parse_terms, regressor_matrix
 
 Experiment = tuple[ArrayLike, ArrayLike, float]
 
@@ -42,7 +42,7 @@ class CoefficientTrajectories:
 
 
 @dataclass(frozen=True)
-class FNARX:
+class FNARX(OverTerms):
     """A fault-mode model: NARX coefficients as functions of the fault magnitude k (percent).
 
     Attributes
@@ -64,14 +64,6 @@ class FNARX:
     experiment_k: np.ndarray
     experiment_sigma2: np.ndarray
     n_obs: int
-
-    @property
-    def max_lag(self) -> int:
-        return max_lag(self.terms)
-
-    @property
-    def term_names(self) -> list[str]:
-        return [term.name for term in self.terms]
 
     def check_magnitude(self, k: float) -> float:
         if not np.isfinite(k) or not self.basis.contains(k):

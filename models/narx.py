@@ -33,7 +33,15 @@ from models.errors import InputError
 from models.regression import least_squares
 from models.signals import checked_record, checked_records
 from models.simulation import FreeRun
-from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix, stacked_regressors
+from models.terms import (
+    OverTerms,
+    Term,
+    max_degree,
+    max_lag,
+    parse_terms,
+    regressor_matrix,
+    stacked_regressors,
+)
 
 DOCUMENT_VERSION = 1
 Saturation = Literal["state", "sensor"]
@@ -45,7 +53,7 @@ def z_quantile(level: float) -> float:
 
 
 @dataclass(frozen=True)
-class NARX:
+class NARX(OverTerms):
     """An estimated (or theoretical) NARX model.
 
     Attributes
@@ -66,14 +74,6 @@ class NARX:
     n_obs: int = 0
     output_limits: tuple[float, float] | None = None
     saturation: Saturation = "state"
-
-    @property
-    def max_lag(self) -> int:
-        return max_lag(self.terms)
-
-    @property
-    def term_names(self) -> list[str]:
-        return [term.name for term in self.terms]
 
     def standard_errors(self) -> np.ndarray:
         return np.sqrt(np.diag(self.covariance))

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -122,90 +122,162 @@ def fit_output_error(
     >>> bool(fit.rms < fit.start_rms)
     True
     """
-    L = start.max_lag
-    checked = checked_records(records, L + len(start.terms) + 1, degree=max_degree(start.terms))
-    targets = [ya[L:] for _, ya in checked]
-    scale = np.sqrt(sum(float(np.sum(t**2)) for t in targets) / sum(t.size for t in targets)) or 1.0
-
-    # The input side of every record is computed once; each θ costs only the compiled recursion.
-    origins = record_origins(t0, len(checked))
-    runs = [
-        (FreeRun.build(start.terms, xa, origin), ya)
-        for (xa, ya), origin in zip(checked, origins, strict=True)
-    ]
-    ring_downs = RingDowns.build(start.terms, checked, origins, [run for run, _ in runs])
-    longest = max(run.n for run, _ in runs)
-    if start_from == "estimated" and start.output_limits is not None:
-        raise InputError("the free run's start can be estimated only for a model without output limits")
-
-    def started(theta: np.ndarray) -> tuple[EstimatedStart | None, list[np.ndarray]]:
-        # Each record's output with the start its free run is to begin from.
-        if start_from == "measured":
-            return None, [ya for _, ya in runs]
-        estimated = EstimatedStart.of(start.terms, theta, longest)
-        return estimated, [estimated.start(ya, run.run(theta, ya)) for run, ya in runs]
-
-    def simulated(theta: np.ndarray) -> list[np.ndarray]:
-        return [start.run_free(run, ya, theta) for (run, _), ya in zip(runs, started(theta)[1], strict=True)]
-
-    def errors(outputs: list[np.ndarray]) -> np.ndarray:
-        return np.concatenate([out[L:] - ya[L:] for out, (_, ya) in zip(outputs, runs, strict=True)])
-
-    outputs = simulated(start.theta)
-    initial = errors(outputs)
+    search = _Search.build(start, records, t0, threads, start_from)
+    # The search's start must run free and stay finite; where it does not come to rest either, the
+    # search cannot be held to that; nor to the restarts from measured outputs where the start
+    # does not hold from them.
+    outputs = search.simulated(start.theta)
+    initial = search.errors(outputs)
     if not np.all(np.isfinite(initial)):
         raise InputError(
             "the free run of the starting model diverges on the estimation data: output-error "
             "refinement needs a starting model whose simulation is stable"
         )
-    # Where the start does not come to rest either, the search cannot be held to it; nor to the
-    # restarts from measured outputs where the start does not hold from them.
-    at_rest = ring_downs.settle(start, start.theta, recursion_states(start, start.theta, runs, outputs))
-    held = ring_downs.holds(start, start.theta, start.theta)
+    search.at_rest = search.settles(start.theta, outputs)
+    held = search.ring_downs.holds(start, start.theta, start.theta)
     # What a diverged run costs: every residual at a hundred times the output's RMS, far above
     # anything a finite run reaches, so that the search backs away from an unstable θ.
-    penalty = 100.0 * (scale + float(np.max(np.abs(initial))))
-    penalised_steps = 0
-    state = start.output_limits if start.saturation == "state" else None
+    search.penalty = 100.0 * (search.scale + float(np.max(np.abs(initial))))
+
+    # The search is held to the restarts from measured outputs only where its end does not hold
+    # from them: on its way to a model that does, it may pass through θ that do not (held from the
+    # start, the search on the rig's record above stops at 38.5 mm, not 2.8).
+    theta, result, evaluations = search.run(max_evaluations, holding=False)
+    holds = not held or search.ring_downs.holds(start, theta, start.theta)
+    if not holds:
+        theta, result, more = search.run(max_evaluations, holding=True)
+        evaluations += more
+        holds = search.ring_downs.holds(start, theta, start.theta)
+    return search.outcome(theta, result, evaluations, initial, holds)
+
+
+@dataclass(eq=False)
+class _Search:
+    """:func:`fit_output_error`'s search over θ for one start and its records: the records'
+    free runs prepared once (each θ then costs only the compiled recursion), what judges a θ, and
+    the buffers MINPACK's calls share.
+
+    Mutable, as the calls of one search share it: ``penalised_steps`` counts the θ met with the
+    penalty (a fresh search starts where MINPACK crawled after one), and ``last`` keeps the
+    residual at the θ last run, whose sensitivities the buffers hold. ``at_rest`` and ``penalty``
+    are set from the start's own free run before the search.
+    """
+
+    start: NARX
+    runs: list[tuple[FreeRun, np.ndarray]]  # each record's prepared free run and measured output
+    ring_downs: RingDowns
+    start_from: Literal["measured", "estimated"]
+    threads: Workers
+    scale: float  # the measured outputs' RMS (one where they are all zero)
+    longest: int  # samples of the longest record
     # The Jacobian's buffers: each record's sensitivities, and the scaled Jacobian beside the
     # residual that is factored (a fresh array of Silverbox's 65 000 × 51 costs 4 ms in its
     # pages' first writes, about a tenth of the sensitivities).
-    p = start.theta.size
-    derivatives = [np.empty((run.n, p)) for run, _ in runs]
-    augmented = np.empty((sum(run.n - L for run, _ in runs), p + 1))
-    rows = np.cumsum([0] + [run.n - L for run, _ in runs])
+    derivatives: list[np.ndarray]
+    augmented: np.ndarray
+    rows: np.ndarray  # where each record's block starts in ``augmented``, and the end
+    at_rest: bool = False  # the start comes to rest, and so must every θ
+    penalty: float = math.inf
+    penalised_steps: int = 0
+    last: dict[bytes, np.ndarray] = field(default_factory=dict)
 
-    def sensitive(theta: np.ndarray) -> list[np.ndarray]:
-        # The free runs (what simulated(θ) reports) with their exact sensitivities written into
-        # the buffers (one pass a record): MINPACK asks for the Jacobian at the θ it has just
-        # run whenever it keeps the step, nearly every step, and a run alone costs half a run with
-        # sensitivities (22 against 47 ms on Silverbox's 65 000 × 51). The penalty is flat, and so
-        # is a sensor's reading where it is clipped.
+    @classmethod
+    def build(
+        cls,
+        start: NARX,
+        records: Iterable[tuple[ArrayLike, ArrayLike]],
+        t0: int | Sequence[int],
+        threads: Workers,
+        start_from: Literal["measured", "estimated"],
+    ) -> _Search:
+        L = start.max_lag
+        checked = checked_records(records, L + len(start.terms) + 1, degree=max_degree(start.terms))
+        targets = [ya[L:] for _, ya in checked]
+        scale = np.sqrt(sum(float(np.sum(t**2)) for t in targets) / sum(t.size for t in targets)) or 1.0
+        origins = record_origins(t0, len(checked))
+        runs = [
+            (FreeRun.build(start.terms, xa, origin), ya)
+            for (xa, ya), origin in zip(checked, origins, strict=True)
+        ]
+        ring_downs = RingDowns.build(start.terms, checked, origins, [run for run, _ in runs])
+        if start_from == "estimated" and start.output_limits is not None:
+            raise InputError("the free run's start can be estimated only for a model without output limits")
+        p = start.theta.size
+        return cls(
+            start=start,
+            runs=runs,
+            ring_downs=ring_downs,
+            start_from=start_from,
+            threads=threads,
+            scale=scale,
+            longest=max(run.n for run, _ in runs),
+            derivatives=[np.empty((run.n, p)) for run, _ in runs],
+            augmented=np.empty((sum(run.n - L for run, _ in runs), p + 1)),
+            rows=np.cumsum([0] + [run.n - L for run, _ in runs]),
+        )
+
+    @property
+    def lag(self) -> int:
+        return self.start.max_lag
+
+    @property
+    def state(self) -> tuple[float, float] | None:
+        """The limits the recursion's state saturates at (None where only a sensor's reading
+        is clipped, or nothing is)."""
+        return self.start.output_limits if self.start.saturation == "state" else None
+
+    def started(self, theta: np.ndarray) -> tuple[EstimatedStart | None, list[np.ndarray]]:
+        """Each record's output with the start its free run is to begin from."""
+        if self.start_from == "measured":
+            return None, [ya for _, ya in self.runs]
+        estimated = EstimatedStart.of(self.start.terms, theta, self.longest)
+        return estimated, [estimated.start(ya, run.run(theta, ya)) for run, ya in self.runs]
+
+    def simulated(self, theta: np.ndarray) -> list[np.ndarray]:
+        starts = self.started(theta)[1]
+        return [self.start.run_free(run, ya, theta) for (run, _), ya in zip(self.runs, starts, strict=True)]
+
+    def errors(self, outputs: list[np.ndarray]) -> np.ndarray:
+        L = self.lag
+        return np.concatenate([out[L:] - ya[L:] for out, (_, ya) in zip(outputs, self.runs, strict=True)])
+
+    def settles(self, theta: np.ndarray, outputs: list[np.ndarray]) -> bool:
+        """Whether θ's free run, ``outputs``, rings down after every switch-off."""
+        return self.ring_downs.settle(
+            self.start, theta, recursion_states(self.start, theta, self.runs, outputs)
+        )
+
+    def sensitive(self, theta: np.ndarray) -> list[np.ndarray]:
+        """The free runs (what :meth:`simulated` reports) with their exact sensitivities written
+        into the buffers (one pass a record): MINPACK asks for the Jacobian at the θ it has just
+        run whenever it keeps the step, nearly every step, and a run alone costs half a run with
+        sensitivities (22 against 47 ms on Silverbox's 65 000 × 51). The penalty is flat, and so
+        is a sensor's reading where it is clipped."""
+        L, limits, state = self.lag, self.start.output_limits, self.state
         outputs = []
-        estimated, starts = started(theta)
-        for (run, _), ya, into in zip(runs, starts, derivatives, strict=True):
+        estimated, starts = self.started(theta)
+        for (run, _), ya, into in zip(self.runs, starts, self.derivatives, strict=True):
             output, block = run.run_with_sensitivities(theta, ya, state, into)
             if estimated is not None:
                 estimated.project(block[L:])
-            if start.output_limits is not None and state is None:
-                low, high = start.output_limits
+            if limits is not None and state is None:
+                low, high = limits
                 block[(output <= low) | (output >= high)] = 0.0
                 output = np.clip(output, low, high)
             outputs.append(output)
         return outputs
 
-    def penalised(theta: np.ndarray, holding: bool) -> np.ndarray:
-        nonlocal penalised_steps
-        outputs = sensitive(theta)
-        residuals = errors(outputs)
-        if (
-            at_rest and not ring_downs.settle(start, theta, recursion_states(start, theta, runs, outputs))
-        ) or (holding and not ring_downs.holds(start, theta, start.theta)):
-            penalised_steps += 1
-            return np.full(residuals.size, penalty)
+    def penalised(self, theta: np.ndarray, holding: bool) -> np.ndarray:
+        outputs = self.sensitive(theta)
+        residuals = self.errors(outputs)
+        if (self.at_rest and not self.settles(theta, outputs)) or (
+            holding and not self.ring_downs.holds(self.start, theta, self.start.theta)
+        ):
+            self.penalised_steps += 1
+            return np.full(residuals.size, self.penalty)
         if not np.all(np.isfinite(residuals)):
-            penalised_steps += 1
-            return np.where(np.isfinite(residuals), residuals, penalty)
+            self.penalised_steps += 1
+            return np.where(np.isfinite(residuals), residuals, self.penalty)
         return residuals
 
     # MINPACK is given the free-run error folded to p + 1 rows. Its steps depend on the residual r
@@ -214,23 +286,21 @@ def fit_output_error(
     # [R; 0] of J = QR with [Qᵀr; ρ], the rest of r, rotated onto e₁, so that
     # ‖‖r‖·e₁ + J̃p‖ = ‖r + Jp‖ for every step p. Given the tall J, MINPACK factors it unblocked,
     # half of Silverbox's output-error searches; blockwise (:func:`triangular_factor`) the factor
-    # costs a third of that. Kept: the residual at the θ last run, whose sensitivities the
-    # buffers hold.
-    last: dict[bytes, np.ndarray] = {}
+    # costs a third of that.
 
-    def folded(theta: np.ndarray, holding: bool) -> np.ndarray:
-        residuals = penalised(theta, holding)
-        last.clear()
-        last[theta.tobytes()] = residuals
+    def folded(self, theta: np.ndarray, holding: bool) -> np.ndarray:
+        residuals = self.penalised(theta, holding)
+        self.last.clear()
+        self.last[theta.tobytes()] = residuals
         error = np.zeros(theta.size + 1)
         error[0] = np.linalg.norm(residuals)
         return error
 
-    def jacobian(theta: np.ndarray, holding: bool) -> np.ndarray:
-        if theta.tobytes() not in last:
-            folded(theta, holding)
-        residuals = last[theta.tobytes()]
-        blocks = [into[L:] for into in derivatives]
+    def jacobian(self, theta: np.ndarray, holding: bool) -> np.ndarray:
+        if theta.tobytes() not in self.last:
+            self.folded(theta, holding)
+        residuals = self.last[theta.tobytes()]
+        blocks = [into[self.lag :] for into in self.derivatives]
         # Columns scaled to a largest entry of one: sensitivities can exceed 10¹⁵⁴ where the run
         # stays finite (gauss_newton_inverse), and their squares must not overflow in the QR.
         # A NaN or an infinity (a diverging trial, rarely) is read as no sensitivity, as the
@@ -239,28 +309,31 @@ def fit_output_error(
         if not np.isfinite(scale).all():
             blocks = [np.nan_to_num(block, nan=0.0, posinf=0.0, neginf=0.0) for block in blocks]
             scale = _column_scale(*blocks)
-        for block, first, end in zip(blocks, rows[:-1], rows[1:], strict=True):
-            np.divide(block, scale, out=augmented[first:end, :-1])
-        augmented[:, -1] = residuals
-        R = triangular_factor(augmented, threads=threads)
+        for block, first, end in zip(blocks, self.rows[:-1], self.rows[1:], strict=True):
+            np.divide(block, scale, out=self.augmented[first:end, :-1])
+        self.augmented[:, -1] = residuals
+        R = triangular_factor(self.augmented, threads=self.threads)
         triangle, along = R[:-1, :-1] * scale, R[:, -1]  # [Qᵀr; ±ρ]
         rotation, top = linalg.qr(along[:, None])  # along = rotation·(±‖r‖·e₁)
         rotation[:, 0] *= np.sign(top[0, 0]) or 1.0
         return rotation.T @ np.vstack([triangle, np.zeros((1, theta.size))])
 
-    def search(holding: bool) -> tuple[np.ndarray, optimize.OptimizeResult, int]:
-        # MINPACK cuts its trust region tenfold on every step into the penalty and lets it grow at
-        # most twofold a step after, so a search that met the penalty can crawl to its step-size
-        # test (status 3) far from the optimum: on the rig with an unmeasured force, 32.5 mm of
-        # free-run RMS where 2.8 mm is reachable. A fresh search from where it stopped starts with
-        # a full region.
-        theta, evaluations = start.theta, 0
+    def run(self, max_evaluations: int, holding: bool) -> tuple[np.ndarray, optimize.OptimizeResult, int]:
+        """MINPACK's search from the start, within ``max_evaluations``; ``holding``, held to the
+        restarts from measured outputs.
+
+        MINPACK cuts its trust region tenfold on every step into the penalty and lets it grow at
+        most twofold a step after, so a search that met the penalty can crawl to its step-size
+        test (status 3) far from the optimum: on the rig with an unmeasured force, 32.5 mm of
+        free-run RMS where 2.8 mm is reachable. A fresh search from where it stopped starts with
+        a full region."""
+        theta, evaluations = self.start.theta, 0
         while True:
-            met_penalty = penalised_steps
+            met_penalty = self.penalised_steps
             result = optimize.least_squares(
-                folded,
+                self.folded,
                 theta,
-                jac=jacobian,
+                jac=self.jacobian,
                 x_scale="jac",
                 max_nfev=max_evaluations - evaluations,
                 method="lm",
@@ -268,38 +341,41 @@ def fit_output_error(
             )
             evaluations += int(result.nfev)
             theta = result.x
-            if result.status != 3 or penalised_steps == met_penalty or evaluations >= max_evaluations:
+            if result.status != 3 or self.penalised_steps == met_penalty or evaluations >= max_evaluations:
                 return theta, result, evaluations
 
-    # The search is held to the restarts from measured outputs only where its end does not hold
-    # from them: on its way to a model that does, it may pass through θ that do not (held from the
-    # start, the search on the rig's record above stops at 38.5 mm, not 2.8).
-    theta, result, evaluations = search(holding=False)
-    holds = not held or ring_downs.holds(start, theta, start.theta)
-    if not holds:
-        theta, result, more = search(holding=True)
-        evaluations += more
-        holds = ring_downs.holds(start, theta, start.theta)
-    outputs = simulated(theta)
-    final = errors(outputs)
-    start_rms = float(np.sqrt(np.mean(initial**2)))
-    if (
-        not np.all(np.isfinite(final))
-        or float(np.sqrt(np.mean(final**2))) >= start_rms
-        or (at_rest and not ring_downs.settle(start, theta, recursion_states(start, theta, runs, outputs)))
-        or not holds
-    ):
-        return OutputErrorFit(start, start_rms, start_rms, evaluations, int(result.status))
-    n, p = final.size, theta.size
-    if start_from == "estimated":
-        p += len(runs) * EstimatedStart.of(start.terms, theta, longest).responses.shape[1]
-    sigma2 = float(final @ final) / max(n - p, 1)
-    model = replace(
-        start, theta=theta, covariance=sigma2 * gauss_newton_inverse(result.jac), sigma2=sigma2, n_obs=n
-    )
-    return OutputErrorFit(
-        model, start_rms, float(np.sqrt(np.mean(final**2))), evaluations, int(result.status)
-    )
+    def outcome(
+        self,
+        theta: np.ndarray,
+        result: optimize.OptimizeResult,
+        evaluations: int,
+        initial: np.ndarray,
+        holds: bool,
+    ) -> OutputErrorFit:
+        """The search's end ``theta`` as the fit, with its covariance; the start where the end
+        does not run free lower than the start's ``initial`` error, or does not come to rest or
+        hold where the start does."""
+        start = self.start
+        outputs = self.simulated(theta)
+        final = self.errors(outputs)
+        start_rms = float(np.sqrt(np.mean(initial**2)))
+        if (
+            not np.all(np.isfinite(final))
+            or float(np.sqrt(np.mean(final**2))) >= start_rms
+            or (self.at_rest and not self.settles(theta, outputs))
+            or not holds
+        ):
+            return OutputErrorFit(start, start_rms, start_rms, evaluations, int(result.status))
+        n, p = final.size, theta.size
+        if self.start_from == "estimated":
+            p += len(self.runs) * EstimatedStart.of(start.terms, theta, self.longest).responses.shape[1]
+        sigma2 = float(final @ final) / max(n - p, 1)
+        model = replace(
+            start, theta=theta, covariance=sigma2 * gauss_newton_inverse(result.jac), sigma2=sigma2, n_obs=n
+        )
+        return OutputErrorFit(
+            model, start_rms, float(np.sqrt(np.mean(final**2))), evaluations, int(result.status)
+        )
 
 
 def gauss_newton_inverse(jacobian: np.ndarray) -> np.ndarray:

@@ -62,7 +62,7 @@ from models.inspection import ADEQUACY_SHARE, Status, Verdict, inspect
 from models.narx import NARX, check_document
 from models.regression import least_squares
 from models.signals import checked_record, minimum_samples
-from models.terms import Term, max_degree, max_lag, parse_terms, regressor_matrix
+from models.terms import OverTerms, Term, max_degree, max_lag, parse_terms, regressor_matrix
 
 MAGNITUDE = "k"  # the fault magnitude's name among a fault mode's arguments
 MAX_DEGREE = 4  # the highest degree the criterion may choose for any argument
@@ -95,7 +95,7 @@ class DegreeCandidate:
 
 
 @dataclass(frozen=True)
-class PooledModel:
+class PooledModel(OverTerms):
     """A functionally pooled NARX model (module docstring).
 
     Attributes
@@ -144,10 +144,6 @@ class PooledModel:
     def ranges(self) -> dict[str, tuple[float, float]]:
         """The trained range of each argument."""
         return {name: (b.k_min, b.k_max) for name, b in zip(self.arguments, self.bases, strict=True)}
-
-    @property
-    def max_lag(self) -> int:
-        return max_lag(self.terms)
 
     def check_conditions(self, conditions: Mapping[str, float]) -> np.ndarray:
         """The values of :attr:`variables` in ``conditions``, refused when one is missing, not a

@@ -342,6 +342,21 @@ def max_lag(terms: Sequence[Term]) -> int:
     return max(term.max_lag for term in terms)
 
 
+class OverTerms:
+    """What a model over ``terms`` asks of a record and how it names its terms, for the models'
+    dataclasses to inherit (their own field ``terms`` is what this reads)."""
+
+    terms: tuple[Term, ...]
+
+    @property
+    def max_lag(self) -> int:
+        return max_lag(self.terms)
+
+    @property
+    def term_names(self) -> list[str]:
+        return [term.name for term in self.terms]
+
+
 def regressor_matrix(
     terms: Sequence[Term], x: np.ndarray, y: np.ndarray, lag: int | None = None, t0: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:

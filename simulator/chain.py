@@ -26,8 +26,8 @@ import numpy as np
 import scipy.linalg
 
 from models.errors import InputError
-from simulator.physics import UnstableSimulationError
-from simulator.simulate import check_levels, measurement_noise
+from simulator.physics import UnstableSimulationError, check_pole_radius
+from simulator.simulate import check_levels, excitation, measured_input, measurement_noise
 from simulator.temperature import Thermal
 
 Response = Literal["displacement", "acceleration"]
@@ -196,13 +196,12 @@ def spread(values: Sequence[float], n: int, option: str, with_end: bool = False)
 
 def check_stable(p: ChainParameters) -> None:
     """Refuse a chain on which the forward-difference scheme diverges from rest."""
-    radius = p.linear_pole_radius
-    if radius >= 1:
-        raise UnstableSimulationError(
-            f"the forward-difference scheme is unstable for this chain: a pole of the discretised "
-            f"system has modulus {radius:.4f} ≥ 1 at Ts = {p.ts:g} s. The explicit scheme needs "
-            "damping to dominate: more damping (--damping), less stiffness or heavier masses"
-        )
+    check_pole_radius(
+        p.linear_pole_radius,
+        p.ts,
+        "for this chain",
+        ": more damping (--damping), less stiffness or heavier masses",
+    )
 
 
 @dataclass(frozen=True)
@@ -300,19 +299,15 @@ def simulate_chain(
     masses = scenario.measured
     params = scenario.structure
     check_stable(params)
-    rng = np.random.default_rng(seed)
+    rng, command, disturbance = excitation(scenario, n, seed)
     total = n + scenario.burn_in
-    command = rng.normal(0.0, scenario.excitation_std, total)
-    disturbance = rng.normal(0.0, scenario.disturbance_std, total) if scenario.disturbance_std else 0.0
     positions = integrate(params, command + disturbance)
     _check_diverged(params, positions, scenario)
     if scenario.response == "displacement":
         motion = positions[scenario.burn_in : total]
     else:
         motion = np.diff(positions, n=2, axis=0)[scenario.burn_in :] / params.ts**2
-    x = command[scenario.burn_in :].copy()
-    if scenario.x_noise_std:
-        x += measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
+    x = measured_input(rng, scenario, command, n)
     responses = {}
     for mass, name in zip(masses, scenario.channels, strict=True):
         channel = motion[:, mass - 1].copy()

@@ -139,11 +139,20 @@ def pole_radius(p: PhysicalParameters, extra_k_mass2: float = 0.0) -> float:
 
 def check_stable(p: PhysicalParameters) -> None:
     """Refuse a parameter set on which the forward-difference scheme diverges from rest."""
-    radius = p.linear_pole_radius
+    check_pole_radius(
+        p.linear_pole_radius,
+        p.ts,
+        "for these parameters",
+        " (c1, c2 large enough against the stiffnesses and the step); use a smaller Ts or more damping",
+    )
+
+
+def check_pole_radius(radius: float, ts: float, subject: str, remedy: str) -> None:
+    """Refuse a discretised system with a pole of modulus ``radius`` ≥ 1 (``subject``, the rig's
+    parameters or a chain), saying what makes the explicit scheme stable (``remedy``)."""
     if radius >= 1:
         raise UnstableSimulationError(
-            f"the forward-difference scheme is unstable for these parameters: a pole of the "
-            f"discretised system has modulus {radius:.4f} ≥ 1 at Ts = {p.ts:g} s. The explicit "
-            "scheme needs damping to dominate (c1, c2 large enough against the stiffnesses and "
-            "the step); use a smaller Ts or more damping"
+            f"the forward-difference scheme is unstable {subject}: a pole of the discretised system "
+            f"has modulus {radius:.4f} ≥ 1 at Ts = {ts:g} s. The explicit scheme needs damping to "
+            f"dominate{remedy}"
         )

@@ -213,10 +213,8 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
     names = scenario.channels
     params = scenario.structure
     check_stable(params)
-    rng = np.random.default_rng(seed)
+    rng, command, disturbance = excitation(scenario, n, seed)
     total = n + scenario.burn_in
-    command = rng.normal(0.0, scenario.excitation_std, total)
-    disturbance = rng.normal(0.0, scenario.disturbance_std, total) if scenario.disturbance_std else 0.0
     effects = scenario.effects
     force = effects.applied_force(command) + disturbance
     if effects.sine_amplitude:
@@ -225,10 +223,8 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
         force = force + effects.sine_amplitude * np.sin(2 * np.pi * effects.sine_frequency * time + phase)
     x1, x2 = _integrate(params, force, effects)
     _check_diverged(params, x1, x2, scenario)
-    x = command[scenario.burn_in :].copy()
+    x = measured_input(rng, scenario, command, n)
     y = x2[scenario.burn_in :] + effects.offset
-    if scenario.x_noise_std:
-        x += measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
     if scenario.y_noise_std:
         y += measurement_noise(rng, scenario.y_noise_std, scenario.noise_colour, n)
     if effects.sensor_range:
@@ -248,6 +244,8 @@ def simulate(scenario: Scenario, n: int, seed: int | np.random.SeedSequence | No
 class Levels(Protocol):
     """What :func:`check_levels` reads of a scenario, the rig's or the chain's (``simulator.chain``)."""
 
+    @property
+    def burn_in(self) -> int: ...
     @property
     def excitation_std(self) -> float: ...
     @property
@@ -273,6 +271,27 @@ def check_levels(scenario: Levels, n: int) -> None:
             f"noise_colour takes at most {MAX_NOISE_COLOUR} finite moving-average coefficients, "
             f"got {scenario.noise_colour}"
         )
+
+
+def excitation(
+    scenario: Levels, n: int, seed: int | np.random.SeedSequence | None
+) -> tuple[np.random.Generator, np.ndarray, np.ndarray | float]:
+    """The record's random numbers as they are drawn first, over the burn-in and the record: the
+    commanded force and the unmeasured disturbance (0 where there is none), with the generator
+    that draws the rest after them."""
+    rng = np.random.default_rng(seed)
+    total = n + scenario.burn_in
+    command = rng.normal(0.0, scenario.excitation_std, total)
+    disturbance = rng.normal(0.0, scenario.disturbance_std, total) if scenario.disturbance_std else 0.0
+    return rng, command, disturbance
+
+
+def measured_input(rng: np.random.Generator, scenario: Levels, command: np.ndarray, n: int) -> np.ndarray:
+    """The commanded force after the burn-in as its sensor reads it: with its noise, if any."""
+    x = command[scenario.burn_in :].copy()
+    if scenario.x_noise_std:
+        x += measurement_noise(rng, scenario.x_noise_std, scenario.noise_colour, n)
+    return x
 
 
 def measurement_noise(rng: np.random.Generator, std: float, colour: tuple[float, ...], n: int) -> np.ndarray:

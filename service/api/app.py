@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from contextlib import asynccontextmanager
 
 from asgi_correlation_id import CorrelationIdMiddleware
@@ -147,13 +147,20 @@ def _add_error_handlers(app: FastAPI, settings: Settings) -> None:
             return response
         return JSONResponse({"detail": message}, status_code=code, headers=headers)
 
-    @app.exception_handler(RecordTooLargeError)
-    async def too_large(request: Request, exc: RecordTooLargeError) -> Response:
-        return answer(request, status.HTTP_413_CONTENT_TOO_LARGE, str(exc))
+    def refusal(code: int) -> Callable[[Request, Exception], Awaitable[Response]]:
+        async def refused(request: Request, exc: Exception) -> Response:
+            return answer(request, code, str(exc))
 
-    @app.exception_handler(InputError)
-    async def input_error(request: Request, exc: InputError) -> Response:
-        return answer(request, status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc))
+        return refused
+
+    # What the service refuses, each kind with its status code; the message is the error's own.
+    for error, code in (
+        (RecordTooLargeError, status.HTTP_413_CONTENT_TOO_LARGE),
+        (InputError, status.HTTP_422_UNPROCESSABLE_CONTENT),
+        (NotFoundError, status.HTTP_404_NOT_FOUND),
+        (ConflictError, status.HTTP_409_CONFLICT),
+    ):
+        app.add_exception_handler(error, refusal(code))
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, exc: RequestValidationError) -> Response:
@@ -170,14 +177,6 @@ def _add_error_handlers(app: FastAPI, settings: Settings) -> None:
         if dashboard.is_dashboard(request):
             return answer(request, exc.status_code, str(exc.detail), exc.headers)
         return await http_exception_handler(request, exc)
-
-    @app.exception_handler(NotFoundError)
-    async def not_found(request: Request, exc: NotFoundError) -> Response:
-        return answer(request, status.HTTP_404_NOT_FOUND, str(exc))
-
-    @app.exception_handler(ConflictError)
-    async def conflict(request: Request, exc: ConflictError) -> Response:
-        return answer(request, status.HTTP_409_CONFLICT, str(exc))
 
     # Retry after as long as a request may wait for the pool: the connections in use turn over.
     retry_after = {"Retry-After": str(math.ceil(settings.pool_timeout_seconds))}

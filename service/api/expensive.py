@@ -131,6 +131,23 @@ def queued(request: Request, session: Session, principal: Principal, task: str, 
     )
 
 
+def run_or_queue(
+    request: Request,
+    session: Session,
+    principal: Principal,
+    cells: int,
+    work: Callable[[], Result],
+    task: str,
+    **args: Any,
+) -> Result | JSONResponse:
+    """``work()`` within the request in one of the organisation's slots or, where its ``cells``
+    exceed ``queue_training_cells``, ``task(**args)`` queued as a job (:func:`queued`)."""
+    if cells > request.app.state.settings.queue_training_cells:
+        return queued(request, session, principal, task, **args)
+    with slot(request, principal):
+        return work()
+
+
 BUSY: dict[int | str, dict[str, Any]] = {
     429: {
         "description": "The organisation runs as many expensive requests as it may: retry after Retry-After"

@@ -15,15 +15,7 @@ router = APIRouter(prefix="/keys", tags=["keys"])
 
 
 def key_out(key: ApiKey) -> KeyOut:
-    return KeyOut(
-        id=key.id,
-        prefix=key.prefix,
-        role=key.role,
-        created_at=key.created_at,
-        expires_at=key.expires_at,
-        last_used_at=key.last_used_at,
-        revoked_at=key.revoked_at,
-    )
+    return KeyOut.model_validate(key, from_attributes=True)
 
 
 @router.get("")

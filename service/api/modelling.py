@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, status
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Request, status
 from fastapi.responses import JSONResponse
 from sqlalchemy.orm import Session
 
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
-from service.api.expensive import ACCEPTED, queued, slot
+from service.api.expensive import ACCEPTED, run_or_queue
 from service.api.params import IdPath
 from service.config import Settings
 from service.domain import modelling
@@ -41,100 +44,86 @@ def model_out(version: ModelVersion) -> ModelOut:
     )
 
 
+@dataclass(frozen=True)
+class _Training:
+    """What runs a training for a request: who asks, in which session, under which settings."""
+
+    request: Request
+    principal: Principal
+    session: Session
+    settings: Settings
+
+    def __call__(self, structure_id: int, body: Train) -> ModelOut | JSONResponse:
+        """Run a training within the request, in one of the organisation's slots, or queue it."""
+        request, principal, session, settings = self.request, self.principal, self.session, self.settings
+        return run_or_queue(
+            request,
+            session,
+            principal,
+            modelling.training_cells(session, principal, structure_id, body, settings),
+            lambda: model_out(modelling.train(session, principal, structure_id, body, settings)),
+            TRAIN_MODEL,
+            structure_id=structure_id,
+            kind=modelling.training_kind(body),
+            body=body.model_dump(),
+        )
+
+
+def _training(request: Request, principal: Admin, session: SessionDep, settings: SettingsDep) -> _Training:
+    return _Training(request, principal, session, settings)
+
+
+# A training route's caller, session and settings: what it needs beside its structure and body.
+Trainer = Annotated[_Training, Depends(_training)]
+
+
 @router.post("/baseline", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED)
-def train_baseline(
-    request: Request,
-    structure_id: IdPath,
-    body: BaselineTrain,
-    principal: Admin,
-    session: SessionDep,
-    settings: SettingsDep,
-) -> ModelOut | JSONResponse:
+def train_baseline(structure_id: IdPath, body: BaselineTrain, train: Trainer) -> ModelOut | JSONResponse:
     """Identify the healthy structure's NARX from stored records, its terms as given or, without
     them, chosen for the structure from these records (training.choice says how); a large training
     is queued as a job (202)."""
-    return _train(request, structure_id, body, principal, session, settings)
+    return train(structure_id, body)
 
 
 @router.post("/fault-modes", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED)
-def train_fault_mode(
-    request: Request,
-    structure_id: IdPath,
-    body: FaultModeTrain,
-    principal: Admin,
-    session: SessionDep,
-    settings: SettingsDep,
-) -> ModelOut | JSONResponse:
+def train_fault_mode(structure_id: IdPath, body: FaultModeTrain, train: Trainer) -> ModelOut | JSONResponse:
     """Identify a fault mode as a functional NARX, its terms as given or the active baseline's; the
     new version becomes the active one. A large training is queued as a job (202)."""
-    return _train(request, structure_id, body, principal, session, settings)
+    return train(structure_id, body)
 
 
 @router.post(
     "/pooled-baseline", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED
 )
 def train_pooled_baseline(
-    request: Request,
-    structure_id: IdPath,
-    body: PooledBaselineTrain,
-    principal: Admin,
-    session: SessionDep,
-    settings: SettingsDep,
+    structure_id: IdPath, body: PooledBaselineTrain, train: Trainer
 ) -> ModelOut | JSONResponse:
     """Identify a pooled baseline, its coefficients functions of the operating conditions the
     records were stored with; it becomes the active baseline. A large training is queued (202)."""
-    return _train(request, structure_id, body, principal, session, settings)
+    return train(structure_id, body)
 
 
 @router.post(
     "/pooled-fault-modes", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED
 )
 def train_pooled_fault_mode(
-    request: Request,
-    structure_id: IdPath,
-    body: PooledFaultModeTrain,
-    principal: Admin,
-    session: SessionDep,
-    settings: SettingsDep,
+    structure_id: IdPath, body: PooledFaultModeTrain, train: Trainer
 ) -> ModelOut | JSONResponse:
     """Identify a pooled fault mode, its coefficients functions of the operating conditions and k;
     the new version becomes the active one. A large training is queued (202)."""
-    return _train(request, structure_id, body, principal, session, settings)
+    return train(structure_id, body)
 
 
 @router.post(
     "/vector-fault-modes", status_code=status.HTTP_201_CREATED, response_model=ModelOut, responses=ACCEPTED
 )
 def train_vector_fault_mode(
-    request: Request,
-    structure_id: IdPath,
-    body: VectorFaultModeTrain,
-    principal: Admin,
-    session: SessionDep,
-    settings: SettingsDep,
+    structure_id: IdPath, body: VectorFaultModeTrain, train: Trainer
 ) -> ModelOut | JSONResponse:
     """Identify a vector fault mode from records of several channels (one equation per channel over
     every channel's lags, coefficients functions of k); it inspects the structure's records of those
     channels. The new version becomes the active one. A large training is queued (202)."""
-    return _train(request, structure_id, body, principal, session, settings)
-
-
-def _train(
-    request: Request,
-    structure_id: int,
-    body: Train,
-    principal: Principal,
-    session: Session,
-    settings: Settings,
-) -> ModelOut | JSONResponse:
-    """Run a training within the request, in one of the organisation's slots, or queue it."""
-    cells = modelling.training_cells(session, principal, structure_id, body, settings)
-    if cells > settings.queue_training_cells:
-        job = {"structure_id": structure_id, "kind": modelling.training_kind(body), "body": body.model_dump()}
-        return queued(request, session, principal, TRAIN_MODEL, **job)
-    with slot(request, principal):
-        version = modelling.train(session, principal, structure_id, body, settings)
-    return model_out(version)
+    return train(structure_id, body)
 
 
 @router.get("")

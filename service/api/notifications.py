@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response, status
+from sqlalchemy.orm import Session
 
 from service.api.deps import Admin, SessionDep, SettingsDep
 from service.api.params import IdPath
@@ -18,7 +19,7 @@ from service.schemas import (
     WebhookCreate,
     WebhookOut,
 )
-from service.tables import Delivery, Webhook
+from service.tables import Delivery, EmailSubscription, Webhook
 
 router = APIRouter(tags=["notifications"])
 
@@ -46,8 +47,7 @@ def list_webhooks(principal: Admin, session: SessionDep) -> list[WebhookOut]:
 @router.delete("/webhooks/{webhook_id}", status_code=status.HTTP_204_NO_CONTENT)
 def delete_webhook(webhook_id: IdPath, principal: Admin, session: SessionDep) -> Response:
     """Delete a webhook; its pending deliveries are dropped with it."""
-    notifications.delete_target(session, notifications.get_webhook(session, principal, webhook_id))
-    return Response(status_code=status.HTTP_204_NO_CONTENT)
+    return _deleted(session, notifications.get_webhook(session, principal, webhook_id))
 
 
 @router.get("/webhooks/{webhook_id}/deliveries")
@@ -55,8 +55,7 @@ def webhook_deliveries(
     webhook_id: IdPath, principal: Admin, session: SessionDep, cursor: Cursor = None, limit: Limit = PAGE
 ) -> DeliveryPage:
     """The webhook's deliveries, newest first: attempts, last status code and error."""
-    webhook = notifications.get_webhook(session, principal, webhook_id)
-    return _page(notifications.deliveries(session, webhook, limit + 1, cursor), limit)
+    return _deliveries(session, notifications.get_webhook(session, principal, webhook_id), cursor, limit)
 
 
 @router.post("/email-subscriptions", status_code=status.HTTP_201_CREATED)
@@ -79,9 +78,7 @@ def list_email_subscriptions(principal: Admin, session: SessionDep) -> list[Emai
 
 @router.delete("/email-subscriptions/{subscription_id}", status_code=status.HTTP_204_NO_CONTENT)
 def delete_email_subscription(subscription_id: IdPath, principal: Admin, session: SessionDep) -> Response:
-    subscription = notifications.get_email_subscription(session, principal, subscription_id)
-    notifications.delete_target(session, subscription)
-    return Response(status_code=status.HTTP_204_NO_CONTENT)
+    return _deleted(session, notifications.get_email_subscription(session, principal, subscription_id))
 
 
 @router.get("/email-subscriptions/{subscription_id}/deliveries")
@@ -89,14 +86,24 @@ def email_deliveries(
     subscription_id: IdPath, principal: Admin, session: SessionDep, cursor: Cursor = None, limit: Limit = PAGE
 ) -> DeliveryPage:
     subscription = notifications.get_email_subscription(session, principal, subscription_id)
-    return _page(notifications.deliveries(session, subscription, limit + 1, cursor), limit)
+    return _deliveries(session, subscription, cursor, limit)
 
 
 def _webhook_out(webhook: Webhook) -> WebhookOut:
     return WebhookOut.model_validate(webhook, from_attributes=True)
 
 
-def _page(found: list[Delivery], limit: int) -> DeliveryPage:
+def _deleted(session: Session, target: Webhook | EmailSubscription) -> Response:
+    """Delete a notification's target with its pending deliveries: 204."""
+    notifications.delete_target(session, target)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+def _deliveries(
+    session: Session, target: Webhook | EmailSubscription, cursor: int | None, limit: int
+) -> DeliveryPage:
+    """A page of the target's deliveries, newest first, older than ``cursor``."""
+    found = notifications.deliveries(session, target, limit + 1, cursor)
     page = found[:limit]
     return DeliveryPage(
         items=[_delivery_out(delivery) for delivery in page],

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request, status
 from fastapi.responses import JSONResponse
 
 from service.api.deps import Admin, SessionDep, SettingsDep, Viewer
-from service.api.expensive import ACCEPTED, queued, slot
+from service.api.expensive import ACCEPTED, run_or_queue
 from service.api.params import IdPath
 from service.domain import refinements
 from service.jobs.tasks import REFINE
@@ -33,12 +33,18 @@ def create_refinement(
     """Trace a baseline's residual on one or several records to the effects it lacks; the refined
     model is stored as a new version that is not active until activated. A refinement of long
     records is queued as a job (202)."""
-    cells = refinements.refinement_cells(session, principal, structure_id, body, settings)
-    if cells > settings.queue_training_cells:
-        return queued(request, session, principal, REFINE, structure_id=structure_id, body=body.model_dump())
-    with slot(request, principal):
-        refinement = refinements.create_refinement(session, principal, structure_id, body, settings)
-    return refinement_out(refinement)
+    return run_or_queue(
+        request,
+        session,
+        principal,
+        refinements.refinement_cells(session, principal, structure_id, body, settings),
+        lambda: refinement_out(
+            refinements.create_refinement(session, principal, structure_id, body, settings)
+        ),
+        REFINE,
+        structure_id=structure_id,
+        body=body.model_dump(),
+    )
 
 
 @router.get("/structures/{structure_id}/refinements")

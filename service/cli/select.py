@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, TypeVar
 
 import numpy as np
 import typer
@@ -17,6 +18,7 @@ from rich.text import Text
 from models.baseline_choice import choose_delay
 from models.candidates import candidate_terms
 from models.errors import InputError
+from models.narx import NARX
 from models.output_error import OutputErrorFit, fit_output_error
 from models.selection import CRITERIA, NarxSelection, select_narx
 from models.semp import (
@@ -34,6 +36,7 @@ from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, read_records, 
 Signals = list[tuple[np.ndarray, np.ndarray]]
 # The criterion that judges candidates on the free run instead of the one-step error.
 SIMULATION = "simulation"
+Selected = TypeVar("Selected", NarxSelection, SimulationSelection)
 
 
 def select(
@@ -142,28 +145,9 @@ def select(
     if out is not None and out.suffix.lower() != ".json":
         raise InputError(f"--out {out}: name a .json file, the kind `train --terms` reads")
     layout = signal_layout(x, y)
-    if criterion is not None and criterion.lower() not in (*CRITERIA, SIMULATION):
-        raise InputError(
-            f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)} (one-step error) "
-            f"or {SIMULATION} (free-run error)"
-        )
-    simulation = criterion is not None and criterion.lower() == SIMULATION
-    if judged and not simulation:
-        raise InputError("--judged records serve --criterion simulation only")
-    if simulation:
-        given = [
-            option
-            for option, value in (
-                ("--n-terms", n_terms),
-                ("--err-tolerance", err_tolerance),
-                ("--precise", precise),
-            )
-            if value not in (None, False)
-        ]
-        if given:
-            raise InputError(
-                f"--criterion simulation chooses the terms by their free run: drop {' and '.join(given)}"
-            )
+    simulation = _by_simulation(
+        criterion, judged, n_terms=n_terms, err_tolerance=err_tolerance, precise=precise
+    )
     loaded, fs = read_records(records, layout)
     signals = [(r.x, r.y) for r in loaded]
     judged_signals = _records_like(judged, fs, "judged", layout) if judged else None
@@ -180,19 +164,12 @@ def select(
     if delay is None:
         delay, delays = choose_delay(signals, ny, nx)
     candidates = dictionaries[delay]
-    with Progress(
-        TextColumn("selecting"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=stderr,
-        transient=True,
-        disable=not stderr.is_terminal,
-    ) as bar:
-        if simulation:
-            # The bar counts iterations against their bound; the selection usually stops well before.
-            task = bar.add_task("select", total=2 * max_terms)
-            selection: NarxSelection | SimulationSelection = select_by_simulation(
+    selection: NarxSelection | SimulationSelection
+    if simulation:
+        # The bar counts iterations against their bound; the selection usually stops well before.
+        selection = _with_progress(
+            2 * max_terms,
+            lambda progress: select_by_simulation(
                 signals,
                 candidates,
                 judged=judged_signals,
@@ -201,11 +178,13 @@ def select(
                 max_terms=max_terms,
                 preselect=preselect,
                 threshold=threshold,
-                progress=lambda step: bar.update(task, completed=step),
-            )
-        else:
-            task = bar.add_task("select", total=n_terms or min(max_terms, len(candidates)))
-            selection = select_narx(
+                progress=progress,
+            ),
+        )
+    else:
+        selection = _with_progress(
+            n_terms or min(max_terms, len(candidates)),
+            lambda progress: select_narx(
                 signals,
                 candidates,
                 n_terms=n_terms,
@@ -215,8 +194,9 @@ def select(
                 prune=prune,
                 include=include or (),
                 precise=precise,
-                progress=lambda step: bar.update(task, completed=step),
-            )
+                progress=progress,
+            ),
+        )
     refined = fit_output_error(selection.model, signals) if output_error else None
     if refined is not None:
         selection = dataclasses.replace(selection, model=refined.model)
@@ -248,24 +228,69 @@ def select(
         write_json(out, document)
     if as_json:
         print(json.dumps(document, indent=1))
+        return
+    if delays is not None:
+        _print_delay(delay, delays, ny, nx)
+    _print_report(selection, refined, held_out)
+    if out is not None:
+        stdout.print(f"written to {out}")
+
+
+def _by_simulation(
+    criterion: str | None, judged: list[Path] | None, **one_step: int | float | bool | None
+) -> bool:
+    """Whether the terms are to be judged on the free-run error (``--criterion simulation``);
+    refused: an unknown criterion, ``--judged`` records without it, and with it any of the
+    ``one_step`` options (by their names), which serve the selection on the one-step error."""
+    if criterion is not None and criterion.lower() not in (*CRITERIA, SIMULATION):
+        raise InputError(
+            f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)} (one-step error) "
+            f"or {SIMULATION} (free-run error)"
+        )
+    simulation = criterion is not None and criterion.lower() == SIMULATION
+    if judged and not simulation:
+        raise InputError("--judged records serve --criterion simulation only")
+    given = [f"--{name.replace('_', '-')}" for name, value in one_step.items() if value not in (None, False)]
+    if simulation and given:
+        raise InputError(
+            f"--criterion simulation chooses the terms by their free run: drop {' and '.join(given)}"
+        )
+    return simulation
+
+
+def _with_progress(total: int, run: Callable[[Callable[[int], None]], Selected]) -> Selected:
+    """``run(progress)`` under a progress bar on the terminal's stderr that counts ``total`` steps."""
+    with Progress(
+        TextColumn("selecting"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=stderr,
+        transient=True,
+        disable=not stderr.is_terminal,
+    ) as bar:
+        task = bar.add_task("select", total=total)
+        return run(lambda step: bar.update(task, completed=step))
+
+
+def _print_report(
+    selection: NarxSelection | SimulationSelection,
+    refined: OutputErrorFit | None,
+    held_out: Validation | None,
+) -> None:
+    if isinstance(selection, SimulationSelection):
+        _print_simulation(selection)
     else:
-        if delays is not None:
-            _print_delay(delay, delays, ny, nx)
-        if isinstance(selection, SimulationSelection):
-            _print_simulation(selection)
-        else:
-            _print_selection(selection)
-        if refined is not None:
-            stdout.print(
-                f"θ refined by output error: free-run RMS on the selection records {refined.start_rms:.4e} → "
-                f"{refined.rms:.4e} ({refined.evaluations} free runs)",
-                markup=False,
-                highlight=False,
-            )
-        if held_out is not None:
-            _print_held_out(held_out)
-        if out is not None:
-            stdout.print(f"written to {out}")
+        _print_selection(selection)
+    if refined is not None:
+        stdout.print(
+            f"θ refined by output error: free-run RMS on the selection records {refined.start_rms:.4e} → "
+            f"{refined.rms:.4e} ({refined.evaluations} free runs)",
+            markup=False,
+            highlight=False,
+        )
+    if held_out is not None:
+        _print_held_out(held_out)
 
 
 def _print_delay(delay: int, delays: dict[int, float], ny: int, nx: int) -> None:
@@ -310,21 +335,21 @@ def _split(signals: Signals, share: float) -> tuple[Signals, Signals]:
     return fitting, held
 
 
+def _terms_table(model: NARX, title: str, err: Sequence[float] | None = None) -> Table:
+    """The model's terms with θ and its standard error, and each term's ERR where given."""
+    table = Table("term", *(() if err is None else ("ERR",)), "θ", "s.e.", title=title, title_justify="left")
+    rows = zip(model.term_names, model.theta, model.standard_errors(), strict=True)
+    for row, (name, theta, se) in enumerate(rows):
+        ratio = () if err is None else (f"{err[row]:.4e}",)
+        table.add_row(Text(name), *ratio, f"{theta: .6e}", f"{se:.2e}")  # names hold [t-1]
+    return table
+
+
 def _print_selection(selection: NarxSelection) -> None:
     model = selection.model
-    table = Table(
-        "term",
-        "ERR",
-        "θ",
-        "s.e.",
-        title=f"{len(model.terms)} of {len(selection.candidates)} candidates",
-        title_justify="left",
+    stdout.print(
+        _terms_table(model, f"{len(model.terms)} of {len(selection.candidates)} candidates", selection.err)
     )
-    for name, err, theta, se in zip(
-        model.term_names, selection.err, model.theta, model.standard_errors(), strict=True
-    ):
-        table.add_row(Text(name), f"{err:.4e}", f"{theta: .6e}", f"{se:.2e}")  # names hold [t-1]
-    stdout.print(table)
     rule = selection.stopped_by
     stdout.print(
         f"stopped by {rule}; 1 − ΣERR = {selection.esr:.3e} on {model.n_obs} equations"
@@ -340,16 +365,8 @@ def _print_selection(selection: NarxSelection) -> None:
 
 def _print_simulation(selection: SimulationSelection) -> None:
     model = selection.model
-    table = Table(
-        "term",
-        "θ",
-        "s.e.",
-        title=f"{len(model.terms)} of {len(selection.candidates)} candidates, on the free-run error",
-        title_justify="left",
-    )
-    for name, theta, se in zip(model.term_names, model.theta, model.standard_errors(), strict=True):
-        table.add_row(Text(name), f"{theta: .6e}", f"{se:.2e}")
-    stdout.print(table)
+    title = f"{len(model.terms)} of {len(selection.candidates)} candidates, on the free-run error"
+    stdout.print(_terms_table(model, title))
     path = Table("step", "term", "free-run RMS", "terms", title="simulation path", title_justify="left")
     for step in selection.path:
         path.add_row(

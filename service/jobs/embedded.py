@@ -197,19 +197,11 @@ class EmbeddedBackend:
             else None
         )
 
-    def defer(self, session: Session, task: str, organisation_id: int, **args: Any) -> int:
-        return defer(session, task, organisation_id, **args)
-
-    def queue_stats(self, session: Session, window: dt.timedelta) -> QueueStats:
-        return queue_stats(session, window)
-
-    def list_jobs(
-        self, session: Session, organisation_id: int, state: JobState | None, limit: int, before: int | None
-    ) -> list[JobInfo]:
-        return list_jobs(session, organisation_id, state, limit, before)
-
-    def get_job(self, session: Session, organisation_id: int, job_id: int) -> JobInfo | None:
-        return get_job(session, organisation_id, job_id)
+    # The queue's operations are this module's functions over the caller's session.
+    defer = staticmethod(defer)
+    queue_stats = staticmethod(queue_stats)
+    list_jobs = staticmethod(list_jobs)
+    get_job = staticmethod(get_job)
 
     def start(self) -> None:
         if self._thread is not None:
