@@ -16,9 +16,9 @@ from sqlalchemy import Engine, func, select
 
 from harness.live import LiveServer, http_client
 from service.config import Settings
+from service.domain.fleet import STATUSES
 from service.tables import Job, Record, StructureState, Verdict
 
-STATUSES = ("healthy", "faulty", "unknown_fault")
 SKEW = dt.timedelta(seconds=Settings.model_fields["max_clock_skew_seconds"].default)  # the servers' here
 FUTURE = dt.datetime(9999, 12, 31, tzinfo=dt.UTC)
 

@@ -287,6 +287,8 @@ def test_train_fault_mode_refuses_a_bad_manifest(workdir):
         "k2",
         "--experiments",
         "bad_manifest.csv",
+        "--terms",
+        "2dof",
         "--out",
         "x.json",
         cwd=workdir,
