@@ -173,19 +173,20 @@ class CusumSeries:
 # The statements run after every verdict, built once (their compiled forms are cached by
 # SQLAlchemy; building the expressions anew cost more than running them), on the tables rather
 # than the mapped classes, which would run the session's ORM machinery for a row or two.
-RULES, STATES, ALARMS = StoredRule.__table__, AlarmState.__table__, Alarm.__table__
+RULES, KEPT, ALARMS = StoredRule.__table__, AlarmState.__table__, Alarm.__table__
+VERDICTS, STRUCTURES = Verdict.__table__, Structure.__table__
 RULES_OF = select(RULES.c.parameters).where(RULES.c.structure_id == bindparam("structure_id"))
-STATE_OF = select(STATES.c.state).where(STATES.c.structure_id == bindparam("structure_id"))
-NEW_STATE = insert(STATES)
+STATE_OF = select(KEPT.c.state).where(KEPT.c.structure_id == bindparam("structure_id"))
+NEW_STATE = insert(KEPT)
 KEEP_STATE = (
-    update(STATES).where(STATES.c.structure_id == bindparam("structure")).values(state=bindparam("state"))
+    update(KEPT).where(KEPT.c.structure_id == bindparam("structure")).values(state=bindparam("state"))
 )
 # An unresolved alarm's newest record counted, one row per alarm (executemany).
 THROUGH = (
     update(ALARMS).where(ALARMS.c.id == bindparam("alarm")).values(evaluated_through=bindparam("through"))
 )
-OTHER_VERDICT = select(Verdict.__table__.c.id).where(
-    Verdict.__table__.c.record_id == bindparam("record_id"), Verdict.__table__.c.id != bindparam("verdict_id")
+OTHER_VERDICT = select(VERDICTS.c.id).where(
+    VERDICTS.c.record_id == bindparam("record_id"), VERDICTS.c.id != bindparam("verdict_id")
 )
 UNRESOLVED_OF = select(Alarm).where(Alarm.structure_id == bindparam("structure_id"), UNRESOLVED)
 RESOLVED_THROUGH = (
@@ -194,8 +195,8 @@ RESOLVED_THROUGH = (
     .group_by(Alarm.rule_kind, Alarm.fault_mode)
 )
 LOCK = (
-    select(Structure.__table__.c.id)
-    .where(Structure.__table__.c.id == bindparam("structure_id"))
+    select(STRUCTURES.c.id)
+    .where(STRUCTURES.c.id == bindparam("structure_id"))
     .with_for_update(key_share=True)
 )
 
