@@ -40,6 +40,20 @@ class Assessment:
         (NaN where the test was skipped)."""
         return self.diagnostics.ljung_box.p_value if self.diagnostics is not None else float("nan")
 
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-compatible figures; a diverged free run's error becomes None."""
+
+        def finite(value: float) -> float | None:
+            return value if np.isfinite(value) else None
+
+        return {
+            "one_step_rms": finite(self.one_step_rms),
+            "free_run_rms": finite(self.free_run_rms),
+            "ljung_box_p": finite(self.ljung_box_p),
+            "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(series=False),
+            "skipped_tests": list(self.skipped),
+        }
+
 
 def assess(
     model: NARX,
@@ -113,20 +127,3 @@ def check_test_length(n: int, start_up: int) -> None:
             f"the test part has {n} samples; judging a model needs at least {start_up + 1} "
             f"({start_up} to start it and at least one to score)"
         )
-
-
-def assessment_dict(assessment: Assessment) -> dict[str, Any]:
-    """JSON-compatible figures of an assessment; a diverged free run's error becomes None."""
-
-    def finite(value: float) -> float | None:
-        return value if np.isfinite(value) else None
-
-    return {
-        "one_step_rms": finite(assessment.one_step_rms),
-        "free_run_rms": finite(assessment.free_run_rms),
-        "ljung_box_p": finite(assessment.ljung_box_p),
-        "diagnostics": None
-        if assessment.diagnostics is None
-        else assessment.diagnostics.as_dict(series=False),
-        "skipped_tests": list(assessment.skipped),
-    }

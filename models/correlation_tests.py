@@ -65,7 +65,7 @@ class CorrelationTest:
     def pointwise_band(self) -> np.ndarray:
         return float(special.ndtri(1.0 - self.alpha / 2.0)) * self.sd
 
-    def as_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable figures, the correlation function and its bands included."""
         return {
             "name": self.name,

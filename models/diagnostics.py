@@ -151,13 +151,13 @@ class ResidualReport:
     def passed(self) -> bool:
         return not self.failed
 
-    def as_dict(self, series: bool = True) -> dict[str, Any]:
+    def to_dict(self, series: bool = True) -> dict[str, Any]:
         """JSON-serialisable figures; ``series=False`` leaves out the correlation functions and spectra."""
         tests = {}
         for test in self.correlation_tests:
-            figures = test.as_dict()
+            figures = test.to_dict()
             tests[test.name] = figures if series else {k: figures[k] for k in SCALAR_CORRELATION_FIELDS}
-        spectrum = self.spectrum.as_dict()
+        spectrum = self.spectrum.to_dict()
         return {
             "alpha": self.alpha,
             "test_alpha": self.test_alpha,

@@ -64,7 +64,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from models.assessment import Assessment, assess, assessment_dict, check_test_length
+from models.assessment import Assessment, assess, check_test_length
 from models.checking import (
     CHECK_EVALUATIONS,
     MIN_BLOCK,
@@ -250,12 +250,12 @@ class RefinementReport:
             "noise_floor": None
             if (floor := result.noise_floor) is None
             else _floor_dict(floor, result.check_rms),
-            "before": assessment_dict(self.before),
-            "after": assessment_dict(self.after),
+            "before": self.before.to_dict(),
+            "after": self.after.to_dict(),
             "tests": [
                 {
-                    "before": assessment_dict(test.before),
-                    "after": assessment_dict(test.after),
+                    "before": test.before.to_dict(),
+                    "after": test.after.to_dict(),
                     "coverage": asdict(test.coverage)
                     | {"extrapolates": test.coverage.extrapolates, "description": test.coverage.describe()},
                 }

@@ -456,7 +456,7 @@ class _Selected:
             rows.append(row)
         return rows
 
-    def summary(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "err": self.err.tolist(),
             "esr": self.esr,
@@ -476,7 +476,7 @@ class NarxSelection(_Selected):
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible: ``terms`` is readable by ``narxwatch train … --terms``."""
-        return model_fields(self.model) | self.summary()
+        return model_fields(self.model) | super().to_dict()
 
 
 def model_fields(model: NARX) -> dict[str, Any]:

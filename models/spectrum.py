@@ -47,7 +47,7 @@ class ResidualSpectrum:
     def passed(self) -> bool:
         return not self.peaks
 
-    def as_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable figures, the spectrum and its background included."""
         return {
             "alpha": self.alpha,

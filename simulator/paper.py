@@ -48,7 +48,7 @@ class CaseResult:
         """The model whose k̂ the paper reports: the true fault's mode, k2 for the healthy case."""
         return "k2" if self.case.fault == "none" else self.case.fault
 
-    def summary(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, Any]:
         """Per-run figures and counts. ``k_hat``, ``sigma_k`` and ``interval`` are those of
         the estimating mode; ``q`` is the k2 model's Ljung–Box statistic (Figure 6)."""
         estimates = [v.mode(self.estimating_mode) for v in self.verdicts]
@@ -93,7 +93,7 @@ class StudyResult:
     def to_dict(self) -> dict[str, Any]:
         return {
             "settings": self.settings.to_dict(),
-            "cases": {c.case.name: c.summary() for c in self.cases},
+            "cases": {c.case.name: c.to_dict() for c in self.cases},
             "paper": PAPER_RESULTS,
             "case_iv_k2_alone_detection_vs_noise": self.noise_dependence,
             "monte_carlo": self.monte_carlo,

@@ -380,8 +380,8 @@ def test_report_collects_every_test_and_serialises() -> None:
     assert all(test.alpha == report.test_alpha for test in report.correlation_tests)
     assert report.spectrum.alpha == report.test_alpha
     assert "spectrum" in report.failed and not report.passed
-    full = json.loads(json.dumps(report.as_dict()))
-    brief = json.loads(json.dumps(report.as_dict(series=False)))
+    full = json.loads(json.dumps(report.to_dict()))
+    brief = json.loads(json.dumps(report.to_dict(series=False)))
     assert full["failed"] == brief["failed"] == list(report.failed)
     assert set(full["correlation_tests"]) == {test.name for test in report.correlation_tests}
     assert len(full["correlation_tests"]["phi_ue"]["values"]) == 41
