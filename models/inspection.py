@@ -121,10 +121,11 @@ class Verdict:
         raise KeyError(f"no fault mode {name!r} in this verdict")
 
     def to_dict(self) -> dict[str, Any]:
+        """JSON-compatible: the figures by their names, the modes' as dicts."""
         document = asdict(self)
         document["interval"] = list(self.interval) if self.interval is not None else None
         document["detected_by"] = list(self.detected_by)
-        document["modes"] = [asdict(mode) for mode in self.modes]
+        document["modes"] = list(document["modes"])  # asdict has made each mode a dict
         return document
 
 

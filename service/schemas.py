@@ -8,6 +8,7 @@ from typing import Annotated, Any, Literal
 from croniter import CroniterError, croniter
 from pydantic import (
     AfterValidator,
+    AliasChoices,
     BaseModel,
     BeforeValidator,
     ConfigDict,
@@ -15,6 +16,7 @@ from pydantic import (
     FiniteFloat,
     SerializerFunctionWrapHandler,
     StrictInt,
+    field_validator,
     model_serializer,
     model_validator,
 )
@@ -260,6 +262,17 @@ CONDITIONS_HELP = (
 )
 
 
+def _as_conditions(rows: list[Any]) -> list[Any]:
+    """A record's stored condition rows (name, value, unit) as the answers show them."""
+    return [
+        row if isinstance(row, Condition | dict) else Condition(row.name, row.value, row.unit) for row in rows
+    ]
+
+
+# The conditions of a stored record, in an answer validated from its attributes.
+StoredConditions = Annotated[list[Condition], BeforeValidator(_as_conditions)]
+
+
 class ChannelUpload(Strict):
     """One response channel of a record of several: its name and its samples."""
 
@@ -294,6 +307,8 @@ class RecordUpload(Strict):
 
 
 class ModelRef(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     id: int
     name: str
     version: int
@@ -325,6 +340,9 @@ class NoveltyFigures(BaseModel):
 
 
 class VerdictOut(BaseModel):
+    # Validated from a stored verdict's attributes (service.tables.Verdict).
+    model_config = ConfigDict(from_attributes=True)
+
     id: int
     record_id: int
     structure_id: int
@@ -370,7 +388,18 @@ class VerdictOut(BaseModel):
         "version in model_versions); null for every other verdict",
     )
     model_versions: list[ModelRef]
-    conditions: list[Condition] = Field(description=CONDITIONS_HELP)
+    conditions: StoredConditions = Field(description=CONDITIONS_HELP)
+
+    @field_validator("modes", mode="before")
+    @classmethod
+    def _mode_figures(cls, modes: list[Any]) -> list[Any]:
+        """Stored modes are plain documents: a vector verdict's are told by their channel_rms."""
+        return [
+            (VectorModeFigures(**mode) if "channel_rms" in mode else ModeResult(**mode))
+            if isinstance(mode, dict)
+            else mode
+            for mode in modes
+        ]
 
 
 class RecordOut(BaseModel):
@@ -381,7 +410,7 @@ class RecordOut(BaseModel):
     acquired_at: dt.datetime
     created_at: dt.datetime
     sha256: str
-    conditions: list[Condition] = Field(description=CONDITIONS_HELP)
+    conditions: StoredConditions = Field(description=CONDITIONS_HELP)
     channels: list[str] | None = Field(
         None,
         description="The names of a record's response channels, in the order uploaded; absent for a "
@@ -404,21 +433,28 @@ class RecordOut(BaseModel):
 
 
 class VerdictPage(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     items: list[VerdictOut]
     next_cursor: str | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
 
 
 class TrendPoint(BaseModel):
-    verdict_id: int
+    # One verdict on a k̂ chart, validated from a stored verdict, whose id it calls verdict_id.
+    model_config = ConfigDict(from_attributes=True)
+
+    verdict_id: int = Field(validation_alias=AliasChoices("verdict_id", "id"))
     acquired_at: dt.datetime
     status: str
     fault_mode: str | None
     k_hat: float | None
     sigma_k: float | None
-    conditions: list[Condition] = Field(description=CONDITIONS_HELP)
+    conditions: StoredConditions = Field(description=CONDITIONS_HELP)
 
 
 class Summary(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     structure_id: int
     total: int
     counts: dict[str, int]

@@ -267,6 +267,18 @@ class Verdict(Base):
         viewonly=True,
     )
 
+    @property
+    def interval(self) -> tuple[float, float] | None:
+        """k̂'s interval as the API gives it; None for a verdict that sizes no fault."""
+        if self.interval_low is None or self.interval_high is None:
+            return None
+        return (self.interval_low, self.interval_high)
+
+    @property
+    def model_versions(self) -> list[ModelVersion]:
+        """The versions that judged the record, by name."""
+        return sorted(self.models, key=lambda m: m.name)
+
 
 class StructureState(Base):
     """Where a structure stands, kept in the transaction of each write that changes it

@@ -25,7 +25,7 @@ from service.api.uploads import (
 )
 from service.config import Settings
 from service.db import transaction
-from service.domain import inspections, records, structures
+from service.domain import inspections, structures
 from service.domain.ingest import Ingested, QueueInspection, SetRecord, ingest_record, ingest_record_set
 from service.jobs.tasks import INSPECT_RECORD
 from service.jobs.types import JobBackend
@@ -173,12 +173,13 @@ def inspect_record(
     it already has under those models is returned as it is."""
     with slot(request, principal):
         verdict = inspections.inspect_stored(session, principal, record_id, settings)
-    return inspections.verdict_out(verdict)
+    return VerdictOut.model_validate(verdict, from_attributes=True)
 
 
 @router.get("/verdicts/{verdict_id}")
 def get_verdict(verdict_id: IdPath, principal: Viewer, session: SessionDep) -> VerdictOut:
-    return inspections.verdict_out(inspections.get_verdict(session, principal, verdict_id))
+    verdict = inspections.get_verdict(session, principal, verdict_id)
+    return VerdictOut.model_validate(verdict, from_attributes=True)
 
 
 def _ingest(
@@ -243,9 +244,9 @@ def _record_out(ingested: Ingested) -> RecordOut:
         acquired_at=record.acquired_at,
         created_at=record.created_at,
         sha256=record.sha256,
-        conditions=records.as_conditions(record.conditions),
+        conditions=record.conditions,
         channels=record.channels,
         created=ingested.created,
         signals_pruned_at=record.signals_pruned_at,
-        verdict=inspections.verdict_out(verdict) if verdict is not None else None,
+        verdict=VerdictOut.model_validate(verdict, from_attributes=True) if verdict is not None else None,
     )

@@ -84,7 +84,7 @@ def fault_history(
     limit: Annotated[int | None, Query(ge=1, le=1000)] = None,
 ) -> VerdictPage:
     """The structure's verdicts, newest first, with filters and cursor pagination."""
-    return history.history(
+    page = history.history(
         session,
         principal,
         structure_id,
@@ -95,9 +95,10 @@ def fault_history(
         cursor=cursor,
         limit=limit or settings.history_page_size,
     )
+    return VerdictPage.model_validate(page, from_attributes=True)
 
 
 @router.get("/{structure_id}/summary")
 def structure_summary(structure_id: IdPath, principal: Viewer, session: SessionDep) -> Summary:
     """Counts by status, the latest verdict and the k̂ trend."""
-    return history.summary(session, principal, structure_id)
+    return Summary.model_validate(history.summary(session, principal, structure_id), from_attributes=True)

@@ -19,7 +19,7 @@ from recordfiles.channels import matched
 from service.dashboard import figures
 from service.domain import alarms, fleet, history, modelling, records, refinements, structures, timeline
 from service.domain.history import Status
-from service.domain.inspections import MODEL_REFS, verdict_out
+from service.domain.inspections import MODEL_REFS
 from service.schemas import ModeResult, VerdictOut
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure, Verdict
@@ -193,7 +193,7 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
     context: dict[str, Any] = {"record": record, "structure": structure, "verdict": None, "charts": {}}
     if verdict is None:
         return context
-    out = verdict_out(verdict)
+    out = VerdictOut.model_validate(verdict, from_attributes=True)
     if not out.modes:  # the verdict of a pooled baseline alone: no fault mode to draw the fit of
         return context | {"verdict": out}
     chosen = _chosen_mode(out.modes, out.reference_mode, mode)

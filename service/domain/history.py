@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import binascii
 import datetime as dt
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy import and_, or_, select
@@ -13,15 +14,35 @@ from sqlalchemy.orm import Session
 from models.errors import InputError
 from models.inspection import Status
 from service.domain import fleet
-from service.domain.inspections import CONDITIONS, MODEL_REFS, verdict_out
-from service.domain.records import as_conditions
+from service.domain.inspections import CONDITIONS, MODEL_REFS
 from service.domain.structures import get_structure
-from service.schemas import MAX_ID, Summary, TrendPoint, VerdictPage
+from service.schemas import MAX_ID
 from service.security import Principal
 from service.tables import Verdict
 
 TREND_POINTS = 100
 SECONDS_PER_DAY = 86_400.0
+
+
+@dataclass(frozen=True)
+class HistoryPage:
+    """A page of verdicts, newest first; ``next_cursor`` None on the last page."""
+
+    items: list[Verdict]
+    next_cursor: str | None
+
+
+@dataclass(frozen=True)
+class HistorySummary:
+    """Where a structure stands: its counts by status, its latest verdict, the newest verdicts
+    oldest first (``trend``) and the slope of their k̂ [%/day]."""
+
+    structure_id: int
+    total: int
+    counts: dict[str, int]
+    latest: Verdict | None
+    trend: list[Verdict]
+    k_hat_slope_per_day: float | None
 
 
 def history(
@@ -35,7 +56,7 @@ def history(
     fault_mode: str | None,
     cursor: str | None,
     limit: int,
-) -> VerdictPage:
+) -> HistoryPage:
     """Verdicts of a structure acquired in [start, end), newest first, ``limit`` at a time."""
     get_structure(session, principal, structure_id)
     query = select(Verdict).where(Verdict.structure_id == structure_id)
@@ -55,13 +76,13 @@ def history(
     query = query.order_by(Verdict.acquired_at.desc(), Verdict.id.desc()).limit(limit + 1)
     rows = list(session.scalars(query.options(MODEL_REFS, CONDITIONS)))
     page, more = rows[:limit], len(rows) > limit
-    return VerdictPage(
-        items=[verdict_out(v) for v in page],
+    return HistoryPage(
+        items=page,
         next_cursor=_encode(page[-1].acquired_at, page[-1].id) if more else None,
     )
 
 
-def summary(session: Session, principal: Principal, structure_id: int) -> Summary:
+def summary(session: Session, principal: Principal, structure_id: int) -> HistorySummary:
     """Counts by status (kept on write, in the structure's state), the latest verdict and the trend.
 
     The latest is the state's, and the trend ends with it: a verdict acquired after it was in
@@ -84,24 +105,12 @@ def summary(session: Session, principal: Principal, structure_id: int) -> Summar
         else []
     )
     counts = status.counts
-    trend = [
-        TrendPoint(
-            verdict_id=v.id,
-            acquired_at=v.acquired_at,
-            status=v.status,
-            fault_mode=v.fault_mode,
-            k_hat=v.k_hat,
-            sigma_k=v.sigma_k,
-            conditions=as_conditions(v.conditions),
-        )
-        for v in reversed(newest)
-    ]
-    return Summary(
+    return HistorySummary(
         structure_id=structure_id,
         total=sum(counts.values()),
         counts=counts,
-        latest=verdict_out(newest[0]) if newest else None,
-        trend=trend,
+        latest=newest[0] if newest else None,
+        trend=newest[::-1],
         k_hat_slope_per_day=_slope(newest),
     )
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -12,13 +12,13 @@ from sqlalchemy.orm import Session, defer, selectinload
 
 from models.errors import InputError
 from models.fnarx import FNARX
-from models.inspection import ModeResult, checked_for_inspection, inspect
 from models.inspection import Verdict as InspectionVerdict
+from models.inspection import checked_for_inspection, inspect
 from models.narx import NARX
 from models.novelty import NoveltyVerdict, checked_for_judgement, judge_record
 from models.pooled import PooledModel, baseline_verdict, check_baseline
 from models.signals import minimum_samples
-from models.vector import VectorFNARX, VectorModeFigures, inspect_vector, vector_verdict
+from models.vector import VectorFNARX, inspect_vector, vector_verdict
 from recordfiles import channels as channel_rules
 from service.config import Settings
 from service.db import insert_unless_exists
@@ -27,21 +27,19 @@ from service.domain.errors import ConflictError
 from service.domain.modelling import NoveltyBaseline, active_baseline, active_fault_modes
 from service.domain.records import (
     acquisition_limit,
-    as_conditions,
     checked_signals,
     condition_values,
     signals,
 )
 from service.domain.structures import get_owned, get_structure
-from service.schemas import ModelRef, NoveltyFigures, VerdictOut
 from service.security import Principal
 from service.tables import ModelVersion, Record, Structure, Verdict, VerdictModel
 
-# A verdict's model versions as verdict_out names them (id, name, version), never their
+# A verdict's model versions as its answer names them (id, name, version), never their
 # documents: those can be large, and no verdict answer or history page shows them.
 MODEL_REFS = selectinload(Verdict.models).load_only(ModelVersion.id, ModelVersion.name, ModelVersion.version)
-# The conditions of a verdict's record, which verdict_out shows too: with MODEL_REFS, everything
-# verdict_out reads beyond the verdict's own row, loaded for a page of verdicts in two queries.
+# The conditions of a verdict's record, which its answer shows too: with MODEL_REFS, everything
+# a VerdictOut reads beyond the verdict's own row, loaded for a page of verdicts in two queries.
 CONDITIONS = selectinload(Verdict.conditions)
 
 
@@ -253,28 +251,18 @@ def store_verdict(
     if existing is not None:
         return existing
     result, model_set = evaluation.result, evaluation.model_set
-    values = dict(
-        record_id=record.id,
-        structure_id=structure.id,
-        acquired_at=record.acquired_at,
-        model_set=model_set,
-        status=result.status,
-        fault_detected=result.fault_detected,
-        fault_mode=result.fault_mode,
-        reference_mode=result.reference_mode,
-        k_hat=result.k_hat,
-        sigma_k=result.sigma_k,
-        interval_low=result.interval[0] if result.interval else None,
-        interval_high=result.interval[1] if result.interval else None,
-        alpha=result.alpha,
-        lags=result.lags,
-        n_samples=result.n_samples,
-        z_critical=result.z_critical,
-        q_critical_detection=result.q_critical_detection,
-        detected_by=list(result.detected_by),
-        modes=[asdict(mode) for mode in result.modes],
-        novelty=evaluation.novelty.to_dict() if evaluation.novelty is not None else None,
-    )
+    figures = result.to_dict()  # the inspection's figures by their names, as the verdict row has them
+    interval = figures.pop("interval")
+    values = {
+        "record_id": record.id,
+        "structure_id": structure.id,
+        "acquired_at": record.acquired_at,
+        "model_set": model_set,
+        **figures,
+        "interval_low": interval[0] if interval else None,
+        "interval_high": interval[1] if interval else None,
+        "novelty": evaluation.novelty.to_dict() if evaluation.novelty is not None else None,
+    }
     inserted = insert_unless_exists(session, Verdict, values, ["record_id", "model_set"])
     if inserted is None:  # the same inspection finished concurrently: keep the first
         found = _find(session, record.id, model_set)
@@ -325,44 +313,6 @@ def verdict_under(session: Session, record_id: int, versions: list[ModelVersion]
 
 def get_verdict(session: Session, principal: Principal, verdict_id: int) -> Verdict:
     return get_owned(session, principal, Verdict, verdict_id, "verdict", options=[MODEL_REFS, CONDITIONS])
-
-
-def verdict_out(verdict: Verdict) -> VerdictOut:
-    interval = (
-        (verdict.interval_low, verdict.interval_high)
-        if verdict.interval_low is not None and verdict.interval_high is not None
-        else None
-    )
-    return VerdictOut(
-        id=verdict.id,
-        record_id=verdict.record_id,
-        structure_id=verdict.structure_id,
-        acquired_at=verdict.acquired_at,
-        created_at=verdict.created_at,
-        status=verdict.status,  # type: ignore[arg-type]
-        fault_detected=verdict.fault_detected,
-        fault_mode=verdict.fault_mode,
-        reference_mode=verdict.reference_mode,
-        k_hat=verdict.k_hat,
-        sigma_k=verdict.sigma_k,
-        interval=interval,
-        alpha=verdict.alpha,
-        lags=verdict.lags,
-        n_samples=verdict.n_samples,
-        z_critical=verdict.z_critical,
-        q_critical_detection=verdict.q_critical_detection,
-        detected_by=verdict.detected_by,
-        modes=[
-            VectorModeFigures(**mode) if "channel_rms" in mode else ModeResult(**mode)
-            for mode in verdict.modes
-        ],
-        novelty=NoveltyFigures(**verdict.novelty) if verdict.novelty is not None else None,
-        model_versions=[
-            ModelRef(id=m.id, name=m.name, version=m.version)
-            for m in sorted(verdict.models, key=lambda m: m.name)
-        ],
-        conditions=as_conditions(verdict.conditions),
-    )
 
 
 def _find(session: Session, record_id: int, model_set: str) -> Verdict | None:
