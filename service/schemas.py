@@ -836,6 +836,9 @@ class AlarmRulesOut(BaseModel):
 class AlarmOut(BaseModel):
     """An alarm; ``*_by`` name the API key (its prefix) that acted, null for the service itself."""
 
+    # Validated from a stored alarm's attributes (service.tables.Alarm).
+    model_config = ConfigDict(from_attributes=True)
+
     id: int
     structure_id: int
     rule_kind: RuleKind
@@ -856,6 +859,8 @@ class AlarmOut(BaseModel):
 
 
 class AlarmTransitionOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     from_state: AlarmState | None
     to_state: AlarmState
     at: dt.datetime
@@ -868,6 +873,8 @@ class AlarmDetail(AlarmOut):
 
 
 class AlarmPage(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
     items: list[AlarmOut]
     next_cursor: int | None = Field(description="Pass as `cursor` for the next (older) page; null at the end")
 

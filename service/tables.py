@@ -573,24 +573,34 @@ class Alarm(Base):
     drift_started_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
     evaluated_through: Mapped[dt.datetime] = mapped_column(UTCDateTime)
     acknowledged_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
-    acknowledged_by: Mapped[int | None] = mapped_column(
-        ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True
+    acknowledged_key_id: Mapped[int | None] = mapped_column(
+        "acknowledged_by", ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True
     )
     acknowledgement_note: Mapped[str | None] = mapped_column(Text, nullable=True)
     resolved_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
-    resolved_by: Mapped[int | None] = mapped_column(
-        ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True
+    resolved_key_id: Mapped[int | None] = mapped_column(
+        "resolved_by", ForeignKey("api_keys.id", ondelete="SET NULL"), nullable=True
     )
     resolution: Mapped[str | None] = mapped_column(String(16), nullable=True)
     resolution_note: Mapped[str | None] = mapped_column(Text, nullable=True)
     # When it was last announced again while open (``service.domain.renotify``); None: not yet.
     renotified_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
-    acknowledged_key: Mapped[ApiKey | None] = relationship(foreign_keys=[acknowledged_by])
-    resolved_key: Mapped[ApiKey | None] = relationship(foreign_keys=[resolved_by])
+    acknowledged_key: Mapped[ApiKey | None] = relationship(foreign_keys=[acknowledged_key_id])
+    resolved_key: Mapped[ApiKey | None] = relationship(foreign_keys=[resolved_key_id])
     transitions: Mapped[list[AlarmTransition]] = relationship(
         order_by="AlarmTransition.id", cascade="all, delete-orphan"
     )
+
+    @property
+    def acknowledged_by(self) -> str | None:
+        """The prefix of the API key that acknowledged the alarm; None if none did."""
+        return self.acknowledged_key.prefix if self.acknowledged_key is not None else None
+
+    @property
+    def resolved_by(self) -> str | None:
+        """The prefix of the API key that resolved the alarm; None when the service did (or none)."""
+        return self.resolved_key.prefix if self.resolved_key is not None else None
 
 
 class AlarmTransition(Base):
@@ -608,6 +618,11 @@ class AlarmTransition(Base):
     note: Mapped[str | None] = mapped_column(Text, nullable=True)
 
     key: Mapped[ApiKey | None] = relationship()
+
+    @property
+    def by(self) -> str | None:
+        """The prefix of the API key that made the change; None when the service's rules did."""
+        return self.key.prefix if self.key is not None else None
 
 
 class Webhook(Base):

@@ -44,7 +44,7 @@ def list_alarms(
     limit: Annotated[int, Query(ge=1, le=1000)] = PAGE,
 ) -> AlarmPage:
     """The organisation's alarms, newest first, with filters and cursor pagination."""
-    return alarms.list_alarms(
+    page = alarms.list_alarms(
         session,
         principal,
         structure_id=structure_id,
@@ -56,12 +56,13 @@ def list_alarms(
         cursor=cursor,
         limit=limit,
     )
+    return AlarmPage.model_validate(page, from_attributes=True)
 
 
 @router.get("/alarms/{alarm_id}")
 def get_alarm(alarm_id: IdPath, principal: Viewer, session: SessionDep) -> AlarmDetail:
     """An alarm with every transition of its state, oldest first."""
-    return alarms.get_alarm(session, principal, alarm_id)
+    return AlarmDetail.model_validate(alarms.get_alarm(session, principal, alarm_id), from_attributes=True)
 
 
 @router.post("/alarms/{alarm_id}/acknowledge")
@@ -69,7 +70,8 @@ def acknowledge_alarm(
     alarm_id: IdPath, principal: Admin, session: SessionDep, body: AlarmAction | None = None
 ) -> AlarmOut:
     """Someone is on it: an open alarm becomes acknowledged, with who, when and the note (optional)."""
-    return alarms.alarm_out(alarms.acknowledge(session, principal, alarm_id, body.note if body else ""))
+    alarm = alarms.acknowledge(session, principal, alarm_id, body.note if body else "")
+    return AlarmOut.model_validate(alarm, from_attributes=True)
 
 
 @router.post("/alarms/{alarm_id}/resolve")
@@ -78,7 +80,8 @@ def resolve_alarm(
 ) -> AlarmOut:
     """Resolve an open or acknowledged alarm by hand (a note is optional); the rule then looks only
     at records acquired later."""
-    return alarms.alarm_out(alarms.resolve(session, principal, alarm_id, body.note if body else ""))
+    alarm = alarms.resolve(session, principal, alarm_id, body.note if body else "")
+    return AlarmOut.model_validate(alarm, from_attributes=True)
 
 
 @router.get("/structures/{structure_id}/alarm-rules")

@@ -14,7 +14,9 @@ router = APIRouter(prefix="/retention", tags=["retention"])
 @router.get("")
 def get_retention(principal: Admin, session: SessionDep) -> RetentionOut:
     """How long your organisation keeps its records' signals and its verdicts."""
-    return retention.policy(session, principal.organisation_id)
+    return RetentionOut.model_validate(
+        retention.policy(session, principal.organisation_id), from_attributes=True
+    )
 
 
 @router.put("")
@@ -22,4 +24,4 @@ def set_retention(body: Retention, principal: Admin, session: SessionDep) -> Ret
     """Set both periods, in days of acquisition time (null: forever; signals no longer than
     verdicts). The next pruning applies them: signals are dropped (the record stays, saying
     so), then verdicts and the records left with neither are deleted."""
-    return retention.set_policy(session, principal, body)
+    return RetentionOut.model_validate(retention.set_policy(session, principal, body), from_attributes=True)

@@ -18,7 +18,7 @@ from models.validation import OneStepFit
 from recordfiles.quantities import SignalDeclaration, signal_label
 from service.domain.alarms import CusumSeries
 from service.domain.timeline import TimelinePoint
-from service.schemas import AlarmOut
+from service.tables import Alarm
 
 Figure = dict[str, Any]
 # Above this many points a trace is drawn with WebGL: SVG slows down past a few thousand.
@@ -52,7 +52,7 @@ def k_hat_figure(
     points: Sequence[TimelinePoint],
     interval_label: str,
     cusums: Sequence[CusumSeries] = (),
-    alarms: Sequence[AlarmOut] = (),
+    alarms: Sequence[Alarm] = (),
 ) -> Figure:
     """k̂ of each verdict with its interval, one trace per reference mode (Figure 5 over time);
     in a panel below it each fault mode's CUSUM statistic with its threshold, and the alarms: where
@@ -218,7 +218,7 @@ def _cusum_traces(cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
     return data
 
 
-def _alarm_traces(alarms: Sequence[AlarmOut], cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
+def _alarm_traces(alarms: Sequence[Alarm], cusums: Sequence[CusumSeries]) -> list[dict[str, Any]]:
     """A vertical line (on the CUSUM axis, up to the threshold or the statistic's top) where each
     alarm was raised, one trace per state; and a dotted one where each CUSUM alarm's drift began."""
     top = _alarm_axis_top(cusums)
@@ -375,7 +375,7 @@ def q_figure(points: Sequence[TimelinePoint], alpha: float) -> Figure:
     return {"data": data, "layout": layout | {"annotations": annotations}}
 
 
-def severity_figure(points: Sequence[TimelinePoint], alarms: Sequence[AlarmOut] = ()) -> Figure:
+def severity_figure(points: Sequence[TimelinePoint], alarms: Sequence[Alarm] = ()) -> Figure:
     """A healthy baseline's severity per verdict, coloured by status, against the healthy level 1:
     how many times a healthy record's free-run error variance each record's is, the figure to
     trend for a structure judged by its baseline alone. A diverged free run has none. Where each

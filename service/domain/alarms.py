@@ -68,13 +68,10 @@ from service.domain import notifications
 from service.domain.errors import ConflictError
 from service.domain.structures import get_owned, get_structure
 from service.schemas import (
-    AlarmDetail,
     AlarmOut,
-    AlarmPage,
     AlarmRule,
     AlarmRules,
     AlarmRulesOut,
-    AlarmTransitionOut,
     CusumDesignOut,
     CusumRule,
     PersistenceRule,
@@ -109,6 +106,14 @@ DEFAULT_RULES: tuple[AlarmRule, ...] = (
 # anything, and the design's search takes seconds.
 MAX_THRESHOLD = 16.0
 MAX_PAGE = 1000
+
+
+@dataclass(frozen=True)
+class AlarmList:
+    """A page of alarms, newest first; ``next_cursor`` None on the last page."""
+
+    items: list[Alarm]
+    next_cursor: int | None
 
 
 @dataclass(frozen=True)
@@ -804,7 +809,7 @@ def _resolve(
 
 
 def _announce(session: Session, structure: Structure, alarm: Alarm, event: str) -> None:
-    notifications.notify(session, structure.organisation_id, event, alarm_out(alarm).model_dump(mode="json"))
+    notifications.notify(session, structure.organisation_id, event, alarm_payload(alarm))
 
 
 # --- reading ----------------------------------------------------------------------------------
@@ -819,8 +824,9 @@ def _get(session: Session, principal: Principal, alarm_id: int) -> Alarm:
     return get_owned(session, principal, Alarm, alarm_id, "alarm", options=list(LOADED))
 
 
-def get_alarm(session: Session, principal: Principal, alarm_id: int) -> AlarmDetail:
-    alarm = get_owned(
+def get_alarm(session: Session, principal: Principal, alarm_id: int) -> Alarm:
+    """The alarm with its transitions and the keys that made them."""
+    return get_owned(
         session,
         principal,
         Alarm,
@@ -828,17 +834,6 @@ def get_alarm(session: Session, principal: Principal, alarm_id: int) -> AlarmDet
         "alarm",
         options=[*LOADED, selectinload(Alarm.transitions).selectinload(AlarmTransition.key)],
     )
-    transitions = [
-        AlarmTransitionOut(
-            from_state=t.from_state,  # type: ignore[arg-type]
-            to_state=t.to_state,  # type: ignore[arg-type]
-            at=t.at,
-            by=t.key.prefix if t.key is not None else None,
-            note=t.note,
-        )
-        for t in alarm.transitions
-    ]
-    return AlarmDetail(**alarm_out(alarm).model_dump(), transitions=transitions)
 
 
 def list_alarms(
@@ -853,7 +848,7 @@ def list_alarms(
     end: dt.datetime | None = None,
     cursor: int | None = None,
     limit: int = 100,
-) -> AlarmPage:
+) -> AlarmList:
     """The organisation's alarms opened in [start, end), newest first, ``limit`` at a time."""
     if structure_id is not None:
         get_structure(session, principal, structure_id)
@@ -874,9 +869,7 @@ def list_alarms(
         query = query.where(Alarm.id < cursor)
     rows = list(session.scalars(query.order_by(Alarm.id.desc()).limit(limit + 1).options(*LOADED)))
     page = rows[:limit]
-    return AlarmPage(
-        items=[alarm_out(a) for a in page], next_cursor=page[-1].id if len(rows) > limit else None
-    )
+    return AlarmList(items=page, next_cursor=page[-1].id if len(rows) > limit else None)
 
 
 def unresolved_alarms(
@@ -906,23 +899,6 @@ def _unresolved_of(query: Select[Any], principal: Principal, structure_id: int |
     return query.where(Alarm.structure_id == structure_id)
 
 
-def alarm_out(alarm: Alarm) -> AlarmOut:
-    return AlarmOut(
-        id=alarm.id,
-        structure_id=alarm.structure_id,
-        rule_kind=alarm.rule_kind,  # type: ignore[arg-type]
-        rule=alarm.rule,
-        fault_mode=alarm.fault_mode,
-        state=alarm.state,  # type: ignore[arg-type]
-        opened_at=alarm.opened_at,
-        record_id=alarm.record_id,
-        triggered_at=alarm.triggered_at,
-        drift_started_at=alarm.drift_started_at,
-        acknowledged_at=alarm.acknowledged_at,
-        acknowledged_by=alarm.acknowledged_key.prefix if alarm.acknowledged_key is not None else None,
-        acknowledgement_note=alarm.acknowledgement_note,
-        resolved_at=alarm.resolved_at,
-        resolved_by=alarm.resolved_key.prefix if alarm.resolved_key is not None else None,
-        resolution=alarm.resolution,  # type: ignore[arg-type]
-        resolution_note=alarm.resolution_note,
-    )
+def alarm_payload(alarm: Alarm) -> dict[str, Any]:
+    """The alarm as its notifications carry it: the API's answer for it, as JSON."""
+    return AlarmOut.model_validate(alarm, from_attributes=True).model_dump(mode="json")

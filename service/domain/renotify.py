@@ -14,7 +14,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from service.domain import notifications
-from service.domain.alarms import LOADED, alarm_out
+from service.domain.alarms import LOADED, alarm_payload
 from service.tables import Alarm, Structure, utcnow
 
 BATCH = 200  # alarms announced again per sweep at most; the next sweep takes the rest
@@ -44,7 +44,7 @@ def sweep(session: Session, after: dt.timedelta, now: dt.datetime | None = None)
             organisation_id = session.scalar(
                 select(Structure.organisation_id).where(Structure.id == alarm.structure_id)
             )
-            payload = alarm_out(alarm).model_dump(mode="json")
+            payload = alarm_payload(alarm)
             notifications.notify(session, organisation_id, "alarm.renotified", payload)
             announced += 1
         session.commit()

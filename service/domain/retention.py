@@ -42,7 +42,7 @@ from sqlalchemy.orm import Session
 from service.db import insert_unless_exists
 from service.domain import alarms, fleet
 from service.domain.schedules import Defer
-from service.schemas import Retention, RetentionOut
+from service.schemas import Retention
 from service.security import Principal
 from service.tables import (
     SETTLED,
@@ -64,6 +64,17 @@ PRUNE = "prune_retention"
 KEY = ("organisation_id",)  # what an insert of a policy returns: the table has no id
 
 Pass = Literal["signals", "verdicts", "records", "deliveries"]
+
+
+@dataclass(frozen=True)
+class Policy:
+    """An organisation's retention in days (None: forever); ``defaults`` while it keeps the
+    service's; ``last_pruned_at`` when its last pruning was queued (None: never)."""
+
+    signal_days: int | None
+    verdict_days: int | None
+    defaults: bool
+    last_pruned_at: dt.datetime | None
 
 
 @dataclass(frozen=True)
@@ -91,24 +102,14 @@ class Pruned:
         self.batches += 1
 
 
-def policy(session: Session, organisation_id: int) -> RetentionOut:
+def policy(session: Session, organisation_id: int) -> Policy:
     row = session.get(RetentionPolicy, organisation_id)
     if row is None:
-        return RetentionOut(
-            signal_days=DEFAULT_SIGNAL_DAYS,
-            verdict_days=DEFAULT_VERDICT_DAYS,
-            defaults=True,
-            last_pruned_at=None,
-        )
-    return RetentionOut(
-        signal_days=row.signal_days,
-        verdict_days=row.verdict_days,
-        defaults=row.updated_at is None,
-        last_pruned_at=row.last_pruned_at,
-    )
+        return Policy(DEFAULT_SIGNAL_DAYS, DEFAULT_VERDICT_DAYS, defaults=True, last_pruned_at=None)
+    return Policy(row.signal_days, row.verdict_days, row.updated_at is None, row.last_pruned_at)
 
 
-def set_policy(session: Session, principal: Principal, body: Retention) -> RetentionOut:
+def set_policy(session: Session, principal: Principal, body: Retention) -> Policy:
     """The caller's organisation's policy set (validated by :class:`service.schemas.Retention`);
     flushes. It applies from the next pruning. The row is made first if missing (as the sweep
     makes it), so two concurrent changes both apply, the later one last, neither failing."""
