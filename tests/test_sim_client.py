@@ -397,6 +397,36 @@ def test_structures_create_declares_what_x_and_y_measure(api_server: LiveServer,
     assert "'plain', fs = 200 Hz, no verdict yet" in listed
 
 
+def test_structures_update_changes_what_is_given_and_prints_the_refusal_of_a_redeclaration(
+    api_server: LiveServer, tenant: Tenant
+):
+    """The name and an undeclared excitation given after a record was stored: both change, the
+    rest stays; then another response quantity is refused with the service's reason, exit 1."""
+    key = api_server.key(Role.admin, tenant.name)
+    made = tenant.admin.post(
+        "/api/v1/structures",
+        json={"name": "mast", "fs": 200.0, "response": {"quantity": "acceleration", "unit": "g"}},
+    ).json()
+    record = {"x": [0.0, 1.0, 0.5] * 100, "y": [0.1, 0.0, -0.1] * 100, "fs": 200.0}
+    assert tenant.ingest.post(f"/api/v1/structures/{made['id']}/records", json=record).status_code == 201
+    structure = ["--structure", str(made["id"])]
+    update = ["structures", "update", *structure, "--name", "mast 2", "--excitation", "force"]
+    changed = run_sim(*update, "--excitation-unit", "kN", key=key, url=api_server.url)
+    assert changed.returncode == 0, changed.stderr
+    assert changed.stdout.strip() == (
+        f"structure {made['id']} 'mast 2', fs = 200 Hz, force x [kN], acceleration y [g]"
+    )
+    stored = tenant.admin.get(f"/api/v1/structures/{made['id']}").json()
+    assert stored == made | {"name": "mast 2", "excitation": {"quantity": "force", "unit": "kN"}}
+    redeclared = run_sim(
+        "structures", "update", *structure, "--response", "velocity", key=key, url=api_server.url
+    )
+    assert redeclared.returncode == 1, redeclared.stdout + redeclared.stderr
+    assert "409 Conflict: structure 'mast 2' has records" in redeclared.stderr
+    assert "can only be completed" in redeclared.stderr and redeclared.stdout == ""
+    assert tenant.admin.get(f"/api/v1/structures/{made['id']}").json() == stored
+
+
 def test_structures_list_prints_every_page(api_server: LiveServer):
     """More structures than a page of the listing holds: every one printed, in the fleet's order."""
     tenant = Tenant.create(api_server)
@@ -435,6 +465,16 @@ def test_structures_list_prints_every_page(api_server: LiveServer):
         ),
         (Role.ingest, ["upload", "healthy.csv", "--structure", "999999"], "404 Not Found: structure 999999"),
         (Role.admin, ["train", "baseline", "--structure", "999999", "--records", "1"], "404 Not Found"),
+        (
+            Role.ingest,
+            ["structures", "update", "--structure", "999999", "--name", "r"],
+            "403 Forbidden: this needs a key of role 'admin' or higher",
+        ),
+        (
+            Role.admin,
+            ["structures", "update", "--structure", "999999", "--name", "r"],
+            "404 Not Found: structure 999999 not found",
+        ),
     ],
     ids=[
         "ingest creates",
@@ -442,6 +482,8 @@ def test_structures_list_prints_every_page(api_server: LiveServer):
         "unit with a space",
         "unknown structure",
         "train unknown structure",
+        "ingest updates",
+        "update unknown structure",
     ],
 )
 def test_own_structure_commands_print_the_services_refusal_and_exit_1(
@@ -474,8 +516,25 @@ def test_own_structure_commands_print_the_services_refusal_and_exit_1(
             ["structures", "create", "--name", "r", "--fs", "1500", "--response", "mass"],
             "'mass' is not one of",
         ),
+        (
+            ["structures", "update", "--structure", "1"],
+            "nothing to change: give --name, --description, --excitation or --response",
+        ),
+        (
+            ["structures", "update", "--structure", "1", "--response-unit", "g"],
+            "--response-unit needs --response",
+        ),
     ],
-    ids=["suffix", "missing file", "counts differ", "not ids", "unit without quantity", "unknown quantity"],
+    ids=[
+        "suffix",
+        "missing file",
+        "counts differ",
+        "not ids",
+        "unit without quantity",
+        "unknown quantity",
+        "update nothing",
+        "update unit without quantity",
+    ],
 )
 def test_own_structure_commands_refuse_unusable_input_with_exit_2(args, message, tmp_path: Path):
     (tmp_path / "record.txt").write_text("x,y\n")

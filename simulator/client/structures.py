@@ -102,6 +102,13 @@ def declared(structure: dict[str, Any]) -> str:
     return "" if signals == ["x", "y"] else ", " + ", ".join(signals)
 
 
+def described(structure: dict[str, Any]) -> str:
+    """A structure as its commands print it: id, name, sampling rate and declarations."""
+    return (
+        f"structure {structure['id']} {structure['name']!r}, fs = {structure['fs']:g} Hz{declared(structure)}"
+    )
+
+
 Terms = Annotated[
     str | None,
     typer.Option(
@@ -121,7 +128,7 @@ def service(url: str, key: str | None) -> Iterator[Service]:
 
 
 structures_app = typer.Typer(
-    help="Create and list structures (an admin key creates them).",
+    help="Create, change and list structures (an admin key creates and changes them).",
     no_args_is_help=True,
     rich_markup_mode=None,
 )
@@ -156,12 +163,36 @@ def create_structure(
     }
     with service(url, key) as client:
         made = client.request("POST", f"{API}/structures", json=body)
-    stdout.print(
-        made["id"]
-        if quiet
-        else f"structure {made['id']} {made['name']!r}, fs = {made['fs']:g} Hz{declared(made)}",
-        markup=False,
-    )
+    stdout.print(made["id"] if quiet else described(made), markup=False)
+
+
+@structures_app.command("update")
+def update_structure(
+    structure: Structure,
+    name: Annotated[str | None, typer.Option(help="Its new name.")] = None,
+    description: Annotated[str | None, typer.Option(help="Its new description.")] = None,
+    excitation: Excitation = None,
+    excitation_unit: ExcitationUnit = None,
+    response: Response = None,
+    response_unit: ResponseUnit = None,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+    quiet: Quiet = False,
+) -> None:
+    """Change a structure's name, description or what x and y measure; what is not given stays.
+    Once it has records, a declaration can only be completed (given where there was none, or its
+    unit where none was stated): the service refuses to change it, saying why."""
+    body = {
+        **({} if name is None else {"name": name}),
+        **({} if description is None else {"description": description}),
+        **declaration("excitation", excitation, excitation_unit),
+        **declaration("response", response, response_unit),
+    }
+    if not body:
+        raise InputError("nothing to change: give --name, --description, --excitation or --response")
+    with service(url, key) as client:
+        changed = client.request("PATCH", f"{API}/structures/{structure}", json=body)
+    stdout.print(changed["id"] if quiet else described(changed), markup=False)
 
 
 @structures_app.command("list")
@@ -171,11 +202,7 @@ def list_structures(url: Url = DEFAULT_URL, key: Key = None) -> None:
         listed = [structure for page in client.pages(f"{API}/structures") for structure in page]
     for structure in listed:
         status = structure["status"] or "no verdict yet"
-        stdout.print(
-            f"structure {structure['id']} {structure['name']!r}, fs = {structure['fs']:g} Hz"
-            f"{declared(structure)}, {status}",
-            markup=False,
-        )
+        stdout.print(f"{described(structure)}, {status}", markup=False)
 
 
 def upload_command(
