@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -28,6 +29,7 @@ from simulator.client.destinations import (
     stdout,
     verdict_text,
 )
+from simulator.client.groups import expanded
 from simulator.client.http import API, Service
 
 # The media type each record file is sent as, by its suffix (the service's own names for them).
@@ -139,42 +141,52 @@ train_app = typer.Typer(
 )
 
 
+@dataclass(frozen=True)
+class Declarations:
+    """What x and y measure, as ``structures create`` and ``update`` take them (each field an
+    option; :func:`~simulator.client.groups.expanded`)."""
+
+    excitation: Excitation = None
+    excitation_unit: ExcitationUnit = None
+    response: Response = None
+    response_unit: ResponseUnit = None
+
+    def body(self) -> dict[str, Any]:
+        """The declarations given, as the service's body takes them."""
+        return {
+            **declaration("excitation", self.excitation, self.excitation_unit),
+            **declaration("response", self.response, self.response_unit),
+        }
+
+
 @structures_app.command("create")
+@expanded
 def create_structure(
+    *,
     name: Annotated[str, typer.Option(help="The structure's name.")],
     fs: Annotated[float, typer.Option(help="Sampling rate [Hz] every record of it must have.")],
     description: Annotated[str, typer.Option(help="Free text.")] = "",
-    excitation: Excitation = None,
-    excitation_unit: ExcitationUnit = None,
-    response: Response = None,
-    response_unit: ResponseUnit = None,
+    signals: Declarations,
     url: Url = DEFAULT_URL,
     key: Key = None,
     quiet: Quiet = False,
 ) -> None:
     """Create a structure and print its id; --excitation and --response declare what x and y
     measure, for the dashboard's charts."""
-    body = {
-        "name": name,
-        "fs": fs,
-        "description": description,
-        **declaration("excitation", excitation, excitation_unit),
-        **declaration("response", response, response_unit),
-    }
+    body = {"name": name, "fs": fs, "description": description, **signals.body()}
     with service(url, key) as client:
         made = client.request("POST", f"{API}/structures", json=body)
     stdout.print(made["id"] if quiet else described(made), markup=False)
 
 
 @structures_app.command("update")
+@expanded
 def update_structure(
+    *,
     structure: Structure,
     name: Annotated[str | None, typer.Option(help="Its new name.")] = None,
     description: Annotated[str | None, typer.Option(help="Its new description.")] = None,
-    excitation: Excitation = None,
-    excitation_unit: ExcitationUnit = None,
-    response: Response = None,
-    response_unit: ResponseUnit = None,
+    signals: Declarations,
     url: Url = DEFAULT_URL,
     key: Key = None,
     quiet: Quiet = False,
@@ -182,12 +194,8 @@ def update_structure(
     """Change a structure's name, description or what x and y measure; what is not given stays.
     Once it has records, a declaration can only be completed (given where there was none, or its
     unit where none was stated): the service refuses to change it, saying why."""
-    body = {
-        **({} if name is None else {"name": name}),
-        **({} if description is None else {"description": description}),
-        **declaration("excitation", excitation, excitation_unit),
-        **declaration("response", response, response_unit),
-    }
+    given = {"name": name, "description": description}
+    body = {field: value for field, value in given.items() if value is not None} | signals.body()
     if not body:
         raise InputError("nothing to change: give --name, --description, --excitation or --response")
     with service(url, key) as client:
