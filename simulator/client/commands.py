@@ -81,7 +81,7 @@ class SimulationOptions:
     n: Samples = STUDY.inspection_samples
     seed: Seed = None
     excitation_std: ExcitationStd = STUDY.excitation_std
-    disturbance_std: DisturbanceStd = STUDY.disturbance_std
+    disturbance_std: DisturbanceStd = None  # the structure's own
     noise_std: NoiseStd = 0.0
     x_noise_std: XNoiseStd = 0.0
     noise_colour: NoiseColour = None
