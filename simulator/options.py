@@ -39,7 +39,7 @@ DisturbanceStd = Annotated[
     float | None,
     typer.Option(
         help="Std of the unmeasured white force on mass 1 [N] (white NARX residual). Default: the rig's "
-        f"{StudySettings().disturbance_std:g}, as in the paper; none on a chain (--masses), whose noise is "
+        f"{StudySettings().disturbance_std:g} N, as in the paper; none on a chain (--masses), whose noise is "
         "its sensors'.",
     ),
 ]
