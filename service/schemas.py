@@ -657,6 +657,10 @@ class JobOut(BaseModel):
     attempts: int
     error: str | None
     created_at: dt.datetime | None
+    model: ModelRef | None = Field(
+        default=None,
+        description="What a training made: its model version, once the job is done; null for other tasks",
+    )
 
 
 class JobPage(BaseModel):

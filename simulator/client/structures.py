@@ -10,6 +10,7 @@ can carry them on.
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -26,11 +27,12 @@ from simulator.client.destinations import (
     Url,
     connect,
     describe,
+    stderr,
     stdout,
     verdict_text,
 )
 from simulator.client.groups import expanded
-from simulator.client.http import API, Service
+from simulator.client.http import API, Service, ServiceError
 
 # The media type each record file is sent as, by its suffix (the service's own names for them).
 MEDIA_TYPES = {
@@ -110,6 +112,22 @@ def described(structure: dict[str, Any]) -> str:
         f"structure {structure['id']} {structure['name']!r}, fs = {structure['fs']:g} Hz{declared(structure)}"
     )
 
+
+# How often a queued training's job is asked after, and how often a progress line says it still runs.
+POLL_SECONDS, PROGRESS_SECONDS = 2.0, 30.0
+Wait = Annotated[
+    bool,
+    typer.Option(
+        "--wait",
+        help="If the training is queued as a job (a large one), follow the job to its end and print the "
+        "version it made; exit 1 with the job's error if it fails.",
+    ),
+]
+WaitSeconds = Annotated[
+    float,
+    typer.Option(min=1, help="With --wait, how long to wait [s] before giving up (the job goes on)."),
+]
+WAIT_SECONDS = 3600.0
 
 Terms = Annotated[
     str | None,
@@ -258,7 +276,7 @@ def read_body(path: Path) -> tuple[bytes, str]:
 
 
 def trained(answer: dict[str, Any]) -> None:
-    """A model version made, or a training queued as a job (a large one)."""
+    """A model version made, or a training queued as a job (a large one) when not waited for."""
     if "job_id" in answer:
         stdout.print(f"{answer['detail']}: job {answer['job_id']}, {answer['location']}", markup=False)
         return
@@ -281,6 +299,42 @@ def trained(answer: dict[str, Any]) -> None:
         stdout.print(f"  {judges}", markup=False)
 
 
+def followed(client: Service, answer: dict[str, Any], structure: int, seconds: float) -> dict[str, Any]:
+    """The version a training made: the answer itself, or, for a training queued as a job, the
+    version the job names once done."""
+    if "job_id" not in answer:
+        return answer
+    job = finished_job(client, answer, seconds)
+    if job.get("model") is None:
+        raise ServiceError(f"job {job['id']} is done but names no model version: is the service older?")
+    models = client.request("GET", f"{API}/structures/{structure}/models")
+    return next(model for model in models if model["id"] == job["model"]["id"])
+
+
+def finished_job(client: Service, queued: dict[str, Any], seconds: float) -> dict[str, Any]:
+    """The job of a 202 answer (``queued``) once done, asked after every :data:`POLL_SECONDS`, a
+    progress line on stderr at each change of state and every :data:`PROGRESS_SECONDS`. A failed
+    job, or one not ended within ``seconds``, is a :class:`ServiceError` saying so."""
+    job_id, start, said = queued["job_id"], time.monotonic(), None
+    stderr.print(f"{queued['detail']}: job {job_id}; waiting for it up to {seconds:g} s", markup=False)
+    while True:
+        job = client.request("GET", queued["location"])
+        elapsed = time.monotonic() - start
+        if job["state"] == "done":
+            return job
+        if job["state"] == "failed":
+            raise ServiceError(f"the training's job {job_id} failed: {job['error']}")
+        if elapsed >= seconds:
+            raise ServiceError(
+                f"job {job_id} is still {job['state']} after {seconds:g} s; it goes on in the service: "
+                f"follow it at {queued['location']}"
+            )
+        if (job["state"], elapsed // PROGRESS_SECONDS) != said:
+            said = (job["state"], elapsed // PROGRESS_SECONDS)
+            stderr.print(f"job {job_id} {job['state']}, {elapsed:.0f} s", markup=False)
+        time.sleep(min(POLL_SECONDS, seconds - elapsed))
+
+
 def term_list(terms: str | None) -> dict[str, Any]:
     return {} if terms is None else {"terms": [term.strip() for term in terms.split(",") if term.strip()]}
 
@@ -290,13 +344,16 @@ def train_baseline(
     structure: Structure,
     records: Records,
     terms: Terms = None,
+    wait: Wait = False,
+    wait_seconds: WaitSeconds = WAIT_SECONDS,
     url: Url = DEFAULT_URL,
     key: Key = None,
 ) -> None:
     """Identify the healthy structure's NARX from its stored healthy records."""
     body = {"record_ids": id_list(records), **term_list(terms)}
     with service(url, key) as client:
-        trained(client.request("POST", f"{API}/structures/{structure}/models/baseline", json=body))
+        answer = client.request("POST", f"{API}/structures/{structure}/models/baseline", json=body)
+        trained(followed(client, answer, structure, wait_seconds) if wait else answer)
 
 
 @train_app.command("fault-mode")
@@ -308,6 +365,8 @@ def train_fault_mode(
         str, typer.Option("--k", help="Each record's fault magnitude [%], in the order of --records.")
     ],
     terms: Terms = None,
+    wait: Wait = False,
+    wait_seconds: WaitSeconds = WAIT_SECONDS,
     url: Url = DEFAULT_URL,
     key: Key = None,
 ) -> None:
@@ -326,7 +385,8 @@ def train_fault_mode(
         **term_list(terms),
     }
     with service(url, key) as client:
-        trained(client.request("POST", f"{API}/structures/{structure}/models/fault-modes", json=body))
+        answer = client.request("POST", f"{API}/structures/{structure}/models/fault-modes", json=body)
+        trained(followed(client, answer, structure, wait_seconds) if wait else answer)
 
 
 def verdicts_command(
