@@ -71,13 +71,16 @@ def number_list(text: str) -> list[float]:
 Records = Annotated[str, typer.Option("--records", help="Record ids, separated by commas: 1,2,3.")]
 Excitation = Annotated[
     Quantity | None,
-    typer.Option("--excitation", help=f"What x measures: {', '.join(QUANTITIES)} (default: not declared)."),
+    typer.Option(
+        "--excitation",
+        help=f"What x measures: {', '.join(QUANTITIES)}. Not given: not declared by create, kept by update.",
+    ),
 ]
 Response = Annotated[
     Quantity | None,
     typer.Option(
         "--response",
-        help="What y (every response channel) measures, as --excitation (default: not declared).",
+        help="What y (every response channel) measures, as --excitation.",
     ),
 ]
 ExcitationUnit = Annotated[str | None, typer.Option(help=f"The unit of x, {UNIT_HELP}; with --excitation.")]
