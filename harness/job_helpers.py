@@ -13,6 +13,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from harness.api_helpers import TRAINING_K, simulated
+from harness.live import LiveServer
 from models.signals import checked_record, minimum_samples
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
@@ -39,6 +40,14 @@ def database_url(kind: str, tmp_path: Path, request: pytest.FixtureRequest) -> s
     from harness import postgres
 
     return postgres.create_database(request.getfixturevalue("postgres_url"), f"jobs_{uuid.uuid4().hex[:12]}")
+
+
+def run_jobs(server: LiveServer) -> None:
+    """What `narxwatch worker --once` does for ``server``'s database: run every job due now, then
+    return (for a server started without its embedded worker)."""
+    engine = make_engine(server.settings.database_url)
+    job_backend(server.settings, session_factory(engine), in_service=False).work(once=True)
+    engine.dispose()
 
 
 @dataclass

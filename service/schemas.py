@@ -102,18 +102,45 @@ class Signal(Strict):
     )
 
 
+Description = Annotated[str, Field(max_length=2000, pattern=r"^[^\x00]*$")]
+EXCITATION_HELP = "What x measures, e.g. {quantity: force, unit: N}; null: not declared"
+RESPONSE_HELP = (
+    "What y (every response channel) measures, e.g. {quantity: acceleration, unit: m/s²}; null: not declared"
+)
+
+
 class StructureCreate(Strict):
     name: Name
     fs: SamplingRate
-    description: Annotated[str, Field(max_length=2000, pattern=r"^[^\x00]*$")] = ""
-    excitation: Signal | None = Field(
-        default=None, description="What x measures, e.g. {quantity: force, unit: N}; null: not declared"
-    )
-    response: Signal | None = Field(
-        default=None,
-        description="What y (every response channel) measures, e.g. {quantity: acceleration, unit: m/s²}; "
-        "null: not declared",
-    )
+    description: Description = ""
+    excitation: Signal | None = Field(default=None, description=EXCITATION_HELP)
+    response: Signal | None = Field(default=None, description=RESPONSE_HELP)
+
+
+class StructureUpdate(Strict):
+    """The fields sent change, the others stay. The sampling rate is not among them: every record
+    of the structure was stored at it."""
+
+    name: Name | None = None
+    description: Description | None = None
+    excitation: Signal | None = Field(default=None, description=EXCITATION_HELP)
+    response: Signal | None = Field(default=None, description=RESPONSE_HELP)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _kept(cls, data: Any) -> Any:
+        # Said here, before the generic refusals of an extra field or a null string, because
+        # the reason is what a person needs.
+        if isinstance(data, dict):
+            if "fs" in data:
+                raise ValueError(
+                    "a structure's fs cannot change: its records were stored at it and its models "
+                    "identified at it; create another structure for another rate"
+                )
+            for name in ("name", "description"):
+                if name in data and data[name] is None:
+                    raise ValueError(f"{name} cannot be null: leave it out to keep it")
+        return data
 
 
 class StructureOut(BaseModel):
@@ -666,6 +693,10 @@ class JobOut(BaseModel):
     attempts: int
     error: str | None
     created_at: dt.datetime | None
+    model: ModelRef | None = Field(
+        default=None,
+        description="What a training made: its model version, once the job is done; null for other tasks",
+    )
 
 
 class JobPage(BaseModel):

@@ -35,6 +35,10 @@ Response = Literal["displacement", "acceleration"]
 NOISE_FLOOR_SAMPLES = 20_000
 RESPONSES: tuple[Response, ...] = ("displacement", "acceleration")
 MAX_MASSES = 50  # a chain's cost grows with n² per step; monitoring studies use a handful
+# A chain stands for a structure of one's own: unless one is asked for, no unmeasured force acts
+# on it, and its records' noise is its sensors' (``with_sensor_noise``). The rig's unmeasured
+# force is the paper's setting (``simulator.study.StudySettings``), not a chain's.
+DISTURBANCE_STD = 0.0
 
 
 @dataclass(frozen=True)
@@ -214,7 +218,7 @@ class ChainScenario:
     fault: str = "none"
     k: float = 0.0
     excitation_std: float = 25e3
-    disturbance_std: float = 0.0
+    disturbance_std: float = DISTURBANCE_STD
     y_noise_std: float = 0.0
     x_noise_std: float = 0.0
     noise_colour: tuple[float, ...] = ()

@@ -13,9 +13,10 @@ from typing import Annotated
 import typer
 
 from models.errors import InputError
-from simulator.chain import MAX_MASSES, RESPONSES, ChainParameters
+from simulator.chain import DISTURBANCE_STD, MAX_MASSES, RESPONSES, ChainParameters
 from simulator.physics import FAULT_MODES, PhysicalParameters
 from simulator.simulate import EFFECTS
+from simulator.study import StudySettings
 from simulator.temperature import DEFAULT_COEFFICIENT, REFERENCE_TEMPERATURE
 
 # The chain's defaults: each mode damped enough for the explicit scheme up to 5 masses or more
@@ -35,8 +36,22 @@ Magnitude = Annotated[
 Samples = Annotated[int, typer.Option(help="Number of samples per record.", min=1)]
 ExcitationStd = Annotated[float, typer.Option(help="Std of the white force excitation x [N].")]
 DisturbanceStd = Annotated[
-    float, typer.Option(help="Std of the unmeasured white force on mass 1 [N] (white NARX residual).")
+    float | None,
+    typer.Option(
+        help="Std of the unmeasured white force on mass 1 [N] (white NARX residual). Default: the rig's "
+        f"{StudySettings().disturbance_std:g} N, as in the paper; none on a chain (--masses), whose noise is "
+        "its sensors'.",
+    ),
 ]
+
+
+def disturbance_level(given: float | None, chain: bool) -> float:
+    """--disturbance-std as given, or else the structure's own: a ``chain``'s or the rig's."""
+    if given is not None:
+        return given
+    return DISTURBANCE_STD if chain else StudySettings().disturbance_std
+
+
 NoiseStd = Annotated[float, typer.Option(help="Std of white measurement noise on y [m].")]
 XNoiseStd = Annotated[float, typer.Option(help="Std of white measurement noise on x [N].")]
 NoiseShare = Annotated[

@@ -223,6 +223,14 @@ def test_a_large_training_is_queued_and_its_job_stores_the_version(bounded: Boun
         (version,) = wait_for(trained, 60, "the queued training's version")
         assert version["active"] is True and version["terms"] == EXACT
         assert version["statistics"]["n_obs"] == 15_000 - 4
+        job = wait_for(
+            lambda: (j := admin.get(f"{API}/jobs/{job_id}").json())["state"] == "done" and j, 30, "done"
+        )
+        # The job names what it made, in its listing too; other tasks' jobs name no model.
+        made = {"id": version["id"], "name": "baseline", "version": version["version"]}
+        assert job["model"] == made, job  # type: ignore[index]
+        listed = admin.get(f"{API}/jobs", params={"limit": 1000}).json()["items"]
+        assert {j["id"]: j["model"] for j in listed if j["model"] is not None} == {job_id: made}
         run_again(bounded.server, job_id)
         assert trained() == [version], "the job run again stored a second version"
 

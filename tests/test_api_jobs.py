@@ -18,11 +18,9 @@ from harness.api_helpers import (
     simulated,
     train_fault_mode,
 )
-from harness.job_helpers import LONG_LAG_TERMS, TOO_SHORT, database_url
+from harness.job_helpers import LONG_LAG_TERMS, TOO_SHORT, database_url, run_jobs
 from harness.live import LiveServer
 from service.config import Settings
-from service.db import make_engine, session_factory
-from service.jobs.backends import job_backend
 
 JOBS = f"{API}/jobs"
 
@@ -33,13 +31,6 @@ def server(request, tmp_path: Path):
     settings = Settings(database_url=database_url(request.param, tmp_path, request), embedded_worker=False)
     with LiveServer(settings) as live:
         yield live
-
-
-def run_jobs(server: LiveServer) -> None:
-    """What `narxwatch worker --once` does: run every job due now, then return."""
-    engine = make_engine(server.settings.database_url)
-    job_backend(server.settings, session_factory(engine), in_service=False).work(once=True)
-    engine.dispose()
 
 
 def queue(ingest, structure_id: int, n: int, seed: int) -> int:

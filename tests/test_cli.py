@@ -135,6 +135,26 @@ def test_simulate_writes_a_chain_s_accelerometer_with_sensor_noise_a_share_of_it
     assert (tmp_path / "all.csv").read_text().splitlines()[1] == "x,y1,y2,y3"
 
 
+def test_a_chain_s_default_has_no_unmeasured_force_and_the_rig_keeps_the_paper_s(tmp_path):
+    """Without --disturbance-std a chain, a structure of one's own, is simulated without the rig's
+    unmeasured force on mass 1 (its noise is its sensors'); the rig keeps the paper's 800 N."""
+    seeded = ["--n", "500", "--seed", "5"]
+    for name, structure, level in (("chain", ACCELEROMETER, "0"), ("rig", [], "800")):
+        invoke("simulate", *structure, *seeded, "--out", f"{name}.npz", cwd=tmp_path)
+        invoke(
+            "simulate",
+            *structure,
+            *seeded,
+            "--disturbance-std",
+            level,
+            "--out",
+            f"{name}-given.npz",
+            cwd=tmp_path,
+        )
+        with np.load(tmp_path / f"{name}.npz") as default, np.load(tmp_path / f"{name}-given.npz") as given:
+            np.testing.assert_array_equal(default["y"], given["y"], err_msg=name)
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

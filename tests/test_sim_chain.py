@@ -340,7 +340,9 @@ def test_stream_writes_channels_and_each_records_temperature_from_its_time(tmp_p
         path = tmp_path / "d" / row["path"]
         assert f"# temperature={temperature:.17g} °C\n" in path.read_text()
         again = simulate_chain(
-            ChainScenario(chain, "k4", 5.0, disturbance_std=800.0, temperature=temperature), 2000, seed
+            ChainScenario(chain, "k4", 5.0, temperature=temperature),
+            2000,
+            seed,  # no unmeasured force
         )
         for name in ("y1", "y3", "y5"):
             np.testing.assert_array_equal(read_record(path, Layout(y=name)).y, again.responses[name])

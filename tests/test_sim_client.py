@@ -18,18 +18,23 @@ import signal
 import subprocess
 import sys
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+from sqlalchemy import select
 
-from harness.api_helpers import RIG_TERMS
+from harness.api_helpers import RIG_TERMS, simulated, upload_simulated, wait_for
+from harness.job_helpers import run_jobs
 from harness.live import LiveServer, Tenant, free_port
 from recordfiles.reader import read_record
 from service.cli.modelfiles import read_manifest
-from service.domain import fleet
+from service.config import Settings
+from service.domain import fleet, retention
 from service.security import Role
+from service.tables import Organisation
 from simulator.simulate import Scenario, simulate
 from simulator.study import StudySettings
 from simulator.temperature import TemperatureCycle
@@ -397,6 +402,36 @@ def test_structures_create_declares_what_x_and_y_measure(api_server: LiveServer,
     assert "'plain', fs = 200 Hz, no verdict yet" in listed
 
 
+def test_structures_update_changes_what_is_given_and_prints_the_refusal_of_a_redeclaration(
+    api_server: LiveServer, tenant: Tenant
+):
+    """The name and an undeclared excitation given after a record was stored: both change, the
+    rest stays; then another response quantity is refused with the service's reason, exit 1."""
+    key = api_server.key(Role.admin, tenant.name)
+    made = tenant.admin.post(
+        "/api/v1/structures",
+        json={"name": "mast", "fs": 200.0, "response": {"quantity": "acceleration", "unit": "g"}},
+    ).json()
+    record = {"x": [0.0, 1.0, 0.5] * 100, "y": [0.1, 0.0, -0.1] * 100, "fs": 200.0}
+    assert tenant.ingest.post(f"/api/v1/structures/{made['id']}/records", json=record).status_code == 201
+    structure = ["--structure", str(made["id"])]
+    update = ["structures", "update", *structure, "--name", "mast 2", "--excitation", "force"]
+    changed = run_sim(*update, "--excitation-unit", "kN", key=key, url=api_server.url)
+    assert changed.returncode == 0, changed.stderr
+    assert changed.stdout.strip() == (
+        f"structure {made['id']} 'mast 2', fs = 200 Hz, force x [kN], acceleration y [g]"
+    )
+    stored = tenant.admin.get(f"/api/v1/structures/{made['id']}").json()
+    assert stored == made | {"name": "mast 2", "excitation": {"quantity": "force", "unit": "kN"}}
+    redeclared = run_sim(
+        "structures", "update", *structure, "--response", "velocity", key=key, url=api_server.url
+    )
+    assert redeclared.returncode == 1, redeclared.stdout + redeclared.stderr
+    assert "409 Conflict: structure 'mast 2' has records" in redeclared.stderr
+    assert "can only be completed" in redeclared.stderr and redeclared.stdout == ""
+    assert tenant.admin.get(f"/api/v1/structures/{made['id']}").json() == stored
+
+
 def test_structures_list_prints_every_page(api_server: LiveServer):
     """More structures than a page of the listing holds: every one printed, in the fleet's order."""
     tenant = Tenant.create(api_server)
@@ -435,6 +470,16 @@ def test_structures_list_prints_every_page(api_server: LiveServer):
         ),
         (Role.ingest, ["upload", "healthy.csv", "--structure", "999999"], "404 Not Found: structure 999999"),
         (Role.admin, ["train", "baseline", "--structure", "999999", "--records", "1"], "404 Not Found"),
+        (
+            Role.ingest,
+            ["structures", "update", "--structure", "999999", "--name", "r"],
+            "403 Forbidden: this needs a key of role 'admin' or higher",
+        ),
+        (
+            Role.admin,
+            ["structures", "update", "--structure", "999999", "--name", "r"],
+            "404 Not Found: structure 999999 not found",
+        ),
     ],
     ids=[
         "ingest creates",
@@ -442,6 +487,8 @@ def test_structures_list_prints_every_page(api_server: LiveServer):
         "unit with a space",
         "unknown structure",
         "train unknown structure",
+        "ingest updates",
+        "update unknown structure",
     ],
 )
 def test_own_structure_commands_print_the_services_refusal_and_exit_1(
@@ -474,11 +521,111 @@ def test_own_structure_commands_print_the_services_refusal_and_exit_1(
             ["structures", "create", "--name", "r", "--fs", "1500", "--response", "mass"],
             "'mass' is not one of",
         ),
+        (
+            ["structures", "update", "--structure", "1"],
+            "nothing to change: give --name, --description, --excitation or --response",
+        ),
+        (
+            ["structures", "update", "--structure", "1", "--response-unit", "g"],
+            "--response-unit needs --response",
+        ),
     ],
-    ids=["suffix", "missing file", "counts differ", "not ids", "unit without quantity", "unknown quantity"],
+    ids=[
+        "suffix",
+        "missing file",
+        "counts differ",
+        "not ids",
+        "unit without quantity",
+        "unknown quantity",
+        "update nothing",
+        "update unit without quantity",
+    ],
 )
 def test_own_structure_commands_refuse_unusable_input_with_exit_2(args, message, tmp_path: Path):
     (tmp_path / "record.txt").write_text("x,y\n")
     result = run_sim(*args, key="nw_x_y", url=f"http://127.0.0.1:{free_port()}", cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
+
+
+# --- a training queued as a job, waited for -------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def queueing(tmp_path_factory) -> Iterator[LiveServer]:
+    """A server of its own that queues every training and runs no job until ``run_jobs``."""
+    url = f"sqlite:///{tmp_path_factory.mktemp('queueing') / 'narxwatch.db'}"
+    with LiveServer(Settings(database_url=url, queue_training_cells=1000, embedded_worker=False)) as server:
+        yield server
+
+
+def queued_training(
+    server: LiveServer, tenant: Tenant, *wait: str, **upload: str
+) -> tuple[subprocess.Popen, int]:
+    """``train baseline --wait …`` on a new structure's record, running until its job is queued:
+    the client and the id of the job it follows."""
+    structure_id = tenant.admin.post(
+        "/api/v1/structures", json={"name": uuid.uuid4().hex, "fs": 1500.0}
+    ).json()["id"]
+    record = upload_simulated(tenant.ingest, structure_id, simulated("none", 0.0, [7]), **upload)["id"]
+    args = ["train", "baseline", "--structure", str(structure_id), "--records", str(record)]
+    client = subprocess.Popen(
+        [SIM, *args, "--terms", ",".join(RIG_TERMS), "--wait", *wait],
+        env=sim_env(server.key(Role.admin, tenant.name), server.url),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+    def queued() -> int | None:
+        jobs = tenant.admin.get("/api/v1/jobs").json()["items"]
+        return next((j["id"] for j in jobs if j["args"].get("structure_id") == structure_id), None)
+
+    return client, wait_for(queued, 60, "the training's job")  # type: ignore[return-value]
+
+
+def test_train_wait_follows_the_queued_job_and_prints_the_version_it_made(queueing: LiveServer):
+    tenant = Tenant.create(queueing)
+    client, job_id = queued_training(queueing, tenant)
+    run_jobs(queueing)
+    out, err = client.communicate(timeout=60)
+    assert client.returncode == 0, err
+    job = tenant.admin.get(f"/api/v1/jobs/{job_id}").json()
+    assert job["state"] == "done" and job["model"]["name"] == "baseline"
+    assert (
+        out.splitlines()[0]
+        == f"baseline version 1 (model {job['model']['id']}), {len(RIG_TERMS)} terms, active"
+    )
+    assert f"queued as a job: job {job_id}; waiting for it up to 3600 s" in err
+
+
+def test_train_wait_gives_up_after_its_time_and_the_job_goes_on(queueing: LiveServer):
+    tenant = Tenant.create(queueing)
+    client, job_id = queued_training(queueing, tenant, "--wait-seconds", "1")
+    out, err = client.communicate(timeout=60)
+    assert client.returncode == 1 and out == "", err
+    assert f"job {job_id} queued, 0 s" in err  # the progress line
+    gave_up = f"job {job_id} is still queued after 1 s; it goes on in the service: follow it at /api/v1/jobs/"
+    assert f"{gave_up}{job_id}" in err
+    assert tenant.admin.get(f"/api/v1/jobs/{job_id}").json()["state"] == "queued"
+
+
+def test_train_wait_exits_1_with_the_error_of_a_failed_job(queueing: LiveServer):
+    """The record's signals pruned by the retention between the request and its job: the job
+    fails, and the client says why."""
+    tenant = Tenant.create(queueing)
+    client, job_id = queued_training(queueing, tenant, acquired_at="2020-01-01T00:00:00Z")
+    assert (
+        tenant.admin.put("/api/v1/retention", json={"signal_days": 1, "verdict_days": None}).status_code
+        == 200
+    )
+    with queueing.app.state.sessions() as session:
+        retention.prune(
+            session, session.scalar(select(Organisation.id).where(Organisation.name == tenant.name))
+        )
+    run_jobs(queueing)
+    out, err = client.communicate(timeout=60)
+    job = tenant.admin.get(f"/api/v1/jobs/{job_id}").json()
+    assert job["state"] == "failed" and job["error"], job
+    assert client.returncode == 1 and out == "", err
+    assert f"the training's job {job_id} failed: {job['error']}" in err, err

@@ -39,6 +39,7 @@ TENANCY: dict[tuple[str, str], str | tuple[str, str]] = {
     ("POST", "/api/v1/structures"): WRITES,
     ("GET", "/api/v1/structures"): (LISTS, "structure_id"),
     ("GET", "/api/v1/structures/{structure_id}"): THEIR_STRUCTURE,
+    ("PATCH", "/api/v1/structures/{structure_id}"): THEIR_STRUCTURE,
     ("GET", "/api/v1/structures/{structure_id}/verdicts"): THEIR_STRUCTURE,
     ("GET", "/api/v1/structures/{structure_id}/summary"): THEIR_STRUCTURE,
     ("GET", "/api/v1/structures/{structure_id}/models"): THEIR_STRUCTURE,

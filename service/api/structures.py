@@ -18,6 +18,7 @@ from service.schemas import (
     StructureCreate,
     StructureListed,
     StructureOut,
+    StructureUpdate,
     Summary,
     VerdictPage,
 )
@@ -65,6 +66,23 @@ def list_structures(
 @router.get("/{structure_id}")
 def get_structure(structure_id: IdPath, principal: Viewer, session: SessionDep) -> StructureOut:
     structure = structures.get_structure(session, principal, structure_id)
+    return StructureOut.model_validate(structure, from_attributes=True)
+
+
+@router.patch("/{structure_id}")
+def update_structure(
+    structure_id: IdPath, body: StructureUpdate, principal: Admin, session: SessionDep
+) -> StructureOut:
+    """Change the structure's name, description or what its signals measure: the fields sent
+    change, the others stay (its fs never: its records were stored at it). A name another of your
+    structures has is a conflict (409).
+
+    Before the structure has records or models, a declaration may change or be withdrawn (null).
+    After, it may only be completed: declared where it was not, or given its unit where none was
+    stated. Changing or withdrawing it is refused (409), since the stored records and the models'
+    coefficients are in the units first declared; create another structure for signals measured
+    otherwise. Nothing is changed when any part of the request is refused."""
+    structure = structures.update_structure(session, principal, structure_id, body)
     return StructureOut.model_validate(structure, from_attributes=True)
 
 

@@ -23,9 +23,10 @@ from service.db import insert_unless_exists
 from service.domain import inspections, modelling, notifications, records, refinements, retention
 from service.domain.errors import ConflictError
 from service.domain.schedules import RUN_SCHEDULE
+from service.jobs.types import JobInfo
 from service.schemas import RefinementCreate
 from service.security import Principal, Role
-from service.tables import InspectionFailure, Record, Schedule, Structure, Verdict
+from service.tables import InspectionFailure, ModelVersion, Record, Schedule, Structure, Verdict
 
 INSPECT_RECORD = "inspect_record"
 TRAIN_MODEL = "train_model"
@@ -174,6 +175,14 @@ def train_model(
     version = modelling.train(session, caller, structure_id, training, settings)
     version.training = version.training | {"job": token}
     session.commit()
+
+
+def model_made(session: Session, job: JobInfo) -> ModelVersion | None:
+    """The model version a queued training stored, once its job is done: what a client that
+    queued it waits for. None for other tasks."""
+    if job.task != TRAIN_MODEL or job.state != "done":
+        return None
+    return modelling.version_of_job(session, job.args["structure_id"], job.args["token"])
 
 
 def refine(

@@ -1,18 +1,13 @@
 """The ``narxwatch-sim`` commands. The options they share are defined once, as the fields of an
 option group (:class:`SimulationOptions`, :class:`~simulator.client.destinations.Target`), which
-:func:`expanded` spreads into each command's options."""
+:func:`~simulator.client.groups.expanded` spreads into each command's options."""
 
 from __future__ import annotations
 
-import dataclasses
-import functools
-import inspect
 import itertools
 import signal
-import typing
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Annotated, Any, NoReturn
+from typing import Annotated, NoReturn
 
 import typer
 
@@ -26,6 +21,7 @@ from simulator.client.destinations import (
     open_destination,
     stderr,
 )
+from simulator.client.groups import expanded
 from simulator.client.http import ServiceError
 from simulator.client.scheduler import (
     Course,
@@ -64,7 +60,6 @@ from simulator.study import StudySettings
 from simulator.temperature import TemperatureCycle
 
 EXIT_INPUT_ERROR = 2
-KEYWORD_ONLY = inspect.Parameter.KEYWORD_ONLY
 # The option defaults are the study's, so that the paper's cases are simulated as in the paper.
 STUDY = StudySettings()
 
@@ -86,7 +81,7 @@ class SimulationOptions:
     n: Samples = STUDY.inspection_samples
     seed: Seed = None
     excitation_std: ExcitationStd = STUDY.excitation_std
-    disturbance_std: DisturbanceStd = STUDY.disturbance_std
+    disturbance_std: DisturbanceStd = None  # the structure's own
     noise_std: NoiseStd = 0.0
     x_noise_std: XNoiseStd = 0.0
     noise_colour: NoiseColour = None
@@ -119,36 +114,6 @@ class SimulationOptions:
             self.outputs,
             ChainOptions(self.masses, self.mass, self.stiffness, self.damping, self.cubic, self.response),
         )
-
-
-def expanded(command: Callable[..., None]) -> Callable[..., None]:
-    """``command`` with each parameter annotated by an option group (a dataclass whose fields are
-    annotated options with defaults) replaced by the group's fields, in their order and where the
-    parameter stood; it is called with the group built from them. Typer reads the signature."""
-    hints = typing.get_type_hints(command, include_extras=True)
-    groups: dict[str, type] = {}
-    parameters = []
-    for parameter in inspect.signature(command).parameters.values():
-        kind = hints[parameter.name]
-        if not (isinstance(kind, type) and dataclasses.is_dataclass(kind)):
-            parameters.append(parameter.replace(annotation=kind, kind=KEYWORD_ONLY))
-            continue
-        groups[parameter.name] = kind
-        fields = typing.get_type_hints(kind, include_extras=True)
-        parameters += [
-            inspect.Parameter(field.name, KEYWORD_ONLY, annotation=fields[field.name], default=field.default)
-            for field in dataclasses.fields(kind)
-        ]
-
-    @functools.wraps(command)
-    def run(**given: Any) -> None:
-        for name, group in groups.items():
-            given[name] = group(**{field.name: given.pop(field.name) for field in dataclasses.fields(group)})
-        command(**given)
-
-    run.__signature__ = inspect.Signature(parameters)  # type: ignore[attr-defined]
-    run.__annotations__ = {parameter.name: parameter.annotation for parameter in parameters}
-    return run
 
 
 # --- The command line ---------------------------------------------------------------------------

@@ -311,7 +311,7 @@ FormatOption = Annotated[
 @dataclass(frozen=True)
 class Target:
     """Where records go: the options every command takes for it (each field one, named by its
-    annotation; ``simulator.client.commands.expanded``)."""
+    annotation; ``simulator.client.groups.expanded``)."""
 
     url: Url = DEFAULT_URL
     key: Key = None

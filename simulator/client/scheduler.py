@@ -16,7 +16,13 @@ import numpy as np
 from models.errors import InputError
 from simulator import chain
 from simulator.chain import ChainRecord, ChainScenario, simulate_chain
-from simulator.options import ChainOptions, parse_assignments, parse_colour, parse_outputs
+from simulator.options import (
+    ChainOptions,
+    disturbance_level,
+    parse_assignments,
+    parse_colour,
+    parse_outputs,
+)
 from simulator.physics import PhysicalParameters, check_stable
 from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
 from simulator.study import CASES
@@ -37,7 +43,7 @@ class ScenarioOptions:
     """
 
     excitation_std: float
-    disturbance_std: float
+    disturbance_std: float | None  # None: the structure's own (``options.disturbance_level``)
     noise_std: float
     x_noise_std: float
     effects: tuple[str, ...]
@@ -57,16 +63,16 @@ class ScenarioOptions:
             raise InputError("--thermal-coefficient acts only at a temperature: give it with --temperature")
         thermal = Thermal(parse_assignments(self.thermal, "thermal coefficient"))
         k = 0.0 if fault == "none" else k
+        parameters = self.chain.parameters()
         levels = {
             "excitation_std": self.excitation_std,
-            "disturbance_std": self.disturbance_std,
+            "disturbance_std": disturbance_level(self.disturbance_std, chain=parameters is not None),
             "y_noise_std": self.noise_std,
             "x_noise_std": self.x_noise_std,
             "noise_colour": parse_colour(self.noise_colour),
             "temperature": temperature,
             "thermal": thermal,
         }
-        parameters = self.chain.parameters()
         if parameters is not None:
             if self.effects or self.params:
                 raise InputError(

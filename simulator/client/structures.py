@@ -10,8 +10,10 @@ can carry them on.
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -25,10 +27,12 @@ from simulator.client.destinations import (
     Url,
     connect,
     describe,
+    stderr,
     stdout,
     verdict_text,
 )
-from simulator.client.http import API, Service
+from simulator.client.groups import expanded
+from simulator.client.http import API, Service, ServiceError
 
 # The media type each record file is sent as, by its suffix (the service's own names for them).
 MEDIA_TYPES = {
@@ -67,13 +71,16 @@ def number_list(text: str) -> list[float]:
 Records = Annotated[str, typer.Option("--records", help="Record ids, separated by commas: 1,2,3.")]
 Excitation = Annotated[
     Quantity | None,
-    typer.Option("--excitation", help=f"What x measures: {', '.join(QUANTITIES)} (default: not declared)."),
+    typer.Option(
+        "--excitation",
+        help=f"What x measures: {', '.join(QUANTITIES)}. Not given: not declared by create, kept by update.",
+    ),
 ]
 Response = Annotated[
     Quantity | None,
     typer.Option(
         "--response",
-        help="What y (every response channel) measures, as --excitation (default: not declared).",
+        help="What y (every response channel) measures, as --excitation.",
     ),
 ]
 ExcitationUnit = Annotated[str | None, typer.Option(help=f"The unit of x, {UNIT_HELP}; with --excitation.")]
@@ -102,6 +109,29 @@ def declared(structure: dict[str, Any]) -> str:
     return "" if signals == ["x", "y"] else ", " + ", ".join(signals)
 
 
+def described(structure: dict[str, Any]) -> str:
+    """A structure as its commands print it: id, name, sampling rate and declarations."""
+    return (
+        f"structure {structure['id']} {structure['name']!r}, fs = {structure['fs']:g} Hz{declared(structure)}"
+    )
+
+
+# How often a queued training's job is asked after, and how often a progress line says it still runs.
+POLL_SECONDS, PROGRESS_SECONDS = 2.0, 30.0
+Wait = Annotated[
+    bool,
+    typer.Option(
+        "--wait",
+        help="If the training is queued as a job (a large one), follow the job to its end and print the "
+        "version it made; exit 1 with the job's error if it fails.",
+    ),
+]
+WaitSeconds = Annotated[
+    float,
+    typer.Option(min=1, help="With --wait, how long to wait [s] before giving up (the job goes on)."),
+]
+WAIT_SECONDS = 3600.0
+
 Terms = Annotated[
     str | None,
     typer.Option(
@@ -121,7 +151,7 @@ def service(url: str, key: str | None) -> Iterator[Service]:
 
 
 structures_app = typer.Typer(
-    help="Create and list structures (an admin key creates them).",
+    help="Create, change and list structures (an admin key creates and changes them).",
     no_args_is_help=True,
     rich_markup_mode=None,
 )
@@ -132,36 +162,66 @@ train_app = typer.Typer(
 )
 
 
+@dataclass(frozen=True)
+class Declarations:
+    """What x and y measure, as ``structures create`` and ``update`` take them (each field an
+    option; :func:`~simulator.client.groups.expanded`)."""
+
+    excitation: Excitation = None
+    excitation_unit: ExcitationUnit = None
+    response: Response = None
+    response_unit: ResponseUnit = None
+
+    def body(self) -> dict[str, Any]:
+        """The declarations given, as the service's body takes them."""
+        return {
+            **declaration("excitation", self.excitation, self.excitation_unit),
+            **declaration("response", self.response, self.response_unit),
+        }
+
+
 @structures_app.command("create")
+@expanded
 def create_structure(
+    *,
     name: Annotated[str, typer.Option(help="The structure's name.")],
     fs: Annotated[float, typer.Option(help="Sampling rate [Hz] every record of it must have.")],
     description: Annotated[str, typer.Option(help="Free text.")] = "",
-    excitation: Excitation = None,
-    excitation_unit: ExcitationUnit = None,
-    response: Response = None,
-    response_unit: ResponseUnit = None,
+    signals: Declarations,
     url: Url = DEFAULT_URL,
     key: Key = None,
     quiet: Quiet = False,
 ) -> None:
     """Create a structure and print its id; --excitation and --response declare what x and y
     measure, for the dashboard's charts."""
-    body = {
-        "name": name,
-        "fs": fs,
-        "description": description,
-        **declaration("excitation", excitation, excitation_unit),
-        **declaration("response", response, response_unit),
-    }
+    body = {"name": name, "fs": fs, "description": description, **signals.body()}
     with service(url, key) as client:
         made = client.request("POST", f"{API}/structures", json=body)
-    stdout.print(
-        made["id"]
-        if quiet
-        else f"structure {made['id']} {made['name']!r}, fs = {made['fs']:g} Hz{declared(made)}",
-        markup=False,
-    )
+    stdout.print(made["id"] if quiet else described(made), markup=False)
+
+
+@structures_app.command("update")
+@expanded
+def update_structure(
+    *,
+    structure: Structure,
+    name: Annotated[str | None, typer.Option(help="Its new name.")] = None,
+    description: Annotated[str | None, typer.Option(help="Its new description.")] = None,
+    signals: Declarations,
+    url: Url = DEFAULT_URL,
+    key: Key = None,
+    quiet: Quiet = False,
+) -> None:
+    """Change a structure's name, description or what x and y measure; what is not given stays.
+    Once it has records, a declaration can only be completed (given where there was none, or its
+    unit where none was stated): the service refuses to change it, saying why."""
+    given = {"name": name, "description": description}
+    body = {field: value for field, value in given.items() if value is not None} | signals.body()
+    if not body:
+        raise InputError("nothing to change: give --name, --description, --excitation or --response")
+    with service(url, key) as client:
+        changed = client.request("PATCH", f"{API}/structures/{structure}", json=body)
+    stdout.print(changed["id"] if quiet else described(changed), markup=False)
 
 
 @structures_app.command("list")
@@ -171,11 +231,7 @@ def list_structures(url: Url = DEFAULT_URL, key: Key = None) -> None:
         listed = [structure for page in client.pages(f"{API}/structures") for structure in page]
     for structure in listed:
         status = structure["status"] or "no verdict yet"
-        stdout.print(
-            f"structure {structure['id']} {structure['name']!r}, fs = {structure['fs']:g} Hz"
-            f"{declared(structure)}, {status}",
-            markup=False,
-        )
+        stdout.print(f"{described(structure)}, {status}", markup=False)
 
 
 def upload_command(
@@ -223,7 +279,7 @@ def read_body(path: Path) -> tuple[bytes, str]:
 
 
 def trained(answer: dict[str, Any]) -> None:
-    """A model version made, or a training queued as a job (a large one)."""
+    """A model version made, or a training queued as a job (a large one) when not waited for."""
     if "job_id" in answer:
         stdout.print(f"{answer['detail']}: job {answer['job_id']}, {answer['location']}", markup=False)
         return
@@ -246,6 +302,42 @@ def trained(answer: dict[str, Any]) -> None:
         stdout.print(f"  {judges}", markup=False)
 
 
+def followed(client: Service, answer: dict[str, Any], structure: int, seconds: float) -> dict[str, Any]:
+    """The version a training made: the answer itself, or, for a training queued as a job, the
+    version the job names once done."""
+    if "job_id" not in answer:
+        return answer
+    job = finished_job(client, answer, seconds)
+    if job.get("model") is None:
+        raise ServiceError(f"job {job['id']} is done but names no model version: is the service older?")
+    models = client.request("GET", f"{API}/structures/{structure}/models")
+    return next(model for model in models if model["id"] == job["model"]["id"])
+
+
+def finished_job(client: Service, queued: dict[str, Any], seconds: float) -> dict[str, Any]:
+    """The job of a 202 answer (``queued``) once done, asked after every :data:`POLL_SECONDS`, a
+    progress line on stderr at each change of state and every :data:`PROGRESS_SECONDS`. A failed
+    job, or one not ended within ``seconds``, is a :class:`ServiceError` saying so."""
+    job_id, start, said = queued["job_id"], time.monotonic(), None
+    stderr.print(f"{queued['detail']}: job {job_id}; waiting for it up to {seconds:g} s", markup=False)
+    while True:
+        job = client.request("GET", queued["location"])
+        elapsed = time.monotonic() - start
+        if job["state"] == "done":
+            return job
+        if job["state"] == "failed":
+            raise ServiceError(f"the training's job {job_id} failed: {job['error']}")
+        if elapsed >= seconds:
+            raise ServiceError(
+                f"job {job_id} is still {job['state']} after {seconds:g} s; it goes on in the service: "
+                f"follow it at {queued['location']}"
+            )
+        if (job["state"], elapsed // PROGRESS_SECONDS) != said:
+            said = (job["state"], elapsed // PROGRESS_SECONDS)
+            stderr.print(f"job {job_id} {job['state']}, {elapsed:.0f} s", markup=False)
+        time.sleep(min(POLL_SECONDS, seconds - elapsed))
+
+
 def term_list(terms: str | None) -> dict[str, Any]:
     return {} if terms is None else {"terms": [term.strip() for term in terms.split(",") if term.strip()]}
 
@@ -255,13 +347,16 @@ def train_baseline(
     structure: Structure,
     records: Records,
     terms: Terms = None,
+    wait: Wait = False,
+    wait_seconds: WaitSeconds = WAIT_SECONDS,
     url: Url = DEFAULT_URL,
     key: Key = None,
 ) -> None:
     """Identify the healthy structure's NARX from its stored healthy records."""
     body = {"record_ids": id_list(records), **term_list(terms)}
     with service(url, key) as client:
-        trained(client.request("POST", f"{API}/structures/{structure}/models/baseline", json=body))
+        answer = client.request("POST", f"{API}/structures/{structure}/models/baseline", json=body)
+        trained(followed(client, answer, structure, wait_seconds) if wait else answer)
 
 
 @train_app.command("fault-mode")
@@ -273,6 +368,8 @@ def train_fault_mode(
         str, typer.Option("--k", help="Each record's fault magnitude [%], in the order of --records.")
     ],
     terms: Terms = None,
+    wait: Wait = False,
+    wait_seconds: WaitSeconds = WAIT_SECONDS,
     url: Url = DEFAULT_URL,
     key: Key = None,
 ) -> None:
@@ -291,7 +388,8 @@ def train_fault_mode(
         **term_list(terms),
     }
     with service(url, key) as client:
-        trained(client.request("POST", f"{API}/structures/{structure}/models/fault-modes", json=body))
+        answer = client.request("POST", f"{API}/structures/{structure}/models/fault-modes", json=body)
+        trained(followed(client, answer, structure, wait_seconds) if wait else answer)
 
 
 def verdicts_command(
