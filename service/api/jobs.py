@@ -6,14 +6,14 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
-from sqlalchemy.orm import Session
 
 from service.api.deps import Admin, SessionDep
 from service.api.params import IdPath
 from service.domain.errors import NotFoundError
-from service.jobs.tasks import model_made
+from service.jobs.tasks import models_made
 from service.jobs.types import JobBackend, JobInfo, JobState
 from service.schemas import MAX_ID, JobOut, JobPage, ModelRef
+from service.tables import ModelVersion
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -34,7 +34,8 @@ def list_jobs(
     backend: JobBackend = request.app.state.jobs
     jobs = backend.list_jobs(session, principal.organisation_id, state, limit + 1, cursor)
     page = jobs[:limit]
-    items = [_out(session, job) for job in page]
+    made = models_made(session, page)
+    items = [_out(job, made.get(job.id)) for job in page]
     return JobPage(items=items, next_cursor=page[-1].id if len(jobs) > limit else None)
 
 
@@ -44,10 +45,9 @@ def get_job(request: Request, job_id: IdPath, principal: Admin, session: Session
     job = backend.get_job(session, principal.organisation_id, job_id)
     if job is None:
         raise NotFoundError("job", job_id)
-    return _out(session, job)
+    return _out(job, models_made(session, [job]).get(job.id))
 
 
-def _out(session: Session, job: JobInfo) -> JobOut:
-    made = model_made(session, job)
+def _out(job: JobInfo, made: ModelVersion | None) -> JobOut:
     model = None if made is None else ModelRef.model_validate(made, from_attributes=True)
     return JobOut.model_validate(job, from_attributes=True).model_copy(update={"model": model})

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 from collections import Counter, OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -233,9 +234,18 @@ def train(
 
 def version_of_job(session: Session, structure_id: int, token: str) -> ModelVersion | None:
     """The version a queued training (marked ``training["job"]``) has stored already, if any."""
-    query = select(ModelVersion).where(ModelVersion.structure_id == structure_id)
+    return versions_of_jobs(session, [(structure_id, token)]).get(token)
+
+
+def versions_of_jobs(session: Session, jobs: Iterable[tuple[int, str]]) -> dict[str, ModelVersion]:
+    """The versions queued trainings (structure id, job token) have stored, by token: one query
+    for a page of jobs, whose structures' versions are read without their documents."""
+    wanted = {token: structure_id for structure_id, token in jobs}
+    if not wanted:
+        return {}
+    query = select(ModelVersion).where(ModelVersion.structure_id.in_(set(wanted.values())))
     versions = session.scalars(query.options(defer(ModelVersion.document)))
-    return next((v for v in versions if v.training.get("job") == token), None)
+    return {v.training["job"]: v for v in versions if wanted.get(v.training.get("job")) == v.structure_id}
 
 
 def training_cells(

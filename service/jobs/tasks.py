@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 from sqlalchemy import exists, select
 from sqlalchemy.orm import Session, defer
@@ -177,12 +177,14 @@ def train_model(
     session.commit()
 
 
-def model_made(session: Session, job: JobInfo) -> ModelVersion | None:
-    """The model version a queued training stored, once its job is done: what a client that
-    queued it waits for. None for other tasks."""
-    if job.task != TRAIN_MODEL or job.state != "done":
-        return None
-    return modelling.version_of_job(session, job.args["structure_id"], job.args["token"])
+def models_made(session: Session, jobs: Iterable[JobInfo]) -> dict[int, ModelVersion]:
+    """The model versions queued trainings stored, by job id, for those of ``jobs`` that are
+    done: what a client that queued one waits for."""
+    trainings = [job for job in jobs if job.task == TRAIN_MODEL and job.state == "done"]
+    made = modelling.versions_of_jobs(
+        session, [(job.args["structure_id"], job.args["token"]) for job in trainings]
+    )
+    return {job.id: made[job.args["token"]] for job in trainings if job.args["token"] in made}
 
 
 def refine(
