@@ -60,7 +60,7 @@ def list_structures(
     if page.next_cursor is not None:
         following = request.url.include_query_params(cursor=page.next_cursor)
         response.headers["Link"] = f'<{following.path}?{following.query}>; rel="next"'
-    return [row.listed() for row in page.items]
+    return [_listed(row) for row in page.items]
 
 
 @router.get("/{structure_id}")
@@ -120,3 +120,8 @@ def fault_history(
 def structure_summary(structure_id: IdPath, principal: Viewer, session: SessionDep) -> Summary:
     """Counts by status, the latest verdict and the k̂ trend."""
     return Summary.model_validate(history.summary(session, principal, structure_id), from_attributes=True)
+
+
+def _listed(row: fleet.StructureStatus) -> StructureListed:
+    out = StructureOut.model_validate(row.structure, from_attributes=True)
+    return StructureListed(**dict(out), status=row.status, since=row.since)

@@ -22,7 +22,7 @@ from sqlalchemy.orm import Session, joinedload
 
 from models.errors import InputError
 from models.inspection import Status
-from service.schemas import MAX_ID, StructureListed, StructureOut
+from service.schemas import MAX_ID
 from service.security import Principal
 from service.tables import Structure, StructureState, Verdict
 
@@ -81,10 +81,10 @@ class StructureStatus:
     since: dt.datetime | None
     counts: dict[str, int]
 
-    def listed(self) -> StructureListed:
-        status = self.latest.status if self.latest is not None else None
-        out = StructureOut.model_validate(self.structure, from_attributes=True)
-        return StructureListed(**dict(out), status=status, since=self.since)
+    @property
+    def status(self) -> str | None:
+        """The latest verdict's status; None before the structure's first verdict."""
+        return self.latest.status if self.latest is not None else None
 
 
 @dataclass(frozen=True)
