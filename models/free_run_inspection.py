@@ -1,0 +1,295 @@
+"""The inspection chain on the free-run (output) error, for structures whose noise is on the sensors.
+
+The paper's chain (:mod:`models.inspection`) estimates the magnitude from the one-step residual
+and localises by its whiteness: right when the noise enters the structure as a force, the
+residual then being white. A sensor adds its noise to what it measures instead, and at a fast
+sampling rate the one-step residual is then mostly that noise passed through the model's
+autoregressive part, which nearly differences it: coloured whatever the mode, and nearly blind to
+the magnitude (the lagged outputs it predicts from carry the change; :mod:`models.novelty`).
+No Ljung–Box test can localise there, for no mode leaves a white residual. This chain works on
+the free run's error from the start estimated over the record
+(:class:`models.output_error.EstimatedStart`), which carries the fault's whole difference to
+the response:
+
+1. Fault modes whose free run is good: θ(k) = Θ·g(k) fitted by output error jointly over the
+   experiments (:func:`fit_free_run_modes`), from the equation-error fit (biased by the noisy
+   lagged outputs). The healthy error level of a mode, its whitening filter w(q) (AR(Q) fitted
+   to the experiments' errors, as in :mod:`models.novelty`), σ̃²₀ (the whitened error's
+   variance) and Cov vec(Θ) = σ̃²₀·(J̃ᵀJ̃)⁻¹ (whitened sensitivities) come with it.
+2. k̂ = argmin_k Σ ε_k² over the mode's range, ε_k the free-run error of θ(k) from the
+   estimated start (a grid, then a bounded search around its best point).
+3. σ̂_k by Gauss–Newton on the whitened error, so that the error's colour is accounted for
+   (generalised least squares): d = ∂ŷ/∂k = S·Θ·g′(k̂), S the run's sensitivities to θ projected
+   off the start's responses; σ̂²_k = s̃²/(d̃ᵀd̃), s̃² the record's whitened error variance; plus
+   the delta-method term of the mode's own estimation error, ∇ᵀ·Cov vec(Θ)·∇ with
+   ∇ = J̃_Θᵀd̃/(d̃ᵀd̃), J̃_Θ = S̃ ⊗ g(k̂).
+4. Localisation: the candidate is the mode whose best k̂ leaves the smallest whitened error
+   variance (maximum likelihood for Gaussian errors, as in the paper's chain); its adequacy is
+   F = s̃²_V/σ̃²₀ ~ F(ν, ν₀) under the mode (ν = n − Q − R − 1 the record's whitened samples less
+   the start's R columns and k̂, ν₀ the experiments' less Θ's), taken one-sided: a record the
+   best mode describes worse than its experiments is an ``unknown_fault``.
+5. Detection and the interval as in the paper's chain: |k̂|/σ̂_k against Šidák's z, plus the
+   adequacy test at a small share of α; k̂ ± z_{1−α/2}·σ̂_k. The verdict is
+   :class:`models.inspection.Verdict`; each mode's ``q``, ``q_critical``, ``p_value`` and
+   ``accepted`` are the F test's (``lags`` is None: no Ljung–Box test is made), and
+   ``whiteness`` in ``detected_by`` names the adequacy test.
+
+For models linear in their output (the estimated start needs it) and without output limits.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy import optimize, signal, special
+
+from models.errors import InputError
+from models.fnarx import FNARX, Experiment, fit_fnarx
+from models.inspection import (
+    ADEQUACY_SHARE,
+    GRID_POINTS,
+    ModeResult,
+    Verdict,
+    _check_finite,
+    _decide,
+    check_request,
+)
+from models.narx import z_quantile
+from models.novelty import WHITENING_ORDER, _whitening_filter
+from models.output_error import EstimatedStart
+from models.signals import checked_record
+from models.simulation import FreeRun
+from models.terms import Term, max_degree
+
+# Free runs a mode's joint output-error fit may compute, at most.
+MAX_EVALUATIONS = 200
+
+
+@dataclass(frozen=True)
+class FreeRunMode:
+    """A fault-mode model fitted for its free run, with its healthy error level.
+
+    Attributes
+    ----------
+    model : the FNARX, Θ fitted by output error; its covariance is σ̃²₀·(J̃ᵀJ̃)⁻¹.
+    whitening : c_1 … c_Q of w(q) = 1 − Σ c_k q⁻ᵏ, fitted to the experiments' free-run errors.
+    sigma2 : σ̃²₀, the experiments' whitened free-run error variance.
+    dof : ν₀, the experiments' whitened samples less the start's columns and Θ's.
+    """
+
+    model: FNARX
+    whitening: np.ndarray
+    sigma2: float
+    dof: float
+
+    @property
+    def name(self) -> str:
+        return self.model.name
+
+
+@dataclass(frozen=True)
+class _Run:
+    """One record's free run of a mode at one magnitude, from the estimated start: the error
+    (samples L … N−1) and, when asked for, the run's sensitivities to θ projected off the start's
+    responses."""
+
+    error: np.ndarray
+    sensitivities: np.ndarray | None
+    start_columns: int
+
+
+def _free_run(terms: Sequence[Term], run: FreeRun, theta: np.ndarray, y: np.ndarray, sensitive: bool) -> _Run:
+    L = run.lag
+    start = EstimatedStart.of(terms, theta, y.size)
+    started = start.start(y, run.run(theta, y))
+    if not sensitive:
+        return _Run(y[L:] - run.run(theta, started)[L:], None, start.responses.shape[1])
+    output, S = run.run_with_sensitivities(theta, started)
+    S = S[L:]
+    if np.all(np.isfinite(S)):
+        start.project(S)
+    return _Run(y[L:] - output[L:], S, start.responses.shape[1])
+
+
+def _whitened(whitening: np.ndarray, series: np.ndarray) -> np.ndarray:
+    """``series`` (along its first axis) through w(q), its first Q samples dropped."""
+    return signal.lfilter(np.concatenate(([1.0], -whitening)), [1.0], series, axis=0)[whitening.size :]
+
+
+def fit_free_run_modes(
+    experiments: Iterable[Experiment],
+    terms: Sequence[str | Term],
+    *,
+    name: str,
+    size: int = 2,
+    k_range: tuple[float, float] | None = None,
+    max_evaluations: int = MAX_EVALUATIONS,
+) -> FreeRunMode:
+    """A fault mode from experiments (x, y, k) whose free run is good: Θ minimises the free-run
+    error from the estimated start summed over the experiments, θ(k_i) = Θ·g(k_i) on each, from
+    the equation-error fit (:func:`models.fnarx.fit_fnarx`); module docstring, step 1."""
+    runs = list(experiments)
+    start = fit_fnarx(runs, terms, name=name, size=size, k_range=k_range)
+    records = [
+        checked_record(x, y, start.max_lag + len(start.terms) + 1, degree=max_degree(start.terms))
+        for x, y, _ in runs
+    ]
+    free = [FreeRun.build(start.terms, xa) for xa, _ in records]
+    basis = [start.basis.values(float(k)) for _, _, k in runs]
+    shape = start.theta.shape
+
+    def evaluate(flat: np.ndarray, sensitive: bool) -> list[_Run]:
+        Theta = flat.reshape(shape)
+        return [
+            _free_run(start.terms, run, Theta @ g, ya, sensitive)
+            for run, (_, ya), g in zip(free, records, basis, strict=True)
+        ]
+
+    def residuals(flat: np.ndarray) -> np.ndarray:
+        error = np.concatenate([-run.error for run in evaluate(flat, False)])
+        return np.where(np.isfinite(error), error, 1e6 * scale)  # a diverging trial is backed away from
+
+    def jacobian(flat: np.ndarray) -> np.ndarray:
+        blocks = [
+            (run.sensitivities[:, :, None] * g[None, None, :]).reshape(run.error.size, -1)
+            for run, g in zip(evaluate(flat, True), basis, strict=True)
+        ]
+        return np.nan_to_num(np.vstack(blocks))
+
+    initial = evaluate(start.theta.ravel(), False)
+    if not all(np.all(np.isfinite(run.error)) for run in initial):
+        raise InputError(
+            f"the equation-error fit of fault mode {name!r} diverges in free run on its experiments: "
+            "choose a lower order"
+        )
+    scale = float(np.sqrt(np.mean(np.concatenate([run.error for run in initial]) ** 2))) or 1.0
+    result = optimize.least_squares(
+        residuals, start.theta.ravel(), jac=jacobian, method="lm", x_scale="jac", max_nfev=max_evaluations
+    )
+    fitted = evaluate(result.x, True)
+    if not all(np.all(np.isfinite(run.error)) for run in fitted):
+        raise InputError(f"the output-error fit of fault mode {name!r} diverges on its experiments")
+    whitening = _whitening_filter([run.error for run in fitted], WHITENING_ORDER)
+    errors = [_whitened(whitening, run.error) for run in fitted]
+    J = np.vstack(
+        [
+            _whitened(
+                whitening, (run.sensitivities[:, :, None] * g[None, None, :]).reshape(run.error.size, -1)
+            )
+            for run, g in zip(fitted, basis, strict=True)
+        ]
+    )
+    n0 = sum(e.size for e in errors)
+    dof = float(n0 - sum(run.start_columns for run in fitted) - result.x.size)
+    sigma2 = float(sum(float(e @ e) for e in errors)) / dof
+    column = np.linalg.norm(J, axis=0)
+    column[column == 0] = 1.0
+    covariance = (
+        sigma2 * np.linalg.pinv((J / column).T @ (J / column), rcond=1e-12) / np.outer(column, column)
+    )
+    model = replace(
+        start,
+        theta=result.x.reshape(shape),
+        covariance=covariance,
+        experiment_sigma2=np.array([float(np.mean(run.error**2)) for run in fitted]),
+    )
+    return FreeRunMode(model, whitening, sigma2, dof)
+
+
+@dataclass(frozen=True)
+class _Estimate:
+    k_hat: float
+    sigma_k: float
+    sigma_k_record: float
+    sigma2: float  # s̃², the whitened error variance
+    dof: float
+    at_range_limit: bool
+
+
+def _estimate(mode: FreeRunMode, run: FreeRun, y: np.ndarray, model_uncertainty: bool) -> _Estimate:
+    model, basis = mode.model, mode.model.basis
+
+    def cost(k: float) -> float:
+        error = _free_run(model.terms, run, model.theta @ basis.values(k), y, False).error
+        value = float(error @ error)
+        return value if np.isfinite(value) else np.inf
+
+    grid = np.linspace(basis.k_min, basis.k_max, GRID_POINTS)
+    best = int(np.argmin([cost(k) for k in grid]))
+    low, high = grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)]
+    found = optimize.minimize_scalar(cost, bounds=(low, high), method="bounded", options={"xatol": 1e-6})
+    k_hat = float(found.x) if found.fun <= cost(grid[best]) else float(grid[best])
+    at = _free_run(model.terms, run, model.theta @ basis.values(k_hat), y, True)
+    if not np.all(np.isfinite(at.error)):
+        raise InputError(
+            f"the free run of fault mode {model.name!r} diverges on the record at every magnitude tried"
+        )
+    error = _whitened(mode.whitening, at.error)
+    S = _whitened(mode.whitening, at.sensitivities)
+    slope = S @ (model.theta @ basis.derivatives(k_hat))  # ∂ŷ/∂k, whitened
+    information = float(slope @ slope)
+    if not information > 0:
+        raise InputError(
+            f"the record carries no information on the magnitude of fault mode {model.name!r}: "
+            "the free run does not depend on k (is the excitation zero?)"
+        )
+    dof = float(error.size - at.start_columns - 1)
+    sigma2 = float(error @ error) / dof
+    variance_record = sigma2 / information
+    variance = variance_record
+    if model_uncertainty:
+        gradient = np.kron(S.T @ slope, basis.values(k_hat)) / information
+        variance += float(gradient @ model.covariance @ gradient)
+    span = basis.k_max - basis.k_min
+    limit = min(k_hat - basis.k_min, basis.k_max - k_hat) < 1e-6 * span
+    return _Estimate(k_hat, float(np.sqrt(variance)), float(np.sqrt(variance_record)), sigma2, dof, limit)
+
+
+def inspect_free_run(
+    x: ArrayLike,
+    y: ArrayLike,
+    fault_modes: Sequence[FreeRunMode],
+    *,
+    alpha: float = 0.05,
+    adequacy_share: float = ADEQUACY_SHARE,
+    model_uncertainty: bool = True,
+) -> Verdict:
+    """Run the free-run chain on one record (x: excitation, y: response); module docstring."""
+    check_request([mode.name for mode in fault_modes], alpha, adequacy_share)
+    longest = max(mode.model.max_lag for mode in fault_modes)
+    degree = max_degree([term for mode in fault_modes for term in mode.model.terms])
+    xa, ya = checked_record(x, y, longest + WHITENING_ORDER + 100, degree=degree)
+    adequacy_alpha = adequacy_share * alpha
+    magnitude_level = 1 - ((1 - alpha) / (1 - adequacy_alpha)) ** (1 / len(fault_modes))
+    z_detect = z_quantile(1 - magnitude_level)
+    results, dofs = [], []
+    for mode in fault_modes:
+        estimate = _estimate(mode, FreeRun.build(mode.model.terms, xa), ya, model_uncertainty)
+        ratio = estimate.sigma2 / mode.sigma2
+        critical = float(special.fdtri(estimate.dof, mode.dof, 1 - alpha))
+        dofs.append((estimate.dof, mode.dof))
+        z = estimate.k_hat / estimate.sigma_k
+        results.append(
+            ModeResult(
+                name=mode.name,
+                k_hat=estimate.k_hat,
+                sigma_k=estimate.sigma_k,
+                sigma_k_record=estimate.sigma_k_record,
+                z=z,
+                detects=bool(abs(z) > z_detect),
+                residual_variance=estimate.sigma2,
+                q=ratio,
+                q_critical=critical,
+                p_value=float(special.fdtrc(estimate.dof, mode.dof, ratio)),
+                accepted=bool(ratio <= critical),
+                at_range_limit=estimate.at_range_limit,
+            )
+        )
+    _check_finite(results)
+    # The adequacy test that detects is the best mode's at its share of α.
+    best = int(np.argmin([result.residual_variance for result in results]))
+    f_detect = float(special.fdtri(*dofs[best], 1 - adequacy_alpha))
+    return replace(_decide(results, alpha, 0, ya.size, z_detect, f_detect), lags=None)
