@@ -24,11 +24,11 @@ def experiments(spring: str, seed: int) -> list:
 
 
 def free_run_modes(springs=SPRINGS, seed: int = 50_000) -> list[FreeRunMode]:
-    """One mode a spring, fitted for its free run, each from its own simulated experiments."""
-    return [
-        fit_free_run_modes(experiments(spring, seed + 100 * index), TERMS, name=spring)
-        for index, spring in enumerate(springs)
-    ]
+    """One mode a spring, fitted jointly for their free runs, each from its own simulated
+    experiments."""
+    return fit_free_run_modes(
+        {spring: experiments(spring, seed + 100 * index) for index, spring in enumerate(springs)}, TERMS
+    )
 
 
 def equation_error_modes(springs=SPRINGS, seed: int = 50_000) -> list[FNARX]:

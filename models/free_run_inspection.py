@@ -11,13 +11,14 @@ the free run's error from the start estimated over the record
 (:class:`models.output_error.EstimatedStart`), which carries the fault's whole difference to
 the response:
 
-1. Fault modes whose free run is good: θ(k) = Θ·g(k) fitted by output error jointly over the
-   experiments (:func:`fit_free_run_modes`), from the equation-error fit (biased by the noisy
-   lagged outputs). The healthy error level of a mode, its whitening filter w(q) (AR(Q) fitted
-   to the experiments' errors, as in :mod:`models.novelty`), σ̃²₀ (the whitened error's
-   variance) and Cov vec(Θ) = σ̃²₀·(J̃ᵀJ̃)⁻¹ (whitened sensitivities) come with it.
-2. k̂ = argmin_k Σ ε_k² over the mode's range, ε_k the free-run error of θ(k) from the
-   estimated start (a grid, then a bounded search around its best point).
+1. Fault modes whose free run is good: θ_V(k) = θ₀ + k·δ_V (p = 2, exact for a stiffness
+   fault), one healthy θ₀ for every mode, fitted by output error jointly over all the modes'
+   experiments (:func:`fit_free_run_modes`), from the equation-error fits (biased by the noisy
+   lagged outputs). The healthy error level, the whitening filter w(q) (AR(Q) fitted to the
+   experiments' errors, as in :mod:`models.novelty`), σ̃²₀ (the whitened error's variance) and
+   Cov vec(Θ_V) from σ̃²₀·(J̃ᵀJ̃)⁻¹ (whitened sensitivities) come with them.
+2. k̂ = argmin_k Σ ε̃_k² over the mode's range, ε̃_k the whitened free-run error of θ(k) from
+   the estimated start (a grid, then a bounded search around its best point).
 3. σ̂_k by Gauss–Newton on the whitened error, so that the error's colour is accounted for
    (generalised least squares): d = ∂ŷ/∂k = S·Θ·g′(k̂), S the run's sensitivities to θ projected
    off the start's responses; σ̂²_k = s̃²/(d̃ᵀd̃), s̃² the record's whitened error variance; plus
@@ -28,9 +29,11 @@ the response:
    F = s̃²_V/σ̃²₀ ~ F(ν, ν₀) under the mode (ν = n − Q − R − 1 the record's whitened samples less
    the start's R columns and k̂, ν₀ the experiments' less Θ's), taken one-sided: a record the
    best mode describes worse than its experiments is an ``unknown_fault``.
-5. Detection and the interval as in the paper's chain: |k̂|/σ̂_k against Šidák's z, plus the
-   adequacy test at a small share of α; k̂ ± z_{1−α/2}·σ̂_k. The verdict is
-   :class:`models.inspection.Verdict`; each mode's ``q``, ``q_critical``, ``p_value`` and
+5. Detection and the interval as in the paper's chain, Šidák's z and the adequacy test at a
+   small share of α, but each mode's z is the signed root of the likelihood ratio against k = 0,
+   (Σε̃²(0) − Σε̃²(k̂))/s̃², times σ̂_k,record/σ̂_k for the mode's own estimation error: k̂/σ̂_k
+   where the error is linear in k, and right where it is not. The interval is k̂ ± z_{1−α/2}·σ̂_k.
+   The verdict is :class:`models.inspection.Verdict`; each mode's ``q``, ``q_critical``, ``p_value`` and
    ``accepted`` are the F test's (``lags`` is None: no Ljung–Box test is made), and
    ``whiteness`` in ``detected_by`` names the adequacy test.
 
@@ -39,8 +42,9 @@ For models linear in their output (the estimated start needs it) and without out
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -57,7 +61,7 @@ from models.inspection import (
     _decide,
     check_request,
 )
-from models.narx import z_quantile
+from models.narx import DOCUMENT_VERSION, check_document, z_quantile
 from models.novelty import WHITENING_ORDER, _whitening_filter
 from models.output_error import EstimatedStart
 from models.signals import checked_record
@@ -88,6 +92,33 @@ class FreeRunMode:
     @property
     def name(self) -> str:
         return self.model.name
+
+    def to_document(self) -> dict[str, Any]:
+        """The FNARX's document with the healthy error level beside it."""
+        return {
+            "kind": "free_run_mode",
+            "schema_version": DOCUMENT_VERSION,
+            "model": self.model.to_document(),
+            "whitening": self.whitening.tolist(),
+            "sigma2": self.sigma2,
+            "dof": self.dof,
+        }
+
+    @classmethod
+    def from_document(cls, document: dict[str, Any]) -> FreeRunMode:
+        check_document(document, "free_run_mode")
+        try:
+            mode = cls(
+                FNARX.from_document(document["model"]),
+                np.asarray(document["whitening"], dtype=np.float64),
+                float(document["sigma2"]),
+                float(document["dof"]),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"free-run fault-mode document: missing or invalid field ({exc})") from None
+        if mode.whitening.ndim != 1 or not (mode.sigma2 > 0 and mode.dof > 0):
+            raise InputError("free-run fault-mode document: whitening, sigma2 or dof out of range")
+        return mode
 
 
 @dataclass(frozen=True)
@@ -120,32 +151,45 @@ def _whitened(whitening: np.ndarray, series: np.ndarray) -> np.ndarray:
 
 
 def fit_free_run_modes(
-    experiments: Iterable[Experiment],
+    experiments: Mapping[str, Iterable[Experiment]],
     terms: Sequence[str | Term],
     *,
-    name: str,
-    size: int = 2,
-    k_range: tuple[float, float] | None = None,
     max_evaluations: int = MAX_EVALUATIONS,
-) -> FreeRunMode:
-    """A fault mode from experiments (x, y, k) whose free run is good: Θ minimises the free-run
-    error from the estimated start summed over the experiments, θ(k_i) = Θ·g(k_i) on each, from
-    the equation-error fit (:func:`models.fnarx.fit_fnarx`); module docstring, step 1."""
-    runs = list(experiments)
-    start = fit_fnarx(runs, terms, name=name, size=size, k_range=k_range)
-    records = [
-        checked_record(x, y, start.max_lag + len(start.terms) + 1, degree=max_degree(start.terms))
-        for x, y, _ in runs
-    ]
-    free = [FreeRun.build(start.terms, xa) for xa, _ in records]
-    basis = [start.basis.values(float(k)) for _, _, k in runs]
-    shape = start.theta.shape
+) -> list[FreeRunMode]:
+    """Fault modes, one for each name's experiments (x, y, k), whose free runs are good: the
+    modes are fitted jointly, θ_V(k) = θ₀ + k·δ_V with one healthy θ₀ for all, minimising the
+    free-run error from the estimated start summed over every experiment; module docstring,
+    step 1. From the paper's equation-error fits (:func:`models.fnarx.fit_fnarx`, p = 2, each
+    mode's range its experiments').
+
+    One θ₀: fitted apart, each mode's healthy point carries its own experiments' estimation
+    error, and the modes' errors on one record then differ by more than a far spring's fault
+    does (the localisation compares them), and a mode's k̂ absorbs its healthy point's error.
+    """
+    names = list(experiments)
+    runs = {name: list(experiments[name]) for name in names}
+    starts = [fit_fnarx(runs[name], terms, name=name) for name in names]
+    parsed, n = starts[0].terms, len(starts[0].terms)
+    records, free, maps, owners = [], [], [], []
+    for index, (start, name) in enumerate(zip(starts, names, strict=True)):
+        for x, y, k in runs[name]:
+            xa, ya = checked_record(x, y, start.max_lag + n + 1, degree=max_degree(parsed))
+            records.append(ya)
+            owners.append(index)
+            free.append(FreeRun.build(parsed, xa))
+            # θ = M·[θ₀; δ_1; …; δ_M]
+            maps.append(
+                np.hstack([np.eye(n)] + [float(k) * np.eye(n) * (j == index) for j in range(len(names))])
+            )
+    initial_flat = np.concatenate(
+        [np.mean([start.coefficients(0.0) for start in starts], axis=0)]
+        + [start.theta @ start.basis.derivatives(0.0) for start in starts]
+    )
 
     def evaluate(flat: np.ndarray, sensitive: bool) -> list[_Run]:
-        Theta = flat.reshape(shape)
         return [
-            _free_run(start.terms, run, Theta @ g, ya, sensitive)
-            for run, (_, ya), g in zip(free, records, basis, strict=True)
+            _free_run(parsed, run, M @ flat, ya, sensitive)
+            for run, ya, M in zip(free, records, maps, strict=True)
         ]
 
     def residuals(flat: np.ndarray) -> np.ndarray:
@@ -153,35 +197,26 @@ def fit_free_run_modes(
         return np.where(np.isfinite(error), error, 1e6 * scale)  # a diverging trial is backed away from
 
     def jacobian(flat: np.ndarray) -> np.ndarray:
-        blocks = [
-            (run.sensitivities[:, :, None] * g[None, None, :]).reshape(run.error.size, -1)
-            for run, g in zip(evaluate(flat, True), basis, strict=True)
-        ]
-        return np.nan_to_num(np.vstack(blocks))
+        return np.nan_to_num(
+            np.vstack([run.sensitivities @ M for run, M in zip(evaluate(flat, True), maps, strict=True)])
+        )
 
-    initial = evaluate(start.theta.ravel(), False)
+    initial = evaluate(initial_flat, False)
     if not all(np.all(np.isfinite(run.error)) for run in initial):
         raise InputError(
-            f"the equation-error fit of fault mode {name!r} diverges in free run on its experiments: "
+            "the equation-error fit of the fault modes diverges in free run on their experiments: "
             "choose a lower order"
         )
     scale = float(np.sqrt(np.mean(np.concatenate([run.error for run in initial]) ** 2))) or 1.0
     result = optimize.least_squares(
-        residuals, start.theta.ravel(), jac=jacobian, method="lm", x_scale="jac", max_nfev=max_evaluations
+        residuals, initial_flat, jac=jacobian, method="lm", x_scale="jac", max_nfev=max_evaluations
     )
     fitted = evaluate(result.x, True)
     if not all(np.all(np.isfinite(run.error)) for run in fitted):
-        raise InputError(f"the output-error fit of fault mode {name!r} diverges on its experiments")
+        raise InputError("the output-error fit of the fault modes diverges on their experiments")
     whitening = _whitening_filter([run.error for run in fitted], WHITENING_ORDER)
     errors = [_whitened(whitening, run.error) for run in fitted]
-    J = np.vstack(
-        [
-            _whitened(
-                whitening, (run.sensitivities[:, :, None] * g[None, None, :]).reshape(run.error.size, -1)
-            )
-            for run, g in zip(fitted, basis, strict=True)
-        ]
-    )
+    J = np.vstack([_whitened(whitening, run.sensitivities @ M) for run, M in zip(fitted, maps, strict=True)])
     n0 = sum(e.size for e in errors)
     dof = float(n0 - sum(run.start_columns for run in fitted) - result.x.size)
     sigma2 = float(sum(float(e @ e) for e in errors)) / dof
@@ -190,13 +225,25 @@ def fit_free_run_modes(
     covariance = (
         sigma2 * np.linalg.pinv((J / column).T @ (J / column), rcond=1e-12) / np.outer(column, column)
     )
-    model = replace(
-        start,
-        theta=result.x.reshape(shape),
-        covariance=covariance,
-        experiment_sigma2=np.array([float(np.mean(run.error**2)) for run in fitted]),
-    )
-    return FreeRunMode(model, whitening, sigma2, dof)
+    modes = []
+    for index, start in enumerate(starts):
+        # vec(Θ_V) (term i, basis j) = T·[θ₀; δ…]: Θ_V·[g(k_min) g(k_max)] = [θ_V(k_min) θ_V(k_max)].
+        ends = np.array([start.basis.k_min, start.basis.k_max])
+        inverse = np.linalg.inv(start.basis.values(ends).T)  # row j: G_j's weights of the two ends
+        at_ends = [np.hstack([np.eye(n), end * np.eye(n)]) for end in ends]  # θ₀, δ_V ↦ θ_V(end)
+        T = np.zeros((2 * n, result.x.size))
+        selected = np.r_[0:n, n * (index + 1) : n * (index + 2)]
+        for j in range(2):
+            T[j::2, selected] = sum(inverse[e, j] * at_ends[e] for e in range(2))
+        own = [run for run, owner in zip(fitted, owners, strict=True) if owner == index]
+        model = replace(
+            start,
+            theta=(T @ result.x).reshape(n, 2),
+            covariance=T @ covariance @ T.T,
+            experiment_sigma2=np.array([float(np.mean(run.error**2)) for run in own]),
+        )
+        modes.append(FreeRunMode(model, whitening, sigma2, dof))
+    return modes
 
 
 @dataclass(frozen=True)
@@ -204,6 +251,7 @@ class _Estimate:
     k_hat: float
     sigma_k: float
     sigma_k_record: float
+    z: float  # the detection statistic
     sigma2: float  # s̃², the whitened error variance
     dof: float
     at_range_limit: bool
@@ -212,8 +260,10 @@ class _Estimate:
 def _estimate(mode: FreeRunMode, run: FreeRun, y: np.ndarray, model_uncertainty: bool) -> _Estimate:
     model, basis = mode.model, mode.model.basis
 
-    def cost(k: float) -> float:
-        error = _free_run(model.terms, run, model.theta @ basis.values(k), y, False).error
+    def cost(k: float) -> float:  # the whitened error's sum of squares (generalised least squares)
+        error = _whitened(
+            mode.whitening, _free_run(model.terms, run, model.theta @ basis.values(k), y, False).error
+        )
         value = float(error @ error)
         return value if np.isfinite(value) else np.inf
 
@@ -243,9 +293,19 @@ def _estimate(mode: FreeRunMode, run: FreeRun, y: np.ndarray, model_uncertainty:
     if model_uncertainty:
         gradient = np.kron(S.T @ slope, basis.values(k_hat)) / information
         variance += float(gradient @ model.covariance @ gradient)
+    sigma_k, sigma_k_record = float(np.sqrt(variance)), float(np.sqrt(variance_record))
+    # The likelihood ratio of k̂ against the healthy k = 0, as a signed z: k̂/σ̂_k where the error is
+    # linear in k over the interval, and right where it is not (a far spring's σ̂_k spans the
+    # mode's range, and k̂ is then pushed against its ends far more often than k̂/σ̂_k says).
+    # Scaled by σ̂_k,record/σ̂_k for the mode's own estimation error, which the ratio leaves out.
+    if basis.contains(0.0):
+        drop = max(cost(0.0) - float(error @ error), 0.0)
+        z = float(np.sign(k_hat) * np.sqrt(drop / sigma2)) * sigma_k_record / sigma_k
+    else:
+        z = k_hat / sigma_k
     span = basis.k_max - basis.k_min
     limit = min(k_hat - basis.k_min, basis.k_max - k_hat) < 1e-6 * span
-    return _Estimate(k_hat, float(np.sqrt(variance)), float(np.sqrt(variance_record)), sigma2, dof, limit)
+    return _Estimate(k_hat, sigma_k, sigma_k_record, z, sigma2, dof, limit)
 
 
 def inspect_free_run(
@@ -271,7 +331,7 @@ def inspect_free_run(
         ratio = estimate.sigma2 / mode.sigma2
         critical = float(special.fdtri(estimate.dof, mode.dof, 1 - alpha))
         dofs.append((estimate.dof, mode.dof))
-        z = estimate.k_hat / estimate.sigma_k
+        z = estimate.z
         results.append(
             ModeResult(
                 name=mode.name,
