@@ -15,15 +15,21 @@ the response:
    fault), one healthy θ₀ for every mode, fitted by output error jointly over all the modes'
    experiments (:func:`fit_free_run_modes`), from the equation-error fits (biased by the noisy
    lagged outputs). The healthy error level, the whitening filter w(q) (AR(Q) fitted to the
-   experiments' errors, as in :mod:`models.novelty`), σ̃²₀ (the whitened error's variance) and
-   Cov vec(Θ_V) from σ̃²₀·(J̃ᵀJ̃)⁻¹ (whitened sensitivities) come with them.
+   experiments' errors, as in :mod:`models.novelty`) and σ̃²₀ (the whitened error's variance)
+   come with them, and Cov vec(Θ_V) by the delete-one-experiment jackknife: with φ̂ = [θ₀; δ…]
+   the joint fit and φ̂₍ᵢ₎ its refit without experiment i (from φ̂) of m,
+   Cov φ̂ = (m − 1)/m·Σᵢ (φ̂₍ᵢ₎ − φ̄)(φ̂₍ᵢ₎ − φ̄)ᵀ, φ̄ the refits' mean, mapped to vec(Θ_V). Not
+   σ̃²₀·(J̃ᵀJ̃)⁻¹, which takes the whitened error for the only difference between training sets:
+   new training sets move φ̂ further than it allows, and the jackknife measures the spread
+   between experiments whatever its source. Every mode needs experiments at three magnitudes or
+   more.
 2. k̂ = argmin_k Σ ε̃_k² over the mode's range, ε̃_k the whitened free-run error of θ(k) from
    the estimated start (a grid, then a bounded search around its best point).
 3. σ̂_k by Gauss–Newton on the whitened error, so that the error's colour is accounted for
    (generalised least squares): d = ∂ŷ/∂k = S·Θ·g′(k̂), S the run's sensitivities to θ projected
    off the start's responses; σ̂²_k = s̃²/(d̃ᵀd̃), s̃² the record's whitened error variance; plus
    the delta-method term of the mode's own estimation error, ∇ᵀ·Cov vec(Θ)·∇ with
-   ∇ = J̃_Θᵀd̃/(d̃ᵀd̃), J̃_Θ = S̃ ⊗ g(k̂).
+   ∇ = J̃_Θᵀd̃/(d̃ᵀd̃), J̃_Θ = S̃ ⊗ g(k̂), Cov vec(Θ) the jackknife's of step 1.
 4. Localisation: the candidate is the mode whose best k̂ leaves the smallest whitened error
    variance (maximum likelihood for Gaussian errors, as in the paper's chain); its adequacy is
    F = s̃²_V/σ̃²₀ ~ F(ν, ν₀) under the mode (ν = n − Q − R − 1 the record's whitened samples less
@@ -36,6 +42,13 @@ the response:
    The verdict is :class:`models.inspection.Verdict`; each mode's ``q``, ``q_critical``, ``p_value`` and
    ``accepted`` are the F test's (``lags`` is None: no Ljung–Box test is made), and
    ``whiteness`` in ``detected_by`` names the adequacy test.
+6. What the record cannot determine is withheld, not guessed. Which mode: when another accepted
+   mode's best fit is not worse than the best one's by the F test of its extra error,
+   F = ν·(s̃²_V − s̃²_best)/s̃²_best ~ F(1, ν) at α, the fault is an ``unknown_fault`` (no mode,
+   no magnitude; ``modes`` shows which are accepted). How much: when the localised mode's
+   interval spans more than UNDETERMINED_SHARE of its range, the verdict names the mode but
+   gives no ``k_hat``, ``sigma_k`` or ``interval`` (the mode's σ̂_k stays in ``modes``): a far
+   spring the driving point barely feels.
 
 For models linear in their output (the estimated start needs it) and without output limits.
 """
@@ -70,6 +83,9 @@ from models.terms import Term, max_degree
 
 # Free runs a mode's joint output-error fit may compute, at most.
 MAX_EVALUATIONS = 200
+# The share of a mode's range beyond which an interval says the record does not determine the
+# magnitude: wider than half the range, the interval hardly narrows what the mode's range says.
+UNDETERMINED_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -78,7 +94,8 @@ class FreeRunMode:
 
     Attributes
     ----------
-    model : the FNARX, Θ fitted by output error; its covariance is σ̃²₀·(J̃ᵀJ̃)⁻¹.
+    model : the FNARX, Θ fitted by output error; its covariance the jackknife's (module
+        docstring, step 1).
     whitening : c_1 … c_Q of w(q) = 1 − Σ c_k q⁻ᵏ, fitted to the experiments' free-run errors.
     sigma2 : σ̃²₀, the experiments' whitened free-run error variance.
     dof : ν₀, the experiments' whitened samples less the start's columns and Θ's.
@@ -165,9 +182,16 @@ def fit_free_run_modes(
     One θ₀: fitted apart, each mode's healthy point carries its own experiments' estimation
     error, and the modes' errors on one record then differ by more than a far spring's fault
     does (the localisation compares them), and a mode's k̂ absorbs its healthy point's error.
+    Θ's covariance is the delete-one-experiment jackknife's, a refit for every experiment.
     """
     names = list(experiments)
     runs = {name: list(experiments[name]) for name in names}
+    for name in names:
+        if len({float(k) for _, _, k in runs[name]}) < 3:
+            raise InputError(
+                f"fault mode {name!r} needs experiments at three magnitudes or more: its estimation "
+                "error is measured by refitting without each one, and two points leave no line to refit"
+            )
     starts = [fit_fnarx(runs[name], terms, name=name) for name in names]
     parsed, n = starts[0].terms, len(starts[0].terms)
     records, free, maps, owners = [], [], [], []
@@ -186,20 +210,25 @@ def fit_free_run_modes(
         + [start.theta @ start.basis.derivatives(0.0) for start in starts]
     )
 
-    def evaluate(flat: np.ndarray, sensitive: bool) -> list[_Run]:
-        return [
-            _free_run(parsed, run, M @ flat, ya, sensitive)
-            for run, ya, M in zip(free, records, maps, strict=True)
-        ]
+    everything = range(len(records))
 
-    def residuals(flat: np.ndarray) -> np.ndarray:
-        error = np.concatenate([-run.error for run in evaluate(flat, False)])
-        return np.where(np.isfinite(error), error, 1e6 * scale)  # a diverging trial is backed away from
+    def evaluate(flat: np.ndarray, sensitive: bool, kept: Iterable[int] = everything) -> list[_Run]:
+        return [_free_run(parsed, free[i], maps[i] @ flat, records[i], sensitive) for i in kept]
 
-    def jacobian(flat: np.ndarray) -> np.ndarray:
-        return np.nan_to_num(
-            np.vstack([run.sensitivities @ M for run, M in zip(evaluate(flat, True), maps, strict=True)])
-        )
+    def fit(initial: np.ndarray, kept: Sequence[int]) -> np.ndarray:
+        def residuals(flat: np.ndarray) -> np.ndarray:
+            error = np.concatenate([-run.error for run in evaluate(flat, False, kept)])
+            return np.where(np.isfinite(error), error, 1e6 * scale)  # a diverging trial is backed away from
+
+        def jacobian(flat: np.ndarray) -> np.ndarray:
+            runs = evaluate(flat, True, kept)
+            return np.nan_to_num(
+                np.vstack([run.sensitivities @ maps[i] for run, i in zip(runs, kept, strict=True)])
+            )
+
+        return optimize.least_squares(
+            residuals, initial, jac=jacobian, method="lm", x_scale="jac", max_nfev=max_evaluations
+        ).x
 
     initial = evaluate(initial_flat, False)
     if not all(np.all(np.isfinite(run.error)) for run in initial):
@@ -208,37 +237,33 @@ def fit_free_run_modes(
             "choose a lower order"
         )
     scale = float(np.sqrt(np.mean(np.concatenate([run.error for run in initial]) ** 2))) or 1.0
-    result = optimize.least_squares(
-        residuals, initial_flat, jac=jacobian, method="lm", x_scale="jac", max_nfev=max_evaluations
-    )
-    fitted = evaluate(result.x, True)
+    flat = fit(initial_flat, list(everything))
+    fitted = evaluate(flat, True)
     if not all(np.all(np.isfinite(run.error)) for run in fitted):
         raise InputError("the output-error fit of the fault modes diverges on their experiments")
     whitening = _whitening_filter([run.error for run in fitted], WHITENING_ORDER)
     errors = [_whitened(whitening, run.error) for run in fitted]
-    J = np.vstack([_whitened(whitening, run.sensitivities @ M) for run, M in zip(fitted, maps, strict=True)])
     n0 = sum(e.size for e in errors)
-    dof = float(n0 - sum(run.start_columns for run in fitted) - result.x.size)
+    dof = float(n0 - sum(run.start_columns for run in fitted) - flat.size)
     sigma2 = float(sum(float(e @ e) for e in errors)) / dof
-    column = np.linalg.norm(J, axis=0)
-    column[column == 0] = 1.0
-    covariance = (
-        sigma2 * np.linalg.pinv((J / column).T @ (J / column), rcond=1e-12) / np.outer(column, column)
-    )
+    # The delete-one-experiment jackknife (module docstring, step 1), each refit from the joint fit.
+    refits = np.array([fit(flat, [j for j in everything if j != i]) for i in everything])
+    refits -= refits.mean(axis=0)
+    covariance = (len(refits) - 1) / len(refits) * (refits.T @ refits)
     modes = []
     for index, start in enumerate(starts):
         # vec(Θ_V) (term i, basis j) = T·[θ₀; δ…]: Θ_V·[g(k_min) g(k_max)] = [θ_V(k_min) θ_V(k_max)].
         ends = np.array([start.basis.k_min, start.basis.k_max])
         inverse = np.linalg.inv(start.basis.values(ends).T)  # row j: G_j's weights of the two ends
         at_ends = [np.hstack([np.eye(n), end * np.eye(n)]) for end in ends]  # θ₀, δ_V ↦ θ_V(end)
-        T = np.zeros((2 * n, result.x.size))
+        T = np.zeros((2 * n, flat.size))
         selected = np.r_[0:n, n * (index + 1) : n * (index + 2)]
         for j in range(2):
             T[j::2, selected] = sum(inverse[e, j] * at_ends[e] for e in range(2))
         own = [run for run, owner in zip(fitted, owners, strict=True) if owner == index]
         model = replace(
             start,
-            theta=(T @ result.x).reshape(n, 2),
+            theta=(T @ flat).reshape(n, 2),
             covariance=T @ covariance @ T.T,
             experiment_sigma2=np.array([float(np.mean(run.error**2)) for run in own]),
         )
@@ -352,4 +377,41 @@ def inspect_free_run(
     # The adequacy test that detects is the best mode's at its share of α.
     best = int(np.argmin([result.residual_variance for result in results]))
     f_detect = float(special.fdtri(*dofs[best], 1 - adequacy_alpha))
-    return replace(_decide(results, alpha, 0, ya.size, z_detect, f_detect), lags=None)
+    verdict = replace(_decide(results, alpha, 0, ya.size, z_detect, f_detect), lags=None)
+    return _withheld(verdict, fault_modes, dofs[best][0])
+
+
+def _withheld(verdict: Verdict, fault_modes: Sequence[FreeRunMode], dof: float) -> Verdict:
+    """The verdict without what the record cannot determine (module docstring, step 6).
+
+    Which mode: another accepted mode's best fit that the F test of its extra error,
+    F = ν·(s̃²_V − s̃²_best)/s̃²_best ~ F(1, ν), cannot tell from the best one makes the fault an
+    ``unknown_fault``: a fault of one of those modes, the record not saying which. How much: a
+    localised mode whose interval spans more than UNDETERMINED_SHARE of its range keeps its name
+    but gives no magnitude (``k_hat``, ``sigma_k`` and ``interval`` None); its σ̂_k stays in
+    ``modes``.
+    """
+    if verdict.status != "faulty":
+        return verdict
+    best = verdict.mode(verdict.fault_mode)
+    critical = float(special.fdtri(1.0, dof, 1 - verdict.alpha))
+    if any(
+        mode.accepted
+        and dof * (mode.residual_variance - best.residual_variance) / best.residual_variance <= critical
+        for mode in verdict.modes
+        if mode is not best
+    ):
+        return replace(
+            verdict,
+            status="unknown_fault",
+            fault_mode=None,
+            reference_mode=None,
+            k_hat=None,
+            sigma_k=None,
+            interval=None,
+        )
+    basis = next(mode.model.basis for mode in fault_modes if mode.name == best.name)
+    low, high = verdict.interval
+    if high - low > UNDETERMINED_SHARE * (basis.k_max - basis.k_min):
+        return replace(verdict, k_hat=None, sigma_k=None, interval=None)
+    return verdict
