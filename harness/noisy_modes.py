@@ -19,15 +19,16 @@ EXPERIMENT_SAMPLES = 8000
 SPRINGS = ("k2", "k3")
 
 
-def experiments(spring: str, seed: int) -> list:
-    return [(*record(scenario(spring, k), EXPERIMENT_SAMPLES, seed + i), k) for i, k in enumerate(MAGNITUDES)]
+def experiments(spring: str, seed: int, magnitudes=MAGNITUDES) -> list:
+    return [(*record(scenario(spring, k), EXPERIMENT_SAMPLES, seed + i), k) for i, k in enumerate(magnitudes)]
 
 
-def free_run_modes(springs=SPRINGS, seed: int = 50_000) -> list[FreeRunMode]:
+def free_run_modes(springs=SPRINGS, seed: int = 50_000, magnitudes=MAGNITUDES) -> list[FreeRunMode]:
     """One mode a spring, fitted jointly for their free runs, each from its own simulated
-    experiments."""
+    experiments at ``magnitudes``."""
     return fit_free_run_modes(
-        {spring: experiments(spring, seed + 100 * index) for index, spring in enumerate(springs)}, TERMS
+        {spring: experiments(spring, seed + 100 * index, magnitudes) for index, spring in enumerate(springs)},
+        TERMS,
     )
 
 
