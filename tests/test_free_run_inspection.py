@@ -100,8 +100,8 @@ def test_the_interval_covers_at_the_designed_rate_over_training_sets() -> None:
 
 
 def test_healthy_records_are_not_found_faulty_beyond_the_designed_rate(modes) -> None:
-    """With the near spring's mode: the far spring's (k3), whose k̂ the driving point barely
-    determines, still finds healthy records faulty more often than designed (bench/noisy_modes.py)."""
+    """With the near spring's mode, whose detection the records decide (the far spring's mode's
+    own error is most of its σ̂_k, so its z is small whatever the record)."""
     verdicts = [
         inspect_free_run(*record(scenario(), SAMPLES, 90_000 + i), modes[:1], alpha=ALPHA) for i in range(60)
     ]
