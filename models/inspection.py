@@ -149,15 +149,7 @@ def inspect(
     model_uncertainty: bool = True,
 ) -> Verdict:
     """Run the whole chain on one record (x: excitation, y: response)."""
-    if not fault_modes:
-        raise InputError("inspection needs at least one fault-mode model")
-    names = [model.name for model in fault_modes]
-    if len(set(names)) != len(names):
-        raise InputError(f"fault-mode model names must be distinct, got {names}")
-    if not 0 < alpha < 0.5:
-        raise InputError(f"alpha must lie in (0, 0.5), got {alpha}")
-    if not 0 < adequacy_share < 1:
-        raise InputError(f"the adequacy test's share of alpha must lie in (0, 1), got {adequacy_share}")
+    check_request([model.name for model in fault_modes], alpha, adequacy_share)
     adequacy_alpha = adequacy_share * alpha
     if int(lags) != lags or lags < 2:
         raise InputError(f"lags must be a whole number of at least 2, got {lags}")
@@ -194,6 +186,19 @@ def inspect(
         )
     _check_finite(modes)
     return _decide(modes, alpha, int(lags), len(ya), z_detect, q_detect)
+
+
+def check_request(names: Sequence[str], alpha: float, adequacy_share: float) -> None:
+    """Refuse an inspection without fault modes, with two of one name, or with an α or adequacy
+    share the tests cannot be designed at."""
+    if not names:
+        raise InputError("inspection needs at least one fault-mode model")
+    if len(set(names)) != len(names):
+        raise InputError(f"fault-mode model names must be distinct, got {list(names)}")
+    if not 0 < alpha < 0.5:
+        raise InputError(f"alpha must lie in (0, 0.5), got {alpha}")
+    if not 0 < adequacy_share < 1:
+        raise InputError(f"the adequacy test's share of alpha must lie in (0, 1), got {adequacy_share}")
 
 
 def checked_for_inspection(x: ArrayLike, y: ArrayLike, fault_modes: Sequence[FNARX], lags: int) -> Record:
