@@ -82,6 +82,7 @@ def coverage_lower_bound(records: int, trainings: int, model_share: float) -> fl
     return trainings * records * COVERAGE - stats.norm.ppf(1 - TEST_LEVEL) * np.sqrt(variance)
 
 
+@pytest.mark.slow  # five mode trainings and 200 records: `make slow`
 def test_the_interval_covers_at_the_designed_rate_over_training_sets() -> None:
     """200 records, 40 for each of five training sets of the near spring's mode, at seeds and
     magnitudes (3 … 13 %) of their own. The count is judged against the bound a right σ̂_k gives
