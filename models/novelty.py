@@ -100,7 +100,7 @@ from models.terms import max_degree, regressor_matrix
 Status = Literal["healthy", "anomaly"]
 FreeRunState = Literal["settled", "marginal", "diverged"]
 DOCUMENT_VERSION = 4
-# Version 3 held no covariance C: its baselines are judged with the theory's C = I.
+# Deployed databases hold version-3 references, which have no covariance C.
 READABLE_VERSIONS = (3, DOCUMENT_VERSION)
 # What is left of a start error after the start-up, in all, as a share of one sample's variance.
 START_UP_SHARE = 1e-2
@@ -174,11 +174,12 @@ class NoveltyReference:
                 f"versions {', '.join(str(v) for v in READABLE_VERSIONS)}"
             )
         try:
-            directions = tuple(tuple(float(v) for v in row) for row in document["directions"])
-            if version == 3:  # from before the healthy records' estimate: the theory's C = I
-                covariance = _rows(np.eye(len(directions[0]) if directions else 0))
-            else:
-                covariance = tuple(tuple(float(v) for v in row) for row in document["covariance"])
+            directions = _rows(document["directions"])
+            rank = len(directions[0]) if directions else 0
+            # Version 3 was written before C was estimated: its baselines keep the theory's C = I.
+            covariance = _rows(np.eye(rank) if version == 3 else document["covariance"])
+            if len(covariance) != rank or any(len(row) != rank for row in covariance):
+                raise ValueError(f"covariance is not {rank} × {rank}, as the directions are")
             return cls(
                 sigma2=float(document["sigma2"]),
                 whitening=tuple(float(v) for v in document["whitening"]),
@@ -434,7 +435,7 @@ def _error_covariance(refits: np.ndarray, noise: float) -> np.ndarray:
     return np.eye(values.size) + (vectors * np.maximum(values - 1.0, 0.0)) @ vectors.T
 
 
-def _rows(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
+def _rows(matrix: Iterable[Iterable[float]]) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(v) for v in row) for row in matrix)
 
 
