@@ -40,18 +40,35 @@ error alone sees only its excess power over the noise's.
 - the directions: the healthy records' projected, whitened sensitivities stacked, J̃₀, give
   the baseline's information J̃₀ᵀJ̃₀ = V·Σ²·Vᵀ (singular values of the scaled columns); the
   r directions whose singular value exceeds ``RANK_TOLERANCE`` of the largest form
-  D = V_r·Σ_r⁻¹, so that the baseline's estimation error in u = D⁺θ has covariance σ²·I;
-- a record: K = J̃·D (n × r), g = Kᵀẽ, G = KᵀK; the record's estimate û = G⁻¹g of the change has
-  covariance σ²·G⁻¹ about the baseline's error, itself σ²·I; so under a healthy record
-  û ~ N(0, σ²·(G⁻¹ + I)) and
+  D = V_r·Σ_r⁻¹, so that the baseline's estimation error in u = P·θ, P = Σ_r·V_rᵀ (D's left
+  inverse in the information metric, P·D = I), would have covariance σ²·I were the baseline
+  its generalised least-squares estimate;
+- the baseline's error covariance σ²·C: it is not that estimate. It minimises the unwhitened
+  free-run error, and with noise on the measured force the error −G·n_x is coloured by the
+  structure's resonances, so by Gauss–Markov its covariance is σ²·C with C ⪰ I, and the gap
+  grows with that colour. C is estimated from the healthy records themselves by the
+  jackknife of the out-of-sample refits above: with g folds and their refits u₍₋ⱼ₎ = P·θ₍₋ⱼ₎,
 
-      T = ûᵀ(G⁻¹ + I)⁻¹û / (r·s²) = gᵀ(G + G²)⁻¹g / (r·s²) ~ F(r, n − R − r),
+      Ĉ_J = (g − 1)/g · Σ_j (u₍₋ⱼ₎ − ū)(u₍₋ⱼ₎ − ū)ᵀ / σ̂²,
+
+  σ̂² the healthy records' whitened residual variance (the σ² the theory is in). The jackknife
+  is a sandwich estimate: it sees what each record's actual error does to θ, whatever its
+  colour or source. With g − 1 degrees of freedom, often fewer than r, its small eigenvalues
+  are noise below the bound, so C is its nearest matrix (Frobenius) that the bound allows,
+  C = I + (Ĉ_J − I)₊ (eigenvalues below 1 raised to 1): positive definite, never below the
+  theory, and where a fold's refit strays along one direction, only that direction widens.
+  With one fold there are no refits, and C = I;
+- a record: K = J̃·D (n × r), g = Kᵀẽ, G = KᵀK; the record's estimate û = G⁻¹g of the change has
+  covariance σ²·G⁻¹ about the baseline's error, itself σ²·C; so under a healthy record
+  û ~ N(0, σ²·(G⁻¹ + C)) and
+
+      T = ûᵀ(G⁻¹ + C)⁻¹û / (r·s²) = gᵀ(G + G·C·G)⁻¹g / (r·s²) ~ F(r, n − R − r),
 
   s² = (ẽᵀẽ − gᵀG⁻¹g)/(n − R − r) the record's residual variance, n its whitened samples and R
   the start's columns. A record is an ``anomaly`` when T exceeds F_{1−α}(r, n − R − r). The
   record's own s² scales the statistic, so it holds at any excitation level as long as the
-  baseline is at the noise floor; the I in (G⁻¹ + I) keeps the rate for records longer than
-  the training ones, where the baseline's own error would otherwise be found.
+  baseline is at the noise floor; the C in (G⁻¹ + C) keeps the rate for records as long as or
+  longer than the training ones, where the baseline's own error would otherwise be found.
 - severity: s²_ε/σ̂²₀, s²_ε = mean ε²[t], t = L … N−1, σ̂²₀ the healthy records' (out of
   sample): how many times a healthy record's simulation-error variance the record's is; 1 when
   healthy, whatever the record's length, so a person can trend it. It also moves for changes
@@ -82,13 +99,18 @@ from models.terms import max_degree, regressor_matrix
 
 Status = Literal["healthy", "anomaly"]
 FreeRunState = Literal["settled", "marginal", "diverged"]
-DOCUMENT_VERSION = 3
+DOCUMENT_VERSION = 4
+# Deployed databases hold version-3 references, which have no covariance C.
+READABLE_VERSIONS = (3, DOCUMENT_VERSION)
 # What is left of a start error after the start-up, in all, as a share of one sample's variance.
 START_UP_SHARE = 1e-2
 # The longest start-up a baseline may need before it counts as marginal.
 MAX_START_UP = 50_000
 # Error samples a record needs after its initial outputs, at least, for its statistic.
 MIN_SAMPLES = 100
+# The most folds the reference's refits cut the healthy records into (module docstring): one a
+# record up to this many, so that a training costs at most this many more output-error fits.
+MAX_FOLDS = 10
 # Q, the whitening filter's order: the healthy error of a baseline at its noise floor is near
 # white, and what colour is left is short.
 WHITENING_ORDER = 10
@@ -109,7 +131,10 @@ class NoveltyReference:
     sigma2 : σ̂²₀, the healthy free-run error variance [response units²].
     whitening : c_1 … c_Q of the whitening filter w(q) = 1 − Σ c_k q⁻ᵏ.
     directions : D (p × r), the directions of θ a record's sensitivities are tested along,
-        scaled so that the baseline's estimation error along them has covariance σ²·I.
+        scaled so that the baseline's estimation error along them has covariance σ²·I in theory.
+    covariance : C (r × r), the baseline's estimation error along D over σ², as its healthy
+        records show it (:func:`novelty_reference`); I where they cannot (one fold, or a
+        version-3 document).
     n_samples : n₀, the healthy error samples pooled; ``n_records`` the healthy records.
     start_up : L, the samples at a record's start left out (its free run's initial outputs).
     radius : the largest root modulus of the baseline's linear part at rest.
@@ -119,6 +144,7 @@ class NoveltyReference:
     sigma2: float
     whitening: tuple[float, ...]
     directions: tuple[tuple[float, ...], ...]
+    covariance: tuple[tuple[float, ...], ...]
     n_samples: int
     n_records: int
     start_up: int
@@ -134,22 +160,31 @@ class NoveltyReference:
         document = asdict(self)
         document["whitening"] = list(self.whitening)
         document["directions"] = [list(row) for row in self.directions]
+        document["covariance"] = [list(row) for row in self.covariance]
         return {"kind": "novelty_reference", "schema_version": DOCUMENT_VERSION, **document}
 
     @classmethod
     def from_document(cls, document: dict[str, Any]) -> NoveltyReference:
         if not isinstance(document, dict) or document.get("kind") != "novelty_reference":
             raise InputError("not a novelty reference document")
-        if document.get("schema_version") != DOCUMENT_VERSION:
+        version = document.get("schema_version")
+        if version not in READABLE_VERSIONS:
             raise InputError(
-                f"novelty reference document has schema version {document.get('schema_version')!r}; "
-                f"this narxwatch reads version {DOCUMENT_VERSION}"
+                f"novelty reference document has schema version {version!r}; this narxwatch reads "
+                f"versions {', '.join(str(v) for v in READABLE_VERSIONS)}"
             )
         try:
+            directions = _rows(document["directions"])
+            rank = len(directions[0]) if directions else 0
+            # Version 3 was written before C was estimated: its baselines keep the theory's C = I.
+            covariance = _rows(np.eye(rank) if version == 3 else document["covariance"])
+            if len(covariance) != rank or any(len(row) != rank for row in covariance):
+                raise ValueError(f"covariance is not {rank} × {rank}, as the directions are")
             return cls(
                 sigma2=float(document["sigma2"]),
                 whitening=tuple(float(v) for v in document["whitening"]),
-                directions=tuple(tuple(float(v) for v in row) for row in document["directions"]),
+                directions=directions,
+                covariance=covariance,
                 n_samples=int(document["n_samples"]),
                 n_records=int(document["n_records"]),
                 start_up=int(document["start_up"]),
@@ -204,16 +239,18 @@ def novelty_reference(
     model: NARX,
     records: Iterable[tuple[ArrayLike, ArrayLike]],
     *,
-    folds: int = 2,
+    folds: int | None = None,
 ) -> NoveltyReference:
     """The healthy free-run error of ``model`` on the healthy ``records`` (x, y) it was trained
     on: σ̂²₀, the whitening filter and the directions D (module docstring).
 
-    The errors are taken out of sample: the records are cut into ``folds`` groups, and each
-    group's errors come from ``model``'s terms refitted by output error (from the estimated
-    start) on the other groups, started from ``model``'s θ. In sample, the fit has already shaped
-    its error to its own records' noise: σ̂²₀ comes out low. With one fold (or one record) the
-    errors are ``model``'s own. The directions are ``model``'s sensitivities on all the records.
+    The errors are taken out of sample: the records are cut into ``folds`` groups (by default
+    one a record, up to ``MAX_FOLDS``), and each group's errors come from ``model``'s terms
+    refitted by output error (from the estimated start) on the other groups, started from
+    ``model``'s θ. In sample, the fit has already shaped its error to its own records' noise:
+    σ̂²₀ comes out low. The same refits are the jackknife that estimates the baseline's error
+    covariance C. With one fold (or one record) the errors are ``model``'s own, and C = I. The
+    directions are ``model``'s sensitivities on all the records.
 
     Refused when a free run diverges on one of the healthy records: the baseline cannot then say
     what a healthy record's simulation error is.
@@ -221,16 +258,17 @@ def novelty_reference(
     radius, _, marginal = start_up_of(model)
     L = model.max_lag
     checked = checked_records(records, L + MIN_SAMPLES, degree=max_degree(model.terms))
-    groups = min(int(folds), len(checked))
+    groups = min(MAX_FOLDS if folds is None else int(folds), len(checked))
     if groups < 1:
         raise InputError(f"folds must be a whole number of at least 1, got {folds}")
-    errors = []
+    errors, refits = [], []
     for fold in range(groups):
         held = list(range(fold, len(checked), groups))
         fitted = model
         if groups > 1:
             rest = [record for index, record in enumerate(checked) if index not in held]
             fitted = fit_output_error(model, rest, start_from="estimated").model
+            refits.append(fitted.theta)
         for index in held:
             error = estimated_start_error(fitted, *checked[index])
             if not np.all(np.isfinite(error)):
@@ -246,18 +284,26 @@ def novelty_reference(
             "the baseline reproduces its healthy records exactly: there is no error to test against"
         )
     whitening = _whitening_filter(errors, WHITENING_ORDER)
-    sensitivities = np.vstack(
-        [_regression(model, whitening, x, y, estimated_start_error(model, x, y))[1] for x, y in checked]
-    )
+    regressions = [
+        _regression(model, whitening, x, y, estimated_start_error(model, x, y)) for x, y in checked
+    ]
+    sensitivities = np.vstack([J for _, J in regressions])
     scale = np.linalg.norm(sensitivities, axis=0)
     scale[scale == 0] = 1.0
     _, singular, vt = np.linalg.svd(sensitivities / scale, full_matrices=False)
     kept = singular > RANK_TOLERANCE * singular[0]
     directions = (vt[kept].T / singular[kept]) / scale[:, None]
+    covariance = np.eye(directions.shape[1])
+    if len(refits) > 1:
+        # u = Σ_r·V_rᵀ·(scale ⊙ θ), the left inverse of D in the baseline's information metric.
+        coordinates = singular[kept, None] * vt[kept] * scale
+        noise = _pooled_residual_variance([(e, J @ directions) for e, J in regressions])
+        covariance = _error_covariance(np.asarray(refits) @ coordinates.T, noise)
     return NoveltyReference(
         sigma2=sigma2,
         whitening=tuple(float(v) for v in whitening),
-        directions=tuple(tuple(float(v) for v in row) for row in directions),
+        directions=_rows(directions),
+        covariance=_rows(covariance),
         n_samples=n0,
         n_records=len(errors),
         start_up=L,
@@ -289,9 +335,8 @@ def judge_record(
     error, sensitivities = _regression(model, np.asarray(reference.whitening), xa, ya, run_error)
     K = sensitivities @ np.asarray(reference.directions)
     g, G = K.T @ error, K.T @ K
-    explained = float(g @ np.linalg.solve(G, g))
-    s2 = (float(error @ error) - explained) / nu
-    statistic = float(g @ np.linalg.solve(G + G @ G, g)) / (r * s2)
+    s2 = _residual_sum(error, g, G) / nu
+    statistic = float(g @ np.linalg.solve(G + G @ np.asarray(reference.covariance) @ G, g)) / (r * s2)
     tail = run_error[L:]
     sigma2 = float(tail @ tail) / used
     return NoveltyVerdict(
@@ -366,6 +411,32 @@ def _linear_part(model: NARX) -> np.ndarray:
         if factor.signal == "dy":
             a[factor.lag] -= value
     return np.trim_zeros(a, "b")
+
+
+def _residual_sum(error: np.ndarray, g: np.ndarray, G: np.ndarray) -> float:
+    """ẽᵀẽ − gᵀG⁻¹g: what of a record's whitened error its sensitivities along D do not explain."""
+    return float(error @ error) - float(g @ np.linalg.solve(G, g))
+
+
+def _pooled_residual_variance(regressions: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """σ̂², the whitened error's variance the sensitivities K leave, pooled over the healthy
+    records' (ẽ, K): the σ² the theory's covariance σ²·I of the baseline's error is in."""
+    residual = sum(_residual_sum(e, K.T @ e, K.T @ K) for e, K in regressions)
+    return residual / sum(e.size - K.shape[1] for e, K in regressions)
+
+
+def _error_covariance(refits: np.ndarray, noise: float) -> np.ndarray:
+    """C = I + (Ĉ_J − I)₊ from the folds' refits u₍₋ⱼ₎ (rows, in the coordinates of D) and σ̂²
+    (module docstring)."""
+    groups = refits.shape[0]
+    spread = refits - refits.mean(axis=0)
+    jackknife = (groups - 1) / groups * (spread.T @ spread) / noise
+    values, vectors = np.linalg.eigh(jackknife)
+    return np.eye(values.size) + (vectors * np.maximum(values - 1.0, 0.0)) @ vectors.T
+
+
+def _rows(matrix: Iterable[Iterable[float]]) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(float(v) for v in row) for row in matrix)
 
 
 def _whitening_filter(errors: list[np.ndarray], order: int) -> np.ndarray:

@@ -3,9 +3,11 @@ simulation error of a baseline selected for it, with sensor noise on both measur
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
-from scipy import stats
+from scipy import signal, stats
 
 from harness.accelerometer import ALPHA, record, scenario
 from models.baseline_choice import MAX_ORDER, choose_baseline_terms
@@ -111,6 +113,22 @@ def test_reference_document_round_trip(baseline) -> None:
         NoveltyReference.from_document(reference.to_document() | {"schema_version": 99})
 
 
+def test_a_version_3_document_is_judged_with_the_theory_covariance(baseline) -> None:
+    """Deployed databases hold version-3 references, written before C was estimated: they mean
+    C = I, the statistic gᵀ(G + G²)⁻¹g/(r·s²) they were designed with, and still judge."""
+    model, reference, _ = baseline
+    document = reference.to_document() | {"schema_version": 3}
+    del document["covariance"]
+    old = NoveltyReference.from_document(document)
+    assert np.array_equal(old.covariance, np.eye(reference.rank))
+    assert old == dataclasses.replace(reference, covariance=old.covariance)
+    assert judge_record(model, old, *record(scenario(), 2000, 50_000)).status == "healthy"
+    with pytest.raises(InputError, match="missing or invalid field"):
+        NoveltyReference.from_document(document | {"schema_version": 4})
+    with pytest.raises(InputError, match=f"covariance is not {reference.rank} × {reference.rank}"):
+        NoveltyReference.from_document(reference.to_document() | {"covariance": [[1.0]]})
+
+
 def first_order(a: float) -> NARX:
     """y[t] = a·y[t−1] + x[t−1]."""
     return NARX(parse_terms(["y[t-1]", "x[t-1]"]), np.array([a, 1.0]), np.zeros((2, 2)), 0.0, 0)
@@ -120,6 +138,33 @@ def simulated_by(model: NARX, n: int, seed: int) -> tuple[np.ndarray, np.ndarray
     rng = np.random.default_rng(seed)
     x = rng.standard_normal(n)
     return x, model.simulate(x, np.zeros(1)) + 0.05 * rng.standard_normal(n)
+
+
+def coloured(model: NARX, colour: float, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A record of ``model`` whose response carries noise through the AR(1) filter 1/(1 − colour·q⁻¹):
+    as coloured as the error that noise on the measured force leaves, G·n_x, in a slow structure."""
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal(n)
+    noise = signal.lfilter([1.0], [1.0, -colour], 0.1 * rng.standard_normal(n))
+    return x, model.simulate(x, np.zeros(1)) + noise
+
+
+def test_a_baseline_fitted_through_coloured_noise_holds_the_rate_by_its_jackknife() -> None:
+    """Output error minimises the unwhitened error: through noise as coloured as a slow
+    structure's, its θ is far less precise than the generalised least-squares σ²·I the
+    statistic assumed (Gauss–Markov), and with C = I records as long as the training ones were
+    flagged far above α, for the baseline's own error. The jackknife of the reference's refits
+    sees it, and a 20 % slower pole is still found."""
+    truth = first_order(0.5)
+    training = [coloured(truth, 0.95, 500, 100 + i) for i in range(10)]
+    model = fit_output_error(truth, training, start_from="estimated").model
+    reference = novelty_reference(model, training)
+    assert np.linalg.eigvalsh(reference.covariance)[-1] > 2.0
+    healthy = [judge_record(model, reference, *coloured(truth, 0.95, 500, 10_000 + i)) for i in range(400)]
+    assert within_rate(healthy)
+    slower = first_order(0.6)
+    faulty = [judge_record(model, reference, *coloured(slower, 0.95, 500, 20_000 + i)) for i in range(40)]
+    assert sum(v.status == "anomaly" for v in faulty) >= 36
 
 
 def test_a_baseline_that_diverges_on_its_own_records_is_refused() -> None:
