@@ -30,9 +30,7 @@ from models.baseline_choice import MAX_ORDER
 from service.security import Role
 
 # Ten healthy records of 2000 samples train the chosen baseline, and records of 1000 are judged:
-# short records at which the chosen baseline's estimation error leaves the rate at α. Ten training
-# records of 600 samples are too few: the noise on the measured force makes the baseline's error
-# larger than the statistic allows for, and about twice α is flagged.
+# from 600-sample training records the rate varies more from one training to the next.
 TRAINING, TRAINING_SAMPLES, SAMPLES = 10, 2000, 1000
 HEALTHY, FAULTY = 200, 40
 
