@@ -511,3 +511,21 @@ def test_a_cusum_alarm_is_resolved_when_its_rule_stops_running(api_server: LiveS
     # Records on: the CUSUM still does not run, and opens nothing.
     assert statuses([rig.upload(FAULT_K, 15)]) == ["faulty"]
     assert rig.alarms(rule_kind="cusum", state="open") == []
+
+
+def test_a_cusum_steps_only_on_records_not_localised_to_another_mode(api_server: LiveServer):
+    """The demo opened a CUSUM alarm on k1 for a k2 fault: k1's model, fitted to a record the
+    verdict localised to k2, also moved its k̂ (z 3–5), and its chart signalled on that. A k̂ under
+    a model the verdict found not to describe the record is no evidence of that mode's drift: the
+    record steps the CUSUM of the mode it is localised to alone, and the rules' answer says why."""
+    rig = new_rig(api_server, seed=68, rules=[{"kind": "cusum"}], magnitudes=CUSUM_TRAINING_K)
+    with clients(rig.org) as (admin, ingest, _):
+        train_fault_mode(admin, ingest, rig.structure_id, "k1", seed=69, magnitudes=CUSUM_TRAINING_K)
+    faulty = [rig.upload(4.0, 16 + i) for i in range(3)]
+    assert [(r["verdict"]["status"], r["verdict"]["fault_mode"]) for r in faulty] == [("faulty", "k2")] * 3
+    k1 = [next(m for m in r["verdict"]["modes"] if m["name"] == "k1") for r in faulty]
+    assert sum(m["k_hat"] / m["sigma_k"] for m in k1) > 8, "a k1 chart stepped by these would signal"
+    assert {a["fault_mode"] for a in rig.alarms(rule_kind="cusum")} == {"k2"}
+    with rig.org.client("viewer") as viewer:
+        skipped = viewer.get(f"{API}/structures/{rig.structure_id}/alarm-rules").json()["cusum_skipped"]
+    assert list(skipped) == ["k1"] and "localised to fault mode 'k2'" in skipped["k1"], skipped

@@ -386,11 +386,19 @@ def _between(text: str, start: str, end: str) -> str:
 def test_the_structure_page_opens_on_its_status_then_charts_then_alarms_that_say_why(
     api_server: LiveServer,
 ):
-    """The demo: a k2 fault that opens several alarms, one a CUSUM on k1 whose newest k̂ sits at the
-    limit of k1's range. The page gives the status first (with the alarms' count and the declared
-    signals), then the charts, then the alarms: a few in view, open ones first, the rest folded; the
-    k1 CUSUM's row and a line below the table say, in the rules' own words, why it is not stepped."""
+    """The demo's growing k2 fault, then records of a k1 fault: alarms of both modes. The page gives
+    the status first (with the alarms' count and the declared signals), then the charts, then the
+    alarms: a few in view, open ones first, the rest folded; the k2 CUSUM's row and a line below
+    the table say, in the rules' own words, why the newest record (localised to k1) does not step
+    it."""
     org, structure_id = demo_structure(api_server)
+    with org.client("ingest") as ingest:
+        k1 = [
+            upload_simulated(ingest, structure_id, simulated("k1", 10.0, [71, i]), inspect="true")
+            for i in range(3)
+        ]
+    newest = k1[-1]["verdict"]
+    assert (newest["status"], newest["fault_mode"]) == ("faulty", "k1"), newest
     with logged_in(api_server, org.keys["viewer"]) as client:
         page = client.get(f"{DASHBOARD}/structures/{structure_id}")
     assert page.status_code == 200
@@ -412,12 +420,15 @@ def test_the_structure_page_opens_on_its_status_then_charts_then_alarms_that_say
     folded = row_ids(_between(text, "folded-alarms", "</details>"), "data-alarm-id")
     assert shown == [a["id"] for a in unresolved[:STRUCTURE_ALARMS]]
     assert folded == [a["id"] for a in unresolved[STRUCTURE_ALARMS:]]
-    # k1's k̂ is pinned at its range limit: the rules say why its CUSUM is not stepped, so does the page.
-    assert list(rules["cusum_skipped"]) == ["k1"]
+    # The newest record is localised to k1: k2's CUSUM is not stepped, and the rules and page say why.
+    assert (
+        list(rules["cusum_skipped"]) == ["k2"]
+        and "localised to fault mode 'k1'" in rules["cusum_skipped"]["k2"]
+    )
     reasons = _between(text, "alarm-reasons", "</ul>")
-    assert 'data-fault-mode="k1"' in reasons and str(escape(rules["cusum_skipped"]["k1"])) in reasons
-    (k1,) = [a for a in unresolved if a["rule_kind"] == "cusum" and a["fault_mode"] == "k1"]
-    row = text[text.index(f'data-alarm-id="{k1["id"]}"') :]
+    assert 'data-fault-mode="k2"' in reasons and str(escape(rules["cusum_skipped"]["k2"])) in reasons
+    (k2,) = [a for a in unresolved if a["rule_kind"] == "cusum" and a["fault_mode"] == "k2"]
+    row = text[text.index(f'data-alarm-id="{k2["id"]}"') :]
     assert "does not step this CUSUM" in row[: row.index("</tr>")]
 
 

@@ -267,7 +267,9 @@ def _rules_out(
         except InputError as refusal:
             problem = str(refusal)
         else:
-            skipped = {mode: _pinned_reason(mode, k_hat) for mode, k_hat in kept.pinned.items()}
+            skipped = {mode: _misfit_reason(mode, kept.localised) for mode in kept.misfit} | {
+                mode: _pinned_reason(mode, k_hat) for mode, k_hat in kept.pinned.items()
+            }
     return AlarmRulesOut(
         structure_id=structure_id,
         defaults=defaults,
@@ -275,6 +277,14 @@ def _rules_out(
         cusum_design=design,
         cusum_problem=problem,
         cusum_skipped=skipped,
+    )
+
+
+def _misfit_reason(mode: str, localised: str | None) -> str:
+    return (
+        f"the newest record's fault is localised to fault mode {localised!r}: fault mode {mode!r}'s "
+        "model does not describe it, and its k̂ moves with any fault. The record does not step this "
+        "mode's CUSUM"
     )
 
 
@@ -378,7 +388,9 @@ class Kept:
     verdict was judged against (one before any), the CUSUM charts sharing the false alarms;
     ``shares``: the common shares of σ̂k² of the newest ``WINDOW`` healthy verdicts (of all
     verdicts, until one is healthy: ``healthy``), whose median the CUSUM is designed for; and a
-    :class:`Track` per rule kind and fault mode (``"cusum k2"``, ``"persistence"``).
+    :class:`Track` per rule kind and fault mode (``"cusum k2"``, ``"persistence"``). Of the newest
+    verdict, the modes whose CUSUM it did not step: ``pinned`` (k̂ at its model's range limit) and
+    ``misfit`` (:func:`_misfits`; ``localised`` the mode its fault was localised to).
     """
 
     rules: list[dict[str, Any]]
@@ -388,6 +400,8 @@ class Kept:
     healthy: bool = False
     tracks: dict[str, Track] = field(default_factory=dict)
     pinned: dict[str, float] = field(default_factory=dict)
+    misfit: list[str] = field(default_factory=list)
+    localised: str | None = None
 
     def share(self) -> float:
         """The median of ``shares``: the models' error grows away from the healthy state, and a
@@ -432,6 +446,8 @@ def _step(kept: Kept, rules: list[AlarmRule], p: Point) -> list[str]:
     at = _microseconds(p.acquired_at)
     kept.newest = [p.record_id, p.verdict_id, at]
     kept.pinned = {mode: p.modes[mode][0] for mode in sorted(p.pinned & p.modes.keys())}
+    kept.misfit = sorted(_misfits(p))
+    kept.localised = p.reference_mode if p.status == "faulty" else None
     if p.modes:
         kept.modes = len(p.modes)
         share = max(rules_math.common_share(sigma, alone) for _, sigma, alone in p.modes.values())
@@ -466,10 +482,19 @@ def _step(kept: Kept, rules: list[AlarmRule], p: Point) -> list[str]:
                 design = cusum_design(rule, kept.modes, kept.share())
             except InputError:  # GET …/alarm-rules and the structure's page say why
                 continue
-            for mode in sorted(p.modes.keys() - p.pinned):  # a k̂ pinned at the range limit is no z
+            # A k̂ pinned at the range limit is no z, nor one under a model that misfits the record.
+            for mode in sorted(p.modes.keys() - p.pinned - set(kept.misfit)):
                 if (t := track(rule.kind, mode)) is not None:
                     _cusum_step(t, p, mode, at, design, rule.clear_after)
     return counted
+
+
+def _misfits(p: Point) -> set[str]:
+    """The modes whose k̂ the verdict ``p`` found estimated under a model that does not describe
+    its record: every mode but the one its fault is localised to. Such a k̂ moves with the fault
+    whatever mode it is (a loosened k2 moves k1's model's k̂ too), and is no evidence that its own
+    mode drifts. An unknown fault prefers no mode, and every mode's chart counts it."""
+    return set(p.modes) - {p.reference_mode} if p.status == "faulty" else set()
 
 
 def _cusum_step(
