@@ -40,7 +40,7 @@ from harness.api_helpers import (
     records_url,
     train_fault_mode,
 )
-from harness.live import LiveServer, http_client
+from harness.live import DATABASES, LiveServer, http_client, on_each_database
 from models.signals import minimum_samples
 from service.config import Settings
 from simulator.theory import EXACT_TERMS
@@ -83,13 +83,11 @@ def site(api_server: LiveServer) -> Site:
     return build_site(api_server)
 
 
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+@pytest.fixture(scope="module", params=DATABASES)
 def database_site(request: pytest.FixtureRequest) -> Site:
     """The site on each database, for the refusals the database's types, transactions and
     constraints take part in."""
-    if request.param == "sqlite":
-        return request.getfixturevalue("site")
-    return build_site(request.getfixturevalue("postgresql_api_server"))
+    return on_each_database(request, "site", build_site)
 
 
 @pytest.fixture

@@ -30,7 +30,7 @@ from harness.api_helpers import (
     post_record,
     raw_json,
 )
-from harness.live import LiveServer
+from harness.live import DATABASES, LiveServer, on_each_database
 from harness.mat_bombs import mat_file, matrix, v73_file, zeros_bomb
 from harness.prerequisites import benchmark_file
 from service.schemas import MAX_REFINEMENT_RECORDS
@@ -62,12 +62,10 @@ def site(api_server: LiveServer) -> Site:
     return build_site(api_server)
 
 
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+@pytest.fixture(scope="module", params=DATABASES)
 def database_site(request: pytest.FixtureRequest) -> Site:
     """The site on each database, for the record sets a transaction stores or refuses whole."""
-    if request.param == "sqlite":
-        return request.getfixturevalue("site")
-    return build_site(request.getfixturevalue("postgresql_api_server"))
+    return on_each_database(request, "site", build_site)
 
 
 @pytest.fixture(scope="module")

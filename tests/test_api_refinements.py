@@ -25,7 +25,7 @@ from harness.api_helpers import (
     train_fault_mode,
 )
 from harness.dashboard_helpers import logged_in
-from harness.live import LiveServer
+from harness.live import DATABASES, LiveServer, on_each_database
 from models.coverage import coverage
 from models.effects import candidate_effects, linear_terms
 from models.narx import fit_narx
@@ -118,12 +118,10 @@ def rig(api_server: LiveServer) -> Rig:
     return build_rig(api_server)
 
 
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+@pytest.fixture(scope="module", params=DATABASES)
 def database_rig(request: pytest.FixtureRequest) -> Rig:
     """The rig on each database, for what the database stores and lists."""
-    if request.param == "sqlite":
-        return request.getfixturevalue("rig")
-    return build_rig(request.getfixturevalue("postgresql_api_server"))
+    return on_each_database(request, "rig", build_rig)
 
 
 def refinements_url(structure_id: int) -> str:

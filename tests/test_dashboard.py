@@ -41,7 +41,7 @@ from harness.dashboard_helpers import (
     logged_in,
     monitored_structure,
 )
-from harness.live import LiveServer, http_client
+from harness.live import DATABASES, LiveServer, http_client, on_each_database
 from models.alarms import DESIGN_SHIFT, in_control_arl
 from recordfiles.quantities import SignalDeclaration
 from service.dashboard.auth import form_token
@@ -63,12 +63,10 @@ def monitored(api_server: LiveServer) -> Monitored:
     return monitored_structure(api_server, seed=41)
 
 
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+@pytest.fixture(scope="module", params=DATABASES)
 def database_monitored(request: pytest.FixtureRequest) -> Monitored:
     """The monitored structure on each database."""
-    if request.param == "sqlite":
-        return request.getfixturevalue("monitored")
-    return monitored_structure(request.getfixturevalue("postgresql_api_server"), seed=41)
+    return on_each_database(request, "monitored", lambda server: monitored_structure(server, seed=41))
 
 
 @pytest.fixture
