@@ -118,3 +118,18 @@ class Tenant:
             server.client(server.key(Role.ingest, name)),
             server.client(server.key(Role.viewer, name)),
         )
+
+
+# --- what the database decides, on each ------------------------------------------------------
+# Most API tests run on SQLite (their modules' ``api_server``); the few of what the database takes
+# part in (the values it can hold, transactions, constraints, what it stores for a page) take a
+# fixture parametrised over ``DATABASES``, made with ``on_each_database``.
+DATABASES = ("sqlite", "postgresql")
+
+
+def on_each_database(request: Any, on_sqlite: str, build: Callable[[LiveServer], Any]) -> Any:
+    """For a fixture parametrised over ``DATABASES``: on SQLite, the module's fixture named
+    ``on_sqlite`` (built once for both kinds of test); on PostgreSQL, ``build`` on its server."""
+    if request.param == "sqlite":
+        return request.getfixturevalue(on_sqlite)
+    return build(request.getfixturevalue("postgresql_api_server"))

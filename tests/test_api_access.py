@@ -1,4 +1,5 @@
-"""Roles through HTTP, on SQLite and PostgreSQL.
+"""Roles through HTTP, on SQLite: the role check runs before anything is read from the database,
+so no database decides it.
 
 The rule, from ``service/api/deps.py``: the role check is a dependency, so it runs before the
 handler looks anything up. A key whose role is below what a route needs gets 403 whatever the
@@ -77,6 +78,11 @@ POLICY = {
 # The routes outside /api/v1: no organisation's data, so no API key. The probes, and the metrics
 # (fleet-wide counts; NARXWATCH_METRICS_TOKEN guards them when set, and it is unset here).
 PUBLIC = {("GET", "/healthz"), ("GET", "/readyz"), ("GET", "/metrics")}
+
+
+@pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
 
 
 @pytest.fixture(scope="module")

@@ -1,8 +1,10 @@
 """Every bad request gets a 4xx whose ``detail`` a person can act on, and leaves nothing behind.
 
-Through HTTP against the real app on SQLite and PostgreSQL (plus, for the upload limit, a
-server of its own with a small limit). After each refused request the listings of structures,
-models and verdicts are unchanged and no record id was stored (``api_helpers.nothing_written``).
+Through HTTP against the real app on SQLite (plus, for the upload limit, a server of its own
+with a small limit); what the database decides (the ids, times and text it can hold, a refused
+request's writes undone, names unique) on PostgreSQL too: the tests that take
+``database_site``. After each refused request the listings of structures, models and verdicts
+are unchanged and no record id was stored (``api_helpers.nothing_written``).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from harness.api_helpers import (
     records_url,
     train_fault_mode,
 )
-from harness.live import LiveServer, http_client
+from harness.live import DATABASES, LiveServer, http_client, on_each_database
 from models.signals import minimum_samples
 from service.config import Settings
 from simulator.theory import EXACT_TERMS
@@ -58,7 +60,12 @@ class Site:
 
 
 @pytest.fixture(scope="module")
-def site(api_server: LiveServer) -> Site:
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    """SQLite: most refusals are made before the database is reached (``database_site``)."""
+    return sqlite_api_server
+
+
+def build_site(api_server: LiveServer) -> Site:
     org = Org.create(api_server)
     with clients(org) as (admin, ingest, _):
         rig = create_structure(admin, "rig")["id"]
@@ -69,6 +76,18 @@ def site(api_server: LiveServer) -> Site:
         terms = [t.name for t in EXACT_TERMS] + ["x[t-60]"]
         train_fault_mode(admin, ingest, long_lag, "k2", seed=12, terms=terms)
     return Site(org, rig, training, other, other_record, long_lag, minimum_samples(api_server.settings.lags))
+
+
+@pytest.fixture(scope="module")
+def site(api_server: LiveServer) -> Site:
+    return build_site(api_server)
+
+
+@pytest.fixture(scope="module", params=DATABASES)
+def database_site(request: pytest.FixtureRequest) -> Site:
+    """The site on each database, for the refusals the database's types, transactions and
+    constraints take part in."""
+    return on_each_database(request, "site", build_site)
 
 
 @pytest.fixture
@@ -302,8 +321,9 @@ def test_naive_acquisition_time(site: Site, ingest):
     ["0001-01-01T00:00:00+05:00", "9999-12-31T23:00:00-05:00"],
     ids=["year-1-east", "year-9999-west"],
 )
-def test_acquisition_time_outside_the_representable_range(site: Site, moment):
+def test_acquisition_time_outside_the_representable_range(database_site: Site, moment):
     """A zoned time whose UTC equivalent falls outside years 1-9999 cannot be stored: a 4xx."""
+    site = database_site
     with nothing_written(site.org, site.rig):
         with site.org.client("ingest") as ingest:
             response = post_record(ingest, site.rig, json_body(300, acquired_at=moment))
@@ -462,7 +482,8 @@ def _id_requests(site: Site, unknown: int) -> list[tuple[str, str, dict | None, 
 
 # 2**31 − 1 is the largest id the API admits: ids are 32-bit integers in both databases.
 @pytest.mark.parametrize("unknown", [UNKNOWN, 2**31 - 1], ids=["1e6", "2^31-1"])
-def test_unknown_ids_are_not_found(site: Site, unknown):
+def test_unknown_ids_are_not_found(database_site: Site, unknown):
+    site = database_site
     failures = []
     with nothing_written(site.org, site.rig):
         for method, path, body, message in _id_requests(site, unknown):
@@ -480,7 +501,8 @@ def test_unknown_ids_are_not_found(site: Site, unknown):
 
 
 @pytest.mark.parametrize("bad", [2**63, 2**31, 0, -1, "abc", "1.5"])
-def test_ids_outside_the_admitted_range_are_refused(site: Site, admin, bad):
+def test_ids_outside_the_admitted_range_are_refused(database_site: Site, bad):
+    site = database_site
     requests = [
         ("GET", f"/structures/{bad}"),
         ("GET", f"/structures/{bad}/verdicts"),
@@ -491,7 +513,7 @@ def test_ids_outside_the_admitted_range_are_refused(site: Site, admin, bad):
         ("POST", f"/records/{bad}/inspect"),
         ("GET", f"/verdicts/{bad}"),
     ]
-    with nothing_written(site.org, site.rig):
+    with nothing_written(site.org, site.rig), site.org.client("admin") as admin:
         for method, path in requests:
             content = raw_json(json_body(300)) if path.endswith("records") else None
             response = admin.request(
@@ -504,8 +526,9 @@ def test_ids_outside_the_admitted_range_are_refused(site: Site, admin, bad):
 
 
 @pytest.mark.parametrize("bad", [2**63, 0, -1, "1", 1.0])
-def test_ids_in_bodies_outside_the_admitted_range_are_refused(site: Site, admin, bad):
-    with nothing_written(site.org, site.rig):
+def test_ids_in_bodies_outside_the_admitted_range_are_refused(database_site: Site, bad):
+    site = database_site
+    with nothing_written(site.org, site.rig), site.org.client("admin") as admin:
         response = admin.post(f"{API}/structures/{site.rig}/models/baseline", json={"record_ids": [bad]})
         assert response.status_code == 422, response.text
         assert response.json()["detail"][0]["loc"] == ["body", "record_ids", 0]
@@ -538,17 +561,19 @@ def test_a_baseline_is_not_a_fault_mode_model(site: Site, admin, ingest):
     assert_refused(ingest.post(f"{API}/records/{record}/inspect"), 409, "no active fault-mode model")
 
 
-def test_inspect_on_upload_is_all_or_nothing(site: Site, ingest):
+def test_inspect_on_upload_is_all_or_nothing(database_site: Site):
     """A record long enough to store but too short for the model's lags: refused whole."""
+    site = database_site
     needed = 60 + 5 * 40 + 8
     body = json_body(needed - 40)
-    with nothing_written(site.org, site.long_lag):
-        response = post_record(ingest, site.long_lag, body, inspect="true")
-        assert_refused(response, 422, f"{needed - 40} samples is too short; this needs at least {needed}")
-    response = post_record(ingest, site.long_lag, body)
-    assert (response.status_code, response.json()["created"]) == (201, True)
-    record = response.json()["id"]
-    assert_refused(ingest.post(f"{API}/records/{record}/inspect"), 422, "too short")
+    with site.org.client("ingest") as ingest:
+        with nothing_written(site.org, site.long_lag):
+            response = post_record(ingest, site.long_lag, body, inspect="true")
+            assert_refused(response, 422, f"{needed - 40} samples is too short; this needs at least {needed}")
+        response = post_record(ingest, site.long_lag, body)
+        assert (response.status_code, response.json()["created"]) == (201, True)
+        record = response.json()["id"]
+        assert_refused(ingest.post(f"{API}/records/{record}/inspect"), 422, "too short")
 
 
 # --- training ---------------------------------------------------------------------------------
@@ -669,19 +694,20 @@ def test_absurd_term_power_is_refused_promptly(site: Site, power):
 # --- structures, text, authentication ----------------------------------------------------------
 
 
-def test_duplicate_structure_name(site: Site, admin, api_server):
-    with nothing_written(site.org, site.rig):
+def test_duplicate_structure_name(database_site: Site):
+    site = database_site
+    with nothing_written(site.org, site.rig), site.org.client("admin") as admin:
         response = admin.post(f"{API}/structures", json={"name": "rig", "fs": 2000.0})
         assert_refused(response, 409, "a structure named 'rig' already exists in your organisation")
     # Names are unique per organisation, not across them.
-    with Org.create(api_server).client("admin") as stranger:
+    with Org.create(site.org.server).client("admin") as stranger:
         assert stranger.post(f"{API}/structures", json={"name": "rig", "fs": 2000.0}).status_code == 201
 
 
-def test_structure_names_are_stored_trimmed_and_composed(api_server):
+def test_structure_names_are_stored_trimmed_and_composed(database_site: Site):
     """Surrounding spaces go and combining accents are composed (NFC) before a name is stored or
     compared: " rig " is the existing "rig", and "e" + U+0301 is stored as U+00E9."""
-    with Org.create(api_server).client("admin") as admin:
+    with Org.create(database_site.org.server).client("admin") as admin:
         created = admin.post(f"{API}/structures", json={"name": "  Pump 3 ", "fs": FS})
         decomposed = admin.post(f"{API}/structures", json={"name": "Cafe\u0301", "fs": FS})
         for response, name in ((created, "Pump 3"), (decomposed, "Caf\u00e9")):
@@ -777,8 +803,9 @@ LONE_SURROGATE = {
 
 
 @pytest.mark.parametrize(("path", "content"), LONE_SURROGATE.values(), ids=LONE_SURROGATE.keys())
-def test_json_strings_that_are_not_unicode(site: Site, path, content):
+def test_json_strings_that_are_not_unicode(database_site: Site, path, content):
     """A lone UTF-16 surrogate (legal JSON escape, not a character) is a 422, not a crash."""
+    site = database_site
     with nothing_written(site.org, site.rig), site.org.client("admin") as admin:
         response = admin.post(
             API + path.format(rig=site.rig), content=content, headers={"Content-Type": "application/json"}
@@ -786,8 +813,9 @@ def test_json_strings_that_are_not_unicode(site: Site, path, content):
         assert response.status_code == 422, response.text
 
 
-def test_nul_characters_in_text(site: Site):
+def test_nul_characters_in_text(database_site: Site):
     """PostgreSQL text cannot hold NUL: the service must refuse it (or store it) - never a 500."""
+    site = database_site
     with site.org.client("admin") as admin:
         response = admin.post(f"{API}/structures", json={"name": "nul", "fs": FS, "description": "a\x00b"})
     assert response.status_code in (201, 422), response.text
@@ -798,7 +826,8 @@ def test_nul_characters_in_text(site: Site):
         assert response.json()["items"] == []
 
 
-def test_history_filters_outside_the_representable_range(site: Site):
+def test_history_filters_outside_the_representable_range(database_site: Site):
+    site = database_site
     cursor = base64.urlsafe_b64encode(b"0001-01-01T00:00:00+05:00|7").decode()
     queries = [
         {"start": "0001-01-01T00:00:00+05:00"},

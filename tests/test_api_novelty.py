@@ -1,6 +1,7 @@
 """Baseline-only monitoring over HTTP: a structure that is not the rig (a 3-DOF chain, a
 driving-point accelerometer, 1 % sensor noise on both channels, no fault experiments) is watched by
-its healthy baseline alone (``models.novelty``), on SQLite and on PostgreSQL.
+its healthy baseline alone (``models.novelty``), on SQLite; on PostgreSQL, a baseline's figures
+and a queued record's judgement by ``narxwatch worker`` processes.
 
 - Trained from 10 healthy records, the baseline is fitted by output error and keeps the
   reference of its healthy free-run error; each further record gets a verdict, ``healthy`` or
@@ -56,16 +57,27 @@ from simulator.study import StudySettings
 
 
 @pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    """SQLite: what the database adds to a judgement (its figures stored, a queued inspection) is
+    tested on PostgreSQL by ``test_on_postgresql_a_queued_record_is_judged_as_models_novelty_judges_it``."""
+    return sqlite_api_server
+
+
+@pytest.fixture(scope="module")
 def training() -> list[tuple[np.ndarray, np.ndarray]]:
     return healthy_training()
 
 
-@pytest.fixture(scope="module")
-def judge(training) -> tuple[NARX, NoveltyReference]:
+def local_judge(training: list[tuple[np.ndarray, np.ndarray]]) -> tuple[NARX, NoveltyReference]:
     """The baseline and reference ``models.novelty`` makes of the same records, as the service
     should: least squares, then output error from the estimated start."""
     model = fit_output_error(fit_narx(training, parse_terms(TERMS)), training, start_from="estimated").model
     return model, novelty_reference(model, training)
+
+
+@pytest.fixture(scope="module")
+def judge(training) -> tuple[NARX, NoveltyReference]:
+    return local_judge(training)
 
 
 @dataclass
@@ -183,19 +195,38 @@ def test_a_baseline_nonlinear_in_its_output_says_why_it_cannot_judge_records_alo
     assert "cannot judge records alone" in detail(refused) and "linear in its output" in detail(refused)
 
 
-def test_a_queued_inspection_judges_as_one_on_upload(watched: Watched, judge) -> None:
-    """``?inspect=queue``: the job (the embedded worker on SQLite, ``narxwatch worker`` processes on
-    PostgreSQL) stores the same judgement."""
+def assert_queued_record_judged_as_models_novelty_judges_it(tenant: Tenant, structure_id: int, judge) -> None:
+    """``?inspect=queue``: the job stores the judgement ``models.novelty`` makes."""
     x, y = record(scenario(), SAMPLES, 45_000)
-    structure_id = watched.structure_id
     response = post_record(
-        watched.tenant.ingest, structure_id, npz_bytes(x=x, y=y, fs=FS), "application/x-npz", inspect="queue"
+        tenant.ingest, structure_id, npz_bytes(x=x, y=y, fs=FS), "application/x-npz", inspect="queue"
     )
     assert response.status_code == 202, response.text
     record_id = response.json()["id"]
-    queued = wait_for(lambda: verdicts_of(watched.tenant.viewer, structure_id, record_id), 60, "the verdict")
+    queued = wait_for(lambda: verdicts_of(tenant.viewer, structure_id, record_id), 60, "the verdict")
     (verdict,) = queued  # type: ignore[misc]
     assert verdict["novelty"]["statistic"] == pytest.approx(judge_record(*judge, x, y).statistic, rel=1e-6)
+
+
+def test_a_queued_inspection_judges_as_one_on_upload(watched: Watched, judge) -> None:
+    """The embedded worker's judgement."""
+    assert_queued_record_judged_as_models_novelty_judges_it(watched.tenant, watched.structure_id, judge)
+
+
+def test_on_postgresql_a_queued_record_is_judged_as_models_novelty_judges_it(
+    postgresql_api_server: LiveServer, training
+) -> None:
+    """The baseline's figures stored in PostgreSQL, and the judgement of ``narxwatch worker``
+    processes (a baseline of two records: what is tested is the storage and the workers)."""
+    tenant = Tenant.create(postgresql_api_server)
+    structure_id, baseline = chain_baseline(tenant.admin, tenant.ingest, training[:2])
+    judge = local_judge(training[:2])
+    novelty = baseline["statistics"]["novelty"]
+    stored = tenant.viewer.get(f"{API}/structures/{structure_id}/models").json()
+    assert [m["statistics"]["novelty"] for m in stored if m["id"] == baseline["id"]] == [novelty]
+    assert novelty["judges_records"] is True
+    assert novelty["sigma2"] == pytest.approx(judge[1].sigma2, rel=1e-6)
+    assert_queued_record_judged_as_models_novelty_judges_it(tenant, structure_id, judge)
 
 
 @pytest.mark.parametrize("inspect", ["true", "queue"])

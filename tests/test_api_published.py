@@ -1,7 +1,8 @@
 """Uploading the files as published (issue 14, deliverable 6): MAT bodies
 (``application/x-matlab-data``) and CSVs with named columns, x and y named by the query parameters
-``x`` and ``y``. Through HTTP against the real app on SQLite and PostgreSQL; a refused upload
-leaves nothing behind (``api_helpers.nothing_written``).
+``x`` and ``y``. Through HTTP against the real app on SQLite; a record set stored in one
+transaction, found again when sent again, and refused whole on PostgreSQL too (``database_site``).
+A refused upload leaves nothing behind (``api_helpers.nothing_written``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from harness.api_helpers import (
     post_record,
     raw_json,
 )
-from harness.live import LiveServer
+from harness.live import DATABASES, LiveServer, on_each_database
 from harness.mat_bombs import mat_file, matrix, v73_file, zeros_bomb
 from harness.prerequisites import benchmark_file
 from service.schemas import MAX_REFINEMENT_RECORDS
@@ -45,11 +46,26 @@ class Site:
 
 
 @pytest.fixture(scope="module")
-def site(api_server: LiveServer) -> Site:
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
+
+
+def build_site(api_server: LiveServer) -> Site:
     org = Org.create(api_server)
     with clients(org) as (admin, _, _):
         rig = create_structure(admin, "published")["id"]
     return Site(api_server, org, rig)
+
+
+@pytest.fixture(scope="module")
+def site(api_server: LiveServer) -> Site:
+    return build_site(api_server)
+
+
+@pytest.fixture(scope="module", params=DATABASES)
+def database_site(request: pytest.FixtureRequest) -> Site:
+    """The site on each database, for the record sets a transaction stores or refuses whole."""
+    return on_each_database(request, "site", build_site)
 
 
 @pytest.fixture(scope="module")
@@ -229,26 +245,27 @@ def post_set(client: httpx.Client, structure_id: int, body: bytes | str, media: 
     )
 
 
-def test_a_file_of_realisations_uploads_as_its_records_in_one_request(site: Site, ingest, wh_csv: Path):
+def test_a_file_of_realisations_uploads_as_its_records_in_one_request(database_site: Site, wh_csv: Path):
     """Wiener–Hammerstein's estimation file with x = u, y = y: its ten records (u1, y1) …
     (u10, y10), in that order, each the record an independent read gives (uploaded alone as an
     NPZ it is recognised as stored); the file again: 200, the same records, none created."""
-    with clients(site.org) as (admin, _, _):
+    site = database_site
+    with clients(site.org) as (admin, ingest, _):
         wh = create_structure(admin, "wh-set", fs=78125.0)["id"]
-    response = post_set(ingest, wh, wh_csv.read_bytes(), "text/csv", x="u", y="y")
-    assert response.status_code == 201, response.text
-    stored = response.json()
-    assert len(stored) == 10 and all(r["created"] and r["n_samples"] == 8192 for r in stored)
-    assert len({r["id"] for r in stored}) == 10
-    columns = np.genfromtxt(wh_csv, delimiter=",", skip_header=1)  # r1…r10, u1…u10, y1…y10, fs
-    for k in (1, 4, 10):
-        alone = npz_bytes(x=columns[:, 9 + k], y=columns[:, 19 + k], fs=78125.0)
-        again = post_record(ingest, wh, alone, "application/x-npz")
-        assert again.status_code == 200 and again.json()["id"] == stored[k - 1]["id"], again.text
-    repeated = post_set(ingest, wh, wh_csv.read_bytes(), "text/csv", x="u", y="y")
-    assert repeated.status_code == 200, repeated.text
-    assert [r["id"] for r in repeated.json()] == [r["id"] for r in stored]
-    assert not any(r["created"] for r in repeated.json())
+        response = post_set(ingest, wh, wh_csv.read_bytes(), "text/csv", x="u", y="y")
+        assert response.status_code == 201, response.text
+        stored = response.json()
+        assert len(stored) == 10 and all(r["created"] and r["n_samples"] == 8192 for r in stored)
+        assert len({r["id"] for r in stored}) == 10
+        columns = np.genfromtxt(wh_csv, delimiter=",", skip_header=1)  # r1…r10, u1…u10, y1…y10, fs
+        for k in (1, 4, 10):
+            alone = npz_bytes(x=columns[:, 9 + k], y=columns[:, 19 + k], fs=78125.0)
+            again = post_record(ingest, wh, alone, "application/x-npz")
+            assert again.status_code == 200 and again.json()["id"] == stored[k - 1]["id"], again.text
+        repeated = post_set(ingest, wh, wh_csv.read_bytes(), "text/csv", x="u", y="y")
+        assert repeated.status_code == 200, repeated.text
+        assert [r["id"] for r in repeated.json()] == [r["id"] for r in stored]
+        assert not any(r["created"] for r in repeated.json())
 
 
 def test_mat_matrices_upload_as_the_records_of_their_rows(site: Site, ingest):
@@ -278,15 +295,18 @@ BAD_SETS = {
     ("body", "media", "names", "status", "message"), list(BAD_SETS.values()), ids=list(BAD_SETS)
 )
 def test_a_refused_record_set_stores_none_of_its_records(
-    site: Site, ingest, body, media, names, status, message
+    database_site: Site, body, media, names, status, message
 ):
-    with nothing_written(site.org, site.rig):
-        response = post_set(ingest, site.rig, body, media, **names)
-        assert response.status_code == status, response.text
-        assert message in detail(response), detail(response)
-    if names == {"x": "F", "y": "A"}:
-        assert "no record of the set was stored" in detail(response)
-        assert post_set(ingest, site.rig, PAIRS, "text/csv", **names).status_code == 201  # the file, mended
+    site = database_site
+    with site.org.client("ingest") as ingest:
+        with nothing_written(site.org, site.rig):
+            response = post_set(ingest, site.rig, body, media, **names)
+            assert response.status_code == status, response.text
+            assert message in detail(response), detail(response)
+        if names == {"x": "F", "y": "A"}:
+            assert "no record of the set was stored" in detail(response)
+            mended = post_set(ingest, site.rig, PAIRS, "text/csv", **names)
+            assert mended.status_code == 201, mended.text
 
 
 def test_a_record_set_is_bounded_as_each_of_its_records_is(site: Site, ingest):

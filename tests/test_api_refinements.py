@@ -1,5 +1,7 @@
-"""Refinements through HTTP on SQLite and PostgreSQL: the missing effect is named, the refined
-model stored as an inactive version, every refinement listed, and bad requests leave nothing."""
+"""Refinements through HTTP: the missing effect is named, the refined model stored as an inactive
+version, every refinement listed, and bad requests leave nothing. The loop's runs are the
+service's whatever the database: on SQLite; a refinement stored, listed and read back on
+PostgreSQL too (``database_rig``)."""
 
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ from harness.api_helpers import (
     train_fault_mode,
 )
 from harness.dashboard_helpers import logged_in
-from harness.live import LiveServer
+from harness.live import DATABASES, LiveServer, on_each_database
 from models.coverage import coverage
 from models.effects import candidate_effects, linear_terms
 from models.narx import fit_narx
@@ -76,7 +78,11 @@ def upload_record(
 
 
 @pytest.fixture(scope="module")
-def rig(api_server: LiveServer) -> Rig:
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
+
+
+def build_rig(api_server: LiveServer) -> Rig:
     org = Org.create(api_server)
     with clients(org) as (admin, ingest, _):
         structure_id = create_structure(admin, "rig")["id"]
@@ -107,11 +113,23 @@ def rig(api_server: LiveServer) -> Rig:
         )
 
 
+@pytest.fixture(scope="module")
+def rig(api_server: LiveServer) -> Rig:
+    return build_rig(api_server)
+
+
+@pytest.fixture(scope="module", params=DATABASES)
+def database_rig(request: pytest.FixtureRequest) -> Rig:
+    """The rig on each database, for what the database stores and lists."""
+    return on_each_database(request, "rig", build_rig)
+
+
 def refinements_url(structure_id: int) -> str:
     return f"{API}/structures/{structure_id}/refinements"
 
 
-def test_a_missing_effect_is_named_and_the_refined_model_stored_inactive(rig: Rig):
+def test_a_missing_effect_is_named_and_the_refined_model_stored_inactive(database_rig: Rig):
+    rig = database_rig
     with clients(rig.org) as (admin, _, viewer):
         body = {"record_id": rig.effect_record, "base_model_id": rig.baseline["id"]}
         response = admin.post(refinements_url(rig.structure_id), json=body)

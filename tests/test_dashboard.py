@@ -1,5 +1,7 @@
-"""The dashboard over HTTP, on SQLite and PostgreSQL: logins, isolation between organisations,
-and pages whose figures agree with the history API and with an independent recomputation.
+"""The dashboard over HTTP: logins, isolation between organisations, and pages whose figures
+agree with the history API and with an independent recomputation. On SQLite; what the database
+keeps for a page (the sessions a logout ends, the verdicts' times and figures charted) on
+PostgreSQL too (``database_monitored``).
 
 The structure watched was healthy, then developed a k2 fault (harness/dashboard_helpers.py); every
 record went through the real inspection chain on upload.
@@ -39,7 +41,7 @@ from harness.dashboard_helpers import (
     logged_in,
     monitored_structure,
 )
-from harness.live import LiveServer, http_client
+from harness.live import DATABASES, LiveServer, http_client, on_each_database
 from models.alarms import DESIGN_SHIFT, in_control_arl
 from recordfiles.quantities import SignalDeclaration
 from service.dashboard.auth import form_token
@@ -52,8 +54,19 @@ PAGE_SIZE = 25  # service.dashboard.views.HISTORY_PAGE
 
 
 @pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
+
+
+@pytest.fixture(scope="module")
 def monitored(api_server: LiveServer) -> Monitored:
     return monitored_structure(api_server, seed=41)
+
+
+@pytest.fixture(scope="module", params=DATABASES)
+def database_monitored(request: pytest.FixtureRequest) -> Monitored:
+    """The monitored structure on each database."""
+    return on_each_database(request, "monitored", lambda server: monitored_structure(server, seed=41))
 
 
 @pytest.fixture
@@ -150,8 +163,9 @@ def test_next_never_leads_off_the_dashboard(api_server: LiveServer, monitored: M
             assert response.status_code == 303 and response.headers["location"] == DASHBOARD, target
 
 
-def test_logging_out_ends_the_session_on_the_server(api_server: LiveServer, monitored: Monitored):
-    client = logged_in(api_server, monitored.org.keys["viewer"])
+def test_logging_out_ends_the_session_on_the_server(database_monitored: Monitored):
+    api_server = database_monitored.org.server
+    client = logged_in(api_server, database_monitored.org.keys["viewer"])
     token = client.cookies[COOKIE]
     with client:
         assert client.get(DASHBOARD).status_code == 200
@@ -303,8 +317,10 @@ def _since(verdicts: list[dict]) -> dt.datetime:
     return parse(run[-1]["acquired_at"])
 
 
-def test_the_structure_page_charts_every_verdict(viewer: httpx.Client, monitored: Monitored):
-    page = viewer.get(f"{DASHBOARD}/structures/{monitored.structure['id']}")
+def test_the_structure_page_charts_every_verdict(database_monitored: Monitored):
+    monitored = database_monitored
+    with logged_in(monitored.org.server, monitored.org.keys["viewer"]) as viewer:
+        page = viewer.get(f"{DASHBOARD}/structures/{monitored.structure['id']}")
     assert page.status_code == 200
     figures = charts(page)
     oldest_first = monitored.verdicts[::-1]

@@ -353,6 +353,17 @@ def test_structures_judged_in_processes_are_judged_as_in_this_one():
     assert searched[0] != searched[1] and all(np.isfinite(searched))
 
 
+def test_linear_orders_chosen_in_processes_are_chosen_as_in_this_one():
+    """With nothing declared, the linear candidates are judged side by side in worker processes
+    (``narxwatch refine --jobs``): the same orders and terms as judged here."""
+    record = simulate(
+        Scenario(disturbance_std=800.0, effects=Effects.parse(["cubic_stiffness1=4e6"])), 2400, 4
+    )
+    records = [(record.x[:1600], record.y[:1600])]
+    with ProcessPoolExecutor(2) as pool:
+        assert choose_linear(records, workers=pool.map) == choose_linear(records)
+
+
 def test_a_judgement_by_output_error_searches_from_the_fit_kept_here():
     """A structure judged with its output-error fit in a split of its own (a worker's) is
     searched from the least-squares fit this split kept, not from one the worker makes again:
