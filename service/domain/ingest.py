@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 
 from models.baseline_choice import NONLINEAR_DEGREE
 from models.errors import InputError
+from models.free_run_inspection import FreeRunMode
 from models.pooled import PooledModel
 from models.signals import minimum_samples
 from models.terms import max_degree
@@ -155,5 +156,7 @@ def _degree_to_hold(session: Session, structure: Structure) -> int:
     active = [
         model for _, model in active_fault_modes(session, structure) if not isinstance(model, VectorFNARX)
     ]
-    terms = [term for model in active for term in model.terms]
+    # A sensor-noise mode's terms are its FNARX's.
+    fitted = [model.model if isinstance(model, FreeRunMode) else model for model in active]
+    terms = [term for model in fitted for term in model.terms]
     return max_degree(terms) if terms else NONLINEAR_DEGREE

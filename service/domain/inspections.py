@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session, defer, selectinload
 
 from models.errors import InputError
 from models.fnarx import FNARX
+from models.free_run_inspection import FreeRunMode, checked_for_free_run, inspect_free_run
 from models.inspection import Verdict as InspectionVerdict
 from models.inspection import checked_for_inspection, inspect
 from models.narx import NARX
@@ -54,7 +55,7 @@ class Evaluation:
     novelty: NoveltyVerdict | None = None
 
 
-Active = list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX | NoveltyBaseline]]
+Active = list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX | FreeRunMode | NoveltyBaseline]]
 
 
 def evaluate(
@@ -66,7 +67,8 @@ def evaluate(
     channels: Sequence[str] = (),
 ) -> Evaluation:
     """A record's verdict under the ``active`` models (:func:`models_to_inspect_with`) at its
-    ``conditions``: the fault-mode chain (pooled modes evaluated there), or, for a structure
+    ``conditions``: the fault-mode chain (pooled modes evaluated there; the free-run chain for
+    sensor-noise modes, ``models.free_run_inspection``), or, for a structure
     monitored by a pooled baseline alone, that baseline's check there, or by a plain baseline
     alone, its judgement (``models.novelty``: healthy or anomaly, at the false-alarm rate
     ``settings.alpha``); for a record of several ``channels``, the vector inspection
@@ -84,6 +86,8 @@ def evaluate(
         xa, ya, names = vector_record(active, x, y, channels, settings.lags)
         inspection = inspect_vector(xa, ya, vectors, alpha=settings.alpha, lags=settings.lags)
         result = vector_verdict(inspection, vectors, names, settings.alpha, settings.lags, len(xa))
+    elif isinstance(models[0], FreeRunMode):
+        result = inspect_free_run(x, y, models, alpha=settings.alpha)  # type: ignore[arg-type]
     elif baseline is not None:
         check = check_baseline(baseline, x, y, conditions, alpha=settings.alpha, lags=settings.lags)
         result = baseline_verdict(check, len(x))
@@ -145,6 +149,8 @@ def checked_to_queue(
     baseline = active[0][1]
     if isinstance(baseline, NoveltyBaseline):
         return checked_for_judgement(baseline.model, baseline.reference, x, y)
+    if isinstance(baseline, FreeRunMode):
+        return checked_for_free_run(x, y, [model for _, model in active])  # type: ignore[misc]
     return checked_for_inspection(x, y, at_conditions(active, conditions), lags)
 
 
@@ -183,7 +189,7 @@ def models_to_inspect_with(session: Session, structure: Structure, several: bool
         return vectors
     active = [(version, model) for version, model in every if not isinstance(model, VectorFNARX)]
     if active:
-        return active
+        return _one_chain(structure, active)
     baseline = active_baseline(session, structure)
     if baseline is not None and baseline[1] is not None:
         return [(baseline[0], baseline[1])]
@@ -199,6 +205,23 @@ def models_to_inspect_with(session: Session, structure: Structure, several: bool
         f"structure {structure.name!r} has no active fault-mode model{why}: train one with "
         f"POST /api/v1/structures/{structure.id}/models/fault-modes"
     )
+
+
+def _one_chain(structure: Structure, active: Active) -> Active:
+    """The active fault modes, refused when they mix sensor-noise modes (the free-run chain) with
+    the paper's: one chain inspects a record, each with its own statistics, and no verdict can
+    compare a mode of one with a mode of the other."""
+    sensor = [version.name for version, model in active if isinstance(model, FreeRunMode)]
+    process = [version.name for version, model in active if not isinstance(model, FreeRunMode)]
+    if sensor and process:
+        raise ConflictError(
+            f"structure {structure.name!r} has active fault modes of both noise kinds: "
+            f"{', '.join(sensor)} trained with noise 'sensor' (the free-run chain) and {', '.join(process)} "
+            "with noise 'process' (the paper's chain), and one inspection uses one chain: train "
+            f'{", ".join(process)} again with "noise": "sensor" (or the others with "process") '
+            f"at POST /api/v1/structures/{structure.id}/models/fault-modes"
+        )
+    return active
 
 
 def inspect_stored(session: Session, principal: Principal, record_id: int, settings: Settings) -> Verdict:
