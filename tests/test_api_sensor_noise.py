@@ -52,16 +52,16 @@ def upload_chain(
     return upload(tenant.ingest, structure_id, *record(scenario(fault, k), n, seed), **params)
 
 
-def sensor_mode_body(tenant: Tenant, structure_id: int, **extra) -> dict:
-    experiments = [
-        {
-            "record_id": upload_chain(tenant, structure_id, "k2", k, EXPERIMENT_SAMPLES, 30_000 + i)["id"],
-            "k": k,
-        }
+def sensor_mode_body(tenant: Tenant, structure_id: int, spring: str) -> dict:
+    """A training body of ``spring``'s sensor-noise mode, its experiments uploaded."""
+    seed = 30_000 + 100 * int(spring[1:])
+    uploaded = [
+        upload_chain(tenant, structure_id, spring, k, EXPERIMENT_SAMPLES, seed + i)
         for i, k in enumerate(MAGNITUDES)
     ]
-    body = {"name": "k2", "k_min": MAGNITUDES[0], "k_max": MAGNITUDES[-1], "experiments": experiments}
-    return body | {"noise": "sensor"} | extra
+    experiments = [{"record_id": r["id"], "k": k} for r, k in zip(uploaded, MAGNITUDES, strict=True)]
+    body = {"name": spring, "k_min": MAGNITUDES[0], "k_max": MAGNITUDES[-1], "experiments": experiments}
+    return body | {"noise": "sensor"}
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def trained(sqlite_api_server: LiveServer) -> Trained:
     models = f"{API}/structures/{structure_id}/models"
     baseline = tenant.admin.post(f"{models}/baseline", json={"record_ids": healthy_ids, "terms": TERMS})
     assert baseline.status_code == 201, baseline.text
-    mode = tenant.admin.post(f"{models}/fault-modes", json=sensor_mode_body(tenant, structure_id))
+    mode = tenant.admin.post(f"{models}/fault-modes", json=sensor_mode_body(tenant, structure_id, "k2"))
     assert mode.status_code == 201, mode.text
     faulty = upload_chain(tenant, structure_id, "k2", LOOSENED, SAMPLES, 50_000, inspect="true")
     healthy = upload_chain(tenant, structure_id, "none", 0.0, SAMPLES, 60_000, inspect="true")
@@ -142,6 +142,32 @@ def test_a_bad_noise_or_a_training_the_free_run_fit_cannot_give_is_refused(train
         assert response.status_code == 422, response.text
         assert why in detail(response)
     assert tenant.viewer.get(versions).json() == before
+
+
+def test_a_second_sensor_noise_mode_is_fitted_jointly_with_the_first(trained: Trained) -> None:
+    """Training k3 refits k2 with it around one healthy model: a new version of each, k2's
+    training as it was. Both modes' experiments and a jackknife refit for each cost more than
+    NARXWATCH_QUEUE_TRAINING_CELLS: the training is queued. The loosened k2 is then told from k3."""
+    tenant, structure_id = trained.tenant, trained.structure_id
+    body = sensor_mode_body(tenant, structure_id, "k3")
+    response = tenant.admin.post(f"{API}/structures/{structure_id}/models/fault-modes", json=body)
+    assert response.status_code == 202, response.text
+    job = f"{API}/jobs/{response.json()['job_id']}"
+    ended = wait_for(
+        lambda: (state := tenant.admin.get(job).json())["state"] in ("done", "failed") and state,
+        120,
+        "the queued training",
+    )
+    assert ended["state"] == "done", ended  # type: ignore[index]
+    listed = tenant.viewer.get(f"{API}/structures/{structure_id}/models").json()
+    active = {m["name"]: m for m in listed if m["active"] and m["kind"] == "fault_mode"}
+    assert active["k2"]["version"] == trained.mode["version"] + 1
+    assert active["k2"]["training"] == trained.mode["training"] | {"fitted_with": ["k2", "k3"]}
+    assert active["k3"]["training"]["fitted_with"] == ["k2", "k3"]
+    verdict = tenant.ingest.post(f"{API}/records/{trained.faulty['id']}/inspect").json()
+    assert verdict["status"] == "faulty" and verdict["fault_mode"] == "k2"
+    assert sorted(m["id"] for m in verdict["model_versions"]) == sorted(m["id"] for m in active.values())
+    assert [m["name"] for m in verdict["modes"]] == ["k2", "k3"]
 
 
 def test_active_modes_of_both_noise_kinds_are_refused_at_inspection(trained: Trained) -> None:
