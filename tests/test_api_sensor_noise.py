@@ -21,6 +21,7 @@ from harness.api_helpers import (
     API,
     create_structure,
     detail,
+    job_ended,
     npz_bytes,
     post_record,
     verdicts_of,
@@ -28,6 +29,7 @@ from harness.api_helpers import (
 )
 from harness.live import LiveServer, Tenant
 from harness.noisy_modes import MAGNITUDES, TERMS
+from service.config import Settings
 
 # Shorter experiments than harness/noisy_modes.py's: the training then costs less than
 # NARXWATCH_QUEUE_TRAINING_CELLS and answers at once (the fit's time grows with them).
@@ -144,6 +146,27 @@ def test_a_bad_noise_or_a_training_the_free_run_fit_cannot_give_is_refused(train
     assert tenant.viewer.get(versions).json() == before
 
 
+def test_a_record_too_long_to_inspect_by_free_run_within_a_request_is_sent_to_the_queue(
+    trained: Trained,
+) -> None:
+    """The free-run chain costs samples × the modes' coefficients cells: over
+    NARXWATCH_QUEUE_TRAINING_CELLS an upload that asks for the verdict at once is refused, storing
+    nothing, and so is inspecting such a stored record; storing it alone is not refused."""
+    tenant, structure_id = trained.tenant, trained.structure_id
+    coefficients = 2 * len(TERMS)  # one mode, degree 1
+    n = Settings.model_fields["queue_training_cells"].default // coefficients + 1000
+    x, y = record(scenario(), n, 90_000)
+    body = npz_bytes(x=x, y=y, fs=FS)
+    refused = post_record(tenant.ingest, structure_id, body, "application/x-npz", inspect="true")
+    assert refused.status_code == 422, refused.text
+    assert f"would cost {n * coefficients} cells" in detail(refused) and "inspect=queue" in detail(refused)
+    stored = upload(tenant.ingest, structure_id, x, y)
+    assert stored["created"], "the refused upload stored the record"
+    inspected = tenant.ingest.post(f"{API}/records/{stored['id']}/inspect")
+    assert inspected.status_code == 422, inspected.text
+    assert "inspect=queue" in detail(inspected)
+
+
 def test_a_second_sensor_noise_mode_is_fitted_jointly_with_the_first(trained: Trained) -> None:
     """Training k3 refits k2 with it around one healthy model: a new version of each, k2's
     training as it was. Both modes' experiments and a jackknife refit for each cost more than
@@ -151,14 +174,8 @@ def test_a_second_sensor_noise_mode_is_fitted_jointly_with_the_first(trained: Tr
     tenant, structure_id = trained.tenant, trained.structure_id
     body = sensor_mode_body(tenant, structure_id, "k3")
     response = tenant.admin.post(f"{API}/structures/{structure_id}/models/fault-modes", json=body)
-    assert response.status_code == 202, response.text
-    job = f"{API}/jobs/{response.json()['job_id']}"
-    ended = wait_for(
-        lambda: (state := tenant.admin.get(job).json())["state"] in ("done", "failed") and state,
-        120,
-        "the queued training",
-    )
-    assert ended["state"] == "done", ended  # type: ignore[index]
+    ended = job_ended(tenant.admin, response, 120)
+    assert ended["state"] == "done", ended
     listed = tenant.viewer.get(f"{API}/structures/{structure_id}/models").json()
     active = {m["name"]: m for m in listed if m["active"] and m["kind"] == "fault_mode"}
     assert active["k2"]["version"] == trained.mode["version"] + 1

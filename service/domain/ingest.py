@@ -76,6 +76,8 @@ def ingest_record(
             # Data stored before and sent again stating no conditions are that record, to be
             # judged at the conditions it was stored with (records.store_record).
             values = records.condition_values(records.stored_conditions(session, structure, x, y, rate))
+    if inspect or queue is not None:
+        inspections.check_inspection_cost(models, len(x), settings, queued=not inspect)  # type: ignore[arg-type]
     if inspect:
         evaluation = inspections.evaluate(models, settings, x, y, values, channels)
     elif queue is not None:

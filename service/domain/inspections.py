@@ -224,13 +224,41 @@ def _one_chain(structure: Structure, active: Active) -> Active:
     return active
 
 
+def free_run_cells(active: Active, n_samples: int) -> int:
+    """What inspecting a record of ``n_samples`` by the free-run chain costs in cells, as a
+    training's: its samples times every mode's coefficients (terms × basis functions), whose
+    sensitivities a free run carries at each magnitude tried, mode by mode; 0 for the other chains,
+    whose cost the record's size bounds."""
+    return sum(n_samples * model.model.theta.size for _, model in active if isinstance(model, FreeRunMode))
+
+
+def check_inspection_cost(active: Active, n_samples: int, settings: Settings, queued: bool) -> None:
+    """Refuse a free-run inspection over ``max_training_cells``, or over ``queue_training_cells``
+    within a request (not ``queued``): its free runs cost far more a sample than the one-step chain."""
+    cells = free_run_cells(active, n_samples)
+    what = f"inspecting this record of {n_samples} samples by the free-run chain would cost {cells} cells"
+    if cells > settings.max_training_cells:
+        raise InputError(
+            f"{what}; the limit is {settings.max_training_cells} (NARXWATCH_MAX_TRAINING_CELLS): "
+            "send shorter records"
+        )
+    if not queued and cells > settings.queue_training_cells:
+        raise InputError(
+            f"{what}, more than a request runs ({settings.queue_training_cells}, "
+            "NARXWATCH_QUEUE_TRAINING_CELLS): send the record with inspect=queue, which queues its inspection"
+        )
+
+
 def inspect_stored(session: Session, principal: Principal, record_id: int, settings: Settings) -> Verdict:
-    """The caller's stored record inspected (see :func:`inspect_record`); its signals are read
-    only if it has no verdict under the active models yet."""
+    """The caller's stored record inspected (see :func:`inspect_record`) within the request; its
+    signals are read only if it has no verdict under the active models yet."""
     unread = [defer(Record.x), defer(Record.y)]
     record = get_owned(session, principal, Record, record_id, "record", options=unread)
     structure = get_structure(session, principal, record.structure_id)
-    return inspect_record(session, record, structure, settings)
+    active = models_to_inspect_with(session, structure, bool(record.channels))
+    if _find(session, record.id, model_set([version for version, _ in active])) is None:
+        check_inspection_cost(active, record.n_samples, settings, queued=False)
+    return inspect_record(session, record, structure, settings, active)
 
 
 def inspect_record(
