@@ -27,9 +27,11 @@ from harness.api_helpers import (
     verdicts_of,
     wait_for,
 )
+from harness.dashboard_helpers import DASHBOARD, logged_in
 from harness.live import LiveServer, Tenant
 from harness.noisy_modes import MAGNITUDES, TERMS
 from service.config import Settings
+from service.security import Role
 
 # Shorter experiments than harness/noisy_modes.py's: the training then costs less than
 # NARXWATCH_QUEUE_TRAINING_CELLS and answers at once (the fit's time grows with them).
@@ -117,6 +119,15 @@ def test_a_loosened_spring_is_localised_and_sized_by_the_free_run_chain(trained:
     assert [m["id"] for m in verdict["model_versions"]] == [trained.mode["id"]]
     fetched = trained.tenant.viewer.get(f"{API}/verdicts/{verdict['id']}").json()
     assert fetched == verdict
+
+
+def test_the_dashboard_shows_a_free_run_verdict(trained: Trained, sqlite_api_server: LiveServer) -> None:
+    """Its record page names the mode and its interval; no one-step fit is drawn (none was made)."""
+    key = sqlite_api_server.key(Role.viewer, trained.tenant.name)
+    with logged_in(sqlite_api_server, key) as client:
+        page = client.get(f"{DASHBOARD}/records/{trained.faulty['id']}")
+    assert page.status_code == 200, page.text
+    assert 'id="free-run-note"' in page.text and 'id="chart-response"' not in page.text
 
 
 def test_healthy_records_are_healthy_inspected_at_once_or_queued(trained: Trained) -> None:

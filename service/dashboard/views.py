@@ -203,7 +203,7 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
     version = next(v for v in verdict.models if v.name == chosen.name)
     parsed = modelling.parsed_model(version)
     if isinstance(parsed, FreeRunMode):  # judged by its free run: no one-step fit to draw
-        return context | {"verdict": out, "mode": chosen}
+        return context | {"verdict": out, "mode": chosen, "free_run": True}
     if isinstance(parsed, VectorFNARX):
         return context | _channel_residuals(record, structure, out, chosen, version, parsed)
     fault_mode = (
