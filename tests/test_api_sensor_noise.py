@@ -6,6 +6,11 @@ for its free run (``models.free_run_inspection``) and inspects records with by t
   it), its terms the baseline's.
 - A record of k2 loosened is ``faulty``, localised to k2 with an interval around the loosening; a
   healthy record is ``healthy``, also when its inspection is queued; no Ljung–Box test is made.
+- The dashboard's record page shows the verdict without a one-step fit.
+- A record whose free-run inspection costs more cells than a request runs is refused with
+  inspect=true (stored by nothing) and sent to inspect=queue.
+- A second sensor-noise mode refits the first with it (one healthy model; the training queued by
+  its cost), and the loosened k2 is told from k3.
 - Active modes of both noise kinds are refused at inspection (409, saying what to do); a bad
   ``noise`` (422) or a sensor-noise training the free-run fit cannot give (422) writes nothing.
 """

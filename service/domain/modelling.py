@@ -118,19 +118,24 @@ def train_fault_mode(
         size=body.degree + 1,
         k_range=(body.k_min, body.k_max),
     )
-    training = {
+    training = _fault_mode_training(body, model.term_names, taken)
+    statistics = {"experiment_sigma2": model.experiment_sigma2.tolist(), "n_obs": model.n_obs}
+    document = bounded_document(model.to_document(), settings)
+    return new_version(session, structure, "fault_mode", body.name, document, training, statistics)
+
+
+def _fault_mode_training(body: FaultModeTrain, terms: list[str], taken: dict[str, Any]) -> dict[str, Any]:
+    """What a fault-mode version keeps of its training: the request as given, and its terms."""
+    return {
         "experiments": [e.model_dump() for e in body.experiments],
         "k_min": body.k_min,
         "k_max": body.k_max,
         "basis": body.basis,
         "degree": body.degree,
-        "terms": model.term_names,
+        "terms": terms,
         "noise": body.noise,
         **taken,
     }
-    statistics = {"experiment_sigma2": model.experiment_sigma2.tolist(), "n_obs": model.n_obs}
-    document = bounded_document(model.to_document(), settings)
-    return new_version(session, structure, "fault_mode", body.name, document, training, statistics)
 
 
 def _train_free_run_modes(
@@ -165,18 +170,7 @@ def _train_free_run_modes(
             (*signals(r), e["k"]) for r, e in zip(stored, version.training["experiments"], strict=True)
         ]
     fitted_with = sorted(experiments)
-    trainings = {
-        body.name: {
-            "experiments": [e.model_dump() for e in body.experiments],
-            "k_min": body.k_min,
-            "k_max": body.k_max,
-            "basis": body.basis,
-            "degree": body.degree,
-            "terms": names,
-            "noise": body.noise,
-            **taken,
-        }
-    }
+    trainings = {body.name: _fault_mode_training(body, names, taken)}
     for version in others:  # a queued training's mark stays with the version it stored
         trainings[version.name] = {k: v for k, v in version.training.items() if k != "job"}
     stored_versions = {}
