@@ -10,7 +10,8 @@ for its free run (``models.free_run_inspection``) and inspects records with by t
 - A record whose free-run inspection costs more cells than a request runs is refused with
   inspect=true (stored by nothing) and sent to inspect=queue.
 - A second sensor-noise mode refits the first with it (one healthy model; the training queued by
-  its cost), and the loosened k2 is told from k3.
+  its cost), and the loosened k2 is told from k3; modes not fitted together (an older version
+  activated) are refused at inspection (409).
 - Active modes of both noise kinds are refused at inspection (409, saying what to do); a bad
   ``noise`` (422) or a sensor-noise training the free-run fit cannot give (422) writes nothing.
 """
@@ -201,6 +202,12 @@ def test_a_second_sensor_noise_mode_is_fitted_jointly_with_the_first(trained: Tr
     assert verdict["status"] == "faulty" and verdict["fault_mode"] == "k2"
     assert sorted(m["id"] for m in verdict["model_versions"]) == sorted(m["id"] for m in active.values())
     assert [m["name"] for m in verdict["modes"]] == ["k2", "k3"]
+    # k2's first version, fitted alone, beside k3 fitted with its second: refused until refitted.
+    activated = tenant.admin.post(f"{API}/structures/{structure_id}/models/{trained.mode['id']}/activate")
+    assert activated.status_code == 200, activated.text
+    refused = tenant.ingest.post(f"{API}/records/{trained.healthy['id']}/inspect")
+    assert refused.status_code == 409, refused.text
+    assert "not fitted together" in detail(refused)
 
 
 def test_active_modes_of_both_noise_kinds_are_refused_at_inspection(trained: Trained) -> None:

@@ -210,7 +210,8 @@ def models_to_inspect_with(session: Session, structure: Structure, several: bool
 def _one_chain(structure: Structure, active: Active) -> Active:
     """The active fault modes, refused when they mix sensor-noise modes (the free-run chain) with
     the paper's: one chain inspects a record, each with its own statistics, and no verdict can
-    compare a mode of one with a mode of the other."""
+    compare a mode of one with a mode of the other; and refused when the sensor-noise modes were
+    not fitted together, which the free-run chain's localisation assumes."""
     sensor = [version.name for version, model in active if isinstance(model, FreeRunMode)]
     process = [version.name for version, model in active if not isinstance(model, FreeRunMode)]
     if sensor and process:
@@ -220,6 +221,15 @@ def _one_chain(structure: Structure, active: Active) -> Active:
             "with noise 'process' (the paper's chain), and one inspection uses one chain: train "
             f'{", ".join(process)} again with "noise": "sensor" (or the others with "process") '
             f"at POST /api/v1/structures/{structure.id}/models/fault-modes"
+        )
+    # One joint fit gives every mode the same healthy error level: different ones mean modes
+    # fitted apart (an older version activated), each around its own healthy model.
+    levels = {(model.sigma2, model.dof) for _, model in active if isinstance(model, FreeRunMode)}
+    if len(levels) > 1:
+        raise ConflictError(
+            f"the active sensor-noise fault modes of structure {structure.name!r} ({', '.join(sensor)}) were "
+            "not fitted together around one healthy model (an older version was activated): train one of "
+            f"them again at POST /api/v1/structures/{structure.id}/models/fault-modes, which refits them all"
         )
     return active
 
