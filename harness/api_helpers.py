@@ -200,6 +200,18 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str) -> obje
     raise AssertionError(f"{what}: not within {timeout} s")
 
 
+def job_ended(client: httpx.Client, accepted: httpx.Response, timeout: float) -> dict:
+    """The job a 202 answer queued, followed at its location until it is done or failed."""
+    assert accepted.status_code == 202, accepted.text
+    location = accepted.json()["location"]
+    ended = wait_for(
+        lambda: (job := client.get(location).json())["state"] in ("done", "failed") and job,
+        timeout,
+        "the job",
+    )
+    return ended  # type: ignore[return-value]
+
+
 async def time_victim(
     url: str, victim: str, slow: list[asyncio.Task], at_least: float = 0.0
 ) -> list[tuple[float, int | None]]:

@@ -333,6 +333,18 @@ def _estimate(mode: FreeRunMode, run: FreeRun, y: np.ndarray, model_uncertainty:
     return _Estimate(k_hat, sigma_k, sigma_k_record, z, sigma2, dof, limit)
 
 
+def checked_for_free_run(
+    x: ArrayLike, y: ArrayLike, fault_modes: Sequence[FreeRunMode]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) as float64 vectors fit to be inspected with ``fault_modes``: long enough for the
+    whitened free-run error after the modes' longest lag, and within the terms' magnitude limit.
+    A service that queues an inspection checks a record with this before storing it, so that the
+    queued inspection cannot fail on what the upload could have refused."""
+    longest = max(mode.model.max_lag for mode in fault_modes)
+    degree = max_degree([term for mode in fault_modes for term in mode.model.terms])
+    return checked_record(x, y, longest + WHITENING_ORDER + 100, degree=degree)
+
+
 def inspect_free_run(
     x: ArrayLike,
     y: ArrayLike,
@@ -344,9 +356,7 @@ def inspect_free_run(
 ) -> Verdict:
     """Run the free-run chain on one record (x: excitation, y: response); module docstring."""
     check_request([mode.name for mode in fault_modes], alpha, adequacy_share)
-    longest = max(mode.model.max_lag for mode in fault_modes)
-    degree = max_degree([term for mode in fault_modes for term in mode.model.terms])
-    xa, ya = checked_record(x, y, longest + WHITENING_ORDER + 100, degree=degree)
+    xa, ya = checked_for_free_run(x, y, fault_modes)
     adequacy_alpha = adequacy_share * alpha
     magnitude_level = 1 - ((1 - alpha) / (1 - adequacy_alpha)) ** (1 / len(fault_modes))
     z_detect = z_quantile(1 - magnitude_level)

@@ -190,6 +190,14 @@ class Experiment(Strict):
     k: Magnitude
 
 
+NOISE_HELP = (
+    "Where the structure's noise is: process (a force on the structure; the paper's chain, one-step "
+    "residual and Ljung–Box) or sensor (on the measured force and response; the free-run chain, "
+    "models.free_run_inspection: degree 1, the range the experiments' magnitudes, at three or more, "
+    "and every sensor-noise mode of the structure refitted with this one around one healthy model)"
+)
+
+
 class FaultModeTrain(Strict):
     """Train a fault-mode FNARX from stored records at known magnitudes."""
 
@@ -200,6 +208,7 @@ class FaultModeTrain(Strict):
     basis: Literal[FAMILIES] = "chebyshev2"  # type: ignore[valid-type]
     experiments: Annotated[list[Experiment], Field(min_length=2, max_length=1000)]
     terms: Terms | None = Field(None, description=BASELINE_TERMS_HELP)
+    noise: Literal["process", "sensor"] = Field("process", description=NOISE_HELP)
 
 
 ConditionName = Annotated[

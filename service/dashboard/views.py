@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 
 from models.errors import InputError
 from models.fnarx import FNARX
+from models.free_run_inspection import FreeRunMode
 from models.pooled import PooledModel
 from models.validation import one_step_fit
 from models.vector import VectorFNARX
@@ -201,6 +202,8 @@ def record_page(session: Session, principal: Principal, record_id: int, mode: st
         return context | {"verdict": out, "mode": chosen}
     version = next(v for v in verdict.models if v.name == chosen.name)
     parsed = modelling.parsed_model(version)
+    if isinstance(parsed, FreeRunMode):  # judged by its free run: no one-step fit to draw
+        return context | {"verdict": out, "mode": chosen, "free_run": True}
     if isinstance(parsed, VectorFNARX):
         return context | _channel_residuals(record, structure, out, chosen, version, parsed)
     fault_mode = (

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 
 from models.baseline_choice import NONLINEAR_DEGREE
 from models.errors import InputError
+from models.free_run_inspection import FreeRunMode
 from models.pooled import PooledModel
 from models.signals import minimum_samples
 from models.terms import max_degree
@@ -75,6 +76,8 @@ def ingest_record(
             # Data stored before and sent again stating no conditions are that record, to be
             # judged at the conditions it was stored with (records.store_record).
             values = records.condition_values(records.stored_conditions(session, structure, x, y, rate))
+    if inspect or queue is not None:
+        inspections.check_inspection_cost(models, len(x), settings, queued=not inspect)  # type: ignore[arg-type]
     if inspect:
         evaluation = inspections.evaluate(models, settings, x, y, values, channels)
     elif queue is not None:
@@ -155,5 +158,7 @@ def _degree_to_hold(session: Session, structure: Structure) -> int:
     active = [
         model for _, model in active_fault_modes(session, structure) if not isinstance(model, VectorFNARX)
     ]
-    terms = [term for model in active for term in model.terms]
+    # A sensor-noise mode's terms are its FNARX's.
+    fitted = [model.model if isinstance(model, FreeRunMode) else model for model in active]
+    terms = [term for model in fitted for term in model.terms]
     return max_degree(terms) if terms else NONLINEAR_DEGREE

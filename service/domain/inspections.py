@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session, defer, selectinload
 
 from models.errors import InputError
 from models.fnarx import FNARX
+from models.free_run_inspection import FreeRunMode, checked_for_free_run, inspect_free_run
 from models.inspection import Verdict as InspectionVerdict
 from models.inspection import checked_for_inspection, inspect
 from models.narx import NARX
@@ -54,7 +55,7 @@ class Evaluation:
     novelty: NoveltyVerdict | None = None
 
 
-Active = list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX | NoveltyBaseline]]
+Active = list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX | FreeRunMode | NoveltyBaseline]]
 
 
 def evaluate(
@@ -66,7 +67,8 @@ def evaluate(
     channels: Sequence[str] = (),
 ) -> Evaluation:
     """A record's verdict under the ``active`` models (:func:`models_to_inspect_with`) at its
-    ``conditions``: the fault-mode chain (pooled modes evaluated there), or, for a structure
+    ``conditions``: the fault-mode chain (pooled modes evaluated there; the free-run chain for
+    sensor-noise modes, ``models.free_run_inspection``), or, for a structure
     monitored by a pooled baseline alone, that baseline's check there, or by a plain baseline
     alone, its judgement (``models.novelty``: healthy or anomaly, at the false-alarm rate
     ``settings.alpha``); for a record of several ``channels``, the vector inspection
@@ -84,6 +86,8 @@ def evaluate(
         xa, ya, names = vector_record(active, x, y, channels, settings.lags)
         inspection = inspect_vector(xa, ya, vectors, alpha=settings.alpha, lags=settings.lags)
         result = vector_verdict(inspection, vectors, names, settings.alpha, settings.lags, len(xa))
+    elif isinstance(models[0], FreeRunMode):
+        result = inspect_free_run(x, y, models, alpha=settings.alpha)  # type: ignore[arg-type]
     elif baseline is not None:
         check = check_baseline(baseline, x, y, conditions, alpha=settings.alpha, lags=settings.lags)
         result = baseline_verdict(check, len(x))
@@ -145,6 +149,8 @@ def checked_to_queue(
     baseline = active[0][1]
     if isinstance(baseline, NoveltyBaseline):
         return checked_for_judgement(baseline.model, baseline.reference, x, y)
+    if isinstance(baseline, FreeRunMode):
+        return checked_for_free_run(x, y, [model for _, model in active])  # type: ignore[misc]
     return checked_for_inspection(x, y, at_conditions(active, conditions), lags)
 
 
@@ -183,7 +189,7 @@ def models_to_inspect_with(session: Session, structure: Structure, several: bool
         return vectors
     active = [(version, model) for version, model in every if not isinstance(model, VectorFNARX)]
     if active:
-        return active
+        return _one_chain(structure, active)
     baseline = active_baseline(session, structure)
     if baseline is not None and baseline[1] is not None:
         return [(baseline[0], baseline[1])]
@@ -201,13 +207,68 @@ def models_to_inspect_with(session: Session, structure: Structure, several: bool
     )
 
 
+def _one_chain(structure: Structure, active: Active) -> Active:
+    """The active fault modes, refused when they mix sensor-noise modes (the free-run chain) with
+    the paper's: one chain inspects a record, each with its own statistics, and no verdict can
+    compare a mode of one with a mode of the other; and refused when the sensor-noise modes were
+    not fitted together, which the free-run chain's localisation assumes."""
+    sensor = [version.name for version, model in active if isinstance(model, FreeRunMode)]
+    process = [version.name for version, model in active if not isinstance(model, FreeRunMode)]
+    if sensor and process:
+        raise ConflictError(
+            f"structure {structure.name!r} has active fault modes of both noise kinds: "
+            f"{', '.join(sensor)} trained with noise 'sensor' (the free-run chain) and {', '.join(process)} "
+            "with noise 'process' (the paper's chain), and one inspection uses one chain: train "
+            f'{", ".join(process)} again with "noise": "sensor" (or the others with "process") '
+            f"at POST /api/v1/structures/{structure.id}/models/fault-modes"
+        )
+    # One joint fit gives every mode the same healthy error level: different ones mean modes
+    # fitted apart (an older version activated), each around its own healthy model.
+    levels = {(model.sigma2, model.dof) for _, model in active if isinstance(model, FreeRunMode)}
+    if len(levels) > 1:
+        raise ConflictError(
+            f"the active sensor-noise fault modes of structure {structure.name!r} ({', '.join(sensor)}) were "
+            "not fitted together around one healthy model (an older version was activated): train one of "
+            f"them again at POST /api/v1/structures/{structure.id}/models/fault-modes, which refits them all"
+        )
+    return active
+
+
+def free_run_cells(active: Active, n_samples: int) -> int:
+    """What inspecting a record of ``n_samples`` by the free-run chain costs in cells, as a
+    training's: its samples times every mode's coefficients (terms × basis functions), whose
+    sensitivities a free run carries at each magnitude tried, mode by mode; 0 for the other chains,
+    whose cost the record's size bounds."""
+    return sum(n_samples * model.model.theta.size for _, model in active if isinstance(model, FreeRunMode))
+
+
+def check_inspection_cost(active: Active, n_samples: int, settings: Settings, queued: bool) -> None:
+    """Refuse a free-run inspection over ``max_training_cells``, or over ``queue_training_cells``
+    within a request (not ``queued``): its free runs cost far more a sample than the one-step chain."""
+    cells = free_run_cells(active, n_samples)
+    what = f"inspecting this record of {n_samples} samples by the free-run chain would cost {cells} cells"
+    if cells > settings.max_training_cells:
+        raise InputError(
+            f"{what}; the limit is {settings.max_training_cells} (NARXWATCH_MAX_TRAINING_CELLS): "
+            "send shorter records"
+        )
+    if not queued and cells > settings.queue_training_cells:
+        raise InputError(
+            f"{what}, more than a request runs ({settings.queue_training_cells}, "
+            "NARXWATCH_QUEUE_TRAINING_CELLS): send the record with inspect=queue, which queues its inspection"
+        )
+
+
 def inspect_stored(session: Session, principal: Principal, record_id: int, settings: Settings) -> Verdict:
-    """The caller's stored record inspected (see :func:`inspect_record`); its signals are read
-    only if it has no verdict under the active models yet."""
+    """The caller's stored record inspected (see :func:`inspect_record`) within the request; its
+    signals are read only if it has no verdict under the active models yet."""
     unread = [defer(Record.x), defer(Record.y)]
     record = get_owned(session, principal, Record, record_id, "record", options=unread)
     structure = get_structure(session, principal, record.structure_id)
-    return inspect_record(session, record, structure, settings)
+    active = models_to_inspect_with(session, structure, bool(record.channels))
+    if _find(session, record.id, model_set([version for version, _ in active])) is None:
+        check_inspection_cost(active, record.n_samples, settings, queued=False)
+    return inspect_record(session, record, structure, settings, active)
 
 
 def inspect_record(

@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session, defer
 from models.baseline_choice import CHOICE_COLUMNS, CHOICE_MIN_SAMPLES, MAX_CHOSEN_TERMS, choose_baseline_terms
 from models.errors import InputError
 from models.fnarx import FNARX, fit_fnarx
+from models.free_run_inspection import FreeRunMode, fit_free_run_modes
 from models.narx import NARX, fit_narx
 from models.novelty import NoveltyReference, novelty_reference
 from models.output_error import fit_output_error
@@ -58,7 +59,7 @@ class NoveltyBaseline:
         return cls(NARX.from_document(document), NoveltyReference.from_document(document[REFERENCE]))
 
 
-Parsed = FNARX | PooledModel | VectorFNARX | NoveltyBaseline
+Parsed = FNARX | PooledModel | VectorFNARX | FreeRunMode | NoveltyBaseline
 # Versions are immutable, so a parsed model can be kept; keyed by id and creation time so that
 # two databases in one process (tests) never share an entry. Requests and the embedded worker
 # share it from several threads: an OrderedDict reordered by two at once can lose entries.
@@ -107,6 +108,8 @@ def train_fault_mode(
     structure = get_structure(session, principal, structure_id)
     records, _ = _training_records(session, principal, structure, body, settings)
     terms, taken = given_or_baseline_terms(session, structure, body.terms)
+    if body.noise == "sensor":
+        return _train_free_run_modes(session, principal, structure, body, records, terms, taken, settings)
     model = fit_fnarx(
         [(*signals(r), e.k) for r, e in zip(records, body.experiments, strict=True)],
         terms,
@@ -115,18 +118,85 @@ def train_fault_mode(
         size=body.degree + 1,
         k_range=(body.k_min, body.k_max),
     )
-    training = {
+    training = _fault_mode_training(body, model.term_names, taken)
+    statistics = {"experiment_sigma2": model.experiment_sigma2.tolist(), "n_obs": model.n_obs}
+    document = bounded_document(model.to_document(), settings)
+    return new_version(session, structure, "fault_mode", body.name, document, training, statistics)
+
+
+def _fault_mode_training(body: FaultModeTrain, terms: list[str], taken: dict[str, Any]) -> dict[str, Any]:
+    """What a fault-mode version keeps of its training: the request as given, and its terms."""
+    return {
         "experiments": [e.model_dump() for e in body.experiments],
         "k_min": body.k_min,
         "k_max": body.k_max,
         "basis": body.basis,
         "degree": body.degree,
-        "terms": model.term_names,
+        "terms": terms,
+        "noise": body.noise,
         **taken,
     }
-    statistics = {"experiment_sigma2": model.experiment_sigma2.tolist(), "n_obs": model.n_obs}
-    document = bounded_document(model.to_document(), settings)
-    return new_version(session, structure, "fault_mode", body.name, document, training, statistics)
+
+
+def _train_free_run_modes(
+    session: Session,
+    principal: Principal,
+    structure: Structure,
+    body: FaultModeTrain,
+    records: list[Record],
+    terms: tuple[Term, ...],
+    taken: dict[str, Any],
+    settings: Settings,
+) -> ModelVersion:
+    """A sensor-noise fault mode (``models.free_run_inspection``), fitted jointly with the
+    structure's other active sensor-noise modes from their stored experiments: the modes share one
+    healthy θ₀, and one fitted apart would carry its own experiments' error of it, which the
+    localisation would take for a fault. Each of the others gets a new version too (its training
+    as before, ``fitted_with`` naming the modes fitted together); the trained mode's is returned."""
+    others = _other_free_run_modes(session, structure, body.name)
+    names = [term.name for term in terms]
+    for version in others:
+        if version.training["terms"] != names:
+            raise ConflictError(
+                f"sensor-noise fault mode {version.name!r} has other terms "
+                f"({', '.join(version.training['terms'])}); "
+                "the sensor-noise modes of a structure are fitted together around one healthy model: "
+                f"train {body.name!r} with its terms, or train {version.name!r} again with these"
+            )
+    experiments = {body.name: [(*signals(r), e.k) for r, e in zip(records, body.experiments, strict=True)]}
+    for version in others:
+        stored = owned_records(session, principal, structure, _experiment_ids(version))
+        experiments[version.name] = [
+            (*signals(r), e["k"]) for r, e in zip(stored, version.training["experiments"], strict=True)
+        ]
+    fitted_with = sorted(experiments)
+    trainings = {body.name: _fault_mode_training(body, names, taken)}
+    for version in others:  # a queued training's mark stays with the version it stored
+        trainings[version.name] = {k: v for k, v in version.training.items() if k != "job"}
+    stored_versions = {}
+    for mode in fit_free_run_modes(experiments, terms):
+        statistics = {
+            "experiment_sigma2": mode.model.experiment_sigma2.tolist(),
+            "n_obs": mode.model.n_obs,
+            "sigma2": mode.sigma2,
+            "dof": mode.dof,
+        }
+        training = trainings[mode.name] | {"fitted_with": fitted_with}
+        document = bounded_document(mode.to_document(), settings)
+        stored_versions[mode.name] = new_version(
+            session, structure, "fault_mode", mode.name, document, training, statistics
+        )
+    return stored_versions[body.name]
+
+
+def _other_free_run_modes(session: Session, structure: Structure, name: str) -> list[ModelVersion]:
+    """The structure's active sensor-noise fault-mode versions other than ``name``'s."""
+    versions = session.scalars(ACTIVE_OF_KIND, {"structure_id": structure.id, "kind": "fault_mode"})
+    return [v for v in versions if v.name != name and v.training.get("noise") == "sensor"]
+
+
+def _experiment_ids(version: ModelVersion) -> list[int]:
+    return [e["record_id"] for e in version.training["experiments"]]
 
 
 def train_pooled(
@@ -326,9 +396,9 @@ ACTIVE_OF_KIND = (
 
 def active_fault_modes(
     session: Session, structure: Structure
-) -> list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX]]:
+) -> list[tuple[ModelVersion, FNARX | PooledModel | VectorFNARX | FreeRunMode]]:
     """The active fault-mode versions of a structure, by name, with their parsed models (vector ones,
-    for records of several channels, included)."""
+    for records of several channels, and sensor-noise ones included)."""
     versions = session.scalars(ACTIVE_OF_KIND, {"structure_id": structure.id, "kind": "fault_mode"})
     return [(version, parsed_model(version)) for version in versions]
 
@@ -351,8 +421,8 @@ def active_baseline(
 
 
 def parsed_model(version: ModelVersion) -> Parsed:
-    """The parsed model of a fault-mode, pooled or vector version, or of a plain baseline that
-    judges records alone, kept once parsed: versions never change."""
+    """The parsed model of a fault-mode (sensor-noise ones included), pooled or vector version, or
+    of a plain baseline that judges records alone, kept once parsed: versions never change."""
     key = (version.id, version.created_at.isoformat())
     with _parsed_lock:
         model = _parsed.get(key)
@@ -362,6 +432,7 @@ def parsed_model(version: ModelVersion) -> Parsed:
             "pooled": PooledModel,
             "vector": VectorFNARX,
             "narx": NoveltyBaseline,
+            "free_run_mode": FreeRunMode,
         }
         model = kinds.get(document.get("kind", ""), FNARX).from_document(document)
         with _parsed_lock:
@@ -417,6 +488,8 @@ def _training_records(
             raise InputError("'baseline' names the healthy model; give the fault mode another name")
         if isinstance(body, FaultModeTrain) and not body.k_min < body.k_max:
             raise InputError(f"k_min ({body.k_min}) must be below k_max ({body.k_max})")
+        if isinstance(body, FaultModeTrain) and body.noise == "sensor":
+            _check_free_run_training(body)
         ids = [e.record_id for e in body.experiments]
     records = owned_records(session, principal, structure, ids)
     if isinstance(body, VectorFaultModeTrain):
@@ -427,6 +500,10 @@ def _training_records(
     terms = len(given_or_baseline_terms(session, structure, body.terms)[0])
     if isinstance(body, BaselineTrain):
         size = 1
+    elif isinstance(body, FaultModeTrain) and body.noise == "sensor":
+        cells = _free_run_cells(session, principal, structure, body, records, terms)
+        check_cost(cells, terms * (body.degree + 1), settings, "this training")
+        return records, cells
     elif isinstance(body, FaultModeTrain):
         size = body.degree + 1
     else:
@@ -436,6 +513,51 @@ def _training_records(
     cells = sum(r.n_samples for r in records) * terms * size
     check_cost(cells, terms * size, settings, "this training")
     return records, cells
+
+
+def _check_free_run_training(body: FaultModeTrain) -> None:
+    """Refuse a sensor-noise training the free-run fit cannot give: its modes are linear in k
+    (degree 1), their range is their experiments' magnitudes, at three or more (its jackknife
+    refits a line without each one)."""
+    if body.degree != 1 or body.basis != FaultModeTrain.model_fields["basis"].default:
+        raise InputError(
+            "a sensor-noise fault mode is linear in k: give degree 1 and the default basis "
+            f"(got degree {body.degree}, basis {body.basis!r})"
+        )
+    magnitudes = sorted({e.k for e in body.experiments})
+    if len(magnitudes) < 3:
+        raise InputError(
+            f"a sensor-noise fault mode needs experiments at three magnitudes or more, got "
+            f"{', '.join(f'{k:g}' for k in magnitudes)}: its estimation error is measured by refitting "
+            "without each one"
+        )
+    if (body.k_min, body.k_max) != (magnitudes[0], magnitudes[-1]):
+        raise InputError(
+            f"a sensor-noise fault mode's range is its experiments' magnitudes: give k_min {magnitudes[0]:g} "
+            f"and k_max {magnitudes[-1]:g} (got {body.k_min:g} and {body.k_max:g}), or add experiments "
+            "at the range's ends"
+        )
+
+
+def _free_run_cells(
+    session: Session,
+    principal: Principal,
+    structure: Structure,
+    body: FaultModeTrain,
+    records: list[Record],
+    terms: int,
+) -> int:
+    """A sensor-noise training's cost in cells: every jointly fitted mode's samples times the
+    joint fit's coefficients (θ₀ and one δ a mode), once for the fit and once more for each
+    experiment's jackknife refit (``models.free_run_inspection.fit_free_run_modes``)."""
+    others = _other_free_run_modes(session, structure, body.name)
+    every = records + [
+        r
+        for version in others
+        for r in owned_records(session, principal, structure, _experiment_ids(version))
+    ]
+    coefficients = terms * (len(others) + 2)
+    return sum(r.n_samples for r in every) * coefficients * (len(every) + 1)
 
 
 def baseline_terms(
