@@ -58,7 +58,8 @@ class OutputErrorFit:
         the output's units.
     evaluations : free runs computed by the search (over its fresh starts, each after MINPACK
         stopped at its step-size test having met the penalty, and over its second search, held
-        to the restarts from measured outputs, where the first ended at θ that diverge there).
+        to the restarts from measured outputs, where the first ended at θ that diverge there;
+        and over the search from its end with a cancelled pole taken out, where there was one).
     status : ``scipy.optimize.least_squares``' termination status (> 0: converged). The search is
         Levenberg–Marquardt (MINPACK), on the free-run error folded to p + 1 rows (‖r‖·e₁, and
         at the points kept the triangular factor of J, rotated): the same steps as on the tall
@@ -100,7 +101,9 @@ def fit_output_error(
     start_from : ``measured``, each free run starts from its record's first L measured outputs;
         ``estimated``, from the start that minimises its error over the record
         (:class:`EstimatedStart`: for a model linear in its output, whose runs are then to be
-        started so, as :func:`estimated_start_error` does).
+        started so, as :func:`estimated_start_error` does). From the estimated start, a search
+        that ends with a slow pole a zero cancels is run again from its end with the pair taken
+        out (:func:`without_cancelled_poles`), and the lower of the two ends is the fit.
 
     Returns
     -------

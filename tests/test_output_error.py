@@ -30,6 +30,7 @@ from models.output_error import (
     estimated_start_error,
     fit_output_error,
     gauss_newton_inverse,
+    without_cancelled_poles,
 )
 from models.simulation import FreeRun
 from models.terms import parse_terms, regressor_matrix
@@ -391,6 +392,30 @@ def test_a_search_from_the_estimated_start_does_not_end_in_a_pole_its_zero_cance
     nearest = np.min(np.abs(poles[:, None] - zeros[None, :]), axis=1)
     assert np.all(nearest[np.abs(poles) > 0.5] > 1e-2), (poles, zeros)
     assert fit.rms < 1.489, (fit.rms, fit.evaluations, fit.status)
+
+
+@pytest.mark.parametrize(
+    ("zero", "untangled"),
+    [(0.9, [0.5, 0.0, 1.0, 0.0]), (0.8, None)],
+)
+def test_a_slow_pole_is_taken_out_with_the_zero_that_cancels_it_and_only_then(
+    zero: float, untangled: list[float] | None
+) -> None:
+    """Poles 0.9 and 0.5, a zero at ``zero``: at 0.9 it cancels the slow pole and both go to the
+    origin, the response left as it was (1/(1 − 0.5q⁻¹)); at 0.8 the pair shapes the response
+    and is kept. A model with a term other than a plain lag is not an ARX and is left alone."""
+    terms = tuple(parse_terms(["y[t-1]", "y[t-2]", "x[t]", "x[t-1]"]))
+    model = NARX(terms, np.array([1.4, -0.45, 1.0, -zero]), np.zeros((4, 4)))
+    moved = without_cancelled_poles(model)
+    if untangled is None:
+        assert moved is None
+    else:
+        assert moved is not None
+        np.testing.assert_allclose(moved.theta, untangled, atol=1e-12)
+    nonlinear = NARX(
+        terms + tuple(parse_terms(["x[t-1]^2"])), np.array([1.4, -0.45, 1.0, -0.9, 0.1]), np.zeros((5, 5))
+    )
+    assert without_cancelled_poles(nonlinear) is None
 
 
 def test_records_too_short_for_the_model_are_refused() -> None:
