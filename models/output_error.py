@@ -103,7 +103,8 @@ def fit_output_error(
         (:class:`EstimatedStart`: for a model linear in its output, whose runs are then to be
         started so, as :func:`estimated_start_error` does). From the estimated start, a search
         that ends with a slow pole a zero cancels is run again from its end with the pair taken
-        out (:func:`without_cancelled_poles`), and the lower of the two ends is the fit.
+        out (:func:`without_cancelled_poles`), and its end is the fit where it is lower and has
+        no such pair.
 
     Returns
     -------
@@ -130,9 +131,14 @@ def fit_output_error(
     untangled = without_cancelled_poles(fit.model) if start_from == "estimated" else None
     if untangled is None:
         return fit
-    again = _searched(untangled, records, max_evaluations, t0, threads, start_from)
+    try:
+        again = _searched(untangled, records, max_evaluations, t0, threads, start_from)
+    except InputError:  # its free run diverges where the fit's did not: the fit stands
+        return fit
     evaluations = fit.evaluations + again.evaluations
-    if again.rms < fit.rms:
+    # Where the search from there ends in another such pair, the choice between the two would be
+    # made by the noise their starts absorb: the first stands.
+    if again.rms < fit.rms and without_cancelled_poles(again.model) is None:
         return OutputErrorFit(again.model, fit.start_rms, again.rms, evaluations, again.status)
     return replace(fit, evaluations=evaluations)
 
