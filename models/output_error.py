@@ -766,7 +766,8 @@ def estimated_start_error(model: NARX, x: np.ndarray, y: np.ndarray) -> np.ndarr
 
 # A pole and a zero whose pair moves the response by less than this share of it cancel: the pair
 # (1 − z·q⁻¹)/(1 − p·q⁻¹) is one plus a filter whose impulse response has the norm
-# |p − z|/√(1 − |p|²), and one of a hundredth is below what ten records' noise resolves.
+# |p − z|/√(1 − |p|²): the spurious pairs the accelerometer's searches ended in move it by orders
+# of magnitude less than a hundredth, the slow poles that shape its response by an order more.
 CANCELLED = 1e-2
 # Only pairs whose pole rings for more than a few samples are taken out: a faster one's start
 # column is not worth a second search.
