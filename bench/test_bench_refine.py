@@ -55,6 +55,40 @@ def test_narxwatch_refine_end_to_end(benchmark, tmp_path) -> None:
     assert report["after"]["free_run_rms"] <= 2.5e-3 < 10e-3 < report["before"]["free_run_rms"]
 
 
+@pytest.mark.benchmark(group="refine: Silverbox, the measured benchmarks page's table")
+def test_silverbox_table_of_the_measured_benchmarks_page(benchmark, tmp_path) -> None:
+    """docs/benchmarks/measured.md's Silverbox row, through the command as it prints it: the
+    effects in their order and the errors on the arrow and the Schroeder multisine, within about
+    10 % for arithmetic differences between machines."""
+    silverbox = benchmark_file("silverbox", "SNLS80mV.csv").parent
+    command = [
+        NARXWATCH, "refine", str(silverbox / "SNLS80mV.csv"), "--format", "silverbox",
+        "--declared", "linear:4,4", "--validate", str(silverbox / "Schroeder80mV.csv"), "--json",
+    ]  # fmt: skip
+
+    result = benchmark.pedantic(
+        subprocess.run, args=(command,), kwargs={"capture_output": True, "text": True}, rounds=1, iterations=1
+    )
+
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    names = [effect["name"] for effect in report["effects_added"]]
+    assert names == [
+        "missing_lags", "cubic_damping", "offset", "cubic_stiffness", "quadratic_stiffness",
+        "unmeasured_nonlinearity", "moving_average_noise", "power_law_damping", "input_nonlinearity",
+        "quadratic_damping",
+    ]  # fmt: skip
+    assert set(report["effects_added"][0]["terms"]) == {"x[t]", "y[t-5]", "y[t-6]"}
+    # One-step 1.20 → 0.187 mV and free run 14.39 → 0.227 mV on the arrow; 18.92 → 0.282 mV on
+    # the Schroeder-phase multisine, the refined model not refitted.
+    assert 1.1e-3 < report["before"]["one_step_rms"] < 1.3e-3 and report["after"]["one_step_rms"] <= 0.21e-3
+    assert 13e-3 < report["before"]["free_run_rms"] < 16e-3 and report["after"]["free_run_rms"] <= 0.25e-3
+    _, schroeder = report["tests"]
+    assert (
+        17e-3 < schroeder["before"]["free_run_rms"] < 21e-3 and schroeder["after"]["free_run_rms"] <= 0.31e-3
+    )
+
+
 @pytest.mark.benchmark(group="refine: Silverbox, linear ARX(4,4) (target <= 15 s end to end)")
 def test_refinement_loop(benchmark, silverbox) -> None:
     a, b = ESTIMATION

@@ -42,50 +42,39 @@ ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics",
 
 
 def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
+    """The command's wiring on a measured record: the benchmark's format, estimation and test
+    parts chosen, a record to validate on, the JSON report and the figure. The whole loop on the
+    benchmark's own split, and the figures of docs/benchmarks/measured.md, are
+    bench/test_bench_refine.py's."""
     figure = tmp_path / "refine.png"
     result = invoke(
         "refine", str(silverbox_dir / "SNLS80mV.csv"), "--format", "silverbox", "--declared", "linear:4,4",
+        "--estimation", "40650:52650", "--test", "100:8100",
         "--validate", str(silverbox_dir / "Schroeder80mV.csv"), "--json", "--plot", str(figure), cwd=tmp_path,
     )  # fmt: skip
     report = json.loads(result.stdout)
     assert set(report) == REPORT_KEYS
     assert set(report["before"]) == set(report["after"]) == ASSESSMENT_KEYS
-    # docs/benchmarks/measured.md lists what the loop adds, in this order.
-    names = [effect["name"] for effect in report["effects_added"]]
-    assert names == [
-        "missing_lags", "cubic_damping", "offset", "cubic_stiffness", "quadratic_stiffness",
-        "unmeasured_nonlinearity", "moving_average_noise", "power_law_damping", "input_nonlinearity",
-        "quadratic_damping",
-    ]  # fmt: skip
-    assert set(report["effects_added"][0]["terms"]) == {"x[t]", "y[t-5]", "y[t-6]"}
     for effect in report["effects_added"]:
         assert effect["terms"] and set(effect["evidence"]) >= {"explained_fraction", "p_values", "level"}
         assert max(effect["evidence"]["p_values"]) < effect["evidence"]["level"]
-    # The official split, and the linear ARX as declared.
+    assert report["effects_added"], "the linear model of a nonlinear circuit is refined"
     assert report["data"]["estimation"] == [
-        {"path": str(silverbox_dir / "SNLS80mV.csv"), "x": "V1", "y": "V2", "samples": [40650, 105712]}
+        {"path": str(silverbox_dir / "SNLS80mV.csv"), "x": "V1", "y": "V2", "samples": [40650, 52650]}
     ]
     assert report["data"]["unit"] == "V"  # the benchmark's signals are voltages
     arrow, schroeder = report["tests"]
-    assert arrow["samples"] == [100, 40575] and arrow["before"] == report["before"]
+    assert arrow["samples"] == [100, 8100] and arrow["before"] == report["before"]
     assert report["declared"]["terms"][:4] == ["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]"]
-    # The Silverbox table of docs/benchmarks/measured.md: one-step 1.20 → 0.187 mV, free run
-    # 14.39 → 0.227 mV on the full arrow
-    # (parameters by output error, which trades one-step error for free-run error), with a margin
-    # of about 10 % for arithmetic differences between machines.
-    assert 1.1e-3 < report["before"]["one_step_rms"] < 1.3e-3 and report["after"]["one_step_rms"] <= 0.21e-3
-    assert 13e-3 < report["before"]["free_run_rms"] < 16e-3 and report["after"]["free_run_rms"] <= 0.25e-3
     assert report["refined"]["estimator"] == "output error"
+    assert report["after"]["free_run_rms"] < report["before"]["free_run_rms"]
     # The linear model's residual fails the nonlinearity tests; every test is reported by name.
     before = report["before"]["diagnostics"]
     assert not before["passed"] and before["failed"]
     assert set(before["correlation_tests"]) >= {"phi_ee", "phi_ue", "phi_u2'e"}
     # The refined model, not refitted, on the independent Schroeder-phase multisine record.
     assert schroeder["path"].endswith("Schroeder80mV.csv") and schroeder["samples"] == [0, 131072]
-    # docs/benchmarks/measured.md: 18.92 → 0.282 mV.
-    assert (
-        17e-3 < schroeder["before"]["free_run_rms"] < 21e-3 and schroeder["after"]["free_run_rms"] <= 0.31e-3
-    )
+    assert schroeder["after"]["free_run_rms"] < schroeder["before"]["free_run_rms"]
     assert figure.read_bytes().startswith(PNG_MAGIC)
 
 

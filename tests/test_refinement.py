@@ -48,8 +48,8 @@ def silverbox(silverbox_dir):
 
 
 def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silverbox):
-    """The loop's first four rounds (the whole loop, ten rounds to 0.272 mV, is
-    tests/test_cli_refine.py's, through the command)."""
+    """The loop's first four rounds (the whole loop, ten rounds, is bench/test_bench_refine.py's,
+    through the command)."""
     x, y = silverbox.x, silverbox.y
     result = refine([(x[SILVERBOX_ESTIMATION], y[SILVERBOX_ESTIMATION])], linear_terms(4, 4), max_rounds=4)
     names = [effect.name for effect in result.effects_added]
