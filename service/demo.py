@@ -40,8 +40,9 @@ def seed_demo(
         session.add(organisation)
         session.flush()
     principal = Principal(organisation.id, Role.admin, key_id=0)
+    # The organisation's first structure, by id, not by name: an admin may have renamed it.
     existing = session.scalar(
-        select(Structure).where(Structure.organisation_id == organisation.id, Structure.name == STRUCTURE)
+        select(Structure).where(Structure.organisation_id == organisation.id).order_by(Structure.id).limit(1)
     )
     if existing is not None:
         return existing

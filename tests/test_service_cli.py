@@ -20,7 +20,7 @@ from pathlib import Path
 import httpx
 import pytest
 from cryptography.fernet import Fernet
-from sqlalchemy import insert, select
+from sqlalchemy import insert, select, update
 
 from harness.cli import invoke
 from harness.live import free_port, wait_until_serving
@@ -46,10 +46,15 @@ def run(
 
 @pytest.fixture(scope="module")
 def seeded(tmp_path_factory) -> dict[str, str]:
-    """An environment whose SQLite database holds the demo, seeded twice."""
+    """An environment whose SQLite database holds the demo, seeded twice, renamed in between (as
+    ``PATCH /structures/{id}`` renames it)."""
     env = {**os.environ, "NARXWATCH_DATABASE_URL": f"sqlite:///{tmp_path_factory.mktemp('svc') / 'n.db'}"}
     run("db", "upgrade", env=env)
     first = run("demo-seed", env=env)
+    engine = make_engine(env["NARXWATCH_DATABASE_URL"])
+    with engine.begin() as connection:
+        connection.execute(update(Structure).values(name="bay 3 rig"))
+    engine.dispose()
     second = run("demo-seed", env=env)
     env["FIRST_SEED"], env["SECOND_SEED"] = first.stdout, second.stdout
     return env
@@ -78,7 +83,7 @@ def on_seeded(seeded, in_process) -> Callable[..., subprocess.CompletedProcess[s
 
 def test_demo_seed_is_idempotent(seeded):
     assert "k2 experiments" in seeded["FIRST_SEED"]
-    # The second run finds the demo and trains nothing.
+    # The second run finds the demo, renamed, and trains nothing.
     assert "experiments" not in seeded["SECOND_SEED"]
     assert "is structure 1" in seeded["SECOND_SEED"]
 
@@ -217,7 +222,7 @@ def test_serve_answers_with_the_seeded_demo(seeded, on_seeded):
         assert httpx.get(f"{base}/readyz").json() == {"status": "ready"}
         headers = {"Authorization": f"Bearer {admin}"}
         structures = httpx.get(f"{base}/api/v1/structures", headers=headers).json()
-        assert [s["name"] for s in structures] == ["2-DOF rig (paper parameters)"]
+        assert [s["name"] for s in structures] == ["bay 3 rig"]  # the demo, as the fixture renamed it
         models = httpx.get(f"{base}/api/v1/structures/{structures[0]['id']}/models", headers=headers).json()
         assert sorted((m["name"], m["active"]) for m in models) == [
             ("baseline", True),
