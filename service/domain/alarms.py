@@ -66,6 +66,7 @@ from models.errors import InputError
 from service.db import hold_writer_gate
 from service.domain import notifications
 from service.domain.errors import ConflictError
+from service.domain.paging import Page
 from service.domain.structures import get_owned, get_structure
 from service.schemas import (
     AlarmOut,
@@ -106,14 +107,6 @@ DEFAULT_RULES: tuple[AlarmRule, ...] = (
 # anything, and the design's search takes seconds.
 MAX_THRESHOLD = 16.0
 MAX_PAGE = 1000
-
-
-@dataclass(frozen=True)
-class AlarmList:
-    """A page of alarms, newest first; ``next_cursor`` None on the last page."""
-
-    items: list[Alarm]
-    next_cursor: int | None
 
 
 @dataclass(frozen=True)
@@ -873,7 +866,7 @@ def list_alarms(
     end: dt.datetime | None = None,
     cursor: int | None = None,
     limit: int = 100,
-) -> AlarmList:
+) -> Page[Alarm, int]:
     """The organisation's alarms opened in [start, end), newest first, ``limit`` at a time."""
     if structure_id is not None:
         get_structure(session, principal, structure_id)
@@ -894,7 +887,7 @@ def list_alarms(
         query = query.where(Alarm.id < cursor)
     rows = list(session.scalars(query.order_by(Alarm.id.desc()).limit(limit + 1).options(*LOADED)))
     page = rows[:limit]
-    return AlarmList(items=page, next_cursor=page[-1].id if len(rows) > limit else None)
+    return Page(items=page, next_cursor=page[-1].id if len(rows) > limit else None)
 
 
 def unresolved_alarms(

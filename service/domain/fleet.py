@@ -22,6 +22,7 @@ from sqlalchemy.orm import Session, joinedload
 
 from models.errors import InputError
 from models.inspection import Status
+from service.domain.paging import Page
 from service.schemas import MAX_ID
 from service.security import Principal
 from service.tables import Structure, StructureState, Verdict
@@ -85,12 +86,6 @@ class StructureStatus:
     def status(self) -> str | None:
         """The latest verdict's status; None before the structure's first verdict."""
         return self.latest.status if self.latest is not None else None
-
-
-@dataclass(frozen=True)
-class FleetPage:
-    items: list[StructureStatus]
-    next_cursor: str | None  # None on the last page
 
 
 def open_state(session: Session, structure: Structure) -> None:
@@ -276,7 +271,7 @@ def fleet(
     name: str | None = None,
     cursor: str | None = None,
     limit: int = PAGE_SIZE,
-) -> FleetPage:
+) -> Page[StructureStatus, str]:
     """The caller's structures in order of id, ``limit`` at a time after ``cursor``, optionally
     only those of one ``standing`` and whose name contains ``name`` (any case).
 
@@ -304,7 +299,7 @@ def fleet(
     query = query.order_by(StructureState.structure_id).limit(limit + 1).options(LISTED)
     rows = session.execute(query).all()
     page, more = rows[:limit], len(rows) > limit
-    return FleetPage(
+    return Page(
         items=[_status(structure, state) for state, structure in page],
         next_cursor=_encode(page[-1][1].id) if more else None,
     )

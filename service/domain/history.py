@@ -15,6 +15,7 @@ from models.errors import InputError
 from models.inspection import Status
 from service.domain import fleet
 from service.domain.inspections import CONDITIONS, MODEL_REFS
+from service.domain.paging import Page
 from service.domain.structures import get_structure
 from service.schemas import MAX_ID
 from service.security import Principal
@@ -22,14 +23,6 @@ from service.tables import Verdict
 
 TREND_POINTS = 100
 SECONDS_PER_DAY = 86_400.0
-
-
-@dataclass(frozen=True)
-class HistoryPage:
-    """A page of verdicts, newest first; ``next_cursor`` None on the last page."""
-
-    items: list[Verdict]
-    next_cursor: str | None
 
 
 @dataclass(frozen=True)
@@ -56,7 +49,7 @@ def history(
     fault_mode: str | None,
     cursor: str | None,
     limit: int,
-) -> HistoryPage:
+) -> Page[Verdict, str]:
     """Verdicts of a structure acquired in [start, end), newest first, ``limit`` at a time."""
     get_structure(session, principal, structure_id)
     query = select(Verdict).where(Verdict.structure_id == structure_id)
@@ -76,7 +69,7 @@ def history(
     query = query.order_by(Verdict.acquired_at.desc(), Verdict.id.desc()).limit(limit + 1)
     rows = list(session.scalars(query.options(MODEL_REFS, CONDITIONS)))
     page, more = rows[:limit], len(rows) > limit
-    return HistoryPage(
+    return Page(
         items=page,
         next_cursor=_encode(page[-1].acquired_at, page[-1].id) if more else None,
     )
