@@ -439,7 +439,8 @@ def _step(kept: Kept, rules: list[AlarmRule], p: Point) -> list[str]:
     at = _microseconds(p.acquired_at)
     kept.newest = [p.record_id, p.verdict_id, at]
     kept.pinned = {mode: p.modes[mode][0] for mode in sorted(p.pinned & p.modes.keys())}
-    kept.misfit = sorted(_misfits(p))
+    misfit = _misfits(p)
+    kept.misfit = sorted(misfit)
     kept.localised = p.reference_mode if p.status == "faulty" else None
     if p.modes:
         kept.modes = len(p.modes)
@@ -476,7 +477,7 @@ def _step(kept: Kept, rules: list[AlarmRule], p: Point) -> list[str]:
             except InputError:  # GET …/alarm-rules and the structure's page say why
                 continue
             # A k̂ pinned at the range limit is no z, nor one under a model that misfits the record.
-            for mode in sorted(p.modes.keys() - p.pinned - set(kept.misfit)):
+            for mode in sorted(p.modes.keys() - p.pinned - misfit):
                 if (t := track(rule.kind, mode)) is not None:
                     _cusum_step(t, p, mode, at, design, rule.clear_after)
     return counted
