@@ -22,6 +22,7 @@ import math
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass, replace
+from typing import Any
 
 from models.errors import InputError
 from recordfiles.names import normalised_name
@@ -44,6 +45,12 @@ class Condition:
     name: str
     value: float
     unit: str | None = None
+
+
+def as_conditions(rows: Iterable[Any]) -> list[Condition]:
+    """The conditions stored rows hold (anything with a name, a value and a unit: a stored
+    record's condition rows)."""
+    return [Condition(row.name, row.value, row.unit) for row in rows]
 
 
 def checked_conditions(conditions: Iterable[Condition]) -> tuple[Condition, ...]:

@@ -28,7 +28,7 @@ from models.pooled import MAX_DEGREE, MAX_VARIABLES
 from models.vector import VectorModeFigures
 from recordfiles.channels import MAX_CHANNELS
 from recordfiles.channels import NAME_LENGTH as CHANNEL_NAME_LENGTH
-from recordfiles.conditions import NAME_LENGTH, NAME_RULE, Condition
+from recordfiles.conditions import NAME_LENGTH, NAME_RULE, Condition, as_conditions
 from recordfiles.names import normalised_name
 from recordfiles.quantities import UNIT_HELP, Quantity, checked_unit
 from service.jobs.types import JobState
@@ -298,15 +298,13 @@ CONDITIONS_HELP = (
 )
 
 
-def _as_conditions(rows: list[Any]) -> list[Any]:
-    """A record's stored condition rows (name, value, unit) as the answers show them."""
-    return [
-        row if isinstance(row, Condition | dict) else Condition(row.name, row.value, row.unit) for row in rows
-    ]
+def _stored_conditions(rows: list[Any]) -> list[Any]:
+    """A stored record's condition rows as its conditions; conditions given as such pass."""
+    return rows if all(isinstance(row, Condition | dict) for row in rows) else as_conditions(rows)
 
 
 # The conditions of a stored record, in an answer validated from its attributes.
-StoredConditions = Annotated[list[Condition], BeforeValidator(_as_conditions)]
+StoredConditions = Annotated[list[Condition], BeforeValidator(_stored_conditions)]
 
 
 class ChannelUpload(Strict):

@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from models.errors import InputError
 from models.signals import checked_record
-from recordfiles.conditions import Condition
+from recordfiles.conditions import Condition, as_conditions
 from service.config import Settings
 from service.db import insert_unless_exists
 from service.domain import fleet
@@ -168,11 +168,6 @@ def stored_conditions(
     sha = content_hash(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), rate, channels)
     found = _find(session, structure.id, sha)
     return as_conditions(found.conditions) if found is not None else []
-
-
-def as_conditions(rows: Iterable[RecordCondition]) -> list[Condition]:
-    """A record's stored conditions as the API shows them."""
-    return [Condition(row.name, row.value, row.unit) for row in rows]
 
 
 def condition_values(conditions: Iterable[Condition | RecordCondition]) -> dict[str, float]:
