@@ -89,7 +89,8 @@ def get_alarm_rules(
     structure_id: IdPath, principal: Viewer, session: SessionDep, settings: SettingsDep
 ) -> AlarmRulesOut:
     """The structure's alarm rules (the defaults until an admin sets them) and the CUSUM's design."""
-    return alarms.get_rules(session, principal, structure_id, acquisition_limit(settings))
+    rules = alarms.get_rules(session, principal, structure_id, acquisition_limit(settings))
+    return AlarmRulesOut.model_validate(rules, from_attributes=True)
 
 
 @router.put("/structures/{structure_id}/alarm-rules")
@@ -97,4 +98,5 @@ def set_alarm_rules(
     structure_id: IdPath, body: AlarmRules, principal: Admin, session: SessionDep, settings: SettingsDep
 ) -> AlarmRulesOut:
     """Replace the structure's alarm rules (kinds left out stop firing) and judge its history by them."""
-    return alarms.set_rules(session, principal, structure_id, body, acquisition_limit(settings))
+    rules = alarms.set_rules(session, principal, structure_id, body, acquisition_limit(settings))
+    return AlarmRulesOut.model_validate(rules, from_attributes=True)

@@ -72,8 +72,6 @@ from service.schemas import (
     AlarmOut,
     AlarmRule,
     AlarmRules,
-    AlarmRulesOut,
-    CusumDesignOut,
     CusumRule,
     PersistenceRule,
     SeverityRule,
@@ -165,6 +163,27 @@ class CusumSeries:
     threshold: float
 
 
+@dataclass(frozen=True, kw_only=True)
+class StructureCusumDesign(rules_math.CusumDesign):
+    """The CUSUM each of a structure's ``modes`` fault modes is watched with (:func:`cusum_design`)."""
+
+    modes: int
+
+
+@dataclass(frozen=True)
+class RuleSet:
+    """A structure's alarm rules as they run: the rules (the service's defaults when ``defaults``),
+    the CUSUM's design or why it does not run (``cusum_problem``), and the fault modes whose CUSUM
+    the newest record did not step, each with why."""
+
+    structure_id: int
+    defaults: bool
+    rules: list[AlarmRule]
+    cusum_design: StructureCusumDesign | None
+    cusum_problem: str | None
+    cusum_skipped: dict[str, str]
+
+
 # --- rules ------------------------------------------------------------------------------------
 
 
@@ -217,7 +236,7 @@ def _rule(parameters: str) -> AlarmRule:
     return AlarmRules.model_validate({"rules": [json.loads(parameters)]}).rules[0]
 
 
-def get_rules(session: Session, principal: Principal, structure_id: int, limit: dt.datetime) -> AlarmRulesOut:
+def get_rules(session: Session, principal: Principal, structure_id: int, limit: dt.datetime) -> RuleSet:
     get_structure(session, principal, structure_id)
     rules, defaults = rules_of(session, structure_id)
     return _rules_out(session, structure_id, rules, defaults, limit)
@@ -225,7 +244,7 @@ def get_rules(session: Session, principal: Principal, structure_id: int, limit: 
 
 def set_rules(
     session: Session, principal: Principal, structure_id: int, body: AlarmRules, limit: dt.datetime
-) -> AlarmRulesOut:
+) -> RuleSet:
     """Replace the structure's rules and judge its history by them at once (the verdicts acquired
     up to ``limit``, as :func:`evaluate` reads them); unresolved alarms of a kind no longer
     watched are resolved as ``rule_removed``."""
@@ -250,27 +269,22 @@ def set_rules(
 
 def _rules_out(
     session: Session, structure_id: int, rules: list[AlarmRule], defaults: bool, limit: dt.datetime
-) -> AlarmRulesOut:
+) -> RuleSet:
     cusum = next((rule for rule in rules if isinstance(rule, CusumRule)), None)
     design, problem, skipped = None, None, {}
     if cusum is not None:
         kept = _standing(session, structure_id, rules, limit)
         try:
-            design = CusumDesignOut(modes=kept.modes, **vars(cusum_design(cusum, kept.modes, kept.share())))
+            design = StructureCusumDesign(
+                modes=kept.modes, **vars(cusum_design(cusum, kept.modes, kept.share()))
+            )
         except InputError as refusal:
             problem = str(refusal)
         else:
             skipped = {mode: _misfit_reason(mode, kept.localised) for mode in kept.misfit} | {
                 mode: _pinned_reason(mode, k_hat) for mode, k_hat in kept.pinned.items()
             }
-    return AlarmRulesOut(
-        structure_id=structure_id,
-        defaults=defaults,
-        rules=rules,
-        cusum_design=design,
-        cusum_problem=problem,
-        cusum_skipped=skipped,
-    )
+    return RuleSet(structure_id, defaults, rules, design, problem, skipped)
 
 
 def _misfit_reason(mode: str, localised: str | None) -> str:
