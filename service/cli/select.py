@@ -7,7 +7,7 @@ import dataclasses
 import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Annotated, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import numpy as np
 import typer
@@ -28,6 +28,7 @@ from models.semp import (
     SimulationSelection,
     select_by_simulation,
 )
+from models.terms import Term
 from models.validation import Validation, validate
 from recordfiles.reader import Layout
 from service.cli.console import stderr, stdout
@@ -164,22 +165,16 @@ def select(
     if delay is None:
         delay, delays = choose_delay(signals, ny, nx)
     candidates = dictionaries[delay]
-    selection: NarxSelection | SimulationSelection
     if simulation:
-        # The bar counts iterations against their bound; the selection usually stops well before.
-        selection = _with_progress(
-            2 * max_terms,
-            lambda progress: select_by_simulation(
-                signals,
-                candidates,
-                judged=judged_signals,
-                judged_share=judged_share,
-                include=include or (),
-                max_terms=max_terms,
-                preselect=preselect,
-                threshold=threshold,
-                progress=progress,
-            ),
+        selection: NarxSelection | SimulationSelection = _select_by_simulation(
+            signals,
+            candidates,
+            judged_signals,
+            judged_share=judged_share,
+            include=include or (),
+            max_terms=max_terms,
+            preselect=preselect,
+            threshold=threshold,
         )
     else:
         selection = _with_progress(
@@ -205,16 +200,7 @@ def select(
         **selection.to_dict(),
         "output_error": None if refined is None else _output_error_dict(refined),
         "held_out": None if held_out is None else held_out.to_dict(),
-        "dictionary": {
-            "degree": degree,
-            "ny": ny,
-            "nx": nx,
-            "delay": delay,
-            # How the delay was chosen where --delay did not give it: each one's held-out free run.
-            "delay_free_run_rms": None if delays is None else {str(d): _finite(delays[d]) for d in (0, 1)},
-            "constant": constant,
-            "extra": extra or [],
-        },
+        "dictionary": _dictionary_dict(degree, ny, nx, delay, delays, constant, extra or []),
         "records": [str(path) for path in records],
         "holdout": {"records": [str(path) for path in holdout or []], "split": None if holdout else split},
         "fs": fs,
@@ -234,6 +220,41 @@ def select(
     _print_report(selection, refined, held_out)
     if out is not None:
         stdout.print(f"written to {out}")
+
+
+def _select_by_simulation(
+    signals: Signals, candidates: Sequence[Term], judged: Signals | None, max_terms: int, **options: Any
+) -> SimulationSelection:
+    """SEMP's selection (:func:`models.semp.select_by_simulation`) with a progress bar, which counts
+    iterations against their bound: the selection usually stops well before."""
+    return _with_progress(
+        2 * max_terms,
+        lambda progress: select_by_simulation(
+            signals, candidates, judged=judged, max_terms=max_terms, progress=progress, **options
+        ),
+    )
+
+
+def _dictionary_dict(
+    degree: int,
+    ny: int,
+    nx: int,
+    delay: int,
+    delays: dict[int, float] | None,
+    constant: bool,
+    extra: list[str],
+) -> dict[str, Any]:
+    """The candidate dictionary the terms were selected from, as the JSON document says it."""
+    return {
+        "degree": degree,
+        "ny": ny,
+        "nx": nx,
+        "delay": delay,
+        # How the delay was chosen where --delay did not give it: each one's held-out free run.
+        "delay_free_run_rms": None if delays is None else {str(d): _finite(delays[d]) for d in (0, 1)},
+        "constant": constant,
+        "extra": extra,
+    }
 
 
 def _by_simulation(
