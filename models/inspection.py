@@ -148,7 +148,26 @@ def inspect(
     adequacy_share: float = ADEQUACY_SHARE,
     model_uncertainty: bool = True,
 ) -> Verdict:
-    """Run the whole chain on one record (x: excitation, y: response)."""
+    """Run the whole chain on one record (x: excitation, y: response).
+
+    Examples
+    --------
+    One fault mode, trained from experiments at 0, 10 and 20 %, judging a record at 15 %:
+
+    >>> import numpy as np
+    >>> from scipy.signal import lfilter
+    >>> def record(k, seed):  # y[t] = 0.5·(1 − k/100)·y[t-1] + x[t-1] + e[t]
+    ...     x, e = np.random.default_rng(seed).standard_normal((2, 2000))
+    ...     return x, lfilter([1.0], [1.0, -0.5 * (1 - k / 100)], np.r_[0.0, x[:-1]] + 0.05 * e)
+    >>> from models.fnarx import fit_fnarx
+    >>> experiments = [(*record(k, seed), k) for seed, k in enumerate((0.0, 10.0, 20.0))]
+    >>> mode = fit_fnarx(experiments, ["y[t-1]", "x[t-1]"], name="pole")
+    >>> verdict = inspect(*record(15.0, 99), [mode])
+    >>> verdict.status, verdict.fault_mode, round(verdict.k_hat)
+    ('faulty', 'pole', 15)
+    >>> inspect(*record(0.0, 98), [mode]).status
+    'healthy'
+    """
     check_request([model.name for model in fault_modes], alpha, adequacy_share)
     adequacy_alpha = adequacy_share * alpha
     if int(lags) != lags or lags < 2:

@@ -195,6 +195,18 @@ def fit_narx(
     record, unless ``t0`` says the records start later in that time base (one index for all, or
     one a record). With ``output_limits`` the model saturates there (its ``saturation`` says
     how) and the equations :func:`fitted_rows` leaves out are not used.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> x = rng.standard_normal(2000)
+    >>> y = np.zeros(2000)
+    >>> for t in range(2, 2000):
+    ...     y[t] = 1.5 * y[t - 1] - 0.7 * y[t - 2] + x[t - 1] + 0.01 * rng.standard_normal()
+    >>> model = fit_narx([(x, y)], ["y[t-1]", "y[t-2]", "x[t-1]"])
+    >>> np.round(model.theta, 2)
+    array([ 1.5, -0.7,  1. ])
     """
     parsed = parse_terms(terms)
     L = max_lag(parsed)

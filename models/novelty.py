@@ -316,7 +316,27 @@ def judge_record(
     model: NARX, reference: NoveltyReference, x: ArrayLike, y: ArrayLike, *, alpha: float = 0.05
 ) -> NoveltyVerdict:
     """Judge one record (x: excitation, y: response) against the healthy baseline ``model`` and
-    its ``reference`` at false-alarm rate ``alpha`` (module docstring)."""
+    its ``reference`` at false-alarm rate ``alpha`` (module docstring).
+
+    Examples
+    --------
+    A baseline trained on four healthy records judges a healthy record and one whose pole has
+    fallen by a fifth:
+
+    >>> import numpy as np
+    >>> from scipy.signal import lfilter
+    >>> from models.narx import fit_narx
+    >>> def record(k, seed):  # y[t] = 0.5·(1 − k/100)·y[t-1] + x[t-1] + e[t]
+    ...     x, e = np.random.default_rng(seed).standard_normal((2, 2000))
+    ...     return x, lfilter([1.0], [1.0, -0.5 * (1 - k / 100)], np.r_[0.0, x[:-1]] + 0.05 * e)
+    >>> training = [record(0.0, seed) for seed in range(10, 14)]
+    >>> baseline = fit_narx(training, ["y[t-1]", "x[t-1]"])
+    >>> reference = novelty_reference(baseline, training)
+    >>> judge_record(baseline, reference, *record(0.0, 20)).status
+    'healthy'
+    >>> judge_record(baseline, reference, *record(20.0, 21)).status
+    'anomaly'
+    """
     if not 0 < alpha < 0.5:
         raise InputError(f"alpha must lie in (0, 0.5), got {alpha}")
     L, Q, r = reference.start_up, len(reference.whitening), reference.rank

@@ -529,6 +529,22 @@ def select_narx(
     of the fast path lose the digits that rank them once the residual nears 1e-12 of y.
     ``tolerance`` (the remaining-norm fraction below which a candidate counts as dependent)
     defaults to ``DEFAULT_TOLERANCE``, or ``PRECISE_TOLERANCE`` on the precise path.
+
+    Examples
+    --------
+    The three terms of a second-order structure, found among the 14 monomials of degree 2 in
+    y[t-1], y[t-2], x[t-1] and x[t-2]:
+
+    >>> import numpy as np
+    >>> from models.candidates import candidate_terms
+    >>> rng = np.random.default_rng(0)
+    >>> x, y = rng.standard_normal(2000), np.zeros(2000)
+    >>> for t in range(2, 2000):
+    ...     y[t] = 1.5 * y[t - 1] - 0.7 * y[t - 2] + x[t - 1] + 0.01 * rng.standard_normal()
+    >>> candidates = candidate_terms(degree=2, ny=2, nx=2, delay=1, constant=False)
+    >>> selection = select_narx([(x, y)], candidates, n_terms=3)
+    >>> sorted(term.name for term in selection.model.terms)
+    ['x[t-1]', 'y[t-1]', 'y[t-2]']
     """
     if tolerance is None:
         tolerance = PRECISE_TOLERANCE if precise else DEFAULT_TOLERANCE

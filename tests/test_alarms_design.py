@@ -196,15 +196,6 @@ def test_default_rules_spread_one_false_alarm_a_year_over_the_modes():
         default_rules(records_per_day=0.0)
 
 
-def test_docstring_examples_run():
-    import doctest
-
-    import models.alarms
-
-    failures, tried = doctest.testmod(models.alarms)
-    assert tried >= 8 and failures == 0
-
-
 def simulated_alarm_rate(design: CusumDesign, share: float, structures: int, records: int, seed: int):
     """Alarms per record of charts restarted after each alarm, one per structure with its own
     common offset β ~ N(0, c) and z_i = β + √(1 − c)·ε_i; the rate of each structure."""
