@@ -430,6 +430,28 @@ def test_structures_update_changes_what_is_given_and_prints_the_refusal_of_a_red
     assert "409 Conflict: structure 'mast 2' has records" in redeclared.stderr
     assert "can only be completed" in redeclared.stderr and redeclared.stdout == ""
     assert tenant.admin.get(f"/api/v1/structures/{made['id']}").json() == stored
+    withdrawn = run_sim(
+        "structures", "update", *structure, "--withdraw", "response", key=key, url=api_server.url
+    )
+    assert withdrawn.returncode == 1 and "409 Conflict" in withdrawn.stderr
+    assert tenant.admin.get(f"/api/v1/structures/{made['id']}").json() == stored
+
+
+def test_structures_update_withdraws_a_declaration_of_a_structure_without_records(
+    api_server: LiveServer, tenant: Tenant
+):
+    key = api_server.key(Role.admin, tenant.name)
+    made = tenant.admin.post(
+        "/api/v1/structures",
+        json={"name": "pylon", "fs": 200.0, "response": {"quantity": "acceleration", "unit": "g"}},
+    ).json()
+    withdrawn = run_sim(
+        "structures", "update", "--structure", str(made["id"]), "--withdraw", "response",
+        key=key, url=api_server.url,
+    )  # fmt: skip
+    assert withdrawn.returncode == 0, withdrawn.stderr
+    assert withdrawn.stdout.strip() == f"structure {made['id']} 'pylon', fs = 200 Hz"
+    assert tenant.admin.get(f"/api/v1/structures/{made['id']}").json() == made | {"response": None}
 
 
 def test_structures_list_prints_every_page(api_server: LiveServer):
@@ -523,7 +545,11 @@ def test_own_structure_commands_print_the_services_refusal_and_exit_1(
         ),
         (
             ["structures", "update", "--structure", "1"],
-            "nothing to change: give --name, --description, --excitation or --response",
+            "nothing to change: give --name, --description, --excitation, --response or --withdraw",
+        ),
+        (
+            ["structures", "update", "--structure", "1", "--response", "force", "--withdraw", "response"],
+            "--response and --withdraw response: give one or the other",
         ),
         (
             ["structures", "update", "--structure", "1", "--response-unit", "g"],
@@ -538,6 +564,7 @@ def test_own_structure_commands_print_the_services_refusal_and_exit_1(
         "unit without quantity",
         "unknown quantity",
         "update nothing",
+        "declare and withdraw",
         "update unit without quantity",
     ],
 )

@@ -14,6 +14,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -66,6 +67,13 @@ def number_list(text: str) -> list[float]:
         raise InputError(
             f"--k takes magnitudes in percent separated by commas, e.g. -8,0,8; got {text!r}"
         ) from None
+
+
+class Signal(StrEnum):
+    """A signal a structure declares what it measures: x (the excitation) or y (the response)."""
+
+    excitation = "excitation"
+    response = "response"
 
 
 Records = Annotated[str, typer.Option("--records", help="Record ids, separated by commas: 1,2,3.")]
@@ -208,17 +216,29 @@ def update_structure(
     name: Annotated[str | None, typer.Option(help="Its new name.")] = None,
     description: Annotated[str | None, typer.Option(help="Its new description.")] = None,
     signals: Declarations,
+    withdraw: Annotated[
+        list[Signal] | None,
+        typer.Option(
+            help="Withdraw what x (excitation) or y (response) was declared to measure (repeatable)."
+        ),
+    ] = None,
     url: Url = DEFAULT_URL,
     key: Key = None,
     quiet: Quiet = False,
 ) -> None:
     """Change a structure's name, description or what x and y measure; what is not given stays.
     Once it has records, a declaration can only be completed (given where there was none, or its
-    unit where none was stated): the service refuses to change it, saying why."""
+    unit where none was stated): the service refuses to change or withdraw it, saying why."""
     given = {"name": name, "description": description}
     body = {field: value for field, value in given.items() if value is not None} | signals.body()
+    for signal in withdraw or []:
+        if signal.value in body:
+            raise InputError(f"--{signal.value} and --withdraw {signal.value}: give one or the other")
+        body[signal.value] = None
     if not body:
-        raise InputError("nothing to change: give --name, --description, --excitation or --response")
+        raise InputError(
+            "nothing to change: give --name, --description, --excitation, --response or --withdraw"
+        )
     with service(url, key) as client:
         changed = client.request("PATCH", f"{API}/structures/{structure}", json=body)
     stdout.print(changed["id"] if quiet else described(changed), markup=False)
