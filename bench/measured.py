@@ -43,9 +43,9 @@ BIC over up to 100 terms and recursive least squares (reported 0.0568), and Meta
 xlag 5, degree 2, recursive least squares (λ 0.95) on standardised signals, seed 42 (reported
 0.0314). Its rows give the RRSE, the terms and the seconds of fit and free run.
 
-``--only coupled-drives-prbs`` runs the drives' three PRBS records (DATAPRBS.csv, amplitudes 0.5,
-1 and 1.5) split as the uniform ones; they are further data with no protocol or published
-figures, not part of the default run.
+``--only coupled-drives-prbs`` runs the drives' three PRBS records (DATAPRBS.csv: u1, u2 and u3
+of amplitudes 1, 1.5 and 0.5) split as the uniform ones; they are further data with no protocol
+or published figures, not part of the default run.
 
 ``--only f16-multisine`` runs F-16's other excitation by the same split: the full-grid multisines
 of levels 3, 5 and 7, tested on 2, 4 and 6, every record used whole (the loop fits through the
@@ -197,8 +197,9 @@ def coupled_drives(column: int, prbs: bool = False) -> Benchmark:
         1: "polynomial NARX 0.10, GP-NARX 0.102, SysIdentPy 0.103, best 0.115; LTI 0.224, ARX 0.291",
         2: "polynomial NARX 0.141, GP-NARX 0.090, SysIdentPy 0.107, best 0.074; LTI 0.384, ARX 0.331",
     }
+    experiment = f"PRBS ±{np.max(np.abs(record.x)):g}" if prbs else f"test {column}"
     return Benchmark(
-        f"Coupled drives, {f'PRBS {x}' if prbs else f'test {column}'}, orders chosen",
+        f"Coupled drives, {experiment}, orders chosen",
         [(record.x[:DRIVES_ESTIMATION], record.y[:DRIVES_ESTIMATION])],
         {"last 100": (record.x[start:], record.y[start:])},
         None,
