@@ -290,7 +290,8 @@ SYSIDENTPY = textwrap.dedent(
 
 def sysidentpy_rows(benchmark: Benchmark) -> list[tuple[str, ...]]:
     """SysIdentPy's models (``SYSIDENTPY``) fitted on the benchmark's estimation record and run
-    free over its test record, scored as narxwatch's are: after ``initial`` samples (or the
+    free over its test record as SysIdentPy's ``predict`` runs them (from the record's first
+    ``max_lag`` measured outputs), scored as narxwatch's are: after ``initial`` samples (or the
     model's lag, if longer)."""
     ((x_fit, y_fit),) = benchmark.estimation
     ((test, (x_test, y_test)),) = benchmark.tests.items()
