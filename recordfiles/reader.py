@@ -183,6 +183,28 @@ def read_record_set(path: str | Path, layout: Layout = DEFAULT_LAYOUT) -> tuple[
     return _naming(Path(path), lambda data, suffix: parse_record_set(data, suffix, layout))
 
 
+def read_split_record(x_path: str | Path, y_path: str | Path, layout: Layout = DEFAULT_LAYOUT) -> RecordFile:
+    """A record whose excitation and response are published in files of their own, as Bouc–Wen's
+    test signals are (``uval_multisine.mat`` and ``yval_multisine.mat``, a 1×N variable each,
+    named as its file): ``layout.x`` read from ``x_path``, ``layout.y`` from ``y_path``, each
+    by the rules of :func:`read_record`. The rate is the one either file states (they must agree),
+    else ``layout.fs``."""
+    excitation = read_record(x_path, replace(layout, y=layout.x, channels=(), fs=None))
+    response = read_record(y_path, replace(layout, x=layout.y, channels=(), fs=None))
+    if excitation.x.size != response.y.size:
+        raise InputError(
+            f"{x_path} holds {excitation.x.size} samples of {layout.x!r} but {y_path} holds "
+            f"{response.y.size} of {layout.y!r}; x and y must be sampled together"
+        )
+    stated = {record.fs for record in (excitation, response) if record.fs is not None}
+    if len(stated) > 1:
+        raise InputError(
+            f"{x_path} states a sampling rate of {excitation.fs} Hz but {y_path} one of {response.fs} Hz"
+        )
+    rate = stated.pop() if stated else layout.fs
+    return RecordFile(excitation.x, response.y, rate)
+
+
 def _naming(path: Path, parse: Callable[[bytes, str], Parsed]) -> Parsed:
     """``parse`` of the file's bytes and its lower-case suffix; any InputError's message names the
     file (its type kept: the API answers a record too large with 413)."""

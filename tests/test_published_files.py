@@ -45,6 +45,7 @@ from recordfiles.reader import (
     parse_silverbox,
     read_record,
     read_record_set,
+    read_split_record,
 )
 
 LIMIT = 16 * 2**20  # the service's default upload limit
@@ -195,6 +196,37 @@ def test_mat_v4_and_compressed_v5_read_alike(tmp_path):
     # A matrix stored with its samples down the columns, as MATLAB users often do: N×3.
     scipy.io.savemat(tmp_path / "tall.mat", {"u": force, "a": acceleration.T})
     np.testing.assert_array_equal(read_record(tmp_path / "tall.mat", Layout("u", "a3")).y, acceleration[2])
+
+
+def test_a_record_split_over_two_files_reads_each_signal_from_its_own(tmp_path):
+    # Bouc–Wen publishes each test signal as a 1×N variable in a file named as it.
+    u, y = np.sin(np.arange(300.0)), np.cos(np.arange(300.0))
+    scipy.io.savemat(tmp_path / "uval.mat", {"uval": u})
+    scipy.io.savemat(tmp_path / "yval.mat", {"yval": y, "fs": 750.0})
+    record = read_split_record(tmp_path / "uval.mat", tmp_path / "yval.mat", Layout("uval", "yval", 100.0))
+    np.testing.assert_array_equal(record.x, u)
+    np.testing.assert_array_equal(record.y, y)
+    assert record.fs == 750.0  # the rate a file states wins over the layout's
+    scipy.io.savemat(tmp_path / "short.mat", {"yval": y[:200]})
+    with pytest.raises(InputError, match=r"uval\.mat holds 300 samples of 'uval' but .*short\.mat holds 200"):
+        read_split_record(tmp_path / "uval.mat", tmp_path / "short.mat", Layout("uval", "yval"))
+    scipy.io.savemat(tmp_path / "u400.mat", {"uval": u, "fs": 400.0})
+    with pytest.raises(InputError, match=r"u400\.mat states a sampling rate of 400\.0 Hz but .* 750\.0 Hz"):
+        read_split_record(tmp_path / "u400.mat", tmp_path / "yval.mat", Layout("uval", "yval"))
+    with pytest.raises(InputError, match=r"yval\.mat: the MAT file has no variable 'y'"):
+        read_split_record(tmp_path / "uval.mat", tmp_path / "yval.mat", Layout("uval", "y"))
+
+
+def test_bouc_wen_test_signals_read_as_published():
+    folder = benchmark_data("bouc-wen", "uval_multisine.mat", "yval_multisine.mat")
+    record = read_split_record(
+        folder / "uval_multisine.mat",
+        folder / "yval_multisine.mat",
+        Layout("uval_multisine", "yval_multisine"),
+    )
+    for signal, name in ((record.x, "uval_multisine"), (record.y, "yval_multisine")):
+        np.testing.assert_array_equal(signal, scipy.io.loadmat(folder / f"{name}.mat")[name].ravel())
+    assert record.x.size == 8192
 
 
 def test_a_structs_fields_are_read_by_their_path_as_variables_are(tmp_path):
