@@ -45,7 +45,7 @@ import numpy as np
 from scipy import fft, linalg, optimize
 
 from models.errors import InputError
-from models.regression import divided_columns, orthogonal_part
+from models.regression import column_norms, divided_columns, orthogonal_part
 from models.spectrum import excited_intervals, residual_spectrum
 from models.terms import WAVES, Factor, Term, regressor_matrix
 
@@ -407,7 +407,7 @@ def profile_search(
 
     def unexplained(p: float) -> float:
         columns, _ = regressor_matrix(list(build(float(np.exp(p) if log_scale else p))), x, y, lag)
-        norms = np.linalg.norm(columns, axis=0)
+        norms = column_norms(columns)
         if not np.all(np.isfinite(norms)) or not np.all(norms > 0):
             return float(residual @ residual)
         columns = orthogonal_part(columns / norms, model_basis)
@@ -555,7 +555,7 @@ def combination_terms(
         return columns - model_basis @ (model_basis.T @ columns)
 
     columns, _ = regressor_matrix(list(monomials), x, y, lag)
-    columns = off_model(columns / np.linalg.norm(columns, axis=0))
+    columns = off_model(columns / column_norms(columns))
     # The pivots of a pivoted QR depend on the columns' inner products alone: those of R.
     _, triangle, pivots = linalg.qr(linalg.qr(columns, mode="r")[0], mode="economic", pivoting=True)
     independent = pivots[np.abs(np.diag(triangle)) > 1e-8 * abs(triangle[0, 0])]
@@ -662,7 +662,7 @@ def _model_basis(terms: tuple[Term, ...], lag: int, x: bytes, y: bytes) -> np.nd
     them, as bytes), read-only. Kept for the next call: a round's searched families read the same
     rows with the same model, and each took 20 ms to make it (Silverbox's 51 terms)."""
     Phi, _ = regressor_matrix(list(terms), np.frombuffer(x), np.frombuffer(y), lag)
-    basis, _ = linalg.qr(divided_columns(Phi, np.linalg.norm(Phi, axis=0)), mode="economic", overwrite_a=True)
+    basis, _ = linalg.qr(divided_columns(Phi, column_norms(Phi)), mode="economic", overwrite_a=True)
     basis.flags.writeable = False
     return basis
 

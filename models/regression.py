@@ -82,7 +82,7 @@ def scaled_qr(Phi: np.ndarray, names: Sequence[str]) -> tuple[np.ndarray, np.nda
         raise InputError(
             f"regressor {', '.join(overflowed)} overflows on these signals: lower its power or scale the data"
         )
-    scale = np.linalg.norm(Phi, axis=0)
+    scale = column_norms(Phi)
     zero = [names[i] for i in np.flatnonzero(~(scale > 0))]
     if zero:
         raise InputError(
@@ -98,6 +98,17 @@ def divided_columns(Phi: np.ndarray, scale: np.ndarray) -> np.ndarray:
     allowed to overwrite it, then copies nothing, where it copies a row-major Φ/s once more
     (65 000 × 44: 76 → 64 ms; the same factors to the last digit)."""
     return np.divide(Phi, scale, out=np.empty(Phi.shape, order="F"))
+
+
+def column_norms(columns: np.ndarray) -> np.ndarray:
+    """Each column's Euclidean norm, the same to the last bit as ``np.linalg.norm(columns,
+    axis=0)``. Of a row-major matrix of several columns that norm sums the squares row after row,
+    and einsum sums them in that order without writing the squares out first: a third of the
+    time (65 000 × 4 or 40 000 × 10, the candidates' and a search's columns). Of a column-major
+    matrix or a single column numpy sums each column pairwise, in another order: its norm."""
+    if columns.ndim == 2 and columns.shape[1] > 1 and columns.flags.c_contiguous:
+        return np.sqrt(np.einsum("ij,ij->j", columns, columns))
+    return np.linalg.norm(columns, axis=0)
 
 
 def checked_condition(R: np.ndarray, names: Sequence[str]) -> float:
@@ -150,7 +161,7 @@ def span_basis(columns: np.ndarray) -> np.ndarray:
     others, say, which the Gram matrix cannot resolve below that."""
     if columns.shape[1] == 0:
         return columns
-    basis = columns / np.linalg.norm(columns, axis=0)
+    basis = columns / column_norms(columns)
     for _ in range(2):
         values, vectors = linalg.eigh(basis.T @ basis)
         kept = values > values[-1] * SPAN_TOLERANCE**2

@@ -30,7 +30,7 @@ from scipy import linalg, signal, special
 from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
-from models.regression import Workers, divided_columns, orthogonal_part, span_basis
+from models.regression import Workers, column_norms, divided_columns, orthogonal_part, span_basis
 from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
@@ -144,7 +144,7 @@ def score_effects(
             ]
         )
         Phi = np.hstack([Phi, _lagged(innovations, range(1, noise_lags + 1), starts)])
-    scale = np.linalg.norm(Phi, axis=0)
+    scale = column_norms(Phi)
     Q, R = linalg.qr(divided_columns(Phi, scale), mode="economic", overwrite_a=True)
     projection = Q.T @ target
     residual = target - Q @ projection
@@ -227,7 +227,7 @@ def _orthonormal(columns: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """An orthonormal basis of the columns' part orthogonal to Q (empty for no columns)."""
     if columns.shape[1] == 0:
         return columns
-    columns = orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+    columns = orthogonal_part(columns / column_norms(columns), Q)
     basis, triangle = linalg.qr(columns, mode="economic")
     return basis[:, np.abs(np.diag(triangle)) > 1e-10]
 
@@ -236,7 +236,7 @@ def _projected(
     labels: list[tuple[str, ...]], columns: np.ndarray, Q: np.ndarray
 ) -> tuple[list[tuple[str, ...]], np.ndarray]:
     """A family's candidate columns, each of unit norm, minus their projection on the model (Q)."""
-    return labels, orthogonal_part(columns / np.linalg.norm(columns, axis=0), Q)
+    return labels, orthogonal_part(columns / column_norms(columns), Q)
 
 
 def _score(

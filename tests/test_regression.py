@@ -11,7 +11,14 @@ from conftest import scaled_lstsq
 from scipy import linalg
 
 from models.errors import InputError
-from models.regression import SPAN_TOLERANCE, least_squares, orthogonal_part, span_basis, triangular_factor
+from models.regression import (
+    SPAN_TOLERANCE,
+    column_norms,
+    least_squares,
+    orthogonal_part,
+    span_basis,
+    triangular_factor,
+)
 
 EPS = np.finfo(float).eps
 
@@ -179,3 +186,16 @@ def test_the_blockwise_triangular_factor_is_that_of_one_qr(rows: int) -> None:
     assert np.all(error <= 1e-13 * np.linalg.norm(A, axis=0))  # each column to its own scale
     with ThreadPoolExecutor(2) as pool:
         np.testing.assert_array_equal(triangular_factor(A, block=2048, threads=pool.map), R)
+
+
+@pytest.mark.parametrize("rows", [7, 2049, 65_062])
+def test_column_norms_are_numpys_to_the_last_bit_in_every_layout(rows: int) -> None:
+    """The loop's scores and fits divide by these norms, and its reports are compared across
+    changes byte for byte: einsum's sums must be numpy's own, row-major or not, for one column
+    (which numpy sums pairwise) or many, over entries spanning many decades, a slice included."""
+    rng = np.random.default_rng(rows)
+    for width in (1, 2, 3, 4, 10, 51):
+        columns = rng.normal(size=(rows, width)) * np.logspace(-8, 8, width)
+        for layout in (columns, np.asfortranarray(columns), columns[1:, ::-1], columns[::2]):
+            np.testing.assert_array_equal(column_norms(layout), np.linalg.norm(layout, axis=0))
+    assert column_norms(np.empty((rows, 0))).shape == (0,)
