@@ -304,10 +304,11 @@ def _through_long_arx(runs: Sequence[Experiment], terms: Sequence[Term], name: s
 
     The terms' own equation-error fit regresses on noisy lagged outputs, and from its biased
     point the search may settle in another basin than the free run's best: on the accelerometer
-    chain it kept a spurious fast pole in place of the slow one, and its healthy free run strayed
-    from the chain's response by several times what the far spring's loosening changes. The long
-    ARX's many lags take up much of that bias, and its free run carries no noise, so the terms'
-    fit to it has no noisy regressors.
+    chain it kept a spurious negative pole (ringing at half the sampling rate) in place of the
+    slow one, and its healthy free run strayed from the chain's response by several times what
+    the far spring's loosening changes. The long ARX's free run carries no noise, so the terms'
+    fit to it has no noisy regressors: a start biased otherwise, from which the search on that
+    chain found the slow pole.
     """
     lags = [f"y[t-{i}]" for i in range(1, LONG_ARX_ORDER + 1)] + ["x[t]"]
     lags += [f"x[t-{i}]" for i in range(1, LONG_ARX_ORDER + 1)]

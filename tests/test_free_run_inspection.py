@@ -146,8 +146,8 @@ def test_the_far_spring_is_given_no_magnitude(modes) -> None:
 def test_the_healthy_point_simulates_the_chain_closer_than_the_far_spring_moves_it(modes) -> None:
     """The joint fit's healthy model runs free on a noise-free healthy record within a few times
     what a 12 % loosening of the far spring changes. From the equation-error start alone the
-    search ended in another basin of the free-run error, a spurious fast pole in place of the
-    slow one, several times further off: the far spring's mode then spent its slope on that
+    search ended in another basin of the free-run error, a spurious negative pole in place of
+    the slow one, several times further off: the far spring's mode then spent its slope on that
     misfit, not on the spring (its k̂ at the range's end on every record of some training sets,
     healthy ones too)."""
     noise_free = replace(scenario(), y_noise_std=0.0, x_noise_std=0.0)
