@@ -80,7 +80,7 @@ from models.checking import (
 from models.coverage import Coverage, coverage
 from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
 from models.errors import InputError
-from models.held_out import HeldOut, compare_on_tails, held_out_tails
+from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails, held_out_tails
 from models.narx import NARX, Saturation
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
@@ -122,6 +122,7 @@ GLITCHES_NAMED = 5
 
 Criterion = Literal["one-step", "simulation", "simulation across folds"]
 Estimator = Literal["least squares", "output error"]
+Verdict = Literal["better", "not better", "diverged"]
 
 
 @dataclass(frozen=True)
@@ -206,6 +207,17 @@ class Comparison:
     after: Assessment
     coverage: Coverage
 
+    @property
+    def verdict(self) -> Verdict:
+        """The refined model's free run here beside the declared one's: "diverged" where it
+        diverged, "better" where its RMS is lower (or the declared one's diverged), else "not
+        better"."""
+        if self.after.diverged:
+            return "diverged"
+        if self.before.diverged or self.after.free_run_rms < self.before.free_run_rms:
+            return "better"
+        return "not better"
+
 
 @dataclass(frozen=True)
 class RefinementReport:
@@ -253,6 +265,7 @@ class RefinementReport:
                 if (score := step.added) is not None
             ],
             "effects_withdrawn": list(result.effects_withdrawn),
+            "held_out": None if result.held_out is None else _held_out_dict(result.held_out),
             "check_free_run_rms": _finite(result.check_rms),
             "noise_floor": None
             if (floor := result.noise_floor) is None
@@ -265,13 +278,52 @@ class RefinementReport:
                     "after": test.after.to_dict(),
                     "coverage": asdict(test.coverage)
                     | {"extrapolates": test.coverage.extrapolates, "description": test.coverage.describe()},
+                    "verdict": test.verdict,
                 }
                 for test in self.tests
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
-            "notes": list(self.notes) + _skipped_notes(self.tests),
+            "notes": list(self.notes) + _held_out_notes(result) + _skipped_notes(self.tests),
         }
+
+
+def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
+    """The comparison on the held-out tails: both free runs, the refined model's gain and the
+    threshold its uncertainty set (shares of the start's mean square), and the decision."""
+    return {
+        "samples": held_out.samples,
+        "start_free_run_rms": _finite(held_out.start_rms),
+        "refined_free_run_rms": _finite(held_out.refined_rms),
+        "gain": _finite(held_out.gain),
+        "threshold": _finite(held_out.threshold),
+        "level": HELD_OUT_ALPHA,
+        "diverged": held_out.diverged,
+        "refined_returned": held_out.kept,
+        "best_tried": held_out.best_tried,
+    }
+
+
+def _held_out_notes(result: Refinement) -> list[str]:
+    """What the report says where the effects added could not be compared with the start on data
+    no choice saw, or were and lost."""
+    held_out = result.held_out
+    if held_out is None:
+        if not result.effects_added:
+            return []
+        return [
+            "the estimation records are too short to hold a tail out: the effects added were not "
+            "compared with the start on data no choice of the loop saw"
+        ]
+    if held_out.kept:
+        return []
+    refined = "diverged" if held_out.diverged else f"ran free at {held_out.refined_rms:.4g}"
+    return [
+        f"the data could not support the effects: over the estimation records' held-out tails "
+        f"({held_out.samples} samples no choice saw) the refined model {refined} against the start's "
+        f"{held_out.start_rms:.4g}, not better beyond the comparison's uncertainty; the start is "
+        f"returned (the best effect tried: {held_out.best_tried})"
+    ]
 
 
 def _skipped_notes(tests: Sequence[Comparison]) -> list[str]:

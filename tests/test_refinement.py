@@ -9,12 +9,22 @@ import numpy as np
 import pytest
 from scipy import linalg, signal, stats
 
+from harness.extrapolating import growing_steps
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
-from models.refinement import _is_start, choose_linear, refine, refine_record, refine_records
+from models.refinement import (
+    Refinement,
+    RefinementReport,
+    _is_start,
+    choose_linear,
+    compare,
+    refine,
+    refine_record,
+    refine_records,
+)
 from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
@@ -693,3 +703,65 @@ def test_a_test_part_too_short_for_the_residual_tests_is_scored_and_says_which_i
     document = report.to_dict()
     assert document["tests"][0]["after"]["diagnostics"] is None
     assert any("too short for the residual tests" in note for note in document["notes"]), document["notes"]
+
+
+def test_effects_the_held_out_tails_do_not_support_are_withdrawn_and_the_start_returned():
+    """Nothing declared, a record whose steps grow: on the check blocks x² lowered the free run;
+    beyond the range it was fitted on it grows without bound. Without the held-out comparison
+    the loop returned input_nonlinearity (with moving-average noise) and the test part's free run
+    went 2.24 → 2.79; held out from every choice, the estimation record's tail shows it worse."""
+    x, y = growing_steps(2400, seed=1)
+    report = refine_record(x, y, None, [(0, 1600)], (1600, 2400))
+    result = report.refinement
+    held_out = result.held_out
+    assert held_out is not None and held_out.samples == 320
+    assert held_out.refined_rms > held_out.start_rms and not held_out.better
+    assert not held_out.kept and held_out.best_tried == "input_nonlinearity"
+    assert result.effects_added == () and "input_nonlinearity" in result.effects_withdrawn
+    assert result.refined.terms == result.declared.terms == linear_terms(*result.orders)
+    assert report.after.free_run_rms <= report.before.free_run_rms
+    document = report.to_dict()
+    assert document["held_out"]["refined_returned"] is False
+    assert document["held_out"]["start_free_run_rms"] < document["held_out"]["refined_free_run_rms"]
+    assert document["held_out"]["gain"] < document["held_out"]["threshold"]
+    (note,) = [note for note in document["notes"] if "could not support the effects" in note]
+    assert "320 samples" in note and "input_nonlinearity" in note
+
+
+def test_a_refined_model_kept_on_the_held_out_tails_is_refitted_on_all_the_records():
+    """A quadratic spring the rig's records plainly show: the refined model wins on the tails and is
+    returned, its parameters estimated on all the estimation samples, not the heads alone."""
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 6000, seed=2
+    )
+    x, y = record.x[:3000], record.y[:3000]
+    result = refine([(x, y)], EXACT_TERMS, max_rounds=1)
+    held_out = result.held_out
+    assert held_out is not None and held_out.kept and held_out.better and held_out.samples == 600
+    assert held_out.refined_rms < held_out.start_rms / 10
+    assert result.effects_added[0].name == "quadratic_stiffness"
+    assert result.declared.n_obs == len(y) - max_lag(EXACT_TERMS)
+    assert result.refined.n_obs == len(y) - result.refined.max_lag
+
+
+def test_records_too_short_to_hold_a_tail_out_are_refined_whole_and_the_report_says_so():
+    record = simulate(Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 900, seed=2)
+    report = refine_record(record.x, record.y, EXACT_TERMS, [(0, 900 * 2 // 3)], (600, 900))
+    assert report.refinement.held_out is None and report.refinement.effects_added
+    assert any("too short to hold a tail out" in note for note in report.to_dict()["notes"])
+
+
+def test_a_free_run_that_grows_without_bound_is_judged_diverged_though_finite():
+    """y[t] = 1.05 y[t-1] + x[t-1] grows 1.05ⁿ: finite over 300 samples, far beyond the record."""
+    rng = np.random.default_rng(4)
+    x = rng.standard_normal(300)
+    y = signal.lfilter([0.0, 1.0], [1.0, -0.5], x)
+    terms = linear_terms(1, 1, 1)
+    stable = NARX(terms, np.array([0.5, 1.0]), np.zeros((2, 2)))
+    growing = replace(stable, theta=np.array([1.05, 1.0]))
+    refinement = Refinement(stable, growing)
+    comparison = compare(refinement, [(x, y)], x, y, 0, None, 0)
+    assert np.isfinite(comparison.after.free_run_rms) and comparison.after.diverged
+    assert not comparison.before.diverged and comparison.verdict == "diverged"
+    (test,) = RefinementReport(refinement, (comparison,)).to_dict()["tests"]
+    assert test["verdict"] == "diverged" and test["after"]["diverged"] and not test["before"]["diverged"]
