@@ -33,6 +33,9 @@ from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
 
 ESTIMATION, HELD_OUT = 8000, 4000
+# Estimation records whose first ESTIMATION samples the loop runs on, the rest of them held out
+# from its choices (models.held_out.HELD_OUT_SHARE).
+LOOP_AND_TAIL = 10_000
 # Official Silverbox split (shared/data/README.md); each test run starts from 50 measured outputs.
 SILVERBOX_ESTIMATION = slice(40650, 105712)
 SILVERBOX_ARROW = slice(100, 40575)
@@ -99,7 +102,7 @@ UNDECLARED = [
 @pytest.mark.parametrize(("effect", "scenario", "share"), UNDECLARED, ids=[name for name, *_ in UNDECLARED])
 def test_an_undeclared_effect_is_named_first_and_the_one_step_error_falls(effect, scenario, share):
     record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
-    estimation, test = [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT)
+    estimation, test = [(0, LOOP_AND_TAIL)], (LOOP_AND_TAIL, ESTIMATION + HELD_OUT)
     # The one-step criterion and least-squares parameters alone, as Step 4 built the loop: its
     # figures are one-step errors, which output-error parameters do not minimise.
     report = refine_record(
@@ -179,8 +182,8 @@ def test_score_and_f_statistic_agree_with_an_svd_refit():
     is not used: its pseudo-inverse leaves relative errors ~5e-8 in these sums of squares, which
     the F statistic's difference of two of them magnifies ~100×.)"""
     x, y = paper_record(["quadratic_stiffness2=3e5"], seed=2)
-    x, y = x[:ESTIMATION], y[:ESTIMATION]
-    first = refine([(x, y)], EXACT_TERMS, max_rounds=1).rounds[0]
+    first = refine([(x[:LOOP_AND_TAIL], y[:LOOP_AND_TAIL])], EXACT_TERMS, max_rounds=1).rounds[0]
+    x, y = x[:ESTIMATION], y[:ESTIMATION]  # what the loop saw, its tail held out
     assert first.added is not None and first.added.name == "quadratic_stiffness"
     declared = parse_terms(EXACT_TERMS)
     lag = max(max_lag(e.terms) for e in candidate_effects(declared) if e.terms)
@@ -466,7 +469,8 @@ def measurement_noise_only():
     record the loop used to add an effect (power-law damping) that lowered the check blocks' free
     run by 0.08 %, far within its 1.4 % standard error."""
     record = simulate(Scenario(disturbance_std=200.0, y_noise_std=2e-6), ESTIMATION + HELD_OUT, seed=2005)
-    estimation = [(record.x[:ESTIMATION], record.y[:ESTIMATION])]
+    # The loop runs on the first 8000 samples, the rest held out from its choices (refine).
+    estimation = [(record.x[:LOOP_AND_TAIL], record.y[:LOOP_AND_TAIL])]
     return record, estimation, refine(estimation, EXACT_TERMS)
 
 
@@ -505,7 +509,7 @@ def test_effects_that_only_repair_the_bias_of_least_squares_are_withdrawn(measur
     grown = fit_output_error(fit_narx(estimation, grown_terms), estimation, SETTLED_EVALUATIONS).model
     assert comes_to_rest(grown, estimation) and comes_to_rest(result.refined, estimation)
     warm_up = 1000
-    x, y = record.x[ESTIMATION - warm_up :], record.y[ESTIMATION - warm_up :]
+    x, y = record.x[LOOP_AND_TAIL - warm_up :], record.y[LOOP_AND_TAIL - warm_up :]
 
     def held_out_rms(model: NARX) -> float:
         error = model.simulate(x, y)[warm_up:] - y[warm_up:]
@@ -755,7 +759,7 @@ def test_a_free_run_that_grows_without_bound_is_judged_diverged_though_finite():
     """y[t] = 1.05 y[t-1] + x[t-1] grows 1.05ⁿ: finite over 300 samples, far beyond the record."""
     rng = np.random.default_rng(4)
     x = rng.standard_normal(300)
-    y = signal.lfilter([0.0, 1.0], [1.0, -0.5], x)
+    y = signal.lfilter([0.0, 1.0], [1.0, -0.5], x) + 0.1 * rng.standard_normal(300)
     terms = linear_terms(1, 1, 1)
     stable = NARX(terms, np.array([0.5, 1.0]), np.zeros((2, 2)))
     growing = replace(stable, theta=np.array([1.05, 1.0]))
