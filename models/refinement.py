@@ -35,6 +35,14 @@ the rounds above add nothing that lasts: least squares ranks the families there,
 cubic-stiffness model it fits diverges; grown from the settled linear model, cubic stiffness
 gains 8–29 % on every fold.)
 
+**Never worse.** The rounds choose among many candidates on the same check blocks, and the best
+of many gains there by chance: where the records are long enough, the loop runs on each record's
+first part only, and the model it refines is compared with its start on the records' tails,
+which no choice saw (:mod:`models.held_out`). Unless it simulates them better beyond the
+comparison's uncertainty, the start is returned and the report says the data could not support
+the effects, naming the best one tried. Whichever is returned has its parameters estimated on
+all the records as the loop estimated them on its part (:func:`refine`).
+
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
 noise on the measured output gives least squares, when on the check blocks the output-error fit
