@@ -110,13 +110,6 @@ MAX_LINEAR_ORDER = 10  # the largest order tried when no structure is declared
 # by this share and by more than their difference's spread across the check rotations
 # (:func:`choose_linear`).
 ORDER_GAIN = 0.05
-# A linear start's held-out free run is weighed with this share for each of its parameters
-# (compounded) when the best for its size is sought (:func:`choose_linear`). A nonlinearity the
-# linear model lacks lets every larger order take a few per cent off the free run (of a 10 kN dead
-# zone on the rig, ARX(8, 8) simulates 10 % better than the rig's ARX(4, 4)); a mode the smaller
-# lacks takes off more for its two parameters (the third pole of a linear system measured under
-# 30 % output noise: 7 %, where the noise is most of the figure).
-ORDER_PENALTY = 0.02
 # A linear start's response to the input alone must reach this share of the output's spread.
 INPUT_SHARE = 0.1
 # Families judged at once on the check blocks, in a round (the workers' judgements run side by
@@ -737,20 +730,13 @@ def choose_linear(
     A model the input barely drives is no start (:func:`_is_start`): on a rig record with a
     large dead zone, least squares' best predictor of order 2 extrapolates the output's own past,
     y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all, where the input drives none), the smallest is
-    chosen whose figure is within ``margin`` (relative) of the best's, or above it by no more
-    than the standard error of their difference across the rotations: for the loop's start, an
-    effect the linear model lacks lowers the free run of larger orders a little and unevenly (the
-    best linear approximation of the nonlinearity), not by a new mode.
-
-    A start (``margin`` above zero) is the best for its size: its figure weighed by
-    ``ORDER_PENALTY`` a parameter, so that a nonlinearity's few per cent an order do not buy
-    orders the system lacks. It is judged with a constant beside its terms, and returned without
-    it: an output whose mean the input does not explain (a sensor offset, an asymmetric spring's
-    drift) would otherwise decide the orders by that mean, which the loop finds as an effect of
-    its own; a spread of the rotations admits a smaller start only within twice ``margin``. A
-    baseline to monitor a structure by wants the model that simulates best as it will be used,
-    ``margin`` 0: none of these. Returns (n, n, d) and the terms; ``progress`` is told each
-    candidate as its figures are read, ``workers`` fit them (:data:`models.regression.Workers`).
+    chosen whose figure is within ``margin`` (relative) of the best, or above it by no more than
+    the standard error of their difference across the rotations: for the loop's start, an effect
+    the linear model lacks lowers the free run of larger orders a little and unevenly (the best
+    linear approximation of the nonlinearity), not by a new mode. A baseline to monitor a
+    structure by wants the model that simulates best, ``margin`` 0. Returns (n, n, d) and the
+    terms; ``progress`` is told each candidate as its figures are read, ``workers`` fit them
+    (:data:`models.regression.Workers`).
     """
     if max_order < 1:
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
@@ -758,9 +744,7 @@ def choose_linear(
     folds = [checks, *(CheckSplit.of(records, fold) for fold in (0, 2))]
     tell = _told(progress)
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
-    start = margin > 0
-    constant = (Term(),) if start else ()
-    structures = [Structure(linear_terms(n, n, d) + constant) for n, d in orders]
+    structures = [Structure(linear_terms(n, n, d)) for n, d in orders]
     judged = [fold.judge(structures, workers, tuned=True) for fold in folds]
     figures: dict[tuple[int, int], np.ndarray] = {}
     admissible: set[tuple[int, int]] = set()
@@ -776,8 +760,7 @@ def choose_linear(
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
     # best of all is the start: the loop may still find what the input does.
     mean = {nd: float(np.mean(e)) for nd, e in figures.items() if nd in admissible or not admissible}
-    penalty = ORDER_PENALTY if start else 0.0
-    best = min(mean, key=lambda nd: mean[nd] * (1 + penalty) ** _parameters(nd))
+    best = min(mean, key=mean.__getitem__)
     if not np.isfinite(mean[best]):
         raise InputError(
             f"no linear model of order 1 to {max_order} could be fitted on these records and run free "
@@ -785,28 +768,16 @@ def choose_linear(
         )
 
     def near_best(nd: tuple[int, int]) -> bool:
-        if mean[nd] <= (1 + margin) * mean[best]:
-            return True
-        # For a start, the spread of three rotations (which one output-error search ending far
-        # off widens) admits a smaller order only up to twice the margin.
         difference = figures[nd] - figures[best]
         spread = float(np.std(difference, ddof=1) / np.sqrt(difference.size))
-        within = not start or mean[nd] <= (1 + 2 * margin) * mean[best]
-        return within and float(np.mean(difference)) <= spread
+        return mean[nd] <= (1 + margin) * mean[best] or float(np.mean(difference)) <= spread
 
-    # The smallest by parameters, then by order.
+    # The smallest by parameters (x[t] is one more than a delay of one), then by order.
     n, d = min(
         (nd for nd in mean if np.isfinite(mean[nd]) and near_best(nd)),
-        key=lambda nd: (_parameters(nd), nd[0]),
+        key=lambda nd: (2 * nd[0] + (nd[1] == 0), nd[0]),
     )
     return (n, n, d), linear_terms(n, n, d)
-
-
-def _parameters(orders: tuple[int, int]) -> int:
-    """The parameters of the linear candidate of order n and input delay d: x[t] is one more than
-    a delay of one."""
-    n, d = orders
-    return 2 * n + (d == 0)
 
 
 def _or_none(fit: Callable[[Structure], NARX], structure: Structure) -> NARX | None:
@@ -819,14 +790,13 @@ def _or_none(fit: Callable[[Structure], NARX], structure: Structure) -> NARX | N
 
 def _is_start(model: NARX, checks: CheckSplit) -> bool:
     """Whether ``model`` (fitted on the fit parts) may start the loop: over the check parts its
-    response to the input alone (run from rest, less its run with no input, which a constant
-    drives) is at least ``INPUT_SHARE`` of the measured output's spread about its mean."""
+    response to the input alone (run from rest) is at least ``INPUT_SHARE`` of the measured
+    output's spread about its mean."""
     lag = model.max_lag
     driven, spread = [], []
     for x, y, t0 in checks.check:
         if len(y) > lag:
-            rest = np.zeros_like(y)
-            driven.append((model.simulate(x, rest, t0) - model.simulate(np.zeros_like(x), rest, t0))[lag:])
+            driven.append(model.simulate(x, np.zeros_like(y), t0)[lag:])
             spread.append(y[lag:] - np.mean(y[lag:]))
     if not spread:
         return False
