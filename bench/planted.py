@@ -8,10 +8,11 @@ the same estimation record: with nothing declared (the linear orders the loop ch
 the rig's structure (SPEC §2, ``--declared 2dof``). Both refined models run free over a held-out
 record simulated from another seed; a sinusoidal force has a random phase a record, so the
 periodic disturbance's held-out part is its own record's continuation. For each case and size
-the table gives how often the planted effect was named first, the median and worst ratio of
-the held-out free-run RMS nothing-declared / rig-declared, and the linear orders chosen. Then
-the loop with nothing declared on clean records of the rig (its 800 N unmeasured force): how
-many it left alone.
+the table gives how often the planted effect was named first (and first once the rig's own
+cubic spring, an effect to find when nothing is declared, is set aside), the median and worst
+ratio of the held-out free-run RMS nothing-declared / rig-declared, and the linear orders
+chosen. Then the loop on clean records of the rig (its 800 N unmeasured force), with nothing
+declared and from the rig's structure: how many it left alone.
 
 Run from the project root; develop on seeds below 1000 (``--first-seed 1``), report on the
 held-out seeds from 5000 (the default)::
@@ -42,6 +43,9 @@ TEST_SEEDS = 50_000  # a held-out record's seed: its estimation record's plus th
 HELD_OUT_SEEDS = 5000  # the first seed of the report; development used seeds below 1000
 PLANTED_FORCE = 200.0  # N of unmeasured force beside a planted effect, as the tests plant them
 RIG_FORCE = 800.0  # N of unmeasured force on the rig as it is: the clean records'
+# The rig's own cubic spring on the measured mass (SPEC §2): with nothing declared, an effect the
+# loop may rightly name before the planted one.
+RIG_SPRING = "cubic_stiffness"
 
 
 @dataclass(frozen=True)
@@ -104,6 +108,17 @@ class Run:
     def ratio(self) -> float:
         return self.free_run / self.rig_free_run if np.isfinite(self.free_run) else np.inf
 
+    @property
+    def first(self) -> bool:
+        """Whether the planted effect was named first."""
+        return bool(self.named) and self.named[0] == CASES[self.case].family
+
+    @property
+    def first_but_the_spring(self) -> bool:
+        """Whether the planted effect was named first, or second after the rig's own spring."""
+        rest = self.named[1:] if self.named[:1] == (RIG_SPRING,) else self.named
+        return bool(rest) and rest[0] == CASES[self.case].family
+
 
 def run_case(case: int, samples: int, seed: int) -> Run:
     """The loop with nothing declared and from the rig's structure on one planted record."""
@@ -153,7 +168,18 @@ def orders_text(runs: list[Run]) -> str:
 
 def table(runs: list[Run]) -> Table:
     result = Table(title="Planted effects, nothing declared (free run: nothing declared / rig declared)")
-    columns = ("planted", "family", "samples", "named first", "median", "worst", "orders", "instead", "s")
+    columns = (
+        "planted",
+        "family",
+        "samples",
+        "named first",
+        "spring aside",
+        "median",
+        "worst",
+        "orders",
+        "instead",
+        "s",
+    )
     for column in columns:
         result.add_column(column)
     for index, case in enumerate(CASES):
@@ -161,7 +187,7 @@ def table(runs: list[Run]) -> Table:
             group = [run for run in runs if run.case == index and run.samples == samples]
             if not group:
                 continue
-            first = [run for run in group if run.named and run.named[0] == case.family]
+            first = [run for run in group if run.first]
             ratios = np.array([run.ratio for run in group])
             instead = Counter(run.named[0] if run.named else "nothing" for run in group if run not in first)
             result.add_row(
@@ -169,6 +195,7 @@ def table(runs: list[Run]) -> Table:
                 case.family,
                 str(samples),
                 f"{len(first)}/{len(group)}",
+                f"{sum(run.first_but_the_spring for run in group)}/{len(group)}",
                 f"{np.median(ratios):.3g}",
                 f"{np.max(ratios):.3g}",
                 orders_text(group),
@@ -179,10 +206,12 @@ def table(runs: list[Run]) -> Table:
 
 
 def summary(runs: list[Run]) -> str:
-    named = sum(bool(run.named) and run.named[0] == CASES[run.case].family for run in runs)
+    named = sum(run.first for run in runs)
+    aside = sum(run.first_but_the_spring for run in runs)
     within = sum(run.ratio <= 2 for run in runs)
     return (
         f"named first: {named}/{len(runs)} ({100 * named / max(len(runs), 1):.0f} %); "
+        f"first or after the rig's own spring: {aside}/{len(runs)}; "
         f"held-out free run within 2× of the rig-declared: {within}/{len(runs)}"
     )
 
