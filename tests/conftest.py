@@ -314,6 +314,15 @@ def api_server(request):
     return request.getfixturevalue(f"{request.param}_api_server")
 
 
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def database_server(request):
+    """The app on each database, for a module on SQLite (its ``api_server``) whose few tests of
+    what the database decides (constraints, row locks, the times it stores) run on both."""
+    from harness.live import on_each_database
+
+    return on_each_database(request, "sqlite_api_server", lambda server: server)
+
+
 @pytest.fixture
 def tenant(api_server):
     """A fresh organisation with an admin, an ingest and a viewer client."""
