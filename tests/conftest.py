@@ -314,6 +314,15 @@ def api_server(request):
     return request.getfixturevalue(f"{request.param}_api_server")
 
 
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def database_server(request):
+    """The app on each database, for a module on SQLite (its ``api_server``) whose few tests of
+    what the database decides (constraints, row locks, the times it stores) run on both."""
+    from harness.live import on_each_database
+
+    return on_each_database(request, "sqlite_api_server", lambda server: server)
+
+
 @pytest.fixture
 def tenant(api_server):
     """A fresh organisation with an admin, an ingest and a viewer client."""
@@ -325,24 +334,33 @@ def tenant(api_server):
         client.close()
 
 
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
-def fleet_server(request, tmp_path_factory):  # yields harness.fleet.Fleet
-    """A server of its own on each database (the embedded job backend on PostgreSQL too), so that
-    nothing else writes while a test holds the state rows against the tables."""
+def _fleet(url: str):  # yields harness.fleet.Fleet
     from harness.fleet import Fleet
     from harness.live import LiveServer
     from service.config import Settings
     from service.db import make_engine
 
-    if request.param == "sqlite":
-        url = f"sqlite:///{tmp_path_factory.mktemp('fleet') / 'narxwatch.db'}"
-    else:
-        from harness import postgres
-
-        url = postgres.create_database(
-            request.getfixturevalue("postgres_url"), f"fleet_{uuid.uuid4().hex[:12]}"
-        )
     with LiveServer(Settings(database_url=url, job_backend="embedded")) as server:
         engine = make_engine(url)
         yield Fleet(server, engine)
         engine.dispose()
+
+
+@pytest.fixture(scope="module")
+def sqlite_fleet_server(tmp_path_factory):  # yields harness.fleet.Fleet
+    """A server of its own on SQLite, so that nothing else writes while a test holds the state
+    rows against the tables."""
+    yield from _fleet(f"sqlite:///{tmp_path_factory.mktemp('fleet') / 'narxwatch.db'}")
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def fleet_server(request):  # yields harness.fleet.Fleet
+    """A server of its own on each database (the embedded job backend on PostgreSQL too): on
+    SQLite the module's ``sqlite_fleet_server``."""
+    if request.param == "sqlite":
+        yield request.getfixturevalue("sqlite_fleet_server")
+        return
+    from harness import postgres
+
+    url = postgres.create_database(request.getfixturevalue("postgres_url"), f"fleet_{uuid.uuid4().hex[:12]}")
+    yield from _fleet(url)

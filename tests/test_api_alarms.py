@@ -1,9 +1,14 @@
-"""Alarms through HTTP, on SQLite and PostgreSQL: rules, the lifecycle, roles, tenancy, bad input.
+"""Alarms through HTTP: rules, the lifecycle, roles, tenancy, bad input.
 
 A rig with a k2 fault-mode model is fed simulated records, healthy then with a k2 fault of 25 %,
 each inspected on upload (or by a queued job). What the rules must do is worked out here from the
 verdicts the service returned, by the rule's own definition (k of the last m; a CUSUM written out
 in this file), and compared with the alarms the service opened and resolved.
+
+The rules are the service's whatever the database: on SQLite. What the database decides (one
+unresolved alarm a key, kept by its index; verdicts stored at once, serialised by the structure's
+row lock) on PostgreSQL too: the tests that take ``database_server``; the listing's plan on
+PostgreSQL alone.
 """
 
 from __future__ import annotations
@@ -96,6 +101,11 @@ def new_rig(
             response = admin.put(f"{API}/structures/{structure_id}/alarm-rules", json={"rules": rules})
             assert response.status_code == 200, response.text
     return Rig(org, structure_id)
+
+
+@pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
 
 
 @pytest.fixture(scope="module")
@@ -287,17 +297,21 @@ def test_alarms_are_listed_newest_first_with_filters_and_pages(rig: Rig):
             assert viewer.get(f"{API}/alarms", params=bad).status_code == 422, bad
 
 
-def test_the_database_keeps_one_unresolved_alarm_per_structure_rule_and_fault_mode(rig: Rig, api_server):
+def test_the_database_keeps_one_unresolved_alarm_per_structure_rule_and_fault_mode(
+    database_server: LiveServer,
+):
     """Whatever the code does, a second unresolved alarm of the same key is refused by the database
     (persistence alarms have no fault mode: NULL, which a plain unique index would let through)."""
-    sessions = api_server.app.state.sessions
+    sessions = database_server.app.state.sessions
     now = utcnow()
+    with clients(Org.create(database_server)) as (admin, _, _):
+        structure_id = create_structure(admin, f"alarmed-{uuid.uuid4().hex[:6]}")["id"]
     with sessions() as session:
-        organisation_id = session.get(Structure, rig.structure_id).organisation_id
+        organisation_id = session.get(Structure, structure_id).organisation_id
 
     def alarm(mode: str | None, state: str = "open") -> Alarm:
         return Alarm(
-            structure_id=rig.structure_id,
+            structure_id=structure_id,
             organisation_id=organisation_id,
             rule_kind="persistence" if mode is None else "severity",
             rule={},
@@ -338,11 +352,11 @@ def test_a_re_inspection_with_new_models_re_judges_the_record(api_server: LiveSe
     assert (alarm["rule_kind"], alarm["fault_mode"], alarm["record_id"]) == ("severity", "k1", uploaded["id"])
 
 
-def test_verdicts_stored_at_once_open_one_alarm(api_server: LiveServer):
+def test_verdicts_stored_at_once_open_one_alarm(database_server: LiveServer):
     """Six faulty records uploaded together, each firing the rule: one alarm, no error. The
     structure's evaluations run one after another (its row lock), each seeing the alarm the one
     before committed."""
-    rig = new_rig(api_server, seed=65, rules=[{"kind": "persistence", "k": 1, "m": 1}])
+    rig = new_rig(database_server, seed=65, rules=[{"kind": "persistence", "k": 1, "m": 1}])
     bodies = [simulated("k2", FAULT_K, [65, index], 2000) for index in range(6)]
 
     def upload(index: int) -> int:

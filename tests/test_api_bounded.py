@@ -3,9 +3,11 @@ are queued as jobs, model documents are bounded and never read by the history, a
 is returned without reading its record again, and one organisation's expensive requests cannot
 take every thread from another.
 
-Through HTTP against the real app, on SQLite and on PostgreSQL. The limits are those of a server
-of its own with small settings, so that small records reach them; what reads a record's signals
-or a model's document is seen in the SQL the server's engine sends.
+Through HTTP against the real app. The limits are those of a server of its own with small
+settings, so that small records reach them; what reads a record's signals or a model's document is
+seen in the SQL the server's engine sends. The prices, refusals and reads are the service's
+whatever the database: on SQLite. Queued work, which the job queue carries (Procrastinate and a
+`narxwatch worker` on PostgreSQL), on both: the tests that take ``database_bounded``.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import uuid
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import httpx
 import pytest
@@ -35,7 +38,7 @@ from harness.api_helpers import (
     train_fault_mode,
     wait_for,
 )
-from harness.live import LiveServer
+from harness.live import DATABASES, LiveServer
 from service.config import Settings
 from service.jobs.tasks import TASKS
 from service.tables import Organisation
@@ -65,13 +68,12 @@ LIMITS = {
 }
 
 
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
-def bounded(request, tmp_path_factory) -> Iterator[Bounded]:
+@contextmanager
+def bounded_server(request: pytest.FixtureRequest, database: str, folder: Path) -> Iterator[Bounded]:
     """A server with small limits: on SQLite with its embedded job thread, on PostgreSQL with a
     `narxwatch worker` process (the same limits) running the queued jobs."""
-    folder = tmp_path_factory.mktemp("bounded")
     with ExitStack() as stack:
-        if request.param == "sqlite":
+        if database == "sqlite":
             server = stack.enter_context(
                 LiveServer(Settings(database_url=f"sqlite:///{folder / 'narxwatch.db'}", **LIMITS))
             )
@@ -93,6 +95,27 @@ def bounded(request, tmp_path_factory) -> Iterator[Bounded]:
                 assert response.status_code == 201, response.text
                 record[n] = response.json()["id"]
         yield Bounded(server, org, rig, record)
+
+
+@pytest.fixture(scope="module")
+def bounded(request: pytest.FixtureRequest, tmp_path_factory) -> Iterator[Bounded]:
+    with bounded_server(request, "sqlite", tmp_path_factory.mktemp("bounded")) as bounded:
+        yield bounded
+
+
+@pytest.fixture(scope="module", params=DATABASES)
+def database_bounded(request: pytest.FixtureRequest, tmp_path_factory) -> Iterator[Bounded]:
+    """The server with small limits on each database, for work the job queue carries."""
+    if request.param == "sqlite":
+        yield request.getfixturevalue("bounded")
+        return
+    with bounded_server(request, request.param, tmp_path_factory.mktemp("bounded")) as bounded:
+        yield bounded
+
+
+@pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
 
 
 def baseline_url(structure_id: int) -> str:
@@ -210,7 +233,8 @@ def run_again(server: LiveServer, job_id: int) -> None:
         TASKS[task](session, server.settings, **args)
 
 
-def test_a_large_training_is_queued_and_its_job_stores_the_version(bounded: Bounded):
+def test_a_large_training_is_queued_and_its_job_stores_the_version(database_bounded: Bounded):
+    bounded = database_bounded
     record = bounded.record[15_000]  # 120 000 cells: over the queueing threshold, under the limit
     with clients(bounded.org) as (admin, _, viewer):
         response = admin.post(baseline_url(bounded.rig), json={"record_ids": [record], "terms": EXACT})
@@ -235,7 +259,8 @@ def test_a_large_training_is_queued_and_its_job_stores_the_version(bounded: Boun
         assert trained() == [version], "the job run again stored a second version"
 
 
-def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(bounded: Bounded):
+def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(database_bounded: Bounded):
+    bounded = database_bounded
     with clients(bounded.org) as (admin, _, viewer):
         baseline = admin.post(
             baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]], "terms": EXACT}
@@ -256,10 +281,11 @@ def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(b
         assert refined() == [refinement], "the job run again stored a second refinement"
 
 
-def test_a_refinement_on_several_records_is_priced_on_all_of_them(bounded: Bounded):
+def test_a_refinement_on_several_records_is_priced_on_all_of_them(database_bounded: Bounded):
     """The records judged cost too: 2000 samples fitted (68 000 cells alone) with 4000 judged is
     6000 × 34 = 204 000 cells, over the limit; 2000 + 700 fitted with 1000 judged, 125 800 cells,
     is queued though no record alone would be, and the job stores every record's role."""
+    bounded = database_bounded
     with clients(bounded.org) as (admin, ingest, viewer):
         baseline = admin.post(
             baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]], "terms": EXACT}

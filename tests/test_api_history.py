@@ -1,8 +1,11 @@
-"""Fault history, summary and model versions through HTTP, on SQLite and PostgreSQL.
+"""Fault history, summary and model versions through HTTP.
 
 A structure with k1 and k2 fault-mode models gets ten inspected records whose acquisition times
 are uploaded out of order (two share a time; one is given in +02:00); the history must list them
 newest first, filter and paginate them, and the summary must agree with it.
+
+On SQLite; what the database decides (the times it stores, and the order, time ranges and pages
+it reads them in) on PostgreSQL too: the tests that take ``database_history``, and readiness.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from harness.api_helpers import (
     train_fault_mode,
     upload_simulated,
 )
-from harness.live import LiveServer
+from harness.live import DATABASES, LiveServer, on_each_database
 
 T0 = dt.datetime(2026, 3, 1, 6, 0, tzinfo=dt.UTC)
 DAY = dt.timedelta(days=1)
@@ -64,7 +67,11 @@ class History:
 
 
 @pytest.fixture(scope="module")
-def history(api_server: LiveServer) -> History:
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
+
+
+def build_history(api_server: LiveServer) -> History:
     org = Org.create(api_server)
     verdicts = []
     with clients(org) as (admin, ingest, _):
@@ -89,6 +96,17 @@ def history(api_server: LiveServer) -> History:
     return History(org, sid, verdicts)
 
 
+@pytest.fixture(scope="module")
+def history(api_server: LiveServer) -> History:
+    return build_history(api_server)
+
+
+@pytest.fixture(scope="module", params=DATABASES)
+def database_history(request: pytest.FixtureRequest) -> History:
+    """The history on each database, for the times it stores and the order it reads them in."""
+    return on_each_database(request, "history", build_history)
+
+
 def listing(client, history: History, **params) -> list[dict]:
     """The whole filtered history in one page."""
     response = client.get(history.url(), params={"limit": 1000, **params})
@@ -107,7 +125,14 @@ def viewer(history: History):
         yield client
 
 
-def test_history_is_newest_first(history: History, viewer):
+@pytest.fixture
+def database_viewer(database_history: History):
+    with database_history.org.client("viewer") as client:
+        yield client
+
+
+def test_history_is_newest_first(database_history: History, database_viewer):
+    history, viewer = database_history, database_viewer
     items = listing(viewer, history)
     assert len(items) == len(PLAN)
     assert [parse(v["acquired_at"]) for v in items] == sorted((when(day) for _, day, _ in PLAN), reverse=True)
@@ -121,7 +146,8 @@ def test_history_is_newest_first(history: History, viewer):
     assert len(same_time) == 2 and same_time[0] > same_time[1]  # ties: the newer id first
 
 
-def test_an_upload_answers_in_utc_like_everything_else(history: History, viewer):
+def test_an_upload_answers_in_utc_like_everything_else(database_history: History, database_viewer):
+    history, viewer = database_history, database_viewer
     """Times are stored and listed in UTC; the answer to the upload that gave one in +02:00 must
     not differ from what GET returns for the same record and verdict."""
     uploaded = history.verdicts[3]
@@ -131,7 +157,8 @@ def test_an_upload_answers_in_utc_like_everything_else(history: History, viewer)
     assert uploaded == fetched
 
 
-def test_history_time_filters(history: History, viewer):
+def test_history_time_filters(database_history: History, database_viewer):
+    history, viewer = database_history, database_viewer
     items = listing(viewer, history)
 
     def acquired(predicate) -> list[int]:
@@ -171,7 +198,8 @@ def test_history_status_and_fault_mode_filters(history: History, viewer):
 
 
 @pytest.mark.parametrize("limit", [1, 2, 3, 4, 9, 10, 11])
-def test_history_cursor_pagination(history: History, viewer, limit):
+def test_history_cursor_pagination(database_history: History, database_viewer, limit):
+    history, viewer = database_history, database_viewer
     everything = listing(viewer, history)
     walked, pages, cursor = [], 0, None
     while True:
@@ -194,7 +222,8 @@ def test_history_cursor_pagination(history: History, viewer, limit):
     assert walked == everything  # no gaps, same order
 
 
-def test_history_pagination_with_a_filter(history: History, viewer):
+def test_history_pagination_with_a_filter(database_history: History, database_viewer):
+    history, viewer = database_history, database_viewer
     everything = listing(viewer, history, status="faulty")
     walked, cursor = [], None
     while True:
@@ -381,8 +410,9 @@ def test_model_versions_and_the_verdicts_they_give(api_server: LiveServer):
         assert listed() == {("k2", 1, False), ("k2", 2, True), ("k1", 1, True)}
 
 
-def test_health_and_readiness(api_server: LiveServer):
-    with api_server.client() as anonymous:  # no key needed
+def test_health_and_readiness(database_server: LiveServer):
+    """Readiness is the database answering."""
+    with database_server.client() as anonymous:  # no key needed
         healthz, readyz = anonymous.get("/healthz"), anonymous.get("/readyz")
     assert (healthz.status_code, healthz.json()) == (200, {"status": "ok"})
     assert (readyz.status_code, readyz.json()) == (200, {"status": "ready"})

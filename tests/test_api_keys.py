@@ -1,7 +1,10 @@
-"""An organisation's admins list, create and revoke its API keys over HTTP, on SQLite and PostgreSQL.
+"""An organisation's admins list, create and revoke its API keys over HTTP.
 
 A key ends when it is revoked (its dashboard logins with it) or when it expires, which its holder
 is told; its last use is recorded to the minute, not written on every request.
+
+On SQLite; the expiry and the last use, times the database stores and compares, on PostgreSQL
+too (``database_server``).
 """
 
 from __future__ import annotations
@@ -9,6 +12,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 
+import pytest
 from sqlalchemy import func, select, update
 
 from harness.api_helpers import API, Org, clients
@@ -30,6 +34,11 @@ def listed(org: Org) -> dict[str, dict]:
         response = admin.get(f"{API}/keys")
     assert response.status_code == 200, response.text
     return {key["prefix"]: key for key in response.json()}
+
+
+@pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
 
 
 def parse(stamp: str | None) -> dt.datetime | None:
@@ -96,7 +105,8 @@ def test_an_admin_creates_keys_of_every_role_and_nothing_malformed(api_server: L
         assert len(admin.get(f"{API}/keys").json()) == count, "a refused key was stored"
 
 
-def test_an_expired_key_is_refused_and_told_so(api_server: LiveServer):
+def test_an_expired_key_is_refused_and_told_so(database_server: LiveServer):
+    api_server = database_server
     org = Org.create(api_server)
     expires_at = dt.datetime.now(dt.UTC) + dt.timedelta(hours=1)
     with org.client("admin") as admin:
@@ -124,7 +134,8 @@ def test_an_expired_key_is_refused_and_told_so(api_server: LiveServer):
         assert guesser.get(f"{API}/structures").json()["detail"] == NOT_VALID
 
 
-def test_last_use_is_recorded_at_most_once_a_minute(api_server: LiveServer):
+def test_last_use_is_recorded_at_most_once_a_minute(database_server: LiveServer):
+    api_server = database_server
     org = Org.create(api_server)
     viewer = prefix(org.keys["viewer"])
     assert listed(org)[viewer]["last_used_at"] is None

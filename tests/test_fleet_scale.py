@@ -6,6 +6,9 @@ they are held, after every step of a sequence of uploads, inspections and jobs (
 late, two at one instant, the same data twice, concurrent uploads), against what the tables
 themselves hold, counted with ``COUNT(*)`` and walked in Python. Each database gets a server of
 its own (the embedded job backend, on PostgreSQL too), so that nothing else writes meanwhile.
+
+What the database decides (counts kept by its writes, concurrent writers, the times it stores,
+the name filter's LIKE) on both; refusals and links on SQLite (``sqlite_fleet_server``).
 """
 
 from __future__ import annotations
@@ -211,9 +214,9 @@ def test_a_job_whose_claim_was_taken_over_is_counted_once(fleet_server: Fleet):
 
 
 @pytest.fixture(scope="module")
-def clocked(fleet_server: Fleet) -> tuple[Org, int]:
+def clocked(sqlite_fleet_server: Fleet) -> tuple[Org, int]:
     """An organisation and its structure with a k2 model, which inspects what it is sent."""
-    org = Org.create(fleet_server.server)
+    org = Org.create(sqlite_fleet_server.server)
     with clients(org) as (admin, ingest, _):
         sid = create_structure(admin, "clocked")["id"]
         train_fault_mode(admin, ingest, sid, "k2", seed=71)
@@ -234,7 +237,7 @@ def _send(ingest: httpx.Client, sid: int, route: str, when: str, seed: int) -> h
 
 @pytest.mark.parametrize("route", ["json", "json, queued", "csv", "set"])
 def test_an_acquisition_time_past_the_servers_clock_is_refused_before_anything_is_written(
-    fleet_server: Fleet, clocked: tuple[Org, int], route: str
+    clocked: tuple[Org, int], route: str
 ):
     """9999-12-31, or a minute more than the skew allowed ahead of the server's clock: 422 naming
     the server's clock (ISO 8601, UTC) and the setting, nothing stored or queued. Half the skew
@@ -486,29 +489,29 @@ def test_the_fleet_page_is_paged_and_filtered_from_the_state_rows(fleet_server: 
             assert refused.status_code == 422, params
 
 
-def test_the_fleet_page_links_to_the_next_page(fleet_server: Fleet):
+def test_the_fleet_page_links_to_the_next_page(sqlite_fleet_server: Fleet):
     """One structure more than a page: the first page links to the next, which holds it."""
     from service.dashboard.views import FLEET_PAGE
 
-    org = Org.create(fleet_server.server)
+    org = Org.create(sqlite_fleet_server.server)
     with clients(org) as (admin, _, _):
         ids = [create_structure(admin, f"unit {index}")["id"] for index in range(FLEET_PAGE + 1)]
-    with logged_in(fleet_server.server, org.keys["viewer"]) as client:
+    with logged_in(sqlite_fleet_server.server, org.keys["viewer"]) as client:
         first = client.get(DASHBOARD)
         assert _row_ids(first.text) == [str(i) for i in ids[:FLEET_PAGE]]
         second = client.get(DASHBOARD + _next_link(first.text))
         assert _row_ids(second.text) == [str(ids[-1])] and _next_link(second.text) is None
 
 
-def test_the_fleet_page_shows_the_oldest_open_alarms_and_counts_the_rest(fleet_server: Fleet):
+def test_the_fleet_page_shows_the_oldest_open_alarms_and_counts_the_rest(sqlite_fleet_server: Fleet):
     """A fleet with more open alarms than the page lists: the oldest, the count of all, no other
     organisation's. (All of them made a fleet of 10 000 structures, a tenth in alarm, 460 KB.)"""
     from service.dashboard.views import FLEET_ALARMS
 
-    org, theirs = Org.create(fleet_server.server), Org.create(fleet_server.server)
+    org, theirs = Org.create(sqlite_fleet_server.server), Org.create(sqlite_fleet_server.server)
     with clients(org) as (admin, _, _), clients(theirs) as (their_admin, _, _):
         sid, their_sid = create_structure(admin)["id"], create_structure(their_admin)["id"]
-    with fleet_server.engine.begin() as connection:
+    with sqlite_fleet_server.engine.begin() as connection:
         owner = dict(
             connection.execute(
                 select(Structure.id, Structure.organisation_id).where(Structure.id.in_((sid, their_sid)))
@@ -522,7 +525,7 @@ def test_the_fleet_page_shows_the_oldest_open_alarms_and_counts_the_rest(fleet_s
             for i in range(count)
         ]
         ids = list(connection.scalars(insert(Alarm).returning(Alarm.id, sort_by_parameter_order=True), rows))
-    with logged_in(fleet_server.server, org.keys["viewer"]) as client:
+    with logged_in(sqlite_fleet_server.server, org.keys["viewer"]) as client:
         page = client.get(DASHBOARD)
     assert page.status_code == 200
     assert [int(i) for i in re.findall(r'data-alarm-id="(\d+)"', page.text)] == ids[:FLEET_ALARMS]

@@ -81,8 +81,10 @@ from service.security import Role
 # The run is on SQLite: what it looks for (server errors, non-standard JSON, one organisation's
 # data shown to the other, overflowing records stored) is the service's, whichever database is
 # under it. What only PostgreSQL refuses (a NUL byte in text, an integer beyond its column) has a
-# test of its own below, on PostgreSQL, which sends it to every operation.
-EXAMPLES = int(os.environ.get("NARXWATCH_FUZZ_EXAMPLES", "12"))  # runs of the state machine
+# test of its own below, on PostgreSQL, which sends it to every operation. Every run's tour sends
+# each overflowing input, each kind of foreign id and each page with a query: more runs vary the
+# state those meet, not what is sent.
+EXAMPLES = int(os.environ.get("NARXWATCH_FUZZ_EXAMPLES", "6"))  # runs of the state machine
 STEPS = int(os.environ.get("NARXWATCH_FUZZ_STEPS", "40"))
 # Cases per operation and organisation in the sweep, which is the fuzzing of the served schema:
 # each operation, valid and invalid, with the organisation's own ids and with random ones (random
@@ -518,6 +520,12 @@ PATH_PROBES: dict[str, list[tuple[str, str, str, dict[str, Any]]]] = {
     ],
 }
 INDEX = st.integers(0, 2**16)
+# A page's query: its filters and cursor, each with any text.
+QUERY = st.dictionaries(
+    st.sampled_from(["status", "fault_mode", "start", "end", "cursor", "mode", "next"]),
+    st.text(max_size=30),
+    max_size=3,
+)
 ENCODINGS = ("json", "csv", "npz")
 INSPECT_MODES = ("false", "true", "queue")
 
@@ -541,8 +549,8 @@ class FuzzMachine(RuleBasedStateMachine):
     @initialize(data=st.data(), encodings=st.lists(INDEX, min_size=len(POISONS), max_size=len(POISONS)))
     def tour(self, data: st.DataObject, encodings: list[int]) -> None:
         """Every run starts with each overflowing input, each kind of foreign id, the own
-        readings and each page once (Hypothesis' choice of rules favours some rules over
-        others): the steps after it vary them."""
+        readings and each page once, with a query of its own (Hypothesis' choice of rules favours
+        some rules over others): the steps after it vary them."""
         for kind, index in zip(POISONS, encodings, strict=True):
             self.upload_overflowing(
                 data, kind, ENCODINGS[index % 3], INSPECT_MODES[index // 3 % 3], seed_value=index
@@ -551,7 +559,8 @@ class FuzzMachine(RuleBasedStateMachine):
             self.cross_tenant(data, kind)
         self.read_own(data)
         for route in OTHER_PAGES:
-            self.other_page(data, route, data.draw(INDEX, label="index"), {})
+            query = data.draw(QUERY, label="query")
+            self.other_page(data, route, data.draw(INDEX, label="index"), query)
 
     def _org(self, data: st.DataObject) -> Organisation:
         return data.draw(st.sampled_from(self.w.orgs), label="organisation")
@@ -893,11 +902,7 @@ class FuzzMachine(RuleBasedStateMachine):
         data=st.data(),
         route=st.sampled_from(OTHER_PAGES),
         index=INDEX,
-        query=st.dictionaries(
-            st.sampled_from(["status", "fault_mode", "start", "end", "cursor", "mode", "next"]),
-            st.text(max_size=30),
-            max_size=3,
-        ),
+        query=QUERY,
     )
     def other_page(self, data: st.DataObject, route: str, index: int, query: dict[str, str]) -> None:
         org = self._org(data)

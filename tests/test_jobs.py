@@ -1,8 +1,9 @@
 """Queued inspections (embedded job backend): 202 now, the verdict later, exactly once.
 
-Through HTTP on SQLite and PostgreSQL for the user's view; on a real SQLite file for the queue's
-own rules (leases and their renewal, redelivery, retries with backoff); on both databases for
-errors that no retry can mend, which fail a job at once.
+Through HTTP on SQLite and PostgreSQL for the user's view of a queued job (a refused mode, never
+queued, on SQLite alone); on a real SQLite file for the queue's own rules (leases and their
+renewal, redelivery, retries with backoff); on both databases for errors that no retry can mend,
+which fail a job at once.
 """
 
 from __future__ import annotations
@@ -50,10 +51,10 @@ from service.security import Principal, Role
 from service.tables import InspectionFailure, Job, ModelVersion, Organisation, Record, Verdict, utcnow
 
 
-def test_a_queued_upload_answers_202_and_its_verdict_appears_once(api_server: LiveServer):
+def test_a_queued_upload_answers_202_and_its_verdict_appears_once(database_server: LiveServer):
     """The queued verdict is the one an immediate inspection gives: checked against a twin
     structure, trained identically, that inspects the same record with inspect=true."""
-    org = Org.create(api_server)
+    org = Org.create(database_server)
     with clients(org) as (admin, ingest, viewer):
         sid, twin = create_structure(admin)["id"], create_structure(admin)["id"]
         for structure_id in (sid, twin):
@@ -77,8 +78,8 @@ def test_a_queued_upload_answers_202_and_its_verdict_appears_once(api_server: Li
         assert len(verdicts_of(viewer, sid, answer["id"])) == 1
 
 
-def test_an_unknown_inspect_mode_is_refused_and_stores_nothing(api_server: LiveServer):
-    org = Org.create(api_server)
+def test_an_unknown_inspect_mode_is_refused_and_stores_nothing(sqlite_api_server: LiveServer):
+    org = Org.create(sqlite_api_server)
     with clients(org) as (admin, ingest, _):
         sid = create_structure(admin)["id"]
         with nothing_written(org, sid):

@@ -3,7 +3,9 @@ real SMTP server, the delivery log, the SSRF guard, and tenancy.
 
 The rules of the outbox and of one attempt are checked on a SQLite file through the domain code;
 what a user sees (the API, deliveries by the job workers of both backends, a killed worker) over
-HTTP against the real app, with a receiver and an SMTP server the test starts.
+HTTP against the real app, with a receiver and an SMTP server the test starts. The API's
+refusals, its listings and the sealed secret on SQLite: no database decides them; deliveries,
+which the job queue carries, on both.
 """
 
 from __future__ import annotations
@@ -409,6 +411,11 @@ def test_the_key_file_is_made_once_for_its_owner_alone_whoever_starts_first(tmp_
     )
     assert list(settings.secret_key_file.parent.iterdir()) == [settings.secret_key_file]  # no drafts left
     assert Settings.model_fields["secret_key_file"].default == DEFAULT_DATABASE.parent / "secret.key"
+
+
+@pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
 
 
 def test_a_webhooks_secret_is_stored_sealed_and_never_shown_again(api_server: LiveServer):

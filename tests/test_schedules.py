@@ -1,6 +1,9 @@
 """Schedules: the API, the due-time arithmetic, a due time run exactly once however many
 sweepers look (embedded threads, `narxwatch worker` processes, Procrastinate's periodic sweep),
-and a run that neither one bad record nor one bad schedule can stop."""
+and a run that neither one bad record nor one bad schedule can stop.
+
+The API over HTTP on SQLite: what it checks is the service's, and a run on PostgreSQL's queue is
+the three workers'. The sweeps' claims, runs and times on both databases."""
 
 from __future__ import annotations
 
@@ -229,6 +232,11 @@ def test_a_record_the_models_cannot_inspect_is_marked_and_the_rest_of_the_run_go
 
 
 # --- the API ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
 
 
 def test_schedules_are_created_listed_and_deleted(tenant):

@@ -2,8 +2,9 @@
 statistics overflow, one length rule, a tolerant rate check made first, and a queued re-upload that
 tells the truth.
 
-Through HTTP against the real app on SQLite and PostgreSQL; a refused upload leaves nothing behind
-(``api_helpers.nothing_written``), and no verdict row holds a non-finite figure.
+Through HTTP against the real app on SQLite: every refusal here is made before the database is
+reached. A refused upload leaves nothing behind (``api_helpers.nothing_written``), and no verdict
+row holds a non-finite figure. The queued re-upload, a job on the queue, on PostgreSQL too.
 """
 
 from __future__ import annotations
@@ -53,6 +54,11 @@ class Site:
     rig: int  # an active k2 fault-mode model of degree 3 (cubic stiffness), longest lag 4
     bare: int  # no models
     healthy: np.ndarray  # x, y of a healthy simulated record of the rig, 2000 samples
+
+
+@pytest.fixture(scope="module")
+def api_server(sqlite_api_server: LiveServer) -> LiveServer:
+    return sqlite_api_server
 
 
 @pytest.fixture(scope="module")
@@ -289,7 +295,7 @@ def test_a_body_is_parsed_off_the_event_loop(site: Site):
 # --- a queued re-upload (issue 13, from reading the code) -------------------------------------
 
 
-def test_queued_reupload_inspects_with_the_current_models(site: Site, admin_of_new_rig):
+def test_queued_reupload_inspects_with_the_current_models(admin_of_new_rig):
     """A record whose verdict is from older models is queued again, and answers so truthfully;
     one whose verdict is from the active models is not queued, and gets that verdict back."""
     org, rig = admin_of_new_rig
@@ -318,9 +324,10 @@ def test_queued_reupload_inspects_with_the_current_models(site: Site, admin_of_n
 
 
 @pytest.fixture
-def admin_of_new_rig(api_server: LiveServer) -> tuple[Org, int]:
-    """An organisation with a structure and a trained k2 model of its own."""
-    org = Org.create(api_server)
+def admin_of_new_rig(database_server: LiveServer) -> tuple[Org, int]:
+    """An organisation with a structure and a trained k2 model of its own, on each database: the
+    re-upload is queued as a job."""
+    org = Org.create(database_server)
     with clients(org) as (admin, ingest, _):
         rig = create_structure(admin, "requeued")["id"]
         train_fault_mode(admin, ingest, rig, "k2", seed=34)
