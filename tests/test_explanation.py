@@ -55,6 +55,13 @@ def test_an_effects_contribution_is_its_terms_times_their_coefficients_along_the
     assert explained.output_rms == pytest.approx(measured)
     assert cubic.share == pytest.approx(np.sqrt(np.mean((C * run[4:-1] ** 3) ** 2)) / measured)
     assert explained.declared.terms == ("y[t-1]", "x[t-1]")
+    # Removed, the free run is the linear part's, computed here.
+    linear = y.copy()
+    for t in range(5, N):
+        linear[t] = A * linear[t - 1] + B * x[t - 1]
+    assert cubic.removal == pytest.approx(np.sqrt(np.mean((linear[5:] - run[5:]) ** 2)) / measured)
+    # The steps add up: through the pole at A each step's term is summed over a few samples.
+    assert cubic.removal > 2 * cubic.share
     # A theoretical model has no covariance: no standard errors to report.
     assert cubic.standard_errors is None
 
@@ -87,6 +94,16 @@ def test_a_diverging_model_is_explained_along_the_measured_outputs():
     np.testing.assert_allclose(explained.effects[0].series, -C * y[:-1] ** 3)
 
 
+def test_an_effect_without_which_the_free_run_diverges_says_so():
+    # A linear part that grows on its own (a = 1.02), held by a stiffening spring.
+    x, y = record(C, seed=5)
+    held = NARX(parse_terms(TERMS), np.array([1.02, B, C]), np.zeros((3, 3)))
+    (cubic,) = explain(held, [CUBIC], x, y).effects
+    assert cubic.removal == np.inf
+    assert cubic.to_dict()["diverges_without"] is True and cubic.to_dict()["removal_share"] is None
+    assert explain(exact(C), [CUBIC], x, y).effects[0].to_dict()["diverges_without"] is False
+
+
 def test_the_transient_is_run_through_and_not_scored():
     x, y = record(C, seed=3)
     whole, cut = (explain(exact(C), [CUBIC], x, y, transient=t) for t in (0, 100))
@@ -106,6 +123,9 @@ def test_moving_average_noise_and_saturation_report_their_parameters():
     assert clipped.limits == (-1.0, np.inf)
     assert clipped.at_limits == pytest.approx(np.mean(run <= -1.0))
     assert 0 < clipped.at_limits < 0.5
+    unlimited = NARX(parse_terms(TERMS), np.array([A, B, C]), np.zeros((3, 3))).simulate(x, y)[1:]
+    scale = np.sqrt(np.mean(y[1:] ** 2))
+    assert clipped.removal == pytest.approx(np.sqrt(np.mean((unlimited - run) ** 2)) / scale)
     assert clipped.to_dict()["limits"] == [-1.0, None]
     # Neither brings terms to the process model: all three are the declared part's.
     assert explained.declared.terms == TERMS
