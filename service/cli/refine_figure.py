@@ -145,11 +145,19 @@ def _draw_steps(
 
 def _draw_shares(axes: Axes, names: list[str], explanation: Explanation, unit: str | None) -> None:
     """Each effect's two shares of the output's RMS as horizontal bars on a log scale: of each
-    step, and how far the free run moves without it (hatched to the edge where it diverges)."""
-    rows = np.arange(len(names))[::-1]  # the first effect on top
+    step, and how far the free run moves without it (hatched to the edge where it diverges).
+    Those with neither (moving-average noise, which the free run does not hold) are named
+    beneath."""
+    drawn, left_out = [], []
+    for name, contribution in zip(names, explanation.effects, strict=True):
+        if contribution.share is None and contribution.removal is None:
+            left_out.append(name)
+        else:
+            drawn.append((name, contribution))
+    rows = np.arange(len(drawn))[::-1]  # the first effect on top
     bars = (
-        ("of each step", "0.6", 0.2, [c.share for c in explanation.effects]),
-        ("the free run's move without it", "C0", -0.2, [c.removal for c in explanation.effects]),
+        ("of each step", "0.6", 0.2, [c.share for _, c in drawn]),
+        ("the free run's move without it", "C0", -0.2, [c.removal for _, c in drawn]),
     )
     finite = [v for *_, values in bars for v in values if v is not None and 0 < v < np.inf]
     low, high = (min(finite) / 3, max(max(finite) * 3, 1.5)) if finite else (1e-6, 1.5)
@@ -173,13 +181,11 @@ def _draw_shares(axes: Axes, names: list[str], explanation: Explanation, unit: s
     axes.set(
         xlim=(low, high),
         yticks=rows,
-        yticklabels=names,
+        yticklabels=[name for name, _ in drawn],
         xlabel="share of the output's RMS",
         title=f"Shares of the output's RMS\n({explanation.output_rms:.3g}{f' {unit}' if unit else ''})",
     )
-    axes.legend(
-        handles=[Patch(color=colour, label=label) for label, colour, *_ in bars],
-        fontsize=7,
-        loc="upper left",
-        bbox_to_anchor=(0.0, -0.22),
-    )
+    handles = [Patch(color=colour, label=label) for label, colour, *_ in bars]
+    if left_out:
+        handles.append(Patch(color="none", label=f"not drawn: {', '.join(dict.fromkeys(left_out))}"))
+    axes.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.22))
