@@ -10,15 +10,16 @@ with the regressors φ evaluated along the model's own free run ŷ over a record
 makes of that record from its input alone), or along the measured output where the free run
 diverged (the one-step regressors; diverged: not finite, or beyond ``RESTLESS`` times the
 largest measured output, as :mod:`models.output_error` judges a model that does not come to
-rest). Its **share** is RMS(c_G) / RMS(y), y the measured output over
-the same samples: how large a part of each sample's equation the group supplies. The groups'
-contributions sum to the model's output before any output limit; the shares need not sum to 1,
-as the groups' contributions partly cancel (a hardening spring pulls against the linear part's
-swing). A recursion's share is per sample: an effect that supplies a thousandth of each step's
-output can move the free run by far more, as the steps add up (finely sampled dynamics: each
-step's force term is scaled by the squared sampling interval). So each effect also has its
-**removal**: the model's free run with the effect's coefficients set to zero (with its limits
-lifted, for saturation), ŷ₋_G,
+rest). Its **share** is RMS(c_G) / RMS(y), y the measured output over the same samples: how
+large a part of each sample's equation the group supplies. The groups' contributions sum to the
+model's output before any output limit; the shares need not sum to 1, as the groups'
+contributions partly cancel (a hardening spring pulls against the linear part's swing).
+
+A recursion's share is per step: an effect that supplies a thousandth of each step's output can
+move the free run by far more, as the steps add up (finely sampled dynamics: each step's force
+term is scaled by the squared sampling interval). So each effect also has its **removal**: with
+ŷ₋_G the model's free run with the effect's coefficients set to zero (its limits lifted, for
+saturation),
 
     removal_G = RMS(ŷ − ŷ₋_G) / RMS(y)        [a share; infinite where ŷ₋_G diverges],
 
@@ -140,7 +141,7 @@ def explain(
     lag = model.max_lag
     start_up = max(initial, lag)
     start = start_up - lag
-    scored = lag + max(start_up, transient) - start_up  # the first scored row of the run
+    scored = lag + max(start_up, transient) - start_up  # the first scored sample of xs and ys
     xs, ys = x[start:], y[start:]
     simulated = model.simulate(xs, ys, t0 + start)
     along: Along = "one-step" if _diverged(simulated[scored:], ys[scored:]) else "free run"
