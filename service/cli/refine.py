@@ -534,7 +534,7 @@ def _print_contribution(contribution: dict[str, Any], saturation: str | None, pe
         )
         line += f"; {without}"
     elif contribution["share"] is None:
-        line = f"moving-average noise, which shapes the one-step prediction, not the free run: {coefficients}"
+        line = f"the one-step prediction's, not in the free run: {coefficients}"
     else:
         line = f"of each step {_percent(contribution['share'])}; {without}: {coefficients}"
     stdout.print(f"   {line}", highlight=False, markup=False)
