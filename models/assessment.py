@@ -11,6 +11,7 @@ from scipy import signal
 from models.diagnostics import ResidualReport, residual_report
 from models.errors import InputError
 from models.narx import NARX
+from models.output_error import RESTLESS
 from models.signals import minimum_samples
 
 LJUNG_BOX_LAGS = 40
@@ -27,12 +28,14 @@ RESIDUAL_TESTS = ("ljung_box", "billings_voon", "billings_zhu", "spectrum")
 class Assessment:
     """A model's errors on held-out data: one-step and free-run RMS, and the diagnostics of its
     one-step prediction error (:func:`models.diagnostics.residual_report`); None, with the tests
-    named in ``skipped``, on a part too short for them."""
+    named in ``skipped``, on a part too short for them. ``diverged``: the free run left every
+    bound (:func:`assess`), its RMS a figure of how far, not of how well it simulates."""
 
     one_step_rms: float
     free_run_rms: float
     diagnostics: ResidualReport | None
     skipped: tuple[str, ...] = ()
+    diverged: bool = False
 
     @property
     def ljung_box_p(self) -> float:
@@ -52,6 +55,7 @@ class Assessment:
             "ljung_box_p": finite(self.ljung_box_p),
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(series=False),
             "skipped_tests": list(self.skipped),
+            "diverged": self.diverged,
         }
 
 
@@ -81,7 +85,10 @@ def assess(
     error is the innovation ε = r / C(q), C(q) = 1 + Σ c_i q⁻ⁱ, of the process residual r, started
     from rest; the free run uses the process model alone. A part too short for the residual tests
     (:func:`residual_tests_fit`) is scored by its errors alone, the tests named as skipped: a
-    benchmark's test window can be a hundred samples (the coupled electric drives').
+    benchmark's test window can be a hundred samples (the coupled electric drives'). A free run that
+    is not finite, or leaves ``RESTLESS`` times the largest measured output of the part scored (as
+    a model that does not come to rest does, :mod:`models.output_error`), has diverged: a model
+    growing without bound can stay finite over a short record.
     """
     if transient < 0:
         raise InputError(f"the transient must be 0 or more samples, got {transient}")
@@ -100,11 +107,13 @@ def assess(
     error, simulated, xs, ys = error[skip:], simulated[skip:], xs[L + skip :], ys[L + skip :]
     free_run = float(np.sqrt(np.mean((simulated - ys) ** 2)))
     tested = residual_tests_fit(len(y), scored, lags)
+    bound = RESTLESS * float(np.max(np.abs(ys)))
     return Assessment(
         float(np.sqrt(np.mean(error**2))),
         free_run if np.isfinite(free_run) else float("inf"),
         residual_report(xs, ys, error, fs or 1.0, lags) if tested else None,
         () if tested else RESIDUAL_TESTS,
+        diverged=not np.isfinite(free_run) or bool(np.max(np.abs(simulated)) > bound),
     )
 
 

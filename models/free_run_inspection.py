@@ -14,10 +14,11 @@ the response:
 1. Fault modes whose free run is good: θ_V(k) = θ₀ + k·δ_V (p = 2, exact for a stiffness
    fault), one healthy θ₀ for every mode, fitted by output error jointly over all the modes'
    experiments (:func:`fit_free_run_modes`), from the equation-error fits (biased by the noisy
-   lagged outputs). The healthy error level, the whitening filter w(q) (AR(Q) fitted to the
-   experiments' errors, as in :mod:`models.novelty`) and σ̃²₀ (the whitened error's variance)
-   come with them, and Cov vec(Θ_V) by the delete-one-experiment jackknife: with φ̂ = [θ₀; δ…]
-   the joint fit and φ̂₍ᵢ₎ its refit without experiment i (from φ̂) of m,
+   lagged outputs) and from the terms' fits to a long ARX's free run, the lower end kept. The
+   healthy error level, the whitening filter w(q) (AR(Q) fitted to the experiments' errors, as
+   in :mod:`models.novelty`) and σ̃²₀ (the whitened error's variance) come with them, and
+   Cov vec(Θ_V) by the delete-one-experiment jackknife: with φ̂ = [θ₀; δ…] the joint fit and
+   φ̂₍ᵢ₎ its refit without experiment i (from φ̂) of m,
    Cov φ̂ = (m − 1)/m·Σᵢ (φ̂₍ᵢ₎ − φ̄)(φ̂₍ᵢ₎ − φ̄)ᵀ, φ̄ the refits' mean, mapped to vec(Θ_V). Not
    σ̃²₀·(J̃ᵀJ̃)⁻¹, which takes the whitened error for the only difference between training sets:
    new training sets move φ̂ further than it allows, and the jackknife measures the spread
@@ -79,10 +80,14 @@ from models.novelty import WHITENING_ORDER, _whitening_filter
 from models.output_error import EstimatedStart
 from models.signals import checked_record
 from models.simulation import FreeRun
-from models.terms import Term, max_degree
+from models.terms import Term, max_degree, parse_terms
 
 # Free runs a mode's joint output-error fit may compute, at most.
 MAX_EVALUATIONS = 200
+# The lags of the output and the input of the long ARX whose free run gives the joint fit its
+# second start (:func:`_through_long_arx`): several times a structural model's, to take up the
+# noise on the lagged outputs.
+LONG_ARX_ORDER = 20
 # The share of a mode's range beyond which an interval says the record does not determine the
 # magnitude: wider than half the range, the interval hardly narrows what the mode's range says.
 UNDETERMINED_SHARE = 0.5
@@ -177,7 +182,10 @@ def fit_free_run_modes(
     modes are fitted jointly, θ_V(k) = θ₀ + k·δ_V with one healthy θ₀ for all, minimising the
     free-run error from the estimated start summed over every experiment; module docstring,
     step 1. From the paper's equation-error fits (:func:`models.fnarx.fit_fnarx`, p = 2, each
-    mode's range its experiments').
+    mode's range its experiments') and from the fits to a long ARX's free run
+    (:func:`_through_long_arx`), the search's lower end kept: the free-run error is not convex
+    in θ, and from the biased equation-error point alone the search may end in a basin whose
+    healthy point misses the response by more than a far spring's fault changes it.
 
     One θ₀: fitted apart, each mode's healthy point carries its own experiments' estimation
     error, and the modes' errors on one record then differ by more than a far spring's fault
@@ -194,6 +202,7 @@ def fit_free_run_modes(
             )
     starts = [fit_fnarx(runs[name], terms, name=name) for name in names]
     parsed, n = starts[0].terms, len(starts[0].terms)
+    through_long = [_through_long_arx(runs[name], parsed, name) for name in names]
     records, free, maps, owners = [], [], [], []
     for index, (start, name) in enumerate(zip(starts, names, strict=True)):
         for x, y, k in runs[name]:
@@ -205,11 +214,6 @@ def fit_free_run_modes(
             maps.append(
                 np.hstack([np.eye(n)] + [float(k) * np.eye(n) * (j == index) for j in range(len(names))])
             )
-    initial_flat = np.concatenate(
-        [np.mean([start.coefficients(0.0) for start in starts], axis=0)]
-        + [start.theta @ start.basis.derivatives(0.0) for start in starts]
-    )
-
     everything = range(len(records))
 
     def evaluate(flat: np.ndarray, sensitive: bool, kept: Iterable[int] = everything) -> list[_Run]:
@@ -230,14 +234,22 @@ def fit_free_run_modes(
             residuals, initial, jac=jacobian, method="lm", x_scale="jac", max_nfev=max_evaluations
         ).x
 
-    initial = evaluate(initial_flat, False)
-    if not all(np.all(np.isfinite(run.error)) for run in initial):
+    # The search from each start whose free run stays finite on every experiment; the lower end.
+    initials = [_joined(starts)] + (
+        [_joined(through_long)] if all(start is not None for start in through_long) else []
+    )
+    initials = [
+        flat for flat in initials if all(np.all(np.isfinite(run.error)) for run in evaluate(flat, False))
+    ]
+    if not initials:
         raise InputError(
             "the equation-error fit of the fault modes diverges in free run on their experiments: "
             "choose a lower order"
         )
+    initial = evaluate(initials[0], False)
     scale = float(np.sqrt(np.mean(np.concatenate([run.error for run in initial]) ** 2))) or 1.0
-    flat = fit(initial_flat, list(everything))
+    ends = [fit(flat, list(everything)) for flat in initials]
+    flat = min(ends, key=lambda end: _sum_of_squares(evaluate(end, False)))
     fitted = evaluate(flat, True)
     if not all(np.all(np.isfinite(run.error)) for run in fitted):
         raise InputError("the output-error fit of the fault modes diverges on their experiments")
@@ -269,6 +281,46 @@ def fit_free_run_modes(
         )
         modes.append(FreeRunMode(model, whitening, sigma2, dof))
     return modes
+
+
+def _joined(starts: Sequence[FNARX]) -> np.ndarray:
+    """[θ₀; δ_1; …; δ_M] of the joint fit from one start a mode: the modes' mean healthy point
+    and each one's slope there."""
+    return np.concatenate(
+        [np.mean([start.coefficients(0.0) for start in starts], axis=0)]
+        + [start.theta @ start.basis.derivatives(0.0) for start in starts]
+    )
+
+
+def _sum_of_squares(runs: Sequence[_Run]) -> float:
+    value = float(sum(float(run.error @ run.error) for run in runs))
+    return value if np.isfinite(value) else np.inf
+
+
+def _through_long_arx(runs: Sequence[Experiment], terms: Sequence[Term], name: str) -> FNARX | None:
+    """The equation-error fit of ``terms`` to the free runs of a long ARX fitted to the same
+    experiments (``terms`` and the output's and input's lags up to LONG_ARX_ORDER): a second
+    start for the joint output-error search, None where the long ARX's free run diverges.
+
+    The terms' own equation-error fit regresses on noisy lagged outputs, and from its biased
+    point the search may settle in another basin than the free run's best: on the accelerometer
+    chain it kept a spurious negative pole (ringing at half the sampling rate) in place of the
+    slow one, and its healthy free run strayed from the chain's response by several times what
+    the far spring's loosening changes. The long ARX's free run carries no noise, so the terms'
+    fit to it has no noisy regressors: a start biased otherwise, from which the search on that
+    chain found the slow pole.
+    """
+    lags = [f"y[t-{i}]" for i in range(1, LONG_ARX_ORDER + 1)] + ["x[t]"]
+    lags += [f"x[t-{i}]" for i in range(1, LONG_ARX_ORDER + 1)]
+    long = fit_fnarx(runs, list(terms) + [term for term in parse_terms(lags) if term not in terms], name=name)
+    simulated = []
+    for x, y, k in runs:
+        xa, ya = checked_record(x, y, long.max_lag + 1, degree=max_degree(long.terms))
+        free = FreeRun.build(long.terms, xa).run(long.coefficients(float(k)), ya)
+        if not np.all(np.isfinite(free)):
+            return None
+        simulated.append((xa, free, k))
+    return fit_fnarx(simulated, terms, name=name, k_range=(long.basis.k_min, long.basis.k_max))
 
 
 @dataclass(frozen=True)

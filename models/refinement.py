@@ -35,6 +35,14 @@ the rounds above add nothing that lasts: least squares ranks the families there,
 cubic-stiffness model it fits diverges; grown from the settled linear model, cubic stiffness
 gains 8–29 % on every fold.)
 
+**Never worse.** The rounds choose among many candidates on the same check blocks, and the best
+of many gains there by chance: where the records are long enough, the loop runs on each record's
+first part only, and the model it refines is compared with its start on the records' tails,
+which no choice saw (:mod:`models.held_out`). Unless it simulates them better beyond the
+comparison's uncertainty, the start is returned and the report says the data could not support
+the effects, naming the best one tried. Whichever is returned has its parameters estimated on
+all the records as the loop estimated them on its part (:func:`refine`).
+
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
 noise on the measured output gives least squares, when on the check blocks the output-error fit
@@ -60,7 +68,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from itertools import pairwise
-from typing import Any, Literal, get_args
+from typing import Any, Literal, NamedTuple, get_args
 
 import numpy as np
 
@@ -80,6 +88,7 @@ from models.checking import (
 from models.coverage import Coverage, coverage
 from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
 from models.errors import InputError
+from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails, held_out_tails
 from models.narx import NARX, Saturation
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
@@ -120,6 +129,8 @@ JUDGED_AT_ONCE = 2
 GLITCHES_NAMED = 5
 
 Criterion = Literal["one-step", "simulation", "simulation across folds"]
+Estimator = Literal["least squares", "output error"]
+Verdict = Literal["better", "not better", "diverged"]
 
 
 @dataclass(frozen=True)
@@ -160,17 +171,22 @@ class Refinement:
     free-run RMS over the check blocks, its parameters by ``estimator`` fitted on the fit blocks;
     ``noise_floor`` the noise between the checked records' periods when they repeat their
     excitation (None otherwise): the least any model's free run over them can leave.
+    ``held_out`` is the comparison of the refined model with the start on the tails of the
+    records that no choice saw (:mod:`models.held_out`); None where nothing was added or the
+    records are too short to hold a tail out. Where the start won, every round counts as
+    withdrawn.
     """
 
     declared: NARX
     refined: NARX
     noise: np.ndarray = field(default_factory=lambda: np.empty(0))
     rounds: tuple[Round, ...] = field(default=())
-    estimator: Literal["least squares", "output error"] = "least squares"
+    estimator: Estimator = "least squares"
     orders: tuple[int, int, int] | None = None
     withdrawn: int = 0
     check_rms: float = np.inf
     noise_floor: PeriodNoise | None = None
+    held_out: HeldOut | None = None
 
     @property
     def kept(self) -> tuple[Round, ...]:
@@ -183,8 +199,8 @@ class Refinement:
 
     @property
     def effects_withdrawn(self) -> tuple[str, ...]:
-        """The names of the effects the final check took back, each once (moving-average noise
-        is often added over several rounds)."""
+        """The names of the effects the final check or the held-out comparison took back, each
+        once (moving-average noise is often added over several rounds)."""
         return tuple(
             dict.fromkeys(r.added.name for r in self.rounds[: self.withdrawn] if r.added is not None)
         )
@@ -198,6 +214,17 @@ class Comparison:
     before: Assessment
     after: Assessment
     coverage: Coverage
+
+    @property
+    def verdict(self) -> Verdict:
+        """The refined model's free run here beside the declared one's: "diverged" where it
+        diverged, "better" where its RMS is lower (or the declared one's diverged), else "not
+        better"."""
+        if self.after.diverged:
+            return "diverged"
+        if self.before.diverged or self.after.free_run_rms < self.before.free_run_rms:
+            return "better"
+        return "not better"
 
 
 @dataclass(frozen=True)
@@ -246,6 +273,7 @@ class RefinementReport:
                 if (score := step.added) is not None
             ],
             "effects_withdrawn": list(result.effects_withdrawn),
+            "held_out": None if result.held_out is None else _held_out_dict(result.held_out),
             "check_free_run_rms": _finite(result.check_rms),
             "noise_floor": None
             if (floor := result.noise_floor) is None
@@ -258,13 +286,52 @@ class RefinementReport:
                     "after": test.after.to_dict(),
                     "coverage": asdict(test.coverage)
                     | {"extrapolates": test.coverage.extrapolates, "description": test.coverage.describe()},
+                    "verdict": test.verdict,
                 }
                 for test in self.tests
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
-            "notes": list(self.notes) + _skipped_notes(self.tests),
+            "notes": list(self.notes) + _held_out_notes(result) + _skipped_notes(self.tests),
         }
+
+
+def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
+    """The comparison on the held-out tails: both free runs, the refined model's gain and the
+    threshold its uncertainty set (shares of the start's mean square), and the decision."""
+    return {
+        "samples": held_out.samples,
+        "start_free_run_rms": _finite(held_out.start_rms),
+        "refined_free_run_rms": _finite(held_out.refined_rms),
+        "gain": _finite(held_out.gain),
+        "threshold": _finite(held_out.threshold),
+        "level": HELD_OUT_ALPHA,
+        "diverged": held_out.diverged,
+        "refined_returned": held_out.kept,
+        "best_tried": held_out.best_tried,
+    }
+
+
+def _held_out_notes(result: Refinement) -> list[str]:
+    """What the report says where the effects added could not be compared with the start on data
+    no choice saw, or were and lost."""
+    held_out = result.held_out
+    if held_out is None:
+        if not result.effects_added:
+            return []
+        return [
+            "the estimation records are too short to hold a tail out: the effects added were not "
+            "compared with the start on data no choice of the loop saw"
+        ]
+    if held_out.kept:
+        return []
+    refined = "diverged" if held_out.diverged else f"ran free at {held_out.refined_rms:.4g}"
+    return [
+        f"the data could not support the effects: over the estimation records' held-out tails "
+        f"({held_out.samples} samples no choice saw) the refined model {refined} against the start's "
+        f"{held_out.start_rms:.4g}, not better beyond the comparison's uncertainty; the start is "
+        f"returned (the best effect tried: {held_out.best_tried})"
+    ]
 
 
 def _skipped_notes(tests: Sequence[Comparison]) -> list[str]:
@@ -525,11 +592,149 @@ def refine(
     the check parts, the output-error searches not needed one after the other; ``threads``, a map
     over threads of this process, test each round's families (:func:`score_effects`). The
     refinement is the same whichever.
+
+    **Never worse.** Where every record is long enough (:func:`models.held_out.held_out_tails`),
+    the last ``HELD_OUT_SHARE`` of each is held out from every choice (orders, effects, estimator):
+    the loop runs on the rest, and the model it refines is kept only where its free run over
+    those tails is better than the start's beyond the comparison's uncertainty
+    (:func:`models.held_out.compare_on_tails`; moving-average noise alone, which leaves the
+    process structure as it was, need only not be worse). Otherwise the start is returned, every
+    round counted as withdrawn, and ``held_out`` names the best effect tried. The structure so
+    judged then has its parameters estimated on all the records as the loop estimated them on
+    the rest (:func:`_on_all`): the tails judged a procedure, and the model it makes gains from
+    every sample.
     """
     tell = _told(progress)
     if not 0 < alpha < 1:
         raise InputError(f"alpha must lie in (0, 1), got {alpha}")
     records = [(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)) for x, y in records]
+    grow = partial(
+        _grown,
+        declared=declared,
+        effects=effects,
+        alpha=alpha,
+        max_rounds=max_rounds,
+        output_error=output_error,
+        tell=tell,
+        workers=workers,
+        threads=threads,
+    )
+    split = held_out_tails(records)
+    if split is None:
+        return grow(records).refinement
+    heads, tails = split
+    try:
+        grown = grow(heads)
+    except InputError:
+        # Too few equations for the candidates once the tails are held out: refined on all of
+        # them, with nothing to compare on (the report says so).
+        return grow(records).refinement
+    result, held_out = grown.refinement, None
+    if result.effects_added:
+        tell("the refined model and the start on the held-out tails")
+        held_out = compare_on_tails(grown.start, result.refined, tails)
+        refined, start = result.refined, grown.start
+        # Moving-average noise alone, there to unbias the parameters, leaves the process
+        # structure as it was: it need only not make the free run worse.
+        noise_only = refined.terms == start.terms and refined.output_limits == start.output_limits
+        if not (held_out.better or (noise_only and held_out.not_worse)):
+            held_out = replace(held_out, kept=False, best_tried=_best_tried(result.kept))
+    return _on_all(grown, held_out, records, output_error, tell, threads)
+
+
+class _Grown(NamedTuple):
+    """What the loop made of its records: the refinement; the start as the loop fits it when it
+    adds nothing (the declared structure, its parameters by ``start_estimator``) with its check
+    blocks' free-run RMS; the structure refined; and, where families were grown across folds, the
+    structure before them and each grown (:func:`_as_the_folds_judged`)."""
+
+    refinement: Refinement
+    start: NARX
+    start_estimator: Estimator
+    start_check: float
+    structure: Structure
+    folded: tuple[Structure, tuple[Structure, ...]] | None
+
+
+def _on_all(
+    grown: _Grown,
+    held_out: HeldOut | None,
+    records: Records,
+    output_error: bool,
+    tell: Stage,
+    threads: Workers,
+) -> Refinement:
+    """The refinement the loop ``grown`` on the records' heads made, its models' parameters
+    estimated again on all the ``records``, tails too, as the loop estimated them: the refined
+    structure where ``held_out`` kept it, else the start. The declared model by least squares;
+    the start by its estimator (its output-error fit searched from least squares, as where nothing
+    is added); a structure grown across folds as the folds judged it; any other refined structure
+    by output error from the best simulating of its least-squares fit, the parameters the loop
+    found and the start's grown by zeros. An output-error fit is kept where it comes to rest. The
+    noise floor is read on the whole records, whose periods a tail cut off leaves incomplete."""
+    result = grown.refinement
+    declared_structure = Structure(result.declared.terms)
+    declared, _ = _fitted_on_all(records, declared_structure)
+    everything: Segments = [(x, y, 0) for x, y in records]
+    kept = bool(result.effects_added) and (held_out is None or held_out.kept)
+    structure = grown.structure if kept else declared_structure
+    estimator = result.estimator if kept else grown.start_estimator
+    refined, noise = _fitted_on_all(records, structure) if kept else (declared, np.empty(0))
+    if estimator == "output error":
+        tell("output-error fit on all the records")
+        declared_tuned = None
+        if not kept or (grown.folded is not None and grown.folded[0] == declared_structure):
+            declared_tuned = by_output_error(declared, everything, SETTLED_EVALUATIONS, threads)
+        if not kept:
+            tuned = declared_tuned
+        elif grown.folded is not None:
+            before, structures = grown.folded
+            tuned = _as_the_folds_judged(
+                records, before, structures, declared_structure, declared_tuned or declared, threads
+            )
+        else:
+            starts = [refined, replace(refined, theta=result.refined.theta)]
+            if grown.start_estimator == "output error":
+                starts.append(grown_by_zeros(grown.start, refined))
+            start = min(starts, key=lambda model: _restless_then_rms(free_run_at_rest(model, records)))
+            tuned = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
+        if tuned is not None and tuned is not refined and comes_to_rest(tuned, records):
+            refined = tuned
+        else:
+            estimator = "least squares"
+    return replace(
+        result,
+        declared=declared,
+        refined=refined,
+        noise=noise,
+        estimator=estimator,
+        withdrawn=result.withdrawn if kept or not result.effects_added else len(result.rounds),
+        check_rms=result.check_rms if kept else grown.start_check,
+        noise_floor=pooled_period_noise(checked_whole(records)),
+        held_out=held_out,
+    )
+
+
+def _best_tried(kept: Sequence[Round]) -> str | None:
+    """The effect whose round lowered the check blocks' free run most, as a share of it."""
+    judged = [step for step in kept if step.added is not None and step.check_rms[0] > 0]
+    best = min(judged, key=lambda step: step.check_rms[1] / step.check_rms[0], default=None)
+    return None if best is None or best.added is None else best.added.name
+
+
+def _grown(
+    records: Records,
+    declared: Sequence[str | Term] | None,
+    effects: Sequence[Effect] | None,
+    alpha: float,
+    max_rounds: int,
+    output_error: bool,
+    tell: Stage,
+    workers: Workers,
+    threads: Workers,
+) -> _Grown:
+    """The loop of :func:`refine` on all of ``records``, and what :func:`_on_all` needs to make
+    its models again on more."""
     orders = None
     checks = CheckSplit.of(records)
     if declared is None:
@@ -638,7 +843,8 @@ def refine(
     # output. The check blocks tell which simulates better.
     by_simulation = output_error and checks.error(current, tuned=True) < check
     ((refined, noise),) = fitted_ahead if current == by_the_rounds else [_fitted_on_all(records, current)]
-    estimator: Literal["least squares", "output error"] = "least squares"
+    estimator: Estimator = "least squares"
+    declared_tuned: NARX | None = None  # the declared model's output-error fit, once searched
     if by_simulation:
         tell("output-error fit on all the records")
         (declared_tuned,) = declared_search
@@ -669,7 +875,7 @@ def refine(
             tuned = None if found is start else found
         if tuned is not None and comes_to_rest(tuned, records):
             refined, estimator = tuned, "output error"
-    return Refinement(
+    refinement = Refinement(
         declared_model,
         refined,
         noise,
@@ -680,6 +886,21 @@ def refine(
         checks.error(current, tuned=estimator == "output error"),
         pooled_period_noise(checked_whole(records)),
     )
+    # The start as the loop makes it when it adds nothing (above): by output error where that
+    # simulates the check blocks better and comes to rest.
+    start, start_estimator = declared_model, estimator
+    if current != declared_structure:
+        start_estimator = "least squares"
+        if output_error and checks.error(declared_structure, tuned=True) < checks.error(declared_structure):
+            if declared_tuned is None:
+                (declared_tuned,) = declared_search
+            if declared_tuned is not declared_model and comes_to_rest(declared_tuned, records):
+                start, start_estimator = declared_tuned, "output error"
+    elif estimator == "output error":
+        start = refined
+    start_check = checks.error(declared_structure, tuned=start_estimator == "output error")
+    folded = (before_folds, tuple(grown_across_folds)) if grown_across_folds else None
+    return _Grown(refinement, start, start_estimator, start_check, current, folded)
 
 
 def _ranked(

@@ -139,6 +139,12 @@ def test_a_missing_effect_is_named_and_the_refined_model_stored_inactive(databas
         assert report["effects_added"][0]["name"] == "quadratic_stiffness"
         assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
         assert report["data"]["estimation"] == [0, 8000] and report["data"]["test"] == [8000, SAMPLES]
+        # Kept because it simulates the estimation part's last 1600 samples, which no choice saw,
+        # better than the baseline beyond the comparison's uncertainty.
+        held_out = report["held_out"]
+        assert held_out["samples"] == 1600 and held_out["refined_returned"] and held_out["best_tried"] is None
+        assert held_out["refined_free_run_rms"] < held_out["start_free_run_rms"]
+        assert report["tests"][0]["verdict"] == "better" and not report["after"]["diverged"]
         assert refinement["base_model"]["id"] == rig.baseline["id"]
         refined = refinement["refined_model"]
         assert refined["name"] == "baseline" and refined["version"] == rig.baseline["version"] + 1

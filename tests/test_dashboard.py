@@ -729,18 +729,23 @@ def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: 
     assert "not measured" in page.text  # nor was the coverage of its test part
     assert 'id="withdrawn"' not in page.text
 
-    # A report whose effects the final check took back: the page names them, and that nothing is kept.
-    with api_server.app.state.sessions() as session:
-        stored = session.get(Refinement, refinement["id"])
-        assert stored is not None
-        withdrawn = [effect["name"] for effect in report["effects_added"]]
-        stored.report = stored.report | {"effects_added": [], "effects_withdrawn": withdrawn}
-        session.commit()
-    with logged_in(api_server, org.keys["viewer"]) as client:
-        page = client.get(f"{DASHBOARD}/refinements/{refinement['id']}")
-    assert page.status_code == 200
-    assert f"Withdrawn: {', '.join(withdrawn)}." in page.text
-    assert "No effect was added: the declared model stands." in page.text
+    # A report whose effects the final check took back, then one whose refined model lost to the
+    # start on the held-out tails: the page names them, that nothing is kept, and why.
+    withdrawn = [effect["name"] for effect in report["effects_added"]]
+    for change, why in (
+        ({}, "With output-error parameters"),
+        ({"held_out": {"refined_returned": False}}, "held-out tails, which no choice of the loop saw"),
+    ):
+        with api_server.app.state.sessions() as session:
+            stored = session.get(Refinement, refinement["id"])
+            assert stored is not None
+            stored.report = stored.report | {"effects_added": [], "effects_withdrawn": withdrawn} | change
+            session.commit()
+        with logged_in(api_server, org.keys["viewer"]) as client:
+            page = client.get(f"{DASHBOARD}/refinements/{refinement['id']}")
+        assert page.status_code == 200
+        assert f"Withdrawn: {', '.join(withdrawn)}." in page.text and why in page.text
+        assert "No effect was added: the declared model stands." in page.text
 
 
 def test_the_refinement_page_gives_the_noise_between_periods_of_a_periodic_record(api_server: LiveServer):

@@ -9,12 +9,22 @@ import numpy as np
 import pytest
 from scipy import linalg, signal, stats
 
+from harness.extrapolating import growing_steps
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
-from models.refinement import _is_start, choose_linear, refine, refine_record, refine_records
+from models.refinement import (
+    Refinement,
+    RefinementReport,
+    _is_start,
+    choose_linear,
+    compare,
+    refine,
+    refine_record,
+    refine_records,
+)
 from models.scoring import score_effects
 from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
@@ -23,6 +33,9 @@ from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
 
 ESTIMATION, HELD_OUT = 8000, 4000
+# Estimation records whose first ESTIMATION samples the loop runs on, the rest of them held out
+# from its choices (models.held_out.HELD_OUT_SHARE).
+LOOP_AND_TAIL = 10_000
 # Official Silverbox split (shared/data/README.md); each test run starts from 50 measured outputs.
 SILVERBOX_ESTIMATION = slice(40650, 105712)
 SILVERBOX_ARROW = slice(100, 40575)
@@ -89,7 +102,7 @@ UNDECLARED = [
 @pytest.mark.parametrize(("effect", "scenario", "share"), UNDECLARED, ids=[name for name, *_ in UNDECLARED])
 def test_an_undeclared_effect_is_named_first_and_the_one_step_error_falls(effect, scenario, share):
     record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
-    estimation, test = [(0, ESTIMATION)], (ESTIMATION, ESTIMATION + HELD_OUT)
+    estimation, test = [(0, LOOP_AND_TAIL)], (LOOP_AND_TAIL, ESTIMATION + HELD_OUT)
     # The one-step criterion and least-squares parameters alone, as Step 4 built the loop: its
     # figures are one-step errors, which output-error parameters do not minimise.
     report = refine_record(
@@ -169,8 +182,8 @@ def test_score_and_f_statistic_agree_with_an_svd_refit():
     is not used: its pseudo-inverse leaves relative errors ~5e-8 in these sums of squares, which
     the F statistic's difference of two of them magnifies ~100×.)"""
     x, y = paper_record(["quadratic_stiffness2=3e5"], seed=2)
-    x, y = x[:ESTIMATION], y[:ESTIMATION]
-    first = refine([(x, y)], EXACT_TERMS, max_rounds=1).rounds[0]
+    first = refine([(x[:LOOP_AND_TAIL], y[:LOOP_AND_TAIL])], EXACT_TERMS, max_rounds=1).rounds[0]
+    x, y = x[:ESTIMATION], y[:ESTIMATION]  # what the loop saw, its tail held out
     assert first.added is not None and first.added.name == "quadratic_stiffness"
     declared = parse_terms(EXACT_TERMS)
     lag = max(max_lag(e.terms) for e in candidate_effects(declared) if e.terms)
@@ -456,7 +469,8 @@ def measurement_noise_only():
     record the loop used to add an effect (power-law damping) that lowered the check blocks' free
     run by 0.08 %, far within its 1.4 % standard error."""
     record = simulate(Scenario(disturbance_std=200.0, y_noise_std=2e-6), ESTIMATION + HELD_OUT, seed=2005)
-    estimation = [(record.x[:ESTIMATION], record.y[:ESTIMATION])]
+    # The loop runs on the first 8000 samples, the rest held out from its choices (refine).
+    estimation = [(record.x[:LOOP_AND_TAIL], record.y[:LOOP_AND_TAIL])]
     return record, estimation, refine(estimation, EXACT_TERMS)
 
 
@@ -495,7 +509,7 @@ def test_effects_that_only_repair_the_bias_of_least_squares_are_withdrawn(measur
     grown = fit_output_error(fit_narx(estimation, grown_terms), estimation, SETTLED_EVALUATIONS).model
     assert comes_to_rest(grown, estimation) and comes_to_rest(result.refined, estimation)
     warm_up = 1000
-    x, y = record.x[ESTIMATION - warm_up :], record.y[ESTIMATION - warm_up :]
+    x, y = record.x[LOOP_AND_TAIL - warm_up :], record.y[LOOP_AND_TAIL - warm_up :]
 
     def held_out_rms(model: NARX) -> float:
         error = model.simulate(x, y)[warm_up:] - y[warm_up:]
@@ -693,3 +707,65 @@ def test_a_test_part_too_short_for_the_residual_tests_is_scored_and_says_which_i
     document = report.to_dict()
     assert document["tests"][0]["after"]["diagnostics"] is None
     assert any("too short for the residual tests" in note for note in document["notes"]), document["notes"]
+
+
+def test_effects_the_held_out_tails_do_not_support_are_withdrawn_and_the_start_returned():
+    """Nothing declared, a record whose steps grow: on the check blocks x² lowered the free run;
+    beyond the range it was fitted on it grows without bound. Without the held-out comparison
+    the loop returned input_nonlinearity (with moving-average noise) and the test part's free run
+    went 2.24 → 2.79; held out from every choice, the estimation record's tail shows it worse."""
+    x, y = growing_steps(2400, seed=1)
+    report = refine_record(x, y, None, [(0, 1600)], (1600, 2400))
+    result = report.refinement
+    held_out = result.held_out
+    assert held_out is not None and held_out.samples == 320
+    assert held_out.refined_rms > held_out.start_rms and not held_out.better
+    assert not held_out.kept and held_out.best_tried == "input_nonlinearity"
+    assert result.effects_added == () and "input_nonlinearity" in result.effects_withdrawn
+    assert result.refined.terms == result.declared.terms == linear_terms(*result.orders)
+    assert report.after.free_run_rms <= report.before.free_run_rms
+    document = report.to_dict()
+    assert document["held_out"]["refined_returned"] is False
+    assert document["held_out"]["start_free_run_rms"] < document["held_out"]["refined_free_run_rms"]
+    assert document["held_out"]["gain"] < document["held_out"]["threshold"]
+    (note,) = [note for note in document["notes"] if "could not support the effects" in note]
+    assert "320 samples" in note and "input_nonlinearity" in note
+
+
+def test_a_refined_model_kept_on_the_held_out_tails_is_refitted_on_all_the_records():
+    """A quadratic spring the rig's records plainly show: the refined model wins on the tails and is
+    returned, its parameters estimated on all the estimation samples, not the heads alone."""
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 6000, seed=2
+    )
+    x, y = record.x[:3000], record.y[:3000]
+    result = refine([(x, y)], EXACT_TERMS, max_rounds=1)
+    held_out = result.held_out
+    assert held_out is not None and held_out.kept and held_out.better and held_out.samples == 600
+    assert held_out.refined_rms < held_out.start_rms / 10
+    assert result.effects_added[0].name == "quadratic_stiffness"
+    assert result.declared.n_obs == len(y) - max_lag(EXACT_TERMS)
+    assert result.refined.n_obs == len(y) - result.refined.max_lag
+
+
+def test_records_too_short_to_hold_a_tail_out_are_refined_whole_and_the_report_says_so():
+    record = simulate(Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 900, seed=2)
+    report = refine_record(record.x, record.y, EXACT_TERMS, [(0, 900 * 2 // 3)], (600, 900))
+    assert report.refinement.held_out is None and report.refinement.effects_added
+    assert any("too short to hold a tail out" in note for note in report.to_dict()["notes"])
+
+
+def test_a_free_run_that_grows_without_bound_is_judged_diverged_though_finite():
+    """y[t] = 1.05 y[t-1] + x[t-1] grows 1.05ⁿ: finite over 300 samples, far beyond the record."""
+    rng = np.random.default_rng(4)
+    x = rng.standard_normal(300)
+    y = signal.lfilter([0.0, 1.0], [1.0, -0.5], x) + 0.1 * rng.standard_normal(300)
+    terms = linear_terms(1, 1, 1)
+    stable = NARX(terms, np.array([0.5, 1.0]), np.zeros((2, 2)))
+    growing = replace(stable, theta=np.array([1.05, 1.0]))
+    refinement = Refinement(stable, growing)
+    comparison = compare(refinement, [(x, y)], x, y, 0, None, 0)
+    assert np.isfinite(comparison.after.free_run_rms) and comparison.after.diverged
+    assert not comparison.before.diverged and comparison.verdict == "diverged"
+    (test,) = RefinementReport(refinement, (comparison,)).to_dict()["tests"]
+    assert test["verdict"] == "diverged" and test["after"]["diverged"] and not test["before"]["diverged"]

@@ -420,7 +420,15 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
         )
     stdout.print(f"declared: {', '.join(report['declared']['terms'])}", highlight=False, markup=False)
-    if report["effects_withdrawn"]:
+    held_out = report["held_out"]
+    if held_out is not None and not held_out["refined_returned"]:
+        stdout.print(
+            f"withdrawn: {', '.join(report['effects_withdrawn'])} — the refined model was not better than "
+            "the start on the held-out tails (below)",
+            highlight=False,
+            markup=False,
+        )
+    elif report["effects_withdrawn"]:
         stdout.print(
             f"withdrawn: {', '.join(report['effects_withdrawn'])} — with output-error parameters the "
             "declared model simulates the check blocks as well without them (from three records on: "
@@ -445,6 +453,8 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             markup=False,
         )
         _print_contribution(effect["contribution"], report["refined"]["saturation"], per)
+    if held_out is not None:
+        _print_held_out(held_out, per)
     stdout.print(f"refined parameters by {report['refined']['estimator']}")
     floor = report["noise_floor"]
     check = report["check_free_run_rms"]
@@ -468,9 +478,8 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
     stdout.print(f"{'before':>11} {'after':>11} {'before':>11} {'after':>11}  {'after':>11}  judged on")
     for item in report["tests"]:
         first, last = item["samples"]
-        cells = [
-            _number(item[label][key])
-            for key in ("one_step_rms", "free_run_rms")
+        cells = [_number(item[label]["one_step_rms"]) for label in ("before", "after")] + [
+            "diverged" if item[label]["diverged"] else _number(item[label]["free_run_rms"])
             for label in ("before", "after")
         ]
         stdout.print(
@@ -480,6 +489,13 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
+    for item in report["tests"]:
+        if item["verdict"] == "diverged":
+            stdout.print(
+                f"note: on {item['path']}{_signals(item)} the refined model's free run diverged",
+                highlight=False,
+                markup=False,
+            )
     for item in report["tests"]:
         if item["coverage"]["extrapolates"]:
             stdout.print(
@@ -492,6 +508,28 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         stdout.print(f"note: {note}", highlight=False, markup=False)
     if plot is not None:
         stdout.print(f"figure -> {plot}")
+
+
+def _print_held_out(held_out: dict[str, Any], per: str) -> None:
+    """The comparison of the refined model with the start on the held-out tails, and its decision."""
+    start, refined = (_number(held_out[key]) for key in ("start_free_run_rms", "refined_free_run_rms"))
+    gain = (
+        "the refined model diverged"
+        if held_out["diverged"]
+        else f"gain {_share(held_out['gain'])} of the mean square, threshold {_share(held_out['threshold'])} "
+        f"(its uncertainty at level {held_out['level']:g})"
+    )
+    decision = (
+        "the refined model is returned"
+        if held_out["refined_returned"]
+        else f"the start is returned (the best effect tried: {held_out['best_tried']})"
+    )
+    stdout.print(
+        f"held-out tails ({held_out['samples']} samples no choice saw): free-run RMS start {start}{per}, "
+        f"refined {refined}{per}; {gain}: {decision}",
+        highlight=False,
+        markup=False,
+    )
 
 
 def _print_explanation(report: dict[str, Any], per: str) -> None:
@@ -510,6 +548,10 @@ def _print_explanation(report: dict[str, Any], per: str) -> None:
         highlight=False,
         markup=False,
     )
+
+
+def _share(value: float | None) -> str:
+    return f"{value:.1%}" if value is not None else "—"
 
 
 def _print_contribution(contribution: dict[str, Any], saturation: str | None, per: str) -> None:
@@ -541,6 +583,7 @@ def _print_contribution(contribution: dict[str, Any], saturation: str | None, pe
 
 
 def _percent(value: float | None) -> str:
+    """A share to three significant figures: an effect's share of each step can be a millionth."""
     return f"{100 * value:.3g} %" if value is not None else "none"
 
 

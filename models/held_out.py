@@ -1,0 +1,163 @@
+"""The refinement loop's last word: the refined model and its start compared on data that no choice
+of the loop saw (SPEC §7, :func:`models.refinement.refine`).
+
+The check blocks choose the effects among many candidates, and a gain chosen as the best of many
+is biased upward: a model whose check blocks' free run fell can simulate new data worse than its
+start (a polynomial that fits a curve within the estimation data's range and leaves it beyond).
+Only data held out from every choice tell whether a gain carries over. The last
+``HELD_OUT_SHARE`` of each estimation record is that data: the loop runs on the rest (the heads),
+and its refined model is kept only where its free run over the tails is better than the start's
+beyond the uncertainty of the comparison (:func:`compare_on_tails`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from models.checking import MIN_BLOCK, Segments, free_run_rms
+from models.narx import NARX
+from models.scoring import Records
+from models.simulation import FreeRun
+
+# The share of each estimation record, at its end, that the loop does not see. Held out only
+# where every record's tail is a check block or more, so that the comparison has the blocks it
+# needs: records of 5·MIN_BLOCK samples.
+HELD_OUT_SHARE = 0.2
+# The level of the comparison, one-sided: one comparison, made once, after every choice. It is
+# made two ways (:func:`compare_on_tails`), each at half of it.
+HELD_OUT_ALPHA = 0.05
+# The tails' errors are cut into at most this many blocks of at least COMPARISON_SAMPLES each:
+# enough blocks for the spread of the two models' differences to be estimated, each long enough
+# that a free run's correlated errors stay mostly within one.
+COMPARISON_BLOCKS = 20
+COMPARISON_SAMPLES = 50
+# A block's ratio of the two models' mean squares counts for at most this much either way: where
+# one model reproduces a block all but exactly (a clipping sensor's plateau), the log ratio of a
+# few such blocks would otherwise swamp the spread of all the others.
+BLOCK_RATIO_CAP = 100.0
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """The start and the refined model, both fitted on the heads, run free over the held-out
+    tails (``samples`` of them, each tail run from its first measured outputs): their free-run
+    RMS, the refined model's ``gain`` (the fall of the mean square, as a share of the start's,
+    the geometric mean over blocks) and the ``threshold`` it had to exceed, the comparison's
+    uncertainty at ``HELD_OUT_ALPHA``. ``diverged``: the refined model's free run diverged there.
+    ``kept``: the refined model was returned; otherwise the start was, and ``best_tried`` names
+    the effect that had lowered the check blocks' free run most."""
+
+    samples: int
+    start_rms: float
+    refined_rms: float
+    gain: float
+    threshold: float
+    diverged: bool = False
+    kept: bool = True
+    best_tried: str | None = None
+
+    @property
+    def better(self) -> bool:
+        """Whether the refined model simulates the tails better than the start beyond the
+        comparison's uncertainty."""
+        return not self.diverged and self.gain > self.threshold
+
+    @property
+    def not_worse(self) -> bool:
+        """Whether it simulates them no worse beyond that uncertainty."""
+        return not self.diverged and self.gain >= -self.threshold
+
+
+def held_out_tails(records: Records) -> tuple[Records, Segments] | None:
+    """The ``records`` without their tails (the heads the loop runs on) and the tails, each with
+    its first sample's index in its record; None when a record is too short to hold one out."""
+    cuts = [len(y) - int(len(y) * HELD_OUT_SHARE) for _, y in records]
+    if any(len(y) - cut < MIN_BLOCK for (_, y), cut in zip(records, cuts, strict=True)):
+        return None
+    heads = [(x[:cut], y[:cut]) for (x, y), cut in zip(records, cuts, strict=True)]
+    tails = [(x[cut:], y[cut:], cut) for (x, y), cut in zip(records, cuts, strict=True)]
+    return heads, tails
+
+
+def compare_on_tails(start: NARX, refined: NARX, tails: Segments) -> HeldOut:
+    """``start`` and ``refined`` compared on the ``tails`` by a paired test over blocks.
+
+    The blocks are cut two ways, each tested at half the level (Bonferroni), the refined model
+    better where either passes: blocks of one free run over each tail, where a model's error can
+    drift until one block holds most of it; and pieces each run from its own measured outputs,
+    as the check blocks are, where noise on those outputs starts every piece with a transient that
+    blurs the difference. Each block gives d = ln(start's mean square / refined's); under "no
+    better" the mean of the K blocks' d over its standard error is Student's t with K − 1 degrees
+    of freedom. Log ratios, not differences: a free run's error is heavy-tailed across blocks (a
+    few where the excitation is large hold most of it), and a difference of squares is dominated
+    by those few. Gain and threshold are reported as shares of the mean square, 1 − exp(−mean d)
+    and 1 − exp(−t·SE), from the way that passed (else from the blocks of one free run).
+    """
+    blocks = comparison_blocks(tails)
+    comparisons = [
+        _paired(cut(start, tails, blocks), cut(refined, tails, blocks), HELD_OUT_ALPHA / 2)
+        for cut in (_block_squares, _restarted_squares)
+    ]
+    gain, threshold = next((each for each in comparisons if each[0] > each[1]), comparisons[0])
+    start_rms, refined_rms = (free_run_rms(model, tails) for model in (start, refined))
+    samples = sum(len(y) for _, y, _ in tails)
+    return HeldOut(samples, start_rms, refined_rms, gain, threshold, diverged=not np.isfinite(refined_rms))
+
+
+def comparison_blocks(segments: Segments) -> int:
+    """How many blocks a comparison over ``segments`` cuts their errors into."""
+    samples = sum(len(y) for _, y, _ in segments)
+    return int(np.clip(samples // COMPARISON_SAMPLES, 3, COMPARISON_BLOCKS))
+
+
+def free_run_errors(model: NARX, segments: Segments) -> np.ndarray:
+    """The free-run errors of ``model`` over ``segments`` one after the other, each run started
+    from its first measured outputs (samples L … of each, L the model's largest lag)."""
+    L = model.max_lag
+    runs = [(FreeRun.build(model.terms, x, t0), y) for x, y, t0 in segments if len(y) > L]
+    return np.concatenate([np.empty(0)] + [model.run_free(run, y)[L:] - y[L:] for run, y in runs])
+
+
+def _block_squares(model: NARX, segments: Segments, blocks: int) -> np.ndarray:
+    """``model``'s free-run errors over ``segments`` (:func:`free_run_errors`) cut into ``blocks``
+    contiguous blocks, each block's mean square; all infinite when a run diverges. Where two
+    models' largest lags differ, the few samples the longer skips shift the edges a little, alike
+    for both."""
+    error = free_run_errors(model, segments)
+    if error.size < blocks or not np.all(np.isfinite(error)):
+        return np.full(blocks, np.inf)
+    return np.array([float(np.mean(part**2)) for part in np.array_split(error, blocks)])
+
+
+def _restarted_squares(model: NARX, segments: Segments, blocks: int) -> np.ndarray:
+    """``segments`` cut into about ``blocks`` pieces (a segment's share by its length), each run
+    free from its own first measured outputs: ``model``'s mean square over each; all infinite when
+    a run diverges. Runs restarted per piece are alike and independent, where one long free run's
+    error drifts and a lightly damped model's last blocks can hold nearly all of it."""
+    total = sum(len(y) for _, y, _ in segments)
+    pieces = [
+        (x[part[0] : part[-1] + 1], y[part[0] : part[-1] + 1], t0 + int(part[0]))
+        for x, y, t0 in segments
+        for part in np.array_split(np.arange(len(y)), max(1, round(blocks * len(y) / total)))
+    ]
+    squares = np.array([free_run_rms(model, [piece]) ** 2 for piece in pieces])
+    return squares if np.all(np.isfinite(squares)) else np.full(squares.size, np.inf)
+
+
+def _paired(before: np.ndarray, after: np.ndarray, alpha: float) -> tuple[float, float]:
+    """The gain of the free run whose block mean squares are ``after`` over ``before``'s and the
+    threshold it must exceed at level ``alpha`` (:func:`compare_on_tails`); −∞ and ∞ where the
+    second diverged, 1 and 0 where only the first did."""
+    if not np.all(np.isfinite(after)):
+        return -np.inf, np.inf
+    if not np.all(np.isfinite(before)):
+        return 1.0, 0.0
+    tiny = np.finfo(np.float64).tiny
+    cap = np.log(BLOCK_RATIO_CAP)
+    ratio = np.clip(np.log(np.maximum(before, tiny) / np.maximum(after, tiny)), -cap, cap)
+    error = float(np.std(ratio, ddof=1) / np.sqrt(ratio.size))
+    quantile = float(stats.t.ppf(1 - alpha, ratio.size - 1))
+    return float(-np.expm1(-np.mean(ratio))), float(-np.expm1(-quantile * error))
