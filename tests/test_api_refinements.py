@@ -28,9 +28,9 @@ from harness.dashboard_helpers import logged_in
 from harness.live import DATABASES, LiveServer, on_each_database
 from models.coverage import coverage
 from models.effects import candidate_effects, linear_terms
-from models.narx import fit_narx
+from models.narx import NARX, fit_narx
 from models.refinement import MAX_LINEAR_ORDER
-from models.terms import Term, parse_terms
+from models.terms import Term, parse_terms, regressor_matrix
 from service.domain import refinements
 from service.schemas import RefinementCreate
 from service.security import Principal, Role
@@ -354,6 +354,23 @@ def test_several_records_are_fitted_at_once_and_each_test_record_judged_whole(ri
             }
         assert report["effects_added"][0]["name"] == "quadratic_stiffness"
         assert all(effect["decided_by"] in ("one-step", "simulation") for effect in report["effects_added"])
+        # The spring's part of each step of the refined model's free run on the first test
+        # record, started and scored as that record was judged (models.explanation).
+        refined = report["refined"]
+        model = NARX(
+            parse_terms(refined["terms"]), np.array(refined["theta"]), np.zeros((len(refined["theta"]),) * 2)
+        )
+        x, y = rig.signals[rig.judged[0]]
+        start = 10 - model.max_lag
+        regressors, _ = regressor_matrix(model.terms, x[start:], model.simulate(x[start:], y[start:]))
+        spring = report["effects_added"][0]
+        columns = [refined["terms"].index(term) for term in spring["terms"]]
+        part = regressors[500 - 10 :, columns] @ model.theta[columns]
+        assert report["explanation"]["output_rms"] == pytest.approx(np.sqrt(np.mean(y[500:] ** 2)), rel=1e-12)
+        assert spring["contribution"]["share"] == pytest.approx(
+            np.sqrt(np.mean(part**2)) / report["explanation"]["output_rms"], rel=1e-9
+        )
+        assert spring["contribution"]["coefficients"] == [refined["theta"][i] for i in columns]
         models = {m["id"]: m for m in viewer.get(f"{API}/structures/{rig.structure_id}/models").json()}
         training = models[refinement["refined_model"]["id"]]["training"]
         assert training["record_ids"] == rig.fitted and training["transient"] == 500

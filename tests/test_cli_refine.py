@@ -26,9 +26,11 @@ from harness.extrapolating import growing_steps
 from harness.multisines import measured
 from models.coverage import coverage
 from models.effects import candidate_effects
+from models.explanation import explain_refinement
 from models.narx import NARX, fit_narx
+from models.output_error import RESTLESS
 from models.refinement import refine_record
-from models.terms import parse_terms
+from models.terms import parse_terms, regressor_matrix
 from recordfiles.reader import read_record
 from recordfiles.writer import dump_csv
 from service.cli.modelfiles import signal_layout
@@ -37,7 +39,7 @@ from simulator.theory import EXACT_TERMS
 
 REPORT_KEYS = {
     "declared", "orders_chosen", "effects_added", "effects_withdrawn", "before", "after", "tests", "refined",
-    "notes", "data", "check_free_run_rms", "noise_floor", "held_out",
+    "notes", "data", "check_free_run_rms", "noise_floor", "held_out", "explanation",
 }  # fmt: skip
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests", "diverged"}
 HELD_OUT_KEYS = {
@@ -321,6 +323,96 @@ def test_the_realisations_of_one_file_are_records_as_separate_files_are(
         assert {k: v for k, v in one.items() if k not in sources} == {
             k: v for k, v in other.items() if k not in sources
         }
+
+
+def test_each_effect_added_carries_its_coefficients_and_shares_of_the_first_record_judged(
+    simulated_records: Path, two_record_report: dict
+):
+    """The JSON report's ``contribution`` of each effect (models.explanation), computed here
+    from the refined model the report holds, on v1, the first record judged, along its free run."""
+    report = two_record_report
+    refined = report["refined"]
+    model = NARX(
+        parse_terms(refined["terms"]), np.array(refined["theta"]), np.zeros((len(refined["theta"]),) * 2)
+    )
+    x, y = signals(simulated_records, "v1")
+    run = model.simulate(x, y)
+    regressors, _ = regressor_matrix(model.terms, x, run)
+    scale = np.sqrt(np.mean(y[model.max_lag :] ** 2))
+    assert report["explanation"]["along"] == "free run"
+    assert report["explanation"]["output_rms"] == pytest.approx(scale)
+    assert report["effects_added"], "the quadratic spring is found"
+    claimed = []
+    for effect in report["effects_added"]:
+        contribution = effect["contribution"]
+        assert contribution["terms"] == effect["terms"]
+        columns = [refined["terms"].index(term) for term in effect["terms"]]
+        claimed += columns
+        assert contribution["coefficients"] == [refined["theta"][i] for i in columns]
+        assert all(error > 0 for error in contribution["standard_errors"])
+        part = regressors[:, columns] @ model.theta[columns]
+        assert contribution["share"] == pytest.approx(np.sqrt(np.mean(part**2)) / scale, rel=1e-9)
+        theta = model.theta.copy()
+        theta[columns] = 0.0
+        without = NARX(model.terms, theta, model.covariance).simulate(x, y)[model.max_lag :]
+        if np.all(np.abs(without) <= RESTLESS * np.max(np.abs(y[model.max_lag :]))):
+            moved = np.sqrt(np.mean((without - run[model.max_lag :]) ** 2)) / scale
+            assert contribution["removal_share"] == pytest.approx(moved, rel=1e-9)
+        else:  # the run without the effect leaves every bound (or is not finite)
+            assert contribution["diverges_without"] and contribution["removal_share"] is None
+    # The declared structure's terms carry the output: the rig is a linear structure with a
+    # small nonlinearity, and its free run follows the measured output closely.
+    declared = report["explanation"]["declared"]
+    assert declared["terms"] == [t for i, t in enumerate(refined["terms"]) if i not in claimed]
+    assert declared["share"] == pytest.approx(1.0, abs=0.1)
+
+
+def test_the_table_prints_each_effects_shares_and_coefficients_under_it(simulated_records: Path):
+    args = ("refine", "e1.csv", "--declared", "2dof", "--validate", "v1.csv", "--unit", "m")
+    table = invoke(*args, cwd=simulated_records).stdout
+    report = refine_report(*args[1:], cwd=simulated_records)
+    assert report["effects_added"]
+    assert (
+        f"under each effect, shares of the output's RMS ({report['explanation']['output_rms']:.4g} m) on "
+        "v1.csv [0:6000]: of each step" in table
+    )
+    lines = table.splitlines()
+    for number, effect in enumerate(report["effects_added"], start=1):
+        (at,) = [i for i, line in enumerate(lines) if line.startswith(f"{number}. {effect['name']} (")]
+        contribution = effect["contribution"]
+        without = (
+            "the free run diverges without it"
+            if contribution["diverges_without"]
+            else f"without it the free run moves {100 * contribution['removal_share']:.3g} %"
+        )
+        term, value, error = (contribution[key][0] for key in ("terms", "coefficients", "standard_errors"))
+        share = f"{100 * contribution['share']:.3g} %"
+        assert lines[at + 1].startswith(
+            f"   of each step {share}; {without}: {term} = {value:.4g} ± {error:.2g}"
+        ), lines[at + 1]
+
+
+def test_the_figure_draws_each_effects_contribution_and_shares(simulated_records: Path):
+    x, y = signals(simulated_records, "e1")
+    refined = refine_record(x, y, EXACT_TERMS, [(0, 4000)], (4000, 6000), fs=1500.0)
+    explanation = explain_refinement(refined.refinement, x[4000:], y[4000:], 0, 4000)
+    names = [effect.name for effect in refined.refinement.effects_added]
+    assert names, "the quadratic spring is found"
+    figure = draw_refinement_figure(refined, x[4000:], y[4000:], 0, 1500.0, "y", "m", explanation)
+    _, _, run, steps, shares = figure.axes
+    assert [line.get_label() for line in steps.get_lines()[: len(names)]] == names
+    assert steps.get_ylabel() == "added to each step of y [m]"
+    # Over the free run's shown stretch: the same samples as the panel above.
+    assert steps.get_lines()[0].get_xdata()[[0, -1]] == pytest.approx(run.get_lines()[0].get_xdata()[[0, -1]])
+    # One row of bars an effect, the first on top.
+    assert [label.get_text() for label in shares.get_yticklabels()] == names
+    assert list(shares.get_yticks()) == list(range(len(names)))[::-1]
+    assert "m)" in shares.get_title()
+    plt.close(figure)
+    # Without an explanation, the three panels as before.
+    figure = draw_refinement_figure(refined, x[4000:], y[4000:], 0, 1500.0)
+    assert len(figure.axes) == 3
+    plt.close(figure)
 
 
 def test_records_are_fitted_through_the_transient_and_judged_after_it(simulated_records: Path):

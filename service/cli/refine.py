@@ -36,6 +36,7 @@ from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
 from models.effects import linear_terms
 from models.errors import InputError
+from models.explanation import explain_refinement
 from models.refinement import (
     DEFAULT_ALPHA,
     Comparison,
@@ -212,6 +213,7 @@ def refine_command(
             "estimation": [record.source | {"samples": [transient + a, transient + b]} for a, b in parts]
         }
         plotted = (x_cut[c:d], y_cut[c:d])
+        t0, scored_from = c - parts[0][0], 0  # as the loop judged the test part
     else:
         for option, value in (("--estimation", estimation), ("--test", test)):
             if value is not None:
@@ -243,7 +245,10 @@ def refine_command(
         judged = [_whole(r, transient) for r in held]
         protocol = {"estimation": [_whole(r, 0) for r in fitted]}
         plotted = (held[0].x, held[0].y)
+        t0, scored_from = 0, transient
     document = report.to_dict()
+    explanation = explain_refinement(report.refinement, *plotted, start, t0, scored_from)
+    explanation.into(document)
     document["tests"] = [where | item for where, item in zip(judged, document["tests"], strict=True)]
     document["data"] = protocol | {
         "transient": transient,
@@ -255,7 +260,7 @@ def refine_command(
     if plot is not None:
         from service.cli.refine_figure import write_refinement_figure  # matplotlib only when asked
 
-        write_refinement_figure(report, *plotted, start, rate, plot, layout.y, unit)
+        write_refinement_figure(report, *plotted, start, rate, plot, layout.y, unit, explanation)
     if as_json:
         stdout.print_json(json.dumps(document))
         return
@@ -433,6 +438,7 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         )
     elif not report["effects_added"]:
         stdout.print("no effect lowers the error enough: nothing added")
+    _print_explanation(report, per)
     for number, effect in enumerate(report["effects_added"], start=1):
         evidence = effect["evidence"]
         before, after = (_number(value) for value in evidence["check_free_run_rms"])
@@ -446,6 +452,7 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
+        _print_contribution(effect["contribution"], report["refined"]["saturation"], per)
     if held_out is not None:
         _print_held_out(held_out, per)
     stdout.print(f"refined parameters by {report['refined']['estimator']}")
@@ -525,8 +532,59 @@ def _print_held_out(held_out: dict[str, Any], per: str) -> None:
     )
 
 
+def _print_explanation(report: dict[str, Any], per: str) -> None:
+    """What the effects' shares printed under each are (:mod:`models.explanation`), and the
+    declared part's, where effects were added."""
+    if not report["effects_added"]:
+        return
+    explanation, judged = report["explanation"], report["tests"][0]
+    first, last = judged["samples"]
+    part = "the linear start" if report["orders_chosen"] is not None else "the declared part"
+    stdout.print(
+        f"under each effect, shares of the output's RMS ({explanation['output_rms']:.4g}{per}) on "
+        f"{judged['path']}{_signals(judged)} [{first}:{last}]: of each step, its terms times their "
+        f"coefficients along the refined model's {explanation['along']} ({part}: "
+        f"{_percent(explanation['declared']['share'])}); and how far the free run moves without it",
+        highlight=False,
+        markup=False,
+    )
+
+
 def _share(value: float | None) -> str:
     return f"{value:.1%}" if value is not None else "—"
+
+
+def _print_contribution(contribution: dict[str, Any], saturation: str | None, per: str) -> None:
+    """An effect's share and coefficients (± their standard errors), under its line."""
+    errors = contribution["standard_errors"] or [None] * len(contribution["terms"])
+    coefficients = ", ".join(
+        f"{term} = {value:.4g}" + (f" ± {error:.2g}" if error is not None else "")
+        for term, value, error in zip(
+            contribution["terms"], contribution["coefficients"], errors, strict=True
+        )
+    )
+    without = (
+        "the free run diverges without it"
+        if contribution["diverges_without"]
+        else f"without it the free run moves {_percent(contribution['removal_share'])}"
+    )
+    if "limits" in contribution:
+        low, high = (f"{value:.4g}" if value is not None else "none" for value in contribution["limits"])
+        at = contribution["at_limits"]
+        line = f"the {saturation} saturates at {low} and {high}{per}" + (
+            f", the free run at a limit in {_percent(at)} of its samples" if at is not None else ""
+        )
+        line += f"; {without}"
+    elif contribution["share"] is None:
+        line = f"the one-step prediction's, not in the free run: {coefficients}"
+    else:
+        line = f"of each step {_percent(contribution['share'])}; {without}: {coefficients}"
+    stdout.print(f"   {line}", highlight=False, markup=False)
+
+
+def _percent(value: float | None) -> str:
+    """A share to three significant figures: an effect's share of each step can be a millionth."""
+    return f"{100 * value:.3g} %" if value is not None else "none"
 
 
 def _signals(source: dict[str, Any]) -> str:

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session, selectinload
 from models.assessment import check_test_length
 from models.effects import candidate_effects, linear_terms
 from models.errors import InputError
+from models.explanation import explain_refinement
 from models.narx import NARX
 from models.refinement import MAX_LINEAR_ORDER, check_parts, reach, refine_record, refine_records
 from models.terms import Term
@@ -77,6 +78,10 @@ def create_refinement(
         (record,) = plan.records
         x, y = signals(record)
         report = refine_record(x, y, plan.terms, plan.estimation, plan.test, body.initial, body.alpha, fs)
+        c, d = plan.test
+        explanation = explain_refinement(
+            report.refinement, x[c:d], y[c:d], body.initial, c - plan.estimation[0][0]
+        )
         judged = [{"record_id": record.id, "samples": list(plan.test)}]
         data = {"estimation": _as_given(plan.estimation), "test": list(plan.test)}
     else:
@@ -87,9 +92,11 @@ def create_refinement(
         held = [signals(record) for record in plan.tests]
         names = [f"record {record.id}" for record in plan.records]
         report = refine_records(fitted, held, plan.terms, body.initial, body.alpha, fs, cut, names=names)
+        explanation = explain_refinement(report.refinement, *held[0], body.initial, 0, cut)
         judged = [{"record_id": r.id, "samples": [cut, r.n_samples]} for r in plan.tests]
         data = {"transient": cut}
     document = report.to_dict()
+    explanation.into(document)  # what each effect does, on the first record judged
     document["tests"] = [where | test for where, test in zip(judged, document["tests"], strict=True)]
     document["data"] = (
         {
