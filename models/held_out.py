@@ -19,6 +19,7 @@ from scipy import stats
 
 from models.checking import MIN_BLOCK, Segments, free_run_rms
 from models.narx import NARX
+from models.periods import excitation_period
 from models.scoring import Records
 from models.simulation import FreeRun
 
@@ -76,13 +77,33 @@ class HeldOut:
 
 def held_out_tails(records: Records) -> tuple[Records, Segments] | None:
     """The ``records`` without their tails (the heads the loop runs on) and the tails, each with
-    its first sample's index in its record; None when a record is too short to hold one out."""
-    cuts = [len(y) - int(len(y) * HELD_OUT_SHARE) for _, y in records]
+    its first sample's index in its record; None when a record is too short to hold one out.
+
+    A record whose input repeats (:func:`models.periods.excitation_period`) is cut after a whole
+    number of its periods, two at least, the tail at least ``HELD_OUT_SHARE`` of it: the loop
+    tells a multisine's own lines and their products from an external tone by the lines of the
+    input it is given, which fall on its record's bins only over whole periods, and stand out of
+    their neighbours only where a record holds two periods or more (over one period of a
+    full-grid multisine every bin is a line).
+    """
+    cuts = [_cut(x, len(y)) for x, y in records]
+    if None in cuts:
+        return None
     if any(len(y) - cut < MIN_BLOCK for (_, y), cut in zip(records, cuts, strict=True)):
         return None
     heads = [(x[:cut], y[:cut]) for (x, y), cut in zip(records, cuts, strict=True)]
     tails = [(x[cut:], y[cut:], cut) for (x, y), cut in zip(records, cuts, strict=True)]
     return heads, tails
+
+
+def _cut(x: np.ndarray, n: int) -> int | None:
+    """Where a record of ``n`` samples and input ``x`` is cut (:func:`held_out_tails`); None where
+    its input repeats and the head cannot hold two of its periods."""
+    cut = n - int(n * HELD_OUT_SHARE)
+    period = excitation_period(np.asarray(x, dtype=np.float64))
+    if period is None:
+        return cut
+    return cut - cut % period if cut >= 2 * period else None
 
 
 def compare_on_tails(start: NARX, refined: NARX, tails: Segments) -> HeldOut:

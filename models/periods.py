@@ -62,7 +62,7 @@ def period_noise(x: np.ndarray, y: np.ndarray) -> PeriodNoise | None:
     """
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
-    period = _period(x)
+    period = excitation_period(x)
     if period is None:
         return None
     whole = len(x) // period
@@ -87,7 +87,7 @@ def pooled_period_noise(records: Sequence[tuple[np.ndarray, np.ndarray]]) -> Per
     return PeriodNoise(float(np.sqrt(variance)), sum(n.periods for n in noises), noises[0].period, dof)
 
 
-def _period(x: np.ndarray) -> int | None:
+def excitation_period(x: np.ndarray) -> int | None:
     """The shortest lag P ≥ ``MIN_PERIOD`` over which x repeats at least twice, or None.
 
     The correlation ρ(P) between x[:n−P] and x[P:] is computed for every lag at once (FFT). A

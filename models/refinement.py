@@ -320,8 +320,9 @@ def _held_out_notes(result: Refinement) -> list[str]:
         if not result.effects_added:
             return []
         return [
-            "the estimation records are too short to hold a tail out: the effects added were not "
-            "compared with the start on data no choice of the loop saw"
+            "the estimation records are too short to hold a tail out (a fifth of each, and two "
+            "whole periods of a periodic input before it): the effects added were not compared "
+            "with the start on data no choice of the loop saw"
         ]
     if held_out.kept:
         return []

@@ -22,7 +22,9 @@ from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from simulator.simulate import BOUC_WEN_BETA, BOUC_WEN_GAMMA, Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
 
-ESTIMATION, HELD_OUT = 8000, 4000
+# The loop runs on the first 8000 samples and holds out the next 2000 (models.held_out); the
+# models are judged on the last 2000.
+ESTIMATION, HELD_OUT = 10_000, 2000
 
 # One planted effect at a time, sized so that it, not the 200 N force disturbance, dominates the
 # declared model's free-run error; with the parameter the loop must estimate for it: the dead

@@ -74,13 +74,14 @@ def test_part_of_a_free_run_above_the_floor():
 
 def test_the_loop_reports_the_noise_floor_of_the_checked_records():
     """A linear system driven by a multisine, measured with white output noise: the right linear
-    model's free run over the check blocks is at the noise floor, which the report gives."""
-    records = [measured(periods=4, sigma=0.3, seed=seed) for seed in (7, 8)]
+    model's free run over the check blocks is at the noise floor, which the report gives. Four
+    periods after the transient: the loop runs on three, the fourth held out."""
+    records = [measured(periods=5, sigma=0.3, seed=seed) for seed in (7, 8)]
     result = refine(
         [(x[PERIOD:], y[PERIOD:]) for x, _, y in records], ["y[t-1]", "y[t-2]", "x[t-1]", "x[t-2]"]
     )
     floor = result.noise_floor
-    assert floor is not None and (floor.periods, floor.period) == (2 + 2, PERIOD)  # the first of 3 left out
+    assert floor is not None and (floor.periods, floor.period) == (3 + 3, PERIOD)  # the first of 4 left out
     assert abs(floor.rms - 0.3) < 3 * floor.standard_error
     assert floor.beneath(result.check_rms) == 0.0, (result.check_rms, floor)
     # Where the records do not repeat there is no floor to report.
