@@ -11,7 +11,7 @@ from scipy import signal
 from models.diagnostics import ResidualReport, residual_report
 from models.errors import InputError
 from models.narx import NARX
-from models.output_error import RESTLESS
+from models.output_error import diverged
 from models.signals import minimum_samples
 
 LJUNG_BOX_LAGS = 40
@@ -86,9 +86,9 @@ def assess(
     from rest; the free run uses the process model alone. A part too short for the residual tests
     (:func:`residual_tests_fit`) is scored by its errors alone, the tests named as skipped: a
     benchmark's test window can be a hundred samples (the coupled electric drives'). A free run that
-    is not finite, or leaves ``RESTLESS`` times the largest measured output of the part scored (as
-    a model that does not come to rest does, :mod:`models.output_error`), has diverged: a model
-    growing without bound can stay finite over a short record.
+    is not finite, or leaves ``RESTLESS`` times the largest measured output of the part scored,
+    has diverged (:func:`models.output_error.diverged`): a model growing without bound can stay
+    finite over a short record.
     """
     if transient < 0:
         raise InputError(f"the transient must be 0 or more samples, got {transient}")
@@ -107,13 +107,12 @@ def assess(
     error, simulated, xs, ys = error[skip:], simulated[skip:], xs[L + skip :], ys[L + skip :]
     free_run = float(np.sqrt(np.mean((simulated - ys) ** 2)))
     tested = residual_tests_fit(len(y), scored, lags)
-    bound = RESTLESS * float(np.max(np.abs(ys)))
     return Assessment(
         float(np.sqrt(np.mean(error**2))),
         free_run if np.isfinite(free_run) else float("inf"),
         residual_report(xs, ys, error, fs or 1.0, lags) if tested else None,
         () if tested else RESIDUAL_TESTS,
-        diverged=not np.isfinite(free_run) or bool(np.max(np.abs(simulated)) > bound),
+        diverged=diverged(simulated, ys),
     )
 
 

@@ -272,12 +272,21 @@ def checked_whole(records: Records, fold: int = 1) -> Records:
 def free_run_rms(model: NARX, segments: Segments) -> float:
     """Free-run RMS of ``model`` over ``segments``, each run started from its first measured
     outputs; infinite when a run diverges or no segment is longer than the model's lags."""
+    return pooled_rms(free_run_errors(model, segments))
+
+
+def free_run_errors(model: NARX, segments: Segments) -> list[np.ndarray]:
+    """The free-run errors of ``model`` over each of ``segments`` longer than its lags, each run
+    started from its first measured outputs (samples L … of each, L the model's largest lag)."""
     L = model.max_lag
+    runs = [(FreeRun.build(model.terms, x, t0), y) for x, y, t0 in segments if len(y) > L]
+    return [model.run_free(run, y)[L:] - y[L:] for run, y in runs]
+
+
+def pooled_rms(errors: Sequence[np.ndarray]) -> float:
+    """The RMS of all the ``errors`` together; infinite when one is not finite or there are none."""
     squares, count = 0.0, 0
-    for x, y, t0 in segments:
-        if len(y) <= L:
-            continue
-        error = model.run_free(FreeRun.build(model.terms, x, t0), y)[L:] - y[L:]
+    for error in errors:
         squares += float(error @ error)
         count += error.size
     rms = np.sqrt(squares / count) if count else np.inf

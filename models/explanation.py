@@ -9,9 +9,9 @@ effect the loop added brought. A group G's **contribution** is its part of that 
 with the regressors φ evaluated along the model's own free run ŷ over a record (what the model
 makes of that record from its input alone), or along the measured output where the free run
 diverged (the one-step regressors; diverged: not finite, or beyond ``RESTLESS`` times the
-largest measured output, as :mod:`models.output_error` judges a model that does not come to
-rest). Its **share** is RMS(c_G) / RMS(y), y the measured output over the same samples: how
-large a part of each sample's equation the group supplies. The groups' contributions sum to the
+largest measured output, :func:`models.output_error.diverged`). Its **share** is
+RMS(c_G) / RMS(y), y the measured output over the same samples: how large a part of each
+sample's equation the group supplies. The groups' contributions sum to the
 model's output before any output limit; the shares need not sum to 1, as the groups'
 contributions partly cancel (a hardening spring pulls against the linear part's swing).
 
@@ -43,7 +43,7 @@ import numpy as np
 
 from models.metrics import rms
 from models.narx import NARX
-from models.output_error import RESTLESS
+from models.output_error import diverged
 from models.refinement import Refinement
 from models.scoring import EffectScore
 from models.terms import parse_terms, regressor_matrix
@@ -144,7 +144,7 @@ def explain(
     scored = lag + max(start_up, transient) - start_up  # the first scored sample of xs and ys
     xs, ys = x[start:], y[start:]
     simulated = model.simulate(xs, ys, t0 + start)
-    along: Along = "one-step" if _diverged(simulated[scored:], ys[scored:]) else "free run"
+    along: Along = "one-step" if diverged(simulated[scored:], ys[scored:]) else "free run"
     regressors, _ = regressor_matrix(
         model.terms, xs, simulated if along == "free run" else ys, lag, t0 + start
     )
@@ -158,7 +158,7 @@ def explain(
         if along != "free run" or not scale > 0:
             return None
         run = without.simulate(xs, ys, t0 + start)[scored:]
-        return np.inf if _diverged(run, ys[scored:]) else rms(run - simulated[scored:]) / scale
+        return np.inf if diverged(run, ys[scored:]) else rms(run - simulated[scored:]) / scale
 
     def group(columns: list[int]) -> Contribution:
         series = regressors[:, columns] @ model.theta[columns]
@@ -214,12 +214,6 @@ def _noise(effect: EffectScore, noise: np.ndarray | None) -> Contribution:
         if found and 0 < (k := int(found.group(1))) <= coefficients.size:
             held.append((term, float(coefficients[k - 1])))
     return Contribution(tuple(t for t, _ in held), tuple(c for _, c in held), None, np.empty(0), None)
-
-
-def _diverged(run: np.ndarray, measured: np.ndarray) -> bool:
-    """Whether a free run has diverged: it is not finite, or leaves ``RESTLESS`` times the
-    largest measured output (a model growing without bound can stay finite over a record)."""
-    return not np.all(np.isfinite(run)) or bool(np.max(np.abs(run)) > RESTLESS * np.max(np.abs(measured)))
 
 
 def _at_limits(model: NARX, run: np.ndarray) -> float | None:

@@ -17,11 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from models.checking import MIN_BLOCK, Segments, free_run_rms
+from models.checking import MIN_BLOCK, Segments, free_run_errors, free_run_rms, pooled_rms
 from models.narx import NARX
 from models.periods import excitation_period
 from models.scoring import Records
-from models.simulation import FreeRun
 
 # The share of each estimation record, at its end, that the loop does not see. Held out only
 # where every record's tail is a check block or more, so that the comparison has the blocks it
@@ -121,12 +120,14 @@ def compare_on_tails(start: NARX, refined: NARX, tails: Segments) -> HeldOut:
     and 1 − exp(−t·SE), from the way that passed (else from the blocks of one free run).
     """
     blocks = comparison_blocks(tails)
+    start_errors, refined_errors = (free_run_errors(model, tails) for model in (start, refined))
+    level = HELD_OUT_ALPHA / 2
     comparisons = [
-        _paired(cut(start, tails, blocks), cut(refined, tails, blocks), HELD_OUT_ALPHA / 2)
-        for cut in (_block_squares, _restarted_squares)
+        _paired(_block_squares(start_errors, blocks), _block_squares(refined_errors, blocks), level),
+        _paired(_restarted_squares(start, tails, blocks), _restarted_squares(refined, tails, blocks), level),
     ]
     gain, threshold = next((each for each in comparisons if each[0] > each[1]), comparisons[0])
-    start_rms, refined_rms = (free_run_rms(model, tails) for model in (start, refined))
+    start_rms, refined_rms = pooled_rms(start_errors), pooled_rms(refined_errors)
     samples = sum(len(y) for _, y, _ in tails)
     return HeldOut(samples, start_rms, refined_rms, gain, threshold, diverged=not np.isfinite(refined_rms))
 
@@ -137,20 +138,12 @@ def comparison_blocks(segments: Segments) -> int:
     return int(np.clip(samples // COMPARISON_SAMPLES, 3, COMPARISON_BLOCKS))
 
 
-def free_run_errors(model: NARX, segments: Segments) -> np.ndarray:
-    """The free-run errors of ``model`` over ``segments`` one after the other, each run started
-    from its first measured outputs (samples L … of each, L the model's largest lag)."""
-    L = model.max_lag
-    runs = [(FreeRun.build(model.terms, x, t0), y) for x, y, t0 in segments if len(y) > L]
-    return np.concatenate([np.empty(0)] + [model.run_free(run, y)[L:] - y[L:] for run, y in runs])
-
-
-def _block_squares(model: NARX, segments: Segments, blocks: int) -> np.ndarray:
-    """``model``'s free-run errors over ``segments`` (:func:`free_run_errors`) cut into ``blocks``
-    contiguous blocks, each block's mean square; all infinite when a run diverges. Where two
-    models' largest lags differ, the few samples the longer skips shift the edges a little, alike
-    for both."""
-    error = free_run_errors(model, segments)
+def _block_squares(errors: list[np.ndarray], blocks: int) -> np.ndarray:
+    """A model's free-run ``errors`` over the segments (:func:`models.checking.free_run_errors`),
+    one after the other, cut into ``blocks`` contiguous blocks, each block's mean square; all
+    infinite when a run diverges. Where two models' largest lags differ, the few samples the
+    longer skips shift the edges a little, alike for both."""
+    error = np.concatenate([np.empty(0), *errors])
     if error.size < blocks or not np.all(np.isfinite(error)):
         return np.full(blocks, np.inf)
     return np.array([float(np.mean(part**2)) for part in np.array_split(error, blocks)])

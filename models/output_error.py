@@ -454,6 +454,13 @@ STILL = 1e-9
 GROWTH = 2.0
 
 
+def diverged(run: np.ndarray, measured: np.ndarray) -> bool:
+    """Whether a free run ``run`` over a record whose measured output is ``measured`` has
+    diverged: it is not finite, or it leaves ``RESTLESS`` times the largest measured output (a
+    model growing without bound can stay finite over a record)."""
+    return not np.all(np.isfinite(run)) or bool(np.max(np.abs(run)) > RESTLESS * np.max(np.abs(measured)))
+
+
 @dataclass(frozen=True)
 class RingDowns:
     """Free runs with the excitation switched off, and free runs restarted from measured outputs,
