@@ -404,6 +404,21 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
         )
     stdout.print(f"declared: {', '.join(report['declared']['terms'])}", highlight=False, markup=False)
+    _print_withdrawn(report)
+    _print_explanation(report, per)
+    _print_effects(report, per)
+    if report["held_out"] is not None:
+        _print_held_out(report["held_out"], per)
+    stdout.print(f"refined parameters by {report['refined']['estimator']}")
+    _print_floor(report, per)
+    _print_tests(report["tests"], unit)
+    _print_notes(report)
+    if plot is not None:
+        stdout.print(f"figure -> {plot}")
+
+
+def _print_withdrawn(report: dict[str, Any]) -> None:
+    """The effects withdrawn and why, or that none was added."""
     held_out = report["held_out"]
     if held_out is not None and not held_out["refined_returned"]:
         stdout.print(
@@ -422,7 +437,10 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         )
     elif not report["effects_added"]:
         stdout.print("no effect lowers the error enough: nothing added")
-    _print_explanation(report, per)
+
+
+def _print_effects(report: dict[str, Any], per: str) -> None:
+    """Each effect added, in order, with its evidence, and its share and coefficients under it."""
     for number, effect in enumerate(report["effects_added"], start=1):
         evidence = effect["evidence"]
         before, after = (_number(value) for value in evidence["check_free_run_rms"])
@@ -437,30 +455,37 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             markup=False,
         )
         _print_contribution(effect["contribution"], report["refined"]["saturation"], per)
-    if held_out is not None:
-        _print_held_out(held_out, per)
-    stdout.print(f"refined parameters by {report['refined']['estimator']}")
+
+
+def _print_floor(report: dict[str, Any], per: str) -> None:
+    """The check blocks' free run beside the noise between periods that no model can simulate,
+    where the records repeat their excitation."""
     floor = report["noise_floor"]
     check = report["check_free_run_rms"]
-    if floor is not None and check is not None:
-        beneath = floor["check_model_error"]
-        stdout.print(
-            f"check blocks' free run {check:.4g}{per} RMS; the noise between the checked records' periods "
-            f"({floor['periods']} of {floor['period']} samples), which no model can simulate, is "
-            f"{floor['rms']:.4g} ± {floor['standard_error']:.2g}{per}: "
-            + (
-                f"about {beneath:.2g}{per} RMS of the check figure is the model's own error, all that any "
-                "model could still take off"
-                if beneath
-                else "the check figure is at that floor, and no model can be told better on these records"
-            ),
-            highlight=False,
-            markup=False,
-        )
+    if floor is None or check is None:
+        return
+    beneath = floor["check_model_error"]
+    stdout.print(
+        f"check blocks' free run {check:.4g}{per} RMS; the noise between the checked records' periods "
+        f"({floor['periods']} of {floor['period']} samples), which no model can simulate, is "
+        f"{floor['rms']:.4g} ± {floor['standard_error']:.2g}{per}: "
+        + (
+            f"about {beneath:.2g}{per} RMS of the check figure is the model's own error, all that any "
+            "model could still take off"
+            if beneath
+            else "the check figure is at that floor, and no model can be told better on these records"
+        ),
+        highlight=False,
+        markup=False,
+    )
+
+
+def _print_tests(tests: list[dict[str, Any]], unit: str | None) -> None:
+    """Both models' one-step and free-run errors on each record judged, a row a record."""
     rms = f" [{unit}]" if unit else ""
     stdout.print(f"{'one-step RMS' + rms:^23} {'free-run RMS' + rms:^23}  Ljung–Box p", markup=False)
     stdout.print(f"{'before':>11} {'after':>11} {'before':>11} {'after':>11}  {'after':>11}  judged on")
-    for item in report["tests"]:
+    for item in tests:
         first, last = item["samples"]
         cells = [_number(item[label]["one_step_rms"]) for label in ("before", "after")] + [
             "diverged" if item[label]["diverged"] else _number(item[label]["free_run_rms"])
@@ -473,6 +498,11 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
+
+
+def _print_notes(report: dict[str, Any]) -> None:
+    """The records on which the refined model diverged or that lie partly outside the estimation
+    data, then the report's notes."""
     for item in report["tests"]:
         if item["verdict"] == "diverged":
             stdout.print(
@@ -490,8 +520,6 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             )
     for note in report["notes"]:
         stdout.print(f"note: {note}", highlight=False, markup=False)
-    if plot is not None:
-        stdout.print(f"figure -> {plot}")
 
 
 def _print_held_out(held_out: dict[str, Any], per: str) -> None:
