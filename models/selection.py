@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike
 from scipy.linalg import blas
 
 from models.basis import BasisFamily, FunctionalBasis
-from models.candidates import candidate_matrix
+from models.candidates import CandidateMatrix, candidate_matrix
 from models.errors import InputError
 from models.fnarx import FNARX, Experiment, fit_fnarx
 from models.narx import NARX
@@ -587,45 +587,56 @@ def select_narx(
         raise InputError(
             f"{len(forced)} included terms exceed the {rule.length} terms the selection may take"
         )
-    if precise:
-        if forced:
-            raise InputError("included terms are not available with the precise path: select without them")
-        path = frols_grouped(
-            dictionary.P,
-            dictionary.target,
-            1,
-            rule.length,
-            err_tolerance=rule.err_tolerance,
-            tolerance=tolerance,
-            progress=progress,
-        )
-    else:
-        path = frols(
-            dictionary.P,
-            dictionary.target,
-            rule.length,
-            err_tolerance=rule.err_tolerance,
-            tolerance=tolerance,
-            scale=dictionary.scale,
-            forced=forced,
-            progress=progress,
-        )
+    path = _path(dictionary, rule, forced, tolerance, precise, progress)
     if not len(path):
         raise InputError("every candidate column is zero on these records: nothing can be selected")
-    size, stopped_by = rule.select(path, len(forced))
-    chosen = list(path.order[:size])
-    err = path.err[:size]
-    removed: tuple[Term, ...] = ()
-    if prune:
-        kept = _prune(dictionary.P[:, chosen], dictionary.target, path, rule, len(forced))
-        removed = tuple(dictionary.terms[chosen[i]] for i in range(size) if i not in kept)
-        chosen = [chosen[i] for i in kept]
-        err = _ordered_err(dictionary.P[:, chosen], dictionary.target, 1, path.energy)
+    chosen, err, removed, stopped_by = _kept(dictionary, path, rule, len(forced), prune)
     terms = tuple(dictionary.terms[j] for j in chosen)
     fit = least_squares(dictionary.P[:, chosen], dictionary.target, [t.name for t in terms])
     model = NARX(terms, fit.theta, fit.covariance, fit.sigma2, dictionary.n_obs)
     esr = float(fit.residuals @ fit.residuals) / path.energy
     return NarxSelection(err, esr, path, dictionary.terms, rule.criterion, stopped_by, removed, model)
+
+
+def _path(
+    dictionary: CandidateMatrix,
+    rule: _Rule,
+    forced: list[int],
+    tolerance: float,
+    precise: bool,
+    progress: Progress | None,
+) -> SelectionPath:
+    """The FROLS path the rule reads: the fast one (:func:`frols`), or the precise one
+    (:func:`frols_grouped`), which takes no included terms."""
+    common: dict[str, Any] = {
+        "err_tolerance": rule.err_tolerance,
+        "tolerance": tolerance,
+        "progress": progress,
+    }
+    if precise:
+        if forced:
+            raise InputError("included terms are not available with the precise path: select without them")
+        return frols_grouped(dictionary.P, dictionary.target, 1, rule.length, **common)
+    return frols(
+        dictionary.P, dictionary.target, rule.length, scale=dictionary.scale, forced=forced, **common
+    )
+
+
+def _kept(
+    dictionary: CandidateMatrix, path: SelectionPath, rule: _Rule, forced: int, prune: bool
+) -> tuple[list[int], np.ndarray, tuple[Term, ...], str]:
+    """The dictionary positions of the terms the rule keeps of the path (less those ``prune``
+    drops), their ERR, the terms pruned, and why the path stopped."""
+    size, stopped_by = rule.select(path, forced)
+    chosen = list(path.order[:size])
+    err = path.err[:size]
+    removed: tuple[Term, ...] = ()
+    if prune:
+        kept = _prune(dictionary.P[:, chosen], dictionary.target, path, rule, forced)
+        removed = tuple(dictionary.terms[chosen[i]] for i in range(size) if i not in kept)
+        chosen = [chosen[i] for i in kept]
+        err = _ordered_err(dictionary.P[:, chosen], dictionary.target, 1, path.energy)
+    return chosen, err, removed, stopped_by
 
 
 def _positions(terms: Sequence[Term], include: Sequence[str | Term]) -> list[int]:
