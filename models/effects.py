@@ -550,24 +550,45 @@ def combination_terms(
         return (), np.zeros(stacked)
     x, y, residual, model_basis = _search_part(x0, y0, residual[:rows], terms, lag)
     basis = first[: len(residual)] / spread
+    spanning = _spanning(monomials, x, y, lag, model_basis)
+    powers = np.asarray(degrees)
+    c, a = _combination(basis, model_basis, residual / np.std(residual), powers, len(lags))
+    everywhere = np.concatenate(
+        [(_combination_basis(signal, lags, xr, yr, lag) / spread) @ c for xr, yr in records]
+    )
+    return spanning, integer_powers(everywhere, powers) @ a
 
-    def off_model(columns: np.ndarray) -> np.ndarray:
-        return columns - model_basis @ (model_basis.T @ columns)
 
+def _off_model(model_basis: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """``columns`` made orthogonal to the model's regressors (``model_basis``, orthonormal)."""
+    return columns - model_basis @ (model_basis.T @ columns)
+
+
+def _spanning(
+    monomials: Sequence[Term], x: np.ndarray, y: np.ndarray, lag: int, model_basis: np.ndarray
+) -> tuple[Term, ...]:
+    """The ``monomials`` that span g(u) beside the model's regressors: those whose columns, off
+    the model, a pivoted QR finds independent, in their order."""
     columns, _ = regressor_matrix(list(monomials), x, y, lag)
-    columns = off_model(columns / column_norms(columns))
+    columns = _off_model(model_basis, columns / column_norms(columns))
     # The pivots of a pivoted QR depend on the columns' inner products alone: those of R.
     _, triangle, pivots = linalg.qr(linalg.qr(columns, mode="r")[0], mode="economic", pivoting=True)
     independent = pivots[np.abs(np.diag(triangle)) > 1e-8 * abs(triangle[0, 0])]
-    spanning = tuple(monomials[i] for i in sorted(independent))
-    target = residual / np.std(residual)
-    powers = np.asarray(degrees)
+    return tuple(monomials[i] for i in sorted(independent))
+
+
+def _combination(
+    basis: np.ndarray, model_basis: np.ndarray, target: np.ndarray, powers: np.ndarray, n_lags: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The direction c in ``basis`` whose powers u^d (u = basis·c), off the model, best fit the
+    ``target``, by separable least squares from the first ``COMBINATION_STARTS`` sign patterns;
+    c (one weight for each of the ``n_lags`` basis columns) and the powers' coefficients a_d."""
 
     # Kept for the last c: the search asks for the Jacobian where it has just evaluated.
     @functools.lru_cache(maxsize=1)
     def projected_at(c: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         u = basis @ np.frombuffer(c)
-        q, r = linalg.qr(off_model(integer_powers(u, powers)), mode="economic")
+        q, r = linalg.qr(_off_model(model_basis, integer_powers(u, powers)), mode="economic")
         return u, q, linalg.lstsq(r, q.T @ target)[0]
 
     def projected(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -582,20 +603,17 @@ def combination_terms(
         # Kaufman's approximation: ∂/∂c of the fitted g(u) off the model, then off the powers.
         u, q, a = projected(c)
         slope = integer_powers(u, powers - 1) @ (powers * a)  # g'(u)
-        change = off_model(slope[:, None] * basis)
+        change = _off_model(model_basis, slope[:, None] * basis)
         return -(change - q @ (q.T @ change))
 
     best = None
-    for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=len(lags) - 1), COMBINATION_STARTS):
-        start = np.array((1.0, *signs)) / np.sqrt(len(lags))
+    for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=n_lags - 1), COMBINATION_STARTS):
+        start = np.array((1.0, *signs)) / np.sqrt(n_lags)
         fit = optimize.least_squares(misfit, start, jac=jacobian, max_nfev=100)
         if best is None or fit.cost < best.cost:
             best = fit
     *_, a = projected(best.x)
-    everywhere = np.concatenate(
-        [(_combination_basis(signal, lags, xr, yr, lag) / spread) @ best.x for xr, yr in records]
-    )
-    return spanning, integer_powers(everywhere, powers) @ a
+    return best.x, a
 
 
 def integer_powers(u: np.ndarray, degrees: np.ndarray) -> np.ndarray:

@@ -340,54 +340,17 @@ def fit_pooled(
     names = _variables(runs, variables)
     fault = _is_fault_mode(runs)
     arguments = (*names, MAGNITUDE) if fault else names
-    xi = np.array(
-        [
-            [_finite(run.conditions[v], f"experiment {i + 1}: operating variable {v!r}") for v in names]
-            + ([_finite(run.k, f"experiment {i + 1}: fault magnitude k")] if fault else [])
-            for i, run in enumerate(runs)
-        ]
-    )
-    for column, argument in enumerate(arguments):
-        if np.ptp(xi[:, column]) == 0:
-            what = "fault magnitude" if argument == MAGNITUDE else "operating variable"
-            raise InputError(
-                f"every experiment has {what} {argument!r} = {xi[0, column]:g}: a pooled model cannot "
-                "learn how the dynamics change with it; spread the experiments over its range"
-            )
+    xi = _argument_values(runs, names, fault, arguments)
     if not (int(max_degree) == max_degree and 0 <= max_degree <= MAX_DEGREE):
         raise InputError(f"max_degree must be a whole number from 0 to {MAX_DEGREE}, got {max_degree}")
     parsed = parse_terms(terms)
     compressed = _compress(runs, parsed, lag)
     n = int(compressed.lengths.sum())
-    spans = [(float(column.min()), float(column.max())) for column in xi.T]
-
-    def bases_for(choice: Sequence[int]) -> tuple[FunctionalBasis, ...]:
-        return tuple(FunctionalBasis(family, d + 1, *span) for d, span in zip(choice, spans, strict=True))
-
     if degrees is not None:
         choices = [_given_degrees(degrees, arguments)]
     else:
         choices = [list(c) for c in itertools.product(range(int(max_degree) + 1), repeat=len(arguments))]
-    table, fits = [], {}
-    for choice in choices:
-        bases = bases_for(choice)
-        G = np.array([tensor_values(bases, row) for row in xi])
-        if G.shape[1] >= len(runs) or np.linalg.matrix_rank(G) < G.shape[1]:
-            if degrees is not None:
-                raise InputError(
-                    f"degrees {dict(zip(arguments, choice, strict=True))} make {G.shape[1]} basis functions, "
-                    f"which need more than {G.shape[1]} experiments at conditions that tell them apart; "
-                    f"there are {len(runs)}"
-                )
-            continue
-        theta, per_experiment, covariance = _solve(compressed, G, parsed)
-        sigma2 = float(np.sum(per_experiment) / n)
-        table.append(
-            DegreeCandidate(
-                tuple(choice), theta.size, sigma2, float(n * np.log(sigma2) + theta.size * np.log(n))
-            )
-        )
-        fits[tuple(choice)] = (bases, G, theta, per_experiment, covariance)
+    table, fits = _degree_fits(compressed, parsed, xi, arguments, family, choices, degrees is not None)
     best = min(table, key=lambda row: row.bic)
     bases, G, theta, per_experiment, covariance = fits[best.degrees]
     sigma2 = per_experiment / compressed.lengths
@@ -409,6 +372,65 @@ def fit_pooled(
         n_obs=n,
         criterion=tuple(table),
     )
+
+
+def _argument_values(
+    runs: list[PooledExperiment], names: Sequence[str], fault: bool, arguments: Sequence[str]
+) -> np.ndarray:
+    """ξ: each experiment's operating variables (and fault magnitude), a row an experiment;
+    refused where an argument does not vary across the experiments."""
+    xi = np.array(
+        [
+            [_finite(run.conditions[v], f"experiment {i + 1}: operating variable {v!r}") for v in names]
+            + ([_finite(run.k, f"experiment {i + 1}: fault magnitude k")] if fault else [])
+            for i, run in enumerate(runs)
+        ]
+    )
+    for column, argument in enumerate(arguments):
+        if np.ptp(xi[:, column]) == 0:
+            what = "fault magnitude" if argument == MAGNITUDE else "operating variable"
+            raise InputError(
+                f"every experiment has {what} {argument!r} = {xi[0, column]:g}: a pooled model cannot "
+                "learn how the dynamics change with it; spread the experiments over its range"
+            )
+    return xi
+
+
+def _degree_fits(
+    compressed: _Compressed,
+    parsed: tuple[Term, ...],
+    xi: np.ndarray,
+    arguments: Sequence[str],
+    family: BasisFamily,
+    choices: list[list[int]],
+    given: bool,
+) -> tuple[list[DegreeCandidate], dict[tuple[int, ...], tuple]]:
+    """The fit and BIC row of each choice of degrees the experiments can tell apart (a
+    ``given`` choice they cannot is refused): the BIC table, and each choice's bases, G, θ,
+    residual sums per experiment and covariance."""
+    n = int(compressed.lengths.sum())
+    spans = [(float(column.min()), float(column.max())) for column in xi.T]
+    table, fits = [], {}
+    for choice in choices:
+        bases = tuple(FunctionalBasis(family, d + 1, *span) for d, span in zip(choice, spans, strict=True))
+        G = np.array([tensor_values(bases, row) for row in xi])
+        if G.shape[1] >= len(xi) or np.linalg.matrix_rank(G) < G.shape[1]:
+            if given:
+                raise InputError(
+                    f"degrees {dict(zip(arguments, choice, strict=True))} make {G.shape[1]} basis functions, "
+                    f"which need more than {G.shape[1]} experiments at conditions that tell them apart; "
+                    f"there are {len(xi)}"
+                )
+            continue
+        theta, per_experiment, covariance = _solve(compressed, G, parsed)
+        sigma2 = float(np.sum(per_experiment) / n)
+        table.append(
+            DegreeCandidate(
+                tuple(choice), theta.size, sigma2, float(n * np.log(sigma2) + theta.size * np.log(n))
+            )
+        )
+        fits[tuple(choice)] = (bases, G, theta, per_experiment, covariance)
+    return table, fits
 
 
 def _finite(value: object, label: str) -> float:

@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike
 from scipy.linalg import blas
 
 from models.basis import BasisFamily, FunctionalBasis
-from models.candidates import candidate_matrix
+from models.candidates import CandidateMatrix, candidate_matrix
 from models.errors import InputError
 from models.fnarx import FNARX, Experiment, fit_fnarx
 from models.narx import NARX
@@ -147,78 +147,110 @@ def frols(
     are skipped as dependent. The path ends early when ESR < ``err_tolerance`` or no
     independent candidate is left. ``scale`` are the column norms if already known.
     """
-    n_obs, n_cand = P.shape
-    norms = np.sqrt(np.einsum("ij,ij->j", P, P)) if scale is None else scale
-    usable = norms > 0
-    inverse = np.where(usable, 1.0 / np.where(usable, norms, 1.0), 0.0)
-    energy = float(target @ target)
-    residual = np.array(target, dtype=np.float64)
-    basis = np.empty((n_obs, max_terms), order="F")
-    numerator = (P.T @ residual) * inverse
-    remaining = usable.astype(np.float64)
-    reference = np.ones(n_cand)
-    taken = np.zeros(n_cand, dtype=bool)
-    refreshed_at, exact = energy, True
+    path = _Downdates(P, target, max_terms, scale)
     order: list[int] = []
     err: list[float] = []
     rss: list[float] = []
     floor = tolerance**2
     while len(order) < max_terms:
-        live = ~taken & (remaining > floor)
+        live = ~path.taken & (path.remaining > floor)
         if not live.any():
             break
         k = len(order)
-        if k < len(forced):
-            j = forced[k]
-        else:
-            ratio = np.full(n_cand, -1.0)
-            ratio[live] = numerator[live] ** 2 / remaining[live]
-            j = int(np.argmax(ratio))
-        q = _orthogonalise(P[:, j] * inverse[j], basis[:, :k])
+        j = forced[k] if k < len(forced) else path.strongest(live)
+        q = _orthogonalise(P[:, j] * path.inverse[j], path.basis[:, :k])
         norm2 = float(q @ q)
         if k < len(forced) and norm2 <= floor:
             raise InputError(f"forced column {j} is zero or dependent on the columns forced before it")
         if norm2 <= floor:
             # The downdated norm overstated it: the candidate is dependent after all.
-            remaining[j] = norm2
+            path.remaining[j] = norm2
             continue
         q /= np.sqrt(norm2)
-        basis[:, k] = q
+        g, current = path.take(j, k, q, rss[-1] if rss else path.energy)
+        order.append(j)
+        err.append(g * g / path.energy)
+        rss.append(current)
+        if progress is not None:
+            progress(len(order))
+        if err_tolerance is not None and current < err_tolerance * path.energy:
+            break
+    return SelectionPath(
+        np.array(order, dtype=np.intp), np.array(err), np.array(rss), path.energy, P.shape[0]
+    )
+
+
+class _Downdates:
+    """What :func:`frols` keeps of its path as it grows: the orthonormal basis q_1 … q_k, the
+    residual r, and every candidate's numerator n_j and squared remaining norm d_j, downdated
+    at each step and recomputed where they lose accuracy (``_REFRESH``, ``_DOWNDATE_LIMIT``)."""
+
+    def __init__(self, P: np.ndarray, target: np.ndarray, max_terms: int, scale: np.ndarray | None) -> None:
+        n_obs, n_cand = P.shape
+        norms = np.sqrt(np.einsum("ij,ij->j", P, P)) if scale is None else scale
+        self.P = P
+        self.usable = norms > 0
+        self.inverse = np.where(self.usable, 1.0 / np.where(self.usable, norms, 1.0), 0.0)
+        self.energy = float(target @ target)
+        self.residual = np.array(target, dtype=np.float64)
+        self.basis = np.empty((n_obs, max_terms), order="F")
+        self.numerator = (P.T @ self.residual) * self.inverse
+        self.remaining = self.usable.astype(np.float64)
+        self.reference = np.ones(n_cand)
+        self.taken = np.zeros(n_cand, dtype=bool)
+        self.refreshed_at, self.exact = self.energy, True
+
+    def strongest(self, live: np.ndarray) -> int:
+        """The ``live`` candidate of largest ERR n_j²/d_j."""
+        ratio = np.full(len(self.taken), -1.0)
+        ratio[live] = self.numerator[live] ** 2 / self.remaining[live]
+        return int(np.argmax(ratio))
+
+    def take(self, j: int, k: int, q: np.ndarray, before: float) -> tuple[float, float]:
+        """Candidate ``j`` enters as step ``k`` with its orthonormal ``q``: the residual is
+        projected off it (twice), the numerators and remaining norms downdated; g = q_kᵀr and
+        the residual sum of squares after it (``before``: the one before it)."""
+        self.basis[:, k] = q
+        residual = self.residual
         g = float(q @ residual)
         residual -= g * q
         again = float(q @ residual)
         residual -= again * q
         g += again
-        before, current = rss[-1] if rss else energy, float(residual @ residual)
-        if current * _REFRESH**2 < refreshed_at:
-            fresh = (P.T @ residual) * inverse
-            if exact and current * _REFRESH**2 < before:
+        current = float(residual @ residual)
+        self._downdate(q, g, before, current)
+        self.taken[j] = True
+        self._recompute_stale(k)
+        return g, current
+
+    def _downdate(self, q: np.ndarray, g: float, before: float, current: float) -> None:
+        P, inverse = self.P, self.inverse
+        if current * _REFRESH**2 < self.refreshed_at:
+            fresh = (P.T @ self.residual) * inverse
+            if self.exact and current * _REFRESH**2 < before:
                 # This step alone removed all but 1/10 of ‖r‖: q_k = (r_{k−1} − r_k)/g with
                 # |g| > 0.99·‖r_{k−1}‖, so Pᵀq_k is the difference of two exact numerator
                 # vectors, as accurate as a product with P and one pass over P cheaper.
-                projection = (numerator - fresh) / g
+                projection = (self.numerator - fresh) / g
             else:
                 projection = (P.T @ q) * inverse
-            numerator, refreshed_at, exact = fresh, current, True
+            self.numerator, self.refreshed_at, self.exact = fresh, current, True
         else:
             projection = (P.T @ q) * inverse
-            numerator -= g * projection
-            exact = False
-        remaining -= projection**2
-        taken[j] = True
-        stale = np.flatnonzero(~taken & usable & (remaining < _DOWNDATE_LIMIT * reference))
+            self.numerator -= g * projection
+            self.exact = False
+        self.remaining -= projection**2
+
+    def _recompute_stale(self, k: int) -> None:
+        """Remaining norms that have fallen below ``_DOWNDATE_LIMIT`` of their last exact value,
+        recomputed from the columns orthogonalised against q_1 … q_(k+1)."""
+        stale = np.flatnonzero(
+            ~self.taken & self.usable & (self.remaining < _DOWNDATE_LIMIT * self.reference)
+        )
         for start in range(0, stale.size, _CHUNK):
             chunk = stale[start : start + _CHUNK]
-            W = _orthogonalise(P[:, chunk] * inverse[chunk], basis[:, : k + 1])
-            remaining[chunk] = reference[chunk] = np.einsum("ij,ij->j", W, W)
-        order.append(j)
-        err.append(g * g / energy)
-        rss.append(current)
-        if progress is not None:
-            progress(len(order))
-        if err_tolerance is not None and current < err_tolerance * energy:
-            break
-    return SelectionPath(np.array(order, dtype=np.intp), np.array(err), np.array(rss), energy, n_obs)
+            W = _orthogonalise(self.P[:, chunk] * self.inverse[chunk], self.basis[:, : k + 1])
+            self.remaining[chunk] = self.reference[chunk] = np.einsum("ij,ij->j", W, W)
 
 
 def frols_grouped(
@@ -555,45 +587,56 @@ def select_narx(
         raise InputError(
             f"{len(forced)} included terms exceed the {rule.length} terms the selection may take"
         )
-    if precise:
-        if forced:
-            raise InputError("included terms are not available with the precise path: select without them")
-        path = frols_grouped(
-            dictionary.P,
-            dictionary.target,
-            1,
-            rule.length,
-            err_tolerance=rule.err_tolerance,
-            tolerance=tolerance,
-            progress=progress,
-        )
-    else:
-        path = frols(
-            dictionary.P,
-            dictionary.target,
-            rule.length,
-            err_tolerance=rule.err_tolerance,
-            tolerance=tolerance,
-            scale=dictionary.scale,
-            forced=forced,
-            progress=progress,
-        )
+    path = _path(dictionary, rule, forced, tolerance, precise, progress)
     if not len(path):
         raise InputError("every candidate column is zero on these records: nothing can be selected")
-    size, stopped_by = rule.select(path, len(forced))
-    chosen = list(path.order[:size])
-    err = path.err[:size]
-    removed: tuple[Term, ...] = ()
-    if prune:
-        kept = _prune(dictionary.P[:, chosen], dictionary.target, path, rule, len(forced))
-        removed = tuple(dictionary.terms[chosen[i]] for i in range(size) if i not in kept)
-        chosen = [chosen[i] for i in kept]
-        err = _ordered_err(dictionary.P[:, chosen], dictionary.target, 1, path.energy)
+    chosen, err, removed, stopped_by = _kept(dictionary, path, rule, len(forced), prune)
     terms = tuple(dictionary.terms[j] for j in chosen)
     fit = least_squares(dictionary.P[:, chosen], dictionary.target, [t.name for t in terms])
     model = NARX(terms, fit.theta, fit.covariance, fit.sigma2, dictionary.n_obs)
     esr = float(fit.residuals @ fit.residuals) / path.energy
     return NarxSelection(err, esr, path, dictionary.terms, rule.criterion, stopped_by, removed, model)
+
+
+def _path(
+    dictionary: CandidateMatrix,
+    rule: _Rule,
+    forced: list[int],
+    tolerance: float,
+    precise: bool,
+    progress: Progress | None,
+) -> SelectionPath:
+    """The FROLS path the rule reads: the fast one (:func:`frols`), or the precise one
+    (:func:`frols_grouped`), which takes no included terms."""
+    common: dict[str, Any] = {
+        "err_tolerance": rule.err_tolerance,
+        "tolerance": tolerance,
+        "progress": progress,
+    }
+    if precise:
+        if forced:
+            raise InputError("included terms are not available with the precise path: select without them")
+        return frols_grouped(dictionary.P, dictionary.target, 1, rule.length, **common)
+    return frols(
+        dictionary.P, dictionary.target, rule.length, scale=dictionary.scale, forced=forced, **common
+    )
+
+
+def _kept(
+    dictionary: CandidateMatrix, path: SelectionPath, rule: _Rule, forced: int, prune: bool
+) -> tuple[list[int], np.ndarray, tuple[Term, ...], str]:
+    """The dictionary positions of the terms the rule keeps of the path (less those ``prune``
+    drops), their ERR, the terms pruned, and why the path stopped."""
+    size, stopped_by = rule.select(path, forced)
+    chosen = list(path.order[:size])
+    err = path.err[:size]
+    removed: tuple[Term, ...] = ()
+    if prune:
+        kept = _prune(dictionary.P[:, chosen], dictionary.target, path, rule, forced)
+        removed = tuple(dictionary.terms[chosen[i]] for i in range(size) if i not in kept)
+        chosen = [chosen[i] for i in kept]
+        err = _ordered_err(dictionary.P[:, chosen], dictionary.target, 1, path.energy)
+    return chosen, err, removed, stopped_by
 
 
 def _positions(terms: Sequence[Term], include: Sequence[str | Term]) -> list[int]:

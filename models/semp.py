@@ -201,28 +201,14 @@ def select_by_simulation(
     >>> [step.term.name for step in selection.path if step.action == "add"]
     ['x[t-1]', 'y[t-2]', 'y[t-2]*x[t-1]']
     """
-    if isinstance(max_terms, bool) or not isinstance(max_terms, int) or max_terms < 1:
-        raise InputError(f"max_terms must be an integer >= 1, got {max_terms!r}")
-    if isinstance(preselect, bool) or not isinstance(preselect, int) or preselect < 1:
-        raise InputError(f"preselect must be an integer >= 1, got {preselect!r}")
-    if not 0 <= threshold < 1:
-        raise InputError(f"threshold must lie in [0, 1) (a share of the simulation error), got {threshold}")
+    _check_settings(max_terms, preselect, threshold)
     terms = parse_terms(candidates)
     fitting, judging, t0s, everything = _split(records, judged, judged_share)
     dictionary = candidate_matrix(terms, fitting)
-    index = {term: j for j, term in enumerate(terms)}
-    fixed = _positions(index, include, "included")
-    initial = [j for j in _positions(index, start, "starting") if j not in fixed]
-    if len(fixed) + len(initial) > max_terms:
-        raise InputError(f"{len(fixed) + len(initial)} starting terms exceed max_terms = {max_terms}")
+    fixed, model = _starting(terms, include, start, max_terms)
     judge = _Judge(terms, judging, t0s, dictionary.lag)
     search = _Search(dictionary, judge, fixed)
-    model = [*fixed, *initial]
-    current = search.error(model)
-    if current is None:
-        raise InputError("the starting terms are linearly dependent on these records: start from fewer")
-    if not np.isfinite(current):
-        raise InputError("the free run of the starting terms diverges on the judged data: start from fewer")
+    current = _starting_error(search, model)
     path = [SimulationStep("start", None, float(np.sqrt(current)), len(model))]
     removed: list[int] = []
     diverged: list[int] = []
@@ -236,18 +222,7 @@ def select_by_simulation(
         if not tried:
             stopped_by = "exhausted"
             break
-        errors = [(search.error([*model, j]), j) for j in tried]
-        trials = [(error, j) for error, j in errors if error is not None]
-        diverged.extend(j for error, j in trials if error == np.inf and j not in diverged)
-        error, best = min(trials, default=(np.inf, -1))
-        if current <= EXACT * judge.empty:
-            added = []
-        elif error < (1 - threshold) * current:
-            added = [(best, error)]
-        elif step == 0:
-            added = search.along_err(model, (1 - threshold) * current, max_terms)
-        else:
-            added = []
+        added = _added(search, model, current, tried, threshold, step == 0, max_terms, diverged)
         if not added:
             stopped_by = "no_improvement"
             break
@@ -272,6 +247,69 @@ def select_by_simulation(
         evaluations=judge.evaluations,
         judged_samples=judge.samples,
     )
+
+
+def _check_settings(max_terms: int, preselect: int, threshold: float) -> None:
+    """Refuse a selection's limits that no search could keep."""
+    if isinstance(max_terms, bool) or not isinstance(max_terms, int) or max_terms < 1:
+        raise InputError(f"max_terms must be an integer >= 1, got {max_terms!r}")
+    if isinstance(preselect, bool) or not isinstance(preselect, int) or preselect < 1:
+        raise InputError(f"preselect must be an integer >= 1, got {preselect!r}")
+    if not 0 <= threshold < 1:
+        raise InputError(f"threshold must lie in [0, 1) (a share of the simulation error), got {threshold}")
+
+
+def _starting(
+    terms: tuple[Term, ...],
+    include: Sequence[str | Term],
+    start: Sequence[str | Term],
+    max_terms: int,
+) -> tuple[list[int], list[int]]:
+    """The dictionary positions of the ``include`` terms, and of the model M₀ they start with
+    the ``start`` terms."""
+    index = {term: j for j, term in enumerate(terms)}
+    fixed = _positions(index, include, "included")
+    initial = [j for j in _positions(index, start, "starting") if j not in fixed]
+    if len(fixed) + len(initial) > max_terms:
+        raise InputError(f"{len(fixed) + len(initial)} starting terms exceed max_terms = {max_terms}")
+    return fixed, [*fixed, *initial]
+
+
+def _starting_error(search: _Search, model: list[int]) -> float:
+    """J of M₀, refused where its terms are dependent or its free run diverges."""
+    current = search.error(model)
+    if current is None:
+        raise InputError("the starting terms are linearly dependent on these records: start from fewer")
+    if not np.isfinite(current):
+        raise InputError("the free run of the starting terms diverges on the judged data: start from fewer")
+    return current
+
+
+def _added(
+    search: _Search,
+    model: list[int],
+    current: float,
+    tried: list[int],
+    threshold: float,
+    first: bool,
+    max_terms: int,
+    diverged: list[int],
+) -> list[tuple[int, float]]:
+    """An iteration's addition (step 3 of the module docstring), each term with J after it: the
+    ``tried`` candidate of least J if it lowers J by more than ρ; else, at the ``first``
+    addition, the FROLS path's first terms that do; else none, as once J is at rounding level.
+    The candidates whose free run diverges join ``diverged``."""
+    errors = [(search.error([*model, j]), j) for j in tried]
+    trials = [(error, j) for error, j in errors if error is not None]
+    diverged.extend(j for error, j in trials if error == np.inf and j not in diverged)
+    error, best = min(trials, default=(np.inf, -1))
+    if current <= EXACT * search.judge.empty:
+        return []
+    if error < (1 - threshold) * current:
+        return [(best, error)]
+    if first:
+        return search.along_err(model, (1 - threshold) * current, max_terms)
+    return []
 
 
 class _Judge:

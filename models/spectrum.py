@@ -113,9 +113,37 @@ def residual_spectrum(
     correlation tests miss shows here as a narrow peak.
     """
     (e,) = checked_series(1, alpha, e=e)
+    nperseg = _segment_length(e.size, fs, nperseg, smoothing_bins)
+    bins_tested = nperseg // 2 - 1
+    window = signal.get_window("hann", nperseg)
+    step = nperseg - nperseg // 2
+    segments = 1 + (e.size - nperseg) // step
+    frequencies, psd = signal.welch(e, fs=fs, window=window, noverlap=nperseg // 2)
+    dof = welch_dof(window, step, segments)
+    bin_correlation = np.abs(np.fft.rfft(window**2))[1:] / np.sum(window**2)
+    background_dof = 2.0 / np.pi * dof * smoothing_bins / (1.0 + 2.0 * float(np.sum(bin_correlation**2)))
+    background = _background(psd, dof, smoothing_bins)
+    threshold = float(special.fdtri(dof, background_dof, 1.0 - sidak(alpha, bins_tested)))
+    ratio = psd / background
+    return ResidualSpectrum(
+        frequencies=frequencies,
+        psd=psd,
+        background=background,
+        peaks=_peaks(frequencies, psd, ratio, threshold),
+        threshold=threshold,
+        dof=dof,
+        background_dof=background_dof,
+        segments=segments,
+        bins_tested=bins_tested,
+        alpha=float(alpha),
+    )
+
+
+def _segment_length(n: int, fs: float, nperseg: int | None, smoothing_bins: int) -> int:
+    """The Welch segments' length (by default min(256, N // 4)), refused, with the rate and the
+    smoothing, where a record of ``n`` samples cannot carry the test."""
     if not np.isfinite(fs) or fs <= 0:
         raise InputError(f"fs must be a positive sampling frequency in Hz, got {fs}")
-    n = e.size
     if n < 4 * MIN_SEGMENT:
         raise InputError(
             f"{n} samples is too short for a residual spectrum; it needs at least {4 * MIN_SEGMENT}"
@@ -136,40 +164,34 @@ def residual_spectrum(
             f"smoothing_bins must be odd, at least 3 and at most the {bins_tested} bins tested, "
             f"got {smoothing_bins}"
         )
-    window = signal.get_window("hann", nperseg)
-    step = nperseg - nperseg // 2
-    segments = 1 + (n - nperseg) // step
-    frequencies, psd = signal.welch(e, fs=fs, window=window, noverlap=nperseg // 2)
-    dof = welch_dof(window, step, segments)
-    bin_correlation = np.abs(np.fft.rfft(window**2))[1:] / np.sum(window**2)
-    background_dof = 2.0 / np.pi * dof * smoothing_bins / (1.0 + 2.0 * float(np.sum(bin_correlation**2)))
+    return nperseg
+
+
+def _background(psd: np.ndarray, dof: float, smoothing_bins: int) -> np.ndarray:
+    """The local mean level of each bin: the running median over ``smoothing_bins`` bins over
+    the median of χ²_ν/ν; DC and Nyquist take their neighbour's."""
     inner = slice(1, psd.size - 1)
     background = np.empty_like(psd)
     background[inner] = ndimage.median_filter(psd[inner], size=smoothing_bins, mode="reflect") / (
         float(special.chdtri(dof, 0.5)) / dof
     )
     background[0], background[-1] = background[1], background[-2]
-    threshold = float(special.fdtri(dof, background_dof, 1.0 - sidak(alpha, bins_tested)))
-    ratio = psd / background
+    return background
+
+
+def _peaks(
+    frequencies: np.ndarray, psd: np.ndarray, ratio: np.ndarray, threshold: float
+) -> tuple[SpectralPeak, ...]:
+    """Each run of adjacent significant bins (DC and Nyquist not tested) as one peak, at its
+    strongest bin."""
     significant = np.zeros(psd.size, dtype=np.int8)
-    significant[inner] = ratio[inner] > threshold
+    significant[1 : psd.size - 1] = ratio[1 : psd.size - 1] > threshold
     edges = np.flatnonzero(np.diff(np.concatenate(([0], significant, [0]))))
     peaks = []
     for start, stop in zip(edges[::2], edges[1::2], strict=True):
         top = start + int(np.argmax(psd[start:stop]))
         peaks.append(SpectralPeak(float(frequencies[top]), float(psd[top]), float(ratio[top])))
-    return ResidualSpectrum(
-        frequencies=frequencies,
-        psd=psd,
-        background=background,
-        peaks=tuple(peaks),
-        threshold=threshold,
-        dof=dof,
-        background_dof=background_dof,
-        segments=segments,
-        bins_tested=bins_tested,
-        alpha=float(alpha),
-    )
+    return tuple(peaks)
 
 
 PRODUCT_ORDER = 3  # harmonics and intermodulation products up to this order

@@ -36,18 +36,9 @@ from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
 from models.effects import linear_terms
 from models.errors import InputError
-from models.explanation import explain_refinement
-from models.refinement import (
-    DEFAULT_ALPHA,
-    Comparison,
-    RefinementReport,
-    Stage,
-    compare,
-    refine_record,
-    refine_records,
-)
+from models.refinement import DEFAULT_ALPHA, Stage
+from models.refinement_protocol import Loop, Refined, default_split, refine_parts, refine_whole
 from models.regression import Workers
-from models.scoring import Records
 from models.terms import Term
 from recordfiles.reader import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
 from service.cli.console import stderr, stdout
@@ -170,86 +161,17 @@ def refine_command(
     layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
     if transient < 0:
         raise InputError(f"--transient must be 0 or more, got {transient}")
-    cpus = _usable_cpus()
-    if jobs is not None and not 1 <= jobs <= JOBS_PER_CPU * cpus:
-        raise InputError(
-            f"--jobs must be 1 or more and at most {JOBS_PER_CPU * cpus}, twice the CPUs this command "
-            f"may use; got {jobs}"
-        )
-    jobs = jobs or cpus
+    jobs = _jobs(jobs)
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
     held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
     rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
     start = initial if initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
-    terms = _declared(declared)
+    loop = Loop(_declared(declared), start, alpha, rate, transient)
     if len(fitted) == 1 and (not held or estimation is not None or test is not None or silverbox):
-        (record,) = fitted
-        x_cut, y_cut = record.x[transient:], record.y[transient:]
-        n = len(y_cut)
-        parts = _parts(estimation, n, SILVERBOX_ESTIMATION if silverbox else (0, 2 * n // 3))
-        part = _span(test, n, SILVERBOX_TEST if silverbox else (2 * n // 3, n), "--test")
-        fitted_parts = [(x_cut[a:b], y_cut[a:b]) for a, b in parts]
-        c, d = part
-        with _stages() as stage, _workers(jobs) as (workers, threads):
-            report = refine_record(
-                x_cut,
-                y_cut,
-                terms,
-                parts,
-                part,
-                start,
-                alpha,
-                rate,
-                progress=stage,
-                workers=workers,
-                threads=threads,
-            )
-            tests = report.tests + _judged(report, fitted_parts, held, start, rate, transient, stage)
-        report = replace(report, tests=tests)
-        # Samples as the files number them.
-        judged = [record.source | {"samples": [transient + c, transient + d]}]
-        judged += [_whole(r, transient) for r in held]
-        protocol = {
-            "estimation": [record.source | {"samples": [transient + a, transient + b]} for a, b in parts]
-        }
-        plotted = (x_cut[c:d], y_cut[c:d])
-        t0, scored_from = c - parts[0][0], 0  # as the loop judged the test part
+        refined, judged, protocol = _on_parts(fitted[0], held, loop, jobs, estimation, test, silverbox)
     else:
-        for option, value in (("--estimation", estimation), ("--test", test)):
-            if value is not None:
-                raise InputError(
-                    f"{option} picks a part of one record; with several estimation records (or --validate) "
-                    "each record is used whole (--transient: samples not scored)"
-                )
-        if not held:
-            raise InputError("with several estimation records, name the records to judge on: --validate VAL…")
-        # The loop fits whole records: a NARX model holds through the transient, and its check runs
-        # then start where the records do, at rest. Started mid-record from L measured outputs
-        # instead, F-16's multisines' check runs favoured least squares over output error, whose
-        # slow mode carries those readings' noise (docs/benchmarks/measured.md, "Free runs started
-        # mid-record").
-        with _stages() as stage, _workers(jobs) as (workers, threads):
-            report = refine_records(
-                [(r.x, r.y) for r in fitted],
-                [(r.x, r.y) for r in held],
-                terms,
-                start,
-                alpha,
-                rate,
-                transient,
-                progress=stage,
-                workers=workers,
-                threads=threads,
-                names=[r.name for r in fitted],
-            )
-        judged = [_whole(r, transient) for r in held]
-        protocol = {"estimation": [_whole(r, 0) for r in fitted]}
-        plotted = (held[0].x, held[0].y)
-        t0, scored_from = 0, transient
-    document = report.to_dict()
-    explanation = explain_refinement(report.refinement, *plotted, start, t0, scored_from)
-    explanation.into(document)
-    document["tests"] = [where | item for where, item in zip(judged, document["tests"], strict=True)]
+        refined, judged, protocol = _on_records(fitted, held, loop, jobs, estimation, test)
+    document = refined.to_dict(judged)
     document["data"] = protocol | {
         "transient": transient,
         "initial": start,
@@ -260,11 +182,82 @@ def refine_command(
     if plot is not None:
         from service.cli.refine_figure import write_refinement_figure  # matplotlib only when asked
 
-        write_refinement_figure(report, *plotted, start, rate, plot, layout.y, unit, explanation)
+        report, explanation = refined.report, refined.explanation
+        write_refinement_figure(report, *refined.explained, start, rate, plot, layout.y, unit, explanation)
     if as_json:
         stdout.print_json(json.dumps(document))
         return
     _print(document, plot)
+
+
+def _on_parts(
+    record: _Record,
+    held: list[_Record],
+    loop: Loop,
+    jobs: int,
+    estimation: str | None,
+    test: str | None,
+    silverbox: bool,
+) -> tuple[Refined, list[dict[str, Any]], dict[str, Any]]:
+    """The loop on parts of one record, counted after its transient: the refinement, where each
+    record judged comes from, and the estimation parts, with samples as the files number them."""
+    transient = loop.transient
+    x_cut, y_cut = record.x[transient:], record.y[transient:]
+    n = len(y_cut)
+    defaults = (SILVERBOX_ESTIMATION, SILVERBOX_TEST) if silverbox else default_split(n)
+    parts = _parts(estimation, n, defaults[0])
+    c, d = _span(test, n, defaults[1], "--test")
+    with _running(loop, jobs) as running:
+        held_signals = [(r.x, r.y) for r in held]
+        refined = refine_parts(
+            running, x_cut, y_cut, parts, (c, d), held_signals, [r.path.name for r in held]
+        )
+    judged = [record.source | {"samples": [transient + c, transient + d]}]
+    judged += [_whole(r, transient) for r in held]
+    protocol = {"estimation": [record.source | {"samples": [transient + a, transient + b]} for a, b in parts]}
+    return refined, judged, protocol
+
+
+def _on_records(
+    fitted: list[_Record],
+    held: list[_Record],
+    loop: Loop,
+    jobs: int,
+    estimation: str | None,
+    test: str | None,
+) -> tuple[Refined, list[dict[str, Any]], dict[str, Any]]:
+    """The loop on whole records, each validation record judged: the refinement, where each
+    record judged comes from, and the estimation records."""
+    for option, value in (("--estimation", estimation), ("--test", test)):
+        if value is not None:
+            raise InputError(
+                f"{option} picks a part of one record; with several estimation records (or --validate) "
+                "each record is used whole (--transient: samples not scored)"
+            )
+    if not held:
+        raise InputError("with several estimation records, name the records to judge on: --validate VAL…")
+    # The loop fits whole records: a NARX model holds through the transient, and its check runs
+    # then start where the records do, at rest. Started mid-record from L measured outputs
+    # instead, F-16's multisines' check runs favoured least squares over output error, whose
+    # slow mode carries those readings' noise (docs/benchmarks/measured.md, "Free runs started
+    # mid-record").
+    with _running(loop, jobs) as running:
+        fitted_signals, held_signals = [(r.x, r.y) for r in fitted], [(r.x, r.y) for r in held]
+        refined = refine_whole(running, fitted_signals, held_signals, [r.name for r in fitted])
+    judged = [_whole(r, loop.transient) for r in held]
+    return refined, judged, {"estimation": [_whole(r, 0) for r in fitted]}
+
+
+def _jobs(jobs: int | None) -> int:
+    """The processes ``--jobs`` asks for (default: the CPUs this command may use), refused beyond
+    :data:`JOBS_PER_CPU` a CPU."""
+    cpus = _usable_cpus()
+    if jobs is not None and not 1 <= jobs <= JOBS_PER_CPU * cpus:
+        raise InputError(
+            f"--jobs must be 1 or more and at most {JOBS_PER_CPU * cpus}, twice the CPUs this command "
+            f"may use; got {jobs}"
+        )
+    return jobs or cpus
 
 
 def _read(path: Path, layout: Layout, fs: float | None, transient: int) -> list[_Record]:
@@ -284,21 +277,12 @@ def _whole(record: _Record, first: int) -> dict[str, Any]:
     return record.source | {"samples": [first, len(record.y)]}
 
 
-def _judged(
-    report: RefinementReport,
-    estimation: Records,
-    records: list[_Record],
-    initial: int,
-    fs: float | None,
-    transient: int,
-    stage: Stage,
-) -> tuple[Comparison, ...]:
-    """Both models judged on each record whole, run through its transient, without refitting."""
-    comparisons = []
-    for r in records:
-        stage(f"judging both models on {r.path.name}")
-        comparisons.append(compare(report.refinement, estimation, r.x, r.y, initial, fs, 0, transient))
-    return tuple(comparisons)
+@contextmanager
+def _running(loop: Loop, jobs: int) -> Iterator[Loop]:
+    """The loop as it runs here: its stages shown (:func:`_stages`), its independent pieces in
+    ``jobs`` processes (:func:`_workers`)."""
+    with _stages() as stage, _workers(jobs) as (workers, threads):
+        yield replace(loop, progress=stage, workers=workers, threads=threads)
 
 
 @contextmanager
@@ -420,6 +404,21 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
         )
     stdout.print(f"declared: {', '.join(report['declared']['terms'])}", highlight=False, markup=False)
+    _print_withdrawn(report)
+    _print_explanation(report, per)
+    _print_effects(report, per)
+    if report["held_out"] is not None:
+        _print_held_out(report["held_out"], per)
+    stdout.print(f"refined parameters by {report['refined']['estimator']}")
+    _print_floor(report, per)
+    _print_tests(report["tests"], unit)
+    _print_notes(report)
+    if plot is not None:
+        stdout.print(f"figure -> {plot}")
+
+
+def _print_withdrawn(report: dict[str, Any]) -> None:
+    """The effects withdrawn and why, or that none was added."""
     held_out = report["held_out"]
     if held_out is not None and not held_out["refined_returned"]:
         stdout.print(
@@ -438,7 +437,10 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
         )
     elif not report["effects_added"]:
         stdout.print("no effect lowers the error enough: nothing added")
-    _print_explanation(report, per)
+
+
+def _print_effects(report: dict[str, Any], per: str) -> None:
+    """Each effect added, in order, with its evidence, and its share and coefficients under it."""
     for number, effect in enumerate(report["effects_added"], start=1):
         evidence = effect["evidence"]
         before, after = (_number(value) for value in evidence["check_free_run_rms"])
@@ -453,30 +455,37 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             markup=False,
         )
         _print_contribution(effect["contribution"], report["refined"]["saturation"], per)
-    if held_out is not None:
-        _print_held_out(held_out, per)
-    stdout.print(f"refined parameters by {report['refined']['estimator']}")
+
+
+def _print_floor(report: dict[str, Any], per: str) -> None:
+    """The check blocks' free run beside the noise between periods that no model can simulate,
+    where the records repeat their excitation."""
     floor = report["noise_floor"]
     check = report["check_free_run_rms"]
-    if floor is not None and check is not None:
-        beneath = floor["check_model_error"]
-        stdout.print(
-            f"check blocks' free run {check:.4g}{per} RMS; the noise between the checked records' periods "
-            f"({floor['periods']} of {floor['period']} samples), which no model can simulate, is "
-            f"{floor['rms']:.4g} ± {floor['standard_error']:.2g}{per}: "
-            + (
-                f"about {beneath:.2g}{per} RMS of the check figure is the model's own error, all that any "
-                "model could still take off"
-                if beneath
-                else "the check figure is at that floor, and no model can be told better on these records"
-            ),
-            highlight=False,
-            markup=False,
-        )
+    if floor is None or check is None:
+        return
+    beneath = floor["check_model_error"]
+    stdout.print(
+        f"check blocks' free run {check:.4g}{per} RMS; the noise between the checked records' periods "
+        f"({floor['periods']} of {floor['period']} samples), which no model can simulate, is "
+        f"{floor['rms']:.4g} ± {floor['standard_error']:.2g}{per}: "
+        + (
+            f"about {beneath:.2g}{per} RMS of the check figure is the model's own error, all that any "
+            "model could still take off"
+            if beneath
+            else "the check figure is at that floor, and no model can be told better on these records"
+        ),
+        highlight=False,
+        markup=False,
+    )
+
+
+def _print_tests(tests: list[dict[str, Any]], unit: str | None) -> None:
+    """Both models' one-step and free-run errors on each record judged, a row a record."""
     rms = f" [{unit}]" if unit else ""
     stdout.print(f"{'one-step RMS' + rms:^23} {'free-run RMS' + rms:^23}  Ljung–Box p", markup=False)
     stdout.print(f"{'before':>11} {'after':>11} {'before':>11} {'after':>11}  {'after':>11}  judged on")
-    for item in report["tests"]:
+    for item in tests:
         first, last = item["samples"]
         cells = [_number(item[label]["one_step_rms"]) for label in ("before", "after")] + [
             "diverged" if item[label]["diverged"] else _number(item[label]["free_run_rms"])
@@ -489,6 +498,11 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             highlight=False,
             markup=False,
         )
+
+
+def _print_notes(report: dict[str, Any]) -> None:
+    """The records on which the refined model diverged or that lie partly outside the estimation
+    data, then the report's notes."""
     for item in report["tests"]:
         if item["verdict"] == "diverged":
             stdout.print(
@@ -506,8 +520,6 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
             )
     for note in report["notes"]:
         stdout.print(f"note: {note}", highlight=False, markup=False)
-    if plot is not None:
-        stdout.print(f"figure -> {plot}")
 
 
 def _print_held_out(held_out: dict[str, Any], per: str) -> None:

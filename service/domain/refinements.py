@@ -4,6 +4,7 @@ from the linear orders it chooses), kept with its report."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
@@ -11,9 +12,9 @@ from sqlalchemy.orm import Session, selectinload
 from models.assessment import check_test_length
 from models.effects import candidate_effects, linear_terms
 from models.errors import InputError
-from models.explanation import explain_refinement
 from models.narx import NARX
-from models.refinement import MAX_LINEAR_ORDER, check_parts, reach, refine_record, refine_records
+from models.refinement import MAX_LINEAR_ORDER, check_parts, reach
+from models.refinement_protocol import Loop, Refined, default_split, refine_parts, refine_whole
 from models.terms import Term
 from service.config import Settings
 from service.domain.errors import NotFoundError
@@ -72,32 +73,8 @@ def create_refinement(
     The loop runs before the first write, so the write lock is held only for the inserts.
     """
     plan = _planned(session, principal, structure_id, body, settings)
-    structure, base = plan.structure, plan.base
-    fs = structure.fs  # every record of a structure is stored at its rate
-    if plan.estimation is not None and plan.test is not None:
-        (record,) = plan.records
-        x, y = signals(record)
-        report = refine_record(x, y, plan.terms, plan.estimation, plan.test, body.initial, body.alpha, fs)
-        c, d = plan.test
-        explanation = explain_refinement(
-            report.refinement, x[c:d], y[c:d], body.initial, c - plan.estimation[0][0]
-        )
-        judged = [{"record_id": record.id, "samples": list(plan.test)}]
-        data = {"estimation": _as_given(plan.estimation), "test": list(plan.test)}
-    else:
-        # Whole records, fitted through the transient and run from their start (as in `narxwatch
-        # refine`); the tests are scored after it.
-        cut = body.transient
-        fitted = [signals(record) for record in plan.records]
-        held = [signals(record) for record in plan.tests]
-        names = [f"record {record.id}" for record in plan.records]
-        report = refine_records(fitted, held, plan.terms, body.initial, body.alpha, fs, cut, names=names)
-        explanation = explain_refinement(report.refinement, *held[0], body.initial, 0, cut)
-        judged = [{"record_id": r.id, "samples": [cut, r.n_samples]} for r in plan.tests]
-        data = {"transient": cut}
-    document = report.to_dict()
-    explanation.into(document)  # what each effect does, on the first record judged
-    document["tests"] = [where | test for where, test in zip(judged, document["tests"], strict=True)]
+    refined, judged, data = _refined(plan, body)
+    document = refined.to_dict(judged)  # what each effect does, on the first record judged
     document["data"] = (
         {
             "record_ids": [r.id for r in plan.records],
@@ -107,41 +84,14 @@ def create_refinement(
         | {"initial": body.initial, "alpha": body.alpha}
         | ({"job": job} if job is not None else {})
     )
-    refined = None
-    if report.refinement.effects_added or base is None:
-        model = report.refinement.refined
-        training = {
-            "refined_from": base.id if base is not None else None,
-            "orders_chosen": document["orders_chosen"],
-            "record_ids": [r.id for r in plan.records],
-            **(
-                {"estimation": _as_given(plan.estimation)}
-                if plan.estimation is not None
-                else {"transient": body.transient}
-            ),
-            "effects_added": [effect.name for effect in report.refinement.effects_added],
-            "terms": model.term_names,
-            "estimator": report.refinement.estimator,
-            # The moving-average noise model, if one was added: the stored model is its
-            # process part, which the inspection chain and free runs use.
-            "noise_ma": report.refinement.noise.tolist(),
-        }
-        statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
-        refined = new_version(
-            session,
-            structure,
-            "baseline",
-            base.name if base is not None else BASELINE,
-            bounded_document(model.to_document(), settings),
-            training,
-            statistics,
-            active=False,
-        )
+    stored = None
+    if refined.report.refinement.effects_added or plan.base is None:
+        stored = _store_refined(session, plan, body, refined, document["orders_chosen"], settings)
     refinement = Refinement(
-        structure_id=structure.id,
+        structure_id=plan.structure.id,
         record_id=plan.records[0].id,
-        base_model=base,
-        refined_model=refined,
+        base_model=plan.base,
+        refined_model=stored,
         report=document,
         records=[
             RefinementRecord(record_id=record.id, role=role, position=position)
@@ -152,6 +102,69 @@ def create_refinement(
     session.add(refinement)
     session.flush()
     return refinement
+
+
+def _refined(plan: _Plan, body: RefinementCreate) -> tuple[Refined, list[dict[str, Any]], dict[str, Any]]:
+    """The loop run as the plan says: the refinement, where each record judged comes from, and
+    the protocol as the report's data gives it."""
+    # Every record of a structure is stored at its rate.
+    loop = Loop(plan.terms, body.initial, body.alpha, plan.structure.fs, body.transient)
+    if plan.estimation is not None and plan.test is not None:
+        (record,) = plan.records
+        x, y = signals(record)
+        refined = refine_parts(loop, x, y, plan.estimation, plan.test)
+        judged = [{"record_id": record.id, "samples": list(plan.test)}]
+        return refined, judged, {"estimation": _as_given(plan.estimation), "test": list(plan.test)}
+    # Whole records, fitted through the transient and run from their start (as in `narxwatch
+    # refine`); the tests are scored after it.
+    cut = body.transient
+    fitted = [signals(record) for record in plan.records]
+    held = [signals(record) for record in plan.tests]
+    names = [f"record {record.id}" for record in plan.records]
+    refined = refine_whole(loop, fitted, held, names)
+    judged = [{"record_id": r.id, "samples": [cut, r.n_samples]} for r in plan.tests]
+    return refined, judged, {"transient": cut}
+
+
+def _store_refined(
+    session: Session,
+    plan: _Plan,
+    body: RefinementCreate,
+    refined: Refined,
+    orders_chosen: list[int] | None,
+    settings: Settings,
+) -> ModelVersion:
+    """The refined model, stored as a new inactive version of the base model's name (with no
+    base, a new baseline), with how it was trained."""
+    base, result = plan.base, refined.report.refinement
+    model = result.refined
+    training = {
+        "refined_from": base.id if base is not None else None,
+        "orders_chosen": orders_chosen,
+        "record_ids": [r.id for r in plan.records],
+        **(
+            {"estimation": _as_given(plan.estimation)}
+            if plan.estimation is not None
+            else {"transient": body.transient}
+        ),
+        "effects_added": [effect.name for effect in result.effects_added],
+        "terms": model.term_names,
+        "estimator": result.estimator,
+        # The moving-average noise model, if one was added: the stored model is its
+        # process part, which the inspection chain and free runs use.
+        "noise_ma": result.noise.tolist(),
+    }
+    statistics = {"sigma2": model.sigma2, "n_obs": model.n_obs}
+    return new_version(
+        session,
+        plan.structure,
+        "baseline",
+        base.name if base is not None else BASELINE,
+        bounded_document(model.to_document(), settings),
+        training,
+        statistics,
+        active=False,
+    )
 
 
 def refinement_of_job(session: Session, structure_id: int, record_id: int, token: str) -> Refinement | None:
@@ -192,8 +205,9 @@ def _planned(
     estimation = test = None
     if body.record_id is not None:
         n = fitted[0].n_samples
-        estimation = body.estimation_parts or [(0, 2 * n // 3)]
-        test = (body.test[0], body.test[1]) if body.test else (2 * n // 3, n)
+        default_estimation, default_test = default_split(n)
+        estimation = body.estimation_parts or [default_estimation]
+        test = (body.test[0], body.test[1]) if body.test else default_test
         check_parts(n, terms, estimation, test, body.initial)
     else:
         for record in records:
