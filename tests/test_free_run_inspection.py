@@ -101,6 +101,33 @@ def test_the_interval_covers_at_the_designed_rate_over_training_sets() -> None:
     assert covered >= coverage_lower_bound(RECORDS, TRAININGS, float(np.mean(shares)))
 
 
+def test_one_training_sets_interval_is_right_in_each_part(modes) -> None:
+    """One training set's σ̂_k judged part by part over 40 records at one magnitude: the count of
+    covering intervals tells little there, the records sharing the modes' error (a few dozen of
+    them cover a few fewer or more than the designed rate by chance far more often than
+    independent records would).
+
+    σ̂_k,record: every record's k̂ misses by its own error plus the training set's, alike at one
+    magnitude, so k̂'s spread about its mean, standardised by σ̂_k,record, is χ²(R − 1) when that
+    part is right; a σ̂_k,record two thirds of the truth fails this about three times in four. The
+    mode's own part: the mean of k̂ misses the truth by the training set's error, which
+    σ̂²_k − σ̂²_k,record claims, plus the records' own averaged."""
+    k = 12.0
+    estimates = [
+        inspect_free_run(*record(scenario("k2", k), SAMPLES, 60_000 + i), modes[:1], alpha=ALPHA).mode("k2")
+        for i in range(RECORDS)
+    ]
+    errors = np.array([mode.k_hat - k for mode in estimates])
+    own = np.array([mode.sigma_k_record for mode in estimates])
+    shared = np.array([mode.sigma_k**2 - mode.sigma_k_record**2 for mode in estimates])
+    standardised = errors / own
+    spread = float(np.sum((standardised - standardised.mean()) ** 2))
+    low, high = stats.chi2.ppf([TEST_LEVEL / 2, 1 - TEST_LEVEL / 2], RECORDS - 1)
+    assert low <= spread <= high
+    miss = abs(float(errors.mean()))
+    assert miss <= stats.norm.ppf(1 - TEST_LEVEL / 2) * np.sqrt(shared.mean() + np.mean(own**2) / RECORDS)
+
+
 def test_healthy_records_are_not_found_faulty_beyond_the_designed_rate(modes) -> None:
     """With the near spring's mode, whose detection the records decide (the far spring's mode's
     own error is most of its σ̂_k, so its z is small whatever the record)."""
