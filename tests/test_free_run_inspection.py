@@ -13,7 +13,7 @@ import pytest
 from scipy import stats
 
 from harness.accelerometer import ALPHA, record, scenario
-from harness.noisy_modes import TERMS, equation_error_modes, experiments, free_run_modes
+from harness.noisy_modes import TERMS, equation_error_modes, experiments, free_run_modes, perfect_sigma_k
 from models.errors import InputError
 from models.free_run_inspection import UNDETERMINED_SHARE, FreeRunMode, fit_free_run_modes, inspect_free_run
 from models.inspection import inspect
@@ -168,6 +168,31 @@ def test_the_far_spring_is_given_no_magnitude(modes) -> None:
         2 * stats.norm.ppf(1 - ALPHA / 2) * v.mode("k3").sigma_k > UNDETERMINED_SHARE * span for v in verdicts
     )
     assert not any(v.fault_mode == "k3" and v.interval is not None for v in verdicts)
+
+
+def test_a_mode_its_own_experiments_contradict_claims_no_sigma_k_a_perfect_model_could_not() -> None:
+    """A training set whose far-spring mode claims a slope its experiments contradict: k3's effect
+    on the driving point is less than the shared healthy point's misfit, and this set's k3 mode
+    claims a slope hundreds of times the spring's, its σ̂_k on a record as many times below what a
+    perfect model of the chain would reach (:func:`harness.noisy_modes.perfect_sigma_k`): a 12 %
+    loosening sized near 0 within an interval of a few hundredths, which would be given as the
+    record's magnitude. Refitted without each experiment, the mode misses that experiment's
+    magnitude by hundreds of its σ̂_k; its σ̂_k is scaled by that miss (the near spring's not), and
+    its interval then spans most of its range, so that no verdict would give it as a magnitude.
+    The slope stays the fit's: k̂ stays near 0, and the scaled interval reaches 12 % about as
+    often as not."""
+    modes = free_run_modes(seed=52_000)
+    bound = perfect_sigma_k("k3", SAMPLES)
+    verdicts = [
+        inspect_free_run(*record(scenario("k3", 12.0), SAMPLES, 92_000 + i), modes, alpha=ALPHA)
+        for i in range(3)
+    ]
+    far = [v.mode("k3") for v in verdicts]
+    assert all(mode.sigma_k >= bound / 2 for mode in far)
+    span = modes[1].model.basis.k_max - modes[1].model.basis.k_min
+    assert all(2 * stats.norm.ppf(1 - ALPHA / 2) * mode.sigma_k > UNDETERMINED_SHARE * span for mode in far)
+    assert not any(v.fault_mode == "k3" and v.interval is not None for v in verdicts)
+    assert modes[0].scale == 1.0
 
 
 def test_the_healthy_point_simulates_the_chain_closer_than_the_far_spring_moves_it(modes) -> None:
