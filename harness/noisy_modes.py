@@ -4,9 +4,12 @@ tests/test_free_run_inspection.py and bench/noisy_modes.py inspect records with.
 
 from __future__ import annotations
 
+import numpy as np
+
 from harness.accelerometer import record, scenario
 from models.fnarx import FNARX, fit_fnarx
 from models.free_run_inspection import FreeRunMode, fit_free_run_modes
+from simulator.chain import ChainParameters
 
 # An ARX(4, 4) with no delay: the chain's driving-point acceleration to well below the sensors'
 # noise (its exact order is 6; the two roots left out move the response by about 10⁻⁴ of it, a
@@ -40,3 +43,33 @@ def equation_error_modes(springs=SPRINGS, seed: int = 50_000) -> list[FNARX]:
         fit_fnarx(experiments(spring, seed + 100 * index), TERMS, name=spring)
         for index, spring in enumerate(springs)
     ]
+
+
+def driving_point(params: ChainParameters, frequencies: np.ndarray) -> np.ndarray:
+    """The simulator's scheme from the force to mass 1's acceleration at ``frequencies`` (rad a
+    sample): x[t+2] = A1·x[t+1] + A0·x[t] + e1·Ts²/m1·F[t], a[t] = (x[t+2] − 2x[t+1] + x[t])/Ts²."""
+    A1, A0 = params.recursion()
+    drive = np.zeros(params.n)
+    drive[0] = params.ts**2 / params.masses[0]
+    z = np.exp(1j * frequencies)
+    return np.array(
+        [
+            (q - 1) ** 2 / params.ts**2 * np.linalg.solve(q * q * np.eye(params.n) - q * A1 - A0, drive)[0]
+            for q in z
+        ]
+    )
+
+
+def perfect_sigma_k(spring: str, samples: int) -> float:
+    """σ_k [%] of a model that knew the chain exactly, on one record: the Cramér–Rao bound from
+    the record's spectral (Whittle) information on k, the force white and the error the sensors'
+    noise, σ²_y plus σ²_x through the structure: 1/σ²_k = N·mean_ω |∂G/∂k|²·σ²_F / (σ²_y + |G|²·σ²_x).
+    No fault-mode model trained from noisy experiments does better."""
+    healthy = scenario()
+    frequencies = np.linspace(0, np.pi, 4097)[1:-1]
+    response = driving_point(healthy.params, frequencies)
+    step = 0.01  # percent: the response is linear in k far beyond
+    slope = (driving_point(healthy.params.with_fault(spring, step), frequencies) - response) / step
+    noise = healthy.y_noise_std**2 + np.abs(response) ** 2 * healthy.x_noise_std**2
+    information = samples * np.mean(np.abs(slope) ** 2 * healthy.excitation_std**2 / noise)
+    return float(1 / np.sqrt(information))

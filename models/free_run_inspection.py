@@ -30,7 +30,15 @@ the response:
    (generalised least squares): d = ∂ŷ/∂k = S·Θ·g′(k̂), S the run's sensitivities to θ projected
    off the start's responses; σ̂²_k = s̃²/(d̃ᵀd̃), s̃² the record's whitened error variance; plus
    the delta-method term of the mode's own estimation error, ∇ᵀ·Cov vec(Θ)·∇ with
-   ∇ = J̃_Θᵀd̃/(d̃ᵀd̃), J̃_Θ = S̃ ⊗ g(k̂), Cov vec(Θ) the jackknife's of step 1.
+   ∇ = J̃_Θᵀd̃/(d̃ᵀd̃), J̃_Θ = S̃ ⊗ g(k̂), Cov vec(Θ) the jackknife's of step 1:
+   σ̂²_k = c²·(σ̂²_k,record + σ̂²_k,mode), both parts in the verdict. c = 1 unless the mode's own
+   experiments contradict it: each experiment i of the mode's m, inspected with the jackknife's
+   refit without it, misses its known magnitude by z_i = (k̂_i − k_i)/σ̂_k,i, standard normal
+   when σ̂_k is right; Σz²_i beyond χ²_m's 1 − HELD_OUT_LEVEL quantile makes c = √(Σz²_i/m).
+   Both parts are linearisations at the fitted Θ, and both fail together where a mode's slope
+   is mostly the fit's error: a far spring whose effect on the response is less than the healthy
+   point's misfit, whose mode may then claim a slope many times the spring's, σ̂_k as many times
+   too small, and healthy records far from k = 0.
 4. Localisation: the candidate is the mode whose best k̂ leaves the smallest whitened error
    variance (maximum likelihood for Gaussian errors, as in the paper's chain); its adequacy is
    F = s̃²_V/σ̃²₀ ~ F(ν, ν₀) under the mode (ν = n − Q − R − 1 the record's whitened samples less
@@ -38,8 +46,9 @@ the response:
    best mode describes worse than its experiments is an ``unknown_fault``.
 5. Detection and the interval as in the paper's chain, Šidák's z and the adequacy test at a
    small share of α, but each mode's z is the signed root of the likelihood ratio against k = 0,
-   (Σε̃²(0) − Σε̃²(k̂))/s̃², times σ̂_k,record/σ̂_k for the mode's own estimation error: k̂/σ̂_k
-   where the error is linear in k, and right where it is not. The interval is k̂ ± z_{1−α/2}·σ̂_k.
+   (Σε̃²(0) − Σε̃²(k̂))/s̃², times σ̂_k,record/(c·σ̂_k) for the mode's own estimation error and
+   its held-out scale: k̂/σ̂_k where the error is linear in k, and right where it is not. The
+   interval is k̂ ± z_{1−α/2}·σ̂_k.
    The verdict is :class:`models.inspection.Verdict`; each mode's ``q``, ``q_critical``, ``p_value`` and
    ``accepted`` are the F test's (``lags`` is None: no Ljung–Box test is made), and
    ``whiteness`` in ``detected_by`` names the adequacy test.
@@ -62,7 +71,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import optimize, signal, special
+from scipy import optimize, signal, special, stats
 
 from models.errors import InputError
 from models.fnarx import FNARX, Experiment, fit_fnarx
@@ -91,6 +100,9 @@ LONG_ARX_ORDER = 20
 # The share of a mode's range beyond which an interval says the record does not determine the
 # magnitude: wider than half the range, the interval hardly narrows what the mode's range says.
 UNDETERMINED_SHARE = 0.5
+# The level of the test of a mode against its held-out experiments (module docstring, step 3): a
+# right mode's σ̂_k is scaled this seldom.
+HELD_OUT_LEVEL = 0.01
 
 
 @dataclass(frozen=True)
@@ -104,12 +116,16 @@ class FreeRunMode:
     whitening : c_1 … c_Q of w(q) = 1 − Σ c_k q⁻ᵏ, fitted to the experiments' free-run errors.
     sigma2 : σ̃²₀, the experiments' whitened free-run error variance.
     dof : ν₀, the experiments' whitened samples less the start's columns and Θ's.
+    scale : c ≥ 1, what σ̂_k is multiplied by: 1 unless the mode, refitted without each of its
+        experiments, misses their magnitudes beyond what its σ̂_k allows (module docstring,
+        step 3); documents written without it are read as 1.
     """
 
     model: FNARX
     whitening: np.ndarray
     sigma2: float
     dof: float
+    scale: float = 1.0
 
     @property
     def name(self) -> str:
@@ -124,6 +140,7 @@ class FreeRunMode:
             "whitening": self.whitening.tolist(),
             "sigma2": self.sigma2,
             "dof": self.dof,
+            "scale": self.scale,
         }
 
     @classmethod
@@ -135,11 +152,12 @@ class FreeRunMode:
                 np.asarray(document["whitening"], dtype=np.float64),
                 float(document["sigma2"]),
                 float(document["dof"]),
+                float(document.get("scale", 1.0)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"free-run fault-mode document: missing or invalid field ({exc})") from None
-        if mode.whitening.ndim != 1 or not (mode.sigma2 > 0 and mode.dof > 0):
-            raise InputError("free-run fault-mode document: whitening, sigma2 or dof out of range")
+        if mode.whitening.ndim != 1 or not (mode.sigma2 > 0 and mode.dof > 0 and 1 <= mode.scale < np.inf):
+            raise InputError("free-run fault-mode document: whitening, sigma2, dof or scale out of range")
         return mode
 
 
@@ -203,12 +221,13 @@ def fit_free_run_modes(
     starts = [fit_fnarx(runs[name], terms, name=name) for name in names]
     parsed, n = starts[0].terms, len(starts[0].terms)
     through_long = [_through_long_arx(runs[name], parsed, name) for name in names]
-    records, free, maps, owners = [], [], [], []
+    records, free, maps, owners, magnitudes = [], [], [], [], []
     for index, (start, name) in enumerate(zip(starts, names, strict=True)):
         for x, y, k in runs[name]:
             xa, ya = checked_record(x, y, start.max_lag + n + 1, degree=max_degree(parsed))
             records.append(ya)
             owners.append(index)
+            magnitudes.append(float(k))
             free.append(FreeRun.build(parsed, xa))
             # θ = M·[θ₀; δ_1; …; δ_M]
             maps.append(
@@ -260,8 +279,8 @@ def fit_free_run_modes(
     sigma2 = float(sum(float(e @ e) for e in errors)) / dof
     # The delete-one-experiment jackknife (module docstring, step 1), each refit from the joint fit.
     refits = np.array([fit(flat, [j for j in everything if j != i]) for i in everything])
-    refits -= refits.mean(axis=0)
-    covariance = (len(refits) - 1) / len(refits) * (refits.T @ refits)
+    deviations = refits - refits.mean(axis=0)
+    covariance = (len(refits) - 1) / len(refits) * (deviations.T @ deviations)
     modes = []
     for index, start in enumerate(starts):
         # vec(Θ_V) (term i, basis j) = T·[θ₀; δ…]: Θ_V·[g(k_min) g(k_max)] = [θ_V(k_min) θ_V(k_max)].
@@ -279,8 +298,31 @@ def fit_free_run_modes(
             covariance=T @ covariance @ T.T,
             experiment_sigma2=np.array([float(np.mean(run.error**2)) for run in own]),
         )
-        modes.append(FreeRunMode(model, whitening, sigma2, dof))
+        mode = FreeRunMode(model, whitening, sigma2, dof)
+        held_out = [
+            (replace(model, theta=(T @ refits[i]).reshape(n, 2)), free[i], records[i], magnitudes[i])
+            for i in everything
+            if owners[i] == index
+        ]
+        modes.append(replace(mode, scale=_held_out_scale(mode, held_out)))
     return modes
+
+
+def _held_out_scale(mode: FreeRunMode, held_out: Sequence[tuple[FNARX, FreeRun, np.ndarray, float]]) -> float:
+    """c of ``mode`` (module docstring, step 3) from its experiments, each inspected with the
+    mode refitted without it: (model, run, y, k) of each.
+
+    Each held-out miss z_i = (k̂_i − k_i)/σ̂_k,i is standard normal when σ̂_k is right, the
+    experiment not being in the refit; Σz²_i beyond χ²_m's (1 − HELD_OUT_LEVEL) quantile says
+    the mode's slope is not what its experiments show (a far spring's mode that took up the healthy
+    point's misfit), and σ̂_k is then scaled by c = √(Σz²_i/m), what the misses say it is.
+    """
+    estimates = [(_estimate(replace(mode, model=model), run, y, True), k) for model, run, y, k in held_out]
+    misses = [(estimate.k_hat - k) / estimate.sigma_k for estimate, k in estimates]
+    total = float(np.sum(np.square(misses)))
+    if total <= float(stats.chi2.ppf(1 - HELD_OUT_LEVEL, len(misses))):
+        return 1.0
+    return float(np.sqrt(total / len(misses)))
 
 
 def _joined(starts: Sequence[FNARX]) -> np.ndarray:
@@ -370,14 +412,18 @@ def _estimate(mode: FreeRunMode, run: FreeRun, y: np.ndarray, model_uncertainty:
     if model_uncertainty:
         gradient = np.kron(S.T @ slope, basis.values(k_hat)) / information
         variance += float(gradient @ model.covariance @ gradient)
-    sigma_k, sigma_k_record = float(np.sqrt(variance)), float(np.sqrt(variance_record))
+    sigma_k, sigma_k_record = (
+        mode.scale * float(np.sqrt(variance)),
+        mode.scale * float(np.sqrt(variance_record)),
+    )
     # The likelihood ratio of k̂ against the healthy k = 0, as a signed z: k̂/σ̂_k where the error is
     # linear in k over the interval, and right where it is not (a far spring's σ̂_k spans the
     # mode's range, and k̂ is then pushed against its ends far more often than k̂/σ̂_k says).
-    # Scaled by σ̂_k,record/σ̂_k for the mode's own estimation error, which the ratio leaves out.
+    # Scaled by σ̂_k,record/σ̂_k for the mode's own estimation error, which the ratio leaves out,
+    # and by 1/c for a mode its held-out experiments contradict.
     if basis.contains(0.0):
         drop = max(cost(0.0) - float(error @ error), 0.0)
-        z = float(np.sign(k_hat) * np.sqrt(drop / sigma2)) * sigma_k_record / sigma_k
+        z = float(np.sign(k_hat) * np.sqrt(drop / sigma2)) * sigma_k_record / sigma_k / mode.scale
     else:
         z = k_hat / sigma_k
     span = basis.k_max - basis.k_min

@@ -108,6 +108,7 @@ def test_a_sensor_noise_training_stores_a_free_run_mode(trained: Trained) -> Non
     assert mode["terms"] == TERMS and mode["training"]["terms_from"]["model_id"] == trained.baseline["id"]
     # The free-run fit's healthy error level and its degrees of freedom, which the paper's fit has not.
     assert mode["statistics"]["sigma2"] > 0 and mode["statistics"]["dof"] > 0
+    assert mode["statistics"]["scale"] >= 1
     assert len(mode["statistics"]["experiment_sigma2"]) == len(MAGNITUDES)
 
 

@@ -180,6 +180,7 @@ def _train_free_run_modes(
             "n_obs": mode.model.n_obs,
             "sigma2": mode.sigma2,
             "dof": mode.dof,
+            "scale": mode.scale,  # above 1: its own experiments, held out, said σ̂_k was too small
         }
         training = trainings[mode.name] | {"fitted_with": fitted_with}
         document = bounded_document(mode.to_document(), settings)
