@@ -5,7 +5,6 @@ process is what is tested (a terminal, one CPU, signals)."""
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import os
 import pty
@@ -93,26 +92,25 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     assert figure.read_bytes().startswith(PNG_MAGIC)
 
 
-def test_simulated_quadratic_stiffness_is_named_and_the_table_printed(tmp_path):
-    invoke(
-        "simulate", "--n", "12000", "--seed", "3", "--disturbance-std", "200",
-        "--effect", "quadratic_stiffness2=3e5", "--out", "record.csv", cwd=tmp_path,
-    )  # fmt: skip
-    quiet = invoke("refine", "record.csv", "--declared", "2dof", "--json", cwd=tmp_path)
-    report = json.loads(quiet.stdout)
-    assert report["effects_added"][0]["name"] == "quadratic_stiffness"
-    assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
-    assert "round 1" not in quiet.stderr, "no stages where stderr is not a terminal"
-    # On a terminal the loop shows each stage as it runs (on stderr); the table goes to stdout.
+def test_the_effect_found_is_named_and_the_table_printed_with_each_stage_on_a_terminal(
+    simulated_records: Path,
+):
+    """On a terminal the loop shows each stage as it runs (on stderr); the table goes to stdout,
+    with the unit given beside the figures."""
     table, terminal = run_on_terminal(
-        "refine", "record.csv", "--declared", "2dof", "--unit", "m", cwd=tmp_path
+        "refine", "e1.csv", "--declared", "2dof", "--unit", "m", cwd=simulated_records
     )
-    assert "1. quadratic_stiffness" in table and "before" in table and "after" in table
-    # The unit given is printed with the figures: the table's columns and each effect's check figures.
+    (first,) = [line for line in table.splitlines() if line.startswith("1. ")]
+    assert first.startswith("1. quadratic_stiffness (") and "decided by the one-step criterion" in first, (
+        table
+    )
+    (row,) = [line.split() for line in table.splitlines() if line.endswith("e1.csv [4000:6000]")]
+    assert float(row[1]) <= float(row[0]) / 2, "the one-step RMS at least halves"
+    # The unit given is printed with the figures: the table's columns, each effect's check
+    # figures and the output's RMS its shares are of.
     assert "one-step RMS [m]" in table and "free-run RMS [m]" in table
     assert re.search(r"check blocks' free run \S+ → \S+ m;", table), table
-    assert "[m]" not in quiet.stdout and json.loads(quiet.stdout)["data"]["unit"] is None
-    assert report["effects_added"][0]["decided_by"] == "one-step"
+    assert re.search(r"shares of the output's RMS \(\S+ m\) on e1\.csv", table), table
     stages = (
         f"round 1: scoring {len(candidate_effects(EXACT_TERMS))} families",
         "round 1: quadratic_stiffness on the check blocks",
@@ -212,16 +210,32 @@ def refine_report(*args: str, cwd: Path) -> dict:
     return json.loads(invoke("refine", *args, "--json", cwd=cwd).stdout)
 
 
+TWO_RECORDS = ("e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "v2.csv")
+
+
 @pytest.fixture(scope="module")
 def two_record_report(simulated_records: Path) -> dict:
-    """The JSON report of the loop on e1 and e2, judged on v1 and v2."""
-    return refine_report(
-        "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "v2.csv", cwd=simulated_records
+    """The JSON report of the loop on e1 and e2, judged on v1 and v2, in this one process (the
+    test of --jobs compares two processes' with it)."""
+    return refine_report(*TWO_RECORDS, "--jobs", "1", cwd=simulated_records)
+
+
+# A unit matplotlib would parse as mathtext, and fail to draw ($\frac$), were it not escaped.
+MATHTEXT_UNIT = "$\\frac$"
+
+
+@pytest.fixture(scope="module")
+def two_record_table(simulated_records: Path) -> subprocess.CompletedProcess[str]:
+    """The table of the same loop, --validate repeated, judged on loud too, in a unit written as
+    mathtext would be, with its figure drawn to two-records.png."""
+    return invoke(
+        "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--validate", "v2.csv",
+        "loud.csv", "--unit", MATHTEXT_UNIT, "--plot", "two-records.png", cwd=simulated_records,
     )  # fmt: skip
 
 
 def test_several_estimation_records_and_each_validation_record_judged_whole(
-    simulated_records: Path, two_record_report: dict
+    simulated_records: Path, two_record_report: dict, two_record_table: subprocess.CompletedProcess[str]
 ):
     report = two_record_report
     assert set(report) == REPORT_KEYS
@@ -265,10 +279,9 @@ def test_several_estimation_records_and_each_validation_record_judged_whole(
 
     # --validate repeated says the same; the table names each effect's criterion and each record,
     # and says which record judges the models beyond the data they were fitted on.
-    table = invoke(
-        "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--validate", "v2.csv",
-        "loud.csv", cwd=simulated_records,
-    ).stdout  # fmt: skip
+    table = two_record_table.stdout
+    # Where stderr is not a terminal, no stages; without --unit, no unit in the report.
+    assert "round 1" not in two_record_table.stderr and report["data"]["unit"] is None
     assert "1. quadratic_stiffness" in table and "decided by the one-step criterion" in table
     rows = [line.split() for line in table.splitlines() if line.endswith("[0:6000]")]
     assert [row[-2] for row in rows] == ["v1.csv", "v2.csv", "loud.csv"]
@@ -367,13 +380,14 @@ def test_each_effect_added_carries_its_coefficients_and_shares_of_the_first_reco
     assert declared["share"] == pytest.approx(1.0, abs=0.1)
 
 
-def test_the_table_prints_each_effects_shares_and_coefficients_under_it(simulated_records: Path):
-    args = ("refine", "e1.csv", "--declared", "2dof", "--validate", "v1.csv", "--unit", "m")
-    table = invoke(*args, cwd=simulated_records).stdout
-    report = refine_report(*args[1:], cwd=simulated_records)
+def test_the_table_prints_each_effects_shares_and_coefficients_under_it(
+    two_record_report: dict, two_record_table: subprocess.CompletedProcess[str]
+):
+    report, table = two_record_report, two_record_table.stdout
     assert report["effects_added"]
     assert (
-        f"under each effect, shares of the output's RMS ({report['explanation']['output_rms']:.4g} m) on "
+        f"under each effect, shares of the output's RMS ({report['explanation']['output_rms']:.4g} "
+        f"{MATHTEXT_UNIT}) on "
         "v1.csv [0:6000]: of each step" in table
     )
     lines = table.splitlines()
@@ -512,15 +526,11 @@ def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_r
     assert f"declared: {', '.join(lags).replace('x[t-0]', 'x[t]')}\n" in table
 
 
-def test_a_unit_is_plotted_as_the_text_given(simulated_records: Path, tmp_path: Path):
-    # A '$' pair would be parsed by matplotlib as mathtext, and "$\\frac$" fail to draw.
-    figure = tmp_path / "refine.png"
-    result = invoke(
-        "refine", str(simulated_records / "e1.csv"), "--declared", "2dof", "--validate",
-        str(simulated_records / "v1.csv"), "--plot", str(figure), "--unit", "$\\frac$", cwd=tmp_path,
-    )  # fmt: skip
-    assert "free-run RMS [$\\frac$]" in result.stdout
-    assert figure.read_bytes().startswith(PNG_MAGIC)
+def test_a_unit_is_plotted_as_the_text_given(
+    simulated_records: Path, two_record_table: subprocess.CompletedProcess[str]
+):
+    assert f"free-run RMS [{MATHTEXT_UNIT}]" in two_record_table.stdout
+    assert (simulated_records / "two-records.png").read_bytes().startswith(PNG_MAGIC)
 
 
 def test_the_plot_is_in_hz_from_the_files_times_and_per_sample_without_a_rate(
@@ -572,47 +582,28 @@ def test_a_column_of_times_that_does_not_step_uniformly_gives_no_rate(tmp_path: 
     )
 
 
-@functools.cache
-def in_one_process(*args: str, cwd: Path) -> str:
-    """The JSON report of ``narxwatch refine`` with ``args`` and ``--jobs 1``, made once a process
-    (the tests that compare other runs with it share it)."""
-    return invoke("refine", *args, "--json", "--jobs", "1", cwd=cwd).stdout
-
-
-def test_the_report_is_the_same_whatever_the_processes_building_the_candidates(simulated_records: Path):
+def test_two_jobs_run_on_one_cpu_to_the_report_of_one_and_more_than_two_a_cpu_are_refused(
+    simulated_records: Path, two_record_report: dict
+):
     """The candidates of each round built, and the structures judged on the check blocks (each
     round's families, the simulation error's prefixes), in two processes (the effects' finders
     and combiners sent to them) or in this one: the same effects, parameters and figures, to the
-    last digit. (The linear orders chosen in processes when nothing is declared: the models' test,
+    last digit. The two processes run on a machine of one CPU (the command pinned to one), where
+    they were refused as more processes than CPUs; twice the CPUs is the most. (The linear orders
+    chosen in processes when nothing is declared: the models' test,
     tests/test_refinement.py's ``test_linear_orders_chosen_in_processes_are_chosen_as_in_this_one``.)"""
-    args = ("e1.csv", "e2.csv", "--validate", "v1.csv", "--declared", "2dof")
-    reports = [
-        in_one_process(*args, cwd=simulated_records),
-        invoke("refine", *args, "--json", "--jobs", "2", cwd=simulated_records).stdout,
-    ]
-    assert reports[0] == reports[1]
-    assert json.loads(reports[0])["effects_added"]  # the loop did find something to add
-
-
-def test_two_jobs_run_on_one_cpu_and_more_than_two_a_cpu_are_refused(simulated_records: Path):
-    """On a machine of one CPU (the command pinned to one), ``--jobs 2`` runs, to the same report
-    as one process, where it was refused as more processes than CPUs; twice the CPUs is the most."""
     one_cpu = min(os.sched_getaffinity(0))
-    command = [
-        NARXWATCH, "refine", "e1.csv", "e2.csv", "--validate", "v1.csv", "--declared", "2dof", "--json",
-    ]  # fmt: skip
     pinned = [
         subprocess.run(
-            [*command, "--jobs", jobs], cwd=simulated_records, capture_output=True, text=True, timeout=300,
+            [NARXWATCH, "refine", *TWO_RECORDS, "--json", "--jobs", jobs], cwd=simulated_records,
+            capture_output=True, text=True, timeout=300,
             preexec_fn=lambda: os.sched_setaffinity(0, {one_cpu}),
         )
         for jobs in ("2", "3")
     ]  # fmt: skip
     assert pinned[0].returncode == 0, pinned[0].stderr
-    alone = in_one_process(
-        "e1.csv", "e2.csv", "--validate", "v1.csv", "--declared", "2dof", cwd=simulated_records
-    )
-    assert pinned[0].stdout == alone
+    assert json.loads(pinned[0].stdout) == two_record_report
+    assert two_record_report["effects_added"]  # the loop did find something to add
     assert pinned[1].returncode == 2 and pinned[1].stdout == ""
     assert "at most 2, twice the CPUs this command may use; got 3" in " ".join(pinned[1].stderr.split())
 

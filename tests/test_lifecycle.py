@@ -76,6 +76,11 @@ HEAD_PAUSE = 0.5  # seconds between two pieces of a slow head
 # event loop, on a machine whose two cores other work shares.
 CLOSE_MARGIN = 2.0
 EARLY = 0.005  # the server's event loop keeps time in milliseconds: its timers may end this early
+# Of thousands of slow heads, a loaded machine's client notices most closes late, many of them
+# long after the deadline; the first hundredth it notices at the deadline itself. They
+# are held to within half a deadline of the one the server is told: a server keeping a deadline
+# half as long again would close none of them by then.
+FIRST_CLOSES_MARGIN = 0.5 * HEADER_TIMEOUT
 # The soft limit on open files of a systemd service (LimitNOFILE's default): the server raises it
 # to the hard limit, or 3 000 connections would leave it no descriptor to accept another.
 SERVICE_OPEN_FILES = 1024
@@ -321,14 +326,20 @@ def test_slow_heads_are_closed_at_the_deadline_and_never_slow_another_organisati
     assert len(timings) >= 10, f"only {len(timings)} requests of the other organisation were timed"
     p95, before = (float(np.percentile(sample, 95)) for sample in (timings, baseline))
     assert p95 <= VICTIM_P95, f"the other organisation's p95 was {p95:.2f} s ({before:.2f} s unattacked)"
+    # Every slow head closed (a deadline not kept holds them past the client's patience), none
+    # before the deadline the server is told, and the first hundredth at it.
     held = sum(end.after is None for end in closed)
     assert not held, f"{held} of {SLOW_HEADS} slow heads were still open after {patience:.0f} s"
     seconds = sorted(end.after for end in closed if end.after is not None)
-    assert seconds[0] >= HEADER_TIMEOUT - EARLY and seconds[-1] <= HEADER_TIMEOUT + CLOSE_MARGIN, (
-        f"closed after {seconds[0]:.3f} to {seconds[-1]:.2f} s (median {seconds[len(seconds) // 2]:.2f} s)"
+    first = seconds[len(seconds) // 100]
+    assert seconds[0] >= HEADER_TIMEOUT - EARLY and first <= HEADER_TIMEOUT + FIRST_CLOSES_MARGIN, (
+        f"closed after {seconds[0]:.3f} to {seconds[-1]:.2f} s (a hundredth by {first:.2f} s, "
+        f"median {seconds[len(seconds) // 2]:.2f} s)"
     )
     answers = {end.received.partition(b"\r\n")[0] for end in closed}
     assert answers <= {b"", b"HTTP/1.1 408 Request Timeout"}, answers
+    told = f"did not arrive within {HEADER_TIMEOUT:g} s".encode()
+    assert all(told in end.received for end in closed if end.received), "a 408 named another deadline"
 
 
 async def read_answer(reader: asyncio.StreamReader) -> tuple[int, bytes]:
