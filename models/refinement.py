@@ -948,7 +948,9 @@ def choose_linear(
     estimation data held out once; from three records on, each record): fitted on the rest by
     least squares and by output error (least squares' noise bias would otherwise favour needlessly
     high orders; output error, searched a few steps under a force on the structure, can end
-    worse), its figure the mean free-run RMS over the held-out parts of the better of the two.
+    worse), its figure the mean free-run RMS over the held-out parts of the better of the two,
+    raised for the candidate's size as the Bayesian information criterion raises it
+    (:func:`_size_penalty`: on a few hundred samples a larger model's small gain is no reason).
     A model the input barely drives is no start (:func:`_is_start`): on a rig record with a
     large dead zone, least squares' best predictor of order 2 extrapolates the output's own past,
     y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all, where the input drives none), the smallest is
@@ -966,6 +968,7 @@ def choose_linear(
     folds = [checks, *(CheckSplit.of(records, fold) for fold in (0, 2))]
     tell = _told(progress)
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
+    samples = sum(len(y) for _, y in records)
     structures = [Structure(linear_terms(n, n, d)) for n, d in orders]
     judged = [fold.judge(structures, workers, tuned=True) for fold in folds]
     figures: dict[tuple[int, int], np.ndarray] = {}
@@ -976,7 +979,7 @@ def choose_linear(
         least_squares = np.array([fold.error(structure) for fold in folds])
         by_tuned = bool(np.mean(tuned) < np.mean(least_squares))
         model = checks.tuned(structure) if by_tuned else _or_none(checks.fitted, structure)
-        figures[(n, d)] = tuned if by_tuned else least_squares
+        figures[(n, d)] = (tuned if by_tuned else least_squares) * _size_penalty(_parameters(n, d), samples)
         if model is not None and _is_start(model, checks):
             admissible.add((n, d))
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
@@ -994,12 +997,28 @@ def choose_linear(
         spread = float(np.std(difference, ddof=1) / np.sqrt(difference.size))
         return mean[nd] <= (1 + margin) * mean[best] or float(np.mean(difference)) <= spread
 
-    # The smallest by parameters (x[t] is one more than a delay of one), then by order.
+    # The smallest by parameters, then by order.
     n, d = min(
         (nd for nd in mean if np.isfinite(mean[nd]) and near_best(nd)),
-        key=lambda nd: (2 * nd[0] + (nd[1] == 0), nd[0]),
+        key=lambda nd: (_parameters(*nd), nd[0]),
     )
     return (n, n, d), linear_terms(n, n, d)
+
+
+def _parameters(n: int, delay: int) -> int:
+    """The parameters of the linear ARX of order ``n`` and input ``delay`` (:func:`choose_linear`):
+    x[t] is one more than a delay of one."""
+    return 2 * n + (delay == 0)
+
+
+def _size_penalty(parameters: int, samples: int) -> float:
+    """The factor by which :func:`choose_linear` raises a linear candidate's held-out free-run
+    RMS for its ``parameters``: the Bayesian information criterion's ``ln(samples)`` per
+    parameter on the ``samples`` the rotations hold out between them, N·ln(RMS²) + k·ln(N), as a
+    factor on the RMS. A few hundred samples give three check rotations too few to tell a few
+    parameters more from chance, and a larger model always fits some of them a little better;
+    on records of tens of thousands of samples the factor is near one and the spread decides."""
+    return float(np.exp(parameters * np.log(samples) / (2 * samples)))
 
 
 def _or_none(fit: Callable[[Structure], NARX], structure: Structure) -> NARX | None:
