@@ -116,15 +116,16 @@ class Effect:
         return 1 if self.kind in ("output_shift", "saturation", "combined") else len(self.terms)
 
 
-def linear_terms(ny: int, nx: int, delay: int = 1) -> tuple[Term, ...]:
-    """A linear ARX structure: y[t-1] … y[t-ny] and x[t-delay] … x[t-delay-nx+1]."""
+def linear_terms(ny: int, nx: int, delay: int = 1, constant: bool = False) -> tuple[Term, ...]:
+    """A linear ARX structure: y[t-1] … y[t-ny] and x[t-delay] … x[t-delay-nx+1], and with a
+    ``constant`` the term 1 (an operating point away from zero)."""
     if ny < 1 or nx < 1 or delay < 0:
         raise InputError(
             f"a linear ARX structure needs ny >= 1, nx >= 1, delay >= 0; got {ny}, {nx}, {delay}"
         )
     ys = [Term((Factor("y", lag),)) for lag in range(1, ny + 1)]
     xs = [Term((Factor("x", lag),)) for lag in range(delay, delay + nx)]
-    return tuple(ys + xs)
+    return tuple(ys + xs + ([Term()] if constant else []))
 
 
 def candidate_effects(terms: Sequence[Term]) -> list[Effect]:

@@ -941,8 +941,8 @@ def choose_linear(
     workers: Workers = map,
     margin: float = ORDER_GAIN,
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
-    """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``)
-    that simulates the held-out data best for its size.
+    """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``), with
+    a constant or without, that simulates the held-out data best for its size.
 
     Every candidate is judged on the three rotations of the check split (each block of the
     estimation data held out once; from three records on, each record): fitted on the rest by
@@ -958,9 +958,20 @@ def choose_linear(
     the standard error of their difference across the rotations: for the loop's start, an effect
     the linear model lacks lowers the free run of larger orders a little and unevenly (the best
     linear approximation of the nonlinearity), not by a new mode. A baseline to monitor a
-    structure by wants the model that simulates best, ``margin`` 0. Returns (n, n, d) and the
-    terms; ``progress`` is told each candidate as its figures are read, ``workers`` fit them
-    (:data:`models.regression.Workers`).
+    structure by wants the model that simulates best, ``margin`` 0.
+
+    **The constant.** An output at an operating point away from zero, its input about zero, is
+    reached by an ARX without a constant only through poles near one: a model that integrates
+    its own past, or one of needlessly high order. The orders chosen without a constant are
+    judged with one too; where it lowers their figure beyond the spread, every order is judged
+    with a constant as well and chosen among as above, the constant counted as one parameter
+    more; of the two starts so chosen, the one with the constant is taken where it
+    simulates better beyond ``margin`` and the spread, or as well and is smaller. On records
+    about zero the constant takes nothing off, and the start stays as it was without the second
+    set of fits.
+
+    Returns (n, n, d) and the terms; ``progress`` is told each candidate as its figures are read,
+    ``workers`` fit them (:data:`models.regression.Workers`).
     """
     if max_order < 1:
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
@@ -969,22 +980,68 @@ def choose_linear(
     tell = _told(progress)
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
     samples = sum(len(y) for _, y in records)
-    structures = [Structure(linear_terms(n, n, d)) for n, d in orders]
+    judge = partial(_linear_figures, folds, samples=samples, workers=workers, tell=tell)
+    figures, admissible = judge([(n, d, False) for n, d in orders])
+    n, d, _ = chosen = _smallest_near_best(figures, admissible, margin, max_order)
+    constant, constant_admissible = judge([(n, d, True)])
+    if _lower_beyond_spread(constant[(n, d, True)], figures[chosen]):
+        others = [(m, e, True) for m, e in orders if (m, e) != (n, d)]
+        more, more_admissible = judge(others)
+        constant |= more
+        with_constant = _smallest_near_best(
+            constant, constant_admissible | more_admissible, margin, max_order
+        )
+        # The two starts judged as the orders are: the one without a constant is kept unless the
+        # other simulates better beyond the margin, or as well and is smaller.
+        pair = {key: figures[key] if key == chosen else constant[key] for key in (chosen, with_constant)}
+        n, d, _ = chosen = _smallest_near_best(pair, set(pair), margin, max_order)
+    return (n, n, d), linear_terms(n, n, d, constant=chosen[2])
+
+
+# A linear candidate of :func:`choose_linear`: its order n, input delay d, and whether it has a
+# constant.
+_Linear = tuple[int, int, bool]
+
+
+def _linear_figures(
+    folds: Sequence[CheckSplit], candidates: Sequence[_Linear], samples: int, workers: Workers, tell: Stage
+) -> tuple[dict[_Linear, np.ndarray], set[_Linear]]:
+    """Each linear candidate's held-out free-run RMS on every rotation of ``folds``, the better of
+    least squares and output error, raised for its size on the ``samples`` held out
+    (:func:`_size_penalty`); and those that may start the loop (:func:`choose_linear`). ``tell``
+    is told each candidate as its figures are read."""
+    structures = [Structure(linear_terms(n, n, d, constant)) for n, d, constant in candidates]
     judged = [fold.judge(structures, workers, tuned=True) for fold in folds]
-    figures: dict[tuple[int, int], np.ndarray] = {}
-    admissible: set[tuple[int, int]] = set()
-    for (n, d), structure in zip(orders, structures, strict=True):
-        tell(f"linear orders: ARX({n}, {n}), input delay {d}")
+    figures: dict[_Linear, np.ndarray] = {}
+    admissible: set[_Linear] = set()
+    for candidate, structure in zip(candidates, structures, strict=True):
+        n, d, constant = candidate
+        tell(f"linear orders: ARX({n}, {n}){' with a constant' if constant else ''}, input delay {d}")
         tuned = np.array([next(errors) for errors in judged])
         least_squares = np.array([fold.error(structure) for fold in folds])
         by_tuned = bool(np.mean(tuned) < np.mean(least_squares))
-        model = checks.tuned(structure) if by_tuned else _or_none(checks.fitted, structure)
-        figures[(n, d)] = (tuned if by_tuned else least_squares) * _size_penalty(_parameters(n, d), samples)
-        if model is not None and _is_start(model, checks):
-            admissible.add((n, d))
+        model = folds[0].tuned(structure) if by_tuned else _or_none(folds[0].fitted, structure)
+        penalty = _size_penalty(_parameters(candidate), samples)
+        figures[candidate] = (tuned if by_tuned else least_squares) * penalty
+        if model is not None and _is_start(model, folds[0]):
+            admissible.add(candidate)
+    return figures, admissible
+
+
+def _lower_beyond_spread(figure: np.ndarray, other: np.ndarray) -> bool:
+    """Whether ``figure`` is below ``other`` on average by more than the standard error of their
+    difference across the rotations."""
+    difference = other - figure
+    return float(np.mean(difference)) > float(np.std(difference, ddof=1) / np.sqrt(difference.size))
+
+
+def _smallest_near_best(
+    figures: dict[_Linear, np.ndarray], admissible: set[_Linear], margin: float, max_order: int
+) -> _Linear:
+    """The smallest admissible candidate near the best by ``margin`` or the spread (:func:`choose_linear`)."""
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
     # best of all is the start: the loop may still find what the input does.
-    mean = {nd: float(np.mean(e)) for nd, e in figures.items() if nd in admissible or not admissible}
+    mean = {key: float(np.mean(e)) for key, e in figures.items() if key in admissible or not admissible}
     best = min(mean, key=mean.__getitem__)
     if not np.isfinite(mean[best]):
         raise InputError(
@@ -992,23 +1049,21 @@ def choose_linear(
             "over their held-out parts without diverging"
         )
 
-    def near_best(nd: tuple[int, int]) -> bool:
-        difference = figures[nd] - figures[best]
-        spread = float(np.std(difference, ddof=1) / np.sqrt(difference.size))
-        return mean[nd] <= (1 + margin) * mean[best] or float(np.mean(difference)) <= spread
+    def near_best(key: _Linear) -> bool:
+        return mean[key] <= (1 + margin) * mean[best] or not _lower_beyond_spread(figures[best], figures[key])
 
     # The smallest by parameters, then by order.
-    n, d = min(
-        (nd for nd in mean if np.isfinite(mean[nd]) and near_best(nd)),
-        key=lambda nd: (_parameters(*nd), nd[0]),
+    return min(
+        (key for key in mean if np.isfinite(mean[key]) and near_best(key)),
+        key=lambda key: (_parameters(key), key[0]),
     )
-    return (n, n, d), linear_terms(n, n, d)
 
 
-def _parameters(n: int, delay: int) -> int:
-    """The parameters of the linear ARX of order ``n`` and input ``delay`` (:func:`choose_linear`):
-    x[t] is one more than a delay of one."""
-    return 2 * n + (delay == 0)
+def _parameters(candidate: _Linear) -> int:
+    """The parameters of a linear candidate of :func:`choose_linear`: x[t] is one more than a
+    delay of one, the constant one more."""
+    n, delay, constant = candidate
+    return 2 * n + (delay == 0) + constant
 
 
 def _size_penalty(parameters: int, samples: int) -> float:
@@ -1037,7 +1092,9 @@ def _is_start(model: NARX, checks: CheckSplit) -> bool:
     driven, spread = [], []
     for x, y, t0 in checks.check:
         if len(y) > lag:
-            driven.append(model.simulate(x, np.zeros_like(y), t0)[lag:])
+            # Less the response to no input: a constant's alone is the operating point, no drive.
+            resting = model.simulate(np.zeros_like(x), np.zeros_like(y), t0)[lag:]
+            driven.append(model.simulate(x, np.zeros_like(y), t0)[lag:] - resting)
             spread.append(y[lag:] - np.mean(y[lag:]))
     if not spread:
         return False
