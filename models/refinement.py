@@ -67,7 +67,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
-from itertools import pairwise
+from itertools import compress, pairwise
 from typing import Any, Literal, NamedTuple, get_args
 
 import numpy as np
@@ -86,7 +86,15 @@ from models.checking import (
     grown_by_zeros,
 )
 from models.coverage import Coverage, coverage
-from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
+from models.effects import (
+    POLYNOMIAL,
+    Effect,
+    candidate_effects,
+    linear_terms,
+    offset_terms,
+    output_limits,
+    unused,
+)
 from models.errors import InputError
 from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails, held_out_tails
 from models.narx import NARX, Saturation
@@ -771,25 +779,43 @@ def _grown(
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
-        significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
-        for score, error, structure in _judged_in_turn(
-            significant,
-            kinds,
-            current,
-            records,
-            checks,
-            workers,
-            tell,
-            f"round {number}",
-        ):
-            if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-                decided = (score, "one-step", structure, error)
+        ranked: Scores | None = None
+        # The named families on both criteria first, then the generic polynomial on both: where a
+        # named effect explains the data, the loop names it.
+        tier = [e.name == POLYNOMIAL for e in offered]
+        for generic in (False, True):
+            significant = sorted(
+                (s for s, g in zip(scores.scores, tier, strict=True) if s.significant and g == generic),
+                key=lambda s: s.bic_change,
+            )
+            for score, error, structure in _judged_in_turn(
+                significant,
+                kinds,
+                current,
+                records,
+                checks,
+                workers,
+                tell,
+                f"round {number}",
+            ):
+                if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
+                    decided = (score, "one-step", structure, error)
+                    break
+                rejected.append(score.name)
+            if decided is None and output_error and generic in tier:
+                offer = "the generic polynomial" if generic else "the families"
+                tell(f"round {number}: {offer} on the simulation error")
+                ranked = ranked or _ranked(records, current, offered, alpha, workers, threads)
+                chosen = [g == generic for g in tier]
+                decided = _by_simulation(
+                    list(compress(offered, chosen)),
+                    list(compress(ranked.scores, chosen)),
+                    current,
+                    checks,
+                    workers,
+                )
+            if decided is not None:
                 break
-            rejected.append(score.name)
-        if decided is None and output_error:
-            tell(f"round {number}: the families on the simulation error")
-            ranked = _ranked(records, current, offered, alpha, workers, threads)
-            decided = _by_simulation(offered, ranked.scores, current, checks, workers)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break

@@ -28,7 +28,7 @@ from models.refinement import (
     refine_records,
 )
 from models.scoring import score_effects
-from models.terms import Term, max_lag, parse_terms, regressor_matrix
+from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
 from simulator.simulate import Effects, Scenario, simulate
@@ -793,6 +793,32 @@ def test_effects_the_held_out_tails_do_not_support_are_withdrawn_and_the_start_r
     assert document["held_out"]["gain"] < document["held_out"]["threshold"]
     (note,) = [note for note in document["notes"] if "could not support the effects" in note]
     assert "320 samples" in note and "input_nonlinearity" in note
+
+
+def _bilinear(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """y[t] = 0.5 y[t-1] + x[t-1] + 0.3 x[t-1]·y[t-1], x uniform on [0, 1], with 2 % output noise:
+    a gain that goes with the input, as a motor/generator's does with its field."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.0, 1.0, n)
+    y = np.zeros(n)
+    for t in range(1, n):
+        y[t] = 0.5 * y[t - 1] + x[t - 1] + 0.3 * x[t - 1] * y[t - 1]
+    return x, y + 0.02 * np.std(y) * rng.standard_normal(n)
+
+
+def test_where_no_named_effect_explains_the_data_the_generic_polynomial_is_added():
+    """No named family holds the product x[t-1]·y[t-1]: the generic polynomial, offered after
+    them, brings it, and the free run over another record falls five-fold (0.10 → 0.02 of the
+    output's spread)."""
+    x, y = _bilinear(500, 1)
+    result = refine([(x, y)], ["y[t-1]", "x[t-1]", "1"])
+    assert result.effects_added[0].name == "polynomial", result.effects_added
+    assert Term.of([Factor("y", 1), Factor("x", 1)]) in result.refined.terms
+    x, y = _bilinear(500, 2)
+    start, refined = (
+        np.sqrt(np.mean((m.simulate(x, y)[1:] - y[1:]) ** 2)) for m in (result.declared, result.refined)
+    )
+    assert refined < start / 3, (start, refined)
 
 
 def test_a_refined_model_kept_on_the_held_out_tails_is_refitted_on_all_the_records():
