@@ -980,8 +980,8 @@ def choose_linear(
     A model the input barely drives is no start (:func:`_is_start`): on a rig record with a
     large dead zone, least squares' best predictor of order 2 extrapolates the output's own past,
     y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all, where the input drives none), the smallest is
-    chosen that no other beats by more than ``margin`` (relative) and by more than the standard
-    error of their difference across the rotations: for the loop's start, an effect
+    chosen whose figure is within ``margin`` (relative) of the best, or above it by no more than
+    the standard error of their difference across the rotations: for the loop's start, an effect
     the linear model lacks lowers the free run of larger orders a little and unevenly (the best
     linear approximation of the nonlinearity), not by a new mode. A baseline to monitor a
     structure by wants the model that simulates best, ``margin`` 0.
@@ -1064,8 +1064,7 @@ def _lower_beyond_spread(figure: np.ndarray, other: np.ndarray) -> bool:
 def _smallest_near_best(
     figures: dict[_Linear, np.ndarray], admissible: set[_Linear], margin: float, max_order: int
 ) -> _Linear:
-    """The smallest admissible candidate no other beats by more than ``margin`` and the spread
-    (:func:`choose_linear`)."""
+    """The smallest admissible candidate near the best by ``margin`` or the spread (:func:`choose_linear`)."""
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
     # best of all is the start: the loop may still find what the input does.
     mean = {key: float(np.mean(e)) for key, e in figures.items() if key in admissible or not admissible}
@@ -1076,18 +1075,12 @@ def _smallest_near_best(
             "over their held-out parts without diverging"
         )
 
-    def beaten(key: _Linear) -> bool:
-        # Against every other, not the best alone: on a few hundred samples the best is often a
-        # large order whose rotations differ so widely that nothing is beyond its spread, while
-        # a smaller one beats the smallest on every rotation.
-        return any(
-            mean[key] > (1 + margin) * mean[other] and _lower_beyond_spread(figures[other], figures[key])
-            for other in mean
-        )
+    def near_best(key: _Linear) -> bool:
+        return mean[key] <= (1 + margin) * mean[best] or not _lower_beyond_spread(figures[best], figures[key])
 
     # The smallest by parameters, then by order.
     return min(
-        (key for key in mean if np.isfinite(mean[key]) and not beaten(key)),
+        (key for key in mean if np.isfinite(mean[key]) and near_best(key)),
         key=lambda key: (_parameters(key), key[0]),
     )
 
