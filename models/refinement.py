@@ -974,14 +974,14 @@ def choose_linear(
     estimation data held out once; from three records on, each record): fitted on the rest by
     least squares and by output error (least squares' noise bias would otherwise favour needlessly
     high orders; output error, searched a few steps under a force on the structure, can end
-    worse), its figure the mean free-run RMS over the held-out parts of the better of the two,
-    raised for the candidate's size as the Bayesian information criterion raises it
-    (:func:`_size_penalty`: on a few hundred samples a larger model's small gain is no reason).
+    worse), its figure the mean free-run RMS over the held-out parts of the better of the two.
     A model the input barely drives is no start (:func:`_is_start`): on a rig record with a
     large dead zone, least squares' best predictor of order 2 extrapolates the output's own past,
     y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all, where the input drives none), the smallest is
-    chosen whose figure is within ``margin`` (relative) of the best, or above it by no more than
-    the standard error of their difference across the rotations: for the loop's start, an effect
+    chosen whose figure is within ``margin`` (relative) of the best, both raised for their size as
+    the Bayesian information criterion raises them (:func:`_size_penalty`: on a few hundred
+    samples a larger model's small gain is no reason), or above the best's by no more than the
+    standard error of their difference across the rotations: for the loop's start, an effect
     the linear model lacks lowers the free run of larger orders a little and unevenly (the best
     linear approximation of the nonlinearity), not by a new mode. A baseline to monitor a
     structure by wants the model that simulates best, ``margin`` 0.
@@ -1006,21 +1006,20 @@ def choose_linear(
     tell = _told(progress)
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
     samples = sum(len(y) for _, y in records)
-    judge = partial(_linear_figures, folds, samples=samples, workers=workers, tell=tell)
+    judge = partial(_linear_figures, folds, workers=workers, tell=tell)
+    smallest = partial(_smallest_near_best, margin=margin, max_order=max_order, samples=samples)
     figures, admissible = judge([(n, d, False) for n, d in orders])
-    n, d, _ = chosen = _smallest_near_best(figures, admissible, margin, max_order)
+    n, d, _ = chosen = smallest(figures, admissible)
     constant, constant_admissible = judge([(n, d, True)])
     if _lower_beyond_spread(constant[(n, d, True)], figures[chosen]):
         others = [(m, e, True) for m, e in orders if (m, e) != (n, d)]
         more, more_admissible = judge(others)
         constant |= more
-        with_constant = _smallest_near_best(
-            constant, constant_admissible | more_admissible, margin, max_order
-        )
+        with_constant = smallest(constant, constant_admissible | more_admissible)
         # The two starts judged as the orders are: the one without a constant is kept unless the
         # other simulates better beyond the margin, or as well and is smaller.
         pair = {key: figures[key] if key == chosen else constant[key] for key in (chosen, with_constant)}
-        n, d, _ = chosen = _smallest_near_best(pair, set(pair), margin, max_order)
+        n, d, _ = chosen = smallest(pair, set(pair))
     return (n, n, d), linear_terms(n, n, d, constant=chosen[2])
 
 
@@ -1030,12 +1029,11 @@ _Linear = tuple[int, int, bool]
 
 
 def _linear_figures(
-    folds: Sequence[CheckSplit], candidates: Sequence[_Linear], samples: int, workers: Workers, tell: Stage
+    folds: Sequence[CheckSplit], candidates: Sequence[_Linear], workers: Workers, tell: Stage
 ) -> tuple[dict[_Linear, np.ndarray], set[_Linear]]:
     """Each linear candidate's held-out free-run RMS on every rotation of ``folds``, the better of
-    least squares and output error, raised for its size on the ``samples`` held out
-    (:func:`_size_penalty`); and those that may start the loop (:func:`choose_linear`). ``tell``
-    is told each candidate as its figures are read."""
+    least squares and output error; and those that may start the loop (:func:`choose_linear`).
+    ``tell`` is told each candidate as its figures are read."""
     structures = [Structure(linear_terms(n, n, d, constant)) for n, d, constant in candidates]
     judged = [fold.judge(structures, workers, tuned=True) for fold in folds]
     figures: dict[_Linear, np.ndarray] = {}
@@ -1047,8 +1045,7 @@ def _linear_figures(
         least_squares = np.array([fold.error(structure) for fold in folds])
         by_tuned = bool(np.mean(tuned) < np.mean(least_squares))
         model = folds[0].tuned(structure) if by_tuned else _or_none(folds[0].fitted, structure)
-        penalty = _size_penalty(_parameters(candidate), samples)
-        figures[candidate] = (tuned if by_tuned else least_squares) * penalty
+        figures[candidate] = tuned if by_tuned else least_squares
         if model is not None and _is_start(model, folds[0]):
             admissible.add(candidate)
     return figures, admissible
@@ -1062,12 +1059,19 @@ def _lower_beyond_spread(figure: np.ndarray, other: np.ndarray) -> bool:
 
 
 def _smallest_near_best(
-    figures: dict[_Linear, np.ndarray], admissible: set[_Linear], margin: float, max_order: int
+    figures: dict[_Linear, np.ndarray], admissible: set[_Linear], margin: float, max_order: int, samples: int
 ) -> _Linear:
-    """The smallest admissible candidate near the best by ``margin`` or the spread (:func:`choose_linear`)."""
+    """The smallest admissible candidate near the best (:func:`choose_linear`): its mean figure,
+    raised for its size on the ``samples`` held out (:func:`_size_penalty`), within ``margin`` of
+    the best's so raised, or its figures above the best's by no more than the spread of their
+    difference (a question of noise, which the size does not enter)."""
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
     # best of all is the start: the loop may still find what the input does.
-    mean = {key: float(np.mean(e)) for key, e in figures.items() if key in admissible or not admissible}
+    mean = {
+        key: float(np.mean(e)) * _size_penalty(_parameters(key), samples)
+        for key, e in figures.items()
+        if key in admissible or not admissible
+    }
     best = min(mean, key=mean.__getitem__)
     if not np.isfinite(mean[best]):
         raise InputError(
