@@ -21,6 +21,10 @@ loop chooses), each round
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Otherwise the loop stops.
 
+The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
+lags, no physical effect named) is scored with the named families but judged after them: steps 3
+and 4 run for the named families first, and only where neither adds one for the polynomial.
+
 After the rounds, the refined structure must simulate the check blocks better than the declared
 one, both with their parameters by output error (from three records on, on every fold below);
 otherwise what the rounds added is withdrawn and the declared structure kept.
