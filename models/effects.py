@@ -75,6 +75,10 @@ SEARCH_ROWS = 10_000
 # input): sign patterns of equal weights. On the 2-DOF rig the search for the unmeasured coordinate
 # converges from half of the first eight; four keep it quick.
 COMBINATION_STARTS = 4
+# The generic family (:func:`polynomial_effect`): its name, which the loop offers after every named
+# family, and the shortest lags of y and of x whose products it holds.
+POLYNOMIAL = "polynomial"
+POLYNOMIAL_LAGS = 3
 
 
 @dataclass(frozen=True)
@@ -116,15 +120,16 @@ class Effect:
         return 1 if self.kind in ("output_shift", "saturation", "combined") else len(self.terms)
 
 
-def linear_terms(ny: int, nx: int, delay: int = 1) -> tuple[Term, ...]:
-    """A linear ARX structure: y[t-1] … y[t-ny] and x[t-delay] … x[t-delay-nx+1]."""
+def linear_terms(ny: int, nx: int, delay: int = 1, constant: bool = False) -> tuple[Term, ...]:
+    """A linear ARX structure: y[t-1] … y[t-ny] and x[t-delay] … x[t-delay-nx+1], and with a
+    ``constant`` the term 1 (an operating point away from zero)."""
     if ny < 1 or nx < 1 or delay < 0:
         raise InputError(
             f"a linear ARX structure needs ny >= 1, nx >= 1, delay >= 0; got {ny}, {nx}, {delay}"
         )
     ys = [Term((Factor("y", lag),)) for lag in range(1, ny + 1)]
     xs = [Term((Factor("x", lag),)) for lag in range(delay, delay + nx)]
-    return tuple(ys + xs)
+    return tuple(ys + xs + ([Term()] if constant else []))
 
 
 def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
@@ -247,6 +252,7 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             powers("y", [ny + 1, ny + 2], 1) + powers("x", [x_lags[-1] + 1, *shorter_delay], 1),
         ),
         Effect("offset", "constant offset: sensor bias or static load", offset_terms(terms), "output_shift"),
+        polynomial_effect(terms),
         Effect(
             "periodic_disturbance",
             "a periodic force or interference at a residual spectral peak",
@@ -256,6 +262,27 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         Effect("moving_average_noise", "coloured noise: moving-average terms e[t-k] (NARMAX)", (), "noise"),
     ]
     return unused(effects, terms)
+
+
+def polynomial_effect(terms: Sequence[Term]) -> Effect:
+    """The generic polynomial NARX's terms of degree 2: every product of two of the model's own
+    shortest lags of y and x (``POLYNOMIAL_LAGS`` of each), y[t-i]·x[t-j], y[t-i]·y[t-j],
+    x[t-i]·x[t-j]. They name no physical effect; they are what an identifier tries where no named
+    family explains the data (a motor/generator whose output goes with the product of its
+    input and its own past), and the loop offers them after every named family
+    (:func:`models.refinement.refine`). Products of every lag would grow as the square of the
+    order (231 for ARX(10, 10) with x[t]) and make each round's scoring that much slower."""
+    lags = {
+        signal: sorted({f.lag for t in terms for f in t.factors if f.signal == signal})[:POLYNOMIAL_LAGS]
+        for signal in ("y", "x")
+    }
+    factors = [Factor(signal, lag) for signal, chosen in lags.items() for lag in chosen]
+    return Effect(
+        POLYNOMIAL,
+        "products of two of the model's lags, no physical effect named: the generic polynomial NARX "
+        "of degree 2",
+        tuple(Term.of(pair) for pair in itertools.combinations_with_replacement(factors, 2)),
+    )
 
 
 def unused(effects: Sequence[Effect], terms: Sequence[Term]) -> list[Effect]:

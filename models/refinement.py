@@ -21,6 +21,10 @@ loop chooses), each round
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Otherwise the loop stops.
 
+The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
+lags, no physical effect named) is scored with the named families but judged after them: steps 3
+and 4 run for the named families first, and only where neither adds one for the polynomial.
+
 After the rounds, the refined structure must simulate the check blocks better than the declared
 one, both with their parameters by output error (from three records on, on every fold below);
 otherwise what the rounds added is withdrawn and the declared structure kept.
@@ -67,7 +71,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
-from itertools import pairwise
+from itertools import compress, pairwise
 from typing import Any, Literal, NamedTuple, get_args
 
 import numpy as np
@@ -86,7 +90,15 @@ from models.checking import (
     grown_by_zeros,
 )
 from models.coverage import Coverage, coverage
-from models.effects import Effect, candidate_effects, linear_terms, offset_terms, output_limits, unused
+from models.effects import (
+    POLYNOMIAL,
+    Effect,
+    candidate_effects,
+    linear_terms,
+    offset_terms,
+    output_limits,
+    unused,
+)
 from models.errors import InputError
 from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails, held_out_tails
 from models.narx import NARX, Saturation
@@ -771,25 +783,43 @@ def _grown(
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
-        significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
-        for score, error, structure in _judged_in_turn(
-            significant,
-            kinds,
-            current,
-            records,
-            checks,
-            workers,
-            tell,
-            f"round {number}",
-        ):
-            if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-                decided = (score, "one-step", structure, error)
+        ranked: Scores | None = None
+        # The named families on both criteria first, then the generic polynomial on both: where a
+        # named effect explains the data, the loop names it.
+        tier = [e.name == POLYNOMIAL for e in offered]
+        for generic in (False, True):
+            significant = sorted(
+                (s for s, g in zip(scores.scores, tier, strict=True) if s.significant and g == generic),
+                key=lambda s: s.bic_change,
+            )
+            for score, error, structure in _judged_in_turn(
+                significant,
+                kinds,
+                current,
+                records,
+                checks,
+                workers,
+                tell,
+                f"round {number}",
+            ):
+                if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
+                    decided = (score, "one-step", structure, error)
+                    break
+                rejected.append(score.name)
+            if decided is None and output_error and generic in tier:
+                offer = "the generic polynomial" if generic else "the families"
+                tell(f"round {number}: {offer} on the simulation error")
+                ranked = ranked or _ranked(records, current, offered, alpha, workers, threads)
+                chosen = [g == generic for g in tier]
+                decided = _by_simulation(
+                    list(compress(offered, chosen)),
+                    list(compress(ranked.scores, chosen)),
+                    current,
+                    checks,
+                    workers,
+                )
+            if decided is not None:
                 break
-            rejected.append(score.name)
-        if decided is None and output_error:
-            tell(f"round {number}: the families on the simulation error")
-            ranked = _ranked(records, current, offered, alpha, workers, threads)
-            decided = _by_simulation(offered, ranked.scores, current, checks, workers)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
@@ -941,8 +971,8 @@ def choose_linear(
     workers: Workers = map,
     margin: float = ORDER_GAIN,
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
-    """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``)
-    that simulates the held-out data best for its size.
+    """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``), with
+    a constant or without, that simulates the held-out data best for its size.
 
     Every candidate is judged on the three rotations of the check split (each block of the
     estimation data held out once; from three records on, each record): fitted on the rest by
@@ -952,13 +982,26 @@ def choose_linear(
     A model the input barely drives is no start (:func:`_is_start`): on a rig record with a
     large dead zone, least squares' best predictor of order 2 extrapolates the output's own past,
     y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all, where the input drives none), the smallest is
-    chosen whose figure is within ``margin`` (relative) of the best, or above it by no more than
-    the standard error of their difference across the rotations: for the loop's start, an effect
+    chosen whose figure is within ``margin`` (relative) of the best, both raised for their size as
+    the Bayesian information criterion raises them (:func:`_size_penalty`: on a few hundred
+    samples a larger model's small gain is no reason), or above the best's by no more than the
+    standard error of their difference across the rotations: for the loop's start, an effect
     the linear model lacks lowers the free run of larger orders a little and unevenly (the best
     linear approximation of the nonlinearity), not by a new mode. A baseline to monitor a
-    structure by wants the model that simulates best, ``margin`` 0. Returns (n, n, d) and the
-    terms; ``progress`` is told each candidate as its figures are read, ``workers`` fit them
-    (:data:`models.regression.Workers`).
+    structure by wants the model that simulates best, ``margin`` 0.
+
+    **The constant.** An output at an operating point away from zero, its input about zero, is
+    reached by an ARX without a constant only through poles near one: a model that integrates
+    its own past, or one of needlessly high order. The orders chosen without a constant are
+    judged with one too; where it lowers their figure beyond the spread, every order is judged
+    with a constant as well and chosen among as above, the constant counted as one parameter
+    more; of the two starts so chosen, the one with the constant is taken where it
+    simulates better beyond ``margin`` and the spread, or as well and is smaller. On records
+    about zero the constant takes nothing off, and the start stays as it was without the second
+    set of fits.
+
+    Returns (n, n, d) and the terms; ``progress`` is told each candidate as its figures are read,
+    ``workers`` fit them (:data:`models.regression.Workers`).
     """
     if max_order < 1:
         raise InputError(f"the largest linear order must be 1 or more, got {max_order}")
@@ -966,22 +1009,73 @@ def choose_linear(
     folds = [checks, *(CheckSplit.of(records, fold) for fold in (0, 2))]
     tell = _told(progress)
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
-    structures = [Structure(linear_terms(n, n, d)) for n, d in orders]
+    samples = sum(len(y) for _, y in records)
+    judge = partial(_linear_figures, folds, workers=workers, tell=tell)
+    smallest = partial(_smallest_near_best, margin=margin, max_order=max_order, samples=samples)
+    figures, admissible = judge([(n, d, False) for n, d in orders])
+    n, d, _ = chosen = smallest(figures, admissible)
+    constant, constant_admissible = judge([(n, d, True)])
+    if _lower_beyond_spread(constant[(n, d, True)], figures[chosen]):
+        others = [(m, e, True) for m, e in orders if (m, e) != (n, d)]
+        more, more_admissible = judge(others)
+        constant |= more
+        with_constant = smallest(constant, constant_admissible | more_admissible)
+        # The two starts judged as the orders are: the one without a constant is kept unless the
+        # other simulates better beyond the margin, or as well and is smaller.
+        pair = {key: figures[key] if key == chosen else constant[key] for key in (chosen, with_constant)}
+        n, d, _ = chosen = smallest(pair, set(pair))
+    return (n, n, d), linear_terms(n, n, d, constant=chosen[2])
+
+
+# A linear candidate of :func:`choose_linear`: its order n, input delay d, and whether it has a
+# constant.
+_Linear = tuple[int, int, bool]
+
+
+def _linear_figures(
+    folds: Sequence[CheckSplit], candidates: Sequence[_Linear], workers: Workers, tell: Stage
+) -> tuple[dict[_Linear, np.ndarray], set[_Linear]]:
+    """Each linear candidate's held-out free-run RMS on every rotation of ``folds``, the better of
+    least squares and output error; and those that may start the loop (:func:`choose_linear`).
+    ``tell`` is told each candidate as its figures are read."""
+    structures = [Structure(linear_terms(n, n, d, constant)) for n, d, constant in candidates]
     judged = [fold.judge(structures, workers, tuned=True) for fold in folds]
-    figures: dict[tuple[int, int], np.ndarray] = {}
-    admissible: set[tuple[int, int]] = set()
-    for (n, d), structure in zip(orders, structures, strict=True):
-        tell(f"linear orders: ARX({n}, {n}), input delay {d}")
+    figures: dict[_Linear, np.ndarray] = {}
+    admissible: set[_Linear] = set()
+    for candidate, structure in zip(candidates, structures, strict=True):
+        n, d, constant = candidate
+        tell(f"linear orders: ARX({n}, {n}){' with a constant' if constant else ''}, input delay {d}")
         tuned = np.array([next(errors) for errors in judged])
         least_squares = np.array([fold.error(structure) for fold in folds])
         by_tuned = bool(np.mean(tuned) < np.mean(least_squares))
-        model = checks.tuned(structure) if by_tuned else _or_none(checks.fitted, structure)
-        figures[(n, d)] = tuned if by_tuned else least_squares
-        if model is not None and _is_start(model, checks):
-            admissible.add((n, d))
+        model = folds[0].tuned(structure) if by_tuned else _or_none(folds[0].fitted, structure)
+        figures[candidate] = tuned if by_tuned else least_squares
+        if model is not None and _is_start(model, folds[0]):
+            admissible.add(candidate)
+    return figures, admissible
+
+
+def _lower_beyond_spread(figure: np.ndarray, other: np.ndarray) -> bool:
+    """Whether ``figure`` is below ``other`` on average by more than the standard error of their
+    difference across the rotations."""
+    difference = other - figure
+    return float(np.mean(difference)) > float(np.std(difference, ddof=1) / np.sqrt(difference.size))
+
+
+def _smallest_near_best(
+    figures: dict[_Linear, np.ndarray], admissible: set[_Linear], margin: float, max_order: int, samples: int
+) -> _Linear:
+    """The smallest admissible candidate near the best (:func:`choose_linear`): its mean figure,
+    raised for its size on the ``samples`` held out (:func:`_size_penalty`), within ``margin`` of
+    the best's so raised, or its figures above the best's by no more than the spread of their
+    difference (a question of noise, which the size does not enter)."""
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
     # best of all is the start: the loop may still find what the input does.
-    mean = {nd: float(np.mean(e)) for nd, e in figures.items() if nd in admissible or not admissible}
+    mean = {
+        key: float(np.mean(e)) * _size_penalty(_parameters(key), samples)
+        for key, e in figures.items()
+        if key in admissible or not admissible
+    }
     best = min(mean, key=mean.__getitem__)
     if not np.isfinite(mean[best]):
         raise InputError(
@@ -989,17 +1083,31 @@ def choose_linear(
             "over their held-out parts without diverging"
         )
 
-    def near_best(nd: tuple[int, int]) -> bool:
-        difference = figures[nd] - figures[best]
-        spread = float(np.std(difference, ddof=1) / np.sqrt(difference.size))
-        return mean[nd] <= (1 + margin) * mean[best] or float(np.mean(difference)) <= spread
+    def near_best(key: _Linear) -> bool:
+        return mean[key] <= (1 + margin) * mean[best] or not _lower_beyond_spread(figures[best], figures[key])
 
-    # The smallest by parameters (x[t] is one more than a delay of one), then by order.
-    n, d = min(
-        (nd for nd in mean if np.isfinite(mean[nd]) and near_best(nd)),
-        key=lambda nd: (2 * nd[0] + (nd[1] == 0), nd[0]),
+    # The smallest by parameters, then by order.
+    return min(
+        (key for key in mean if np.isfinite(mean[key]) and near_best(key)),
+        key=lambda key: (_parameters(key), key[0]),
     )
-    return (n, n, d), linear_terms(n, n, d)
+
+
+def _parameters(candidate: _Linear) -> int:
+    """The parameters of a linear candidate of :func:`choose_linear`: x[t] is one more than a
+    delay of one, the constant one more."""
+    n, delay, constant = candidate
+    return 2 * n + (delay == 0) + constant
+
+
+def _size_penalty(parameters: int, samples: int) -> float:
+    """The factor by which :func:`choose_linear` raises a linear candidate's held-out free-run
+    RMS for its ``parameters``: the Bayesian information criterion's ``ln(samples)`` per
+    parameter on the ``samples`` the rotations hold out between them, N·ln(RMS²) + k·ln(N), as a
+    factor on the RMS. A few hundred samples give three check rotations too few to tell a few
+    parameters more from chance, and a larger model always fits some of them a little better;
+    on records of tens of thousands of samples the factor is near one and the spread decides."""
+    return float(np.exp(parameters * np.log(samples) / (2 * samples)))
 
 
 def _or_none(fit: Callable[[Structure], NARX], structure: Structure) -> NARX | None:
@@ -1018,7 +1126,9 @@ def _is_start(model: NARX, checks: CheckSplit) -> bool:
     driven, spread = [], []
     for x, y, t0 in checks.check:
         if len(y) > lag:
-            driven.append(model.simulate(x, np.zeros_like(y), t0)[lag:])
+            # Less the response to no input: a constant's alone is the operating point, no drive.
+            resting = model.simulate(np.zeros_like(x), np.zeros_like(y), t0)[lag:]
+            driven.append(model.simulate(x, np.zeros_like(y), t0)[lag:] - resting)
             spread.append(y[lag:] - np.mean(y[lag:]))
     if not spread:
         return False

@@ -177,7 +177,10 @@ def test_with_no_base_model_the_loop_chooses_linear_orders_and_stores_their_mode
         report = refinement["report"]
         assert refinement["base_model"] is None
         ny, nx, delay = report["orders_chosen"]
-        assert report["declared"]["terms"] == [term.name for term in linear_terms(ny, nx, delay)]
+        # The quadratic spring moves the output's mean off zero: the start may carry a constant.
+        assert report["declared"]["terms"] in (
+            [term.name for term in linear_terms(ny, nx, delay, constant)] for constant in (False, True)
+        )
         refined = refinement["refined_model"]
         assert (refined["name"], refined["version"]) == ("baseline", 1)
         (model,) = viewer.get(f"{API}/structures/{structure_id}/models").json()
