@@ -16,8 +16,9 @@ behind the sensor:
 - an input dead zone or backlash of a width estimated from the data;
 - hysteresis through a Bouc–Wen variable of the output: Bouc and Wen's
   dz = A·dx − β|dx|·z − γ·dx·|z| (Wen 1976; Ikhouane & Rodellar, *Systems with Hysteresis*,
-  2007, ch. 2) with n = 1, A = 1 and β = γ, discretised by forward differences on y's
-  increments; the level ±1/(β+γ) it saturates at is estimated (:func:`hysteresis_terms`);
+  2007, ch. 2) with n = 1 and A = 1, advanced exactly over each step of y
+  (:func:`models.terms.bouc_wen_step`); its level 1/(2β) and shape γ/β are estimated
+  together (:func:`hysteresis_terms`);
 - a nonlinear spring on a degree of freedom the sensor does not measure: its coordinate is a
   linear combination of the measured one's lags, so its force is the cube of that combination,
   fitted to the residual as one regressor (:func:`unmeasured_cube`) and added as the cross-lag
@@ -47,7 +48,7 @@ from scipy import fft, linalg, optimize
 from models.errors import InputError
 from models.regression import column_norms, divided_columns, orthogonal_part
 from models.spectrum import excited_intervals, residual_spectrum
-from models.terms import WAVES, Factor, Term, regressor_matrix
+from models.terms import WAVES, Factor, Term, bouc_wen, regressor_matrix
 
 EffectKind = Literal["terms", "output_shift", "periodic", "noise", "estimated", "saturation", "combined"]
 # What an "estimated" effect is: given x, y, the residual over rows lag … N−1, the model's terms
@@ -79,6 +80,11 @@ COMBINATION_STARTS = 4
 # family, and the shortest lags of y and of x whose products it holds.
 POLYNOMIAL = "polynomial"
 POLYNOMIAL_LAGS = 3
+# The grid of the Bouc–Wen shape r = γ/β (first, last, points), 1 (β = γ) among them. It spans
+# Ikhouane and Rodellar's classes of the n = 1 loop: r in (−1, 1] bounded, stiffer on unloading
+# than on loading (the classical loop); r > 1 bounded, softer on unloading too; r < −1 unbounded,
+# stiffening as the output moves on from where it turned.
+BOUC_WEN_SHAPES = (-3.0, 3.0, 7)
 
 
 @dataclass(frozen=True)
@@ -197,8 +203,8 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         ),
         Effect(
             "hysteresis",
-            "a hysteretic restoring force (Bouc–Wen): the hysteretic variable z of y, saturating at "
-            "a level estimated",
+            "a hysteretic restoring force (Bouc–Wen): the hysteretic variable z of y, its level and "
+            "shape estimated",
             (),
             "estimated",
             functools.partial(hysteresis_terms, lags_y),
@@ -430,10 +436,36 @@ def profile_search(
     model's, explain most of the residual (rows lag … N−1): a grid of ``PROFILE_POINTS``, then a
     bounded scalar search between the best point's neighbours; p rounded to 4 digits so that
     the terms' names stay short. The search reads the first ``SEARCH_ROWS`` rows."""
+    x, y, unexplained = _unexplained(x, y, residual, terms, lag)
+
+    def at(p: float) -> float:
+        columns, _ = regressor_matrix(list(build(float(np.exp(p) if log_scale else p))), x, y, lag)
+        return unexplained(columns)
+
+    low, high = (np.log(bounds[0]), np.log(bounds[1])) if log_scale else bounds
+    grid = np.linspace(low, high, PROFILE_POINTS)
+    values = [at(p) for p in grid]
+    best = int(np.argmin(values))
+    refined = optimize.minimize_scalar(
+        at,
+        bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
+        method="bounded",
+        options={"xatol": 1e-3 * (high - low)},
+    )
+    p = float(refined.x) if refined.fun <= values[best] else float(grid[best])
+    return build(float(f"{np.exp(p) if log_scale else p:.4g}"))
+
+
+def _unexplained(
+    x: np.ndarray, y: np.ndarray, residual: np.ndarray, terms: Sequence[Term], lag: int
+) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], float]]:
+    """The part of the record a search for a family's parameters reads (x and y up to the first
+    ``SEARCH_ROWS`` rows) and what it minimises: the residual's sum of squares that the family's
+    regressors over those rows (lag … on), beside the model's, leave unexplained (the whole
+    residual where a regressor is not finite or vanishes)."""
     x, y, residual, model_basis = _search_part(x, y, residual, terms, lag)
 
-    def unexplained(p: float) -> float:
-        columns, _ = regressor_matrix(list(build(float(np.exp(p) if log_scale else p))), x, y, lag)
+    def unexplained(columns: np.ndarray) -> float:
         norms = column_norms(columns)
         if not np.all(np.isfinite(norms)) or not np.all(norms > 0):
             return float(residual @ residual)
@@ -442,18 +474,7 @@ def profile_search(
         remaining = residual - columns @ fit
         return float(remaining @ remaining)
 
-    low, high = (np.log(bounds[0]), np.log(bounds[1])) if log_scale else bounds
-    grid = np.linspace(low, high, PROFILE_POINTS)
-    values = [unexplained(p) for p in grid]
-    best = int(np.argmin(values))
-    refined = optimize.minimize_scalar(
-        unexplained,
-        bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
-        method="bounded",
-        options={"xatol": 1e-3 * (high - low)},
-    )
-    p = float(refined.x) if refined.fun <= values[best] else float(grid[best])
-    return build(float(f"{np.exp(p) if log_scale else p:.4g}"))
+    return x, y, unexplained
 
 
 def power_law_terms(
@@ -674,19 +695,50 @@ def hysteresis_terms(
     terms: Sequence[Term],
     lag: int,
 ) -> tuple[Term, ...]:
-    """boucwen(y[t-k], w) at each lag, the level w estimated between 1 % and 150 % of y's
-    standard deviation (on a log scale); none if the model has one already. A force k·z on a
-    coordinate y reaches y through the dynamics, at the model's lags. The forward difference of
-    z overshoots once a step of y exceeds w, so w stays above twice the largest step."""
+    """boucwen(y[t-k], w, r) at each lag, the level w between 1 % and ten times y's standard
+    deviation (on a log scale) and the shape r = γ/β within ``BOUC_WEN_SHAPES`` estimated
+    together; none if the model has one already. At the ends of those ranges z is no loop: a
+    sign of the velocity (Coulomb friction) at the lowest level, y itself with a correction of
+    y·|y| (a spring) at the highest, a stiffening spring at the lowest shape. A force k·z on a
+    coordinate y reaches y through the dynamics, at the model's lags.
+
+    The two are sought on a grid of ``PROFILE_POINTS`` levels by the shapes' grid, then by a
+    simplex search within the best point's neighbours; each rounded to 4 digits. A best point at
+    an end of either grid is no estimate: the family is not offered. The search runs
+    z once for each point and reads its lags from that run: the terms' regressors each start z
+    at their first row, which the search's columns differ from only while z forgets its start."""
     scale = float(np.std(y))
-    low = max(0.01 * scale, 2.0 * float(np.max(np.abs(np.diff(y)), initial=0.0)))
-    if not low < 1.5 * scale or _has(terms, "y", "boucwen"):
+    if not scale > 0 or _has(terms, "y", "boucwen"):
         return ()
 
-    def build(w: float) -> tuple[Term, ...]:
-        return tuple(Term((Factor("y", k, function="boucwen", parameter=w),)) for k in lags)
+    def build(w: float, r: float) -> tuple[Term, ...]:
+        return tuple(Term((Factor("y", k, function="boucwen", parameter=w, shape=r),)) for k in lags)
 
-    return profile_search(build, (low, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
+    x, y, unexplained = _unexplained(x, y, residual, terms, lag)
+
+    def at(p: np.ndarray) -> float:
+        z = bouc_wen(y, float(np.exp(p[0])), float(p[1]))
+        return unexplained(np.column_stack([z[lag - k : len(z) - k] for k in lags]))
+
+    levels = np.linspace(np.log(0.01 * scale), np.log(10.0 * scale), PROFILE_POINTS)
+    shapes = np.linspace(*BOUC_WEN_SHAPES)
+    values = np.array([[at(np.array((w, r))) for r in shapes] for w in levels])
+    i, j = np.unravel_index(int(np.argmin(values)), values.shape)
+    if i in (0, len(levels) - 1) or j in (0, len(shapes) - 1):
+        # The residual asks for z beyond the family's ranges: not a hysteresis it holds, but a
+        # force its terms imitate there (Silverbox's cubic spring, by the lowest shape).
+        return ()
+    box = [(grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]) for grid, k in ((levels, i), (shapes, j))]
+    start = np.array((levels[i], shapes[j]))
+    refined = optimize.minimize(
+        at,
+        start,
+        method="Nelder-Mead",
+        bounds=box,
+        options={"xatol": 1e-3, "fatol": 1e-9 * values[i, j], "maxfev": 60},
+    )
+    w, r = refined.x if refined.fun <= values[i, j] else start
+    return build(float(f"{np.exp(w):.4g}"), float(f"{r:.4g}"))
 
 
 def _search_part(

@@ -48,10 +48,10 @@ class FreeRun:
         for a term of the output alone, whose part is one (most terms: kept out, their columns
         of ones would be most of what a run reads); ``recursive_terms`` their indices.
     factor_start : (R + 1,) where each autoregressive term's output factors begin in the
-        flattened ``difference``/``lag``/``function``/``parameter`` arrays (one entry a
+        flattened ``difference``/``lag``/``function``/``parameter``/``shape`` arrays (one entry a
         factor; a difference factor reads ŷ[t−lag] − ŷ[t−lag−1]; ``parameter`` is a power law's
-        exponent, a Bouc–Wen variable's saturation level; the kernel runs that variable of ŷ from
-        the first sample on).
+        exponent, a Bouc–Wen variable's level, ``shape`` that variable's shape; the kernel runs
+        that variable of ŷ from the first sample on).
     factor_feature : (F,) each factor's feature: what it reads of one sample, transformed and
         raised to its power, the same for every lag (−1 for a Bouc–Wen factor); the features'
         ``feature_difference``/``feature_function``/``feature_power``/``feature_parameter``. The
@@ -71,6 +71,7 @@ class FreeRun:
     factor_lag: np.ndarray
     function: np.ndarray
     parameter: np.ndarray
+    shape: np.ndarray
     factor_feature: np.ndarray
     feature_difference: np.ndarray
     feature_function: np.ndarray
@@ -134,6 +135,7 @@ class FreeRun:
             factor_lag=np.asarray([f.lag for f in factors], dtype=np.int64),
             function=np.asarray([FUNCTION_CODES[f.function] for f in factors], dtype=np.int64),
             parameter=np.asarray([f.parameter for f in factors], dtype=np.float64),
+            shape=np.asarray([f.shape for f in factors], dtype=np.float64),
             factor_feature=np.asarray(factor_feature, dtype=np.int64),
             feature_difference=np.asarray([key[0] for key in features], dtype=np.bool_),
             feature_function=np.asarray([key[1] for key in features], dtype=np.int64),
@@ -207,6 +209,7 @@ class FreeRun:
                 self.factor_lag,
                 self.function,
                 self.parameter,
+                self.shape,
                 low,
                 high,
                 self.exogenous,
@@ -235,6 +238,7 @@ def _recursion(
     factor_lag: np.ndarray,
     function: np.ndarray,
     parameter: np.ndarray,
+    shape: np.ndarray,
     low: float,
     high: float,
     exogenous: np.ndarray,
@@ -273,7 +277,8 @@ def _recursion(
     hysteretic = np.zeros((bouc_wen.size, n))
     for i, f in enumerate(bouc_wen):
         for t in range(1, start):
-            hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], out[t] - out[t - 1], parameter[f])
+            step = out[t] - out[t - 1]
+            hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], step, parameter[f], shape[f])
     for s in range(max(0, start - reach), start):
         _features(
             out, s, s & mask, cached, cached_slope, feature_difference, feature_function, feature_power,
@@ -335,7 +340,8 @@ def _recursion(
             feature_parameter, with_sensitivities,
         )  # fmt: skip
         for i, f in enumerate(bouc_wen):
-            hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], out[t] - out[t - 1], parameter[f])
+            step = out[t] - out[t - 1]
+            hysteretic[i, t] = bouc_wen_step(hysteretic[i, t - 1], step, parameter[f], shape[f])
         if with_sensitivities:
             if out[t] != total:  # held at a limit: no parameter moves it
                 S[t, :] = 0.0

@@ -17,11 +17,15 @@ model can carry the effects physics puts into real structures, a factor may also
   that distance). Backlash has memory: it is run over the rows a regressor is computed on,
   starting with the play centred on the first value, and forgets that start once the input
   has moved by 2w;
-- the Bouc–Wen hysteretic variable of the output, ``boucwen(y[t-2],0.05)`` = z[t-2] with
-  z[t] = z[t-1] + Δ − β|Δ|·z[t-1] − γ·Δ·|z[t-1]|, Δ = y[t] − y[t-1] and β = γ = 1/(2w), so
-  that z saturates at ±w (Wen 1976, n = 1, discretised by forward differences). Like backlash it
-  is run over the rows it is computed on from z = 0 (the free run: from the record's first
-  sample), and forgets its start at the rate β|Δ|;
+- the Bouc–Wen hysteretic variable of the output, ``boucwen(y[t-2],0.05)`` = z[t-2], with
+  dz = dy − β|dy|·z − γ·dy·|z| (Wen 1976, n = 1, A = 1), β = 1/(2w) and γ = r·β for the shape
+  r = γ/β after a second comma, ``boucwen(y[t-2],0.05,-1.4)``, 1 when left out. For r > −1 z
+  saturates at ±2w/(1 + r) (±w for r = 1); for r < −1 (β + γ < 0) it stiffens as y moves on
+  from where it turned, as in Noël and Schoukens' hysteretic benchmark. Bouc–Wen with n = 1 is
+  rate-independent and, while y moves one way and z keeps its sign, linear in z along y, so z
+  is advanced over each step of y exactly (:func:`bouc_wen_step`), however large the step
+  against w. Like backlash it is run over the rows it is computed on from z = 0 (the free run:
+  from the record's first sample), and forgets its start as y moves;
 - a sinusoid of the sample index t, ``sin(2pi*0.0125*t)`` or ``cos(…)``, its frequency in
   cycles per sample: a periodic disturbance, phase-locked to the record's first sample.
 
@@ -59,7 +63,7 @@ _LAGGED = re.compile(
 )
 _WITH_PARAMETER = re.compile(
     r"^(?P<function>spow|apow|deadzone|backlash|boucwen)\((?P<signal>d?[xy])\[t(?:-(?P<lag>\d+))?\],"
-    r"(?P<parameter>[0-9.eE+-]+)\)(?:\^(?P<power>\d+))?$"
+    r"(?P<parameter>[0-9.eE+-]+)(?:,(?P<shape>[0-9.eE+-]+))?\)(?:\^(?P<power>\d+))?$"
 )
 _WAVE = re.compile(r"^(?P<wave>sin|cos)\(2pi\*(?P<frequency>[0-9.eE+-]+)\*t\)(?:\^(?P<power>\d+))?$")
 Lagged = Callable[[int], np.ndarray]
@@ -72,7 +76,7 @@ class Factor:
     ``signal`` is y or x, their first differences dy or dx, or sin or cos; ``function`` is ""
     (none), "abs", "sign", a power law "spow" or "apow" of exponent ``parameter`` (power 1),
     on x alone "deadzone" or "backlash" of half-width ``parameter``, on y alone "boucwen"
-    saturating at ``parameter`` (power 1); ``frequency``
+    of level ``parameter`` and shape ``shape`` (power 1; the shape belongs to it alone); ``frequency``
     (cycles per sample, below 0.5) belongs to sin and cos, whose lag is 0.
     """
 
@@ -82,6 +86,7 @@ class Factor:
     function: str = ""
     frequency: float = 0.0
     parameter: float = 0.0
+    shape: float = 1.0
 
     def __post_init__(self) -> None:
         if self.signal not in SIGNALS:
@@ -126,6 +131,10 @@ class Factor:
         with_parameter = POWER_LAWS + INPUT_PLAYS + OUTPUT_HYSTERESES
         if self.parameter and self.function not in with_parameter:
             raise InputError(f"only {', '.join(with_parameter)} take a parameter")
+        if self.shape != 1.0 and self.function not in OUTPUT_HYSTERESES:
+            raise InputError(f"only {', '.join(OUTPUT_HYSTERESES)} take a shape, a second parameter")
+        if not math.isfinite(self.shape):
+            raise InputError(f"{self.function}(…) needs a finite shape, got {self.shape}")
 
     @property
     def name(self) -> str:
@@ -134,7 +143,8 @@ class Factor:
         else:
             base = f"{self.signal}[t]" if self.lag == 0 else f"{self.signal}[t-{self.lag}]"
             if self.function in (*POWER_LAWS, *INPUT_PLAYS, *OUTPUT_HYSTERESES):
-                base = f"{self.function}({base},{self.parameter!r})"
+                shape = "" if self.shape == 1.0 else f",{self.shape!r}"
+                base = f"{self.function}({base},{self.parameter!r}{shape})"
             elif self.function:
                 base = f"{self.function}({base})"
         return base if self.power == 1 else f"{base}^{self.power}"
@@ -185,23 +195,52 @@ class Factor:
         if self.function == "backlash":
             return play(np.ascontiguousarray(base, dtype=np.float64), self.parameter)
         if self.function == "boucwen":
-            return bouc_wen(np.ascontiguousarray(base, dtype=np.float64), self.parameter)
+            return bouc_wen(np.ascontiguousarray(base, dtype=np.float64), self.parameter, self.shape)
         return base
 
 
 @numba.njit(cache=True, nogil=True)
-def bouc_wen(series: np.ndarray, level: float) -> np.ndarray:
-    """The Bouc–Wen variable of a series (n = 1, β = γ = 1/(2·level)), from z = 0."""
+def bouc_wen(series: np.ndarray, level: float, shape: float) -> np.ndarray:
+    """The Bouc–Wen variable of a series (n = 1, β = 1/(2·level), γ = shape·β), from z = 0."""
     out = np.zeros_like(series)
     for t in range(1, series.size):
-        out[t] = bouc_wen_step(out[t - 1], series[t] - series[t - 1], level)
+        out[t] = bouc_wen_step(out[t - 1], series[t] - series[t - 1], level, shape)
     return out
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def bouc_wen_step(z: float, step: float, level: float) -> float:
-    """z + Δ − β|Δ|z − γΔ|z| with β = γ = 1/(2·level): z saturates at ±level."""
-    return z + step - (abs(step) * z + step * abs(z)) / (2.0 * level)
+def bouc_wen_step(z: float, step: float, level: float, shape: float) -> float:
+    """z after the series moves by ``step``: dz = dy − β|dy|·z − γ·dy·|z| solved exactly along
+    a monotone path, β = 1/(2·level) and γ = shape·β.
+
+    In s = z·sign(dy), along the distance d moved, ds/dd = 1 − c·s with c = β + γ while s ≥ 0
+    (the move drives z away from zero) and c = β − γ while s < 0 (back towards it): linear in
+    each part, so s + (1 − c·s)·(1 − e^(−c·d))/c until s reaches zero, and on from there. A
+    forward difference, z + Δ − β|Δ|z − γΔ|z|, is its first order: it overshoots the level once a
+    step exceeds it, so a search would have to keep the level above the record's steps."""
+    distance = abs(step)
+    if distance == 0.0:
+        return z
+    direction = 1.0 if step > 0.0 else -1.0
+    beta = 0.5 / level
+    s = z * direction
+    if s < 0.0:
+        rate = beta * (1.0 - shape)
+        # How far the series moves before s reaches zero: never where s runs away (1 − c·s ≤ 0).
+        pull = 1.0 - rate * s
+        to_zero = np.inf if pull <= 0.0 else -s if rate == 0.0 else np.log(pull) / rate
+        if to_zero > distance:
+            return direction * (s + pull * _along(rate, distance))
+        distance -= to_zero
+        s = 0.0
+    rate = beta * (1.0 + shape)
+    return direction * (s + (1.0 - rate * s) * _along(rate, distance))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _along(rate: float, distance: float) -> float:
+    """(1 − e^(−rate·distance))/rate, which is ``distance`` where the rate is zero."""
+    return distance if rate == 0.0 else -np.expm1(-rate * distance) / rate
 
 
 @numba.njit(cache=True, nogil=True)
@@ -225,9 +264,16 @@ class Term:
 
     @classmethod
     def of(cls, factors: Iterable[Factor]) -> Term:
-        powers: dict[tuple[str, int, str, float, float], int] = {}
+        powers: dict[tuple[str, int, str, float, float, float], int] = {}
         for factor in factors:
-            key = (factor.signal, factor.lag, factor.function, factor.frequency, factor.parameter)
+            key = (
+                factor.signal,
+                factor.lag,
+                factor.function,
+                factor.frequency,
+                factor.parameter,
+                factor.shape,
+            )
             powers[key] = powers.get(key, 0) + factor.power
         # y before x, then by lag: matches how the paper writes its regressors.
         ordered = sorted(
@@ -238,12 +284,13 @@ class Term:
                 FUNCTIONS.index(item[0][2]),
                 item[0][3],
                 item[0][4],
+                item[0][5],
             ),
         )
         return cls(
             tuple(
-                Factor(signal, lag, power, function, frequency, parameter)
-                for (signal, lag, function, frequency, parameter), power in ordered
+                Factor(signal, lag, power, function, frequency, parameter, shape)
+                for (signal, lag, function, frequency, parameter, shape), power in ordered
             )
         )
 
@@ -293,10 +340,11 @@ def _parse_factor(part: str, name: str) -> Factor:
         return Factor(wave["wave"], 0, int(wave["power"] or 1), frequency=frequency)
     if with_parameter := _WITH_PARAMETER.match(part):
         try:
-            parameter = float(with_parameter["parameter"])
+            parameter, shape = (float(with_parameter[key] or 1.0) for key in ("parameter", "shape"))
         except ValueError:
             raise InputError(
-                f"cannot read term {name!r}: {with_parameter['parameter']!r} is not a number"
+                f"cannot read term {name!r}: {with_parameter['parameter']!r} or "
+                f"{with_parameter['shape'] or ''!r} is not a number"
             ) from None
         return Factor(
             with_parameter["signal"],
@@ -304,6 +352,7 @@ def _parse_factor(part: str, name: str) -> Factor:
             int(with_parameter["power"] or 1),
             with_parameter["function"],
             parameter=parameter,
+            shape=shape,
         )
     lagged = _LAGGED.match(part)
     if lagged is None:
