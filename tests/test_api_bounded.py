@@ -39,6 +39,7 @@ from harness.api_helpers import (
     wait_for,
 )
 from harness.live import DATABASES, LiveServer
+from models.effects import candidate_effects
 from service.config import Settings
 from service.jobs.tasks import TASKS
 from service.tables import Organisation
@@ -282,10 +283,14 @@ def test_a_refinement_of_a_long_record_is_queued_and_its_job_stores_the_report(d
 
 
 def test_a_refinement_on_several_records_is_priced_on_all_of_them(database_bounded: Bounded):
-    """The records judged cost too: 2000 samples fitted (68 000 cells alone) with 4000 judged is
-    6000 × 34 = 204 000 cells, over the limit; 2000 + 700 fitted with 1000 judged, 125 800 cells,
-    is queued though no record alone would be, and the job stores every record's role."""
+    """The records judged cost too: a refinement from the rig's eight terms prices every sample at
+    the terms and the regressors of every family offered for them (44); 2000 samples fitted
+    (88 000 cells alone) with 4000 judged is 264 000 cells, over the limit; 2000 + 700 fitted with
+    1000 judged, 162 800 cells, is queued though no record alone would be, and the job stores
+    every record's role."""
     bounded = database_bounded
+    regressors = len(EXACT_TERMS) + sum(effect.regressors for effect in candidate_effects(EXACT_TERMS))
+    assert 2000 * regressors < QUEUE_CELLS < (2000 + 700 + 1000) * regressors < MAX_CELLS < 6000 * regressors
     with clients(bounded.org) as (admin, ingest, viewer):
         baseline = admin.post(
             baseline_url(bounded.rig), json={"record_ids": [bounded.record[2000]], "terms": EXACT}
@@ -297,7 +302,7 @@ def test_a_refinement_on_several_records_is_priced_on_all_of_them(database_bound
             response = admin.post(
                 f"{API}/structures/{bounded.rig}/refinements", json=body | {"base_model_id": base}
             )
-            assert_refused(response, 422, "this refinement would fit 204000 cells")
+            assert_refused(response, 422, f"this refinement would fit {6000 * regressors} cells")
         judged = post_record(ingest, bounded.rig, json_body(1000, seed=77))
         assert judged.status_code == 201, judged.text
         body = {
