@@ -167,6 +167,12 @@ class Round:
     # Significant effects passed over, best first, because adding them did not lower the model's
     # free run over the check blocks by more than its standard error (or made it diverge).
     rejected: tuple[str, ...] = ()
+    # The terms pruned after the addition, in the order taken out (:func:`_pruned`): of this
+    # round's effect or an earlier one's. ``check_rms`` is after the pruning.
+    pruned: tuple[str, ...] = ()
+    # Every term this round's effect brought was pruned, by its own round's pruning or a later's:
+    # the effect is withdrawn, the refined model does not hold it.
+    pruned_away: bool = False
 
 
 @dataclass(frozen=True)
@@ -203,7 +209,12 @@ class Refinement:
     @property
     def kept(self) -> tuple[Round, ...]:
         """The rounds whose effect the refined model holds."""
-        return tuple(r for r in self.rounds[self.withdrawn :] if r.added is not None)
+        return tuple(r for r in self.rounds[self.withdrawn :] if r.added is not None and not r.pruned_away)
+
+    @property
+    def effects_pruned(self) -> tuple[str, ...]:
+        """The names of the effects every term of which was pruned (:func:`_pruned`), each once."""
+        return _pruned_away(self.rounds)
 
     @property
     def effects_added(self) -> tuple[EffectScore, ...]:
@@ -763,7 +774,9 @@ def _grown(
     margin = check_noise(checks.check)
     rounds: list[Round] = []
     for number in range(1, max_rounds + 1):
-        offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
+        # A family pruned away is not offered again: the next round would add it back as it did.
+        gone = _pruned_away(rounds)
+        offered = unused([_follow(e, current.terms) for e in families if e.name not in gone], current.terms)
         # A saturating model is not offered saturation again.
         offered = [e for e in offered if not (e.kind == "saturation" and current.saturating is not None)]
         if not offered:
@@ -824,8 +837,15 @@ def _grown(
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
         score, criterion, current, error = decided
-        step = replace(step, added=score, criterion=criterion, check_rms=(check, error))
-        rounds.append(replace(step, rejected=tuple(rejected)))
+        rounds.append(replace(step, added=score, criterion=criterion, rejected=tuple(rejected)))
+        if score.terms and not score.noise_lags:
+            # Judged as the effects in the model were decided: by output error once one was
+            # decided on the simulation error alone, whose least-squares model may simulate worse.
+            tuned = any(r.criterion == "simulation" for r in rounds)
+            current, pruned = _pruned(current, terms, checks, workers, tuned)
+            rounds = _without_pruned(rounds, pruned)
+            error = checks.error(current) if pruned else error
+        rounds[-1] = replace(rounds[-1], check_rms=(check, error))
         check = error
     declared_structure = Structure(terms)
     folds = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)] if len(records) >= 3 else []
@@ -1241,6 +1261,56 @@ def _by_simulation(
         if tuned_error <= (1 - SIMULATION_GAIN) * baseline:
             return score, "simulation", structure, error
     return None
+
+
+def _pruned(
+    current: Structure, start: tuple[Term, ...], checks: CheckSplit, workers: Workers, tuned: bool
+) -> tuple[Structure, tuple[Term, ...]]:
+    """``current`` pruned back after an addition (Piroddi & Spinelli 2003, SEMP's pruning), and the
+    terms taken out in turn.
+
+    Each term the rounds added (``start``'s terms stay) is taken out in turn and the rest fitted
+    on the check split's fit parts; the one whose removal leaves the check blocks' free-run RMS
+    lowest goes where that RMS is no higher than with it, and the search repeats on what is left.
+    An effect picked on one round can be made useless by a later one it stood in for (a power law
+    fitted beside the quadratic spring it imitated), and a family's terms ride in together though
+    only some of them simulate: what does not pay on the check blocks is not kept. The unit is the
+    term, so that an effect keeps those of its terms that pay. ``tuned`` judges the structures by
+    their output-error fits, else by least squares; the structures by ``workers``.
+    """
+    figure = checks.error(current, tuned)
+    pruned: list[Term] = []
+    while removable := [term for term in current.terms if term not in start]:
+        without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in removable]
+        errors = list(checks.judge(without, workers, tuned))
+        best = int(np.argmin(errors))
+        if not errors[best] <= figure:
+            break
+        current, figure = without[best], errors[best]
+        pruned.append(removable[best])
+    return current, tuple(pruned)
+
+
+def _pruned_away(rounds: Sequence[Round]) -> tuple[str, ...]:
+    """The names of the effects of ``rounds`` every term of which was pruned, each once."""
+    return tuple(dict.fromkeys(r.added.name for r in rounds if r.added is not None and r.pruned_away))
+
+
+def _without_pruned(rounds: list[Round], pruned: Sequence[Term]) -> list[Round]:
+    """The ``rounds`` with the ``pruned`` terms taken from the effects that brought them, named in
+    the last round's report; a round whose effect is left without terms is marked pruned away."""
+    names = {term.name for term in pruned}
+    if not names:
+        return rounds
+    result = []
+    for step in rounds:
+        added = step.added
+        if added is not None and names & set(added.terms):
+            left = tuple(name for name in added.terms if name not in names)
+            step = replace(step, added=replace(added, terms=left), pruned_away=not left)
+        result.append(step)
+    result[-1] = replace(result[-1], pruned=tuple(term.name for term in pruned))
+    return result
 
 
 def _repairs_only_bias(
