@@ -19,7 +19,15 @@ loop chooses), each round
    family's regressors are tried in the order of their error reduction, and the family whose
    model (parameters refined by output error, as is the current model's) lowers the check
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
-   criterion. Otherwise the loop stops.
+   criterion. Otherwise the loop stops;
+5. after an addition, prunes back (Piroddi & Spinelli 2003): each term the rounds added is taken
+   out in turn, and the one whose removal leaves the check blocks' free run lowest goes where
+   that free run is no higher without it, until every term left pays (:func:`_pruned`). An
+   effect every term of which is pruned is withdrawn, and not offered again.
+
+Each round reports the candidates it compared on the check blocks' free run, the fall of that
+free run the effect added brought (else the best judged) against the fall it had to reach, and
+what the pruning took out.
 
 The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
 lags, no physical effect named) is scored with the named families but judged after them: steps 3
@@ -165,7 +173,7 @@ class Round:
     criterion: Criterion | None = None
     check_rms: tuple[float, float] = (np.inf, np.inf)
     # Significant effects passed over, best first, because adding them did not lower the model's
-    # free run over the check blocks by more than its standard error (or made it diverge).
+    # free run over the check blocks by the round's threshold (or made it diverge).
     rejected: tuple[str, ...] = ()
     # The terms pruned after the addition, in the order taken out (:func:`_pruned`): of this
     # round's effect or an earlier one's. ``check_rms`` is after the pruning.
@@ -173,6 +181,13 @@ class Round:
     # Every term this round's effect brought was pruned, by its own round's pruning or a later's:
     # the effect is withdrawn, the refined model does not hold it.
     pruned_away: bool = False
+    # The candidates whose free run over the check blocks the round compared with the model's
+    # (each significant family judged on it, each structure simulated for a family's terms), and
+    # the fall of that free-run RMS the effect added brought (else the best judged), with the
+    # fall it had to reach, both shares of the RMS before; NaN where none was judged.
+    tried: int = 0
+    gain: float = np.nan
+    threshold: float = np.nan
 
 
 @dataclass(frozen=True)
@@ -290,12 +305,20 @@ class RefinementReport:
                         "level": step.level,
                         "candidate_terms": step.candidates,
                         "check_free_run_rms": [_finite(value) for value in step.check_rms],
-                    },
+                    }
+                    | _selection_dict(step),
                 }
                 for step in result.kept
                 if (score := step.added) is not None
             ],
             "effects_withdrawn": list(result.effects_withdrawn),
+            "effects_pruned": list(result.effects_pruned),
+            "rounds": [
+                {"round": number, "added": None if step.added is None else step.added.name}
+                | _selection_dict(step)
+                | {"decided_by": step.criterion, "check_free_run_rms": [_finite(v) for v in step.check_rms]}
+                for number, step in enumerate(result.rounds, start=1)
+            ],
             "held_out": None if result.held_out is None else _held_out_dict(result.held_out),
             "check_free_run_rms": _finite(result.check_rms),
             "noise_floor": None
@@ -315,8 +338,23 @@ class RefinementReport:
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
-            "notes": list(self.notes) + _held_out_notes(result) + _skipped_notes(self.tests),
+            "notes": list(self.notes)
+            + _pruned_notes(result)
+            + _held_out_notes(result)
+            + _skipped_notes(self.tests),
         }
+
+
+def _selection_dict(step: Round) -> dict[str, Any]:
+    """How a round chose: the candidates it compared on the check blocks' free run, the fall of
+    that free run it saw and the fall needed (shares of it; None where none was judged), and the
+    terms pruned after its addition."""
+    return {
+        "candidates_tried": step.tried,
+        "threshold": _finite(step.threshold),
+        "gain": _finite(step.gain),
+        "pruned": list(step.pruned),
+    }
 
 
 def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
@@ -333,6 +371,15 @@ def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
         "refined_returned": held_out.kept,
         "best_tried": held_out.best_tried,
     }
+
+
+def _pruned_notes(result: Refinement) -> list[str]:
+    """Why each effect pruned away (:func:`_pruned`) is not in the refined model."""
+    return [
+        f"{name} was withdrawn: pruning after the rounds' additions took out every term it brought, "
+        "the check blocks' free run no higher without them"
+        for name in result.effects_pruned
+    ]
 
 
 def _held_out_notes(result: Refinement) -> list[str]:
@@ -797,6 +844,8 @@ def _grown(
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
         ranked: Scores | None = None
+        judged: Gain | None = None  # the effect added's, else the best judged's
+        tried = 0
         # The named families on both criteria first, then the generic polynomial on both: where a
         # named effect explains the data, the loop names it.
         tier = [e.name == POLYNOMIAL for e in offered]
@@ -815,24 +864,32 @@ def _grown(
                 tell,
                 f"round {number}",
             ):
-                if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-                    decided = (score, "one-step", structure, error)
+                tried += 1
+                # Moving-average noise, there to unbias the parameters, need only not make it worse.
+                gain = Gain(_fall(error, check), 0.0 if structure.noise_lags > current.noise_lags else margin)
+                if error <= (1 - gain.threshold) * check:
+                    decided, judged = (score, "one-step", structure, error), gain
                     break
+                judged = _better(judged, gain)
                 rejected.append(score.name)
             if decided is None and output_error and generic in tier:
                 offer = "the generic polynomial" if generic else "the families"
                 tell(f"round {number}: {offer} on the simulation error")
                 ranked = ranked or _ranked(records, current, offered, alpha, workers, threads)
                 chosen = [g == generic for g in tier]
-                decided = _by_simulation(
+                decided, simulated, structures = _by_simulation(
                     list(compress(offered, chosen)),
                     list(compress(ranked.scores, chosen)),
                     current,
                     checks,
                     workers,
                 )
+                tried += structures
+                judged = simulated if decided is not None else _better(judged, simulated)
             if decided is not None:
                 break
+        if judged is not None:
+            step = replace(step, tried=tried, gain=judged.gain, threshold=judged.threshold)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
@@ -1221,11 +1278,12 @@ def _by_simulation(
     current: Structure,
     checks: CheckSplit,
     workers: Workers,
-) -> tuple[EffectScore, Criterion, Structure, float] | None:
+) -> tuple[tuple[EffectScore, Criterion, Structure, float] | None, Gain | None, int]:
     """The family added on the simulation error alone, if one lowers the check blocks' free
     run enough (module docstring, step 4): its score with the terms that won, the structure, and
-    the check blocks' free-run RMS with it (least squares, as the other rounds report it). The
-    structures are judged by ``workers``."""
+    the check blocks' free-run RMS with it (least squares, as the other rounds report it); the
+    gain of that family by output error (else the best judged's, None where none was); and how
+    many structures were simulated. The structures are judged by ``workers``."""
     families = [
         (
             score,
@@ -1248,7 +1306,7 @@ def _by_simulation(
         if np.isfinite(errors[names]):
             trials.append((errors[names], replace(score, terms=names), grown[names]))
     if not trials:
-        return None
+        return None, None, len(grown)
     # The current structure's best simulation, whichever its parameters: its output-error fit can
     # fail to come to rest where its least-squares fit does (on unrelated white x and y the 2-DOF
     # structure's did), and against an infinite baseline any family would pass.
@@ -1257,10 +1315,36 @@ def _by_simulation(
     # model is far behind does not overtake by its parameters alone.
     best = sorted(trials, key=lambda trial: trial[0])[:2]
     tuned = checks.judge([structure for *_, structure in best], workers, tuned=True)
+    judged: Gain | None = None
     for (error, score, structure), tuned_error in zip(best, tuned, strict=True):
+        gain = Gain(_fall(tuned_error, baseline), SIMULATION_GAIN)
         if tuned_error <= (1 - SIMULATION_GAIN) * baseline:
-            return score, "simulation", structure, error
-    return None
+            return (score, "simulation", structure, error), gain, len(grown)
+        judged = _better(judged, gain)
+    return None, judged, len(grown)
+
+
+class Gain(NamedTuple):
+    """The fall of the check blocks' free-run RMS a candidate brought and the fall it had to
+    reach to be added, both shares of the RMS before."""
+
+    gain: float
+    threshold: float
+
+
+def _better(judged: Gain | None, other: Gain | None) -> Gain | None:
+    """The larger gain of ``judged`` and ``other``, either None where not judged."""
+    if judged is None or (other is not None and other.gain > judged.gain):
+        return other
+    return judged
+
+
+def _fall(after: float, before: float) -> float:
+    """The fall of a free-run RMS from ``before`` to ``after``, as a share of ``before``: −∞ where
+    ``after`` diverged, 1 where only ``before`` did."""
+    if not np.isfinite(after):
+        return -np.inf
+    return 1.0 if not np.isfinite(before) else float(1 - after / before)
 
 
 def _pruned(

@@ -887,3 +887,14 @@ def test_every_term_the_rounds_added_and_kept_lowers_the_check_blocks_free_run()
         assert checks.error(without) > checks.error(kept), term.name
     pruned = [name for step in result.rounds for name in step.pruned]
     assert "y[t-1]^3" in pruned and "y[t-1]^3" not in result.effects_added[0].terms, pruned
+    # The report says, round by round, how many candidates it compared, the gain it saw against
+    # the gain needed, and what the pruning took out.
+    report = RefinementReport(result, (compare(result, records, record.x, record.y, 0, None, 0),))
+    rounds = report.to_dict()["rounds"]
+    assert [step["added"] for step in rounds] == ["cubic_stiffness", "quadratic_stiffness", None]
+    assert [name for step in rounds for name in step["pruned"]] == pruned
+    for step, document in zip(result.rounds, rounds, strict=True):
+        assert document["candidates_tried"] == step.tried > 0
+        assert document["gain"] == step.gain and document["threshold"] == step.threshold
+    assert all(step["gain"] >= step["threshold"] for step in rounds[:2]), rounds
+    assert rounds[-1]["gain"] is None or rounds[-1]["gain"] <= rounds[-1]["threshold"], rounds[-1]
