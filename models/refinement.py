@@ -899,7 +899,8 @@ def _grown(
             # Judged as the effects in the model were decided: by output error once one was
             # decided on the simulation error alone, whose least-squares model may simulate worse.
             tuned = any(r.criterion == "simulation" for r in rounds)
-            current, pruned = _pruned(current, terms, checks, workers, tuned)
+            # The effect just added passed as a whole; its terms are pruned after the next addition.
+            current, pruned = _pruned(current, terms + parse_terms(score.terms), checks, workers, tuned)
             rounds = _without_pruned(rounds, pruned)
             error = checks.error(current) if pruned else error
         rounds[-1] = replace(rounds[-1], check_rms=(check, error))
@@ -1353,14 +1354,18 @@ def _pruned(
     """``current`` pruned back after an addition (Piroddi & Spinelli 2003, SEMP's pruning), and the
     terms taken out in turn.
 
-    Each term the rounds added (``start``'s terms stay) is taken out in turn and the rest fitted
-    on the check split's fit parts; the one whose removal leaves the check blocks' free-run RMS
-    lowest goes where that RMS is no higher than with it, and the search repeats on what is left.
-    An effect picked on one round can be made useless by a later one it stood in for (a power law
-    fitted beside the quadratic spring it imitated), and a family's terms ride in together though
-    only some of them simulate: what does not pay on the check blocks is not kept. The unit is the
-    term, so that an effect keeps those of its terms that pay. ``tuned`` judges the structures by
-    their output-error fits, else by least squares; the structures by ``workers``.
+    Each term the earlier rounds added (``start``'s terms stay: the declared ones and those of
+    the effect just added) is taken out in turn and the rest fitted on the check split's fit
+    parts; the one whose removal leaves the check blocks' free-run RMS lowest goes where that RMS
+    is no higher than with it, and the search repeats on what is left. An effect picked on one
+    round can be made useless by a later one it stood in for (a cubic spring fitted before the
+    quadratic spring it imitated), and a family's terms ride in together though only some of them
+    simulate: what does not pay on the check blocks is not kept. The unit is the term, so that an
+    effect keeps those of its terms that pay. The effect just added passed as a whole and waits
+    for the next addition: pruned at once, Silverbox's cubic damping lost dy[t-1]³, and the
+    broad unmeasured nonlinearity then won the round after next by taking it back, ahead of the
+    cubic stiffness the system has. ``tuned`` judges the structures by their output-error fits,
+    else by least squares; the structures by ``workers``.
     """
     figure = checks.error(current, tuned)
     pruned: list[Term] = []

@@ -865,8 +865,8 @@ def test_every_term_the_rounds_added_and_kept_lowers_the_check_blocks_free_run()
     """The rig's quadratic spring from the linear start the loop chooses: the cubic spring, added
     first, stands in for it with four terms, and once the quadratic spring is in, the free run over
     the check blocks is no worse without y[t-1]³ — which the loop kept before pruning. Pruned back
-    after each addition (Piroddi & Spinelli), no term the rounds added can go without raising it,
-    and the round names what it took out."""
+    after each addition (Piroddi & Spinelli; the effect just added waits for the next), no term
+    the rounds added can go without raising it, and the round names what it took out."""
     record = simulate(
         Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
     )
