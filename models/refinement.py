@@ -893,14 +893,16 @@ def _grown(
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
-        score, criterion, current, error = decided
+        score, criterion, grown, error = decided
+        new = tuple(term for term in grown.terms if term not in current.terms)
+        current = grown
         rounds.append(replace(step, added=score, criterion=criterion, rejected=tuple(rejected)))
         if score.terms and not score.noise_lags:
             # Judged as the effects in the model were decided: by output error once one was
             # decided on the simulation error alone, whose least-squares model may simulate worse.
             tuned = any(r.criterion == "simulation" for r in rounds)
             # The effect just added passed as a whole; its terms are pruned after the next addition.
-            current, pruned = _pruned(current, terms + parse_terms(score.terms), checks, workers, tuned)
+            current, pruned = _pruned(current, tuple(terms) + new, checks, workers, tuned)
             rounds = _without_pruned(rounds, pruned)
             error = checks.error(current) if pruned else error
         rounds[-1] = replace(rounds[-1], check_rms=(check, error))
