@@ -20,10 +20,11 @@ loop chooses), each round
    model (parameters refined by output error, as is the current model's) lowers the check
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Otherwise the loop stops;
-5. after an addition, prunes back (Piroddi & Spinelli 2003): each term the rounds added is taken
-   out in turn, and the one whose removal leaves the check blocks' free run lowest goes where
-   that free run is no higher without it, until every term left pays (:func:`_pruned`). An
-   effect every term of which is pruned is withdrawn, and not offered again.
+5. after an addition, prunes back (Piroddi & Spinelli 2003): each term the earlier rounds added
+   is taken out in turn, and the one whose removal leaves the check blocks' free run lowest goes
+   where that free run is no higher without it, until every term left pays (:func:`_pruned`).
+   The effect just added waits for the next addition's pruning, the last for one after the
+   rounds. An effect every term of which is pruned is withdrawn, and not offered again.
 
 Each round reports the candidates it compared on the check blocks' free run, the fall of that
 free run the effect added brought (else the best judged) against the fall it had to reach, and
@@ -907,6 +908,15 @@ def _grown(
             error = checks.error(current) if pruned else error
         rounds[-1] = replace(rounds[-1], check_rms=(check, error))
         check = error
+    if current.terms != tuple(terms):
+        # The last effect that brought terms has no next addition to wait for: its terms are
+        # pruned here, with the rest, and the last round names what went.
+        tuned = any(r.criterion == "simulation" for r in rounds)
+        current, pruned = _pruned(current, terms, checks, workers, tuned)
+        if pruned:
+            rounds = _without_pruned(rounds, pruned)
+            check = checks.error(current)
+            rounds[-1] = replace(rounds[-1], check_rms=(rounds[-1].check_rms[0], check))
     declared_structure = Structure(terms)
     folds = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)] if len(records) >= 3 else []
     # The least-squares fit on all the records of the structure the rounds grew, made by a thread
