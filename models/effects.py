@@ -728,7 +728,7 @@ def hysteresis_terms(
         # The residual asks for z beyond the family's ranges: not a hysteresis it holds, but a
         # force its terms imitate there (Silverbox's cubic spring, by the lowest shape).
         return ()
-    box = [(grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]) for grid, k in ((levels, i), (shapes, j))]
+    box = [(grid[k - 1], grid[k + 1]) for grid, k in ((levels, i), (shapes, j))]  # i, j are inside
     start = np.array((levels[i], shapes[j]))
     refined = optimize.minimize(
         at,
