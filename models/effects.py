@@ -144,28 +144,27 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
     x_lags = sorted({f.lag for t in terms for f in t.factors if f.signal == "x"}) or [1]
     ny = max(y_lags, default=0)
     lags_y = range(1, max(ny, 4) + 1)
-
-    def powers(signal: str, lags: Sequence[int], power: int) -> tuple[Term, ...]:
-        return tuple(Term((Factor(signal, lag, power),)) for lag in lags)
-
-    shorter_delay = [x_lags[0] - 1] if x_lags[0] > 0 else []
-    cube_terms = tuple(
-        Term.of(product)
-        for product in itertools.combinations_with_replacement(
-            [Factor("y", lags_y[-1])] + [Factor("dy", k) for k in lags_y[:-1]], 3
-        )
-    )
-    # A combination of one lag is the input nonlinearity's own x², x³: the family needs two.
-    filtered_terms = tuple(
-        Term.of(product)
-        for degree in (2, 3)
-        for product in itertools.combinations_with_replacement([Factor("x", k) for k in x_lags], degree)
-    )
-    velocity = [Factor("dy", lag) for lag in lags_y]
     effects = [
-        Effect("cubic_stiffness", "cubic restoring force: a stiffening spring", powers("y", lags_y, 3)),
+        *_force_effects(lags_y),
+        *_input_effects(x_lags),
+        *_estimated_effects(lags_y, x_lags),
+        *_structure_effects(terms, ny, x_lags),
+    ]
+    return unused(effects, terms)
+
+
+def _powers(signal: str, lags: Sequence[int], power: int) -> tuple[Term, ...]:
+    """The terms signal[t-k]^power, one for each lag k."""
+    return tuple(Term((Factor(signal, lag, power),)) for lag in lags)
+
+
+def _force_effects(lags_y: Sequence[int]) -> list[Effect]:
+    """The restoring and damping forces on the measured coordinate, of y and of its velocity dy."""
+    velocity = [Factor("dy", lag) for lag in lags_y]
+    return [
+        Effect("cubic_stiffness", "cubic restoring force: a stiffening spring", _powers("y", lags_y, 3)),
         Effect(
-            "quadratic_stiffness", "quadratic restoring force: an asymmetric spring", powers("y", lags_y, 2)
+            "quadratic_stiffness", "quadratic restoring force: an asymmetric spring", _powers("y", lags_y, 2)
         ),
         Effect(
             "coulomb_friction",
@@ -182,25 +181,45 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             "cubic damping: a force growing with the velocity cubed, dy³",
             tuple(Term((Factor("dy", v.lag, 3),)) for v in velocity),
         ),
-        Effect(
-            "input_nonlinearity",
-            "nonlinear excitation path: actuator or amplifier, x² and x³",
-            powers("x", x_lags, 2) + powers("x", x_lags, 3),
-        ),
-        *(
-            [
-                Effect(
-                    "filtered_input_nonlinearity",
-                    "a static nonlinearity between two linear filters (Wiener–Hammerstein): the square "
-                    "and cube of a combination of x's lags, as the monomials of degree 2 and 3 of x's lags",
-                    filtered_terms,
-                    "combined",
-                    combine=filtered_input_powers(x_lags, filtered_terms),
-                )
-            ]
-            if len(x_lags) > 1
-            else []
-        ),
+    ]
+
+
+def _input_effects(x_lags: Sequence[int]) -> list[Effect]:
+    """The nonlinearities of the excitation path: of x's lags, or of a filtered combination of them."""
+    input_nonlinearity = Effect(
+        "input_nonlinearity",
+        "nonlinear excitation path: actuator or amplifier, x² and x³",
+        _powers("x", x_lags, 2) + _powers("x", x_lags, 3),
+    )
+    # A combination of one lag is the input nonlinearity's own x², x³: the family needs two.
+    if len(x_lags) == 1:
+        return [input_nonlinearity]
+    filtered_terms = tuple(
+        Term.of(product)
+        for degree in (2, 3)
+        for product in itertools.combinations_with_replacement([Factor("x", k) for k in x_lags], degree)
+    )
+    filtered = Effect(
+        "filtered_input_nonlinearity",
+        "a static nonlinearity between two linear filters (Wiener–Hammerstein): the square "
+        "and cube of a combination of x's lags, as the monomials of degree 2 and 3 of x's lags",
+        filtered_terms,
+        "combined",
+        combine=filtered_input_powers(x_lags, filtered_terms),
+    )
+    return [input_nonlinearity, filtered]
+
+
+def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Effect]:
+    """The families whose terms are found from the residual: a parameter estimated (a level, an
+    exponent, a width) or a combination of lags fitted."""
+    cube_terms = tuple(
+        Term.of(product)
+        for product in itertools.combinations_with_replacement(
+            [Factor("y", lags_y[-1])] + [Factor("dy", k) for k in lags_y[:-1]], 3
+        )
+    )
+    return [
         Effect(
             "hysteresis",
             "a hysteretic restoring force (Bouc–Wen): the hysteretic variable z of y, its level and "
@@ -245,6 +264,14 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
             "estimated",
             functools.partial(input_play_terms, "backlash", x_lags),
         ),
+    ]
+
+
+def _structure_effects(terms: Sequence[Term], ny: int, x_lags: Sequence[int]) -> list[Effect]:
+    """The effects on the output side and in the model's form: saturation, lags, an offset, the
+    generic polynomial, a periodic disturbance and coloured noise."""
+    shorter_delay = [x_lags[0] - 1] if x_lags[0] > 0 else []
+    return [
         Effect(
             "output_saturation",
             "the output saturates: plateaus at the record's range ends (overflow, end stops, a "
@@ -255,7 +282,7 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         Effect(
             "missing_lags",
             "dynamics beyond the declared lags, or a shorter input delay",
-            powers("y", [ny + 1, ny + 2], 1) + powers("x", [x_lags[-1] + 1, *shorter_delay], 1),
+            _powers("y", [ny + 1, ny + 2], 1) + _powers("x", [x_lags[-1] + 1, *shorter_delay], 1),
         ),
         Effect("offset", "constant offset: sensor bias or static load", offset_terms(terms), "output_shift"),
         polynomial_effect(terms),
@@ -267,7 +294,6 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         ),
         Effect("moving_average_noise", "coloured noise: moving-average terms e[t-k] (NARMAX)", (), "noise"),
     ]
-    return unused(effects, terms)
 
 
 def polynomial_effect(terms: Sequence[Term]) -> Effect:
