@@ -126,24 +126,7 @@ def score_effects(
     whichever."""
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
-    Phi, target, starts = stacked_regressors(terms, records, lag)
-    # A saturating model's equations on (or, for a sensor, reading) its limits are left out; the
-    # candidates are built on every row and masked alike.
-    inside = np.ones(target.size, dtype=bool)
-    if saturating is not None:
-        inside = np.concatenate([fitted_rows(y, lag, *saturating) for _, y in records])
-        Phi, target = Phi[inside], target[inside]
-        starts = np.concatenate(([0], np.cumsum([int(inside[a:b].sum()) for a, b in pairwise(starts)])))
-    if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
-        process, noise = fit_model(records, terms, noise_lags, lag, saturating=saturating)
-        residual = target - Phi @ process.theta
-        innovations = np.concatenate(
-            [
-                signal.lfilter([1.0], np.concatenate(([1.0], noise)), residual[a:b])
-                for a, b in pairwise(starts)
-            ]
-        )
-        Phi = np.hstack([Phi, _lagged(innovations, range(1, noise_lags + 1), starts)])
+    Phi, target, starts, inside = _model_equations(records, terms, noise_lags, lag, saturating)
     scale = column_norms(Phi)
     Q, R = linalg.qr(divided_columns(Phi, scale), mode="economic", overwrite_a=True)
     projection = Q.T @ target
@@ -185,11 +168,56 @@ def score_effects(
     candidates = {i: _projected(labels, columns[inside], Q) for i, (labels, columns) in built}
     total = sum(columns.shape[1] for _, columns in candidates.values())
     level = alpha / max(total, 1)
+    scores = _tested(effects, candidates, residual, own_past, n_obs - n_par, level, rank, noise_lags, threads)
+    return Scores(float(np.sqrt(np.mean(residual**2))), level, total, scores)
+
+
+def _model_equations(
+    records: Records, terms: tuple[Term, ...], noise_lags: int, lag: int, saturating: Saturating | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The model's regressors and target on the rows t = lag … N−1 of each record that it is
+    fitted on, each record's first of those rows (and the end), and which of every row they are;
+    with ``noise_lags``, the NARMAX's lagged innovations beside its regressors."""
+    Phi, target, starts = stacked_regressors(terms, records, lag)
+    # A saturating model's equations on (or, for a sensor, reading) its limits are left out; the
+    # candidates are built on every row and masked alike.
+    inside = np.ones(target.size, dtype=bool)
+    if saturating is not None:
+        inside = np.concatenate([fitted_rows(y, lag, *saturating) for _, y in records])
+        Phi, target = Phi[inside], target[inside]
+        starts = np.concatenate(([0], np.cumsum([int(inside[a:b].sum()) for a, b in pairwise(starts)])))
+    if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
+        process, noise = fit_model(records, terms, noise_lags, lag, saturating=saturating)
+        residual = target - Phi @ process.theta
+        innovations = np.concatenate(
+            [
+                signal.lfilter([1.0], np.concatenate(([1.0], noise)), residual[a:b])
+                for a, b in pairwise(starts)
+            ]
+        )
+        Phi = np.hstack([Phi, _lagged(innovations, range(1, noise_lags + 1), starts)])
+    return Phi, target, starts, inside
+
+
+def _tested(
+    effects: Sequence[Effect],
+    candidates: dict[int, tuple[list[tuple[str, ...]], np.ndarray]],
+    residual: np.ndarray,
+    own_past: np.ndarray,
+    dof: int,
+    level: float,
+    rank: bool,
+    noise_lags: int,
+    threads: Workers,
+) -> tuple[EffectScore, ...]:
+    """Each effect's score, in the order of ``effects``, from its ``candidates`` (by its
+    index): the signals' effects tested by ``threads`` beside the residual's ``own_past``,
+    moving-average noise then beside the columns they chose."""
     scores: dict[int, EffectScore] = {}
     explaining: list[np.ndarray] = []
     of_the_signals = [i for i, effect in enumerate(effects) if effect.kind != "noise"]
     tested = threads(
-        lambda i: _score(effects[i], *candidates[i], residual, own_past, n_obs - n_par, level, rank),
+        lambda i: _score(effects[i], *candidates[i], residual, own_past, dof, level, rank),
         of_the_signals,
     )
     for index, (score, _, chosen_columns) in zip(of_the_signals, tested, strict=True):
@@ -197,15 +225,14 @@ def score_effects(
         explaining.append(chosen_columns)
     # The chosen columns are orthogonal to the model already (_projected): a basis of their span
     # is all the noise family's test needs.
-    signals = span_basis(np.hstack([np.empty((n_obs, 0)), *explaining]))
+    signals = span_basis(np.hstack([np.empty((len(residual), 0)), *explaining]))
     for index, effect in enumerate(effects):
         if effect.kind == "noise":
             labels, columns = candidates[index]
-            score, chosen, _ = _score(effect, labels, columns, residual, signals, n_obs - n_par, level, rank)
+            score, chosen, _ = _score(effect, labels, columns, residual, signals, dof, level, rank)
             # The moving-average order becomes the longest lag that entered.
             scores[index] = replace(score, noise_lags=noise_lags + 1 + max(chosen) if chosen else 0)
-    ordered = [scores[i] for i in range(len(effects))]
-    return Scores(float(np.sqrt(np.mean(residual**2))), level, total, tuple(ordered))
+    return tuple(scores[i] for i in range(len(effects)))
 
 
 def stacked_starts(records: Records, lag: int) -> np.ndarray:
