@@ -209,6 +209,48 @@ def select_by_simulation(
     judge = _Judge(terms, judging, t0s, dictionary.lag)
     search = _Search(dictionary, judge, fixed)
     current = _starting_error(search, model)
+    course = _iterations(search, model, current, max_terms, preselect, threshold, progress)
+    if not course.model:
+        raise InputError("no term lowers the simulation error of the empty model: nothing was selected")
+    chosen = tuple(terms[j] for j in course.model)
+    return SimulationSelection(
+        model=_final_fit(chosen, search, course.model, fitting, everything),
+        rms=float(np.sqrt(course.current)),
+        path=course.path,
+        removed=tuple(terms[j] for j in course.removed),
+        diverged=tuple(terms[j] for j in course.diverged),
+        candidates=terms,
+        stopped_by=course.stopped_by,
+        evaluations=judge.evaluations,
+        judged_samples=judge.samples,
+    )
+
+
+@dataclass(frozen=True)
+class _Course:
+    """Where the iterations end: the model (dictionary positions) and its J, every change on the
+    way, the terms pruned, the candidates whose free run diverged, and why they stopped."""
+
+    model: list[int]
+    current: float
+    path: tuple[SimulationStep, ...]
+    removed: list[int]
+    diverged: list[int]
+    stopped_by: Stop
+
+
+def _iterations(
+    search: _Search,
+    model: list[int],
+    current: float,
+    max_terms: int,
+    preselect: int,
+    threshold: float,
+    progress: Progress | None,
+) -> _Course:
+    """Steps 1 to 5 of the module docstring from M₀ (``model``, of J ``current``): its pruning,
+    then additions each followed by a pruning, until one of the stopping rules holds."""
+    terms = search.judge.terms
     path = [SimulationStep("start", None, float(np.sqrt(current)), len(model))]
     removed: list[int] = []
     diverged: list[int] = []
@@ -233,20 +275,7 @@ def select_by_simulation(
         model, current = search.prune(model, current, threshold, path, removed)
         if progress is not None:
             progress(step + 1)
-    if not model:
-        raise InputError("no term lowers the simulation error of the empty model: nothing was selected")
-    chosen = tuple(terms[j] for j in model)
-    return SimulationSelection(
-        model=_final_fit(chosen, search, model, fitting, everything),
-        rms=float(np.sqrt(current)),
-        path=tuple(path),
-        removed=tuple(terms[j] for j in removed),
-        diverged=tuple(terms[j] for j in diverged),
-        candidates=terms,
-        stopped_by=stopped_by,
-        evaluations=judge.evaluations,
-        judged_samples=judge.samples,
-    )
+    return _Course(model, current, tuple(path), removed, diverged, stopped_by)
 
 
 def _check_settings(max_terms: int, preselect: int, threshold: float) -> None:
