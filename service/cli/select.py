@@ -149,27 +149,13 @@ def select(
     simulation = _by_simulation(
         criterion, judged, n_terms=n_terms, err_tolerance=err_tolerance, precise=precise
     )
-    loaded, fs = read_records(records, layout)
-    signals = [(r.x, r.y) for r in loaded]
-    judged_signals = _records_like(judged, fs, "judged", layout) if judged else None
-    if holdout:
-        validation_signals = _records_like(holdout, fs, "held-out", layout)
-    else:
-        signals, validation_signals = _split(signals, split)
-    # Both dictionaries where the delay is to be chosen: a bad one is refused before the choice runs.
-    dictionaries = {
-        d: candidate_terms(degree, ny, nx, d, constant=constant, extra=extra or ())
-        for d in ((0, 1) if delay is None else (delay,))
-    }
-    delays = None
-    if delay is None:
-        delay, delays = choose_delay(signals, ny, nx)
-    candidates = dictionaries[delay]
+    data = _read_data(records, layout, judged, holdout, split)
+    dictionary = _dictionary(data.signals, degree, ny, nx, delay, constant, extra or [])
     if simulation:
         selection: NarxSelection | SimulationSelection = _select_by_simulation(
-            signals,
-            candidates,
-            judged_signals,
+            data.signals,
+            dictionary.candidates,
+            data.judged,
             judged_share=judged_share,
             include=include or (),
             max_terms=max_terms,
@@ -177,49 +163,149 @@ def select(
             threshold=threshold,
         )
     else:
-        selection = _with_progress(
-            n_terms or min(max_terms, len(candidates)),
-            lambda progress: select_narx(
-                signals,
-                candidates,
-                n_terms=n_terms,
-                criterion=criterion,
-                err_tolerance=err_tolerance,
-                max_terms=max_terms,
-                prune=prune,
-                include=include or (),
-                precise=precise,
-                progress=progress,
-            ),
+        selection = _select_by_frols(
+            data.signals,
+            dictionary.candidates,
+            n_terms=n_terms,
+            criterion=criterion,
+            err_tolerance=err_tolerance,
+            max_terms=max_terms,
+            prune=prune,
+            include=include or (),
+            precise=precise,
         )
-    refined = fit_output_error(selection.model, signals) if output_error else None
+    refined = fit_output_error(selection.model, data.signals) if output_error else None
     if refined is not None:
         selection = dataclasses.replace(selection, model=refined.model)
-    held_out = validate(selection.model, validation_signals, steps) if validation_signals else None
-    document = {
-        **selection.to_dict(),
-        "output_error": None if refined is None else _output_error_dict(refined),
-        "held_out": None if held_out is None else held_out.to_dict(),
-        "dictionary": _dictionary_dict(degree, ny, nx, delay, delays, constant, extra or []),
-        "records": [str(path) for path in records],
-        "holdout": {"records": [str(path) for path in holdout or []], "split": None if holdout else split},
-        "fs": fs,
-    }
-    if simulation:
-        document["judged"] = {
-            "records": [str(path) for path in judged or []],
-            "share": None if judged else judged_share,
-        }
+    held_out = validate(selection.model, data.validation, steps) if data.validation else None
+    document = _document(
+        selection, refined, held_out, dictionary, data.fs, records, holdout, split, judged, judged_share
+    )
     if out is not None:
         write_json(out, document)
     if as_json:
         print(json.dumps(document, indent=1))
         return
-    if delays is not None:
-        _print_delay(delay, delays, ny, nx)
+    if dictionary.delays is not None:
+        _print_delay(dictionary.delay, dictionary.delays, ny, nx)
     _print_report(selection, refined, held_out)
     if out is not None:
         stdout.print(f"written to {out}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Data:
+    """The records to select from, those to validate on (the held-out records or each record's
+    end), the records the free run is judged on (``--judged``) and their sampling rate."""
+
+    signals: Signals
+    validation: Signals
+    judged: Signals | None
+    fs: float | None
+
+
+def _read_data(
+    records: list[Path], layout: Layout, judged: list[Path] | None, holdout: list[Path] | None, split: float
+) -> _Data:
+    """The records as the options name them, every other one sampled at the rate of ``records``."""
+    loaded, fs = read_records(records, layout)
+    signals = [(r.x, r.y) for r in loaded]
+    judged_signals = _records_like(judged, fs, "judged", layout) if judged else None
+    if holdout:
+        validation_signals = _records_like(holdout, fs, "held-out", layout)
+    else:
+        signals, validation_signals = _split(signals, split)
+    return _Data(signals, validation_signals, judged_signals, fs)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Dictionary:
+    """The candidate dictionary the terms are selected from: the options that made it, the
+    input delay used and, where it was chosen, each delay's held-out free-run RMS."""
+
+    degree: int
+    ny: int
+    nx: int
+    delay: int
+    delays: dict[int, float] | None
+    constant: bool
+    extra: list[str]
+    candidates: tuple[Term, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The dictionary as the JSON document says it."""
+        return {
+            "degree": self.degree,
+            "ny": self.ny,
+            "nx": self.nx,
+            "delay": self.delay,
+            # How the delay was chosen where --delay did not give it: each one's held-out free run.
+            "delay_free_run_rms": None
+            if self.delays is None
+            else {str(d): _finite(self.delays[d]) for d in (0, 1)},
+            "constant": self.constant,
+            "extra": self.extra,
+        }
+
+
+def _dictionary(
+    signals: Signals, degree: int, ny: int, nx: int, delay: int | None, constant: bool, extra: list[str]
+) -> _Dictionary:
+    """The candidates, with the input delay given or, without one, chosen on ``signals``
+    (:func:`models.baseline_choice.choose_delay`)."""
+    # Both dictionaries where the delay is to be chosen: a bad one is refused before the choice runs.
+    dictionaries = {
+        d: candidate_terms(degree, ny, nx, d, constant=constant, extra=extra)
+        for d in ((0, 1) if delay is None else (delay,))
+    }
+    delays = None
+    if delay is None:
+        delay, delays = choose_delay(signals, ny, nx)
+    return _Dictionary(degree, ny, nx, delay, delays, constant, extra, dictionaries[delay])
+
+
+def _select_by_frols(
+    signals: Signals, candidates: Sequence[Term], n_terms: int | None, max_terms: int, **options: Any
+) -> NarxSelection:
+    """FROLS's selection (:func:`models.selection.select_narx`) with a progress bar, which counts
+    the terms asked for or the longest path."""
+    return _with_progress(
+        n_terms or min(max_terms, len(candidates)),
+        lambda progress: select_narx(
+            signals, candidates, n_terms=n_terms, max_terms=max_terms, progress=progress, **options
+        ),
+    )
+
+
+def _document(
+    selection: NarxSelection | SimulationSelection,
+    refined: OutputErrorFit | None,
+    held_out: Validation | None,
+    dictionary: _Dictionary,
+    fs: float | None,
+    records: list[Path],
+    holdout: list[Path] | None,
+    split: float,
+    judged: list[Path] | None,
+    share: float,
+) -> dict[str, Any]:
+    """The result as JSON (``--json``, ``--out``): the selection, its refinement and validation,
+    the dictionary and where the records came from (with the judged ones, on the free run)."""
+    document = {
+        **selection.to_dict(),
+        "output_error": None if refined is None else _output_error_dict(refined),
+        "held_out": None if held_out is None else held_out.to_dict(),
+        "dictionary": dictionary.to_dict(),
+        "records": [str(path) for path in records],
+        "holdout": {"records": [str(path) for path in holdout or []], "split": None if holdout else split},
+        "fs": fs,
+    }
+    if isinstance(selection, SimulationSelection):
+        document["judged"] = {
+            "records": [str(path) for path in judged or []],
+            "share": None if judged else share,
+        }
+    return document
 
 
 def _select_by_simulation(
@@ -233,28 +319,6 @@ def _select_by_simulation(
             signals, candidates, judged=judged, max_terms=max_terms, progress=progress, **options
         ),
     )
-
-
-def _dictionary_dict(
-    degree: int,
-    ny: int,
-    nx: int,
-    delay: int,
-    delays: dict[int, float] | None,
-    constant: bool,
-    extra: list[str],
-) -> dict[str, Any]:
-    """The candidate dictionary the terms were selected from, as the JSON document says it."""
-    return {
-        "degree": degree,
-        "ny": ny,
-        "nx": nx,
-        "delay": delay,
-        # How the delay was chosen where --delay did not give it: each one's held-out free run.
-        "delay_free_run_rms": None if delays is None else {str(d): _finite(delays[d]) for d in (0, 1)},
-        "constant": constant,
-        "extra": extra,
-    }
 
 
 def _by_simulation(
