@@ -180,14 +180,21 @@ def refine_command(
         "unit": unit,
     }
     if plot is not None:
-        from service.cli.refine_figure import write_refinement_figure  # matplotlib only when asked
-
-        report, explanation = refined.report, refined.explanation
-        write_refinement_figure(report, *refined.explained, start, rate, plot, layout.y, unit, explanation)
+        _write_figure(refined, loop, plot, layout.y, unit)
     if as_json:
         stdout.print_json(json.dumps(document))
         return
     _print(document, plot)
+
+
+def _write_figure(refined: Refined, loop: Loop, plot: Path, output: str, unit: str | None) -> None:
+    """The PNG ``--plot`` asks for, of the residuals and the free run on the record explained."""
+    from service.cli.refine_figure import write_refinement_figure  # matplotlib only when asked
+
+    report, explanation = refined.report, refined.explanation
+    write_refinement_figure(
+        report, *refined.explained, loop.initial, loop.fs, plot, output, unit, explanation
+    )
 
 
 def _on_parts(
