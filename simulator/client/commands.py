@@ -1,9 +1,11 @@
 """The ``narxwatch-sim`` commands. The options they share are defined once, as the fields of an
 option group (:class:`SimulationOptions`, :class:`~simulator.client.destinations.Target`), which
-:func:`~simulator.client.groups.expanded` spreads into each command's options."""
+:func:`~simulator.client.groups.expanded` spreads into each command's options; ``stream``'s own,
+how its records follow one another, are a group too (:class:`StreamOptions`)."""
 
 from __future__ import annotations
 
+import datetime as dt
 import itertools
 import signal
 from dataclasses import dataclass
@@ -116,6 +118,69 @@ class SimulationOptions:
         )
 
 
+@dataclass(frozen=True)
+class StreamOptions:
+    """How a stream's records follow one another, as given: their pace, how many, and how the
+    fault develops from one to the next (:class:`~simulator.client.scheduler.Stream`)."""
+
+    every: Annotated[float, typer.Option(min=0, help="Seconds between records.")] = 5.0
+    count: Annotated[int | None, typer.Option(min=1, help="Records to send (default: until Ctrl-C).")] = None
+    drift: Annotated[
+        float,
+        typer.Option(help="Growth of k per record [%]; grows the --fault mode, or k2 if there is none."),
+    ] = 0.0
+    scenario: Annotated[
+        Course | None,
+        typer.Option(
+            help="How the fault develops in acquisition time: healthy (none), step (--k from --onset), "
+            "drift (--rate % a day from --onset), intermittent (--k in a --duty share of the records "
+            "from --onset). Default: --fault at --k growing by --drift a record."
+        ),
+    ] = None
+    onset: Annotated[
+        float, typer.Option(help="Days of acquisition time after the first record when the fault begins.")
+    ] = 0.0
+    rate: Annotated[float, typer.Option(help="Growth of k for --scenario drift [% a day].")] = 0.0
+    duty: Annotated[
+        float, typer.Option(help="Share of records showing the fault for --scenario intermittent.")
+    ] = 0.5
+    per_day: Annotated[
+        float | None,
+        typer.Option(
+            help="Records per day of acquisition time: stamps 24 h / PER_DAY apart, whatever --every "
+            "(default: --every seconds apart)."
+        ),
+    ] = None
+
+    def stream(
+        self,
+        options: ScenarioOptions,
+        fault: str,
+        k: float,
+        simulation: SimulationOptions,
+        start: dt.datetime | None,
+        wait: bool,
+    ) -> Stream:
+        """The stream of records of these ``options``, from ``start`` (None: real time)."""
+        return Stream(
+            options,
+            fault,
+            k,
+            self.drift,
+            simulation.n,
+            first_seed(simulation.seed),
+            self.every,
+            self.count,
+            start,
+            self.scenario,
+            self.onset,
+            self.rate,
+            self.duty,
+            self.per_day,
+            wait,
+        )
+
+
 # --- The command line ---------------------------------------------------------------------------
 
 app = typer.Typer(
@@ -188,34 +253,7 @@ def scenario_command(
 @expanded
 def stream_command(
     *,
-    every: Annotated[float, typer.Option(min=0, help="Seconds between records.")] = 5.0,
-    count: Annotated[int | None, typer.Option(min=1, help="Records to send (default: until Ctrl-C).")] = None,
-    drift: Annotated[
-        float,
-        typer.Option(help="Growth of k per record [%]; grows the --fault mode, or k2 if there is none."),
-    ] = 0.0,
-    scenario: Annotated[
-        Course | None,
-        typer.Option(
-            help="How the fault develops in acquisition time: healthy (none), step (--k from --onset), "
-            "drift (--rate % a day from --onset), intermittent (--k in a --duty share of the records "
-            "from --onset). Default: --fault at --k growing by --drift a record."
-        ),
-    ] = None,
-    onset: Annotated[
-        float, typer.Option(help="Days of acquisition time after the first record when the fault begins.")
-    ] = 0.0,
-    rate: Annotated[float, typer.Option(help="Growth of k for --scenario drift [% a day].")] = 0.0,
-    duty: Annotated[
-        float, typer.Option(help="Share of records showing the fault for --scenario intermittent.")
-    ] = 0.5,
-    per_day: Annotated[
-        float | None,
-        typer.Option(
-            help="Records per day of acquisition time: stamps 24 h / PER_DAY apart, whatever --every "
-            "(default: --every seconds apart)."
-        ),
-    ] = None,
+    streaming: StreamOptions,
     fault: Fault = "none",
     k: Magnitude = 0.0,
     simulation: SimulationOptions,
@@ -261,23 +299,7 @@ def stream_command(
     if simulation.temperature is None and (daily_amplitude or seasonal_amplitude):
         raise InputError("--daily-amplitude and --seasonal-amplitude vary a mean: give it with --temperature")
     options = simulation.options(daily_amplitude, seasonal_amplitude)
-    stream = Stream(
-        options,
-        fault,
-        k,
-        drift,
-        simulation.n,
-        first_seed(simulation.seed),
-        every,
-        count,
-        start_time(acquired_at),
-        scenario,
-        onset,
-        rate,
-        duty,
-        per_day,
-        wait,
-    )
+    stream = streaming.stream(options, fault, k, simulation, start_time(acquired_at), wait)
     stream.check()
     target.check(options.scenario(stream.mode, k))
     # A service manager stops a feed with SIGTERM: stop as cleanly as on Ctrl-C.
