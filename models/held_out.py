@@ -22,10 +22,13 @@ from models.narx import NARX
 from models.periods import excitation_period
 from models.scoring import Records
 
-# The share of each estimation record, at its end, that the loop does not see. Held out only
-# where every record's tail is a check block or more, so that the comparison has the blocks it
-# needs: records of 5·MIN_BLOCK samples.
+# The share of each estimation record, at its end, that the loop does not see.
 HELD_OUT_SHARE = 0.2
+# The fewest samples a tail is held out with: three blocks, the fewest whose spread estimates the
+# comparison's uncertainty, each as long as the loop's own shortest check block (a third of the
+# shortest record it refines, less the lags: 3·MIN_BLOCK/10 in all). A shorter tail judges the
+# effects on less than the loop chose them on. Records of 300 samples.
+MIN_TAIL = 3 * MIN_BLOCK // 10
 # The level of the comparison, one-sided: one comparison, made once, after every choice. It is
 # made two ways (:func:`compare_on_tails`), each at half of it.
 HELD_OUT_ALPHA = 0.05
@@ -88,7 +91,7 @@ def held_out_tails(records: Records) -> tuple[Records, Segments] | None:
     cuts = [_cut(x, len(y)) for x, y in records]
     if None in cuts:
         return None
-    if any(len(y) - cut < MIN_BLOCK for (_, y), cut in zip(records, cuts, strict=True)):
+    if any(len(y) - cut < MIN_TAIL for (_, y), cut in zip(records, cuts, strict=True)):
         return None
     heads = [(x[:cut], y[:cut]) for (x, y), cut in zip(records, cuts, strict=True)]
     tails = [(x[cut:], y[cut:], cut) for (x, y), cut in zip(records, cuts, strict=True)]
