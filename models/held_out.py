@@ -51,7 +51,9 @@ class HeldOut:
     the geometric mean over blocks) and the ``threshold`` it had to exceed, the comparison's
     uncertainty at ``HELD_OUT_ALPHA``. ``diverged``: the refined model's free run diverged there.
     ``kept``: the refined model was returned; otherwise the start was, and ``best_tried`` names
-    the effect that had lowered the check blocks' free run most."""
+    the effect that had lowered the check blocks' free run most. ``orders_saw_tails``: the linear
+    start's orders were chosen on the whole records, tails too (records of a few hundred
+    samples, :func:`models.refinement.refine`), which can only favour the start."""
 
     samples: int
     start_rms: float
@@ -61,6 +63,7 @@ class HeldOut:
     diverged: bool = False
     kept: bool = True
     best_tried: str | None = None
+    orders_saw_tails: bool = False
 
     @property
     def better(self) -> bool:

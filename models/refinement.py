@@ -322,6 +322,7 @@ def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
         "diverged": held_out.diverged,
         "refined_returned": held_out.kept,
         "best_tried": held_out.best_tried,
+        "orders_saw_tails": held_out.orders_saw_tails,
     }
 
 
@@ -340,9 +341,10 @@ def _held_out_notes(result: Refinement) -> list[str]:
     if held_out.kept:
         return []
     refined = "diverged" if held_out.diverged else f"ran free at {held_out.refined_rms:.4g}"
+    unseen = "no choice but the linear orders saw" if held_out.orders_saw_tails else "no choice saw"
     return [
         f"the data could not support the effects: over the estimation records' held-out tails "
-        f"({held_out.samples} samples no choice saw) the refined model {refined} against the start's "
+        f"({held_out.samples} samples {unseen}) the refined model {refined} against the start's "
         f"{held_out.start_rms:.4g}, not better beyond the comparison's uncertainty; the start is "
         f"returned (the best effect tried: {held_out.best_tried})"
     ]
@@ -668,7 +670,9 @@ def refine(
     result, held_out = grown.refinement, None
     if result.effects_added:
         tell("the refined model and the start on the held-out tails")
-        held_out = compare_on_tails(grown.start, result.refined, tails)
+        held_out = replace(
+            compare_on_tails(grown.start, result.refined, tails), orders_saw_tails=orders is not None
+        )
         refined, start = result.refined, grown.start
         # Moving-average noise alone, there to unbias the parameters, leaves the process
         # structure as it was: on long tails it need only not make the free run worse.

@@ -795,8 +795,10 @@ def test_on_a_short_record_effects_its_tail_does_not_support_are_withdrawn_and_t
     assert result.effects_added == () and held_out.best_tried in result.effects_withdrawn
     assert result.refined.terms == result.declared.terms
     assert report.after.free_run_rms <= report.before.free_run_rms
-    (note,) = [note for note in report.to_dict()["notes"] if "could not support the effects" in note]
-    assert "100 samples" in note and held_out.best_tried in note
+    document = report.to_dict()
+    assert document["held_out"]["orders_saw_tails"] is True
+    (note,) = [note for note in document["notes"] if "could not support the effects" in note]
+    assert "100 samples no choice but the linear orders saw" in note and held_out.best_tried in note
 
 
 @pytest.mark.parametrize("column", [1, 2])
