@@ -688,9 +688,9 @@ def _start_on_tails(grown: _Grown, heads: Records, tails: Segments) -> _Grown:
     squares': on a few hundred samples that choice rests on a free run over a hundred, and the
     tails judge it as they judge the effects (the coupled drives' PRBS records: output error
     chosen on 320 samples ran free over the test 3–6 % worse than least squares)."""
-    least_squares = grown.refinement.declared
     if grown.start_estimator != "output error":
         return grown
+    least_squares = grown.refinement.declared
     if free_run_rms(grown.start, tails) <= free_run_rms(least_squares, tails):
         return grown
     check = CheckSplit.of(heads).error(Structure(least_squares.terms))
