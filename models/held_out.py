@@ -22,10 +22,13 @@ from models.narx import NARX
 from models.periods import excitation_period
 from models.scoring import Records
 
-# The share of each estimation record, at its end, that the loop does not see. Held out only
-# where every record's tail is a check block or more, so that the comparison has the blocks it
-# needs: records of 5·MIN_BLOCK samples.
+# The share of each estimation record, at its end, that the loop does not see.
 HELD_OUT_SHARE = 0.2
+# The fewest samples a tail is held out with: three blocks, the fewest whose spread estimates the
+# comparison's uncertainty, each as long as the loop's own shortest check block (a third of the
+# shortest record it refines, less the lags: 3·MIN_BLOCK/10 in all). A shorter tail judges the
+# effects on less than the loop chose them on. Records of 300 samples.
+MIN_TAIL = 3 * MIN_BLOCK // 10
 # The level of the comparison, one-sided: one comparison, made once, after every choice. It is
 # made two ways (:func:`compare_on_tails`), each at half of it.
 HELD_OUT_ALPHA = 0.05
@@ -48,7 +51,9 @@ class HeldOut:
     the geometric mean over blocks) and the ``threshold`` it had to exceed, the comparison's
     uncertainty at ``HELD_OUT_ALPHA``. ``diverged``: the refined model's free run diverged there.
     ``kept``: the refined model was returned; otherwise the start was, and ``best_tried`` names
-    the effect that had lowered the check blocks' free run most."""
+    the effect that had lowered the check blocks' free run most. ``orders_saw_tails``: the linear
+    start's orders were chosen on the whole records, tails too (records of a few hundred
+    samples, :func:`models.refinement.refine`), which can only favour the start."""
 
     samples: int
     start_rms: float
@@ -58,6 +63,7 @@ class HeldOut:
     diverged: bool = False
     kept: bool = True
     best_tried: str | None = None
+    orders_saw_tails: bool = False
 
     @property
     def better(self) -> bool:
@@ -88,7 +94,7 @@ def held_out_tails(records: Records) -> tuple[Records, Segments] | None:
     cuts = [_cut(x, len(y)) for x, y in records]
     if None in cuts:
         return None
-    if any(len(y) - cut < MIN_BLOCK for (_, y), cut in zip(records, cuts, strict=True)):
+    if any(len(y) - cut < MIN_TAIL for (_, y), cut in zip(records, cuts, strict=True)):
         return None
     heads = [(x[:cut], y[:cut]) for (x, y), cut in zip(records, cuts, strict=True)]
     tails = [(x[cut:], y[cut:], cut) for (x, y), cut in zip(records, cuts, strict=True)]
