@@ -543,8 +543,9 @@ def _print_held_out(held_out: dict[str, Any], per: str) -> None:
         if held_out["refined_returned"]
         else f"the start is returned (the best effect tried: {held_out['best_tried']})"
     )
+    unseen = "no choice but the linear orders saw" if held_out["orders_saw_tails"] else "no choice saw"
     stdout.print(
-        f"held-out tails ({held_out['samples']} samples no choice saw): free-run RMS start {start}{per}, "
+        f"held-out tails ({held_out['samples']} samples {unseen}): free-run RMS start {start}{per}, "
         f"refined {refined}{per}; {gain}: {decision}",
         highlight=False,
         markup=False,
