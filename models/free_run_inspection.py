@@ -14,7 +14,9 @@ the response:
 1. Fault modes whose free run is good: θ_V(k) = θ₀ + k·δ_V (p = 2, exact for a stiffness
    fault), one healthy θ₀ for every mode, fitted by output error jointly over all the modes'
    experiments (:func:`fit_free_run_modes`), from the equation-error fits (biased by the noisy
-   lagged outputs) and from the terms' fits to a long ARX's free run, the lower end kept. The
+   lagged outputs) and from the terms' fits to a long ARX's free run, the lower end kept; an
+   end whose healthy point has a slow pole its zero cancels is searched again without the pair,
+   as :func:`models.output_error.fit_output_error` does, and an end without one is preferred. The
    healthy error level, the whitening filter w(q) (AR(Q) fitted to the experiments' errors, as
    in :mod:`models.novelty`) and σ̃²₀ (the whitened error's variance) come with them, and
    Cov vec(Θ_V) by the delete-one-experiment jackknife: with φ̂ = [θ₀; δ…] the joint fit and
@@ -86,7 +88,7 @@ from models.inspection import (
 )
 from models.narx import DOCUMENT_VERSION, check_document, z_quantile
 from models.novelty import WHITENING_ORDER, _whitening_filter
-from models.output_error import EstimatedStart
+from models.output_error import EstimatedStart, without_cancelled_poles
 from models.signals import checked_record
 from models.simulation import FreeRun
 from models.terms import Term, max_degree, parse_terms
@@ -318,7 +320,17 @@ class _Joint:
 
     def searched(self, starts: Sequence[FNARX], through_long: Sequence[FNARX | None]) -> np.ndarray:
         """The joint fit: the search from each start whose free run stays finite on every
-        experiment, the lower end kept. Sets :attr:`scale` from the first start's error."""
+        experiment, and from each end whose healthy point has a slow pole its zero cancels again
+        with the pair taken out (:func:`models.output_error.without_cancelled_poles`); the lowest
+        end without such a pair kept, the lowest of all where every end has one. Sets
+        :attr:`scale` from the first start's error.
+
+        A cancelled pair leaves the free run driven by the input as it is, and gives each
+        experiment's start a column to absorb the noise with: its lower error is the noise's. The
+        accelerometer chain's ARX(4, 4) ended so in some training sets, a pole near −0.93 and its
+        zero, the chain's response left to three poles: its healthy point then missed the
+        response by several times what the far spring's loosening changes, and the far spring's
+        mode spent its slope on that misfit."""
         initials = [_joined(starts)] + (
             [_joined(through_long)] if all(start is not None for start in through_long) else []
         )
@@ -335,7 +347,29 @@ class _Joint:
         first = np.concatenate([run.error for run in self.evaluate(initials[0], False)])
         self.scale = float(np.sqrt(np.mean(first**2))) or 1.0
         ends = [self.fit(flat, list(self.everything)) for flat in initials]
-        return min(ends, key=lambda end: _sum_of_squares(self.evaluate(end, False)))
+        paired = [self._untangled(starts[0], end) for end in ends]
+        ends += [self.fit(flat, list(self.everything)) for flat in paired if flat is not None]
+        ends = [end for end in ends if np.isfinite(_sum_of_squares(self.evaluate(end, False)))] or ends
+        clean = [end for end in ends if self._untangled(starts[0], end) is None]
+        return min(clean or ends, key=lambda end: _sum_of_squares(self.evaluate(end, False)))
+
+    def _untangled(self, start: FNARX, flat: np.ndarray) -> np.ndarray | None:
+        """``flat`` with its healthy point's cancelled pairs taken out, None where it has none.
+        Each slope then joins it to the mode's point at its largest magnitude, taken out alike
+        (zero where that point has no such pair): the slope fitted with the pair holds the
+        pair's coefficients too, and added to the healthy point without it may run unstable."""
+        n = len(self.terms)
+        healthy = without_cancelled_poles(replace(start.narx_at(0.0), theta=flat[:n]))
+        if healthy is None:
+            return None
+        slopes = []
+        for index in range(len(flat) // n - 1):
+            k = max(k for k, owner in zip(self.magnitudes, self.owners, strict=True) if owner == index)
+            far = without_cancelled_poles(
+                replace(healthy, theta=flat[:n] + k * flat[n * (index + 1) : n * (index + 2)])
+            )
+            slopes.append(np.zeros(n) if far is None else (far.theta - healthy.theta) / k)
+        return np.concatenate([healthy.theta, *slopes])
 
     def jackknife(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The delete-one-experiment jackknife (module docstring, step 1): the refits of φ̂ without
