@@ -8,6 +8,13 @@ records at seeds of their own): the records inspected with one training set shar
 error, so its coverage alone says little of the designed rate.
 
     PYTHONPATH=. python bench/noisy_modes.py [records per cell] [samples per record] [training sets]
+
+Second, how the far spring's mode depends on its training design (:func:`designs`): per design
+and training set, its slope against the chain's, its held-out scale, and per magnitude how often
+its own interval (k̂ ± z·σ̂_k from the verdict's ``modes``, given or withheld) covers the truth.
+
+    PYTHONPATH=. python bench/noisy_modes.py designs [records per cell] [samples per record] \
+        [training sets] [design …]
 """
 
 from __future__ import annotations
@@ -18,9 +25,33 @@ import time
 import numpy as np
 
 from harness.accelerometer import ALPHA, record, scenario
-from harness.noisy_modes import SPRINGS, equation_error_modes, free_run_modes, perfect_sigma_k
+from harness.noisy_modes import (
+    FAR_MAGNITUDES,
+    MAGNITUDES,
+    SPRINGS,
+    equation_error_modes,
+    free_run_modes,
+    perfect_sigma_k,
+    slope_against_truth,
+)
 from models.free_run_inspection import inspect_free_run
 from models.inspection import inspect
+from models.narx import z_quantile
+
+# The far spring's training designs (:func:`designs`): free_run_modes's arguments.
+STEPS = tuple(2.5 * i for i in range(7))  # 0, 2.5 … 15 %
+DESIGNS = {
+    "4x1x8000": {},
+    "4x1x8000-alone": {"springs": ("k3",)},
+    "7x1x8000-alone": {"springs": ("k3",), "magnitudes": STEPS},
+    "4x3x8000-alone": {"springs": ("k3",), "repeats": 3},
+    "4x1x32000-alone": {"springs": ("k3",), "samples": 32_000},
+    "0-30-alone": {"springs": ("k3",), "magnitudes": (0.0, 10.0, 20.0, 30.0)},
+    "0-45-alone": {"springs": ("k3",), "magnitudes": FAR_MAGNITUDES},
+    "0-45": {"magnitudes": {"k2": MAGNITUDES, "k3": FAR_MAGNITUDES}},
+    "4x3x8000": {"repeats": 3},
+    "4x1x32000": {"samples": 32_000},
+}
 
 
 def main(count: int, samples: int, trainings: int) -> None:
@@ -71,7 +102,46 @@ def _one_training_set(count: int, samples: int, training: int) -> None:
             )
 
 
-if __name__ == "__main__":
+def designs(count: int, samples: int, trainings: int, names: list[str]) -> None:
+    """The far spring's mode per training design (DESIGNS): for each training set its slope
+    against the chain's (:func:`slope_against_truth`) and its held-out scale c; per magnitude,
+    over the training sets' records, n, how often k3 is localised and how often the mode's own
+    interval covers the truth, with the mean k̂ and σ̂_k."""
+    z = z_quantile(1 - ALPHA)
+    for name in names:
+        print(f"design {name}: {DESIGNS[name]}")
+        cells: dict[float, list] = {}
+        for training in range(trainings):
+            clock = time.process_time()
+            modes = free_run_modes(seed=60_000 + 1000 * training, **DESIGNS[name])
+            far = next(mode for mode in modes if mode.name == "k3")
+            along, across, misfit = slope_against_truth(far)
+            print(
+                f"  set {training}: c {far.scale:.2f}, slope along the chain's {along:.2f}, "
+                f"across {across:.2f}, healthy misfit {misfit:.3f} m/s^2, "
+                f"fit {time.process_time() - clock:.0f} CPU s"
+            )
+            for cell, k in enumerate((0.0, 4.0, 8.0, 12.0)):
+                fault = "k3" if k else "none"
+                for i in range(count):
+                    x, y = record(scenario(fault, k), samples, 300_000 + 100_000 * training + 1000 * cell + i)
+                    cells.setdefault(k, []).append(inspect_free_run(x, y, modes, alpha=ALPHA))
+        print("  k %   n  localised  covered  mean k_hat  mean sigma_k")
+        for k, verdicts in cells.items():
+            far_modes = [v.mode("k3") for v in verdicts]
+            localised = sum(v.status == "faulty" and v.fault_mode == "k3" for v in verdicts)
+            covered = sum(abs(m.k_hat - k) <= z * m.sigma_k for m in far_modes)
+            k_hat, sigma_k = (np.mean([getattr(m, key) for m in far_modes]) for key in ("k_hat", "sigma_k"))
+            print(
+                f"  {k:4.1f}  {len(verdicts):3d}  {localised:9d}  {covered:7d}  "
+                f"{k_hat:10.2f}  {sigma_k:12.2f}"
+            )
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["designs"]:
+    numbers = [int(a) for a in sys.argv[2:5]]
+    designs(*(numbers + [15, 4000, 3][len(numbers) :]), sys.argv[5:] or list(DESIGNS))
+elif __name__ == "__main__":
     main(
         int(sys.argv[1]) if len(sys.argv) > 1 else 100,
         int(sys.argv[2]) if len(sys.argv) > 2 else 4000,

@@ -14,7 +14,9 @@ the response:
 1. Fault modes whose free run is good: θ_V(k) = θ₀ + k·δ_V (p = 2, exact for a stiffness
    fault), one healthy θ₀ for every mode, fitted by output error jointly over all the modes'
    experiments (:func:`fit_free_run_modes`), from the equation-error fits (biased by the noisy
-   lagged outputs) and from the terms' fits to a long ARX's free run, the lower end kept. The
+   lagged outputs) and from the terms' fits to a long ARX's free run, the lower end kept; an
+   end whose healthy point has a slow pole its zero cancels is searched again without the pair,
+   as :func:`models.output_error.fit_output_error` does, and an end without one is preferred. The
    healthy error level, the whitening filter w(q) (AR(Q) fitted to the experiments' errors, as
    in :mod:`models.novelty`) and σ̃²₀ (the whitened error's variance) come with them, and
    Cov vec(Θ_V) by the delete-one-experiment jackknife: with φ̂ = [θ₀; δ…] the joint fit and
@@ -86,7 +88,7 @@ from models.inspection import (
 )
 from models.narx import DOCUMENT_VERSION, check_document, z_quantile
 from models.novelty import WHITENING_ORDER, _whitening_filter
-from models.output_error import EstimatedStart
+from models.output_error import EstimatedStart, without_cancelled_poles
 from models.signals import checked_record
 from models.simulation import FreeRun
 from models.terms import Term, max_degree, parse_terms
@@ -210,102 +212,193 @@ def fit_free_run_modes(
     does (the localisation compares them), and a mode's k̂ absorbs its healthy point's error.
     Θ's covariance is the delete-one-experiment jackknife's, a refit for every experiment.
     """
-    names = list(experiments)
-    runs = {name: list(experiments[name]) for name in names}
-    for name in names:
-        if len({float(k) for _, _, k in runs[name]}) < 3:
+    runs = {name: list(experiments[name]) for name in experiments}
+    for name, own in runs.items():
+        if len({float(k) for _, _, k in own}) < 3:
             raise InputError(
                 f"fault mode {name!r} needs experiments at three magnitudes or more: its estimation "
                 "error is measured by refitting without each one, and two points leave no line to refit"
             )
-    starts = [fit_fnarx(runs[name], terms, name=name) for name in names]
-    parsed, n = starts[0].terms, len(starts[0].terms)
-    through_long = [_through_long_arx(runs[name], parsed, name) for name in names]
-    records, free, maps, owners, magnitudes = [], [], [], [], []
-    for index, (start, name) in enumerate(zip(starts, names, strict=True)):
-        for x, y, k in runs[name]:
-            xa, ya = checked_record(x, y, start.max_lag + n + 1, degree=max_degree(parsed))
-            records.append(ya)
-            owners.append(index)
-            magnitudes.append(float(k))
-            free.append(FreeRun.build(parsed, xa))
-            # θ = M·[θ₀; δ_1; …; δ_M]
-            maps.append(
-                np.hstack([np.eye(n)] + [float(k) * np.eye(n) * (j == index) for j in range(len(names))])
-            )
-    everything = range(len(records))
-
-    def evaluate(flat: np.ndarray, sensitive: bool, kept: Iterable[int] = everything) -> list[_Run]:
-        return [_free_run(parsed, free[i], maps[i] @ flat, records[i], sensitive) for i in kept]
-
-    def fit(initial: np.ndarray, kept: Sequence[int]) -> np.ndarray:
-        def residuals(flat: np.ndarray) -> np.ndarray:
-            error = np.concatenate([-run.error for run in evaluate(flat, False, kept)])
-            return np.where(np.isfinite(error), error, 1e6 * scale)  # a diverging trial is backed away from
-
-        def jacobian(flat: np.ndarray) -> np.ndarray:
-            runs = evaluate(flat, True, kept)
-            return np.nan_to_num(
-                np.vstack([run.sensitivities @ maps[i] for run, i in zip(runs, kept, strict=True)])
-            )
-
-        return optimize.least_squares(
-            residuals, initial, jac=jacobian, method="lm", x_scale="jac", max_nfev=max_evaluations
-        ).x
-
-    # The search from each start whose free run stays finite on every experiment; the lower end.
-    initials = [_joined(starts)] + (
-        [_joined(through_long)] if all(start is not None for start in through_long) else []
-    )
-    initials = [
-        flat for flat in initials if all(np.all(np.isfinite(run.error)) for run in evaluate(flat, False))
-    ]
-    if not initials:
-        raise InputError(
-            "the equation-error fit of the fault modes diverges in free run on their experiments: "
-            "choose a lower order"
-        )
-    initial = evaluate(initials[0], False)
-    scale = float(np.sqrt(np.mean(np.concatenate([run.error for run in initial]) ** 2))) or 1.0
-    ends = [fit(flat, list(everything)) for flat in initials]
-    flat = min(ends, key=lambda end: _sum_of_squares(evaluate(end, False)))
-    fitted = evaluate(flat, True)
+    starts = [fit_fnarx(own, terms, name=name) for name, own in runs.items()]
+    joint = _Joint.of(runs, starts[0].terms, starts[0].max_lag, max_evaluations)
+    through_long = [_through_long_arx(own, joint.terms, name) for name, own in runs.items()]
+    flat = joint.searched(starts, through_long)
+    fitted = joint.evaluate(flat, True)
     if not all(np.all(np.isfinite(run.error)) for run in fitted):
         raise InputError("the output-error fit of the fault modes diverges on their experiments")
-    whitening = _whitening_filter([run.error for run in fitted], WHITENING_ORDER)
-    errors = [_whitened(whitening, run.error) for run in fitted]
-    n0 = sum(e.size for e in errors)
-    dof = float(n0 - sum(run.start_columns for run in fitted) - flat.size)
-    sigma2 = float(sum(float(e @ e) for e in errors)) / dof
-    # The delete-one-experiment jackknife (module docstring, step 1), each refit from the joint fit.
-    refits = np.array([fit(flat, [j for j in everything if j != i]) for i in everything])
-    deviations = refits - refits.mean(axis=0)
-    covariance = (len(refits) - 1) / len(refits) * (deviations.T @ deviations)
+    whitening, sigma2, dof = _error_level(fitted, flat.size)
+    refits, covariance = joint.jackknife(flat)
     modes = []
     for index, start in enumerate(starts):
-        # vec(Θ_V) (term i, basis j) = T·[θ₀; δ…]: Θ_V·[g(k_min) g(k_max)] = [θ_V(k_min) θ_V(k_max)].
-        ends = np.array([start.basis.k_min, start.basis.k_max])
-        inverse = np.linalg.inv(start.basis.values(ends).T)  # row j: G_j's weights of the two ends
-        at_ends = [np.hstack([np.eye(n), end * np.eye(n)]) for end in ends]  # θ₀, δ_V ↦ θ_V(end)
-        T = np.zeros((2 * n, flat.size))
-        selected = np.r_[0:n, n * (index + 1) : n * (index + 2)]
-        for j in range(2):
-            T[j::2, selected] = sum(inverse[e, j] * at_ends[e] for e in range(2))
-        own = [run for run, owner in zip(fitted, owners, strict=True) if owner == index]
+        T = _to_mode(start, index, flat.size)
+        own = [run for run, owner in zip(fitted, joint.owners, strict=True) if owner == index]
         model = replace(
             start,
-            theta=(T @ flat).reshape(n, 2),
+            theta=(T @ flat).reshape(-1, 2),
             covariance=T @ covariance @ T.T,
             experiment_sigma2=np.array([float(np.mean(run.error**2)) for run in own]),
         )
         mode = FreeRunMode(model, whitening, sigma2, dof)
         held_out = [
-            (replace(model, theta=(T @ refits[i]).reshape(n, 2)), free[i], records[i], magnitudes[i])
-            for i in everything
-            if owners[i] == index
+            (
+                replace(model, theta=(T @ refits[i]).reshape(-1, 2)),
+                joint.runs[i],
+                joint.records[i],
+                joint.magnitudes[i],
+            )
+            for i in joint.everything
+            if joint.owners[i] == index
         ]
         modes.append(replace(mode, scale=_held_out_scale(mode, held_out)))
     return modes
+
+
+@dataclass
+class _Joint:
+    """The modes' joint output-error problem over all their experiments: φ = [θ₀; δ_1; …; δ_M],
+    experiment i's θ = maps[i]·φ (θ₀ + k_i·δ of its owner's mode)."""
+
+    terms: Sequence[Term]
+    records: list[np.ndarray]
+    runs: list[FreeRun]
+    maps: list[np.ndarray]
+    owners: list[int]
+    magnitudes: list[float]
+    max_evaluations: int
+    scale: float = 1.0  # the error a diverging trial is given, per sample (:meth:`fit`)
+
+    @classmethod
+    def of(
+        cls,
+        runs: Mapping[str, Sequence[Experiment]],
+        terms: Sequence[Term],
+        max_lag: int,
+        max_evaluations: int,
+    ) -> _Joint:
+        n = len(terms)
+        records, free, maps, owners, magnitudes = [], [], [], [], []
+        for index, own in enumerate(runs.values()):
+            for x, y, k in own:
+                xa, ya = checked_record(x, y, max_lag + n + 1, degree=max_degree(terms))
+                records.append(ya)
+                owners.append(index)
+                magnitudes.append(float(k))
+                free.append(FreeRun.build(terms, xa))
+                maps.append(
+                    np.hstack([np.eye(n)] + [float(k) * np.eye(n) * (j == index) for j in range(len(runs))])
+                )
+        return cls(terms, records, free, maps, owners, magnitudes, max_evaluations)
+
+    @property
+    def everything(self) -> range:
+        return range(len(self.records))
+
+    def evaluate(self, flat: np.ndarray, sensitive: bool, kept: Iterable[int] | None = None) -> list[_Run]:
+        kept = self.everything if kept is None else kept
+        return [
+            _free_run(self.terms, self.runs[i], self.maps[i] @ flat, self.records[i], sensitive) for i in kept
+        ]
+
+    def fit(self, initial: np.ndarray, kept: Sequence[int]) -> np.ndarray:
+        """φ minimising the free-run error over experiments ``kept``, searched from ``initial``."""
+
+        def residuals(flat: np.ndarray) -> np.ndarray:
+            error = np.concatenate([-run.error for run in self.evaluate(flat, False, kept)])
+            return np.where(
+                np.isfinite(error), error, 1e6 * self.scale
+            )  # a diverging trial is backed away from
+
+        def jacobian(flat: np.ndarray) -> np.ndarray:
+            runs = self.evaluate(flat, True, kept)
+            return np.nan_to_num(
+                np.vstack([run.sensitivities @ self.maps[i] for run, i in zip(runs, kept, strict=True)])
+            )
+
+        return optimize.least_squares(
+            residuals, initial, jac=jacobian, method="lm", x_scale="jac", max_nfev=self.max_evaluations
+        ).x
+
+    def searched(self, starts: Sequence[FNARX], through_long: Sequence[FNARX | None]) -> np.ndarray:
+        """The joint fit: the search from each start whose free run stays finite on every
+        experiment, and from each end whose healthy point has a slow pole its zero cancels again
+        with the pair taken out (:func:`models.output_error.without_cancelled_poles`); the lowest
+        end without such a pair kept, the lowest of all where every end has one. Sets
+        :attr:`scale` from the first start's error.
+
+        A cancelled pair leaves the free run driven by the input as it is, and gives each
+        experiment's start a column to absorb the noise with: its lower error is the noise's. The
+        accelerometer chain's ARX(4, 4) ended so in some training sets, a pole near −0.93 and its
+        zero, the chain's response left to three poles: its healthy point then missed the
+        response by several times what the far spring's loosening changes, and the far spring's
+        mode spent its slope on that misfit."""
+        initials = [_joined(starts)] + (
+            [_joined(through_long)] if all(start is not None for start in through_long) else []
+        )
+        initials = [
+            flat
+            for flat in initials
+            if all(np.all(np.isfinite(run.error)) for run in self.evaluate(flat, False))
+        ]
+        if not initials:
+            raise InputError(
+                "the equation-error fit of the fault modes diverges in free run on their experiments: "
+                "choose a lower order"
+            )
+        first = np.concatenate([run.error for run in self.evaluate(initials[0], False)])
+        self.scale = float(np.sqrt(np.mean(first**2))) or 1.0
+        ends = [self.fit(flat, list(self.everything)) for flat in initials]
+        paired = [self._untangled(starts[0], end) for end in ends]
+        ends += [self.fit(flat, list(self.everything)) for flat in paired if flat is not None]
+        ends = [end for end in ends if np.isfinite(_sum_of_squares(self.evaluate(end, False)))] or ends
+        clean = [end for end in ends if self._untangled(starts[0], end) is None]
+        return min(clean or ends, key=lambda end: _sum_of_squares(self.evaluate(end, False)))
+
+    def _untangled(self, start: FNARX, flat: np.ndarray) -> np.ndarray | None:
+        """``flat`` with its healthy point's cancelled pairs taken out, None where it has none.
+        Each slope then joins it to the mode's point at its largest magnitude, taken out alike
+        (zero where that point has no such pair): the slope fitted with the pair holds the
+        pair's coefficients too, and added to the healthy point without it may run unstable."""
+        n = len(self.terms)
+        healthy = without_cancelled_poles(replace(start.narx_at(0.0), theta=flat[:n]))
+        if healthy is None:
+            return None
+        slopes = []
+        for index in range(len(flat) // n - 1):
+            k = max(k for k, owner in zip(self.magnitudes, self.owners, strict=True) if owner == index)
+            far = without_cancelled_poles(
+                replace(healthy, theta=flat[:n] + k * flat[n * (index + 1) : n * (index + 2)])
+            )
+            slopes.append(np.zeros(n) if far is None else (far.theta - healthy.theta) / k)
+        return np.concatenate([healthy.theta, *slopes])
+
+    def jackknife(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The delete-one-experiment jackknife (module docstring, step 1): the refits of φ̂ without
+        each experiment, each from the joint fit ``flat``, and Cov φ̂."""
+        refits = np.array([self.fit(flat, [j for j in self.everything if j != i]) for i in self.everything])
+        deviations = refits - refits.mean(axis=0)
+        return refits, (len(refits) - 1) / len(refits) * (deviations.T @ deviations)
+
+
+def _error_level(fitted: Sequence[_Run], size: int) -> tuple[np.ndarray, float, float]:
+    """w(q), σ̃²₀ and ν₀ of the joint fit's errors on the experiments, φ of ``size``."""
+    whitening = _whitening_filter([run.error for run in fitted], WHITENING_ORDER)
+    errors = [_whitened(whitening, run.error) for run in fitted]
+    dof = float(sum(e.size for e in errors) - sum(run.start_columns for run in fitted) - size)
+    return whitening, float(sum(float(e @ e) for e in errors)) / dof, dof
+
+
+def _to_mode(start: FNARX, index: int, size: int) -> np.ndarray:
+    """T with vec(Θ_V) = T·φ for mode ``index`` (term i, basis j): Θ_V·[g(k_min) g(k_max)] =
+    [θ_V(k_min) θ_V(k_max)], θ_V(end) = θ₀ + end·δ_V."""
+    n = len(start.terms)
+    ends = np.array([start.basis.k_min, start.basis.k_max])
+    inverse = np.linalg.inv(start.basis.values(ends).T)  # row j: G_j's weights of the two ends
+    at_ends = [np.hstack([np.eye(n), end * np.eye(n)]) for end in ends]  # θ₀, δ_V ↦ θ_V(end)
+    T = np.zeros((2 * n, size))
+    selected = np.r_[0:n, n * (index + 1) : n * (index + 2)]
+    for j in range(2):
+        T[j::2, selected] = sum(inverse[e, j] * at_ends[e] for e in range(2))
+    return T
 
 
 def _held_out_scale(mode: FreeRunMode, held_out: Sequence[tuple[FNARX, FreeRun, np.ndarray, float]]) -> float:

@@ -13,11 +13,20 @@ import pytest
 from scipy import stats
 
 from harness.accelerometer import ALPHA, record, scenario
-from harness.noisy_modes import TERMS, equation_error_modes, experiments, free_run_modes, perfect_sigma_k
+from harness.noisy_modes import (
+    FAR_MAGNITUDES,
+    MAGNITUDES,
+    TERMS,
+    equation_error_modes,
+    experiments,
+    free_run_modes,
+    perfect_sigma_k,
+    slope_against_truth,
+)
 from models.errors import InputError
 from models.free_run_inspection import UNDETERMINED_SHARE, FreeRunMode, fit_free_run_modes, inspect_free_run
 from models.inspection import inspect
-from models.output_error import estimated_start_error
+from models.output_error import estimated_start_error, without_cancelled_poles
 
 TEST_LEVEL = 1e-3  # the chance a correct chain fails a rate assertion
 SAMPLES = 4000
@@ -195,6 +204,16 @@ def test_a_mode_its_own_experiments_contradict_claims_no_sigma_k_a_perfect_model
     assert modes[0].scale == 1.0
 
 
+def healthy_misfit_and_far_spring_change(mode: FreeRunMode) -> tuple[float, float]:
+    """The RMS error of ``mode``'s healthy point running free on a noise-free healthy record, and
+    the RMS change a 12 % loosening of the far spring makes to that record."""
+    noise_free = replace(scenario(), y_noise_std=0.0, x_noise_std=0.0)
+    x, y = record(noise_free, SAMPLES, 98_000)
+    _, loosened = record(replace(noise_free, fault="k3", k=12.0), SAMPLES, 98_000)
+    healthy = mode.model.narx_at(0.0)
+    return float(np.std(estimated_start_error(healthy, x, y)[healthy.max_lag :])), float(np.std(loosened - y))
+
+
 def test_the_healthy_point_simulates_the_chain_closer_than_the_far_spring_moves_it(modes) -> None:
     """The joint fit's healthy model runs free on a noise-free healthy record within a few times
     what a 12 % loosening of the far spring changes. From the equation-error start alone the
@@ -202,12 +221,35 @@ def test_the_healthy_point_simulates_the_chain_closer_than_the_far_spring_moves_
     the slow one, several times further off: the far spring's mode then spent its slope on that
     misfit, not on the spring (its k̂ at the range's end on every record of some training sets,
     healthy ones too)."""
-    noise_free = replace(scenario(), y_noise_std=0.0, x_noise_std=0.0)
-    x, y = record(noise_free, SAMPLES, 98_000)
-    _, loosened = record(replace(noise_free, fault="k3", k=12.0), SAMPLES, 98_000)
-    healthy = modes[0].model.narx_at(0.0)
-    error = estimated_start_error(healthy, x, y)[healthy.max_lag :]
-    assert np.std(error) < 3 * np.std(loosened - y)
+    misfit, change = healthy_misfit_and_far_spring_change(modes[0])
+    assert misfit < 3 * change
+
+
+def test_a_healthy_point_whose_pole_a_zero_cancels_is_searched_again_without_the_pair() -> None:
+    """Training set 61 000's searches both ended with a pole near −0.93 and a zero on it, the
+    chain's response left to the ARX's three other poles: its healthy point missed a noise-free
+    record by seven times what a 12 % looser far spring changes, and the far spring's mode
+    claimed a slope of the wrong sign. Searched again with the pair taken out, the joint fit
+    ends lower, with four slow poles and no such pair, within the bound the other training
+    sets meet."""
+    modes = free_run_modes(seed=61_000)
+    assert without_cancelled_poles(modes[0].model.narx_at(0.0)) is None
+    misfit, change = healthy_misfit_and_far_spring_change(modes[0])
+    assert misfit < 3 * change
+
+
+def test_the_far_spring_trained_beyond_its_watched_range_follows_the_chain() -> None:
+    """The far spring's slope is fixed by Σ(k − k̄)² times each experiment's information on k:
+    from 0 … 15 % its error across the chain's change of the response was as large as that
+    change (1.0 – 1.3 times it in three training sets, bench/noisy_modes.py designs), and the
+    mode's k̂ shrank towards 0 under it. Trained at 0, 15, 30 and 45 % (nine times the
+    information, the ARX's coefficients affine in one spring's stiffness), the mode changes a
+    noise-free record from 0 to 12 % along the chain's change within a third of it and across it
+    by less than 0.75 of it (0.35 – 0.47 in the same three)."""
+    modes = free_run_modes(seed=63_000, magnitudes={"k2": MAGNITUDES, "k3": FAR_MAGNITUDES})
+    along, across, _ = slope_against_truth(modes[1])
+    assert abs(along - 1) < 1 / 3
+    assert across < 0.75
 
 
 def test_two_modes_the_record_cannot_tell_apart_give_an_unknown_fault(modes) -> None:
