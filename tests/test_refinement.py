@@ -691,6 +691,25 @@ def test_with_nothing_declared_a_planted_effect_leaves_the_start_at_the_rigs_ord
     assert orders == (4, 4, 1), orders
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="ARX(8, 8) by least squares runs free over every check rotation below ARX(4, 4): not yet held",
+)
+def test_with_nothing_declared_the_rig_without_its_spring_starts_at_its_order():
+    """The rig with its cubic spring taken out is a linear system of fourth order, driven with 800 N
+    of unmeasured force on the mass the input drives: no nonlinearity is there to fake an order,
+    and still the start took ARX(8, 8). Least squares' larger orders run free over the short check
+    blocks a little better on all three rotations, beyond their spread and the margin, while each
+    output-error fit there, searched from measured starts on the fit blocks, runs free over the
+    check blocks several times worse than its least-squares start; so the nonlinearity a record
+    carries is not the only thing that moves the order, and a start that nonlinearity cannot fool
+    must first hold this record."""
+    scenario = Scenario(params=replace(Scenario().params, k3=0.0), disturbance_std=800.0)
+    record = simulate(scenario, 1600, 2)
+    orders, _ = choose_linear([(record.x, record.y)])
+    assert orders == (4, 4, 1), orders
+
+
 def test_on_a_short_record_a_nonlinearity_does_not_buy_the_start_more_orders():
     """400 samples of a second-order system seen through a mild quadratic sensor: ARX(9, 9)
     with x[t] simulated the three held-out rotations 13 % better than ARX(2, 2), by the best
