@@ -23,6 +23,8 @@ behind the sensor:
   linear combination of the measured one's lags, so its force is the cube of that combination,
   fitted to the residual as one regressor (:func:`unmeasured_cube`) and added as the cross-lag
   cubics that span it;
+- dynamics the input modulates (a bilinear system): products x[t-j]·y[t-i], the input scaling
+  the output's own terms, as a drive switching a motor/generator's circuit changes its damping;
 - a static nonlinearity between two linear filters (Wiener–Hammerstein), y = G2(f(G1 x)):
   G1 x is a combination u[t] = Σ_k c_k·x[t-k] of the input's lags, so f's square and cube are
   a·u² + b·u³, fitted to the residual as one regressor (:func:`filtered_input_powers`) and added
@@ -77,7 +79,8 @@ SEARCH_ROWS = 10_000
 # converges from half of the first eight; four keep it quick.
 COMBINATION_STARTS = 4
 # The generic family (:func:`polynomial_effect`): its name, which the loop offers after every named
-# family, and the shortest lags of y and of x whose products it holds.
+# family, and the shortest lags of y and of x whose products it holds (and the bilinear family,
+# :func:`bilinear_effect`).
 POLYNOMIAL = "polynomial"
 POLYNOMIAL_LAGS = 3
 # The grid of the Bouc–Wen shape r = γ/β (first, last, points), 1 (β = γ) among them. It spans
@@ -147,6 +150,7 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
     effects = [
         *_force_effects(lags_y),
         *_input_effects(x_lags),
+        bilinear_effect(terms),
         *_estimated_effects(lags_y, x_lags),
         *_structure_effects(terms, ny, x_lags),
     ]
@@ -300,14 +304,10 @@ def polynomial_effect(terms: Sequence[Term]) -> Effect:
     """The generic polynomial NARX's terms of degree 2: every product of two of the model's own
     shortest lags of y and x (``POLYNOMIAL_LAGS`` of each), y[t-i]·x[t-j], y[t-i]·y[t-j],
     x[t-i]·x[t-j]. They name no physical effect; they are what an identifier tries where no named
-    family explains the data (a motor/generator whose output goes with the product of its
-    input and its own past), and the loop offers them after every named family
+    family explains the data, and the loop offers them after every named family
     (:func:`models.refinement.refine`). Products of every lag would grow as the square of the
     order (231 for ARX(10, 10) with x[t]) and make each round's scoring that much slower."""
-    lags = {
-        signal: sorted({f.lag for t in terms for f in t.factors if f.signal == signal})[:POLYNOMIAL_LAGS]
-        for signal in ("y", "x")
-    }
+    lags = _shortest_lags(terms)
     factors = [Factor(signal, lag) for signal, chosen in lags.items() for lag in chosen]
     return Effect(
         POLYNOMIAL,
@@ -315,6 +315,34 @@ def polynomial_effect(terms: Sequence[Term]) -> Effect:
         "of degree 2",
         tuple(Term.of(pair) for pair in itertools.combinations_with_replacement(factors, 2)),
     )
+
+
+def bilinear_effect(terms: Sequence[Term]) -> Effect:
+    """Dynamics the input modulates: the products y[t-i]·x[t-j] of the model's shortest lags of y
+    and x (``POLYNOMIAL_LAGS`` of each, as the generic polynomial's), a bilinear system's terms.
+
+    In a bilinear system the input scales the output's own terms, y[t] = Σ (a_i + b_ij·x[t-j])·y[t-i]
+    + …: its poles move with the input. A drive that switches a motor/generator's circuit (the
+    machine coasting when it is off) changes its damping so, and a binary drive hides it from the
+    input's own powers (x² = 5x for x ∈ {0, 5}). The other named families hold products of y with y
+    or of x with x only, and the generic polynomial, which holds these too, names nothing and is
+    judged after them: without this family the loop named stand-ins first (a power law of y, a
+    cubic spring), each fitting a slice of the modulation."""
+    lags = _shortest_lags(terms)
+    return Effect(
+        "bilinear",
+        "dynamics the input modulates (a bilinear system): products y[t-i]·x[t-j], the input scaling "
+        "the output's own terms, as a switched drive changes a motor's damping",
+        tuple(Term.of((Factor("y", i), Factor("x", j))) for i in lags["y"] for j in lags["x"]),
+    )
+
+
+def _shortest_lags(terms: Sequence[Term]) -> dict[str, list[int]]:
+    """The model's ``POLYNOMIAL_LAGS`` shortest lags of y and of x."""
+    return {
+        signal: sorted({f.lag for t in terms for f in t.factors if f.signal == signal})[:POLYNOMIAL_LAGS]
+        for signal in ("y", "x")
+    }
 
 
 def unused(effects: Sequence[Effect], terms: Sequence[Term]) -> list[Effect]:
