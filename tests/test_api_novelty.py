@@ -7,9 +7,9 @@ and a queued record's judgement by ``narxwatch worker`` processes.
   reference of its healthy free-run error; each further record gets a verdict, ``healthy`` or
   ``anomaly``, with the statistic, its threshold, p-value, α and severity, stored and listed as
   any other, and exactly the judgement ``models.novelty`` makes of it.
-- Healthy records are flagged within the binomial bounds of the designed rate α, records with an
-  8 % loss of k2 at least 90 % of the time; the structure stands at ``anomaly`` in the fleet and
-  its summary, and the persistence rule opens an alarm as for a detected fault.
+- Records with an 8 % loss of k2 are anomalies (the rates the judgement holds are
+  tests/test_novelty.py's); the structure stands at ``anomaly`` in the fleet and its summary, and
+  the persistence rule opens an alarm as for a detected fault.
 - A baseline nonlinear in its output is stored, says why it cannot judge records alone, and the
   inspection is refused with that reason; a structure with fault modes keeps the chain's verdict.
 """
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from scipy import special, stats
+from scipy import special
 
 from harness.accelerometer import (
     ALPHA,
@@ -29,7 +29,7 @@ from harness.accelerometer import (
     HEALTHY,
     SAMPLES,
     TERMS,
-    TEST_LEVEL,
+    TRAINING_SAMPLES,
     chain_baseline,
     healthy_training,
     record,
@@ -132,18 +132,9 @@ def test_each_record_gets_the_judgement_of_models_novelty(watched: Watched) -> N
         assert fetched == verdict
 
 
-def test_healthy_records_flagged_at_the_designed_rate_and_a_loosened_spring_found(watched: Watched) -> None:
-    flagged = sum(v["status"] == "anomaly" for v in watched.healthy)
-    assert flagged <= stats.binom.ppf(1 - TEST_LEVEL, HEALTHY, ALPHA)
-    severities = [v["novelty"]["severity"] for v in watched.healthy]
-    assert abs(np.mean(severities) - 1.0) < 0.05
-    found = sum(v["status"] == "anomaly" for v in watched.faulty)
-    assert found >= 0.9 * FAULTY
-    assert np.median([v["novelty"]["severity"] for v in watched.faulty]) > 1.0
-
-
 def test_anomalies_reach_the_fleet_the_summary_and_the_alarms(watched: Watched) -> None:
     viewer, structure_id = watched.tenant.viewer, watched.structure_id
+    assert all(v["status"] == "anomaly" and v["novelty"]["severity"] > 1.0 for v in watched.faulty)
     summary = viewer.get(f"{API}/structures/{structure_id}/summary").json()
     anomalies = sum(v["status"] == "anomaly" for v in watched.healthy + watched.faulty)
     assert summary["counts"]["anomaly"] == anomalies
@@ -249,12 +240,11 @@ def test_fault_modes_keep_the_chain_s_verdict(watched: Watched) -> None:
     """With a fault mode trained beside the baseline, a record gets the chain's verdict, not the
     baseline's judgement."""
     admin, ingest, structure_id = watched.tenant.admin, watched.tenant.ingest, watched.structure_id
+    magnitudes = (-8.0, 0.0, 8.0)
+    signals = [record(scenario("k2", k), TRAINING_SAMPLES, 30_000 + i) for i, k in enumerate(magnitudes)]
     experiments = [
-        {
-            "record_id": upload(ingest, structure_id, *record(scenario("k2", k), SAMPLES, 30_000 + i))["id"],
-            "k": k,
-        }
-        for i, k in enumerate((-8.0, 0.0, 8.0))
+        {"record_id": upload(ingest, structure_id, x, y)["id"], "k": k}
+        for (x, y), k in zip(signals, magnitudes, strict=True)
     ]
     body = {"name": "k2", "k_min": -10.0, "k_max": 10.0, "experiments": experiments, "terms": TERMS}
     response = admin.post(f"{API}/structures/{structure_id}/models/fault-modes", json=body)
