@@ -43,7 +43,7 @@ REPORT_KEYS = {
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests", "diverged"}
 HELD_OUT_KEYS = {
     "samples", "start_free_run_rms", "refined_free_run_rms", "gain", "threshold", "level", "diverged",
-    "refined_returned", "best_tried",
+    "refined_returned", "best_tried", "orders_saw_tails",
 }  # fmt: skip
 
 
@@ -87,6 +87,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     assert arrow["verdict"] == schroeder["verdict"] == "better"
     # The refined model won on the estimation part's held-out tail, which no choice saw.
     assert set(report["held_out"]) == HELD_OUT_KEYS and report["held_out"]["samples"] == 3000
+    assert report["held_out"]["orders_saw_tails"] is False  # a long record's orders are chosen on its heads
     assert report["held_out"]["refined_returned"] and not report["held_out"]["diverged"]
     assert report["held_out"]["gain"] > report["held_out"]["threshold"] > 0
     assert figure.read_bytes().startswith(PNG_MAGIC)
