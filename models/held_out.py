@@ -80,6 +80,12 @@ class HeldOut:
         return not self.diverged and self.gain >= -self.threshold
 
 
+def unseen_by(orders_saw_tails: bool) -> str:
+    """What the report says of the tails' samples: that no choice of the loop saw them, or none
+    but the linear orders' (:attr:`HeldOut.orders_saw_tails`)."""
+    return "no choice but the linear orders saw" if orders_saw_tails else "no choice saw"
+
+
 def held_out_tails(records: Records) -> tuple[Records, Segments] | None:
     """The ``records`` without their tails (the heads the loop runs on) and the tails, each with
     its first sample's index in its record; None when a record is too short to hold one out.

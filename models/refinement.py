@@ -101,7 +101,7 @@ from models.effects import (
     unused,
 )
 from models.errors import InputError
-from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails, held_out_tails
+from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails, held_out_tails, unseen_by
 from models.narx import NARX, Saturation
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
@@ -341,10 +341,10 @@ def _held_out_notes(result: Refinement) -> list[str]:
     if held_out.kept:
         return []
     refined = "diverged" if held_out.diverged else f"ran free at {held_out.refined_rms:.4g}"
-    unseen = "no choice but the linear orders saw" if held_out.orders_saw_tails else "no choice saw"
     return [
         f"the data could not support the effects: over the estimation records' held-out tails "
-        f"({held_out.samples} samples {unseen}) the refined model {refined} against the start's "
+        f"({held_out.samples} samples {unseen_by(held_out.orders_saw_tails)}) the refined model "
+        f"{refined} against the start's "
         f"{held_out.start_rms:.4g}, not better beyond the comparison's uncertainty; the start is "
         f"returned (the best effect tried: {held_out.best_tried})"
     ]
@@ -652,26 +652,23 @@ def refine(
         return grow(records).refinement
     heads, tails = split
     short = any(len(y) < MIN_BLOCK for _, y, _ in tails)
-    orders = None
-    if short and declared is None:
+    orders_saw_tails = short and declared is None
+    if orders_saw_tails:
         orders, terms = choose_linear(records, progress=tell, workers=workers)
-        grow = partial(grow, declared=terms)
+        grow = partial(grow, declared=terms, orders=orders)
     try:
         grown = grow(heads)
     except InputError:
         # Too few equations for the candidates once the tails are held out: refined on all of
         # them, with nothing to compare on (the report says so).
-        grown = grow(records)
-        return grown.refinement if orders is None else replace(grown.refinement, orders=orders)
-    if orders is not None:
-        grown = grown._replace(refinement=replace(grown.refinement, orders=orders))
+        return grow(records).refinement
     if short:
         grown = _start_on_tails(grown, heads, tails)
     result, held_out = grown.refinement, None
     if result.effects_added:
         tell("the refined model and the start on the held-out tails")
         held_out = replace(
-            compare_on_tails(grown.start, result.refined, tails), orders_saw_tails=orders is not None
+            compare_on_tails(grown.start, result.refined, tails), orders_saw_tails=orders_saw_tails
         )
         refined, start = result.refined, grown.start
         # Moving-average noise alone, there to unbias the parameters, leaves the process
@@ -787,10 +784,11 @@ def _grown(
     tell: Stage,
     workers: Workers,
     threads: Workers,
+    orders: tuple[int, int, int] | None = None,
 ) -> _Grown:
     """The loop of :func:`refine` on all of ``records``, and what :func:`_on_all` needs to make
-    its models again on more."""
-    orders = None
+    its models again on more. ``orders``: the linear orders ``declared`` was chosen with, where
+    the caller chose them (:func:`refine` on short records)."""
     checks = CheckSplit.of(records)
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)

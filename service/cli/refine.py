@@ -36,6 +36,7 @@ from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
 from models.effects import linear_terms
 from models.errors import InputError
+from models.held_out import unseen_by
 from models.refinement import DEFAULT_ALPHA, Stage
 from models.refinement_protocol import Loop, Refined, default_split, refine_parts, refine_whole
 from models.regression import Workers
@@ -543,9 +544,9 @@ def _print_held_out(held_out: dict[str, Any], per: str) -> None:
         if held_out["refined_returned"]
         else f"the start is returned (the best effect tried: {held_out['best_tried']})"
     )
-    unseen = "no choice but the linear orders saw" if held_out["orders_saw_tails"] else "no choice saw"
     stdout.print(
-        f"held-out tails ({held_out['samples']} samples {unseen}): free-run RMS start {start}{per}, "
+        f"held-out tails ({held_out['samples']} samples {unseen_by(held_out['orders_saw_tails'])}): "
+        f"free-run RMS start {start}{per}, "
         f"refined {refined}{per}; {gain}: {decision}",
         highlight=False,
         markup=False,
