@@ -304,9 +304,8 @@ class _Joint:
 
         def residuals(flat: np.ndarray) -> np.ndarray:
             error = np.concatenate([-run.error for run in self.evaluate(flat, False, kept)])
-            return np.where(
-                np.isfinite(error), error, 1e6 * self.scale
-            )  # a diverging trial is backed away from
+            # A diverging trial is backed away from.
+            return np.where(np.isfinite(error), error, 1e6 * self.scale)
 
         def jacobian(flat: np.ndarray) -> np.ndarray:
             runs = self.evaluate(flat, True, kept)
@@ -346,12 +345,16 @@ class _Joint:
             )
         first = np.concatenate([run.error for run in self.evaluate(initials[0], False)])
         self.scale = float(np.sqrt(np.mean(first**2))) or 1.0
-        ends = [self.fit(flat, list(self.everything)) for flat in initials]
-        paired = [self._untangled(starts[0], end) for end in ends]
-        ends += [self.fit(flat, list(self.everything)) for flat in paired if flat is not None]
-        ends = [end for end in ends if np.isfinite(_sum_of_squares(self.evaluate(end, False)))] or ends
-        clean = [end for end in ends if self._untangled(starts[0], end) is None]
-        return min(clean or ends, key=lambda end: _sum_of_squares(self.evaluate(end, False)))
+        everything = list(self.everything)
+        ends = [self.fit(flat, everything) for flat in initials]
+        untangled = [self._untangled(starts[0], end) for end in ends]
+        for flat in [flat for flat in untangled if flat is not None]:
+            ends.append(self.fit(flat, everything))
+            untangled.append(self._untangled(starts[0], ends[-1]))
+        sums = [_sum_of_squares(self.evaluate(end, False)) for end in ends]
+        finite = [i for i, total in enumerate(sums) if np.isfinite(total)] or list(range(len(ends)))
+        clean = [i for i in finite if untangled[i] is None]
+        return ends[min(clean or finite, key=sums.__getitem__)]
 
     def _untangled(self, start: FNARX, flat: np.ndarray) -> np.ndarray | None:
         """``flat`` with its healthy point's cancelled pairs taken out, None where it has none.
