@@ -320,29 +320,14 @@ class Feed:
         return self._next
 
 
-def run_phase(
-    phase: Phase,
-    server: Server,
-    key: str,
-    payloads: list[bytes],
-    feed: Feed,
-    warmup: int,
-    duration: float | None,
-    reconnect_every: int,
-    stop: threading.Event,
-) -> None:
-    """``phase.concurrency`` threads, one keep-alive connection each: warm-up, barrier, load.
+class PhaseRun:
+    """One run of a phase: ``phase.concurrency`` threads, one keep-alive connection each:
+    warm-up, barrier, load. Its threads share what this object holds: the barrier they meet at
+    once warmed up, the clock and CPU readings taken there, and the lock over the phase's figures.
 
     With ``reconnect_every`` > 0 each thread's every n-th request asks the server to close the
     connection, so that the thread's next request comes on a new one.
     """
-    PhaseRun(phase, server, key, payloads, feed, warmup, duration, reconnect_every, stop).run()
-
-
-class PhaseRun:
-    """One run of a phase (:func:`run_phase`). Its threads share what this object holds: the
-    barrier they meet at once warmed up, the clock and CPU readings taken there, and the lock
-    over the phase's figures."""
 
     def __init__(
         self,
@@ -789,7 +774,9 @@ def run_phases(
     for phase in phases:
         say(f"phase {phase.label}: {phase.endpoint}, concurrency {phase.concurrency} ...")
         feed = real_feed if phase.real else noop_feed
-        run_phase(phase, server, key, payloads, feed, args.warmup, args.duration, args.reconnect_every, stop)
+        PhaseRun(
+            phase, server, key, payloads, feed, args.warmup, args.duration, args.reconnect_every, stop
+        ).run()
         say(f"    {phase.completed} requests in {phase.elapsed:.1f} s, {phase.errors} failed")
     return phases
 
