@@ -167,10 +167,10 @@ def refine_command(
     x: XName = None,
     y: YName = None,
     fs: Annotated[float | None, typer.Option(help="Sampling rate [Hz] of files that state none.")] = None,
-    parts: PartOptions,
+    samples: PartOptions,
     alpha: Annotated[float, typer.Option(help="Family-wise level of each round.")] = DEFAULT_ALPHA,
     validate: Annotated[list[Path] | None, typer.Option(help=VALIDATE_HELP)] = None,
-    output: ReportOptions,
+    reporting: ReportOptions,
     jobs: Annotated[
         int | None,
         typer.Option(
@@ -182,21 +182,21 @@ def refine_command(
 ) -> None:
     """Fit the declared model, trace its residual to the effects it lacks, add them, compare."""
     silverbox = data_format is DataFormat.silverbox
-    unit = output.unit or (SILVERBOX_UNIT if silverbox else None)
+    unit = reporting.unit or (SILVERBOX_UNIT if silverbox else None)
     layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
-    transient = parts.transient
+    transient = samples.transient
     if transient < 0:
         raise InputError(f"--transient must be 0 or more, got {transient}")
     jobs = _jobs(jobs)
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
     held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
     rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
-    start = parts.initial if parts.initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
+    start = samples.initial if samples.initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
     loop = Loop(_declared(declared), start, alpha, rate, transient)
-    if parts.on_one_record(fitted, held, silverbox):
-        refined, judged, protocol = _on_parts(fitted[0], held, loop, jobs, parts, silverbox)
+    if samples.on_one_record(fitted, held, silverbox):
+        refined, judged, protocol = _on_parts(fitted[0], held, loop, jobs, samples, silverbox)
     else:
-        refined, judged, protocol = _on_records(fitted, held, loop, jobs, parts)
+        refined, judged, protocol = _on_records(fitted, held, loop, jobs, samples)
     document = refined.to_dict(judged)
     document["data"] = protocol | {
         "transient": transient,
@@ -205,12 +205,12 @@ def refine_command(
         "alpha": alpha,
         "unit": unit,
     }
-    if output.plot is not None:
-        _write_figure(refined, loop, output.plot, layout.y, unit)
-    if output.as_json:
+    if reporting.plot is not None:
+        _write_figure(refined, loop, reporting.plot, layout.y, unit)
+    if reporting.as_json:
         stdout.print_json(json.dumps(document))
         return
-    _print(document, output.plot)
+    _print(document, reporting.plot)
 
 
 def _write_figure(refined: Refined, loop: Loop, plot: Path, output: str, unit: str | None) -> None:
