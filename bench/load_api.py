@@ -320,125 +320,150 @@ class Feed:
         return self._next
 
 
-def run_phase(
-    phase: Phase,
-    server: Server,
-    key: str,
-    payloads: list[bytes],
-    feed: Feed,
-    warmup: int,
-    duration: float | None,
-    reconnect_every: int,
-    stop: threading.Event,
-) -> None:
-    """``phase.concurrency`` threads, one keep-alive connection each: warm-up, barrier, load.
+class PhaseRun:
+    """One run of a phase: ``phase.concurrency`` threads, one keep-alive connection each:
+    warm-up, barrier, load. Its threads share what this object holds: the barrier they meet at
+    once warmed up, the clock and CPU readings taken there, and the lock over the phase's figures.
 
     With ``reconnect_every`` > 0 each thread's every n-th request asks the server to close the
     connection, so that the thread's next request comes on a new one.
     """
-    concurrency = phase.concurrency
-    clock: dict[str, float] = {}
-    before: dict[int, float] = {}
 
-    def start_measuring() -> None:  # run by the last thread to reach the barrier, before any goes on
-        before.update(server.cpu_seconds())
-        clock["cpu"], clock["machine"] = time.process_time(), machine_busy()
-        clock["start"] = time.perf_counter()
-        feed.begin(clock["start"] + duration if duration else None)
-
-    barrier = threading.Barrier(concurrency + 1, action=start_measuring)
-    warm_each = max(2, -(-warmup // concurrency))
-    lock = threading.Lock()
-    headers = {"Authorization": f"Bearer {key}", "Content-Type": "application/json"}
-
-    def send(
-        client: httpx.Client, index: int, record_ids: list[int], measured: bool, close: bool = False
+    def __init__(
+        self,
+        phase: Phase,
+        server: Server,
+        key: str,
+        payloads: list[bytes],
+        feed: Feed,
+        warmup: int,
+        duration: float | None,
+        reconnect_every: int,
+        stop: threading.Event,
     ) -> None:
-        started = time.perf_counter()
-        try:
-            response = client.post(phase.path, content=payloads[index], headers=CLOSE if close else None)
-            elapsed_ms = (time.perf_counter() - started) * 1000
-            status: int | str = response.status_code
-            problem = None
-            record_id = None
-            if not 200 <= response.status_code < 300:
-                problem = f"HTTP {response.status_code}: {response.text[:300]}"
-            elif phase.real:
-                answer = response.json()
-                record_id = answer.get("id")
-                if response.status_code != 201 or not answer.get("created") or answer.get("verdict") is None:
-                    problem = (
-                        f"HTTP {response.status_code}: not a new, inspected record: {response.text[:200]}"
-                    )
-        except (httpx.HTTPError, ValueError) as exc:  # transport errors, a 2xx answer that is not JSON
-            elapsed_ms = (time.perf_counter() - started) * 1000
-            status, problem, record_id = type(exc).__name__, f"{type(exc).__name__}: {exc}", None
-        with lock:
-            if record_id is not None and problem is None:
-                record_ids.append(record_id)
-            if measured:
-                phase.latencies_ms.append(elapsed_ms)
-                phase.statuses[status] += 1
-                if problem is not None:
-                    phase.failures.append(problem)
-            elif problem is not None:
-                phase.warmup_failures.append(problem)
+        self.phase, self.server, self.payloads, self.feed = phase, server, payloads, feed
+        self.duration, self.reconnect_every, self.stop = duration, reconnect_every, stop
+        self.headers = {"Authorization": f"Bearer {key}", "Content-Type": "application/json"}
+        self.warm_each = max(2, -(-warmup // phase.concurrency))
+        self.lock = threading.Lock()
+        self.barrier = threading.Barrier(phase.concurrency + 1, action=self.start_measuring)
+        self.clock: dict[str, float] = {}  # set at the barrier
+        self.before: dict[int, float] = {}  # the server's CPU seconds by pid, at the barrier
 
-    def worker(warm_limit: int) -> None:
-        client = httpx.Client(base_url=server.url, headers=headers, timeout=REQUEST_TIMEOUT)
+    def start_measuring(self) -> None:
+        """Run by the last thread to reach the barrier, before any goes on."""
+        self.before.update(self.server.cpu_seconds())
+        self.clock["cpu"], self.clock["machine"] = time.process_time(), machine_busy()
+        self.clock["start"] = time.perf_counter()
+        self.feed.begin(self.clock["start"] + self.duration if self.duration else None)
+
+    def run(self) -> None:
+        """The threads' warm-up and load, then the phase's time and CPU shares."""
+        concurrency = self.phase.concurrency
+        warm_limit = self.feed.used + self.warm_each * concurrency
+        threads = [
+            threading.Thread(target=self.worker, args=(warm_limit,), name=f"load-{i}", daemon=True)
+            for i in range(concurrency)
+        ]
+        for thread in threads:
+            thread.start()
         try:
-            for _ in range(warm_each):
-                index = feed.take(warm_limit)
-                if index is None or stop.is_set():
+            # All warmed up; start_measuring has run.
+            self.barrier.wait(timeout=REQUEST_TIMEOUT * (self.warm_each + 1))
+        except threading.BrokenBarrierError:
+            self.phase.warmup_failures.append("the warm-up did not finish")
+            self.stop.set()
+        try:
+            for thread in threads:
+                thread.join()
+        except BaseException:
+            self.stop.set()
+            self.barrier.abort()
+            raise
+        if "start" in self.clock:
+            self.measured()
+
+    def worker(self, warm_limit: int) -> None:
+        """One thread's connection: its share of the warm-up, the barrier, then the load."""
+        client = httpx.Client(base_url=self.server.url, headers=self.headers, timeout=REQUEST_TIMEOUT)
+        try:
+            for _ in range(self.warm_each):
+                index = self.feed.take(warm_limit)
+                if index is None or self.stop.is_set():
                     break
-                send(client, index, phase.warmup_record_ids, measured=False)
-            barrier.wait()
+                self.send(client, index, self.phase.warmup_record_ids, measured=False)
+            self.barrier.wait()
             sent = 0
-            while not stop.is_set() and (index := feed.take()) is not None:
+            while not self.stop.is_set() and (index := self.feed.take()) is not None:
                 sent += 1
                 # "Connection: close" ends this connection after the answer; the next request
                 # opens a new one, which may land on another worker process.
-                last = reconnect_every > 0 and sent % reconnect_every == 0
-                send(client, index, phase.record_ids, measured=True, close=last)
+                last = self.reconnect_every > 0 and sent % self.reconnect_every == 0
+                self.send(client, index, self.phase.record_ids, measured=True, close=last)
         except threading.BrokenBarrierError:
             return
         except Exception as exc:  # a bug here must end the phase, not leave the others waiting
-            with lock:
-                phase.warmup_failures.append(f"load thread failed: {type(exc).__name__}: {exc}")
-            stop.set()
-            barrier.abort()
+            with self.lock:
+                self.phase.warmup_failures.append(f"load thread failed: {type(exc).__name__}: {exc}")
+            self.stop.set()
+            self.barrier.abort()
         finally:
             client.close()
 
-    warm_limit = feed.used + warm_each * concurrency
-    threads = [
-        threading.Thread(target=worker, args=(warm_limit,), name=f"load-{i}", daemon=True)
-        for i in range(concurrency)
-    ]
-    for thread in threads:
-        thread.start()
-    try:
-        barrier.wait(timeout=REQUEST_TIMEOUT * (warm_each + 1))  # all warmed up; start_measuring has run
-    except threading.BrokenBarrierError:
-        phase.warmup_failures.append("the warm-up did not finish")
-        stop.set()
-    try:
-        for thread in threads:
-            thread.join()
-    except BaseException:
-        stop.set()
-        barrier.abort()
-        raise
-    if "start" not in clock:
-        return
-    phase.elapsed = time.perf_counter() - clock["start"]
-    phase.client_cpu = (time.process_time() - clock["cpu"]) / phase.elapsed
-    after = server.cpu_seconds()
-    used = sorted(((cpu - before.get(pid, 0.0)) / phase.elapsed for pid, cpu in after.items()), reverse=True)
-    phase.server_cpu = sum(used)
-    phase.process_cpu = [share for share in used if share >= 0.02]
-    busy = (machine_busy() - clock["machine"]) / phase.elapsed
-    phase.other_cpu = max(0.0, busy - phase.client_cpu - phase.server_cpu)
+    def send(
+        self, client: httpx.Client, index: int, record_ids: list[int], measured: bool, close: bool = False
+    ) -> None:
+        """One request, its latency and answer counted in the phase (or its warm-up)."""
+        started = time.perf_counter()
+        try:
+            response = client.post(
+                self.phase.path, content=self.payloads[index], headers=CLOSE if close else None
+            )
+            elapsed_ms = (time.perf_counter() - started) * 1000
+            status: int | str = response.status_code
+            problem, record_id = self.problem(response)
+        except (httpx.HTTPError, ValueError) as exc:  # transport errors, a 2xx answer that is not JSON
+            elapsed_ms = (time.perf_counter() - started) * 1000
+            status, problem, record_id = type(exc).__name__, f"{type(exc).__name__}: {exc}", None
+        with self.lock:
+            if record_id is not None and problem is None:
+                record_ids.append(record_id)
+            if measured:
+                self.phase.latencies_ms.append(elapsed_ms)
+                self.phase.statuses[status] += 1
+                if problem is not None:
+                    self.phase.failures.append(problem)
+            elif problem is not None:
+                self.phase.warmup_failures.append(problem)
+
+    def problem(self, response: httpx.Response) -> tuple[str | None, int | None]:
+        """What is wrong with an answer (None: nothing), and the record id a real upload made."""
+        if not 200 <= response.status_code < 300:
+            return f"HTTP {response.status_code}: {response.text[:300]}", None
+        if not self.phase.real:
+            return None, None
+        answer = response.json()
+        if response.status_code != 201 or not answer.get("created") or answer.get("verdict") is None:
+            return (
+                f"HTTP {response.status_code}: not a new, inspected record: {response.text[:200]}",
+                answer.get("id"),
+            )
+        return None, answer.get("id")
+
+    def measured(self) -> None:
+        """The phase's time, and the CPU this client, the server's processes and the rest of the
+        machine used during it (cores)."""
+        phase = self.phase
+        phase.elapsed = time.perf_counter() - self.clock["start"]
+        phase.client_cpu = (time.process_time() - self.clock["cpu"]) / phase.elapsed
+        after = self.server.cpu_seconds()
+        used = sorted(
+            ((cpu - self.before.get(pid, 0.0)) / phase.elapsed for pid, cpu in after.items()), reverse=True
+        )
+        phase.server_cpu = sum(used)
+        phase.process_cpu = [share for share in used if share >= 0.02]
+        busy = (machine_busy() - self.clock["machine"]) / phase.elapsed
+        phase.other_cpu = max(0.0, busy - phase.client_cpu - phase.server_cpu)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -669,17 +694,7 @@ def main(argv: list[str] | None = None) -> int:
                 "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
             }
             say(f"database {database}: narxwatch demo-seed, keys create --org demo --role ingest")
-            seeded = run_cli(["demo-seed"], env)
-            found = re.search(r"is structure (\d+)", seeded)
-            if found is None:
-                raise SystemExit(f"cannot find the structure id in demo-seed's output:\n{seeded}")
-            structure_id = int(found.group(1))
-            keys = re.findall(
-                r"^(nw_\S+)$", run_cli(["keys", "create", "--org", "demo", "--role", "ingest"], env), re.M
-            )
-            if len(keys) != 1:
-                raise SystemExit("cannot find the key in the output of narxwatch keys create")
-            key = keys[0]
+            structure_id, key = seeded(env)
             records_before = count_records(database, structure_id)
             verdicts_before = verdicts_per_record(database, structure_id)
 
@@ -693,24 +708,7 @@ def main(argv: list[str] | None = None) -> int:
             server = Server(env, args.workers, Path(folder) / "server.log", access_log)
             say(f"starting {SERVER_APP} on {server.url} with {args.workers} worker(s)")
             server.wait_ready()
-
-            real_path = f"/api/v1/structures/{structure_id}/records?inspect=true"
-            real_feed = Feed(0, args.requests, len(payloads), distinct=True)
-            noop_feed = Feed(0, args.requests, len(payloads), distinct=False)
-            phases = [
-                Phase("a", "upload, inspect=true", real_path, 1, real=True),
-                Phase("b", "upload, inspect=true", real_path, args.concurrency, real=True),
-                Phase("c", "no-op, same payload", NOOP_PATH, 1, real=False),
-                Phase("d", "no-op, same payload", NOOP_PATH, args.concurrency, real=False),
-            ]
-            for phase in phases:
-                say(f"phase {phase.label}: {phase.endpoint}, concurrency {phase.concurrency} ...")
-                feed = real_feed if phase.real else noop_feed
-                run_phase(
-                    phase, server, key, payloads, feed, args.warmup, args.duration, args.reconnect_every, stop
-                )
-                say(f"    {phase.completed} requests in {phase.elapsed:.1f} s, {phase.errors} failed")
-
+            phases = run_phases(args, server, key, structure_id, payloads, stop)
             probes.append(cpu_probe_ms())
             report(phases, args, int(mean_size), access_log, probes)
 
@@ -730,20 +728,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"database check: {len(uploaded)} successful uploads (warm-up included) -> "
                 + ("records and verdicts match" if not problems else "; ".join(problems))
             )
-            failures = [f for p in phases for f in p.failures] + [
-                f"(phase {p.label}, outside the measurement) {f}" for p in phases for f in p.warmup_failures
-            ]
-            if failures:
-                print(
-                    f"{len(failures)} request(s) failed; answers: "
-                    + "; ".join(f"phase {p.label} {dict(p.statuses)}" for p in phases)
-                )
-                print("the most frequent failures:")
-                for failure in Counter(failures).most_common(5):
-                    print(f"    {failure[1]} x {failure[0]}")
-                print(
-                    f"server log, last lines other than the access log:\n{server.log_tail(40, access=False)}"
-                )
+            failures = report_failures(phases, server)
             return 1 if failures or problems else 0
         except KeyboardInterrupt:
             stop.set()
@@ -752,6 +737,66 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             if server is not None:
                 server.stop()
+
+
+def seeded(env: dict[str, str]) -> tuple[int, str]:
+    """``narxwatch demo-seed`` and an ingest key: the demo structure's id, and the key."""
+    output = run_cli(["demo-seed"], env)
+    found = re.search(r"is structure (\d+)", output)
+    if found is None:
+        raise SystemExit(f"cannot find the structure id in demo-seed's output:\n{output}")
+    keys = re.findall(
+        r"^(nw_\S+)$", run_cli(["keys", "create", "--org", "demo", "--role", "ingest"], env), re.M
+    )
+    if len(keys) != 1:
+        raise SystemExit("cannot find the key in the output of narxwatch keys create")
+    return int(found.group(1)), keys[0]
+
+
+def run_phases(
+    args: argparse.Namespace,
+    server: Server,
+    key: str,
+    structure_id: int,
+    payloads: list[bytes],
+    stop: threading.Event,
+) -> list[Phase]:
+    """The four phases in turn: the real upload, then the no-op, each at concurrency 1 and C."""
+    real_path = f"/api/v1/structures/{structure_id}/records?inspect=true"
+    real_feed = Feed(0, args.requests, len(payloads), distinct=True)
+    noop_feed = Feed(0, args.requests, len(payloads), distinct=False)
+    phases = [
+        Phase("a", "upload, inspect=true", real_path, 1, real=True),
+        Phase("b", "upload, inspect=true", real_path, args.concurrency, real=True),
+        Phase("c", "no-op, same payload", NOOP_PATH, 1, real=False),
+        Phase("d", "no-op, same payload", NOOP_PATH, args.concurrency, real=False),
+    ]
+    for phase in phases:
+        say(f"phase {phase.label}: {phase.endpoint}, concurrency {phase.concurrency} ...")
+        feed = real_feed if phase.real else noop_feed
+        PhaseRun(
+            phase, server, key, payloads, feed, args.warmup, args.duration, args.reconnect_every, stop
+        ).run()
+        say(f"    {phase.completed} requests in {phase.elapsed:.1f} s, {phase.errors} failed")
+    return phases
+
+
+def report_failures(phases: list[Phase], server: Server) -> list[str]:
+    """The failed requests, measured or not, printed with the most frequent and the server log's
+    last lines other than the access log."""
+    failures = [f for p in phases for f in p.failures] + [
+        f"(phase {p.label}, outside the measurement) {f}" for p in phases for f in p.warmup_failures
+    ]
+    if failures:
+        print(
+            f"{len(failures)} request(s) failed; answers: "
+            + "; ".join(f"phase {p.label} {dict(p.statuses)}" for p in phases)
+        )
+        print("the most frequent failures:")
+        for failure in Counter(failures).most_common(5):
+            print(f"    {failure[1]} x {failure[0]}")
+        print(f"server log, last lines other than the access log:\n{server.log_tail(40, access=False)}")
+    return failures
 
 
 if __name__ == "__main__":

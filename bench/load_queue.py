@@ -29,6 +29,7 @@ import threading
 import time
 from collections import Counter
 from contextlib import ExitStack, suppress
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,6 +105,20 @@ def upload_all(url: str, key: str, structure_id: int, payloads: list[bytes], cli
     return statuses, np.array(latencies), ids, time.perf_counter() - began
 
 
+@dataclass(frozen=True)
+class Stored:
+    """What the database holds once every uploaded record has its verdict (or the wait ended):
+    when the last verdict was seen (``time.perf_counter``), the records added, the uploads'
+    verdicts and the records they judge, and each inspection's time in the queue (defer to
+    success) in seconds."""
+
+    done: float
+    records: int
+    verdicts: int
+    distinct_records: int
+    queue_seconds: np.ndarray
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--records", type=int, default=2000)
@@ -145,25 +160,45 @@ def main(argv: list[str] | None = None) -> int:
         statuses, latencies, ids, upload_seconds = upload_all(
             api_url, key, structure_id, payloads, args.clients
         )
-        with psycopg.connect(conninfo(url), autocommit=True) as db:
-            deadline = time.monotonic() + 600
-            query = "SELECT count(*) FROM verdicts WHERE record_id = ANY(%s)"
-            while db.execute(query, (ids,)).fetchone()[0] < len(ids) and time.monotonic() < deadline:
-                time.sleep(0.2)
-            end_to_end = time.perf_counter() - began
-            records = db.execute("SELECT count(*) FROM records").fetchone()[0] - records_before
-            verdicts = db.execute(query, (ids,)).fetchone()[0]
-            distinct = db.execute(
-                "SELECT count(DISTINCT record_id) FROM verdicts WHERE record_id = ANY(%s)", (ids,)
-            )
-            distinct_records = distinct.fetchone()[0]
-            queue = db.execute(
-                "SELECT extract(epoch FROM s.at - d.at) FROM procrastinate_events s "
-                "JOIN procrastinate_events d ON d.job_id = s.job_id AND d.type = 'deferred' "
-                "JOIN procrastinate_jobs j ON j.id = s.job_id "
-                "WHERE s.type = 'succeeded' AND j.task_name = 'inspect_record'"
-            ).fetchall()
-        queue_seconds = np.array([float(row[0]) for row in queue])
+        stored = stored_verdicts(url, ids, records_before)
+    return report(args.records, statuses, latencies, ids, upload_seconds, stored.done - began, stored)
+
+
+def stored_verdicts(url: str, ids: list[int], records_before: int) -> Stored:
+    """What the database holds once every record of ``ids`` has its verdict, waiting up to ten
+    minutes for them."""
+    with psycopg.connect(conninfo(url), autocommit=True) as db:
+        deadline = time.monotonic() + 600
+        query = "SELECT count(*) FROM verdicts WHERE record_id = ANY(%s)"
+        while db.execute(query, (ids,)).fetchone()[0] < len(ids) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        done = time.perf_counter()
+        records = db.execute("SELECT count(*) FROM records").fetchone()[0] - records_before
+        verdicts = db.execute(query, (ids,)).fetchone()[0]
+        distinct = db.execute(
+            "SELECT count(DISTINCT record_id) FROM verdicts WHERE record_id = ANY(%s)", (ids,)
+        )
+        distinct_records = distinct.fetchone()[0]
+        queue = db.execute(
+            "SELECT extract(epoch FROM s.at - d.at) FROM procrastinate_events s "
+            "JOIN procrastinate_events d ON d.job_id = s.job_id AND d.type = 'deferred' "
+            "JOIN procrastinate_jobs j ON j.id = s.job_id "
+            "WHERE s.type = 'succeeded' AND j.task_name = 'inspect_record'"
+        ).fetchall()
+    return Stored(done, records, verdicts, distinct_records, np.array([float(row[0]) for row in queue]))
+
+
+def report(
+    expected: int,
+    statuses: Counter[int],
+    latencies: np.ndarray,
+    ids: list[int],
+    upload_seconds: float,
+    end_to_end: float,
+    stored: Stored,
+) -> int:
+    """The figures printed, then the checks: every one of the ``expected`` uploads answered 202
+    and stored with one verdict. The exit status: 1 if a check failed."""
     ms = 1000 * np.percentile(latencies, [50, 95, 99, 100])
     print()
     print(f"{'':28}{'value':>12}")
@@ -173,15 +208,18 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'end to end (to last verdict)':28}{end_to_end:>10.1f} s  = {len(ids) / end_to_end:.0f} verdicts/s"
     )
-    if queue_seconds.size:
-        q = np.percentile(queue_seconds, [50, 95])
+    if stored.queue_seconds.size:
+        q = np.percentile(stored.queue_seconds, [50, 95])
         print(f"{'queue latency p50 / p95':28}{q[0]:>10.2f} s / {q[1]:.2f} s")
-    print(f"{'records / verdicts stored':28}{records:>12} / {verdicts} ({distinct_records} records)")
+    print(
+        f"{'records / verdicts stored':28}{stored.records:>12} / {stored.verdicts} "
+        f"({stored.distinct_records} records)"
+    )
     failures = []
-    if statuses[202] != args.records or set(statuses) != {202}:
+    if statuses[202] != expected or set(statuses) != {202}:
         failures.append(f"answers other than 202: {dict(statuses)}")
-    if not records == verdicts == distinct_records == args.records:
-        failures.append(f"expected {args.records} records and verdicts, one each")
+    if not stored.records == stored.verdicts == stored.distinct_records == expected:
+        failures.append(f"expected {expected} records and verdicts, one each")
     for failure in failures:
         print(f"FAILED: {failure}")
     print("all checks passed" if not failures else "")

@@ -53,9 +53,9 @@ from models.spectrum import excited_intervals, residual_spectrum
 from models.terms import WAVES, Factor, Term, bouc_wen, regressor_matrix
 
 EffectKind = Literal["terms", "output_shift", "periodic", "noise", "estimated", "saturation", "combined"]
-# What an "estimated" effect is: given x, y, the residual over rows lag … N−1, the model's terms
-# and lag, the family's terms with their parameters estimated.
-Finder = Callable[[np.ndarray, np.ndarray, np.ndarray, Sequence[Term], int], tuple[Term, ...]]
+# What an "estimated" effect is: given what its parameters are sought from (:class:`SearchInput`),
+# the family's terms with their parameters estimated.
+Finder = Callable[["SearchInput"], tuple[Term, ...]]
 # What a "combined" effect is: given the records (x, y pairs), the residual over their stacked rows
 # lag … N−1, the model's terms and lag, the terms that span its one regressor beside the model's,
 # and that regressor over the same rows.
@@ -88,6 +88,19 @@ POLYNOMIAL_LAGS = 3
 # than on loading (the classical loop); r > 1 bounded, softer on unloading too; r < −1 unbounded,
 # stiffening as the output moves on from where it turned.
 BOUC_WEN_SHAPES = (-3.0, 3.0, 7)
+
+
+@dataclass(frozen=True)
+class SearchInput:
+    """What an "estimated" family's parameters are sought from, a :data:`Finder`'s argument: the
+    record (x, y), the model's residual over its rows lag … N−1, the model's terms and its lag.
+    One object, since every family's search reads all five and hands them on as they are."""
+
+    x: np.ndarray
+    y: np.ndarray
+    residual: np.ndarray
+    terms: Sequence[Term]
+    lag: int
 
 
 @dataclass(frozen=True)
@@ -479,21 +492,17 @@ def saturation_direction(prediction: np.ndarray, limits: tuple[float, float]) ->
 def profile_search(
     build: Callable[[float], tuple[Term, ...]],
     bounds: tuple[float, float],
-    x: np.ndarray,
-    y: np.ndarray,
-    residual: np.ndarray,
-    terms: Sequence[Term],
-    lag: int,
+    search: SearchInput,
     log_scale: bool = False,
 ) -> tuple[Term, ...]:
     """The terms ``build(p)`` for the parameter p in ``bounds`` whose regressors, beside the
     model's, explain most of the residual (rows lag … N−1): a grid of ``PROFILE_POINTS``, then a
     bounded scalar search between the best point's neighbours; p rounded to 4 digits so that
     the terms' names stay short. The search reads the first ``SEARCH_ROWS`` rows."""
-    x, y, unexplained = _unexplained(x, y, residual, terms, lag)
+    x, y, unexplained = _unexplained(search)
 
     def at(p: float) -> float:
-        columns, _ = regressor_matrix(list(build(float(np.exp(p) if log_scale else p))), x, y, lag)
+        columns, _ = regressor_matrix(list(build(float(np.exp(p) if log_scale else p))), x, y, search.lag)
         return unexplained(columns)
 
     low, high = (np.log(bounds[0]), np.log(bounds[1])) if log_scale else bounds
@@ -510,14 +519,12 @@ def profile_search(
     return build(float(f"{np.exp(p) if log_scale else p:.4g}"))
 
 
-def _unexplained(
-    x: np.ndarray, y: np.ndarray, residual: np.ndarray, terms: Sequence[Term], lag: int
-) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], float]]:
+def _unexplained(search: SearchInput) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], float]]:
     """The part of the record a search for a family's parameters reads (x and y up to the first
     ``SEARCH_ROWS`` rows) and what it minimises: the residual's sum of squares that the family's
     regressors over those rows (lag … on), beside the model's, leave unexplained (the whole
     residual where a regressor is not finite or vanishes)."""
-    x, y, residual, model_basis = _search_part(x, y, residual, terms, lag)
+    x, y, residual, model_basis = _search_part(search.x, search.y, search.residual, search.terms, search.lag)
 
     def unexplained(columns: np.ndarray) -> float:
         norms = column_norms(columns)
@@ -535,43 +542,31 @@ def power_law_terms(
     signal: str,
     lags: Sequence[int],
     exponents: tuple[float, float],
-    x: np.ndarray,
-    y: np.ndarray,
-    residual: np.ndarray,
-    terms: Sequence[Term],
-    lag: int,
+    search: SearchInput,
 ) -> tuple[Term, ...]:
     """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated; none if
     the model has such a law already (one exponent per law)."""
-    if _has(terms, signal, "spow"):
+    if _has(search.terms, signal, "spow"):
         return ()
 
     def build(p: float) -> tuple[Term, ...]:
         return tuple(Term((Factor(signal, k, function="spow", parameter=p),)) for k in lags)
 
-    return profile_search(build, exponents, x, y, residual, terms, lag)
+    return profile_search(build, exponents, search)
 
 
-def input_play_terms(
-    function: str,
-    lags: Sequence[int],
-    x: np.ndarray,
-    y: np.ndarray,
-    residual: np.ndarray,
-    terms: Sequence[Term],
-    lag: int,
-) -> tuple[Term, ...]:
+def input_play_terms(function: str, lags: Sequence[int], search: SearchInput) -> tuple[Term, ...]:
     """deadzone(x[t-k], w) or backlash(x[t-k], w) at the model's input lags, the half-width w
     estimated between 1 % and 150 % of the input's standard deviation (on a log scale); none if
     the model has one already."""
-    scale = float(np.std(x))
-    if not scale > 0 or _has(terms, "x", function):
+    scale = float(np.std(search.x))
+    if not scale > 0 or _has(search.terms, "x", function):
         return ()
 
     def build(w: float) -> tuple[Term, ...]:
         return tuple(Term((Factor("x", k, function=function, parameter=w),)) for k in lags)
 
-    return profile_search(build, (0.01 * scale, 1.5 * scale), x, y, residual, terms, lag, log_scale=True)
+    return profile_search(build, (0.01 * scale, 1.5 * scale), search, log_scale=True)
 
 
 def unmeasured_cube(cubics: Sequence[Term]) -> Combiner:
@@ -741,14 +736,7 @@ def _combination_basis(
     return np.column_stack([np.diff(lagged, n, axis=1)[:, 0] for n in range(len(ordered))])
 
 
-def hysteresis_terms(
-    lags: Sequence[int],
-    x: np.ndarray,
-    y: np.ndarray,
-    residual: np.ndarray,
-    terms: Sequence[Term],
-    lag: int,
-) -> tuple[Term, ...]:
+def hysteresis_terms(lags: Sequence[int], search: SearchInput) -> tuple[Term, ...]:
     """boucwen(y[t-k], w, r) at each lag, the level w between 1 % and ten times y's standard
     deviation (on a log scale) and the shape r = γ/β within ``BOUC_WEN_SHAPES`` estimated
     together; none if the model has one already. At the ends of those ranges z is no loop: a
@@ -761,18 +749,18 @@ def hysteresis_terms(
     an end of either grid is no estimate: the family is not offered. The search runs
     z once for each point and reads its lags from that run: the terms' regressors each start z
     at their first row, which the search's columns differ from only while z forgets its start."""
-    scale = float(np.std(y))
-    if not scale > 0 or _has(terms, "y", "boucwen"):
+    scale = float(np.std(search.y))
+    if not scale > 0 or _has(search.terms, "y", "boucwen"):
         return ()
 
     def build(w: float, r: float) -> tuple[Term, ...]:
         return tuple(Term((Factor("y", k, function="boucwen", parameter=w, shape=r),)) for k in lags)
 
-    x, y, unexplained = _unexplained(x, y, residual, terms, lag)
+    _, y, unexplained = _unexplained(search)
 
     def at(p: np.ndarray) -> float:
         z = bouc_wen(y, float(np.exp(p[0])), float(p[1]))
-        return unexplained(np.column_stack([z[lag - k : len(z) - k] for k in lags]))
+        return unexplained(np.column_stack([z[search.lag - k : len(z) - k] for k in lags]))
 
     levels = np.linspace(np.log(0.01 * scale), np.log(10.0 * scale), PROFILE_POINTS)
     shapes = np.linspace(*BOUC_WEN_SHAPES)

@@ -27,7 +27,14 @@ from itertools import chain, pairwise
 import numpy as np
 from scipy import linalg, signal, special
 
-from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
+from models.effects import (
+    Effect,
+    SearchInput,
+    offset_direction,
+    output_limits,
+    periodic_terms,
+    saturation_direction,
+)
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
 from models.regression import Workers, column_norms, divided_columns, orthogonal_part, span_basis
@@ -337,7 +344,7 @@ def _candidates(
     if effect.kind == "estimated" and effect.find is not None:
         # Parameters (a power, a width) estimated on the first record, tested on all.
         x0, y0 = records[0]
-        found = effect.find(x0, y0, residual[: starts[1]], terms, lag)
+        found = effect.find(SearchInput(x0, y0, residual[: starts[1]], terms, lag))
     elif effect.kind == "periodic":
         # A sinusoid of t is phase-locked to the record it was found in: with several records and
         # no common time base it would mean nothing on the next one.

@@ -840,3 +840,8 @@ def test_alarm_forms_need_an_admin_login_the_page_s_token_and_the_dashboard_s_or
         assert (state()["state"], state()["acknowledgement_note"]) == ("acknowledged", "crew on site")
         again = admin.post(url, data={"csrf": token, "next": here})
         assert again.status_code == 409 and "only an open alarm" in again.text
+        # The resolve form is the acknowledge form's twin, registered by the same code: it resolves.
+        resolve = url.replace("/acknowledge", "/resolve")
+        closed = admin.post(resolve, data={"csrf": token, "note": "bolt tightened", "next": here})
+        assert closed.status_code == 303 and closed.headers["location"] == here
+        assert (state()["resolution"], state()["resolution_note"]) == ("by_hand", "bolt tightened")

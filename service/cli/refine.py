@@ -32,7 +32,7 @@ from typing import Annotated, Any
 
 import numpy as np
 import typer
-from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.progress import SpinnerColumn, TextColumn, TimeElapsedColumn
 
 from models.effects import linear_terms
 from models.errors import InputError
@@ -42,8 +42,9 @@ from models.refinement_protocol import Loop, Refined, default_split, refine_part
 from models.regression import Workers
 from models.terms import Term
 from recordfiles.reader import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
-from service.cli.console import stderr, stdout
+from service.cli.console import stdout, transient_progress
 from service.cli.modelfiles import RECORD_SET_HELP, RIG, XName, YName, common_rate, read_terms, signal_layout
+from simulator.client.groups import expanded
 
 # The Silverbox benchmark's official split (shared/data/README.md): estimation and arrow test,
 # each test run started from 50 measured outputs.
@@ -95,7 +96,62 @@ class _Record:
         return f"{self.path}{_signals(self.source)}"
 
 
+@dataclass(frozen=True)
+class PartOptions:
+    """Which samples of the records are fitted, tested and scored, as given (each field an
+    option; :func:`~simulator.client.groups.expanded`)."""
+
+    estimation: Annotated[
+        str | None,
+        typer.Option(
+            help="Estimation samples A:B of the one record (default: first 2/3; Silverbox: official); "
+            "A:B,C:D,… fits the parts as records of their own, no lag crossing from one to the next, "
+            "to leave out the samples between them (a glitch)."
+        ),
+    ] = None
+    test: Annotated[
+        str | None,
+        typer.Option(
+            help="Test samples C:D of the one record (default: the last third; Silverbox: the arrow)."
+        ),
+    ] = None
+    transient: Annotated[
+        int,
+        typer.Option(
+            help="Samples at the start of every record that hold its transient (e.g. the F-16 multisine's "
+            "first period, 8192): records used whole are fitted through them and run from their start, "
+            "and scored after them; on one record's parts, --estimation and --test count from there."
+        ),
+    ] = 0
+    initial: Annotated[
+        int | None,
+        typer.Option(help="Measured samples each test free run starts from (Silverbox: 50)."),
+    ] = None
+
+    def on_one_record(self, fitted: list[_Record], held: list[_Record], silverbox: bool) -> bool:
+        """Whether the loop runs on parts of one record: a single one, and no ``--validate`` or a
+        part or benchmark split named; else on whole records."""
+        named = self.estimation is not None or self.test is not None or silverbox
+        return len(fitted) == 1 and (not held or named)
+
+
+@dataclass(frozen=True)
+class ReportOptions:
+    """How the report is given, as given (each field an option)."""
+
+    as_json: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False
+    plot: Annotated[
+        Path | None, typer.Option(help="Write a PNG of the residuals and the free run on the first test.")
+    ] = None
+    unit: Annotated[
+        str | None,
+        typer.Option(help="The output's unit, for the figures printed and plotted (Silverbox: V)."),
+    ] = None
+
+
+@expanded
 def refine_command(
+    *,
     data: Annotated[
         list[Path],
         typer.Argument(
@@ -111,42 +167,10 @@ def refine_command(
     x: XName = None,
     y: YName = None,
     fs: Annotated[float | None, typer.Option(help="Sampling rate [Hz] of files that state none.")] = None,
-    estimation: Annotated[
-        str | None,
-        typer.Option(
-            help="Estimation samples A:B of the one record (default: first 2/3; Silverbox: official); "
-            "A:B,C:D,… fits the parts as records of their own, no lag crossing from one to the next, "
-            "to leave out the samples between them (a glitch)."
-        ),
-    ] = None,
-    test: Annotated[
-        str | None,
-        typer.Option(
-            help="Test samples C:D of the one record (default: the last third; Silverbox: the arrow)."
-        ),
-    ] = None,
-    transient: Annotated[
-        int,
-        typer.Option(
-            help="Samples at the start of every record that hold its transient (e.g. the F-16 multisine's "
-            "first period, 8192): records used whole are fitted through them and run from their start, "
-            "and scored after them; on one record's parts, --estimation and --test count from there."
-        ),
-    ] = 0,
-    initial: Annotated[
-        int | None,
-        typer.Option(help="Measured samples each test free run starts from (Silverbox: 50)."),
-    ] = None,
+    samples: PartOptions,
     alpha: Annotated[float, typer.Option(help="Family-wise level of each round.")] = DEFAULT_ALPHA,
     validate: Annotated[list[Path] | None, typer.Option(help=VALIDATE_HELP)] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the report as JSON.")] = False,
-    plot: Annotated[
-        Path | None, typer.Option(help="Write a PNG of the residuals and the free run on the first test.")
-    ] = None,
-    unit: Annotated[
-        str | None,
-        typer.Option(help="The output's unit, for the figures printed and plotted (Silverbox: V)."),
-    ] = None,
+    reporting: ReportOptions,
     jobs: Annotated[
         int | None,
         typer.Option(
@@ -158,20 +182,21 @@ def refine_command(
 ) -> None:
     """Fit the declared model, trace its residual to the effects it lacks, add them, compare."""
     silverbox = data_format is DataFormat.silverbox
-    unit = unit or (SILVERBOX_UNIT if silverbox else None)
+    unit = reporting.unit or (SILVERBOX_UNIT if silverbox else None)
     layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
+    transient = samples.transient
     if transient < 0:
         raise InputError(f"--transient must be 0 or more, got {transient}")
     jobs = _jobs(jobs)
     fitted = [record for path in data for record in _read(path, layout, fs, transient)]
     held = [record for path in validate or [] for record in _read(path, layout, fs, transient)]
     rate = common_rate([(record.name, record.fs) for record in (*fitted, *held)])
-    start = initial if initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
+    start = samples.initial if samples.initial is not None else (SILVERBOX_INITIAL if silverbox else 0)
     loop = Loop(_declared(declared), start, alpha, rate, transient)
-    if len(fitted) == 1 and (not held or estimation is not None or test is not None or silverbox):
-        refined, judged, protocol = _on_parts(fitted[0], held, loop, jobs, estimation, test, silverbox)
+    if samples.on_one_record(fitted, held, silverbox):
+        refined, judged, protocol = _on_parts(fitted[0], held, loop, jobs, samples, silverbox)
     else:
-        refined, judged, protocol = _on_records(fitted, held, loop, jobs, estimation, test)
+        refined, judged, protocol = _on_records(fitted, held, loop, jobs, samples)
     document = refined.to_dict(judged)
     document["data"] = protocol | {
         "transient": transient,
@@ -180,12 +205,12 @@ def refine_command(
         "alpha": alpha,
         "unit": unit,
     }
-    if plot is not None:
-        _write_figure(refined, loop, plot, layout.y, unit)
-    if as_json:
+    if reporting.plot is not None:
+        _write_figure(refined, loop, reporting.plot, layout.y, unit)
+    if reporting.as_json:
         stdout.print_json(json.dumps(document))
         return
-    _print(document, plot)
+    _print(document, reporting.plot)
 
 
 def _write_figure(refined: Refined, loop: Loop, plot: Path, output: str, unit: str | None) -> None:
@@ -203,8 +228,7 @@ def _on_parts(
     held: list[_Record],
     loop: Loop,
     jobs: int,
-    estimation: str | None,
-    test: str | None,
+    given: PartOptions,
     silverbox: bool,
 ) -> tuple[Refined, list[dict[str, Any]], dict[str, Any]]:
     """The loop on parts of one record, counted after its transient: the refinement, where each
@@ -213,8 +237,8 @@ def _on_parts(
     x_cut, y_cut = record.x[transient:], record.y[transient:]
     n = len(y_cut)
     defaults = (SILVERBOX_ESTIMATION, SILVERBOX_TEST) if silverbox else default_split(n)
-    parts = _parts(estimation, n, defaults[0])
-    c, d = _span(test, n, defaults[1], "--test")
+    parts = _parts(given.estimation, n, defaults[0])
+    c, d = _span(given.test, n, defaults[1], "--test")
     with _running(loop, jobs) as running:
         held_signals = [(r.x, r.y) for r in held]
         refined = refine_parts(
@@ -231,12 +255,11 @@ def _on_records(
     held: list[_Record],
     loop: Loop,
     jobs: int,
-    estimation: str | None,
-    test: str | None,
+    given: PartOptions,
 ) -> tuple[Refined, list[dict[str, Any]], dict[str, Any]]:
     """The loop on whole records, each validation record judged: the refinement, where each
     record judged comes from, and the estimation records."""
-    for option, value in (("--estimation", estimation), ("--test", test)):
+    for option, value in (("--estimation", given.estimation), ("--test", given.test)):
         if value is not None:
             raise InputError(
                 f"{option} picks a part of one record; with several estimation records (or --validate) "
@@ -297,14 +320,7 @@ def _running(loop: Loop, jobs: int) -> Iterator[Loop]:
 def _stages() -> Iterator[Stage]:
     """The loop's stage as it runs, with a spinner and the time taken, on a terminal (nothing on
     a pipe or file); gone once the report is printed."""
-    with Progress(
-        SpinnerColumn(),
-        TextColumn("{task.description}"),
-        TimeElapsedColumn(),
-        console=stderr,
-        transient=True,
-        disable=not stderr.is_terminal,
-    ) as bar:
+    with transient_progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn()) as bar:
         task = bar.add_task("starting the loop", total=None)
         # Drawn at once: a stage shorter than the bar's refresh would otherwise not be seen at all.
         yield lambda stage: bar.update(task, description=stage, refresh=True)

@@ -11,7 +11,7 @@ from typing import Annotated, Any, TypeVar
 
 import numpy as np
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
 
@@ -31,8 +31,9 @@ from models.semp import (
 from models.terms import Term
 from models.validation import Validation, validate
 from recordfiles.reader import Layout
-from service.cli.console import stderr, stdout
+from service.cli.console import stdout, transient_progress
 from service.cli.modelfiles import RECORD_SET_HELP, XName, YName, read_records, signal_layout, write_json
+from simulator.client.groups import expanded
 
 Signals = list[tuple[np.ndarray, np.ndarray]]
 # The criterion that judges candidates on the free run instead of the one-step error.
@@ -40,29 +41,51 @@ SIMULATION = "simulation"
 Selected = TypeVar("Selected", NarxSelection, SimulationSelection)
 
 
-def select(
-    records: Annotated[
-        list[Path], typer.Argument(help=f"Records to select from (.csv, .npz or .mat). {RECORD_SET_HELP}")
-    ],
-    x: XName = None,
-    y: YName = None,
-    degree: Annotated[int, typer.Option(help="Largest total degree of the candidate monomials.")] = 3,
-    ny: Annotated[int, typer.Option(help="Output lags y[t-1] … y[t-ny].")] = 4,
-    nx: Annotated[int, typer.Option(help="Input lags x[t-delay] … x[t-delay-nx+1].")] = 4,
+@dataclasses.dataclass(frozen=True)
+class CandidateOptions:
+    """The options that make the candidate dictionary, as given (each field an option;
+    :func:`~simulator.client.groups.expanded`)."""
+
+    degree: Annotated[int, typer.Option(help="Largest total degree of the candidate monomials.")] = 3
+    ny: Annotated[int, typer.Option(help="Output lags y[t-1] … y[t-ny].")] = 4
+    nx: Annotated[int, typer.Option(help="Input lags x[t-delay] … x[t-delay-nx+1].")] = 4
     delay: Annotated[
         int | None,
         typer.Option(
             help="Input delay d: the smallest lag of x (0 allows x[t]). Default: chosen, 0 or 1, by which "
             "linear ARX(ny, nx) runs free better over held-out parts of the records."
         ),
-    ] = None,
-    constant: Annotated[bool, typer.Option(help="Include the constant term 1.")] = True,
+    ] = None
+    constant: Annotated[bool, typer.Option(help="Include the constant term 1.")] = True
     extra: Annotated[
         list[str] | None, typer.Option(help="Extra candidate term beyond the dictionary (repeatable).")
-    ] = None,
+    ] = None
+
+    def dictionary(self, signals: Signals) -> _Dictionary:
+        """The candidates, with the input delay given or, without one, chosen on ``signals``
+        (:func:`models.baseline_choice.choose_delay`)."""
+        extra = self.extra or []
+        # Both dictionaries where the delay is to be chosen: a bad one is refused before the choice runs.
+        dictionaries = {
+            d: candidate_terms(self.degree, self.ny, self.nx, d, constant=self.constant, extra=extra)
+            for d in ((0, 1) if self.delay is None else (self.delay,))
+        }
+        delay, delays = self.delay, None
+        if delay is None:
+            delay, delays = choose_delay(signals, self.ny, self.nx)
+        return _Dictionary(
+            self.degree, self.ny, self.nx, delay, delays, self.constant, extra, dictionaries[delay]
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class RuleOptions:
+    """Which candidates enter and when the selection stops, as given: the criterion, and the
+    one-step error's stopping rules (each field an option)."""
+
     include: Annotated[
         list[str] | None, typer.Option(help="Candidate taken first and always kept (repeatable).")
-    ] = None,
+    ] = None
     criterion: Annotated[
         str | None,
         typer.Option(
@@ -71,58 +94,137 @@ def select(
             f"'{SIMULATION}': terms judged by the free-run error on the end of each record (SEMP, with "
             "pruning)."
         ),
-    ] = None,
-    n_terms: Annotated[int | None, typer.Option(help="Select exactly this many terms.")] = None,
+    ] = None
+    n_terms: Annotated[int | None, typer.Option(help="Select exactly this many terms.")] = None
     err_tolerance: Annotated[
         float | None, typer.Option(help="Stop once the unexplained share 1 − ΣERR falls below this.")
-    ] = None,
+    ] = None
     max_terms: Annotated[
         int, typer.Option(help="Longest greedy path (with --criterion simulation: the largest model).")
-    ] = 20,
+    ] = 20
     prune: Annotated[
         bool,
         typer.Option(
             help="Then drop terms one at a time while the stopping rule still holds "
             "(--criterion simulation always prunes)."
         ),
-    ] = False,
+    ] = False
     precise: Annotated[
         bool,
         typer.Option(
             help="Explicitly orthogonalised path, exact to rounding level (noise-free data); slower."
         ),
-    ] = False,
+    ] = False
+
+    def by_simulation(self, judged: list[Path] | None) -> bool:
+        """Whether the terms are to be judged on the free-run error (``--criterion simulation``);
+        refused: an unknown criterion, ``--judged`` records without it, and with it any option of
+        the selection on the one-step error."""
+        criterion = self.criterion
+        if criterion is not None and criterion.lower() not in (*CRITERIA, SIMULATION):
+            raise InputError(
+                f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)} (one-step error) "
+                f"or {SIMULATION} (free-run error)"
+            )
+        simulation = criterion is not None and criterion.lower() == SIMULATION
+        if judged and not simulation:
+            raise InputError("--judged records serve --criterion simulation only")
+        one_step = {"n_terms": self.n_terms, "err_tolerance": self.err_tolerance, "precise": self.precise}
+        given = [
+            f"--{name.replace('_', '-')}" for name, value in one_step.items() if value not in (None, False)
+        ]
+        if simulation and given:
+            raise InputError(
+                f"--criterion simulation chooses the terms by their free run: drop {' and '.join(given)}"
+            )
+        return simulation
+
+    def frols(self, signals: Signals, candidates: Sequence[Term]) -> NarxSelection:
+        """FROLS's selection (:func:`models.selection.select_narx`, whose options these fields
+        are) with a progress bar, which counts the terms asked for or the longest path."""
+        options = dataclasses.asdict(self) | {"include": self.include or ()}
+        return _with_progress(
+            self.n_terms or min(self.max_terms, len(candidates)),
+            lambda progress: select_narx(signals, candidates, progress=progress, **options),
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class FreeRunOptions:
+    """How ``--criterion simulation`` judges candidates on the free run, as given (each field an
+    option)."""
+
     judged: Annotated[
         list[Path] | None,
         typer.Option(
             help="With --criterion simulation: record the free run is judged on (repeatable); without, "
             "the end of each record (--judged-share)."
         ),
-    ] = None,
+    ] = None
     judged_share: Annotated[
         float,
         typer.Option(
             help="With --criterion simulation: share of each record's end the free run is judged on."
         ),
-    ] = DEFAULT_JUDGED_SHARE,
+    ] = DEFAULT_JUDGED_SHARE
     threshold: Annotated[
         float,
         typer.Option(
             help="With --criterion simulation: relative drop of the mean-square free-run error a term must "
             "bring to enter, and keep to stay."
         ),
-    ] = DEFAULT_THRESHOLD,
+    ] = DEFAULT_THRESHOLD
     preselect: Annotated[
         int, typer.Option(help="With --criterion simulation: candidates tried per step, the first by ERR.")
-    ] = DEFAULT_PRESELECT,
+    ] = DEFAULT_PRESELECT
+
+    def semp(
+        self, signals: Signals, candidates: Sequence[Term], judged: Signals | None, rule: RuleOptions
+    ) -> SimulationSelection:
+        """SEMP's selection (:func:`models.semp.select_by_simulation`) with a progress bar, which
+        counts iterations against their bound: the selection usually stops well before."""
+        return _with_progress(
+            2 * rule.max_terms,
+            lambda progress: select_by_simulation(
+                signals,
+                candidates,
+                judged=judged,
+                judged_share=self.judged_share,
+                include=rule.include or (),
+                max_terms=rule.max_terms,
+                preselect=self.preselect,
+                threshold=self.threshold,
+                progress=progress,
+            ),
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidationOptions:
+    """What the selected model is validated on, as given (each field an option)."""
+
     holdout: Annotated[
         list[Path] | None, typer.Option(help="Held-out record for the validation errors (repeatable).")
-    ] = None,
+    ] = None
     split: Annotated[
         float,
         typer.Option(help="Without --holdout: share of each record's end held out for validation (0: none)."),
-    ] = 0.25,
-    steps: Annotated[int, typer.Option(help="Horizon k of the k-step prediction errors.")] = 10,
+    ] = 0.25
+    steps: Annotated[int, typer.Option(help="Horizon k of the k-step prediction errors.")] = 10
+
+
+@expanded
+def select(
+    *,
+    records: Annotated[
+        list[Path], typer.Argument(help=f"Records to select from (.csv, .npz or .mat). {RECORD_SET_HELP}")
+    ],
+    x: XName = None,
+    y: YName = None,
+    candidates: CandidateOptions,
+    rule: RuleOptions,
+    free_run: FreeRunOptions,
+    validation: ValidationOptions,
     out: Annotated[
         Path | None,
         typer.Option("--out", help="Write the result to this .json file (a file `train --terms` reads)."),
@@ -146,48 +248,26 @@ def select(
     if out is not None and out.suffix.lower() != ".json":
         raise InputError(f"--out {out}: name a .json file, the kind `train --terms` reads")
     layout = signal_layout(x, y)
-    simulation = _by_simulation(
-        criterion, judged, n_terms=n_terms, err_tolerance=err_tolerance, precise=precise
+    simulation = rule.by_simulation(free_run.judged)
+    data = _read_data(records, layout, free_run.judged, validation.holdout, validation.split)
+    dictionary = candidates.dictionary(data.signals)
+    selection: NarxSelection | SimulationSelection = (
+        free_run.semp(data.signals, dictionary.candidates, data.judged, rule)
+        if simulation
+        else rule.frols(data.signals, dictionary.candidates)
     )
-    data = _read_data(records, layout, judged, holdout, split)
-    dictionary = _dictionary(data.signals, degree, ny, nx, delay, constant, extra or [])
-    if simulation:
-        selection: NarxSelection | SimulationSelection = _select_by_simulation(
-            data.signals,
-            dictionary.candidates,
-            data.judged,
-            judged_share=judged_share,
-            include=include or (),
-            max_terms=max_terms,
-            preselect=preselect,
-            threshold=threshold,
-        )
-    else:
-        selection = _select_by_frols(
-            data.signals,
-            dictionary.candidates,
-            n_terms=n_terms,
-            criterion=criterion,
-            err_tolerance=err_tolerance,
-            max_terms=max_terms,
-            prune=prune,
-            include=include or (),
-            precise=precise,
-        )
     refined = fit_output_error(selection.model, data.signals) if output_error else None
     if refined is not None:
         selection = dataclasses.replace(selection, model=refined.model)
-    held_out = validate(selection.model, data.validation, steps) if data.validation else None
-    document = _document(
-        selection, refined, held_out, dictionary, data.fs, records, holdout, split, judged, judged_share
-    )
+    held_out = validate(selection.model, data.validation, validation.steps) if data.validation else None
+    document = _document(selection, refined, held_out, dictionary, data.fs, records, validation, free_run)
     if out is not None:
         write_json(out, document)
     if as_json:
         print(json.dumps(document, indent=1))
         return
     if dictionary.delays is not None:
-        _print_delay(dictionary.delay, dictionary.delays, ny, nx)
+        _print_delay(dictionary.delay, dictionary.delays, dictionary.ny, dictionary.nx)
     _print_report(selection, refined, held_out)
     if out is not None:
         stdout.print(f"written to {out}")
@@ -248,35 +328,6 @@ class _Dictionary:
         }
 
 
-def _dictionary(
-    signals: Signals, degree: int, ny: int, nx: int, delay: int | None, constant: bool, extra: list[str]
-) -> _Dictionary:
-    """The candidates, with the input delay given or, without one, chosen on ``signals``
-    (:func:`models.baseline_choice.choose_delay`)."""
-    # Both dictionaries where the delay is to be chosen: a bad one is refused before the choice runs.
-    dictionaries = {
-        d: candidate_terms(degree, ny, nx, d, constant=constant, extra=extra)
-        for d in ((0, 1) if delay is None else (delay,))
-    }
-    delays = None
-    if delay is None:
-        delay, delays = choose_delay(signals, ny, nx)
-    return _Dictionary(degree, ny, nx, delay, delays, constant, extra, dictionaries[delay])
-
-
-def _select_by_frols(
-    signals: Signals, candidates: Sequence[Term], n_terms: int | None, max_terms: int, **options: Any
-) -> NarxSelection:
-    """FROLS's selection (:func:`models.selection.select_narx`) with a progress bar, which counts
-    the terms asked for or the longest path."""
-    return _with_progress(
-        n_terms or min(max_terms, len(candidates)),
-        lambda progress: select_narx(
-            signals, candidates, n_terms=n_terms, max_terms=max_terms, progress=progress, **options
-        ),
-    )
-
-
 def _document(
     selection: NarxSelection | SimulationSelection,
     refined: OutputErrorFit | None,
@@ -284,75 +335,36 @@ def _document(
     dictionary: _Dictionary,
     fs: float | None,
     records: list[Path],
-    holdout: list[Path] | None,
-    split: float,
-    judged: list[Path] | None,
-    share: float,
+    validation: ValidationOptions,
+    free_run: FreeRunOptions,
 ) -> dict[str, Any]:
     """The result as JSON (``--json``, ``--out``): the selection, its refinement and validation,
     the dictionary and where the records came from (with the judged ones, on the free run)."""
+    holdout, judged = validation.holdout, free_run.judged
     document = {
         **selection.to_dict(),
         "output_error": None if refined is None else _output_error_dict(refined),
         "held_out": None if held_out is None else held_out.to_dict(),
         "dictionary": dictionary.to_dict(),
         "records": [str(path) for path in records],
-        "holdout": {"records": [str(path) for path in holdout or []], "split": None if holdout else split},
+        "holdout": {
+            "records": [str(path) for path in holdout or []],
+            "split": None if holdout else validation.split,
+        },
         "fs": fs,
     }
     if isinstance(selection, SimulationSelection):
         document["judged"] = {
             "records": [str(path) for path in judged or []],
-            "share": None if judged else share,
+            "share": None if judged else free_run.judged_share,
         }
     return document
 
 
-def _select_by_simulation(
-    signals: Signals, candidates: Sequence[Term], judged: Signals | None, max_terms: int, **options: Any
-) -> SimulationSelection:
-    """SEMP's selection (:func:`models.semp.select_by_simulation`) with a progress bar, which counts
-    iterations against their bound: the selection usually stops well before."""
-    return _with_progress(
-        2 * max_terms,
-        lambda progress: select_by_simulation(
-            signals, candidates, judged=judged, max_terms=max_terms, progress=progress, **options
-        ),
-    )
-
-
-def _by_simulation(
-    criterion: str | None, judged: list[Path] | None, **one_step: int | float | bool | None
-) -> bool:
-    """Whether the terms are to be judged on the free-run error (``--criterion simulation``);
-    refused: an unknown criterion, ``--judged`` records without it, and with it any of the
-    ``one_step`` options (by their names), which serve the selection on the one-step error."""
-    if criterion is not None and criterion.lower() not in (*CRITERIA, SIMULATION):
-        raise InputError(
-            f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)} (one-step error) "
-            f"or {SIMULATION} (free-run error)"
-        )
-    simulation = criterion is not None and criterion.lower() == SIMULATION
-    if judged and not simulation:
-        raise InputError("--judged records serve --criterion simulation only")
-    given = [f"--{name.replace('_', '-')}" for name, value in one_step.items() if value not in (None, False)]
-    if simulation and given:
-        raise InputError(
-            f"--criterion simulation chooses the terms by their free run: drop {' and '.join(given)}"
-        )
-    return simulation
-
-
 def _with_progress(total: int, run: Callable[[Callable[[int], None]], Selected]) -> Selected:
     """``run(progress)`` under a progress bar on the terminal's stderr that counts ``total`` steps."""
-    with Progress(
-        TextColumn("selecting"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=stderr,
-        transient=True,
-        disable=not stderr.is_terminal,
+    with transient_progress(
+        TextColumn("selecting"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()
     ) as bar:
         task = bar.add_task("select", total=total)
         return run(lambda step: bar.update(task, completed=step))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, get_args
 
@@ -11,6 +12,7 @@ import plotly
 from fastapi import APIRouter, Depends, Form, HTTPException, Query, Request, status
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
+from sqlalchemy.orm import Session
 
 from models.errors import InputError
 from recordfiles.quantities import SignalDeclaration, signal_label
@@ -213,28 +215,30 @@ def refinement(request: Request, refinement_id: IdPath, login: LoginDep, session
     return render(request, "refinement.html", {"login": login} | context)
 
 
-@router.post("/alarms/{alarm_id}/acknowledge", dependencies=[Depends(checked_form)])
-def acknowledge_alarm(
-    alarm_id: IdPath,
-    login: LoginDep,
-    session: SessionDep,
-    note: Annotated[str, Form(max_length=2000, pattern=NOTE_PATTERN)] = "",
-    next_page: Annotated[str, Form(alias="next", max_length=2000)] = HOME,
-) -> RedirectResponse:
-    alarms.acknowledge(session, _acting(login, "acknowledge"), alarm_id, note)
-    return RedirectResponse(safe_next(next_page), status.HTTP_303_SEE_OTHER)
+def _alarm_action(
+    action: str, act: Callable[[Session, Principal, int, str], object]
+) -> Callable[..., Response]:
+    """The form route that acts on an alarm (``act``, a domain function of :mod:`service.domain.alarms`)
+    with the note given and returns to the page it was sent from: acknowledging and resolving take the
+    same form and differ only in what they do."""
+
+    def act_on_alarm(
+        alarm_id: IdPath,
+        login: LoginDep,
+        session: SessionDep,
+        note: Annotated[str, Form(max_length=2000, pattern=NOTE_PATTERN)] = "",
+        next_page: Annotated[str, Form(alias="next", max_length=2000)] = HOME,
+    ) -> RedirectResponse:
+        act(session, _acting(login, action), alarm_id, note)
+        return RedirectResponse(safe_next(next_page), status.HTTP_303_SEE_OTHER)
+
+    return act_on_alarm
 
 
-@router.post("/alarms/{alarm_id}/resolve", dependencies=[Depends(checked_form)])
-def resolve_alarm(
-    alarm_id: IdPath,
-    login: LoginDep,
-    session: SessionDep,
-    note: Annotated[str, Form(max_length=2000, pattern=NOTE_PATTERN)] = "",
-    next_page: Annotated[str, Form(alias="next", max_length=2000)] = HOME,
-) -> RedirectResponse:
-    alarms.resolve(session, _acting(login, "resolve"), alarm_id, note)
-    return RedirectResponse(safe_next(next_page), status.HTTP_303_SEE_OTHER)
+for _action, _act in (("acknowledge", alarms.acknowledge), ("resolve", alarms.resolve)):
+    router.post(
+        f"/alarms/{{alarm_id}}/{_action}", dependencies=[Depends(checked_form)], name=f"{_action}_alarm"
+    )(_alarm_action(_action, _act))
 
 
 def _acting(login: Login, action: str) -> Principal:

@@ -28,7 +28,7 @@ from recordfiles.channels import matched
 from service.config import Settings
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.records import condition_values, signals
-from service.domain.structures import get_owned, get_structure
+from service.domain.structures import get_owned, get_structure, list_owned
 from service.schemas import (
     BaselineTrain,
     FaultModeTrain,
@@ -359,14 +359,9 @@ def bounded_document(document: dict[str, Any], settings: Settings) -> dict[str, 
 
 
 def list_models(session: Session, principal: Principal, structure_id: int) -> list[ModelVersion]:
-    get_structure(session, principal, structure_id)
     # Listings show versions, not their documents: a parsed model is read when it is used.
-    query = (
-        select(ModelVersion)
-        .where(ModelVersion.structure_id == structure_id)
-        .options(defer(ModelVersion.document))
-    )
-    return list(session.scalars(query.order_by(ModelVersion.name, ModelVersion.version)))
+    order = (ModelVersion.name, ModelVersion.version)
+    return list_owned(session, principal, ModelVersion, structure_id, order, [defer(ModelVersion.document)])
 
 
 def activate_model(session: Session, principal: Principal, structure_id: int, model_id: int) -> ModelVersion:

@@ -27,7 +27,7 @@ from service.domain.modelling import (
     owned_records,
 )
 from service.domain.records import signals
-from service.domain.structures import get_owned, get_structure
+from service.domain.structures import get_owned, get_structure, list_owned
 from service.schemas import RefinementCreate
 from service.security import Principal
 from service.tables import ModelVersion, Record, Refinement, RefinementRecord, Structure
@@ -255,9 +255,7 @@ def _base(session: Session, structure: Structure, model_id: int) -> ModelVersion
 
 def list_refinements(session: Session, principal: Principal, structure_id: int) -> list[Refinement]:
     """The structure's refinements, newest first."""
-    get_structure(session, principal, structure_id)
-    query = select(Refinement).where(Refinement.structure_id == structure_id).order_by(Refinement.id.desc())
-    return list(session.scalars(query.options(*REFINEMENT_PARTS)))
+    return list_owned(session, principal, Refinement, structure_id, [Refinement.id.desc()], REFINEMENT_PARTS)
 
 
 def get_refinement(session: Session, principal: Principal, refinement_id: int) -> Refinement:

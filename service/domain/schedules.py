@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session
 
 from service.domain.errors import ConflictError, NotFoundError
 from service.domain.modelling import active_baseline, active_fault_modes
-from service.domain.structures import get_structure
+from service.domain.structures import get_structure, list_owned
 from service.schemas import ScheduleCreate
 from service.security import Principal
 from service.tables import Schedule, Structure, utcnow
@@ -83,9 +83,7 @@ def create_schedule(
 
 
 def list_schedules(session: Session, principal: Principal, structure_id: int) -> list[Schedule]:
-    structure = get_structure(session, principal, structure_id)
-    query = select(Schedule).where(Schedule.structure_id == structure.id).order_by(Schedule.id)
-    return list(session.scalars(query))
+    return list_owned(session, principal, Schedule, structure_id, [Schedule.id])
 
 
 def delete_schedule(session: Session, principal: Principal, structure_id: int, schedule_id: int) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, Protocol, TypeVar
 
 from sqlalchemy import exists, select
@@ -145,3 +146,18 @@ def get_owned(
     except NotFoundError:
         raise NotFoundError(label, object_id) from None
     return found
+
+
+def list_owned(
+    session: Session,
+    principal: Principal,
+    model: type[Owned],
+    structure_id: int,
+    order: Sequence[Any],
+    options: Sequence[Any] = (),
+) -> list[Owned]:
+    """The objects of one of the caller's structures in ``order``, loaded with ``options``; another
+    organisation's structure is answered as a missing one (:func:`get_structure`)."""
+    get_structure(session, principal, structure_id)
+    query = select(model).where(model.structure_id == structure_id)
+    return list(session.scalars(query.order_by(*order).options(*options)))

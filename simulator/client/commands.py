@@ -181,6 +181,29 @@ class StreamOptions:
         )
 
 
+@dataclass(frozen=True)
+class Posting:
+    """When the records of ``record`` and ``scenario`` were acquired and how their verdicts print,
+    as given; ``stream`` paces its records and so has options of its own for both."""
+
+    acquired_at: AcquiredAt = None
+    json_lines: JsonLines = False
+
+    def start(self) -> dt.datetime:
+        """The records' acquisition time: the one given, else now."""
+        return start_time(self.acquired_at) or now()
+
+    def post(self, plans: list[Plan], simulation: SimulationOptions, target: Target) -> Report:
+        """Every plan's record posted (or written) in turn, each scenario first checked against
+        the target; the report of their verdicts."""
+        for plan in plans:
+            target.check(plan.scenario)
+        report = Report(self.json_lines)
+        with open_destination(target, simulation.temperature is not None) as destination:
+            deliver_all(plans, destination, report)
+        return report
+
+
 # --- The command line ---------------------------------------------------------------------------
 
 app = typer.Typer(
@@ -201,17 +224,15 @@ def record_command(
     k: Magnitude = 0.0,
     simulation: SimulationOptions,
     target: Target,
-    acquired_at: AcquiredAt = None,
-    json_lines: JsonLines = False,
+    posting: Posting,
 ) -> None:
     """Simulate one record, post it for inspection and print its verdict."""
     options = simulation.options()
-    when = start_time(acquired_at) or now()
+    when = posting.start()
     scenario = options.scenario(fault, k, simulation.temperature)
-    plan = Plan("record", scenario, simulation.n, first_seed(simulation.seed), when)
-    target.check(plan.scenario)
-    with open_destination(target, simulation.temperature is not None) as destination:
-        deliver_all([plan], destination, Report(json_lines))
+    posting.post(
+        [Plan("record", scenario, simulation.n, first_seed(simulation.seed), when)], simulation, target
+    )
 
 
 @app.command("scenario")
@@ -230,23 +251,17 @@ def scenario_command(
     k: Annotated[float | None, typer.Option(help="Fault magnitude in percent for 'any'.")] = None,
     simulation: SimulationOptions,
     target: Target,
-    acquired_at: AcquiredAt = None,
-    json_lines: JsonLines = False,
+    posting: Posting,
 ) -> None:
     """Post --runs records of a paper test case (all at one acquisition time) and tally the verdicts."""
     options = simulation.options()
     cases = chosen_cases(name, fault, k, options, simulation.temperature)
     seeds = itertools.count(first_seed(simulation.seed))
-    when = start_time(acquired_at) or now()
+    when = posting.start()
     plans = [
         Plan(case, scenario, simulation.n, next(seeds), when) for case, scenario in cases for _ in range(runs)
     ]
-    report = Report(json_lines)
-    for _, scenario in cases:
-        target.check(scenario)
-    with open_destination(target, simulation.temperature is not None) as destination:
-        deliver_all(plans, destination, report)
-    report.tally()
+    posting.post(plans, simulation, target).tally()
 
 
 @app.command("stream")

@@ -358,40 +358,45 @@ def finished_job(client: Service, queued: dict[str, Any], seconds: float) -> dic
         time.sleep(min(POLL_SECONDS, seconds - elapsed))
 
 
-def term_list(terms: str | None) -> dict[str, Any]:
-    return {} if terms is None else {"terms": [term.strip() for term in terms.split(",") if term.strip()]}
+@dataclass(frozen=True)
+class Training:
+    """How ``train baseline`` and ``train fault-mode`` send a training and follow it, as given
+    (each field an option; :func:`~simulator.client.groups.expanded`)."""
+
+    terms: Terms = None
+    wait: Wait = False
+    wait_seconds: WaitSeconds = WAIT_SECONDS
+    url: Url = DEFAULT_URL
+    key: Key = None
+
+    def train(self, structure: int, kind: str, body: dict[str, Any]) -> None:
+        """Post ``body`` (the terms given added) to the structure's ``models/<kind>``, follow a
+        queued training to its end if asked to, and print the version made."""
+        if self.terms is not None:
+            body = body | {"terms": [term.strip() for term in self.terms.split(",") if term.strip()]}
+        with service(self.url, self.key) as client:
+            answer = client.request("POST", f"{API}/structures/{structure}/models/{kind}", json=body)
+            trained(followed(client, answer, structure, self.wait_seconds) if self.wait else answer)
 
 
 @train_app.command("baseline")
-def train_baseline(
-    structure: Structure,
-    records: Records,
-    terms: Terms = None,
-    wait: Wait = False,
-    wait_seconds: WaitSeconds = WAIT_SECONDS,
-    url: Url = DEFAULT_URL,
-    key: Key = None,
-) -> None:
+@expanded
+def train_baseline(*, structure: Structure, records: Records, training: Training) -> None:
     """Identify the healthy structure's NARX from its stored healthy records."""
-    body = {"record_ids": id_list(records), **term_list(terms)}
-    with service(url, key) as client:
-        answer = client.request("POST", f"{API}/structures/{structure}/models/baseline", json=body)
-        trained(followed(client, answer, structure, wait_seconds) if wait else answer)
+    training.train(structure, "baseline", {"record_ids": id_list(records)})
 
 
 @train_app.command("fault-mode")
+@expanded
 def train_fault_mode(
+    *,
     structure: Structure,
     name: Annotated[str, typer.Option(help="Fault-mode name, e.g. k2.")],
     records: Records,
     k: Annotated[
         str, typer.Option("--k", help="Each record's fault magnitude [%], in the order of --records.")
     ],
-    terms: Terms = None,
-    wait: Wait = False,
-    wait_seconds: WaitSeconds = WAIT_SECONDS,
-    url: Url = DEFAULT_URL,
-    key: Key = None,
+    training: Training,
 ) -> None:
     """Identify a fault mode as a functional NARX from stored records at known magnitudes; it
     becomes the mode records are inspected with, over the range of --k."""
@@ -405,11 +410,8 @@ def train_fault_mode(
         "k_min": min(magnitudes),
         "k_max": max(magnitudes),
         "experiments": [{"record_id": i, "k": value} for i, value in zip(ids, magnitudes, strict=True)],
-        **term_list(terms),
     }
-    with service(url, key) as client:
-        answer = client.request("POST", f"{API}/structures/{structure}/models/fault-modes", json=body)
-        trained(followed(client, answer, structure, wait_seconds) if wait else answer)
+    training.train(structure, "fault-modes", body)
 
 
 def verdicts_command(
