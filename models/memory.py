@@ -32,8 +32,8 @@ def hold_freed_memory() -> bool:
     ordinary pages. A call for a command that owns its process, not an import's side effect: the
     settings are the process's and its forked workers'. Returns whether malloc took them (glibc's
     only; elsewhere the allocator is left as it is)."""
-    # numpy's switch for its huge-page advice (numpy 1.20's release notes; NUMPY_MADVISE_HUGEPAGE
-    # is read only as numpy loads, before a command's arguments are known).
+    # numpy's switch for its huge-page advice (its documentation's "global state";
+    # NUMPY_MADVISE_HUGEPAGE is read only as numpy loads, before a command's arguments are known).
     advise = getattr(np._core.multiarray, "_set_madvise_hugepage", None)
     if advise is not None:
         advise(False)
