@@ -37,6 +37,7 @@ from rich.progress import SpinnerColumn, TextColumn, TimeElapsedColumn
 from models.effects import linear_terms
 from models.errors import InputError
 from models.held_out import unseen_by
+from models.memory import hold_freed_memory
 from models.refinement import DEFAULT_ALPHA, Stage
 from models.refinement_protocol import Loop, Refined, default_split, refine_parts, refine_whole
 from models.regression import Workers
@@ -181,6 +182,7 @@ def refine_command(
     ] = None,
 ) -> None:
     """Fit the declared model, trace its residual to the effects it lacks, add them, compare."""
+    hold_freed_memory()
     silverbox = data_format is DataFormat.silverbox
     unit = reporting.unit or (SILVERBOX_UNIT if silverbox else None)
     layout = signal_layout(x, y, SILVERBOX if silverbox else DEFAULT_LAYOUT)
