@@ -1,4 +1,4 @@
-"""``narxwatch refine`` keeps freed arrays' memory for the next ones (models.memory): the
+"""``narxwatch refine`` keeps freed arrays' memory for the next ones (service.cli.memory): the
 loop's arrays of megabytes are made and dropped thousands of times, and each one made afresh
 costs its pages' faults. Each check runs in a fresh process, whose allocator it may change."""
 
@@ -11,7 +11,7 @@ import textwrap
 
 import pytest
 
-from models.memory import _glibc
+from service.cli.memory import _glibc
 
 # Arrays of the loop's sizes (candidate columns and a basis of their span over 52 000 rows) made
 # and dropped; the page faults of one round of them, counted after a first round has warmed up.
@@ -47,7 +47,7 @@ def test_freed_arrays_memory_is_reused_without_faulting_it_in_again() -> None:
     # 40 MB a round: by default about ten thousand pages faulted in again (each 4 kB zeroed by the
     # kernel); held, only what numpy's small allocations reach beyond the heap.
     default = faults("")
-    held = faults("from models.memory import hold_freed_memory\nassert hold_freed_memory()")
+    held = faults("from service.cli.memory import hold_freed_memory\nassert hold_freed_memory()")
     assert default > 5000
     assert held < default / 10
 

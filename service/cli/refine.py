@@ -37,13 +37,13 @@ from rich.progress import SpinnerColumn, TextColumn, TimeElapsedColumn
 from models.effects import linear_terms
 from models.errors import InputError
 from models.held_out import unseen_by
-from models.memory import hold_freed_memory
 from models.refinement import DEFAULT_ALPHA, Stage
 from models.refinement_protocol import Loop, Refined, default_split, refine_parts, refine_whole
 from models.regression import Workers
 from models.terms import Term
 from recordfiles.reader import DEFAULT_LAYOUT, SILVERBOX, Layout, read_record_set
 from service.cli.console import stdout, transient_progress
+from service.cli.memory import hold_freed_memory
 from service.cli.modelfiles import RECORD_SET_HELP, RIG, XName, YName, common_rate, read_terms, signal_layout
 from simulator.client.groups import expanded
 

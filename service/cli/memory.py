@@ -6,7 +6,9 @@ output-error Jacobians). glibc's malloc returns a block that large to the kernel
 (a mapping of its own, or the heap's top trimmed), so the next array of that size has every page
 faulted in and zeroed again; and numpy asks the kernel to back arrays of 4 MB or more with huge
 pages, which on a machine whose memory is fragmented sends each of those faults into compaction.
-That is system time, none of it arithmetic: every figure stays the same to the bit.
+That is system time, none of it arithmetic: every figure stays the same to the bit. A command
+that owns its process takes it; the service's long-lived workers, shared by every organisation,
+do not: they hand back memory that a finished job no longer needs.
 """
 
 from __future__ import annotations
