@@ -516,19 +516,6 @@ def test_a_glitch_in_one_of_several_records_is_named_by_its_file(simulated_recor
     assert "median input" in result.stdout and "y[" not in result.stdout.split("note: x[777]")[1]
 
 
-def test_nothing_declared_starts_from_linear_orders_the_loop_chooses(simulated_records: Path):
-    # The table is printed from the JSON report's "orders_chosen" and "declared" (one loop, not two).
-    table = invoke("refine", "e1.csv", "e2.csv", "--validate", "v1.csv", cwd=simulated_records).stdout
-    chosen = re.search(r"the loop chose the linear model ny = (\d+), nx = (\d+), input delay (\d)", table)
-    assert chosen, table
-    ny, nx, delay = (int(group) for group in chosen.groups())
-    assert 1 <= ny <= 10 and nx == ny and delay in (0, 1)
-    lags = [f"y[t-{k}]" for k in range(1, ny + 1)] + [f"x[t-{k}]" for k in range(delay, delay + nx)]
-    # The quadratic spring moves the output's mean off zero: the start may carry a constant.
-    declared = ", ".join(lags).replace("x[t-0]", "x[t]")
-    assert f"declared: {declared}\n" in table or f"declared: {declared}, 1\n" in table, table
-
-
 def test_a_unit_is_plotted_as_the_text_given(
     simulated_records: Path, two_record_table: subprocess.CompletedProcess[str]
 ):
@@ -719,19 +706,29 @@ def test_records_that_repeat_their_excitation_report_the_noise_between_periods(t
     assert abs(floor["rms"] - 0.3) < 3 * floor["standard_error"]
 
 
-def test_effects_the_held_out_tails_do_not_support_are_printed_withdrawn_with_the_comparison(tmp_path):
-    """Nothing declared, a record whose steps grow (harness.extrapolating): the table says which
-    effects were withdrawn and why, both free runs over the held-out tails, the uncertainty the
-    gain had to exceed, and the best effect tried."""
-    x, y = growing_steps(2400, seed=1)
+def test_nothing_declared_starts_from_chosen_orders_and_prints_what_the_tails_withdrew(tmp_path):
+    """Nothing declared, a short record whose steps grow (harness.extrapolating; the loop's
+    choices on it are tests/test_refinement.py's): the table names the linear orders the loop
+    chose and starts from them, says which effects were withdrawn and why, both free runs over
+    the held-out tails (seen by the choice of the orders alone), the uncertainty the gain had to
+    exceed, and the best effect tried. The table is printed from the JSON report's
+    "orders_chosen" and "declared" (one loop, not two)."""
+    x, y = growing_steps(750, seed=3)
     (tmp_path / "record.csv").write_text(dump_csv(x, y, 100.0))
     table = invoke("refine", "record.csv", "--jobs", "1", cwd=tmp_path).stdout
-    assert (
-        "withdrawn: input_nonlinearity" in table
-        and "not better than the start on the held-out tails" in table
-    )
+    chosen = re.search(r"the loop chose the linear model ny = (\d+), nx = (\d+), input delay (\d)", table)
+    assert chosen, table
+    ny, nx, delay = (int(group) for group in chosen.groups())
+    assert 1 <= ny <= 10 and nx == ny and delay in (0, 1)
+    lags = [f"y[t-{k}]" for k in range(1, ny + 1)] + [f"x[t-{k}]" for k in range(delay, delay + nx)]
+    # The steps' even part drives the output's mean off zero: the start may carry a constant.
+    declared = ", ".join(lags).replace("x[t-0]", "x[t]")
+    assert f"declared: {declared}\n" in table or f"declared: {declared}, 1\n" in table, table
     (line,) = [line for line in table.splitlines() if line.startswith("held-out tails")]
-    assert "(320 samples no choice saw)" in line and re.search(r"start \S+, refined \S+;", line), line
+    best = re.search(r"the start is returned \(the best effect tried: (\w+)\)$", line)
+    assert best, line
+    assert f"withdrawn: {best[1]}" in table and "not better than the start on the held-out tails" in table
+    assert "(100 samples no choice but the linear orders saw)" in line, line
+    assert re.search(r"start \S+, refined \S+;", line), line
     assert re.search(r"gain \S+% of the mean square, threshold \S+% \(its uncertainty at level 0.05\)", line)
-    assert line.endswith("the start is returned (the best effect tried: input_nonlinearity)"), line
     assert "note: the data could not support the effects" in table
