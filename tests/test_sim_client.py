@@ -1,8 +1,8 @@
 """``narxwatch-sim`` run as a user runs it (the installed console script, the key in the
 environment) against the real service over HTTP, on SQLite and on PostgreSQL. The records,
 scenarios and streams posted, Ctrl-C and the trainings waited for run the script as a process;
-the refusals, the files written and the structure commands go through its entry point in this
-process (``invoke_sim``), the same code but for the second of imports a new process spends.
+the refusals, ``record --out``'s files and the structure commands go through its entry point in
+this process (``invoke_sim``), the same code but for the second of imports a new process spends.
 
 The structure is trained through the API from 5 magnitudes per fault mode: coarser than the
 paper's 17, enough for the obvious cases used here (k2 29 %, k1 30 %). Seeds are fixed so that
