@@ -1,17 +1,23 @@
-"""The ``narxwatch`` console script as a user runs it, and its entry point in the caller's process."""
+"""The ``narxwatch`` and ``narxwatch-sim`` console scripts as a user runs them, and their entry points in
+the caller's process."""
 
 from __future__ import annotations
 
 import contextlib
 import io
+import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 from service.cli import main
+from simulator.client import main as simulator_main
 
-NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
+BIN = Path(sys.executable).parent
+NARXWATCH = shutil.which("narxwatch", path=str(BIN))
+ENTRY_POINTS = {"narxwatch": main, "narxwatch-sim": simulator_main}
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -23,21 +29,34 @@ def run(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProces
     return result
 
 
-def invoke(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess[str]:
+def invoke(
+    *args: str,
+    cwd: Path,
+    check: bool = True,
+    script: str = "narxwatch",
+    environ: Mapping[str, str] | None = None,
+) -> subprocess.CompletedProcess[str]:
     """:func:`run` in this process: the console script's entry point with ``args`` in ``cwd``, its
     exit code and what it wrote. An exception it lets through fails the test, as a traceback
-    would."""
+    would. ``script`` names the console script (``narxwatch`` or ``narxwatch-sim``); ``environ`` is
+    the environment it runs in instead of this process's (restored after it)."""
     stdout, stderr = io.StringIO(), io.StringIO()
-    argv = sys.argv
-    sys.argv = [NARXWATCH or "narxwatch", *args]
+    argv, saved = sys.argv, dict(os.environ)
+    sys.argv = [shutil.which(script, path=str(BIN)) or script, *args]
+    if environ is not None:
+        os.environ.clear()
+        os.environ.update(environ)
     try:
         with contextlib.chdir(cwd), contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-            main()
+            ENTRY_POINTS[script]()
         code = 0
     except SystemExit as stopped:
         code = stopped.code if isinstance(stopped.code, int) else int(stopped.code is not None)
     finally:
         sys.argv = argv
+        if environ is not None:
+            os.environ.clear()
+            os.environ.update(saved)
     result = subprocess.CompletedProcess(list(args), code, stdout.getvalue(), stderr.getvalue())
     if check:
         assert result.returncode == 0, result.stderr

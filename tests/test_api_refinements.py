@@ -37,7 +37,9 @@ from service.security import Principal, Role
 from service.tables import Organisation
 from simulator.simulate import Effects, Scenario, SimulatedRecord, simulate
 
-SAMPLES = 12_000
+# The loop's records as long as the command's tests' (tests/test_cli_refine.py): what the API is
+# tested for is its wiring, the loop's findings on longer records are the models' tests'.
+SAMPLES = 6000
 SHORT = 6000  # the records of refinements on several records
 UNKNOWN = 10**6
 QUADRATIC = ["quadratic_stiffness2=3e5"]
@@ -138,11 +140,11 @@ def test_a_missing_effect_is_named_and_the_refined_model_stored_inactive(databas
         report = refinement["report"]
         assert report["effects_added"][0]["name"] == "quadratic_stiffness"
         assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
-        assert report["data"]["estimation"] == [0, 8000] and report["data"]["test"] == [8000, SAMPLES]
-        # Kept because it simulates the estimation part's last 1600 samples, which no choice saw,
+        assert report["data"]["estimation"] == [0, 4000] and report["data"]["test"] == [4000, SAMPLES]
+        # Kept because it simulates the estimation part's last 800 samples, which no choice saw,
         # better than the baseline beyond the comparison's uncertainty.
         held_out = report["held_out"]
-        assert held_out["samples"] == 1600 and held_out["refined_returned"] and held_out["best_tried"] is None
+        assert held_out["samples"] == 800 and held_out["refined_returned"] and held_out["best_tried"] is None
         assert held_out["refined_free_run_rms"] < held_out["start_free_run_rms"]
         assert report["tests"][0]["verdict"] == "better" and not report["after"]["diverged"]
         assert refinement["base_model"]["id"] == rig.baseline["id"]
@@ -228,7 +230,7 @@ def test_a_refinement_without_a_base_is_priced_as_the_widest_linear_start(rig: R
 def test_a_clean_record_adds_nothing_and_stores_no_model(rig: Rig):
     with clients(rig.org) as (admin, _, viewer):
         before = viewer.get(f"{API}/structures/{rig.structure_id}/models").json()
-        body = {"record_id": rig.clean_record, "base_model_id": rig.baseline["id"], "test": [6000, SAMPLES]}
+        body = {"record_id": rig.clean_record, "base_model_id": rig.baseline["id"], "test": [3000, SAMPLES]}
         response = admin.post(refinements_url(rig.structure_id), json=body)
         assert response.status_code == 201, response.text
         refinement = response.json()
@@ -241,25 +243,22 @@ def test_estimation_parts_leave_out_a_glitch_between_them(rig: Rig):
     # The effect record's signals (the same seed) with one sample of y at ten times their largest.
     record = simulated(QUADRATIC, seed=4)
     glitched = record.y.copy()
-    glitched[4000] = 10 * np.abs(record.y).max()
-    parts = [[0, 3990], [4010, 8000]]
+    glitched[2000] = 10 * np.abs(record.y).max()
+    parts = [[0, 1990], [2010, 4000]]
     with clients(rig.org) as (admin, ingest, _):
         glitch_id = upload_record(ingest, rig.structure_id, replace(record, y=glitched))
-        reports = {}
-        for record_id in (glitch_id, rig.effect_record):
-            body = {"record_id": record_id, "base_model_id": rig.baseline["id"], "estimation": parts}
-            response = admin.post(refinements_url(rig.structure_id), json=body)
-            assert response.status_code == 201, response.text
-            reports[record_id] = response.json()["report"]
-    report = reports[glitch_id]
-    assert report["data"]["estimation"] == parts and report["data"]["test"] == [8000, SAMPLES]
-    # Each part a record of its own: no lag reaches across the gap into the glitch.
+        body = {"record_id": glitch_id, "base_model_id": rig.baseline["id"], "estimation": parts}
+        response = admin.post(refinements_url(rig.structure_id), json=body)
+        assert response.status_code == 201, response.text
+    report = response.json()["report"]
+    assert report["data"]["estimation"] == parts and report["data"]["test"] == [4000, SAMPLES]
+    # Each part a record of its own: no lag reaches across the gap into the glitch, and the
+    # glitch is not named. (That the parts then refine as the record without the glitch is
+    # tests/test_refinement_protocol.py's.)
     terms = parse_terms(report["declared"]["terms"])
     apart = fit_narx([(record.x[a:b], record.y[a:b]) for a, b in parts], terms)
     np.testing.assert_allclose(report["declared"]["theta"], apart.theta, rtol=1e-9)
-    # The refinement of the record without the glitch, cut the same way.
-    assert report["effects_added"] == reports[rig.effect_record]["effects_added"]
-    assert report["refined"] == reports[rig.effect_record]["refined"]
+    assert not [note for note in report["notes"] if "glitch" in note]
 
 
 @pytest.mark.parametrize(
@@ -270,11 +269,11 @@ def test_estimation_parts_leave_out_a_glitch_between_them(rig: Rig):
         ({"base_model_id": "k2"}, 422, "baseline NARX"),
         ({"record_id": "other"}, 422, "another structure"),
         ({"estimation": [0, 10**9]}, 422, "do not lie within"),
-        ({"estimation": [[0, 5000], [4000, 8000]]}, 422, "4000:8000 starts before 0:5000 ends"),
-        ({"estimation": [[0, 4000], [5000]]}, 422, "estimation"),
+        ({"estimation": [[0, 3000], [2000, 4000]]}, 422, "2000:4000 starts before 0:3000 ends"),
+        ({"estimation": [[0, 2000], [3000]]}, 422, "estimation"),
         ({"test": [500, 100]}, 422, "do not lie within"),
         ({"estimation": [0, 30]}, 422, "the estimation records have 24 equations (30 samples)"),
-        ({"test": [8000, 8004]}, 422, "the test part has 4 samples"),
+        ({"test": [4000, 4004]}, 422, "the test part has 4 samples"),
         ({"alpha": 1.5}, 422, "alpha"),
         ({"initial": -1}, 422, "initial"),
         ({"method": "magic"}, 422, "method"),

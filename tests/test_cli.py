@@ -1,8 +1,9 @@
 """The ``narxwatch`` command line, run as a user runs it: the installed console script.
 
-Each command's work is run through the script (:func:`run`); the tables of refusals, the help
-texts and the records a fixture needs go through its entry point in the test's process
-(:func:`invoke`), the same code but for the second of imports a new process spends.
+Each command's work is run through the script once (:func:`run`: simulate, train, inspect,
+reproduce); its other runs, the tables of refusals, the help texts and the records a fixture needs
+go through its entry point in the test's process (:func:`invoke`), the same code but for the
+second of imports a new process spends.
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ def test_simulate_npz_holds_x_y_fs_and_is_reproducible(workdir, tmp_path):
 
 
 def test_simulate_accepts_effects_and_parameters(tmp_path):
-    run(
+    invoke(
         "simulate",
         "--n",
         "500",
@@ -92,7 +93,7 @@ def test_simulate_accepts_effects_and_parameters(tmp_path):
         "e.csv",
         cwd=tmp_path,
     )
-    plain = run("simulate", "--n", "500", "--seed", "3", "--out", "p.csv", cwd=tmp_path)
+    plain = invoke("simulate", "--n", "500", "--seed", "3", "--out", "p.csv", cwd=tmp_path)
     assert "500 samples" in plain.stdout
     assert (tmp_path / "e.csv").read_text() != (tmp_path / "p.csv").read_text()
 
@@ -105,9 +106,9 @@ def test_simulate_writes_a_chain_s_accelerometer_with_sensor_noise_a_share_of_it
     """A structure that is not the rig: the chain's driving-point acceleration, its sensors' noise 1 %
     of the healthy signals' RMS on x and on y, the same floor with a spring loosened."""
     quiet = [*ACCELEROMETER, "--disturbance-std", "0", "--n", "3000", "--seed", "4"]
-    written = run("simulate", *quiet, "--out", "clean.npz", cwd=tmp_path)
+    written = invoke("simulate", *quiet, "--out", "clean.npz", cwd=tmp_path)
     assert "3000 samples at fs = 1500 Hz" in written.stdout and "m/s²" in written.stdout
-    run("simulate", *quiet, "--noise-share", "0.01", "--out", "noisy.npz", cwd=tmp_path)
+    invoke("simulate", *quiet, "--noise-share", "0.01", "--out", "noisy.npz", cwd=tmp_path)
     invoke(
         "simulate",
         *quiet,
@@ -130,7 +131,7 @@ def test_simulate_writes_a_chain_s_accelerometer_with_sensor_noise_a_share_of_it
     with np.load(tmp_path / "k2.npz") as faulty, np.load(tmp_path / "clean.npz") as clean:
         assert not np.allclose(faulty["y"], clean["y"], rtol=0.01)  # the spring changed the response
     # Displacement by default, every mass measured: a channel per mass.
-    every = run("simulate", *CHAIN, "--n", "500", "--seed", "1", "--out", "all.csv", cwd=tmp_path)
+    every = invoke("simulate", *CHAIN, "--n", "500", "--seed", "1", "--out", "all.csv", cwd=tmp_path)
     assert every.stdout.endswith(" m\n")
     assert (tmp_path / "all.csv").read_text().splitlines()[1] == "x,y1,y2,y3"
 
@@ -232,8 +233,11 @@ def test_train_with_explicit_terms(workdir, tmp_path):
 def test_train_without_terms_chooses_a_baseline_and_a_fault_mode_asks_for_them(workdir, tmp_path):
     """No command assumes the paper rig's terms: a baseline without --terms has them chosen from
     its records (on the rig's: fourth order or more, its input a sample late) and says what it
-    chose; a fault mode needs --terms, which its baseline's model file gives."""
-    result = invoke("train", "baseline", str(workdir / "healthy.csv"), "--out", "chosen.json", cwd=tmp_path)
+    chose; a fault mode needs --terms, which its baseline's model file gives. The choice is made
+    on a record of 4000 samples, as tests/test_baseline_choice.py makes it (the workdir's 30 000
+    add nothing to what the command is tested for but the choice's time)."""
+    invoke("simulate", "--n", "4000", "--seed", "1", "--out", "healthy.csv", cwd=tmp_path)
+    result = invoke("train", "baseline", "healthy.csv", "--out", "chosen.json", cwd=tmp_path)
     choice = json.loads((tmp_path / "chosen.json").read_text())["metadata"]["choice"]
     assert choice["delay"] == 1 and choice["orders"]["ny"] >= 4
     assert choice["held_out"]["free_run_nrmse"] < 0.2
@@ -264,7 +268,7 @@ def test_inspect_json_verdict_of_a_k2_fault(workdir):
 
 def test_inspect_table_output(workdir):
     invoke("simulate", "--seed", "5", "--out", "healthy_record.csv", cwd=workdir)
-    result = run("inspect", "healthy_record.csv", "--fault-mode", "k2.json", cwd=workdir)
+    result = invoke("inspect", "healthy_record.csv", "--fault-mode", "k2.json", cwd=workdir)
     assert "k2" in result.stdout and "Q crit" in result.stdout
 
 
@@ -286,13 +290,13 @@ def test_inspect_refuses_bad_records(workdir, content, message):
 def test_inspect_refuses_a_model_of_another_sampling_rate(workdir):
     record = np.load(workdir / "experiments/k2_0.npz")
     np.savez(workdir / "fast.npz", x=record["x"], y=record["y"], fs=3000.0)
-    result = run("inspect", "fast.npz", "--fault-mode", "k2.json", cwd=workdir, check=False)
+    result = invoke("inspect", "fast.npz", "--fault-mode", "k2.json", cwd=workdir, check=False)
     assert result.returncode == 2 and "3000 Hz" in result.stderr
 
 
 def test_inspect_refuses_unreadable_model_files(workdir):
     (workdir / "junk.json").write_text("{not json")
-    result = run("inspect", "healthy.csv", "--fault-mode", "junk.json", cwd=workdir, check=False)
+    result = invoke("inspect", "healthy.csv", "--fault-mode", "junk.json", cwd=workdir, check=False)
     assert result.returncode == 2 and "not valid JSON" in result.stderr
     result = invoke("inspect", "healthy.csv", "--fault-mode", "baseline.json", cwd=workdir, check=False)
     assert result.returncode == 2 and "not a fnarx model document" in result.stderr
@@ -300,7 +304,7 @@ def test_inspect_refuses_unreadable_model_files(workdir):
 
 def test_train_fault_mode_refuses_a_bad_manifest(workdir):
     (workdir / "bad_manifest.csv").write_text("file,magnitude\na.csv,1\n")
-    result = run(
+    result = invoke(
         "train",
         "fault-mode",
         "--name",

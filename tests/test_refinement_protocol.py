@@ -61,3 +61,17 @@ def test_whole_records_explain_the_first_test_after_its_transient_and_name_each_
     assert document["explanation"] == expected.to_dict()
     with pytest.raises(ValueError):
         refined.to_dict([])  # every test named, or none
+
+
+def test_parts_around_a_glitch_refine_as_the_record_without_it():
+    """Estimation parts are fitted as records of their own, no lag reaching across the gap between
+    them: a glitch left out between two parts changes nothing of the refinement or of its report.
+    (The CLI's and the API's tests check that the parts they are given reach the loop.)"""
+    record = simulate(Scenario(disturbance_std=200.0), 1200, seed=5)
+    glitched = record.y.copy()
+    glitched[400] = 10 * np.abs(record.y).max()
+    loop = Loop(EXACT_TERMS, fs=record.fs)
+    parts, test = [(0, 390), (410, 800)], (800, 1200)
+    around, clean = (refine_parts(loop, record.x, y, parts, test) for y in (glitched, record.y))
+    assert around.report.to_dict() == clean.report.to_dict()
+    assert around.explanation.to_dict() == clean.explanation.to_dict()

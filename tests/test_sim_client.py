@@ -1,5 +1,8 @@
 """``narxwatch-sim`` run as a user runs it (the installed console script, the key in the
-environment) against the real service over HTTP, on SQLite and on PostgreSQL.
+environment) against the real service over HTTP, on SQLite and on PostgreSQL. The records,
+scenarios and streams posted, Ctrl-C and the trainings waited for run the script as a process;
+the refusals, ``record --out``'s files and the structure commands go through its entry point in
+this process (``invoke_sim``), the same code but for the second of imports a new process spends.
 
 The structure is trained through the API from 5 magnitudes per fault mode: coarser than the
 paper's 17, enough for the obvious cases used here (k2 29 %, k1 30 %). Seeds are fixed so that
@@ -27,6 +30,7 @@ import pytest
 from sqlalchemy import select
 
 from harness.api_helpers import RIG_TERMS, simulated, upload_simulated, wait_for
+from harness.cli import invoke
 from harness.job_helpers import run_jobs
 from harness.live import LiveServer, Tenant, free_port
 from recordfiles.reader import read_record
@@ -61,6 +65,17 @@ def run_sim(
     assert SIM, "the narxwatch-sim console script is not installed next to this Python"
     return subprocess.run(
         [SIM, *args], env=sim_env(key, url), cwd=cwd, capture_output=True, text=True, timeout=120
+    )
+
+
+def invoke_sim(
+    *args: str, key: str | None = None, url: str | None = None, cwd: Path | None = None
+) -> subprocess.CompletedProcess[str]:
+    """:func:`run_sim` through the console script's entry point in this process: what the command
+    says and its exit code where the process is not what is tested (``post`` and the streams run
+    it as a process)."""
+    return invoke(
+        *args, cwd=cwd or Path.cwd(), check=False, script="narxwatch-sim", environ=sim_env(key, url)
     )
 
 
@@ -238,7 +253,7 @@ def test_out_writes_files_and_a_manifest_and_posts_nothing(trained: Trained, tmp
 
 def test_out_numbers_on_from_an_existing_manifest(tmp_path: Path):
     for fault, k in (("none", "0"), ("k1", "12.5")):
-        result = run_sim(
+        result = invoke_sim(
             "record", "--fault", fault, "--k", k, "--seed", "5", "--format", "npz", "--out", str(tmp_path)
         )
         assert result.returncode == 0, result.stderr
@@ -267,7 +282,7 @@ def test_a_refused_key_exits_1_with_the_service_message(trained: Trained, role, 
         if role is None
         else trained.server.key(role, trained.tenant.name)
     )
-    result = run_sim("record", "--seed", "1", key=key, url=trained.server.url)
+    result = invoke_sim("record", "--seed", "1", key=key, url=trained.server.url)
     assert result.returncode == 1
     assert message in result.stderr and "Traceback" not in result.stderr
     assert key not in result.stdout + result.stderr and result.stdout == ""
@@ -275,7 +290,7 @@ def test_a_refused_key_exits_1_with_the_service_message(trained: Trained, role, 
 
 def test_an_unreachable_service_exits_1_naming_the_url():
     url = f"http://127.0.0.1:{free_port()}"
-    result = run_sim("record", "--seed", "1", key="nw_x_y", url=url)
+    result = invoke_sim("record", "--seed", "1", key="nw_x_y", url=url)
     assert result.returncode == 1
     assert f"cannot reach narxwatch at {url}" in result.stderr and "Traceback" not in result.stderr
 
@@ -294,7 +309,7 @@ def test_an_unreachable_service_exits_1_naming_the_url():
 )
 def test_unusable_options_exit_2_before_contacting_the_service(args, message, tmp_path: Path):
     # Nothing listens at this URL: exit code 2, not 1, shows the options were refused first.
-    result = run_sim(*args, key="nw_x_y", url=f"http://127.0.0.1:{free_port()}", cwd=tmp_path)
+    result = invoke_sim(*args, key="nw_x_y", url=f"http://127.0.0.1:{free_port()}", cwd=tmp_path)
     assert result.returncode == 2
     assert message in result.stderr and "Traceback" not in result.stderr
     assert list(tmp_path.iterdir()) == []
@@ -305,7 +320,7 @@ def test_the_default_structure_is_the_first_the_key_sees(trained: Trained):
         "/api/v1/structures", json={"name": f"spare-{uuid.uuid4().hex[:8]}", "fs": 1500.0}
     )
     assert spare.status_code == 201 and spare.json()["id"] > trained.structure_id
-    result = run_sim("record", "--seed", "41", "--json", key=trained.key, url=trained.server.url)
+    result = invoke_sim("record", "--seed", "41", "--json", key=trained.key, url=trained.server.url)
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["structure_id"] == trained.structure_id
     assert f"posting to structure {trained.structure_id} 'rig'" in result.stderr
@@ -313,7 +328,7 @@ def test_the_default_structure_is_the_first_the_key_sees(trained: Trained):
 
 def test_a_key_without_structures_is_told_so(api_server: LiveServer, tenant: Tenant):
     key = api_server.key(Role.ingest, tenant.name)
-    result = run_sim("record", "--seed", "1", key=key, url=api_server.url)
+    result = invoke_sim("record", "--seed", "1", key=key, url=api_server.url)
     assert result.returncode == 1
     assert "the API key sees no structure" in result.stderr and "--structure ID" in result.stderr
 
@@ -359,12 +374,12 @@ def test_ctrl_c_stops_a_stream_cleanly(trained: Trained):
 def test_record_with_coloured_measurement_noise_is_the_simulators(tmp_path: Path):
     """--noise-colour reaches the simulator: the written record equals one simulated directly."""
     args = ["record", "--seed", "8", "--x-noise-std", "500", "--noise-colour", "1.5,0.5"]
-    result = run_sim(*args, "--format", "npz", "--out", str(tmp_path))
+    result = invoke_sim(*args, "--format", "npz", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     scenario = Scenario(disturbance_std=SETTINGS.disturbance_std, x_noise_std=500.0, noise_colour=(1.5, 0.5))
     expected = simulate(scenario, SETTINGS.inspection_samples, 8)
     np.testing.assert_array_equal(read_record(tmp_path / "record_0001_none_0.npz").x, expected.x)
-    refused = run_sim("record", "--noise-colour", "1.5,x", "--out", str(tmp_path))
+    refused = invoke_sim("record", "--noise-colour", "1.5,x", "--out", str(tmp_path))
     assert refused.returncode == 2 and "--noise-colour '1.5,x'" in refused.stderr
 
 
@@ -382,10 +397,10 @@ def test_structures_create_declares_what_x_and_y_measure(api_server: LiveServer,
         "--response-unit",
         "g",
     ]
-    made = run_sim(
+    made = invoke_sim(
         "structures", "create", "--name", "bridge", "--fs", "200", *args, key=key, url=api_server.url
     )
-    plain = run_sim(
+    plain = invoke_sim(
         "structures", "create", "--name", "plain", "--fs", "200", "-q", key=key, url=api_server.url
     )
     assert made.returncode == 0 and plain.returncode == 0, made.stderr + plain.stderr
@@ -397,7 +412,7 @@ def test_structures_create_declares_what_x_and_y_measure(api_server: LiveServer,
         {"quantity": "acceleration", "unit": "g"},
     )
     assert tenant.admin.get(f"/api/v1/structures/{plain.stdout.strip()}").json()["response"] is None
-    listed = run_sim("structures", "list", key=key, url=api_server.url).stdout
+    listed = invoke_sim("structures", "list", key=key, url=api_server.url).stdout
     assert "'bridge', fs = 200 Hz, force x [kN], acceleration y [g], no verdict yet" in listed
     assert "'plain', fs = 200 Hz, no verdict yet" in listed
 
@@ -416,21 +431,21 @@ def test_structures_update_changes_what_is_given_and_prints_the_refusal_of_a_red
     assert tenant.ingest.post(f"/api/v1/structures/{made['id']}/records", json=record).status_code == 201
     structure = ["--structure", str(made["id"])]
     update = ["structures", "update", *structure, "--name", "mast 2", "--excitation", "force"]
-    changed = run_sim(*update, "--excitation-unit", "kN", key=key, url=api_server.url)
+    changed = invoke_sim(*update, "--excitation-unit", "kN", key=key, url=api_server.url)
     assert changed.returncode == 0, changed.stderr
     assert changed.stdout.strip() == (
         f"structure {made['id']} 'mast 2', fs = 200 Hz, force x [kN], acceleration y [g]"
     )
     stored = tenant.admin.get(f"/api/v1/structures/{made['id']}").json()
     assert stored == made | {"name": "mast 2", "excitation": {"quantity": "force", "unit": "kN"}}
-    redeclared = run_sim(
+    redeclared = invoke_sim(
         "structures", "update", *structure, "--response", "velocity", key=key, url=api_server.url
     )
     assert redeclared.returncode == 1, redeclared.stdout + redeclared.stderr
     assert "409 Conflict: structure 'mast 2' has records" in redeclared.stderr
     assert "can only be completed" in redeclared.stderr and redeclared.stdout == ""
     assert tenant.admin.get(f"/api/v1/structures/{made['id']}").json() == stored
-    withdrawn = run_sim(
+    withdrawn = invoke_sim(
         "structures", "update", *structure, "--withdraw", "response", key=key, url=api_server.url
     )
     assert withdrawn.returncode == 1 and "409 Conflict" in withdrawn.stderr
@@ -445,7 +460,7 @@ def test_structures_update_withdraws_a_declaration_of_a_structure_without_record
         "/api/v1/structures",
         json={"name": "pylon", "fs": 200.0, "response": {"quantity": "acceleration", "unit": "g"}},
     ).json()
-    withdrawn = run_sim(
+    withdrawn = invoke_sim(
         "structures", "update", "--structure", str(made["id"]), "--withdraw", "response",
         key=key, url=api_server.url,
     )  # fmt: skip
@@ -460,7 +475,9 @@ def test_structures_list_prints_every_page(api_server: LiveServer):
     names = [f"s{i:03d}" for i in range(fleet.PAGE_SIZE + 1)]
     for name in names:
         assert tenant.admin.post("/api/v1/structures", json={"name": name, "fs": 100.0}).status_code == 201
-    listed = run_sim("structures", "list", key=api_server.key(Role.viewer, tenant.name), url=api_server.url)
+    listed = invoke_sim(
+        "structures", "list", key=api_server.key(Role.viewer, tenant.name), url=api_server.url
+    )
     assert listed.returncode == 0, listed.stderr
     assert re.findall(r"'(s\d{3})'", listed.stdout) == names
 
@@ -517,7 +534,7 @@ def test_own_structure_commands_print_the_services_refusal_and_exit_1(
     api_server: LiveServer, tenant: Tenant, role, args, message, tmp_path: Path
 ):
     (tmp_path / "healthy.csv").write_text("x,y\n1,2\n3,4\n")
-    result = run_sim(*args, key=api_server.key(role, tenant.name), url=api_server.url, cwd=tmp_path)
+    result = invoke_sim(*args, key=api_server.key(role, tenant.name), url=api_server.url, cwd=tmp_path)
     assert result.returncode == 1, result.stdout + result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr and result.stdout == ""
 
@@ -570,7 +587,7 @@ def test_own_structure_commands_print_the_services_refusal_and_exit_1(
 )
 def test_own_structure_commands_refuse_unusable_input_with_exit_2(args, message, tmp_path: Path):
     (tmp_path / "record.txt").write_text("x,y\n")
-    result = run_sim(*args, key="nw_x_y", url=f"http://127.0.0.1:{free_port()}", cwd=tmp_path)
+    result = invoke_sim(*args, key="nw_x_y", url=f"http://127.0.0.1:{free_port()}", cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
 

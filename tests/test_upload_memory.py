@@ -1,13 +1,14 @@
 """Uploads whose parse costs memory beyond their size, sent at once against a real server.
 
 - A header of a million columns: twelve 8 MB CSVs whose header names 10⁶ columns,
-  sent at once by one organisation's ingest key to a real ``narxwatch serve`` on SQLite and on
-  PostgreSQL, while another organisation's client times ``GET /structures``; and twelve of
-  16 MB to two worker processes on PostgreSQL. Each header cost the server about thirty times
-  its size in cells before the 422, all twelve at once gigabytes, and the other organisation's
-  reads seconds. Every upload must be refused with a 4xx, the server's memory (the resident
-  sets of its processes) grow by at most 600 MB, and the other organisation's p95 stay within
-  half a second.
+  sent at once by one organisation's ingest key to a real ``narxwatch serve`` of one process on
+  SQLite, while another organisation's client times ``GET /structures``; and twelve of 16 MB to
+  two worker processes on PostgreSQL. Each header cost the server about thirty times its size
+  in cells before the 422, all twelve at once gigabytes, and the other organisation's reads
+  seconds. Every upload must be refused with a 4xx, the server's memory (the resident sets of
+  its processes) grow by at most 600 MB, and the other organisation's p95 stay within half a
+  second. The header is refused before anything reaches the database: the two attacks are each
+  database once, one process and several, not every pairing of them.
 - Parses beyond ``NARXWATCH_MAX_CONCURRENT_UPLOADS`` wait at most
   ``NARXWATCH_UPLOAD_WAIT_SECONDS``, then are answered 503 with Retry-After.
 """
@@ -54,7 +55,6 @@ class Attack:
 
 ATTACKS = [
     Attack("sqlite", 8 * 2**20, 1),
-    Attack("postgresql", 8 * 2**20, 1),
     Attack("postgresql", 16 * 2**20, 2),
 ]
 
@@ -69,27 +69,24 @@ class Served:
 
 
 def resident_bytes(pid: int) -> int:
-    """The resident memory of ``pid`` and of every process descended from it, from /proc."""
-    parents: dict[int, int] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                # The name in parentheses may hold spaces: the fields after its ")" are fixed.
-                fields = (entry / "stat").read_text().rpartition(")")[2].split()
-            except OSError:  # ended meanwhile
-                continue
-            parents[int(entry.name)] = int(fields[1])
-    family = {pid}
-    grew = True
-    while grew:
-        descendants = {child for child, parent in parents.items() if parent in family}
-        grew = not descendants <= family
-        family |= descendants
-    total = 0
-    for member in family:
+    """The resident memory of ``pid`` and of every process descended from it, from /proc.
+
+    The descendants are read from each thread's ``children`` list, not found by reading every
+    process's ``stat``: the test samples fifty times a second, in the process that times the
+    other organisation's reads, and a scan of a busy machine's processes at that rate took a
+    good part of a CPU from them."""
+    total, seen, unseen = 0, set(), [pid]
+    while unseen:
+        member = unseen.pop()
+        if member in seen:
+            continue
+        seen.add(member)
+        folder = Path("/proc") / str(member)
         try:
-            total += int((Path("/proc") / str(member) / "statm").read_text().split()[1]) * PAGE
-        except OSError:
+            total += int((folder / "statm").read_text().split()[1]) * PAGE
+            for task in (folder / "task").iterdir():
+                unseen += [int(child) for child in (task / "children").read_text().split()]
+        except OSError:  # ended meanwhile
             continue
     return total
 
