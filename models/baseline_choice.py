@@ -105,7 +105,8 @@ def choose_baseline_terms(records: Records, max_order: int = MAX_ORDER) -> Basel
     offered = [
         term
         for term in candidate_terms(NONLINEAR_DEGREE, lags, lags, delay)
-        if term.degree != 1 and max_lag((term,)) <= max_lag(linear)
+        # The linear start's own terms (its constant among them) are not offered again.
+        if term.degree != 1 and term not in linear and max_lag((term,)) <= max_lag(linear)
     ]
     selection = select_narx(
         records, (*linear, *offered), criterion="bic", include=linear, max_terms=len(linear) + MAX_ADDED

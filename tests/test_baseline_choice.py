@@ -47,3 +47,15 @@ def test_records_it_cannot_choose_from_are_refused() -> None:
     tiny = [(rng.normal(size=700) * 1e-300, rng.normal(size=700) * 1e-300)]
     with pytest.raises(InputError, match="no linear model of order 1 to 6 could be fitted"):
         choose_baseline_terms(tiny)
+
+
+def test_a_sensor_offset_gets_one_constant() -> None:
+    """An accelerometer whose zero is off: the linear start takes the constant, and the nonlinear
+    terms offered beside it do not offer it again (it answered "term 1 is listed twice")."""
+    records = [record(scenario(), 2000, 100 + i) for i in range(3)]
+    offset = [(x, y + 2 * np.std(y)) for x, y in records]
+    choice = choose_baseline_terms(offset)
+    names = [term.name for term in choice.terms]
+    assert names.count("1") == 1
+    assert "1" not in [term.name for term in choice.added]
+    assert choice.held_out_nrmse < 0.05
