@@ -19,7 +19,16 @@ loop chooses), each round
    family's regressors are tried in the order of their error reduction, and the family whose
    model (parameters refined by output error, as is the current model's) lowers the check
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
-   criterion. Otherwise the loop stops.
+   criterion. Otherwise the loop stops;
+5. after an addition, prunes back (Piroddi & Spinelli 2003): each term the earlier rounds added
+   is taken out in turn, and the one whose removal leaves the check blocks' free run lowest goes
+   where that free run is no higher without it, until every term left pays (:func:`_pruned`).
+   The effect just added waits for the next addition's pruning, the last for one after the
+   rounds. An effect every term of which is pruned is withdrawn, and not offered again.
+
+Each round reports the candidates it compared on the check blocks' free run, the fall of that
+free run the effect added brought (else the best judged) against the fall it had to reach, and
+what the pruning took out.
 
 The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
 lags, no physical effect named) is scored with the named families but judged after them: steps 3
@@ -166,8 +175,21 @@ class Round:
     criterion: Criterion | None = None
     check_rms: tuple[float, float] = (np.inf, np.inf)
     # Significant effects passed over, best first, because adding them did not lower the model's
-    # free run over the check blocks by more than its standard error (or made it diverge).
+    # free run over the check blocks by the round's threshold (or made it diverge).
     rejected: tuple[str, ...] = ()
+    # The terms pruned after the addition, in the order taken out (:func:`_pruned`): of this
+    # round's effect or an earlier one's. ``check_rms`` is after the pruning.
+    pruned: tuple[str, ...] = ()
+    # Every term this round's effect brought was pruned, by its own round's pruning or a later's:
+    # the effect is withdrawn, the refined model does not hold it.
+    pruned_away: bool = False
+    # The candidates whose free run over the check blocks the round compared with the model's
+    # (each significant family judged on it, each structure simulated for a family's terms), and
+    # the fall of that free-run RMS the effect added brought (else the best judged), with the
+    # fall it had to reach, both shares of the RMS before; NaN where none was judged.
+    tried: int = 0
+    gain: float = np.nan
+    threshold: float = np.nan
 
 
 @dataclass(frozen=True)
@@ -204,7 +226,12 @@ class Refinement:
     @property
     def kept(self) -> tuple[Round, ...]:
         """The rounds whose effect the refined model holds."""
-        return tuple(r for r in self.rounds[self.withdrawn :] if r.added is not None)
+        return tuple(r for r in self.rounds[self.withdrawn :] if r.added is not None and not r.pruned_away)
+
+    @property
+    def effects_pruned(self) -> tuple[str, ...]:
+        """The names of the effects every term of which was pruned (:func:`_pruned`), each once."""
+        return _pruned_away(self.rounds)
 
     @property
     def effects_added(self) -> tuple[EffectScore, ...]:
@@ -280,12 +307,20 @@ class RefinementReport:
                         "level": step.level,
                         "candidate_terms": step.candidates,
                         "check_free_run_rms": [_finite(value) for value in step.check_rms],
-                    },
+                    }
+                    | _selection_dict(step),
                 }
                 for step in result.kept
                 if (score := step.added) is not None
             ],
             "effects_withdrawn": list(result.effects_withdrawn),
+            "effects_pruned": list(result.effects_pruned),
+            "rounds": [
+                {"round": number, "added": None if step.added is None else step.added.name}
+                | _selection_dict(step)
+                | {"decided_by": step.criterion, "check_free_run_rms": [_finite(v) for v in step.check_rms]}
+                for number, step in enumerate(result.rounds, start=1)
+            ],
             "held_out": None if result.held_out is None else _held_out_dict(result.held_out),
             "check_free_run_rms": _finite(result.check_rms),
             "noise_floor": None
@@ -305,8 +340,23 @@ class RefinementReport:
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
-            "notes": list(self.notes) + _held_out_notes(result) + _skipped_notes(self.tests),
+            "notes": list(self.notes)
+            + _pruned_notes(result)
+            + _held_out_notes(result)
+            + _skipped_notes(self.tests),
         }
+
+
+def _selection_dict(step: Round) -> dict[str, Any]:
+    """How a round chose: the candidates it compared on the check blocks' free run, the fall of
+    that free run it saw and the fall needed (shares of it; None where none was judged), and the
+    terms pruned after its addition."""
+    return {
+        "candidates_tried": step.tried,
+        "threshold": _finite(step.threshold),
+        "gain": _finite(step.gain),
+        "pruned": list(step.pruned),
+    }
 
 
 def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
@@ -324,6 +374,15 @@ def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
         "best_tried": held_out.best_tried,
         "orders_saw_tails": held_out.orders_saw_tails,
     }
+
+
+def _pruned_notes(result: Refinement) -> list[str]:
+    """Why each effect pruned away (:func:`_pruned`) is not in the refined model."""
+    return [
+        f"{name} was withdrawn: pruning after the rounds' additions took out every term it brought, "
+        "the check blocks' free run no higher without them"
+        for name in result.effects_pruned
+    ]
 
 
 def _held_out_notes(result: Refinement) -> list[str]:
@@ -803,7 +862,9 @@ def _grown(
     margin = check_noise(checks.check)
     rounds: list[Round] = []
     for number in range(1, max_rounds + 1):
-        offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
+        # A family pruned away is not offered again: the next round would add it back as it did.
+        gone = _pruned_away(rounds)
+        offered = unused([_follow(e, current.terms) for e in families if e.name not in gone], current.terms)
         # A saturating model is not offered saturation again.
         offered = [e for e in offered if not (e.kind == "saturation" and current.saturating is not None)]
         if not offered:
@@ -824,6 +885,8 @@ def _grown(
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
         ranked: Scores | None = None
+        judged: Gain | None = None  # the effect added's, else the best judged's
+        tried = 0
         # The named families on both criteria first, then the generic polynomial on both: where a
         # named effect explains the data, the loop names it.
         tier = [e.name == POLYNOMIAL for e in offered]
@@ -842,31 +905,58 @@ def _grown(
                 tell,
                 f"round {number}",
             ):
-                if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-                    decided = (score, "one-step", structure, error)
+                tried += 1
+                # Moving-average noise, there to unbias the parameters, need only not make it worse.
+                gain = Gain(_fall(error, check), 0.0 if structure.noise_lags > current.noise_lags else margin)
+                if error <= (1 - gain.threshold) * check:
+                    decided, judged = (score, "one-step", structure, error), gain
                     break
+                judged = _better(judged, gain)
                 rejected.append(score.name)
             if decided is None and output_error and generic in tier:
                 offer = "the generic polynomial" if generic else "the families"
                 tell(f"round {number}: {offer} on the simulation error")
                 ranked = ranked or _ranked(records, current, offered, alpha, workers, threads)
                 chosen = [g == generic for g in tier]
-                decided = _by_simulation(
+                decided, simulated, structures = _by_simulation(
                     list(compress(offered, chosen)),
                     list(compress(ranked.scores, chosen)),
                     current,
                     checks,
                     workers,
                 )
+                tried += structures
+                judged = simulated if decided is not None else _better(judged, simulated)
             if decided is not None:
                 break
+        if judged is not None:
+            step = replace(step, tried=tried, gain=judged.gain, threshold=judged.threshold)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
-        score, criterion, current, error = decided
-        step = replace(step, added=score, criterion=criterion, check_rms=(check, error))
-        rounds.append(replace(step, rejected=tuple(rejected)))
+        score, criterion, grown, error = decided
+        new = tuple(term for term in grown.terms if term not in current.terms)
+        current = grown
+        rounds.append(replace(step, added=score, criterion=criterion, rejected=tuple(rejected)))
+        if score.terms and not score.noise_lags:
+            # Judged as the effects in the model were decided: by output error once one was
+            # decided on the simulation error alone, whose least-squares model may simulate worse.
+            tuned = any(r.criterion == "simulation" for r in rounds)
+            # The effect just added passed as a whole; its terms are pruned after the next addition.
+            current, pruned = _pruned(current, tuple(terms) + new, checks, workers, tuned)
+            rounds = _without_pruned(rounds, pruned)
+            error = checks.error(current) if pruned else error
+        rounds[-1] = replace(rounds[-1], check_rms=(check, error))
         check = error
+    if current.terms != tuple(terms):
+        # The last effect that brought terms has no next addition to wait for: its terms are
+        # pruned here, with the rest, and the last round names what went.
+        tuned = any(r.criterion == "simulation" for r in rounds)
+        current, pruned = _pruned(current, terms, checks, workers, tuned)
+        if pruned:
+            rounds = _without_pruned(rounds, pruned)
+            check = checks.error(current)
+            rounds[-1] = replace(rounds[-1], check_rms=(rounds[-1].check_rms[0], check))
     declared_structure = Structure(terms)
     folds = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)] if len(records) >= 3 else []
     # The least-squares fit on all the records of the structure the rounds grew, made by a thread
@@ -1241,11 +1331,12 @@ def _by_simulation(
     current: Structure,
     checks: CheckSplit,
     workers: Workers,
-) -> tuple[EffectScore, Criterion, Structure, float] | None:
+) -> tuple[tuple[EffectScore, Criterion, Structure, float] | None, Gain | None, int]:
     """The family added on the simulation error alone, if one lowers the check blocks' free
     run enough (module docstring, step 4): its score with the terms that won, the structure, and
-    the check blocks' free-run RMS with it (least squares, as the other rounds report it). The
-    structures are judged by ``workers``."""
+    the check blocks' free-run RMS with it (least squares, as the other rounds report it); the
+    gain of that family by output error (else the best judged's, None where none was); and how
+    many structures were simulated. The structures are judged by ``workers``."""
     families = [
         (
             score,
@@ -1268,7 +1359,7 @@ def _by_simulation(
         if np.isfinite(errors[names]):
             trials.append((errors[names], replace(score, terms=names), grown[names]))
     if not trials:
-        return None
+        return None, None, len(grown)
     # The current structure's best simulation, whichever its parameters: its output-error fit can
     # fail to come to rest where its least-squares fit does (on unrelated white x and y the 2-DOF
     # structure's did), and against an infinite baseline any family would pass.
@@ -1277,10 +1368,90 @@ def _by_simulation(
     # model is far behind does not overtake by its parameters alone.
     best = sorted(trials, key=lambda trial: trial[0])[:2]
     tuned = checks.judge([structure for *_, structure in best], workers, tuned=True)
+    judged: Gain | None = None
     for (error, score, structure), tuned_error in zip(best, tuned, strict=True):
+        gain = Gain(_fall(tuned_error, baseline), SIMULATION_GAIN)
         if tuned_error <= (1 - SIMULATION_GAIN) * baseline:
-            return score, "simulation", structure, error
-    return None
+            return (score, "simulation", structure, error), gain, len(grown)
+        judged = _better(judged, gain)
+    return None, judged, len(grown)
+
+
+class Gain(NamedTuple):
+    """The fall of the check blocks' free-run RMS a candidate brought and the fall it had to
+    reach to be added, both shares of the RMS before."""
+
+    gain: float
+    threshold: float
+
+
+def _better(judged: Gain | None, other: Gain | None) -> Gain | None:
+    """The larger gain of ``judged`` and ``other``, either None where not judged."""
+    if judged is None or (other is not None and other.gain > judged.gain):
+        return other
+    return judged
+
+
+def _fall(after: float, before: float) -> float:
+    """The fall of a free-run RMS from ``before`` to ``after``, as a share of ``before``: −∞ where
+    ``after`` diverged, 1 where only ``before`` did."""
+    if not np.isfinite(after):
+        return -np.inf
+    return 1.0 if not np.isfinite(before) else float(1 - after / before)
+
+
+def _pruned(
+    current: Structure, start: tuple[Term, ...], checks: CheckSplit, workers: Workers, tuned: bool
+) -> tuple[Structure, tuple[Term, ...]]:
+    """``current`` pruned back after an addition (Piroddi & Spinelli 2003, SEMP's pruning), and the
+    terms taken out in turn.
+
+    Each term the earlier rounds added (``start``'s terms stay: the declared ones and those of
+    the effect just added) is taken out in turn and the rest fitted on the check split's fit
+    parts; the one whose removal leaves the check blocks' free-run RMS lowest goes where that RMS
+    is no higher than with it, and the search repeats on what is left. An effect picked on one
+    round can be made useless by a later one it stood in for (a cubic spring fitted before the
+    quadratic spring it imitated), and a family's terms ride in together though only some of them
+    simulate: what does not pay on the check blocks is not kept. The unit is the term, so that an
+    effect keeps those of its terms that pay. The effect just added passed as a whole and waits
+    for the next addition: pruned at once, Silverbox's cubic damping lost dy[t-1]³, and the
+    broad unmeasured nonlinearity then won the round after next by taking it back, ahead of the
+    cubic stiffness the system has. ``tuned`` judges the structures by their output-error fits,
+    else by least squares; the structures by ``workers``.
+    """
+    figure = checks.error(current, tuned)
+    pruned: list[Term] = []
+    while removable := [term for term in current.terms if term not in start]:
+        without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in removable]
+        errors = list(checks.judge(without, workers, tuned))
+        best = int(np.argmin(errors))
+        if not errors[best] <= figure:
+            break
+        current, figure = without[best], errors[best]
+        pruned.append(removable[best])
+    return current, tuple(pruned)
+
+
+def _pruned_away(rounds: Sequence[Round]) -> tuple[str, ...]:
+    """The names of the effects of ``rounds`` every term of which was pruned, each once."""
+    return tuple(dict.fromkeys(r.added.name for r in rounds if r.added is not None and r.pruned_away))
+
+
+def _without_pruned(rounds: list[Round], pruned: Sequence[Term]) -> list[Round]:
+    """The ``rounds`` with the ``pruned`` terms taken from the effects that brought them, named in
+    the last round's report; a round whose effect is left without terms is marked pruned away."""
+    names = {term.name for term in pruned}
+    if not names:
+        return rounds
+    result = []
+    for step in rounds:
+        added = step.added
+        if added is not None and names & set(added.terms):
+            left = tuple(name for name in added.terms if name not in names)
+            step = replace(step, added=replace(added, terms=left), pruned_away=not left)
+        result.append(step)
+    result[-1] = replace(result[-1], pruned=tuple(term.name for term in pruned))
+    return result
 
 
 def _repairs_only_bias(

@@ -15,7 +15,7 @@ from harness.prerequisites import benchmark_data
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
-from models.held_out import HeldOut
+from models.held_out import HeldOut, held_out_tails
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
 from models.refinement import (
@@ -969,3 +969,42 @@ def test_a_free_run_that_grows_without_bound_is_judged_diverged_though_finite():
     assert not comparison.before.diverged and comparison.verdict == "diverged"
     (test,) = RefinementReport(refinement, (comparison,)).to_dict()["tests"]
     assert test["verdict"] == "diverged" and test["after"]["diverged"] and not test["before"]["diverged"]
+
+
+def test_every_term_the_rounds_added_and_kept_lowers_the_check_blocks_free_run():
+    """The rig's quadratic spring from the linear start the loop chooses: the cubic spring, added
+    first, stands in for it with four terms, and once the quadratic spring is in, the free run over
+    the check blocks is no worse without y[t-1]³ — which the loop kept before pruning. Pruned back
+    after each addition (Piroddi & Spinelli; the effect just added waits for the next), no term
+    the rounds added can go without raising it, and the round names what it took out."""
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
+    )
+    records = [(record.x, record.y)]
+    declared = linear_terms(4, 4, 1)
+    offered = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
+    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
+    result = refine(records, declared, effects=families)
+    assert [effect.name for effect in result.effects_added] == ["cubic_stiffness", "quadratic_stiffness"]
+    assert result.noise.size == 0
+    added = [term for term in result.refined.terms if term not in declared]
+    assert {term.name for term in added} == {name for effect in result.effects_added for name in effect.terms}
+    heads, _ = held_out_tails(records)
+    checks = CheckSplit.of(heads)
+    kept = Structure(result.refined.terms)
+    for term in added:
+        without = Structure(tuple(t for t in kept.terms if t != term))
+        assert checks.error(without) > checks.error(kept), term.name
+    pruned = [name for step in result.rounds for name in step.pruned]
+    assert "y[t-1]^3" in pruned and "y[t-1]^3" not in result.effects_added[0].terms, pruned
+    # The report says, round by round, how many candidates it compared, the gain it saw against
+    # the gain needed, and what the pruning took out.
+    report = RefinementReport(result, (compare(result, records, record.x, record.y, 0, None, 0),))
+    rounds = report.to_dict()["rounds"]
+    assert [step["added"] for step in rounds] == ["cubic_stiffness", "quadratic_stiffness", None]
+    assert [name for step in rounds for name in step["pruned"]] == pruned
+    for step, document in zip(result.rounds, rounds, strict=True):
+        assert document["candidates_tried"] == step.tried > 0
+        assert document["gain"] == step.gain and document["threshold"] == step.threshold
+    assert all(step["gain"] >= step["threshold"] for step in rounds[:2]), rounds
+    assert rounds[-1]["gain"] is None or rounds[-1]["gain"] <= rounds[-1]["threshold"], rounds[-1]
