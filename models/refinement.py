@@ -147,11 +147,17 @@ INPUT_SHARE = 0.1
 # side): of Silverbox's ten rounds from linear:4,4, four add the first family judged, and the
 # others the second to the fourth.
 JUDGED_AT_ONCE = 2
+# Removals the pruning confirms by output error at once (:func:`_pruned`), the best ranked by the
+# least-squares free run: the workers' fits run side by side, and where the best is refused the
+# next may pass.
+PRUNING_TRIALS = 2
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
 
 Criterion = Literal["one-step", "simulation", "simulation across folds"]
 Estimator = Literal["least squares", "output error"]
+# How the pruning judges a term's removal (:func:`_pruning`).
+Pruning = Literal["least squares", "confirmed", "output error"]
 Verdict = Literal["better", "not better", "diverged"]
 
 
@@ -939,11 +945,9 @@ def _grown(
         current = grown
         rounds.append(replace(step, added=score, criterion=criterion, rejected=tuple(rejected)))
         if score.terms and not score.noise_lags:
-            # Judged as the effects in the model were decided: by output error once one was
-            # decided on the simulation error alone, whose least-squares model may simulate worse.
-            tuned = any(r.criterion == "simulation" for r in rounds)
             # The effect just added passed as a whole; its terms are pruned after the next addition.
-            current, pruned = _pruned(current, tuple(terms) + new, checks, workers, tuned)
+            pruning = _pruning(rounds, output_error)
+            current, pruned = _pruned(current, tuple(terms) + new, checks, workers, pruning)
             rounds = _without_pruned(rounds, pruned)
             error = checks.error(current) if pruned else error
         rounds[-1] = replace(rounds[-1], check_rms=(check, error))
@@ -951,8 +955,7 @@ def _grown(
     if current.terms != tuple(terms):
         # The last effect that brought terms has no next addition to wait for: its terms are
         # pruned here, with the rest, and the last round names what went.
-        tuned = any(r.criterion == "simulation" for r in rounds)
-        current, pruned = _pruned(current, terms, checks, workers, tuned)
+        current, pruned = _pruned(current, terms, checks, workers, _pruning(rounds, output_error))
         if pruned:
             rounds = _without_pruned(rounds, pruned)
             check = checks.error(current)
@@ -1400,8 +1403,18 @@ def _fall(after: float, before: float) -> float:
     return 1.0 if not np.isfinite(before) else float(1 - after / before)
 
 
+def _pruning(rounds: Sequence[Round], output_error: bool) -> Pruning:
+    """How :func:`_pruned` judges a removal after ``rounds``: by output error throughout once an
+    effect was decided on the simulation error alone, whose least-squares model may simulate
+    worse than it; ranked by least squares and confirmed by output error otherwise, where the
+    loop may refine the parameters by output error (``output_error``); else by least squares."""
+    if not output_error:
+        return "least squares"
+    return "output error" if any(r.criterion == "simulation" for r in rounds) else "confirmed"
+
+
 def _pruned(
-    current: Structure, start: tuple[Term, ...], checks: CheckSplit, workers: Workers, tuned: bool
+    current: Structure, start: tuple[Term, ...], checks: CheckSplit, workers: Workers, judged: Pruning
 ) -> tuple[Structure, tuple[Term, ...]]:
     """``current`` pruned back after an addition (Piroddi & Spinelli 2003, SEMP's pruning), and the
     terms taken out in turn.
@@ -1416,18 +1429,35 @@ def _pruned(
     effect keeps those of its terms that pay. The effect just added passed as a whole and waits
     for the next addition: pruned at once, Silverbox's cubic damping lost dy[t-1]³, and the
     broad unmeasured nonlinearity then won the round after next by taking it back, ahead of the
-    cubic stiffness the system has. ``tuned`` judges the structures by their output-error fits,
-    else by least squares; the structures by ``workers``.
+    cubic stiffness the system has.
+
+    A removal is judged as the model will be fitted (``judged``, :func:`_pruning`). Where the
+    current structure simulates better by output error, as the loop will then fit it, a removal
+    the least-squares free run allows is taken only if the output-error fit's free run is no
+    higher without the term either: a term of no use to the one-step fit's free run can be one
+    the output-error fit needs (judged by least squares alone, Silverbox from linear:4,4 lost
+    such terms and its refined model ran free over the arrow worse). The least-squares fits rank the
+    removals, ``PRUNING_TRIALS`` of them confirmed at a time, since an output-error fit a
+    removal costs far more. The structures are judged by ``workers``.
     """
+    tuned = judged == "output error"
+    confirmed = judged == "confirmed" and checks.error(current, tuned=True) < checks.error(current)
     figure = checks.error(current, tuned)
+    tuned_figure = checks.error(current, tuned=True) if confirmed else np.inf
     pruned: list[Term] = []
     while removable := [term for term in current.terms if term not in start]:
         without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in removable]
         errors = list(checks.judge(without, workers, tuned))
-        best = int(np.argmin(errors))
-        if not errors[best] <= figure:
+        ranked = [int(i) for i in np.argsort(errors, kind="stable") if errors[i] <= figure]
+        if confirmed:
+            trials = ranked[:PRUNING_TRIALS]
+            tuned_errors = checks.judge([without[i] for i in trials], workers, tuned=True)
+            ranked = [i for i, error in zip(trials, tuned_errors, strict=True) if error <= tuned_figure]
+        if not ranked:
             break
+        best = ranked[0]
         current, figure = without[best], errors[best]
+        tuned_figure = checks.error(current, tuned=True) if confirmed else np.inf
         pruned.append(removable[best])
     return current, tuple(pruned)
 
