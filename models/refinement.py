@@ -22,9 +22,11 @@ loop chooses), each round
    criterion. Otherwise the loop stops;
 5. after an addition, prunes back (Piroddi & Spinelli 2003): each term the earlier rounds added
    is taken out in turn, and the one whose removal leaves the check blocks' free run lowest goes
-   where that free run is no higher without it, until every term left pays (:func:`_pruned`).
-   The effect just added waits for the next addition's pruning, the last for one after the
-   rounds. An effect every term of which is pruned is withdrawn, and not offered again.
+   where that free run is no higher without it, until every term left pays (:func:`_pruned`),
+   the free run judged as the model will be fitted: where output error simulates better, by
+   its output-error fit as well. The effect just added waits for the next addition's pruning,
+   the last for one after the rounds. An effect every term of which is pruned is withdrawn,
+   and not offered again.
 
 Each round reports the candidates it compared on the check blocks' free run, the fall of that
 free run the effect added brought (else the best judged) against the fall it had to reach, and
