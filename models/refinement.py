@@ -1443,23 +1443,23 @@ def _pruned(
     removal costs far more. The structures are judged by ``workers``.
     """
     tuned = judged == "output error"
-    confirmed = judged == "confirmed" and checks.error(current, tuned=True) < checks.error(current)
     figure = checks.error(current, tuned)
-    tuned_figure = checks.error(current, tuned=True) if confirmed else np.inf
     pruned: list[Term] = []
     while removable := [term for term in current.terms if term not in start]:
         without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in removable]
         errors = list(checks.judge(without, workers, tuned))
         ranked = [int(i) for i in np.argsort(errors, kind="stable") if errors[i] <= figure]
-        if confirmed:
+        if ranked and judged == "confirmed":
+            # The current structure's output-error fit is judged only where a removal is
+            # proposed, beside the removals it may confirm.
             trials = ranked[:PRUNING_TRIALS]
-            tuned_errors = checks.judge([without[i] for i in trials], workers, tuned=True)
-            ranked = [i for i, error in zip(trials, tuned_errors, strict=True) if error <= tuned_figure]
+            simulated, *removed = checks.judge([current, *(without[i] for i in trials)], workers, tuned=True)
+            if simulated < figure:
+                ranked = [i for i, error in zip(trials, removed, strict=True) if error <= simulated]
         if not ranked:
             break
         best = ranked[0]
         current, figure = without[best], errors[best]
-        tuned_figure = checks.error(current, tuned=True) if confirmed else np.inf
         pruned.append(removable[best])
     return current, tuple(pruned)
 
