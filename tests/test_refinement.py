@@ -29,14 +29,16 @@ from models.output_error import comes_to_rest, fit_output_error
 from models.refinement import (
     Refinement,
     RefinementReport,
+    Round,
     _is_start,
+    _pruned,
     choose_linear,
     compare,
     refine,
     refine_record,
     refine_records,
 )
-from models.scoring import score_effects
+from models.scoring import EffectScore, score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
@@ -1053,3 +1055,27 @@ def test_terms_of_an_effect_that_the_system_lacks_are_pruned_and_a_new_record_ru
     x, y = hammerstein(4000, seed=2, noise=0.0)
     run = [(x, y, 0)]
     assert free_run_rms(result.refined, run) <= free_run_rms(unpruned, run)
+
+
+def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
+    """x[t-2]² and x[t-2]³, which the Hammerstein system lacks, brought in by an earlier round as
+    one effect, and x[t-1]², which it has, just added. By the check blocks' free run (least
+    squares) neither pays once x[t-1]² is in: without both it is lower still than without one.
+    The pruning takes x[t-2]² and keeps x[t-2]³, the effect's last term: its round added the
+    effect for a gain beyond a threshold, and "no higher without it" on the same blocks is not
+    the evidence to withdraw it whole (on Silverbox that removal drifted over a new record)."""
+    records = [hammerstein(1500, seed=3, noise=0.1)]
+    checks = CheckSplit.of(records)
+    declared, just_added = tuple(linear_terms(2, 2, 1)), tuple(parse_terms(["x[t-1]^2"]))
+    square, cube = parse_terms(["x[t-2]^2", "x[t-2]^3"])
+    assert checks.error(Structure(declared + just_added)) <= checks.error(
+        Structure((*declared, cube, *just_added))
+    )
+    earlier = EffectScore(
+        "input_nonlinearity", "", 0.1, -1.0, (square.name, cube.name), (9.0, 9.0), (0.0, 0.0)
+    )
+    rounds = [Round(1.0, 0.01, 2, (earlier,), earlier)]
+    everything = Structure((*declared, square, cube, *just_added))
+    pruned, taken = _pruned(everything, declared + just_added, rounds, checks, map, output_error=False)
+    assert taken == (square,)
+    assert pruned.terms == (*declared, cube, *just_added)
