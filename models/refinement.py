@@ -20,17 +20,15 @@ loop chooses), each round
    model (parameters refined by output error, as is the current model's) lowers the check
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Otherwise the loop stops;
-5. after an addition, prunes back (Piroddi & Spinelli 2003): each term the earlier rounds added
-   is taken out in turn, and the one whose removal leaves the check blocks' free run lowest goes
-   where that free run is no higher without it, until every term left pays (:func:`_pruned`),
-   the free run judged as the model will be fitted: where output error simulates better, by
-   its output-error fit as well. The effect just added waits for the next addition's pruning,
-   the last for one after the rounds. The pruning takes terms, never an effect whole: an
-   effect's last term stays.
+5. after the rounds, prunes back (Piroddi & Spinelli 2003): of the terms the rounds added, those
+   the least-squares fit needs least (smallest t statistic) go where the check blocks' free run
+   is no higher without them (:func:`_pruned`), judged as the model will be fitted: where output
+   error simulates better, by its output-error fit as well. The pruning takes terms, never an
+   effect whole: an effect's last term stays.
 
-Each round reports the candidates it compared on the check blocks' free run, the fall of that
-free run the effect added brought (else the best judged) against the fall it had to reach, and
-what the pruning took out.
+Each round reports the candidates it compared on the check blocks' free run, and the fall of
+that free run the effect added brought (else the best judged) against the fall it had to reach;
+the last, what the pruning took out.
 
 The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
 lags, no physical effect named) is scored with the named families but judged after them: steps 3
@@ -82,7 +80,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
-from itertools import compress, pairwise
+from itertools import compress, islice, pairwise
 from typing import Any, Literal, NamedTuple, get_args
 
 import numpy as np
@@ -149,9 +147,8 @@ INPUT_SHARE = 0.1
 # side): of Silverbox's ten rounds from linear:4,4, four add the first family judged, and the
 # others the second to the fourth.
 JUDGED_AT_ONCE = 2
-# Removals the pruning confirms by output error at once (:func:`_pruned`), the best ranked by the
-# least-squares free run: the workers' fits run side by side, and where the best is refused the
-# next may pass.
+# Removals the pruning judges on the free run at once (:func:`_first_removal`), by the workers
+# side by side.
 PRUNING_TRIALS = 2
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
@@ -183,9 +180,8 @@ class Round:
     # Significant effects passed over, best first, because adding them did not lower the model's
     # free run over the check blocks by the round's threshold (or made it diverge).
     rejected: tuple[str, ...] = ()
-    # The terms pruned after the addition, in the order taken out (:func:`_pruned`): of earlier
-    # rounds' effects (of this round's too, after the last round). ``check_rms`` is after the
-    # pruning.
+    # The terms pruned after the rounds, in the order taken out (:func:`_pruned`), on the last
+    # round; ``check_rms`` is then after the pruning.
     pruned: tuple[str, ...] = ()
     # The candidates whose free run over the check blocks the round compared with the model's
     # (each significant family judged on it, each structure simulated for a family's terms), and
@@ -918,20 +914,13 @@ def _grown(
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
-        score, criterion, grown, error = decided
-        new = tuple(term for term in grown.terms if term not in current.terms)
-        current = grown
-        rounds.append(replace(step, added=score, criterion=criterion, rejected=tuple(rejected)))
-        if score.terms and not score.noise_lags:
-            # The effect just added passed as a whole; its terms are pruned after the next addition.
-            current, pruned = _pruned(current, tuple(terms) + new, rounds, checks, workers, output_error)
-            rounds = _without_pruned(rounds, pruned)
-            error = checks.error(current) if pruned else error
-        rounds[-1] = replace(rounds[-1], check_rms=(check, error))
+        score, criterion, current, error = decided
+        step = replace(step, added=score, criterion=criterion, check_rms=(check, error))
+        rounds.append(replace(step, rejected=tuple(rejected)))
         check = error
     if current.terms != tuple(terms):
-        # The last effect that brought terms has no next addition to wait for: its terms are
-        # pruned here, with the rest, and the last round names what went.
+        # Once, after the rounds (:func:`_pruned`); the last round names what went.
+        tell("pruning the terms the rounds added")
         current, pruned = _pruned(current, terms, rounds, checks, workers, output_error)
         if pruned:
             rounds = _without_pruned(rounds, pruned)
@@ -1382,73 +1371,97 @@ def _fall(after: float, before: float) -> float:
 
 def _pruned(
     current: Structure,
-    start: tuple[Term, ...],
+    declared: tuple[Term, ...],
     rounds: Sequence[Round],
     checks: CheckSplit,
     workers: Workers,
     output_error: bool,
 ) -> tuple[Structure, tuple[Term, ...]]:
-    """``current`` pruned back after an addition (Piroddi & Spinelli 2003, SEMP's pruning), and the
-    terms taken out in turn.
+    """``current``, grown from ``declared`` by the ``rounds``, pruned back (Piroddi & Spinelli
+    2003, SEMP's pruning), and the terms taken out in turn.
 
     An effect picked on one round can be made useless by a later one it stood in for (a cubic
     spring fitted before the quadratic spring it imitated), and a family's terms ride in
-    together though only some of them simulate. Each term the earlier ``rounds`` added is taken
-    out in turn and the rest fitted on the check split's fit parts by least squares; the one
-    whose removal leaves the check blocks' free-run RMS lowest goes where that RMS is no higher
-    than with it, and the search repeats on what is left. ``start``'s terms stay: the declared
-    ones and those of the effect just added, which passed as a whole and waits for the next
-    addition (pruned at once, Silverbox's cubic damping lost dy[t-1]³, and the broad unmeasured
-    nonlinearity then won the round after next by taking it back, ahead of the cubic stiffness
-    the system has).
+    together though only some of them simulate: a term the rounds added goes where the check
+    blocks' free-run RMS is no higher without it, and the search repeats on what is left.
 
-    The pruning takes terms, never an effect: an effect's last term stays. Its round added it
-    for a fall of the free run beyond a threshold; "no higher without it" on the same check
-    blocks is far weaker evidence, and those blocks see neither the model's long-run drift nor
-    its extrapolation. (Silverbox from linear:10,10: quadratic stiffness, added in round 3, made
-    round 2's Bouc–Wen variable removable on the check blocks and on the held-out tails; without
-    it the refined model drifted over Schroeder80mV.) An effect is withdrawn whole by the checks
-    that judge effects: the output-error check of what the rounds added and the held-out tails.
+    Once, after the rounds, not between them. A term pruned between rounds changes what every
+    later round is offered and judged against, on a removal allowed for being no worse: on
+    Silverbox from linear:10,10, two cubic terms pruned after round 2 left round 3 to quadratic
+    stiffness, by the simulation criterion at the margin of its threshold, and that model drifted
+    over Schroeder80mV, which neither the check blocks nor the held-out tails showed. After the
+    rounds the effects are those the loop would choose unpruned, and the pruning only takes out
+    what their structure does not need. It takes terms, never an effect: an effect's last term
+    stays. Its round added it for a fall of the free run beyond a threshold; "no higher without
+    it" on the same check blocks is far weaker evidence, and those blocks see neither the
+    model's long-run drift nor its extrapolation. An effect is withdrawn whole by the checks that
+    judge effects: the output-error check of what the rounds added and the held-out tails.
 
-    A removal is judged as the model will be fitted. Where the current structure simulates
-    better by output error (``output_error``: as the loop will then fit it), a removal the
-    least-squares free run allows is taken only if the output-error fit's free run is no higher
-    without the term either: a term of no use to the one-step fit's free run can be one the
-    output-error fit needs (judged by least squares alone, Silverbox from linear:4,4 lost such
-    terms and ran free over the arrow worse). The least-squares free run ranks the removals and
-    only the best ``PRUNING_TRIALS`` are fitted by output error, which costs a removal far more:
-    judging every removal by output error cost Silverbox half as much again as the whole loop.
-    The structures are judged by ``workers``.
+    The removals are ranked by one cheap criterion, the term's t statistic in the least-squares
+    fit on the check split's fit parts (the smallest first: the term the others stand in for
+    best), and judged on the free run in that order until one is taken (:func:`_first_removal`);
+    then the ranking is made again on what is left. Judging every removal on the free run before
+    each one taken costs as much as the rounds. A removal is judged as the model will be fitted:
+    its least-squares free run no higher and, where the current structure simulates better by
+    output error (``output_error``: as the loop will then fit it), its output-error fit's no
+    higher either; a term of no use to the one-step fit's free run can be one the output-error
+    fit needs (judged by least squares alone, Silverbox from linear:4,4 lost such terms and ran
+    free over the arrow worse). The least-squares judgements are made by ``workers``.
     """
     figure = checks.error(current)
     pruned: list[Term] = []
-    while removable := _removable(current, start, rounds, pruned):
-        without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in removable]
-        errors = list(checks.judge(without, workers))
-        ranked = [int(i) for i in np.argsort(errors, kind="stable") if errors[i] <= figure][:PRUNING_TRIALS]
-        if ranked and output_error:
-            # The current structure's output-error fit is judged only where a removal is
-            # proposed, beside the removals it may confirm.
-            simulated, *removed = checks.judge([current, *(without[i] for i in ranked)], workers, tuned=True)
-            if simulated < figure:
-                ranked = [i for i, error in zip(ranked, removed, strict=True) if error <= simulated]
-        if not ranked:
-            break
-        best = ranked[0]
-        current, figure = without[best], errors[best]
-        pruned.append(removable[best])
+    while found := _first_removal(
+        current, _removals(current, declared, rounds, pruned, checks), figure, checks, workers, output_error
+    ):
+        term, current, figure = found
+        pruned.append(term)
     return current, tuple(pruned)
 
 
-def _removable(
-    current: Structure, start: tuple[Term, ...], rounds: Sequence[Round], pruned: Sequence[Term]
+def _first_removal(
+    current: Structure,
+    ranked: Sequence[Term],
+    figure: float,
+    checks: CheckSplit,
+    workers: Workers,
+    output_error: bool,
+) -> tuple[Term, Structure, float] | None:
+    """The first of the ``ranked`` terms whose removal :func:`_pruned` takes, with ``current``
+    without it and its least-squares free-run RMS over the check blocks (``figure`` with it);
+    None where none is. They are judged ``PRUNING_TRIALS`` at a time by ``workers``."""
+    for first in range(0, len(ranked), PRUNING_TRIALS):
+        trials = ranked[first : first + PRUNING_TRIALS]
+        without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in trials]
+        errors = list(checks.judge(without, workers))
+        passed = [i for i, error in enumerate(errors) if error <= figure]
+        if passed and output_error and (simulated := checks.error(current, tuned=True)) < figure:
+            # The output-error fits, which cost far more, only where a removal is proposed, and
+            # the second only where the first is refused.
+            passed = list(islice((i for i in passed if checks.error(without[i], tuned=True) <= simulated), 1))
+        if passed:
+            return trials[passed[0]], without[passed[0]], errors[passed[0]]
+    return None
+
+
+def _removals(
+    current: Structure,
+    declared: tuple[Term, ...],
+    rounds: Sequence[Round],
+    pruned: Sequence[Term],
+    checks: CheckSplit,
 ) -> list[Term]:
-    """The terms of ``current`` :func:`_pruned` may take out: those the earlier ``rounds`` added
-    (not ``start``'s), but for the last one left of an effect once ``pruned`` are out."""
+    """The terms of ``current`` :func:`_pruned` may take out, the smallest t statistic in its
+    least-squares fit on the check split's fit parts first: those the ``rounds`` added, but for
+    the last one left of an effect once ``pruned`` are out."""
     gone = {term.name for term in pruned}
     left = [[name for name in r.added.terms if name not in gone] for r in rounds if r.added is not None]
     last = {names[0] for names in left if len(names) == 1}
-    return [term for term in current.terms if term not in start and term.name not in last]
+    removable = [i for i, term in enumerate(current.terms) if term not in declared and term.name not in last]
+    if not removable:
+        return []
+    fitted = checks.fitted(current)
+    t = np.abs(fitted.theta) / np.maximum(fitted.standard_errors(), np.finfo(float).tiny)
+    return [current.terms[i] for i in sorted(removable, key=lambda i: t[i])]
 
 
 def _without_pruned(rounds: list[Round], pruned: Sequence[Term]) -> list[Round]:
