@@ -19,16 +19,15 @@ loop chooses), each round
    family's regressors are tried in the order of their error reduction, and the family whose
    model (parameters refined by output error, as is the current model's) lowers the check
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
-   criterion. Otherwise the loop stops;
-5. after the rounds, prunes back (Piroddi & Spinelli 2003): of the terms the rounds added, those
-   the least-squares fit needs least (smallest t statistic) go where the check blocks' free run
-   is no higher without them (:func:`_pruned`), judged as the model will be fitted: where output
-   error simulates better, by its output-error fit as well. The pruning takes terms, never an
-   effect whole: an effect's last term stays.
+   criterion. Otherwise the loop stops.
 
-Each round reports the candidates it compared on the check blocks' free run, and the fall of
-that free run the effect added brought (else the best judged) against the fall it had to reach;
-the last, what the pruning took out.
+After the rounds, the loop prunes back (Piroddi & Spinelli 2003): of the terms the rounds added,
+those the least-squares fit needs least (smallest t statistic) go where the check blocks' free
+run is no higher without them (:func:`_pruned`), judged as the model will be fitted: where output
+error simulates better, by its output-error fit as well. The pruning takes terms, never an effect
+whole: an effect's last term stays. Each round reports the candidates it compared on the check
+blocks' free run, and the fall of that free run the effect added brought (else the best judged)
+against the fall it had to reach; the last, what the pruning took out.
 
 The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
 lags, no physical effect named) is scored with the named families but judged after them: steps 3
@@ -147,8 +146,9 @@ INPUT_SHARE = 0.1
 # side): of Silverbox's ten rounds from linear:4,4, four add the first family judged, and the
 # others the second to the fourth.
 JUDGED_AT_ONCE = 2
-# Removals the pruning judges on the free run at once (:func:`_first_removal`), by the workers
-# side by side.
+# Removals the pruning judges on the free run at once, the smallest t statistics
+# (:func:`_pruned`): the workers' fits run side by side, and where the first is refused the next
+# may pass.
 PRUNING_TRIALS = 2
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
@@ -1399,19 +1399,26 @@ def _pruned(
 
     The removals are ranked by one cheap criterion, the term's t statistic in the least-squares
     fit on the check split's fit parts (the smallest first: the term the others stand in for
-    best), and judged on the free run in that order until one is taken (:func:`_first_removal`);
-    then the ranking is made again on what is left. Judging every removal on the free run before
-    each one taken costs as much as the rounds. A removal is judged as the model will be fitted:
-    its least-squares free run no higher and, where the current structure simulates better by
-    output error (``output_error``: as the loop will then fit it), its output-error fit's no
-    higher either; a term of no use to the one-step fit's free run can be one the output-error
-    fit needs (judged by least squares alone, Silverbox from linear:4,4 lost such terms and ran
-    free over the arrow worse). The least-squares judgements are made by ``workers``.
+    best), and only the best ``PRUNING_TRIALS`` are judged on the free run
+    (:func:`_first_removal`); the ranking is made again on what is left after each removal, and
+    the pruning stops where both are refused. Judging every removal on the free run, again after
+    each one taken, costs a fit and a free run a term a removal: on long records, as much as the
+    rounds. A removal is judged as the model will be fitted: its least-squares free run no higher
+    and, where the current structure simulates better by output error (``output_error``: as the
+    loop will then fit it), its output-error fit's no higher either; a term of no use to the
+    one-step fit's free run can be one the output-error fit needs (judged by least squares
+    alone, Silverbox from linear:4,4 lost such terms and ran free over the arrow worse). The
+    least-squares judgements are made by ``workers``.
     """
     figure = checks.error(current)
     pruned: list[Term] = []
     while found := _first_removal(
-        current, _removals(current, declared, rounds, pruned, checks), figure, checks, workers, output_error
+        current,
+        _removals(current, declared, rounds, pruned, checks)[:PRUNING_TRIALS],
+        figure,
+        checks,
+        workers,
+        output_error,
     ):
         term, current, figure = found
         pruned.append(term)
@@ -1420,27 +1427,23 @@ def _pruned(
 
 def _first_removal(
     current: Structure,
-    ranked: Sequence[Term],
+    trials: Sequence[Term],
     figure: float,
     checks: CheckSplit,
     workers: Workers,
     output_error: bool,
 ) -> tuple[Term, Structure, float] | None:
-    """The first of the ``ranked`` terms whose removal :func:`_pruned` takes, with ``current``
-    without it and its least-squares free-run RMS over the check blocks (``figure`` with it);
-    None where none is. They are judged ``PRUNING_TRIALS`` at a time by ``workers``."""
-    for first in range(0, len(ranked), PRUNING_TRIALS):
-        trials = ranked[first : first + PRUNING_TRIALS]
-        without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in trials]
-        errors = list(checks.judge(without, workers))
-        passed = [i for i, error in enumerate(errors) if error <= figure]
-        if passed and output_error and (simulated := checks.error(current, tuned=True)) < figure:
-            # The output-error fits, which cost far more, only where a removal is proposed, and
-            # the second only where the first is refused.
-            passed = list(islice((i for i in passed if checks.error(without[i], tuned=True) <= simulated), 1))
-        if passed:
-            return trials[passed[0]], without[passed[0]], errors[passed[0]]
-    return None
+    """The first of the ``trials`` whose removal :func:`_pruned` takes, with ``current`` without it
+    and its least-squares free-run RMS over the check blocks (``figure`` with it); None where
+    none is. Their least-squares fits are judged by ``workers``, side by side."""
+    without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in trials]
+    errors = list(checks.judge(without, workers))
+    passed = [i for i, error in enumerate(errors) if error <= figure]
+    if passed and output_error and (simulated := checks.error(current, tuned=True)) < figure:
+        # The output-error fits, which cost far more, only where a removal is proposed, and the
+        # second only where the first is refused.
+        passed = list(islice((i for i in passed if checks.error(without[i], tuned=True) <= simulated), 1))
+    return (trials[passed[0]], without[passed[0]], errors[passed[0]]) if passed else None
 
 
 def _removals(

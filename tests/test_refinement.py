@@ -12,15 +12,7 @@ from scipy import linalg, signal, stats
 from bench.measured import coupled_drives
 from harness.extrapolating import growing_steps
 from harness.prerequisites import benchmark_data
-from models.checking import (
-    SETTLED_EVALUATIONS,
-    CheckSplit,
-    Structure,
-    by_output_error,
-    check_noise,
-    free_run_rms,
-    split_for_checking,
-)
+from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
 from models.held_out import HeldOut, held_out_tails
@@ -1032,34 +1024,6 @@ def hammerstein(n: int, seed: int, noise: float) -> tuple[np.ndarray, np.ndarray
     x = rng.normal(size=n)
     clean = signal.lfilter([0.0, 1.0], [1.0, -1.2, 0.5], x + 0.4 * x**2)
     return x, clean + noise * np.std(clean) * rng.normal(size=n)
-
-
-def test_terms_of_an_effect_that_the_system_lacks_are_pruned_and_a_new_record_runs_free_no_worse():
-    """A Hammerstein system with x[t-1]² offered only the filtered input nonlinearity, whose seven
-    monomials of x[t-1] and x[t-2] span the square and cube of any combination: one of them is
-    the system's. Pruned back after the rounds, as the loop fits the model (output error here,
-    the output being read with noise), terms of no use go, x[t-1]² stays, and the refined model
-    runs free over a new noise-free record no worse than the structure with every monomial
-    fitted the same way."""
-    records = [hammerstein(1500, seed=1, noise=0.1)]
-    declared = linear_terms(2, 2, 1)
-    families = [
-        effect for effect in candidate_effects(declared) if effect.name == "filtered_input_nonlinearity"
-    ]
-    result = refine(records, declared, effects=families)
-    assert [effect.name for effect in result.effects_added] == ["filtered_input_nonlinearity"]
-    assert result.estimator == "output error"
-    pruned = [name for step in result.rounds for name in step.pruned]
-    assert pruned and "x[t-1]^2" not in pruned, pruned
-    names = [term.name for term in result.refined.terms]
-    assert "x[t-1]^2" in names and not set(pruned) & set(names)
-    assert set(result.effects_added[0].terms) == set(names) - {term.name for term in declared}
-    # The structure with the pruned terms back, fitted on all the records as the loop fits it.
-    whole = tuple(result.refined.terms) + tuple(parse_terms(pruned))
-    unpruned = by_output_error(fit_narx(records, whole), [(x, y, 0) for x, y in records], SETTLED_EVALUATIONS)
-    x, y = hammerstein(4000, seed=2, noise=0.0)
-    run = [(x, y, 0)]
-    assert free_run_rms(result.refined, run) <= free_run_rms(unpruned, run)
 
 
 def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
