@@ -21,6 +21,14 @@ loop chooses), each round
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Otherwise the loop stops.
 
+After the rounds, the loop prunes back (Piroddi & Spinelli 2003): of the terms the rounds added,
+those the least-squares fit needs least (smallest t statistic) go where the check blocks' free
+run is no higher without them (:func:`_pruned`), judged as the model will be fitted: where output
+error simulates better, by its output-error fit as well. The pruning takes terms, never an effect
+whole: an effect's last term stays. Each round reports the candidates it compared on the check
+blocks' free run, and the fall of that free run the effect added brought (else the best judged)
+against the fall it had to reach; the last, what the pruning took out.
+
 The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
 lags, no physical effect named) is scored with the named families but judged after them: steps 3
 and 4 run for the named families first, and only where neither adds one for the polynomial.
@@ -71,7 +79,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
-from itertools import compress, pairwise
+from itertools import compress, islice, pairwise
 from typing import Any, Literal, NamedTuple, get_args
 
 import numpy as np
@@ -138,6 +146,10 @@ INPUT_SHARE = 0.1
 # side): of Silverbox's ten rounds from linear:4,4, four add the first family judged, and the
 # others the second to the fourth.
 JUDGED_AT_ONCE = 2
+# Removals the pruning judges on the free run at once, the smallest t statistics
+# (:func:`_pruned`): the workers' fits run side by side, and where the first is refused the next
+# may pass.
+PRUNING_TRIALS = 2
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
 
@@ -166,8 +178,18 @@ class Round:
     criterion: Criterion | None = None
     check_rms: tuple[float, float] = (np.inf, np.inf)
     # Significant effects passed over, best first, because adding them did not lower the model's
-    # free run over the check blocks by more than its standard error (or made it diverge).
+    # free run over the check blocks by the round's threshold (or made it diverge).
     rejected: tuple[str, ...] = ()
+    # The terms pruned after the rounds, in the order taken out (:func:`_pruned`), on the last
+    # round; ``check_rms`` is then after the pruning.
+    pruned: tuple[str, ...] = ()
+    # The candidates whose free run over the check blocks the round compared with the model's
+    # (each significant family judged on it, each structure simulated for a family's terms), and
+    # the fall of that free-run RMS the effect added brought (else the best judged), with the
+    # fall it had to reach, both shares of the RMS before; NaN where none was judged.
+    tried: int = 0
+    gain: float = np.nan
+    threshold: float = np.nan
 
 
 @dataclass(frozen=True)
@@ -280,12 +302,19 @@ class RefinementReport:
                         "level": step.level,
                         "candidate_terms": step.candidates,
                         "check_free_run_rms": [_finite(value) for value in step.check_rms],
-                    },
+                    }
+                    | _selection_dict(step),
                 }
                 for step in result.kept
                 if (score := step.added) is not None
             ],
             "effects_withdrawn": list(result.effects_withdrawn),
+            "rounds": [
+                {"round": number, "added": None if step.added is None else step.added.name}
+                | _selection_dict(step)
+                | {"decided_by": step.criterion, "check_free_run_rms": [_finite(v) for v in step.check_rms]}
+                for number, step in enumerate(result.rounds, start=1)
+            ],
             "held_out": None if result.held_out is None else _held_out_dict(result.held_out),
             "check_free_run_rms": _finite(result.check_rms),
             "noise_floor": None
@@ -307,6 +336,18 @@ class RefinementReport:
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
             "notes": list(self.notes) + _held_out_notes(result) + _skipped_notes(self.tests),
         }
+
+
+def _selection_dict(step: Round) -> dict[str, Any]:
+    """How a round chose: the candidates it compared on the check blocks' free run, the fall of
+    that free run it saw and the fall needed (shares of it; None where none was judged), and the
+    terms pruned after its addition."""
+    return {
+        "candidates_tried": step.tried,
+        "threshold": _finite(step.threshold),
+        "gain": _finite(step.gain),
+        "pruned": list(step.pruned),
+    }
 
 
 def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
@@ -824,6 +865,8 @@ def _grown(
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
         ranked: Scores | None = None
+        judged: Gain | None = None  # the effect added's, else the best judged's
+        tried = 0
         # The named families on both criteria first, then the generic polynomial on both: where a
         # named effect explains the data, the loop names it.
         tier = [e.name == POLYNOMIAL for e in offered]
@@ -842,24 +885,32 @@ def _grown(
                 tell,
                 f"round {number}",
             ):
-                if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-                    decided = (score, "one-step", structure, error)
+                tried += 1
+                # Moving-average noise, there to unbias the parameters, need only not make it worse.
+                gain = Gain(_fall(error, check), 0.0 if structure.noise_lags > current.noise_lags else margin)
+                if error <= (1 - gain.threshold) * check:
+                    decided, judged = (score, "one-step", structure, error), gain
                     break
+                judged = _better(judged, gain)
                 rejected.append(score.name)
             if decided is None and output_error and generic in tier:
                 offer = "the generic polynomial" if generic else "the families"
                 tell(f"round {number}: {offer} on the simulation error")
                 ranked = ranked or _ranked(records, current, offered, alpha, workers, threads)
                 chosen = [g == generic for g in tier]
-                decided = _by_simulation(
+                decided, simulated, structures = _by_simulation(
                     list(compress(offered, chosen)),
                     list(compress(ranked.scores, chosen)),
                     current,
                     checks,
                     workers,
                 )
+                tried += structures
+                judged = simulated if decided is not None else _better(judged, simulated)
             if decided is not None:
                 break
+        if judged is not None:
+            step = replace(step, tried=tried, gain=judged.gain, threshold=judged.threshold)
         if decided is None:
             rounds.append(replace(step, rejected=tuple(rejected), check_rms=(check, check)))
             break
@@ -867,6 +918,14 @@ def _grown(
         step = replace(step, added=score, criterion=criterion, check_rms=(check, error))
         rounds.append(replace(step, rejected=tuple(rejected)))
         check = error
+    if current.terms != tuple(terms):
+        # Once, after the rounds (:func:`_pruned`); the last round names what went.
+        tell("pruning the terms the rounds added")
+        current, pruned = _pruned(current, terms, rounds, checks, workers, output_error)
+        if pruned:
+            rounds = _without_pruned(rounds, pruned)
+            check = checks.error(current)
+            rounds[-1] = replace(rounds[-1], check_rms=(rounds[-1].check_rms[0], check))
     declared_structure = Structure(terms)
     folds = [checks] + [CheckSplit.of(records, fold) for fold in (0, 2)] if len(records) >= 3 else []
     # The least-squares fit on all the records of the structure the rounds grew, made by a thread
@@ -1241,11 +1300,12 @@ def _by_simulation(
     current: Structure,
     checks: CheckSplit,
     workers: Workers,
-) -> tuple[EffectScore, Criterion, Structure, float] | None:
+) -> tuple[tuple[EffectScore, Criterion, Structure, float] | None, Gain | None, int]:
     """The family added on the simulation error alone, if one lowers the check blocks' free
     run enough (module docstring, step 4): its score with the terms that won, the structure, and
-    the check blocks' free-run RMS with it (least squares, as the other rounds report it). The
-    structures are judged by ``workers``."""
+    the check blocks' free-run RMS with it (least squares, as the other rounds report it); the
+    gain of that family by output error (else the best judged's, None where none was); and how
+    many structures were simulated. The structures are judged by ``workers``."""
     families = [
         (
             score,
@@ -1268,7 +1328,7 @@ def _by_simulation(
         if np.isfinite(errors[names]):
             trials.append((errors[names], replace(score, terms=names), grown[names]))
     if not trials:
-        return None
+        return None, None, len(grown)
     # The current structure's best simulation, whichever its parameters: its output-error fit can
     # fail to come to rest where its least-squares fit does (on unrelated white x and y the 2-DOF
     # structure's did), and against an infinite baseline any family would pass.
@@ -1277,10 +1337,150 @@ def _by_simulation(
     # model is far behind does not overtake by its parameters alone.
     best = sorted(trials, key=lambda trial: trial[0])[:2]
     tuned = checks.judge([structure for *_, structure in best], workers, tuned=True)
+    judged: Gain | None = None
     for (error, score, structure), tuned_error in zip(best, tuned, strict=True):
+        gain = Gain(_fall(tuned_error, baseline), SIMULATION_GAIN)
         if tuned_error <= (1 - SIMULATION_GAIN) * baseline:
-            return score, "simulation", structure, error
-    return None
+            return (score, "simulation", structure, error), gain, len(grown)
+        judged = _better(judged, gain)
+    return None, judged, len(grown)
+
+
+class Gain(NamedTuple):
+    """The fall of the check blocks' free-run RMS a candidate brought and the fall it had to
+    reach to be added, both shares of the RMS before."""
+
+    gain: float
+    threshold: float
+
+
+def _better(judged: Gain | None, other: Gain | None) -> Gain | None:
+    """The larger gain of ``judged`` and ``other``, either None where not judged."""
+    if judged is None or (other is not None and other.gain > judged.gain):
+        return other
+    return judged
+
+
+def _fall(after: float, before: float) -> float:
+    """The fall of a free-run RMS from ``before`` to ``after``, as a share of ``before``: −∞ where
+    ``after`` diverged, 1 where only ``before`` did."""
+    if not np.isfinite(after):
+        return -np.inf
+    return 1.0 if not np.isfinite(before) else float(1 - after / before)
+
+
+def _pruned(
+    current: Structure,
+    declared: tuple[Term, ...],
+    rounds: Sequence[Round],
+    checks: CheckSplit,
+    workers: Workers,
+    output_error: bool,
+) -> tuple[Structure, tuple[Term, ...]]:
+    """``current``, grown from ``declared`` by the ``rounds``, pruned back (Piroddi & Spinelli
+    2003, SEMP's pruning), and the terms taken out in turn.
+
+    An effect picked on one round can be made useless by a later one it stood in for (a cubic
+    spring fitted before the quadratic spring it imitated), and a family's terms ride in
+    together though only some of them simulate: a term the rounds added goes where the check
+    blocks' free-run RMS is no higher without it, and the search repeats on what is left.
+
+    Once, after the rounds, not between them. A term pruned between rounds changes what every
+    later round is offered and judged against, on a removal allowed for being no worse: on
+    Silverbox from linear:10,10, two cubic terms pruned after round 2 left round 3 to quadratic
+    stiffness, by the simulation criterion at the margin of its threshold, and that model drifted
+    over Schroeder80mV, which neither the check blocks nor the held-out tails showed. After the
+    rounds the effects are those the loop would choose unpruned, and the pruning only takes out
+    what their structure does not need. It takes terms, never an effect: an effect's last term
+    stays. Its round added it for a fall of the free run beyond a threshold; "no higher without
+    it" on the same check blocks is far weaker evidence, and those blocks see neither the
+    model's long-run drift nor its extrapolation. An effect is withdrawn whole by the checks that
+    judge effects: the output-error check of what the rounds added and the held-out tails.
+
+    The removals are ranked by one cheap criterion, the term's t statistic in the least-squares
+    fit on the check split's fit parts (the smallest first: the term the others stand in for
+    best), and only the best ``PRUNING_TRIALS`` are judged on the free run
+    (:func:`_first_removal`); the ranking is made again on what is left after each removal, and
+    the pruning stops where both are refused. Judging every removal on the free run, again after
+    each one taken, costs a fit and a free run a term a removal: on long records, as much as the
+    rounds. A removal is judged as the model will be fitted: its least-squares free run no higher
+    and, where the current structure simulates better by output error (``output_error``: as the
+    loop will then fit it), its output-error fit's no higher either; a term of no use to the
+    one-step fit's free run can be one the output-error fit needs (judged by least squares
+    alone, Silverbox from linear:4,4 lost such terms and ran free over the arrow worse). The
+    least-squares judgements are made by ``workers``.
+    """
+    figure = checks.error(current)
+    pruned: list[Term] = []
+    while found := _first_removal(
+        current,
+        _removals(current, declared, rounds, pruned, checks)[:PRUNING_TRIALS],
+        figure,
+        checks,
+        workers,
+        output_error,
+    ):
+        term, current, figure = found
+        pruned.append(term)
+    return current, tuple(pruned)
+
+
+def _first_removal(
+    current: Structure,
+    trials: Sequence[Term],
+    figure: float,
+    checks: CheckSplit,
+    workers: Workers,
+    output_error: bool,
+) -> tuple[Term, Structure, float] | None:
+    """The first of the ``trials`` whose removal :func:`_pruned` takes, with ``current`` without it
+    and its least-squares free-run RMS over the check blocks (``figure`` with it); None where
+    none is. Their least-squares fits are judged by ``workers``, side by side."""
+    without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in trials]
+    errors = list(checks.judge(without, workers))
+    passed = [i for i, error in enumerate(errors) if error <= figure]
+    if passed and output_error and (simulated := checks.error(current, tuned=True)) < figure:
+        # The output-error fits, which cost far more, only where a removal is proposed, and the
+        # second only where the first is refused.
+        passed = list(islice((i for i in passed if checks.error(without[i], tuned=True) <= simulated), 1))
+    return (trials[passed[0]], without[passed[0]], errors[passed[0]]) if passed else None
+
+
+def _removals(
+    current: Structure,
+    declared: tuple[Term, ...],
+    rounds: Sequence[Round],
+    pruned: Sequence[Term],
+    checks: CheckSplit,
+) -> list[Term]:
+    """The terms of ``current`` :func:`_pruned` may take out, the smallest t statistic in its
+    least-squares fit on the check split's fit parts first: those the ``rounds`` added, but for
+    the last one left of an effect once ``pruned`` are out."""
+    gone = {term.name for term in pruned}
+    left = [[name for name in r.added.terms if name not in gone] for r in rounds if r.added is not None]
+    last = {names[0] for names in left if len(names) == 1}
+    removable = [i for i, term in enumerate(current.terms) if term not in declared and term.name not in last]
+    if not removable:
+        return []
+    fitted = checks.fitted(current)
+    t = np.abs(fitted.theta) / np.maximum(fitted.standard_errors(), np.finfo(float).tiny)
+    return [current.terms[i] for i in sorted(removable, key=lambda i: t[i])]
+
+
+def _without_pruned(rounds: list[Round], pruned: Sequence[Term]) -> list[Round]:
+    """The ``rounds`` with the ``pruned`` terms taken from the effects that brought them, named in
+    the last round's report."""
+    names = {term.name for term in pruned}
+    if not names:
+        return rounds
+    result = []
+    for step in rounds:
+        added = step.added
+        if added is not None and names & set(added.terms):
+            step = replace(step, added=replace(added, terms=tuple(n for n in added.terms if n not in names)))
+        result.append(step)
+    result[-1] = replace(result[-1], pruned=tuple(term.name for term in pruned))
+    return result
 
 
 def _repairs_only_bias(

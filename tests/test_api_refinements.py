@@ -139,6 +139,10 @@ def test_a_missing_effect_is_named_and_the_refined_model_stored_inactive(databas
         refinement = response.json()
         report = refinement["report"]
         assert report["effects_added"][0]["name"] == "quadratic_stiffness"
+        # Each round's choice: the candidates it compared, the fall it saw against the fall needed.
+        first = report["rounds"][0]
+        assert first["added"] == "quadratic_stiffness" and first["candidates_tried"] >= 1
+        assert first["gain"] >= first["threshold"] > 0 and isinstance(first["pruned"], list)
         assert report["after"]["one_step_rms"] <= report["before"]["one_step_rms"] / 2
         assert report["data"]["estimation"] == [0, 4000] and report["data"]["test"] == [4000, SAMPLES]
         # Kept because it simulates the estimation part's last 800 samples, which no choice saw,
@@ -200,6 +204,10 @@ def test_with_no_base_model_the_loop_chooses_linear_orders_and_stores_their_mode
     assert page.status_code == 200
     started = f"from the linear model whose orders the loop chose, ny = {ny}, nx = {nx}, input delay {delay}"
     assert started in page.text and f"to baseline v{refined['version']}" in page.text
+    # A row a round, each naming what it added.
+    assert page.text.count('<tr class="round">') == len(report["rounds"]) > 0
+    for step in report["rounds"]:
+        assert f"<td>{step['added'] or 'nothing added'}</td>" in page.text
     assert structure_page.status_code == 200
     assert f"linear ({ny}, {nx}), delay {delay}: orders chosen" in structure_page.text
 

@@ -39,6 +39,7 @@ from simulator.theory import EXACT_TERMS
 REPORT_KEYS = {
     "declared", "orders_chosen", "effects_added", "effects_withdrawn", "before", "after", "tests", "refined",
     "notes", "data", "check_free_run_rms", "noise_floor", "held_out", "explanation",
+    "rounds",
 }  # fmt: skip
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests", "diverged"}
 HELD_OUT_KEYS = {
@@ -112,6 +113,8 @@ def test_the_effect_found_is_named_and_the_table_printed_with_each_stage_on_a_te
     assert "one-step RMS [m]" in table and "free-run RMS [m]" in table
     assert re.search(r"check blocks' free run \S+ → \S+ m;", table), table
     assert re.search(r"shares of the output's RMS \(\S+ m\) on e1\.csv", table), table
+    # Each round's choice: the candidates compared, the fall and the fall needed.
+    assert re.search(r"  1: \d+ tried, fall \S+% against \S+% needed → quadratic_stiffness", table), table
     stages = (
         f"round 1: scoring {len(candidate_effects(EXACT_TERMS))} families",
         "round 1: quadratic_stiffness on the check blocks",

@@ -15,20 +15,22 @@ from harness.prerequisites import benchmark_data
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
 from models.errors import InputError
-from models.held_out import HeldOut
+from models.held_out import HeldOut, held_out_tails
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
 from models.refinement import (
     Refinement,
     RefinementReport,
+    Round,
     _is_start,
+    _pruned,
     choose_linear,
     compare,
     refine,
     refine_record,
     refine_records,
 )
-from models.scoring import score_effects
+from models.scoring import EffectScore, score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
@@ -969,3 +971,83 @@ def test_a_free_run_that_grows_without_bound_is_judged_diverged_though_finite():
     assert not comparison.before.diverged and comparison.verdict == "diverged"
     (test,) = RefinementReport(refinement, (comparison,)).to_dict()["tests"]
     assert test["verdict"] == "diverged" and test["after"]["diverged"] and not test["before"]["diverged"]
+
+
+def test_a_term_that_a_later_addition_makes_redundant_is_pruned_and_the_report_names_it():
+    """The rig's quadratic spring from linear:4,4: the cubic spring, added first, stands in for it
+    with four terms; y[t-2]³ pays on the check blocks' free run until the quadratic spring is in,
+    and not after. Pruned back after the rounds (Piroddi & Spinelli), it goes first, and the
+    last round names what went; each round reports the candidates it compared, the gain it saw
+    and the gain needed."""
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
+    )
+    records = [(record.x, record.y)]
+    declared = linear_terms(4, 4, 1)
+    offered = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
+    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
+    result = refine(records, declared, effects=families)
+    assert [effect.name for effect in result.effects_added] == ["cubic_stiffness", "quadratic_stiffness"]
+    report = RefinementReport(result, (compare(result, records, record.x, record.y, 0, None, 0),))
+    rounds = report.to_dict()["rounds"]
+    assert [step["added"] for step in rounds] == ["cubic_stiffness", "quadratic_stiffness", None]
+    *unpruned, (redundant, *_) = [parse_terms(step["pruned"]) if step["pruned"] else () for step in rounds]
+    assert unpruned == [(), ()] and redundant.name == "y[t-2]^3"
+    pruned = parse_terms(rounds[-1]["pruned"])
+    cubic, quadratic = (tuple(parse_terms(effect.terms)) for effect in result.effects_added)
+    assert result.refined.terms == (*declared, *cubic, *quadratic) and not set(pruned) & set(
+        cubic + quadratic
+    )
+    # Made redundant by the addition: it paid on the check blocks before, and does not after.
+    heads, _ = held_out_tails(records)
+    checks = CheckSplit.of(heads)
+    before = (*declared, *(term for term in cubic + pruned if term.name.endswith("^3")))
+    assert checks.error(Structure(tuple(t for t in before if t != redundant))) > checks.error(
+        Structure(before)
+    )
+    after = (*result.refined.terms, *pruned)
+    assert checks.error(Structure(tuple(t for t in after if t != redundant))) <= checks.error(
+        Structure(after)
+    )
+    # Each round's choice: how many candidates it compared, the gain it saw against the gain needed.
+    for step, document in zip(result.rounds, rounds, strict=True):
+        assert document["candidates_tried"] == step.tried > 0
+        assert document["gain"] == step.gain and document["threshold"] == step.threshold
+    assert all(step["gain"] >= step["threshold"] for step in rounds[:2]), rounds
+    assert rounds[-1]["gain"] < rounds[-1]["threshold"], rounds[-1]
+
+
+def hammerstein(n: int, seed: int, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """y[t] = 1.2·y[t-1] − 0.5·y[t-2] + x[t-1] + 0.4·x[t-1]², white x, read with white noise of
+    ``noise`` times the output's std."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=n)
+    clean = signal.lfilter([0.0, 1.0], [1.0, -1.2, 0.5], x + 0.4 * x**2)
+    return x, clean + noise * np.std(clean) * rng.normal(size=n)
+
+
+def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
+    """x[t-2]² and x[t-2]³, which the Hammerstein system lacks, brought in by an earlier round as
+    one effect, and x[t-1]², which it has, added after it. By the check blocks' free run (least
+    squares) neither pays: without both it is lower than with either. The pruning takes one and
+    keeps the other, the effect's last term: its round added the effect for a gain beyond a
+    threshold, and "no higher without it" on the same blocks is not the evidence to withdraw it
+    whole (on Silverbox such a removal drifted over a new record)."""
+    records = [hammerstein(1500, seed=3, noise=0.1)]
+    checks = CheckSplit.of(records)
+    declared, later = tuple(linear_terms(2, 2, 1)), tuple(parse_terms(["x[t-1]^2"]))
+    earlier = tuple(parse_terms(["x[t-2]^2", "x[t-2]^3"]))
+    either = min(checks.error(Structure((*declared, term, *later))) for term in earlier)
+    assert checks.error(Structure(declared + later)) <= either
+    effects = [
+        EffectScore(
+            name, "", 0.1, -1.0, tuple(term.name for term in terms), (9.0,) * len(terms), (0.0,) * len(terms)
+        )
+        for name, terms in (("input_nonlinearity", earlier), ("filtered_input_nonlinearity", later))
+    ]
+    rounds = [Round(1.0, 0.01, 2, (effect,), effect) for effect in effects]
+    everything = Structure((*declared, *earlier, *later))
+    pruned, (taken,) = _pruned(everything, declared, rounds, checks, map, output_error=False)
+    (kept,) = set(earlier) - {taken}
+    assert pruned.terms == tuple(term for term in everything.terms if term != taken)
+    assert kept in pruned.terms

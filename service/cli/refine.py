@@ -433,6 +433,7 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
     _print_withdrawn(report)
     _print_explanation(report, per)
     _print_effects(report, per)
+    _print_rounds(report["rounds"])
     if report["held_out"] is not None:
         _print_held_out(report["held_out"], per)
     stdout.print(f"refined parameters by {report['refined']['estimator']}")
@@ -481,6 +482,21 @@ def _print_effects(report: dict[str, Any], per: str) -> None:
             markup=False,
         )
         _print_contribution(effect["contribution"], report["refined"]["saturation"], per)
+
+
+def _print_rounds(rounds: list[dict[str, Any]]) -> None:
+    """A line a round: the candidates it compared on the check blocks' free run, the fall of that
+    free run it saw against the fall needed, what it added and what the pruning took out."""
+    stdout.print("each round's choice (falls of the check blocks' free run):")
+    for step in rounds:
+        gain, needed = (f"{v:.1%}" if v is not None else "–" for v in (step["gain"], step["threshold"]))
+        pruned = f"; pruned {', '.join(step['pruned'])}" if step["pruned"] else ""
+        stdout.print(
+            f"  {step['round']}: {step['candidates_tried']} tried, fall {gain} against {needed} needed"
+            f" → {step['added'] or 'nothing added'}{pruned}",
+            highlight=False,
+            markup=False,
+        )
 
 
 def _print_floor(report: dict[str, Any], per: str) -> None:
