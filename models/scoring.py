@@ -27,7 +27,16 @@ from itertools import chain, pairwise
 import numpy as np
 from scipy import linalg, signal, special
 
-from models.effects import Effect, offset_direction, output_limits, periodic_terms, saturation_direction
+from models.effects import (
+    RECTIFIED,
+    Effect,
+    magnitude_direction,
+    offset_direction,
+    output_limits,
+    periodic_terms,
+    reads_magnitude,
+    saturation_direction,
+)
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
 from models.regression import Workers, column_norms, divided_columns, orthogonal_part, span_basis
@@ -91,9 +100,11 @@ def fit_model(
     lag: int,
     t0: Sequence[int] | int = 0,
     saturating: Saturating | None = None,
+    rectified: bool = False,
 ) -> tuple[NARX, np.ndarray]:
     """The model on rows t = lag … N−1 of each record: a NARX (``saturating`` at its limits, in
-    its way), or with ``noise_lags`` a NARMAX's process part and moving-average coefficients."""
+    its way; ``rectified``, its least-squares fit on the readings, :mod:`models.narx`), or with
+    ``noise_lags`` a NARMAX's process part and moving-average coefficients."""
     limits, saturation = saturating or (None, "state")
     # The fits start a record at the terms' own largest lag; trimming x and y to the common
     # first row makes the model see the same equations as the candidates it is compared with.
@@ -102,8 +113,9 @@ def fit_model(
     origins = [origin + offset for origin in record_origins(t0, len(records))]
     if noise_lags:
         narmax = fit_narmax(trimmed, terms, noise_lags, max_iter=NARMAX_ITERATIONS, t0=origins)
-        return replace(narmax.process, output_limits=limits, saturation=saturation), invertible(narmax.noise)
-    return fit_narx(trimmed, terms, origins, limits, saturation), np.empty(0)
+        process = replace(narmax.process, output_limits=limits, saturation=saturation, rectified=rectified)
+        return process, invertible(narmax.noise)
+    return replace(fit_narx(trimmed, terms, origins, limits, saturation), rectified=rectified), np.empty(0)
 
 
 def score_effects(
@@ -327,6 +339,11 @@ def _candidates(
         return [(label,)], saturation_direction(
             np.concatenate([y[lag:] for _, y in records]) - residual, limits
         )[:, None]
+    if effect.kind == "rectified":  # one regressor, the magnitude of the one-step prediction
+        measured = np.concatenate([y[lag:] for _, y in records])
+        if not reads_magnitude(measured):
+            return [], np.empty((len(residual), 0))
+        return [(RECTIFIED,)], magnitude_direction(measured - residual)[:, None]
     if effect.kind == "combined" and effect.combine is not None:
         # A combination of lags, sought on the first record like an estimated parameter, is a
         # fixed function of the lags: its regressor is built on every record.
