@@ -658,10 +658,9 @@ def refine(
     short = any(len(y) < MIN_BLOCK for _, y, _ in tails)
     orders_saw_tails = short and declared is None
     if orders_saw_tails:
-        orders, terms = choose_linear(
-            records, progress=tell, workers=workers, rectified=_read_as_magnitude(records)
-        )
-        grow = partial(grow, declared=terms, orders=orders)
+        orders, terms = choose_linear(records, progress=tell, workers=workers)
+        rectified = _rectified_orders(records, None, tell, workers)
+        grow = partial(grow, declared=terms, orders=orders, rectified=rectified)
     try:
         grown = grow(heads)
     except InputError:
@@ -791,15 +790,16 @@ def _grown(
     workers: Workers,
     threads: Workers,
     orders: tuple[int, int, int] | None = None,
+    rectified: tuple[Term, ...] | None = None,
 ) -> _Grown:
     """The loop of :func:`refine` on all of ``records``, and what :func:`_on_all` needs to make
-    its models again on more. ``orders``: the linear orders ``declared`` was chosen with, where
-    the caller chose them (:func:`refine` on short records)."""
+    its models again on more. ``orders``: the linear orders ``declared`` was chosen with, and
+    ``rectified`` the linear terms chosen as the rectified model's (:func:`_rectified_orders`),
+    where the caller chose them (:func:`refine` on short records)."""
     checks = CheckSplit.of(records)
     if declared is None:
-        orders, terms = choose_linear(
-            records, checks=checks, progress=tell, workers=workers, rectified=_read_as_magnitude(records)
-        )
+        orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
+        rectified = _rectified_orders(records, checks, tell, workers)
     else:
         terms = parse_terms(declared)
     families = list(effects) if effects is not None else candidate_effects(terms)
@@ -809,7 +809,6 @@ def _grown(
     current = Structure(terms)
     check = checks.error(current)
     margin = check_noise(checks.check)
-    magnitude = _read_as_magnitude(records)
     rounds: list[Round] = []
     for number in range(1, max_rounds + 1):
         offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
@@ -832,8 +831,8 @@ def _grown(
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
         ranked: Scores | None = None
-        if output_error and magnitude:
-            decided = _rectified_first(current, offered, scores.scores, checks, workers)
+        if output_error and number == 1 and rectified is not None:
+            decided = _rectified_first(current, rectified, offered, scores.scores, checks, workers)
         # The named families on both criteria first, then the generic polynomial on both: where a
         # named effect explains the data, the loop names it.
         tier = [e.name == POLYNOMIAL for e in offered]
@@ -1150,13 +1149,18 @@ def _smallest_near_best(
     )
 
 
-def _read_as_magnitude(records: Records) -> bool:
-    """Whether the records' outputs read as a magnitude (:func:`models.effects.reads_magnitude`):
-    then the linear orders are chosen as the rectified model's (:func:`choose_linear`). A
-    sensor blind to the sign folds the output at zero, and a linear model of the readings fits
-    the folds with low orders (the coupled drives: (1, 1) and (2, 2), where the recursion under
-    the rectifier wants three lags)."""
-    return reads_magnitude(np.concatenate([y for _, y in records]))
+def _rectified_orders(
+    records: Records, checks: CheckSplit | None, tell: Stage, workers: Workers
+) -> tuple[Term, ...] | None:
+    """Where the records' outputs read as a magnitude (:func:`models.effects.reads_magnitude`),
+    the linear terms :func:`choose_linear` picks for the rectified model, which the rectified
+    family starts from in the first round (:func:`_rectified_first`); None elsewhere. A sensor
+    blind to the sign folds the output at zero, and a linear model of the readings fits the folds
+    with other orders than the recursion under the fold wants (the coupled drives: (1, 1) and
+    (2, 2) for the readings, three lags under the rectifier)."""
+    if not reads_magnitude(np.concatenate([y for _, y in records])):
+        return None
+    return choose_linear(records, checks=checks, progress=tell, workers=workers, rectified=True)[1]
 
 
 def _parameters(candidate: _Linear) -> int:
@@ -1243,25 +1247,29 @@ def _offered_again(effect: Effect, current: Structure) -> bool:
     )
 
 
-def _rectified(current: Structure) -> Structure:
-    """``current`` read through a sensor of its magnitude, its recursion with a constant: where
-    the fold lies against the input's zero is the family's parameter, as a dead zone's width is
-    (the coupled drives' second record, its input 0.5 above the first's: the rectified recursion
-    runs free over the check blocks at 0.92 ticks/s without one)."""
-    constant = () if Term() in current.terms else (Term(),)
-    return replace(current, terms=current.terms + constant, rectified=True)
+def _rectified(current: Structure, linear: Sequence[Term] | None = None) -> Structure:
+    """``current`` read through a sensor of its magnitude, its recursion with a constant, and
+    with the ``linear`` terms in place of its own where they are given: where the fold lies
+    against the input's zero is the family's parameter, as a dead zone's width is (the coupled
+    drives' second record, its input 0.5 above the first's: the rectified recursion runs free
+    over the check blocks at 0.92 ticks/s without one)."""
+    terms = current.terms if linear is None else tuple(linear)
+    constant = () if Term() in terms else (Term(),)
+    return replace(current, terms=terms + constant, rectified=True)
 
 
 def _rectified_first(
     current: Structure,
+    linear: Sequence[Term],
     offered: Sequence[Effect],
     scores: Sequence[EffectScore],
     checks: CheckSplit,
     workers: Workers,
 ) -> tuple[EffectScore, Criterion, Structure, float] | None:
     """The rectified-output family, where it is offered, judged before every other (the records'
-    outputs read as a magnitude): added where its output-error fit lowers the check blocks' free
-    run by ``SIMULATION_GAIN`` from the current structure's best. A sensor's fold is no dynamics,
+    outputs read as a magnitude), from the ``linear`` terms chosen as the rectified model's: added
+    where its output-error fit lowers the check blocks' free run by ``SIMULATION_GAIN`` from the
+    current structure's best. A sensor's fold is no dynamics,
     and families of the dynamics fitted first imitate it (the coupled drives' second record took
     a power law of y first, then the rectifier, and the held-out tails refused the pile). Least
     squares cannot see the fold (its fit is the recursion's on the readings), so the family is
@@ -1270,11 +1278,18 @@ def _rectified_first(
     for effect, score in zip(offered, scores, strict=True):
         if effect.kind != "rectified":
             continue
-        structure = _rectified(current)
+        structure = _rectified(current, linear)
         baseline = min(checks.error(current, tuned=True), checks.error(current))
         (error,) = checks.judge([structure], workers, tuned=True)
         if error <= (1 - SIMULATION_GAIN) * baseline:
-            return replace(score, terms=(RECTIFIED,)), "simulation", structure, checks.error(structure)
+            # The report lists the terms the family brings beside the rectifier: its own lags.
+            brought = tuple(t.name for t in structure.terms if t not in current.terms)
+            return (
+                replace(score, terms=(RECTIFIED, *brought)),
+                "simulation",
+                structure,
+                checks.error(structure),
+            )
     return None
 
 

@@ -457,9 +457,10 @@ def test_output_error_fits_the_recursion_under_a_sensor_blind_to_the_sign() -> N
 
 
 def test_a_sensor_blind_to_the_sign_is_named_first_with_nothing_declared() -> None:
-    """A drive read by a counter blind to the direction, nothing declared: the loop chooses the
-    orders as the rectified model's (a linear model of the readings fits the folds with other
-    orders), names the rectifier first, and the free run over a fresh stretch falls to a tenth."""
+    """A drive read by a counter blind to the direction, nothing declared: the rectifier, from the
+    orders chosen as the rectified model's (a linear model of the readings fits the folds with
+    other orders), is named first, and the free run over a fresh stretch falls below a fifth (main:
+    orders (2, 2, 1), nothing kept, 0.301 against the start's 0.389; here 0.050)."""
     x, y, _ = rectified_drive(seed=2, n=2500)
     report = refine_records([(x[:2000], y[:2000])], [(x[2000:], y[2000:])], None, initial=10)
     names = [e.name for e in report.refinement.effects_added]
