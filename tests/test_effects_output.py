@@ -24,6 +24,7 @@ from models.effects import (
     reads_magnitude,
 )
 from models.errors import InputError
+from models.explanation import explain_refinement
 from models.narx import NARX, fit_narx
 from models.output_error import fit_output_error
 from models.refinement import RefinementReport, refine_record, refine_records
@@ -467,3 +468,6 @@ def test_a_sensor_blind_to_the_sign_is_named_first_with_nothing_declared() -> No
     assert names and names[0] == "rectified_output", names
     assert report.refinement.refined.rectified
     assert report.after.free_run_rms < report.before.free_run_rms / 5, (report.before, report.after)
+    # The report explains it: without the rectifier the model reads its recursion's signed output.
+    rectifier = explain_refinement(report.refinement, x[2000:], y[2000:], initial=10).effects[0]
+    assert rectifier.removal is not None and rectifier.removal > 0.5, rectifier
