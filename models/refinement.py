@@ -1050,6 +1050,10 @@ def choose_linear(
     about zero the constant takes nothing off, and the start stays as it was without the second
     set of fits.
 
+    **Rectified.** With ``rectified``, every candidate is judged as a rectified model, its
+    recursion read through a sensor of its magnitude (:mod:`models.narx`): the orders the
+    rectified-output family starts from (:func:`_rectified_orders`).
+
     Returns (n, n, d) and the terms; ``progress`` is told each candidate as its figures are read,
     ``workers`` fit them (:data:`models.regression.Workers`).
     """
@@ -1269,12 +1273,11 @@ def _rectified_first(
     """The rectified-output family, where it is offered, judged before every other (the records'
     outputs read as a magnitude), from the ``linear`` terms chosen as the rectified model's: added
     where its output-error fit lowers the check blocks' free run by ``SIMULATION_GAIN`` from the
-    current structure's best. A sensor's fold is no dynamics,
-    and families of the dynamics fitted first imitate it (the coupled drives' second record took
-    a power law of y first, then the rectifier, and the held-out tails refused the pile). Least
-    squares cannot see the fold (its fit is the recursion's on the readings), so the family is
-    judged by output error alone; the check figure returned is least squares', as every round
-    reports it."""
+    current structure's best. A sensor's fold is no dynamics: judged after the families of the
+    dynamics, one of them fitted to the fold stands in for it first, at the orders the readings
+    chose. Least squares cannot see the fold (its fit is the recursion's on the readings): a
+    rectified structure is judged by its output-error fit (:class:`models.checking.CheckSplit`),
+    and the check figure returned is that fit's."""
     for effect, score in zip(offered, scores, strict=True):
         if effect.kind != "rectified":
             continue
