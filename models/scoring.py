@@ -341,9 +341,11 @@ def _candidates(
         )[:, None]
     if effect.kind == "rectified":  # one regressor, the magnitude of the one-step prediction
         measured = np.concatenate([y[lag:] for _, y in records])
-        if not reads_magnitude(measured):
+        direction = magnitude_direction(measured - residual)
+        # A prediction that never goes below zero leaves the regressor nothing: not tested.
+        if not reads_magnitude(measured) or not np.any(direction):
             return [], np.empty((len(residual), 0))
-        return [(RECTIFIED,)], magnitude_direction(measured - residual)[:, None]
+        return [(RECTIFIED,)], direction[:, None]
     if effect.kind == "combined" and effect.combine is not None:
         # A combination of lags, sought on the first record like an estimated parameter, is a
         # fixed function of the lags: its regressor is built on every record.
