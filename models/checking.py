@@ -44,11 +44,13 @@ Segments = list[tuple[np.ndarray, np.ndarray, int]]  # (x, y, first sample's ind
 
 @dataclass(frozen=True)
 class Structure:
-    """A model structure as the loop grows it: terms, moving-average order, output saturation."""
+    """A model structure as the loop grows it: terms, moving-average order, output saturation,
+    and whether its sensor reads a magnitude."""
 
     terms: tuple[Term, ...]
     noise_lags: int = 0
     saturating: Saturating | None = None
+    rectified: bool = False
 
 
 # What a split made for a structure judged in a split of its own (in a worker): the least-squares
@@ -160,8 +162,10 @@ class CheckSplit:
         return self.error(structure, tuned=True)
 
     def _judge(self, structure: Structure, tuned: bool) -> float:
+        # A rectified structure's least-squares fit is its recursion's on the readings, blind to
+        # the fold: it is judged by its output-error fit whichever is asked for.
         try:
-            model = self.tuned(structure) if tuned else self.fitted(structure)
+            model = self.tuned(structure) if tuned or structure.rectified else self.fitted(structure)
         except InputError:
             return np.inf
         return self._simulates(model)
@@ -184,6 +188,7 @@ class CheckSplit:
                 max_lag(structure.terms),
                 [t for *_, t in self.fit],
                 structure.saturating,
+                structure.rectified,
             )
         return self._fitted[structure]
 

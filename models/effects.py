@@ -11,6 +11,10 @@ behind the sensor:
 - output saturation: plateaus at the record's extremes (an overflowing tank, a clipping
   sensor); the model gains output limits (:func:`output_limits`), of its state or of its sensor,
   that its predictions and free run are clipped to (:mod:`models.narx`);
+- a rectified output: a sensor blind to the sign of what it measures (a pulse counter on a shaft
+  turning either way), offered where the output never goes below zero and comes down to it
+  (:func:`reads_magnitude`); the model's recursion runs on a signed output z and reports |z|
+  (:mod:`models.narx`);
 - power laws |y|^p·sign y and |dy|^p·sign dy with p estimated (outflow through an orifice
   ∝ √level, turbulent or aerodynamic damping);
 - an input dead zone or backlash of a width estimated from the data;
@@ -52,7 +56,9 @@ from models.regression import column_norms, divided_columns, orthogonal_part
 from models.spectrum import excited_intervals, residual_spectrum
 from models.terms import WAVES, Factor, Term, bouc_wen, regressor_matrix
 
-EffectKind = Literal["terms", "output_shift", "periodic", "noise", "estimated", "saturation", "combined"]
+EffectKind = Literal[
+    "terms", "output_shift", "periodic", "noise", "estimated", "saturation", "rectified", "combined"
+]
 # What an "estimated" effect is: given what its parameters are sought from (:class:`SearchInput`),
 # the family's terms with their parameters estimated.
 Finder = Callable[["SearchInput"], tuple[Term, ...]]
@@ -66,6 +72,11 @@ Combiner = Callable[
 # A plateau is at least this many consecutive samples at the record's maximum (or minimum):
 # a smooth signal visits its extreme once.
 PLATEAU_SAMPLES = 3
+# A rectified output's readings may lie below zero, or stay above it, by this share of their range:
+# a sensor's offset at rest (the coupled drives' pulse counter reads −0.022 at rest, 1 % of it).
+MAGNITUDE_SLACK = 0.02
+# The rectified-output family's one regressor, by name: it adds no term.
+RECTIFIED = "rectified"
 # Exponents of the power laws, clear of the integer laws named by their own families (Coulomb
 # friction at 0, quadratic damping at 2, cubic stiffness and damping at 3) and of the linear 1.
 STIFFNESS_EXPONENTS = (0.2, 2.6)
@@ -122,6 +133,9 @@ class Effect:
       :data:`Finder`) from the residual; no terms here;
     - "saturation": one regressor, the change clipping the prediction to the record's plateaus
       makes (:func:`saturation_direction`); adding it gives the model output limits, no terms;
+    - "rectified": one regressor, the change reading the magnitude of the prediction makes
+      (:func:`magnitude_direction`), where the output reads as a magnitude
+      (:func:`reads_magnitude`); adding it makes the model ``rectified``, no terms;
     - "combined": one regressor, a nonlinear function of a combination of the data's lags fitted
       to the residual by ``combine`` (a :data:`Combiner`) whose expansion its ``terms`` span;
       adding it adds them.
@@ -139,7 +153,7 @@ class Effect:
         """How many regressors testing the effect puts beside the model's before its data are
         seen: one for a shift, a saturation or a combination (whatever terms span them), the
         terms' count otherwise (none yet for families found from the residual)."""
-        return 1 if self.kind in ("output_shift", "saturation", "combined") else len(self.terms)
+        return 1 if self.kind in ("output_shift", "saturation", "rectified", "combined") else len(self.terms)
 
 
 def linear_terms(ny: int, nx: int, delay: int = 1, constant: bool = False) -> tuple[Term, ...]:
@@ -297,6 +311,13 @@ def _structure_effects(terms: Sequence[Term], ny: int, x_lags: Sequence[int]) ->
             "saturation",
         ),
         Effect(
+            "rectified_output",
+            "the sensor reads a magnitude, blind to the sign (a pulse counter on a shaft turning "
+            "either way): the dynamics run on a signed output z and the reading is |z|",
+            (),
+            "rectified",
+        ),
+        Effect(
             "missing_lags",
             "dynamics beyond the declared lags, or a shorter input delay",
             _powers("y", [ny + 1, ny + 2], 1) + _powers("x", [x_lags[-1] + 1, *shorter_delay], 1),
@@ -365,7 +386,7 @@ def unused(effects: Sequence[Effect], terms: Sequence[Term]) -> list[Effect]:
     kept = []
     for effect in effects:
         new = tuple(t for t in effect.terms if t not in present)
-        if new or effect.kind in ("periodic", "noise", "estimated", "saturation"):
+        if new or effect.kind in ("periodic", "noise", "estimated", "saturation", "rectified"):
             kept.append(replace(effect, terms=new))
     return kept
 
@@ -481,6 +502,22 @@ def output_limits(y: np.ndarray) -> tuple[float, float] | None:
     low, high = float(np.min(y)), float(np.max(y))
     limits = (low if plateau(low) else -np.inf, high if plateau(high) else np.inf)
     return None if limits == (-np.inf, np.inf) or low == high else limits
+
+
+def reads_magnitude(y: np.ndarray) -> bool:
+    """Whether the output ``y`` reads as a magnitude: it never goes below zero and comes down to
+    it, both within ``MAGNITUDE_SLACK`` of its range. A signed quantity seen through a sensor
+    blind to its sign does; a level far from zero (a tank half full) never shows where the sign
+    would turn, and a signed output crosses zero."""
+    low, high = float(np.min(y)), float(np.max(y))
+    return high > 0 and abs(low) <= MAGNITUDE_SLACK * (high - low)
+
+
+def magnitude_direction(prediction: np.ndarray) -> np.ndarray:
+    """|ŷ| − ŷ: what reading the magnitude of the one-step prediction ŷ changes. A model whose
+    sensor reads a magnitude has this regressor with coefficient one, where its prediction on the
+    readings goes below zero."""
+    return np.abs(prediction) - prediction
 
 
 def saturation_direction(prediction: np.ndarray, limits: tuple[float, float]) -> np.ndarray:

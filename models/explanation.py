@@ -41,6 +41,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from models.effects import RECTIFIED
 from models.metrics import rms
 from models.narx import NARX
 from models.output_error import diverged
@@ -181,11 +182,16 @@ def explain(
                 Contribution((), (), None, np.empty(0), None, model.output_limits, at_limits, without)
             )
         else:
-            columns = [names.index(term.name) for term in parse_terms(effect.terms) if term.name in names]
+            # The rectifier's label names no term: without it, the model reads its recursion's
+            # output itself.
+            brought = [name for name in effect.terms if name != RECTIFIED]
+            columns = [names.index(term.name) for term in parse_terms(brought) if term.name in names]
             claimed.update(columns)
             theta = model.theta.copy()
             theta[columns] = 0.0
-            contributions.append(replace(group(columns), removal=removal(replace(model, theta=theta))))
+            rectified = model.rectified and RECTIFIED not in effect.terms
+            without = replace(model, theta=theta, rectified=rectified)
+            contributions.append(replace(group(columns), removal=removal(without)))
     declared = group([i for i in range(len(names)) if i not in claimed])
     return Explanation(declared, tuple(contributions), scale, along, start + scored)
 

@@ -17,6 +17,14 @@ A model may have output limits (low, high), where its output saturates, in one o
 Its one-step predictions are clipped too. Its fit leaves out the equations whose target lies on a
 limit (there φ[t]ᵀθ is only known to lie beyond it) and, for a sensor, those reading a clipped
 sample (it is not the system's output).
+
+A model may be ``rectified``: its sensor reads the magnitude |z| of the output z its recursion runs
+on, as a pulse counter reads a speed whatever its direction (Wigren & Schoukens's coupled electric
+drives). Its free run is the recursion on z with |z| reported, started from the measured outputs
+taken as z (the positive branch: a reading does not say its sign), and its one-step predictions
+are |φ[t]ᵀθ|. Least squares cannot tell the signs the readings dropped: its fit is the recursion's
+on the readings, a start for output error (:mod:`models.output_error`), which fits what the
+sensor reads.
 """
 
 from __future__ import annotations
@@ -65,6 +73,7 @@ class NARX(OverTerms):
     n_obs : number of equations (rows of Φ) used for estimation.
     output_limits : (low, high) the output saturates at (±inf for a side without), or None;
         ``saturation`` says whether the state or the sensor saturates there.
+    rectified : the sensor reads the magnitude of the recursion's output (module docstring).
     """
 
     terms: tuple[Term, ...]
@@ -74,6 +83,13 @@ class NARX(OverTerms):
     n_obs: int = 0
     output_limits: tuple[float, float] | None = None
     saturation: Saturation = "state"
+    rectified: bool = False
+
+    @property
+    def reads_state(self) -> bool:
+        """Whether what the model reports is its recursion's output itself: not where a sensor
+        clips it or reads its magnitude."""
+        return (self.output_limits is None or self.saturation == "state") and not self.rectified
 
     def standard_errors(self) -> np.ndarray:
         return np.sqrt(np.diag(self.covariance))
@@ -100,6 +116,7 @@ class NARX(OverTerms):
         return target - self._limited(Phi @ self.theta)
 
     def _limited(self, output: np.ndarray) -> np.ndarray:
+        output = np.abs(output) if self.rectified else output
         return output if self.output_limits is None else np.clip(output, *self.output_limits)
 
     def simulate(self, x: ArrayLike, y_initial: ArrayLike, t0: int = 0) -> np.ndarray:
@@ -119,17 +136,19 @@ class NARX(OverTerms):
     def run_free(self, run: FreeRun, y_initial: np.ndarray, theta: np.ndarray | None = None) -> np.ndarray:
         """The free run prepared in ``run`` (for these terms) with this model's limits, and its
         parameters or ``theta``: a state saturates inside the recursion, a sensor clips what
-        it reports."""
+        it reports, or reads its magnitude."""
         theta = self.theta if theta is None else theta
         if self.output_limits is None or self.saturation == "state":
-            return run.run(theta, y_initial, self.output_limits)
-        return np.clip(run.run(theta, y_initial), *self.output_limits)
+            output = run.run(theta, y_initial, self.output_limits)
+            return np.abs(output) if self.rectified else output
+        return self._limited(run.run(theta, y_initial))
 
     def to_document(self) -> dict[str, Any]:
         """A JSON-compatible, versioned description from which :meth:`from_document` rebuilds it.
 
-        Output limits appear only when the model has them (a side without a limit as null), so
-        the documents of models without them are those of earlier versions."""
+        Output limits appear only when the model has them (a side without a limit as null), and
+        ``rectified`` only when it is, so the documents of models without them are those of
+        earlier versions."""
         document: dict[str, Any] = {
             "kind": "narx",
             "schema_version": DOCUMENT_VERSION,
@@ -142,6 +161,8 @@ class NARX(OverTerms):
         if self.output_limits is not None:
             document["output_limits"] = [v if np.isfinite(v) else None for v in self.output_limits]
             document["saturation"] = self.saturation
+        if self.rectified:
+            document["rectified"] = True
         return document
 
     @classmethod
@@ -156,6 +177,9 @@ class NARX(OverTerms):
         saturation = document.get("saturation", "state")
         if saturation not in get_args(Saturation):
             raise InputError(f"model document: saturation is 'state' or 'sensor', not {saturation!r}")
+        rectified = document.get("rectified", False)
+        if not isinstance(rectified, bool):
+            raise InputError(f"model document: rectified is true or false, not {rectified!r}")
         return cls(
             terms,
             theta,
@@ -164,6 +188,7 @@ class NARX(OverTerms):
             int(document["n_obs"]),
             None if limits is None else checked_limits(limits),
             saturation,
+            rectified,
         )
 
 

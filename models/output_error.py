@@ -230,8 +230,11 @@ class _Search:
             for (xa, ya), origin in zip(checked, origins, strict=True)
         ]
         ring_downs = RingDowns.build(start.terms, checked, origins, [run for run, _ in runs])
-        if start_from == "estimated" and start.output_limits is not None:
-            raise InputError("the free run's start can be estimated only for a model without output limits")
+        if start_from == "estimated" and not start.reads_state:
+            raise InputError(
+                "the free run's start can be estimated only for a model that reports its recursion's "
+                "output (no sensor limits, no magnitude)"
+            )
         p = start.theta.size
         return cls(
             start=start,
@@ -282,7 +285,7 @@ class _Search:
         into the buffers (one pass a record): MINPACK asks for the Jacobian at the θ it has just
         run whenever it keeps the step, nearly every step, and a run alone costs half a run with
         sensitivities (22 against 47 ms on Silverbox's 65 000 × 51). The penalty is flat, and so
-        is a sensor's reading where it is clipped."""
+        is a sensor's reading where it is clipped; a magnitude's turns with the sign of z."""
         L, limits, state = self.lag, self.start.output_limits, self.state
         outputs = []
         estimated, starts = self.started(theta)
@@ -290,6 +293,9 @@ class _Search:
             output, block = run.run_with_sensitivities(theta, ya, state, into)
             if estimated is not None:
                 estimated.project(block[L:])
+            if self.start.rectified:
+                block *= np.sign(output)[:, None]
+                output = np.abs(output)
             if limits is not None and state is None:
                 low, high = limits
                 block[(output <= low) | (output >= high)] = 0.0
@@ -650,8 +656,8 @@ def recursion_states(
 ) -> Sequence[np.ndarray]:
     """The recursion's own outputs over the records, given what ``model`` reports (``outputs``):
     the same but for a sensor's saturation, which clips only the reading — a ring-down started
-    from clipped readings would start from a state the model was never in."""
-    if model.output_limits is None or model.saturation == "state":
+    from clipped readings would start from a state the model was never in — or its magnitude."""
+    if model.reads_state:
         return outputs
     return [run.run(theta, y) for run, y in runs]
 

@@ -101,11 +101,13 @@ from models.checking import (
 from models.coverage import Coverage, coverage
 from models.effects import (
     POLYNOMIAL,
+    RECTIFIED,
     Effect,
     candidate_effects,
     linear_terms,
     offset_terms,
     output_limits,
+    reads_magnitude,
     unused,
 )
 from models.errors import InputError
@@ -605,6 +607,8 @@ def _model_dict(model: NARX) -> dict[str, Any]:
         # The limits a saturating model clips to (None: none), and whether a state or a sensor does.
         "output_limits": None if limits is None else [_finite(v) for v in limits],
         "saturation": None if limits is None else model.saturation,
+        # Whether the sensor reads the magnitude of the recursion's output (models.narx).
+        "rectified": model.rectified,
     }
 
 
@@ -696,7 +700,8 @@ def refine(
     orders_saw_tails = short and declared is None
     if orders_saw_tails:
         orders, terms = choose_linear(records, progress=tell, workers=workers)
-        grow = partial(grow, declared=terms, orders=orders)
+        rectified = _rectified_orders(records, None, tell, workers)
+        grow = partial(grow, declared=terms, orders=orders, rectified=rectified)
     try:
         grown = grow(heads)
     except InputError:
@@ -826,13 +831,16 @@ def _grown(
     workers: Workers,
     threads: Workers,
     orders: tuple[int, int, int] | None = None,
+    rectified: tuple[Term, ...] | None = None,
 ) -> _Grown:
     """The loop of :func:`refine` on all of ``records``, and what :func:`_on_all` needs to make
-    its models again on more. ``orders``: the linear orders ``declared`` was chosen with, where
-    the caller chose them (:func:`refine` on short records)."""
+    its models again on more. ``orders``: the linear orders ``declared`` was chosen with, and
+    ``rectified`` the linear terms chosen as the rectified model's (:func:`_rectified_orders`),
+    where the caller chose them (:func:`refine` on short records)."""
     checks = CheckSplit.of(records)
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
+        rectified = _rectified_orders(records, checks, tell, workers)
     else:
         terms = parse_terms(declared)
     families = list(effects) if effects is not None else candidate_effects(terms)
@@ -845,8 +853,7 @@ def _grown(
     rounds: list[Round] = []
     for number in range(1, max_rounds + 1):
         offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
-        # A saturating model is not offered saturation again.
-        offered = [e for e in offered if not (e.kind == "saturation" and current.saturating is not None)]
+        offered = [e for e in offered if not _offered_again(e, current)]
         if not offered:
             break
         kinds = {effect.name: effect.kind for effect in offered}
@@ -867,10 +874,14 @@ def _grown(
         ranked: Scores | None = None
         judged: Gain | None = None  # the effect added's, else the best judged's
         tried = 0
+        if output_error and number == 1 and rectified is not None:
+            decided = _rectified_first(current, rectified, offered, scores.scores, checks, workers)
+            if decided is not None:
+                tried, judged = 1, Gain(_fall(decided[3], check), SIMULATION_GAIN)
         # The named families on both criteria first, then the generic polynomial on both: where a
         # named effect explains the data, the loop names it.
         tier = [e.name == POLYNOMIAL for e in offered]
-        for generic in (False, True):
+        for generic in (False, True) if decided is None else ():
             significant = sorted(
                 (s for s, g in zip(scores.scores, tier, strict=True) if s.significant and g == generic),
                 key=lambda s: s.bic_change,
@@ -971,7 +982,7 @@ def _grown(
     # Least squares is consistent when the noise enters the equation (a force on the structure)
     # and gives the best one-step predictor; output error when the noise is on the measured
     # output. The check blocks tell which simulates better.
-    by_simulation = output_error and checks.error(current, tuned=True) < check
+    by_simulation = output_error and (current.rectified or checks.error(current, tuned=True) < check)
     ((refined, noise),) = fitted_ahead if current == by_the_rounds else [_fitted_on_all(records, current)]
     estimator: Estimator = "least squares"
     declared_tuned: NARX | None = None  # the declared model's output-error fit, once searched
@@ -1069,6 +1080,7 @@ def choose_linear(
     progress: Stage | None = None,
     workers: Workers = map,
     margin: float = ORDER_GAIN,
+    rectified: bool = False,
 ) -> tuple[tuple[int, int, int], tuple[Term, ...]]:
     """The linear ARX structure y[t-1…t-n], x[t-d…t-d-n+1] (d = 0 or 1, n ≤ ``max_order``), with
     a constant or without, that simulates the held-out data best for its size.
@@ -1099,6 +1111,10 @@ def choose_linear(
     about zero the constant takes nothing off, and the start stays as it was without the second
     set of fits.
 
+    **Rectified.** With ``rectified``, every candidate is judged as a rectified model, its
+    recursion read through a sensor of its magnitude (:mod:`models.narx`): the orders the
+    rectified-output family starts from (:func:`_rectified_orders`).
+
     Returns (n, n, d) and the terms; ``progress`` is told each candidate as its figures are read,
     ``workers`` fit them (:data:`models.regression.Workers`).
     """
@@ -1109,7 +1125,7 @@ def choose_linear(
     tell = _told(progress)
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
     samples = sum(len(y) for _, y in records)
-    judge = partial(_linear_figures, folds, workers=workers, tell=tell)
+    judge = partial(_linear_figures, folds, workers=workers, tell=tell, rectified=rectified)
     smallest = partial(_smallest_near_best, margin=margin, max_order=max_order, samples=samples)
     figures, admissible = judge([(n, d, False) for n, d in orders])
     n, d, _ = chosen = smallest(figures, admissible)
@@ -1132,12 +1148,18 @@ _Linear = tuple[int, int, bool]
 
 
 def _linear_figures(
-    folds: Sequence[CheckSplit], candidates: Sequence[_Linear], workers: Workers, tell: Stage
+    folds: Sequence[CheckSplit],
+    candidates: Sequence[_Linear],
+    workers: Workers,
+    tell: Stage,
+    rectified: bool = False,
 ) -> tuple[dict[_Linear, np.ndarray], set[_Linear]]:
     """Each linear candidate's held-out free-run RMS on every rotation of ``folds``, the better of
     least squares and output error; and those that may start the loop (:func:`choose_linear`).
     ``tell`` is told each candidate as its figures are read."""
-    structures = [Structure(linear_terms(n, n, d, constant)) for n, d, constant in candidates]
+    structures = [
+        Structure(linear_terms(n, n, d, constant), rectified=rectified) for n, d, constant in candidates
+    ]
     judged = [fold.judge(structures, workers, tuned=True) for fold in folds]
     figures: dict[_Linear, np.ndarray] = {}
     admissible: set[_Linear] = set()
@@ -1192,6 +1214,20 @@ def _smallest_near_best(
     )
 
 
+def _rectified_orders(
+    records: Records, checks: CheckSplit | None, tell: Stage, workers: Workers
+) -> tuple[Term, ...] | None:
+    """Where the records' outputs read as a magnitude (:func:`models.effects.reads_magnitude`),
+    the linear terms :func:`choose_linear` picks for the rectified model, which the rectified
+    family starts from in the first round (:func:`_rectified_first`); None elsewhere. A sensor
+    blind to the sign folds the output at zero, and a linear model of the readings fits the folds
+    with other orders than the recursion under the fold wants (the coupled drives: (1, 1) and
+    (2, 2) for the readings, three lags under the rectifier)."""
+    if not reads_magnitude(np.concatenate([y for _, y in records])):
+        return None
+    return choose_linear(records, checks=checks, progress=tell, workers=workers, rectified=True)[1]
+
+
 def _parameters(candidate: _Linear) -> int:
     """The parameters of a linear candidate of :func:`choose_linear`: x[t] is one more than a
     delay of one, the constant one more."""
@@ -1238,7 +1274,14 @@ def _is_start(model: NARX, checks: CheckSplit) -> bool:
 def _fitted_on_all(records: Records, structure: Structure) -> tuple[NARX, np.ndarray]:
     """``structure``'s least-squares fit on all the ``records`` (:func:`fit_model`)."""
     lag = max_lag(structure.terms)
-    return fit_model(records, structure.terms, structure.noise_lags, lag, saturating=structure.saturating)
+    return fit_model(
+        records,
+        structure.terms,
+        structure.noise_lags,
+        lag,
+        saturating=structure.saturating,
+        rectified=structure.rectified,
+    )
 
 
 def _call(function: Callable[[], Any]) -> Any:
@@ -1254,9 +1297,64 @@ def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records
         if limits is None:
             return []
         return [replace(current, saturating=(limits, how)) for how in get_args(Saturation)]
+    if kinds.get(score.name) == "rectified":
+        return [_rectified(current)]
     if score.noise_lags:
         return [replace(current, noise_lags=score.noise_lags)]
     return [replace(current, terms=current.terms + parse_terms(score.terms))]
+
+
+def _offered_again(effect: Effect, current: Structure) -> bool:
+    """Whether ``effect`` is one the ``current`` structure has already: a saturating model is not
+    offered saturation again, nor a rectified one the rectifier."""
+    return (effect.kind == "saturation" and current.saturating is not None) or (
+        effect.kind == "rectified" and current.rectified
+    )
+
+
+def _rectified(current: Structure, linear: Sequence[Term] | None = None) -> Structure:
+    """``current`` read through a sensor of its magnitude, its recursion with a constant, and
+    with the ``linear`` terms in place of its own where they are given: where the fold lies
+    against the input's zero is the family's parameter, as a dead zone's width is (the coupled
+    drives' second record, its input 0.5 above the first's: the rectified recursion runs free
+    over the check blocks at 0.92 ticks/s without one)."""
+    terms = current.terms if linear is None else tuple(linear)
+    constant = () if Term() in terms else (Term(),)
+    return replace(current, terms=terms + constant, rectified=True)
+
+
+def _rectified_first(
+    current: Structure,
+    linear: Sequence[Term],
+    offered: Sequence[Effect],
+    scores: Sequence[EffectScore],
+    checks: CheckSplit,
+    workers: Workers,
+) -> tuple[EffectScore, Criterion, Structure, float] | None:
+    """The rectified-output family, where it is offered, judged before every other (the records'
+    outputs read as a magnitude), from the ``linear`` terms chosen as the rectified model's: added
+    where its output-error fit lowers the check blocks' free run by ``SIMULATION_GAIN`` from the
+    current structure's best. A sensor's fold is no dynamics: judged after the families of the
+    dynamics, one of them fitted to the fold stands in for it first, at the orders the readings
+    chose. Least squares cannot see the fold (its fit is the recursion's on the readings): a
+    rectified structure is judged by its output-error fit (:class:`models.checking.CheckSplit`),
+    and the check figure returned is that fit's."""
+    for effect, score in zip(offered, scores, strict=True):
+        if effect.kind != "rectified":
+            continue
+        structure = _rectified(current, linear)
+        baseline = min(checks.error(current, tuned=True), checks.error(current))
+        (error,) = checks.judge([structure], workers, tuned=True)
+        if error <= (1 - SIMULATION_GAIN) * baseline:
+            # The report lists the terms the family brings beside the rectifier: its own lags.
+            brought = tuple(t.name for t in structure.terms if t not in current.terms)
+            return (
+                replace(score, terms=(RECTIFIED, *brought)),
+                "simulation",
+                structure,
+                checks.error(structure),
+            )
+    return None
 
 
 def _simulated(offered: Sequence[Effect], scores: Sequence[EffectScore]) -> list[EffectScore]:
@@ -1265,7 +1363,7 @@ def _simulated(offered: Sequence[Effect], scores: Sequence[EffectScore]) -> list
     return [
         score
         for effect, score in zip(offered, scores, strict=True)
-        if effect.kind not in ("noise", "periodic", "saturation") and score.ranked
+        if effect.kind not in ("noise", "periodic", "saturation", "rectified") and score.ranked
     ]
 
 

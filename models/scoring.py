@@ -28,11 +28,14 @@ import numpy as np
 from scipy import linalg, signal, special
 
 from models.effects import (
+    RECTIFIED,
     Effect,
     SearchInput,
+    magnitude_direction,
     offset_direction,
     output_limits,
     periodic_terms,
+    reads_magnitude,
     saturation_direction,
 )
 from models.narmax import fit_narmax, invertible
@@ -98,9 +101,11 @@ def fit_model(
     lag: int,
     t0: Sequence[int] | int = 0,
     saturating: Saturating | None = None,
+    rectified: bool = False,
 ) -> tuple[NARX, np.ndarray]:
     """The model on rows t = lag … N−1 of each record: a NARX (``saturating`` at its limits, in
-    its way), or with ``noise_lags`` a NARMAX's process part and moving-average coefficients."""
+    its way; ``rectified``, its least-squares fit on the readings, :mod:`models.narx`), or with
+    ``noise_lags`` a NARMAX's process part and moving-average coefficients."""
     limits, saturation = saturating or (None, "state")
     # The fits start a record at the terms' own largest lag; trimming x and y to the common
     # first row makes the model see the same equations as the candidates it is compared with.
@@ -109,8 +114,9 @@ def fit_model(
     origins = [origin + offset for origin in record_origins(t0, len(records))]
     if noise_lags:
         narmax = fit_narmax(trimmed, terms, noise_lags, max_iter=NARMAX_ITERATIONS, t0=origins)
-        return replace(narmax.process, output_limits=limits, saturation=saturation), invertible(narmax.noise)
-    return fit_narx(trimmed, terms, origins, limits, saturation), np.empty(0)
+        process = replace(narmax.process, output_limits=limits, saturation=saturation, rectified=rectified)
+        return process, invertible(narmax.noise)
+    return replace(fit_narx(trimmed, terms, origins, limits, saturation), rectified=rectified), np.empty(0)
 
 
 def score_effects(
@@ -334,6 +340,13 @@ def _candidates(
         return [(label,)], saturation_direction(
             np.concatenate([y[lag:] for _, y in records]) - residual, limits
         )[:, None]
+    if effect.kind == "rectified":  # one regressor, the magnitude of the one-step prediction
+        measured = np.concatenate([y[lag:] for _, y in records])
+        direction = magnitude_direction(measured - residual)
+        # A prediction that never goes below zero leaves the regressor nothing: not tested.
+        if not reads_magnitude(measured) or not np.any(direction):
+            return [], np.empty((len(residual), 0))
+        return [(RECTIFIED,)], direction[:, None]
     if effect.kind == "combined" and effect.combine is not None:
         # A combination of lags, sought on the first record like an estimated parameter, is a
         # fixed function of the lags: its regressor is built on every record.
