@@ -1016,19 +1016,19 @@ def choose_linear(
 
     Every candidate is judged on the three rotations of the check split (each block of the
     estimation data held out once; from three records on, each record): fitted on the rest by
-    least squares and by output error (least squares' noise bias would otherwise favour needlessly
-    high orders; output error, searched a few steps under a force on the structure, can end
-    worse), its figure the mean free-run RMS over the held-out parts of the better of the two.
-    A model the input barely drives is no start (:func:`_is_start`): on a rig record with a
-    large dead zone, least squares' best predictor of order 2 extrapolates the output's own past,
-    y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all, where the input drives none), the smallest is
-    chosen whose figure is within ``margin`` (relative) of the best, both raised for their size as
-    the Bayesian information criterion raises them (:func:`_size_penalty`: on a few hundred
-    samples a larger model's small gain is no reason), or above the best's by no more than the
-    standard error of their difference across the rotations: for the loop's start, an effect
-    the linear model lacks lowers the free run of larger orders a little and unevenly (the best
-    linear approximation of the nonlinearity), not by a new mode. A baseline to monitor a
-    structure by wants the model that simulates best, ``margin`` 0.
+    instrumental variables (output error where that estimate diverges), its figure the mean
+    free-run RMS over the held-out parts (:func:`_rotation_figures`: least squares' bias would
+    favour needlessly high orders). A model the input barely drives is no start
+    (:func:`_is_start`): on a rig record with a large dead zone, least squares' best predictor of
+    order 2 extrapolates the output's own past, y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all,
+    where the input drives none), the smallest is chosen whose figure is within ``margin``
+    (relative) of the best, both raised for their size as the Bayesian information criterion
+    raises them (:func:`_size_penalty`: on a few hundred samples a larger model's small gain is
+    no reason), or above the best's by no more than the standard error of their difference across
+    the rotations, or not above it on every rotation: for the loop's start, an effect the linear
+    model lacks lowers the free run of larger orders a little and unevenly (the best linear
+    approximation of the nonlinearity), not by a new mode. A baseline to monitor a structure by
+    wants the model that simulates best, ``margin`` 0.
 
     **The constant.** An output at an operating point away from zero, its input about zero, is
     reached by an ARX without a constant only through poles near one: a model that integrates

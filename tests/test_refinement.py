@@ -688,12 +688,12 @@ def test_with_nothing_declared_a_planted_effect_leaves_the_start_at_the_rigs_ord
 def test_with_nothing_declared_the_rig_without_its_spring_starts_at_its_order():
     """The rig with its cubic spring taken out is a linear system of fourth order, driven with 800 N
     of unmeasured force on the mass the input drives: no nonlinearity is there to fake an order,
-    and still the start took ARX(8, 8). Least squares' larger orders run free over the short check
+    and the start took ARX(8, 8). Least squares' larger orders ran free over the short check
     blocks a little better on all three rotations, beyond their spread and the margin, while each
-    output-error fit there, searched from measured starts on the fit blocks, runs free over the
-    check blocks several times worse than its least-squares start; so the nonlinearity a record
-    carries is not the only thing that moves the order, and a start that nonlinearity cannot fool
-    must first hold this record."""
+    output-error fit there, searched from measured starts on the fit blocks, ran free over the
+    check blocks several times worse than its least-squares start. Judged by their
+    instrumental-variable estimates, the orders beyond four have no unique estimate and do not
+    run free better."""
     scenario = Scenario(params=replace(Scenario().params, k3=0.0), disturbance_std=800.0)
     record = simulate(scenario, 1600, 2)
     orders, _ = choose_linear([(record.x, record.y)])
