@@ -1016,8 +1016,8 @@ def choose_linear(
 
     Every candidate is judged on the three rotations of the check split (each block of the
     estimation data held out once; from three records on, each record): fitted on the rest by
-    instrumental variables (output error where that estimate diverges), its figure the mean
-    free-run RMS over the held-out parts (:func:`_rotation_figures`: least squares' bias would
+    instrumental variables and by output error, its figure the mean over the rotations of the
+    better one's free-run RMS over the held-out parts (:func:`_rotation_figures`: least squares' bias would
     favour needlessly high orders). A model the input barely drives is no start
     (:func:`_is_start`): on a rig record with a large dead zone, least squares' best predictor of
     order 2 extrapolates the output's own past, y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all,
@@ -1146,11 +1146,14 @@ def _smallest_near_best(
     """The smallest admissible candidate near the best (:func:`choose_linear`): its mean figure,
     raised for its size on the ``samples`` held out (:func:`_size_penalty`), within ``margin`` of
     the best's so raised; or its figures above the best's by no more than the spread of their
-    difference (a question of noise, which the size does not enter); or not above the best's on
-    every rotation where its instrumental-variable estimate ran. A larger order is taken only
+    difference (a question of noise, which the size does not enter); or its instrumental-variable
+    fit running free no worse than the best on one rotation at least. A larger order is taken only
     where it simulates better on every rotation, as a family is added across folds: a planted
     backlash's best linear approximation runs free a fifth better at order 5 than at 4 on two
-    rotations, and worse on the third."""
+    rotations, and worse on the third. The smaller order's own figure there is its
+    instrumental-variable fit's: an output-error search from measured starts on short blocks can
+    end well on one rotation by chance (on the rig, ARX(3, 3) with x[t], which cannot hold the
+    input's delay of four samples, ran free over one rotation below ARX(4, 4))."""
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
     # best of all is the start: the loop may still find what the input does.
     mean = {
