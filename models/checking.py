@@ -18,6 +18,7 @@ from functools import partial
 import numpy as np
 
 from models.errors import InputError
+from models.instrumental import fit_instrumental
 from models.narx import NARX
 from models.output_error import comes_to_rest, fit_output_error
 from models.regression import Workers
@@ -160,6 +161,16 @@ class CheckSplit:
             self.search(structure, start, SETTLED_EVALUATIONS)
             self._settled.add(structure)
         return self.error(structure, tuned=True)
+
+    def instrumental(self, structure: Structure) -> tuple[NARX | None, float]:
+        """``structure`` fitted on the fit parts by instrumental variables from its least-squares
+        fit (:func:`models.instrumental.fit_instrumental`), and its free-run RMS over the check
+        parts as :meth:`error` judges a fit; None and infinite where it cannot be made."""
+        try:
+            model = fit_instrumental(self.fitted(structure), self.fit)
+        except InputError:
+            return None, np.inf
+        return model, np.inf if model is None else self._simulates(model)
 
     def _judge(self, structure: Structure, tuned: bool) -> float:
         # A rectified structure's least-squares fit is its recursion's on the readings, blind to
