@@ -13,10 +13,10 @@ loop chooses), each round
    blocks, each free run started from its first measured outputs). The first effect that lowers
    that free run by more than its standard error (:func:`models.checking.check_noise`; moving-average noise,
    which is there to unbias the parameters, need only not make it worse) is added — decided by
-   the one-step criterion — unless a later one lowers it by ``SIMULATION_GAIN`` more and, each
-   added and the next round judged, ends lower (:func:`_looked_ahead`). Where none clears, a
-   family whose least-squares model diverges there is judged by output error, grown from the
-   current model's output-error fit (:func:`_by_output_error_grown`);
+   the one-step criterion — unless a later one lowers it by a further ``SIMULATION_GAIN`` of the
+   current figure and, each added and the next round judged, ends lower (:func:`_looked_ahead`).
+   Where none clears, a family whose least-squares model diverges there is judged by output
+   error, grown from the current model's output-error fit (:func:`_by_output_error_grown`);
 4. if no effect is significant on e (on slow, finely sampled data the one-step residual carries
    little of the simulation error), or every significant one made the free run worse, each
    family's regressors are tried in the order of their error reduction, and the family whose
@@ -1250,12 +1250,14 @@ def _looked_ahead(
     current: Structure,
     check: float,
     margin: float,
-    ahead: Callable[[Structure, float], float],
+    ahead: Callable[[Structure, float], tuple[float, str | None]],
 ) -> tuple[EffectScore, Criterion, Structure, float]:
     """The family a round adds: ``first``, the first in the one-step order to clear the margin,
-    unless one of the next ``CONTENDERS`` still ``judged`` lowers the check blocks' free run
-    below the first's by ``SIMULATION_GAIN`` and, each added in turn and the round after judged
-    (``ahead``: the check figure that round ends at), the pair it starts ends lower.
+    unless one of the next ``CONTENDERS`` still ``judged`` takes a further ``SIMULATION_GAIN`` of
+    the current model's figure ``check`` off the check blocks' free run and, each added in turn
+    and the round after judged (``ahead``: the check figure that round ends at, and the family it
+    adds), the pair it starts ends lower by more than the figure's standard error ``margin``, and
+    without the first.
 
     The one-step order carries what the free run cannot: a family that explains more of the
     residual is more likely the effect, and an approximation of a missing effect can simulate the
@@ -1265,9 +1267,13 @@ def _looked_ahead(
     hides the effect for good (Silverbox from ``linear:10,10``: a hysteresis variable at 0.85 of
     the figure where the offset reaches 0.38; with it in, the offset never entered). Neither
     gain alone tells these apart; the next round does: the effect leaves what remains to be
-    found, a stand-in leaves its own error. A gain of ``SIMULATION_GAIN``, what a family picked
-    among many must show before the simulation criterion trusts it, decides when to look: any
-    smaller is within what the best of several gains by chance on the same blocks. Moving-average
+    found, a stand-in leaves its own error. A further gain of ``SIMULATION_GAIN``, what the
+    simulation criterion asks of a family picked among many, decides when to look: any smaller is
+    within what the best of several gains by chance on the same blocks. A later family
+    that brings the first's terms among its own is that effect with more terms, not another (on
+    the rig, whose structure holds a cubic spring, an offset brings every lag's square, a
+    quadratic spring some of them); and where the later family's round adds the first, both pairs
+    hold the same effects: in either case the one-step order names them. Moving-average
     noise, which clears by being no worse and is there to unbias the parameters, does not
     contend, and is not displaced.
     """
@@ -1277,14 +1283,20 @@ def _looked_ahead(
     contenders = [
         (other_error, other, other_structure)
         for _, (other, other_error, other_structure) in zip(range(CONTENDERS), judged, strict=False)
-        if other_structure.noise_lags == current.noise_lags and other_error <= (1 - margin) * check
+        if other_structure.noise_lags == current.noise_lags
+        and other_error <= (1 - margin) * check
+        and not set(structure.terms) <= set(other_structure.terms)
     ]
     if not contenders:
         return first
     best_error, best, best_structure = min(contenders, key=lambda trial: trial[0])
-    if best_error > (1 - SIMULATION_GAIN) * error:
+    if error - best_error < SIMULATION_GAIN * check:
         return first
-    if ahead(best_structure, best_error) < ahead(structure, error):
+    best_end, after_best = ahead(best_structure, best_error)
+    if after_best == first[0].name:
+        return first
+    first_end, _ = ahead(structure, error)
+    if best_end < (1 - margin) * first_end:
         return best, criterion, best_structure, best_error
     return first
 
@@ -1301,12 +1313,13 @@ def _next_round(
     number: int,
     current: Structure,
     check: float,
-) -> float:
+) -> tuple[float, str | None]:
     """The check blocks' free-run RMS at which round ``number`` from ``current`` (running free
-    there at ``check``) ends by the one-step criterion with least-squares parameters; ``check``
-    where no named family clears (:func:`_looked_ahead`). Least squares alone, as the round
-    looked from judged its families: a branch that only output error could carry on would
-    otherwise win by the estimator (output error's figures run lower), not by its effect."""
+    there at ``check``) ends by the one-step criterion with least-squares parameters, and the
+    family it adds; ``check`` and None where no named family clears (:func:`_looked_ahead`).
+    Least squares alone, as the round looked from judged its families: a branch that only output
+    error could carry on would otherwise win by the estimator (output error's figures run lower),
+    not by its effect."""
     offered = [
         effect
         for effect in unused([_follow(effect, current.terms) for effect in families], current.terms)
@@ -1318,10 +1331,10 @@ def _next_round(
     significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
     stage = f"round {number}, looked ahead"
     judged = _judged_in_turn(significant, kinds, current, records, checks, workers, tell, stage)
-    for _, error, structure in judged:
+    for score, error, structure in judged:
         if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-            return min(error, check)
-    return check
+            return min(error, check), score.name
+    return check, None
 
 
 def _by_output_error_grown(
