@@ -13,7 +13,10 @@ loop chooses), each round
    blocks, each free run started from its first measured outputs). The first effect that lowers
    that free run by more than its standard error (:func:`models.checking.check_noise`; moving-average noise,
    which is there to unbias the parameters, need only not make it worse) is added — decided by
-   the one-step criterion;
+   the one-step criterion — unless a later one lowers it by a further ``SIMULATION_GAIN`` of the
+   current figure and, each added and the next round judged, ends lower (:func:`_looked_ahead`).
+   Where none clears, a family whose least-squares model diverges there is judged by output
+   error, grown from the current model's output-error fit (:func:`_by_output_error_grown`);
 4. if no effect is significant on e (on slow, finely sampled data the one-step residual carries
    little of the simulation error), or every significant one made the free run worse, each
    family's regressors are tried in the order of their error reduction, and the family whose
@@ -152,6 +155,9 @@ JUDGED_AT_ONCE = 2
 # (:func:`_pruned`): the workers' fits run side by side, and where the first is refused the next
 # may pass.
 PRUNING_TRIALS = 2
+# Once a family clears the one-step criterion's margin, this many more in the one-step order are
+# judged on the check blocks for a larger gain (:func:`_looked_ahead`).
+CONTENDERS = 4
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
 
@@ -858,16 +864,7 @@ def _grown(
             break
         kinds = {effect.name: effect.kind for effect in offered}
         tell(f"round {number}: scoring {len(offered)} {'family' if len(offered) == 1 else 'families'}")
-        scores = score_effects(
-            records,
-            current.terms,
-            current.noise_lags,
-            offered,
-            alpha,
-            saturating=current.saturating,
-            workers=workers,
-            threads=threads,
-        )
+        scores = _scored(records, current, offered, alpha, workers, threads)
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
@@ -886,7 +883,7 @@ def _grown(
                 (s for s, g in zip(scores.scores, tier, strict=True) if s.significant and g == generic),
                 key=lambda s: s.bic_change,
             )
-            for score, error, structure in _judged_in_turn(
+            in_turn = _judged_in_turn(
                 significant,
                 kinds,
                 current,
@@ -895,7 +892,8 @@ def _grown(
                 workers,
                 tell,
                 f"round {number}",
-            ):
+            )
+            for score, error, structure in in_turn:
                 tried += 1
                 # Moving-average noise, there to unbias the parameters, need only not make it worse.
                 gain = Gain(_fall(error, check), 0.0 if structure.noise_lags > current.noise_lags else margin)
@@ -904,10 +902,23 @@ def _grown(
                     break
                 judged = _better(judged, gain)
                 rejected.append(score.name)
+            if decided is None and output_error:
+                decided = _by_output_error_grown(
+                    significant, kinds, current, records, check, margin, checks, workers
+                )
+                rejected = [name for name in rejected if decided is None or name != decided[0].name]
+                if decided is not None:
+                    judged = Gain(_fall(decided[3], check), margin)
+            elif decided is not None:
+                ahead = partial(_next_round, records, families, alpha, margin, checks, workers, threads, tell)
+                first = decided
+                decided = _looked_ahead(first, in_turn, current, check, margin, partial(ahead, number + 1))
+                if decided is not first:
+                    judged = Gain(_fall(decided[3], check), margin)
             if decided is None and output_error and generic in tier:
                 offer = "the generic polynomial" if generic else "the families"
                 tell(f"round {number}: {offer} on the simulation error")
-                ranked = ranked or _ranked(records, current, offered, alpha, workers, threads)
+                ranked = ranked or _scored(records, current, offered, alpha, workers, threads, rank=True)
                 chosen = [g == generic for g in tier]
                 decided, simulated, structures = _by_simulation(
                     list(compress(offered, chosen)),
@@ -963,7 +974,7 @@ def _grown(
     if output_error and folds:
         for _ in range(max_rounds):
             offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
-            scores = _ranked(records, current, offered, alpha, workers, threads)
+            scores = _scored(records, current, offered, alpha, workers, threads, rank=True)
             step = Round(
                 scores.residual_rms,
                 scores.level,
@@ -981,8 +992,11 @@ def _grown(
             check = checks.error(current)
     # Least squares is consistent when the noise enters the equation (a force on the structure)
     # and gives the best one-step predictor; output error when the noise is on the measured
-    # output. The check blocks tell which simulates better.
-    by_simulation = output_error and (current.rectified or checks.error(current, tuned=True) < check)
+    # output. The check blocks tell which simulates better (``check`` is the figure the last
+    # family was judged by: output error's where least squares' diverged).
+    by_simulation = output_error and (
+        current.rectified or checks.error(current, tuned=True) < checks.error(current)
+    )
     ((refined, noise),) = fitted_ahead if current == by_the_rounds else [_fitted_on_all(records, current)]
     estimator: Estimator = "least squares"
     declared_tuned: NARX | None = None  # the declared model's output-error fit, once searched
@@ -1044,23 +1058,25 @@ def _grown(
     return _Grown(refinement, start, start_estimator, start_check, current, folded)
 
 
-def _ranked(
+def _scored(
     records: Records,
     current: Structure,
     offered: Sequence[Effect],
     alpha: float,
     workers: Workers,
     threads: Workers,
+    rank: bool = False,
 ) -> Scores:
-    """Every offered family's score with all its regressors ranked by error reduction, significant
-    or not: what the simulation criteria try."""
+    """Every offered family's score against ``current``'s one-step residual
+    (:func:`models.scoring.score_effects`); with ``rank``, with all its regressors ranked by error
+    reduction, significant or not: what the simulation criteria try."""
     return score_effects(
         records,
         current.terms,
         current.noise_lags,
         offered,
         alpha,
-        rank=True,
+        rank=rank,
         saturating=current.saturating,
         workers=workers,
         threads=threads,
@@ -1433,6 +1449,146 @@ def _judged_in_turn(
             tell(f"{stage}: {score.name} on the check blocks")
             error, structure = min(((next(errors), option) for option in options), key=lambda trial: trial[0])
             yield score, error, structure
+
+
+def _looked_ahead(
+    first: tuple[EffectScore, Criterion, Structure, float],
+    judged: Iterator[tuple[EffectScore, float, Structure]],
+    current: Structure,
+    check: float,
+    margin: float,
+    ahead: Callable[[Structure, float], tuple[float, str | None]],
+) -> tuple[EffectScore, Criterion, Structure, float]:
+    """The family a round adds: ``first``, the first in the one-step order to clear the margin,
+    unless one of the next ``CONTENDERS`` still ``judged`` takes a further ``SIMULATION_GAIN`` of
+    the current model's figure ``check`` off the check blocks' free run and, each added in turn
+    and the round after judged (``ahead``: the check figure that round ends at, and the family it
+    adds), the pair it starts ends lower by more than the figure's standard error ``margin``, and
+    without the first.
+
+    The one-step order carries what the free run cannot: a family that explains more of the
+    residual is more likely the effect, and an approximation of a missing effect can simulate the
+    check blocks better until that effect is in (Silverbox from ``linear:4,4``: the cubic spring
+    simulates them at half the missing lags' figure, and after it no named family's
+    least-squares model runs free). But the first to clear can be a stand-in whose small gain
+    hides the effect for good (Silverbox from ``linear:10,10``: a hysteresis variable at 0.85 of
+    the figure where the offset reaches 0.38; with it in, the offset never entered). Neither
+    gain alone tells these apart; the next round does: the effect leaves what remains to be
+    found, a stand-in leaves its own error. A further gain of ``SIMULATION_GAIN``, what the
+    simulation criterion asks of a family picked among many, decides when to look: any smaller is
+    within what the best of several gains by chance on the same blocks. A later family
+    that brings the first's terms among its own is that effect with more terms, not another (on
+    the rig, whose structure holds a cubic spring, an offset brings every lag's square, a
+    quadratic spring some of them); and where the later family's round adds the first, both pairs
+    hold the same effects: in either case the one-step order names them. Moving-average
+    noise, which clears by being no worse and is there to unbias the parameters, does not
+    contend, and is not displaced.
+    """
+    _, criterion, structure, error = first
+    if structure.noise_lags != current.noise_lags:
+        return first
+    contenders = [
+        (other_error, other, other_structure)
+        for _, (other, other_error, other_structure) in zip(range(CONTENDERS), judged, strict=False)
+        if other_structure.noise_lags == current.noise_lags
+        and other_error <= (1 - margin) * check
+        and not set(structure.terms) <= set(other_structure.terms)
+    ]
+    if not contenders:
+        return first
+    best_error, best, best_structure = min(contenders, key=lambda trial: trial[0])
+    if error - best_error < SIMULATION_GAIN * check:
+        return first
+    best_end, after_best = ahead(best_structure, best_error)
+    if after_best == first[0].name:
+        return first
+    first_end, _ = ahead(structure, error)
+    if best_end < (1 - margin) * first_end:
+        return best, criterion, best_structure, best_error
+    return first
+
+
+def _next_round(
+    records: Records,
+    families: Sequence[Effect],
+    alpha: float,
+    margin: float,
+    checks: CheckSplit,
+    workers: Workers,
+    threads: Workers,
+    tell: Stage,
+    number: int,
+    current: Structure,
+    check: float,
+) -> tuple[float, str | None]:
+    """The check blocks' free-run RMS at which round ``number`` from ``current`` (running free
+    there at ``check``) ends by the one-step criterion with least-squares parameters, and the
+    family it adds; ``check`` and None where no named family clears (:func:`_looked_ahead`).
+    Least squares alone, as the round looked from judged its families: a branch that only output
+    error could carry on would otherwise win by the estimator (output error's figures run lower),
+    not by its effect."""
+    offered = [
+        effect
+        for effect in unused([_follow(effect, current.terms) for effect in families], current.terms)
+        if effect.name != POLYNOMIAL and not (effect.kind == "saturation" and current.saturating is not None)
+    ]
+    tell(f"round {number}, looked ahead: scoring {len(offered)} families")
+    scores = _scored(records, current, offered, alpha, workers, threads)
+    kinds = {effect.name: effect.kind for effect in offered}
+    significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
+    stage = f"round {number}, looked ahead"
+    judged = _judged_in_turn(significant, kinds, current, records, checks, workers, tell, stage)
+    for score, error, structure in judged:
+        if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
+            return min(error, check), score.name
+    return check, None
+
+
+def _by_output_error_grown(
+    significant: Sequence[EffectScore],
+    kinds: dict[str, str],
+    current: Structure,
+    records: Records,
+    check: float,
+    margin: float,
+    checks: CheckSplit,
+    workers: Workers,
+) -> tuple[EffectScore, Criterion, Structure, float] | None:
+    """Where no ``significant`` family clears the one-step criterion by least squares, the first
+    in the one-step order whose least-squares model diverges on the check blocks and which clears
+    it by output error: its new terms added at zero to the current model's output-error fit,
+    which runs free as that model does, and searched from there (:meth:`CheckSplit.search_grown`);
+    its score, structure and check figure (by output error). None where none does.
+
+    Least squares fits each lag's nonlinear term to the one-step residual, and on finely sampled
+    data a small error in a lightly damped model's many coefficients makes the free run diverge,
+    where the same terms with parameters fitted to the free run are an effect: on Silverbox from
+    ``linear:10,10``, once the cubic spring and the offset are in, every family's least-squares
+    model diverges there, and the loop stopped with the damping's and the spring's other terms
+    missing. Such a family is judged against the current model's best figure, by least squares,
+    by output error, or by output error searched as long again as the family is (its search
+    starts where the current model's ended, and a longer search can gain on its own).
+    A family whose least-squares model runs free and does not clear has been judged.
+    """
+    diverged = [
+        (score, structure)
+        for score in significant
+        for structure in _with(score, kinds, current, records)
+        if structure.noise_lags == current.noise_lags
+        and structure.saturating == current.saturating
+        and not np.isfinite(checks.error(structure))
+    ]
+    if not diverged:
+        return None
+    start = checks.tuned(current)
+    longer = CheckSplit(checks.fit, checks.check, _tuned={current: start})
+    further = longer.search(current, start, CHECK_EVALUATIONS)
+    baseline = min(check, checks.error(current, tuned=True), further)
+    for score, structure in diverged:
+        (error,) = checks.search_grown(current, [structure], CHECK_EVALUATIONS, workers)
+        if error <= (1 - margin) * baseline:
+            return score, "one-step", structure, error
+    return None
 
 
 def _by_simulation(

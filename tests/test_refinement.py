@@ -10,6 +10,7 @@ import pytest
 from scipy import linalg, signal, stats
 
 from bench.measured import coupled_drives
+from harness.duffing import DuffingOscillator
 from harness.extrapolating import growing_steps
 from harness.prerequisites import benchmark_data
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
@@ -1041,3 +1042,27 @@ def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
     (kept,) = set(earlier) - {taken}
     assert pruned.terms == tuple(term for term in everything.terms if term != taken)
     assert kept in pruned.terms
+
+
+def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_from_the_model():
+    """Silverbox's physics (a mass, a damper and a hardening spring, sampled at ten times its
+    resonance) with an offset on the sensor, from ``linear:10,10``: once the offset and Coulomb
+    friction are in, the cube of a combination of the output's lags (the spring) explains the
+    residual, but its least-squares model diverges on the check blocks, as every family's does.
+    Judged by output error, its terms grown at zero from the current model's fit, it lowers the
+    check blocks' free run and is added (main took power-law damping there on the simulation
+    criterion)."""
+    x, y = DuffingOscillator().record(6000, cubic_share=0.3, noise_share=0.01, offset_share=0.3, seed=1)
+    result = refine([(x, y)], linear_terms(10, 10), max_rounds=3)
+    names = [step.added.name if step.added else None for step in result.rounds]
+    assert names == ["offset", "coulomb_friction", "unmeasured_nonlinearity"], names
+    heads, _ = held_out_tails([(x, y)])
+    checks = CheckSplit.of(heads)
+    terms = linear_terms(10, 10)
+    for step in result.rounds:
+        assert step.added is not None
+        terms += parse_terms(step.added.terms)
+    # The premise: the spring's least-squares model diverges on the check blocks.
+    assert checks.error(Structure(terms)) == np.inf
+    before, after = result.rounds[-1].check_rms
+    assert after <= (1 - check_noise(checks.check)) * before, (before, after)
