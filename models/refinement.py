@@ -161,7 +161,7 @@ CONTENDERS = 4
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
 
-Criterion = Literal["one-step", "simulation", "simulation across folds"]
+Criterion = Literal["one-step", "output error", "simulation", "simulation across folds"]
 Estimator = Literal["least squares", "output error"]
 Verdict = Literal["better", "not better", "diverged"]
 
@@ -172,7 +172,10 @@ class Round:
 
     ``criterion`` says what decided the effect added: "one-step" (its regressors were significant
     on the one-step residual and its model's free run over the check blocks lower by more than its
-    standard error), "simulation" (it lowered that free run by at least ``SIMULATION_GAIN``) or
+    standard error), "output error" (significant so, its least-squares model diverging there,
+    and its model grown from the current one's output-error fit lowering that free run by more
+    than its standard error), "simulation" (it lowered that free run by at least
+    ``SIMULATION_GAIN``) or
     "simulation across folds" (its settled output-error model lowered the free run over the
     checked records of each of three folds by at least ``FOLD_GAIN``); ``check_rms`` is the check
     blocks' free-run RMS before and after the round (by output error, settled, across folds).
@@ -1587,7 +1590,7 @@ def _by_output_error_grown(
     for score, structure in diverged:
         (error,) = checks.search_grown(current, [structure], CHECK_EVALUATIONS, workers)
         if error <= (1 - margin) * baseline:
-            return score, "one-step", structure, error
+            return score, "output error", structure, error
     return None
 
 
