@@ -16,12 +16,15 @@ HOLD = 5  # samples each input level is held, as the drives' uniform input is
 Record = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def rectified_drive(seed: int, n: int = 500, noise: float = 0.02) -> Record:
+def rectified_drive(seed: int, n: int = 500, noise: float = 0.02, offset: float = 0.0) -> Record:
     """x, the readings |z| + white noise of std ``noise``, and the signed speed z, over ``n``
-    samples: x uniform on [−1.5, 2.5] (the drives' first record's range), held ``HOLD`` samples,
-    so that z turns sign every few dozen samples."""
+    samples: x uniform on [−1.5, 2.5] (the drives' first record's range) raised by ``offset`` (the
+    second record's input sits 0.5 above the first's), held ``HOLD`` samples, so that z turns
+    sign every few dozen samples. The record starts at rest at the offset's speed (the gain is
+    one), as a record taken in operation does."""
     rng = np.random.default_rng(seed)
     x = np.repeat(rng.uniform(-1.5, 2.5, n // HOLD + 1), HOLD)[:n]
     denominator = np.real(np.poly(POLES))
-    z = signal.lfilter(NUMERATOR * np.sum(denominator) / np.sum(NUMERATOR), denominator, x)
+    z = signal.lfilter(NUMERATOR * np.sum(denominator) / np.sum(NUMERATOR), denominator, x) + offset
+    x = x + offset
     return x, np.abs(z) + noise * rng.standard_normal(n), z
