@@ -161,7 +161,7 @@ CONTENDERS = 4
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
 
-Criterion = Literal["one-step", "output error", "simulation", "simulation across folds"]
+Criterion = Literal["one-step", "output error", "simulation", "simulation across folds", "output's range"]
 Estimator = Literal["least squares", "output error"]
 Verdict = Literal["better", "not better", "diverged"]
 
@@ -175,10 +175,11 @@ class Round:
     standard error), "output error" (significant so, its least-squares model diverging there,
     and its model grown from the current one's output-error fit lowering that free run by more
     than its standard error), "simulation" (it lowered that free run by at least
-    ``SIMULATION_GAIN``) or
-    "simulation across folds" (its settled output-error model lowered the free run over the
-    checked records of each of three folds by at least ``FOLD_GAIN``); ``check_rms`` is the check
-    blocks' free-run RMS before and after the round (by output error, settled, across folds).
+    ``SIMULATION_GAIN``), "simulation across folds" (its settled output-error model lowered the
+    free run over the checked records of each of three folds by at least ``FOLD_GAIN``) or
+    "output's range" (the rectifier, taken where the records read as a magnitude);
+    ``check_rms`` is the check blocks' free-run RMS before and after the round (by output error,
+    settled, across folds).
     """
 
     residual_rms: float
@@ -1419,7 +1420,7 @@ def _rectified_first(
             brought = tuple(t.name for t in structure.terms if t not in current.terms)
             return (
                 replace(score, terms=(RECTIFIED, *brought)),
-                "simulation",
+                "output's range",
                 structure,
                 checks.error(structure),
             )
