@@ -1044,7 +1044,7 @@ def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
     assert kept in pruned.terms
 
 
-# Two and a half minutes of output-error searches: `make slow`. `python -m bench.measured --only
+# Minutes of output-error searches on a long record: `make slow`. `python -m bench.measured --only
 # silverbox`'s linear:10,10 row takes the same path on the measured data.
 @pytest.mark.slow
 def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_from_the_model():
