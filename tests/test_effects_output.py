@@ -283,17 +283,17 @@ def test_a_static_nonlinearity_between_two_filters_is_named_first_and_the_free_r
     first, its regressor built on both): the filtered input nonlinearity is named first, and the
     held-out free-run RMS falls to less than half of the declared model's and of the best the
     linear structure does with output-error parameters."""
-    x, y = wiener_hammerstein(seed=1, n=12_000)
+    x, y = wiener_hammerstein(seed=1, n=6000)
     declared = linear_terms(2, 3)
-    estimation = [(x[:4000], y[:4000]), (x[4000:8000], y[4000:8000])]
-    report = refine_records(estimation, [(x[8000:], y[8000:])], declared)
+    estimation = [(x[:2000], y[:2000]), (x[2000:4000], y[2000:4000])]
+    report = refine_records(estimation, [(x[4000:], y[4000:])], declared)
     names = [e.name for e in report.refinement.effects_added]
     assert names and names[0] == "filtered_input_nonlinearity", names
     first = parse_terms(report.refinement.effects_added[0].terms)
     assert first and all({f.signal for f in t.factors} == {"x"} and t.degree in (2, 3) for t in first)
     assert report.after.free_run_rms <= report.before.free_run_rms / 2, (report.before, report.after)
     linear = fit_output_error(fit_narx(estimation, declared), estimation, SETTLED_EVALUATIONS).model
-    assert report.after.free_run_rms <= assess(linear, x[8000:], y[8000:]).free_run_rms / 2
+    assert report.after.free_run_rms <= assess(linear, x[4000:], y[4000:]).free_run_rms / 2
 
 
 def test_the_combination_of_input_lags_is_found() -> None:
@@ -338,8 +338,8 @@ def test_a_static_nonlinearity_before_the_dynamics_is_the_input_nonlinearity() -
     """Hammerstein: the same f of the unfiltered input before G2 with two numerator lags, f at two
     lags, which no single combination's powers hold: the per-lag input nonlinearity is named
     first, not the filtered one."""
-    x, y = wiener_hammerstein(seed=1, n=12_000, hammerstein=True)
-    report = refine_record(x, y, linear_terms(2, 3), [(0, 8000)], (8000, 12_000))
+    x, y = wiener_hammerstein(seed=1, n=6000, hammerstein=True)
+    report = refine_record(x, y, linear_terms(2, 3), [(0, 4000)], (4000, 6000))
     names = [e.name for e in report.refinement.effects_added]
     assert names and names[0] == "input_nonlinearity", names
 
