@@ -26,7 +26,6 @@ from sqlalchemy import insert, select, update
 
 from harness.cli import invoke
 from harness.live import free_port, wait_until_serving
-from service.config import get_settings
 from service.db import make_engine
 from service.migrate import upgrade_database
 from service.tables import Organisation, Structure, Webhook, utcnow
@@ -59,32 +58,20 @@ def seeded(tmp_path_factory) -> dict[str, str]:
     with engine.begin() as connection:
         connection.execute(update(Structure).values(name="bay 3 rig"))
     engine.dispose()
-    second = invoke_in(env, "demo-seed", cwd=folder, check=True)
+    second = invoke("demo-seed", cwd=folder, environ=env)
     env["FIRST_SEED"], env["SECOND_SEED"] = first.stdout, second.stdout
     return env
 
 
-def invoke_in(
-    env: dict[str, str], *args: str, cwd: Path, check: bool = False
-) -> subprocess.CompletedProcess[str]:
-    """``invoke`` in the environment ``env`` instead of this process's, its settings read afresh (the
-    settings are cached). ``env`` names its database: the default is this process's, fixed at import."""
-    get_settings.cache_clear()
-    try:
-        return invoke(*args, cwd=cwd, check=check, environ=env)
-    finally:
-        get_settings.cache_clear()
-
-
 @pytest.fixture
 def in_process(monkeypatch, tmp_path) -> Callable[..., subprocess.CompletedProcess[str]]:
-    """``invoke_in`` this process's environment with the given NARXWATCH_ settings added (kept
-    for the test's later commands)."""
+    """``invoke`` with the given NARXWATCH_ settings added to this process's environment (kept for
+    the test's later commands)."""
 
     def command(*args: str, check: bool = True, **settings: str) -> subprocess.CompletedProcess[str]:
         for name, value in settings.items():
             monkeypatch.setenv(f"NARXWATCH_{name.upper()}", value)
-        return invoke_in(dict(os.environ), *args, cwd=tmp_path, check=check)
+        return invoke(*args, cwd=tmp_path, check=check)
 
     return command
 
@@ -327,7 +314,7 @@ def test_an_unmigrated_database_is_a_one_line_error_and_is_left_alone(newcomer, 
     database.parent.mkdir(parents=True)
     upgrade_database(env["NARXWATCH_DATABASE_URL"], "0001")
     before = database.read_bytes()
-    line = one_line_refusal(invoke_in(env, *command, cwd=workdir), database)
+    line = one_line_refusal(invoke(*command, cwd=workdir, check=False, environ=env), database)
     assert "0001" in line
     assert database.read_bytes() == before
 
@@ -335,7 +322,7 @@ def test_an_unmigrated_database_is_a_one_line_error_and_is_left_alone(newcomer, 
 def test_an_unreachable_database_server_is_a_one_line_error_without_the_password(newcomer):
     env, workdir, _ = newcomer
     env["NARXWATCH_DATABASE_URL"] = "postgresql+psycopg://narxwatch:s3cret@127.0.0.1:1/narxwatch"
-    result = invoke_in(env, "keys", "create", "--org", "o", "--role", "viewer", cwd=workdir)
+    result = invoke("keys", "create", "--org", "o", "--role", "viewer", cwd=workdir, check=False, environ=env)
     assert result.returncode == 2
     (line,) = result.stderr.strip().splitlines()
     assert "cannot open the database at postgresql+psycopg://narxwatch:***@127.0.0.1:1/narxwatch" in line
@@ -394,7 +381,7 @@ def test_invalid_settings_are_one_line_naming_each_variable_and_never_its_value(
     env["NARXWATCH_DATABASE_URL"] = f"sqlite:///{database}"
     env |= {"NARXWATCH_SECRET_KEYS": '["hunter2"]', "NARXWATCH_SMTP_PORT": "seventy"}
     env |= {"NARXWATCH_MAX_CLOCK_SKEW_SECONDS": "-1"}
-    result = invoke_in(env, "keys", "list", cwd=workdir)
+    result = invoke("keys", "list", cwd=workdir, check=False, environ=env)
     assert result.returncode == 2, result.stderr
     (line,) = result.stderr.strip().splitlines()
     assert "NARXWATCH_SECRET_KEYS: " in line and "NARXWATCH_SMTP_PORT: " in line
