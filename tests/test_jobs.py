@@ -33,7 +33,7 @@ from harness.api_helpers import (
     verdicts_of,
     wait_for,
 )
-from harness.cli import NARXWATCH
+from harness.cli import NARXWATCH, invoke
 from harness.job_helpers import EXACT_TERM_NAMES, LONG_LAG_TERMS, TOO_SHORT, Monitored, database_url
 from harness.live import LiveServer
 from harness.workers import workers
@@ -200,13 +200,10 @@ def test_narxwatch_worker_runs_what_a_service_without_jobs_queued(tmp_path: Path
 
 
 def test_narxwatch_worker_refuses_concurrency_on_the_embedded_backend(tmp_path: Path):
-    result = subprocess.run(
-        [NARXWATCH, "worker", "--once", "--concurrency", "2"],
-        env={**os.environ, "NARXWATCH_DATABASE_URL": f"sqlite:///{tmp_path / 'w.db'}"},
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    """A refusal of the command's options: through its entry point in this process (the process
+    itself is the test above's)."""
+    environ = {**os.environ, "NARXWATCH_DATABASE_URL": f"sqlite:///{tmp_path / 'w.db'}"}
+    result = invoke("worker", "--once", "--concurrency", "2", cwd=tmp_path, check=False, environ=environ)
     assert result.returncode != 0
     assert "--concurrency applies to the distributed backend" in result.stdout + result.stderr
 

@@ -53,6 +53,7 @@ from sqlalchemy import exc, func, select
 
 from harness.api_helpers import API, create_structure, json_body, time_victim
 from harness.cli import NARXWATCH
+from harness.job_helpers import database_url as new_database
 from harness.live import LiveServer, free_port, http_client, wait_until_serving
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
@@ -105,17 +106,16 @@ class Served:
 
 @pytest.fixture(params=["sqlite", "postgresql"])
 def database_url(request, tmp_path) -> str:
-    if request.param == "sqlite":
-        return f"sqlite:///{tmp_path / 'narxwatch.db'}"
-    from harness import postgres
-
-    name = f"narxwatch_lifecycle_{uuid.uuid4().hex[:8]}"
-    return postgres.create_database(request.getfixturevalue("postgres_url"), name)
+    return new_database(request.param, tmp_path, request)
 
 
-@pytest.fixture
-def served(database_url: str, tmp_path: Path) -> Iterator[Served]:
-    """``narxwatch serve`` in one worker process, so that all the slow clients meet one pool."""
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def served(request, tmp_path_factory) -> Iterator[Served]:
+    """``narxwatch serve`` in one worker process, so that all the slow clients meet one pool. One
+    server a database for the slow bodies and the slow heads: each test ends with every slow
+    connection closed by the server (asserted), and neither changes what the other's asserts."""
+    tmp_path = tmp_path_factory.mktemp("served")
+    database_url = new_database(request.param, tmp_path, request)
     env = {
         **os.environ,
         "NARXWATCH_DATABASE_URL": database_url,

@@ -13,9 +13,6 @@ from __future__ import annotations
 
 import datetime as dt
 import os
-import shutil
-import subprocess
-import sys
 import threading
 import uuid
 from dataclasses import asdict, dataclass
@@ -27,6 +24,7 @@ from sqlalchemy import Engine, insert, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from harness.api_helpers import API, Org, clients, create_structure, detail, json_body, post_record, wait_for
+from harness.cli import invoke
 from harness.dashboard_helpers import DASHBOARD, logged_in
 from harness.fleet import FUTURE, STATUSES, Fleet, counted, kept, scraped, walked
 from models.inspection import ModeResult
@@ -48,7 +46,6 @@ from service.tables import (
 
 NOW = utcnow()
 DAY = dt.timedelta(days=1)
-NARXWATCH = shutil.which("narxwatch", path=str(Path(sys.executable).parent))
 MODE = asdict(ModeResult("k2", 1.5, 0.2, 0.2, 7.5, True, 1e-3, 30.0, 40.0, 0.3, True, False))
 
 
@@ -468,7 +465,7 @@ def test_a_record_whose_signals_are_pruned_says_so_in_the_api_and_on_its_page(si
     assert 'id="chart-response"' not in page.text
 
 
-def test_the_sweep_queues_one_pruning_a_period_and_the_cli_prunes_at_once(site: Site):
+def test_the_sweep_queues_one_pruning_a_period_and_the_cli_prunes_at_once(site: Site, tmp_path: Path):
     """Last in the file: the sweep prunes every organisation of the database."""
     queued_org, cli_org = Org.create(site.fleet.server), Org.create(site.fleet.server)
     structures = {}
@@ -482,11 +479,7 @@ def test_the_sweep_queues_one_pruning_a_period_and_the_cli_prunes_at_once(site: 
             )
 
     env = {**os.environ, "NARXWATCH_DATABASE_URL": site.url}
-    result = subprocess.run(
-        [NARXWATCH, "db", "prune", "--org", cli_org.name, "--batch", "2"],
-        env=env, capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr
+    result = invoke("db", "prune", "--org", cli_org.name, "--batch", "2", cwd=tmp_path, environ=env)
     assert result.stdout.count(f"{cli_org.name}: 2 records' signals dropped") == 1
     assert f"{cli_org.name}: 1 records' signals dropped" in result.stdout
     assert (
@@ -513,7 +506,7 @@ def test_the_sweep_queues_one_pruning_a_period_and_the_cli_prunes_at_once(site: 
         assert admin.get(f"{API}/retention").json()["last_pruned_at"] is not None
 
 
-def test_vacuum_gives_the_space_of_pruned_signals_back(site: Site):
+def test_vacuum_gives_the_space_of_pruned_signals_back(site: Site, tmp_path: Path):
     """After the sweep above has pruned every organisation's old signals."""
     sqlite = site.fleet.engine.dialect.name == "sqlite"
     files = [Path(site.fleet.engine.url.database + suffix) for suffix in ("", "-wal")] if sqlite else []
@@ -523,9 +516,7 @@ def test_vacuum_gives_the_space_of_pruned_signals_back(site: Site):
 
     before = size()
     env = {**os.environ, "NARXWATCH_DATABASE_URL": site.url}
-    result = subprocess.run([NARXWATCH, "db", "vacuum"], env=env, capture_output=True, text=True, timeout=120)
-    assert result.returncode == 0, result.stderr
-    assert "vacuumed" in result.stdout
+    assert "vacuumed" in invoke("db", "vacuum", cwd=tmp_path, environ=env).stdout
     if sqlite:  # dozens of records' signals of 32 KB each were pruned
         assert size() < before - 500_000, (before, size())
     else:

@@ -1,6 +1,8 @@
-"""``narxwatch db upgrade``, ``keys``, ``demo-seed`` and ``serve``: seeding, serving and every
-refusal of a missing or unreachable database run as a user runs them (the console script); the
-keys commands on the seeded database through its entry point in this process."""
+"""``narxwatch db upgrade``, ``keys``, ``demo-seed`` and ``serve``: seeding, serving and what
+depends on the default database's place (fixed when the service is imported: a missing one is
+refused and not created) run as a user runs them (the console script); the keys commands on the
+seeded database, and the refusals of a database named by its URL (unmigrated, unreachable) or of
+invalid settings, through its entry point in this process."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import signal
 import subprocess
 import sys
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -24,7 +26,6 @@ from sqlalchemy import insert, select, update
 
 from harness.cli import invoke
 from harness.live import free_port, wait_until_serving
-from service.config import get_settings
 from service.db import make_engine
 from service.migrate import upgrade_database
 from service.tables import Organisation, Structure, Webhook, utcnow
@@ -47,31 +48,32 @@ def run(
 @pytest.fixture(scope="module")
 def seeded(tmp_path_factory) -> dict[str, str]:
     """An environment whose SQLite database holds the demo, seeded twice, renamed in between (as
-    ``PATCH /structures/{id}`` renames it)."""
-    env = {**os.environ, "NARXWATCH_DATABASE_URL": f"sqlite:///{tmp_path_factory.mktemp('svc') / 'n.db'}"}
-    run("db", "upgrade", env=env)
+    ``PATCH /structures/{id}`` renames it): seeded first as a user seeds it, then again in this
+    process (``db upgrade`` runs as a process where the default database is made)."""
+    folder = tmp_path_factory.mktemp("svc")
+    env = {**os.environ, "NARXWATCH_DATABASE_URL": f"sqlite:///{folder / 'n.db'}"}
+    upgrade_database(env["NARXWATCH_DATABASE_URL"])
     first = run("demo-seed", env=env)
     engine = make_engine(env["NARXWATCH_DATABASE_URL"])
     with engine.begin() as connection:
         connection.execute(update(Structure).values(name="bay 3 rig"))
     engine.dispose()
-    second = run("demo-seed", env=env)
+    second = invoke("demo-seed", cwd=folder, environ=env)
     env["FIRST_SEED"], env["SECOND_SEED"] = first.stdout, second.stdout
     return env
 
 
 @pytest.fixture
-def in_process(monkeypatch, tmp_path) -> Iterator[Callable[..., subprocess.CompletedProcess[str]]]:
-    """``invoke`` with the given NARXWATCH_ settings, read afresh (the settings are cached)."""
+def in_process(monkeypatch, tmp_path) -> Callable[..., subprocess.CompletedProcess[str]]:
+    """``invoke`` with the given NARXWATCH_ settings added to this process's environment (kept for
+    the test's later commands)."""
 
     def command(*args: str, check: bool = True, **settings: str) -> subprocess.CompletedProcess[str]:
         for name, value in settings.items():
             monkeypatch.setenv(f"NARXWATCH_{name.upper()}", value)
-        get_settings.cache_clear()
         return invoke(*args, cwd=tmp_path, check=check)
 
-    yield command
-    get_settings.cache_clear()
+    return command
 
 
 @pytest.fixture
@@ -308,9 +310,11 @@ def test_serve_without_upgrading_refuses_a_missing_database(newcomer, tmp_path):
 @pytest.mark.parametrize("command", NEED_A_DATABASE, ids=lambda c: " ".join(c[:2]))
 def test_an_unmigrated_database_is_a_one_line_error_and_is_left_alone(newcomer, command):
     env, workdir, database = newcomer
-    run("db", "upgrade", "0001", env=env, cwd=workdir)
+    env["NARXWATCH_DATABASE_URL"] = f"sqlite:///{database}"
+    database.parent.mkdir(parents=True)
+    upgrade_database(env["NARXWATCH_DATABASE_URL"], "0001")
     before = database.read_bytes()
-    line = one_line_refusal(run(*command, env=env, cwd=workdir, check=False), database)
+    line = one_line_refusal(invoke(*command, cwd=workdir, check=False, environ=env), database)
     assert "0001" in line
     assert database.read_bytes() == before
 
@@ -318,7 +322,7 @@ def test_an_unmigrated_database_is_a_one_line_error_and_is_left_alone(newcomer, 
 def test_an_unreachable_database_server_is_a_one_line_error_without_the_password(newcomer):
     env, workdir, _ = newcomer
     env["NARXWATCH_DATABASE_URL"] = "postgresql+psycopg://narxwatch:s3cret@127.0.0.1:1/narxwatch"
-    result = run("keys", "create", "--org", "o", "--role", "viewer", env=env, cwd=workdir, check=False)
+    result = invoke("keys", "create", "--org", "o", "--role", "viewer", cwd=workdir, check=False, environ=env)
     assert result.returncode == 2
     (line,) = result.stderr.strip().splitlines()
     assert "cannot open the database at postgresql+psycopg://narxwatch:***@127.0.0.1:1/narxwatch" in line
@@ -373,10 +377,11 @@ def test_a_process_given_a_key_file_that_holds_no_key_stops_at_its_start_naming_
 
 
 def test_invalid_settings_are_one_line_naming_each_variable_and_never_its_value(newcomer):
-    env, workdir, _ = newcomer
+    env, workdir, database = newcomer
+    env["NARXWATCH_DATABASE_URL"] = f"sqlite:///{database}"
     env |= {"NARXWATCH_SECRET_KEYS": '["hunter2"]', "NARXWATCH_SMTP_PORT": "seventy"}
     env |= {"NARXWATCH_MAX_CLOCK_SKEW_SECONDS": "-1"}
-    result = run("keys", "list", env=env, cwd=workdir, check=False)
+    result = invoke("keys", "list", cwd=workdir, check=False, environ=env)
     assert result.returncode == 2, result.stderr
     (line,) = result.stderr.strip().splitlines()
     assert "NARXWATCH_SECRET_KEYS: " in line and "NARXWATCH_SMTP_PORT: " in line

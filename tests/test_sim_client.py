@@ -1,8 +1,9 @@
 """``narxwatch-sim`` run as a user runs it (the installed console script, the key in the
-environment) against the real service over HTTP, on SQLite and on PostgreSQL. The records,
-scenarios and streams posted, Ctrl-C and the trainings waited for run the script as a process;
-the refusals, ``record --out``'s files and the structure commands go through its entry point in
-this process (``invoke_sim``), the same code but for the second of imports a new process spends.
+environment) against the real service over HTTP, on SQLite and on PostgreSQL. A record, a scenario
+and a stream posted, Ctrl-C and the trainings waited for run the script as a process, each once;
+the other records and streams, the refusals, the files written and the structure commands go
+through its entry point in this process (``invoke_sim``), the same code but for the second of
+imports a new process spends.
 
 The structure is trained through the API from 5 magnitudes per fault mode: coarser than the
 paper's 17, enough for the obvious cases used here (k2 29 %, k1 30 %). Seeds are fixed so that
@@ -21,9 +22,10 @@ import signal
 import subprocess
 import sys
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -136,9 +138,12 @@ def trained(api_server: LiveServer):  # yields Trained
         client.close()
 
 
-def post(trained: Trained, *args: str) -> subprocess.CompletedProcess[str]:
-    """Run against the trained structure; the run must succeed."""
-    result = run_sim(*args, "--structure", str(trained.structure_id), key=trained.key, url=trained.server.url)
+def post(
+    trained: Trained, *args: str, run: Callable[..., Any] = invoke_sim
+) -> subprocess.CompletedProcess[str]:
+    """Run against the trained structure, in this process (``run=run_sim``: as a process); the run
+    must succeed."""
+    result = run(*args, "--structure", str(trained.structure_id), key=trained.key, url=trained.server.url)
     assert result.returncode == 0, result.stderr
     assert trained.key not in result.stdout + result.stderr
     return result
@@ -156,6 +161,7 @@ def test_record_prints_the_verdict_the_service_stored(trained: Trained):
         "11",
         "--acquired-at",
         "2026-11-21T10:00:00Z",
+        run=run_sim,
     )
     lines = result.stdout.splitlines()
     assert len(lines) == 1
@@ -182,7 +188,7 @@ def test_record_json_over_npz_is_the_stored_verdict(trained: Trained):
 
 def test_scenario_iv_prints_a_line_per_run_and_a_tally(trained: Trained):
     before = len(verdicts(trained))
-    result = post(trained, "scenario", "IV", "--runs", "2", "--seed", "21")
+    result = post(trained, "scenario", "IV", "--runs", "2", "--seed", "21", run=run_sim)
     *lines, tally = result.stdout.splitlines()
     assert len(lines) == 2 and all(VERDICT_LINE.match(line) for line in lines)
     assert "(simulated k1 30 %, seed 21)" in lines[0] and "(simulated k1 30 %, seed 22)" in lines[1]
@@ -193,9 +199,8 @@ def test_scenario_iv_prints_a_line_per_run_and_a_tally(trained: Trained):
 def test_stream_posts_count_records_every_period(trained: Trained):
     before = len(verdicts(trained))
     start = "2024-01-01T00:00:00+00:00"
-    result = post(
-        trained, "stream", "--every", "0.2", "--count", "3", "--acquired-at", start, "--format", "csv"
-    )
+    args = ["stream", "--every", "0.2", "--count", "3", "--acquired-at", start, "--format", "csv"]
+    result = post(trained, *args, run=run_sim)
     *lines, tally = result.stdout.splitlines()
     assert len(lines) == 3 and all(VERDICT_LINE.match(line) for line in lines)
     assert tally.startswith("stream: 3 records, ")
@@ -336,7 +341,7 @@ def test_a_key_without_structures_is_told_so(api_server: LiveServer, tenant: Ten
 def test_stream_reports_a_refused_record_and_goes_on(api_server: LiveServer, tenant: Tenant):
     untrained = tenant.admin.post("/api/v1/structures", json={"name": "new", "fs": 1500.0}).json()["id"]
     key = api_server.key(Role.ingest, tenant.name)
-    result = run_sim(
+    result = invoke_sim(
         "stream", "--every", "0", "--count", "2", "--structure", str(untrained), key=key, url=api_server.url
     )
     assert result.returncode == 1
