@@ -61,45 +61,47 @@ MODE_FIELDS = ("name", "k_hat", "sigma_k", "q", "q_critical", "p_value", "accept
 DISTURBANCE_STD = 800.0
 
 
-# The files that take the most of a worker's time, longest first (measured over the whole
-# suite on the 2-core machine, each file's tests' durations summed): the command-line and
-# simulator-client processes, the refinement loop in process and through the command line, the
-# browser, the baselines fitted by output error, the schema fuzzing and the database failures.
-# `make test` hands whole files to two pytest-xdist workers in collection order
-# (--no-loadscope-reorder); these go first so that no long file starts when the other worker is
-# nearly done (the stateful fuzz run, last under xdist's own order, left one worker idle for its
-# last 100 s).
+# The files that take the most of a worker's time, longest first (each file's tests' durations
+# summed over a whole `make test` on the 2-core machine): the refinement loop in process and
+# through the command line, the free-run fault modes, the notifications' and schedules' workers,
+# the browser, the database failures and the schema fuzz. `make test` hands whole files to two
+# pytest-xdist workers in collection order (--no-loadscope-reorder); these go first so that no
+# long file starts when the other worker is nearly done (the stateful fuzz run, last under
+# xdist's own order, once left one worker idle for its last 100 s).
 LONGEST_FILES = (
-    "test_service_cli.py",
     "test_refinement.py",
-    "test_sim_client.py",
-    "test_dashboard_browser.py",
-    "test_cli_refine.py",
-    "test_cli.py",
+    "test_free_run_inspection.py",
     "test_effects_output.py",
-    "test_schedules.py",
-    "test_api_errors.py",
-    "test_sim_scenarios.py",
-    "test_faults.py",
-    "test_novelty.py",
+    "test_cli_refine.py",
     "test_notifications.py",
+    "test_novelty.py",
+    "test_dashboard_browser.py",
+    "test_faults.py",
     "test_lifecycle.py",
     "test_fuzz_stateful.py",
-    "test_free_run_inspection.py",
-    "test_api_novelty.py",
-    "test_jobs.py",
-    "test_api_bounded.py",
+    "test_schedules.py",
+    "test_service_cli.py",
     "test_upload_memory.py",
-    "test_retention.py",
-    "test_fleet_scale.py",
-    "test_api_own_structure.py",
+    "test_api_novelty.py",
+    "test_sim_scenarios.py",
     "test_api_refinements.py",
-    "test_compose.py",
-    "test_cli_select.py",
     "test_readme.py",
+    "test_jobs.py",
+    "test_sim_client.py",
+    "test_api_errors.py",
+    "test_api_bounded.py",
     "test_migrations.py",
-    "test_api_sensor_noise.py",
+    "test_api_own_structure.py",
+    "test_retention.py",
+    "test_compose.py",
     "test_localisation.py",
+    "test_periodic.py",
+    "test_cli.py",
+    "test_observability.py",
+    "test_cli_select.py",
+    "test_api_sensor_noise.py",
+    "test_tenancy.py",
+    "test_fleet_scale.py",
 )
 
 
