@@ -917,7 +917,10 @@ def _grown(
             elif decided is not None:
                 ahead = partial(_next_round, records, families, alpha, margin, checks, workers, threads, tell)
                 first = decided
-                decided = _looked_ahead(first, in_turn, current, check, margin, partial(ahead, number + 1))
+                decided, contended = _looked_ahead(
+                    first, in_turn, current, check, margin, partial(ahead, number + 1)
+                )
+                tried += contended
                 if decided is not first:
                     judged = Gain(_fall(decided[3], check), margin)
             if decided is None and output_error and generic in tier:
@@ -1468,14 +1471,16 @@ def _looked_ahead(
     current: Structure,
     check: float,
     margin: float,
-    ahead: Callable[[Structure, float], tuple[float, str | None]],
-) -> tuple[EffectScore, Criterion, Structure, float]:
+    ahead: Callable[[Structure, float], tuple[float, str | None, int]],
+) -> tuple[tuple[EffectScore, Criterion, Structure, float], int]:
     """The family a round adds: ``first``, the first in the one-step order to clear the margin,
     unless one of the next ``CONTENDERS`` still ``judged`` takes a further ``SIMULATION_GAIN`` of
     the current model's figure ``check`` off the check blocks' free run and, each added in turn
-    and the round after judged (``ahead``: the check figure that round ends at, and the family it
-    adds), the pair it starts ends lower by more than the figure's standard error ``margin``, and
-    without the first.
+    and the round after judged (``ahead``: the check figure that round ends at, the family it
+    adds and the families it judged), the pair it starts ends lower by more than the figure's
+    standard error ``margin``, and without the first; and how many candidates the look compared
+    on the check blocks beside ``first`` (the contenders, and the families each round after
+    judged), which the round reports among those it tried.
 
     The one-step order carries what the free run cannot: a family that explains more of the
     residual is more likely the effect, and an approximation of a missing effect can simulate the
@@ -1497,26 +1502,29 @@ def _looked_ahead(
     """
     _, criterion, structure, error = first
     if structure.noise_lags != current.noise_lags:
-        return first
+        return first, 0
+    # zip takes from the range first: no family past the contenders is judged.
+    looked = list(zip(range(CONTENDERS), judged, strict=False))
     contenders = [
         (other_error, other, other_structure)
-        for _, (other, other_error, other_structure) in zip(range(CONTENDERS), judged, strict=False)
+        for _, (other, other_error, other_structure) in looked
         if other_structure.noise_lags == current.noise_lags
         and other_error <= (1 - margin) * check
         and not set(structure.terms) <= set(other_structure.terms)
     ]
     if not contenders:
-        return first
+        return first, len(looked)
     best_error, best, best_structure = min(contenders, key=lambda trial: trial[0])
     if error - best_error < SIMULATION_GAIN * check:
-        return first
-    best_end, after_best = ahead(best_structure, best_error)
+        return first, len(looked)
+    best_end, after_best, after_best_tried = ahead(best_structure, best_error)
     if after_best == first[0].name:
-        return first
-    first_end, _ = ahead(structure, error)
+        return first, len(looked) + after_best_tried
+    first_end, _, after_first_tried = ahead(structure, error)
+    tried = len(looked) + after_best_tried + after_first_tried
     if best_end < (1 - margin) * first_end:
-        return best, criterion, best_structure, best_error
-    return first
+        return (best, criterion, best_structure, best_error), tried
+    return first, tried
 
 
 def _next_round(
@@ -1531,10 +1539,11 @@ def _next_round(
     number: int,
     current: Structure,
     check: float,
-) -> tuple[float, str | None]:
+) -> tuple[float, str | None, int]:
     """The check blocks' free-run RMS at which round ``number`` from ``current`` (running free
-    there at ``check``) ends by the one-step criterion with least-squares parameters, and the
-    family it adds; ``check`` and None where no named family clears (:func:`_looked_ahead`).
+    there at ``check``) ends by the one-step criterion with least-squares parameters, the family
+    it adds, and how many families it judged there; ``check`` and None where no named family
+    clears (:func:`_looked_ahead`).
     Least squares alone, as the round looked from judged its families: a branch that only output
     error could carry on would otherwise win by the estimator (output error's figures run lower),
     not by its effect."""
@@ -1549,10 +1558,10 @@ def _next_round(
     significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
     stage = f"round {number}, looked ahead"
     judged = _judged_in_turn(significant, kinds, current, records, checks, workers, tell, stage)
-    for score, error, structure in judged:
+    for tried, (score, error, structure) in enumerate(judged, start=1):
         if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-            return min(error, check), score.name
-    return check, None
+            return min(error, check), score.name, tried
+    return check, None, len(significant)
 
 
 def _by_output_error_grown(

@@ -1070,3 +1070,31 @@ def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_f
     assert checks.error(Structure(terms)) == np.inf
     before, after = result.rounds[-1].check_rms
     assert after <= (1 - check_noise(checks.check)) * before, (before, after)
+
+
+def test_a_round_counts_the_candidates_its_look_ahead_compared():
+    """The rig's quadratic spring from linear:4,4 with three stiffness families on offer: once the
+    first in the one-step order clears, the round judges the next ones on the check blocks as
+    contenders, and, where one gains enough more, the round after each (:func:`_looked_ahead`).
+    Every family judged on the check blocks is told as it is read; a round's candidates tried
+    are all those told before the next round begins, the look ahead's among them."""
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
+    )
+    declared = linear_terms(4, 4, 1)
+    offered = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
+    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
+    told: list[str] = []
+    result = refine([(record.x, record.y)], declared, effects=families, progress=told.append)
+    judged = [0]
+    for stage in told:
+        if stage.startswith("round ") and ": scoring" in stage and "looked ahead" not in stage:
+            judged.append(0)
+        judged[-1] += stage.endswith(" on the check blocks")
+    one_step = [
+        (step.tried, judged[number])
+        for number, step in enumerate(result.rounds, start=1)
+        if step.criterion == "one-step"
+    ]
+    assert len(one_step) == 2 and max(told_of for _, told_of in one_step) > 1, told
+    assert all(tried == told_of for tried, told_of in one_step), (one_step, told)
