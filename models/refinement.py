@@ -1741,9 +1741,9 @@ def _pruned(
     Three passes, each judging few structures, since judging every removal on the free run,
     again after each one taken, costs a fit and a free run a term a removal (on long records as
     much as the rounds): the generic blocks whole; then the terms not significant at the loop's
-    level ``alpha`` in the least-squares fit on the check split's fit parts, all at once, else
-    the smaller half of them by t statistic, and so on down to one (:func:`_halved`), again on
-    what is left after each batch taken; then, one term at a time, the best ``PRUNING_TRIALS``
+    level ``alpha`` in the least-squares fit on the check split's fit parts, the smallest t
+    statistic first, as many together as pass (:func:`_largest_batch`), again on what is left
+    after each batch taken; then, one term at a time, the best ``PRUNING_TRIALS``
     of what is left by t statistic, ranked again after each removal, until both are refused. A
     removal is judged as the model will be fitted: its least-squares free run within the bound
     and, where the current structure simulates better by output error (``output_error``: as the
@@ -1757,20 +1757,33 @@ def _pruned(
         return current, ()
     pruned: list[Term] = []
 
-    def removed(trials: Sequence[tuple[Term, ...]]) -> bool:
+    def took(found: tuple[tuple[Term, ...], Structure] | None) -> bool:
         nonlocal current
-        found = _first_removal(current, trials, ceiling, checks, workers)
         if found is not None:
             taken, current = found
             pruned.extend(taken)
         return found is not None
 
     for block in _generic_blocks(current, rounds):
-        removed([block])
-    while removed(_halved(_insignificant(current, declared, rounds, pruned, checks, alpha))):
+        took(_first_removal(current, [block], ceiling, checks, workers))
+    while took(
+        _largest_batch(
+            current,
+            _insignificant(current, declared, rounds, pruned, checks, alpha),
+            ceiling,
+            checks,
+            workers,
+        )
+    ):
         pass
-    while removed(
-        [(term,) for term, _ in _removals(current, declared, rounds, pruned, checks)[:PRUNING_TRIALS]]
+    while took(
+        _first_removal(
+            current,
+            [(term,) for term, _ in _removals(current, declared, rounds, pruned, checks)[:PRUNING_TRIALS]],
+            ceiling,
+            checks,
+            workers,
+        )
     ):
         pass
     return current, tuple(pruned)
@@ -1861,15 +1874,26 @@ def _effect_of(rounds: Sequence[Round], pruned: Sequence[Term]) -> dict[str, int
     }
 
 
-def _halved(batch: Sequence[Term]) -> list[tuple[Term, ...]]:
-    """``batch`` whole, then its first half, its first quarter … down to its first term: the
-    trials of a batch removal, the largest first."""
-    trials: list[tuple[Term, ...]] = []
-    size = len(batch)
-    while size:
-        trials.append(tuple(batch[:size]))
-        size //= 2
-    return trials
+def _largest_batch(
+    current: Structure, batch: Sequence[Term], ceiling: _Ceiling, checks: CheckSplit, workers: Workers
+) -> tuple[tuple[Term, ...], Structure] | None:
+    """The most of ``batch``'s first terms whose removal together :func:`_pruned` takes, found by
+    doubling them (one, two, four …, then all) while the removal passes, with ``current``
+    without them; None where the first alone is refused. Upwards, not down from the whole: on a
+    long model, removing most of its terms at once is refused far more often than a few, and a
+    refused first term then costs one judgement, not one for each halving (Silverbox from
+    linear:10,10: 226 terms not significant, each halving refused down to the first)."""
+    taken = None
+    size = 1
+    while batch:
+        found = _first_removal(current, [tuple(batch[:size])], ceiling, checks, workers)
+        if found is None:
+            break
+        taken = found
+        if size == len(batch):
+            break
+        size = min(2 * size, len(batch))
+    return taken
 
 
 def _removals(
