@@ -1719,7 +1719,7 @@ def _pruned(
     within the figure's standard error: the check blocks see neither the model's extrapolation
     nor, on short records, more than a hundred samples, and with that much allowed Silverbox from
     linear:4,4 lost six terms and ran free over the arrow 15 % worse, and the coupled drives'
-    second test lost half its rectifier's terms and, on the held-out tail, the rectifier.
+    second test lost four terms and with them, on the held-out tail, its effects.
 
     Once, after the rounds, not between them. A term pruned between rounds changes what every
     later round is offered and judged against, on a removal allowed for being no worse: on
