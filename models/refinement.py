@@ -24,13 +24,16 @@ loop chooses), each round
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Otherwise the loop stops.
 
-After the rounds, the loop prunes back (Piroddi & Spinelli 2003): of the terms the rounds added,
-those the least-squares fit needs least (smallest t statistic) go where the check blocks' free
-run is no higher without them (:func:`_pruned`), judged as the model will be fitted: where output
-error simulates better, by its output-error fit as well. The pruning takes terms, never an effect
-whole: an effect's last term stays. Each round reports the candidates it compared on the check
-blocks' free run, and the fall of that free run the effect added brought (else the best judged)
-against the fall it had to reach; the last, what the pruning took out.
+After the rounds, the loop prunes back (Piroddi & Spinelli 2003): a term the rounds added goes
+where the check blocks' free run without it is no higher than the figure the rounds ended at
+(:func:`_pruned`), judged as the model will be fitted: where output error
+simulates better, by its output-error fit as well. The generic polynomial is tried whole where a
+later effect may have made it redundant; then the terms not significant in the least-squares fit,
+together, else by halves; then one at a time, those the fit needs least (smallest t statistic)
+first. The pruning never takes a named effect's last term. Each round reports the candidates it
+compared on the check blocks' free run, and the fall of that free run the effect added brought
+(else the best judged) against the fall it had to reach; the last, what the pruning took out,
+and a round whose generic block went whole says so.
 
 The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
 lags, no physical effect named) is scored with the named families but judged after them: steps 3
@@ -79,10 +82,11 @@ process noise is 86 mV RMS, the linear model's figure is within half a per cent 
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
-from itertools import compress, islice, pairwise
+from itertools import compress, pairwise
 from typing import Any, Literal, NamedTuple, get_args
 
 import numpy as np
@@ -115,7 +119,7 @@ from models.effects import (
 )
 from models.errors import InputError
 from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails, held_out_tails, unseen_by
-from models.narx import NARX, Saturation
+from models.narx import NARX, Saturation, z_quantile
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
 from models.regression import Workers
@@ -151,9 +155,9 @@ INPUT_SHARE = 0.1
 # side): of Silverbox's ten rounds from linear:4,4, four add the first family judged, and the
 # others the second to the fourth.
 JUDGED_AT_ONCE = 2
-# Removals the pruning judges on the free run at once, the smallest t statistics
-# (:func:`_pruned`): the workers' fits run side by side, and where the first is refused the next
-# may pass.
+# Removals of one term the pruning judges on the free run at once, the smallest t statistics,
+# once the batches of terms not significant are refused (:func:`_pruned`): the workers' fits run
+# side by side, and where the first is refused the next may pass.
 PRUNING_TRIALS = 2
 # Once a family clears the one-step criterion's margin, this many more in the one-step order are
 # judged on the check blocks for a larger gain (:func:`_looked_ahead`).
@@ -195,6 +199,9 @@ class Round:
     # The terms pruned after the rounds, in the order taken out (:func:`_pruned`), on the last
     # round; ``check_rms`` is then after the pruning.
     pruned: tuple[str, ...] = ()
+    # The effect added here (the generic polynomial) pruned whole after the rounds: a later
+    # round's effect made it redundant, and the refined model holds none of its terms.
+    pruned_whole: bool = False
     # The candidates whose free run over the check blocks the round compared with the model's
     # (each significant family judged on it, each structure simulated for a family's terms), and
     # the fall of that free-run RMS the effect added brought (else the best judged), with the
@@ -238,7 +245,7 @@ class Refinement:
     @property
     def kept(self) -> tuple[Round, ...]:
         """The rounds whose effect the refined model holds."""
-        return tuple(r for r in self.rounds[self.withdrawn :] if r.added is not None)
+        return tuple(r for r in self.rounds[self.withdrawn :] if r.added is not None and not r.pruned_whole)
 
     @property
     def effects_added(self) -> tuple[EffectScore, ...]:
@@ -324,7 +331,11 @@ class RefinementReport:
             "rounds": [
                 {"round": number, "added": None if step.added is None else step.added.name}
                 | _selection_dict(step)
-                | {"decided_by": step.criterion, "check_free_run_rms": [_finite(v) for v in step.check_rms]}
+                | {
+                    "decided_by": step.criterion,
+                    "check_free_run_rms": [_finite(v) for v in step.check_rms],
+                    "pruned_whole": step.pruned_whole,
+                }
                 for number, step in enumerate(result.rounds, start=1)
             ],
             "held_out": None if result.held_out is None else _held_out_dict(result.held_out),
@@ -917,7 +928,10 @@ def _grown(
             elif decided is not None:
                 ahead = partial(_next_round, records, families, alpha, margin, checks, workers, threads, tell)
                 first = decided
-                decided = _looked_ahead(first, in_turn, current, check, margin, partial(ahead, number + 1))
+                decided, contended = _looked_ahead(
+                    first, in_turn, current, check, margin, partial(ahead, number + 1)
+                )
+                tried += contended
                 if decided is not first:
                     judged = Gain(_fall(decided[3], check), margin)
             if decided is None and output_error and generic in tier:
@@ -948,7 +962,7 @@ def _grown(
     if current.terms != tuple(terms):
         # Once, after the rounds (:func:`_pruned`); the last round names what went.
         tell("pruning the terms the rounds added")
-        current, pruned = _pruned(current, terms, rounds, checks, workers, output_error)
+        current, pruned = _pruned(current, terms, rounds, checks, workers, output_error, alpha)
         if pruned:
             rounds = _without_pruned(rounds, pruned)
             check = checks.error(current)
@@ -1468,14 +1482,16 @@ def _looked_ahead(
     current: Structure,
     check: float,
     margin: float,
-    ahead: Callable[[Structure, float], tuple[float, str | None]],
-) -> tuple[EffectScore, Criterion, Structure, float]:
+    ahead: Callable[[Structure, float], tuple[float, str | None, int]],
+) -> tuple[tuple[EffectScore, Criterion, Structure, float], int]:
     """The family a round adds: ``first``, the first in the one-step order to clear the margin,
     unless one of the next ``CONTENDERS`` still ``judged`` takes a further ``SIMULATION_GAIN`` of
     the current model's figure ``check`` off the check blocks' free run and, each added in turn
-    and the round after judged (``ahead``: the check figure that round ends at, and the family it
-    adds), the pair it starts ends lower by more than the figure's standard error ``margin``, and
-    without the first.
+    and the round after judged (``ahead``: the check figure that round ends at, the family it
+    adds and the families it judged), the pair it starts ends lower by more than the figure's
+    standard error ``margin``, and without the first; and how many candidates the look compared
+    on the check blocks beside ``first`` (the contenders, and the families each round after
+    judged), which the round reports among those it tried.
 
     The one-step order carries what the free run cannot: a family that explains more of the
     residual is more likely the effect, and an approximation of a missing effect can simulate the
@@ -1497,26 +1513,29 @@ def _looked_ahead(
     """
     _, criterion, structure, error = first
     if structure.noise_lags != current.noise_lags:
-        return first
+        return first, 0
+    # zip takes from the range first: no family past the contenders is judged.
+    looked = list(zip(range(CONTENDERS), judged, strict=False))
     contenders = [
         (other_error, other, other_structure)
-        for _, (other, other_error, other_structure) in zip(range(CONTENDERS), judged, strict=False)
+        for _, (other, other_error, other_structure) in looked
         if other_structure.noise_lags == current.noise_lags
         and other_error <= (1 - margin) * check
         and not set(structure.terms) <= set(other_structure.terms)
     ]
     if not contenders:
-        return first
+        return first, len(looked)
     best_error, best, best_structure = min(contenders, key=lambda trial: trial[0])
     if error - best_error < SIMULATION_GAIN * check:
-        return first
-    best_end, after_best = ahead(best_structure, best_error)
+        return first, len(looked)
+    best_end, after_best, after_best_tried = ahead(best_structure, best_error)
     if after_best == first[0].name:
-        return first
-    first_end, _ = ahead(structure, error)
+        return first, len(looked) + after_best_tried
+    first_end, _, after_first_tried = ahead(structure, error)
+    tried = len(looked) + after_best_tried + after_first_tried
     if best_end < (1 - margin) * first_end:
-        return best, criterion, best_structure, best_error
-    return first
+        return (best, criterion, best_structure, best_error), tried
+    return first, tried
 
 
 def _next_round(
@@ -1531,10 +1550,11 @@ def _next_round(
     number: int,
     current: Structure,
     check: float,
-) -> tuple[float, str | None]:
+) -> tuple[float, str | None, int]:
     """The check blocks' free-run RMS at which round ``number`` from ``current`` (running free
-    there at ``check``) ends by the one-step criterion with least-squares parameters, and the
-    family it adds; ``check`` and None where no named family clears (:func:`_looked_ahead`).
+    there at ``check``) ends by the one-step criterion with least-squares parameters, the family
+    it adds, and how many families it judged there; ``check`` and None where no named family
+    clears (:func:`_looked_ahead`).
     Least squares alone, as the round looked from judged its families: a branch that only output
     error could carry on would otherwise win by the estimator (output error's figures run lower),
     not by its effect."""
@@ -1549,10 +1569,10 @@ def _next_round(
     significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
     stage = f"round {number}, looked ahead"
     judged = _judged_in_turn(significant, kinds, current, records, checks, workers, tell, stage)
-    for score, error, structure in judged:
+    for tried, (score, error, structure) in enumerate(judged, start=1):
         if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
-            return min(error, check), score.name
-    return check, None
+            return min(error, check), score.name, tried
+    return check, None, len(significant)
 
 
 def _by_output_error_grown(
@@ -1684,6 +1704,7 @@ def _pruned(
     checks: CheckSplit,
     workers: Workers,
     output_error: bool,
+    alpha: float = DEFAULT_ALPHA,
 ) -> tuple[Structure, tuple[Term, ...]]:
     """``current``, grown from ``declared`` by the ``rounds``, pruned back (Piroddi & Spinelli
     2003, SEMP's pruning), and the terms taken out in turn.
@@ -1691,7 +1712,14 @@ def _pruned(
     An effect picked on one round can be made useless by a later one it stood in for (a cubic
     spring fitted before the quadratic spring it imitated), and a family's terms ride in
     together though only some of them simulate: a term the rounds added goes where the check
-    blocks' free-run RMS is no higher without it, and the search repeats on what is left.
+    blocks' free-run RMS without it is no higher than the figure the rounds ended at, as SEMP's
+    pruning keeps J within (1 + ρ) of J after the addition, here with ρ = 0. The bound is on that
+    figure, not on the last removal's: a removal that lowered it leaves room for one that raises
+    it as much, and removals one by one cannot creep above it. No rise is allowed, not even one
+    within the figure's standard error: the check blocks see neither the model's extrapolation
+    nor, on short records, more than a hundred samples, and with that much allowed Silverbox from
+    linear:4,4 lost six terms and ran free over the arrow 15 % worse, and the coupled drives'
+    second test lost four terms and with them, on the held-out tail, its effects.
 
     Once, after the rounds, not between them. A term pruned between rounds changes what every
     later round is offered and judged against, on a removal allowed for being no worse: on
@@ -1699,59 +1727,173 @@ def _pruned(
     stiffness, by the simulation criterion at the margin of its threshold, and that model drifted
     over Schroeder80mV, which neither the check blocks nor the held-out tails showed. After the
     rounds the effects are those the loop would choose unpruned, and the pruning only takes out
-    what their structure does not need. It takes terms, never an effect: an effect's last term
-    stays. Its round added it for a fall of the free run beyond a threshold; "no higher without
-    it" on the same check blocks is far weaker evidence, and those blocks see neither the
-    model's long-run drift nor its extrapolation. An effect is withdrawn whole by the checks that
-    judge effects: the output-error check of what the rounds added and the held-out tails.
+    what their structure does not need.
 
-    The removals are ranked by one cheap criterion, the term's t statistic in the least-squares
-    fit on the check split's fit parts (the smallest first: the term the others stand in for
-    best), and only the best ``PRUNING_TRIALS`` are judged on the free run
-    (:func:`_first_removal`); the ranking is made again on what is left after each removal, and
-    the pruning stops where both are refused. Judging every removal on the free run, again after
-    each one taken, costs a fit and a free run a term a removal: on long records, as much as the
-    rounds. A removal is judged as the model will be fitted: its least-squares free run no higher
+    It takes terms, never a named effect: an effect's last term stays. Its round added it for a
+    fall of the free run beyond a threshold; "no higher without it" on the same check blocks is
+    far weaker evidence, and those blocks see neither the model's long-run drift nor its
+    extrapolation. An effect is withdrawn whole by the checks that judge effects: the
+    output-error check of what the rounds added and the held-out tails. The generic polynomial
+    is the exception: it names nothing, and where a later round added a named effect it may
+    have stood in for, the pruning tries it whole (:func:`_generic_blocks`; its round then
+    reports it pruned whole).
+
+    Three passes, each judging few structures, since judging every removal on the free run,
+    again after each one taken, costs a fit and a free run a term a removal (on long records as
+    much as the rounds): the generic blocks whole; then the terms not significant at the loop's
+    level ``alpha`` in the least-squares fit on the check split's fit parts, the smallest t
+    statistic first, as many together as pass (:func:`_largest_batch`), again on what is left
+    after each batch taken; then, one term at a time, the best ``PRUNING_TRIALS``
+    of what is left by t statistic, ranked again after each removal, until both are refused. A
+    removal is judged as the model will be fitted: its least-squares free run within the bound
     and, where the current structure simulates better by output error (``output_error``: as the
-    loop will then fit it), its output-error fit's no higher either; a term of no use to the
-    one-step fit's free run can be one the output-error fit needs (judged by least squares
-    alone, Silverbox from linear:4,4 lost such terms and ran free over the arrow worse). The
-    least-squares judgements are made by ``workers``.
+    loop will then fit it), its output-error fit's within the bound on that fit's figure; a term
+    of no use to the one-step fit's free run can be one the output-error fit needs (judged by
+    least squares alone, Silverbox from linear:4,4 lost such terms and ran free over the arrow
+    worse). The least-squares judgements are made by ``workers``.
     """
-    figure = checks.error(current)
+    ceiling = _ceiling(current, checks, output_error)
+    if ceiling is None:
+        return current, ()
     pruned: list[Term] = []
-    while found := _first_removal(
-        current,
-        _removals(current, declared, rounds, pruned, checks)[:PRUNING_TRIALS],
-        figure,
-        checks,
-        workers,
-        output_error,
+
+    def took(found: tuple[tuple[Term, ...], Structure] | None) -> bool:
+        nonlocal current
+        if found is not None:
+            taken, current = found
+            pruned.extend(taken)
+        return found is not None
+
+    for block in _generic_blocks(current, rounds):
+        took(_first_removal(current, [block], ceiling, checks, workers))
+    while took(
+        _largest_batch(
+            current,
+            _insignificant(current, declared, rounds, pruned, checks, alpha),
+            ceiling,
+            checks,
+            workers,
+        )
     ):
-        term, current, figure = found
-        pruned.append(term)
+        pass
+    while took(
+        _first_removal(
+            current,
+            [(term,) for term, _ in _removals(current, declared, rounds, pruned, checks)[:PRUNING_TRIALS]],
+            ceiling,
+            checks,
+            workers,
+        )
+    ):
+        pass
     return current, tuple(pruned)
+
+
+class _Ceiling(NamedTuple):
+    """The check blocks' free-run RMS a pruned structure may reach (:func:`_pruned`): by least
+    squares, and by output error where that is how the structure simulates better (else None)."""
+
+    least_squares: float
+    output_error: float | None
+
+
+def _ceiling(current: Structure, checks: CheckSplit, output_error: bool) -> _Ceiling | None:
+    """The bounds :func:`_pruned` holds ``current``'s removals to: its figures on the check blocks;
+    None where neither figure is finite (no removal could be judged)."""
+    figure = checks.error(current)
+    simulated = checks.error(current, tuned=True) if output_error else np.inf
+    if not np.isfinite(min(figure, simulated)):
+        return None
+    return _Ceiling(figure, simulated if simulated < figure else None)
 
 
 def _first_removal(
     current: Structure,
-    trials: Sequence[Term],
-    figure: float,
+    trials: Sequence[tuple[Term, ...]],
+    ceiling: _Ceiling,
     checks: CheckSplit,
     workers: Workers,
-    output_error: bool,
-) -> tuple[Term, Structure, float] | None:
-    """The first of the ``trials`` whose removal :func:`_pruned` takes, with ``current`` without it
-    and its least-squares free-run RMS over the check blocks (``figure`` with it); None where
-    none is. Their least-squares fits are judged by ``workers``, side by side."""
-    without = [replace(current, terms=tuple(t for t in current.terms if t != term)) for term in trials]
-    errors = list(checks.judge(without, workers))
-    passed = [i for i, error in enumerate(errors) if error <= figure]
-    if passed and output_error and (simulated := checks.error(current, tuned=True)) < figure:
-        # The output-error fits, which cost far more, only where a removal is proposed, and the
-        # second only where the first is refused.
-        passed = list(islice((i for i in passed if checks.error(without[i], tuned=True) <= simulated), 1))
-    return (trials[passed[0]], without[passed[0]], errors[passed[0]]) if passed else None
+) -> tuple[tuple[Term, ...], Structure] | None:
+    """The first of the ``trials`` (each terms taken out together) whose removal :func:`_pruned`
+    takes, with ``current`` without it; None where none is. Their least-squares fits are judged
+    by ``workers``, side by side; the output-error fits, which cost far more, only where a
+    removal passes by least squares, and the next only where the one before is refused."""
+    without = [replace(current, terms=tuple(t for t in current.terms if t not in trial)) for trial in trials]
+    for trial, structure, error in zip(trials, without, checks.judge(without, workers), strict=True):
+        if error <= ceiling.least_squares and (
+            ceiling.output_error is None or checks.error(structure, tuned=True) <= ceiling.output_error
+        ):
+            return trial, structure
+    return None
+
+
+def _generic_blocks(current: Structure, rounds: Sequence[Round]) -> list[tuple[Term, ...]]:
+    """The terms of ``current`` each round that added the generic polynomial brought, where a
+    later round added an effect: the blocks :func:`_pruned` tries whole."""
+    added = [step.added for step in rounds if step.added is not None]
+    present = {term.name: term for term in current.terms}
+    blocks = [
+        tuple(present[name] for name in score.terms if name in present)
+        for score in added[:-1]
+        if score.name == POLYNOMIAL
+    ]
+    return [block for block in blocks if block]
+
+
+def _insignificant(
+    current: Structure,
+    declared: tuple[Term, ...],
+    rounds: Sequence[Round],
+    pruned: Sequence[Term],
+    checks: CheckSplit,
+    alpha: float,
+) -> list[Term]:
+    """The terms :func:`_removals` offers whose t statistic is not significant at the level
+    ``alpha`` (two-sided), smallest first, as many of an effect's as leave it one."""
+    effect = _effect_of(rounds, pruned)
+    left = Counter(effect.values())
+    critical = z_quantile(1 - alpha)
+    batch = []
+    for term, t in _removals(current, declared, rounds, pruned, checks):
+        if t < critical and (term.name not in effect or left[effect[term.name]] > 1):
+            left[effect.get(term.name)] -= 1
+            batch.append(term)
+    return batch
+
+
+def _effect_of(rounds: Sequence[Round], pruned: Sequence[Term]) -> dict[str, int]:
+    """Each term the ``rounds`` added and the pruning has left, by name, with the round that
+    added it (its index)."""
+    gone = {term.name for term in pruned}
+    return {
+        name: index
+        for index, step in enumerate(rounds)
+        if step.added is not None
+        for name in step.added.terms
+        if name not in gone
+    }
+
+
+def _largest_batch(
+    current: Structure, batch: Sequence[Term], ceiling: _Ceiling, checks: CheckSplit, workers: Workers
+) -> tuple[tuple[Term, ...], Structure] | None:
+    """The most of ``batch``'s first terms whose removal together :func:`_pruned` takes, found by
+    doubling them (one, two, four …, then all) while the removal passes, with ``current``
+    without them; None where the first alone is refused. Upwards, not down from the whole: on a
+    long model, removing most of its terms at once is refused far more often than a few, and a
+    refused first term then costs one judgement, not one for each halving (Silverbox from
+    linear:10,10: 226 terms not significant, each halving refused down to the first)."""
+    taken = None
+    size = 1
+    while batch:
+        found = _first_removal(current, [tuple(batch[:size])], ceiling, checks, workers)
+        if found is None:
+            break
+        taken = found
+        if size == len(batch):
+            break
+        size = min(2 * size, len(batch))
+    return taken
 
 
 def _removals(
@@ -1760,24 +1902,27 @@ def _removals(
     rounds: Sequence[Round],
     pruned: Sequence[Term],
     checks: CheckSplit,
-) -> list[Term]:
-    """The terms of ``current`` :func:`_pruned` may take out, the smallest t statistic in its
-    least-squares fit on the check split's fit parts first: those the ``rounds`` added, but for
-    the last one left of an effect once ``pruned`` are out."""
-    gone = {term.name for term in pruned}
-    left = [[name for name in r.added.terms if name not in gone] for r in rounds if r.added is not None]
-    last = {names[0] for names in left if len(names) == 1}
-    removable = [i for i, term in enumerate(current.terms) if term not in declared and term.name not in last]
+) -> list[tuple[Term, float]]:
+    """The terms of ``current`` :func:`_pruned` may take out with their t statistic in its
+    least-squares fit on the check split's fit parts, the smallest first: those the ``rounds``
+    added, but for the last one left of an effect once ``pruned`` are out."""
+    effect = _effect_of(rounds, pruned)
+    left = Counter(effect.values())
+    removable = [
+        i
+        for i, term in enumerate(current.terms)
+        if term not in declared and (term.name not in effect or left[effect[term.name]] > 1)
+    ]
     if not removable:
         return []
     fitted = checks.fitted(current)
     t = np.abs(fitted.theta) / np.maximum(fitted.standard_errors(), np.finfo(float).tiny)
-    return [current.terms[i] for i in sorted(removable, key=lambda i: t[i])]
+    return [(current.terms[i], float(t[i])) for i in sorted(removable, key=lambda i: t[i])]
 
 
 def _without_pruned(rounds: list[Round], pruned: Sequence[Term]) -> list[Round]:
     """The ``rounds`` with the ``pruned`` terms taken from the effects that brought them, named in
-    the last round's report."""
+    the last round's report; a round whose effect lost every term is marked pruned whole."""
     names = {term.name for term in pruned}
     if not names:
         return rounds
@@ -1785,7 +1930,8 @@ def _without_pruned(rounds: list[Round], pruned: Sequence[Term]) -> list[Round]:
     for step in rounds:
         added = step.added
         if added is not None and names & set(added.terms):
-            step = replace(step, added=replace(added, terms=tuple(n for n in added.terms if n not in names)))
+            left = tuple(n for n in added.terms if n not in names)
+            step = replace(step, added=replace(added, terms=left), pruned_whole=not left)
         result.append(step)
     result[-1] = replace(result[-1], pruned=tuple(term.name for term in pruned))
     return result

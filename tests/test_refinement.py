@@ -14,7 +14,7 @@ from harness.duffing import DuffingOscillator
 from harness.extrapolating import growing_steps
 from harness.prerequisites import benchmark_data
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
-from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
+from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms, polynomial_effect
 from models.errors import InputError
 from models.held_out import HeldOut, held_out_tails
 from models.narx import NARX, fit_narx
@@ -25,13 +25,14 @@ from models.refinement import (
     Round,
     _is_start,
     _pruned,
+    _without_pruned,
     choose_linear,
     compare,
     refine,
     refine_record,
     refine_records,
 )
-from models.scoring import EffectScore, score_effects
+from models.scoring import EffectScore, fit_model, score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
@@ -1080,3 +1081,88 @@ def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_f
     assert checks.error(Structure(terms)) == np.inf
     before, after = result.rounds[-1].check_rms
     assert after <= (1 - check_noise(checks.check)) * before, (before, after)
+
+
+def test_a_round_counts_the_candidates_its_look_ahead_compared():
+    """The rig's quadratic spring from linear:4,4 with three stiffness families on offer: once the
+    first in the one-step order clears, the round judges the next ones on the check blocks as
+    contenders, and, where one gains enough more, the round after each (:func:`_looked_ahead`).
+    Every family judged on the check blocks is told as it is read; a round's candidates tried
+    are all those told before the next round begins, the look ahead's among them."""
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
+    )
+    declared = linear_terms(4, 4, 1)
+    offered = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
+    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
+    told: list[str] = []
+    result = refine([(record.x, record.y)], declared, effects=families, progress=told.append)
+    judged = [0]
+    for stage in told:
+        if stage.startswith("round ") and ": scoring" in stage and "looked ahead" not in stage:
+            judged.append(0)
+        judged[-1] += stage.endswith(" on the check blocks")
+    one_step = [
+        (step.tried, judged[number])
+        for number, step in enumerate(result.rounds, start=1)
+        if step.criterion == "one-step"
+    ]
+    assert len(one_step) == 2 and max(told_of for _, told_of in one_step) > 1, told
+    assert all(tried == told_of for tried, told_of in one_step), (one_step, told)
+
+
+def hammerstein_cubic(n: int, seed: int, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """y[t] = 1.2·y[t-1] − 0.5·y[t-2] + x[t-1] + 0.3·x[t-1]³, x white about 0.5, read with white
+    noise of ``noise`` times the output's std: about its mean the cube holds a square, which the
+    generic polynomial's products of the lags can take part of."""
+    rng = np.random.default_rng(seed)
+    x = 0.5 + rng.normal(size=n)
+    clean = signal.lfilter([0.0, 1.0], [1.0, -1.2, 0.5], x + 0.3 * x**3)
+    return x, clean + noise * np.std(clean) * rng.normal(size=n)
+
+
+def test_a_generic_block_a_later_effect_made_redundant_is_pruned_whole_and_the_report_says_so():
+    """The generic polynomial, added first, takes a share of the cube's square off the check blocks'
+    free run; the input's cube, added after it, makes all ten of its terms redundant. The pruning
+    takes the block whole, its round is reported pruned whole and its effect is no longer among
+    those added; the same terms brought by a named family (bilinear) keep their last."""
+    x, y = hammerstein_cubic(1500, seed=0, noise=0.05)
+    records = [(x, y)]
+    checks = CheckSplit.of(records)
+    declared = tuple(linear_terms(2, 2, 1))
+    generic = polynomial_effect(declared).terms
+    cube = tuple(parse_terms(["x[t-1]^3", "x[t-2]^3"]))
+    # The premise: the block paid before the cube, and does not after it.
+    without_either = checks.error(Structure(declared))
+    assert checks.error(Structure(declared + generic)) < (1 - check_noise(checks.check)) * without_either
+    assert checks.error(Structure(declared + cube)) <= checks.error(Structure(declared + generic + cube))
+    everything = Structure(declared + generic + cube)
+
+    def pruned_after(first: str) -> tuple[Structure, tuple[Term, ...], list[Round]]:
+        effects = [
+            EffectScore(
+                name, "", 0.1, -1.0, tuple(t.name for t in terms), (9.0,) * len(terms), (0.0,) * len(terms)
+            )
+            for name, terms in ((first, generic), ("input_nonlinearity", cube))
+        ]
+        rounds = [Round(1.0, 0.01, 2, (effect,), effect) for effect in effects]
+        pruned, taken = _pruned(everything, declared, rounds, checks, map, output_error=False)
+        assert cube[0] in pruned.terms and set(taken) == set(everything.terms) - set(pruned.terms)
+        return pruned, taken, _without_pruned(rounds, taken)
+
+    pruned, _, _ = pruned_after("bilinear")
+    assert len(set(generic) & set(pruned.terms)) == 1, pruned.terms
+    pruned, taken, rounds = pruned_after("polynomial")
+    assert not set(generic) & set(pruned.terms), pruned.terms
+    assert [step.pruned_whole for step in rounds] == [True, False]
+    assert set(parse_terms(rounds[-1].pruned)) == set(taken) >= set(generic)
+    declared_model, _ = fit_model(records, declared, 0, max_lag(declared))
+    refined, _ = fit_model(records, pruned.terms, 0, max_lag(pruned.terms))
+    result = Refinement(declared_model, refined, rounds=tuple(rounds))
+    assert [effect.name for effect in result.effects_added] == ["input_nonlinearity"]
+    report = RefinementReport(result, (compare(result, records, x, y, 0, None, 0),)).to_dict()
+    assert [(step["added"], step["pruned_whole"]) for step in report["rounds"]] == [
+        ("polynomial", True),
+        ("input_nonlinearity", False),
+    ]
+    assert [effect["name"] for effect in report["effects_added"]] == ["input_nonlinearity"]
