@@ -119,7 +119,7 @@ from models.narx import NARX, Saturation
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
 from models.regression import Workers
-from models.scoring import EffectScore, Records, Scores, fit_model, score_effects
+from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model, score_effects
 from models.signals import GLITCH_FACTOR, checked_records, glitches
 from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 
@@ -848,6 +848,7 @@ def _grown(
     ``rectified`` the linear terms chosen as the rectified model's (:func:`_rectified_orders`),
     where the caller chose them (:func:`refine` on short records)."""
     checks = CheckSplit.of(records)
+    kept = ScoringKept()  # a model scored again: after a look ahead, by the simulation criteria
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
         rectified = _rectified_orders(records, checks, tell, workers)
@@ -868,7 +869,7 @@ def _grown(
             break
         kinds = {effect.name: effect.kind for effect in offered}
         tell(f"round {number}: scoring {len(offered)} {'family' if len(offered) == 1 else 'families'}")
-        scores = _scored(records, current, offered, alpha, workers, threads)
+        scores = _scored(records, current, offered, alpha, workers, threads, kept=kept)
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
@@ -915,7 +916,9 @@ def _grown(
                 if decided is not None:
                     judged = Gain(_fall(decided[3], check), margin)
             elif decided is not None:
-                ahead = partial(_next_round, records, families, alpha, margin, checks, workers, threads, tell)
+                ahead = partial(
+                    _next_round, records, families, alpha, margin, checks, workers, threads, tell, kept
+                )
                 first = decided
                 decided = _looked_ahead(first, in_turn, current, check, margin, partial(ahead, number + 1))
                 if decided is not first:
@@ -923,7 +926,7 @@ def _grown(
             if decided is None and output_error and generic in tier:
                 offer = "the generic polynomial" if generic else "the families"
                 tell(f"round {number}: {offer} on the simulation error")
-                ranked = ranked or _scored(records, current, offered, alpha, workers, threads, rank=True)
+                ranked = ranked or _scored(records, current, offered, alpha, workers, threads, True, kept)
                 chosen = [g == generic for g in tier]
                 decided, simulated, structures = _by_simulation(
                     list(compress(offered, chosen)),
@@ -979,7 +982,7 @@ def _grown(
     if output_error and folds:
         for _ in range(max_rounds):
             offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
-            scores = _scored(records, current, offered, alpha, workers, threads, rank=True)
+            scores = _scored(records, current, offered, alpha, workers, threads, True, kept)
             step = Round(
                 scores.residual_rms,
                 scores.level,
@@ -1071,10 +1074,12 @@ def _scored(
     workers: Workers,
     threads: Workers,
     rank: bool = False,
+    kept: ScoringKept | None = None,
 ) -> Scores:
     """Every offered family's score against ``current``'s one-step residual
     (:func:`models.scoring.score_effects`); with ``rank``, with all its regressors ranked by error
-    reduction, significant or not: what the simulation criteria try."""
+    reduction, significant or not: what the simulation criteria try. ``kept``: the loop's
+    scoring of a model, kept for its next scoring of the same model."""
     return score_effects(
         records,
         current.terms,
@@ -1085,6 +1090,7 @@ def _scored(
         saturating=current.saturating,
         workers=workers,
         threads=threads,
+        kept=kept,
     )
 
 
@@ -1528,6 +1534,7 @@ def _next_round(
     workers: Workers,
     threads: Workers,
     tell: Stage,
+    kept: ScoringKept,
     number: int,
     current: Structure,
     check: float,
@@ -1544,7 +1551,7 @@ def _next_round(
         if effect.name != POLYNOMIAL and not (effect.kind == "saturation" and current.saturating is not None)
     ]
     tell(f"round {number}, looked ahead: scoring {len(offered)} families")
-    scores = _scored(records, current, offered, alpha, workers, threads)
+    scores = _scored(records, current, offered, alpha, workers, threads, kept=kept)
     kinds = {effect.name: effect.kind for effect in offered}
     significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
     stage = f"round {number}, looked ahead"

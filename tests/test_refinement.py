@@ -14,7 +14,14 @@ from harness.duffing import DuffingOscillator
 from harness.extrapolating import growing_steps
 from harness.prerequisites import benchmark_data
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
-from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms
+from models.effects import (
+    Effect,
+    SearchInput,
+    candidate_effects,
+    linear_terms,
+    offset_direction,
+    offset_terms,
+)
 from models.errors import InputError
 from models.held_out import HeldOut, held_out_tails
 from models.narx import NARX, fit_narx
@@ -31,7 +38,7 @@ from models.refinement import (
     refine_record,
     refine_records,
 )
-from models.scoring import EffectScore, score_effects
+from models.scoring import EffectScore, ScoringKept, score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
@@ -1070,3 +1077,39 @@ def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_f
     assert checks.error(Structure(terms)) == np.inf
     before, after = result.rounds[-1].check_rms
     assert after <= (1 - check_noise(checks.check)) * before, (before, after)
+
+
+def test_a_model_scored_again_takes_the_families_kept_for_it_and_no_other_model_does():
+    """The loop scores a model again after looking one round ahead and before the simulation
+    criteria (``ScoringKept``): the families built for it then are not built again, and the
+    scores, with more families offered or every regressor ranked, are those of a fresh scoring to
+    the last digit (the level α/M counts the families offered now). Another model, or the same
+    with moving-average terms, has its families built anew: a kept family would be another
+    model's residual's."""
+    x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
+    records = [(x[:ESTIMATION], y[:ESTIMATION])]
+    exact = tuple(parse_terms(EXACT_TERMS))
+    terms = (*exact[:4], exact[-1])  # the rig's linear part: its cubic spring is missing
+    searches: list[int] = []
+
+    def cube(search: SearchInput) -> tuple[Term, ...]:
+        searches.append(len(search.terms))
+        return tuple(parse_terms(["y[t-1]^3", "y[t-2]^3"]))
+
+    counted = Effect("counted", "the cubes of y's lags, searched for", (), "estimated", find=cube)
+    effects = [*candidate_effects(terms), counted]
+    kept = ScoringKept()
+
+    def both(model: tuple[Term, ...], offered: list[Effect], noise: int = 0, rank: bool = False) -> None:
+        again = score_effects(records, model, noise, offered, 0.01, rank=rank, kept=kept)
+        assert again == score_effects(records, model, noise, offered, 0.01, rank=rank)
+
+    both(terms, effects[5:])
+    assert len(searches) == 2  # once kept, once fresh
+    both(terms, effects)
+    both(terms, effects, rank=True)
+    assert len(searches) == 4  # the fresh ones only
+    both(terms[1:], effects)
+    both(terms, effects, noise=1)
+    assert searches[4:] == [4, 4, 5, 5]  # built for each other model, kept and fresh
+    assert score_effects(records, terms, 0, effects, 0.01).scores[-1].significant
