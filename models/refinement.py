@@ -79,7 +79,7 @@ process noise is 86 mV RMS, the linear model's figure is within half a per cent 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from itertools import compress, islice, pairwise
@@ -93,6 +93,7 @@ from models.checking import (
     MIN_BLOCK,
     SETTLED_EVALUATIONS,
     CheckSplit,
+    Matters,
     Segments,
     Structure,
     by_output_error,
@@ -1452,25 +1453,30 @@ def _judged_in_turn(
     workers: Workers,
     tell: Stage,
     stage: str,
-) -> Iterator[tuple[EffectScore, float, Structure]]:
+) -> Generator[tuple[EffectScore, float, Structure], Matters | None, None]:
     """Each scored family in turn with its check blocks' free-run RMS and structure, the best
     of those adding it may give (:func:`_with`); ``tell`` is told each, in the ``stage``, as its
     judgement is read. ``JUDGED_AT_ONCE`` families are judged at a time by ``workers``: the round
-    ends at the first that passes, and a family judged beside it is judged in vain."""
+    ends at the first that passes, and a family judged beside it is judged in vain. A caller that
+    needs only the figures that matter to it sends which do (:meth:`CheckSplit.judge`'s
+    ``matters``): the families judged from then on may give a bound for one that does not."""
+    matters = None
     for first in range(0, len(scores), JUDGED_AT_ONCE):
         batch = [
             (score, _with(score, kinds, current, records)) for score in scores[first : first + JUDGED_AT_ONCE]
         ]
-        errors = checks.judge([option for _, options in batch for option in options], workers)
+        errors = checks.judge(
+            [option for _, options in batch for option in options], workers, matters=matters
+        )
         for score, options in batch:
             tell(f"{stage}: {score.name} on the check blocks")
             error, structure = min(((next(errors), option) for option in options), key=lambda trial: trial[0])
-            yield score, error, structure
+            matters = (yield score, error, structure) or matters
 
 
 def _looked_ahead(
     first: tuple[EffectScore, Criterion, Structure, float],
-    judged: Iterator[tuple[EffectScore, float, Structure]],
+    judged: Generator[tuple[EffectScore, float, Structure], Matters | None, None],
     current: Structure,
     check: float,
     margin: float,
@@ -1504,9 +1510,12 @@ def _looked_ahead(
     _, criterion, structure, error = first
     if structure.noise_lags != current.noise_lags:
         return first
+    # The contenders judged from here need exact figures only where they could be chosen (a
+    # partial, for the workers that judge them).
+    contends = partial(_contends, check, margin, error)
     contenders = [
         (other_error, other, other_structure)
-        for _, (other, other_error, other_structure) in zip(range(CONTENDERS), judged, strict=False)
+        for other, other_error, other_structure in islice(_sending(judged, contends), CONTENDERS)
         if other_structure.noise_lags == current.noise_lags
         and other_error <= (1 - margin) * check
         and not set(structure.terms) <= set(other_structure.terms)
@@ -1514,7 +1523,7 @@ def _looked_ahead(
     if not contenders:
         return first
     best_error, best, best_structure = min(contenders, key=lambda trial: trial[0])
-    if error - best_error < SIMULATION_GAIN * check:
+    if not contends(best_error):
         return first
     best_end, after_best = ahead(best_structure, best_error)
     if after_best == first[0].name:
@@ -1523,6 +1532,24 @@ def _looked_ahead(
     if best_end < (1 - margin) * first_end:
         return best, criterion, best_structure, best_error
     return first
+
+
+def _contends(check: float, margin: float, error: float, other_error: float) -> bool:
+    """Whether a contender's check figure ``other_error`` clears the ``margin`` below ``check``
+    and takes the further gain off the first's ``error`` (:func:`_looked_ahead`)."""
+    return other_error <= (1 - margin) * check and error - other_error >= SIMULATION_GAIN * check
+
+
+def _sending(
+    judged: Generator[tuple[EffectScore, float, Structure], Matters | None, None], matters: Matters
+) -> Iterator[tuple[EffectScore, float, Structure]]:
+    """The families still to be ``judged`` in turn (:func:`_judged_in_turn`), told first which
+    figures matter."""
+    try:
+        yield judged.send(matters)
+    except StopIteration:
+        return
+    yield from judged
 
 
 def _next_round(

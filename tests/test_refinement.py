@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import operator
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
@@ -1113,3 +1115,29 @@ def test_a_model_scored_again_takes_the_families_kept_for_it_and_no_other_model_
     both(terms, effects, noise=1)
     assert searches[4:] == [4, 4, 5, 5]  # built for each other model, kept and fresh
     assert score_effects(records, terms, 0, effects, 0.01).scores[-1].significant
+
+
+def test_a_figure_judged_against_a_bound_is_not_taken_for_the_figure():
+    """The look ahead's contenders matter only where their check figure could win
+    (``CheckSplit.judge``'s ``matters``): a model whose free run over the check blocks is already
+    beyond that is not asked whether it comes to rest, and its run's RMS, finite, answers.
+    Asked for its figure, or by a caller to whom that figure matters, the split judges it in
+    full: it does not come to rest (a root outside the unit circle), so the figure is infinite,
+    here and in the workers."""
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal(3000)
+    y = signal.lfilter([0.0, 1.0], [1.0, -0.9], x) + 0.01 * rng.standard_normal(3000)
+    structure = Structure(tuple(parse_terms(["y[t-1]", "x[t-1]"])))
+    fitted = CheckSplit.of([(x, y)]).fitted(structure)
+    drifting = replace(fitted, theta=np.array([1.001, 1.0]))
+    beyond, mattering = partial(operator.ge, 0.01), partial(operator.ge, 1e9)  # 0.01 >= figure, …
+    with ProcessPoolExecutor(1) as pool:
+        for workers in (map, pool.map):
+            checks = CheckSplit.of([(x, y)])
+            checks._fitted[structure] = drifting
+            (bound,) = checks.judge([structure], workers, matters=beyond)
+            assert np.isfinite(bound) and not beyond(bound)
+            assert list(checks.judge([structure], workers, matters=mattering)) == [np.inf]
+            assert checks.error(structure) == np.inf
+            assert list(checks.judge([structure], workers, matters=beyond)) == [np.inf]
+    assert np.isfinite(CheckSplit.of([(x, y)]).error(structure))  # as fitted, it comes to rest
