@@ -241,8 +241,11 @@ class ScoringKept:
         self._model: _ModelScored | None = None
 
     def model(self, key: tuple[Any, ...]) -> _ModelScored | None:
-        """The model kept under ``key``, if it is the one kept."""
-        return self._model if key == self._key else None
+        """The model kept under ``key``, if it is the one kept; asked for another, the one kept
+        is let go at once, before the other's arrays are made beside it."""
+        if key != self._key:
+            self._key, self._model = None, None
+        return self._model
 
     def keep(self, key: tuple[Any, ...], model: _ModelScored) -> None:
         """Keep ``model`` (and what is built for it later) under ``key``, in place of the last."""
