@@ -11,7 +11,7 @@ diverged.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -55,8 +55,12 @@ class Structure:
 
 
 # What a split made for a structure judged in a split of its own (in a worker): the least-squares
-# and output-error fits, and the check figures.
-Found = tuple[dict[Structure, NARX], dict[Structure, NARX], dict[tuple[Structure, bool], float]]
+# and output-error fits, the check figures, and the figures judged against a bound only
+# (:meth:`CheckSplit.judge`'s ``matters``).
+Figures = dict[tuple[Structure, bool], float]
+Found = tuple[dict[Structure, NARX], dict[Structure, NARX], Figures, Figures]
+# Whether a check figure would change what the caller decides; false of every larger figure.
+Matters = Callable[[float], bool]
 
 
 @dataclass
@@ -72,6 +76,7 @@ class CheckSplit:
     _fitted: dict[Structure, NARX] = field(default_factory=dict)
     _tuned: dict[Structure, NARX] = field(default_factory=dict)
     _settled: set[Structure] = field(default_factory=set)
+    _beyond: Figures = field(default_factory=dict)
 
     @classmethod
     def of(cls, records: Records, fold: int = 1) -> CheckSplit:
@@ -87,25 +92,47 @@ class CheckSplit:
         return self._errors[key]
 
     def judge(
-        self, structures: Sequence[Structure], workers: Workers = map, tuned: bool = False
+        self,
+        structures: Sequence[Structure],
+        workers: Workers = map,
+        tuned: bool = False,
+        matters: Matters | None = None,
     ) -> Iterator[float]:
         """:meth:`error` of each of ``structures`` in turn, lazily; those not judged yet are
         judged by ``workers`` (:data:`models.regression.Workers`), each in a split of its own with
-        these parts, and what they fitted kept here: the figures are the same whichever."""
-        unjudged = [s for s in dict.fromkeys(structures) if (s, tuned) not in self._errors]
+        these parts, and what they fitted kept here: the figures are the same whichever.
+
+        With ``matters``, a structure whose free run over the check parts gives a figure that
+        does not matter is not asked whether it comes to rest (the ring-downs over the fit parts,
+        a quarter of a judgement): its figure is that run's RMS, a bound below :meth:`error`'s
+        (which is that or infinite) that gives ``matters`` the same answer. Only :meth:`error`'s
+        own figures are kept as such."""
+        unjudged = [s for s in dict.fromkeys(structures) if self._figure(s, tuned, matters) is None]
         # Each with the least-squares fit made here, where one was: an output-error search
         # starts from it, and a worker would make it again (extended least squares on Silverbox's
         # 51 terms: a third of a second before the search).
         judged = workers(
-            partial(_judged, self.fit, self.check, tuned), [(s, self._fitted.get(s)) for s in unjudged]
+            partial(_judged, self.fit, self.check, tuned, matters),
+            [(s, self._fitted.get(s)) for s in unjudged],
         )
         for structure in structures:
-            if (structure, tuned) not in self._errors:
+            if self._figure(structure, tuned, matters) is None:
                 for found in judged:
                     self._keep(found)
-                    if (structure, tuned) in self._errors:
+                    if self._figure(structure, tuned, matters) is not None:
                         break
-            yield self._errors[(structure, tuned)]
+            figure = self._figure(structure, tuned, matters)
+            assert figure is not None
+            yield figure
+
+    def _figure(self, structure: Structure, tuned: bool, matters: Matters | None) -> float | None:
+        """The check figure :meth:`judge` gives, where one was found: :meth:`error`'s, or with
+        ``matters`` a bound that does not matter."""
+        key = (structure, tuned)
+        if key in self._errors:
+            return self._errors[key]
+        beyond = self._beyond.get(key)
+        return beyond if matters is not None and beyond is not None and not matters(beyond) else None
 
     def search_grown(
         self, current: Structure, structures: Sequence[Structure], evaluations: int, workers: Workers = map
@@ -121,10 +148,11 @@ class CheckSplit:
 
     def _keep(self, found: Found) -> None:
         """What a split of its own made for a structure (:func:`_judged`, :func:`_searched`)."""
-        fitted, tuned, errors = found
+        fitted, tuned, errors, beyond = found
         self._fitted |= fitted
         self._tuned |= tuned
         self._errors |= errors
+        self._beyond |= beyond
 
     def tuned(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by output error (as :meth:`error` judges it with
@@ -172,13 +200,18 @@ class CheckSplit:
             return None, np.inf
         return model, np.inf if model is None else self._simulates(model)
 
-    def _judge(self, structure: Structure, tuned: bool) -> float:
+    def _judge(self, structure: Structure, tuned: bool, matters: Matters | None = None) -> float:
         # A rectified structure's least-squares fit is its recursion's on the readings, blind to
         # the fold: it is judged by its output-error fit whichever is asked for.
         try:
             model = self.tuned(structure) if tuned or structure.rectified else self.fitted(structure)
         except InputError:
             return np.inf
+        if matters is not None:
+            rms = free_run_rms(model, self.check)
+            if not matters(rms):
+                self._beyond[(structure, tuned)] = rms
+                return rms
         return self._simulates(model)
 
     def _simulates(self, model: NARX) -> float:
@@ -204,14 +237,18 @@ class CheckSplit:
         return self._fitted[structure]
 
 
-def _judged(fit: Segments, check: Segments, tuned: bool, job: tuple[Structure, NARX | None]) -> Found:
-    """What :meth:`CheckSplit.error` of a structure fits and finds on these parts, ``job`` being
+def _judged(
+    fit: Segments, check: Segments, tuned: bool, matters: Matters | None, job: tuple[Structure, NARX | None]
+) -> Found:
+    """What :meth:`CheckSplit.judge` of a structure fits and finds on these parts, ``job`` being
     the structure and its least-squares fit there if one was made: the least-squares and
     output-error fits, and the figures."""
     structure, fitted = job
     checks = CheckSplit(fit, check, _fitted={} if fitted is None else {structure: fitted})
-    checks.error(structure, tuned)
-    return checks._fitted, checks._tuned, checks._errors
+    figure = checks._judge(structure, tuned, matters)
+    if (structure, tuned) not in checks._beyond:
+        checks._errors[(structure, tuned)] = figure
+    return checks._fitted, checks._tuned, checks._errors, checks._beyond
 
 
 def _searched(
@@ -222,7 +259,7 @@ def _searched(
     checks = CheckSplit(fit, check, _tuned={current: tuned})
     checks.search(structure, checks.grown(current, structure), evaluations)
     del checks._tuned[current]
-    return checks._fitted, checks._tuned, checks._errors
+    return checks._fitted, checks._tuned, checks._errors, checks._beyond
 
 
 def by_output_error(model: NARX, segments: Segments, evaluations: int, threads: Workers = map) -> NARX:

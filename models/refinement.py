@@ -83,10 +83,10 @@ process noise is 86 mV RMS, the linear model's figure is within half a per cent 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
-from itertools import compress, pairwise
+from itertools import compress, islice, pairwise
 from typing import Any, Literal, NamedTuple, get_args
 
 import numpy as np
@@ -97,6 +97,7 @@ from models.checking import (
     MIN_BLOCK,
     SETTLED_EVALUATIONS,
     CheckSplit,
+    Matters,
     Segments,
     Structure,
     by_output_error,
@@ -123,7 +124,7 @@ from models.narx import NARX, Saturation, z_quantile
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import PeriodNoise, pooled_period_noise
 from models.regression import Workers
-from models.scoring import EffectScore, Records, Scores, fit_model, score_effects
+from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model, score_effects
 from models.signals import GLITCH_FACTOR, checked_records, glitches
 from models.terms import WAVES, Term, max_degree, max_lag, parse_terms
 
@@ -859,6 +860,7 @@ def _grown(
     ``rectified`` the linear terms chosen as the rectified model's (:func:`_rectified_orders`),
     where the caller chose them (:func:`refine` on short records)."""
     checks = CheckSplit.of(records)
+    kept = ScoringKept()  # a model scored again: after a look ahead, by the simulation criteria
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
         rectified = _rectified_orders(records, checks, tell, workers)
@@ -879,7 +881,7 @@ def _grown(
             break
         kinds = {effect.name: effect.kind for effect in offered}
         tell(f"round {number}: scoring {len(offered)} {'family' if len(offered) == 1 else 'families'}")
-        scores = _scored(records, current, offered, alpha, workers, threads)
+        scores = _scored(records, current, offered, alpha, workers, threads, kept=kept)
         step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, None)
         rejected: list[str] = []
         decided: tuple[EffectScore, Criterion, Structure, float] | None = None
@@ -926,7 +928,9 @@ def _grown(
                 if decided is not None:
                     judged = Gain(_fall(decided[3], check), margin)
             elif decided is not None:
-                ahead = partial(_next_round, records, families, alpha, margin, checks, workers, threads, tell)
+                ahead = partial(
+                    _next_round, records, families, alpha, margin, checks, workers, threads, tell, kept
+                )
                 first = decided
                 decided, contended = _looked_ahead(
                     first, in_turn, current, check, margin, partial(ahead, number + 1)
@@ -937,7 +941,7 @@ def _grown(
             if decided is None and output_error and generic in tier:
                 offer = "the generic polynomial" if generic else "the families"
                 tell(f"round {number}: {offer} on the simulation error")
-                ranked = ranked or _scored(records, current, offered, alpha, workers, threads, rank=True)
+                ranked = ranked or _scored(records, current, offered, alpha, workers, threads, True, kept)
                 chosen = [g == generic for g in tier]
                 decided, simulated, structures = _by_simulation(
                     list(compress(offered, chosen)),
@@ -993,7 +997,7 @@ def _grown(
     if output_error and folds:
         for _ in range(max_rounds):
             offered = unused([_follow(effect, current.terms) for effect in families], current.terms)
-            scores = _scored(records, current, offered, alpha, workers, threads, rank=True)
+            scores = _scored(records, current, offered, alpha, workers, threads, True, kept)
             step = Round(
                 scores.residual_rms,
                 scores.level,
@@ -1085,10 +1089,12 @@ def _scored(
     workers: Workers,
     threads: Workers,
     rank: bool = False,
+    kept: ScoringKept | None = None,
 ) -> Scores:
     """Every offered family's score against ``current``'s one-step residual
     (:func:`models.scoring.score_effects`); with ``rank``, with all its regressors ranked by error
-    reduction, significant or not: what the simulation criteria try."""
+    reduction, significant or not: what the simulation criteria try. ``kept``: the loop's
+    scoring of a model, kept for its next scoring of the same model."""
     return score_effects(
         records,
         current.terms,
@@ -1099,6 +1105,7 @@ def _scored(
         saturating=current.saturating,
         workers=workers,
         threads=threads,
+        kept=kept,
     )
 
 
@@ -1460,25 +1467,30 @@ def _judged_in_turn(
     workers: Workers,
     tell: Stage,
     stage: str,
-) -> Iterator[tuple[EffectScore, float, Structure]]:
+) -> Generator[tuple[EffectScore, float, Structure], Matters | None, None]:
     """Each scored family in turn with its check blocks' free-run RMS and structure, the best
     of those adding it may give (:func:`_with`); ``tell`` is told each, in the ``stage``, as its
     judgement is read. ``JUDGED_AT_ONCE`` families are judged at a time by ``workers``: the round
-    ends at the first that passes, and a family judged beside it is judged in vain."""
+    ends at the first that passes, and a family judged beside it is judged in vain. A caller that
+    needs only the figures that matter to it sends which do (:meth:`CheckSplit.judge`'s
+    ``matters``): the families judged from then on may give a bound for one that does not."""
+    matters = None
     for first in range(0, len(scores), JUDGED_AT_ONCE):
         batch = [
             (score, _with(score, kinds, current, records)) for score in scores[first : first + JUDGED_AT_ONCE]
         ]
-        errors = checks.judge([option for _, options in batch for option in options], workers)
+        errors = checks.judge(
+            [option for _, options in batch for option in options], workers, matters=matters
+        )
         for score, options in batch:
             tell(f"{stage}: {score.name} on the check blocks")
             error, structure = min(((next(errors), option) for option in options), key=lambda trial: trial[0])
-            yield score, error, structure
+            matters = (yield score, error, structure) or matters
 
 
 def _looked_ahead(
     first: tuple[EffectScore, Criterion, Structure, float],
-    judged: Iterator[tuple[EffectScore, float, Structure]],
+    judged: Generator[tuple[EffectScore, float, Structure], Matters | None, None],
     current: Structure,
     check: float,
     margin: float,
@@ -1514,11 +1526,13 @@ def _looked_ahead(
     _, criterion, structure, error = first
     if structure.noise_lags != current.noise_lags:
         return first, 0
-    # zip takes from the range first: no family past the contenders is judged.
-    looked = list(zip(range(CONTENDERS), judged, strict=False))
+    # The contenders judged from here need exact figures only where they could be chosen (a
+    # partial, for the workers that judge them).
+    contends = partial(_contends, check, margin, error)
+    looked = list(islice(_sending(judged, contends), CONTENDERS))
     contenders = [
         (other_error, other, other_structure)
-        for _, (other, other_error, other_structure) in looked
+        for other, other_error, other_structure in looked
         if other_structure.noise_lags == current.noise_lags
         and other_error <= (1 - margin) * check
         and not set(structure.terms) <= set(other_structure.terms)
@@ -1526,7 +1540,7 @@ def _looked_ahead(
     if not contenders:
         return first, len(looked)
     best_error, best, best_structure = min(contenders, key=lambda trial: trial[0])
-    if error - best_error < SIMULATION_GAIN * check:
+    if not contends(best_error):
         return first, len(looked)
     best_end, after_best, after_best_tried = ahead(best_structure, best_error)
     if after_best == first[0].name:
@@ -1538,6 +1552,24 @@ def _looked_ahead(
     return first, tried
 
 
+def _contends(check: float, margin: float, error: float, other_error: float) -> bool:
+    """Whether a contender's check figure ``other_error`` clears the ``margin`` below ``check``
+    and takes the further gain off the first's ``error`` (:func:`_looked_ahead`)."""
+    return other_error <= (1 - margin) * check and error - other_error >= SIMULATION_GAIN * check
+
+
+def _sending(
+    judged: Generator[tuple[EffectScore, float, Structure], Matters | None, None], matters: Matters
+) -> Iterator[tuple[EffectScore, float, Structure]]:
+    """The families still to be ``judged`` in turn (:func:`_judged_in_turn`), told first which
+    figures matter."""
+    try:
+        yield judged.send(matters)
+    except StopIteration:
+        return
+    yield from judged
+
+
 def _next_round(
     records: Records,
     families: Sequence[Effect],
@@ -1547,6 +1579,7 @@ def _next_round(
     workers: Workers,
     threads: Workers,
     tell: Stage,
+    kept: ScoringKept,
     number: int,
     current: Structure,
     check: float,
@@ -1564,7 +1597,7 @@ def _next_round(
         if effect.name != POLYNOMIAL and not (effect.kind == "saturation" and current.saturating is not None)
     ]
     tell(f"round {number}, looked ahead: scoring {len(offered)} families")
-    scores = _scored(records, current, offered, alpha, workers, threads)
+    scores = _scored(records, current, offered, alpha, workers, threads, kept=kept)
     kinds = {effect.name: effect.kind for effect in offered}
     significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
     stage = f"round {number}, looked ahead"

@@ -20,9 +20,10 @@ signals or of the residual) reaches across the boundary between two.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 from itertools import chain, pairwise
+from typing import Any
 
 import numpy as np
 from scipy import linalg, signal, special
@@ -129,6 +130,7 @@ def score_effects(
     saturating: Saturating | None = None,
     workers: Workers = map,
     threads: Workers = map,
+    kept: ScoringKept | None = None,
 ) -> Scores:
     """Score each effect against the current model's residual on the estimation records; with
     ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``). The
@@ -136,26 +138,24 @@ def score_effects(
     (:data:`models.regression.Workers`), and the families tested by ``threads``, a map over
     threads of this process (the tests are numpy's work on columns of the records' length, too
     large to send to a process, and numpy lets go of the interpreter while it works): the same
-    whichever."""
+    whichever. ``kept``, for a caller that scores the same model on the same records again
+    (:class:`ScoringKept`): the model's equations and each family's candidates built then are
+    taken from it, and what is built now is kept there."""
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
-    Phi, target, starts, inside = _model_equations(records, terms, noise_lags, lag, saturating)
-    scale = column_norms(Phi)
-    Q, R = linalg.qr(divided_columns(Phi, scale), mode="economic", overwrite_a=True)
-    projection = Q.T @ target
-    residual = target - Q @ projection
-    theta = (linalg.solve_triangular(R, projection) / scale)[: len(terms)]
-    n_obs, n_par = Phi.shape
-    every_row = np.zeros(inside.size)
-    every_row[inside] = residual
-    every_start = stacked_starts(records, lag)
+    key = (tuple(terms), noise_lags, saturating, lag, alpha)
+    model = kept.model(key) if kept is not None else None
+    if model is None:
+        model = _model_scored(records, terms, noise_lags, lag, saturating)
+        if kept is not None:
+            kept.keep(key, model)
     build = partial(
         _candidates,
         terms=terms,
         noise_lags=noise_lags,
-        theta=theta,
-        residual=every_row,
-        starts=every_start,
+        theta=model.theta,
+        residual=model.every_row,
+        starts=stacked_starts(records, lag),
         alpha=alpha,
         records=records,
         lag=lag,
@@ -165,8 +165,56 @@ def score_effects(
     # workers first, and the others, fixed functions of the signals, are built here meanwhile;
     # each family is projected off the model as it comes, and tested once all are in (the level
     # counts every candidate).
-    searched = [i for i, effect in enumerate(effects) if effect.kind in SEARCHED]
+    unbuilt = [i for i, effect in enumerate(effects) if effect not in model.candidates]
+    searched = [i for i in unbuilt if effects[i].kind in SEARCHED]
     found = workers(build, [effects[i] for i in searched])
+    built = chain(
+        ((i, build(effects[i])) for i in unbuilt if i not in searched),
+        zip(searched, found, strict=True),
+    )
+    for i, (labels, columns) in built:
+        model.candidates[effects[i]] = _projected(labels, columns[model.inside], model.Q)
+    candidates = {i: model.candidates[effect] for i, effect in enumerate(effects)}
+    total = sum(columns.shape[1] for _, columns in candidates.values())
+    level = alpha / max(total, 1)
+    residual = model.residual
+    scores = _tested(
+        effects, candidates, residual, model.own_past, model.dof, level, rank, noise_lags, threads
+    )
+    return Scores(float(np.sqrt(np.mean(residual**2))), level, total, scores)
+
+
+@dataclass
+class _ModelScored:
+    """What :func:`score_effects` builds of the model itself, the same for every family: the
+    orthonormal basis Q of its regressors over the rows it is fitted on (``inside`` of every
+    row), its residual there and over every row (zero outside), its parameters, the degrees of
+    freedom left, the residual's own recent past off the model, and each family's candidates
+    projected off it, by family."""
+
+    Q: np.ndarray
+    residual: np.ndarray
+    every_row: np.ndarray
+    inside: np.ndarray
+    theta: np.ndarray
+    dof: int
+    own_past: np.ndarray
+    candidates: dict[Effect, tuple[list[tuple[str, ...]], np.ndarray]] = field(default_factory=dict)
+
+
+def _model_scored(
+    records: Records, terms: tuple[Term, ...], noise_lags: int, lag: int, saturating: Saturating | None
+) -> _ModelScored:
+    """The model's part of :func:`score_effects`, no family built yet."""
+    Phi, target, starts, inside = _model_equations(records, terms, noise_lags, lag, saturating)
+    scale = column_norms(Phi)
+    Q, R = linalg.qr(divided_columns(Phi, scale), mode="economic", overwrite_a=True)
+    projection = Q.T @ target
+    residual = target - Q @ projection
+    theta = (linalg.solve_triangular(R, projection) / scale)[: len(terms)]
+    n_obs, n_par = Phi.shape
+    every_row = np.zeros(inside.size)
+    every_row[inside] = residual
     # A smooth residual predicts itself, and a coloured one makes spurious regressors look
     # significant: effects of the signals are judged after the residual's own recent past has
     # had its say, and moving-average noise after the signals' effects have had theirs. Each
@@ -174,15 +222,34 @@ def score_effects(
     own_past = _orthonormal(
         _lagged(residual, range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED), starts), Q
     )
-    built = chain(
-        ((i, build(effect)) for i, effect in enumerate(effects) if i not in searched),
-        zip(searched, found, strict=True),
-    )
-    candidates = {i: _projected(labels, columns[inside], Q) for i, (labels, columns) in built}
-    total = sum(columns.shape[1] for _, columns in candidates.values())
-    level = alpha / max(total, 1)
-    scores = _tested(effects, candidates, residual, own_past, n_obs - n_par, level, rank, noise_lags, threads)
-    return Scores(float(np.sqrt(np.mean(residual**2))), level, total, scores)
+    return _ModelScored(Q, residual, every_row, inside, theta, n_obs - n_par, own_past)
+
+
+class ScoringKept:
+    """The model a loop scored last (:func:`score_effects`), its equations and the families'
+    candidates built for it, for the loop's next scoring of that model on the same records:
+    the round after a look one round ahead (``models.refinement``) scores the structure the
+    look scored, with the families it offered and more, and a round that goes on to the
+    simulation criterion scores its model once more with every regressor ranked. Every family's
+    candidates are a function of the model, the records, the common first row and the level α
+    alone, so those built once serve again as they are, to the bit; the level α/M and the tests
+    are made anew for the families offered. One model at a time: a round's candidates take
+    tens of megabytes. The records must stay the same for the kept's life (a loop's own)."""
+
+    def __init__(self) -> None:
+        self._key: tuple[Any, ...] | None = None
+        self._model: _ModelScored | None = None
+
+    def model(self, key: tuple[Any, ...]) -> _ModelScored | None:
+        """The model kept under ``key``, if it is the one kept; asked for another, the one kept
+        is let go at once, before the other's arrays are made beside it."""
+        if key != self._key:
+            self._key, self._model = None, None
+        return self._model
+
+    def keep(self, key: tuple[Any, ...], model: _ModelScored) -> None:
+        """Keep ``model`` (and what is built for it later) under ``key``, in place of the last."""
+        self._key, self._model = key, model
 
 
 def _model_equations(

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import operator
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
@@ -14,7 +16,15 @@ from harness.duffing import DuffingOscillator
 from harness.extrapolating import growing_steps
 from harness.prerequisites import benchmark_data
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
-from models.effects import candidate_effects, linear_terms, offset_direction, offset_terms, polynomial_effect
+from models.effects import (
+    Effect,
+    SearchInput,
+    candidate_effects,
+    linear_terms,
+    offset_direction,
+    offset_terms,
+    polynomial_effect,
+)
 from models.errors import InputError
 from models.held_out import HeldOut, held_out_tails
 from models.narx import NARX, fit_narx
@@ -32,7 +42,7 @@ from models.refinement import (
     refine_record,
     refine_records,
 )
-from models.scoring import EffectScore, fit_model, score_effects
+from models.scoring import EffectScore, ScoringKept, fit_model, score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
@@ -1166,3 +1176,65 @@ def test_a_generic_block_a_later_effect_made_redundant_is_pruned_whole_and_the_r
         ("input_nonlinearity", False),
     ]
     assert [effect["name"] for effect in report["effects_added"]] == ["input_nonlinearity"]
+
+
+def test_a_model_scored_again_takes_the_families_kept_for_it_and_no_other_model_does():
+    """The loop scores a model again after looking one round ahead and before the simulation
+    criteria (``ScoringKept``): the families built for it then are not built again, and the
+    scores, with more families offered or every regressor ranked, are those of a fresh scoring to
+    the last digit (the level α/M counts the families offered now). Another model, or the same
+    with moving-average terms, has its families built anew: a kept family would be another
+    model's residual's."""
+    x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
+    records = [(x[:ESTIMATION], y[:ESTIMATION])]
+    exact = tuple(parse_terms(EXACT_TERMS))
+    terms = (*exact[:4], exact[-1])  # the rig's linear part: its cubic spring is missing
+    searches: list[int] = []
+
+    def cube(search: SearchInput) -> tuple[Term, ...]:
+        searches.append(len(search.terms))
+        return tuple(parse_terms(["y[t-1]^3", "y[t-2]^3"]))
+
+    counted = Effect("counted", "the cubes of y's lags, searched for", (), "estimated", find=cube)
+    effects = [*candidate_effects(terms), counted]
+    kept = ScoringKept()
+
+    def both(model: tuple[Term, ...], offered: list[Effect], noise: int = 0, rank: bool = False) -> None:
+        again = score_effects(records, model, noise, offered, 0.01, rank=rank, kept=kept)
+        assert again == score_effects(records, model, noise, offered, 0.01, rank=rank)
+
+    both(terms, effects[5:])
+    assert len(searches) == 2  # once kept, once fresh
+    both(terms, effects)
+    both(terms, effects, rank=True)
+    assert len(searches) == 4  # the fresh ones only
+    both(terms[1:], effects)
+    both(terms, effects, noise=1)
+    assert searches[4:] == [4, 4, 5, 5]  # built for each other model, kept and fresh
+    assert score_effects(records, terms, 0, effects, 0.01).scores[-1].significant
+
+
+def test_a_figure_judged_against_a_bound_is_not_taken_for_the_figure():
+    """The look ahead's contenders matter only where their check figure could win
+    (``CheckSplit.judge``'s ``matters``): a model whose free run over the check blocks is already
+    beyond that is not asked whether it comes to rest, and its run's RMS, finite, answers.
+    Asked for its figure, or by a caller to whom that figure matters, the split judges it in
+    full: it does not come to rest (a root outside the unit circle), so the figure is infinite,
+    here and in the workers."""
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal(3000)
+    y = signal.lfilter([0.0, 1.0], [1.0, -0.9], x) + 0.01 * rng.standard_normal(3000)
+    structure = Structure(tuple(parse_terms(["y[t-1]", "x[t-1]"])))
+    fitted = CheckSplit.of([(x, y)]).fitted(structure)
+    drifting = replace(fitted, theta=np.array([1.001, 1.0]))
+    beyond, mattering = partial(operator.ge, 0.01), partial(operator.ge, 1e9)  # 0.01 >= figure, …
+    with ProcessPoolExecutor(1) as pool:
+        for workers in (map, pool.map):
+            checks = CheckSplit.of([(x, y)])
+            checks._fitted[structure] = drifting
+            (bound,) = checks.judge([structure], workers, matters=beyond)
+            assert np.isfinite(bound) and not beyond(bound)
+            assert list(checks.judge([structure], workers, matters=mattering)) == [np.inf]
+            assert checks.error(structure) == np.inf
+            assert list(checks.judge([structure], workers, matters=beyond)) == [np.inf]
+    assert np.isfinite(CheckSplit.of([(x, y)]).error(structure))  # as fitted, it comes to rest
