@@ -22,7 +22,9 @@ loop chooses), each round
    family's regressors are tried in the order of their error reduction, and the family whose
    model (parameters refined by output error, as is the current model's) lowers the check
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
-   criterion. Otherwise the loop stops.
+   criterion. Where none does, the first significant family is judged with the family the
+   round after it adds (:func:`_paired`): two effects can each run free worse alone and far
+   better together. Otherwise the loop stops.
 
 After the rounds, the loop prunes back (Piroddi & Spinelli 2003): a term the rounds added goes
 where the check blocks' free run without it is no higher than the figure the rounds ended at
@@ -166,7 +168,9 @@ CONTENDERS = 4
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
 
-Criterion = Literal["one-step", "output error", "simulation", "simulation across folds", "output's range"]
+Criterion = Literal[
+    "one-step", "output error", "simulation", "simulation across folds", "output's range", "pair"
+]
 Estimator = Literal["least squares", "output error"]
 Verdict = Literal["better", "not better", "diverged"]
 
@@ -181,8 +185,10 @@ class Round:
     and its model grown from the current one's output-error fit lowering that free run by more
     than its standard error), "simulation" (it lowered that free run by at least
     ``SIMULATION_GAIN``), "simulation across folds" (its settled output-error model lowered the
-    free run over the checked records of each of three folds by at least ``FOLD_GAIN``) or
-    "output's range" (the rectifier, taken where the records read as a magnitude);
+    free run over the checked records of each of three folds by at least ``FOLD_GAIN``),
+    "output's range" (the rectifier, taken where the records read as a magnitude) or "pair" (the
+    first significant family, whose model alone ran free worse, with the family the next round
+    adds lowering that free run by at least ``SIMULATION_GAIN``: :func:`_paired`);
     ``check_rms`` is the check blocks' free-run RMS before and after the round (by output error,
     settled, across folds).
     """
@@ -952,6 +958,21 @@ def _grown(
                 )
                 tried += structures
                 judged = simulated if decided is not None else _better(judged, simulated)
+            if decided is None and not generic and number < max_rounds:
+                # The partner is an effect of the process: noise, which clears by being no worse,
+                # would end the pair where the first left it.
+                named = [effect for effect in families if effect.kind != "noise"]
+                ahead = partial(
+                    _next_round, records, named, alpha, margin, checks, workers, threads, tell, kept
+                )
+                paired, paired_tried = _paired(
+                    significant, kinds, current, records, check, checks, partial(ahead, number + 1)
+                )
+                tried += paired_tried
+                if paired is not None:
+                    decided, pair_end = paired
+                    rejected = [name for name in rejected if name != decided[0].name]
+                    judged = Gain(_fall(pair_end, check), SIMULATION_GAIN)
             if decided is not None:
                 break
         if judged is not None:
@@ -1606,6 +1627,48 @@ def _next_round(
         if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
             return min(error, check), score.name, tried
     return check, None, len(significant)
+
+
+def _paired(
+    significant: Sequence[EffectScore],
+    kinds: dict[str, str],
+    current: Structure,
+    records: Records,
+    check: float,
+    checks: CheckSplit,
+    ahead: Callable[[Structure, float], tuple[float, str | None, int]],
+) -> tuple[tuple[tuple[EffectScore, Criterion, Structure, float], float] | None, int]:
+    """Where no family clears on its own, the first ``significant`` family in the one-step order
+    (not moving-average noise) added with the one the round after it adds (``ahead``, judged as
+    :func:`_looked_ahead` judges a pair): its score, criterion, structure and check figure (worse
+    than ``check`` alone), and the check figure the pair ends at, or None unless that end takes
+    ``SIMULATION_GAIN`` of ``check`` off the check blocks' free run; and how many structures were
+    judged on the check blocks to decide it.
+
+    Two effects can each make the free run worse alone and simulate far better together: each
+    alone is fitted to the other's share of the residual as well as its own. On the rig with
+    Coulomb friction planted, nothing declared, the friction explains nearly all of the linear
+    start's one-step residual, and alone runs free worse than the start, as does the rig's own
+    cubic spring alone, which the friction's residual hides from the one-step tests; the two
+    together run free at a small fraction of the start's figure. The family the residual names
+    most strongly goes first; the next round, scored on its residual, finds its partner. The
+    pair is picked through two rounds of choices, so it must take off what the simulation
+    criterion asks of a family picked among many."""
+    first = next((score for score in significant if not score.noise_lags), None)
+    if first is None:
+        return None, 0
+    options = _with(first, kinds, current, records)
+    judged = [(checks.error(option), option) for option in options if option.noise_lags == current.noise_lags]
+    if not judged:
+        return None, 0
+    error, structure = min(judged, key=lambda trial: trial[0])
+    if not np.isfinite(error):
+        return None, len(judged)
+    end, partner, partner_tried = ahead(structure, error)
+    tried = len(judged) + partner_tried
+    if partner is None or partner == first.name or end > (1 - SIMULATION_GAIN) * check:
+        return None, tried
+    return ((first, "pair", structure, error), end), tried
 
 
 def _by_output_error_grown(
