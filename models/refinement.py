@@ -58,6 +58,14 @@ comparison's uncertainty, the start is returned and the report says the data cou
 the effects, naming the best one tried. Whichever is returned has its parameters estimated on
 all the records as the loop estimated them on its part (:func:`refine`).
 
+**Settling.** A record often starts with the machine, before it has settled (a motor warming up
+from rest). Where the structure returned is fitted by least squares, it is fitted again on the
+heads without their first eighth, quarter, three eighths and half; where one of those fits runs
+free over the tails better than the fit on the whole heads, beyond the comparison's uncertainty at
+the held-out level split among the four, the model is estimated from where the records settled
+and the report says what was left out (:func:`_settled_from`). That is one more choice the tails
+make, after the comparison with the start, and at a stricter level.
+
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
 noise on the measured output gives least squares, when on the check blocks the output-error fit
