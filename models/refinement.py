@@ -61,9 +61,10 @@ all the records as the loop estimated them on its part (:func:`refine`).
 **Settling.** A record often starts with the machine, before it has settled (a motor warming up
 from rest). Where the structure returned is fitted by least squares, it is fitted again on the
 heads without their first eighth, quarter, three eighths and half; where one of those fits runs
-free over the tails better than the fit on the whole heads, beyond the comparison's uncertainty at
-the held-out level split among the four, the model is estimated from where the records settled
-and the report says what was left out (:func:`_settled_from`). That is one more choice the tails
+free over the tails better than the fit on the whole heads, beyond the comparison's uncertainty
+at the held-out level split among the four, and predicts them one step ahead better, the model
+is estimated from where the records settled and the report says what was left out
+(:func:`_settled_from`). That is one more choice the tails
 make, after the comparison with the start, and at a stricter level.
 
 The refined structure's parameters are finally refined by output-error minimisation on all the
@@ -767,7 +768,10 @@ def _settled_from(
     :func:`_on_all` will return, fitted by least squares on the ``heads`` without a first share of
     each (``SETTLING_SHARES``), runs free over the held-out ``tails`` better than fitted on the
     whole heads beyond the comparison's uncertainty (at ``HELD_OUT_ALPHA`` split among the shares
-    tried); then where the share that gained most begins.
+    tried) and predicts them one step ahead better too; then where the share that gained most
+    begins. A machine that changed is predicted better one step ahead as well; the free run over a
+    short tail alone can favour a fit on fewer samples by chance where a lightly damped model's
+    slow error drifts through every block of the comparison (the rig's records).
 
     A record often starts with the machine: a motor switched on from rest warms up, its friction
     and windings' resistance drifting for minutes before they settle, and a least-squares fit
@@ -801,9 +805,16 @@ def _settled_from(
         except InputError:  # too few equations left for the structure
             continue
         judged = compare_on_tails(whole, model, tails, HELD_OUT_ALPHA / len(SETTLING_SHARES))
-        if any(cuts) and judged.better and judged.gain > best:
+        predicts = _one_step_square(model, tails) < _one_step_square(whole, tails)
+        if any(cuts) and judged.better and predicts and judged.gain > best:
             settled, best = cuts, judged.gain
     return settled
+
+
+def _one_step_square(model: NARX, segments: Segments) -> float:
+    """``model``'s mean square one-step prediction error over the ``segments``."""
+    errors = np.concatenate([model.residuals(x, y, t0) for x, y, t0 in segments])
+    return float(np.mean(errors**2))
 
 
 def _settled_notes(result: Refinement) -> list[str]:
