@@ -822,10 +822,12 @@ def _settled_notes(result: Refinement) -> list[str]:
     if not any(result.settled_from):
         return []
     left_out = ", ".join(str(cut) for cut in result.settled_from)
+    records = "record was" if len(result.settled_from) == 1 else "records were"
     return [
-        f"the first {left_out} samples of the estimation records were left out: fitted without "
-        "them the model ran free over the held-out tails better, beyond the comparison's "
-        "uncertainty (the system had not settled there: a machine warming up from rest)"
+        f"the first {left_out} samples of the estimation {records} left out: fitted without them "
+        "the model ran free over the held-out tails better, beyond the comparison's uncertainty, "
+        "and predicted them better one step ahead, as where a system has not yet settled (a "
+        "machine warming up from rest)"
     ]
 
 

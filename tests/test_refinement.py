@@ -1097,7 +1097,7 @@ def test_a_record_that_starts_before_the_system_settled_is_estimated_from_where_
     result = report.refinement
     assert result.settled_from and 0 < result.settled_from[0] <= 600, result.settled_from
     assert result.refined.n_obs == len(y) - result.settled_from[0] - 1
-    assert any("were left out" in note for note in report.to_dict()["notes"])
+    assert any("record was left out" in note for note in report.to_dict()["notes"])
     whole = fit_narx([(x, y)], parse_terms(declared))
     test_x, test_y = _warming_drive(600, 101, settled=True)
     on_whole = held_out_errors(whole, test_x, test_y, 1).free_run.rms
