@@ -117,8 +117,9 @@ def _cut(x: np.ndarray, n: int) -> int | None:
     return cut - cut % period if cut >= 2 * period else None
 
 
-def compare_on_tails(start: NARX, refined: NARX, tails: Segments) -> HeldOut:
-    """``start`` and ``refined`` compared on the ``tails`` by a paired test over blocks.
+def compare_on_tails(start: NARX, refined: NARX, tails: Segments, alpha: float = HELD_OUT_ALPHA) -> HeldOut:
+    """``start`` and ``refined`` compared on the ``tails`` by a paired test over blocks, at level
+    ``alpha`` (lower where the tails judge several choices).
 
     The blocks are cut two ways, each tested at half the level (Bonferroni), the refined model
     better where either passes: blocks of one free run over each tail, where a model's error can
@@ -133,7 +134,7 @@ def compare_on_tails(start: NARX, refined: NARX, tails: Segments) -> HeldOut:
     """
     blocks = comparison_blocks(tails)
     start_errors, refined_errors = (free_run_errors(model, tails) for model in (start, refined))
-    level = HELD_OUT_ALPHA / 2
+    level = alpha / 2
     comparisons = [
         _paired(_block_squares(start_errors, blocks), _block_squares(refined_errors, blocks), level),
         _paired(_restarted_squares(start, tails, blocks), _restarted_squares(refined, tails, blocks), level),

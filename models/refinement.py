@@ -63,6 +63,15 @@ comparison's uncertainty, the start is returned and the report says the data cou
 the effects, naming the best one tried. Whichever is returned has its parameters estimated on
 all the records as the loop estimated them on its part (:func:`refine`).
 
+**Settling.** A record often starts with the machine, before it has settled (a motor warming up
+from rest). Where the structure returned is fitted by least squares, it is fitted again on the
+heads without their first eighth, quarter, three eighths and half; where one of those fits runs
+free over the tails better than the fit on the whole heads, beyond the comparison's uncertainty
+at the held-out level split among the four, and predicts them one step ahead better, the model
+is estimated from where the records settled and the report says what was left out
+(:func:`_settled_from`). That is one more choice the tails
+make, after the comparison with the start, and at a stricter level.
+
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
 noise on the measured output gives least squares, when on the check blocks the output-error fit
@@ -124,7 +133,7 @@ from models.errors import InputError
 from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails, held_out_tails, unseen_by
 from models.narx import NARX, Saturation, z_quantile
 from models.output_error import comes_to_rest, free_run_at_rest
-from models.periods import PeriodNoise, pooled_period_noise
+from models.periods import PeriodNoise, excitation_period, pooled_period_noise
 from models.regression import Workers
 from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model, score_effects
 from models.signals import GLITCH_FACTOR, checked_records, glitches
@@ -165,6 +174,10 @@ PRUNING_TRIALS = 2
 # Once a family clears the one-step criterion's margin, this many more in the one-step order are
 # judged on the check blocks for a larger gain (:func:`_looked_ahead`).
 CONTENDERS = 4
+# The first parts of the estimation records' heads tried as stretches where the system had not
+# settled (:func:`_settled_from`), as shares of each head: at most half, so that most of what the
+# loop chose on stays.
+SETTLING_SHARES = (0.125, 0.25, 0.375, 0.5)
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
 
@@ -248,6 +261,9 @@ class Refinement:
     check_rms: float = np.inf
     noise_floor: PeriodNoise | None = None
     held_out: HeldOut | None = None
+    # The samples left out at the start of each estimation record, where the system had not
+    # settled (:func:`_settled_from`); empty where none were.
+    settled_from: tuple[int, ...] = ()
 
     @property
     def kept(self) -> tuple[Round, ...]:
@@ -364,7 +380,11 @@ class RefinementReport:
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
-            "notes": list(self.notes) + _held_out_notes(result) + _skipped_notes(self.tests),
+            "settled_from": list(result.settled_from),
+            "notes": list(self.notes)
+            + _held_out_notes(result)
+            + _settled_notes(result)
+            + _skipped_notes(self.tests),
         }
 
 
@@ -750,7 +770,83 @@ def refine(
         noise_only = refined.terms == start.terms and refined.output_limits == start.output_limits
         if not (held_out.better or (noise_only and not short and held_out.not_worse)):
             held_out = replace(held_out, kept=False, best_tried=_best_tried(result.kept))
-    return _on_all(grown, held_out, records, output_error, tell, threads)
+    settled = _settled_from(grown, held_out, heads, tails, tell)
+    if not any(settled):
+        return _on_all(grown, held_out, records, output_error, tell, threads)
+    settled_records = [(x[cut:], y[cut:]) for (x, y), cut in zip(records, settled, strict=True)]
+    return replace(
+        _on_all(grown, held_out, settled_records, output_error, tell, threads), settled_from=settled
+    )
+
+
+def _settled_from(
+    grown: _Grown, held_out: HeldOut | None, heads: Records, tails: Segments, tell: Stage
+) -> tuple[int, ...]:
+    """Where each estimation record's settled part begins: 0 for each, unless the structure
+    :func:`_on_all` will return, fitted by least squares on the ``heads`` without a first share of
+    each (``SETTLING_SHARES``), runs free over the held-out ``tails`` better than fitted on the
+    whole heads beyond the comparison's uncertainty (at ``HELD_OUT_ALPHA`` split among the shares
+    tried) and predicts them one step ahead better too; then where the share that gained most
+    begins. A machine that changed is predicted better one step ahead as well; the free run over a
+    short tail alone can favour a fit on fewer samples by chance where a lightly damped model's
+    slow error drifts through every block of the comparison (the rig's records).
+
+    A record often starts with the machine: a motor switched on from rest warms up, its friction
+    and windings' resistance drifting for minutes before they settle, and a least-squares fit
+    over the whole record averages the machine it became with the one it was (the DC
+    motor/generator's record, which starts at rest). The tails, the record's latest samples, tell
+    which. Where the structure is fitted by output error a search per share would cost as much
+    as the final fit; where it holds a sinusoid of time, cutting a record moves its phase: neither
+    is tried.
+    """
+    result = grown.refinement
+    kept = bool(result.effects_added) and (held_out is None or held_out.kept)
+    structure = grown.structure if kept else Structure(result.declared.terms)
+    estimator = result.estimator if kept else grown.start_estimator
+    settled = (0,) * len(heads)
+    if estimator != "least squares" or _of_time(structure.terms):
+        return settled
+    tell("the estimation records without their first parts, on the held-out tails")
+    whole, _ = _fitted_on_all(heads, structure)
+    periods = [excitation_period(x) for x, _ in heads]
+    best = 0.0
+    for share in SETTLING_SHARES:
+        # Whole periods of an input that repeats, as the heads are cut (:mod:`models.held_out`).
+        cuts = tuple(
+            int(len(y) * share) - (int(len(y) * share) % period if period else 0)
+            for (_, y), period in zip(heads, periods, strict=True)
+        )
+        try:
+            model, _ = _fitted_on_all(
+                [(x[c:], y[c:]) for (x, y), c in zip(heads, cuts, strict=True)], structure
+            )
+        except InputError:  # too few equations left for the structure
+            continue
+        judged = compare_on_tails(whole, model, tails, HELD_OUT_ALPHA / len(SETTLING_SHARES))
+        predicts = _one_step_square(model, tails) < _one_step_square(whole, tails)
+        if any(cuts) and judged.better and predicts and judged.gain > best:
+            settled, best = cuts, judged.gain
+    return settled
+
+
+def _one_step_square(model: NARX, segments: Segments) -> float:
+    """``model``'s mean square one-step prediction error over the ``segments``."""
+    errors = np.concatenate([model.residuals(x, y, t0) for x, y, t0 in segments])
+    return float(np.mean(errors**2))
+
+
+def _settled_notes(result: Refinement) -> list[str]:
+    """What the report says where the first samples of the estimation records were left out."""
+    if not any(result.settled_from):
+        return []
+    left_out = ", ".join(str(cut) for cut in result.settled_from)
+    records = "record was" if len(result.settled_from) == 1 else "records were"
+    return [
+        f"the first {left_out} samples of the estimation {records} left out: fitted without them "
+        "the model ran free over the held-out tails better, beyond the comparison's uncertainty, "
+        "and predicted them better one step ahead, as where a system has not yet settled (a "
+        "machine warming up from rest)"
+    ]
 
 
 def _start_on_tails(grown: _Grown, heads: Records, tails: Segments) -> _Grown:

@@ -39,7 +39,7 @@ from simulator.theory import EXACT_TERMS
 REPORT_KEYS = {
     "declared", "orders_chosen", "effects_added", "effects_withdrawn", "before", "after", "tests", "refined",
     "notes", "data", "check_free_run_rms", "noise_floor", "held_out", "explanation",
-    "rounds",
+    "rounds", "settled_from",
 }  # fmt: skip
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests", "diverged"}
 HELD_OUT_KEYS = {
