@@ -739,14 +739,12 @@ class EstimatedStart:
                 )
             a[factor.lag - 1] += value
         a = np.trim_zeros(a, "b")
-        # Only the last R = len(a) initial outputs reach the run; one column for each.
-        denominator = np.concatenate(([1.0], -a))
-        silence = np.zeros(max(n - L, 0))
-        responses = np.zeros((silence.size, a.size))
-        for k in range(a.size):  # a unit on y[L−1−k]; lfiltic reads the past newest first
-            past = np.eye(a.size)[k]
-            initial = signal.lfiltic([1.0], denominator, past)
-            responses[:, a.size - 1 - k] = signal.lfilter([1.0], denominator, silence, zi=initial)[0]
+        # Only the last R = len(a) initial outputs reach the run; one column for each, all
+        # filtered in one call (the same recursion on each column as filtering them one by one).
+        responses = np.zeros((max(n - L, 0), a.size))
+        if responses.size:
+            denominator = np.concatenate(([1.0], -a))
+            responses = signal.lfilter([1.0], denominator, responses, axis=0, zi=_unit_states(a))[0]
         return cls(L, responses)
 
     def start(self, y: np.ndarray, run_output: np.ndarray) -> np.ndarray:
@@ -765,6 +763,18 @@ class EstimatedStart:
         in place."""
         Q = np.linalg.qr(self.responses[: block.shape[0]])[0]
         block -= Q @ (Q.T @ block)
+
+
+def _unit_states(a: np.ndarray) -> np.ndarray:
+    """The filter states (R × R) from which 1/(1 − Σ a_i q⁻ⁱ) rings down from a unit on each of
+    the last R initial outputs, column R−1−k that of a unit on y[L−1−k]: what
+    ``signal.lfiltic([1.0], [1, −a…], e_k)`` computes one column at a time (zi[m] = a[m + k]),
+    built at once, for a call of ``lfiltic`` costs more than the filtering at every θ of a search."""
+    R = a.size
+    states = np.zeros((R, R))
+    for k in range(R):
+        states[: R - k, R - 1 - k] = a[k:]
+    return states
 
 
 def estimated_start_error(model: NARX, x: np.ndarray, y: np.ndarray) -> np.ndarray:
