@@ -34,9 +34,10 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import linalg, optimize, signal
+from scipy import linalg, optimize
 
 from models.errors import InputError
 from models.narx import NARX
@@ -739,13 +740,8 @@ class EstimatedStart:
                 )
             a[factor.lag - 1] += value
         a = np.trim_zeros(a, "b")
-        # Only the last R = len(a) initial outputs reach the run; one column for each, all
-        # filtered in one call (the same recursion on each column as filtering them one by one).
-        responses = np.zeros((max(n - L, 0), a.size))
-        if responses.size:
-            denominator = np.concatenate(([1.0], -a))
-            responses = signal.lfilter([1.0], denominator, responses, axis=0, zi=_unit_states(a))[0]
-        return cls(L, responses)
+        # Only the last R = len(a) initial outputs reach the run; one column for each.
+        return cls(L, _ring_downs(np.concatenate(([1.0], -a)), _unit_states(a), max(n - L, 0)))
 
     def start(self, y: np.ndarray, run_output: np.ndarray) -> np.ndarray:
         """The record's y with its first L samples replaced by the start that minimises the
@@ -775,6 +771,26 @@ def _unit_states(a: np.ndarray) -> np.ndarray:
     for k in range(R):
         states[: R - k, R - 1 - k] = a[k:]
     return states
+
+
+@numba.njit(cache=True, nogil=True)
+def _ring_downs(denominator: np.ndarray, states: np.ndarray, n: int) -> np.ndarray:
+    """The (n, R) outputs of 1/denominator(q) on silence from each column of ``states``: what
+    ``signal.lfilter([1.0], denominator, np.zeros(n), zi=column)`` gives, by its own arithmetic
+    (the transposed direct form, the input's zero products kept), so bit for bit the same, at a
+    small share of its cost on these short filters."""
+    order, columns = states.shape
+    out = np.empty((n, columns))
+    z = states.copy()
+    for t in range(n):
+        # The columns side by side: their recursions are independent and overlap in the core.
+        for column in range(columns):
+            y = z[0, column] + 1.0 * 0.0
+            for m in range(order - 1):
+                z[m, column] = z[m + 1, column] + 0.0 * 0.0 - y * denominator[m + 1]
+            z[order - 1, column] = 0.0 * 0.0 - y * denominator[order]
+            out[t, column] = y
+    return out
 
 
 def estimated_start_error(model: NARX, x: np.ndarray, y: np.ndarray) -> np.ndarray:
