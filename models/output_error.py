@@ -741,7 +741,7 @@ class EstimatedStart:
             a[factor.lag - 1] += value
         a = np.trim_zeros(a, "b")
         # Only the last R = len(a) initial outputs reach the run; one column for each.
-        return cls(L, _ring_downs(np.concatenate(([1.0], -a)), _unit_states(a), max(n - L, 0)))
+        return cls(L, _start_responses(np.concatenate(([1.0], -a)), _unit_states(a), max(n - L, 0)))
 
     def start(self, y: np.ndarray, run_output: np.ndarray) -> np.ndarray:
         """The record's y with its first L samples replaced by the start that minimises the
@@ -774,16 +774,16 @@ def _unit_states(a: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _ring_downs(denominator: np.ndarray, states: np.ndarray, n: int) -> np.ndarray:
+def _start_responses(denominator: np.ndarray, states: np.ndarray, n: int) -> np.ndarray:
     """The (n, R) outputs of 1/denominator(q) on silence from each column of ``states``: what
     ``signal.lfilter([1.0], denominator, np.zeros(n), zi=column)`` gives, by its own arithmetic
-    (the transposed direct form, the input's zero products kept), so bit for bit the same, at a
-    small share of its cost on these short filters."""
+    (the transposed direct form, the input's zero products kept), so bit for bit the same, but
+    with the columns' independent recursions side by side, where lfilter runs one column after
+    the other, each waiting on its own previous sample."""
     order, columns = states.shape
     out = np.empty((n, columns))
     z = states.copy()
     for t in range(n):
-        # The columns side by side: their recursions are independent and overlap in the core.
         for column in range(columns):
             y = z[0, column] + 1.0 * 0.0
             for m in range(order - 1):
