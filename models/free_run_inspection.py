@@ -67,6 +67,7 @@ For models linear in their output (the estimated start needs it) and without out
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -475,6 +476,9 @@ class _Estimate:
 def _estimate(mode: FreeRunMode, run: FreeRun, y: np.ndarray, model_uncertainty: bool) -> _Estimate:
     model, basis = mode.model, mode.model.basis
 
+    # Cached: the search ends by comparing its point with the grid's best, and the likelihood
+    # ratio asks for k = 0, both magnitudes whose cost the grid may already have.
+    @functools.cache
     def cost(k: float) -> float:  # the whitened error's sum of squares (generalised least squares)
         error = _whitened(
             mode.whitening, _free_run(model.terms, run, model.theta @ basis.values(k), y, False).error

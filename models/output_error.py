@@ -34,9 +34,10 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import linalg, optimize, signal
+from scipy import linalg, optimize
 
 from models.errors import InputError
 from models.narx import NARX
@@ -740,14 +741,7 @@ class EstimatedStart:
             a[factor.lag - 1] += value
         a = np.trim_zeros(a, "b")
         # Only the last R = len(a) initial outputs reach the run; one column for each.
-        denominator = np.concatenate(([1.0], -a))
-        silence = np.zeros(max(n - L, 0))
-        responses = np.zeros((silence.size, a.size))
-        for k in range(a.size):  # a unit on y[L−1−k]; lfiltic reads the past newest first
-            past = np.eye(a.size)[k]
-            initial = signal.lfiltic([1.0], denominator, past)
-            responses[:, a.size - 1 - k] = signal.lfilter([1.0], denominator, silence, zi=initial)[0]
-        return cls(L, responses)
+        return cls(L, _start_responses(np.concatenate(([1.0], -a)), _unit_states(a), max(n - L, 0)))
 
     def start(self, y: np.ndarray, run_output: np.ndarray) -> np.ndarray:
         """The record's y with its first L samples replaced by the start that minimises the
@@ -765,6 +759,38 @@ class EstimatedStart:
         in place."""
         Q = np.linalg.qr(self.responses[: block.shape[0]])[0]
         block -= Q @ (Q.T @ block)
+
+
+def _unit_states(a: np.ndarray) -> np.ndarray:
+    """The filter states (R × R) from which 1/(1 − Σ a_i q⁻ⁱ) rings down from a unit on each of
+    the last R initial outputs, column R−1−k that of a unit on y[L−1−k]: what
+    ``signal.lfiltic([1.0], [1, −a…], e_k)`` computes one column at a time (zi[m] = a[m + k]),
+    built at once, for a call of ``lfiltic`` costs more than the filtering at every θ of a search."""
+    R = a.size
+    states = np.zeros((R, R))
+    for k in range(R):
+        states[: R - k, R - 1 - k] = a[k:]
+    return states
+
+
+@numba.njit(cache=True, nogil=True)
+def _start_responses(denominator: np.ndarray, states: np.ndarray, n: int) -> np.ndarray:
+    """The (n, R) outputs of 1/denominator(q) on silence from each column of ``states``: what
+    ``signal.lfilter([1.0], denominator, np.zeros(n), zi=column)`` gives, by its own arithmetic
+    (the transposed direct form, the input's zero products kept), so bit for bit the same, but
+    with the columns' independent recursions side by side, where lfilter runs one column after
+    the other, each waiting on its own previous sample."""
+    order, columns = states.shape
+    out = np.empty((n, columns))
+    z = states.copy()
+    for t in range(n):
+        for column in range(columns):
+            y = z[0, column] + 1.0 * 0.0
+            for m in range(order - 1):
+                z[m, column] = z[m + 1, column] + 0.0 * 0.0 - y * denominator[m + 1]
+            z[order - 1, column] = 0.0 * 0.0 - y * denominator[order]
+            out[t, column] = y
+    return out
 
 
 def estimated_start_error(model: NARX, x: np.ndarray, y: np.ndarray) -> np.ndarray:

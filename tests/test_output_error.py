@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from scipy import optimize
+from scipy import optimize, signal
 
 from harness.accelerometer import record, scenario
 from harness.prerequisites import benchmark_file
@@ -25,6 +25,7 @@ from models.output_error import (
     RESTLESS,
     RING_DOWN,
     STILL,
+    EstimatedStart,
     RingDowns,
     comes_to_rest,
     estimated_start_error,
@@ -553,3 +554,34 @@ def test_the_estimated_start_removes_the_bias_a_noisy_start_leaves() -> None:
 
     assert clean_error(fit_output_error(start, records).model) > 0.005
     assert clean_error(fit_output_error(start, records, start_from="estimated").model) < 0.002
+
+
+@pytest.mark.parametrize(
+    "lags",
+    [
+        [1.9, -0.95],  # a stable pair
+        [2.9, -3.2, 1.6, -0.31, 0.0],  # four lags and a zero fifth, trimmed
+        [1.2, 0.5],  # diverging: the responses grow to inf
+    ],
+)
+def test_the_estimated_starts_responses_are_lfilters_bit_for_bit(lags: list[float]) -> None:
+    """EstimatedStart.of's ring-downs (filtered in one kernel, the states built directly) are
+    those of lfiltic and lfilter a column at a time, to the last bit: an inspection's verdicts and
+    every output-error fit depend on them, and must not move with how they are computed."""
+    terms = parse_terms([f"y[t-{i}]" for i in range(1, len(lags) + 1)] + ["x[t]"])
+    n = 3000
+    with np.errstate(all="ignore"):
+        responses = EstimatedStart.of(terms, np.array([*lags, 1.0]), n).responses
+        a = np.trim_zeros(np.array(lags), "b")
+        denominator = np.concatenate(([1.0], -a))
+        expected = np.column_stack(
+            [
+                signal.lfilter(
+                    [1.0], denominator, np.zeros(n - len(lags)), zi=signal.lfiltic([1.0], denominator, past)
+                )[0]
+                for past in np.eye(a.size)[::-1]
+            ]
+        )
+    assert responses.shape == expected.shape == (n - len(lags), a.size)
+    assert np.array_equal(responses, expected, equal_nan=True)
+    assert np.isfinite(responses[-1]).all() == (lags[1] < 0)
