@@ -388,9 +388,10 @@ def best_linear(
     """The linear output-error model of the orders the loop chose (``result``'s start), its lag,
     and its figure on each test record; where a structure was declared, of the orders
     :func:`choose_linear` picks on the estimation records. The loop chooses its orders on the
-    records without the tails it holds out, and on F-16's sweeps, whose tails are the top of
-    their band, those are smaller orders than all of each sweep asks for: chosen here again on
-    whole records, the column would not be the start the refined model was judged against."""
+    records without the tails it holds out, and on F-16's sweeps, which fall in frequency so
+    that their tails hold the bottom of the band, those are smaller orders than whole sweeps ask
+    for: chosen here again on whole records, the column would not be the start the refined model
+    was judged against."""
     if result.orders is not None:
         orders, terms = result.orders, result.declared.terms
     else:

@@ -123,8 +123,8 @@ def test_the_bouc_wen_multisine_is_one_period_scored_besides_in_steady_state():
 def test_the_best_linear_column_is_the_start_of_the_orders_the_loop_chose():
     """The loop chooses its orders on the records without their held-out tails; the column that
     stands for its start is that start by output error, not the orders picked again on whole
-    records (on F-16's sweeps, whose tails are the top of their band, (7, 7, 1) against the
-    loop's (4, 4, 1))."""
+    records (on F-16's sweeps, whose tails hold the bottom of their band, (7, 7, 1) against
+    the loop's (4, 4, 1))."""
     rng = np.random.default_rng(5)
     x = rng.standard_normal(600)
     second = NARX(parse_terms(["y[t-1]", "y[t-2]", "x[t-1]"]), np.array([1.5, -0.7, 1.0]), np.zeros((3, 3)))
