@@ -414,8 +414,8 @@ def best_linear(
 
 
 def rows(build: Callable[[], Benchmark]) -> list[tuple[str, ...]]:
-    """The table's rows for one benchmark: its best linear model, then the loop, timed, then any
-    other library's models on the same split."""
+    """The table's rows for one benchmark: the loop, timed, then its start's best linear model,
+    then any other library's models on the same split."""
     benchmark = build()
     started = time.perf_counter()
     report = refine_records(
