@@ -363,7 +363,10 @@ def _score(
     columns = orthogonal_part(columns, given)
     target = residual - given @ (given.T @ residual)
     dof -= given.shape[1]
-    order, count, f_values, p_values, explained = _forward(columns, target, dof, level, rank)
+    # A searched family's parameters were chosen so that its columns together explain the
+    # residual best: their joint F test would judge them on the fit that chose them.
+    blocks = effect.kind == "terms"
+    order, count, f_values, p_values, explained = _forward(columns, target, dof, level, rank, blocks)
     chosen = order[:count]
     added = [label for i in chosen for label in labels[i]]
     n_obs = len(residual)
@@ -438,17 +441,20 @@ def _candidates(
 
 
 def _forward(
-    columns: np.ndarray, residual: np.ndarray, dof: int, level: float, rank: bool
+    columns: np.ndarray, residual: np.ndarray, dof: int, level: float, rank: bool, blocks: bool = False
 ) -> tuple[list[int], int, tuple[float, ...], tuple[float, ...], float]:
     """Greedy selection within one family by error reduction ratio, each column after its F test.
 
-    Where the next column fails its test alone, the columns after it in the greedy order (each the
-    best given those before) are tested with it as a block, by their joint F test at the same
-    level, and the smallest block that passes enters whole. A force of the velocity reaches a
-    sampled output as the difference of its values at neighbouring lags: each lag alone explains
-    little of the residual, their near-cancelling combination most of it (on the 2-DOF rig with
-    quadratic damping, dy·|dy| at each lag alone was not significant while the four together
-    explained nine tenths of the residual).
+    With ``blocks``, where the family's first column fails its test alone, the columns after it
+    in the greedy order (each the best given those before) are tested with it as a block, by
+    their joint F test at the same level, and the smallest block that passes enters whole. A
+    force of the velocity reaches a sampled output as the difference of its values at
+    neighbouring lags: each lag alone explains little of the residual, their near-cancelling
+    combination most of it (on the 2-DOF rig with quadratic damping, dy·|dy| at each lag alone
+    was not significant while the four together explained nine tenths of the residual). Once a
+    family has entered, each further column is tested alone: a block after it would let weak
+    columns in on a strong one's back (on the DC motor the generic polynomial took twice the
+    terms and ran free worse).
 
     Returns the columns in the greedy order (every usable one if ``rank``, else the chosen ones),
     how many of the first passed their tests (the chosen ones), their F statistics and p-values
@@ -461,7 +467,7 @@ def _forward(
     f_values: list[float] = []
     p_values: list[float] = []
     while chosen < len(order):
-        block = _entering_block(remaining, chosen, dof, level)
+        block = _entering_block(remaining, chosen, dof, level, len(order) if blocks and chosen == 0 else 1)
         if block is None:
             break
         size, f_value, p_value = block
@@ -498,12 +504,13 @@ def _greedy(columns: np.ndarray, residual: np.ndarray) -> tuple[list[int], list[
 
 
 def _entering_block(
-    remaining: Sequence[float], chosen: int, dof: int, level: float
+    remaining: Sequence[float], chosen: int, dof: int, level: float, largest: int
 ) -> tuple[int, float, float] | None:
-    """The smallest block of the greedy order's next columns after the ``chosen`` ones that
-    passes its joint F test at ``level``, as (its size, F, p-value); None where none does.
-    ``remaining``: the residual sum of squares before the first column and after each."""
-    for size in range(1, len(remaining) - chosen):
+    """The smallest block, of at most ``largest`` columns, of the greedy order's next columns
+    after the ``chosen`` ones that passes its joint F test at ``level``, as (its size, F,
+    p-value); None where none does. ``remaining``: the residual sum of squares before the first
+    column and after each."""
+    for size in range(1, min(largest, len(remaining) - 1 - chosen) + 1):
         after = remaining[chosen + size]
         remaining_dof = dof - chosen - size
         if remaining_dof < 1:
