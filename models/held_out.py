@@ -19,6 +19,7 @@ from scipy import stats
 
 from models.checking import MIN_BLOCK, Segments, free_run_errors, free_run_rms, pooled_rms
 from models.narx import NARX
+from models.output_error import diverged
 from models.periods import excitation_period
 from models.scoring import Records
 
@@ -142,7 +143,20 @@ def compare_on_tails(start: NARX, refined: NARX, tails: Segments, alpha: float =
     gain, threshold = next((each for each in comparisons if each[0] > each[1]), comparisons[0])
     start_rms, refined_rms = pooled_rms(start_errors), pooled_rms(refined_errors)
     samples = sum(len(y) for _, y, _ in tails)
-    return HeldOut(samples, start_rms, refined_rms, gain, threshold, diverged=not np.isfinite(refined_rms))
+    return HeldOut(
+        samples, start_rms, refined_rms, gain, threshold, diverged=_diverged(refined, refined_errors, tails)
+    )
+
+
+def _diverged(model: NARX, errors: list[np.ndarray], segments: Segments) -> bool:
+    """Whether ``model``'s free runs over the ``segments``, whose errors are ``errors``
+    (:func:`models.checking.free_run_errors`), diverged as over a test record
+    (:func:`models.output_error.diverged`): not finite, or beyond ``RESTLESS`` times the largest
+    output measured in their segment. A stable model with a slow mode can ring that far from a
+    measured state and stay finite over a tail of a few hundred samples."""
+    L = model.max_lag
+    measured = [y[L:] for _, y, _ in segments if len(y) > L]
+    return any(diverged(error + y, y) for error, y in zip(errors, measured, strict=True))
 
 
 def comparison_blocks(segments: Segments) -> int:

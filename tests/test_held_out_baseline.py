@@ -1,0 +1,70 @@
+"""The held-out tails' baseline: the start every effect is judged against, and returned when none is
+kept, must itself run free over the tails, and a refined model that leaves their range is
+reported as diverged (models/held_out.py, models/refinement.py's ``_start_on_tails``)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from models.checking import free_run_rms
+from models.effects import candidate_effects, linear_terms
+from models.held_out import compare_on_tails, held_out_tails
+from models.narx import fit_narx
+from models.output_error import RESTLESS, diverged
+from models.refinement import refine
+from models.validation import validate
+from simulator.simulate import Effects, Scenario, simulate
+
+
+def test_a_start_fitted_by_output_error_that_rings_over_the_tails_is_not_the_baseline():
+    """The rig with its y sensor offset, the linear start at its order with a constant declared and
+    moving-average noise the only family on offer. The start's output-error fit on the heads ends
+    with a slow pole all but cancelled by a zero (0.9995 and 0.9988): started from the measured
+    outputs at a tail's first samples it rings for thousands of samples, and ran free over the
+    tails at ten times their spread, as did the same structure with its noise terms, which was
+    therefore "not worse" and returned; over a record from another seed it ran free nearly a
+    hundred times worse than the same structure's least-squares fit, leaving the record's range
+    twentyfold. Least squares' fit of the start runs free over the tails within their spread:
+    it is the baseline, the noise terms (fitted by output error) do not beat it, and the start
+    returned is that fit."""
+    scenario = Scenario(disturbance_std=200.0, effects=Effects(offset=0.02))
+    record, other = simulate(scenario, 1600, seed=7001), simulate(scenario, 2000, seed=57001)
+    start = linear_terms(4, 4, 1, constant=True)
+    noise = [effect for effect in candidate_effects(start) if effect.name == "moving_average_noise"]
+    result = refine([(record.x, record.y)], start, effects=noise)
+    held_out = result.held_out
+    assert held_out is not None
+    tail = record.y[-held_out.samples :]
+    assert held_out.start_rms < np.std(tail), (held_out.start_rms, np.std(tail))
+    assert not held_out.kept or held_out.refined_rms <= held_out.start_rms
+    returned = result.refined
+    assert not diverged(returned.simulate(other.x, other.y[: returned.max_lag]), other.y)
+    least_squares = validate(result.declared, [(other.x, other.y)]).free_run.rms
+    assert validate(returned, [(other.x, other.y)]).free_run.rms <= 1.1 * least_squares
+
+
+def test_a_free_run_that_stays_finite_but_leaves_the_tails_range_is_reported_diverged():
+    """A linear system and a model of it with a real root at 1.02 instead of 0.5: over a tail of
+    300 samples its free run grows a few hundred times, finite, beyond ``RESTLESS`` times the
+    tail's largest output, where a test record's free run counts as diverged; so it does over
+    the tails, and the model is not the better one whatever the blocks' gain."""
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal(1500)
+    y = np.zeros(1500)
+    for t in range(2, 1500):
+        y[t] = 1.5 * y[t - 1] - 0.7 * y[t - 2] + x[t - 1]
+    y_measured = y + 0.01 * rng.standard_normal(1500)
+    model = fit_narx([(x, y_measured)], ["y[t-1]", "y[t-2]", "x[t-1]"])
+    # Roots 1.02 and 0.5: 1 − 1.52 q⁻¹ + 0.51 q⁻².
+    drifting = replace(model, theta=np.array([1.52, -0.51, model.theta[2]]))
+    split = held_out_tails([(x, y_measured)])
+    assert split is not None
+    _, tails = split
+    run = drifting.simulate(tails[0][0], tails[0][1][:2])
+    assert np.all(np.isfinite(run)) and np.max(np.abs(run)) > RESTLESS * np.max(np.abs(tails[0][1]))
+    assert np.isfinite(free_run_rms(drifting, tails))
+    compared = compare_on_tails(model, drifting, tails)
+    assert compared.diverged and not compared.better and not compared.not_worse
+    assert not compare_on_tails(drifting, model, tails).diverged
