@@ -27,15 +27,14 @@ from models.effects import (
 )
 from models.errors import InputError
 from models.held_out import HeldOut, held_out_tails
+from models.linear_start import _is_start
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
+from models.pruning import pruned_back, without_pruned
 from models.refinement import (
     Refinement,
     RefinementReport,
     Round,
-    _is_start,
-    _pruned,
-    _without_pruned,
     choose_linear,
     compare,
     refine,
@@ -1059,7 +1058,7 @@ def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
     ]
     rounds = [Round(1.0, 0.01, 2, (effect,), effect) for effect in effects]
     everything = Structure((*declared, *earlier, *later))
-    pruned, (taken,) = _pruned(everything, declared, rounds, checks, map, output_error=False)
+    pruned, (taken,) = pruned_back(everything, declared, rounds, checks, map, output_error=False)
     (kept,) = set(earlier) - {taken}
     assert pruned.terms == tuple(term for term in everything.terms if term != taken)
     assert kept in pruned.terms
@@ -1156,9 +1155,9 @@ def test_a_generic_block_a_later_effect_made_redundant_is_pruned_whole_and_the_r
             for name, terms in ((first, generic), ("input_nonlinearity", cube))
         ]
         rounds = [Round(1.0, 0.01, 2, (effect,), effect) for effect in effects]
-        pruned, taken = _pruned(everything, declared, rounds, checks, map, output_error=False)
+        pruned, taken = pruned_back(everything, declared, rounds, checks, map, output_error=False)
         assert cube[0] in pruned.terms and set(taken) == set(everything.terms) - set(pruned.terms)
-        return pruned, taken, _without_pruned(rounds, taken)
+        return pruned, taken, without_pruned(rounds, taken)
 
     pruned, _, _ = pruned_after("bilinear")
     assert len(set(generic) & set(pruned.terms)) == 1, pruned.terms
