@@ -1,4 +1,15 @@
-"""growing TODO."""
+"""The refinement loop's rounds on a set of records (:func:`loop_on`, :mod:`models.refinement`):
+each round offers the families the current structure lacks and asks the criteria of
+:mod:`models.round_criteria` in turn, the named families before the generic polynomial; after the
+rounds the terms they added are pruned back (:mod:`models.pruning`), what they added is checked by
+output error and, from three records on, families are grown across folds
+(:mod:`models.across_folds`); last, the refined structure's parameters are estimated by whichever
+of least squares and output error simulates the check blocks better, and the start as the loop
+makes it when it adds nothing is kept for the comparison on the held-out tails.
+
+Each phase is a function of what the one before returned: the settings every round runs with
+(:class:`_Loop`), one round's question (:class:`_Offer`) and where its choice stands as its
+criteria run (:class:`_Choosing`) are immutable and passed explicitly."""
 
 from __future__ import annotations
 
@@ -23,22 +34,18 @@ from models.checking import (
     checked_whole,
     grown_by_zeros,
 )
-from models.effects import (
-    POLYNOMIAL,
-    Effect,
-    candidate_effects,
-    unused,
-)
+from models.effects import POLYNOMIAL, Effect, candidate_effects, unused
 from models.errors import InputError
 from models.linear_start import choose_linear, rectified_orders
 from models.narx import NARX
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import pooled_period_noise
 from models.pruning import pruned_back, without_pruned
-from models.refinement_report import Criterion, Estimator, Refinement, Round, Stage
+from models.refinement_report import Estimator, Refinement, Round, Stage
 from models.regression import Workers
 from models.round_criteria import (
     SIMULATION_GAIN,
+    Decision,
     Gain,
     as_pair,
     better_gain,
@@ -71,11 +78,6 @@ class Grown(NamedTuple):
     start_check: float
     structure: Structure
     folded: tuple[Structure, tuple[Structure, ...]] | None
-
-
-# A family added, the criterion that decided, the structure with it and that structure's check
-# blocks' free-run RMS.
-Decision = tuple[EffectScore, Criterion, Structure, float]
 
 
 # The significant families judged on the check blocks in turn (:func:`models.round_criteria.judged_in_turn`).

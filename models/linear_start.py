@@ -1,4 +1,9 @@
-"""linear_start TODO."""
+"""The linear start of the refinement loop where no structure is declared (:mod:`models.refinement`):
+the ARX orders, input delay and constant that simulate the held-out data best for their size
+(:func:`choose_linear`), and, where the outputs read as a magnitude, the orders the rectified
+family starts from (:func:`rectified_orders`). Each candidate is judged on the three rotations of
+the check split by consistent estimates (instrumental variables, output error), so that least
+squares' bias does not buy needless orders, and a model the input barely drives is no start."""
 
 from __future__ import annotations
 
@@ -8,15 +13,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from models.checking import (
-    CheckSplit,
-    Segments,
-    Structure,
-)
-from models.effects import (
-    linear_terms,
-    reads_magnitude,
-)
+from models.checking import CheckSplit, Segments, Structure
+from models.effects import linear_terms, reads_magnitude
 from models.errors import InputError
 from models.narx import NARX
 from models.refinement_report import Stage, told
@@ -25,14 +23,10 @@ from models.scoring import Records
 from models.terms import Term
 
 MAX_LINEAR_ORDER = 10  # the largest order tried when no structure is declared
-
-
 # A larger linear start is chosen only when it simulates the held-out data better than a smaller
 # by this share and by more than their difference's spread across the check rotations
 # (:func:`choose_linear`).
 ORDER_GAIN = 0.05
-
-
 # A linear start's response to the input alone must reach this share of the output's spread.
 INPUT_SHARE = 0.1
 
@@ -234,10 +228,10 @@ def rectified_orders(
 ) -> tuple[Term, ...] | None:
     """Where the records' outputs read as a magnitude (:func:`models.effects.reads_magnitude`),
     the linear terms :func:`choose_linear` picks for the rectified model, which the rectified
-    family starts from in the first round (:func:`models.round_criteria.rectified_first`); None elsewhere. A sensor
-    blind to the sign folds the output at zero, and a linear model of the readings fits the folds
-    with other orders than the recursion under the fold wants (the coupled drives: (1, 1) and
-    (2, 2) for the readings, three lags under the rectifier)."""
+    family starts from in the first round (:func:`models.round_criteria.rectified_first`); None
+    elsewhere. A sensor blind to the sign folds the output at zero, and a linear model of the
+    readings fits the folds with other orders than the recursion under the fold wants (the coupled
+    drives: (1, 1) and (2, 2) for the readings, three lags under the rectifier)."""
     if not reads_magnitude(np.concatenate([y for _, y in records])):
         return None
     return choose_linear(records, checks=checks, progress=tell, workers=workers, rectified=True)[1]

@@ -1,4 +1,34 @@
-"""pruning TODO."""
+"""Pruning back (SPEC §7): the terms the rounds of the loop added that the model does not need
+(:mod:`models.refinement`).
+
+After the rounds, the loop prunes back (Piroddi & Spinelli 2003): a term the rounds added goes
+where the check blocks' free run without it is no higher than the figure the rounds ended at
+(:func:`pruned_back`), judged as the model will be fitted: where output error
+simulates better, by its output-error fit as well. The generic polynomial is tried whole where a
+later effect may have made it redundant; then the terms not significant in the least-squares fit,
+together, else by halves; then one at a time, those the fit needs least (smallest t statistic)
+first. The pruning never takes a named effect's last term. Each round reports the candidates it
+compared on the check blocks' free run, and the fall of that free run the effect added brought
+(else the best judged) against the fall it had to reach; the last, what the pruning took out,
+and a round whose generic block went whole says so.
+
+Once, after the rounds, not between them. A term pruned between rounds changes what every
+later round is offered and judged against, on a removal allowed for being no worse: on
+Silverbox from linear:10,10, two cubic terms pruned after round 2 left round 3 to quadratic
+stiffness, by the simulation criterion at the margin of its threshold, and that model drifted
+over Schroeder80mV, which neither the check blocks nor the held-out tails showed. After the
+rounds the effects are those the loop would choose unpruned, and the pruning only takes out
+what their structure does not need.
+
+It takes terms, never a named effect: an effect's last term stays. Its round added it for a
+fall of the free run beyond a threshold; "no higher without it" on the same check blocks is
+far weaker evidence, and those blocks see neither the model's long-run drift nor its
+extrapolation. An effect is withdrawn whole by the checks that judge effects: the
+output-error check of what the rounds added and the held-out tails. The generic polynomial
+is the exception: it names nothing, and where a later round added a named effect it may
+have stood in for, the pruning tries it whole (:func:`_generic_blocks`; its round then
+reports it pruned whole).
+"""
 
 from __future__ import annotations
 
@@ -9,13 +39,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from models.checking import (
-    CheckSplit,
-    Structure,
-)
-from models.effects import (
-    POLYNOMIAL,
-)
+from models.checking import CheckSplit, Structure
+from models.effects import POLYNOMIAL
 from models.narx import z_quantile
 from models.refinement_report import Round
 from models.regression import Workers
@@ -23,8 +48,8 @@ from models.round_criteria import DEFAULT_ALPHA
 from models.terms import Term
 
 # Removals of one term the pruning judges on the free run at once, the smallest t statistics,
-# once the batches of terms not significant are refused (:func:`pruned_back`): the workers' fits run
-# side by side, and where the first is refused the next may pass.
+# once the batches of terms not significant are refused (:func:`pruned_back`): the workers' fits
+# run side by side, and where the first is refused the next may pass.
 PRUNING_TRIALS = 2
 
 
@@ -51,23 +76,6 @@ def pruned_back(
     nor, on short records, more than a hundred samples, and with that much allowed Silverbox from
     linear:4,4 lost six terms and ran free over the arrow 15 % worse, and the coupled drives'
     second test lost four terms and with them, on the held-out tail, its effects.
-
-    Once, after the rounds, not between them. A term pruned between rounds changes what every
-    later round is offered and judged against, on a removal allowed for being no worse: on
-    Silverbox from linear:10,10, two cubic terms pruned after round 2 left round 3 to quadratic
-    stiffness, by the simulation criterion at the margin of its threshold, and that model drifted
-    over Schroeder80mV, which neither the check blocks nor the held-out tails showed. After the
-    rounds the effects are those the loop would choose unpruned, and the pruning only takes out
-    what their structure does not need.
-
-    It takes terms, never a named effect: an effect's last term stays. Its round added it for a
-    fall of the free run beyond a threshold; "no higher without it" on the same check blocks is
-    far weaker evidence, and those blocks see neither the model's long-run drift nor its
-    extrapolation. An effect is withdrawn whole by the checks that judge effects: the
-    output-error check of what the rounds added and the held-out tails. The generic polynomial
-    is the exception: it names nothing, and where a later round added a named effect it may
-    have stood in for, the pruning tries it whole (:func:`_generic_blocks`; its round then
-    reports it pruned whole).
 
     Three passes, each judging few structures, since judging every removal on the free run,
     again after each one taken, costs a fit and a free run a term a removal (on long records as

@@ -1,7 +1,8 @@
 """Closing the loop (SPEC §7): residual → the effect the model lacks → refined model.
 
 Starting from a declared structure (or, with none declared, from a linear model whose orders the
-loop chooses), each round
+loop chooses, :mod:`models.linear_start`), each round (:mod:`models.growing`, its criteria in
+:mod:`models.round_criteria`)
 
 1. fits the current model on the estimation records and takes its one-step residual e (a NARX
    by least squares; once moving-average noise terms are in, a NARMAX by extended least squares);
@@ -14,28 +15,24 @@ loop chooses), each round
    that free run by more than its standard error (:func:`models.checking.check_noise`; moving-average noise,
    which is there to unbias the parameters, need only not make it worse) is added — decided by
    the one-step criterion — unless a later one lowers it by a further ``SIMULATION_GAIN`` of the
-   current figure and, each added and the next round judged, ends lower (:func:`_looked_ahead`).
+   current figure and, each added and the next round judged, ends lower
+   (:func:`models.round_criteria.looked_ahead`).
    Where none clears, a family whose least-squares model diverges there is judged by output
-   error, grown from the current model's output-error fit (:func:`_by_output_error_grown`);
+   error, grown from the current model's output-error fit
+   (:func:`models.round_criteria.by_output_error_grown`);
 4. if no effect is significant on e (on slow, finely sampled data the one-step residual carries
    little of the simulation error), or every significant one made the free run worse, each
    family's regressors are tried in the order of their error reduction, and the family whose
    model (parameters refined by output error, as is the current model's) lowers the check
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Where none does, the first significant family is judged with the family the
-   round after it adds (:func:`_paired`): two effects can each run free worse alone and far
-   better together. Otherwise the loop stops.
+   round after it adds (:func:`models.round_criteria.as_pair`): two effects can each run free
+   worse alone and far better together. Otherwise the loop stops.
 
-After the rounds, the loop prunes back (Piroddi & Spinelli 2003): a term the rounds added goes
-where the check blocks' free run without it is no higher than the figure the rounds ended at
-(:func:`_pruned`), judged as the model will be fitted: where output error
-simulates better, by its output-error fit as well. The generic polynomial is tried whole where a
-later effect may have made it redundant; then the terms not significant in the least-squares fit,
-together, else by halves; then one at a time, those the fit needs least (smallest t statistic)
-first. The pruning never takes a named effect's last term. Each round reports the candidates it
-compared on the check blocks' free run, and the fall of that free run the effect added brought
-(else the best judged) against the fall it had to reach; the last, what the pruning took out,
-and a round whose generic block went whole says so.
+After the rounds, the loop prunes back the terms they added that the check blocks' free run does
+not need (:mod:`models.pruning`). Each round reports the candidates it compared on the check
+blocks' free run, and the fall of that free run the effect added brought (else the best judged)
+against the fall it had to reach; the last, what the pruning took out.
 
 The generic polynomial (:func:`models.effects.polynomial_effect`, products of two of the model's
 lags, no physical effect named) is scored with the named families but judged after them: steps 3
@@ -43,17 +40,12 @@ and 4 run for the named families first, and only where neither adds one for the 
 
 After the rounds, the refined structure must simulate the check blocks better than the declared
 one, both with their parameters by output error (from three records on, on every fold below);
-otherwise what the rounds added is withdrawn and the declared structure kept.
+otherwise what the rounds added is withdrawn and the declared structure kept
+(:func:`models.across_folds.repairs_only_bias`).
 
-**Across folds.** From three records on, the structure kept is then grown on the simulation error
-across folds: each third of the records in turn is checked and the rest fitted. Every family's
-terms are added at zero to the current model's output-error fit; the best families on the first
-fold are searched until they stop gaining on every fold, and of those whose free run over the
-checked records falls by ``FOLD_GAIN`` on all three, the one that falls most on average is added
-— decided by the simulation across folds. This repeats until no family passes. (On F-16's sweeps
-the rounds above add nothing that lasts: least squares ranks the families there, and every
-cubic-stiffness model it fits diverges; grown from the settled linear model, cubic stiffness
-gains 8–29 % on every fold.)
+**Across folds.** From three records on, the structure kept is then grown on the simulation
+error across folds, each third of the records checked in turn and the rest fitted
+(:mod:`models.across_folds`).
 
 **Never worse.** The rounds choose among many candidates on the same check blocks, and the best
 of many gains there by chance: where the records are long enough, the loop runs on each record's
@@ -63,14 +55,21 @@ comparison's uncertainty, the start is returned and the report says the data cou
 the effects, naming the best one tried. Whichever is returned has its parameters estimated on
 all the records as the loop estimated them on its part (:func:`refine`).
 
-**Settling.** A record often starts with the machine, before it has settled (a motor warming up
-from rest). Where the structure returned is fitted by least squares, it is fitted again on the
-heads without their first eighth, quarter, three eighths and half; where one of those fits runs
-free over the tails better than the fit on the whole heads, beyond the comparison's uncertainty
-at the held-out level split among the four, and predicts them one step ahead better, the model
-is estimated from where the records settled and the report says what was left out
-(:func:`_settled_from`). That is one more choice the tails
-make, after the comparison with the start, and at a stricter level.
+**Short records.** Tails shorter than ``MIN_BLOCK`` (records of a few hundred samples, down to
+``models.held_out.MIN_TAIL``) are held out as well (:func:`refine`), with two differences. The
+linear start is chosen on the whole records, not the heads: a fifth fewer of a few hundred samples moves the
+orders (the coupled drives' PRBS record at ±1: (10, 10, 0) on its first 320 samples, running
+free over the test at 1.24 ticks/s, against (1, 1, 1) and 0.66 on all 400), and the tails'
+part in that choice can only favour the start, the side the comparison errs to. The start is
+fitted by output error only where that runs free over the tails no worse than least squares
+(:func:`_start_on_tails`). And moving-average noise alone must simulate the tails better, like
+any effect: over three blocks the comparison's uncertainty is a large share of the mean
+square, and "no worse beyond it" kept noise terms that took the drives' test free run from
+0.662 to 0.677 ticks/s.
+
+**Settling.** Where the records start before the system settled (a machine warming up from rest)
+and the held-out tails show it, the model is estimated from where they settled
+(:mod:`models.settling`).
 
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
@@ -84,6 +83,9 @@ validate that procedure), their terms grown at zero from the fit before them.
 The estimation data may be several records: no lag crosses a record boundary; from three
 records on, whole records are checked (:mod:`models.checking`). Free runs are compiled
 (:mod:`models.simulation`).
+
+The refinement and its report, and how both are written out, are in
+:mod:`models.refinement_report`.
 
 Where the checked records repeat their excitation, the spread between periods gives the noise no
 model can simulate (:mod:`models.periods`). Reported beside the check blocks' free run, it says how
@@ -114,11 +116,7 @@ from models.checking import (
     grown_by_zeros,
 )
 from models.coverage import coverage
-from models.effects import (
-    Effect,
-    candidate_effects,
-    linear_terms,
-)
+from models.effects import Effect, candidate_effects, linear_terms
 from models.errors import InputError
 from models.growing import Grown, loop_on, restless_then_rms
 from models.held_out import HeldOut, compare_on_tails, held_out_tails
@@ -144,8 +142,6 @@ from models.signals import GLITCH_FACTOR, glitches
 from models.terms import Term, max_lag, parse_terms
 
 MAX_ROUNDS = 10
-
-
 # Glitches a report names by their sample; more are counted.
 GLITCHES_NAMED = 5
 
@@ -355,16 +351,16 @@ def refine(
     """Refine the declared structure on the estimation ``records`` (x, y pairs) until no effect
     helps (module docstring).
 
-    ``declared`` None starts from the linear model :func:`models.linear_start.choose_linear` picks. ``effects`` are
-    the families on offer, by default :func:`models.effects.candidate_effects` of the declared
-    terms: sized to the declared lags, so that the loop explains the residual with the declared
-    dynamics rather than by lengthening them round after round. An offset's terms follow the
-    model as it grows. ``output_error`` False keeps least-squares parameters throughout.
+    ``declared`` None starts from the linear model :func:`models.linear_start.choose_linear` picks.
+    ``effects`` are the families on offer, by default :func:`models.effects.candidate_effects` of
+    the declared terms: sized to the declared lags, so that the loop explains the residual with the
+    declared dynamics rather than by lengthening them round after round. An offset's terms follow
+    the model as it grows. ``output_error`` False keeps least-squares parameters throughout.
     ``progress`` is told each stage as it begins. ``workers`` run the loop's independent pieces
     (:data:`models.regression.Workers`): each round's searched candidates, the structures judged on
     the check parts, the output-error searches not needed one after the other; ``threads``, a map
-    over threads of this process, test each round's families (:func:`score_effects`). The
-    refinement is the same whichever.
+    over threads of this process, test each round's families (:func:`models.scoring.score_effects`).
+    The refinement is the same whichever.
 
     **Never worse.** Where every record is long enough (:func:`models.held_out.held_out_tails`),
     the last ``HELD_OUT_SHARE`` of each is held out from every choice (orders, effects, estimator):
@@ -375,19 +371,7 @@ def refine(
     round counted as withdrawn, and ``held_out`` names the best effect tried. The structure so
     judged then has its parameters estimated on all the records as the loop estimated them on
     the rest (:func:`_on_all`): the tails judged a procedure, and the model it makes gains from
-    every sample.
-
-    **Short records.** Tails shorter than ``MIN_BLOCK`` (records of a few hundred samples, down to
-    ``models.held_out.MIN_TAIL``) are held out as well, with two differences. The linear start is
-    chosen on the whole records, not the heads: a fifth fewer of a few hundred samples moves the
-    orders (the coupled drives' PRBS record at ±1: (10, 10, 0) on its first 320 samples, running
-    free over the test at 1.24 ticks/s, against (1, 1, 1) and 0.66 on all 400), and the tails'
-    part in that choice can only favour the start, the side the comparison errs to. The start is
-    fitted by output error only where that runs free over the tails no worse than least squares
-    (:func:`_start_on_tails`). And moving-average noise alone must simulate the tails better, like
-    any effect: over three blocks the comparison's uncertainty is a large share of the mean
-    square, and "no worse beyond it" kept noise terms that took the drives' test free run from
-    0.662 to 0.677 ticks/s.
+    every sample. Records of a few hundred samples are held out from as well (module docstring).
     """
     tell = told(progress)
     if not 0 < alpha < 1:

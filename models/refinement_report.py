@@ -1,4 +1,9 @@
-"""refinement_report TODO."""
+"""What the refinement loop (:mod:`models.refinement`) returns and reports: each round
+(:class:`Round`), the refinement (:class:`Refinement`), the declared and refined models judged on
+held-out data (:class:`Comparison`, :class:`RefinementReport`), and the report as JSON with the
+notes it makes in words. Also the loop's vocabulary its phases share: how a family was decided
+(:data:`Criterion`), how parameters were estimated (:data:`Estimator`) and the stages told as
+the loop goes (:data:`Stage`)."""
 
 from __future__ import annotations
 
@@ -18,16 +23,10 @@ from models.scoring import EffectScore
 # Told each stage of the loop as it begins, in words ("round 2: scoring 17 families"): a loop on
 # long records runs for minutes, and a caller shows where it is.
 Stage = Callable[[str], None]
-
-
 Criterion = Literal[
     "one-step", "output error", "simulation", "simulation across folds", "output's range", "pair"
 ]
-
-
 Estimator = Literal["least squares", "output error"]
-
-
 Verdict = Literal["better", "not better", "diverged"]
 
 
@@ -59,8 +58,8 @@ class Round:
     # Significant effects passed over, best first, because adding them did not lower the model's
     # free run over the check blocks by the round's threshold (or made it diverge).
     rejected: tuple[str, ...] = ()
-    # The terms pruned after the rounds, in the order taken out (:func:`models.pruning.pruned_back`), on the last
-    # round; ``check_rms`` is then after the pruning.
+    # The terms pruned after the rounds, in the order taken out (:func:`models.pruning.pruned_back`),
+    # on the last round; ``check_rms`` is then after the pruning.
     pruned: tuple[str, ...] = ()
     # The effect added here (the generic polynomial) pruned whole after the rounds: a later
     # round's effect made it redundant, and the refined model holds none of its terms.
@@ -83,7 +82,7 @@ class Refinement:
     refined model's moving-average coefficients c_1 … c_q (empty unless moving-average noise was
     added; ``refined`` is then the process part of a NARMAX). ``orders`` are the linear model's
     (ny, nx, input delay) the loop chose when no structure was declared. ``withdrawn``: the final
-    check took back every effect the first ``withdrawn`` rounds added (module docstring); the
+    check took back every effect the first ``withdrawn`` rounds added (:mod:`models.refinement`); the
     rounds after them were decided across folds. ``check_rms`` is the refined structure's
     free-run RMS over the check blocks, its parameters by ``estimator`` fitted on the fit blocks;
     ``noise_floor`` the noise between the checked records' periods when they repeat their

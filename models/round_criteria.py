@@ -1,4 +1,12 @@
-"""round_criteria TODO."""
+"""The criteria a round of the refinement loop decides by (:mod:`models.refinement`, steps 2–4),
+each asked by :mod:`models.growing` in turn: the families scored on the one-step residual
+(:func:`scored`) and judged on the check blocks' free run best first (:func:`judged_in_turn`),
+the one-step criterion's look ahead at contenders that gain more (:func:`looked_ahead`), a
+diverging family judged by output error (:func:`by_output_error_grown`), the simulation
+criterion (:func:`by_simulation`), a pair of families that run free better only together
+(:func:`as_pair`), and the rectifier where the records read as a magnitude
+(:func:`rectified_first`). The gains a round reports (:class:`Gain`) and the least-squares fit
+every phase makes of a structure (:func:`fitted_on_all`) are here too."""
 
 from __future__ import annotations
 
@@ -10,29 +18,16 @@ from typing import NamedTuple, get_args
 
 import numpy as np
 
-from models.checking import (
-    CHECK_EVALUATIONS,
-    CheckSplit,
-    Matters,
-    Structure,
-)
-from models.effects import (
-    POLYNOMIAL,
-    RECTIFIED,
-    Effect,
-    offset_terms,
-    output_limits,
-    unused,
-)
+from models.checking import CHECK_EVALUATIONS, CheckSplit, Matters, Structure
+from models.effects import POLYNOMIAL, RECTIFIED, Effect, offset_terms, output_limits, unused
 from models.narx import NARX, Saturation
 from models.refinement_report import Criterion, Stage
 from models.regression import Workers
 from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model, score_effects
 from models.terms import Term, max_lag, parse_terms
 
+# The significance level of the families' partial F tests, before the Bonferroni correction.
 DEFAULT_ALPHA = 0.01
-
-
 # A family added on the simulation error alone must lower the check blocks' free-run RMS by this
 # share at least: SEMP's threshold (Piroddi & Spinelli 2003), here relative. Where an unmeasured
 # force drives much of the output, the free run over a few thousand check samples is a noisy
@@ -40,17 +35,16 @@ DEFAULT_ALPHA = 0.01
 # by up to 8 % by chance; the effects the one-step residual misses (a plateau, a drain) take far
 # more off it.
 SIMULATION_GAIN = 0.2
-
-
 # Families judged at once on the check blocks, in a round (the workers' judgements run side by
 # side): of Silverbox's ten rounds from linear:4,4, four add the first family judged, and the
 # others the second to the fourth.
 JUDGED_AT_ONCE = 2
-
-
 # Once a family clears the one-step criterion's margin, this many more in the one-step order are
 # judged on the check blocks for a larger gain (:func:`looked_ahead`).
 CONTENDERS = 4
+# A family added, the criterion that decided, the structure with it and that structure's check
+# blocks' free-run RMS.
+Decision = tuple[EffectScore, Criterion, Structure, float]
 
 
 def scored(
@@ -82,7 +76,7 @@ def scored(
 
 
 def fitted_on_all(records: Records, structure: Structure) -> tuple[NARX, np.ndarray]:
-    """``structure``'s least-squares fit on all the ``records`` (:func:`fit_model`)."""
+    """``structure``'s least-squares fit on all the ``records`` (:func:`models.scoring.fit_model`)."""
     lag = max_lag(structure.terms)
     return fit_model(
         records,
@@ -135,7 +129,7 @@ def rectified_first(
     scores: Sequence[EffectScore],
     checks: CheckSplit,
     workers: Workers,
-) -> tuple[EffectScore, Criterion, Structure, float] | None:
+) -> Decision | None:
     """The rectified-output family, where it is offered, taken before every other (the records'
     outputs read as a magnitude), from the ``linear`` terms chosen as the rectified model's,
     wherever its output-error fit runs free over the check blocks without diverging. A sensor's
@@ -209,13 +203,13 @@ def judged_in_turn(
 
 
 def looked_ahead(
-    first: tuple[EffectScore, Criterion, Structure, float],
+    first: Decision,
     judged: Generator[tuple[EffectScore, float, Structure], Matters | None, None],
     current: Structure,
     check: float,
     margin: float,
     ahead: Callable[[Structure, float], tuple[float, str | None, int]],
-) -> tuple[tuple[EffectScore, Criterion, Structure, float], int]:
+) -> tuple[Decision, int]:
     """The family a round adds: ``first``, the first in the one-step order to clear the margin,
     unless one of the next ``CONTENDERS`` still ``judged`` takes a further ``SIMULATION_GAIN`` of
     the current model's figure ``check`` off the check blocks' free run and, each added in turn
@@ -336,7 +330,7 @@ def as_pair(
     check: float,
     checks: CheckSplit,
     ahead: Callable[[Structure, float], tuple[float, str | None, int]],
-) -> tuple[tuple[tuple[EffectScore, Criterion, Structure, float], float] | None, int]:
+) -> tuple[tuple[Decision, float] | None, int]:
     """Where no family clears on its own, the first ``significant`` family in the one-step order
     (not moving-average noise) added with the one the round after it adds (``ahead``, judged as
     :func:`looked_ahead` judges a pair): its score, criterion, structure and check figure (worse
@@ -379,7 +373,7 @@ def by_output_error_grown(
     margin: float,
     checks: CheckSplit,
     workers: Workers,
-) -> tuple[EffectScore, Criterion, Structure, float] | None:
+) -> Decision | None:
     """Where no ``significant`` family clears the one-step criterion by least squares, the first
     in the one-step order whose least-squares model diverges on the check blocks and which clears
     it by output error: its new terms added at zero to the current model's output-error fit,
@@ -423,9 +417,9 @@ def by_simulation(
     current: Structure,
     checks: CheckSplit,
     workers: Workers,
-) -> tuple[tuple[EffectScore, Criterion, Structure, float] | None, Gain | None, int]:
+) -> tuple[Decision | None, Gain | None, int]:
     """The family added on the simulation error alone, if one lowers the check blocks' free
-    run enough (module docstring, step 4): its score with the terms that won, the structure, and
+    run enough (:mod:`models.refinement`, step 4): its score with the terms that won, the structure, and
     the check blocks' free-run RMS with it (least squares, as the other rounds report it); the
     gain of that family by output error (else the best judged's, None where none was); and how
     many structures were simulated. The structures are judged by ``workers``."""

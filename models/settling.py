@@ -1,4 +1,15 @@
-"""settling TODO."""
+"""Where the estimation records settled (:mod:`models.refinement`): the samples left out at their
+start where the system had not settled.
+
+**Settling.** A record often starts with the machine, before it has settled (a motor warming up
+from rest). Where the structure returned is fitted by least squares, it is fitted again on the
+heads without their first eighth, quarter, three eighths and half; where one of those fits runs
+free over the tails better than the fit on the whole heads, beyond the comparison's uncertainty
+at the held-out level split among the four, and predicts them one step ahead better, the model
+is estimated from where the records settled and the report says what was left out
+(:func:`settled_from`). That is one more choice the tails
+make, after the comparison with the start, and at a stricter level.
+"""
 
 from __future__ import annotations
 
@@ -6,10 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from models.checking import (
-    Segments,
-    Structure,
-)
+from models.checking import Segments, Structure
 from models.errors import InputError
 from models.growing import Grown
 from models.held_out import HELD_OUT_ALPHA, HeldOut, compare_on_tails
@@ -35,13 +43,13 @@ def settled_from(
     grown: Grown, held_out: HeldOut | None, heads: Records, tails: Segments, tell: Stage
 ) -> tuple[int, ...]:
     """Where each estimation record's settled part begins: 0 for each, unless the structure
-    :func:`models.refinement._on_all` will return, fitted by least squares on the ``heads`` without a first share of
-    each (``SETTLING_SHARES``), runs free over the held-out ``tails`` better than fitted on the
-    whole heads beyond the comparison's uncertainty (at ``HELD_OUT_ALPHA`` split among the shares
-    tried) and predicts them one step ahead better too; then where the share that gained most
-    begins. A machine that changed is predicted better one step ahead as well; the free run over a
-    short tail alone can favour a fit on fewer samples by chance where a lightly damped model's
-    slow error drifts through every block of the comparison (the rig's records).
+    :func:`models.refinement.refine` will return, fitted by least squares on the ``heads`` without a
+    first share of each (``SETTLING_SHARES``), runs free over the held-out ``tails`` better than
+    fitted on the whole heads beyond the comparison's uncertainty (at ``HELD_OUT_ALPHA`` split among
+    the shares tried) and predicts them one step ahead better too; then where the share that gained
+    most begins. A machine that changed is predicted better one step ahead as well; the free run
+    over a short tail alone can favour a fit on fewer samples by chance where a lightly damped
+    model's slow error drifts through every block of the comparison (the rig's records).
 
     A record often starts with the machine: a motor switched on from rest warms up, its friction
     and windings' resistance drifting for minutes before they settle, and a least-squares fit

@@ -1095,9 +1095,10 @@ def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_f
 def test_a_round_counts_the_candidates_its_look_ahead_compared():
     """The rig's quadratic spring from linear:4,4 with three stiffness families on offer: once the
     first in the one-step order clears, the round judges the next ones on the check blocks as
-    contenders, and, where one gains enough more, the round after each (:func:`_looked_ahead`).
-    Every family judged on the check blocks is told as it is read; a round's candidates tried
-    are all those told before the next round begins, the look ahead's among them."""
+    contenders, and, where one gains enough more, the round after each
+    (:func:`models.round_criteria.looked_ahead`). Every family judged on the check blocks is told as
+    it is read; a round's candidates tried are all those told before the next round begins, the look
+    ahead's among them."""
     record = simulate(
         Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
     )
