@@ -383,21 +383,8 @@ def _looking_ahead(
 ) -> _Choosing:
     """The family the one-step criterion decided, or a later one of ``in_turn`` that gains
     more and, the round after each judged, ends lower (:func:`models.round_criteria.looked_ahead`)."""
-    ahead = partial(
-        next_round,
-        loop.records,
-        loop.families,
-        loop.alpha,
-        loop.margin,
-        loop.checks,
-        loop.workers,
-        loop.threads,
-        loop.tell,
-        loop.kept,
-    )
-    decided, contended = looked_ahead(
-        first, in_turn, offer.current, offer.check, loop.margin, partial(ahead, offer.number + 1)
-    )
+    ahead = _next_round(loop, loop.families, offer.number + 1)
+    decided, contended = looked_ahead(first, in_turn, offer.current, offer.check, loop.margin, ahead)
     choosing = replace(choosing, decided=decided, tried=choosing.tried + contended)
     if decided is not first:
         choosing = replace(choosing, judged=Gain(fall(decided[3], offer.check), loop.margin))
@@ -433,18 +420,7 @@ def _in_pair(loop: _Loop, offer: _Offer, significant: list[EffectScore], choosin
     # The partner is an effect of the process: noise, which clears by being no worse, would end
     # the pair where the first left it.
     named = [effect for effect in loop.families if effect.kind != "noise"]
-    ahead = partial(
-        next_round,
-        loop.records,
-        named,
-        loop.alpha,
-        loop.margin,
-        loop.checks,
-        loop.workers,
-        loop.threads,
-        loop.tell,
-        loop.kept,
-    )
+    ahead = _next_round(loop, named, offer.number + 1)
     paired, paired_tried = as_pair(
         significant,
         offer.kinds,
@@ -452,7 +428,7 @@ def _in_pair(loop: _Loop, offer: _Offer, significant: list[EffectScore], choosin
         loop.records,
         offer.check,
         loop.checks,
-        partial(ahead, offer.number + 1),
+        ahead,
     )
     choosing = replace(choosing, tried=choosing.tried + paired_tried)
     if paired is None:
@@ -463,6 +439,26 @@ def _in_pair(loop: _Loop, offer: _Offer, significant: list[EffectScore], choosin
         decided=decided,
         rejected=tuple(name for name in choosing.rejected if name != decided[0].name),
         judged=Gain(fall(pair_end, offer.check), SIMULATION_GAIN),
+    )
+
+
+def _next_round(
+    loop: _Loop, families: list[Effect], number: int
+) -> Callable[[Structure, float], tuple[float, str | None, int]]:
+    """Round ``number`` from a structure, offering ``families``, as a look ahead judges it
+    (:func:`models.round_criteria.next_round`)."""
+    return partial(
+        next_round,
+        loop.records,
+        families,
+        loop.alpha,
+        loop.margin,
+        loop.checks,
+        loop.workers,
+        loop.threads,
+        loop.tell,
+        loop.kept,
+        number,
     )
 
 

@@ -33,7 +33,7 @@ reports it pruned whole).
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import NamedTuple
 
@@ -51,6 +51,8 @@ from models.terms import Term
 # once the batches of terms not significant are refused (:func:`pruned_back`): the workers' fits
 # run side by side, and where the first is refused the next may pass.
 PRUNING_TRIALS = 2
+# The terms a removal took out and the structure without them.
+_Removal = tuple[tuple[Term, ...], Structure]
 
 
 def pruned_back(
@@ -99,26 +101,27 @@ def pruned_back(
         if (found := _first_removal(current, [block], ceiling, checks, workers)) is not None:
             taken, current = found
             pruned += taken
-    while (
-        found := _largest_batch(
-            current,
-            _insignificant(current, declared, rounds, pruned, checks, alpha),
-            ceiling,
-            checks,
-            workers,
-        )
-    ) is not None:
-        taken, current = found
-        pruned += taken
-    while (
-        found := _first_removal(
-            current,
-            [(term,) for term, _ in _removals(current, declared, rounds, pruned, checks)[:PRUNING_TRIALS]],
-            ceiling,
-            checks,
-            workers,
-        )
-    ) is not None:
+
+    def insignificant_batch(current: Structure, pruned: tuple[Term, ...]) -> _Removal | None:
+        batch = _insignificant(current, declared, rounds, pruned, checks, alpha)
+        return _largest_batch(current, batch, ceiling, checks, workers)
+
+    def one_term(current: Structure, pruned: tuple[Term, ...]) -> _Removal | None:
+        trials = _removals(current, declared, rounds, pruned, checks)[:PRUNING_TRIALS]
+        return _first_removal(current, [(term,) for term, _ in trials], ceiling, checks, workers)
+
+    current, pruned = _while_found(insignificant_batch, current, pruned)
+    return _while_found(one_term, current, pruned)
+
+
+def _while_found(
+    find: Callable[[Structure, tuple[Term, ...]], _Removal | None],
+    current: Structure,
+    pruned: tuple[Term, ...],
+) -> tuple[Structure, tuple[Term, ...]]:
+    """``current`` and the terms ``pruned`` from it, with what ``find`` takes out of it taken,
+    again on what is left, until it finds nothing."""
+    while (found := find(current, pruned)) is not None:
         taken, current = found
         pruned += taken
     return current, pruned
@@ -148,7 +151,7 @@ def _first_removal(
     ceiling: _Ceiling,
     checks: CheckSplit,
     workers: Workers,
-) -> tuple[tuple[Term, ...], Structure] | None:
+) -> _Removal | None:
     """The first of the ``trials`` (each terms taken out together) whose removal :func:`pruned_back`
     takes, with ``current`` without it; None where none is. Their least-squares fits are judged
     by ``workers``, side by side; the output-error fits, which cost far more, only where a
@@ -211,7 +214,7 @@ def _effect_of(rounds: Sequence[Round], pruned: Sequence[Term]) -> dict[str, int
 
 def _largest_batch(
     current: Structure, batch: Sequence[Term], ceiling: _Ceiling, checks: CheckSplit, workers: Workers
-) -> tuple[tuple[Term, ...], Structure] | None:
+) -> _Removal | None:
     """The most of ``batch``'s first terms whose removal together :func:`pruned_back` takes, found by
     doubling them (one, two, four …, then all) while the removal passes, with ``current``
     without them; None where the first alone is refused. Upwards, not down from the whole: on a
