@@ -2,15 +2,20 @@
 output-error check that withdraws what the rounds added where it only repairs the bias of least
 squares.
 
-**Across folds.** From three records on, the structure kept is then grown on the simulation error
+From three records on, the structure kept is then grown on the simulation error
 across folds: each third of the records in turn is checked and the rest fitted. Every family's
 terms are added at zero to the current model's output-error fit; the best families on the first
 fold are searched until they stop gaining on every fold, and of those whose free run over the
 checked records falls by ``FOLD_GAIN`` on all three, the one that falls most on average is added
 — decided by the simulation across folds. This repeats until no family passes. (On F-16's sweeps
-the rounds above add nothing that lasts: least squares ranks the families there, and every
+the rounds add nothing that lasts: least squares ranks the families there, and every
 cubic-stiffness model it fits diverges; grown from the settled linear model, cubic stiffness
 gains 8–29 % on every fold.)
+
+Before that, what the rounds added must simulate the check blocks better than the declared
+structure, both with their parameters by output error, on every fold from three records on
+(:func:`repairs_only_bias`); otherwise it is withdrawn and the declared structure kept: effects
+that only repair the bias noise on the output gives least squares are not the system's.
 """
 
 from __future__ import annotations

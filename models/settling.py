@@ -1,14 +1,13 @@
 """Where the estimation records settled (:mod:`models.refinement`): the samples left out at their
 start where the system had not settled.
 
-**Settling.** A record often starts with the machine, before it has settled (a motor warming up
-from rest). Where the structure returned is fitted by least squares, it is fitted again on the
-heads without their first eighth, quarter, three eighths and half; where one of those fits runs
-free over the tails better than the fit on the whole heads, beyond the comparison's uncertainty
-at the held-out level split among the four, and predicts them one step ahead better, the model
-is estimated from where the records settled and the report says what was left out
-(:func:`settled_from`). That is one more choice the tails
-make, after the comparison with the start, and at a stricter level.
+A record often starts with the machine, before it has settled (a motor warming up from rest). Where
+the structure returned is fitted by least squares, it is fitted again on the heads without their
+first eighth, quarter, three eighths and half; where one of those fits runs free over the tails
+better than the fit on the whole heads, beyond the comparison's uncertainty at the held-out level
+split among the four, and predicts them one step ahead better, the model is estimated from where the
+records settled and the report says what was left out (:func:`settled_from`). That is one more
+choice the tails make, after the comparison with the start, and at a stricter level.
 """
 
 from __future__ import annotations
