@@ -15,6 +15,7 @@ from bench.measured import coupled_drives
 from harness.duffing import DuffingOscillator
 from harness.extrapolating import growing_steps
 from harness.prerequisites import benchmark_data
+from harness.warming import warming_drive
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import (
     Effect,
@@ -27,15 +28,14 @@ from models.effects import (
 )
 from models.errors import InputError
 from models.held_out import HeldOut, held_out_tails
+from models.linear_start import _is_start
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
+from models.pruning import pruned_back, without_pruned
 from models.refinement import (
     Refinement,
     RefinementReport,
     Round,
-    _is_start,
-    _pruned,
-    _without_pruned,
     choose_linear,
     compare,
     refine,
@@ -1059,7 +1059,7 @@ def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
     ]
     rounds = [Round(1.0, 0.01, 2, (effect,), effect) for effect in effects]
     everything = Structure((*declared, *earlier, *later))
-    pruned, (taken,) = _pruned(everything, declared, rounds, checks, map, output_error=False)
+    pruned, (taken,) = pruned_back(everything, declared, rounds, checks, map, output_error=False)
     (kept,) = set(earlier) - {taken}
     assert pruned.terms == tuple(term for term in everything.terms if term != taken)
     assert kept in pruned.terms
@@ -1096,9 +1096,10 @@ def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_f
 def test_a_round_counts_the_candidates_its_look_ahead_compared():
     """The rig's quadratic spring from linear:4,4 with three stiffness families on offer: once the
     first in the one-step order clears, the round judges the next ones on the check blocks as
-    contenders, and, where one gains enough more, the round after each (:func:`_looked_ahead`).
-    Every family judged on the check blocks is told as it is read; a round's candidates tried
-    are all those told before the next round begins, the look ahead's among them."""
+    contenders, and, where one gains enough more, the round after each
+    (:func:`models.round_criteria.looked_ahead`). Every family judged on the check blocks is told as
+    it is read; a round's candidates tried are all those told before the next round begins, the look
+    ahead's among them."""
     record = simulate(
         Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
     )
@@ -1156,9 +1157,9 @@ def test_a_generic_block_a_later_effect_made_redundant_is_pruned_whole_and_the_r
             for name, terms in ((first, generic), ("input_nonlinearity", cube))
         ]
         rounds = [Round(1.0, 0.01, 2, (effect,), effect) for effect in effects]
-        pruned, taken = _pruned(everything, declared, rounds, checks, map, output_error=False)
+        pruned, taken = pruned_back(everything, declared, rounds, checks, map, output_error=False)
         assert cube[0] in pruned.terms and set(taken) == set(everything.terms) - set(pruned.terms)
-        return pruned, taken, _without_pruned(rounds, taken)
+        return pruned, taken, without_pruned(rounds, taken)
 
     pruned, _, _ = pruned_after("bilinear")
     assert len(set(generic) & set(pruned.terms)) == 1, pruned.terms
@@ -1272,19 +1273,6 @@ def test_two_effects_that_each_run_free_worse_alone_are_added_as_a_pair():
     assert validate(result.refined, [(test.x, test.y)]).free_run.rms < 0.5 * before
 
 
-def _warming_drive(n: int, seed: int, settled: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """A first-order drive started from rest whose pole warms up from 0.5 to 0.8 with a time
-    constant of 100 samples, y[t] = a[t]·y[t-1] + x[t-1], the input held for four samples at a
-    time, with 2 % output noise; ``settled``: the pole at 0.8 throughout."""
-    rng = np.random.default_rng(seed)
-    x = np.repeat(rng.standard_normal(n // 4 + 1), 4)[:n]
-    pole = 0.8 - (0.0 if settled else 0.3) * np.exp(-np.arange(n) / 100.0)
-    y = np.zeros(n)
-    for t in range(1, n):
-        y[t] = pole[t] * y[t - 1] + x[t - 1]
-    return x, y + 0.02 * np.std(y) * rng.standard_normal(n)
-
-
 def test_a_record_that_starts_before_the_system_settled_is_estimated_from_where_it_settled():
     """The record's first few hundred samples hold a machine that was still warming up: fitted on
     the whole record, the pole comes out low and the free run over a record of the settled machine
@@ -1292,18 +1280,18 @@ def test_a_record_that_starts_before_the_system_settled_is_estimated_from_where_
     the record's first part runs free over the held-out tail better, so it is the one returned,
     and the report says what was left out. A record of the settled machine keeps every sample."""
     declared = ["y[t-1]", "x[t-1]"]
-    x, y = _warming_drive(1500, 1)
-    report = refine_records([(x, y)], [_warming_drive(600, 101, settled=True)], declared)
+    x, y = warming_drive(1500, 1)
+    report = refine_records([(x, y)], [warming_drive(600, 101, settled=True)], declared)
     result = report.refinement
     assert result.settled_from and 0 < result.settled_from[0] <= 600, result.settled_from
     assert result.refined.n_obs == len(y) - result.settled_from[0] - 1
     assert any("record was left out" in note for note in report.to_dict()["notes"])
     whole = fit_narx([(x, y)], parse_terms(declared))
-    test_x, test_y = _warming_drive(600, 101, settled=True)
+    test_x, test_y = warming_drive(600, 101, settled=True)
     on_whole = held_out_errors(whole, test_x, test_y, 1).free_run.rms
     assert report.after.free_run_rms < on_whole / 1.5, (report.after.free_run_rms, on_whole)
     assert abs(result.refined.theta[0] - 0.8) < 0.01, result.refined.theta
-    settled = refine([_warming_drive(1500, 1, settled=True)], declared)
+    settled = refine([warming_drive(1500, 1, settled=True)], declared)
     assert settled.settled_from == (), settled.settled_from
 
 
