@@ -200,6 +200,7 @@ class _Search:
     start_from: Literal["measured", "estimated"]
     threads: Workers
     scale: float  # the measured outputs' RMS (one where they are all zero)
+    lag: int  # the model's largest lag (asked for at every θ tried)
     longest: int  # samples of the longest record
     # The Jacobian's buffers: each record's sensitivities, and the scaled Jacobian beside the
     # residual that is factored (a fresh array of Silverbox's 65 000 × 51 costs 4 ms in its
@@ -244,15 +245,12 @@ class _Search:
             start_from=start_from,
             threads=threads,
             scale=scale,
+            lag=L,
             longest=max(run.n for run, _ in runs),
             derivatives=[np.empty((run.n, p)) for run, _ in runs],
             augmented=np.empty((sum(run.n - L for run, _ in runs), p + 1)),
             rows=np.cumsum([0] + [run.n - L for run, _ in runs]),
         )
-
-    @property
-    def lag(self) -> int:
-        return self.start.max_lag
 
     @property
     def state(self) -> tuple[float, float] | None:

@@ -99,9 +99,12 @@ class FreeRun:
         for index, term in enumerate(terms):
             output_factors = [f for f in term.factors if f.autoregressive]
             others = [f for f in term.factors if not f.autoregressive]
-            column = np.ones(n)
+            # The product of the input's and time's factors (reads x or t only), the first factor's
+            # values themselves (1·v is v); the constant's column is ones.
+            column = np.ones(n) if not term.factors else None
             for factor in others:
-                column = column * factor.values(lagged_x, lagged_x, times)  # reads x or t only
+                values = factor.values(lagged_x, lagged_x, times)
+                column = values if column is None else column * values
             if output_factors:
                 recursive_terms.append(index)
                 known_column.append(len(known) if others else -1)
@@ -182,14 +185,21 @@ class FreeRun:
         windows = np.asarray(windows, dtype=np.int64).reshape(-1, 2)
         lengths = windows[:, 1] - windows[:, 0]
         out = np.full((lengths.size, int(lengths.max(initial=0))), np.nan)
-        drive = np.zeros(out.shape)
         exogenous_theta = theta[self.exogenous_terms]
         for w, ((a, b), state) in enumerate(zip(windows, initial, strict=True)):
             lag = min(self.lag, int(b - a))
             out[w, :lag] = state[:lag]
-            # Each window's drive by its own product: BLAS's sums over a block of rows depend on
-            # where the block starts, and a run's rows must add as :meth:`rows`' do.
-            drive[w, : b - a] = self.exogenous[a:b] @ exogenous_theta
+        # Each window's drive by its own product: BLAS's sums over a block of rows depend on
+        # where the block starts, and a run's rows must add as :meth:`rows`' do. Windows that
+        # tile the run (runs stacked) are its blocks: one stacked product, a product a block.
+        count, width = out.shape
+        if count * width == self.n and np.array_equal(windows[:, 0], np.arange(count) * width):
+            blocks = self.exogenous.reshape(count, width, self.exogenous.shape[1])
+            drive = np.matmul(blocks, exogenous_theta)
+        else:
+            drive = np.zeros(out.shape)
+            for w, (a, b) in enumerate(windows):
+                drive[w, : b - a] = self.exogenous[a:b] @ exogenous_theta
         low, high = limits or (-np.inf, np.inf)
         _side_by_side(
             out,
