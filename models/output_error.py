@@ -29,7 +29,10 @@ way to a model that holds from every measured state it may pass through θ that 
 
 from __future__ import annotations
 
+import hashlib
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -190,8 +193,9 @@ class _Search:
 
     Mutable, as the calls of one search share it: ``penalised_steps`` counts the θ met with the
     penalty (a fresh search starts where MINPACK crawled after one), and ``last`` keeps the
-    residual at the θ last run, whose sensitivities the buffers hold. ``at_rest`` and ``penalty``
-    are set from the start's own free run before the search.
+    residual at the θ last run, whose sensitivities the buffers hold, and ``settled`` whether each
+    θ asked about comes to rest. ``at_rest`` and ``penalty`` are set from the start's own free
+    run before the search.
     """
 
     start: NARX
@@ -212,6 +216,9 @@ class _Search:
     penalty: float = math.inf
     penalised_steps: int = 0
     last: dict[bytes, np.ndarray] = field(default_factory=dict)
+    # Whether each θ asked about comes to rest: the start is asked before the search and again as
+    # its first evaluation, the end again as the outcome.
+    settled: dict[bytes, bool] = field(default_factory=dict)
 
     @classmethod
     def build(
@@ -227,11 +234,8 @@ class _Search:
         targets = [ya[L:] for _, ya in checked]
         scale = np.sqrt(sum(float(np.sum(t**2)) for t in targets) / sum(t.size for t in targets)) or 1.0
         origins = record_origins(t0, len(checked))
-        runs = [
-            (FreeRun.build(start.terms, xa, origin), ya)
-            for (xa, ya), origin in zip(checked, origins, strict=True)
-        ]
-        ring_downs = RingDowns.build(start.terms, checked, origins, [run for run, _ in runs])
+        record_runs, ring_downs = prepared(start.terms, checked, origins)
+        runs = [(run, ya) for run, (_, ya) in zip(record_runs, checked, strict=True)]
         if start_from == "estimated" and not start.reads_state:
             raise InputError(
                 "the free run's start can be estimated only for a model that reports its recursion's "
@@ -275,9 +279,11 @@ class _Search:
 
     def settles(self, theta: np.ndarray, outputs: list[np.ndarray]) -> bool:
         """Whether θ's free run, ``outputs``, rings down after every switch-off."""
-        return self.ring_downs.settle(
-            self.start, theta, recursion_states(self.start, theta, self.runs, outputs)
-        )
+        key = theta.tobytes()
+        if key not in self.settled:
+            states = recursion_states(self.start, theta, self.runs, outputs)
+            self.settled[key] = self.ring_downs.settle(self.start, theta, states)
+        return self.settled[key]
 
     def sensitive(self, theta: np.ndarray) -> list[np.ndarray]:
         """The free runs (what :meth:`simulated` reports) with their exact sensitivities written
@@ -681,6 +687,53 @@ def recursion_states(
     return [run.run(theta, y) for run, y in runs]
 
 
+# Records of at most this many samples in all have their runs and ring-downs kept (``prepared``)
+# for the last ``PREPARED_KEPT`` terms and records asked for: a structure judged on a check
+# split has them prepared for its least-squares fit's check, again for its output-error search
+# and again for that search's check, and on short records their preparation is a tenth of a
+# judgement. Longer records' preparation is small beside their runs, and their runs large.
+PREPARED_SAMPLES = 10_000
+PREPARED_KEPT = 8
+_prepared: OrderedDict[bytes, tuple[list[FreeRun], RingDowns]] = OrderedDict()
+_prepared_lock = threading.Lock()
+
+
+def prepared(
+    terms: Sequence[Term], records: Sequence[tuple[np.ndarray, np.ndarray]], origins: Sequence[int]
+) -> tuple[list[FreeRun], RingDowns]:
+    """Each record's free run of ``terms`` (:meth:`FreeRun.build`, times from its origin) and the
+    ring-downs and restarts on them (:meth:`RingDowns.build`); those of short records are kept,
+    keyed by the terms, the origins and the records' values, and handed out again as they are
+    (nothing writes into them)."""
+    if sum(len(y) for _, y in records) > PREPARED_SAMPLES:
+        return _prepare(terms, records, origins)
+    digest = hashlib.blake2b(repr(tuple(terms)).encode(), digest_size=20)
+    digest.update(np.asarray(origins, dtype=np.int64).tobytes())
+    for signals in records:
+        for signal in signals:
+            array = np.ascontiguousarray(signal)
+            digest.update(f"{array.dtype.str}{array.shape}".encode())
+            digest.update(array.tobytes())
+    key = digest.digest()
+    with _prepared_lock:
+        if key in _prepared:
+            _prepared.move_to_end(key)
+            return _prepared[key]
+    found = _prepare(terms, records, origins)
+    with _prepared_lock:
+        _prepared[key] = found
+        while len(_prepared) > PREPARED_KEPT:
+            _prepared.popitem(last=False)
+    return found
+
+
+def _prepare(
+    terms: Sequence[Term], records: Sequence[tuple[np.ndarray, np.ndarray]], origins: Sequence[int]
+) -> tuple[list[FreeRun], RingDowns]:
+    runs = [FreeRun.build(terms, x, origin) for (x, _), origin in zip(records, origins, strict=True)]
+    return runs, RingDowns.build(terms, records, origins, runs)
+
+
 def comes_to_rest(
     model: NARX, records: Sequence[tuple[np.ndarray, np.ndarray]], t0: int | Sequence[int] = 0
 ) -> bool:
@@ -696,9 +749,8 @@ def free_run_at_rest(
     """The free-run RMS of ``model`` over ``records`` (samples L … N−1 of each, infinite when a
     run diverges) and whether it comes to rest (:func:`comes_to_rest`), from one run a record."""
     origins = record_origins(t0, len(records))
-    runs = [
-        (FreeRun.build(model.terms, x, origin), y) for (x, y), origin in zip(records, origins, strict=True)
-    ]
+    record_runs, ring_downs = prepared(model.terms, records, origins)
+    runs = [(run, y) for run, (_, y) in zip(record_runs, records, strict=True)]
     outputs = [model.run_free(run, y) for run, y in runs]
     errors = np.concatenate(
         [out[model.max_lag :] - y[model.max_lag :] for out, (_, y) in zip(outputs, runs, strict=True)]
@@ -706,7 +758,6 @@ def free_run_at_rest(
     if not np.all(np.isfinite(errors)):
         return np.inf, False
     states = recursion_states(model, model.theta, runs, outputs)
-    ring_downs = RingDowns.build(model.terms, records, origins, [run for run, _ in runs])
     at_rest = ring_downs.holds(model, model.theta, model.theta) and ring_downs.settle(
         model, model.theta, states
     )
