@@ -29,10 +29,7 @@ way to a model that holds from every measured state it may pass through θ that 
 
 from __future__ import annotations
 
-import hashlib
 import math
-import threading
-from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
@@ -687,49 +684,11 @@ def recursion_states(
     return [run.run(theta, y) for run, y in runs]
 
 
-# Records of at most this many samples in all have their runs and ring-downs kept (``prepared``)
-# for the last ``PREPARED_KEPT`` terms and records asked for: a structure judged on a check
-# split has them prepared for its least-squares fit's check, again for its output-error search
-# and again for that search's check, and on short records their preparation is a tenth of a
-# judgement. Longer records' preparation is small beside their runs, and their runs large.
-PREPARED_SAMPLES = 10_000
-PREPARED_KEPT = 8
-_prepared: OrderedDict[bytes, tuple[list[FreeRun], RingDowns]] = OrderedDict()
-_prepared_lock = threading.Lock()
-
-
 def prepared(
     terms: Sequence[Term], records: Sequence[tuple[np.ndarray, np.ndarray]], origins: Sequence[int]
 ) -> tuple[list[FreeRun], RingDowns]:
     """Each record's free run of ``terms`` (:meth:`FreeRun.build`, times from its origin) and the
-    ring-downs and restarts on them (:meth:`RingDowns.build`); those of short records are kept,
-    keyed by the terms, the origins and the records' values, and handed out again as they are
-    (nothing writes into them)."""
-    if sum(len(y) for _, y in records) > PREPARED_SAMPLES:
-        return _prepare(terms, records, origins)
-    digest = hashlib.blake2b(repr(tuple(terms)).encode(), digest_size=20)
-    digest.update(np.asarray(origins, dtype=np.int64).tobytes())
-    for signals in records:
-        for signal in signals:
-            array = np.ascontiguousarray(signal)
-            digest.update(f"{array.dtype.str}{array.shape}".encode())
-            digest.update(array.tobytes())
-    key = digest.digest()
-    with _prepared_lock:
-        if key in _prepared:
-            _prepared.move_to_end(key)
-            return _prepared[key]
-    found = _prepare(terms, records, origins)
-    with _prepared_lock:
-        _prepared[key] = found
-        while len(_prepared) > PREPARED_KEPT:
-            _prepared.popitem(last=False)
-    return found
-
-
-def _prepare(
-    terms: Sequence[Term], records: Sequence[tuple[np.ndarray, np.ndarray]], origins: Sequence[int]
-) -> tuple[list[FreeRun], RingDowns]:
+    ring-downs and restarts on them (:meth:`RingDowns.build`)."""
     runs = [FreeRun.build(terms, x, origin) for (x, _), origin in zip(records, origins, strict=True)]
     return runs, RingDowns.build(terms, records, origins, runs)
 

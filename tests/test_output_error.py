@@ -21,7 +21,6 @@ from models.effects import linear_terms
 from models.errors import InputError
 from models.narx import NARX, fit_narx
 from models.output_error import (
-    PREPARED_SAMPLES,
     RESTARTS,
     RESTLESS,
     RING_DOWN,
@@ -32,7 +31,6 @@ from models.output_error import (
     estimated_start_error,
     fit_output_error,
     gauss_newton_inverse,
-    prepared,
     without_cancelled_poles,
 )
 from models.simulation import FreeRun
@@ -555,31 +553,6 @@ def test_windows_run_side_by_side_are_the_runs_of_their_rows(limits) -> None:
     stacked = FreeRun.stacked(ring_downs).run_windows(theta, [(0, 503), (503, 1006)], starts[:2])
     for row, run, start in zip(stacked, ring_downs, starts[:2], strict=True):
         assert np.array_equal(row, run.run(theta, start), equal_nan=True)
-
-
-def test_runs_and_ring_downs_prepared_for_short_records_are_kept_by_their_values() -> None:
-    """A structure's runs and ring-downs on a short record are prepared once and handed out again
-    for records of the same values (new arrays), the same terms and origins; another origin
-    (a sinusoid's phase), other terms or other values are prepared anew, as are records too long
-    to keep. What is handed out judges as a fresh preparation does."""
-    rng = np.random.default_rng(4)
-    x, y = rng.standard_normal(900), rng.standard_normal(900)
-    terms = parse_terms(["y[t-1]", "y[t-2]^3", "x[t-1]", "sin(2pi*0.03*t)"])
-    runs, ring_downs = prepared(terms, [(x, y)], [0])
-    assert prepared(terms, [(x.copy(), y.copy())], [0])[1] is ring_downs
-    assert prepared(terms, [(x, y)], [7])[1] is not ring_downs
-    assert prepared(terms[:3], [(x, y)], [0])[1] is not ring_downs
-    moved = y.copy()
-    moved[500] += 1e-12
-    assert prepared(terms, [(x, moved)], [0])[1] is not ring_downs
-    fresh = RingDowns.build(terms, [(x, y)], [0], [FreeRun.build(terms, x, 0)])
-    theta = np.array([0.6, -0.01, 1.0, 0.1])
-    states = [runs[0].run(theta, y)]
-    model = NARX(terms, theta, np.eye(4))
-    assert ring_downs.settle(model, theta, states) == fresh.settle(model, theta, states)
-    assert ring_downs.holds(model, theta, theta) == fresh.holds(model, theta, theta)
-    long_x, long_y = rng.standard_normal(PREPARED_SAMPLES + 1), rng.standard_normal(PREPARED_SAMPLES + 1)
-    assert prepared(terms, [(long_x, long_y)], [0])[1] is not prepared(terms, [(long_x, long_y)], [0])[1]
 
 
 def test_the_covariance_of_a_search_whose_sensitivities_overflow_the_gauss_newton_matrix_is_finite() -> None:
