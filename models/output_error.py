@@ -190,8 +190,9 @@ class _Search:
 
     Mutable, as the calls of one search share it: ``penalised_steps`` counts the θ met with the
     penalty (a fresh search starts where MINPACK crawled after one), and ``last`` keeps the
-    residual at the θ last run, whose sensitivities the buffers hold. ``at_rest`` and ``penalty``
-    are set from the start's own free run before the search.
+    residual at the θ last run, whose sensitivities the buffers hold, and ``settled`` whether each
+    θ asked about comes to rest. ``at_rest`` and ``penalty`` are set from the start's own free
+    run before the search.
     """
 
     start: NARX
@@ -200,6 +201,7 @@ class _Search:
     start_from: Literal["measured", "estimated"]
     threads: Workers
     scale: float  # the measured outputs' RMS (one where they are all zero)
+    lag: int  # the model's largest lag (asked for at every θ tried)
     longest: int  # samples of the longest record
     # The Jacobian's buffers: each record's sensitivities, and the scaled Jacobian beside the
     # residual that is factored (a fresh array of Silverbox's 65 000 × 51 costs 4 ms in its
@@ -211,6 +213,9 @@ class _Search:
     penalty: float = math.inf
     penalised_steps: int = 0
     last: dict[bytes, np.ndarray] = field(default_factory=dict)
+    # Whether each θ asked about comes to rest: the start is asked before the search and again as
+    # its first evaluation, the end again as the outcome.
+    settled: dict[bytes, bool] = field(default_factory=dict)
 
     @classmethod
     def build(
@@ -226,11 +231,8 @@ class _Search:
         targets = [ya[L:] for _, ya in checked]
         scale = np.sqrt(sum(float(np.sum(t**2)) for t in targets) / sum(t.size for t in targets)) or 1.0
         origins = record_origins(t0, len(checked))
-        runs = [
-            (FreeRun.build(start.terms, xa, origin), ya)
-            for (xa, ya), origin in zip(checked, origins, strict=True)
-        ]
-        ring_downs = RingDowns.build(start.terms, checked, origins, [run for run, _ in runs])
+        record_runs, ring_downs = prepared(start.terms, checked, origins)
+        runs = [(run, ya) for run, (_, ya) in zip(record_runs, checked, strict=True)]
         if start_from == "estimated" and not start.reads_state:
             raise InputError(
                 "the free run's start can be estimated only for a model that reports its recursion's "
@@ -244,15 +246,12 @@ class _Search:
             start_from=start_from,
             threads=threads,
             scale=scale,
+            lag=L,
             longest=max(run.n for run, _ in runs),
             derivatives=[np.empty((run.n, p)) for run, _ in runs],
             augmented=np.empty((sum(run.n - L for run, _ in runs), p + 1)),
             rows=np.cumsum([0] + [run.n - L for run, _ in runs]),
         )
-
-    @property
-    def lag(self) -> int:
-        return self.start.max_lag
 
     @property
     def state(self) -> tuple[float, float] | None:
@@ -277,9 +276,11 @@ class _Search:
 
     def settles(self, theta: np.ndarray, outputs: list[np.ndarray]) -> bool:
         """Whether θ's free run, ``outputs``, rings down after every switch-off."""
-        return self.ring_downs.settle(
-            self.start, theta, recursion_states(self.start, theta, self.runs, outputs)
-        )
+        key = theta.tobytes()
+        if key not in self.settled:
+            states = recursion_states(self.start, theta, self.runs, outputs)
+            self.settled[key] = self.ring_downs.settle(self.start, theta, states)
+        return self.settled[key]
 
     def sensitive(self, theta: np.ndarray) -> list[np.ndarray]:
         """The free runs (what :meth:`simulated` reports) with their exact sensitivities written
@@ -506,8 +507,13 @@ class RingDowns:
     lag: int
     bound: float
     horizon: int  # samples of the longest record
-    runs: tuple[tuple[int, int, FreeRun], ...]  # (record, switch-off sample c, the run from c − L)
-    restarts: tuple[tuple[FreeRun, np.ndarray], ...]  # (the run from c − L, the measured y[c−L … c−1])
+    switch_offs: tuple[tuple[int, int], ...]  # (record, switch-off sample c)
+    # The ring-downs' runs from c − L, one after the other as the rows of one, and the rows of each.
+    decays: FreeRun | None
+    decay_windows: np.ndarray
+    # Each record's restarts: (the record's run, the rows (c − L, end) of each, the measured
+    # y[c−L … c−1] of each), run together (:meth:`FreeRun.run_windows`).
+    restarts: tuple[tuple[FreeRun, np.ndarray, np.ndarray], ...]
     linear: np.ndarray  # the terms of the model's linear part (plain lags of y, x, dy, dx), a mask on θ
     # Each polynomial autoregressive term: its index in θ and its factors as (lag, is a difference,
     # power); None when a term has no slope at rest and the model cannot be linearised there.
@@ -525,17 +531,23 @@ class RingDowns:
         ``origins``; ``driven`` are the records' free runs, whose rows the restarts are."""
         L = max_lag(terms)
         total = sum(len(y) for _, y in records)
-        runs, restarts = [], []
+        switch_offs, runs, restarts = [], [], []
         for index, ((x, y), origin, record_run) in enumerate(zip(records, origins, driven, strict=True)):
             if len(y) <= L:
                 continue
             share = max(1, round(SWITCH_OFFS * len(y) / total))
             for c in np.unique(np.linspace(L, len(y), share + 1)[1:].astype(int)):
                 unforced = np.concatenate([x[c - L : c], np.zeros(RING_DOWN)])
-                runs.append((index, int(c), FreeRun.build(terms, unforced, origin + int(c) - L)))
+                switch_offs.append((index, int(c)))
+                runs.append(FreeRun.build(terms, unforced, origin + int(c) - L))
             starts = max(1, round(RESTARTS * len(y) / total))
-            for c in np.unique(np.linspace(L, len(y), 2 * starts + 1)[1::2].astype(int)):
-                restarts.append((record_run.rows(int(c) - L, min(int(c) + RING_DOWN, len(y))), y[c - L : c]))
+            points = np.unique(np.linspace(L, len(y), 2 * starts + 1)[1::2].astype(int))
+            windows = np.column_stack([points - L, np.minimum(points + RING_DOWN, len(y))])
+            measured = np.array([y[c - L : c] for c in points], dtype=float).reshape(points.size, L)
+            restarts.append((record_run, windows, measured))
+        edges = np.arange(len(runs) + 1) * (L + RING_DOWN)
+        decay_windows = np.column_stack([edges[:-1], edges[1:]])
+        decays = FreeRun.stacked(runs) if runs else None
         bound = RESTLESS * max((float(np.max(np.abs(y))) for _, y in records), default=0.0)
         at_rest = [_at_rest(term) for term in terms]
         smooth = (
@@ -549,29 +561,32 @@ class RingDowns:
         )
         horizon = max((len(y) for _, y in records), default=0)
         linear = np.array([_plain_lag(term) for term in terms], dtype=bool)
-        return cls(L, bound, horizon, tuple(runs), tuple(restarts), linear, smooth)
+        return cls(
+            L, bound, horizon, tuple(switch_offs), decays, decay_windows, tuple(restarts), linear, smooth
+        )
 
     def settle(self, model: NARX, theta: np.ndarray, states: Sequence[np.ndarray]) -> bool:
         """Whether ``model`` with ``theta`` comes to rest after every switch-off, ``states`` being
         its recursion's free runs over the records with that θ (:func:`recursion_states`)."""
+        if self.decays is None:
+            return True
         limits = model.output_limits if model.saturation == "state" else None
+        initial = [states[index][c - self.lag : c] for index, c in self.switch_offs]
+        if not all(np.all(np.isfinite(state)) for state in initial):
+            return False
+        # Every ring-down run in one call; each must stay finite and bounded, and each that
+        # ends moving must have a linearisation that does not drift.
+        decays = self.decays.run_windows(theta, self.decay_windows, initial, limits)
+        if not (np.all(np.isfinite(decays)) and float(np.max(np.abs(decays))) <= self.bound):
+            return False
+        if self.smooth is None:
+            return True
+        tails = decays[:, -self.lag - 1 :]
+        moving = tails[np.ptp(tails, axis=1) > STILL * self.bound]
         # A smooth part of first-degree terms has the same linearisation at every state.
-        linear = None
-        if self.smooth is not None and all(len(f) == 1 and f[0][2] == 1 for _, f in self.smooth):
-            linear = self.spectral_radius(theta, np.zeros(self.lag + 1))
-        for index, c, run in self.runs:
-            state = states[index][c - self.lag : c]
-            if not np.all(np.isfinite(state)):
-                return False
-            decay = run.run(theta, state, limits)
-            if not (np.all(np.isfinite(decay)) and float(np.max(np.abs(decay))) <= self.bound):
-                return False
-            tail = decay[-self.lag - 1 :]
-            if self.smooth is not None and np.ptp(tail) > STILL * self.bound:
-                radius = self.spectral_radius(theta, tail) if linear is None else linear
-                if radius > self.drifting:
-                    return False
-        return True
+        if moving.size and all(len(f) == 1 and f[0][2] == 1 for _, f in self.smooth):
+            moving = np.zeros((1, self.lag + 1))
+        return not any(self.spectral_radius(theta, tail) > self.drifting for tail in moving)
 
     def holds(self, model: NARX, theta: np.ndarray, reference: np.ndarray) -> bool:
         """Whether ``model`` with ``theta`` does not diverge from any restart at measured outputs
@@ -597,14 +612,20 @@ class RingDowns:
         limits = model.output_limits if model.saturation == "state" else None
         clipped = model.output_limits if model.saturation == "sensor" else None
         linear_part = np.where(self.linear, reference, 0.0)
-        for run, measured in self.restarts:
-            if clipped is not None and np.any((measured <= clipped[0]) | (measured >= clipped[1])):
+        for run, windows, measured in self.restarts:
+            if clipped is not None:
+                kept = ~np.any((measured <= clipped[0]) | (measured >= clipped[1]), axis=1)
+                windows, measured = windows[kept], measured[kept]
+            if not windows.size:
                 continue
-            if np.all(np.isfinite(run.run(theta, measured, limits))):
-                continue
-            rung = run.run(linear_part, measured, limits)
-            if not (np.all(np.isfinite(rung)) and float(np.max(np.abs(rung))) > self.bound):
-                return False
+            # Every restart of a record in one call; NaN beyond a restart's end counts for nothing.
+            out = run.run_windows(theta, windows, measured, limits)
+            beyond = np.arange(out.shape[1]) >= (windows[:, 1] - windows[:, 0])[:, None]
+            finite = np.all(np.isfinite(out) | beyond, axis=1)
+            for w in np.flatnonzero(~finite):
+                rung = run.run_windows(linear_part, windows[w : w + 1], measured[w : w + 1], limits)[0]
+                if not (np.all(np.isfinite(rung)) and float(np.max(np.abs(rung))) > self.bound):
+                    return False
         return True
 
     @property
@@ -663,6 +684,15 @@ def recursion_states(
     return [run.run(theta, y) for run, y in runs]
 
 
+def prepared(
+    terms: Sequence[Term], records: Sequence[tuple[np.ndarray, np.ndarray]], origins: Sequence[int]
+) -> tuple[list[FreeRun], RingDowns]:
+    """Each record's free run of ``terms`` (:meth:`FreeRun.build`, times from its origin) and the
+    ring-downs and restarts on them (:meth:`RingDowns.build`)."""
+    runs = [FreeRun.build(terms, x, origin) for (x, _), origin in zip(records, origins, strict=True)]
+    return runs, RingDowns.build(terms, records, origins, runs)
+
+
 def comes_to_rest(
     model: NARX, records: Sequence[tuple[np.ndarray, np.ndarray]], t0: int | Sequence[int] = 0
 ) -> bool:
@@ -678,9 +708,8 @@ def free_run_at_rest(
     """The free-run RMS of ``model`` over ``records`` (samples L … N−1 of each, infinite when a
     run diverges) and whether it comes to rest (:func:`comes_to_rest`), from one run a record."""
     origins = record_origins(t0, len(records))
-    runs = [
-        (FreeRun.build(model.terms, x, origin), y) for (x, y), origin in zip(records, origins, strict=True)
-    ]
+    record_runs, ring_downs = prepared(model.terms, records, origins)
+    runs = [(run, y) for run, (_, y) in zip(record_runs, records, strict=True)]
     outputs = [model.run_free(run, y) for run, y in runs]
     errors = np.concatenate(
         [out[model.max_lag :] - y[model.max_lag :] for out, (_, y) in zip(outputs, runs, strict=True)]
@@ -688,7 +717,6 @@ def free_run_at_rest(
     if not np.all(np.isfinite(errors)):
         return np.inf, False
     states = recursion_states(model, model.theta, runs, outputs)
-    ring_downs = RingDowns.build(model.terms, records, origins, [run for run, _ in runs])
     at_rest = ring_downs.holds(model, model.theta, model.theta) and ring_downs.settle(
         model, model.theta, states
     )

@@ -41,7 +41,14 @@ from models.effects import (
 )
 from models.narmax import fit_narmax, invertible
 from models.narx import NARX, Saturation, fit_narx, fitted_rows
-from models.regression import Workers, column_norms, divided_columns, orthogonal_part, span_basis
+from models.regression import (
+    Workers,
+    column_norms,
+    divided_columns,
+    orthogonal_part,
+    span_basis,
+    subtract_outer,
+)
 from models.terms import Term, max_lag, record_origins, stacked_regressors
 
 Records = Sequence[tuple[np.ndarray, np.ndarray]]
@@ -511,7 +518,7 @@ def _greedy(columns: np.ndarray, residual: np.ndarray) -> Iterator[tuple[int, fl
         best = int(np.argmax(gains))
         w = W[:, best] / np.sqrt(norms[best])
         e -= w * (w @ e)
-        W -= np.outer(w, w @ W)
+        subtract_outer(W, w, w @ W)
         order.append(best)
         rss -= float(gains[best])
         yield best, rss

@@ -99,9 +99,12 @@ class FreeRun:
         for index, term in enumerate(terms):
             output_factors = [f for f in term.factors if f.autoregressive]
             others = [f for f in term.factors if not f.autoregressive]
-            column = np.ones(n)
+            # The product of the input's and time's factors (reads x or t only), the first factor's
+            # values themselves (1·v is v); the constant's column is ones.
+            column = np.ones(n) if not term.factors else None
             for factor in others:
-                column = column * factor.values(lagged_x, lagged_x, times)  # reads x or t only
+                values = factor.values(lagged_x, lagged_x, times)
+                column = values if column is None else column * values
             if output_factors:
                 recursive_terms.append(index)
                 known_column.append(len(known) if others else -1)
@@ -150,6 +153,78 @@ class FreeRun:
         return replace(
             self, n=last - first, exogenous=self.exogenous[first:last], known=self.known[first:last]
         )
+
+    @classmethod
+    def stacked(cls, runs: Sequence[FreeRun]) -> FreeRun:
+        """Runs of the same terms one after the other as the rows of one (the parts of
+        :meth:`run_windows`): each part's rows are its run's."""
+        first = runs[0]
+        return replace(
+            first,
+            n=sum(run.n for run in runs),
+            exogenous=np.concatenate([run.exogenous for run in runs]),
+            known=np.concatenate([run.known for run in runs]),
+        )
+
+    def run_windows(
+        self,
+        theta: np.ndarray,
+        windows: np.ndarray,
+        initial: Sequence[np.ndarray],
+        limits: tuple[float, float] | None = None,
+    ) -> np.ndarray:
+        """The runs over rows a … b − 1 of this one for each window (a, b) of ``windows``, each
+        started from its row of ``initial`` (its first L outputs): row w what :meth:`rows` of
+        window w runs from them, to the last digit (NaN beyond the window's length).
+
+        The windows are run side by side, a sample of each in turn: a run is a chain of
+        dependent products, one sample waiting for the last, and independent runs interleaved
+        keep the processor busy while each waits (a ring-down of a short record's model costs
+        a third of its own run's time so), where each run alone would also cost a call's
+        preparation."""
+        windows = np.asarray(windows, dtype=np.int64).reshape(-1, 2)
+        lengths = windows[:, 1] - windows[:, 0]
+        out = np.full((lengths.size, int(lengths.max(initial=0))), np.nan)
+        exogenous_theta = theta[self.exogenous_terms]
+        for w, ((a, b), state) in enumerate(zip(windows, initial, strict=True)):
+            lag = min(self.lag, int(b - a))
+            out[w, :lag] = state[:lag]
+        # Each window's drive by its own product: BLAS's sums over a block of rows depend on
+        # where the block starts, and a run's rows must add as :meth:`rows`' do. Windows that
+        # tile the run (runs stacked) are its blocks: one stacked product, a product a block.
+        count, width = out.shape
+        if count * width == self.n and np.array_equal(windows[:, 0], np.arange(count) * width):
+            blocks = self.exogenous.reshape(count, width, self.exogenous.shape[1])
+            drive = np.matmul(blocks, exogenous_theta)
+        else:
+            drive = np.zeros(out.shape)
+            for w, (a, b) in enumerate(windows):
+                drive[w, : b - a] = self.exogenous[a:b] @ exogenous_theta
+        low, high = limits or (-np.inf, np.inf)
+        _side_by_side(
+            out,
+            lengths,
+            windows[:, 0].copy(),
+            self.lag,
+            drive,
+            theta[self.recursive_terms],
+            self.known,
+            self.known_column,
+            self.factor_start,
+            self.difference,
+            self.factor_lag,
+            self.function,
+            self.parameter,
+            self.shape,
+            low,
+            high,
+            self.factor_feature,
+            self.feature_difference,
+            self.feature_function,
+            self.feature_power,
+            self.feature_parameter,
+        )
+        return out
 
     def run(
         self, theta: np.ndarray, y_initial: np.ndarray, limits: tuple[float, float] | None = None
@@ -286,7 +361,8 @@ def _recursion(
         )  # fmt: skip
     for t in range(start, n):
         total = drive[t]
-        slope[:] = 0.0
+        if with_sensitivities:
+            slope[:] = 0.0
         for j in range(terms):
             first, last = factor_start[j], factor_start[j + 1]
             product = 1.0 if known_column[j] < 0 else known[t, known_column[j]]
@@ -354,6 +430,105 @@ def _recursion(
                         S[t, column] += slope[k] * S[t - k, column]
 
 
+@numba.njit(cache=True, nogil=True)
+def _side_by_side(
+    out: np.ndarray,
+    lengths: np.ndarray,
+    first_rows: np.ndarray,
+    start: int,
+    drive: np.ndarray,
+    coefficients: np.ndarray,
+    known: np.ndarray,
+    known_column: np.ndarray,
+    factor_start: np.ndarray,
+    difference: np.ndarray,
+    factor_lag: np.ndarray,
+    function: np.ndarray,
+    parameter: np.ndarray,
+    shape: np.ndarray,
+    low: float,
+    high: float,
+    factor_feature: np.ndarray,
+    feature_difference: np.ndarray,
+    feature_function: np.ndarray,
+    feature_power: np.ndarray,
+    feature_parameter: np.ndarray,
+) -> None:
+    """:func:`_recursion`'s free runs without sensitivities, run r into row r of ``out`` (its
+    first ``lengths`` r samples) with its drive in row r of ``drive`` and the rows of ``known``
+    from ``first_rows`` r on: a sample of every run in turn, each run's sums in the order its
+    own run adds them."""
+    runs = out.shape[0]
+    terms = coefficients.size
+    reach = 1
+    for f in range(factor_lag.size):
+        reach = max(reach, factor_lag[f] + 1 + difference[f])
+    rows = 1
+    while rows < reach:
+        rows *= 2
+    mask = rows - 1
+    cached = np.zeros((runs, rows, feature_function.size))
+    unused = np.zeros((rows, feature_function.size))  # the slopes, not asked for
+    bouc_wen = np.nonzero(function == 5)[0]
+    row = np.full(function.size, -1)
+    row[bouc_wen] = np.arange(bouc_wen.size)
+    hysteretic = np.zeros((runs, bouc_wen.size, out.shape[1]))
+    live = lengths > start
+    total = np.zeros(runs)
+    for r in range(runs):
+        if not live[r]:
+            continue
+        for i, f in enumerate(bouc_wen):
+            for t in range(1, start):
+                step = out[r, t] - out[r, t - 1]
+                hysteretic[r, i, t] = bouc_wen_step(hysteretic[r, i, t - 1], step, parameter[f], shape[f])
+        for s in range(max(0, start - reach), start):
+            _features(
+                out[r], s, s & mask, cached[r], unused, feature_difference, feature_function,
+                feature_power, feature_parameter, False,
+            )  # fmt: skip
+    for t in range(start, out.shape[1]):
+        for r in range(runs):
+            live[r] = live[r] and t < lengths[r]
+            total[r] = drive[r, t]
+        for j in range(terms):
+            first, last = factor_start[j], factor_start[j + 1]
+            column = known_column[j]
+            if last == first + 1 and function[first] != 5:
+                at, feature = (t - factor_lag[first]) & mask, factor_feature[first]
+                for r in range(runs):
+                    if live[r]:
+                        product = 1.0 if column < 0 else known[first_rows[r] + t, column]
+                        product *= cached[r, at, feature]
+                        total[r] += coefficients[j] * product
+                continue
+            for r in range(runs):
+                if not live[r]:
+                    continue
+                product = 1.0 if column < 0 else known[first_rows[r] + t, column]
+                for f in range(first, last):
+                    k = factor_lag[f]
+                    if function[f] == 5:
+                        product *= hysteretic[r, row[f], t - k]
+                    else:
+                        product *= cached[r, (t - k) & mask, factor_feature[f]]
+                total[r] += coefficients[j] * product
+        for r in range(runs):
+            if not live[r]:
+                continue
+            if not abs(total[r]) < DIVERGED:
+                live[r] = False  # the rest of the run stays NaN
+                continue
+            out[r, t] = min(max(total[r], low), high)
+            _features(
+                out[r], t, t & mask, cached[r], unused, feature_difference, feature_function,
+                feature_power, feature_parameter, False,
+            )  # fmt: skip
+            for i, f in enumerate(bouc_wen):
+                step = out[r, t] - out[r, t - 1]
+                hysteretic[r, i, t] = bouc_wen_step(hysteretic[r, i, t - 1], step, parameter[f], shape[f])
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def _features(
     out: np.ndarray,
@@ -374,6 +549,11 @@ def _features(
         if difference[q] and s < 1:
             continue
         raw = out[s] - out[s - 1] if difference[q] else out[s]
+        if function[q] == 0 and power[q] == 1:  # the sample itself, most features: no products
+            cached[into, q] = raw
+            if with_slopes:
+                cached_slope[into, q] = 1.0
+            continue
         sign = (raw > 0.0) - (raw < 0.0)
         base, rate = raw, 1.0  # the transformed value and its slope d(base)/d(raw)
         if function[q] == 1:

@@ -507,6 +507,54 @@ def test_a_run_over_some_rows_of_a_record_is_the_run_built_on_that_part_of_it() 
     assert np.any(whole.rows(200, 400).known[:3] != FreeRun.build(terms, x[200:400], t0=207).known[:3])
 
 
+@pytest.mark.parametrize("limits", [None, (-0.6, 0.9)])
+def test_windows_run_side_by_side_are_the_runs_of_their_rows(limits) -> None:
+    """Ring-downs and restarts run side by side (:meth:`FreeRun.run_windows`): each window the
+    same to the last digit as its rows run alone — windows of different lengths, one shorter
+    than the lags (its measured start alone), runs that diverge at different samples, a sinusoid
+    of time, a hysteresis variable, an input's play, products with the input — and NaN beyond
+    its end; ring-downs of their own inputs stacked as the rows of one likewise."""
+    rng = np.random.default_rng(11)
+    x, y = rng.standard_normal(1200), rng.standard_normal(1200)
+    terms = parse_terms(
+        [
+            "y[t-1]",
+            "y[t-3]",
+            "x[t-2]",
+            "y[t-1]*x[t-1]",
+            "y[t-2]^3",
+            "spow(dy[t-1],1.8)",
+            "cos(2pi*0.021*t)",
+            "boucwen(y[t-2],0.4,0.5)",
+            "backlash(x[t-1],0.3)*y[t-1]",
+            "1",
+        ]
+    )
+    whole = FreeRun.build(terms, x, t0=5)
+    windows = np.array([(100, 1100), (0, 1200), (1150, 1200), (40, 42), (700, 1000)])
+    starts = [y[a : a + 3] for a, _ in windows]
+    for theta in (
+        np.array([1.1, -0.3, 0.8, 0.05, -0.02, 0.01, 0.1, 0.03, 0.02, 0.05]),
+        np.array([1.1, -0.3, 0.8, 0.5, 0.4, 0.01, 0.1, 0.03, 0.2, 0.05]),  # diverges from some
+    ):
+        side_by_side = whole.run_windows(theta, windows, starts, limits)
+        alone = [
+            whole.rows(a, b).run(theta, start, limits) for (a, b), start in zip(windows, starts, strict=True)
+        ]
+        for row, run, (a, b) in zip(side_by_side, alone, windows, strict=True):
+            assert np.array_equal(row[: b - a], run, equal_nan=True)
+            assert np.isnan(row[b - a :]).all()
+    finite = [np.isfinite(run).all() for run in alone]
+    # The premise: some ran on where others stopped (held within limits, none stops).
+    assert any(finite) and (limits is not None or not all(finite))
+    ring_downs = [
+        FreeRun.build(terms, np.concatenate([x[c - 3 : c], np.zeros(500)]), 5 + c - 3) for c in (9, 600)
+    ]
+    stacked = FreeRun.stacked(ring_downs).run_windows(theta, [(0, 503), (503, 1006)], starts[:2])
+    for row, run, start in zip(stacked, ring_downs, starts[:2], strict=True):
+        assert np.array_equal(row, run.run(theta, start), equal_nan=True)
+
+
 def test_the_covariance_of_a_search_whose_sensitivities_overflow_the_gauss_newton_matrix_is_finite() -> None:
     """Found on F-16's multisines estimated whole: a fold's search ended at θ whose free run was
     finite and whose sensitivities exceeded 10¹⁵⁴, so that JᵀJ overflowed and LAPACK's SVD, asked

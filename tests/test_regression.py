@@ -17,6 +17,7 @@ from models.regression import (
     least_squares,
     orthogonal_part,
     span_basis,
+    subtract_outer,
     triangular_factor,
 )
 
@@ -199,3 +200,26 @@ def test_column_norms_are_numpys_to_the_last_bit_in_every_layout(rows: int) -> N
         for layout in (columns, np.asfortranarray(columns), columns[1:, ::-1], columns[::2]):
             np.testing.assert_array_equal(column_norms(layout), np.linalg.norm(layout, axis=0))
     assert column_norms(np.empty((rows, 0))).shape == (0,)
+
+
+@pytest.mark.parametrize("rows", [1, 7, 2049])
+def test_an_outer_product_subtracted_in_place_is_numpys_to_the_last_bit(rows: int) -> None:
+    """The greedy selection deflates a family's columns by W −= w·vᵀ at each step, and the loop's
+    reports are compared across changes byte for byte: every entry as numpy's product and
+    difference make it, over entries spanning many decades, row-major or not, where an entry
+    computed as one fused multiply–add would differ in its last bit."""
+    rng = np.random.default_rng(rows)
+    for width in (1, 3, 30):
+        W = rng.normal(size=(rows, width)) * np.logspace(-6, 6, width)
+        w, v = rng.normal(size=rows), rng.normal(size=width) * 1e3
+        for layout in (W, np.asfortranarray(W)):
+            expected = layout.copy()
+            expected -= np.outer(w, v)
+            ours = layout.copy(order="A")
+            subtract_outer(ours, w, v)
+            np.testing.assert_array_equal(ours, expected)
+    # The premise: a fused multiply–add, rounded once, differs from numpy's entries somewhere.
+    W, w, v = rng.normal(size=(2049, 30)), rng.normal(size=2049), rng.normal(size=30)
+    expected = W - np.outer(w, v)
+    exact = (W.astype(np.longdouble) - w[:, None].astype(np.longdouble) * v).astype(float)
+    assert np.any(exact != expected)
