@@ -208,6 +208,17 @@ class FreeRun:
             self.lag,
             drive,
             theta[self.recursive_terms],
+            *self._factors,
+            low,
+            high,
+            *self._features,
+        )
+        return out
+
+    @property
+    def _factors(self) -> tuple[np.ndarray, ...]:
+        """The output factors' arrays, in the order the compiled kernels take them."""
+        return (
             self.known,
             self.known_column,
             self.factor_start,
@@ -216,15 +227,18 @@ class FreeRun:
             self.function,
             self.parameter,
             self.shape,
-            low,
-            high,
+        )
+
+    @property
+    def _features(self) -> tuple[np.ndarray, ...]:
+        """The factors' shared features' arrays, in the order the compiled kernels take them."""
+        return (
             self.factor_feature,
             self.feature_difference,
             self.feature_function,
             self.feature_power,
             self.feature_parameter,
         )
-        return out
 
     def run(
         self, theta: np.ndarray, y_initial: np.ndarray, limits: tuple[float, float] | None = None
@@ -277,24 +291,13 @@ class FreeRun:
                 self.exogenous @ theta[self.exogenous_terms],
                 theta[self.recursive_terms],
                 self.recursive_terms,
-                self.known,
-                self.known_column,
-                self.factor_start,
-                self.difference,
-                self.factor_lag,
-                self.function,
-                self.parameter,
-                self.shape,
+                *self._factors,
                 low,
                 high,
                 self.exogenous,
                 self.exogenous_terms,
                 S,
-                self.factor_feature,
-                self.feature_difference,
-                self.feature_function,
-                self.feature_power,
-                self.feature_parameter,
+                *self._features,
             )
         return out, S
 
