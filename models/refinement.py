@@ -1287,6 +1287,9 @@ def choose_linear(
     tell = _told(progress)
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
     samples = sum(len(y) for _, y in records)
+    # The loop's level shared among every candidate's test, with a constant and without: on a
+    # record of the rig, x[t-3]'s chance correlation with x[t-4] made ARX(3, 3)'s input
+    # coefficients pass at the loop's level alone.
     level = DEFAULT_ALPHA / (2 * len(orders))
     judge = partial(_driven_figures, folds, records, level, workers=workers, tell=tell, rectified=rectified)
     smallest = partial(_smallest_driven, margin=margin, max_order=max_order, samples=samples)
