@@ -26,11 +26,12 @@ from harness.api_helpers import (
 )
 from harness.dashboard_helpers import logged_in
 from harness.live import DATABASES, LiveServer, on_each_database
+from harness.warming import warming_drive
 from models.coverage import coverage
 from models.effects import candidate_effects, linear_terms
 from models.narx import NARX, fit_narx
 from models.refinement import MAX_LINEAR_ORDER
-from models.terms import Term, parse_terms, regressor_matrix
+from models.terms import Term, max_lag, parse_terms, regressor_matrix
 from service.domain import refinements
 from service.schemas import RefinementCreate
 from service.security import Principal, Role
@@ -210,6 +211,29 @@ def test_with_no_base_model_the_loop_chooses_linear_orders_and_stores_their_mode
         assert f"<td>{step['added'] or 'nothing added'}</td>" in page.text
     assert structure_page.status_code == 200
     assert f"linear ({ny}, {nx}), delay {delay}: orders chosen" in structure_page.text
+
+
+def test_a_model_fitted_from_where_the_records_settled_says_so_in_its_training(api_server: LiveServer):
+    """Where the loop leaves out the first samples of a record that starts before the system
+    settled, the model stored was fitted without them: its training says which, as the report
+    does."""
+    org = Org.create(api_server)
+    with clients(org) as (admin, ingest, viewer):
+        structure_id = create_structure(admin, "drive")["id"]
+        warming, settled = (
+            post_record(ingest, structure_id, npz_bytes(x=x, y=y), "application/x-npz").json()["id"]
+            for x, y in (warming_drive(1500, 1), warming_drive(600, 101, settled=True))
+        )
+        body = {"record_ids": [warming], "test_record_ids": [settled]}
+        response = admin.post(refinements_url(structure_id), json=body)
+        assert response.status_code == 201, response.text
+        refinement = response.json()
+        left_out = refinement["report"]["settled_from"]
+        assert len(left_out) == 1 and left_out[0] > 0, left_out
+        (stored,) = viewer.get(f"{API}/structures/{structure_id}/models").json()
+        assert stored["id"] == refinement["refined_model"]["id"]
+        assert stored["training"]["settled_from"] == left_out
+        assert stored["statistics"]["n_obs"] == 1500 - left_out[0] - max_lag(parse_terms(stored["terms"]))
 
 
 def test_a_refinement_without_a_base_is_priced_as_the_widest_linear_start(rig: Rig, api_server: LiveServer):

@@ -15,6 +15,7 @@ from bench.measured import coupled_drives
 from harness.duffing import DuffingOscillator
 from harness.extrapolating import growing_steps
 from harness.prerequisites import benchmark_data
+from harness.warming import warming_drive
 from models.checking import SETTLED_EVALUATIONS, CheckSplit, Structure, check_noise, split_for_checking
 from models.effects import (
     Effect,
@@ -1309,19 +1310,6 @@ def test_two_effects_that_each_run_free_worse_alone_are_added_as_a_pair():
     assert validate(result.refined, [(test.x, test.y)]).free_run.rms < 0.5 * before
 
 
-def _warming_drive(n: int, seed: int, settled: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """A first-order drive started from rest whose pole warms up from 0.5 to 0.8 with a time
-    constant of 100 samples, y[t] = a[t]·y[t-1] + x[t-1], the input held for four samples at a
-    time, with 2 % output noise; ``settled``: the pole at 0.8 throughout."""
-    rng = np.random.default_rng(seed)
-    x = np.repeat(rng.standard_normal(n // 4 + 1), 4)[:n]
-    pole = 0.8 - (0.0 if settled else 0.3) * np.exp(-np.arange(n) / 100.0)
-    y = np.zeros(n)
-    for t in range(1, n):
-        y[t] = pole[t] * y[t - 1] + x[t - 1]
-    return x, y + 0.02 * np.std(y) * rng.standard_normal(n)
-
-
 def test_a_record_that_starts_before_the_system_settled_is_estimated_from_where_it_settled():
     """The record's first few hundred samples hold a machine that was still warming up: fitted on
     the whole record, the pole comes out low and the free run over a record of the settled machine
@@ -1329,18 +1317,18 @@ def test_a_record_that_starts_before_the_system_settled_is_estimated_from_where_
     the record's first part runs free over the held-out tail better, so it is the one returned,
     and the report says what was left out. A record of the settled machine keeps every sample."""
     declared = ["y[t-1]", "x[t-1]"]
-    x, y = _warming_drive(1500, 1)
-    report = refine_records([(x, y)], [_warming_drive(600, 101, settled=True)], declared)
+    x, y = warming_drive(1500, 1)
+    report = refine_records([(x, y)], [warming_drive(600, 101, settled=True)], declared)
     result = report.refinement
     assert result.settled_from and 0 < result.settled_from[0] <= 600, result.settled_from
     assert result.refined.n_obs == len(y) - result.settled_from[0] - 1
     assert any("record was left out" in note for note in report.to_dict()["notes"])
     whole = fit_narx([(x, y)], parse_terms(declared))
-    test_x, test_y = _warming_drive(600, 101, settled=True)
+    test_x, test_y = warming_drive(600, 101, settled=True)
     on_whole = held_out_errors(whole, test_x, test_y, 1).free_run.rms
     assert report.after.free_run_rms < on_whole / 1.5, (report.after.free_run_rms, on_whole)
     assert abs(result.refined.theta[0] - 0.8) < 0.01, result.refined.theta
-    settled = refine([_warming_drive(1500, 1, settled=True)], declared)
+    settled = refine([warming_drive(1500, 1, settled=True)], declared)
     assert settled.settled_from == (), settled.settled_from
 
 

@@ -147,6 +147,9 @@ def _store_refined(
             if plan.estimation is not None
             else {"transient": body.transient}
         ),
+        # The samples left out at each estimation part's start, where the system had not yet
+        # settled: the model was fitted on the rest (empty where nothing was left out).
+        "settled_from": list(result.settled_from),
         "effects_added": [effect.name for effect in result.effects_added],
         "terms": model.term_names,
         "estimator": result.estimator,
