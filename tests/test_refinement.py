@@ -29,23 +29,21 @@ from models.effects import (
 from models.errors import InputError
 from models.held_out import HeldOut, held_out_tails
 from models.input_drive import input_drives
+from models.linear_start import MAX_LINEAR_ORDER, _is_start
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
+from models.pruning import pruned_back, without_pruned
 from models.refinement import (
-    DEFAULT_ALPHA,
-    MAX_LINEAR_ORDER,
     Refinement,
     RefinementReport,
     Round,
-    _is_start,
-    _pruned,
-    _without_pruned,
     choose_linear,
     compare,
     refine,
     refine_record,
     refine_records,
 )
+from models.round_criteria import DEFAULT_ALPHA
 from models.scoring import EffectScore, ScoringKept, fit_model, score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
@@ -1097,7 +1095,7 @@ def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
     ]
     rounds = [Round(1.0, 0.01, 2, (effect,), effect) for effect in effects]
     everything = Structure((*declared, *earlier, *later))
-    pruned, (taken,) = _pruned(everything, declared, rounds, checks, map, output_error=False)
+    pruned, (taken,) = pruned_back(everything, declared, rounds, checks, map, output_error=False)
     (kept,) = set(earlier) - {taken}
     assert pruned.terms == tuple(term for term in everything.terms if term != taken)
     assert kept in pruned.terms
@@ -1134,9 +1132,10 @@ def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_f
 def test_a_round_counts_the_candidates_its_look_ahead_compared():
     """The rig's quadratic spring from linear:4,4 with three stiffness families on offer: once the
     first in the one-step order clears, the round judges the next ones on the check blocks as
-    contenders, and, where one gains enough more, the round after each (:func:`_looked_ahead`).
-    Every family judged on the check blocks is told as it is read; a round's candidates tried
-    are all those told before the next round begins, the look ahead's among them."""
+    contenders, and, where one gains enough more, the round after each
+    (:func:`models.round_criteria.looked_ahead`). Every family judged on the check blocks is told as
+    it is read; a round's candidates tried are all those told before the next round begins, the look
+    ahead's among them."""
     record = simulate(
         Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
     )
@@ -1194,9 +1193,9 @@ def test_a_generic_block_a_later_effect_made_redundant_is_pruned_whole_and_the_r
             for name, terms in ((first, generic), ("input_nonlinearity", cube))
         ]
         rounds = [Round(1.0, 0.01, 2, (effect,), effect) for effect in effects]
-        pruned, taken = _pruned(everything, declared, rounds, checks, map, output_error=False)
+        pruned, taken = pruned_back(everything, declared, rounds, checks, map, output_error=False)
         assert cube[0] in pruned.terms and set(taken) == set(everything.terms) - set(pruned.terms)
-        return pruned, taken, _without_pruned(rounds, taken)
+        return pruned, taken, without_pruned(rounds, taken)
 
     pruned, _, _ = pruned_after("bilinear")
     assert len(set(generic) & set(pruned.terms)) == 1, pruned.terms
