@@ -16,9 +16,11 @@ import numpy as np
 from models.checking import CheckSplit, Segments, Structure
 from models.effects import linear_terms, reads_magnitude
 from models.errors import InputError
+from models.input_drive import input_drives
 from models.narx import NARX
 from models.refinement_report import Stage, told
 from models.regression import Workers
+from models.round_criteria import DEFAULT_ALPHA
 from models.scoring import Records
 from models.terms import Term
 
@@ -49,7 +51,9 @@ def choose_linear(
     better one's free-run RMS over the held-out parts (:func:`_rotation_figures`: least squares'
     bias would favour needlessly high orders). A model the input barely drives is no start
     (:func:`_is_start`): on a rig record with a large dead zone, least squares' best predictor of
-    order 2 extrapolates the output's own past, y[t] ≈ 2y[t-1] − y[t-2]. Of the rest (of all,
+    order 2 extrapolates the output's own past, y[t] ≈ 2y[t-1] − y[t-2]. Nor, as a rule, is one
+    whose input coefficients are not significant (:func:`_smallest_driven`): one whose input lags
+    stop short of the input's delay. Of the rest (of all,
     where the input drives none), the smallest is chosen whose figure is within ``margin``
     (relative) of the best, both raised for their size as the Bayesian information criterion
     raises them (:func:`_size_penalty`: on a few hundred samples a larger model's small gain is
@@ -83,8 +87,12 @@ def choose_linear(
     tell = told(progress)
     orders = [(n, d) for d in (1, 0) for n in range(1, max_order + 1)]
     samples = sum(len(y) for _, y in records)
-    judge = partial(_linear_figures, folds, workers=workers, tell=tell, rectified=rectified)
-    smallest = partial(_smallest_near_best, margin=margin, max_order=max_order, samples=samples)
+    # The loop's level shared among every candidate's test, with a constant and without: on a
+    # record of the rig, x[t-3]'s chance correlation with x[t-4] made ARX(3, 3)'s input
+    # coefficients pass at the loop's level alone.
+    level = DEFAULT_ALPHA / (2 * len(orders))
+    judge = partial(_driven_figures, folds, records, level, workers=workers, tell=tell, rectified=rectified)
+    smallest = partial(_smallest_driven, margin=margin, max_order=max_order, samples=samples)
     figures, admissible = judge([(n, d, False) for n, d in orders])
     n, d, _ = chosen = smallest(figures, admissible)
     constant, constant_admissible = judge([(n, d, True)])
@@ -107,10 +115,12 @@ _Linear = tuple[int, int, bool]
 
 class _Judged(NamedTuple):
     """A linear candidate's held-out free-run RMS on each rotation (:func:`_rotation_figures`),
-    and its instrumental-variable fit's alone (infinite where that diverged)."""
+    its instrumental-variable fit's alone (infinite where that diverged), and whether the input
+    drives it (:func:`_driven_figures`)."""
 
     figure: np.ndarray
     instrumental: np.ndarray
+    driven: bool = True
 
 
 def _linear_figures(
@@ -136,6 +146,27 @@ def _linear_figures(
         figures[candidate] = figure
         if model is not None and _is_start(model, folds[0]):
             admissible.add(candidate)
+    return figures, admissible
+
+
+def _driven_figures(
+    folds: Sequence[CheckSplit],
+    records: Records,
+    level: float,
+    candidates: Sequence[_Linear],
+    workers: Workers,
+    tell: Stage,
+    rectified: bool = False,
+) -> tuple[dict[_Linear, _Judged], set[_Linear]]:
+    """:func:`_linear_figures`, each candidate's figures marked with whether the input drives it
+    (:func:`models.input_drive.input_drives` at ``level`` on all the ``records``). A rectified
+    model's linear terms read the recursion under the fold, which a linear fit of the readings
+    does not: there every candidate counts as driven, judged by its free run alone."""
+    figures, admissible = _linear_figures(folds, candidates, workers, tell, rectified)
+    if not rectified:
+        for n, d, constant in candidates:
+            driven = input_drives(records, linear_terms(n, n, d, constant), level)
+            figures[n, d, constant] = figures[n, d, constant]._replace(driven=driven)
     return figures, admissible
 
 
@@ -178,6 +209,27 @@ def _lower_beyond_spread(figure: np.ndarray, other: np.ndarray) -> bool:
     difference across the rotations."""
     difference = other - figure
     return float(np.mean(difference)) > float(np.std(difference, ddof=1) / np.sqrt(difference.size))
+
+
+def _smallest_driven(
+    figures: dict[_Linear, _Judged], admissible: set[_Linear], margin: float, max_order: int, samples: int
+) -> _Linear:
+    """:func:`_smallest_near_best` among the admissible candidates the input drives (their input
+    coefficients significant, :func:`_driven_figures`): on the rig's records with a sensor that
+    clips, or a quadratic spring, every linear model runs free poorly and ARX(2, 2), whose input
+    lags stop short of the rig's x[t-4] and whose input coefficients are nil, ran free as well as
+    ARX(4, 4) and was the start. A candidate the input does not drive is taken only where none
+    that it drives runs free without diverging, or where it runs free better than the best of
+    those on every rotation, as a larger order is taken (on a short record of the rig with a
+    strong quadratic spring, the driven orders diverged on a rotation or ran off by thousands of
+    times the output's spread)."""
+    chosen = _smallest_near_best(figures, admissible, margin, max_order, samples)
+    pool = admissible or set(figures)
+    driven = {key for key in pool if figures[key].driven and np.all(np.isfinite(figures[key].figure))}
+    if figures[chosen].driven or not driven:
+        return chosen
+    best = _smallest_near_best({key: figures[key] for key in driven}, driven, margin, max_order, samples)
+    return chosen if bool(np.all(figures[chosen].figure < figures[best].figure)) else best
 
 
 def _smallest_near_best(

@@ -28,7 +28,8 @@ from models.effects import (
 )
 from models.errors import InputError
 from models.held_out import HeldOut, held_out_tails
-from models.linear_start import _is_start
+from models.input_drive import input_drives
+from models.linear_start import MAX_LINEAR_ORDER, _is_start
 from models.narx import NARX, fit_narx
 from models.output_error import comes_to_rest, fit_output_error
 from models.pruning import pruned_back, without_pruned
@@ -42,6 +43,7 @@ from models.refinement import (
     refine_record,
     refine_records,
 )
+from models.round_criteria import DEFAULT_ALPHA
 from models.scoring import EffectScore, ScoringKept, fit_model, score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
@@ -706,6 +708,40 @@ def test_with_nothing_declared_a_planted_effect_leaves_the_start_at_the_rigs_ord
     record = simulate(Scenario(disturbance_std=800.0, effects=effects), 2400, seed)
     orders, _ = choose_linear([(record.x[:1600], record.y[:1600])])
     assert orders == (4, 4, 1), orders
+
+
+# Effects under which every linear model runs free poorly, as the planted benchmark plants them
+# (200 N of unmeasured force, the loop's head of a 1600-sample record): ARX(2, 2), whose input
+# lags stop short of the rig's x[t-4], ran free as well as ARX(4, 4) and was the start.
+POORLY_SIMULATED = [("quadratic_stiffness2=3e5", 1), ("sensor_range=0.08", 2)]
+
+
+@pytest.mark.parametrize(("effect", "seed"), POORLY_SIMULATED)
+def test_with_nothing_declared_a_start_the_input_does_not_drive_gives_way_to_the_rigs_order(effect, seed):
+    record = simulate(Scenario(disturbance_std=200.0, effects=Effects.parse([effect])), 1600, seed)
+    orders, _ = choose_linear([(record.x[:1280], record.y[:1280])])
+    assert orders == (4, 4, 1), orders
+
+
+def test_the_input_drives_the_rigs_order_and_not_the_orders_short_of_its_delay():
+    """The rig's input reaches y at x[t-4] alone (SPEC §2): a white input at x[t-1…t-3] has not
+    reached the output yet and is independent of it, so an ARX whose input lags stop there has
+    no input coefficient to find, whatever an effect does to the equation error. With the sensor
+    clipping, the equations on and around its plateaus do not follow the input at all; left out,
+    ARX(4, 4)'s x[t-4] is found."""
+    # The level choose_linear tests each of its forty candidates at, the loop's over their number.
+    level = DEFAULT_ALPHA / (4 * MAX_LINEAR_ORDER)
+    for effect, seed in [("quadratic_stiffness2=3e5", 1), ("sensor_range=0.08", 2), ("none", 3)]:
+        effects = Effects.parse([effect]) if effect != "none" else Effects()
+        record = simulate(Scenario(disturbance_std=200.0, effects=effects), 1280, seed)
+        records = [(record.x, record.y)]
+        assert input_drives(records, linear_terms(4, 4, 1), level), effect
+        for n, d in [(1, 1), (2, 1), (3, 1), (2, 0), (4, 0)]:
+            assert not input_drives(records, linear_terms(n, n, d), level), (effect, n, d)
+    clipped = simulate(Scenario(disturbance_std=200.0, effects=Effects.parse(["sensor_range=0.08"])), 1280, 2)
+    # The plateaus left in, the input's effect is lost in their equations.
+    unlimited = [(clipped.x, clipped.y + 1e-12 * np.arange(clipped.y.size))]
+    assert not input_drives(unlimited, linear_terms(4, 4, 1), level)
 
 
 def test_with_nothing_declared_the_rig_without_its_spring_starts_at_its_order():
