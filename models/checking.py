@@ -164,10 +164,13 @@ class CheckSplit:
     def search(self, structure: Structure, start: NARX | None, evaluations: int) -> float:
         """Search ``structure``'s parameters by output error on the fit parts from ``start`` (a
         model of its terms; None: its least-squares fit), for at most ``evaluations``, and keep
-        the result as its output-error fit (:meth:`tuned`). Returns :meth:`error` of it."""
+        the result as its output-error fit (:meth:`tuned`). Returns :meth:`error` of it, kept
+        as that: infinite, as :meth:`error` judges it, where ``structure`` cannot be fitted here
+        (:meth:`search_grown` reads the figure kept)."""
         try:
             start = self.fitted(structure) if start is None else start
         except InputError:
+            self._errors[(structure, True)] = np.inf
             return np.inf
         self._tuned[structure] = by_output_error(start, self.fit, evaluations)
         self._errors[(structure, True)] = self._simulates(self._tuned[structure])

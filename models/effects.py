@@ -702,12 +702,17 @@ def _spanning(
     monomials: Sequence[Term], x: np.ndarray, y: np.ndarray, lag: int, model_basis: np.ndarray
 ) -> tuple[Term, ...]:
     """The ``monomials`` that span g(u) beside the model's regressors: those whose columns, off
-    the model, a pivoted QR finds independent, in their order."""
+    the model, a pivoted QR finds independent, in their order; none where the model's own terms
+    span them all."""
     columns, _ = regressor_matrix(list(monomials), x, y, lag)
     columns = _off_model(model_basis, columns / column_norms(columns))
     # The pivots of a pivoted QR depend on the columns' inner products alone: those of R.
     _, triangle, pivots = linalg.qr(linalg.qr(columns, mode="r")[0], mode="economic", pivoting=True)
-    independent = pivots[np.abs(np.diag(triangle)) > 1e-8 * abs(triangle[0, 0])]
+    # Each column had unit norm before the model was taken off it: what is left is judged against
+    # that, not against the largest remainder. Where the model already spans every monomial (its
+    # own terms among them), the remainders are all rounding, and judged against the largest
+    # they would all pass and the family would put the model's own terms into it again.
+    independent = pivots[np.abs(np.diag(triangle)) > 1e-8]
     return tuple(monomials[i] for i in sorted(independent))
 
 

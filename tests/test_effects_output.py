@@ -378,6 +378,29 @@ def test_a_combination_is_not_sought_where_the_first_record_leaves_nothing_to_ex
         assert spanning == () and column.shape == residual.shape and not column.any(), effect.name
 
 
+def test_a_combination_spans_only_the_monomials_the_model_does_not_span_already() -> None:
+    """A combined family adds the monomials the model does not span already: with some of the
+    unmeasured cube's among the model's terms, the others; with all of them, none (the family
+    is not offered), however small what rounding leaves of them off the model. Judged against
+    the largest remainder, the remainders were all taken for independent and the family put the
+    model's own terms into it again, a structure no least squares can fit."""
+    rng = np.random.default_rng(6)
+    x = rng.standard_normal(3000)
+    y = signal.lfilter([0.0, 1.0], [1.0, -1.5, 0.7], x)
+    linear = linear_terms(4, 4)
+    effect = next(e for e in candidate_effects(linear) if e.name == "unmeasured_nonlinearity")
+    cubics = effect.terms
+    lag = max_lag(linear + cubics)
+    residual = rng.standard_normal(len(y) - lag)
+
+    def spanning(terms: tuple[Term, ...]) -> tuple[Term, ...]:
+        return effect.combine([(x, y)], residual, terms, lag)[0]
+
+    assert spanning(linear) == cubics
+    assert spanning(linear + cubics[:5]) == cubics[5:]
+    assert spanning(linear + cubics) == ()
+
+
 def test_integer_powers_are_the_products_a_factor_computes_and_pow_to_its_rounding() -> None:
     """The combination searches take u² and u³ by repeated products, as a term's factor does
     (numpy's pow with an array of exponents took three quarters of their time): the same

@@ -359,6 +359,29 @@ def test_the_check_split_fits_a_structure_once_and_searches_from_that_fit():
     assert checks.fitted(structure) is least_squares and tuned.terms == least_squares.terms
 
 
+def test_a_grown_structure_that_cannot_be_fitted_is_searched_to_an_infinite_figure():
+    """A grown structure least squares cannot fit (here one listing a term twice, as the loop once
+    grew one) is searched from least squares, which raises: its figure is infinite, as
+    CheckSplit.error judges it, and kept, so that search_grown, which reads the kept figures,
+    yields it rather than failing on a figure never kept."""
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal(1800)
+    y = signal.lfilter([0.0, 1.0], [1.0, -1.5, 0.7], x)
+    current = Structure(tuple(parse_terms(["y[t-1]", "y[t-2]", "x[t-1]"])))
+    cube = parse_terms(["y[t-1]^3"])
+    twice, grown = Structure(current.terms + cube + cube), Structure(current.terms + cube)
+    checks = CheckSplit.of([(x, y)])
+    with pytest.raises(InputError, match="listed twice"):
+        checks.fitted(twice)
+    assert checks.error(twice, tuned=True) == np.inf
+
+    searched = CheckSplit.of([(x, y)])
+    figures = list(searched.search_grown(current, [twice, grown], 10))
+
+    assert figures[0] == np.inf and searched.error(twice, tuned=True) == np.inf
+    assert np.isfinite(figures[1]) and figures[1] == searched.error(grown, tuned=True)
+
+
 def test_structures_judged_in_processes_are_judged_as_in_this_one():
     """A round's families are judged side by side in worker processes (CheckSplit.judge): the
     figures, and the fits kept for the searches after, are those this process makes, and the
