@@ -19,7 +19,7 @@ signals or of the residual) reaches across the boundary between two.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 from itertools import chain, islice, pairwise
@@ -485,10 +485,7 @@ def _forward(
     p_values: list[float] = []
     while True:
         largest = columns.shape[1] if blocks and chosen == 0 else 1
-        reach(chosen + largest)
-        if chosen >= len(order):
-            break
-        block = _entering_block(remaining, chosen, dof, level, largest)
+        block = _entering_block(remaining, reach, chosen, dof, level, largest)
         if block is None:
             break
         size, f_value, p_value = block
@@ -525,13 +522,23 @@ def _greedy(columns: np.ndarray, residual: np.ndarray) -> Iterator[tuple[int, fl
 
 
 def _entering_block(
-    remaining: Sequence[float], chosen: int, dof: int, level: float, largest: int
+    remaining: Sequence[float],
+    reach: Callable[[int], None],
+    chosen: int,
+    dof: int,
+    level: float,
+    largest: int,
 ) -> tuple[int, float, float] | None:
     """The smallest block, of at most ``largest`` columns, of the greedy order's next columns
     after the ``chosen`` ones that passes its joint F test at ``level``, as (its size, F,
     p-value); None where none does. ``remaining``: the residual sum of squares before the first
-    column and after each."""
-    for size in range(1, min(largest, len(remaining) - 1 - chosen) + 1):
+    column and after each, as far as ``reach`` (n) has taken the greedy order (its first n
+    columns, or all that are usable): a block is asked for one column more only where the
+    smaller one failed."""
+    for size in range(1, largest + 1):
+        reach(chosen + size)
+        if len(remaining) <= chosen + size:  # no usable column left
+            return None
         after = remaining[chosen + size]
         remaining_dof = dof - chosen - size
         if remaining_dof < 1:
