@@ -892,6 +892,28 @@ def test_on_a_short_record_effects_its_tail_does_not_support_are_withdrawn_and_t
     assert "100 samples no choice but the linear orders saw" in note and held_out.best_tried in note
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="the held-out tails lie within the heads' range; the test part extrapolates beyond it",
+)
+def test_on_a_short_record_a_kept_model_does_not_diverge_on_its_test_part():
+    """Five hundred estimation samples whose steps grow, nothing declared: the loop adds missing
+    lags, cubic stiffness and an offset, and the hundred-sample tail approves them. The test part
+    reaches twice the estimation records' largest output, and the kept polynomial, bounded over
+    every sample it was fitted and judged on (run from the records' start, tails too), escapes
+    there. Neither the tails nor a free run over the whole estimation record show it: the records
+    never reach the state it escapes from. Open: a kept model must not diverge where its report
+    says better."""
+    x, y = growing_steps(750, seed=2)
+    report = refine_record(x, y, None, [(0, 500)], (500, 750))
+    held_out = report.refinement.held_out
+    assert held_out is not None and held_out.kept and held_out.better
+    # The refined model's free run over the estimation record, from its start, stays in range.
+    whole = report.refinement.refined.simulate(x[:500], y[:500])
+    assert np.max(np.abs(whole)) < np.max(np.abs(y[:500]))
+    assert not report.after.diverged, report.after.free_run_rms
+
+
 def test_on_the_coupled_drives_prbs_records_the_model_returned_runs_the_test_no_worse_than_its_start():
     """The PRBS record of ±1.5, 400 estimation samples, 100 tested (the benchmark's split): refined
     whole, the loop added moving-average noise and its free run over the test went 1.494 → 1.532
