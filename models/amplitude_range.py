@@ -58,10 +58,12 @@ class AmplitudeRange:
         return self.diverges_at is not None
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-compatible: ``bounded_to`` None where the range has no limit."""
+        """JSON-compatible: ``bounded_to`` None where the range has no limit, and the range in
+        words (:meth:`describe`)."""
         return {
             "bounded_to": self.bounded_to if np.isfinite(self.bounded_to) else None,
             "diverges_at": self.diverges_at,
+            "description": self.describe(),
         }
 
     def describe(self) -> str:
@@ -70,7 +72,10 @@ class AmplitudeRange:
         if not np.isfinite(self.bounded_to):
             return "bounded for inputs of any amplitude (linear in its output and input)"
         if self.diverges_at is None:
-            return f"bounded for inputs up to {self.bounded_to:g}× the estimation records' amplitude, the most tried"
+            return (
+                f"bounded for inputs up to {self.bounded_to:g}× the estimation records' amplitude, "
+                "the most tried"
+            )
         if self.bounded_to == 0.0:
             return "diverging at the estimation records' own amplitude"
         return (

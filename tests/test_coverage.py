@@ -73,7 +73,10 @@ def test_the_input_scale_is_the_test_inputs_largest_magnitude_over_the_estimatio
     """Two estimation records whose inputs reach −3 and 2: a test input reaching 7.5 is 2.5 times
     their largest magnitude, one reaching 1.5 half of it."""
     rng = np.random.default_rng(9)
-    fitted = [(np.array([0.5, -3.0, 1.0] * 200), rng.standard_normal(600)), (np.array([2.0, 0.0] * 300), rng.standard_normal(600))]
+    fitted = [
+        (np.array([0.5, -3.0, 1.0] * 200), rng.standard_normal(600)),
+        (np.array([2.0, 0.0] * 300), rng.standard_normal(600)),
+    ]
     assert coverage(fitted, np.array([1.0, 7.5, -2.0] * 200), rng.standard_normal(600)).input_scale == 2.5
     assert coverage(fitted, np.array([1.0, -1.5] * 300), rng.standard_normal(600)).input_scale == 0.5
 
