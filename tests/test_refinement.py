@@ -126,7 +126,7 @@ UNDECLARED = [
 def test_an_undeclared_effect_is_named_first_and_the_one_step_error_falls(effect, scenario, share):
     record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
     estimation, test = [(0, LOOP_AND_TAIL)], (LOOP_AND_TAIL, ESTIMATION + HELD_OUT)
-    # The one-step criterion and least-squares parameters alone, as Step 4 built the loop: its
+    # The one-step criterion and least-squares parameters alone, as the loop first scored effects: its
     # figures are one-step errors, which output-error parameters do not minimise.
     report = refine_record(
         record.x, record.y, EXACT_TERMS, estimation, test, fs=record.fs, output_error=False
