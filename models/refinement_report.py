@@ -174,8 +174,9 @@ class RefinementReport:
         parameters. Non-finite numbers (a diverged free run) become None. ``amplitude_range``
         gives each model's as ``bounded_to`` (the largest scale of the estimation inputs up to
         which its free run stayed bounded; None: no limit) and ``diverges_at`` (the first scale
-        at which it diverged; None: none tried); each test's ``beyond_amplitude_range`` says, where
-        the refined model diverged on it and its input reaches beyond that range, why."""
+        at which it diverged; None: none of the scales tried); each test's
+        ``beyond_amplitude_range`` says, where the refined model diverged on it and its input
+        reaches beyond that range, why."""
         result = self.refinement
         return {
             "declared": _model_dict(result.declared),
@@ -230,7 +231,7 @@ class RefinementReport:
                         "description": test.coverage.describe(),
                     },
                     "verdict": test.verdict,
-                    "beyond_amplitude_range": beyond_range(test, self.amplitude_range),
+                    "beyond_amplitude_range": _beyond_amplitude_range(test, self.amplitude_range),
                 }
                 for test in self.tests
             ],
@@ -323,7 +324,7 @@ def _range_notes(ranges: AmplitudeRanges | None, result: Refinement) -> list[str
     ]
 
 
-def beyond_range(test: Comparison, ranges: AmplitudeRanges | None) -> str | None:
+def _beyond_amplitude_range(test: Comparison, ranges: AmplitudeRanges | None) -> str | None:
     """Why the refined model diverged on a test record, where the record's input reaches beyond
     the refined model's amplitude range and the record extrapolates; None otherwise."""
     if ranges is None or test.verdict != "diverged" or not test.coverage.extrapolates:
