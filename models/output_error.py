@@ -9,7 +9,8 @@ errors-in-variables bias that no added term can repair). Minimising the simulati
 where ŷ_r is the model's free run driven by the input alone and started from the first L
 measured outputs of record r, is consistent when the noise is on the output (Ljung, *System
 Identification*, 2nd ed., §4.2: output-error models; Piroddi & Spinelli 2003 for polynomial
-NARX). V is not quadratic in θ, so it is minimised by ``scipy.optimize.least_squares`` from the
+NARX). V is not quadratic in θ, so it is minimised by MINPACK's Levenberg–Marquardt search
+(:mod:`models.levenberg_marquardt`, as ``scipy.optimize.least_squares`` runs it) from the
 equation-error estimate. A parameter vector whose free run diverges is never accepted: its
 residuals are replaced by a penalty larger than any finite run's, so the search steps back.
 
@@ -37,9 +38,10 @@ from typing import Literal
 import numba
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import linalg, optimize
+from scipy import linalg
 
 from models.errors import InputError
+from models.levenberg_marquardt import Search, minimise
 from models.narx import NARX
 from models.regression import Workers, triangular_factor
 from models.signals import checked_records
@@ -61,8 +63,9 @@ class OutputErrorFit:
         stopped at its step-size test having met the penalty, and over its second search, held
         to the restarts from measured outputs, where the first ended at θ that diverge there;
         and over the search from its end with a cancelled pole taken out, where there was one).
-    status : ``scipy.optimize.least_squares``' termination status (> 0: converged). The search is
-        Levenberg–Marquardt (MINPACK), on the free-run error folded to p + 1 rows (‖r‖·e₁, and
+    status : the search's termination status as ``scipy.optimize.least_squares`` reports it
+        (> 0: converged). The search is Levenberg–Marquardt (MINPACK,
+        :mod:`models.levenberg_marquardt`), on the free-run error folded to p + 1 rows (‖r‖·e₁, and
         at the points kept the triangular factor of J, rotated): the same steps as on the tall
         residual, without MINPACK's own QR of the tall Jacobian, which cost half of Silverbox's
         searches.
@@ -356,7 +359,7 @@ class _Search:
         rotation[:, 0] *= np.sign(top[0, 0]) or 1.0
         return rotation.T @ np.vstack([triangle, np.zeros((1, theta.size))])
 
-    def run(self, max_evaluations: int, holding: bool) -> tuple[np.ndarray, optimize.OptimizeResult, int]:
+    def run(self, max_evaluations: int, holding: bool) -> tuple[np.ndarray, Search, int]:
         """MINPACK's search from the start, within ``max_evaluations``; ``holding``, held to the
         restarts from measured outputs.
 
@@ -368,14 +371,11 @@ class _Search:
         theta, evaluations = self.start.theta, 0
         while True:
             met_penalty = self.penalised_steps
-            result = optimize.least_squares(
-                self.folded,
+            result = minimise(
+                lambda at: self.folded(at, holding),
+                lambda at: self.jacobian(at, holding),
                 theta,
-                jac=self.jacobian,
-                x_scale="jac",
-                max_nfev=max_evaluations - evaluations,
-                method="lm",
-                args=(holding,),
+                max_evaluations - evaluations,
             )
             evaluations += int(result.nfev)
             theta = result.x
@@ -385,7 +385,7 @@ class _Search:
     def outcome(
         self,
         theta: np.ndarray,
-        result: optimize.OptimizeResult,
+        result: Search,
         evaluations: int,
         initial: np.ndarray,
         holds: bool,
