@@ -55,7 +55,8 @@ comparison's uncertainty, the start is returned and the report says the data cou
 the effects, naming the best one tried. The start there is its least-squares fit where that
 simulates the tails better than its output-error fit beyond the same uncertainty
 (:func:`_start_on_tails`). Whichever is returned has its parameters estimated on all the records
-as the loop estimated them on its part (:func:`refine`).
+as the loop estimated them on its part (:func:`refine`), an output-error fit there only where it
+holds as the model the tails approved does (:func:`_holds_as_approved`).
 
 **Short records.** Tails shorter than ``MIN_BLOCK`` (records of a few hundred samples, down to
 ``models.held_out.MIN_TAIL``) are held out as well (:func:`refine`), with two differences. The
