@@ -487,10 +487,9 @@ def _on_all(
     the start by its estimator (its output-error fit searched from least squares, as where nothing
     is added); a structure grown across folds as the folds judged it; any other refined structure
     by output error from the best simulating of its least-squares fit, the parameters the loop
-    found and the start's grown by zeros. An output-error fit is kept where it comes to rest and
-    holds as the model the tails approved does (:func:`_holds_as_approved`); where it does not
-    hold so, that model is returned as the heads fitted it. The noise floor is read on the whole
-    records, whose periods a tail cut off leaves incomplete."""
+    found and the start's grown by zeros; an output-error fit is kept as
+    :func:`_fit_on_all_or_approved` says. The noise floor is read on the whole records, whose
+    periods a tail cut off leaves incomplete."""
     result = grown.refinement
     declared_structure = Structure(result.declared.terms)
     declared, _ = fitted_on_all(records, declared_structure)
@@ -517,11 +516,12 @@ def _on_all(
                 starts.append(grown_by_zeros(grown.start, refined))
             start = min(starts, key=lambda model: restless_then_rms(free_run_at_rest(model, records)))
             tuned = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
-        if tuned is None or tuned is refined or not comes_to_rest(tuned, records):
+        approved = result.refined if kept else grown.start
+        chosen = _fit_on_all_or_approved(tuned, refined, approved, everything)
+        if chosen is None:
             estimator = "least squares"
         else:
-            approved = result.refined if kept else grown.start
-            refined = tuned if _holds_as_approved(tuned, approved, everything) else approved
+            refined = chosen
     return replace(
         result,
         declared=declared,
@@ -533,6 +533,23 @@ def _on_all(
         noise_floor=pooled_period_noise(checked_whole(records)),
         held_out=held_out,
     )
+
+
+def _fit_on_all_or_approved(
+    tuned: NARX | None, least_squares: NARX, approved: NARX, everything: Segments
+) -> NARX | None:
+    """The output-error model :func:`_on_all` returns: ``tuned``, the search's fit on all the
+    records (``everything``), where it comes to rest and holds as ``approved``, the fit on the heads
+    the tails approved, does (:func:`_holds_as_approved`); where it comes to rest but does not hold
+    so, ``approved``, if that comes to rest on all the records (a drift the heads were too short
+    to show can show on them); None, least squares' fit on all standing, where the search gained
+    nothing over ``least_squares`` or neither holds."""
+    records = [(x, y) for x, y, _ in everything]
+    if tuned is None or tuned is least_squares or not comes_to_rest(tuned, records):
+        return None
+    if _holds_as_approved(tuned, approved, everything):
+        return tuned
+    return approved if comes_to_rest(approved, records) else None
 
 
 def _holds_as_approved(refit: NARX, approved: NARX, everything: Segments) -> bool:

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from models.checking import free_run_rms
 from models.effects import candidate_effects, linear_terms
@@ -100,3 +101,21 @@ def test_the_fit_on_all_the_records_that_rings_from_measured_states_is_not_retur
         peaks = _restart_peaks(returned, x, y)
         assert np.all(peaks <= RESTLESS), peaks
     assert validate(returned, [(other.x, other.y)]).free_run.rms < np.std(other.y)
+
+
+@pytest.mark.parametrize("samples", [400, 600])
+def test_a_short_record_returns_no_fit_on_all_that_runs_free_worse_than_the_approved_one(samples: int):
+    """The same rig and start on a short record (seed 7), output error again the start's estimator
+    by the tails. Estimated again on all 600 samples, the search ends with a real root just
+    beyond 1: it comes to rest (it grows less than twofold over the record) and runs free over the
+    record at seven times the start's heads fit, and over a record from another seed at sixty
+    times that record's spread; the model the tails approved is returned instead. On 400 samples
+    the approved model has such a root itself, which the heads were too short to show and all
+    the record shows: neither output-error fit stands, and least squares' fit on all is returned."""
+    scenario = Scenario(disturbance_std=200.0, y_noise_std=0.005)
+    record, other = simulate(scenario, samples, seed=7), simulate(scenario, 4000, seed=50_007)
+    result = refine([(record.x, record.y)], linear_terms(4, 4, 1), effects=[])
+    returned = result.refined
+    assert result.estimator == ("output error" if samples == 600 else "least squares")
+    run = returned.simulate(other.x, other.y[: returned.max_lag])
+    assert not diverged(run, other.y)
