@@ -85,8 +85,8 @@ def _restart_peaks(model: NARX, x: np.ndarray, y: np.ndarray, points: int = 32) 
 
 def test_the_fit_on_all_the_records_that_rings_from_measured_states_is_not_returned():
     """The rig with 5 % noise on its y sensor, the linear start declared and no effect on offer.
-    The start's output-error fit on the heads runs free over the tails no worse than least
-    squares', so output error is the start's estimator; estimated again on all the record, the
+    Least squares' fit of the start does not simulate the tails better than its output-error fit
+    on the heads, so output error is the start's estimator; estimated again on all the record, the
     tails too, the search ends elsewhere: the resonance's poles with a numerator that, restarted
     from measured outputs, rings to twenty times the record's largest output and back, which
     ``comes_to_rest`` allows (a lightly damped mode may ring so). Over a record from another seed
@@ -107,11 +107,11 @@ def test_the_fit_on_all_the_records_that_rings_from_measured_states_is_not_retur
 def test_a_short_record_returns_no_fit_on_all_that_runs_free_worse_than_the_approved_one(samples: int):
     """The same rig and start on a short record (seed 7), output error again the start's estimator
     by the tails. Estimated again on all 600 samples, the search ends with a real root just
-    beyond 1: it comes to rest (it grows less than twofold over the record) and runs free over the
-    record at seven times the start's heads fit, and over a record from another seed at sixty
-    times that record's spread; the model the tails approved is returned instead. On 400 samples
-    the approved model has such a root itself, which the heads were too short to show and all
-    the record shows: neither output-error fit stands, and least squares' fit on all is returned."""
+    beyond 1, which ``comes_to_rest`` lets pass, and runs free over the record at seven times the
+    start's fit on the heads, and over a record from another seed at sixty times that record's
+    spread; the model the tails approved is returned instead. On 400 samples the approved model
+    has such a root itself, which the heads were too short to show and all the record shows:
+    neither output-error fit stands, and least squares' fit on all is returned."""
     scenario = Scenario(disturbance_std=200.0, y_noise_std=0.005)
     record, other = simulate(scenario, samples, seed=7), simulate(scenario, 4000, seed=50_007)
     result = refine([(record.x, record.y)], linear_terms(4, 4, 1), effects=[])
