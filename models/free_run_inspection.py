@@ -87,6 +87,7 @@ from models.inspection import (
     _decide,
     check_request,
 )
+from models.levenberg_marquardt import minimise
 from models.narx import DOCUMENT_VERSION, check_document, z_quantile
 from models.novelty import WHITENING_ORDER, _whitening_filter
 from models.output_error import EstimatedStart, without_cancelled_poles
@@ -314,9 +315,9 @@ class _Joint:
                 np.vstack([run.sensitivities @ self.maps[i] for run, i in zip(runs, kept, strict=True)])
             )
 
-        return optimize.least_squares(
-            residuals, initial, jac=jacobian, method="lm", x_scale="jac", max_nfev=self.max_evaluations
-        ).x
+        # MINPACK's search, as least_squares(method="lm", x_scale="jac") runs it, without its read
+        # past the Jacobian (models.levenberg_marquardt).
+        return minimise(residuals, jacobian, initial, self.max_evaluations).x
 
     def searched(self, starts: Sequence[FNARX], through_long: Sequence[FNARX | None]) -> np.ndarray:
         """The joint fit: the search from each start whose free run stays finite on every
