@@ -386,7 +386,8 @@ def minimise(
     state = _State(x, fvec, enorm(fvec), 1, np.empty(x.size))
     info = 0
     while not info:
-        info = _outer(state, fun, np.array(jac(state.x.copy()), dtype=float), max_nfev)
+        # Column-major, as MINPACK stores it: its loops run down the columns.
+        info = _outer(state, fun, np.array(jac(state.x.copy()), dtype=float, order="F"), max_nfev)
     return Search(state.x, np.asarray(jac(state.x.copy()), dtype=float), STATUS[info], state.nfev)
 
 
