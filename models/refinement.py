@@ -56,7 +56,8 @@ the start. Unless it simulates them better beyond the comparison's uncertainty, 
 returned and the report says the data could not support the effects, naming the best one
 tried. The start there is its least-squares fit where that
 simulates the tails better than its output-error fit beyond the same uncertainty
-(:func:`_start_on_tails`). Whichever is returned has its parameters estimated on all the records
+(:func:`_start_on_tails`), and so is the refined model on tails of a block or more
+(:func:`_refined_on_tails`). Whichever is returned has its parameters estimated on all the records
 as the loop estimated them on its part (:func:`refine`).
 
 **Short records.** Tails shorter than ``MIN_BLOCK`` (records of a few hundred samples, down to
