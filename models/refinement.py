@@ -50,11 +50,9 @@ error across folds, each third of the records checked in turn and the rest fitte
 **Never worse.** The rounds choose among many candidates on the same check blocks, and the best
 of many gains there by chance: where the records are long enough, the loop runs on each record's
 first part only, and the model it refines is compared with its start on the records' tails,
-which no choice saw (:mod:`models.held_out`); first each effect after the first, the last
-first, against the model without it (:func:`_last_rounds_on_tails`), then what is left against
-the start. Unless it simulates them better beyond the comparison's uncertainty, the start is
-returned and the report says the data could not support the effects, naming the best one
-tried. The start there is its least-squares fit where that
+which no choice saw (:mod:`models.held_out`). Unless it simulates them better beyond the
+comparison's uncertainty, the start is returned and the report says the data could not support
+the effects, naming the best one tried. The start there is its least-squares fit where that
 simulates the tails better than its output-error fit beyond the same uncertainty
 (:func:`_start_on_tails`), and so is the refined model on tails of a block or more
 (:func:`_refined_on_tails`). Whichever is returned has its parameters estimated on all the records
@@ -126,7 +124,6 @@ from models.errors import InputError
 from models.growing import Grown, loop_on, restless_then_rms
 from models.held_out import HeldOut, compare_on_tails, held_out_tails
 from models.linear_start import MAX_LINEAR_ORDER, choose_linear, rectified_orders
-from models.narx import NARX
 from models.output_error import comes_to_rest, free_run_at_rest
 from models.periods import pooled_period_noise
 from models.refinement_report import (
@@ -415,7 +412,6 @@ def refine(
     grown = _start_on_tails(grown, heads, tails, short)
     if not short:
         grown = _refined_on_tails(grown, heads, tails)
-    grown = _last_rounds_on_tails(grown, heads, tails, threads, tell)
     held_out = _judged_on_tails(grown, tails, short, orders_saw_tails, tell)
     settled = settled_from(grown, held_out, heads, tails, tell)
     if not any(settled):
@@ -497,65 +493,6 @@ def _refined_on_tails(grown: Grown, heads: Records, tails: Segments) -> Grown:
     return grown._replace(
         refinement=replace(result, refined=fitted, estimator="least squares", check_rms=check)
     )
-
-
-def _last_rounds_on_tails(
-    grown: Grown, heads: Records, tails: Segments, threads: Workers, tell: Stage
-) -> Grown:
-    """``grown`` without the effects of its last rounds that the held-out ``tails`` do not
-    support, the last first: a round's effect stays only where the model with it simulates the
-    tails better than the model without it (fitted on the ``heads`` as the loop fitted the
-    refined model) beyond the comparison's uncertainty (:func:`models.held_out.compare_on_tails`),
-    as the gate asks of the refined model against the start. The first effect kept is left to
-    that gate; moving-average noise, a saturation and the rectifier, which bring no terms of
-    their own, are passed over; structures grown across folds were judged by the folds.
-
-    The gate alone compares the whole refined model with the start, and once a strong effect is
-    in, a later one rides on its gain there. The check blocks ask a later round for a fall of
-    their free run beyond its standard error, which shrinks as the records grow, while the best
-    of many families' gains on the same blocks does not: on a 4000-sample record of the rig with
-    Coulomb friction, a nonlinearity on the unmeasured mass (sixteen cubic terms) cleared the
-    round after the friction and the rig's spring, simulated the tails worse than the model
-    without it, and ran free over another record several times as far off."""
-    if grown.folded is not None:
-        return grown
-    result = grown.refinement
-    for last in reversed(result.kept[1:]):
-        removed = set(last.added.terms) if last.added is not None and not last.added.noise_lags else set()
-        structure = grown.structure
-        terms = tuple(term for term in structure.terms if term.name not in removed)
-        if len(terms) == len(structure.terms):
-            continue
-        without = replace(structure, terms=terms)
-        model, estimator = _fitted_as_the_loop_fitted(without, result, heads, threads)
-        if compare_on_tails(model, result.refined, tails).better:
-            break
-        tell(f"the held-out tails take back {last.added.name}")
-        rounds = [replace(step, withdrawn_on_tails=True) if step is last else step for step in result.rounds]
-        check = CheckSplit.of(heads).error(without, tuned=estimator == "output error")
-        result = replace(result, refined=model, rounds=tuple(rounds), estimator=estimator, check_rms=check)
-        grown = grown._replace(refinement=result, structure=without)
-    return grown
-
-
-def _fitted_as_the_loop_fitted(
-    structure: Structure, result: Refinement, records: Records, threads: Workers
-) -> tuple[NARX, Estimator]:
-    """``structure``'s model on the ``records`` by the estimator of the loop's ``result``, and
-    that estimator: least squares, or an output-error search from the better simulating of that
-    fit and the refined model's parameters on the same terms, kept where it comes to rest."""
-    fitted, _ = fitted_on_all(records, structure)
-    if result.estimator != "output error":
-        return fitted, "least squares"
-    refined = result.refined
-    theta = {term.name: value for term, value in zip(refined.terms, refined.theta, strict=True)}
-    starts = [fitted]
-    if all(term.name in theta for term in fitted.terms):
-        starts.append(replace(fitted, theta=np.array([theta[term.name] for term in fitted.terms])))
-    start = min(starts, key=lambda model: restless_then_rms(free_run_at_rest(model, records)))
-    everything: Segments = [(x, y, 0) for x, y in records]
-    tuned = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
-    return (tuned, "output error") if comes_to_rest(tuned, records) else (fitted, "least squares")
 
 
 def _on_all(

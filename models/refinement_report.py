@@ -64,10 +64,6 @@ class Round:
     # The effect added here (the generic polynomial) pruned whole after the rounds: a later
     # round's effect made it redundant, and the refined model holds none of its terms.
     pruned_whole: bool = False
-    # The effect added here taken back after the rounds because the model without it simulated
-    # the held-out tails better (:func:`models.refinement.refine`); the refined model holds none
-    # of its terms.
-    withdrawn_on_tails: bool = False
     # The candidates whose free run over the check blocks the round compared with the model's
     # (each significant family judged on it, each structure simulated for a family's terms), and
     # the fall of that free-run RMS the effect added brought (else the best judged), with the
@@ -114,11 +110,7 @@ class Refinement:
     @property
     def kept(self) -> tuple[Round, ...]:
         """The rounds whose effect the refined model holds."""
-        return tuple(
-            r
-            for r in self.rounds[self.withdrawn :]
-            if r.added is not None and not r.pruned_whole and not r.withdrawn_on_tails
-        )
+        return tuple(r for r in self.rounds[self.withdrawn :] if r.added is not None and not r.pruned_whole)
 
     @property
     def effects_added(self) -> tuple[EffectScore, ...]:
@@ -128,8 +120,9 @@ class Refinement:
     def effects_withdrawn(self) -> tuple[str, ...]:
         """The names of the effects the final check or the held-out comparison took back, each
         once (moving-average noise is often added over several rounds)."""
-        taken = [*self.rounds[: self.withdrawn], *(r for r in self.rounds if r.withdrawn_on_tails)]
-        return tuple(dict.fromkeys(r.added.name for r in taken if r.added is not None))
+        return tuple(
+            dict.fromkeys(r.added.name for r in self.rounds[: self.withdrawn] if r.added is not None)
+        )
 
 
 @dataclass(frozen=True)
@@ -207,7 +200,6 @@ class RefinementReport:
                     "decided_by": step.criterion,
                     "check_free_run_rms": [_finite(v) for v in step.check_rms],
                     "pruned_whole": step.pruned_whole,
-                    "withdrawn_on_tails": step.withdrawn_on_tails,
                 }
                 for number, step in enumerate(result.rounds, start=1)
             ],

@@ -862,25 +862,6 @@ def test_a_test_part_too_short_for_the_residual_tests_is_scored_and_says_which_i
     assert any("too short for the residual tests" in note for note in document["notes"]), document["notes"]
 
 
-def test_a_later_effect_the_held_out_tails_do_not_support_is_withdrawn_and_the_earlier_kept():
-    """Nothing declared, 4000 samples of the rig with Coulomb friction (200 N of unmeasured
-    force): the friction and the rig's own cubic spring clear the first two rounds, and in the
-    third the unmeasured coordinate's cubic (sixteen terms) lowers the check blocks' free run by
-    a tenth, beyond their standard error on 3200 samples. Against the start the whole passed the
-    held-out tails on the first two effects' gain; the model without the third simulated the
-    tails better, and ran free over a record from another seed several times closer to the model
-    refined from the rig's structure. The tails now judge the third against the model without
-    it, and it goes."""
-    record = simulate(Scenario(disturbance_std=200.0, effects=Effects.parse(["coulomb2=300"])), 4000, 4)
-    result = refine([(record.x, record.y)], None)
-    assert [effect.name for effect in result.effects_added] == ["coulomb_friction", "cubic_stiffness"]
-    taken = [step.added.name for step in result.rounds if step.withdrawn_on_tails and step.added is not None]
-    assert taken == ["unmeasured_nonlinearity"] and result.effects_withdrawn == ("unmeasured_nonlinearity",)
-    assert result.held_out is not None and result.held_out.kept
-    spring = {str(term) for term in result.refined.terms if "^3" in str(term)}
-    assert spring and spring <= {f"y[t-{k}]^3" for k in range(1, 5)}, spring
-
-
 def test_where_the_held_out_tails_favour_least_squares_the_refined_model_is_fitted_so():
     """Nothing declared, 4000 samples of the rig with a 10 kN input dead zone (200 N of
     unmeasured force): the loop names the dead zone and the rig's spring, and the check blocks

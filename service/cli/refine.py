@@ -454,13 +454,6 @@ def _print_withdrawn(report: dict[str, Any]) -> None:
             highlight=False,
             markup=False,
         )
-    elif on_tails := [step["added"] for step in report["rounds"] if step.get("withdrawn_on_tails")]:
-        stdout.print(
-            f"withdrawn: {', '.join(on_tails)} — the model without it simulated the held-out tails "
-            "better (below)",
-            highlight=False,
-            markup=False,
-        )
     elif report["effects_withdrawn"]:
         stdout.print(
             f"withdrawn: {', '.join(report['effects_withdrawn'])} — with output-error parameters the "
@@ -499,7 +492,6 @@ def _print_rounds(rounds: list[dict[str, Any]]) -> None:
         gain, needed = (f"{v:.1%}" if v is not None else "–" for v in (step["gain"], step["threshold"]))
         pruned = f"; pruned {', '.join(step['pruned'])}" if step["pruned"] else ""
         whole = " (pruned whole after the rounds)" if step["pruned_whole"] else ""
-        whole += " (taken back on the held-out tails)" if step.get("withdrawn_on_tails") else ""
         stdout.print(
             f"  {step['round']}: {step['candidates_tried']} tried, fall {gain} against {needed} needed"
             f" → {step['added'] or 'nothing added'}{whole}{pruned}",
