@@ -15,6 +15,14 @@ its own interval (k̂ ± z·σ̂_k from the verdict's ``modes``, given or withhe
 
     PYTHONPATH=. python bench/noisy_modes.py designs [records per cell] [samples per record] \
         [training sets] [design …]
+
+Third, whether the near spring's interval is biased or too narrow anywhere in its range
+(:func:`near`): over many training sets, per magnitude, k̂'s mean miss, its spread within a
+training set against σ̂_k,record and the spread of the training sets' mean k̂ against the mode's
+own part of σ̂_k.
+
+    PYTHONPATH=. python bench/noisy_modes.py near [records per cell] [samples per record] \
+        [training sets]
 """
 
 from __future__ import annotations
@@ -138,7 +146,63 @@ def designs(count: int, samples: int, trainings: int, names: list[str]) -> None:
             )
 
 
-if __name__ == "__main__" and sys.argv[1:2] == ["designs"]:
+# The near spring's magnitudes (:func:`near`): its range's ends, where k̂ is held within the
+# range, and the watched magnitudes between.
+NEAR_MAGNITUDES = (0.0, 4.0, 8.0, 12.0, 15.0)
+
+
+def near(count: int, samples: int, trainings: int) -> None:
+    """The near spring's interval over ``trainings`` training sets (modes from seeds 50 000,
+    51 000, …; records at seeds of their own), ``count`` records a training set and magnitude.
+
+    Per magnitude, pooled: how often k2 is localised, how often the verdict's interval and the
+    mode's own (k̂ ± z·σ̂_k, given or not) cover the truth; k̂'s mean miss with its standard
+    error (the training sets' means scatter by the modes' error); k̂'s spread within a training
+    set against the mean σ̂_k,record (the records' own error); the spread of the training sets'
+    mean k̂, less what their records' own error gives it, against the mean of the mode's own part
+    √(σ̂²_k − σ̂²_k,record).
+    """
+    z = z_quantile(1 - ALPHA)
+    print(f"a perfect model's sigma_k for k2 on one record: {perfect_sigma_k('k2', samples):.3f} %")
+    cells: dict[float, list[tuple[int, float, float, float, bool, bool]]] = {}
+    for training in range(trainings):
+        clock = time.process_time()
+        modes = free_run_modes(seed=50_000 + 1000 * training)
+        for cell, k in enumerate(NEAR_MAGNITUDES):
+            for i in range(count):
+                seed = 5_000_000 + 100_000 * training + 1000 * cell + i
+                verdict = inspect_free_run(
+                    *record(scenario("k2" if k else "none", k), samples, seed), modes, alpha=ALPHA
+                )
+                mode = verdict.mode("k2")
+                localised = verdict.status == "faulty" and verdict.fault_mode == "k2"
+                covered = localised and verdict.interval[0] <= k <= verdict.interval[1]
+                cells.setdefault(k, []).append(
+                    (training, mode.k_hat - k, mode.sigma_k, mode.sigma_k_record, localised, covered)
+                )
+        print(f"training set {training}: c {modes[0].scale:.2f}, {time.process_time() - clock:.0f} CPU s")
+    print(
+        "  k %    n  localised  covered  own covers  mean miss (s.e.)  spread within  sigma_k,record"
+        "  sets' spread  mode's part"
+    )
+    for k, rows in cells.items():
+        sets, miss, sigma, own, localised, covered = (np.array(column) for column in zip(*rows, strict=True))
+        means = np.array([miss[sets == t].mean() for t in range(trainings)])
+        within = float(np.sqrt(np.mean([miss[sets == t].var(ddof=1) for t in range(trainings)])))
+        between = float(np.sqrt(max(means.var(ddof=1) - within**2 / count, 0.0)))
+        mode_part = float(np.mean(np.sqrt(np.maximum(sigma**2 - own**2, 0.0))))
+        error = means.std(ddof=1) / np.sqrt(trainings)
+        print(
+            f"  {k:4.1f}  {miss.size:4d}  {localised.sum():9d}  {covered.sum():7d}  "
+            f"{np.sum(np.abs(miss) <= z * sigma):10d}  {miss.mean():+9.3f} ({error:.3f})"
+            f"  {within:13.3f}  {own.mean():14.3f}  {between:12.3f}  {mode_part:11.3f}"
+        )
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["near"]:
+    numbers = [int(a) for a in sys.argv[2:5]]
+    near(*(numbers + [30, 4000, 12][len(numbers) :]))
+elif __name__ == "__main__" and sys.argv[1:2] == ["designs"]:
     numbers = [int(a) for a in sys.argv[2:5]]
     designs(*(numbers + [15, 4000, 3][len(numbers) :]), sys.argv[5:] or list(DESIGNS))
 elif __name__ == "__main__":

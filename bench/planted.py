@@ -3,7 +3,7 @@ model simulate held-out data nearly as well as the one refined from the rig's ph
 
 Each case plants one effect in the 2-DOF rig's records (the simulator's ``--effect``, sized as
 the tests size them: every family a simulated effect plants, tests/test_effects_output.py, and
-the six of Step 4, tests/test_refinement.py) and runs :func:`models.refinement.refine` twice on
+the six undeclared effects of tests/test_refinement.py) and runs :func:`models.refinement.refine` twice on
 the same estimation record: with nothing declared (the linear orders the loop chooses), and from
 the rig's structure (SPEC §2, ``--declared 2dof``). Both refined models run free over a held-out
 record simulated from another seed; a sinusoidal force has a random phase a record, so the
@@ -68,7 +68,7 @@ def planted(family: str, spec: str) -> Case:
 
 
 CASES = [
-    # The six of Step 4.
+    # The six undeclared effects of tests/test_refinement.py.
     planted("coulomb_friction", "coulomb2=300"),
     planted("quadratic_damping", "quadratic_damping2=2000"),
     planted("quadratic_stiffness", "quadratic_stiffness2=3e5"),

@@ -13,6 +13,10 @@ record lies outside its estimation records:
   per sample; a record's mean is not power);
 - of its samples, those whose input lies outside the range the estimation inputs span;
 - and those whose output does (a hardening spring's cube reaching beyond its fitted range).
+
+Beside them, the test record's input scale: its largest input magnitude as a multiple of the
+estimation inputs' largest, the scale a model's amplitude range is told in
+(:mod:`models.amplitude_range`).
 """
 
 from __future__ import annotations
@@ -37,11 +41,13 @@ EXTRAPOLATING = 0.01  # a share beyond which a test record is said to extrapolat
 class Coverage:
     """Shares of a test record outside its estimation records (module docstring): of its input's
     power outside their excited band, of its samples whose input and whose output lie beyond
-    their range."""
+    their range; and its largest input magnitude as a multiple of theirs (``input_scale``, inf
+    where their inputs are all zero)."""
 
     outside_band: float
     input_beyond: float
     output_beyond: float
+    input_scale: float
 
     @property
     def extrapolates(self) -> bool:
@@ -88,7 +94,15 @@ def coverage(estimation: Records, x: np.ndarray, y: np.ndarray) -> Coverage:
         float(tested[unexcited].sum()) / power if power > 0 else 0.0,
         _beyond(x, inputs),
         _beyond(y, outputs),
+        _scale(x, inputs),
     )
+
+
+def _scale(values: np.ndarray, spanned: list[np.ndarray]) -> float:
+    """The largest magnitude of ``values`` over that of the ``spanned`` series."""
+    largest = max(float(np.max(np.abs(s))) for s in spanned)
+    magnitude = float(np.max(np.abs(values))) if values.size else 0.0
+    return magnitude / largest if largest > 0 else (np.inf if magnitude > 0 else 1.0)
 
 
 def _percent(share: float) -> str:

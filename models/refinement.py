@@ -106,6 +106,7 @@ from itertools import pairwise
 import numpy as np
 
 from models.across_folds import as_the_folds_judged
+from models.amplitude_range import amplitude_ranges
 from models.assessment import assess, check_test_length
 from models.checking import (
     MIN_BLOCK,
@@ -190,7 +191,8 @@ def refine_record(
         lambda signal, part, index: f"{signal}[{estimation[part][0] + index}]",
         "leave it out with estimation parts around it",
     )
-    return RefinementReport(result, (comparison,), notes)
+    ranges = amplitude_ranges(result.declared, result.refined, estimation_part)
+    return RefinementReport(result, (comparison,), notes, ranges)
 
 
 def refine_records(
@@ -242,7 +244,8 @@ def refine_records(
             "the refined model's periodic terms keep the phase of the estimation record's first "
             "sample; the test records share no time base with it, so those terms are not validated there",
         )
-    return RefinementReport(result, tuple(comparisons), notes)
+    ranges = amplitude_ranges(result.declared, result.refined, estimation)
+    return RefinementReport(result, tuple(comparisons), notes, ranges)
 
 
 def _notes(stretches: int) -> tuple[str, ...]:

@@ -13,6 +13,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from models.amplitude_range import AmplitudeRanges
 from models.assessment import Assessment
 from models.coverage import Coverage
 from models.held_out import HELD_OUT_ALPHA, HeldOut, unseen_by
@@ -149,11 +150,15 @@ class Comparison:
 @dataclass(frozen=True)
 class RefinementReport:
     """A refinement with the declared and refined models' errors on held-out data: ``tests``
-    holds one comparison a test record; ``before``/``after`` are the first one's."""
+    holds one comparison a test record; ``before``/``after`` are the first one's.
+    ``amplitude_range`` holds both models' amplitude ranges over the estimation records
+    (:mod:`models.amplitude_range`): where the refined model's is the narrower, the report says so,
+    and the loop returns it all the same."""
 
     refinement: Refinement
     tests: tuple[Comparison, ...]
     notes: tuple[str, ...] = ()
+    amplitude_range: AmplitudeRanges | None = None
 
     @property
     def before(self) -> Assessment:
@@ -166,7 +171,12 @@ class RefinementReport:
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible: effects added in order with their evidence and the criterion that
         decided each, errors before and after on every test record, and both models' terms and
-        parameters. Non-finite numbers (a diverged free run) become None."""
+        parameters. Non-finite numbers (a diverged free run) become None. ``amplitude_range``
+        gives each model's as ``bounded_to`` (the largest scale of the estimation inputs up to
+        which its free run stayed bounded; None: no limit) and ``diverges_at`` (the first scale
+        at which it diverged; None: none of the scales tried); each test's
+        ``beyond_amplitude_range`` says, where the refined model diverged on it and its input
+        reaches beyond that range, why."""
         result = self.refinement
         return {
             "declared": _model_dict(result.declared),
@@ -215,16 +225,23 @@ class RefinementReport:
                     "before": test.before.to_dict(),
                     "after": test.after.to_dict(),
                     "coverage": asdict(test.coverage)
-                    | {"extrapolates": test.coverage.extrapolates, "description": test.coverage.describe()},
+                    | {
+                        "input_scale": _finite(test.coverage.input_scale),
+                        "extrapolates": test.coverage.extrapolates,
+                        "description": test.coverage.describe(),
+                    },
                     "verdict": test.verdict,
+                    "beyond_amplitude_range": _beyond_amplitude_range(test, self.amplitude_range),
                 }
                 for test in self.tests
             ],
             "refined": _model_dict(result.refined)
             | {"noise_ma": result.noise.tolist(), "estimator": result.estimator},
             "settled_from": list(result.settled_from),
+            "amplitude_range": None if self.amplitude_range is None else self.amplitude_range.to_dict(),
             "notes": list(self.notes)
             + _held_out_notes(result)
+            + _range_notes(self.amplitude_range, result)
             + _settled_notes(result)
             + _skipped_notes(self.tests),
         }
@@ -281,6 +298,44 @@ def _held_out_notes(result: Refinement) -> list[str]:
         f"{held_out.start_rms:.4g}, not better beyond the comparison's uncertainty; the start is "
         f"returned (the best effect tried: {held_out.best_tried})"
     ]
+
+
+def _range_notes(ranges: AmplitudeRanges | None, result: Refinement) -> list[str]:
+    """What the report says where the refined model diverges at an amplitude of the estimation
+    inputs that the declared model (or the linear start) runs bounded at."""
+    if ranges is None or not ranges.narrower:
+        return []
+    start = "the linear start" if result.orders is not None else "the declared model"
+    refined, declared = ranges.refined, ranges.declared
+    if refined.bounded_to == 0.0:
+        said = "the refined model diverges over the estimation records' inputs themselves"
+    else:
+        said = (
+            f"the refined model is bounded for inputs up to {refined.bounded_to:g}× the estimation "
+            "records' amplitude; beyond that it diverges"
+        )
+    if not declared.limited:
+        said += f", {start} does not"
+    else:
+        said += f", {start} only from {declared.diverges_at:g}× on"
+    return [
+        f"{said}: judge the refined model on records within that range (a model with a hardening "
+        "spring's cube has a finite range too; the loop does not refuse it for that)"
+    ]
+
+
+def _beyond_amplitude_range(test: Comparison, ranges: AmplitudeRanges | None) -> str | None:
+    """Why the refined model diverged on a test record, where the record's input reaches beyond
+    the refined model's amplitude range and the record extrapolates; None otherwise."""
+    if ranges is None or test.verdict != "diverged" or not test.coverage.extrapolates:
+        return None
+    refined = ranges.refined
+    if test.coverage.input_scale <= refined.bounded_to:
+        return None
+    return (
+        f"its input reaches {test.coverage.input_scale:.2g}× the estimation records' largest, beyond "
+        f"the refined model's amplitude range: {refined.describe()}"
+    )
 
 
 def _skipped_notes(tests: Sequence[Comparison]) -> list[str]:

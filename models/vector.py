@@ -1,4 +1,4 @@
-"""Vector fault-mode models: several response channels judged together (Step 10).
+"""Vector fault-mode models: several response channels judged together.
 
 A structure carrying K sensors gives K responses y_1 … y_K to the force x. A vector functional
 ARX model of fault mode V holds one equation per channel, each free to use every channel's lags:

@@ -568,7 +568,9 @@ class RefinementCreate(Strict):
 class RefinementOut(BaseModel):
     """``record_id`` is the first of ``record_ids``, the records fitted; ``test_record_ids`` are
     those judged whole (none when a test part of the one record judged). ``base_model`` is None
-    when the loop started from the linear orders it chose (``report.orders_chosen``)."""
+    when the loop started from the linear orders it chose (``report.orders_chosen``).
+    ``report.amplitude_range`` says up to what scale of the fitted records' inputs each model's
+    free run stays bounded (``bounded_to``, null: no limit) and where it diverges (``diverges_at``)."""
 
     id: int
     structure_id: int

@@ -1,7 +1,7 @@
 """Upload → verdict → history through HTTP, on SQLite and on PostgreSQL.
 
 A structure is trained through the API from simulated experiments; the paper's four cases are
-then uploaded with ``inspect=true`` and must get the statuses Step 1 gives them.
+then uploaded with ``inspect=true`` and must get the statuses the paper gives them (SPEC §6).
 """
 
 from __future__ import annotations

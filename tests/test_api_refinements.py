@@ -27,6 +27,7 @@ from harness.api_helpers import (
 from harness.dashboard_helpers import logged_in
 from harness.live import DATABASES, LiveServer, on_each_database
 from harness.warming import warming_drive
+from models.amplitude_range import amplitude_ranges
 from models.coverage import coverage
 from models.effects import candidate_effects, linear_terms
 from models.narx import NARX, fit_narx
@@ -405,6 +406,10 @@ def test_several_records_are_fitted_at_once_and_each_test_record_judged_whole(ri
             np.sqrt(np.mean(part**2)) / report["explanation"]["output_rms"], rel=1e-9
         )
         assert spring["contribution"]["coefficients"] == [refined["theta"][i] for i in columns]
+        # Both models' amplitude ranges over the records fitted, whole (models.amplitude_range).
+        base = NARX(parse_terms(report["declared"]["terms"]), declared.theta, declared.covariance)
+        ranges = amplitude_ranges(base, model, [rig.signals[i] for i in rig.fitted])
+        assert report["amplitude_range"] == ranges.to_dict()
         models = {m["id"]: m for m in viewer.get(f"{API}/structures/{rig.structure_id}/models").json()}
         training = models[refinement["refined_model"]["id"]]["training"]
         assert training["record_ids"] == rig.fitted and training["transient"] == 500

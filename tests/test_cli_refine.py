@@ -39,7 +39,7 @@ from simulator.theory import EXACT_TERMS
 REPORT_KEYS = {
     "declared", "orders_chosen", "effects_added", "effects_withdrawn", "before", "after", "tests", "refined",
     "notes", "data", "check_free_run_rms", "noise_floor", "held_out", "explanation",
-    "rounds", "settled_from",
+    "rounds", "settled_from", "amplitude_range",
 }  # fmt: skip
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests", "diverged"}
 HELD_OUT_KEYS = {
@@ -732,3 +732,26 @@ def test_nothing_declared_starts_from_chosen_orders_and_prints_what_the_tails_wi
     assert re.search(r"start \S+, refined \S+;", line), line
     assert re.search(r"gain \S+% of the mean square, threshold \S+% \(its uncertainty at level 0.05\)", line)
     assert "note: the data could not support the effects" in table
+
+
+def test_a_test_part_beyond_the_refined_models_amplitude_range_is_said_to_diverge_for_that(tmp_path):
+    """Nothing declared, the short record whose steps grow on which the kept polynomial escapes
+    over the test part (tests/test_refinement.py): the table prints both models' amplitude
+    ranges, the linear start's without limit and the refined model's up to a scale the test
+    part's input passes, and its note on the diverged test part names that range as the reason."""
+    x, y = growing_steps(750, seed=2)
+    (tmp_path / "record.csv").write_text(dump_csv(x, y, 100.0))
+    table = invoke("refine", "record.csv", "--jobs", "1", cwd=tmp_path).stdout
+    (line,) = [line for line in table.splitlines() if line.startswith("amplitude range")]
+    assert "estimation inputs scaled by 1, 1.25, 1.5, 2, 3" in line, line
+    assert "the linear start bounded for inputs of any amplitude" in line, line
+    limit = re.search(
+        r"the refined model bounded for inputs up to (\S+)× the estimation records' amplitude", line
+    )
+    assert limit, line
+    scale = np.max(np.abs(x[500:])) / np.max(np.abs(x[:500]))
+    assert float(limit[1]) < scale
+    (note,) = [line for line in table.splitlines() if "the refined model's free run diverged" in line]
+    assert note.startswith("note: on record.csv"), note
+    assert f"its input reaches {scale:.2g}× the estimation records' largest" in note, note
+    assert f"up to {limit[1]}× the estimation records' amplitude" in note, note

@@ -63,10 +63,22 @@ def test_a_record_within_the_estimation_data_does_not_extrapolate():
 
 
 def test_shares_at_the_threshold_are_within_and_above_it_extrapolate():
-    at = Coverage(EXTRAPOLATING, EXTRAPOLATING, 0.0)
-    above = Coverage(0.0, 0.0, 2 * EXTRAPOLATING)
+    at = Coverage(EXTRAPOLATING, EXTRAPOLATING, 0.0, 1.0)
+    above = Coverage(0.0, 0.0, 2 * EXTRAPOLATING, 1.0)
     assert not at.extrapolates and above.extrapolates
     assert above.describe() == "2 % of its outputs beyond their range"
+
+
+def test_the_input_scale_is_the_test_inputs_largest_magnitude_over_the_estimation_inputs():
+    """Two estimation records whose inputs reach −3 and 2: a test input reaching 7.5 is 2.5 times
+    their largest magnitude, one reaching 1.5 half of it."""
+    rng = np.random.default_rng(9)
+    fitted = [
+        (np.array([0.5, -3.0, 1.0] * 200), rng.standard_normal(600)),
+        (np.array([2.0, 0.0] * 300), rng.standard_normal(600)),
+    ]
+    assert coverage(fitted, np.array([1.0, 7.5, -2.0] * 200), rng.standard_normal(600)).input_scale == 2.5
+    assert coverage(fitted, np.array([1.0, -1.5] * 300), rng.standard_normal(600)).input_scale == 0.5
 
 
 def test_a_constant_estimation_input_leaves_every_frequency_unexcited():

@@ -31,7 +31,7 @@ from models.held_out import HeldOut, held_out_tails
 from models.input_drive import input_drives
 from models.linear_start import MAX_LINEAR_ORDER, _is_start
 from models.narx import NARX, fit_narx
-from models.output_error import comes_to_rest, fit_output_error
+from models.output_error import RESTLESS, comes_to_rest, fit_output_error
 from models.pruning import pruned_back, without_pruned
 from models.refinement import (
     Refinement,
@@ -126,7 +126,7 @@ UNDECLARED = [
 def test_an_undeclared_effect_is_named_first_and_the_one_step_error_falls(effect, scenario, share):
     record = simulate(scenario, ESTIMATION + HELD_OUT, seed=1)
     estimation, test = [(0, LOOP_AND_TAIL)], (LOOP_AND_TAIL, ESTIMATION + HELD_OUT)
-    # The one-step criterion and least-squares parameters alone, as Step 4 built the loop: its
+    # The one-step criterion and least-squares parameters alone, as the loop first scored effects: its
     # figures are one-step errors, which output-error parameters do not minimise.
     report = refine_record(
         record.x, record.y, EXACT_TERMS, estimation, test, fs=record.fs, output_error=False
@@ -921,6 +921,46 @@ def test_on_a_short_record_effects_its_tail_does_not_support_are_withdrawn_and_t
     assert document["held_out"]["orders_saw_tails"] is True
     (note,) = [note for note in document["notes"] if "could not support the effects" in note]
     assert "100 samples no choice but the linear orders saw" in note and held_out.best_tried in note
+
+
+def test_on_a_short_record_a_kept_model_that_diverges_on_its_test_part_is_reported_beyond_its_range():
+    """Five hundred estimation samples whose steps grow, nothing declared: the loop adds missing
+    lags, cubic stiffness and an offset, and the hundred-sample tail approves them. The test part
+    reaches more than twice the estimation records' largest input, and the kept polynomial,
+    bounded over every sample it was fitted and judged on (run from the records' start, tails
+    too), escapes there. The tails cannot show it, nor a free run over the estimation records:
+    they never reach the state it escapes from. The report says why: the refined model's
+    amplitude range, measured on the estimation inputs scaled up, ends below the test part's
+    input scale, where the linear start's has no limit."""
+    x, y = growing_steps(750, seed=2)
+    report = refine_record(x, y, None, [(0, 500)], (500, 750))
+    held_out = report.refinement.held_out
+    assert held_out is not None and held_out.kept and held_out.better
+    # The refined model's free run over the estimation record, from its start, stays in range.
+    refined = report.refinement.refined
+    whole = refined.simulate(x[:500], y[:500])
+    assert np.max(np.abs(whole)) < np.max(np.abs(y[:500]))
+    document = report.to_dict()
+    test = document["tests"][0]
+    assert test["verdict"] == "diverged" and test["coverage"]["extrapolates"]
+    scale = test["coverage"]["input_scale"]
+    assert scale == pytest.approx(np.max(np.abs(x[500:])) / np.max(np.abs(x[:500])))
+    ranges = document["amplitude_range"]
+    assert ranges["declared"]["bounded_to"] is None and ranges["declared"]["diverges_at"] is None  # linear
+    bounded_to, diverges_at = ranges["refined"]["bounded_to"], ranges["refined"]["diverges_at"]
+    assert 1.0 <= bounded_to < diverges_at <= scale
+    # The range read off directly: the refined model's own free run with the estimation input
+    # scaled to its limit stays within the bound, and scaled to the next scale tried leaves it.
+    for factor, escapes in ((bounded_to, False), (diverges_at, True)):
+        run = refined.simulate(factor * x[:500], factor * y[:500])[refined.max_lag :]
+        bound = RESTLESS * factor * np.max(np.abs(y[:500]))
+        beyond = not np.all(np.isfinite(run)) or bool(np.max(np.abs(run)) > bound)
+        assert beyond is escapes, factor
+    said = f"bounded for inputs up to {bounded_to:g}× the estimation records' amplitude"
+    assert (
+        said in test["beyond_amplitude_range"] and f"reaches {scale:.2g}×" in test["beyond_amplitude_range"]
+    )
+    assert any(said in note and "the linear start does not" in note for note in document["notes"])
 
 
 def test_on_the_coupled_drives_prbs_records_the_model_returned_runs_the_test_no_worse_than_its_start():

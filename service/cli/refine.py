@@ -437,6 +437,7 @@ def _print(report: dict[str, Any], plot: Path | None) -> None:
     if report["held_out"] is not None:
         _print_held_out(report["held_out"], per)
     stdout.print(f"refined parameters by {report['refined']['estimator']}")
+    _print_range(report)
     _print_floor(report, per)
     _print_tests(report["tests"], unit)
     _print_notes(report)
@@ -543,13 +544,29 @@ def _print_tests(tests: list[dict[str, Any]], unit: str | None) -> None:
         )
 
 
+def _print_range(report: dict[str, Any]) -> None:
+    """Both models' amplitude ranges: up to what scale of the estimation inputs each one's free
+    run stays bounded (:mod:`models.amplitude_range`)."""
+    ranges = report["amplitude_range"]
+    start = "linear start" if report["orders_chosen"] is not None else "declared model"
+    scales = ", ".join(f"{scale:g}" for scale in ranges["scales"])
+    stdout.print(
+        f"amplitude range (free runs over the estimation inputs scaled by {scales}): the {start} "
+        f"{ranges['declared']['description']}; the refined model {ranges['refined']['description']}",
+        highlight=False,
+        markup=False,
+    )
+
+
 def _print_notes(report: dict[str, Any]) -> None:
-    """The records on which the refined model diverged or that lie partly outside the estimation
-    data, then the report's notes."""
+    """The records on which the refined model diverged (and why, where they reach beyond its
+    amplitude range) or that lie partly outside the estimation data, then the report's notes."""
     for item in report["tests"]:
         if item["verdict"] == "diverged":
+            why = item["beyond_amplitude_range"]
             stdout.print(
-                f"note: on {item['path']}{_signals(item)} the refined model's free run diverged",
+                f"note: on {item['path']}{_signals(item)} the refined model's free run diverged"
+                + (f": {why}" if why else ""),
                 highlight=False,
                 markup=False,
             )
