@@ -485,9 +485,16 @@ def _refined_on_tails(grown: Grown, heads: Records, tails: Segments) -> Grown:
     zone, nothing declared, the output-error fit of the dead zone and the rig's spring ran free
     over the tails nearly seven times as far off as the least-squares fit of the same terms, and
     over another seed's record four and a half times as far as the model refined from the rig's
-    structure."""
+    structure. Moving-average noise alone leaves the start's process terms, whose estimator the
+    start's own choice settled: it is passed over."""
     result = grown.refinement
-    if result.estimator != "output error" or not result.effects_added or grown.folded is not None:
+    noise_only = result.refined.terms == grown.start.terms
+    if (
+        result.estimator != "output error"
+        or not result.effects_added
+        or noise_only
+        or grown.folded is not None
+    ):
         return grown
     fitted, _ = fitted_on_all(heads, grown.structure)
     if not compare_on_tails(result.refined, fitted, tails).better:
