@@ -628,6 +628,19 @@ class RingDowns:
                     return False
         return True
 
+    def rings(self, model: NARX, theta: np.ndarray) -> np.ndarray:
+        """Of each restart at measured outputs, record after record, whether ``model`` with
+        ``theta`` leaves the bound there or is not finite: ringing :meth:`holds` allows where it
+        returns, which models of one structure are compared by restart for restart."""
+        limits = model.output_limits if model.saturation == "state" else None
+        rung = []
+        for run, windows, measured in self.restarts:
+            out = run.run_windows(theta, windows, measured, limits)
+            beyond = np.arange(out.shape[1]) >= (windows[:, 1] - windows[:, 0])[:, None]
+            peak = np.max(np.where(beyond, 0.0, np.abs(np.nan_to_num(out, nan=np.inf))), axis=1)
+            rung.append(peak > self.bound)
+        return np.concatenate(rung) if rung else np.zeros(0, dtype=bool)
+
     @property
     def drifting(self) -> float:
         """The smallest root that grows by ``GROWTH`` over the longest record."""
@@ -721,6 +734,13 @@ def free_run_at_rest(
         model, model.theta, states
     )
     return float(np.sqrt(np.mean(errors**2))), at_rest
+
+
+def rings_from_measured(model: NARX, records: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Of each restart of ``model`` from the measured outputs on ``records`` (x, y), whether it
+    leaves ``RESTLESS`` times their largest measured output (:meth:`RingDowns.rings`)."""
+    _, ring_downs = prepared(model.terms, records, record_origins(0, len(records)))
+    return ring_downs.rings(model, model.theta)
 
 
 @dataclass(frozen=True)

@@ -56,7 +56,8 @@ the effects, naming the best one tried. The start there is its least-squares fit
 simulates the tails better than its output-error fit beyond the same uncertainty
 (:func:`_start_on_tails`), and so is the refined model on tails of a block or more
 (:func:`_refined_on_tails`). Whichever is returned has its parameters estimated on all the records
-as the loop estimated them on its part (:func:`refine`).
+as the loop estimated them on its part (:func:`refine`), an output-error fit there only where it
+holds as the model the tails approved does (:func:`_holds_as_approved`).
 
 **Short records.** Tails shorter than ``MIN_BLOCK`` (records of a few hundred samples, down to
 ``models.held_out.MIN_TAIL``) are held out as well (:func:`refine`), with two differences. The
@@ -125,7 +126,8 @@ from models.errors import InputError
 from models.growing import Grown, loop_on, restless_then_rms
 from models.held_out import HeldOut, compare_on_tails, held_out_tails
 from models.linear_start import MAX_LINEAR_ORDER, choose_linear, rectified_orders
-from models.output_error import comes_to_rest, free_run_at_rest
+from models.narx import NARX
+from models.output_error import comes_to_rest, free_run_at_rest, rings_from_measured
 from models.periods import pooled_period_noise
 from models.refinement_report import (
     Comparison,
@@ -519,8 +521,9 @@ def _on_all(
     the start by its estimator (its output-error fit searched from least squares, as where nothing
     is added); a structure grown across folds as the folds judged it; any other refined structure
     by output error from the best simulating of its least-squares fit, the parameters the loop
-    found and the start's grown by zeros. An output-error fit is kept where it comes to rest. The
-    noise floor is read on the whole records, whose periods a tail cut off leaves incomplete."""
+    found and the start's grown by zeros; an output-error fit is kept as
+    :func:`_fit_on_all_or_approved` says. The noise floor is read on the whole records, whose
+    periods a tail cut off leaves incomplete."""
     result = grown.refinement
     declared_structure = Structure(result.declared.terms)
     declared, _ = fitted_on_all(records, declared_structure)
@@ -547,10 +550,12 @@ def _on_all(
                 starts.append(grown_by_zeros(grown.start, refined))
             start = min(starts, key=lambda model: restless_then_rms(free_run_at_rest(model, records)))
             tuned = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
-        if tuned is not None and tuned is not refined and comes_to_rest(tuned, records):
-            refined = tuned
-        else:
+        approved = result.refined if kept else grown.start
+        chosen = _fit_on_all_or_approved(tuned, refined, approved, everything)
+        if chosen is None:
             estimator = "least squares"
+        else:
+            refined = chosen
     return replace(
         result,
         declared=declared,
@@ -562,6 +567,48 @@ def _on_all(
         noise_floor=pooled_period_noise(checked_whole(records)),
         held_out=held_out,
     )
+
+
+def _fit_on_all_or_approved(
+    tuned: NARX | None, least_squares: NARX, approved: NARX, everything: Segments
+) -> NARX | None:
+    """The output-error model :func:`_on_all` returns: ``tuned``, the search's fit on all the
+    records (``everything``), where it comes to rest and holds as ``approved``, the fit on the heads
+    the tails approved, does (:func:`_holds_as_approved`); where it comes to rest but does not hold
+    so, ``approved``, if that comes to rest on all the records (a drift the heads were too short
+    to show can show on them); None, least squares' fit on all standing, where the search gained
+    nothing over ``least_squares`` or neither holds."""
+    records = [(x, y) for x, y, _ in everything]
+    if tuned is None or tuned is least_squares or not comes_to_rest(tuned, records):
+        return None
+    if _holds_as_approved(tuned, approved, everything):
+        return tuned
+    return approved if comes_to_rest(approved, records) else None
+
+
+def _holds_as_approved(refit: NARX, approved: NARX, everything: Segments) -> bool:
+    """Whether ``refit``, a structure's output-error fit on all the records (``everything``), may
+    stand for ``approved``, the same structure's fit on the heads that the tails approved: it runs
+    free over the records no worse, and from no measured output where ``approved`` stays within
+    ``RESTLESS`` times the records' largest output does a restart of it leave that range
+    (:func:`models.output_error.rings_from_measured`).
+
+    Nothing held out judges the fit on all: the tails judged a procedure on the heads, and the
+    same search on more data can end at another optimum. Its free run from each record's start is
+    what it lowers; its runs restarted from measured outputs elsewhere it does not see, and a
+    numerator that the input hardly drives from rest, with poles that ring long, can set them
+    ringing far beyond the records' range (the rig with noise on its y sensor: the linear start's
+    fit on all its record rang to twenty times the range, and ran free over a record from another
+    seed at six times its spread). ``comes_to_rest`` allows such ringing, which a lightly damped
+    mode may do from a noisy state; the approved model is the measure of what the structure may
+    ring to. Where the two differ in their lags their restarts are not the same, and the refit
+    may ring from none."""
+    records = [(x, y) for x, y, _ in everything]
+    rings, approved_rings = rings_from_measured(refit, records), rings_from_measured(approved, records)
+    allowed = approved_rings if approved_rings.shape == rings.shape else np.zeros_like(rings)
+    if np.any(rings & ~allowed):
+        return False
+    return free_run_rms(refit, everything) <= free_run_rms(approved, everything)
 
 
 def _best_tried(kept: Sequence[Round]) -> str | None:

@@ -3,7 +3,7 @@ driving-point accelerometer, 1 % sensor noise on both channels, no fault experim
 its healthy baseline alone (``models.novelty``), on SQLite; on PostgreSQL, a baseline's figures
 and a queued record's judgement by ``narxwatch worker`` processes.
 
-- Trained from 10 healthy records, the baseline is fitted by output error and keeps the
+- Trained from a few healthy records, the baseline is fitted by output error and keeps the
   reference of its healthy free-run error; each further record gets a verdict, ``healthy`` or
   ``anomaly``, with the statistic, its threshold, p-value, α and severity, stored and listed as
   any other, and exactly the judgement ``models.novelty`` makes of it.

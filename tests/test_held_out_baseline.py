@@ -7,12 +7,13 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from models.checking import free_run_rms
 from models.effects import candidate_effects, linear_terms
 from models.held_out import compare_on_tails, held_out_tails
-from models.narx import fit_narx
-from models.output_error import RESTLESS, diverged
+from models.narx import NARX, fit_narx
+from models.output_error import RESTLESS, RING_DOWN, diverged
 from models.refinement import refine
 from models.validation import validate
 from simulator.simulate import Effects, Scenario, simulate
@@ -68,3 +69,53 @@ def test_a_free_run_that_stays_finite_but_leaves_the_tails_range_is_reported_div
     compared = compare_on_tails(model, drifting, tails)
     assert compared.diverged and not compared.better and not compared.not_worse
     assert not compare_on_tails(drifting, model, tails).diverged
+
+
+def _restart_peaks(model: NARX, x: np.ndarray, y: np.ndarray, points: int = 32) -> np.ndarray:
+    """The largest |output| of ``model``'s free run of ``RING_DOWN`` samples restarted from the
+    measured outputs at each of ``points`` places over the record, as a share of the record's
+    largest measured output (infinite where a run is not finite)."""
+    L = model.max_lag
+    peaks = []
+    for c in np.linspace(L, len(y) - 1, points).astype(int):
+        run = model.simulate(x[c - L : c + RING_DOWN], y[c - L : c])
+        peaks.append(float(np.max(np.abs(run))) if np.all(np.isfinite(run)) else np.inf)
+    return np.array(peaks) / np.max(np.abs(y))
+
+
+def test_the_fit_on_all_the_records_that_rings_from_measured_states_is_not_returned():
+    """The rig with 5 % noise on its y sensor, the linear start declared and no effect on offer.
+    Least squares' fit of the start does not simulate the tails better than its output-error fit
+    on the heads, so output error is the start's estimator; estimated again on all the record, the
+    tails too, the search ends elsewhere: the resonance's poles with a numerator that, restarted
+    from measured outputs, rings to twenty times the record's largest output and back, which
+    ``comes_to_rest`` allows (a lightly damped mode may ring so). Over a record from another seed
+    that fit ran free at six times the record's spread; the model the tails approved holds from
+    every measured state, and is returned instead."""
+    scenario = Scenario(disturbance_std=200.0, y_noise_std=0.005)
+    record, other = simulate(scenario, 1600, seed=5), simulate(scenario, 4000, seed=50_005)
+    result = refine([(record.x, record.y)], linear_terms(4, 4, 1), effects=[])
+    assert result.estimator == "output error"
+    returned = result.refined
+    for x, y in ((record.x, record.y), (other.x, other.y)):
+        peaks = _restart_peaks(returned, x, y)
+        assert np.all(peaks <= RESTLESS), peaks
+    assert validate(returned, [(other.x, other.y)]).free_run.rms < np.std(other.y)
+
+
+@pytest.mark.parametrize("samples", [400, 600])
+def test_a_short_record_returns_no_fit_on_all_that_runs_free_worse_than_the_approved_one(samples: int):
+    """The same rig and start on a short record (seed 7), output error again the start's estimator
+    by the tails. Estimated again on all 600 samples, the search ends with a real root just
+    beyond 1, which ``comes_to_rest`` lets pass, and runs free over the record at seven times the
+    start's fit on the heads, and over a record from another seed at sixty times that record's
+    spread; the model the tails approved is returned instead. On 400 samples the approved model
+    has such a root itself, which the heads were too short to show and all the record shows:
+    neither output-error fit stands, and least squares' fit on all is returned."""
+    scenario = Scenario(disturbance_std=200.0, y_noise_std=0.005)
+    record, other = simulate(scenario, samples, seed=7), simulate(scenario, 4000, seed=50_007)
+    result = refine([(record.x, record.y)], linear_terms(4, 4, 1), effects=[])
+    returned = result.refined
+    assert result.estimator == ("output error" if samples == 600 else "least squares")
+    run = returned.simulate(other.x, other.y[: returned.max_lag])
+    assert not diverged(run, other.y)

@@ -14,6 +14,7 @@ from models.effects import candidate_effects, linear_terms, periodic_terms
 from models.errors import InputError
 from models.narx import fit_narx
 from models.refinement import refine
+from models.scoring import score_effects
 from models.spectrum import excited_intervals
 from models.terms import Term, regressor_matrix
 
@@ -193,3 +194,36 @@ def test_a_dead_zone_under_a_multisine_is_not_taken_for_tones_but_a_tone_between
     for step in result.rounds:
         for score in step.scores:
             assert not [f for f in wave_frequencies(score.terms) if on_grid(f, period, n)]
+
+
+def test_a_tone_s_sine_and_cosine_enter_together_by_their_joint_f_test():
+    """A tone in the equation error of y[t] = 0.5·y[t−1] + x[t−1] + e[t], nearly a sine at the
+    record's time origin. The periodic family's score holds both waves, with the joint F statistic
+    of the pair beside the model and the residual's own last four values: the same as regressing
+    y on those with and without the pair (Frisch–Waugh–Lovell), on 2 and n − 8 degrees of
+    freedom. Tested one wave at a time, the family held the sine's one-wave F statistic."""
+    n, frequency = 2000, 0.0371
+    rng = np.random.default_rng(5)
+    x, e = rng.normal(0.0, 1.0, n), rng.normal(0.0, 1.0, n)
+    t = np.arange(n)
+    tone = 0.5 * np.sin(2 * np.pi * frequency * t + 0.2)
+    y = signal.lfilter([0.0, 1.0], [1.0, -0.5], x) + signal.lfilter([1.0], [1.0, -0.5], tone + e)
+    terms = linear_terms(1, 1, 1)
+    (periodic,) = [effect for effect in candidate_effects(terms) if effect.name == "periodic_disturbance"]
+    (score,) = score_effects([(x, y)], terms, 0, [periodic], ALPHA).scores
+    waves = [Term.parse(name) for name in score.terms]
+    assert sorted(w.factors[0].signal for w in waves) == ["cos", "sin"], score.terms
+    assert abs(waves[0].factors[0].frequency - frequency) < 0.1 / n
+    # Independently: y on the model's regressors and its residual's last four values, then with the pair.
+    Phi, target = regressor_matrix(list(terms), x, y)
+    residual = target - Phi @ np.linalg.lstsq(Phi, target, rcond=None)[0]
+    own_past = np.column_stack([np.concatenate([np.zeros(k), residual[:-k]]) for k in range(1, 5)])
+    pair, _ = regressor_matrix(waves, x, y, 1)
+    rss = [
+        float(np.sum((target - A @ np.linalg.lstsq(A, target, rcond=None)[0]) ** 2))
+        for A in (np.hstack([Phi, own_past]), np.hstack([Phi, own_past, pair]))
+    ]
+    dof = len(target) - Phi.shape[1] - 4 - 2
+    f_value = (rss[0] - rss[1]) / 2 / (rss[1] / dof)
+    np.testing.assert_allclose(score.f_statistics, [f_value, f_value], rtol=1e-6)
+    np.testing.assert_allclose(score.explained, 1 - rss[1] / rss[0], rtol=1e-6)

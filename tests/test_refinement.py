@@ -1446,3 +1446,32 @@ def test_with_nothing_declared_quadratic_damping_whose_lags_only_explain_togethe
     rig = refine([(record.x, record.y)], EXACT_TERMS)
     free_run = validate(found.refined, [(test.x, test.y)]).free_run.rms
     assert free_run < 2 * validate(rig.refined, [(test.x, test.y)]).free_run.rms
+
+
+def test_with_nothing_declared_a_periodic_force_enters_as_a_sinusoid_of_its_own_phase_and_is_named_first():
+    """A 1000 N force at 12.5 Hz on the rig, nothing declared. Tested one wave at a time, the
+    periodic family entered as the cosine alone (the sine was not significant by itself at the
+    round's level), which took a sixth off the check blocks' free run where sine and cosine
+    together take half; and moving-average noise, credited with the smooth residual the missing
+    sine left, took the first round. A sinusoid's sine and cosine now enter together by their
+    joint F test: the disturbance is significant whole, its terms take the noise's place first,
+    and the model runs free over the record's continuation within twice the model refined from
+    the rig's structure."""
+    scenario = Scenario(disturbance_std=200.0, effects=Effects(sine_amplitude=1000.0, sine_frequency=12.5))
+    samples = 1600
+    record = simulate(scenario, samples + 4000, 2)
+    x, y = record.x[:samples], record.y[:samples]
+    heads, _ = held_out_tails([(x, y)])
+    start = linear_terms(4, 4, 1)
+    scores = score_effects(heads, start, 0, candidate_effects(start), 0.01).scores
+    (periodic,) = [s for s in scores if s.name == "periodic_disturbance"]
+    waves = [Term.parse(name).factors[0] for name in periodic.terms]
+    assert sorted(w.signal for w in waves) == ["cos", "sin"], periodic.terms
+    assert len({w.frequency for w in waves}) == 1, periodic.terms
+    assert min(scores, key=operator.attrgetter("bic_change")).name == "periodic_disturbance"
+    found = refine([(x, y)], None)
+    assert [e.name for e in found.effects_added][:1] == ["periodic_disturbance"], found.effects_added
+    rig = refine([(x, y)], EXACT_TERMS)
+    test = [(record.x[samples:], record.y[samples:])]
+    free_run = validate(found.refined, test, t0=samples).free_run.rms
+    assert free_run < 2 * validate(rig.refined, test, t0=samples).free_run.rms
