@@ -486,8 +486,9 @@ def _refined_on_tails(grown: Grown, heads: Records, tails: Segments) -> Grown:
     the search on all the heads, which can end elsewhere: on 4000 samples of the rig with a dead
     zone, nothing declared, the output-error fit of the dead zone and the rig's spring ran free
     over the tails several times as far off as the least-squares fit of the same terms, and over
-    another seed's record several times as far as the model refined from the rig's structure. Moving-average noise alone leaves the start's process terms, whose estimator the
-    start's own choice settled: it is passed over."""
+    another seed's record several times as far as the model refined from the rig's structure.
+    Moving-average noise alone leaves the start's process terms, whose estimator the start's own
+    choice settled: it is passed over."""
     result = grown.refinement
     noise_only = result.refined.terms == grown.start.terms
     if (
