@@ -11,6 +11,10 @@ call of a process and as a later one (SciPy pull request 24323 fixes it in C). H
 column's norm is over its own rows, as in the Fortran original; where no norm is recomputed
 the arithmetic is SciPy's, operation for operation.
 
+A stopgap, not a rival to SciPy: once a SciPy release carries that fix, narxwatch requires it
+and calls ``least_squares`` again, and this module goes (its tests compare the two bit for bit,
+so the change is checked).
+
 Only what :mod:`models.output_error` asks for is kept: an analytic Jacobian, the variables
 scaled by the Jacobian's column norms (MINPACK's mode 1), SciPy's default tolerances.
 """
