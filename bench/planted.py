@@ -15,7 +15,7 @@ chosen. Then the loop on clean records of the rig (its 800 N unmeasured force), 
 declared and from the rig's structure: how many it left alone.
 
 Run from the project root; develop on seeds below 1000 (``--first-seed 1``), report on
-held-out seeds (the default first seed; seeds 5000–5002 and 7000–7001 have been reported on
+held-out seeds (the default first seed; seeds 5000–5002, 7000–7001 and 8000–8007 have been reported on
 and are no longer held out)::
 
     .venv/bin/python -m bench.planted [--seeds 3] [--samples 1600 4000] [--clean 100] [--jobs 2]
@@ -41,7 +41,7 @@ from simulator.theory import EXACT_TERMS
 
 TEST = 4000  # samples of each held-out record
 TEST_SEEDS = 50_000  # a held-out record's seed: its estimation record's plus this
-HELD_OUT_SEEDS = 8000  # the first seed of the report; development used seeds below 1000
+HELD_OUT_SEEDS = 8008  # the first seed of the report; development used seeds below 1000
 PLANTED_FORCE = 200.0  # N of unmeasured force beside a planted effect, as the tests plant them
 RIG_FORCE = 800.0  # N of unmeasured force on the rig as it is: the clean records'
 # The rig's own cubic spring on the measured mass (SPEC §2): with nothing declared, an effect the
