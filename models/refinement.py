@@ -551,7 +551,7 @@ def _on_all(
             start = min(starts, key=lambda model: restless_then_rms(free_run_at_rest(model, records)))
             tuned = by_output_error(start, everything, SETTLED_EVALUATIONS, threads)
         approved = result.refined if kept else grown.start
-        chosen = _fit_on_all_or_approved(tuned, refined, approved, everything)
+        chosen = _fit_on_all_or_approved(tuned, refined, approved, records)
         if chosen is None:
             estimator = "least squares"
         else:
@@ -570,24 +570,23 @@ def _on_all(
 
 
 def _fit_on_all_or_approved(
-    tuned: NARX | None, least_squares: NARX, approved: NARX, everything: Segments
+    tuned: NARX | None, least_squares: NARX, approved: NARX, records: Records
 ) -> NARX | None:
     """The output-error model :func:`_on_all` returns: ``tuned``, the search's fit on all the
-    records (``everything``), where it comes to rest and holds as ``approved``, the fit on the heads
+    ``records``, where it comes to rest and holds as ``approved``, the fit on the heads
     the tails approved, does (:func:`_holds_as_approved`); where it comes to rest but does not hold
     so, ``approved``, if that comes to rest on all the records (a drift the heads were too short
     to show can show on them); None, least squares' fit on all standing, where the search gained
     nothing over ``least_squares`` or neither holds."""
-    records = [(x, y) for x, y, _ in everything]
     if tuned is None or tuned is least_squares or not comes_to_rest(tuned, records):
         return None
-    if _holds_as_approved(tuned, approved, everything):
+    if _holds_as_approved(tuned, approved, records):
         return tuned
     return approved if comes_to_rest(approved, records) else None
 
 
-def _holds_as_approved(refit: NARX, approved: NARX, everything: Segments) -> bool:
-    """Whether ``refit``, a structure's output-error fit on all the records (``everything``), may
+def _holds_as_approved(refit: NARX, approved: NARX, records: Records) -> bool:
+    """Whether ``refit``, a structure's output-error fit on all the ``records``, may
     stand for ``approved``, the same structure's fit on the heads that the tails approved: it runs
     free over the records no worse, and from no measured output where ``approved`` stays within
     ``RESTLESS`` times the records' largest output does a restart of it leave that range
@@ -603,11 +602,11 @@ def _holds_as_approved(refit: NARX, approved: NARX, everything: Segments) -> boo
     mode may do from a noisy state; the approved model is the measure of what the structure may
     ring to. Where the two differ in their lags their restarts are not the same, and the refit
     may ring from none."""
-    records = [(x, y) for x, y, _ in everything]
     rings, approved_rings = rings_from_measured(refit, records), rings_from_measured(approved, records)
     allowed = approved_rings if approved_rings.shape == rings.shape else np.zeros_like(rings)
     if np.any(rings & ~allowed):
         return False
+    everything: Segments = [(x, y, 0) for x, y in records]
     return free_run_rms(refit, everything) <= free_run_rms(approved, everything)
 
 
