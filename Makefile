@@ -4,7 +4,9 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 # One environment in two layers, each with its stamp: what running needs (`make run`), then the
 # test and documentation tools on top (`make test`, `make docs`, …), so that `make test` after
-# `make run` adds only the tools.
+# `make run` adds only the tools. uv installs them (the venv's own pip brings it): it resolves
+# as pip does but downloads and unpacks in parallel, where pip's one-at-a-time install was most
+# of a fresh clone's set-up.
 RUN_STAMP  := $(VENV)/.installed-run
 TEST_STAMP := $(VENV)/.installed-test
 # SysIdentPy, the independent FROLS bench/bench_frols.py compares with, caps numpy below the
@@ -26,12 +28,12 @@ BLAS_THREADS := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 $(RUN_STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e .
+	$(BIN)/pip install --quiet uv
+	$(BIN)/uv pip install --quiet --python $(BIN)/python -e .
 	touch $@
 
 $(TEST_STAMP): $(RUN_STAMP)
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[test]'
 	touch $@
 
 run: $(RUN_STAMP)
@@ -46,8 +48,8 @@ run: $(RUN_STAMP)
 
 $(BENCH_STAMP): pyproject.toml
 	$(PYTHON) -m venv $(BENCH_VENV)
-	$(BENCH_VENV)/bin/pip install --quiet --upgrade pip
-	$(BENCH_VENV)/bin/pip install --quiet -e '.[bench]'
+	$(BENCH_VENV)/bin/pip install --quiet uv
+	$(BENCH_VENV)/bin/uv pip install --quiet --python $(BENCH_VENV)/bin/python -e '.[bench]'
 	touch $(BENCH_STAMP)
 
 reproduce: $(RUN_STAMP)
