@@ -19,10 +19,6 @@ BENCH_STAMP := $(BENCH_VENV)/.installed
 # the longest first, in tests/conftest.py's order, which xdist would otherwise replace by the
 # number of tests in each file (--no-loadscope-reorder).
 TEST_WORKERS ?= 2
-# One BLAS thread a process, as narxwatch's own processes run (models/blas.py); pytest's
-# plugins import numpy before a conftest could set it, and two busy workers with two BLAS threads
-# each took 17 min instead of 14 (the refinement tests three times the CPU).
-BLAS_THREADS := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 .PHONY: run test slow lint bench reproduce docs clean
 
@@ -60,7 +56,7 @@ test: $(TEST_STAMP) docs
 	$(BIN)/lint-imports
 	bash scripts/ensure-postgres.sh
 	bash scripts/ensure-chromium.sh
-	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
 
 # The documentation site, into var/site/ (git-ignored). --strict: a broken link, a missing anchor
 # or a reference to code that is gone fails the build, and so `make test`.
@@ -70,7 +66,7 @@ docs: $(TEST_STAMP)
 # The Monte Carlo studies marked slow (reduced versions of bench/'s), kept out of `make test`'s
 # fifteen minutes.
 slow: $(TEST_STAMP)
-	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) -m slow
+	$(BIN)/pytest -n $(TEST_WORKERS) -m slow
 
 lint: $(TEST_STAMP)
 	$(BIN)/ruff check .
