@@ -38,9 +38,12 @@ HELD_OUT_ALPHA = 0.05
 # that a free run's correlated errors stay mostly within one.
 COMPARISON_BLOCKS = 20
 COMPARISON_SAMPLES = 50
-# A block's ratio of the two models' mean squares counts for at most this much either way: where
-# one model reproduces a block all but exactly (a clipping sensor's plateau), the log ratio of a
-# few such blocks would otherwise swamp the spread of all the others.
+# A block's ratio of the two models' mean squares counts for at most this much either way of the
+# blocks' median ratio: where one model reproduces a block all but exactly (a clipping sensor's
+# plateau), the log ratio of a few such blocks would otherwise swamp the spread of all the others.
+# About the median, not about one: a cap about one caps the gain itself, and a model better than
+# that on most blocks is then judged as if only that much better, while a block that goes the
+# other way keeps its full weight in the spread (:func:`_paired`).
 BLOCK_RATIO_CAP = 100.0
 
 
@@ -194,14 +197,21 @@ def _restarted_squares(model: NARX, segments: Segments, blocks: int) -> np.ndarr
 def _paired(before: np.ndarray, after: np.ndarray, alpha: float) -> tuple[float, float]:
     """The gain of the free run whose block mean squares are ``after`` over ``before``'s and the
     threshold it must exceed at level ``alpha`` (:func:`compare_on_tails`); −∞ and ∞ where the
-    second diverged, 1 and 0 where only the first did."""
+    second diverged, 1 and 0 where only the first did. Each block's log ratio is held within
+    ``ln BLOCK_RATIO_CAP`` of the blocks' median: a cap on the outlying blocks, not on the gain,
+    so that a model better on every block by more than the cap is judged by its real gain: a
+    further factor on every block raises the mean by its log and leaves the spread as it was."""
     if not np.all(np.isfinite(after)):
         return -np.inf, np.inf
     if not np.all(np.isfinite(before)):
         return 1.0, 0.0
     tiny = np.finfo(np.float64).tiny
     cap = np.log(BLOCK_RATIO_CAP)
-    ratio = np.clip(np.log(np.maximum(before, tiny) / np.maximum(after, tiny)), -cap, cap)
+    ratio = np.log(np.maximum(before, tiny) / np.maximum(after, tiny))
+    typical = float(np.median(ratio))
+    # Symmetric under swapping the two models (the median changes sign with every ratio), so that
+    # under "equally good" the statistic stays symmetric about zero, as Student's t is.
+    ratio = np.clip(ratio, typical - cap, typical + cap)
     error = float(np.std(ratio, ddof=1) / np.sqrt(ratio.size))
     quantile = float(stats.t.ppf(1 - alpha, ratio.size - 1))
     return float(-np.expm1(-np.mean(ratio))), float(-np.expm1(-quantile * error))
