@@ -251,7 +251,7 @@ def _smallest_driven(
     another), the free runs cannot tell their orders apart, and the smallest the input drives
     is taken (of those fitted and run free without diverging on one rotation at least): the order
     that reaches the input's delay."""
-    chosen = _smallest_near_best(figures, admissible, margin, max_order, samples)
+    chosen = _smallest_near_best(figures, admissible, margin, max_order, samples, spreads)
     pool = admissible or set(figures)
     driven = {key for key in pool if figures[key].driven and np.any(np.isfinite(figures[key].figure))}
     if figures[chosen].driven or not driven:
@@ -259,7 +259,9 @@ def _smallest_driven(
     running = {key for key in driven if np.all(figures[key].figure < spreads)}
     if not running:
         return min(driven, key=lambda key: (_parameters(key), key[0]))
-    return _smallest_near_best({key: figures[key] for key in running}, running, margin, max_order, samples)
+    return _smallest_near_best(
+        {key: figures[key] for key in running}, running, margin, max_order, samples, spreads
+    )
 
 
 def _spread(check: Segments) -> float:
@@ -270,7 +272,12 @@ def _spread(check: Segments) -> float:
 
 
 def _smallest_near_best(
-    figures: dict[_Linear, _Judged], admissible: set[_Linear], margin: float, max_order: int, samples: int
+    figures: dict[_Linear, _Judged],
+    admissible: set[_Linear],
+    margin: float,
+    max_order: int,
+    samples: int,
+    spreads: np.ndarray,
 ) -> _Linear:
     """The smallest admissible candidate near the best (:func:`choose_linear`): its mean figure,
     raised for its size on the ``samples`` held out (:func:`_size_penalty`), within ``margin`` of
@@ -282,7 +289,13 @@ def _smallest_near_best(
     rotations, and worse on the third. The smaller order's own figure there is its
     instrumental-variable fit's: an output-error search from measured starts on short blocks can
     end well on one rotation by chance (on the rig, ARX(3, 3) with x[t], which cannot hold the
-    input's delay of four samples, ran free over one rotation below ARX(4, 4))."""
+    input's delay of four samples, ran free over one rotation below ARX(4, 4)).
+
+    None is near a best that runs free over every rotation closer than the output's mean (below
+    the check parts' ``spreads``) unless it does too: a free run off by many times the output's
+    spread on one rotation widens the spread of the difference, and on the rig with power-law
+    damping ARX(7, 7), finite there at sixty times the output's spread, passed as near the best
+    by it and by its instrumental-variable fit's chance on another rotation."""
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
     # best of all is the start: the loop may still find what the input does.
     mean = {
@@ -297,8 +310,11 @@ def _smallest_near_best(
             "over their held-out parts without diverging"
         )
     lowest = figures[best].figure
+    simulates = bool(np.all(lowest < spreads))
 
     def near_best(key: _Linear) -> bool:
+        if simulates and not bool(np.all(figures[key].figure < spreads)):
+            return False
         return (
             mean[key] <= (1 + margin) * mean[best]
             or not _lower_beyond_spread(lowest, figures[key].figure)

@@ -788,6 +788,18 @@ def test_the_input_drives_the_rigs_order_and_not_the_orders_short_of_its_delay()
     assert not input_drives(unlimited, linear_terms(4, 4, 1), level)
 
 
+def test_a_candidate_that_does_not_simulate_a_rotation_is_not_near_the_best():
+    """The rig with power-law damping, the loop's head of a 2000-sample record: ARX(7, 7) ran free
+    over two rotations as well as the best and over the third at sixty times the output's spread
+    about its mean. That rotation widened the spread of its difference from the best, which then
+    passed it as near the best, and as the smallest so near it was the start. A candidate that
+    has not simulated a rotation the best simulated is not near it."""
+    effects = Effects.parse(["power_damping2=1000"])
+    record = simulate(Scenario(disturbance_std=200.0, effects=effects), 2000, 2)
+    orders, _ = choose_linear([(record.x[:1600], record.y[:1600])])
+    assert orders == (4, 4, 1), orders
+
+
 def test_a_delay_of_0_is_chosen_only_where_the_input_at_the_same_sample_is_significant():
     """The rig's force reaches the measured output at x[t-4] (SPEC §2), so x[t] is independent of
     it. With coloured noise on the force sensor (the planted benchmark's moving-average noise,
