@@ -50,8 +50,8 @@ def test_a_model_far_better_but_over_one_quiet_block_simulates_the_tails_better(
     the whole tail at under 2 % of the start's RMS. The blocks' log ratios were capped at ln 100
     about zero: every block the refined model won counted as 100 times better and the one it lost
     (by a factor of over a hundred) in full, so the test could not pass however much better the
-    model was. Held within ln 100 of the blocks' median, the outlying block is bounded instead of
-    the gain."""
+    model was over the other blocks. Held within ln 100 of the blocks' median, the outlying block
+    is bounded instead of the gain."""
     x, y = _quiet_start_record(seed)
     split = held_out_tails([(x, y)])
     assert split is not None
