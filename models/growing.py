@@ -58,6 +58,7 @@ from models.round_criteria import (
     looked_ahead,
     next_round,
     offered_again,
+    output_state_by_simulation,
     rectified_first,
     scored,
 )
@@ -344,6 +345,8 @@ def _tier(loop: _Loop, offer: _Offer, tier: list[bool], generic: bool, choosing:
             choosing = replace(choosing, judged=Gain(fall(decided[3], offer.check), loop.margin))
     elif choosing.decided is not None:
         choosing = _looking_ahead(loop, offer, in_turn, choosing, choosing.decided)
+        if not generic:
+            choosing = _output_state(loop, offer, choosing, choosing.decided)
     if choosing.decided is None and loop.output_error and generic in tier:
         choosing = _on_simulation(loop, offer, tier, generic, choosing)
     if choosing.decided is None and not generic and offer.number < loop.max_rounds:
@@ -389,6 +392,22 @@ def _looking_ahead(
     if decided is not first:
         choosing = replace(choosing, judged=Gain(fall(decided[3], offer.check), loop.margin))
     return choosing
+
+
+def _output_state(loop: _Loop, offer: _Offer, choosing: _Choosing, first: Decision) -> _Choosing:
+    """The family the one-step criterion decided, ``first``, or a state of the output (a
+    hysteresis) that its free run judges further ahead
+    (:func:`models.round_criteria.output_state_by_simulation`)."""
+    ranked = choosing.ranked or scored(
+        loop.records, offer.current, offer.offered, loop.alpha, loop.workers, loop.threads, True, loop.kept
+    )
+    decided, simulated = output_state_by_simulation(
+        first, ranked.scores, offer.current, offer.check, loop.checks, loop.workers
+    )
+    choosing = replace(choosing, tried=choosing.tried + simulated, ranked=ranked)
+    if decided is None:
+        return choosing
+    return replace(choosing, decided=decided, judged=Gain(fall(decided[3], offer.check), SIMULATION_GAIN))
 
 
 def _on_simulation(

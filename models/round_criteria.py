@@ -24,7 +24,7 @@ from models.narx import NARX, Saturation
 from models.refinement_report import Criterion, Stage
 from models.regression import Workers
 from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model, score_effects
-from models.terms import Term, max_lag, parse_terms
+from models.terms import OUTPUT_HYSTERESES, Term, max_lag, parse_terms
 
 # The significance level of the families' partial F tests, before the Bonferroni correction.
 DEFAULT_ALPHA = 0.01
@@ -461,6 +461,59 @@ def by_simulation(
             return (score, "simulation", structure, error), gain, len(grown)
         judged = better_gain(judged, gain)
     return None, judged, len(grown)
+
+
+def output_state_by_simulation(
+    first: Decision,
+    ranked: Sequence[EffectScore],
+    current: Structure,
+    check: float,
+    checks: CheckSplit,
+    workers: Workers,
+) -> tuple[Decision | None, int]:
+    """A family whose regressors are a state of the output (a Bouc–Wen variable of y), judged on
+    its free run where the one-step criterion decided ``first``: the family, its regressors in
+    the order of their error reduction (``ranked``: every family's scores with their ranked
+    terms), added where its least-squares model takes ``SIMULATION_GAIN`` of the current model's
+    figure ``check`` off the check blocks' free run beyond what ``first`` took; and how many
+    structures were simulated.
+
+    Such a state is a smooth function of the output's past, and the one-step test that ranks
+    the families reads it beside the residual's own recent past, which predicts it one step
+    ahead: there the state explains little that those lags do not, and moving-average noise, or
+    a family that explains the residual's next value, takes the round. What tells a hysteretic
+    restoring force from a linear one is the simulation, whose error such a force leaves when
+    missing: so it is judged on the share of that error the simulation criterion asks of a
+    family picked among many (the look ahead's further gain), and the one-step order does not
+    name it second."""
+    chosen, _, _, first_error = first
+    if not np.isfinite(check):
+        return None, 0
+    states = [
+        score
+        for score in ranked
+        if score.name != chosen.name
+        and any(
+            label.startswith(f"{function}(")
+            for labels in score.ranked
+            for label in labels
+            for function in OUTPUT_HYSTERESES
+        )
+    ]
+    trials = [
+        (score, replace(current, terms=current.terms + parse_terms(names)), names)
+        for score in states
+        for names in (
+            tuple(label for labels in score.ranked[:k] for label in labels)
+            for k in range(1, len(score.ranked) + 1)
+        )
+    ]
+    errors = checks.judge([structure for _, structure, _ in trials], workers)
+    error, best = min(zip(errors, trials, strict=True), key=lambda trial: trial[0], default=(np.inf, None))
+    if best is None or error > first_error - SIMULATION_GAIN * check:
+        return None, len(trials)
+    score, structure, names = best
+    return (replace(score, terms=names), "simulation", structure, error), len(trials)
 
 
 class Gain(NamedTuple):
