@@ -34,7 +34,7 @@ from models.checking import (
     checked_whole,
     grown_by_zeros,
 )
-from models.effects import POLYNOMIAL, Effect, candidate_effects, unused
+from models.effects import HYSTERESIS, POLYNOMIAL, Effect, candidate_effects, unused
 from models.errors import InputError
 from models.linear_start import choose_linear, rectified_orders
 from models.narx import NARX
@@ -62,7 +62,7 @@ from models.round_criteria import (
     rectified_first,
     scored,
 )
-from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model
+from models.scoring import EffectScore, Records, Scores, ScoringKept, first_row, fit_model
 from models.signals import checked_records
 from models.terms import Term, max_degree, max_lag, parse_terms
 
@@ -395,16 +395,32 @@ def _looking_ahead(
 
 
 def _output_state(loop: _Loop, offer: _Offer, choosing: _Choosing, first: Decision) -> _Choosing:
-    """The family the one-step criterion decided, ``first``, or a state of the output (a
-    hysteresis) that its free run judges further ahead
+    """The family the one-step criterion decided, ``first``, or the hysteresis family, a state of
+    the output, where its free run judges it further ahead
     (:func:`models.round_criteria.output_state_by_simulation`)."""
-    ranked = choosing.ranked or scored(
-        loop.records, offer.current, offer.offered, loop.alpha, loop.workers, loop.threads, True, loop.kept
-    )
+    chosen, _, _, first_error = first
+    # No free run falls below zero: where the one-step choice left less than the share to take
+    # beyond it, the family cannot take it.
+    beyond_reach = first_error < SIMULATION_GAIN * offer.check
+    if HYSTERESIS not in offer.kinds or chosen.name == HYSTERESIS or beyond_reach:
+        return choosing
+    # Its regressors ranked, significant or not, on the round's equations (the model's scoring
+    # and the family's search kept from the round's); its own test's level is not read.
+    states = scored(
+        loop.records,
+        offer.current,
+        [effect for effect in offer.offered if effect.name == HYSTERESIS],
+        loop.alpha,
+        loop.workers,
+        loop.threads,
+        True,
+        loop.kept,
+        first_row(offer.current.terms, offer.offered),
+    ).scores
     decided, simulated = output_state_by_simulation(
-        first, ranked.scores, offer.current, offer.check, loop.checks, loop.workers
+        first, states, offer.current, offer.check, loop.checks, loop.workers
     )
-    choosing = replace(choosing, tried=choosing.tried + simulated, ranked=ranked)
+    choosing = replace(choosing, tried=choosing.tried + simulated)
     if decided is None:
         return choosing
     return replace(choosing, decided=decided, judged=Gain(fall(decided[3], offer.check), SIMULATION_GAIN))

@@ -24,7 +24,7 @@ from models.narx import NARX, Saturation
 from models.refinement_report import Criterion, Stage
 from models.regression import Workers
 from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model, score_effects
-from models.terms import OUTPUT_HYSTERESES, Term, max_lag, parse_terms
+from models.terms import Term, max_lag, parse_terms
 
 # The significance level of the families' partial F tests, before the Bonferroni correction.
 DEFAULT_ALPHA = 0.01
@@ -56,6 +56,7 @@ def scored(
     threads: Workers,
     rank: bool = False,
     kept: ScoringKept | None = None,
+    lag: int | None = None,
 ) -> Scores:
     """Every offered family's score against ``current``'s one-step residual
     (:func:`models.scoring.score_effects`); with ``rank``, with all its regressors ranked by error
@@ -72,6 +73,7 @@ def scored(
         workers=workers,
         threads=threads,
         kept=kept,
+        lag=lag,
     )
 
 
@@ -465,18 +467,18 @@ def by_simulation(
 
 def output_state_by_simulation(
     first: Decision,
-    ranked: Sequence[EffectScore],
+    states: Sequence[EffectScore],
     current: Structure,
     check: float,
     checks: CheckSplit,
     workers: Workers,
 ) -> tuple[Decision | None, int]:
-    """A family whose regressors are a state of the output (a Bouc–Wen variable of y), judged on
-    its free run where the one-step criterion decided ``first``: the family, its regressors in
-    the order of their error reduction (``ranked``: every family's scores with their ranked
-    terms), added where its least-squares model takes ``SIMULATION_GAIN`` of the current model's
-    figure ``check`` off the check blocks' free run beyond what ``first`` took; and how many
-    structures were simulated.
+    """A family whose regressors are a state of the output (the hysteresis family's Bouc–Wen
+    variable of y), judged on its free run where the one-step criterion decided ``first``: of
+    ``states``, such families' scores with their regressors ranked by error reduction
+    (significant or not), the one whose least-squares model, its regressors in that order, takes
+    ``SIMULATION_GAIN`` of the current model's figure ``check`` off the check blocks' free run
+    beyond what ``first`` took; and how many structures were simulated.
 
     Such a state is a smooth function of the output's past, and the one-step test that ranks
     the families reads it beside the residual's own recent past, which predicts it one step
@@ -489,20 +491,10 @@ def output_state_by_simulation(
     chosen, _, _, first_error = first
     if not np.isfinite(check):
         return None, 0
-    states = [
-        score
-        for score in ranked
-        if score.name != chosen.name
-        and any(
-            label.startswith(f"{function}(")
-            for labels in score.ranked
-            for label in labels
-            for function in OUTPUT_HYSTERESES
-        )
-    ]
     trials = [
         (score, replace(current, terms=current.terms + parse_terms(names)), names)
         for score in states
+        if score.name != chosen.name
         for names in (
             tuple(label for labels in score.ranked[:k] for label in labels)
             for k in range(1, len(score.ranked) + 1)
