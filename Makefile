@@ -4,7 +4,9 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 # One environment in two layers, each with its stamp: what running needs (`make run`), then the
 # test and documentation tools on top (`make test`, `make docs`, …), so that `make test` after
-# `make run` adds only the tools.
+# `make run` adds only the tools. uv installs them (the venv's own pip brings it): it resolves
+# as pip does but downloads and unpacks in parallel, where pip's one-at-a-time install was most
+# of a fresh clone's set-up.
 RUN_STAMP  := $(VENV)/.installed-run
 TEST_STAMP := $(VENV)/.installed-test
 # SysIdentPy, the independent FROLS bench/bench_frols.py compares with, caps numpy below the
@@ -17,21 +19,17 @@ BENCH_STAMP := $(BENCH_VENV)/.installed
 # the longest first, in tests/conftest.py's order, which xdist would otherwise replace by the
 # number of tests in each file (--no-loadscope-reorder).
 TEST_WORKERS ?= 2
-# One BLAS thread a process, as narxwatch's own processes run (models/blas.py); pytest's
-# plugins import numpy before a conftest could set it, and two busy workers with two BLAS threads
-# each took 17 min instead of 14 (the refinement tests three times the CPU).
-BLAS_THREADS := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 .PHONY: run test slow lint bench reproduce docs clean
 
 $(RUN_STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e .
+	$(BIN)/pip install --quiet uv
+	$(BIN)/uv pip install --quiet --python $(BIN)/python -e .
 	touch $@
 
 $(TEST_STAMP): $(RUN_STAMP)
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[test]'
 	touch $@
 
 run: $(RUN_STAMP)
@@ -46,8 +44,8 @@ run: $(RUN_STAMP)
 
 $(BENCH_STAMP): pyproject.toml
 	$(PYTHON) -m venv $(BENCH_VENV)
-	$(BENCH_VENV)/bin/pip install --quiet --upgrade pip
-	$(BENCH_VENV)/bin/pip install --quiet -e '.[bench]'
+	$(BENCH_VENV)/bin/pip install --quiet uv
+	$(BENCH_VENV)/bin/uv pip install --quiet --python $(BENCH_VENV)/bin/python -e '.[bench]'
 	touch $(BENCH_STAMP)
 
 reproduce: $(RUN_STAMP)
@@ -58,7 +56,7 @@ test: $(TEST_STAMP) docs
 	$(BIN)/lint-imports
 	bash scripts/ensure-postgres.sh
 	bash scripts/ensure-chromium.sh
-	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
 
 # The documentation site, into var/site/ (git-ignored). --strict: a broken link, a missing anchor
 # or a reference to code that is gone fails the build, and so `make test`.
@@ -68,7 +66,7 @@ docs: $(TEST_STAMP)
 # The Monte Carlo studies marked slow (reduced versions of bench/'s), kept out of `make test`'s
 # fifteen minutes.
 slow: $(TEST_STAMP)
-	$(BLAS_THREADS) $(BIN)/pytest -n $(TEST_WORKERS) -m slow
+	$(BIN)/pytest -n $(TEST_WORKERS) -m slow
 
 lint: $(TEST_STAMP)
 	$(BIN)/ruff check .

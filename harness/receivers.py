@@ -57,11 +57,14 @@ class Request:
 @dataclass
 class Receiver:
     """``with Receiver(secret, [500, 500, 200]) as receiver:`` serves on ``receiver.url`` until
-    the block ends; once the answers are used up it answers 200. With ``authority``, over HTTPS,
+    the block ends; once the answers are used up it answers 200. With ``answers_for``, the
+    scripted answers go to that event's requests alone (others get 200), so that an event sent
+    while another is being retried cannot take one of its answers. With ``authority``, over HTTPS,
     its certificate for 127.0.0.1 signed by that certificate authority."""
 
     secret: str
     answers: Iterable[int] = ()
+    answers_for: str | None = None
     authority: trustme.CA | None = None
     requests: list[Request] = field(default_factory=list)
     applied: dict[str, dict[str, Any]] = field(default_factory=dict)  # events acted on, by key
@@ -97,7 +100,8 @@ class Receiver:
     def _record(self, request: Request) -> int:
         with self._lock:
             self.requests.append(request)
-            status = next(self._answers, 200)
+            scripted = self.answers_for is None or request.document().get("event") == self.answers_for
+            status = next(self._answers, 200) if scripted else 200
         self.arrived.set()
         if not request.signed:
             return 400

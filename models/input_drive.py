@@ -1,4 +1,5 @@
-"""Whether the input drives a linear ARX candidate: its input coefficients jointly significant.
+"""Whether the input drives a linear ARX candidate: its input coefficients jointly significant,
+and x[t] among them where it claims a delay of 0 (:func:`feeds_through`).
 
 A linear start whose input coefficients are negligible only extrapolates the output's own past,
 however well it may run free over a few check blocks. Ljung's practice for the input delay reads
@@ -14,7 +15,8 @@ an effect does to the equation error, since an input that has not reached the ou
 independent of it. Where the output saturates (:func:`models.effects.output_limits`), only the
 equations clear of the limits are used, as a saturating sensor's model is fitted
 (:func:`models.narx.fitted_rows`): on a plateau the reading does not follow the input at all, and
-the equations around it would hide the input's effect on the rest.
+the equations around it would hide the input's effect on the rest. The same test of x[t] alone
+reads the delay: 0 only where the input at the same sample is significant.
 """
 
 from __future__ import annotations
@@ -35,25 +37,53 @@ def input_drives(records: Records, terms: Sequence[Term], level: float) -> bool:
     squares on ``records``, are jointly significant at ``level`` by their F test against the
     model without them. True where the test cannot be made (no input term, or too few
     equations): that is no evidence against the input."""
-    inputs = np.array([any(factor.signal == "x" for factor in term.factors) for term in terms])
+    inputs = np.array([_reads(term, lag=None) for term in terms])
+    return _block_significant(records, terms, inputs, level)
+
+
+def feeds_through(records: Records, terms: Sequence[Term], level: float) -> bool:
+    """Whether the input at the same sample, x[t], is significant among the linear ``terms``
+    fitted by least squares on ``records``: its F test at ``level`` against the model without
+    it. True where ``terms`` have no x[t] or the test cannot be made.
+
+    A delay of 0 says the input reaches the sampled output within the sample it is applied in
+    (an accelerometer under a force); sampled dynamics otherwise answer one sample later at the
+    earliest. Where x[t]'s coefficient lies within its uncertainty of zero, the delay is one or
+    more (Ljung's reading of the leading input coefficients), and a model with x[t] is the model
+    with delay 1 and one needless parameter, which on a few hundred samples runs free better by
+    the chance of its check blocks as often as not. On the rig, whose force reaches the output at
+    x[t-4], x[t] is independent of the equation error whatever an effect does to it."""
+    direct = np.array([_reads(term, lag=0) for term in terms])
+    return _block_significant(records, terms, direct, level)
+
+
+def _reads(term: Term, lag: int | None) -> bool:
+    """Whether ``term`` reads the input x (at ``lag``, or at any lag for None)."""
+    return any(factor.signal == "x" and lag in (None, factor.lag) for factor in term.factors)
+
+
+def _block_significant(records: Records, terms: Sequence[Term], block: np.ndarray, level: float) -> bool:
+    """Whether the ``block`` of ``terms`` (a mask) is significant at ``level`` by its F test in
+    their least-squares fit on ``records`` against the fit without it; the equations on an
+    output's plateaus left out (module docstring). True where the test cannot be made."""
     lag = max_lag(terms)
     usable = [(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)) for x, y in records]
     usable = [(x, y) for x, y in usable if len(y) > lag]
-    if not inputs.any() or inputs.all() or not usable:
+    if not block.any() or block.all() or not usable:
         return True
     Phi, target, _ = stacked_regressors(list(terms), usable, lag)
     limits = output_limits(np.concatenate([y for _, y in usable]))
     if limits is not None:
         kept = np.concatenate([fitted_rows(y, lag, limits, "sensor") for _, y in usable])
         Phi, target = Phi[kept], target[kept]
-    equations, parameters, block = len(target), Phi.shape[1], int(inputs.sum())
+    equations, parameters, size = len(target), Phi.shape[1], int(block.sum())
     if equations <= parameters:
         return True
-    full, restricted = _residual_sum(Phi, target), _residual_sum(Phi[:, ~inputs], target)
+    full, restricted = _residual_sum(Phi, target), _residual_sum(Phi[:, ~block], target)
     if full <= 0.0:
         return restricted > 0.0
-    f_value = (restricted - full) / block / (full / (equations - parameters))
-    return float(special.fdtrc(block, equations - parameters, f_value)) < level
+    f_value = (restricted - full) / size / (full / (equations - parameters))
+    return float(special.fdtrc(size, equations - parameters, f_value)) < level
 
 
 def _residual_sum(Phi: np.ndarray, target: np.ndarray) -> float:

@@ -16,7 +16,7 @@ import numpy as np
 from models.checking import CheckSplit, Segments, Structure
 from models.effects import linear_terms, reads_magnitude
 from models.errors import InputError
-from models.input_drive import input_drives
+from models.input_drive import feeds_through, input_drives
 from models.narx import NARX
 from models.refinement_report import Stage, told
 from models.regression import Workers
@@ -92,7 +92,8 @@ def choose_linear(
     # coefficients pass at the loop's level alone.
     level = DEFAULT_ALPHA / (2 * len(orders))
     judge = partial(_driven_figures, folds, records, level, workers=workers, tell=tell, rectified=rectified)
-    smallest = partial(_smallest_driven, margin=margin, max_order=max_order, samples=samples)
+    spreads = np.array([_spread(fold.check) for fold in folds])
+    smallest = partial(_smallest_driven, margin=margin, max_order=max_order, samples=samples, spreads=spreads)
     figures, admissible = judge([(n, d, False) for n, d in orders])
     n, d, _ = chosen = smallest(figures, admissible)
     constant, constant_admissible = judge([(n, d, True)])
@@ -159,13 +160,18 @@ def _driven_figures(
     rectified: bool = False,
 ) -> tuple[dict[_Linear, _Judged], set[_Linear]]:
     """:func:`_linear_figures`, each candidate's figures marked with whether the input drives it
-    (:func:`models.input_drive.input_drives` at ``level`` on all the ``records``). A rectified
-    model's linear terms read the recursion under the fold, which a linear fit of the readings
-    does not: there every candidate counts as driven, judged by its free run alone."""
+    at its delay (:func:`models.input_drive.input_drives` at ``level`` on all the ``records``,
+    and with a delay of 0 :func:`models.input_drive.feeds_through`: a model with x[t] whose
+    coefficient is nil holds the delay-1 model of its order and a parameter more, and on the rig,
+    whose force reaches the output at x[t-4], ARX(5, 5) with x[t] ran free over the three
+    rotations of a short record a little better than ARX(4, 4) by chance). A rectified model's
+    linear terms read the recursion under the fold, which a linear fit of the readings does not:
+    there every candidate counts as driven, judged by its free run alone."""
     figures, admissible = _linear_figures(folds, candidates, workers, tell, rectified)
     if not rectified:
         for n, d, constant in candidates:
-            driven = input_drives(records, linear_terms(n, n, d, constant), level)
+            terms = linear_terms(n, n, d, constant)
+            driven = input_drives(records, terms, level) and (d > 0 or feeds_through(records, terms, level))
             figures[n, d, constant] = figures[n, d, constant]._replace(driven=driven)
     return figures, admissible
 
@@ -206,37 +212,72 @@ def _rotation_figures(
 
 def _lower_beyond_spread(figure: np.ndarray, other: np.ndarray) -> bool:
     """Whether ``figure`` is below ``other`` on average by more than the standard error of their
-    difference across the rotations."""
+    difference across the rotations; a ``figure`` finite on every rotation is below an ``other``
+    that diverged on one (:func:`_smallest_driven` may start from such a candidate)."""
+    if not np.all(np.isfinite(figure)):
+        return False
+    if not np.all(np.isfinite(other)):
+        return True
     difference = other - figure
     return float(np.mean(difference)) > float(np.std(difference, ddof=1) / np.sqrt(difference.size))
 
 
 def _smallest_driven(
-    figures: dict[_Linear, _Judged], admissible: set[_Linear], margin: float, max_order: int, samples: int
+    figures: dict[_Linear, _Judged],
+    admissible: set[_Linear],
+    margin: float,
+    max_order: int,
+    samples: int,
+    spreads: np.ndarray,
 ) -> _Linear:
     """:func:`_smallest_near_best` among the admissible candidates the input drives (their input
     coefficients significant, :func:`_driven_figures`): on the rig's records with a sensor that
     clips, or a quadratic spring, every linear model runs free poorly and ARX(2, 2), whose input
     lags stop short of the rig's x[t-4] and whose input coefficients are nil, ran free as well as
-    ARX(4, 4) and was the start. A candidate the input does not drive is taken only where none
-    that it drives runs free without diverging (on a short record of the rig with a strong
-    quadratic spring, the driven orders diverged on a rotation). Not where it merely runs free
-    better than those on every rotation: with nothing of the input's to find, the loop, whose
-    families are sized to the start's lags, cannot reach the effect the linear models lack, and
-    an output extrapolated from its own past can run free better than any linear model driven
-    through a strong nonlinearity (on 3200 samples of the rig with a sensor clipping nearly half
-    of them, ARX(2, 2) ran free below ARX(4, 4) on all three rotations, where the loop from
-    ARX(4, 4) names the saturation first)."""
-    chosen = _smallest_near_best(figures, admissible, margin, max_order, samples)
+    ARX(4, 4) and was the start. With nothing of the input's to find, the loop, whose families
+    are sized to the start's lags, cannot reach the effect the linear models lack, and an output
+    extrapolated from its own past can run free better than any linear model driven through a
+    strong nonlinearity (on 3200 samples of the rig with a sensor clipping nearly half of them,
+    ARX(2, 2) ran free below ARX(4, 4) on all three rotations, where the loop from ARX(4, 4) names
+    the saturation first). So a candidate the input does not drive is taken only where it drives
+    none.
+
+    Among those it drives, the choice is by their free runs where some run free over every
+    rotation: below the check parts' ``spreads`` (the RMS of the measured output about its mean
+    on each rotation), since a free run no closer than the output's mean has not simulated it,
+    whether it diverged or stayed finite over a short block. Where none does (on a short record
+    of the rig with a strong quadratic spring, every order the input drives diverged on one
+    rotation, and ARX(9, 9), finite there, ran free at a hundred times the output's spread on
+    another), the free runs cannot tell their orders apart, and the smallest the input drives
+    is taken (of those fitted and run free without diverging on one rotation at least): the order
+    that reaches the input's delay."""
+    chosen = _smallest_near_best(figures, admissible, margin, max_order, samples, spreads)
     pool = admissible or set(figures)
-    driven = {key for key in pool if figures[key].driven and np.all(np.isfinite(figures[key].figure))}
+    driven = {key for key in pool if figures[key].driven and np.any(np.isfinite(figures[key].figure))}
     if figures[chosen].driven or not driven:
         return chosen
-    return _smallest_near_best({key: figures[key] for key in driven}, driven, margin, max_order, samples)
+    running = {key for key in driven if np.all(figures[key].figure < spreads)}
+    if not running:
+        return min(driven, key=lambda key: (_parameters(key), key[0]))
+    return _smallest_near_best(
+        {key: figures[key] for key in running}, running, margin, max_order, samples, spreads
+    )
+
+
+def _spread(check: Segments) -> float:
+    """The RMS of the measured output about its mean over the ``check`` parts: the free-run RMS
+    of a model that answers the output's mean whatever the input."""
+    y = np.concatenate([y for _, y, _ in check])
+    return float(np.sqrt(np.mean((y - np.mean(y)) ** 2)))
 
 
 def _smallest_near_best(
-    figures: dict[_Linear, _Judged], admissible: set[_Linear], margin: float, max_order: int, samples: int
+    figures: dict[_Linear, _Judged],
+    admissible: set[_Linear],
+    margin: float,
+    max_order: int,
+    samples: int,
+    spreads: np.ndarray,
 ) -> _Linear:
     """The smallest admissible candidate near the best (:func:`choose_linear`): its mean figure,
     raised for its size on the ``samples`` held out (:func:`_size_penalty`), within ``margin`` of
@@ -248,7 +289,13 @@ def _smallest_near_best(
     rotations, and worse on the third. The smaller order's own figure there is its
     instrumental-variable fit's: an output-error search from measured starts on short blocks can
     end well on one rotation by chance (on the rig, ARX(3, 3) with x[t], which cannot hold the
-    input's delay of four samples, ran free over one rotation below ARX(4, 4))."""
+    input's delay of four samples, ran free over one rotation below ARX(4, 4)).
+
+    None is near a best that runs free over every rotation closer than the output's mean (below
+    the check parts' ``spreads``) unless it does too: a free run off by many times the output's
+    spread on one rotation widens the spread of the difference, and on the rig with power-law
+    damping ARX(7, 7), finite there at sixty times the output's spread, passed as near the best
+    by it and by its instrumental-variable fit's chance on another rotation."""
     # Where the input drives none (an output the input reaches through a strong nonlinearity), the
     # best of all is the start: the loop may still find what the input does.
     mean = {
@@ -263,8 +310,11 @@ def _smallest_near_best(
             "over their held-out parts without diverging"
         )
     lowest = figures[best].figure
+    simulates = bool(np.all(lowest < spreads))
 
     def near_best(key: _Linear) -> bool:
+        if simulates and not bool(np.all(figures[key].figure < spreads)):
+            return False
         return (
             mean[key] <= (1 + margin) * mean[best]
             or not _lower_beyond_spread(lowest, figures[key].figure)

@@ -11,6 +11,14 @@ hand-built regressor matrix, and column-scaled least squares via ``numpy.linalg.
 
 from __future__ import annotations
 
+from models.blas import one_blas_thread
+
+# One BLAS thread a process, as narxwatch's own processes run: set before numpy loads BLAS (no
+# plugin has by now), so that `pytest` alone runs as `make test` does; xdist's workers and the
+# servers the tests start inherit it. Two busy workers with two BLAS threads each spend several
+# times the CPU in the refinement tests.
+one_blas_thread()
+
 import ipaddress
 import socket
 import sys

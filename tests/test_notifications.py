@@ -587,7 +587,8 @@ def test_an_alarm_raised_by_an_upload_is_delivered_once_though_the_receiver_answ
     acknowledges it, "alarm.renotified"; acknowledged, "alarm.acknowledged"."""
     org = Org.create(notifying)
     events = ["alarm.opened", "alarm.acknowledged", "alarm.renotified"]
-    with Receiver(SECRET, answers=[500, 500]) as receiver, clients(org) as (admin, ingest, viewer):
+    receiving = Receiver(SECRET, answers=[500, 500], answers_for="alarm.opened")
+    with receiving as receiver, clients(org) as (admin, ingest, viewer):
         structure_id = create_structure(admin)["id"]
         train_fault_mode(admin, ingest, structure_id, "k2", seed=81)
         rules = admin.put(f"{API}/structures/{structure_id}/alarm-rules", json={"rules": [ONE_FAULT_OPENS]})
