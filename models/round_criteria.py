@@ -235,11 +235,19 @@ def looked_ahead(
     quadratic spring some of them); and where the later family's round adds the first, both pairs
     hold the same effects: in either case the one-step order names them. Moving-average
     noise, which clears by being no worse and is there to unbias the parameters, does not
-    contend, and is not displaced.
+    contend.
+
+    Noise that clears first is looked past like any other first: its
+    one-step rank is the colour of the residual, and every effect the process lacks colours it,
+    while its model runs free as the current one does. A contender of the process that takes the
+    further share off the check blocks' free run is what that colour came from. Noise is offered
+    again each round, its lags growing, so the round after it need not add the contender, and
+    where the two pairs end alike the process comes first, as a NARMAX's process terms are
+    chosen before its noise terms: noise keeps the round only where its pair ends lower by more
+    than the margin, its unbiased parameters leading the next round further.
     """
     _, criterion, structure, error = first
-    if structure.noise_lags != current.noise_lags:
-        return first, 0
+    noise_first = structure.noise_lags != current.noise_lags
     # The contenders judged from here need exact figures only where they could be chosen (a
     # partial, for the workers that judge them).
     contends = partial(_contends, check, margin, error)
@@ -249,7 +257,8 @@ def looked_ahead(
         for other, other_error, other_structure in looked
         if other_structure.noise_lags == current.noise_lags
         and other_error <= (1 - margin) * check
-        and not set(structure.terms) <= set(other_structure.terms)
+        # Noise brings no terms a later family could hold again.
+        and (noise_first or not set(structure.terms) <= set(other_structure.terms))
     ]
     if not contenders:
         return first, len(looked)
@@ -257,12 +266,16 @@ def looked_ahead(
     if not contends(best_error):
         return first, len(looked)
     best_end, after_best, after_best_tried = ahead(best_structure, best_error)
-    if after_best == first[0].name:
+    if after_best == first[0].name and not noise_first:
         return first, len(looked) + after_best_tried
     first_end, _, after_first_tried = ahead(structure, error)
     tried = len(looked) + after_best_tried + after_first_tried
+    contender = (best, criterion, best_structure, best_error)
+    if noise_first:
+        # Noise keeps the round only where the parameters it unbiases lead further.
+        return (first if first_end < (1 - margin) * best_end else contender), tried
     if best_end < (1 - margin) * first_end:
-        return (best, criterion, best_structure, best_error), tried
+        return contender, tried
     return first, tried
 
 
