@@ -94,6 +94,9 @@ COMBINATION_STARTS = 4
 # :func:`bilinear_effect`).
 POLYNOMIAL = "polynomial"
 POLYNOMIAL_LAGS = 3
+# The hysteresis family: its Bouc–Wen variable is a state of the output, which the one-step test
+# reads beside the residual's own past (:func:`models.round_criteria.output_state_by_simulation`).
+HYSTERESIS = "hysteresis"
 # The grid of the Bouc–Wen shape r = γ/β (first, last, points), 1 (β = γ) among them. It spans
 # Ikhouane and Rodellar's classes of the n = 1 loop: r in (−1, 1] bounded, stiffer on unloading
 # than on loading (the classical loop); r > 1 bounded, softer on unloading too; r < −1 unbounded,
@@ -252,7 +255,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
     )
     return [
         Effect(
-            "hysteresis",
+            HYSTERESIS,
             "a hysteretic restoring force (Bouc–Wen): the hysteretic variable z of y, its level and "
             "shape estimated",
             (),

@@ -34,7 +34,7 @@ from models.checking import (
     checked_whole,
     grown_by_zeros,
 )
-from models.effects import POLYNOMIAL, Effect, candidate_effects, unused
+from models.effects import HYSTERESIS, POLYNOMIAL, Effect, candidate_effects, unused
 from models.errors import InputError
 from models.linear_start import choose_linear, rectified_orders
 from models.narx import NARX
@@ -58,10 +58,11 @@ from models.round_criteria import (
     looked_ahead,
     next_round,
     offered_again,
+    output_state_by_simulation,
     rectified_first,
     scored,
 )
-from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model
+from models.scoring import EffectScore, Records, Scores, ScoringKept, first_row, fit_model
 from models.signals import checked_records
 from models.terms import Term, max_degree, max_lag, parse_terms
 
@@ -344,6 +345,8 @@ def _tier(loop: _Loop, offer: _Offer, tier: list[bool], generic: bool, choosing:
             choosing = replace(choosing, judged=Gain(fall(decided[3], offer.check), loop.margin))
     elif choosing.decided is not None:
         choosing = _looking_ahead(loop, offer, in_turn, choosing, choosing.decided)
+        if not generic:
+            choosing = _output_state(loop, offer, choosing, choosing.decided)
     if choosing.decided is None and loop.output_error and generic in tier:
         choosing = _on_simulation(loop, offer, tier, generic, choosing)
     if choosing.decided is None and not generic and offer.number < loop.max_rounds:
@@ -389,6 +392,38 @@ def _looking_ahead(
     if decided is not first:
         choosing = replace(choosing, judged=Gain(fall(decided[3], offer.check), loop.margin))
     return choosing
+
+
+def _output_state(loop: _Loop, offer: _Offer, choosing: _Choosing, first: Decision) -> _Choosing:
+    """The family the one-step criterion decided, ``first``, or the hysteresis family, a state of
+    the output, where its free run judges it further ahead
+    (:func:`models.round_criteria.output_state_by_simulation`)."""
+    chosen, _, _, first_error = first
+    # No free run falls below zero: where the one-step choice left less than the share to take
+    # beyond it, the family cannot take it.
+    beyond_reach = first_error < SIMULATION_GAIN * offer.check
+    if HYSTERESIS not in offer.kinds or chosen.name == HYSTERESIS or beyond_reach:
+        return choosing
+    # Its regressors ranked, significant or not, on the round's equations (the model's scoring
+    # and the family's search kept from the round's); its own test's level is not read.
+    states = scored(
+        loop.records,
+        offer.current,
+        [effect for effect in offer.offered if effect.name == HYSTERESIS],
+        loop.alpha,
+        loop.workers,
+        loop.threads,
+        True,
+        loop.kept,
+        first_row(offer.current.terms, offer.offered),
+    ).scores
+    decided, simulated = output_state_by_simulation(
+        first, states, offer.current, offer.check, loop.checks, loop.workers
+    )
+    choosing = replace(choosing, tried=choosing.tried + simulated)
+    if decided is None:
+        return choosing
+    return replace(choosing, decided=decided, judged=Gain(fall(decided[3], offer.check), SIMULATION_GAIN))
 
 
 def _on_simulation(

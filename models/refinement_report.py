@@ -40,8 +40,10 @@ class Round:
     standard error), "output error" (significant so, its least-squares model diverging there,
     and its model grown from the current one's output-error fit lowering that free run by more
     than its standard error), "simulation" (it lowered that free run by at least
-    ``SIMULATION_GAIN``), "simulation across folds" (its settled output-error model lowered the
-    free run over the checked records of each of three folds by at least ``FOLD_GAIN``),
+    ``SIMULATION_GAIN``; a state of the output, by that share beyond the one-step criterion's
+    choice: :func:`models.round_criteria.output_state_by_simulation`), "simulation across
+    folds" (its settled output-error model lowered the free run over the checked records of each
+    of three folds by at least ``FOLD_GAIN``),
     "output's range" (the rectifier, taken where the records read as a magnitude) or "pair" (the
     first significant family, whose model alone ran free worse, with the family the next round
     adds lowering that free run by at least ``SIMULATION_GAIN``: :func:`models.round_criteria.as_pair`);

@@ -56,6 +56,7 @@ def scored(
     threads: Workers,
     rank: bool = False,
     kept: ScoringKept | None = None,
+    lag: int | None = None,
 ) -> Scores:
     """Every offered family's score against ``current``'s one-step residual
     (:func:`models.scoring.score_effects`); with ``rank``, with all its regressors ranked by error
@@ -72,6 +73,7 @@ def scored(
         workers=workers,
         threads=threads,
         kept=kept,
+        lag=lag,
     )
 
 
@@ -474,6 +476,49 @@ def by_simulation(
             return (score, "simulation", structure, error), gain, len(grown)
         judged = better_gain(judged, gain)
     return None, judged, len(grown)
+
+
+def output_state_by_simulation(
+    first: Decision,
+    states: Sequence[EffectScore],
+    current: Structure,
+    check: float,
+    checks: CheckSplit,
+    workers: Workers,
+) -> tuple[Decision | None, int]:
+    """A family whose regressors are a state of the output (the hysteresis family's Bouc–Wen
+    variable of y), judged on its free run where the one-step criterion decided ``first``: of
+    ``states``, such families' scores with their regressors ranked by error reduction
+    (significant or not), the one whose least-squares model, its regressors in that order, takes
+    ``SIMULATION_GAIN`` of the current model's figure ``check`` off the check blocks' free run
+    beyond what ``first`` took; and how many structures were simulated.
+
+    Such a state is a smooth function of the output's past, and the one-step test that ranks
+    the families reads it beside the residual's own recent past, which predicts it one step
+    ahead: there the state explains little that those lags do not, and moving-average noise, or
+    a family that explains the residual's next value, takes the round. What tells a hysteretic
+    restoring force from a linear one is the simulation, whose error such a force leaves when
+    missing: so it is judged on the share of that error the simulation criterion asks of a
+    family picked among many (the look ahead's further gain), and the one-step order does not
+    name it second."""
+    chosen, _, _, first_error = first
+    if not np.isfinite(check):
+        return None, 0
+    trials = [
+        (score, replace(current, terms=current.terms + parse_terms(names)), names)
+        for score in states
+        if score.name != chosen.name
+        for names in (
+            tuple(label for labels in score.ranked[:k] for label in labels)
+            for k in range(1, len(score.ranked) + 1)
+        )
+    ]
+    errors = checks.judge([structure for _, structure, _ in trials], workers)
+    error, best = min(zip(errors, trials, strict=True), key=lambda trial: trial[0], default=(np.inf, None))
+    if best is None or error > first_error - SIMULATION_GAIN * check:
+        return None, len(trials)
+    score, structure, names = best
+    return (replace(score, terms=names), "simulation", structure, error), len(trials)
 
 
 class Gain(NamedTuple):

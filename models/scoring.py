@@ -138,6 +138,7 @@ def score_effects(
     workers: Workers = map,
     threads: Workers = map,
     kept: ScoringKept | None = None,
+    lag: int | None = None,
 ) -> Scores:
     """Score each effect against the current model's residual on the estimation records; with
     ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``). The
@@ -147,9 +148,11 @@ def score_effects(
     large to send to a process, and numpy lets go of the interpreter while it works): the same
     whichever. ``kept``, for a caller that scores the same model on the same records again
     (:class:`ScoringKept`): the model's equations and each family's candidates built then are
-    taken from it, and what is built now is kept there."""
+    taken from it, and what is built now is kept there. ``lag``: the equations' first row, by
+    default :func:`first_row` of the model and ``effects``; a caller scoring some of a round's
+    families gives the round's, and finds that round's scoring of the model in ``kept``."""
     # One common first row for the model and every candidate, so that the RSS values compare.
-    lag = max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
+    lag = first_row(terms, effects) if lag is None else lag
     key = (tuple(terms), noise_lags, saturating, lag, alpha)
     model = kept.model(key) if kept is not None else None
     if model is None:
@@ -189,6 +192,12 @@ def score_effects(
         effects, candidates, residual, model.own_past, model.dof, level, rank, noise_lags, threads
     )
     return Scores(float(np.sqrt(np.mean(residual**2))), level, total, scores)
+
+
+def first_row(terms: Sequence[Term], effects: Sequence[Effect]) -> int:
+    """The first row of a scoring's equations: the longest lag of the model and of the families'
+    terms."""
+    return max([max_lag(terms)] + [max_lag(e.terms) for e in effects if e.terms])
 
 
 @dataclass

@@ -91,7 +91,6 @@ LONGEST_FILES = (
     "test_service_cli.py",
     "test_upload_memory.py",
     "test_api_novelty.py",
-    "test_sim_scenarios.py",
     "test_api_refinements.py",
     "test_readme.py",
     "test_jobs.py",
@@ -110,6 +109,13 @@ LONGEST_FILES = (
     "test_api_sensor_noise.py",
     "test_tenancy.py",
     "test_fleet_scale.py",
+    "test_vector.py",
+    "test_layers.py",
+    "test_glitches.py",
+    "test_upload_hardening.py",
+    "test_selection.py",
+    "test_sim_chain.py",
+    "test_sim_scenarios.py",
 )
 
 

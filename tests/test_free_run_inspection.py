@@ -37,7 +37,11 @@ TRAININGS, RECORDS = 5, 40
 
 @pytest.fixture(scope="module")
 def modes() -> list[FreeRunMode]:
-    return free_run_modes()
+    """Both springs' modes from training set 61 000, whose searches end with a cancelled pole
+    and zero and are searched again without them
+    (:func:`test_the_healthy_point_simulates_the_chain_closer_than_the_far_spring_moves_it`): the
+    tests that read these modes hold for any training set, that one too."""
+    return free_run_modes(seed=61_000)
 
 
 def faulty_records(
@@ -220,19 +224,14 @@ def test_the_healthy_point_simulates_the_chain_closer_than_the_far_spring_moves_
     search ended in another basin of the free-run error, a spurious negative pole in place of
     the slow one, several times further off: the far spring's mode then spent its slope on that
     misfit, not on the spring (its k̂ at the range's end on every record of some training sets,
-    healthy ones too)."""
-    misfit, change = healthy_misfit_and_far_spring_change(modes[0])
-    assert misfit < 3 * change
+    healthy ones too).
 
-
-def test_a_healthy_point_whose_pole_a_zero_cancels_is_searched_again_without_the_pair() -> None:
-    """Training set 61 000's searches both ended with a pole near −0.93 and a zero on it, the
+    Training set 61 000's searches both ended with a pole near −0.93 and a zero on it, the
     chain's response left to the ARX's three other poles: its healthy point missed a noise-free
     record by seven times what a 12 % looser far spring changes, and the far spring's mode
     claimed a slope of the wrong sign. Searched again with the pair taken out, the joint fit
     ends lower, with four slow poles and no such pair, within the bound the other training
     sets meet."""
-    modes = free_run_modes(seed=61_000)
     assert without_cancelled_poles(modes[0].model.narx_at(0.0)) is None
     misfit, change = healthy_misfit_and_far_spring_change(modes[0])
     assert misfit < 3 * change

@@ -1,53 +1,36 @@
 """``narxwatch-sim stream --scenario``: the fault each record carries, read back from what it wrote.
 
 The records go to files (``--out``), so that the manifest states each record's fault and k and the
-files hold the simulated physics, which ``simulate`` with the manifest's seed makes again.
+files hold the simulated physics, which ``simulate`` with the manifest's seed makes again. The
+command runs through the console script's entry point in this process (``harness.cli.invoke``):
+what is tested is what it writes and its exit code, not the process, and a process of its own
+spends most of its time on imports.
 """
 
 from __future__ import annotations
 
 import csv
 import datetime as dt
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from harness.cli import invoke
 from recordfiles.reader import read_record
 from simulator.client.scheduler import Course, ScenarioOptions, Stream
 from simulator.simulate import simulate
 from simulator.study import StudySettings
 
-SIM = shutil.which("narxwatch-sim", path=str(Path(sys.executable).parent))
 SETTINGS = StudySettings()
 
 
 def stream_to_files(tmp_path: Path, *args: str) -> list[dict[str, str]]:
-    assert SIM, "the narxwatch-sim console script is not installed next to this Python"
-    result = subprocess.run(
-        [
-            SIM,
-            "stream",
-            "--every",
-            "0",
-            "--per-day",
-            "4",
-            "--seed",
-            "100",
-            "--n",
-            "600",
-            "--out",
-            str(tmp_path),
-            *args,
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert result.returncode == 0, result.stderr
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    invoke(
+        "stream", "--every", "0", "--per-day", "4", "--seed", "100", "--n", "600", "--out", str(tmp_path),
+        *args, cwd=tmp_path, script="narxwatch-sim",
+    )  # fmt: skip
     with (tmp_path / "manifest.csv").open(newline="") as handle:
         return list(csv.DictReader(handle))
 
@@ -125,14 +108,11 @@ def test_per_day_sets_the_acquisition_times_whatever_the_pace():
     ],
 )
 def test_options_that_do_not_fit_the_scenario_exit_2(args, message, tmp_path: Path):
-    result = subprocess.run(
-        [SIM, "stream", "--per-day", "4", "--out", str(tmp_path), *args]
-        if "--per-day" not in args
-        else [SIM, "stream", "--out", str(tmp_path), *args],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    # A few records at once: were the options taken, the stream would end, not wait in this process.
+    given = ["--every", "0", "--out", str(tmp_path)]
+    given += [] if "--per-day" in args else ["--per-day", "4"]
+    given += [] if "--count" in args else ["--count", "3"]
+    result = invoke("stream", *given, *args, cwd=tmp_path, check=False, script="narxwatch-sim")
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
     assert list(tmp_path.iterdir()) == []
