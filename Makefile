@@ -6,7 +6,8 @@ BIN    := $(VENV)/bin
 # test and documentation tools on top (`make test`, `make docs`, …), so that `make test` after
 # `make run` adds only the tools. uv installs them (the venv's own pip brings it): it resolves
 # as pip does but downloads and unpacks in parallel, where pip's one-at-a-time install was most
-# of a fresh clone's set-up.
+# of a fresh clone's set-up. --compile-bytecode writes the .pyc files at install, as pip does:
+# where PYTHONDONTWRITEBYTECODE is set, every process would otherwise compile all it imports.
 RUN_STAMP  := $(VENV)/.installed-run
 TEST_STAMP := $(VENV)/.installed-test
 # SysIdentPy, the independent FROLS bench/bench_frols.py compares with, caps numpy below the
@@ -25,11 +26,11 @@ TEST_WORKERS ?= 2
 $(RUN_STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet uv
-	$(BIN)/uv pip install --quiet --python $(BIN)/python -e .
+	$(BIN)/uv pip install --quiet --compile-bytecode --python $(BIN)/python -e .
 	touch $@
 
 $(TEST_STAMP): $(RUN_STAMP)
-	$(BIN)/uv pip install --quiet --python $(BIN)/python -e '.[test]'
+	$(BIN)/uv pip install --quiet --compile-bytecode --python $(BIN)/python -e '.[test]'
 	touch $@
 
 run: $(RUN_STAMP)
@@ -45,7 +46,7 @@ run: $(RUN_STAMP)
 $(BENCH_STAMP): pyproject.toml
 	$(PYTHON) -m venv $(BENCH_VENV)
 	$(BENCH_VENV)/bin/pip install --quiet uv
-	$(BENCH_VENV)/bin/uv pip install --quiet --python $(BENCH_VENV)/bin/python -e '.[bench]'
+	$(BENCH_VENV)/bin/uv pip install --quiet --compile-bytecode --python $(BENCH_VENV)/bin/python -e '.[bench]'
 	touch $(BENCH_STAMP)
 
 reproduce: $(RUN_STAMP)
