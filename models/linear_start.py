@@ -256,12 +256,18 @@ def _smallest_driven(
     driven = {key for key in pool if figures[key].driven and np.any(np.isfinite(figures[key].figure))}
     if figures[chosen].driven or not driven:
         return chosen
-    running = {key for key in driven if np.all(figures[key].figure < spreads)}
+    running = {key for key in driven if _simulates(figures[key].figure, spreads)}
     if not running:
         return min(driven, key=lambda key: (_parameters(key), key[0]))
     return _smallest_near_best(
         {key: figures[key] for key in running}, running, margin, max_order, samples, spreads
     )
+
+
+def _simulates(figure: np.ndarray, spreads: np.ndarray) -> bool:
+    """Whether a candidate's free-run ``figure`` is below the output's ``spreads`` on every
+    rotation: closer than a model that answers the output's mean (:func:`_spread`)."""
+    return bool(np.all(figure < spreads))
 
 
 def _spread(check: Segments) -> float:
@@ -310,10 +316,10 @@ def _smallest_near_best(
             "over their held-out parts without diverging"
         )
     lowest = figures[best].figure
-    simulates = bool(np.all(lowest < spreads))
+    simulates = _simulates(lowest, spreads)
 
     def near_best(key: _Linear) -> bool:
-        if simulates and not bool(np.all(figures[key].figure < spreads)):
+        if simulates and not _simulates(figures[key].figure, spreads):
             return False
         return (
             mean[key] <= (1 + margin) * mean[best]
