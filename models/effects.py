@@ -159,6 +159,13 @@ class Effect:
         return 1 if self.kind in ("output_shift", "saturation", "rectified", "combined") else len(self.terms)
 
 
+# Coloured noise: the moving-average terms of a NARMAX, offered in the rounds and, after them, as
+# the refined model's noise model (:mod:`models.noise_model`).
+MOVING_AVERAGE_NOISE = Effect(
+    "moving_average_noise", "coloured noise: moving-average terms e[t-k] (NARMAX)", (), "noise"
+)
+
+
 def linear_terms(ny: int, nx: int, delay: int = 1, constant: bool = False) -> tuple[Term, ...]:
     """A linear ARX structure: y[t-1] … y[t-ny] and x[t-delay] … x[t-delay-nx+1], and with a
     ``constant`` the term 1 (an operating point away from zero)."""
@@ -333,7 +340,7 @@ def _structure_effects(terms: Sequence[Term], ny: int, x_lags: Sequence[int]) ->
             (),
             "periodic",
         ),
-        Effect("moving_average_noise", "coloured noise: moving-average terms e[t-k] (NARMAX)", (), "noise"),
+        MOVING_AVERAGE_NOISE,
     ]
 
 

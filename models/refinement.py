@@ -121,12 +121,13 @@ from models.checking import (
     grown_by_zeros,
 )
 from models.coverage import coverage
-from models.effects import Effect, candidate_effects, linear_terms
+from models.effects import MOVING_AVERAGE_NOISE, Effect, candidate_effects, linear_terms
 from models.errors import InputError
 from models.growing import Grown, loop_on, restless_then_rms
 from models.held_out import HeldOut, compare_on_tails, held_out_tails
 from models.linear_start import MAX_LINEAR_ORDER, choose_linear, rectified_orders
 from models.narx import NARX
+from models.noise_model import with_noise_model
 from models.output_error import comes_to_rest, free_run_at_rest, rings_from_measured
 from models.periods import pooled_period_noise
 from models.refinement_report import (
@@ -398,9 +399,13 @@ def refine(
         workers=workers,
         threads=threads,
     )
+    # The noise model after the process effects are settled (models.noise_model), where the
+    # families on offer include noise.
+    family = MOVING_AVERAGE_NOISE if effects is None or MOVING_AVERAGE_NOISE in effects else None
+    noise_modelled = partial(with_noise_model, family=family, alpha=alpha, tell=tell, threads=threads)
     split = held_out_tails(records)
     if split is None:
-        return grow(records).refinement
+        return noise_modelled(grow(records).refinement, records)
     heads, tails = split
     short = any(len(y) < MIN_BLOCK for _, y, _ in tails)
     orders_saw_tails = short and declared is None
@@ -413,18 +418,17 @@ def refine(
     except InputError:
         # Too few equations for the candidates once the tails are held out: refined on all of
         # them, with nothing to compare on (the report says so).
-        return grow(records).refinement
+        return noise_modelled(grow(records).refinement, records)
     grown = _start_on_tails(grown, heads, tails, short)
     if not short:
         grown = _refined_on_tails(grown, heads, tails)
     held_out = _judged_on_tails(grown, tails, short, orders_saw_tails, tell)
     settled = settled_from(grown, held_out, heads, tails, tell)
     if not any(settled):
-        return _on_all(grown, held_out, records, output_error, tell, threads)
+        return noise_modelled(_on_all(grown, held_out, records, output_error, tell, threads), records)
     settled_records = [(x[cut:], y[cut:]) for (x, y), cut in zip(records, settled, strict=True)]
-    return replace(
-        _on_all(grown, held_out, settled_records, output_error, tell, threads), settled_from=settled
-    )
+    refined = _on_all(grown, held_out, settled_records, output_error, tell, threads)
+    return noise_modelled(replace(refined, settled_from=settled), settled_records)
 
 
 def _judged_on_tails(

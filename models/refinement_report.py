@@ -25,7 +25,7 @@ from models.scoring import EffectScore
 # long records runs for minutes, and a caller shows where it is.
 Stage = Callable[[str], None]
 Criterion = Literal[
-    "one-step", "output error", "simulation", "simulation across folds", "output's range", "pair"
+    "one-step", "output error", "simulation", "simulation across folds", "output's range", "pair", "whiteness"
 ]
 Estimator = Literal["least squares", "output error"]
 Verdict = Literal["better", "not better", "diverged"]
@@ -46,7 +46,9 @@ class Round:
     of three folds by at least ``FOLD_GAIN``),
     "output's range" (the rectifier, taken where the records read as a magnitude) or "pair" (the
     first significant family, whose model alone ran free worse, with the family the next round
-    adds lowering that free run by at least ``SIMULATION_GAIN``: :func:`models.round_criteria.as_pair`);
+    adds lowering that free run by at least ``SIMULATION_GAIN``: :func:`models.round_criteria.as_pair`)
+    or "whiteness" (moving-average noise after the rounds, its lags significant on the returned
+    model's one-step residual, the process left as it was: :mod:`models.noise_model`);
     ``check_rms`` is the check blocks' free-run RMS before and after the round (by output error,
     settled, across folds).
     """

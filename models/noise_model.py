@@ -1,0 +1,155 @@
+"""The refined model's noise model (SPEC §7: coloured noise that needs moving-average terms),
+chosen once its process effects are settled.
+
+A NARMAX's noise terms are chosen after its process terms, by the one-step criterion, and judged
+by how they whiten the residual (Billings 2013, ch. 3 and 5; Chen, Billings & Luo 1989). In the
+loop's rounds moving-average noise enters only where its extended least-squares fit, the process
+re-estimated with it, runs free over the check blocks no worse than the model without it
+(:mod:`models.growing`): there it is judged as what unbiases the process, by the process's free
+run. But a moving-average model does not change the deterministic model, whose free run ignores
+the noise terms, and where the re-estimated process runs free worse (noise on the measured input:
+a moving-average model describes its equation error but does not remove its bias) the rounds
+refuse the noise and the returned model's residual stays coloured, its one-step prediction
+lacking what predicts it.
+
+So once the loop has made the model it returns (the refined model, or its start), the noise
+family is tested again on that structure's one-step residual by the rounds' own test
+(:func:`models.scoring.score_effects`: each lag offered enters by its partial F test at the level
+α over the lags offered, beside the lags already in), and offered again with longer lags while
+some enter. Its coefficients are fitted to the returned process's own one-step residual by the
+prediction error (:func:`moving_average`), the process parameters left as the loop estimated and
+approved them: the noise model changes the one-step prediction, and the free run stays the one
+the loop judged.
+A model whose rounds added noise keeps the noise model its process was estimated with.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+from scipy import signal
+
+from models.effects import Effect
+from models.narmax import invertible
+from models.refinement_report import Refinement, Round, Stage
+from models.regression import Workers
+from models.scoring import NARMAX_ITERATIONS, Records, score_effects
+
+# The noise family offered at most this many times after the rounds, its lags growing each time
+# (four lags an offer, :data:`models.scoring.NOISE_LAGS_OFFERED`).
+NOISE_OFFERS = 10
+# The prediction-error search stops when no coefficient moves by more than this, or when a step
+# shortened below ``MIN_STEP`` of Gauss–Newton's lowers the error no more.
+COEFFICIENT_STEP = 1e-6
+MIN_STEP = 1e-3
+# The long autoregression of Hannan and Rissanen's start, in multiples of the moving-average order.
+LONG_AR_FACTOR = 4
+
+
+def with_noise_model(
+    result: Refinement,
+    records: Records,
+    family: Effect | None,
+    alpha: float,
+    tell: Stage | None = None,
+    threads: Workers = map,
+) -> Refinement:
+    """``result`` with the noise model its returned model's residual needs (module docstring),
+    each offer of the noise ``family`` that some lags entered reported as a round decided by
+    "whiteness"; ``result`` itself where no lag enters, where the rounds gave it a noise model
+    already, or where no noise family is on offer (``family`` None). ``records`` are those the
+    returned model was estimated on."""
+    if family is None or result.noise.size:
+        return result
+    if tell is not None:
+        tell("the noise model of the refined model's residual")
+    refined = result.refined
+    saturating = None if refined.output_limits is None else (refined.output_limits, refined.saturation)
+    lags, rounds = 0, []
+    for _ in range(NOISE_OFFERS):
+        scores = score_effects(
+            records, refined.terms, lags, [family], alpha, saturating=saturating, threads=threads
+        )
+        (score,) = scores.scores
+        if not score.significant:
+            break
+        step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, score, "whiteness")
+        # The free run is the returned model's: the noise model leaves the process as it was.
+        rounds.append(replace(step, check_rms=(result.check_rms, result.check_rms)))
+        lags = score.noise_lags
+    if not rounds:
+        return result
+    residuals = [refined.residuals(x, y) for x, y in records]
+    return replace(result, noise=moving_average(residuals, lags), rounds=result.rounds + tuple(rounds))
+
+
+def moving_average(residuals: Sequence[np.ndarray], lags: int) -> np.ndarray:
+    """The coefficients c_1 … c_q (q = ``lags``) of e[t] = ξ[t] + Σ c_i·ξ[t−i], ξ white, that
+    minimise the one-step prediction error Σ ξ² of the ``residuals`` e of each record (no lag
+    crossing from one to the next): Gauss–Newton on ξ = e / C(q), with the invertible factor
+    (:func:`models.narmax.invertible`) at every step, from Hannan and Rissanen's estimate.
+
+    Not extended least squares: that pseudo-linear regression converges to the coefficients only
+    where 1/C − 1/2 is positive real, and a colour with a root near the unit circle, such as the
+    simulator's force-sensor noise C(z) = 1 + 1.5z⁻¹ + 1.2z⁻² + 0.9z⁻³ + 0.6z⁻⁴ + 0.3z⁻⁵ (a root
+    at 0.91), is not: on that noise alone it settles far from them and leaves it coloured."""
+    records = [np.asarray(e, dtype=np.float64) for e in residuals]
+    coefficients = invertible(_hannan_rissanen(records, lags))
+    innovations = _innovations(records, coefficients)
+    cost = _sum_of_squares(innovations)
+    for _ in range(NARMAX_ITERATIONS):
+        # ∂ξ/∂c_i = −q⁻ⁱ·ξ / C(q), each record's from its own start.
+        sensitivities = [
+            -_lagged(signal.lfilter([1.0], np.concatenate(([1.0], coefficients)), xi), lags)
+            for xi in innovations
+        ]
+        step, *_ = np.linalg.lstsq(np.vstack(sensitivities), -np.concatenate(innovations), rcond=None)
+        length = 1.0
+        while length >= MIN_STEP:
+            trial = invertible(coefficients + length * step)
+            trial_innovations = _innovations(records, trial)
+            trial_cost = _sum_of_squares(trial_innovations)
+            if trial_cost < cost:
+                break
+            length /= 2
+        else:
+            break
+        moved = np.max(np.abs(trial - coefficients))
+        coefficients, innovations, cost = trial, trial_innovations, trial_cost
+        if moved < COEFFICIENT_STEP:
+            break
+    return coefficients
+
+
+def _hannan_rissanen(records: Sequence[np.ndarray], lags: int) -> np.ndarray:
+    """Hannan and Rissanen's moving-average estimate: the innovations estimated as the residual of
+    a long autoregression, then e regressed on their lags."""
+    order = LONG_AR_FACTOR * lags
+    rows = [(_lagged(e, order), e) for e in records if e.size > order]
+    ar, *_ = np.linalg.lstsq(
+        np.vstack([a for a, _ in rows]), np.concatenate([e for _, e in rows]), rcond=None
+    )
+    innovations = [e - _lagged(e, order) @ ar for e in records]
+    lagged = np.vstack([_lagged(xi, lags) for xi in innovations])
+    coefficients, *_ = np.linalg.lstsq(lagged, np.concatenate(records), rcond=None)
+    return coefficients
+
+
+def _innovations(records: Sequence[np.ndarray], coefficients: np.ndarray) -> list[np.ndarray]:
+    """ξ = e / C(q) on each record, from rest at its start."""
+    denominator = np.concatenate(([1.0], coefficients))
+    return [signal.lfilter([1.0], denominator, e) for e in records]
+
+
+def _sum_of_squares(series: Sequence[np.ndarray]) -> float:
+    return float(sum(np.dot(s, s) for s in series))
+
+
+def _lagged(series: np.ndarray, lags: int) -> np.ndarray:
+    """Columns series[t−1] … series[t−lags], zero before the series' start."""
+    columns = np.zeros((series.size, lags))
+    for i in range(1, min(lags, series.size - 1) + 1):
+        columns[i:, i - 1] = series[:-i]
+    return columns
