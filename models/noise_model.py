@@ -13,14 +13,14 @@ refuse the noise and the returned model's residual stays coloured, its one-step 
 lacking what predicts it.
 
 So once the loop has made the model it returns (the refined model, or its start), the noise
-family is tested again on that structure's one-step residual by the rounds' own test
-(:func:`models.scoring.score_effects`: each lag offered enters by its partial F test at the level
-α over the lags offered, beside the lags already in), and offered again with longer lags while
-some enter. Its coefficients are fitted to the returned process's own one-step residual by the
-prediction error (:func:`moving_average`), the process parameters left as the loop estimated and
-approved them: the noise model changes the one-step prediction, and the free run stays the one
-the loop judged.
-A model whose rounds added noise keeps the noise model its process was estimated with.
+family is offered on that model's own one-step residual, as the rounds offer it: the next four
+lags of the innovations (the residual itself at first) enter greedily, each by its partial F test
+at the level α over the four lags offered, and where some enter the moving-average order becomes
+the longest, the coefficients are fitted by the prediction error (:func:`moving_average`) and the
+noise family is offered again beyond it on the innovations that fit leaves. The process
+parameters stay as the loop estimated and approved them: the noise model changes the one-step
+prediction, and the free run is the one the loop judged. A model whose rounds added noise keeps
+the noise model its process was estimated with.
 """
 
 from __future__ import annotations
@@ -29,16 +29,15 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
-from scipy import signal
+from scipy import signal, special
 
 from models.effects import Effect
 from models.narmax import invertible
 from models.refinement_report import Refinement, Round, Stage
-from models.regression import Workers
-from models.scoring import NARMAX_ITERATIONS, Records, score_effects
+from models.scoring import NARMAX_ITERATIONS, NOISE_LAGS_OFFERED, EffectScore, Records
 
 # The noise family offered at most this many times after the rounds, its lags growing each time
-# (four lags an offer, :data:`models.scoring.NOISE_LAGS_OFFERED`).
+# (:data:`models.scoring.NOISE_LAGS_OFFERED` an offer, as in the rounds).
 NOISE_OFFERS = 10
 # The prediction-error search stops when no coefficient moves by more than this, or when a step
 # shortened below ``MIN_STEP`` of Gauss–Newton's lowers the error no more.
@@ -54,35 +53,80 @@ def with_noise_model(
     family: Effect | None,
     alpha: float,
     tell: Stage | None = None,
-    threads: Workers = map,
 ) -> Refinement:
     """``result`` with the noise model its returned model's residual needs (module docstring),
     each offer of the noise ``family`` that some lags entered reported as a round decided by
     "whiteness"; ``result`` itself where no lag enters, where the rounds gave it a noise model
     already, or where no noise family is on offer (``family`` None). ``records`` are those the
-    returned model was estimated on."""
+    returned model was estimated on; ``alpha`` the level of each offer's test."""
     if family is None or result.noise.size:
         return result
     if tell is not None:
         tell("the noise model of the refined model's residual")
-    refined = result.refined
-    saturating = None if refined.output_limits is None else (refined.output_limits, refined.saturation)
-    lags, rounds = 0, []
+    residuals = [result.refined.residuals(x, y) for x, y in records]
+    innovations, noise, rounds = residuals, np.empty(0), []
     for _ in range(NOISE_OFFERS):
-        scores = score_effects(
-            records, refined.terms, lags, [family], alpha, saturating=saturating, threads=threads
-        )
-        (score,) = scores.scores
+        score = _offer(family, innovations, noise.size, alpha / NOISE_LAGS_OFFERED)
         if not score.significant:
             break
-        step = Round(scores.residual_rms, scores.level, scores.candidates, scores.scores, score, "whiteness")
+        noise = moving_average(residuals, score.noise_lags)
+        innovations = _innovations(residuals, noise)
+        rms = float(np.sqrt(_sum_of_squares(innovations) / sum(e.size for e in residuals)))
+        step = Round(rms, alpha / NOISE_LAGS_OFFERED, NOISE_LAGS_OFFERED, (score,), score, "whiteness")
         # The free run is the returned model's: the noise model leaves the process as it was.
         rounds.append(replace(step, check_rms=(result.check_rms, result.check_rms)))
-        lags = score.noise_lags
     if not rounds:
         return result
-    residuals = [refined.residuals(x, y) for x, y in records]
-    return replace(result, noise=moving_average(residuals, lags), rounds=result.rounds + tuple(rounds))
+    return replace(result, noise=noise, rounds=result.rounds + tuple(rounds))
+
+
+def _offer(family: Effect, innovations: Sequence[np.ndarray], lags: int, level: float) -> EffectScore:
+    """The noise ``family`` offered beyond the ``lags`` the noise model has: the innovations'
+    next ``NOISE_LAGS_OFFERED`` lags, beside the first ``lags``, enter greedily by the fall of the
+    residual sum of squares, each by its partial F test at ``level``; the moving-average order
+    becomes the longest that entered (zero where none did, as the rounds' scoring counts it)."""
+    longest = lags + NOISE_LAGS_OFFERED
+    columns = np.vstack([_lagged(xi, longest) for xi in innovations])
+    target = np.concatenate(innovations)
+    if lags:
+        basis, _ = np.linalg.qr(columns[:, :lags])
+        target = target - basis @ (basis.T @ target)
+        columns = columns - basis @ (basis.T @ columns)
+    candidates = columns[:, lags:]
+    total = rss = float(target @ target)
+    dof = target.size - lags
+    chosen: list[int] = []
+    f_values: list[float] = []
+    p_values: list[float] = []
+    while len(chosen) < NOISE_LAGS_OFFERED:
+        norms = np.einsum("ij,ij->j", candidates, candidates)
+        falls = np.where(norms > 0, (candidates.T @ target) ** 2 / np.where(norms > 0, norms, 1.0), -1.0)
+        falls[chosen] = -1.0
+        best = int(np.argmax(falls))
+        dof -= 1
+        f = falls[best] / ((rss - falls[best]) / dof)
+        p = float(special.fdtrc(1, dof, f))
+        if falls[best] <= 0 or p >= level:
+            break
+        chosen.append(best)
+        f_values.append(float(f))
+        p_values.append(p)
+        unit = candidates[:, best] / np.sqrt(norms[best])
+        target = target - unit * (unit @ target)
+        candidates = candidates - np.outer(unit, unit @ candidates)
+        rss -= falls[best]
+    explained = 1 - rss / total if total > 0 else 0.0
+    n = sum(xi.size for xi in innovations)
+    return EffectScore(
+        family.name,
+        family.description,
+        explained,
+        n * float(np.log1p(-min(explained, 1 - 1e-300))) + len(chosen) * float(np.log(n)),
+        tuple(f"e[t-{lags + 1 + i}]" for i in chosen),
+        tuple(f_values),
+        tuple(p_values),
+        noise_lags=lags + 1 + max(chosen) if chosen else 0,
+    )
 
 
 def moving_average(residuals: Sequence[np.ndarray], lags: int) -> np.ndarray:
