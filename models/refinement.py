@@ -75,6 +75,11 @@ drives' test free run from 0.662 to 0.677 ticks/s.
 and the held-out tails show it, the model is estimated from where they settled
 (:mod:`models.settling`).
 
+**The noise model.** Once the model returned is made, moving-average noise the rounds did not add
+(its re-estimated process ran free worse) is offered on that model's own one-step residual and,
+where its lags whiten it significantly, reported as the noise model, the process left as it was
+(:mod:`models.noise_model`).
+
 The refined structure's parameters are finally refined by output-error minimisation on all the
 estimation records (:func:`models.output_error.fit_output_error`), which removes the bias that
 noise on the measured output gives least squares, when on the check blocks the output-error fit
