@@ -98,7 +98,7 @@ def _offer(family: Effect, innovations: Sequence[np.ndarray], lags: int, level: 
     chosen: list[int] = []
     f_values: list[float] = []
     p_values: list[float] = []
-    while len(chosen) < NOISE_LAGS_OFFERED:
+    while len(chosen) < NOISE_LAGS_OFFERED and rss > 0 and dof > 1:
         norms = np.einsum("ij,ij->j", candidates, candidates)
         falls = np.where(norms > 0, (candidates.T @ target) ** 2 / np.where(norms > 0, norms, 1.0), -1.0)
         falls[chosen] = -1.0
@@ -172,6 +172,9 @@ def _hannan_rissanen(records: Sequence[np.ndarray], lags: int) -> np.ndarray:
     a long autoregression, then e regressed on their lags."""
     order = LONG_AR_FACTOR * lags
     rows = [(_lagged(e, order), e) for e in records if e.size > order]
+    if not rows:  # records too short for the long autoregression: from white innovations
+        rows = [(np.zeros((e.size, 0)), e) for e in records]
+        order = 0
     ar, *_ = np.linalg.lstsq(
         np.vstack([a for a, _ in rows]), np.concatenate([e for _, e in rows]), rcond=None
     )
