@@ -57,7 +57,10 @@ class HeldOut:
     ``kept``: the refined model was returned; otherwise the start was, and ``best_tried`` names
     the effect that had lowered the check blocks' free run most. ``orders_saw_tails``: the linear
     start's orders were chosen on the whole records, tails too (records of a few hundred
-    samples, :func:`models.refinement.refine`), which can only favour the start."""
+    samples, :func:`models.refinement.refine`), which can only favour the start.
+    ``fixed_points_beyond``: the levels beyond the records' outputs at which the refined model
+    comes to rest and the start does not (:func:`models.fixed_points.beyond_the_records`); where
+    there are any, the refined model is not returned, however it ran over the tails."""
 
     samples: int
     start_rms: float
@@ -68,6 +71,7 @@ class HeldOut:
     kept: bool = True
     best_tried: str | None = None
     orders_saw_tails: bool = False
+    fixed_points_beyond: tuple[float, ...] = ()
 
     @property
     def better(self) -> bool:

@@ -123,6 +123,7 @@ from models.checking import (
 from models.coverage import coverage
 from models.effects import Effect, candidate_effects, linear_terms
 from models.errors import InputError
+from models.fixed_points import beyond_the_records
 from models.growing import Grown, loop_on, restless_then_rms
 from models.held_out import HeldOut, compare_on_tails, held_out_tails
 from models.linear_start import MAX_LINEAR_ORDER, choose_linear, rectified_orders
@@ -417,7 +418,7 @@ def refine(
     grown = _start_on_tails(grown, heads, tails, short)
     if not short:
         grown = _refined_on_tails(grown, heads, tails)
-    held_out = _judged_on_tails(grown, tails, short, orders_saw_tails, tell)
+    held_out = _judged_on_tails(grown, heads, tails, short, orders_saw_tails, tell)
     settled = settled_from(grown, held_out, heads, tails, tell)
     if not any(settled):
         return _on_all(grown, held_out, records, output_error, tell, threads)
@@ -428,23 +429,30 @@ def refine(
 
 
 def _judged_on_tails(
-    grown: Grown, tails: Segments, short: bool, orders_saw_tails: bool, tell: Stage
+    grown: Grown, heads: Records, tails: Segments, short: bool, orders_saw_tails: bool, tell: Stage
 ) -> HeldOut | None:
     """The refined model beside the start on the held-out ``tails`` where the loop added an
     effect (:func:`models.held_out.compare_on_tails`), its ``kept`` false where the tails do not
-    support it; None where nothing was added."""
+    support it, or where it comes to rest at levels beyond the outputs the records (``heads``
+    and ``tails``) measured that the start does not (:func:`models.fixed_points.beyond_the_records`);
+    None where nothing was added.
+
+    The tails lie within the records' range, as every check block does: a polynomial or power
+    law that fits the records there and settles elsewhere beyond it passes them all, and a
+    record that leaves the range finds the model at rest where the structure is not."""
     result = grown.refinement
     if not result.effects_added:
         return None
     tell("the refined model and the start on the held-out tails")
-    held_out = replace(
-        compare_on_tails(grown.start, result.refined, tails), orders_saw_tails=orders_saw_tails
-    )
     refined, start = result.refined, grown.start
+    beyond = beyond_the_records(start, refined, [*heads, *((x, y) for x, y, _ in tails)])
+    held_out = replace(
+        compare_on_tails(start, refined, tails), orders_saw_tails=orders_saw_tails, fixed_points_beyond=beyond
+    )
     # Moving-average noise alone, there to unbias the parameters, leaves the process
     # structure as it was: on long tails it need only not make the free run worse.
     noise_only = refined.terms == start.terms and refined.output_limits == start.output_limits
-    if not (held_out.better or (noise_only and not short and held_out.not_worse)):
+    if beyond or not (held_out.better or (noise_only and not short and held_out.not_worse)):
         held_out = replace(held_out, kept=False, best_tried=_best_tried(result.kept))
     return held_out
 

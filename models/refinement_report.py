@@ -275,6 +275,7 @@ def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
         "refined_returned": held_out.kept,
         "best_tried": held_out.best_tried,
         "orders_saw_tails": held_out.orders_saw_tails,
+        "fixed_points_beyond": list(held_out.fixed_points_beyond),
     }
 
 
@@ -292,6 +293,15 @@ def _held_out_notes(result: Refinement) -> list[str]:
         ]
     if held_out.kept:
         return []
+    if held_out.fixed_points_beyond:
+        levels = ", ".join(f"{level:.4g}" for level in held_out.fixed_points_beyond)
+        return [
+            f"the data could not support the effects: with its input held at the records' mean the "
+            f"refined model comes to rest at {levels}, beyond the outputs the estimation records "
+            f"measured, where the start does not; no record judged it there, and a record that goes "
+            f"there would find it settling where the structure may not. The start is returned (the "
+            f"best effect tried: {held_out.best_tried})"
+        ]
     refined = "diverged" if held_out.diverged else f"ran free at {held_out.refined_rms:.4g}"
     return [
         f"the data could not support the effects: over the estimation records' held-out tails "
