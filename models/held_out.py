@@ -58,9 +58,10 @@ class HeldOut:
     the effect that had lowered the check blocks' free run most. ``orders_saw_tails``: the linear
     start's orders were chosen on the whole records, tails too (records of a few hundred
     samples, :func:`models.refinement.refine`), which can only favour the start.
-    ``fixed_points_beyond``: the levels beyond the records' outputs at which the refined model
-    comes to rest and the start does not (:func:`models.fixed_points.beyond_the_records`); where
-    there are any, the refined model is not returned, however it ran over the tails."""
+    ``kinks_beyond``: the refined model's terms, the start's aside, whose law changes form at an
+    output of zero that the records never reached but come near
+    (:func:`models.kinks.kinks_beyond_the_records`); where there are any, the refined model is
+    not returned, however it ran over the tails."""
 
     samples: int
     start_rms: float
@@ -71,7 +72,7 @@ class HeldOut:
     kept: bool = True
     best_tried: str | None = None
     orders_saw_tails: bool = False
-    fixed_points_beyond: tuple[float, ...] = ()
+    kinks_beyond: tuple[str, ...] = ()
 
     @property
     def better(self) -> bool:

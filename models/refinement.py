@@ -123,9 +123,9 @@ from models.checking import (
 from models.coverage import coverage
 from models.effects import Effect, candidate_effects, linear_terms
 from models.errors import InputError
-from models.fixed_points import beyond_the_records
 from models.growing import Grown, loop_on, restless_then_rms
 from models.held_out import HeldOut, compare_on_tails, held_out_tails
+from models.kinks import kinks_beyond_the_records
 from models.linear_start import MAX_LINEAR_ORDER, choose_linear, rectified_orders
 from models.narx import NARX
 from models.output_error import comes_to_rest, free_run_at_rest, rings_from_measured
@@ -433,26 +433,26 @@ def _judged_on_tails(
 ) -> HeldOut | None:
     """The refined model beside the start on the held-out ``tails`` where the loop added an
     effect (:func:`models.held_out.compare_on_tails`), its ``kept`` false where the tails do not
-    support it, or where it comes to rest at levels beyond the outputs the records (``heads``
-    and ``tails``) measured that the start does not (:func:`models.fixed_points.beyond_the_records`);
-    None where nothing was added.
+    support it, or where it holds laws of the output that change form at zero, a zero the
+    records (``heads`` and ``tails``) never reached but come near (:mod:`models.kinks`); None
+    where nothing was added.
 
-    The tails lie within the records' range, as every check block does: a polynomial or power
-    law that fits the records there and settles elsewhere beyond it passes them all, and a
-    record that leaves the range finds the model at rest where the structure is not."""
+    The tails lie within the records' range, as every check block does: a law that fits the
+    records there and mirrors itself across a zero beyond them passes them all, and a record
+    that crosses that zero finds the model's restoring force where the law put it."""
     result = grown.refinement
     if not result.effects_added:
         return None
     tell("the refined model and the start on the held-out tails")
     refined, start = result.refined, grown.start
-    beyond = beyond_the_records(start, refined, [*heads, *((x, y) for x, y, _ in tails)])
+    kinks = kinks_beyond_the_records(start, refined, [*heads, *((x, y) for x, y, _ in tails)])
     held_out = replace(
-        compare_on_tails(start, refined, tails), orders_saw_tails=orders_saw_tails, fixed_points_beyond=beyond
+        compare_on_tails(start, refined, tails), orders_saw_tails=orders_saw_tails, kinks_beyond=kinks
     )
     # Moving-average noise alone, there to unbias the parameters, leaves the process
     # structure as it was: on long tails it need only not make the free run worse.
     noise_only = refined.terms == start.terms and refined.output_limits == start.output_limits
-    if beyond or not (held_out.better or (noise_only and not short and held_out.not_worse)):
+    if kinks or not (held_out.better or (noise_only and not short and held_out.not_worse)):
         held_out = replace(held_out, kept=False, best_tried=_best_tried(result.kept))
     return held_out
 

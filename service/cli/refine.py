@@ -450,8 +450,8 @@ def _print_withdrawn(report: dict[str, Any]) -> None:
     held_out = report["held_out"]
     if held_out is not None and not held_out["refined_returned"]:
         why = (
-            "the refined model comes to rest beyond the records' outputs where the start does not"
-            if held_out["fixed_points_beyond"]
+            "the refined model holds laws that change form at an output of zero the records never reached"
+            if held_out["kinks_beyond"]
             else "the refined model was not better than the start on the held-out tails"
         )
         stdout.print(
@@ -595,12 +595,16 @@ def _print_held_out(held_out: dict[str, Any], per: str) -> None:
         else f"gain {_share(held_out['gain'])} of the mean square, threshold {_share(held_out['threshold'])} "
         f"(its uncertainty at level {held_out['level']:g})"
     )
-    beyond = ", ".join(_number(level) for level in held_out["fixed_points_beyond"])
+    kinks = ", ".join(held_out["kinks_beyond"])
     decision = (
         "the refined model is returned"
         if held_out["refined_returned"]
         else f"the start is returned (the best effect tried: {held_out['best_tried']})"
-        + (f", the refined model coming to rest at {beyond}, beyond the records' outputs" if beyond else "")
+        + (
+            f", the refined model's {kinks} changing form at an output of zero the records never reached"
+            if kinks
+            else ""
+        )
     )
     stdout.print(
         f"held-out tails ({held_out['samples']} samples {unseen_by(held_out['orders_saw_tails'])}): "
