@@ -52,7 +52,9 @@ of many gains there by chance: where the records are long enough, the loop runs 
 first part only, and the model it refines is compared with its start on the records' tails,
 which no choice saw (:mod:`models.held_out`). Unless it simulates them better beyond the
 comparison's uncertainty, the start is returned and the report says the data could not support
-the effects, naming the best one tried. The start there is its least-squares fit where that
+the effects, naming the best one tried; so it is where the refined model holds a law of the
+output kinked at a zero the records come near but never reach, whose mirror across it no record
+judged (:mod:`models.kinks`). The start there is its least-squares fit where that
 simulates the tails better than its output-error fit beyond the same uncertainty
 (:func:`_start_on_tails`), and so is the refined model on tails of a block or more
 (:func:`_refined_on_tails`). Whichever is returned has its parameters estimated on all the records

@@ -451,7 +451,7 @@ def _print_withdrawn(report: dict[str, Any]) -> None:
     if held_out is not None and not held_out["refined_returned"]:
         why = (
             "the refined model holds laws that change form at an output of zero the records never reached"
-            if held_out["kinks_beyond"]
+            if held_out.get("kinks_beyond")
             else "the refined model was not better than the start on the held-out tails"
         )
         stdout.print(
@@ -595,7 +595,8 @@ def _print_held_out(held_out: dict[str, Any], per: str) -> None:
         else f"gain {_share(held_out['gain'])} of the mean square, threshold {_share(held_out['threshold'])} "
         f"(its uncertainty at level {held_out['level']:g})"
     )
-    kinks = ", ".join(held_out["kinks_beyond"])
+    # Reports stored before the gate named kinked laws carry no such list.
+    kinks = ", ".join(held_out.get("kinks_beyond") or ())
     decision = (
         "the refined model is returned"
         if held_out["refined_returned"]
