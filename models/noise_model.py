@@ -13,14 +13,15 @@ refuse the noise and the returned model's residual stays coloured, its one-step 
 lacking what predicts it.
 
 So once the loop has made the model it returns (the refined model, or its start), the noise
-family is offered on that model's own one-step residual, as the rounds offer it: the next four
-lags of the innovations (the residual itself at first) enter greedily, each by its partial F test
-at the level α over the four lags offered, and where some enter the moving-average order becomes
-the longest, the coefficients are fitted by the prediction error (:func:`moving_average`) and the
-noise family is offered again beyond it on the innovations that fit leaves. The process
-parameters stay as the loop estimated and approved them: the noise model changes the one-step
-prediction, and the free run is the one the loop judged. A model whose rounds added noise keeps
-the noise model its process was estimated with.
+family is offered on its structure's equation error (the least-squares residual) as the rounds
+offer it: the next four lags of the innovations (the residual itself at first) enter greedily,
+each by its partial F test at the level α over the four lags offered, and where some enter the
+moving-average order becomes the longest, the coefficients are fitted by the prediction error
+(:func:`moving_average`) and the noise family is offered again beyond it on the innovations that
+fit leaves. The coefficients reported are fitted to the returned model's own one-step residual.
+The process parameters stay as the loop estimated and approved them: the noise model changes the
+one-step prediction, and the free run is the one the loop judged. A model whose rounds added
+noise keeps the noise model its process was estimated with.
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ from scipy import signal, special
 from models.effects import Effect
 from models.narmax import invertible
 from models.refinement_report import Refinement, Round, Stage
-from models.scoring import NARMAX_ITERATIONS, NOISE_LAGS_OFFERED, EffectScore, Records
+from models.scoring import NARMAX_ITERATIONS, NOISE_LAGS_OFFERED, EffectScore, Records, fit_model
+from models.terms import max_lag
 
 # The noise family offered at most this many times after the rounds, its lags growing each time
 # (:data:`models.scoring.NOISE_LAGS_OFFERED` an offer, as in the rounds).
@@ -63,20 +65,36 @@ def with_noise_model(
         return result
     if tell is not None:
         tell("the noise model of the refined model's residual")
-    residuals = [result.refined.residuals(x, y) for x, y in records]
-    innovations, noise, rounds = residuals, np.empty(0), []
+    refined = result.refined
+    saturating = None if refined.output_limits is None else (refined.output_limits, refined.saturation)
+    # The colour tested is the structure's equation error, its least-squares residual: an
+    # output-error fit's one-step residual is coloured by that fit's distance from least squares
+    # as well, which is no noise (on clean records of the rig, its structure declared, it named
+    # noise where the output-error fit was returned).
+    least_squares, _ = fit_model(
+        records,
+        refined.terms,
+        0,
+        max_lag(refined.terms),
+        saturating=saturating,
+        rectified=refined.rectified,
+    )
+    equation_error = [least_squares.residuals(x, y) for x, y in records]
+    innovations, lags, rounds = equation_error, 0, []
     for _ in range(NOISE_OFFERS):
-        score = _offer(family, innovations, noise.size, alpha / NOISE_LAGS_OFFERED)
+        score = _offer(family, innovations, lags, alpha / NOISE_LAGS_OFFERED)
         if not score.significant:
             break
-        noise = moving_average(residuals, score.noise_lags)
-        innovations = _innovations(residuals, noise)
-        rms = float(np.sqrt(_sum_of_squares(innovations) / sum(e.size for e in residuals)))
+        lags = score.noise_lags
+        innovations = _innovations(equation_error, moving_average(equation_error, lags))
+        rms = float(np.sqrt(_sum_of_squares(innovations) / sum(e.size for e in equation_error)))
         step = Round(rms, alpha / NOISE_LAGS_OFFERED, NOISE_LAGS_OFFERED, (score,), score, "whiteness")
         # The free run is the returned model's: the noise model leaves the process as it was.
         rounds.append(replace(step, check_rms=(result.check_rms, result.check_rms)))
     if not rounds:
         return result
+    # The coefficients that predict the returned model's own one-step residual.
+    noise = moving_average([refined.residuals(x, y) for x, y in records], lags)
     return replace(result, noise=noise, rounds=result.rounds + tuple(rounds))
 
 
