@@ -188,14 +188,15 @@ CLEAN_CHECKS = (
 
 
 def clean_lines(clean: list[Clean], samples: int) -> list[str]:
-    """The three counts of the clean records, each with what was added where it should not be."""
+    """The three counts of the clean records, each with every set of effects added and how often."""
     lines = []
     for label, loop, allowed in CLEAN_CHECKS:
         added = [getattr(run, loop) for run in clean]
-        wrong = Counter(" + ".join(named) for named in added if not set(named) <= allowed)
+        honest = sum(set(named) <= allowed for named in added)
+        seen = Counter(" + ".join(named) for named in added if named)
         lines.append(
-            f"clean records ({samples} samples, {RIG_FORCE:.0f} N force), {label} in "
-            f"{len(clean) - wrong.total()}/{len(clean)}" + (f"; otherwise: {dict(wrong)}" if wrong else "")
+            f"clean records ({samples} samples, {RIG_FORCE:.0f} N force), {label} in {honest}/{len(clean)}"
+            + (f"; added: {dict(seen)}" if seen else "")
         )
     return lines
 
