@@ -38,7 +38,9 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from models.effects import STIFFNESS_EXPONENTS
 from models.refinement import refine
+from models.terms import Term
 from models.validation import validate
 from simulator.physics import PhysicalParameters
 from simulator.simulate import Effects, Scenario, simulate
@@ -56,6 +58,10 @@ LINEAR_RIG = Scenario(params=PhysicalParameters(k3=0.0), disturbance_std=RIG_FOR
 # The rig's own cubic spring on the measured mass (SPEC §2): with nothing declared, an effect the
 # loop may rightly name before the planted one.
 RIG_SPRING = "cubic_stiffness"
+# A power law of the output's stiffness with its exponent at the top of the range searched: the
+# data asked for a law at least that steep, and the cube is the rig's. Counted apart, as the
+# spring's stand-in, on the rig's clean records.
+LAW_AT_THE_TOP = f"power_law_stiffness p={STIFFNESS_EXPONENTS[1]:g}"
 
 
 @dataclass(frozen=True)
@@ -157,6 +163,13 @@ def run_case(case: int, samples: int, seed: int) -> Run:
     )
 
 
+def named(name: str, terms: tuple[str, ...]) -> str:
+    """An effect's name, a power law's with the exponent found (every lag of a law shares it)."""
+    if name != "power_law_stiffness" or not terms:
+        return name
+    return f"{name} p={Term.parse(terms[0]).factors[0].parameter:g}"
+
+
 @dataclass(frozen=True)
 class Clean:
     """The effects the loop added to the clean records of one seed: the linear structure's with
@@ -174,28 +187,40 @@ def run_clean(samples: int, seed: int) -> Clean:
     rig = simulate(RIG, samples, seed)
 
     def added(x: np.ndarray, y: np.ndarray, declared: str | None) -> tuple[str, ...]:
-        return tuple(effect.name for effect in refine([(x, y)], declared).effects_added)
+        return tuple(named(effect.name, effect.terms) for effect in refine([(x, y)], declared).effects_added)
 
     return Clean(added(linear.x, linear.y, None), added(rig.x, rig.y, None), added(rig.x, rig.y, EXACT_TERMS))
 
 
-# The clean records' three counts: which of a seed's loops, what it may add and stay honest.
+# The clean records' three counts: which of a seed's loops, what it may add and stay honest, and
+# what stands in for that (counted apart).
 CLEAN_CHECKS = (
-    ("linear structure, nothing declared: nothing added", "linear", frozenset()),
-    ("rig, nothing declared: nothing but the rig's own cubic spring added", "rig", frozenset({RIG_SPRING})),
-    ("rig declared: nothing added", "rig_declared", frozenset()),
+    ("linear structure, nothing declared: nothing added", "linear", frozenset(), frozenset()),
+    (
+        "rig, nothing declared: nothing but the rig's own cubic spring added",
+        "rig",
+        frozenset({RIG_SPRING}),
+        frozenset({LAW_AT_THE_TOP}),
+    ),
+    ("rig declared: nothing added", "rig_declared", frozenset(), frozenset()),
 )
 
 
 def clean_lines(clean: list[Clean], samples: int) -> list[str]:
     """The three counts of the clean records, each with every set of effects added and how often."""
     lines = []
-    for label, loop, allowed in CLEAN_CHECKS:
+    for label, loop, allowed, stand_ins in CLEAN_CHECKS:
         added = [getattr(run, loop) for run in clean]
-        honest = sum(set(named) <= allowed for named in added)
-        seen = Counter(" + ".join(named) for named in added if named)
+        honest = sum(set(effects) <= allowed for effects in added)
+        standing_in = sum(set(effects) <= allowed | stand_ins for effects in added) - honest
+        seen = Counter(" + ".join(effects) for effects in added if effects)
         lines.append(
             f"clean records ({samples} samples, {RIG_FORCE:.0f} N force), {label} in {honest}/{len(clean)}"
+            + (
+                f" (and {standing_in} with {' or '.join(sorted(stand_ins))} in its place)"
+                if stand_ins
+                else ""
+            )
             + (f"; added: {dict(seen)}" if seen else "")
         )
     return lines
