@@ -632,9 +632,11 @@ def test_a_worker_killed_during_a_delivery_does_not_lose_it(postgres_url: str, t
             victim = Worker(url, tmp_path / "victim.log", **FAST, **FAST_FAILOVER)
             announce(server, org, "alarm.opened", PAYLOAD)
             assert receiver.arrived.wait(60), "the worker never attempted the delivery"
-            victim.kill()
-            receiver.release.set()
+            # The other worker starts while the victim holds the job: its start-up goes on while
+            # the victim's missed heartbeats add up to a stall, not after.
             with workers(url, 1, tmp_path, **FAST, **FAST_FAILOVER):
+                victim.kill()
+                receiver.release.set()
                 (delivery,) = delivered(admin, f"/webhooks/{webhook['id']}")
     assert (delivery["status"], delivery["attempts"]) == ("delivered", 2)
     assert len(receiver.requests) == 2 and len(receiver.applied) == 1
