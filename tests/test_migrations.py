@@ -5,7 +5,6 @@ from __future__ import annotations
 import datetime as dt
 import json
 import uuid
-from collections.abc import Callable
 
 import pytest
 from alembic import command
@@ -16,7 +15,6 @@ from sqlalchemy import JSON, Connection, column, inspect, select, table, text
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from harness import migrated
 from service import tables
 from service.db import Base, make_engine
 from service.migrate import alembic_config, is_ours, upgrade_database
@@ -38,27 +36,11 @@ STATES_BEFORE_0024 = table(
 
 @pytest.fixture(params=["sqlite", "postgresql"])
 def fresh_url(request, tmp_path):
-    """An empty database, for the tests that the revisions build the declared schema from none."""
     if request.param == "sqlite":
         return f"sqlite:///{tmp_path / 'm.db'}"
     from harness import postgres
 
     return postgres.create_database(request.getfixturevalue("postgres_url"), f"migrations_{uuid.uuid4().hex}")
-
-
-@pytest.fixture(params=["sqlite", "postgresql"])
-def database_at(request, tmp_path) -> Callable[..., str]:
-    """``database_at(revision)``: a new database at that revision (the newest by default), for
-    the tests of what one revision does to the rows stored before it. A copy of one migrated
-    once (``harness.migrated``): the revisions before are the same whichever test runs them."""
-
-    def at(revision: str = migrated.HEAD) -> str:
-        if request.param == "sqlite":
-            return migrated.sqlite(tmp_path / "m.db", revision)
-        server = request.getfixturevalue("postgres_url")
-        return migrated.postgresql(server, f"migrations_{uuid.uuid4().hex}", revision)
-
-    return at
 
 
 def test_upgrade_matches_the_declared_tables(fresh_url):
@@ -134,11 +116,11 @@ def _organisation_and_structure(connection: Connection, now: dt.datetime) -> Non
     )
 
 
-def test_0006_keeps_the_newest_of_two_active_versions(database_at):
+def test_0006_keeps_the_newest_of_two_active_versions(fresh_url):
     """A database left with two active versions of one name (before 0006) keeps only the newest
     active, and from then on the database refuses a second active version."""
-    url = database_at("0005")
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0005")
+    engine = make_engine(fresh_url)
     versions = Base.metadata.tables["model_versions"]
     now = dt.datetime.now(dt.UTC)
     with engine.begin() as connection:
@@ -158,7 +140,7 @@ def test_0006_keeps_the_newest_of_two_active_versions(database_at):
                     created_at=now,
                 )
             )
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     with engine.begin() as connection:
         active = connection.execute(
             select(versions.c.name, versions.c.version).where(versions.c.active)
@@ -171,11 +153,11 @@ def test_0006_keeps_the_newest_of_two_active_versions(database_at):
     engine.dispose()
 
 
-def test_0008_lists_each_earlier_refinement_s_record_as_fitted(database_at):
+def test_0008_lists_each_earlier_refinement_s_record_as_fitted(fresh_url):
     """A refinement stored before 0008 was fitted on its one record: after the upgrade it lists
     that record as its only estimation record, and none judged whole."""
-    url = database_at("0007")
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0007")
+    engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     with engine.begin() as connection:
         _organisation_and_structure(connection, now)
@@ -203,7 +185,7 @@ def test_0008_lists_each_earlier_refinement_s_record_as_fitted(database_at):
                     created_at=now,
                 )
             )  # fmt: skip
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     with engine.connect() as connection:
         rows = connection.execute(
             text(
@@ -219,12 +201,12 @@ def test_0008_lists_each_earlier_refinement_s_record_as_fitted(database_at):
     engine.dispose()
 
 
-def test_0012_fills_each_structure_s_state_and_the_job_counts_from_what_is_stored(database_at):
+def test_0012_fills_each_structure_s_state_and_the_job_counts_from_what_is_stored(fresh_url):
     """Structures stored before 0012 get their state from their history: the newest verdict (by
     acquisition, then id, whatever the order of the ids), the start of its status's last run,
     and their counts; the embedded jobs that ended are counted by state. Downgrading drops both."""
-    url = database_at("0010")
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0010")
+    engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     day = dt.timedelta(days=1)
     t0 = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
@@ -265,7 +247,7 @@ def test_0012_fills_each_structure_s_state_and_the_job_counts_from_what_is_store
                     run_after=now, created_at=now,
                 )
             )  # fmt: skip
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     with Session(engine) as session:
         states = {s.structure_id: s for s in session.scalars(select(tables.StructureState))}
         counts = dict(session.execute(select(tables.JobCount.state, tables.JobCount.count)).all())
@@ -278,7 +260,7 @@ def test_0012_fills_each_structure_s_state_and_the_job_counts_from_what_is_store
     assert all(s.organisation_id == 1 for s in ordered)
     assert counts == {"done": 3, "failed": 1}
 
-    command.downgrade(alembic_config(url), "0010")
+    command.downgrade(alembic_config(fresh_url), "0010")
     with engine.connect() as connection:
         left = set(inspect(connection).get_table_names())
     engine.dispose()
@@ -325,34 +307,34 @@ def downgraded_once_deleted(url: str, revision: str, refused: str, delete: str) 
     assert schema_and_revision(url)[1] == [revision]
 
 
-def test_0015_is_undone_only_once_no_record_of_several_channels_is_stored(database_at):
+def test_0015_is_undone_only_once_no_record_of_several_channels_is_stored(fresh_url):
     """Downgrading past 0015 drops the channels the older schema cannot hold: refused, naming how
     many records, while any is stored (and nothing changes); once they are deleted it goes
     through and the records of one response stay. (It used to count every record, JSON's null
     stored for a record of one response being no SQL NULL.)"""
-    url = database_at()
-    _structure_with_records(url, None, ["a1", "a2"], None)
-    assert [null for _, null in _channels(url)] == [True, False, True]
+    upgrade_database(fresh_url)
+    _structure_with_records(fresh_url, None, ["a1", "a2"], None)
+    assert [null for _, null in _channels(fresh_url)] == [True, False, True]
     refused = r"^1 record\(s\) of several channels are stored"
-    downgraded_once_deleted(url, "0014", refused, "DELETE FROM records WHERE channels IS NOT NULL")
-    engine = make_engine(url)
+    downgraded_once_deleted(fresh_url, "0014", refused, "DELETE FROM records WHERE channels IS NOT NULL")
+    engine = make_engine(fresh_url)
     with engine.connect() as connection:
         assert connection.execute(text("SELECT COUNT(*) FROM records")).scalar() == 2
     engine.dispose()
 
 
-def test_0017_stores_a_record_of_one_response_with_sql_null_channels(database_at):
+def test_0017_stores_a_record_of_one_response_with_sql_null_channels(fresh_url):
     """Records stored before 0017 held JSON's null; after it, SQL NULL, as new ones are stored."""
-    url = database_at("0016")
-    _structure_with_records(url, JSON.NULL, ["a1", "a2"])  # JSON.NULL: what None was stored as
-    assert [null for _, null in _channels(url)] == [False, False]
-    upgrade_database(url)
-    assert [null for _, null in _channels(url)] == [True, False]
+    upgrade_database(fresh_url, "0016")
+    _structure_with_records(fresh_url, JSON.NULL, ["a1", "a2"])  # JSON.NULL: what None was stored as
+    assert [null for _, null in _channels(fresh_url)] == [False, False]
+    upgrade_database(fresh_url)
+    assert [null for _, null in _channels(fresh_url)] == [True, False]
 
 
-def test_0019_gives_each_alarm_the_organisation_of_its_structure_and_undoes_cleanly(database_at):
-    url = database_at("0018")
-    engine = make_engine(url)
+def test_0019_gives_each_alarm_the_organisation_of_its_structure_and_undoes_cleanly(fresh_url):
+    upgrade_database(fresh_url, "0018")
+    engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     with engine.begin() as connection:
         for organisation in (1, 2):
@@ -374,28 +356,28 @@ def test_0019_gives_each_alarm_the_organisation_of_its_structure_and_undoes_clea
             text("INSERT INTO alarm_transitions (alarm_id, to_state, at) VALUES (1, 'open', :t)"), dict(t=now)
         )
     engine.dispose()
-    upgrade_database(url)
-    engine = make_engine(url)
+    upgrade_database(fresh_url)
+    engine = make_engine(fresh_url)
     with engine.connect() as connection:
         rows = connection.execute(text("SELECT id, organisation_id FROM alarms ORDER BY id")).all()
         assert rows == [(1, 2), (2, 1), (3, 2)]
         assert connection.execute(text("SELECT alarm_id FROM alarm_transitions")).scalar_one() == 1
     engine.dispose()
-    command.downgrade(alembic_config(url), "0018")
-    engine = make_engine(url)
+    command.downgrade(alembic_config(fresh_url), "0018")
+    engine = make_engine(fresh_url)
     with engine.connect() as connection:
         assert "organisation_id" not in {c["name"] for c in inspect(connection).get_columns("alarms")}
         assert connection.execute(text("SELECT COUNT(*) FROM alarms")).scalar() == 3
     engine.dispose()
 
 
-def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(database_at):
+def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(fresh_url):
     """0013 alters verdicts, which SQLite does by copying the table, dropping the old one and
     renaming the copy. With foreign keys enforced during the drop, every verdict's link to its
     models (ON DELETE CASCADE) was deleted and each structure's latest verdict (ON DELETE SET NULL)
     forgotten; the migrations run with them off and check the references afterwards."""
-    url = database_at("0012")
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0012")
+    engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     table = Base.metadata.tables
     with engine.begin() as connection:
@@ -431,7 +413,7 @@ def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(database_a
                 latest_acquired_at=now, records=1, healthy=1, faulty=0, unknown_fault=0,
             )
         )  # fmt: skip
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     with engine.connect() as connection:
         assert connection.execute(text("SELECT verdict_id, model_version_id FROM verdict_models")).all() == [
             (1, 1)
@@ -440,13 +422,13 @@ def test_rebuilding_a_table_on_sqlite_keeps_the_rows_that_refer_to_it(database_a
     engine.dispose()
 
 
-def test_0020_is_undone_only_once_no_refinement_without_a_base_model_is_stored(database_at):
+def test_0020_is_undone_only_once_no_refinement_without_a_base_model_is_stored(fresh_url):
     """A refinement from the linear orders the loop chose has no base model, which the schema
     before 0020 cannot hold: downgrading is refused, naming how many, while one is stored (and
     nothing changes); once it is deleted it goes through and keeps the refinement from a base."""
-    url = database_at()
-    _structure_with_records(url, None)
-    engine = make_engine(url)
+    upgrade_database(fresh_url)
+    _structure_with_records(fresh_url, None)
+    engine = make_engine(fresh_url)
     now = utcnow()
     with engine.begin() as connection:
         connection.execute(
@@ -465,23 +447,23 @@ def test_0020_is_undone_only_once_no_refinement_without_a_base_model_is_stored(d
             )  # fmt: skip
     engine.dispose()
     refused = r"^1 refinement\(s\) without a base model are stored"
-    downgraded_once_deleted(url, "0019", refused, "DELETE FROM refinements WHERE base_model_id IS NULL")
-    schema, _ = schema_and_revision(url)
+    downgraded_once_deleted(fresh_url, "0019", refused, "DELETE FROM refinements WHERE base_model_id IS NULL")
+    schema, _ = schema_and_revision(fresh_url)
     assert ("base_model_id", "INTEGER", False) in schema["refinements"]["columns"]
-    engine = make_engine(url)
+    engine = make_engine(fresh_url)
     with engine.connect() as connection:
         assert connection.execute(text("SELECT id, base_model_id FROM refinements")).all() == [(1, 1)]
     engine.dispose()
 
 
-def test_0021_seals_the_webhooks_secrets_under_the_servers_keys_and_undoes_it(database_at, monkeypatch):
+def test_0021_seals_the_webhooks_secrets_under_the_servers_keys_and_undoes_it(fresh_url, monkeypatch):
     """Secrets stored as given before 0021 are sealed by it (none left readable in the table, each
     opened by the server's key alone), and downgrading gives them back as they were."""
     key = Fernet.generate_key().decode()
     monkeypatch.setenv("NARXWATCH_SECRET_KEYS", json.dumps([key]))
     secrets = {1: "whsec_" + "a" * 40, 2: "s" * 200}  # the longest the API takes
-    url = database_at("0020")
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0020")
+    engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     with engine.begin() as connection:
         connection.execute(
@@ -498,22 +480,22 @@ def test_0021_seals_the_webhooks_secrets_under_the_servers_keys_and_undoes_it(da
         with engine.connect() as connection:
             return {i: secret for i, secret in connection.execute(text("SELECT id, secret FROM webhooks"))}
 
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     sealed = stored()
     assert all(secrets[i] not in sealed[i] for i in secrets)
     assert {i: Fernet(key).decrypt(token.encode()).decode() for i, token in sealed.items()} == secrets
-    command.downgrade(alembic_config(url), "0020")
+    command.downgrade(alembic_config(fresh_url), "0020")
     assert stored() == secrets
     engine.dispose()
 
 
-def test_0022_reads_each_state_again_without_the_verdicts_acquired_in_the_future(database_at):
+def test_0022_reads_each_state_again_without_the_verdicts_acquired_in_the_future(fresh_url):
     """A structure whose state took a verdict dated 9999 for its latest (before acquisition times
     were checked) stands after 0022 on the newest verdict acquired up to the server's clock plus
     the skew allowed, its run read from those alone; one with only a future verdict is
     uninspected. The counts, and the states of structures without such a verdict, stay."""
-    url = database_at("0021")
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0021")
+    engine = make_engine(fresh_url)
     now = utcnow()
     day = dt.timedelta(days=1)
     t0 = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
@@ -563,7 +545,7 @@ def test_0022_reads_each_state_again_without_the_verdicts_acquired_in_the_future
                     **{"healthy": 0, "faulty": 0, "unknown_fault": 0} | state,
                 )
             )  # fmt: skip
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     with Session(engine) as session:
         after = {s.structure_id: s for s in session.scalars(select(tables.StructureState))}
     engine.dispose()
@@ -580,15 +562,15 @@ def test_0022_reads_each_state_again_without_the_verdicts_acquired_in_the_future
     assert tallies == {1: (5, 2, 3), 2: (1, 0, 1), 3: (1, 1, 0)}
 
 
-def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_history(database_at):
+def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_history(fresh_url):
     """A structure judged before 0023 has no kept rule state: its next verdict's evaluation builds
     it from the history, so the rules count the verdicts stored before the upgrade (here the two
     faulty ones that, with a third, make persistence's 3 of 5), and the next goes on from it.
     Downgrading drops the table."""
     from service.domain import alarms
 
-    url = database_at("0022")
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0022")
+    engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     t0 = dt.datetime(2026, 6, 1, tzinfo=dt.UTC)
     table = Base.metadata.tables
@@ -609,7 +591,7 @@ def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_hi
                     n_samples=3, z_critical=1.96, q_critical_detection=1.0, detected_by=[], modes=[],
                 )
             )  # fmt: skip
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     with Session(engine) as session:
         assert session.scalars(select(tables.AlarmState)).all() == []
         at = t0 + 3 * dt.timedelta(hours=1)
@@ -631,21 +613,21 @@ def test_0023_keeps_no_rule_state_until_the_rules_run_then_builds_it_from_the_hi
     assert kept.newest == [3, 3, alarms._microseconds(at)]
     assert opened == [("persistence", 3)]  # one faulty verdict alone fires no rule
 
-    command.downgrade(alembic_config(url), "0022")
+    command.downgrade(alembic_config(fresh_url), "0022")
     with engine.connect() as connection:
         left = set(inspect(connection).get_table_names())
     engine.dispose()
     assert "alarm_states" not in left and "verdicts" in left
 
 
-def test_0024_counts_no_anomaly_before_and_is_undone_only_once_no_baseline_verdict_is_stored(database_at):
+def test_0024_counts_no_anomaly_before_and_is_undone_only_once_no_baseline_verdict_is_stored(fresh_url):
     """A structure's state from before 0024 counts no anomaly; a verdict of a healthy baseline
     alone (no Ljung–Box lags, its figures in ``novelty``) can then be stored. The schema before
     cannot hold one: downgrading is refused, naming how many, while one is stored; once it is
     deleted it goes through and keeps the chain's verdict."""
-    url = database_at("0023")
-    _structure_with_records(url, None, None)
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0023")
+    _structure_with_records(fresh_url, None, None)
+    engine = make_engine(fresh_url)
     now = utcnow()
     table = Base.metadata.tables
     chain = dict(
@@ -667,7 +649,7 @@ def test_0024_counts_no_anomaly_before_and_is_undone_only_once_no_baseline_verdi
             ),
             {"record": first, "t": now},
         )
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     with engine.begin() as connection:
         assert connection.execute(text("SELECT anomaly FROM structure_states")).scalar_one() == 0
         connection.execute(
@@ -678,29 +660,29 @@ def test_0024_counts_no_anomaly_before_and_is_undone_only_once_no_baseline_verdi
         )  # fmt: skip
     engine.dispose()
     downgraded_once_deleted(
-        url,
+        fresh_url,
         "0023",
         r"^1 verdict\(s\) of a healthy baseline alone are stored",
         "DELETE FROM verdicts WHERE lags IS NULL",
     )
     nullable = {
         name: {column: null for column, _, null in kept["columns"]}
-        for name, kept in schema_and_revision(url)[0].items()
+        for name, kept in schema_and_revision(fresh_url)[0].items()
     }
     assert nullable["verdicts"]["lags"] is False and "novelty" not in nullable["verdicts"]
     assert "anomaly" not in nullable["structure_states"]
-    engine = make_engine(url)
+    engine = make_engine(fresh_url)
     with engine.connect() as connection:
         assert connection.execute(text("SELECT id, status, lags FROM verdicts")).all() == [(1, "healthy", 40)]
     engine.dispose()
 
 
-def test_0025_leaves_the_structures_stored_before_it_undeclared_and_undoes_cleanly(database_at):
+def test_0025_leaves_the_structures_stored_before_it_undeclared_and_undoes_cleanly(fresh_url):
     """Structures stored before 0025 keep their rows, with no quantity or unit declared (read as
     none: plain x and y), and what refers to them stays; downgrading drops the declarations and
     keeps the structures."""
-    url = database_at("0023")
-    engine = make_engine(url)
+    upgrade_database(fresh_url, "0023")
+    engine = make_engine(fresh_url)
     now = dt.datetime.now(dt.UTC)
     with engine.begin() as connection:
         _organisation_and_structure(connection, now)
@@ -708,14 +690,14 @@ def test_0025_leaves_the_structures_stored_before_it_undeclared_and_undoes_clean
             text("INSERT INTO structure_states (structure_id, organisation_id, records, healthy, faulty, "
                  "unknown_fault) VALUES (1, 1, 0, 0, 0, 0)")
         )  # fmt: skip
-    upgrade_database(url)
+    upgrade_database(fresh_url)
     with Session(engine) as session:
         structure = session.get(tables.Structure, 1)
         assert (structure.name, structure.fs) == ("s", 1500.0)
         assert structure.excitation is None and structure.response is None
         structure.response_quantity, structure.response_unit = "acceleration", "m/s²"
         session.commit()
-    command.downgrade(alembic_config(url), "0024")
+    command.downgrade(alembic_config(fresh_url), "0024")
     with engine.connect() as connection:
         columns = {c["name"] for c in inspect(connection).get_columns("structures")}
         kept = connection.execute(text("SELECT id, name, fs FROM structures")).all()
