@@ -34,7 +34,7 @@ from scipy import signal, special
 
 from models.effects import Effect
 from models.narmax import invertible
-from models.refinement_report import Refinement, Round, Stage
+from models.refinement_report import Refinement, Round
 from models.scoring import NARMAX_ITERATIONS, NOISE_LAGS_OFFERED, EffectScore, Records, fit_model
 from models.terms import max_lag
 
@@ -54,7 +54,6 @@ def with_noise_model(
     records: Records,
     family: Effect | None,
     alpha: float,
-    tell: Stage | None = None,
 ) -> Refinement:
     """``result`` with the noise model its returned model's residual needs (module docstring),
     each offer of the noise ``family`` that some lags entered reported as a round decided by
@@ -63,8 +62,6 @@ def with_noise_model(
     returned model was estimated on; ``alpha`` the level of each offer's test."""
     if family is None or result.noise.size:
         return result
-    if tell is not None:
-        tell("the noise model of the refined model's residual")
     refined = result.refined
     saturating = None if refined.output_limits is None else (refined.output_limits, refined.saturation)
     # The colour tested is the structure's equation error, its least-squares residual: an

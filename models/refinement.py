@@ -410,7 +410,7 @@ def refine(
     # The noise model after the process effects are settled (models.noise_model), where the
     # families on offer include noise.
     family = MOVING_AVERAGE_NOISE if effects is None or MOVING_AVERAGE_NOISE in effects else None
-    noise_modelled = partial(with_noise_model, family=family, alpha=alpha, tell=tell)
+    noise_modelled = partial(with_noise_model, family=family, alpha=alpha)
     split = held_out_tails(records)
     if split is None:
         return noise_modelled(grow(records).refinement, records)

@@ -94,8 +94,8 @@ def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silv
     through the command)."""
     x, y = silverbox.x, silverbox.y
     result = refine([(x[SILVERBOX_ESTIMATION], y[SILVERBOX_ESTIMATION])], linear_terms(4, 4), max_rounds=4)
-    names = [effect.name for effect in result.effects_added]
-    assert names == ["missing_lags", "cubic_damping", "offset", "cubic_stiffness"], names
+    names = process_effects(result)
+    assert names == ("missing_lags", "cubic_damping", "offset", "cubic_stiffness"), names
     test_x, test_y = x[SILVERBOX_ARROW], y[SILVERBOX_ARROW]
     before = held_out_errors(result.declared, test_x, test_y, SILVERBOX_INITIAL).free_run.rms
     after = held_out_errors(result.refined, test_x, test_y, SILVERBOX_INITIAL).free_run.rms
