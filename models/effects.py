@@ -150,6 +150,10 @@ class Effect:
     kind: EffectKind = "terms"
     find: Finder | None = field(default=None, compare=False)
     combine: Combiner | None = field(default=None, compare=False)
+    # For a law whose exponent is searched: the families of the integer laws of its signal its
+    # exponent's range lies between, which a law at an exponent between them can blend with an
+    # effect beside them (:func:`models.round_criteria.integer_law_first`).
+    integer_laws: tuple[str, ...] = ()
 
     @property
     def regressors(self) -> int:
@@ -276,6 +280,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             (),
             "estimated",
             functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS),
+            integer_laws=("cubic_stiffness",),
         ),
         Effect(
             "power_law_damping",
