@@ -290,12 +290,11 @@ def _smallest_near_best(
     the best's so raised; or its figures above the best's by no more than the spread of their
     difference (a question of noise, which the size does not enter); or its instrumental-variable
     fit running free no worse than the best on one rotation at least. A larger order is taken only
-    where it simulates better on every rotation, as a family is added across folds: a planted
-    backlash's best linear approximation runs free a fifth better at order 5 than at 4 on two
-    rotations, and worse on the third. The smaller order's own figure there is its
-    instrumental-variable fit's: an output-error search from measured starts on short blocks can
-    end well on one rotation by chance (on the rig, ARX(3, 3) with x[t], which cannot hold the
-    input's delay of four samples, ran free over one rotation below ARX(4, 4)).
+    where it simulates better on every rotation, as a family is added across folds. The smaller
+    order's own figure there is its instrumental-variable fit's: an output-error search from
+    measured starts on short blocks can end well on one rotation by chance (on the rig, ARX(3, 3)
+    with x[t], which cannot hold the input's delay of four samples, ran free over one rotation
+    below ARX(4, 4)).
 
     None is near a best that runs free over every rotation closer than the output's mean (below
     the check parts' ``spreads``) unless it does too: a free run off by many times the output's
