@@ -150,10 +150,10 @@ class Effect:
     kind: EffectKind = "terms"
     find: Finder | None = field(default=None, compare=False)
     combine: Combiner | None = field(default=None, compare=False)
-    # For a law whose exponent is searched: the families of the integer laws of its signal its
-    # exponent's range lies between, which a law at an exponent between them can blend with an
-    # effect beside them (:func:`models.round_criteria.integer_law_first`).
-    integer_laws: tuple[str, ...] = ()
+    # For a law whose exponent is searched: the families naming an integer law of its signal, by
+    # exponent, which a law at an exponent between it and the linear law can blend with an effect
+    # beside them (:func:`models.round_criteria.integer_law_first`).
+    integer_laws: tuple[tuple[str, float], ...] = ()
 
     @property
     def regressors(self) -> int:
@@ -280,7 +280,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             (),
             "estimated",
             functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, integer_above=True),
-            integer_laws=("cubic_stiffness",),
+            integer_laws=(("cubic_stiffness", 3.0),),
         ),
         Effect(
             "power_law_damping",

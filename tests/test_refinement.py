@@ -277,7 +277,7 @@ def test_a_searched_laws_first_block_counts_its_exponent_in_its_f_test():
     x, y = record.x, record.y
     declared = linear_terms(4, 4, 1)
     (law,) = [effect for effect in candidate_effects(declared) if effect.name == "power_law_stiffness"]
-    assert law.integer_laws == ("cubic_stiffness",)
+    assert law.integer_laws == (("cubic_stiffness", 3.0),)
     scores = score_effects([(x, y)], declared, 0, [law], DEFAULT_ALPHA)
     (score,) = scores.scores
     # The first block: the leading columns that share its F statistic; each after it alone.
