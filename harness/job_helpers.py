@@ -12,6 +12,7 @@ import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from harness import migrated
 from harness.api_helpers import TRAINING_K, simulated
 from harness.live import LiveServer
 from models.signals import checked_record, minimum_samples
@@ -20,7 +21,6 @@ from service.db import make_engine, session_factory, transaction
 from service.domain import modelling, records, structures
 from service.jobs.backends import job_backend
 from service.jobs.types import JobBackend
-from service.migrate import upgrade_database
 from service.schemas import Experiment, FaultModeTrain, StructureCreate
 from service.security import Principal, Role
 from service.tables import Organisation, Record, Structure
@@ -34,12 +34,11 @@ TOO_SHORT = 250
 
 
 def database_url(kind: str, tmp_path: Path, request: pytest.FixtureRequest) -> str:
-    """A new empty database: a SQLite file, or a database on the session's PostgreSQL server."""
+    """A new database at the newest schema revision, holding nothing: a SQLite file, or a database
+    on the session's PostgreSQL server."""
     if kind == "sqlite":
-        return f"sqlite:///{tmp_path / 'monitored.db'}"
-    from harness import postgres
-
-    return postgres.create_database(request.getfixturevalue("postgres_url"), f"jobs_{uuid.uuid4().hex[:12]}")
+        return migrated.sqlite(tmp_path / "monitored.db")
+    return migrated.postgresql(request.getfixturevalue("postgres_url"), f"jobs_{uuid.uuid4().hex[:12]}")
 
 
 def run_jobs(server: LiveServer) -> None:
@@ -61,8 +60,8 @@ class Monitored:
 
     @classmethod
     def create(cls, url: str, terms: list[str] | None = None) -> Monitored:
-        """Migrated, with one structure; with ``terms``, an active k2 model of those terms."""
-        upgrade_database(url)
+        """One structure in the migrated database at ``url`` (``database_url``); with ``terms``,
+        an active k2 model of those terms."""
         sessions = session_factory(make_engine(url))
         with transaction(sessions) as session:
             organisation = Organisation(name=f"org-{uuid.uuid4().hex[:8]}")

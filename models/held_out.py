@@ -57,7 +57,11 @@ class HeldOut:
     ``kept``: the refined model was returned; otherwise the start was, and ``best_tried`` names
     the effect that had lowered the check blocks' free run most. ``orders_saw_tails``: the linear
     start's orders were chosen on the whole records, tails too (records of a few hundred
-    samples, :func:`models.refinement.refine`), which can only favour the start."""
+    samples, :func:`models.refinement.refine`), which can only favour the start.
+    ``kinks_beyond``: the refined model's terms, the start's aside, whose law changes form at an
+    output of zero that the records never reached but come near
+    (:func:`models.kinks.kinks_beyond_the_records`); where there are any, the refined model is
+    not returned, however it ran over the tails."""
 
     samples: int
     start_rms: float
@@ -68,6 +72,7 @@ class HeldOut:
     kept: bool = True
     best_tried: str | None = None
     orders_saw_tails: bool = False
+    kinks_beyond: tuple[str, ...] = ()
 
     @property
     def better(self) -> bool:

@@ -52,7 +52,9 @@ of many gains there by chance: where the records are long enough, the loop runs 
 first part only, and the model it refines is compared with its start on the records' tails,
 which no choice saw (:mod:`models.held_out`). Unless it simulates them better beyond the
 comparison's uncertainty, the start is returned and the report says the data could not support
-the effects, naming the best one tried. The start there is its least-squares fit where that
+the effects, naming the best one tried; so it is where the refined model holds a law of the
+output kinked at a zero the records come near but never reach, whose mirror across it no record
+judged (:mod:`models.kinks`). The start there is its least-squares fit where that
 simulates the tails better than its output-error fit beyond the same uncertainty
 (:func:`_start_on_tails`), and so is the refined model on tails of a block or more
 (:func:`_refined_on_tails`). Whichever is returned has its parameters estimated on all the records
@@ -125,6 +127,7 @@ from models.effects import Effect, candidate_effects, linear_terms
 from models.errors import InputError
 from models.growing import Grown, loop_on, restless_then_rms
 from models.held_out import HeldOut, compare_on_tails, held_out_tails
+from models.kinks import kinks_beyond_the_records
 from models.linear_start import MAX_LINEAR_ORDER, choose_linear, rectified_orders
 from models.narx import NARX
 from models.output_error import comes_to_rest, free_run_at_rest, rings_from_measured
@@ -417,7 +420,7 @@ def refine(
     grown = _start_on_tails(grown, heads, tails, short)
     if not short:
         grown = _refined_on_tails(grown, heads, tails)
-    held_out = _judged_on_tails(grown, tails, short, orders_saw_tails, tell)
+    held_out = _judged_on_tails(grown, heads, tails, short, orders_saw_tails, tell)
     settled = settled_from(grown, held_out, heads, tails, tell)
     if not any(settled):
         return _on_all(grown, held_out, records, output_error, tell, threads)
@@ -428,23 +431,30 @@ def refine(
 
 
 def _judged_on_tails(
-    grown: Grown, tails: Segments, short: bool, orders_saw_tails: bool, tell: Stage
+    grown: Grown, heads: Records, tails: Segments, short: bool, orders_saw_tails: bool, tell: Stage
 ) -> HeldOut | None:
     """The refined model beside the start on the held-out ``tails`` where the loop added an
     effect (:func:`models.held_out.compare_on_tails`), its ``kept`` false where the tails do not
-    support it; None where nothing was added."""
+    support it, or where it holds laws of the output that change form at zero, a zero the
+    records (``heads`` and ``tails``) never reached but come near (:mod:`models.kinks`); None
+    where nothing was added.
+
+    The tails lie within the records' range, as every check block does: a law that fits the
+    records there and mirrors itself across a zero beyond them passes them all, and a record
+    that crosses that zero finds the model's restoring force where the law put it."""
     result = grown.refinement
     if not result.effects_added:
         return None
     tell("the refined model and the start on the held-out tails")
-    held_out = replace(
-        compare_on_tails(grown.start, result.refined, tails), orders_saw_tails=orders_saw_tails
-    )
     refined, start = result.refined, grown.start
+    kinks = kinks_beyond_the_records(start, refined, [*heads, *((x, y) for x, y, _ in tails)])
+    held_out = replace(
+        compare_on_tails(start, refined, tails), orders_saw_tails=orders_saw_tails, kinks_beyond=kinks
+    )
     # Moving-average noise alone, there to unbias the parameters, leaves the process
     # structure as it was: on long tails it need only not make the free run worse.
     noise_only = refined.terms == start.terms and refined.output_limits == start.output_limits
-    if not (held_out.better or (noise_only and not short and held_out.not_worse)):
+    if kinks or not (held_out.better or (noise_only and not short and held_out.not_worse)):
         held_out = replace(held_out, kept=False, best_tried=_best_tried(result.kept))
     return held_out
 

@@ -275,6 +275,7 @@ def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
         "refined_returned": held_out.kept,
         "best_tried": held_out.best_tried,
         "orders_saw_tails": held_out.orders_saw_tails,
+        "kinks_beyond": list(held_out.kinks_beyond),
     }
 
 
@@ -292,6 +293,14 @@ def _held_out_notes(result: Refinement) -> list[str]:
         ]
     if held_out.kept:
         return []
+    if held_out.kinks_beyond:
+        return [
+            f"the data could not support the effects: the refined model's {', '.join(held_out.kinks_beyond)} "
+            "change form where the output crosses zero, which the estimation records' outputs stay on "
+            "one side of and come near; across zero those laws mirror themselves as no record showed, "
+            f"and a record that crosses it would find the model there. The start is returned (the best "
+            f"effect tried: {held_out.best_tried})"
+        ]
     refined = "diverged" if held_out.diverged else f"ran free at {held_out.refined_rms:.4g}"
     return [
         f"the data could not support the effects: over the estimation records' held-out tails "

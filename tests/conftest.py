@@ -315,12 +315,12 @@ def sqlite_api_server(tmp_path_factory):
 def postgresql_api_server(postgres_url, tmp_path_factory):
     """The real app on PostgreSQL, served on loopback; the distributed job backend runs queued jobs
     on two `narxwatch worker` processes."""
-    from harness import postgres
+    from harness import migrated
     from harness.live import LiveServer
     from harness.workers import workers
     from service.config import Settings
 
-    url = postgres.create_database(postgres_url, "narxwatch_api")
+    url = migrated.postgresql(postgres_url, "narxwatch_api")
     with (
         LiveServer(Settings(database_url=url)) as server,
         workers(url, 2, tmp_path_factory.mktemp("workers")),
@@ -386,7 +386,7 @@ def fleet_server(request):  # yields harness.fleet.Fleet
     if request.param == "sqlite":
         yield request.getfixturevalue("sqlite_fleet_server")
         return
-    from harness import postgres
+    from harness import migrated
 
-    url = postgres.create_database(request.getfixturevalue("postgres_url"), f"fleet_{uuid.uuid4().hex[:12]}")
+    url = migrated.postgresql(request.getfixturevalue("postgres_url"), f"fleet_{uuid.uuid4().hex[:12]}")
     yield from _fleet(url)

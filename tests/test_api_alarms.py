@@ -44,7 +44,6 @@ from harness.live import LiveServer
 from models.alarms import DESIGN_SHIFT, design_cusum, in_control_arl
 from service.db import make_engine
 from service.domain import alarms
-from service.migrate import upgrade_database
 from service.security import Principal, Role
 from service.tables import Alarm, Structure, utcnow
 
@@ -406,10 +405,9 @@ def test_an_organisation_s_alarms_are_listed_without_reading_another_s(postgres_
     another organisation's, and growing with them. The page is read from the organisation's own
     index: the listing's plan returns a page and one from the alarms table, however many alarms
     the other organisation has (20 000 here, newer than all of this one's)."""
-    from harness import postgres
+    from harness import migrated
 
-    url = postgres.create_database(postgres_url, f"alarms_{uuid.uuid4().hex}")
-    upgrade_database(url)
+    url = migrated.postgresql(postgres_url, f"alarms_{uuid.uuid4().hex}")
     engine = make_engine(url)
     with engine.begin() as connection:
         connection.execute(

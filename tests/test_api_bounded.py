@@ -79,11 +79,11 @@ def bounded_server(request: pytest.FixtureRequest, database: str, folder: Path) 
                 LiveServer(Settings(database_url=f"sqlite:///{folder / 'narxwatch.db'}", **LIMITS))
             )
         else:
-            from harness import postgres
+            from harness import migrated
             from harness.workers import workers
 
             name = f"narxwatch_bounded_{uuid.uuid4().hex[:8]}"  # may run twice per server under xdist
-            url = postgres.create_database(request.getfixturevalue("postgres_url"), name)
+            url = migrated.postgresql(request.getfixturevalue("postgres_url"), name)
             server = stack.enter_context(LiveServer(Settings(database_url=url, **LIMITS)))
             stack.enter_context(workers(url, 1, folder, **{k: str(v) for k, v in LIMITS.items()}))
         org = Org.create(server)

@@ -525,6 +525,23 @@ def test_ids_outside_the_admitted_range_are_refused(database_site: Site, bad):
             assert errors[0]["loc"][1].endswith("_id"), errors
 
 
+@pytest.mark.parametrize("bad", [2**63, 2**31, 0, -1, "abc", "1.5"])
+def test_ids_in_queries_outside_the_admitted_range_are_refused(database_site: Site, bad):
+    site = database_site
+    queries = [
+        ("/alarms", "structure_id"),
+        ("/alarms", "cursor"),
+        ("/jobs", "cursor"),
+        ("/webhooks/1/deliveries", "cursor"),
+        ("/email-subscriptions/1/deliveries", "cursor"),
+    ]
+    with nothing_written(site.org, site.rig), site.org.client("admin") as admin:
+        for path, name in queries:
+            response = admin.get(API + path, params={name: bad})
+            assert response.status_code == 422, (path, name, response.text)
+            assert [error["loc"] for error in response.json()["detail"]] == [["query", name]]
+
+
 @pytest.mark.parametrize("bad", [2**63, 0, -1, "1", 1.0])
 def test_ids_in_bodies_outside_the_admitted_range_are_refused(database_site: Site, bad):
     site = database_site

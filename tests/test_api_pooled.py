@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import pytest
 from conftest import DISTURBANCE_STD
 
+from harness import migrated
 from harness.api_helpers import (
     API,
     RIG_TERMS,
@@ -259,7 +260,7 @@ def test_pooled_fault_mode_estimates_k_at_the_records_temperature(sqlite_api_ser
 def test_a_large_pooled_training_is_queued_and_its_job_stores_the_version(tmp_path) -> None:
     """Over the queueing threshold the training answers 202 and the job, run by the embedded
     worker, stores the same kind of version a training in the request would."""
-    settings = Settings(database_url=f"sqlite:///{tmp_path / 'narxwatch.db'}", queue_training_cells=1000)
+    settings = Settings(database_url=migrated.sqlite(tmp_path / "narxwatch.db"), queue_training_cells=1000)
     with LiveServer(settings) as server:
         org = Org.create(server)
         with clients(org) as (admin, ingest, viewer):

@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import event, func, select, text, update
 
+from harness import migrated
 from harness.api_helpers import (
     API,
     Org,
@@ -45,7 +46,6 @@ from service.domain import records, structures
 from service.domain.schedules import RUN_SCHEDULE
 from service.jobs.embedded import FIRST_RETRY, LEASE, MAX_ATTEMPTS, EmbeddedBackend, claim, defer, run
 from service.jobs.tasks import INSPECT_RECORD, TASKS
-from service.migrate import upgrade_database
 from service.schemas import StructureCreate
 from service.security import Principal, Role
 from service.tables import InspectionFailure, Job, ModelVersion, Organisation, Record, Verdict, utcnow
@@ -95,8 +95,7 @@ def test_an_unknown_inspect_mode_is_refused_and_stores_nothing(sqlite_api_server
 def queue(tmp_path: Path):
     """A migrated database with one structure (no models yet), one stored record and a job to
     inspect it."""
-    url = f"sqlite:///{tmp_path / 'jobs.db'}"
-    upgrade_database(url)
+    url = migrated.sqlite(tmp_path / "jobs.db")
     sessions = session_factory(make_engine(url))
     with transaction(sessions) as session:
         organisation = Organisation(name="jobs")
@@ -124,7 +123,7 @@ def test_a_leased_job_is_not_claimed_twice_until_its_lease_runs_out(queue):
 
 def test_a_failing_job_is_retried_with_backoff_then_marked_failed(tmp_path: Path):
     """An error that is not final (here a record whose stored signal cannot be read) is retried."""
-    monitored = Monitored.create(f"sqlite:///{tmp_path / 'retry.db'}", EXACT_TERM_NAMES)
+    monitored = Monitored.create(migrated.sqlite(tmp_path / "retry.db"), EXACT_TERM_NAMES)
     sessions, settings = monitored.sessions, monitored.settings
     damaged = monitored.store("none", 0.0, [73])
     with transaction(sessions) as session:

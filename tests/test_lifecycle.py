@@ -51,6 +51,7 @@ import uvloop
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import exc, func, select
 
+from harness import migrated
 from harness.api_helpers import API, create_structure, json_body, time_victim
 from harness.cli import NARXWATCH
 from harness.job_helpers import database_url as new_database
@@ -58,7 +59,6 @@ from harness.live import LiveServer, free_port, http_client, wait_until_serving
 from service.config import Settings
 from service.db import make_engine, session_factory, transaction
 from service.domain import structures
-from service.migrate import upgrade_database
 from service.schemas import StructureCreate
 from service.security import Role, authenticate, create_key
 from service.tables import Organisation, Record, Structure
@@ -387,7 +387,7 @@ async def silent(port: int, patience: float) -> Closed:
 
 def test_the_head_deadline_runs_from_the_opening_and_from_each_answer(tmp_path: Path):
     settings = Settings(
-        database_url=f"sqlite:///{tmp_path / 'narxwatch.db'}", header_timeout_seconds=HEADER_TIMEOUT
+        database_url=migrated.sqlite(tmp_path / "narxwatch.db"), header_timeout_seconds=HEADER_TIMEOUT
     )
     patience = HEADER_TIMEOUT + 8
 
@@ -480,7 +480,7 @@ def test_every_route_bounds_its_body_in_time_and_size(tmp_path: Path, route: str
     """A route whose body FastAPI parses (structures) and one that reads it itself (records):
     a body too slow is 408, a chunked body past the limit 413 (not the 400 FastAPI's body
     parsing makes of other errors); both close the connection, whose body is left unread."""
-    database = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    database = migrated.sqlite(tmp_path / "narxwatch.db")
     limits = {"max_upload_bytes": 4000, "max_request_bytes": 4000}
     settings = Settings(database_url=database, body_timeout_seconds=1.0, **limits)
     with LiveServer(settings) as server:
@@ -502,7 +502,7 @@ def test_only_record_uploads_take_bodies_the_size_of_a_record(tmp_path: Path):
     it is parsed, authenticated or not: FastAPI parses it before the route, and nested empty
     arrays cost Python some 25 times their text. Uploads of records and record sets take up to
     NARXWATCH_MAX_UPLOAD_BYTES."""
-    database = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    database = migrated.sqlite(tmp_path / "narxwatch.db")
     settings = Settings(database_url=database, max_request_bytes=2000, max_upload_bytes=8000)
     nested = b"[" + b"[]," * 1700 + b"[]]"  # 5 kB
     document = b'{"x": "' + b"a" * 5000 + b'"}'
@@ -541,9 +541,7 @@ EXECUTE FUNCTION refuse_at_commit();
 def test_a_failed_commit_is_never_answered_2xx(postgres_url: str):
     """The COMMIT itself fails (a deferred trigger): had the session been committed after the
     response was sent, the client would have had its 201 for a structure that does not exist."""
-    from harness import postgres
-
-    url = postgres.create_database(postgres_url, f"narxwatch_commit_{uuid.uuid4().hex[:8]}")
+    url = migrated.postgresql(postgres_url, f"narxwatch_commit_{uuid.uuid4().hex[:8]}")
     with LiveServer(Settings(database_url=url)) as server, server.client(server.key(Role.admin)) as admin:
         with server.app.state.engine.begin() as connection:
             connection.exec_driver_sql(REFUSE_AT_COMMIT)
@@ -574,8 +572,7 @@ def test_a_domain_write_on_sqlite_takes_the_writer_gate_unasked(tmp_path: Path):
     """Another process holds the gate: a read goes on, a structure created through the domain
     function (which never mentions the gate) waits until the gate is let go, then is stored."""
     database = tmp_path / "narxwatch.db"
-    url = f"sqlite:///{database}"
-    upgrade_database(url)
+    url = migrated.sqlite(database)
     sessions = session_factory(make_engine(url))
     with transaction(sessions) as session:
         key = create_key(session, "gated", Role.admin)
@@ -618,8 +615,7 @@ def test_a_domain_write_on_sqlite_takes_the_writer_gate_unasked(tmp_path: Path):
 def test_the_gate_is_given_back_at_commit_and_at_rollback(tmp_path: Path):
     """Two threads of one process: the second writer waits while the first's write transaction
     is open, and goes ahead once it ends, however it ends."""
-    url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
-    upgrade_database(url)
+    url = migrated.sqlite(tmp_path / "narxwatch.db")
     sessions = session_factory(make_engine(url))
 
     def second_write(name: str, done: threading.Event) -> None:

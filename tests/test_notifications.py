@@ -36,6 +36,7 @@ from pydantic import SecretStr, ValidationError
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from harness import migrated
 from harness.api_helpers import (
     API,
     Org,
@@ -57,7 +58,6 @@ from service.db import make_engine, session_factory, transaction
 from service.domain import notifications, renotify
 from service.jobs.distributed import conninfo
 from service.jobs.embedded import EmbeddedBackend, claim, defer, run
-from service.migrate import upgrade_database
 from service.sealing import check_keys, seal, unseal
 from service.tables import (
     Alarm,
@@ -100,8 +100,7 @@ class Outbox:
     subscription."""
 
     def __init__(self, tmp_path: Path) -> None:
-        url = f"sqlite:///{tmp_path / 'notify.db'}"
-        upgrade_database(url)
+        url = migrated.sqlite(tmp_path / "notify.db")
         self.settings = fast_settings(url, delivery_max_attempts=3)
         self.sessions: sessionmaker[Session] = session_factory(make_engine(url))
         with transaction(self.sessions) as session:
@@ -486,9 +485,7 @@ def notifying(request, tmp_path_factory, mailbox: Mailbox) -> Iterator[LiveServe
         with LiveServer(settings) as server:
             yield server
         return
-    from harness import postgres
-
-    url = postgres.create_database(request.getfixturevalue("postgres_url"), f"notify_{uuid.uuid4().hex[:12]}")
+    url = migrated.postgresql(request.getfixturevalue("postgres_url"), f"notify_{uuid.uuid4().hex[:12]}")
     with LiveServer(fast_settings(url, **smtp)) as server, workers(url, 1, folder, **FAST, **smtp):
         yield server
 
@@ -625,9 +622,7 @@ def test_a_worker_killed_during_a_delivery_does_not_lose_it(postgres_url: str, t
     """The receiver has acted on the event but not yet answered when the worker dies: the job
     runs again on another worker, the delivery is made again with the same key, and the
     receiver's application, which keeps the keys it has seen, acts once."""
-    from harness import postgres
-
-    url = postgres.create_database(postgres_url, f"notify_kill_{uuid.uuid4().hex[:12]}")
+    url = migrated.postgresql(postgres_url, f"notify_kill_{uuid.uuid4().hex[:12]}")
     with LiveServer(fast_settings(url)) as server, Receiver(SECRET, answers=[HANG]) as receiver:
         org = Org.create(server)
         with clients(org) as (admin, _, _):
@@ -637,9 +632,11 @@ def test_a_worker_killed_during_a_delivery_does_not_lose_it(postgres_url: str, t
             victim = Worker(url, tmp_path / "victim.log", **FAST, **FAST_FAILOVER)
             announce(server, org, "alarm.opened", PAYLOAD)
             assert receiver.arrived.wait(60), "the worker never attempted the delivery"
-            victim.kill()
-            receiver.release.set()
+            # The other worker starts while the victim holds the job: its start-up goes on while
+            # the victim's missed heartbeats add up to a stall, not after.
             with workers(url, 1, tmp_path, **FAST, **FAST_FAILOVER):
+                victim.kill()
+                receiver.release.set()
                 (delivery,) = delivered(admin, f"/webhooks/{webhook['id']}")
     assert (delivery["status"], delivery["attempts"]) == ("delivered", 2)
     assert len(receiver.requests) == 2 and len(receiver.applied) == 1
@@ -669,7 +666,7 @@ EmbeddedBackend(sessions, settings, run_in_process=False, lease=lease).work(once
 def test_an_embedded_worker_killed_during_a_delivery_does_not_lose_it(tmp_path: Path):
     """The same on SQLite: the killed worker's lease runs out, another worker claims the job
     again, and the receiver's application acts once on the two attempts."""
-    url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
+    url = migrated.sqlite(tmp_path / "narxwatch.db")
     lease = 1.5
     env = {**os.environ, "NARXWATCH_DATABASE_URL": url}
     env |= {f"NARXWATCH_{name.upper()}": value for name, value in FAST.items()}

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import func, select, text, update
 
+from harness import migrated
 from harness.api_helpers import (
     API,
     Org,
@@ -37,7 +38,6 @@ from service.domain import schedules
 from service.domain.schedules import RETRY_UNSWEPT, RUN_SCHEDULE, following
 from service.jobs import embedded
 from service.jobs.tasks import INSPECT_RECORD
-from service.migrate import upgrade_database
 from service.tables import (
     InspectionFailure,
     Job,
@@ -79,8 +79,7 @@ def test_a_cron_schedule_runs_at_the_next_matching_minute_in_utc():
 
 @pytest.fixture
 def database(tmp_path: Path):
-    url = f"sqlite:///{tmp_path / 'schedules.db'}"
-    upgrade_database(url)
+    url = migrated.sqlite(tmp_path / "schedules.db")
     sessions = session_factory(make_engine(url))
     with transaction(sessions) as session:
         organisation = Organisation(name="sweep")
@@ -336,11 +335,10 @@ def test_only_admins_change_schedules(tenant):
 
 @pytest.fixture(params=["sqlite", "postgresql"])
 def empty_database(request, tmp_path: Path) -> str:
+    """A new database holding nothing, at the newest revision."""
     if request.param == "sqlite":
-        return f"sqlite:///{tmp_path / 'three.db'}"
-    from harness import postgres
-
-    return postgres.create_database(request.getfixturevalue("postgres_url"), f"three_{uuid.uuid4().hex[:12]}")
+        return migrated.sqlite(tmp_path / "three.db")
+    return migrated.postgresql(request.getfixturevalue("postgres_url"), f"three_{uuid.uuid4().hex[:12]}")
 
 
 def run_schedule_count(database_url: str, schedule_id: int) -> int:

@@ -24,6 +24,7 @@ import pytest
 from cryptography.fernet import Fernet
 from sqlalchemy import insert, select, update
 
+from harness import migrated
 from harness.cli import invoke
 from harness.live import free_port, wait_until_serving
 from service.db import make_engine
@@ -333,8 +334,7 @@ def test_an_unreachable_database_server_is_a_one_line_error_without_the_password
 
 
 def test_db_reseal_seals_every_secret_under_the_first_key_or_changes_nothing(in_process, tmp_path):
-    url = f"sqlite:///{tmp_path / 'sealed.db'}"
-    upgrade_database(url)
+    url = migrated.sqlite(tmp_path / "sealed.db")
     old, new = (Fernet.generate_key().decode() for _ in range(2))
     secrets = ["whsec_" + letter * 32 for letter in "xy"]
     engine = make_engine(url)
@@ -365,7 +365,7 @@ def test_a_process_given_a_key_file_that_holds_no_key_stops_at_its_start_naming_
     newcomer, tmp_path, command
 ):
     env, workdir, database = newcomer
-    upgrade_database(f"sqlite:///{database}")
+    migrated.sqlite(database)
     wrong = tmp_path / "secret.key"
     wrong.write_text("hunter2\n")
     env |= {"NARXWATCH_SECRET_KEY_FILE": str(wrong), "NARXWATCH_LOG_FORMAT": "text"}

@@ -1,9 +1,9 @@
 """``narxwatch-sim`` run as a user runs it (the installed console script, the key in the
 environment) against the real service over HTTP, on SQLite and on PostgreSQL. A record, a scenario
-and a stream posted, Ctrl-C and the trainings waited for run the script as a process, each once;
-the other records and streams, the refusals, the files written and the structure commands go
-through its entry point in this process (``invoke_sim``), the same code but for the second of
-imports a new process spends.
+and a stream posted, Ctrl-C and a training waited for run the script as a process, each once;
+the other records and streams, the trainings given up on or failed, the refusals, the files
+written and the structure commands go through its entry point in this process (``invoke_sim``),
+the same code but for the second of imports a new process spends.
 
 The structure is trained through the API from 5 magnitudes per fault mode: coarser than the
 paper's 17, enough for the obvious cases used here (k2 29 %, k1 30 %). Seeds are fixed so that
@@ -21,6 +21,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -608,29 +609,69 @@ def queueing(tmp_path_factory) -> Iterator[LiveServer]:
         yield server
 
 
-def queued_training(
-    server: LiveServer, tenant: Tenant, *wait: str, **upload: str
-) -> tuple[subprocess.Popen, int]:
-    """``train baseline --wait …`` on a new structure's record, running until its job is queued:
-    the client and the id of the job it follows."""
+def training_command(tenant: Tenant, *wait: str, **upload: str) -> tuple[list[str], int]:
+    """``train baseline --wait …`` of a new structure's record: the arguments, and the structure."""
     structure_id = tenant.admin.post(
         "/api/v1/structures", json={"name": uuid.uuid4().hex, "fs": 1500.0}
     ).json()["id"]
     record = upload_simulated(tenant.ingest, structure_id, simulated("none", 0.0, [7]), **upload)["id"]
     args = ["train", "baseline", "--structure", str(structure_id), "--records", str(record)]
-    client = subprocess.Popen(
-        [SIM, *args, "--terms", ",".join(RIG_TERMS), "--wait", *wait],
-        env=sim_env(server.key(Role.admin, tenant.name), server.url),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    return [*args, "--terms", ",".join(RIG_TERMS), "--wait", *wait], structure_id
+
+
+def training_job(tenant: Tenant, structure_id: int) -> int:
+    """The id of the structure's training job, once it is queued."""
 
     def queued() -> int | None:
         jobs = tenant.admin.get("/api/v1/jobs").json()["items"]
         return next((j["id"] for j in jobs if j["args"].get("structure_id") == structure_id), None)
 
-    return client, wait_for(queued, 60, "the training's job")  # type: ignore[return-value]
+    return wait_for(queued, 60, "the training's job")  # type: ignore[return-value]
+
+
+def queued_training(
+    server: LiveServer, tenant: Tenant, *wait: str, **upload: str
+) -> tuple[subprocess.Popen, int]:
+    """``train baseline --wait …`` as a process, running until its job is queued: the client and
+    the id of the job it follows."""
+    args, structure_id = training_command(tenant, *wait, **upload)
+    client = subprocess.Popen(
+        [SIM, *args],
+        env=sim_env(server.key(Role.admin, tenant.name), server.url),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    return client, training_job(tenant, structure_id)
+
+
+def waited_training(
+    server: LiveServer, tenant: Tenant, meanwhile: Callable[[int], None], *wait: str, **upload: str
+) -> tuple[subprocess.CompletedProcess[str], int]:
+    """``train baseline --wait …`` through the entry point in this process, while another thread
+    finds its job once it is queued and does ``meanwhile(job id)``: what the client said, and the
+    job's id. (The entry point runs on this thread: it restores the handler of SIGTERM, which only
+    the main thread may set.)"""
+    args, structure_id = training_command(tenant, *wait, **upload)
+    followed: dict[str, int] = {}
+    failed: list[BaseException] = []
+
+    def follow() -> None:
+        try:
+            followed["job"] = training_job(tenant, structure_id)
+            meanwhile(followed["job"])
+        except BaseException as error:  # raised again on the test's thread
+            failed.append(error)
+
+    helper = threading.Thread(target=follow)
+    helper.start()
+    try:
+        said = invoke_sim(*args, key=server.key(Role.admin, tenant.name), url=server.url)
+    finally:
+        helper.join(60)
+    if failed:
+        raise failed[0]
+    return said, followed["job"]
 
 
 def test_train_wait_follows_the_queued_job_and_prints_the_version_it_made(queueing: LiveServer):
@@ -650,8 +691,8 @@ def test_train_wait_follows_the_queued_job_and_prints_the_version_it_made(queuei
 
 def test_train_wait_gives_up_after_its_time_and_the_job_goes_on(queueing: LiveServer):
     tenant = Tenant.create(queueing)
-    client, job_id = queued_training(queueing, tenant, "--wait-seconds", "1")
-    out, err = client.communicate(timeout=60)
+    client, job_id = waited_training(queueing, tenant, lambda _: None, "--wait-seconds", "1")
+    out, err = client.stdout, client.stderr
     assert client.returncode == 1 and out == "", err
     assert f"job {job_id} queued, 0 s" in err  # the progress line
     gave_up = f"job {job_id} is still queued after 1 s; it goes on in the service: follow it at /api/v1/jobs/"
@@ -663,17 +704,18 @@ def test_train_wait_exits_1_with_the_error_of_a_failed_job(queueing: LiveServer)
     """The record's signals pruned by the retention between the request and its job: the job
     fails, and the client says why."""
     tenant = Tenant.create(queueing)
-    client, job_id = queued_training(queueing, tenant, acquired_at="2020-01-01T00:00:00Z")
-    assert (
-        tenant.admin.put("/api/v1/retention", json={"signal_days": 1, "verdict_days": None}).status_code
-        == 200
-    )
-    with queueing.app.state.sessions() as session:
-        retention.prune(
-            session, session.scalar(select(Organisation.id).where(Organisation.name == tenant.name))
-        )
-    run_jobs(queueing)
-    out, err = client.communicate(timeout=60)
+
+    def prune_then_run(_: int) -> None:
+        policy = {"signal_days": 1, "verdict_days": None}
+        assert tenant.admin.put("/api/v1/retention", json=policy).status_code == 200
+        with queueing.app.state.sessions() as session:
+            retention.prune(
+                session, session.scalar(select(Organisation.id).where(Organisation.name == tenant.name))
+            )
+        run_jobs(queueing)
+
+    client, job_id = waited_training(queueing, tenant, prune_then_run, acquired_at="2020-01-01T00:00:00Z")
+    out, err = client.stdout, client.stderr
     job = tenant.admin.get(f"/api/v1/jobs/{job_id}").json()
     assert job["state"] == "failed" and job["error"], job
     assert client.returncode == 1 and out == "", err

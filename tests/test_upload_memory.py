@@ -131,10 +131,10 @@ def served(attack: Attack, tmp_path: Path, request) -> Iterator[Served]:
     if attack.database == "sqlite":
         database_url = f"sqlite:///{tmp_path / 'narxwatch.db'}"
     else:
-        from harness import postgres
+        from harness import migrated
 
         name = f"narxwatch_memory_{uuid.uuid4().hex[:8]}"
-        database_url = postgres.create_database(request.getfixturevalue("postgres_url"), name)
+        database_url = migrated.postgresql(request.getfixturevalue("postgres_url"), name)
     env = {
         **os.environ,
         "NARXWATCH_DATABASE_URL": database_url,

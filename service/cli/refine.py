@@ -449,9 +449,13 @@ def _print_withdrawn(report: dict[str, Any]) -> None:
     """The effects withdrawn and why, or that none was added."""
     held_out = report["held_out"]
     if held_out is not None and not held_out["refined_returned"]:
+        why = (
+            "the refined model holds laws that change form at an output of zero the records never reached"
+            if held_out.get("kinks_beyond")
+            else "the refined model was not better than the start on the held-out tails"
+        )
         stdout.print(
-            f"withdrawn: {', '.join(report['effects_withdrawn'])} — the refined model was not better than "
-            "the start on the held-out tails (below)",
+            f"withdrawn: {', '.join(report['effects_withdrawn'])} — {why} (below)",
             highlight=False,
             markup=False,
         )
@@ -591,10 +595,17 @@ def _print_held_out(held_out: dict[str, Any], per: str) -> None:
         else f"gain {_share(held_out['gain'])} of the mean square, threshold {_share(held_out['threshold'])} "
         f"(its uncertainty at level {held_out['level']:g})"
     )
+    # Reports stored before the gate named kinked laws carry no such list.
+    kinks = ", ".join(held_out.get("kinks_beyond") or ())
     decision = (
         "the refined model is returned"
         if held_out["refined_returned"]
         else f"the start is returned (the best effect tried: {held_out['best_tried']})"
+        + (
+            f", the refined model's {kinks} changing form at an output of zero the records never reached"
+            if kinks
+            else ""
+        )
     )
     stdout.print(
         f"held-out tails ({held_out['samples']} samples {unseen_by(held_out['orders_saw_tails'])}): "
