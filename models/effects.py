@@ -150,6 +150,10 @@ class Effect:
     kind: EffectKind = "terms"
     find: Finder | None = field(default=None, compare=False)
     combine: Combiner | None = field(default=None, compare=False)
+    # For a law whose exponent is searched: the families naming an integer law of its signal, by
+    # exponent, which a law at an exponent between it and the linear law can blend with an effect
+    # beside them (:func:`models.round_criteria.integer_law_first`).
+    integer_laws: tuple[tuple[str, float], ...] = ()
 
     @property
     def regressors(self) -> int:
@@ -282,7 +286,8 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             "a restoring force or outflow ∝ |y|^p·sign y, p estimated: a tank draining through an orifice",
             (),
             "estimated",
-            functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS),
+            functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, integer_above=True),
+            integer_laws=(("cubic_stiffness", 3.0),),
         ),
         Effect(
             "power_law_damping",
@@ -541,11 +546,14 @@ def profile_search(
     bounds: tuple[float, float],
     search: SearchInput,
     log_scale: bool = False,
+    open_above: bool = False,
 ) -> tuple[Term, ...]:
     """The terms ``build(p)`` for the parameter p in ``bounds`` whose regressors, beside the
     model's, explain most of the residual (rows lag … N−1): a grid of ``PROFILE_POINTS``, then a
     bounded scalar search between the best point's neighbours; p rounded to 4 digits so that
-    the terms' names stay short. The search reads the first ``SEARCH_ROWS`` rows."""
+    the terms' names stay short. The search reads the first ``SEARCH_ROWS`` rows. With
+    ``open_above``, a best point at the grid's high end is no estimate (what lies beyond is
+    another family's): none."""
     x, y, unexplained = _unexplained(search)
 
     def at(p: float) -> float:
@@ -556,6 +564,8 @@ def profile_search(
     grid = np.linspace(low, high, PROFILE_POINTS)
     values = [at(p) for p in grid]
     best = int(np.argmin(values))
+    if open_above and best == len(grid) - 1:
+        return ()
     refined = optimize.minimize_scalar(
         at,
         bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
@@ -590,16 +600,23 @@ def power_law_terms(
     lags: Sequence[int],
     exponents: tuple[float, float],
     search: SearchInput,
+    integer_above: bool = False,
 ) -> tuple[Term, ...]:
     """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated; none if
-    the model has such a law already (one exponent per law)."""
+    the model has such a law already (one exponent per law). With ``integer_above``, where an
+    integer law a family names lies just above the range (y's cubic above the stiffness law's),
+    none either where the best exponent is the range's end below it: the residual asks for a law
+    beyond the range, that family's, which the law at the end only imitates (on the rig with a
+    quadratic spring, nothing declared, a law at the end, p = 2.6, came in after the rig's cubic
+    and quadratic springs, the model complete, and the model ran free over another record more
+    than twice as far off)."""
     if _has(search.terms, signal, "spow"):
         return ()
 
     def build(p: float) -> tuple[Term, ...]:
         return tuple(Term((Factor(signal, k, function="spow", parameter=p),)) for k in lags)
 
-    return profile_search(build, exponents, search)
+    return profile_search(build, exponents, search, open_above=integer_above)
 
 
 def input_play_terms(function: str, lags: Sequence[int], search: SearchInput) -> tuple[Term, ...]:

@@ -54,6 +54,7 @@ from models.round_criteria import (
     fall,
     fitted_on_all,
     follow,
+    integer_law_first,
     judged_in_turn,
     looked_ahead,
     next_round,
@@ -344,6 +345,7 @@ def _tier(loop: _Loop, offer: _Offer, tier: list[bool], generic: bool, choosing:
         if decided is not None:
             choosing = replace(choosing, judged=Gain(fall(decided[3], offer.check), loop.margin))
     elif choosing.decided is not None:
+        choosing = _integer_law(loop, offer, choosing, choosing.decided)
         choosing = _looking_ahead(loop, offer, in_turn, choosing, choosing.decided)
         if not generic:
             choosing = _output_state(loop, offer, choosing, choosing.decided)
@@ -375,6 +377,28 @@ def _by_one_step(loop: _Loop, offer: _Offer, in_turn: _InTurn, choosing: _Choosi
         judged = better_gain(judged, gain)
         rejected += (score.name,)
     return replace(choosing, judged=judged, tried=tried, rejected=rejected)
+
+
+def _integer_law(loop: _Loop, offer: _Offer, choosing: _Choosing, first: Decision) -> _Choosing:
+    """The family the one-step criterion decided, ``first``, or the integer law a searched law
+    stood in for with an effect beside it (:func:`models.round_criteria.integer_law_first`)."""
+    decided, judged = integer_law_first(
+        first,
+        offer.offered,
+        offer.scores,
+        offer.current,
+        offer.check,
+        loop.margin,
+        loop.records,
+        loop.checks,
+        loop.workers,
+        loop.threads,
+        loop.alpha,
+    )
+    choosing = replace(choosing, decided=decided, tried=choosing.tried + judged)
+    if decided is not first:
+        choosing = replace(choosing, judged=Gain(fall(decided[3], offer.check), loop.margin))
+    return choosing
 
 
 def _looking_ahead(

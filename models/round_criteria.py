@@ -23,7 +23,7 @@ from models.effects import POLYNOMIAL, RECTIFIED, Effect, offset_terms, output_l
 from models.narx import NARX, Saturation
 from models.refinement_report import Criterion, Stage
 from models.regression import Workers
-from models.scoring import EffectScore, Records, Scores, ScoringKept, fit_model, score_effects
+from models.scoring import EffectScore, Records, Scores, ScoringKept, first_row, fit_model, score_effects
 from models.terms import Term, max_lag, parse_terms
 
 # The significance level of the families' partial F tests, before the Bonferroni correction.
@@ -42,6 +42,9 @@ JUDGED_AT_ONCE = 2
 # Once a family clears the one-step criterion's margin, this many more in the one-step order are
 # judged on the check blocks for a larger gain (:func:`looked_ahead`).
 CONTENDERS = 4
+# The exponent of the linear law, which every structure the loop grows holds: a searched law
+# between it and an integer law can blend the two (:func:`integer_law_first`).
+LINEAR = 1.0
 # A family added, the criterion that decided, the structure with it and that structure's check
 # blocks' free-run RMS.
 Decision = tuple[EffectScore, Criterion, Structure, float]
@@ -57,11 +60,13 @@ def scored(
     rank: bool = False,
     kept: ScoringKept | None = None,
     lag: int | None = None,
+    level: float | None = None,
 ) -> Scores:
     """Every offered family's score against ``current``'s one-step residual
     (:func:`models.scoring.score_effects`); with ``rank``, with all its regressors ranked by error
     reduction, significant or not: what the simulation criteria try. ``kept``: the loop's
-    scoring of a model, kept for its next scoring of the same model."""
+    scoring of a model, kept for its next scoring of the same model; ``lag`` and ``level``, a
+    round's first row and level where a family is scored beside it."""
     return score_effects(
         records,
         current.terms,
@@ -74,6 +79,7 @@ def scored(
         threads=threads,
         kept=kept,
         lag=lag,
+        level=level,
     )
 
 
@@ -279,6 +285,73 @@ def looked_ahead(
     if best_end < (1 - margin) * first_end:
         return contender, tried
     return first, tried
+
+
+def integer_law_first(
+    first: Decision,
+    offered: Sequence[Effect],
+    scores: Scores,
+    current: Structure,
+    check: float,
+    margin: float,
+    records: Records,
+    checks: CheckSplit,
+    workers: Workers,
+    threads: Workers,
+    alpha: float,
+) -> tuple[Decision, int]:
+    """The family a round adds where the one-step criterion decided ``first``: ``first``, unless
+    it is a law whose exponent was searched (``Effect.integer_laws``), found between the linear
+    law and an integer law of its signal on offer, and that integer law, with the law's exponent
+    searched again beside it, ranks before the law alone by the round's own criterion, the sum
+    of the two's BIC changes against the law's (each term a parameter, the exponent counted in
+    both); the integer law is then added where its model clears the ``margin`` below ``check`` on
+    the check blocks, and the law is offered again the round after, beside it. Also how many
+    structures it judged on the check blocks.
+
+    A law at an exponent between two integer laws can blend them with an effect beside them: on
+    the 2-DOF rig, whose own cubic spring holds a Hertzian contact's |y|^1.5 beside it, a single
+    law at p ≈ 2.2 explains more of the linear start's one-step residual than the cubic alone,
+    and the check blocks' free run cannot tell it from the cubic with the contact law beside it,
+    but over another record it is the worse model. Whether the residual holds two effects is
+    what the decomposition's one-step fit says: the integer law and the law searched beside it
+    explain what the blend does and more, by as much as their further terms are worth, where the
+    blend is the effect; where the law is the only effect, the integer law beside it explains
+    next to nothing. A law outside the two (a softening one, p < 1, beside the cubic) blends
+    neither: an integer law that explains something beside it is another effect, for its own
+    round (on the coupled drives' second record, the rectified output's law at p = 0.68 gave way
+    to the cubic, and the model ran free over the test part half as far off again)."""
+    law = first[0]
+    family = next((effect for effect in offered if effect.name == law.name), None)
+    if family is None or not family.integer_laws or not law.terms:
+        return first, 0
+    exponent = parse_terms(law.terms[:1])[0].factors[0].parameter
+    if exponent is None:
+        return first, 0
+    between = {
+        name
+        for name, integer in family.integer_laws
+        if min(LINEAR, integer) < exponent < max(LINEAR, integer)
+    }
+    lag = first_row(current.terms, offered)
+    best: tuple[float, EffectScore, Structure] | None = None
+    for integer in scores.scores:
+        if integer.name not in between or not integer.significant:
+            continue
+        beside = replace(current, terms=current.terms + parse_terms(integer.terms))
+        (again,) = scored(
+            records, beside, [family], alpha, workers, threads, lag=lag, level=scores.level
+        ).scores
+        together = integer.bic_change + again.bic_change
+        if together < law.bic_change and (best is None or together < best[0]):
+            best = (together, integer, beside)
+    if best is None:
+        return first, 0
+    _, integer, structure = best
+    (error,) = checks.judge([structure], workers)
+    if not error <= (1 - margin) * check:
+        return first, 1
+    return (integer, first[1], structure, error), 1
 
 
 def _contends(check: float, margin: float, error: float, other_error: float) -> bool:

@@ -139,6 +139,7 @@ def score_effects(
     threads: Workers = map,
     kept: ScoringKept | None = None,
     lag: int | None = None,
+    level: float | None = None,
 ) -> Scores:
     """Score each effect against the current model's residual on the estimation records; with
     ``rank``, each score also ranks all the family's regressors (``EffectScore.ranked``). The
@@ -150,7 +151,9 @@ def score_effects(
     (:class:`ScoringKept`): the model's equations and each family's candidates built then are
     taken from it, and what is built now is kept there. ``lag``: the equations' first row, by
     default :func:`first_row` of the model and ``effects``; a caller scoring some of a round's
-    families gives the round's, and finds that round's scoring of the model in ``kept``."""
+    families gives the round's, and finds that round's scoring of the model in ``kept``.
+    ``level``: the tests' level, by default α over every candidate regressor offered; a caller
+    scoring a family beside a round's gives the round's."""
     # One common first row for the model and every candidate, so that the RSS values compare.
     lag = first_row(terms, effects) if lag is None else lag
     key = (tuple(terms), noise_lags, saturating, lag, alpha)
@@ -186,7 +189,7 @@ def score_effects(
         model.candidates[effects[i]] = _projected(labels, columns[model.inside], model.Q)
     candidates = {i: model.candidates[effect] for i, effect in enumerate(effects)}
     total = sum(columns.shape[1] for _, columns in candidates.values())
-    level = alpha / max(total, 1)
+    level = alpha / max(total, 1) if level is None else level
     residual = model.residual
     scores = _tested(
         effects, candidates, residual, model.own_past, model.dof, level, rank, noise_lags, threads
@@ -383,8 +386,14 @@ def _score(
         tested = _in_quadrature(columns, target, dof, level, rank, _by_frequency(labels))
     else:
         # A searched family's parameters were chosen so that its columns together explain the
-        # residual best: their joint F test would judge them on the fit that chose them.
-        tested = _forward(columns, target, dof, level, rank, effect.kind == "terms")
+        # residual best: their joint F test would judge them on the fit that chose them. A law
+        # whose exponent is searched beside integer laws of its signal enters as a block all the
+        # same, its exponent counted among the block's parameters: its force reaches the sampled
+        # output, as a fixed family's does, as a near-cancelling combination of neighbouring lags,
+        # and where it stands in for an integer law and an effect beside it the round's test of
+        # it against them (:func:`models.round_criteria.integer_law_first`) tells.
+        law = bool(effect.integer_laws)
+        tested = _forward(columns, target, dof, level, rank, effect.kind == "terms" or law, int(law))
     order, count, f_values, p_values, explained = tested
     chosen = order[:count]
     added = [label for i in chosen for label in labels[i]]
@@ -509,7 +518,13 @@ def _in_quadrature(
 
 
 def _forward(
-    columns: np.ndarray, residual: np.ndarray, dof: int, level: float, rank: bool, blocks: bool = False
+    columns: np.ndarray,
+    residual: np.ndarray,
+    dof: int,
+    level: float,
+    rank: bool,
+    blocks: bool = False,
+    searched: int = 0,
 ) -> tuple[list[int], int, tuple[float, ...], tuple[float, ...], float]:
     """Greedy selection within one family by error reduction ratio, each column after its F test.
 
@@ -523,6 +538,10 @@ def _forward(
     family has entered, each further column is tested alone: a block after it would let weak
     columns in on a strong one's back (on the DC motor the generic polynomial took twice the
     terms and ran free worse).
+
+    ``searched``: the family's parameters searched on this residual (an exponent), counted among
+    the parameters of its first entry's test, single column or block: they were fitted to the
+    same residual the test reads.
 
     Returns the columns in the greedy order (every usable one if ``rank``, else the chosen ones),
     how many of the first passed their tests (the chosen ones), their F statistics and p-values
@@ -546,7 +565,7 @@ def _forward(
     p_values: list[float] = []
     while True:
         largest = columns.shape[1] if blocks and chosen == 0 else 1
-        block = _entering_block(remaining, reach, chosen, dof, level, largest)
+        block = _entering_block(remaining, reach, chosen, dof, level, largest, searched if chosen == 0 else 0)
         if block is None:
             break
         size, f_value, p_value = block
@@ -589,25 +608,27 @@ def _entering_block(
     dof: int,
     level: float,
     largest: int,
+    searched: int = 0,
 ) -> tuple[int, float, float] | None:
     """The smallest block, of at most ``largest`` columns, of the greedy order's next columns
     after the ``chosen`` ones that passes its joint F test at ``level``, as (its size, F,
     p-value); None where none does. ``remaining``: the residual sum of squares before the first
     column and after each, as far as ``reach`` (n) has taken the greedy order (its first n
     columns, or all that are usable): a block is asked for one column more only where the
-    smaller one failed."""
+    smaller one failed. ``searched``: parameters fitted with the block, beside its columns."""
     for size in range(1, largest + 1):
         reach(chosen + size)
         if len(remaining) <= chosen + size:  # no usable column left
             return None
         after = remaining[chosen + size]
-        remaining_dof = dof - chosen - size
+        parameters = size + searched
+        remaining_dof = dof - chosen - parameters
         if remaining_dof < 1:
             return None
         if after <= 0:  # the block explains the whole residual
             return size, np.inf, 0.0
-        f_value = (remaining[chosen] - after) / size / (after / remaining_dof)
-        p_value = float(special.fdtrc(size, remaining_dof, f_value))
+        f_value = (remaining[chosen] - after) / parameters / (after / remaining_dof)
+        p_value = float(special.fdtrc(parameters, remaining_dof, f_value))
         if p_value < level:
             return size, float(f_value), p_value
     return None

@@ -16,6 +16,7 @@ from harness.rectified import rectified_drive
 from models.assessment import assess
 from models.checking import SETTLED_EVALUATIONS
 from models.effects import (
+    SearchInput,
     _search_part,
     candidate_effects,
     integer_powers,
@@ -419,6 +420,26 @@ def test_a_combination_spans_only_the_monomials_the_model_does_not_span_already(
     assert spanning(linear) == cubics
     assert spanning(linear + cubics[:5]) == cubics[5:]
     assert spanning(linear + cubics) == ()
+
+
+def test_a_stiffness_law_at_its_ranges_end_below_the_cubic_is_not_offered() -> None:
+    """The power law of y is searched on exponents up to 2.6, the cubic spring's y³ just above: a
+    residual that asks for the cubic finds the law's best exponent at the range's end, no
+    estimate of a law of its own, and the family offers nothing; a residual of |y|^1.5·sign y
+    (a Hertzian contact) gets its exponent."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=3000)
+    y = signal.lfilter([0.0, 1.0], [1.0, -1.5, 0.7], x)
+    declared = linear_terms(2, 2, 1)
+    (law,) = [effect for effect in candidate_effects(declared) if effect.name == "power_law_stiffness"]
+    assert law.find is not None
+    lag = 4
+    before = y[lag - 1 : -1]  # y[t-1] on the rows t = lag … N−1
+    noise = 0.01 * rng.normal(size=before.size)
+    cubic, contact = before**3, np.abs(before) ** 1.5 * np.sign(before)
+    assert law.find(SearchInput(x, y, cubic / np.std(cubic) + noise, declared, lag)) == ()
+    found = law.find(SearchInput(x, y, contact / np.std(contact) + noise, declared, lag))
+    assert found and found[0].factors[0].parameter == pytest.approx(1.5, abs=0.02), found
 
 
 def test_integer_powers_are_the_products_a_factor_computes_and_pow_to_its_rounding() -> None:

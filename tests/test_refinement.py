@@ -273,6 +273,42 @@ def test_score_and_f_statistic_agree_with_an_svd_refit():
     assert first.level == pytest.approx(0.01 / first.candidates)
 
 
+def test_a_searched_laws_first_block_counts_its_exponent_in_its_f_test():
+    """A power law of y, its exponent searched beside the cubic spring's family, enters as a block
+    of its lags (on the rig its first lag alone explains little of a contact's force), and the
+    exponent, fitted to the same residual, is one more parameter of the block's joint F test:
+    F = (RSS₀ − RSS₁)/(k + 1) over RSS₁/(N − p − k − 1), both fits redone by SVD least squares
+    beside the residual's own last four values, the tail from scipy.stats."""
+    record = simulate(Scenario(disturbance_std=200.0, effects=Effects(hertz_contact2=5e4)), 1600, seed=1)
+    x, y = record.x, record.y
+    declared = linear_terms(4, 4, 1)
+    (law,) = [effect for effect in candidate_effects(declared) if effect.name == "power_law_stiffness"]
+    assert law.integer_laws == (("cubic_stiffness", 3.0),)
+    scores = score_effects([(x, y)], declared, 0, [law], DEFAULT_ALPHA)
+    (score,) = scores.scores
+    # The first block: the leading columns that share its F statistic; each after it alone.
+    k = score.f_statistics.count(score.f_statistics[0])
+    assert k > 1, score
+    lag = max(max_lag(law_terms := parse_terms(score.terms[:k])), max_lag(declared))
+    Phi, target = regressor_matrix(declared, x, y, lag)
+
+    def residual_of(columns: np.ndarray) -> np.ndarray:
+        scaled = columns / np.linalg.norm(columns, axis=0)
+        return target - scaled @ linalg.lstsq(scaled, target, lapack_driver="gelsd")[0]
+
+    residual = residual_of(Phi)
+    own_past = np.column_stack([np.concatenate([np.zeros(j), residual[:-j]]) for j in range(1, 5)])
+    base = np.hstack([Phi, own_past])
+    extra, _ = regressor_matrix(law_terms, x, y, lag)
+    restricted = np.sum(residual_of(base) ** 2)
+    full = np.sum(residual_of(np.hstack([base, extra])) ** 2)
+    dof = len(target) - base.shape[1] - k - 1
+    f_value = (restricted - full) / (k + 1) / (full / dof)
+    assert score.f_statistics[0] == pytest.approx(f_value, rel=1e-6)
+    assert score.p_values[0] == pytest.approx(stats.f.sf(f_value, k + 1, dof), rel=1e-5, abs=1e-300)
+    assert score.p_values[0] < scores.level
+
+
 def test_candidate_effects_leave_out_terms_the_model_has():
     declared = parse_terms(["y[t-1]", "y[t-2]", "y[t-1]^3", "x[t-1]", "1"])
     effects = {effect.name: effect for effect in candidate_effects(declared)}
@@ -1320,6 +1356,40 @@ def test_a_family_whose_least_squares_model_diverges_is_judged_by_output_error_f
     assert checks.error(Structure(terms)) == np.inf
     before, after = result.rounds[-1].check_rms
     assert after <= (1 - check_noise(checks.check)) * before, (before, after)
+
+
+def test_a_searched_law_does_not_stand_in_for_the_rigs_cubic_spring_and_a_contact_beside_it():
+    """The rig's own cubic spring with a Hertzian contact, |y|^1.5·sign y, planted beside it, from
+    linear:4,4 (1600 samples): a single power law at an exponent between the linear and the cubic
+    law explains more of the start's one-step residual than the cubic alone, and with the
+    contact's exponent searched again beside the cubic the two explain more still, beyond their
+    further terms. The loop names the rig's spring, then the contact at its own exponent, not the
+    blend. On the rig without its cubic spring the contact alone is named, though the cubic
+    alone would be significant there too: beside the law it explains next to nothing."""
+    declared = linear_terms(4, 4, 1)
+    offered = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
+    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
+
+    def refined(scenario: Scenario) -> Refinement:
+        record = simulate(scenario, 1600, seed=1)
+        return refine([(record.x, record.y)], declared, effects=families)
+
+    def exponent(effect: EffectScore) -> float | None:
+        return Term.parse(effect.terms[0]).factors[0].parameter
+
+    contact = Scenario(disturbance_std=200.0, effects=Effects(hertz_contact2=5e4))
+    alone = refined(replace(contact, params=replace(contact.params, k3=0.0)))
+    assert [effect.name for effect in alone.effects_added] == ["power_law_stiffness"]
+    assert exponent(alone.effects_added[0]) == pytest.approx(1.5, abs=0.05)
+    assert any(score.name == "cubic_stiffness" and score.significant for score in alone.rounds[0].scores)
+    result = refined(contact)
+    # The premise: in the first round the blend ranks before the cubic.
+    scores = {score.name: score for score in result.rounds[0].scores}
+    blend, cubic = scores["power_law_stiffness"], scores["cubic_stiffness"]
+    assert blend.significant and cubic.significant and blend.bic_change < cubic.bic_change
+    assert 1.8 < (exponent(blend) or 0) < 2.6, blend.terms
+    assert [effect.name for effect in result.effects_added] == ["cubic_stiffness", "power_law_stiffness"]
+    assert exponent(result.effects_added[1]) == pytest.approx(1.5, abs=0.05)
 
 
 def test_a_round_counts_the_candidates_its_look_ahead_compared():
