@@ -44,7 +44,7 @@ REPORT_KEYS = {
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests", "diverged"}
 HELD_OUT_KEYS = {
     "samples", "start_free_run_rms", "refined_free_run_rms", "gain", "threshold", "level", "diverged",
-    "refined_returned", "best_tried", "orders_saw_tails",
+    "refined_returned", "best_tried", "orders_saw_tails", "kinks_beyond",
 }  # fmt: skip
 
 
@@ -90,6 +90,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     assert set(report["held_out"]) == HELD_OUT_KEYS and report["held_out"]["samples"] == 3000
     assert report["held_out"]["orders_saw_tails"] is False  # a long record's orders are chosen on its heads
     assert report["held_out"]["refined_returned"] and not report["held_out"]["diverged"]
+    assert report["held_out"]["kinks_beyond"] == []  # Silverbox's output crosses zero
     assert report["held_out"]["gain"] > report["held_out"]["threshold"] > 0
     assert figure.read_bytes().startswith(PNG_MAGIC)
 
