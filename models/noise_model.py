@@ -56,8 +56,8 @@ def with_noise_model(
     alpha: float,
 ) -> Refinement:
     """``result`` with the noise model its returned model's residual needs (module docstring),
-    each offer of the noise ``family`` that some lags entered reported as a round decided by
-    "whiteness"; ``result`` itself where no lag enters, where the rounds gave it a noise model
+    reported as one round decided by "whiteness" (the lags that entered over the offers of the
+    noise ``family``); ``result`` itself where no lag enters, where the rounds gave it a noise model
     already, or where no noise family is on offer (``family`` None). ``records`` are those the
     returned model was estimated on; ``alpha`` the level of each offer's test."""
     if family is None or result.noise.size:
@@ -77,22 +77,24 @@ def with_noise_model(
         rectified=refined.rectified,
     )
     equation_error = [least_squares.residuals(x, y) for x, y in records]
-    innovations, lags, rounds = equation_error, 0, []
+    innovations, lags, last = equation_error, 0, None
     for _ in range(NOISE_OFFERS):
         score = _offer(family, innovations, lags, alpha / NOISE_LAGS_OFFERED)
         if not score.significant:
             break
-        lags = score.noise_lags
+        lags, last = score.noise_lags, score
         innovations = _innovations(equation_error, moving_average(equation_error, lags))
-        rms = float(np.sqrt(_sum_of_squares(innovations) / sum(e.size for e in equation_error)))
-        step = Round(rms, alpha / NOISE_LAGS_OFFERED, NOISE_LAGS_OFFERED, (score,), score, "whiteness")
-        # The free run is the returned model's: the noise model leaves the process as it was.
-        rounds.append(replace(step, check_rms=(result.check_rms, result.check_rms)))
-    if not rounds:
+    if last is None:
         return result
+    # One noise model, one round of the report: its order the lags that entered over the offers,
+    # its evidence the last offer's, its RMS the innovations the model leaves.
+    rms = float(np.sqrt(_sum_of_squares(innovations) / sum(e.size for e in equation_error)))
+    step = Round(rms, alpha / NOISE_LAGS_OFFERED, NOISE_LAGS_OFFERED, (last,), last, "whiteness")
+    # The free run is the returned model's: the noise model leaves the process as it was.
+    step = replace(step, check_rms=(result.check_rms, result.check_rms))
     # The coefficients that predict the returned model's own one-step residual.
     noise = moving_average([refined.residuals(x, y) for x, y in records], lags)
-    return replace(result, noise=noise, rounds=result.rounds + tuple(rounds))
+    return replace(result, noise=noise, rounds=(*result.rounds, step))
 
 
 def _offer(family: Effect, innovations: Sequence[np.ndarray], lags: int, level: float) -> EffectScore:
