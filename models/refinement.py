@@ -407,13 +407,28 @@ def refine(
         workers=workers,
         threads=threads,
     )
+    refined, estimated_on = _grown_and_judged(records, grow, declared, output_error, tell, workers, threads)
     # The noise model after the process effects are settled (models.noise_model), where the
     # families on offer include noise.
     family = MOVING_AVERAGE_NOISE if effects is None or MOVING_AVERAGE_NOISE in effects else None
-    noise_modelled = partial(with_noise_model, family=family, alpha=alpha)
+    return with_noise_model(refined, estimated_on, family, alpha)
+
+
+def _grown_and_judged(
+    records: Records,
+    grow: Callable[..., Grown],
+    declared: Sequence[str | Term] | None,
+    output_error: bool,
+    tell: Stage,
+    workers: Workers,
+    threads: Workers,
+) -> tuple[Refinement, Records]:
+    """The loop ``grow`` run on the ``records``' heads and judged on their tails where they are
+    long enough, on all of them otherwise (:func:`refine`'s never worse), and the records the
+    returned model's parameters were estimated on (from where each settled)."""
     split = held_out_tails(records)
     if split is None:
-        return noise_modelled(grow(records).refinement, records)
+        return grow(records).refinement, records
     heads, tails = split
     short = any(len(y) < MIN_BLOCK for _, y, _ in tails)
     orders_saw_tails = short and declared is None
@@ -426,17 +441,17 @@ def refine(
     except InputError:
         # Too few equations for the candidates once the tails are held out: refined on all of
         # them, with nothing to compare on (the report says so).
-        return noise_modelled(grow(records).refinement, records)
+        return grow(records).refinement, records
     grown = _start_on_tails(grown, heads, tails, short)
     if not short:
         grown = _refined_on_tails(grown, heads, tails)
     held_out = _judged_on_tails(grown, heads, tails, short, orders_saw_tails, tell)
     settled = settled_from(grown, held_out, heads, tails, tell)
     if not any(settled):
-        return noise_modelled(_on_all(grown, held_out, records, output_error, tell, threads), records)
+        return _on_all(grown, held_out, records, output_error, tell, threads), records
     settled_records = [(x[cut:], y[cut:]) for (x, y), cut in zip(records, settled, strict=True)]
     refined = _on_all(grown, held_out, settled_records, output_error, tell, threads)
-    return noise_modelled(replace(refined, settled_from=settled), settled_records)
+    return replace(refined, settled_from=settled), settled_records
 
 
 def _judged_on_tails(
