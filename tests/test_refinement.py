@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import operator
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
 from functools import partial
@@ -239,6 +240,23 @@ def test_nothing_is_added_to_unrelated_white_signals_whose_output_error_fit_is_r
     assert not [step.added.name for step in result.rounds if step.added is not None]
 
 
+def _beside_own_past(
+    declared: Sequence[Term], x: np.ndarray, y: np.ndarray, lag: int
+) -> tuple[Callable[[np.ndarray], np.ndarray], np.ndarray, np.ndarray]:
+    """An independent least-squares fit (SVD) for the one-step tests: the residual of the target
+    on any columns, the declared regressors beside the residual's own last four values, and the
+    target."""
+    Phi, target = regressor_matrix(declared, x, y, lag)
+
+    def residual_of(columns: np.ndarray) -> np.ndarray:
+        scaled = columns / np.linalg.norm(columns, axis=0)
+        return target - scaled @ linalg.lstsq(scaled, target, lapack_driver="gelsd")[0]
+
+    residual = residual_of(Phi)
+    own_past = np.column_stack([np.concatenate([np.zeros(k), residual[:-k]]) for k in range(1, 5)])
+    return residual_of, np.hstack([Phi, own_past]), target
+
+
 def test_score_and_f_statistic_agree_with_an_svd_refit():
     """An effect of the signals is credited with what it explains once the model and the
     residual's own last four values are in: both fits redone by SVD least squares (LAPACK
@@ -252,15 +270,7 @@ def test_score_and_f_statistic_agree_with_an_svd_refit():
     declared = parse_terms(EXACT_TERMS)
     lag = max(max_lag(e.terms) for e in candidate_effects(declared) if e.terms)
     lag = max(lag, max_lag(declared))
-    Phi, target = regressor_matrix(declared, x, y, lag)
-
-    def residual_of(columns: np.ndarray) -> np.ndarray:
-        scaled = columns / np.linalg.norm(columns, axis=0)
-        return target - scaled @ linalg.lstsq(scaled, target, lapack_driver="gelsd")[0]
-
-    residual = residual_of(Phi)
-    own_past = np.column_stack([np.concatenate([np.zeros(k), residual[:-k]]) for k in range(1, 5)])
-    base = np.hstack([Phi, own_past])
+    residual_of, base, target = _beside_own_past(declared, x, y, lag)
     extra, _ = regressor_matrix(parse_terms(first.added.terms), x, y, lag)
     restricted = np.sum(residual_of(base) ** 2)
     full = np.sum(residual_of(np.hstack([base, extra])) ** 2)
@@ -290,15 +300,7 @@ def test_a_searched_laws_first_block_counts_its_exponent_in_its_f_test():
     k = score.f_statistics.count(score.f_statistics[0])
     assert k > 1, score
     lag = max(max_lag(law_terms := parse_terms(score.terms[:k])), max_lag(declared))
-    Phi, target = regressor_matrix(declared, x, y, lag)
-
-    def residual_of(columns: np.ndarray) -> np.ndarray:
-        scaled = columns / np.linalg.norm(columns, axis=0)
-        return target - scaled @ linalg.lstsq(scaled, target, lapack_driver="gelsd")[0]
-
-    residual = residual_of(Phi)
-    own_past = np.column_stack([np.concatenate([np.zeros(j), residual[:-j]]) for j in range(1, 5)])
-    base = np.hstack([Phi, own_past])
+    residual_of, base, target = _beside_own_past(declared, x, y, lag)
     extra, _ = regressor_matrix(law_terms, x, y, lag)
     restricted = np.sum(residual_of(base) ** 2)
     full = np.sum(residual_of(np.hstack([base, extra])) ** 2)
