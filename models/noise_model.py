@@ -30,12 +30,20 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
-from scipy import signal, special
+from scipy import signal
 
 from models.effects import Effect
 from models.narmax import invertible
 from models.refinement_report import Refinement, Round
-from models.scoring import NARMAX_ITERATIONS, NOISE_LAGS_OFFERED, EffectScore, Records, fit_model
+from models.regression import column_norms
+from models.scoring import (
+    NARMAX_ITERATIONS,
+    NOISE_LAGS_OFFERED,
+    EffectScore,
+    Records,
+    fit_model,
+    score_columns,
+)
 from models.terms import max_lag
 
 # The noise family offered at most this many times after the rounds, its lags growing each time
@@ -99,51 +107,24 @@ def with_noise_model(
 
 def _offer(family: Effect, innovations: Sequence[np.ndarray], lags: int, level: float) -> EffectScore:
     """The noise ``family`` offered beyond the ``lags`` the noise model has: the innovations'
-    next ``NOISE_LAGS_OFFERED`` lags, beside the first ``lags``, enter greedily by the fall of the
-    residual sum of squares, each by its partial F test at ``level``; the moving-average order
-    becomes the longest that entered (zero where none did, as the rounds' scoring counts it)."""
+    next ``NOISE_LAGS_OFFERED`` lags, beside the first ``lags``, tested as the rounds test the
+    family (:func:`models.scoring.score_columns`: greedily by the fall of the residual sum of
+    squares, each by its partial F test at ``level``); the moving-average order becomes the
+    longest that entered (zero where none did, as the rounds' scoring counts it)."""
     longest = lags + NOISE_LAGS_OFFERED
     columns = np.vstack([_lagged(xi, longest) for xi in innovations])
     target = np.concatenate(innovations)
-    if lags:
-        basis, _ = np.linalg.qr(columns[:, :lags])
-        target = target - basis @ (basis.T @ target)
-        columns = columns - basis @ (basis.T @ columns)
+    if not np.any(target):  # a residual fitted exactly has no colour to test
+        return EffectScore(family.name, family.description, 0.0, 0.0, (), (), ())
+    given, _ = np.linalg.qr(columns[:, :lags])
     candidates = columns[:, lags:]
-    total = rss = float(target @ target)
-    dof = target.size - lags
-    chosen: list[int] = []
-    f_values: list[float] = []
-    p_values: list[float] = []
-    while len(chosen) < NOISE_LAGS_OFFERED and rss > 0 and dof > 1:
-        norms = np.einsum("ij,ij->j", candidates, candidates)
-        falls = np.where(norms > 0, (candidates.T @ target) ** 2 / np.where(norms > 0, norms, 1.0), -1.0)
-        falls[chosen] = -1.0
-        best = int(np.argmax(falls))
-        dof -= 1
-        f = falls[best] / ((rss - falls[best]) / dof)
-        p = float(special.fdtrc(1, dof, f))
-        if falls[best] <= 0 or p >= level:
-            break
-        chosen.append(best)
-        f_values.append(float(f))
-        p_values.append(p)
-        unit = candidates[:, best] / np.sqrt(norms[best])
-        target = target - unit * (unit @ target)
-        candidates = candidates - np.outer(unit, unit @ candidates)
-        rss -= falls[best]
-    explained = 1 - rss / total if total > 0 else 0.0
-    n = sum(xi.size for xi in innovations)
-    return EffectScore(
-        family.name,
-        family.description,
-        explained,
-        n * float(np.log1p(-min(explained, 1 - 1e-300))) + len(chosen) * float(np.log(n)),
-        tuple(f"e[t-{lags + 1 + i}]" for i in chosen),
-        tuple(f_values),
-        tuple(p_values),
-        noise_lags=lags + 1 + max(chosen) if chosen else 0,
-    )
+    # Unit columns, as the rounds' candidates are (models.scoring._projected); a lag beyond a
+    # record that short is all zeros, and stays so.
+    norms = column_norms(candidates)
+    candidates = candidates / np.where(norms > 0, norms, 1.0)
+    labels = [(f"e[t-{k}]",) for k in range(lags + 1, longest + 1)]
+    score, chosen, _ = score_columns(family, labels, candidates, target, given, target.size, level, False)
+    return replace(score, noise_lags=lags + 1 + max(chosen) if chosen else 0)
 
 
 def moving_average(residuals: Sequence[np.ndarray], lags: int) -> np.ndarray:

@@ -316,7 +316,7 @@ def _tested(
     explaining: list[np.ndarray] = []
     of_the_signals = [i for i, effect in enumerate(effects) if effect.kind != "noise"]
     tested = threads(
-        lambda i: _score(effects[i], *candidates[i], residual, own_past, dof, level, rank),
+        lambda i: score_columns(effects[i], *candidates[i], residual, own_past, dof, level, rank),
         of_the_signals,
     )
     for index, (score, _, chosen_columns) in zip(of_the_signals, tested, strict=True):
@@ -328,7 +328,7 @@ def _tested(
     for index, effect in enumerate(effects):
         if effect.kind == "noise":
             labels, columns = candidates[index]
-            score, chosen, _ = _score(effect, labels, columns, residual, signals, dof, level, rank)
+            score, chosen, _ = score_columns(effect, labels, columns, residual, signals, dof, level, rank)
             # The moving-average order becomes the longest lag that entered.
             scores[index] = replace(score, noise_lags=noise_lags + 1 + max(chosen) if chosen else 0)
     return tuple(scores[i] for i in range(len(effects)))
@@ -365,7 +365,7 @@ def _projected(
     return labels, orthogonal_part(columns / column_norms(columns), Q)
 
 
-def _score(
+def score_columns(
     effect: Effect,
     labels: list[tuple[str, ...]],
     columns: np.ndarray,
