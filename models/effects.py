@@ -89,6 +89,10 @@ SEARCH_ROWS = 10_000
 # input): sign patterns of equal weights. On the 2-DOF rig the search for the unmeasured coordinate
 # converges from half of the first eight; four keep it quick.
 COMBINATION_STARTS = 4
+# The powers of a combination of lags each combined family fits: a filtered input's square and cube
+# (:func:`filtered_input_powers`), an unmeasured coordinate's cube (:func:`unmeasured_cube`).
+FILTERED_POWERS = (2, 3)
+UNMEASURED_POWERS = (3,)
 # The generic family (:func:`polynomial_effect`): its name, which the loop offers after every named
 # family, and the shortest lags of y and of x whose products it holds (and the bilinear family,
 # :func:`bilinear_effect`).
@@ -154,6 +158,11 @@ class Effect:
     # exponent, which a law at an exponent between it and the linear law can blend with an effect
     # beside them (:func:`models.round_criteria.integer_law_first`).
     integer_laws: tuple[tuple[str, float], ...] = ()
+    # Parameters its search fits to the residual its test then reads (an exponent; a combination's
+    # direction and the ratio of its powers), counted among the parameters of its first entry's
+    # test (:func:`models.scoring.score_columns`): chosen to explain that residual best, they
+    # would otherwise pass as free.
+    searched: int = 0
 
     @property
     def regressors(self) -> int:
@@ -241,7 +250,7 @@ def _input_effects(x_lags: Sequence[int]) -> list[Effect]:
         return [input_nonlinearity]
     filtered_terms = tuple(
         Term.of(product)
-        for degree in (2, 3)
+        for degree in FILTERED_POWERS
         for product in itertools.combinations_with_replacement([Factor("x", k) for k in x_lags], degree)
     )
     filtered = Effect(
@@ -251,6 +260,7 @@ def _input_effects(x_lags: Sequence[int]) -> list[Effect]:
         filtered_terms,
         "combined",
         combine=filtered_input_powers(x_lags, filtered_terms),
+        searched=combination_parameters(x_lags, FILTERED_POWERS),
     )
     return [input_nonlinearity, filtered]
 
@@ -280,6 +290,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             cube_terms,
             "combined",
             combine=unmeasured_cube(cube_terms),
+            searched=combination_parameters(lags_y, UNMEASURED_POWERS),
         ),
         Effect(
             "power_law_stiffness",
@@ -288,6 +299,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             "estimated",
             functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, integer_above=True),
             integer_laws=(("cubic_stiffness", 3.0),),
+            searched=1,
         ),
         Effect(
             "power_law_damping",
@@ -644,7 +656,7 @@ def unmeasured_cube(cubics: Sequence[Term]) -> Combiner:
     y's lags, far better conditioned).
     """
     lags = range(1, max(f.lag for t in cubics for f in t.factors if f.signal == "y") + 1)
-    return functools.partial(combination_terms, "y", lags, (3,), cubics)
+    return functools.partial(combination_terms, "y", lags, UNMEASURED_POWERS, cubics)
 
 
 def filtered_input_powers(lags: Sequence[int], monomials: Sequence[Term]) -> Combiner:
@@ -666,7 +678,15 @@ def filtered_input_powers(lags: Sequence[int], monomials: Sequence[Term]) -> Com
     lags, where the input nonlinearity's powers of each lag alone hold a static nonlinearity
     before the dynamics (Hammerstein).
     """
-    return functools.partial(combination_terms, "x", lags, (2, 3), monomials)
+    return functools.partial(combination_terms, "x", lags, FILTERED_POWERS, monomials)
+
+
+def combination_parameters(lags: Sequence[int], degrees: Sequence[int]) -> int:
+    """The parameters :func:`combination_terms` fits to the residual beyond its regressor's one
+    coefficient: the combination's direction over the ``lags`` (its length is immaterial, the
+    powers' coefficients absorb it) and the ratios of the ``degrees``' coefficients. Its one
+    regressor is the best of a family of that many dimensions, and is tested so."""
+    return max(len(lags) - 1, 0) + len(degrees) - 1
 
 
 def combination_terms(

@@ -391,9 +391,13 @@ def score_columns(
         # same, its exponent counted among the block's parameters: its force reaches the sampled
         # output, as a fixed family's does, as a near-cancelling combination of neighbouring lags,
         # and where it stands in for an integer law and an effect beside it the round's test of
-        # it against them (:func:`models.round_criteria.integer_law_first`) tells.
+        # it against them (:func:`models.round_criteria.integer_law_first`) tells. Whatever a
+        # family's search fitted to this residual (that exponent, a combination's direction and
+        # the ratio of its powers) is counted among its first entry's parameters
+        # (``Effect.searched``): a combination's one regressor, tested as one free column, passed
+        # on clean records of a linear structure many times as often as the level allows.
         law = bool(effect.integer_laws)
-        tested = _forward(columns, target, dof, level, rank, effect.kind == "terms" or law, int(law))
+        tested = _forward(columns, target, dof, level, rank, effect.kind == "terms" or law, effect.searched)
     order, count, f_values, p_values, explained = tested
     chosen = order[:count]
     added = [label for i in chosen for label in labels[i]]
@@ -539,7 +543,8 @@ def _forward(
     columns in on a strong one's back (on the DC motor the generic polynomial took twice the
     terms and ran free worse).
 
-    ``searched``: the family's parameters searched on this residual (an exponent), counted among
+    ``searched``: the family's parameters searched on this residual (an exponent, a combination of
+    lags), counted among
     the parameters of its first entry's test, single column or block: they were fitted to the
     same residual the test reads.
 
