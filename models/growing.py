@@ -454,8 +454,8 @@ def _on_simulation(
     loop: _Loop, offer: _Offer, tier: list[bool], generic: bool, choosing: _Choosing
 ) -> _Choosing:
     """The tier's family whose model, its regressors in the order of their error reduction,
-    lowers the check blocks' free run by more than the best of the tier's families does by chance,
-    decided by the simulation criterion (:func:`models.round_criteria.by_simulation`)."""
+    lowers the check blocks' free run by ``SIMULATION_GAIN``, decided by the simulation criterion
+    (:func:`models.round_criteria.by_simulation`)."""
     offer_name = "the generic polynomial" if generic else "the families"
     loop.tell(f"round {offer.number}: {offer_name} on the simulation error")
     ranked = choosing.ranked or scored(
@@ -468,7 +468,6 @@ def _on_simulation(
         offer.current,
         loop.checks,
         loop.workers,
-        loop.alpha,
     )
     judged = simulated if decided is not None else better_gain(choosing.judged, simulated)
     return replace(choosing, decided=decided, judged=judged, tried=choosing.tried + structures, ranked=ranked)

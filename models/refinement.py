@@ -24,9 +24,8 @@ loop chooses, :mod:`models.linear_start`), each round (:mod:`models.growing`, it
    little of the simulation error), or every significant one made the free run worse, each
    family's regressors are tried in the order of their error reduction, and the family whose
    model (parameters refined by output error, as is the current model's) lowers the check
-   blocks' free-run RMS by more than the best of that many families of no effect does by chance
-   at the loop's level (:func:`models.round_criteria.simulation_threshold`) is added — decided by
-   the simulation criterion. Where none does, the first significant family is judged with the family the
+   blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
+   criterion. Where none does, the first significant family is judged with the family the
    round after it adds (:func:`models.round_criteria.as_pair`): two effects can each run free
    worse alone and far better together. Otherwise the loop stops.
 

@@ -39,9 +39,8 @@ class Round:
     on the one-step residual and its model's free run over the check blocks lower by more than its
     standard error), "output error" (significant so, its least-squares model diverging there,
     and its model grown from the current one's output-error fit lowering that free run by more
-    than its standard error), "simulation" (it lowered that free run by more than the best of the
-    families compared does by chance, :func:`models.round_criteria.simulation_threshold`; a state
-    of the output, by ``SIMULATION_GAIN`` beyond the one-step criterion's
+    than its standard error), "simulation" (it lowered that free run by at least
+    ``SIMULATION_GAIN``; a state of the output, by that share beyond the one-step criterion's
     choice: :func:`models.round_criteria.output_state_by_simulation`), "simulation across
     folds" (its settled output-error model lowered the free run over the checked records of each
     of three folds by at least ``FOLD_GAIN``),
