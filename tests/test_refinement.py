@@ -1516,6 +1516,40 @@ def test_a_model_scored_again_takes_the_families_kept_for_it_and_no_other_model_
     assert score_effects(records, terms, 0, effects, 0.01).scores[-1].significant
 
 
+def test_the_structure_a_look_ahead_chose_keeps_its_families_while_the_round_scores_its_own_again():
+    """A round that looks ahead scores two structures of the next round, then its own model
+    again (the hysteresis family ranked on it), and the next round scores the structure the look
+    chose: that structure's families, searched ones among them, are taken from the loop's
+    ``ScoringKept`` rather than built again, and its scores are a fresh scoring's to the last
+    digit. The models kept are the last two asked for: the round's own model, asked for after
+    both looked-ahead ones, has its families built anew."""
+    x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
+    records = [(x[:ESTIMATION], y[:ESTIMATION])]
+    exact = tuple(parse_terms(EXACT_TERMS))
+    terms = (*exact[:4], exact[-1])  # the rig's linear part: its cubic spring is missing
+    searches: list[int] = []
+
+    def cube(search: SearchInput) -> tuple[Term, ...]:
+        searches.append(len(search.terms))
+        return tuple(parse_terms(["y[t-1]^3", "y[t-2]^3"]))
+
+    counted = Effect("counted", "the cubes of y's lags, searched for", (), "estimated", find=cube)
+    effects = [*candidate_effects(terms), counted]
+    kept = ScoringKept()
+    one, other = (tuple(parse_terms(extra)) for extra in (["y[t-1]^3"], ["y[t-1]^2"]))
+    round_model, first_ahead, chosen = terms, (*terms, *one), (*terms, *other)
+    for model in (round_model, first_ahead, chosen):
+        score_effects(records, model, 0, effects, 0.01, kept=kept)
+    assert searches == [5, 6, 6]
+    score_effects(records, round_model, 0, effects, 0.01, rank=True, kept=kept)
+    assert searches[3:] == [5]  # asked for after both looked-ahead structures: built anew
+    again = score_effects(records, chosen, 0, effects, 0.01, kept=kept)
+    assert searches[4:] == []  # the look's choice: kept
+    score_effects(records, first_ahead, 0, effects, 0.01, kept=kept)
+    assert searches[4:] == [6]  # the third model back: let go
+    assert again == score_effects(records, chosen, 0, effects, 0.01)
+
+
 def test_a_figure_judged_against_a_bound_is_not_taken_for_the_figure():
     """The look ahead's contenders matter only where their check figure could win
     (``CheckSplit.judge``'s ``matters``): a model whose free run over the check blocks is already
