@@ -210,19 +210,22 @@ class CheckSplit:
             model = self.tuned(structure) if tuned or structure.rectified else self.fitted(structure)
         except InputError:
             return np.inf
-        if matters is not None:
-            rms = free_run_rms(model, self.check)
-            if not matters(rms):
-                self._beyond[(structure, tuned)] = rms
-                return rms
-        return self._simulates(model)
+        if matters is None:
+            return self._simulates(model)
+        rms = free_run_rms(model, self.check)
+        if not matters(rms):
+            self._beyond[(structure, tuned)] = rms
+            return rms
+        return self._simulates(model, rms)
 
-    def _simulates(self, model: NARX) -> float:
-        # A model that does not come to rest once the excitation stops, or diverges from a
-        # measured state, is as good as diverged, however well it simulates from the parts' starts.
+    def _simulates(self, model: NARX, rms: float | None = None) -> float:
+        """The check parts' free-run RMS of ``model`` (``rms`` where that run was made), or
+        infinite. A model that does not come to rest once the excitation stops, or diverges from
+        a measured state, is as good as diverged, however well it simulates from the parts'
+        starts."""
         if not comes_to_rest(model, [(x, y) for x, y, _ in self.fit], [t for *_, t in self.fit]):
             return np.inf
-        return free_run_rms(model, self.check)
+        return free_run_rms(model, self.check) if rms is None else rms
 
     def fitted(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by least squares (its process part by extended

@@ -532,7 +532,7 @@ def _refined_on_tails(grown: Grown, heads: Records, tails: Segments) -> Grown:
         or grown.folded is not None
     ):
         return grown
-    fitted, _ = fitted_on_all(heads, grown.structure)
+    fitted = grown.least_squares  # the structure's least-squares fit on all the heads
     if not compare_on_tails(result.refined, fitted, tails).better:
         return grown
     check = CheckSplit.of(heads).error(grown.structure)
