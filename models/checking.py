@@ -280,6 +280,12 @@ def by_output_error(model: NARX, segments: Segments, evaluations: int, threads: 
     return fit.model if fit.rms < fit.start_rms else model
 
 
+def clears(bar: float, figure: float) -> bool:
+    """Whether a check ``figure`` is at or below ``bar``: what matters (:data:`Matters`) to a
+    caller that takes only such figures, as a partial of it, which the workers can be sent."""
+    return figure <= bar
+
+
 def check_noise(check: Segments) -> float:
     """The standard error of a free-run RMS over the ``check`` parts, as a share of it: 1/√(2N)
     for N independent Gaussian errors (fewer independent ones only widen it)."""

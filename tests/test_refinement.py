@@ -35,7 +35,7 @@ from models.input_drive import feeds_through, input_drives
 from models.linear_start import MAX_LINEAR_ORDER, _is_start
 from models.narx import NARX, fit_narx
 from models.output_error import RESTLESS, comes_to_rest, fit_output_error
-from models.pruning import pruned_back, without_pruned
+from models.pruning import _ceiling, _first_removal, pruned_back, without_pruned
 from models.refinement import (
     MAX_ROUNDS,
     Refinement,
@@ -1357,6 +1357,24 @@ def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
     (kept,) = set(earlier) - {taken}
     assert pruned.terms == tuple(term for term in everything.terms if term != taken)
     assert kept in pruned.terms
+
+
+def test_a_removal_the_pruning_refuses_on_its_run_over_the_check_blocks_is_not_judged_in_full():
+    """The pruning takes a removal only where the check blocks' figure without the terms stays
+    within the ceiling (:func:`models.pruning.pruned_back`). A removal whose run over the check
+    blocks is already beyond the ceiling is refused on that run's RMS, a bound below its figure,
+    and not asked whether it comes to rest: the Hammerstein system's own x[t-1]² taken out, the
+    figure judged in full is beyond the ceiling as well, and the split keeps no figure for it."""
+    records = [hammerstein(1500, seed=3, noise=0.1)]
+    checks = CheckSplit.of(records)
+    needed, spare = parse_terms(["x[t-1]^2", "x[t-1]^3"])
+    everything = Structure((*linear_terms(2, 2, 1), needed, spare))
+    ceiling = _ceiling(everything, checks, output_error=False)
+    assert ceiling is not None
+    assert _first_removal(everything, [(needed,)], ceiling, checks, map) is None
+    without = replace(everything, terms=tuple(term for term in everything.terms if term != needed))
+    assert CheckSplit.of(records).error(without) > ceiling.least_squares
+    assert (without, False) not in checks._errors
 
 
 # Minutes of output-error searches on a long record: `make slow`. `python -m bench.measured --only
