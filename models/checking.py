@@ -75,9 +75,6 @@ class CheckSplit:
 
     fit: Segments
     check: Segments
-    # The measured samples of each check part's record before it (:func:`check_pasts`), over which
-    # a model's memory of the signals runs before its free run there; None: each run from rest.
-    pasts: Records | None = None
     _errors: dict[tuple[Structure, bool], float] = field(default_factory=dict)
     _fitted: dict[Structure, NARX] = field(default_factory=dict)
     _tuned: dict[Structure, NARX] = field(default_factory=dict)
@@ -86,7 +83,7 @@ class CheckSplit:
 
     @classmethod
     def of(cls, records: Records, fold: int = 1) -> CheckSplit:
-        return cls(*split_for_checking(records, fold), check_pasts(records, fold))
+        return cls(*split_for_checking(records, fold))
 
     def error(self, structure: Structure, tuned: bool = False) -> float:
         """Free-run RMS over the check parts of ``structure`` fitted on the fit parts (its
@@ -118,7 +115,7 @@ class CheckSplit:
         # starts from it, and a worker would make it again (extended least squares on Silverbox's
         # 51 terms: a third of a second before the search).
         judged = workers(
-            partial(_judged, self.fit, self.check, self.pasts, tuned, matters),
+            partial(_judged, self.fit, self.check, tuned, matters),
             [(s, self._fitted.get(s)) for s in unjudged],
         )
         for structure in structures:
@@ -147,9 +144,7 @@ class CheckSplit:
         at most ``evaluations``, in turn and lazily, the searches made by ``workers`` as
         :meth:`judge` makes its judgements."""
         start = self.tuned(current)
-        searched = workers(
-            partial(_searched, self.fit, self.check, self.pasts, current, start, evaluations), structures
-        )
+        searched = workers(partial(_searched, self.fit, self.check, current, start, evaluations), structures)
         for structure, found in zip(structures, searched, strict=True):
             self._keep(found)
             yield self._errors[(structure, True)]
@@ -219,7 +214,7 @@ class CheckSplit:
         except InputError:
             return np.inf
         if matters is not None:
-            rms = free_run_rms(model, self.check, self.pasts)
+            rms = free_run_rms(model, self.check)
             if not matters(rms):
                 self._beyond[(structure, tuned)] = rms
                 return rms
@@ -230,7 +225,7 @@ class CheckSplit:
         # measured state, is as good as diverged, however well it simulates from the parts' starts.
         if not comes_to_rest(model, [(x, y) for x, y, _ in self.fit], [t for *_, t in self.fit]):
             return np.inf
-        return free_run_rms(model, self.check, self.pasts)
+        return free_run_rms(model, self.check)
 
     def fitted(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by least squares (its process part by extended
@@ -249,18 +244,13 @@ class CheckSplit:
 
 
 def _judged(
-    fit: Segments,
-    check: Segments,
-    pasts: Records | None,
-    tuned: bool,
-    matters: Matters | None,
-    job: tuple[Structure, NARX | None],
+    fit: Segments, check: Segments, tuned: bool, matters: Matters | None, job: tuple[Structure, NARX | None]
 ) -> Found:
     """What :meth:`CheckSplit.judge` of a structure fits and finds on these parts, ``job`` being
     the structure and its least-squares fit there if one was made: the least-squares and
     output-error fits, and the figures."""
     structure, fitted = job
-    checks = CheckSplit(fit, check, pasts, _fitted={} if fitted is None else {structure: fitted})
+    checks = CheckSplit(fit, check, _fitted={} if fitted is None else {structure: fitted})
     figure = checks._judge(structure, tuned, matters)
     if (structure, tuned) not in checks._beyond:
         checks._errors[(structure, tuned)] = figure
@@ -268,17 +258,11 @@ def _judged(
 
 
 def _searched(
-    fit: Segments,
-    check: Segments,
-    pasts: Records | None,
-    current: Structure,
-    tuned: NARX,
-    evaluations: int,
-    structure: Structure,
+    fit: Segments, check: Segments, current: Structure, tuned: NARX, evaluations: int, structure: Structure
 ) -> Found:
     """What :meth:`CheckSplit.search` of ``structure`` from :meth:`CheckSplit.grown` of
     ``current`` (whose output-error fit is ``tuned``) fits and finds on these parts."""
-    checks = CheckSplit(fit, check, pasts, _tuned={current: tuned})
+    checks = CheckSplit(fit, check, _tuned={current: tuned})
     checks.search(structure, checks.grown(current, structure), evaluations)
     del checks._tuned[current]
     return checks._fitted, checks._tuned, checks._errors, checks._beyond
@@ -321,9 +305,14 @@ def split_for_checking(records: Records, fold: int = 1) -> tuple[Segments, Segme
     fit: Segments = []
     check: Segments = []
     for x, y in records:
+        n = len(y)
+        blocks = int(np.clip(n // (3 * MIN_BLOCK), 1, CHECK_BLOCKS))
+        edges = np.linspace(0, n, 3 * blocks + 1).astype(int)
+        checked = (fold + 1) % 3
         runs: list[tuple[int, int]] = []  # the fitted stretches, contiguous blocks joined
-        for a, b, checked in _blocks(len(y), fold):
-            if checked:
+        for i in range(3 * blocks):
+            a, b = int(edges[i]), int(edges[i + 1])
+            if i % 3 == checked:
                 check.append((x[a:b], y[a:b], a))
             elif runs and runs[-1][1] == a:
                 runs[-1] = (runs[-1][0], b)
@@ -331,22 +320,6 @@ def split_for_checking(records: Records, fold: int = 1) -> tuple[Segments, Segme
                 runs.append((a, b))
         fit += [(x[a:b], y[a:b], a) for a, b in runs]
     return fit, check
-
-
-def check_pasts(records: Records, fold: int = 1) -> Records:
-    """The measured samples of each check part's record before it (:func:`split_for_checking`):
-    none for a record checked whole, the record up to the block for a check block."""
-    if len(records) >= 3:
-        return [(x[:0], y[:0]) for x, y in checked_whole(records, fold)]
-    return [(x[:a], y[:a]) for x, y in records for a, _, checked in _blocks(len(y), fold) if checked]
-
-
-def _blocks(n: int, fold: int) -> list[tuple[int, int, bool]]:
-    """A record of ``n`` samples cut into 3·k equal blocks (:func:`split_for_checking`): each
-    block's first and end sample and whether it is checked."""
-    blocks = int(np.clip(n // (3 * MIN_BLOCK), 1, CHECK_BLOCKS))
-    edges = np.linspace(0, n, 3 * blocks + 1).astype(int)
-    return [(int(edges[i]), int(edges[i + 1]), i % 3 == (fold + 1) % 3) for i in range(3 * blocks)]
 
 
 def checked_whole(records: Records, fold: int = 1) -> Records:

@@ -489,7 +489,7 @@ def by_output_error_grown(
     if not diverged:
         return None
     start = checks.tuned(current)
-    longer = CheckSplit(checks.fit, checks.check, checks.pasts, _tuned={current: start})
+    longer = CheckSplit(checks.fit, checks.check, _tuned={current: start})
     further = longer.search(current, start, CHECK_EVALUATIONS)
     baseline = min(check, checks.error(current, tuned=True), further)
     for score, structure in diverged:
