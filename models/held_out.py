@@ -127,7 +127,12 @@ def _cut(x: np.ndarray, n: int) -> int | None:
 
 
 def compare_on_tails(
-    start: NARX, refined: NARX, tails: Segments, alpha: float = HELD_OUT_ALPHA, *, heads: Records | None = None
+    start: NARX,
+    refined: NARX,
+    tails: Segments,
+    alpha: float = HELD_OUT_ALPHA,
+    *,
+    heads: Records | None = None,
 ) -> HeldOut:
     """``start`` and ``refined`` compared on the ``tails`` by a paired test over blocks, at level
     ``alpha`` (lower where the tails judge several choices). Each tail continues its record's

@@ -473,7 +473,9 @@ def _judged_on_tails(
     refined, start = result.refined, grown.start
     kinks = kinks_beyond_the_records(start, refined, [*heads, *((x, y) for x, y, _ in tails)])
     held_out = replace(
-        compare_on_tails(start, refined, tails, heads=heads), orders_saw_tails=orders_saw_tails, kinks_beyond=kinks
+        compare_on_tails(start, refined, tails, heads=heads),
+        orders_saw_tails=orders_saw_tails,
+        kinks_beyond=kinks,
     )
     # Moving-average noise alone, there to unbias the parameters, leaves the process
     # structure as it was: on long tails it need only not make the free run worse.
