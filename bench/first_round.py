@@ -101,9 +101,8 @@ def _planted(
         law = ["spow(y[t-" + str(k) + "],{p:.4g})" for k in range(1, 5)]
         return _searched(current, checks, "p", law, exponents, HERTZ)
     if case.family in INPUT_PLAY:
-        function, planted_width = INPUT_PLAY[case.family], getattr(
-            case.scenario.effects, case.family.removeprefix("input_")
-        )
+        function = INPUT_PLAY[case.family]
+        planted_width = getattr(case.scenario.effects, case.family.removeprefix("input_"))
         scale = float(np.std(x))
         widths = np.exp(np.linspace(np.log(0.01 * scale), np.log(1.5 * scale), PROFILE_POINTS))
         lags = sorted({f.lag for t in current.terms for f in t.factors if f.signal == "x"})
