@@ -36,6 +36,7 @@ from models.checking import (
 )
 from models.effects import HYSTERESIS, POLYNOMIAL, Effect, candidate_effects, unused
 from models.errors import InputError
+from models.kinks import offered_within_the_records
 from models.linear_start import choose_linear, rectified_orders
 from models.narx import NARX
 from models.output_error import comes_to_rest, free_run_at_rest
@@ -149,6 +150,7 @@ def loop_on(
     threads: Workers,
     orders: tuple[int, int, int] | None = None,
     rectified: tuple[Term, ...] | None = None,
+    ranged_by: Records | None = None,
 ) -> Grown:
     """The loop of :func:`models.refinement.refine` on all of ``records``, and what
     :func:`models.refinement.refine` needs to make its models again on more: the rounds
@@ -157,14 +159,20 @@ def loop_on(
     (:func:`_refined_fit`) and the start (:func:`_start`). ``orders``: the linear orders
     ``declared`` was chosen with, and ``rectified`` the linear terms chosen as the rectified
     model's (:func:`models.linear_start.rectified_orders`), where the caller chose them
-    (:func:`models.refinement.refine` on short records)."""
+    (:func:`models.refinement.refine` on short records). ``ranged_by``: the records whose range
+    says whether laws of the output kinked at zero are offered
+    (:func:`models.kinks.offered_within_the_records`), ``records`` where not given: the whole
+    records, tails too, where the caller holds tails out, as the comparison on them reads it."""
     checks = CheckSplit.of(records)
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
         rectified = rectified_orders(records, checks, tell, workers)
     else:
         terms = parse_terms(declared)
-    families = list(effects) if effects is not None else candidate_effects(terms)
+    families = offered_within_the_records(
+        list(effects) if effects is not None else candidate_effects(terms),
+        records if ranged_by is None else ranged_by,
+    )
     checked_records(records, 1, degree=max(max_degree(terms), 3))
     _check_length(records, terms, families)
     declared_model, _ = fit_model(records, terms, 0, max_lag(terms))

@@ -406,6 +406,7 @@ def refine(
         tell=tell,
         workers=workers,
         threads=threads,
+        ranged_by=records,
     )
     refined, estimated_on = _grown_and_judged(records, grow, declared, output_error, tell, workers, threads)
     # The noise model after the process effects are settled (models.noise_model), where the
