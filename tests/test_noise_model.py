@@ -6,7 +6,7 @@ import numpy as np
 from scipy import signal
 
 from models.narx import fit_narx
-from models.noise_model import moving_average
+from models.narmax import moving_average
 from models.refinement import refine
 from models.scoring import NOISE_LAGS_OFFERED
 from simulator.physics import PhysicalParameters
@@ -24,7 +24,7 @@ def test_a_moving_average_is_fitted_by_its_prediction_error_within_its_standard_
     """Against the coefficients simulated, each within four of its asymptotic standard errors
     (the inverse of the information matrix E[ψψᵀ]/σ², ψ[t−i] = ξ[t−i]/C(q), computed from a long
     simulated ψ). Extended least squares' pseudo-linear regression, which needs 1/C − 1/2
-    positive real, settles far from them on this colour."""
+    positive real, does not settle on this colour (tests/test_narmax.py)."""
     rng = np.random.default_rng(11)
     n = 6000
     xi = rng.standard_normal(n)
@@ -43,7 +43,7 @@ def test_a_moving_average_is_fitted_by_its_prediction_error_within_its_standard_
 def test_noise_on_the_force_sensor_is_named_as_the_noise_model_and_leaves_the_free_run_alone():
     """The rig's own structure declared, its force read through coloured sensor noise (1600
     samples): the equation error is −b₁·n[t−4], a moving average of the planted colour. In the
-    rounds the structure re-estimated with it by extended least squares ran free over the check
+    rounds the structure re-estimated with it ran free over the check
     blocks worse than without, and the loop refused it: nothing was named, and the model's
     one-step prediction error stayed at the noise's RMS, |b₁|·800 N·√(1 + Σc²), where |b₁|·800 N
     is what a prediction that knows the colour leaves. After the rounds the noise family's lags
