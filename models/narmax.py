@@ -93,12 +93,6 @@ class NARMAX:
     def noise_lags(self) -> int:
         return self.noise.size
 
-    @property
-    def settled(self) -> bool:
-        """Whether the estimates are a point the estimation settled on: extended least squares'
-        fixed point, or the prediction error's minimum."""
-        return self.converged or (self.search_iterations > 0 and self.search_converged)
-
 
 def fit_narmax(
     records: Iterable[tuple[ArrayLike, ArrayLike]],
