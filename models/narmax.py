@@ -23,10 +23,9 @@ The pseudo-linear regression is sure to converge only where 1/C − 1/2 is posit
 (Ljung, *System Identification*, 1999). On a colour with a root near the unit circle, such as
 the simulator's force-sensor noise C(z) = 1 + 1.5z⁻¹ + 1.2z⁻² + 0.9z⁻³ + 0.6z⁻⁴ + 0.3z⁻⁵ (a
 root at 0.91), it does not settle: it wanders far from the coefficients, the lagged output's
-coefficient biased with them, and its estimates at the iteration cap are wherever the cap
-stopped it. There the
-estimates are the one-step prediction error's minimum, reached from its last estimates
-(:func:`prediction_error`): the innovations
+coefficient biased with them, and its estimates at the cap are wherever the cap stopped it
+(``converged`` False). The one-step prediction error's minimum is reached from there by
+:func:`prediction_error`: the innovations
 
     ξ = (y − Φθ) / C(q),    C(q) = 1 + Σ c_i q⁻ⁱ,
 
@@ -34,9 +33,11 @@ each record's from rest, minimise Σξ² over θ and c together by Gauss–Newto
 ∂ξ/∂c_i = −q⁻ⁱξ/C(q)), each step shortened until the sum falls, C kept invertible
 (:func:`invertible`), until no parameter moves by ``rtol`` standard errors; the covariance is
 σ̂²(JᵀJ)⁻¹ at the estimates, J the Jacobian of ξ. Where the model is right the two estimators
-have the same limit, the true parameters. The fit reports whether extended least squares
-converged and whether the search did. A moving average of a residual alone is fitted by the
-same search, from Hannan and Rissanen's estimate (:func:`moving_average`).
+have one limit, the true parameters; where it is not they estimate different things, and the
+loop's rounds keep extended least squares (docs/benchmarks/planted.md, "Extended least squares
+that does not settle"). A moving average of a residual alone, the noise model's
+(:mod:`models.noise_model`), is fitted by the same search from Hannan and Rissanen's estimate
+(:func:`moving_average`).
 """
 
 from __future__ import annotations
@@ -69,16 +70,12 @@ class NARMAX:
 
     Attributes
     ----------
-    process : the NARX part: terms, θ̂ and its covariance block, σ̂² (the mean square of the
-        last least-squares fit's residual, or of the innovations ξ where the search ran).
+    process : the NARX part: terms, θ̂ and its covariance block, σ̂² = mean(ε²).
     noise : MA coefficients c_1 … c_q.
     noise_covariance : covariance of ĉ.
-    iterations : extended least squares' fits after the initial one.
-    converged : whether its last iteration moved every parameter by less than ``rtol`` s.e.
-    search_iterations : Gauss–Newton steps of the prediction-error search, zero where extended
-        least squares converged and no search was made.
-    search_converged : whether that search's last step moved every parameter by less than
-        ``rtol`` s.e. (True where none was made).
+    iterations : least-squares fits after the initial one.
+    converged : whether the last iteration moved every parameter by less than ``rtol`` s.e.; where
+        it did not, the estimates are wherever the cap stopped the iteration.
     """
 
     process: NARX
@@ -86,8 +83,6 @@ class NARMAX:
     noise_covariance: np.ndarray
     iterations: int
     converged: bool
-    search_iterations: int = 0
-    search_converged: bool = True
 
     @property
     def noise_lags(self) -> int:
@@ -103,9 +98,8 @@ def fit_narmax(
     rtol: float = 1e-2,
     t0: int | Sequence[int] = 0,
 ) -> NARMAX:
-    """Estimate a NARMAX model by extended least squares and, where it does not converge, by
-    the prediction error from its last estimates (module docstring), each at most ``max_iter``
-    iterations; ``t0`` as for :func:`models.narx.fit_narx`."""
+    """Estimate a NARMAX model by extended least squares (module docstring); ``t0`` as for
+    :func:`models.narx.fit_narx`."""
     if isinstance(noise_lags, bool) or not isinstance(noise_lags, int) or noise_lags < 1:
         raise InputError(f"noise_lags must be an integer >= 1, got {noise_lags!r}")
     if max_iter < 1:
@@ -119,18 +113,11 @@ def fit_narmax(
     step, iterations, converged = _extended_least_squares(
         Phi, target, starts, noise_lags, names, max_iter, rtol
     )
+    # The last step is the least-squares fit on [Φ | E] with E the residual columns it was given.
     k = len(parsed)
-    if converged:
-        # The last step is the least-squares fit on [Φ | E] with E the residual columns it was
-        # given; its covariance treats them as known.
-        theta, covariance = step.theta, step.covariance
-        process = NARX(parsed, theta[:k], covariance[:k, :k], step.sigma2, target.size)
-        return NARMAX(process, theta[k:], covariance[k:, k:], iterations, converged)
-    start = step.theta
-    fit = prediction_error(Phi, target, starts, start[:k], invertible(start[k:]), names, max_iter, rtol)
-    process = NARX(parsed, fit.theta, fit.covariance[:k, :k], fit.sigma2, target.size)
-    noise_covariance = fit.covariance[k:, k:]
-    return NARMAX(process, fit.noise, noise_covariance, iterations, converged, fit.iterations, fit.converged)
+    theta, covariance = step.theta, step.covariance
+    process = NARX(parsed, theta[:k], covariance[:k, :k], step.sigma2, target.size)
+    return NARMAX(process, theta[k:], covariance[k:, k:], iterations, converged)
 
 
 def _extended_least_squares(

@@ -3,8 +3,8 @@ chosen once its process effects are settled.
 
 A NARMAX's noise terms are chosen after its process terms, by the one-step criterion, and judged
 by how they whiten the residual (Billings 2013, ch. 3 and 5; Chen, Billings & Luo 1989). In the
-loop's rounds moving-average noise enters only where its fit, the process re-estimated with it
-(:func:`models.narmax.fit_narmax`), runs free over the check blocks no worse than the model without it
+loop's rounds moving-average noise enters only where its extended least-squares fit, the process
+re-estimated with it, runs free over the check blocks no worse than the model without it
 (:mod:`models.growing`): there it is judged as what unbiases the process, by the process's free
 run. But a moving-average model does not change the deterministic model, whose free run ignores
 the noise terms, and where the re-estimated process runs free worse (noise on the measured input:
@@ -17,8 +17,8 @@ family is offered on its structure's equation error (the least-squares residual)
 offer it: the next four lags of the innovations (the residual itself at first) enter greedily,
 each by its partial F test at the level α over the four lags offered, and where some enter the
 moving-average order becomes the longest, the coefficients are fitted by the prediction error
-(:func:`models.narmax.moving_average`) and the noise family is offered again beyond it on the innovations that
-fit leaves. The coefficients reported are fitted to the returned model's own one-step residual.
+(:func:`models.narmax.moving_average`) and the noise family is offered again beyond it on the
+innovations that fit leaves. The coefficients reported are fitted to the returned model's own one-step residual.
 The process parameters stay as the loop estimated and approved them: the noise model changes the
 one-step prediction, and the free run is the one the loop judged. A model whose rounds added
 noise keeps the noise model its process was estimated with.
@@ -36,6 +36,7 @@ from models.narmax import innovations_of, moving_average
 from models.refinement_report import Refinement, Round
 from models.regression import column_norms
 from models.scoring import (
+    NARMAX_ITERATIONS,
     NOISE_LAGS_OFFERED,
     EffectScore,
     Records,
@@ -83,7 +84,7 @@ def with_noise_model(
         if not score.significant:
             break
         lags, last = score.noise_lags, score
-        innovations = innovations_of(equation_error, moving_average(equation_error, lags))
+        innovations = innovations_of(equation_error, moving_average(equation_error, lags, NARMAX_ITERATIONS))
     if last is None:
         return result
     # One noise model, one round of the report: its order the lags that entered over the offers,
@@ -93,7 +94,7 @@ def with_noise_model(
     # The free run is the returned model's: the noise model leaves the process as it was.
     step = replace(step, check_rms=(result.check_rms, result.check_rms))
     # The coefficients that predict the returned model's own one-step residual.
-    noise = moving_average([refined.residuals(x, y) for x, y in records], lags)
+    noise = moving_average([refined.residuals(x, y) for x, y in records], lags, NARMAX_ITERATIONS)
     return replace(result, noise=noise, rounds=(*result.rounds, step))
 
 
