@@ -131,7 +131,7 @@ class Effect:
       the input does not excite (:func:`periodic_terms`); its ``terms`` are found from the
       residual, so empty here;
     - "noise": moving-average terms e[t-k] of the residual itself, which make the model a
-      NARMAX estimated by its prediction error (:mod:`models.narmax`); no terms either;
+      NARMAX estimated by extended least squares (:mod:`models.narmax`); no terms either;
     - "estimated": terms with a parameter estimated from the data, found by ``find`` (a
       :data:`Finder`) from the residual; no terms here;
     - "saturation": one regressor, the change clipping the prediction to the record's plateaus

@@ -5,7 +5,7 @@ loop chooses, :mod:`models.linear_start`), each round (:mod:`models.growing`, it
 :mod:`models.round_criteria`)
 
 1. fits the current model on the estimation records and takes its one-step residual e (a NARX
-   by least squares; once moving-average noise terms are in, a NARMAX by its prediction error);
+   by least squares; once moving-average noise terms are in, a NARMAX by extended least squares);
 2. scores every named candidate effect by how much of e it explains (:mod:`models.scoring`:
    partial F tests at a Bonferroni level, ranked by the fall of the Bayesian information
    criterion);

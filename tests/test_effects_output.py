@@ -370,7 +370,7 @@ def test_a_familys_information_criterion_counts_the_terms_it_adds() -> None:
     adds the monomials spanning them, which the model then estimates freely: the fall of BIC
     charges ln n for each of those terms, as for the per-lag family's. Counting regressors
     instead ranked the two within 0.02 of each other on Silverbox, and which came first
-    depended on the last bits of a NARMAX fit."""
+    depended on the last bits of an extended least-squares fit."""
     x, y = wiener_hammerstein(seed=1, n=8000, hammerstein=True)
     terms = linear_terms(2, 3)
     effects = candidate_effects(terms)

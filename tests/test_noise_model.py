@@ -43,7 +43,7 @@ def test_a_moving_average_is_fitted_by_its_prediction_error_within_its_standard_
 def test_noise_on_the_force_sensor_is_named_as_the_noise_model_and_leaves_the_free_run_alone():
     """The rig's own structure declared, its force read through coloured sensor noise (1600
     samples): the equation error is −b₁·n[t−4], a moving average of the planted colour. In the
-    rounds the structure re-estimated with it ran free over the check
+    rounds the structure re-estimated with it by extended least squares ran free over the check
     blocks worse than without, and the loop refused it: nothing was named, and the model's
     one-step prediction error stayed at the noise's RMS, |b₁|·800 N·√(1 + Σc²), where |b₁|·800 N
     is what a prediction that knows the colour leaves. After the rounds the noise family's lags

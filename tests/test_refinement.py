@@ -420,7 +420,7 @@ def test_with_nothing_declared_the_loop_chooses_the_linear_orders_of_the_system(
 def test_the_check_split_fits_a_structure_once_and_searches_from_that_fit():
     """Each round asks for the current structure's check figure again, and the output-error
     search after the rounds starts from the least-squares fit the judgement made: on Silverbox
-    that fit (a NARMAX by its prediction error over 43 000 rows) was made twice."""
+    that fit (extended least squares, 30 steps over 43 000 rows) was made twice."""
     x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
     checks = CheckSplit.of([(x[:ESTIMATION], y[:ESTIMATION])])
     structure = Structure(tuple(parse_terms(EXACT_TERMS)), noise_lags=2)
@@ -466,7 +466,7 @@ def test_structures_judged_in_processes_are_judged_as_in_this_one():
     exact = tuple(parse_terms(EXACT_TERMS))
     structures = [
         Structure(exact[:4]),
-        Structure(exact, noise_lags=2),  # a NARMAX
+        Structure(exact, noise_lags=2),  # extended least squares
         Structure(exact),
         Structure(exact[:4]),  # asked again: judged once
     ]
