@@ -10,14 +10,9 @@ judged it. A polynomial's continuation beyond the range is the analytic one its 
 fix; a kinked law's continuation across its kink is not fixed by anything on one side of it
 (Billings 2013, ch. 14: a model is valid over the range its data covered).
 
-On the rig with a quadratic spring on mass 2, nothing declared, a 1600-sample record stayed in
-the well the spring makes at −0.3 m, between −0.38 and −0.16 m: the loop named the rig's cubic
-spring, a signed power law of the output (p = 2.6) and a polynomial, and the held-out tail
-approved the model at 1.5 % of the start's RMS. The power law stood in for the quadratic spring,
-whose square is even: across zero the model's restoring force mirrored the well to +0.3 m, where
-the system has none, and over another seed's record that left the well for the one at 0 it
-settled there and ran free three times as far off as its linear start. The same record's models
-with the rig's square and cube, polynomials, come to rest at 0 as the system does.
+A law fitted on one side of zero can stand in there for an even one (a signed power law for a
+square, say): across zero the model then mirrors what it learnt, a restoring force or a well the
+system does not have, and a record that crosses zero finds the model there.
 
 Zero matters where a record of the same structure reaches it: within as far again beyond the
 records' range as that range is wide, as a somewhat stronger force, or a record that wanders a
@@ -27,12 +22,23 @@ record of this kind reaches.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from models.narx import NARX
 from models.scoring import Records
 from models.terms import POWER_LAWS, Term
 
 # The functions of a signal whose law changes form where it crosses zero.
 KINKED = ("abs", "sign", *POWER_LAWS)
+
+
+def kinked_laws_reason(terms: Sequence[str]) -> str:
+    """Why a refined model holding the kinked laws ``terms`` is not returned, in one phrase that
+    the report and the command line share."""
+    return (
+        f"the refined model's {', '.join(terms)} change form at an output of zero the records come "
+        "near but never reach"
+    )
 
 
 def kinked_at_zero(term: Term) -> bool:

@@ -17,6 +17,7 @@ from models.amplitude_range import AmplitudeRanges
 from models.assessment import Assessment
 from models.coverage import Coverage
 from models.held_out import HELD_OUT_ALPHA, HeldOut, unseen_by
+from models.kinks import kinked_laws_reason
 from models.narx import NARX
 from models.periods import PeriodNoise
 from models.scoring import EffectScore
@@ -297,11 +298,10 @@ def _held_out_notes(result: Refinement) -> list[str]:
         return []
     if held_out.kinks_beyond:
         return [
-            f"the data could not support the effects: the refined model's {', '.join(held_out.kinks_beyond)} "
-            "change form where the output crosses zero, which the estimation records' outputs stay on "
-            "one side of and come near; across zero those laws mirror themselves as no record showed, "
-            f"and a record that crosses it would find the model there. The start is returned (the best "
-            f"effect tried: {held_out.best_tried})"
+            f"the data could not support the effects: {kinked_laws_reason(held_out.kinks_beyond)}; "
+            "across zero those laws mirror themselves as no record showed, and a record that crosses "
+            f"it would find the model there. The start is returned (the best effect tried: "
+            f"{held_out.best_tried})"
         ]
     refined = "diverged" if held_out.diverged else f"ran free at {held_out.refined_rms:.4g}"
     return [

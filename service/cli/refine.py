@@ -37,6 +37,7 @@ from rich.progress import SpinnerColumn, TextColumn, TimeElapsedColumn
 from models.effects import linear_terms
 from models.errors import InputError
 from models.held_out import unseen_by
+from models.kinks import kinked_laws_reason
 from models.refinement import DEFAULT_ALPHA, Stage
 from models.refinement_protocol import Loop, Refined, default_split, refine_parts, refine_whole
 from models.regression import Workers
@@ -450,7 +451,7 @@ def _print_withdrawn(report: dict[str, Any]) -> None:
     held_out = report["held_out"]
     if held_out is not None and not held_out["refined_returned"]:
         why = (
-            "the refined model holds laws that change form at an output of zero the records never reached"
+            kinked_laws_reason(held_out["kinks_beyond"])
             if held_out.get("kinks_beyond")
             else "the refined model was not better than the start on the held-out tails"
         )
@@ -596,16 +597,12 @@ def _print_held_out(held_out: dict[str, Any], per: str) -> None:
         f"(its uncertainty at level {held_out['level']:g})"
     )
     # Reports stored before the gate named kinked laws carry no such list.
-    kinks = ", ".join(held_out.get("kinks_beyond") or ())
+    kinks = held_out.get("kinks_beyond")
     decision = (
         "the refined model is returned"
         if held_out["refined_returned"]
         else f"the start is returned (the best effect tried: {held_out['best_tried']})"
-        + (
-            f", the refined model's {kinks} changing form at an output of zero the records never reached"
-            if kinks
-            else ""
-        )
+        + (f": {kinked_laws_reason(kinks)}" if kinks else "")
     )
     stdout.print(
         f"held-out tails ({held_out['samples']} samples {unseen_by(held_out['orders_saw_tails'])}): "
