@@ -154,6 +154,9 @@ class Effect:
     # exponent, which a law at an exponent between it and the linear law can blend with an effect
     # beside them (:func:`models.round_criteria.integer_law_first`).
     integer_laws: tuple[tuple[str, float], ...] = ()
+    # For a family whose terms are found from the residual: they will be a law of the output that
+    # changes form where it crosses zero (:mod:`models.kinks`), known before the search.
+    kinked_law: bool = False
 
     @property
     def regressors(self) -> int:
@@ -288,6 +291,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             "estimated",
             functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, integer_above=True),
             integer_laws=(("cubic_stiffness", 3.0),),
+            kinked_law=True,
         ),
         Effect(
             "power_law_damping",
