@@ -18,10 +18,10 @@ offer it: the next four lags of the innovations (the residual itself at first) e
 each by its partial F test at the level α over the four lags offered, and where some enter the
 moving-average order becomes the longest, the coefficients are fitted by the prediction error
 (:func:`models.narmax.moving_average`) and the noise family is offered again beyond it on the
-innovations that fit leaves. The coefficients reported are fitted to the returned model's own one-step residual.
-The process parameters stay as the loop estimated and approved them: the noise model changes the
-one-step prediction, and the free run is the one the loop judged. A model whose rounds added
-noise keeps the noise model its process was estimated with.
+innovations that fit leaves. The coefficients reported are fitted to the returned model's own
+one-step residual. The process parameters stay as the loop estimated and approved them: the noise
+model changes the one-step prediction, and the free run is the one the loop judged. A model whose
+rounds added noise keeps the noise model its process was estimated with.
 """
 
 from __future__ import annotations

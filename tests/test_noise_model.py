@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal
 
-from models.narx import fit_narx
 from models.narmax import moving_average
+from models.narx import fit_narx
 from models.refinement import refine
 from models.scoring import NOISE_LAGS_OFFERED
 from simulator.physics import PhysicalParameters
