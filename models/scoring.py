@@ -57,8 +57,10 @@ Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limi
 # tenths of a second where the others take milliseconds.
 SEARCHED = frozenset({"combined", "estimated", "periodic"})
 NOISE_LAGS_OFFERED = 4  # moving-average lags a round offers beyond those the model has
-# Extended least squares settles in 13–15 iterations on simulated records; on long measured ones
-# its last digits wander for longer without changing what the loop decides.
+# The extended least-squares iterate the rounds take: it settles within this on simulated records,
+# not always on long measured ones, whose fits the cap stops short of its fixed point (``converged``
+# false); the loop's figures are those of the iterate at the cap (models/narmax.py says why the
+# fixed point is not the prediction error's minimum either).
 NARMAX_ITERATIONS = 30
 # Scorings a loop keeps (ScoringKept): a round's own and the structure its look ahead chose.
 KEPT_MODELS = 2
