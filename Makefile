@@ -52,11 +52,14 @@ $(BENCH_STAMP): pyproject.toml
 reproduce: $(RUN_STAMP)
 	$(BIN)/narxwatch reproduce --out var/reproduce
 
-test: $(TEST_STAMP) docs
-	$(BIN)/ruff check .
-	$(BIN)/lint-imports
-	bash scripts/ensure-postgres.sh
-	bash scripts/ensure-chromium.sh
+# numba's kernels are compiled into their cache (harness/kernels.py) beside the site's build and
+# the checks, on the core they leave idle: in a fresh clone each pytest process would otherwise
+# compile them all at its start, both at once.
+test: $(TEST_STAMP)
+	$(BIN)/python -m harness.kernels & compiling=$$!; \
+	$(MAKE) --no-print-directory docs && $(BIN)/ruff check . && $(BIN)/lint-imports \
+		&& bash scripts/ensure-postgres.sh && bash scripts/ensure-chromium.sh; \
+	checked=$$?; wait $$compiling && exit $$checked
 	$(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow"
 
 # The documentation site, into var/site/ (git-ignored). --strict: a broken link, a missing anchor

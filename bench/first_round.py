@@ -7,7 +7,7 @@ parameters set or searched on that figure itself (a periodic force's sine and co
 simulated frequency; a Bouc–Wen variable's level and shape on the family's grid, its ends left
 out as the family leaves them; an offset with the rig's spring and the squares it brings; a
 quadratic spring or Coulomb friction at every lag; a power-law spring's exponent or a dead zone's
-width at the simulated value and searched on the family's grid, alone and beside the rig's
+or backlash's width at the simulated value and searched on the family's grid, alone and beside the rig's
 spring, on which the planted effect sits). Where
 the planted family searched so falls less than another family, naming it first is not what the
 data supports on that record.
@@ -45,6 +45,9 @@ RIG_SPRING = [f"y[t-{k}]^3" for k in range(1, 5)]
 # The planted families of fixed terms, at lag k.
 FIXED_TERMS = {"quadratic_stiffness": "y[t-{k}]^2", "coulomb_friction": "sign(dy[t-{k}])"}
 HERTZ = 1.5  # the exponent of the simulator's Hertzian contact spring
+# The input families of one width searched, by their term's function (the width planted is the
+# simulator's effect of the family's name less "input_").
+INPUT_PLAY = {"input_dead_zone": "deadzone", "input_backlash": "backlash"}
 
 
 def _with(current: Structure, score: EffectScore) -> Structure:
@@ -97,12 +100,14 @@ def _planted(
         exponents = np.linspace(*STIFFNESS_EXPONENTS, PROFILE_POINTS)
         law = ["spow(y[t-" + str(k) + "],{p:.4g})" for k in range(1, 5)]
         return _searched(current, checks, "p", law, exponents, HERTZ)
-    if case.family == "input_dead_zone":
+    if case.family in INPUT_PLAY:
+        function = INPUT_PLAY[case.family]
+        planted_width = getattr(case.scenario.effects, case.family.removeprefix("input_"))
         scale = float(np.std(x))
         widths = np.exp(np.linspace(np.log(0.01 * scale), np.log(1.5 * scale), PROFILE_POINTS))
         lags = sorted({f.lag for t in current.terms for f in t.factors if f.signal == "x"})
-        zone = ["deadzone(x[t-" + str(k) + "],{p:.4g})" for k in lags]
-        return _searched(current, checks, "w", zone, widths, case.scenario.effects.dead_zone)
+        play = [function + "(x[t-" + str(k) + "],{p:.4g})" for k in lags]
+        return _searched(current, checks, "w", play, widths, planted_width)
     raise ValueError(f"no search for {case.family}")
 
 

@@ -24,7 +24,7 @@ from models.output_error import comes_to_rest, fit_output_error
 from models.regression import Workers
 from models.scoring import Records, Saturating, fit_model
 from models.simulation import FreeRun
-from models.terms import Term, max_lag
+from models.terms import OUTPUT_HYSTERESES, Term, max_lag
 
 # With fewer than three records each is cut into 3·CHECK_BLOCKS blocks, every third one a check
 # block, so that fit and check parts cover the record alike (a growing amplitude, say). A sine
@@ -41,6 +41,9 @@ CHECK_EVALUATIONS = 30
 SETTLED_EVALUATIONS = 400
 
 Segments = list[tuple[np.ndarray, np.ndarray, int]]  # (x, y, first sample's index in its record)
+# The functions of a term whose value depends on the whole past of their signal: a Bouc–Wen
+# variable of the output, a backlash's play on the input (a dead zone is memoryless).
+MEMORIES = (*OUTPUT_HYSTERESES, "backlash")
 
 
 @dataclass(frozen=True)
@@ -210,19 +213,22 @@ class CheckSplit:
             model = self.tuned(structure) if tuned or structure.rectified else self.fitted(structure)
         except InputError:
             return np.inf
-        if matters is not None:
-            rms = free_run_rms(model, self.check)
-            if not matters(rms):
-                self._beyond[(structure, tuned)] = rms
-                return rms
-        return self._simulates(model)
+        if matters is None:
+            return self._simulates(model)
+        rms = free_run_rms(model, self.check)
+        if not matters(rms):
+            self._beyond[(structure, tuned)] = rms
+            return rms
+        return self._simulates(model, rms)
 
-    def _simulates(self, model: NARX) -> float:
-        # A model that does not come to rest once the excitation stops, or diverges from a
-        # measured state, is as good as diverged, however well it simulates from the parts' starts.
+    def _simulates(self, model: NARX, rms: float | None = None) -> float:
+        """The check parts' free-run RMS of ``model`` (``rms`` where that run was made), or
+        infinite. A model that does not come to rest once the excitation stops, or diverges from
+        a measured state, is as good as diverged, however well it simulates from the parts'
+        starts."""
         if not comes_to_rest(model, [(x, y) for x, y, _ in self.fit], [t for *_, t in self.fit]):
             return np.inf
-        return free_run_rms(model, self.check)
+        return free_run_rms(model, self.check) if rms is None else rms
 
     def fitted(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by least squares (its process part by extended
@@ -277,6 +283,12 @@ def by_output_error(model: NARX, segments: Segments, evaluations: int, threads: 
     return fit.model if fit.rms < fit.start_rms else model
 
 
+def clears(bar: float, figure: float) -> bool:
+    """Whether a check ``figure`` is at or below ``bar``: what matters (:data:`Matters`) to a
+    caller that takes only such figures, as a partial of it, which the workers can be sent."""
+    return figure <= bar
+
+
 def check_noise(check: Segments) -> float:
     """The standard error of a free-run RMS over the ``check`` parts, as a share of it: 1/√(2N)
     for N independent Gaussian errors (fewer independent ones only widen it)."""
@@ -325,18 +337,44 @@ def checked_whole(records: Records, fold: int = 1) -> Records:
     return list(records[fold::3]) if len(records) >= 3 else list(records)
 
 
-def free_run_rms(model: NARX, segments: Segments) -> float:
+def free_run_rms(model: NARX, segments: Segments, pasts: Records | None = None) -> float:
     """Free-run RMS of ``model`` over ``segments``, each run started from its first measured
-    outputs; infinite when a run diverges or no segment is longer than the model's lags."""
-    return pooled_rms(free_run_errors(model, segments))
+    outputs (its memory from ``pasts``, :func:`free_run_errors`); infinite when a run diverges or
+    no segment is longer than the model's lags."""
+    return pooled_rms(free_run_errors(model, segments, pasts))
 
 
-def free_run_errors(model: NARX, segments: Segments) -> list[np.ndarray]:
+def free_run_errors(model: NARX, segments: Segments, pasts: Records | None = None) -> list[np.ndarray]:
     """The free-run errors of ``model`` over each of ``segments`` longer than its lags, each run
-    started from its first measured outputs (samples L … of each, L the model's largest lag)."""
+    started from its first measured outputs (samples L … of each, L the model's largest lag).
+
+    ``pasts``, where given, holds each segment's record before it (its input and output as
+    measured, ending where the segment starts). A model with memory — a Bouc–Wen variable of the
+    output, the play of a backlash on the input — then runs that memory over them, as its lags
+    read the segment's first measured outputs: its state at the segment's start is what the
+    measurements make it, where started at rest there it would be wrong by up to the memory's
+    whole level, and stay wrong until the signal has moved by that much (over a held-out tail of
+    a few hundred samples, perhaps never)."""
     L = model.max_lag
-    runs = [(FreeRun.build(model.terms, x, t0), y) for x, y, t0 in segments if len(y) > L]
-    return [model.run_free(run, y)[L:] - y[L:] for run, y in runs]
+    errors = []
+    for index, (x, y, t0) in enumerate(segments):
+        if len(y) <= L:
+            continue
+        past = pasts[index] if pasts is not None and remembers(model.terms) else None
+        if past is None or not len(past[1]):
+            errors.append(model.run_free(FreeRun.build(model.terms, x, t0), y)[L:] - y[L:])
+            continue
+        before = len(past[1])
+        x_all, y_all = np.concatenate((past[0], x)), np.concatenate((past[1], y))
+        run = FreeRun.build(model.terms, x_all, t0 - before).measured_to(before + L)
+        errors.append(model.run_free(run, y_all)[before + L :] - y[L:])
+    return errors
+
+
+def remembers(terms: Sequence[Term]) -> bool:
+    """Whether ``terms`` hold a memory of the signals' past beyond their lags: a Bouc–Wen
+    variable of the output or a backlash's play on the input."""
+    return any(f.function in MEMORIES for term in terms for f in term.factors)
 
 
 def pooled_rms(errors: Sequence[np.ndarray]) -> float:

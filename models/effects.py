@@ -163,6 +163,9 @@ class Effect:
     # test (:func:`models.scoring.score_columns`): chosen to explain that residual best, they
     # would otherwise pass as free.
     searched: int = 0
+    # For a family whose terms are found from the residual: they will be a law of the output that
+    # changes form where it crosses zero (:mod:`models.kinks`), known before the search.
+    kinked_law: bool = False
 
     @property
     def regressors(self) -> int:
@@ -300,6 +303,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, integer_above=True),
             integer_laws=(("cubic_stiffness", 3.0),),
             searched=1,
+            kinked_law=True,
         ),
         Effect(
             "power_law_damping",

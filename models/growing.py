@@ -36,6 +36,7 @@ from models.checking import (
 )
 from models.effects import HYSTERESIS, POLYNOMIAL, Effect, candidate_effects, unused
 from models.errors import InputError
+from models.kinks import offered_within_the_records
 from models.linear_start import choose_linear, rectified_orders
 from models.narx import NARX
 from models.output_error import comes_to_rest, free_run_at_rest
@@ -80,6 +81,10 @@ class Grown(NamedTuple):
     start_check: float
     structure: Structure
     folded: tuple[Structure, tuple[Structure, ...]] | None
+    # The structure refined, fitted by least squares on all the records the loop ran on (the
+    # refined model where that is its estimator): a caller comparing the estimators takes it
+    # from here rather than fitting it again.
+    least_squares: NARX
 
 
 # The significant families judged on the check blocks in turn (:func:`models.round_criteria.judged_in_turn`).
@@ -145,6 +150,7 @@ def loop_on(
     threads: Workers,
     orders: tuple[int, int, int] | None = None,
     rectified: tuple[Term, ...] | None = None,
+    ranged_by: Records | None = None,
 ) -> Grown:
     """The loop of :func:`models.refinement.refine` on all of ``records``, and what
     :func:`models.refinement.refine` needs to make its models again on more: the rounds
@@ -153,14 +159,20 @@ def loop_on(
     (:func:`_refined_fit`) and the start (:func:`_start`). ``orders``: the linear orders
     ``declared`` was chosen with, and ``rectified`` the linear terms chosen as the rectified
     model's (:func:`models.linear_start.rectified_orders`), where the caller chose them
-    (:func:`models.refinement.refine` on short records)."""
+    (:func:`models.refinement.refine` on short records). ``ranged_by``: the records whose range
+    says whether laws of the output kinked at zero are offered
+    (:func:`models.kinks.offered_within_the_records`), ``records`` where not given: the whole
+    records, tails too, where the caller holds tails out, as the comparison on them reads it."""
     checks = CheckSplit.of(records)
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
         rectified = rectified_orders(records, checks, tell, workers)
     else:
         terms = parse_terms(declared)
-    families = list(effects) if effects is not None else candidate_effects(terms)
+    families = offered_within_the_records(
+        list(effects) if effects is not None else candidate_effects(terms),
+        records if ranged_by is None else ranged_by,
+    )
     checked_records(records, 1, degree=max(max_degree(terms), 3))
     _check_length(records, terms, families)
     declared_model, _ = fit_model(records, terms, 0, max_lag(terms))
@@ -233,7 +245,7 @@ def _grown(
     (:func:`_start`); ``declared``, the declared model by least squares and its structure."""
     checks, current = loop.checks, after.structure
     declared_model, declared_structure = declared
-    refined, noise, estimator, declared_tuned = _refined_fit(
+    refined, noise, estimator, declared_tuned, least_squares = _refined_fit(
         loop, after, fitted, declared_model, declared_structure, declared_search
     )
     refinement = Refinement(
@@ -252,7 +264,7 @@ def _grown(
     )
     start_check = checks.error(declared_structure, tuned=start_estimator == "output error")
     folded = (after.before_folds, tuple(after.grown_across_folds)) if after.grown_across_folds else None
-    return Grown(refinement, start, start_estimator, start_check, current, folded)
+    return Grown(refinement, start, start_estimator, start_check, current, folded, least_squares)
 
 
 def _rounds(
@@ -574,11 +586,11 @@ def _refined_fit(
     declared_model: NARX,
     declared_structure: Structure,
     declared_search: Iterable[NARX],
-) -> tuple[NARX, np.ndarray, Estimator, NARX | None]:
+) -> tuple[NARX, np.ndarray, Estimator, NARX | None, NARX]:
     """The refined structure's model on all the records, its moving-average coefficients and its
-    estimator, with the declared model's output-error fit where it was searched: ``fitted``, the
-    least-squares fit, unless by output error it simulates the check blocks better and comes to
-    rest."""
+    estimator, with the declared model's output-error fit where it was searched, and its
+    least-squares fit: ``fitted``, the least-squares fit, unless by output error it simulates the
+    check blocks better and comes to rest."""
     records, checks, current = loop.records, loop.checks, after.structure
     # Least squares is consistent when the noise enters the equation (a force on the structure)
     # and gives the best one-step predictor; output error when the noise is on the measured
@@ -588,7 +600,7 @@ def _refined_fit(
     )
     ((refined, noise),) = fitted
     if not simulates_better:
-        return refined, noise, "least squares", None
+        return refined, noise, "least squares", None, refined
     loop.tell("output-error fit on all the records")
     (declared_tuned,) = declared_search
     if current == declared_structure:
@@ -623,8 +635,8 @@ def _refined_fit(
         # (least squares' fit on all the data can differ from the check's) is no better.
         tuned = None if found is start else found
     if tuned is not None and comes_to_rest(tuned, records):
-        return tuned, noise, "output error", declared_tuned
-    return refined, noise, "least squares", declared_tuned
+        return tuned, noise, "output error", declared_tuned, refined
+    return refined, noise, "least squares", declared_tuned, refined
 
 
 def _start(

@@ -126,9 +126,19 @@ def _cut(x: np.ndarray, n: int) -> int | None:
     return cut - cut % period if cut >= 2 * period else None
 
 
-def compare_on_tails(start: NARX, refined: NARX, tails: Segments, alpha: float = HELD_OUT_ALPHA) -> HeldOut:
+def compare_on_tails(
+    start: NARX,
+    refined: NARX,
+    tails: Segments,
+    alpha: float = HELD_OUT_ALPHA,
+    *,
+    heads: Records | None = None,
+) -> HeldOut:
     """``start`` and ``refined`` compared on the ``tails`` by a paired test over blocks, at level
-    ``alpha`` (lower where the tails judge several choices).
+    ``alpha`` (lower where the tails judge several choices). Each tail continues its record's
+    record's head (:func:`held_out_tails`; ``heads``, where given): a model with memory of the
+    signals' past runs it over the measured head, and over the tail's measured part before each
+    restarted piece (:func:`models.checking.free_run_errors`).
 
     The blocks are cut two ways, each tested at half the level (Bonferroni), the refined model
     better where either passes: blocks of one free run over each tail, where a model's error can
@@ -142,11 +152,16 @@ def compare_on_tails(start: NARX, refined: NARX, tails: Segments, alpha: float =
     and 1 − exp(−t·SE), from the way that passed (else from the blocks of one free run).
     """
     blocks = comparison_blocks(tails)
-    start_errors, refined_errors = (free_run_errors(model, tails) for model in (start, refined))
+    heads = [(x[:0], y[:0]) for x, y, _ in tails] if heads is None else heads
+    start_errors, refined_errors = (free_run_errors(model, tails, heads) for model in (start, refined))
     level = alpha / 2
     comparisons = [
         _paired(_block_squares(start_errors, blocks), _block_squares(refined_errors, blocks), level),
-        _paired(_restarted_squares(start, tails, blocks), _restarted_squares(refined, tails, blocks), level),
+        _paired(
+            _restarted_squares(start, tails, heads, blocks),
+            _restarted_squares(refined, tails, heads, blocks),
+            level,
+        ),
     ]
     gain, threshold = next((each for each in comparisons if each[0] > each[1]), comparisons[0])
     start_rms, refined_rms = pooled_rms(start_errors), pooled_rms(refined_errors)
@@ -184,18 +199,24 @@ def _block_squares(errors: list[np.ndarray], blocks: int) -> np.ndarray:
     return np.array([float(np.mean(part**2)) for part in np.array_split(error, blocks)])
 
 
-def _restarted_squares(model: NARX, segments: Segments, blocks: int) -> np.ndarray:
+def _restarted_squares(model: NARX, segments: Segments, pasts: Records, blocks: int) -> np.ndarray:
     """``segments`` cut into about ``blocks`` pieces (a segment's share by its length), each run
-    free from its own first measured outputs: ``model``'s mean square over each; all infinite when
-    a run diverges. Runs restarted per piece are alike and independent, where one long free run's
-    error drifts and a lightly damped model's last blocks can hold nearly all of it."""
+    free from its own first measured outputs, its memory from the measured samples before it
+    (the segment's ``pasts`` and the segment up to the piece): ``model``'s mean square over each;
+    all infinite when a run diverges. Runs restarted per piece are alike and independent, where
+    one long free run's error drifts and a lightly damped model's last blocks can hold nearly
+    all of it."""
     total = sum(len(y) for _, y, _ in segments)
     pieces = [
-        (x[part[0] : part[-1] + 1], y[part[0] : part[-1] + 1], t0 + int(part[0]))
-        for x, y, t0 in segments
+        (
+            (x[a : part[-1] + 1], y[a : part[-1] + 1], t0 + a),
+            (np.concatenate((past_x, x[:a])), np.concatenate((past_y, y[:a]))),
+        )
+        for (x, y, t0), (past_x, past_y) in zip(segments, pasts, strict=True)
         for part in np.array_split(np.arange(len(y)), max(1, round(blocks * len(y) / total)))
+        for a in (int(part[0]),)
     ]
-    squares = np.array([free_run_rms(model, [piece]) ** 2 for piece in pieces])
+    squares = np.array([free_run_rms(model, [piece], [past]) ** 2 for piece, past in pieces])
     return squares if np.all(np.isfinite(squares)) else np.full(squares.size, np.inf)
 
 

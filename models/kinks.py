@@ -18,12 +18,20 @@ Zero matters where a record of the same structure reaches it: within as far agai
 records' range as that range is wide, as a somewhat stronger force, or a record that wanders a
 little further, takes it. Further away, the law near the records is a smooth curve whose kink no
 record of this kind reaches.
+
+The loop does not offer such a law on such records either (:func:`offered_within_the_records`):
+a model holding one is refused whatever the tails say, so a round that adds it commits the
+refinement to a model that will not be returned, where a polynomial, its analytic equal over the
+records, would have taken the round.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
+
+from models.effects import Effect, reads_magnitude
 from models.narx import NARX
 from models.scoring import Records
 from models.terms import POWER_LAWS, Term
@@ -53,13 +61,33 @@ def kinks_beyond_the_records(start: NARX, refined: NARX, records: Records) -> tu
     zero and come within as far again as their range is wide of it; empty otherwise. A rectified
     model's recursion runs on a signed output whose zero the readings come down to, and is
     passed over."""
-    if refined.rectified:
-        return ()
-    low = min(float(min(y)) for _, y in records)
-    high = max(float(max(y)) for _, y in records)
-    if low <= 0.0 <= high or not high > low:
-        return ()
-    if min(abs(low), abs(high)) > high - low:
+    if refined.rectified or not near_an_unreached_zero(records):
         return ()
     own = set(start.terms)
     return tuple(term.name for term in refined.terms if term not in own and kinked_at_zero(term))
+
+
+def near_an_unreached_zero(records: Records) -> bool:
+    """Whether the ``records``' outputs stay on one side of zero and come within as far again as
+    their range is wide of it."""
+    low = min(float(min(y)) for _, y in records)
+    high = max(float(max(y)) for _, y in records)
+    if low <= 0.0 <= high or not high > low:
+        return False
+    return min(abs(low), abs(high)) <= high - low
+
+
+def offered_within_the_records(families: Sequence[Effect], records: Records) -> list[Effect]:
+    """The ``families`` a loop on the ``records`` offers: those whose terms are a law of the output
+    kinked at zero (:func:`kinked_at_zero`, or ``Effect.kinked_law`` for a law found from the
+    residual) left out where the records come near a zero they never reach
+    (:func:`near_an_unreached_zero`), since :func:`kinks_beyond_the_records` would refuse a model
+    that holds one. Records that read as a magnitude keep them: their model may be rectified, its
+    recursion on a signed output, and that model's laws are passed over there too."""
+    if not near_an_unreached_zero(records) or reads_magnitude(np.concatenate([y for _, y in records])):
+        return list(families)
+    return [
+        family
+        for family in families
+        if not (family.kinked_law or any(kinked_at_zero(term) for term in family.terms))
+    ]

@@ -17,11 +17,11 @@ family is offered on its structure's equation error (the least-squares residual)
 offer it: the next four lags of the innovations (the residual itself at first) enter greedily,
 each by its partial F test at the level α over the four lags offered, and where some enter the
 moving-average order becomes the longest, the coefficients are fitted by the prediction error
-(:func:`moving_average`) and the noise family is offered again beyond it on the innovations that
-fit leaves. The coefficients reported are fitted to the returned model's own one-step residual.
-The process parameters stay as the loop estimated and approved them: the noise model changes the
-one-step prediction, and the free run is the one the loop judged. A model whose rounds added
-noise keeps the noise model its process was estimated with.
+(:func:`models.narmax.moving_average`) and the noise family is offered again beyond it on the
+innovations that fit leaves. The coefficients reported are fitted to the returned model's own
+one-step residual. The process parameters stay as the loop estimated and approved them: the noise
+model changes the one-step prediction, and the free run is the one the loop judged. A model whose
+rounds added noise keeps the noise model its process was estimated with.
 """
 
 from __future__ import annotations
@@ -30,10 +30,9 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
-from scipy import signal
 
 from models.effects import Effect
-from models.narmax import invertible
+from models.narmax import innovations_of, moving_average
 from models.refinement_report import Refinement, Round
 from models.regression import column_norms
 from models.scoring import (
@@ -49,12 +48,6 @@ from models.terms import max_lag
 # The noise family offered at most this many times after the rounds, its lags growing each time
 # (:data:`models.scoring.NOISE_LAGS_OFFERED` an offer, as in the rounds).
 NOISE_OFFERS = 10
-# The prediction-error search stops when no coefficient moves by more than this, or when a step
-# shortened below ``MIN_STEP`` of Gauss–Newton's lowers the error no more.
-COEFFICIENT_STEP = 1e-6
-MIN_STEP = 1e-3
-# The long autoregression of Hannan and Rissanen's start, in multiples of the moving-average order.
-LONG_AR_FACTOR = 4
 
 
 def with_noise_model(
@@ -91,7 +84,7 @@ def with_noise_model(
         if not score.significant:
             break
         lags, last = score.noise_lags, score
-        innovations = _innovations(equation_error, moving_average(equation_error, lags))
+        innovations = innovations_of(equation_error, moving_average(equation_error, lags, NARMAX_ITERATIONS))
     if last is None:
         return result
     # One noise model, one round of the report: its order the lags that entered over the offers,
@@ -101,7 +94,7 @@ def with_noise_model(
     # The free run is the returned model's: the noise model leaves the process as it was.
     step = replace(step, check_rms=(result.check_rms, result.check_rms))
     # The coefficients that predict the returned model's own one-step residual.
-    noise = moving_average([refined.residuals(x, y) for x, y in records], lags)
+    noise = moving_average([refined.residuals(x, y) for x, y in records], lags, NARMAX_ITERATIONS)
     return replace(result, noise=noise, rounds=(*result.rounds, step))
 
 
@@ -125,67 +118,6 @@ def _offer(family: Effect, innovations: Sequence[np.ndarray], lags: int, level: 
     labels = [(f"e[t-{k}]",) for k in range(lags + 1, longest + 1)]
     score, chosen, _ = score_columns(family, labels, candidates, target, given, target.size, level, False)
     return replace(score, noise_lags=lags + 1 + max(chosen) if chosen else 0)
-
-
-def moving_average(residuals: Sequence[np.ndarray], lags: int) -> np.ndarray:
-    """The coefficients c_1 … c_q (q = ``lags``) of e[t] = ξ[t] + Σ c_i·ξ[t−i], ξ white, that
-    minimise the one-step prediction error Σ ξ² of the ``residuals`` e of each record (no lag
-    crossing from one to the next): Gauss–Newton on ξ = e / C(q), with the invertible factor
-    (:func:`models.narmax.invertible`) at every step, from Hannan and Rissanen's estimate.
-
-    Not extended least squares: that pseudo-linear regression converges to the coefficients only
-    where 1/C − 1/2 is positive real, and a colour with a root near the unit circle, such as the
-    simulator's force-sensor noise C(z) = 1 + 1.5z⁻¹ + 1.2z⁻² + 0.9z⁻³ + 0.6z⁻⁴ + 0.3z⁻⁵ (a root
-    at 0.91), is not: on that noise alone it settles far from them and leaves it coloured."""
-    records = [np.asarray(e, dtype=np.float64) for e in residuals]
-    coefficients = invertible(_hannan_rissanen(records, lags))
-    innovations = _innovations(records, coefficients)
-    cost = _sum_of_squares(innovations)
-    for _ in range(NARMAX_ITERATIONS):
-        # ∂ξ/∂c_i = −q⁻ⁱ·ξ / C(q), each record's from its own start.
-        sensitivities = [
-            -_lagged(signal.lfilter([1.0], np.concatenate(([1.0], coefficients)), xi), lags)
-            for xi in innovations
-        ]
-        step, *_ = np.linalg.lstsq(np.vstack(sensitivities), -np.concatenate(innovations), rcond=None)
-        length = 1.0
-        while length >= MIN_STEP:
-            trial = invertible(coefficients + length * step)
-            trial_innovations = _innovations(records, trial)
-            trial_cost = _sum_of_squares(trial_innovations)
-            if trial_cost < cost:
-                break
-            length /= 2
-        else:
-            break
-        moved = np.max(np.abs(trial - coefficients))
-        coefficients, innovations, cost = trial, trial_innovations, trial_cost
-        if moved < COEFFICIENT_STEP:
-            break
-    return coefficients
-
-
-def _hannan_rissanen(records: Sequence[np.ndarray], lags: int) -> np.ndarray:
-    """Hannan and Rissanen's moving-average estimate: the innovations estimated as the residual of
-    a long autoregression, then e regressed on their lags."""
-    order = LONG_AR_FACTOR * lags
-    rows = [(_lagged(e, order), e) for e in records if e.size > order]
-    if not rows:  # records too short for the long autoregression: from white innovations
-        rows = [(np.zeros((e.size, 0)), e) for e in records]
-        order = 0
-    ar, *_ = np.linalg.lstsq(
-        np.vstack([a for a, _ in rows]), np.concatenate([e for _, e in rows]), rcond=None
-    )
-    innovations = [e - _lagged(e, order) @ ar for e in records]
-    lagged = np.vstack([_lagged(xi, lags) for xi in innovations])
-    coefficients, *_ = np.linalg.lstsq(lagged, np.concatenate(records), rcond=None)
-    return coefficients
-
-
-def _innovations(records: Sequence[np.ndarray], coefficients: np.ndarray) -> list[np.ndarray]:
-    """ξ = e / C(q) on each record, from rest at its start."""
-    denominator = np.concatenate(([1.0], coefficients))
-    return [signal.lfilter([1.0], denominator, e) for e in records]
 
 
 def _sum_of_squares(series: Sequence[np.ndarray]) -> float:

@@ -35,11 +35,12 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
 
-from models.checking import CheckSplit, Structure
+from models.checking import CheckSplit, Structure, clears
 from models.effects import POLYNOMIAL
 from models.narx import z_quantile
 from models.refinement_report import Round
@@ -157,7 +158,10 @@ def _first_removal(
     by ``workers``, side by side; the output-error fits, which cost far more, only where a
     removal passes by least squares, and the next only where the one before is refused."""
     without = [replace(current, terms=tuple(t for t in current.terms if t not in trial)) for trial in trials]
-    for trial, structure, error in zip(trials, without, checks.judge(without, workers), strict=True):
+    # Only a figure within the ceiling can pass: one whose run over the check blocks is beyond
+    # it is not asked whether it comes to rest (CheckSplit.judge).
+    judged = checks.judge(without, workers, matters=partial(clears, ceiling.least_squares))
+    for trial, structure, error in zip(trials, without, judged, strict=True):
         if error <= ceiling.least_squares and (
             ceiling.output_error is None or checks.error(structure, tuned=True) <= ceiling.output_error
         ):

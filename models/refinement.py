@@ -406,6 +406,7 @@ def refine(
         tell=tell,
         workers=workers,
         threads=threads,
+        ranged_by=records,
     )
     refined, estimated_on = _grown_and_judged(records, grow, declared, output_error, tell, workers, threads)
     # The noise model after the process effects are settled (models.noise_model), where the
@@ -473,7 +474,9 @@ def _judged_on_tails(
     refined, start = result.refined, grown.start
     kinks = kinks_beyond_the_records(start, refined, [*heads, *((x, y) for x, y, _ in tails)])
     held_out = replace(
-        compare_on_tails(start, refined, tails), orders_saw_tails=orders_saw_tails, kinks_beyond=kinks
+        compare_on_tails(start, refined, tails, heads=heads),
+        orders_saw_tails=orders_saw_tails,
+        kinks_beyond=kinks,
     )
     # Moving-average noise alone, there to unbias the parameters, leaves the process
     # structure as it was: on long tails it need only not make the free run worse.
@@ -502,9 +505,9 @@ def _start_on_tails(grown: Grown, heads: Records, tails: Segments, short: bool) 
         return grown
     least_squares = grown.refinement.declared
     if short:
-        if free_run_rms(grown.start, tails) <= free_run_rms(least_squares, tails):
+        if free_run_rms(grown.start, tails, heads) <= free_run_rms(least_squares, tails, heads):
             return grown
-    elif not compare_on_tails(grown.start, least_squares, tails).better:
+    elif not compare_on_tails(grown.start, least_squares, tails, heads=heads).better:
         return grown
     check = CheckSplit.of(heads).error(Structure(least_squares.terms))
     return grown._replace(start=least_squares, start_estimator="least squares", start_check=check)
@@ -532,8 +535,8 @@ def _refined_on_tails(grown: Grown, heads: Records, tails: Segments) -> Grown:
         or grown.folded is not None
     ):
         return grown
-    fitted, _ = fitted_on_all(heads, grown.structure)
-    if not compare_on_tails(result.refined, fitted, tails).better:
+    fitted = grown.least_squares  # the structure's least-squares fit on all the heads
+    if not compare_on_tails(result.refined, fitted, tails, heads=heads).better:
         return grown
     check = CheckSplit.of(heads).error(grown.structure)
     return grown._replace(

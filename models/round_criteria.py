@@ -18,7 +18,7 @@ from typing import NamedTuple, get_args
 
 import numpy as np
 
-from models.checking import CHECK_EVALUATIONS, CheckSplit, Matters, Structure
+from models.checking import CHECK_EVALUATIONS, CheckSplit, Matters, Structure, clears
 from models.effects import POLYNOMIAL, RECTIFIED, Effect, offset_terms, output_limits, unused
 from models.narx import NARX, Saturation
 from models.refinement_report import Criterion, Stage
@@ -588,9 +588,14 @@ def output_state_by_simulation(
             for k in range(1, len(score.ranked) + 1)
         )
     ]
-    errors = checks.judge([structure for _, structure, _ in trials], workers)
+    bar = first_error - SIMULATION_GAIN * check
+    # Only a figure within the bar can decide: one whose run over the check blocks is beyond it
+    # is not asked whether it comes to rest, and that run's RMS, a bound below its figure,
+    # leaves both the best and whether it clears the bar as they were (CheckSplit.judge; a
+    # partial, for the workers that judge them).
+    errors = checks.judge([structure for _, structure, _ in trials], workers, matters=partial(clears, bar))
     error, best = min(zip(errors, trials, strict=True), key=lambda trial: trial[0], default=(np.inf, None))
-    if best is None or error > first_error - SIMULATION_GAIN * check:
+    if best is None or error > bar:
         return None, len(trials)
     score, structure, names = best
     return (replace(score, terms=names), "simulation", structure, error), len(trials)

@@ -57,9 +57,13 @@ Saturating = tuple[tuple[float, float], Saturation]  # a saturating model's limi
 # tenths of a second where the others take milliseconds.
 SEARCHED = frozenset({"combined", "estimated", "periodic"})
 NOISE_LAGS_OFFERED = 4  # moving-average lags a round offers beyond those the model has
-# Extended least squares settles in 13–15 iterations on simulated records; on long measured ones
-# its last digits wander for longer without changing what the loop decides.
+# The extended least-squares iterate the rounds take: it settles within this on simulated records,
+# not always on long measured ones, whose fits the cap stops short of its fixed point (``converged``
+# false); the loop's figures are those of the iterate at the cap (models/narmax.py says why the
+# fixed point is not the prediction error's minimum either).
 NARMAX_ITERATIONS = 30
+# Scorings a loop keeps (ScoringKept): a round's own and the structure its look ahead chose.
+KEPT_MODELS = 2
 
 
 @dataclass(frozen=True)
@@ -245,30 +249,41 @@ def _model_scored(
 
 
 class ScoringKept:
-    """The model a loop scored last (:func:`score_effects`), its equations and the families'
-    candidates built for it, for the loop's next scoring of that model on the same records:
+    """The models a loop scored last (:func:`score_effects`), their equations and the families'
+    candidates built for them, for the loop's next scoring of one of them on the same records:
     the round after a look one round ahead (``models.refinement``) scores the structure the
     look scored, with the families it offered and more, and a round that goes on to the
     simulation criterion scores its model once more with every regressor ranked. Every family's
     candidates are a function of the model, the records, the common first row and the level α
     alone, so those built once serve again as they are, to the bit; the level α/M and the tests
-    are made anew for the families offered. One model at a time: a round's candidates take
-    tens of megabytes. The records must stay the same for the kept's life (a loop's own)."""
+    are made anew for the families offered. ``KEPT_MODELS`` at a time, the least recently asked
+    for let go first: a round that looks ahead scores two structures of the next round and then
+    its own model again (the hysteresis family ranked on it, ``models.round_criteria``), and
+    with one kept the next round built again every family of the structure the look chose, its
+    combination and parameter searches among them. A round's candidates take tens of megabytes:
+    asked for a model not kept, the kept are cut to one fewer at once, before the other's arrays
+    are made beside them. The records must stay the same for the kept's life (a loop's own)."""
 
     def __init__(self) -> None:
-        self._key: tuple[Any, ...] | None = None
-        self._model: _ModelScored | None = None
+        self._models: dict[tuple[Any, ...], _ModelScored] = {}
 
     def model(self, key: tuple[Any, ...]) -> _ModelScored | None:
-        """The model kept under ``key``, if it is the one kept; asked for another, the one kept
-        is let go at once, before the other's arrays are made beside it."""
-        if key != self._key:
-            self._key, self._model = None, None
-        return self._model
+        """The model kept under ``key``, if it is kept (now the most recently asked for)."""
+        model = self._models.pop(key, None)
+        if model is not None:
+            self._models[key] = model
+            return model
+        while len(self._models) >= KEPT_MODELS:
+            del self._models[next(iter(self._models))]
+        return None
 
     def keep(self, key: tuple[Any, ...], model: _ModelScored) -> None:
-        """Keep ``model`` (and what is built for it later) under ``key``, in place of the last."""
-        self._key, self._model = key, model
+        """Keep ``model`` (and what is built for it later) under ``key``, the least recently
+        asked for of those kept let go where ``KEPT_MODELS`` are."""
+        self._models.pop(key, None)
+        while len(self._models) >= KEPT_MODELS:
+            del self._models[next(iter(self._models))]
+        self._models[key] = model
 
 
 def _model_equations(

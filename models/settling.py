@@ -81,7 +81,7 @@ def settled_from(
             )
         except InputError:  # too few equations left for the structure
             continue
-        judged = compare_on_tails(whole, model, tails, HELD_OUT_ALPHA / len(SETTLING_SHARES))
+        judged = compare_on_tails(whole, model, tails, HELD_OUT_ALPHA / len(SETTLING_SHARES), heads=heads)
         predicts = _one_step_square(model, tails) < _one_step_square(whole, tails)
         if any(cuts) and judged.better and predicts and judged.gain > best:
             settled, best = cuts, judged.gain

@@ -154,6 +154,12 @@ class FreeRun:
             self, n=last - first, exogenous=self.exogenous[first:last], known=self.known[first:last]
         )
 
+    def measured_to(self, sample: int) -> FreeRun:
+        """The run with its outputs measured up to ``sample`` (at least its first L) and simulated
+        from there: a Bouc–Wen variable of the output is run over the measured ones, as the
+        output's lags are read from them."""
+        return replace(self, lag=max(self.lag, sample))
+
     @classmethod
     def stacked(cls, runs: Sequence[FreeRun]) -> FreeRun:
         """Runs of the same terms one after the other as the rows of one (the parts of

@@ -69,53 +69,65 @@ MODE_FIELDS = ("name", "k_hat", "sigma_k", "q", "q_critical", "p_value", "accept
 DISTURBANCE_STD = 800.0
 
 
-# The files that take the most of a worker's time, longest first (each file's tests' durations
-# summed over a whole `make test` on the 2-core machine): the refinement loop in process and
-# through the command line, the free-run fault modes, the notifications' and schedules' workers,
-# the browser, the database failures and the schema fuzz. `make test` hands whole files to two
-# pytest-xdist workers in collection order (--no-loadscope-reorder); these go first so that no
-# long file starts when the other worker is nearly done (the stateful fuzz run, last under
-# xdist's own order, once left one worker idle for its last 100 s).
+# The files that take the most of a worker's time, longest first: each file's CPU, its tests'
+# summed in one process, and the files whose tests wait on servers, timeouts and restarts more than
+# they compute (the notifications' and schedules' workers, the browser, the database failures, the
+# request lifecycle, the schema fuzz, the jobs) no later than files of like CPU. `make test` hands
+# whole files to two pytest-xdist workers in this order (--no-loadscope-reorder), then the rest,
+# each a few seconds, in collection order: no long file starts when the other worker is nearly
+# done (the stateful fuzz run, last under xdist's own order, once left one worker idle for its
+# last 100 s), and the short ones at the end even out when the two workers finish. A file that
+# grows past the last here belongs in it.
 LONGEST_FILES = (
     "test_refinement.py",
+    "test_cli_refine.py",
     "test_free_run_inspection.py",
     "test_effects_output.py",
-    "test_cli_refine.py",
     "test_notifications.py",
-    "test_novelty.py",
     "test_dashboard_browser.py",
     "test_faults.py",
     "test_lifecycle.py",
     "test_fuzz_stateful.py",
     "test_schedules.py",
-    "test_service_cli.py",
     "test_upload_memory.py",
-    "test_api_novelty.py",
     "test_api_refinements.py",
-    "test_readme.py",
     "test_jobs.py",
-    "test_sim_client.py",
     "test_api_errors.py",
+    "test_novelty.py",
     "test_api_bounded.py",
+    "test_readme.py",
+    "test_service_cli.py",
+    "test_api_novelty.py",
+    "test_tenancy.py",
+    "test_observability.py",
+    "test_periodic.py",
     "test_migrations.py",
     "test_api_own_structure.py",
-    "test_retention.py",
-    "test_compose.py",
-    "test_localisation.py",
-    "test_periodic.py",
-    "test_cli.py",
-    "test_observability.py",
-    "test_cli_select.py",
-    "test_api_sensor_noise.py",
-    "test_tenancy.py",
-    "test_fleet_scale.py",
-    "test_vector.py",
-    "test_layers.py",
-    "test_glitches.py",
-    "test_upload_hardening.py",
-    "test_selection.py",
-    "test_sim_chain.py",
     "test_sim_scenarios.py",
+    "test_cli.py",
+    "test_sim_client.py",
+    "test_api_sensor_noise.py",
+    "test_localisation.py",
+    "test_glitches.py",
+    "test_fleet_scale.py",
+    "test_cli_select.py",
+    "test_compose.py",
+    "test_upload_hardening.py",
+    "test_sim_chain.py",
+    "test_dashboard.py",
+    "test_layers.py",
+    "test_retention.py",
+    "test_selection.py",
+    "test_model_versions.py",
+    "test_kinks.py",
+    "test_api_alarms.py",
+    "test_baseline_choice.py",
+    "test_api_published.py",
+    "test_api_channels.py",
+    "test_recordfile.py",
+    "test_output_error.py",
+    "test_published_files.py",
+    "test_diagnostics.py",
 )
 
 

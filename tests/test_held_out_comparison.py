@@ -9,8 +9,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from models.checking import free_run_errors, pooled_rms
 from models.held_out import _paired, compare_on_tails, comparison_blocks, held_out_tails
 from models.narx import NARX, fit_narx
+from models.terms import bouc_wen_step, play
 
 SAMPLES = 1600
 # A lightly damped mode (pole radius 0.9 at 0.05 cycles a sample) with a hardening cubic spring.
@@ -107,3 +109,54 @@ def test_the_held_out_report_is_symmetric_in_the_two_models():
     back, back_threshold = _paired(after, before, 0.025)
     assert back == pytest.approx(1 - 1 / (1 - gain))
     assert back_threshold == pytest.approx(threshold)
+
+
+# The mode above with a memory of the signals: a hysteretic restoring force −K·z, z the Bouc–Wen
+# variable of y (level W, shape 1: z saturates at ±W, within y's swings, and forgets its start
+# only once y has moved by several W), or its input through a play of half-width P (of the order
+# of the input's swings: the play forgets its start only once the input has swung that far).
+LEVEL, HYSTERETIC, PLAY = 0.2, 0.1, 0.2
+MEMORIES = {
+    "Bouc–Wen": ([*LINEAR, f"boucwen(y[t-1],{LEVEL:g})"], [A1, A2, 1.0, -HYSTERETIC]),
+    "backlash": (["y[t-1]", "y[t-2]", f"backlash(x[t-1],{PLAY:g})"], [A1, A2, 1.0]),
+}
+
+
+def _record_with_memory(memory: str, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    x = 0.1 * rng.standard_normal(SAMPLES)
+    y, z = np.zeros(SAMPLES), np.zeros(SAMPLES)
+    drive = x if memory == "Bouc–Wen" else play(np.concatenate(([0.0], x[:-1])), PLAY)
+    for t in range(2, SAMPLES):
+        if memory == "Bouc–Wen":
+            y[t] = A1 * y[t - 1] + A2 * y[t - 2] + drive[t - 1] - HYSTERETIC * z[t - 1]
+            z[t] = bouc_wen_step(z[t - 1], y[t] - y[t - 1], LEVEL, 1.0)
+        else:
+            y[t] = A1 * y[t - 1] + A2 * y[t - 2] + drive[t]
+    return x, y
+
+
+@pytest.mark.parametrize("memory", MEMORIES)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_models_memory_runs_over_the_measured_head_into_the_tails(memory, seed):
+    """The exact model of a record whose output remembers its past (a Bouc–Wen restoring force)
+    or its input's (a backlash), run free over the held-out tail, reproduces it to rounding where
+    its memory is run over the measured head first, as the tail's first outputs are read from the
+    record: the record made it so. Started at rest at the tail's first sample instead, the memory
+    is off, and so is the exact model's free run; the restarted pieces of the comparison, each a
+    run from the measured samples before it, are exact too."""
+    x, y = _record_with_memory(memory, seed)
+    split = held_out_tails([(x, y)])
+    assert split is not None
+    heads, tails = split
+    terms, theta = MEMORIES[memory]
+    exact = replace(fit_narx(heads, terms), theta=np.array(theta))
+    spread = float(np.std(y))
+    assert pooled_rms(free_run_errors(exact, tails, heads)) < 1e-12 * spread
+    assert pooled_rms(free_run_errors(exact, tails)) > 1e-4 * spread
+    start = fit_narx(heads, LINEAR)
+    compared = compare_on_tails(start, exact, tails, heads=heads)
+    assert compared.refined_rms < 1e-12 * spread
+    assert compared.better
+    # A model without memory runs as before: its lags read the tail's measured outputs alone.
+    assert np.array_equal(free_run_errors(start, tails, heads)[0], free_run_errors(start, tails)[0])

@@ -13,13 +13,13 @@ import pytest
 from pydantic import BaseModel, ValidationError
 from sqlalchemy import select
 
+from harness import migrated
 from models.errors import InputError
 from recordfiles.channels import checked_channels
 from recordfiles.conditions import Condition, checked_conditions
 from recordfiles.names import normalised_name
 from recordfiles.reader import Layout, parse_record
 from service.db import make_engine, session_factory, transaction
-from service.migrate import upgrade_database
 from service.schemas import (
     ChannelUpload,
     FaultModeTrain,
@@ -134,8 +134,7 @@ def test_channels_named_on_the_command_line_are_read_by_their_normalised_names()
 
 
 def test_an_organisation_created_with_a_key_gets_a_normalised_name_or_none(tmp_path: Path):
-    url = f"sqlite:///{tmp_path / 'names.db'}"
-    upgrade_database(url)
+    url = migrated.sqlite(tmp_path / "names.db")
     sessions = session_factory(make_engine(url))
     for refused in ("\u202eacme", " ", "ac\ufeffme"):
         with pytest.raises(InputError, match="organisation name"), transaction(sessions) as session:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import signal
 
+from models.narmax import moving_average
 from models.narx import fit_narx
-from models.noise_model import moving_average
 from models.refinement import refine
 from models.scoring import NOISE_LAGS_OFFERED
 from simulator.physics import PhysicalParameters
@@ -24,7 +24,7 @@ def test_a_moving_average_is_fitted_by_its_prediction_error_within_its_standard_
     """Against the coefficients simulated, each within four of its asymptotic standard errors
     (the inverse of the information matrix E[ψψᵀ]/σ², ψ[t−i] = ξ[t−i]/C(q), computed from a long
     simulated ψ). Extended least squares' pseudo-linear regression, which needs 1/C − 1/2
-    positive real, settles far from them on this colour."""
+    positive real, does not settle on this colour (tests/test_narmax.py)."""
     rng = np.random.default_rng(11)
     n = 6000
     xi = rng.standard_normal(n)

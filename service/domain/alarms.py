@@ -628,10 +628,13 @@ def _apply(
 ) -> None:
     """Each counted track's alarm: kept (its ``evaluated_through`` the newest record counted),
     resolved once ``clear_after`` records in a row have not fired (the track then starts again
-    from the records acquired later), or opened on the first firing of a current run."""
+    from the records acquired later), or opened on the first firing of a current run. Tracks are
+    taken in the rules' order, each rule's modes by name, whichever way they were counted: the
+    alarms one verdict opens get their ids in one order."""
     by_kind = {rule.kind: rule for rule in rules}
+    rank = {rule.kind: index for index, rule in enumerate(rules)}
     through = []
-    for key in counted:
+    for key in sorted(counted, key=lambda key: (rank.get(key.partition(" ")[0], len(rank)), key)):
         kind, _, mode = key.partition(" ")
         rule, t = by_kind.get(kind), kept.tracks[key]
         if rule is None or t.through is None:
