@@ -54,7 +54,7 @@ from models.round_criteria import (
     output_state_by_simulation,
     scored,
 )
-from models.scoring import EffectScore, ScoringKept, fit_model, score_effects
+from models.scoring import EffectScore, Records, ScoringKept, fit_model, score_effects
 from models.terms import Factor, Term, max_lag, parse_terms, regressor_matrix
 from models.validation import validate
 from recordfiles.reader import parse_silverbox
@@ -1521,13 +1521,9 @@ def test_a_generic_block_a_later_effect_made_redundant_is_pruned_whole_and_the_r
     assert [effect["name"] for effect in report["effects_added"]] == ["input_nonlinearity"]
 
 
-def test_a_model_scored_again_takes_the_families_kept_for_it_and_no_other_model_does():
-    """The loop scores a model again after looking one round ahead and before the simulation
-    criteria (``ScoringKept``): the families built for it then are not built again, and the
-    scores, with more families offered or every regressor ranked, are those of a fresh scoring to
-    the last digit (the level α/M counts the families offered now). Another model, or the same
-    with moving-average terms, has its families built anew: a kept family would be another
-    model's residual's."""
+def _rig_less_its_spring_and_a_searched_family() -> tuple[Records, tuple[Term, ...], list[Effect], list[int]]:
+    """A record of the rig, its linear part as the model, and the candidate families with one
+    searched family more that notes the size of each model it is searched on (``searches``)."""
     x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
     records = [(x[:ESTIMATION], y[:ESTIMATION])]
     exact = tuple(parse_terms(EXACT_TERMS))
@@ -1540,6 +1536,17 @@ def test_a_model_scored_again_takes_the_families_kept_for_it_and_no_other_model_
 
     counted = Effect("counted", "the cubes of y's lags, searched for", (), "estimated", find=cube)
     effects = [*candidate_effects(terms), counted]
+    return records, terms, effects, searches
+
+
+def test_a_model_scored_again_takes_the_families_kept_for_it_and_no_other_model_does():
+    """The loop scores a model again after looking one round ahead and before the simulation
+    criteria (``ScoringKept``): the families built for it then are not built again, and the
+    scores, with more families offered or every regressor ranked, are those of a fresh scoring to
+    the last digit (the level α/M counts the families offered now). Another model, or the same
+    with moving-average terms, has its families built anew: a kept family would be another
+    model's residual's."""
+    records, terms, effects, searches = _rig_less_its_spring_and_a_searched_family()
     kept = ScoringKept()
 
     def both(model: tuple[Term, ...], offered: list[Effect], noise: int = 0, rank: bool = False) -> None:
@@ -1564,18 +1571,7 @@ def test_the_structure_a_look_ahead_chose_keeps_its_families_while_the_round_sco
     ``ScoringKept`` rather than built again, and its scores are a fresh scoring's to the last
     digit. The models kept are the last two asked for: the round's own model, asked for after
     both looked-ahead ones, has its families built anew."""
-    x, y = paper_record(["cubic_stiffness1=4e6"], seed=4)
-    records = [(x[:ESTIMATION], y[:ESTIMATION])]
-    exact = tuple(parse_terms(EXACT_TERMS))
-    terms = (*exact[:4], exact[-1])  # the rig's linear part: its cubic spring is missing
-    searches: list[int] = []
-
-    def cube(search: SearchInput) -> tuple[Term, ...]:
-        searches.append(len(search.terms))
-        return tuple(parse_terms(["y[t-1]^3", "y[t-2]^3"]))
-
-    counted = Effect("counted", "the cubes of y's lags, searched for", (), "estimated", find=cube)
-    effects = [*candidate_effects(terms), counted]
+    records, terms, effects, searches = _rig_less_its_spring_and_a_searched_family()
     kept = ScoringKept()
     one, other = (tuple(parse_terms(extra)) for extra in (["y[t-1]^3"], ["y[t-1]^2"]))
     round_model, first_ahead, chosen = terms, (*terms, *one), (*terms, *other)
