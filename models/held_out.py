@@ -135,7 +135,7 @@ def compare_on_tails(
     heads: Records | None = None,
 ) -> HeldOut:
     """``start`` and ``refined`` compared on the ``tails`` by a paired test over blocks, at level
-    ``alpha`` (lower where the tails judge several choices). Each tail continues its record's
+    ``alpha`` (lower where the tails judge several choices). Each tail continues its
     record's head (:func:`held_out_tails`; ``heads``, where given): a model with memory of the
     signals' past runs it over the measured head, and over the tail's measured part before each
     restarted piece (:func:`models.checking.free_run_errors`).

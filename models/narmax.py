@@ -261,15 +261,15 @@ def _hannan_rissanen(records: Sequence[np.ndarray], lags: int) -> np.ndarray:
     """Hannan and Rissanen's moving-average estimate: the innovations estimated as the residual of
     a long autoregression, then e regressed on their lags."""
     order = LONG_AR_FACTOR * lags
-    rows = [(_record_lags(e, order), e) for e in records if e.size > order]
+    rows = [(record_lags(e, order), e) for e in records if e.size > order]
     if not rows:  # records too short for the long autoregression: from white innovations
         rows = [(np.zeros((e.size, 0)), e) for e in records]
         order = 0
     ar, *_ = np.linalg.lstsq(
         np.vstack([a for a, _ in rows]), np.concatenate([e for _, e in rows]), rcond=None
     )
-    innovations = [e - _record_lags(e, order) @ ar for e in records]
-    lagged = np.vstack([_record_lags(xi, lags) for xi in innovations])
+    innovations = [e - record_lags(e, order) @ ar for e in records]
+    lagged = np.vstack([record_lags(xi, lags) for xi in innovations])
     coefficients, *_ = np.linalg.lstsq(lagged, np.concatenate(records), rcond=None)
     return coefficients
 
@@ -301,7 +301,7 @@ def _lagged(series: np.ndarray, lags: int, starts: np.ndarray) -> np.ndarray:
     return columns
 
 
-def _record_lags(series: np.ndarray, lags: int) -> np.ndarray:
+def record_lags(series: np.ndarray, lags: int) -> np.ndarray:
     """Columns series[t−1] … series[t−lags] of one record, zero before its start."""
     return _lagged(series, lags, np.array([0, series.size]))
 

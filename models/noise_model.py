@@ -32,7 +32,7 @@ from dataclasses import replace
 import numpy as np
 
 from models.effects import Effect
-from models.narmax import innovations_of, moving_average
+from models.narmax import innovations_of, moving_average, record_lags
 from models.refinement_report import Refinement, Round
 from models.regression import column_norms
 from models.scoring import (
@@ -105,7 +105,7 @@ def _offer(family: Effect, innovations: Sequence[np.ndarray], lags: int, level: 
     squares, each by its partial F test at ``level``); the moving-average order becomes the
     longest that entered (zero where none did, as the rounds' scoring counts it)."""
     longest = lags + NOISE_LAGS_OFFERED
-    columns = np.vstack([_lagged(xi, longest) for xi in innovations])
+    columns = np.vstack([record_lags(xi, longest) for xi in innovations])
     target = np.concatenate(innovations)
     if not np.any(target):  # a residual fitted exactly has no colour to test
         return EffectScore(family.name, family.description, 0.0, 0.0, (), (), ())
@@ -122,11 +122,3 @@ def _offer(family: Effect, innovations: Sequence[np.ndarray], lags: int, level: 
 
 def _sum_of_squares(series: Sequence[np.ndarray]) -> float:
     return float(sum(np.dot(s, s) for s in series))
-
-
-def _lagged(series: np.ndarray, lags: int) -> np.ndarray:
-    """Columns series[t−1] … series[t−lags], zero before the series' start."""
-    columns = np.zeros((series.size, lags))
-    for i in range(1, min(lags, series.size - 1) + 1):
-        columns[i:, i - 1] = series[:-i]
-    return columns

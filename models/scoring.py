@@ -273,17 +273,20 @@ class ScoringKept:
         if model is not None:
             self._models[key] = model
             return model
-        while len(self._models) >= KEPT_MODELS:
-            del self._models[next(iter(self._models))]
+        self._make_room()
         return None
 
     def keep(self, key: tuple[Any, ...], model: _ModelScored) -> None:
         """Keep ``model`` (and what is built for it later) under ``key``, the least recently
         asked for of those kept let go where ``KEPT_MODELS`` are."""
         self._models.pop(key, None)
+        self._make_room()
+        self._models[key] = model
+
+    def _make_room(self) -> None:
+        """Let go of the least recently asked for until one more can be kept."""
         while len(self._models) >= KEPT_MODELS:
             del self._models[next(iter(self._models))]
-        self._models[key] = model
 
 
 def _model_equations(
@@ -559,9 +562,8 @@ def _forward(
     terms and ran free worse).
 
     ``searched``: the family's parameters searched on this residual (an exponent, a combination of
-    lags), counted among
-    the parameters of its first entry's test, single column or block: they were fitted to the
-    same residual the test reads.
+    lags), counted among the parameters of its first entry's test, single column or block: they
+    were fitted to the same residual the test reads.
 
     Returns the columns in the greedy order (every usable one if ``rank``, else the chosen ones),
     how many of the first passed their tests (the chosen ones), their F statistics and p-values
