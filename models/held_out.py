@@ -61,7 +61,9 @@ class HeldOut:
     ``kinks_beyond``: the refined model's terms, the start's aside, whose law changes form at an
     output of zero that the records never reached but come near
     (:func:`models.kinks.kinks_beyond_the_records`); where there are any, the refined model is
-    not returned, however it ran over the tails."""
+    not returned, however it ran over the tails. ``set_aside``: the effects of the last rounds
+    left out of the refined model, whose free run over the tails with them was ``all_rounds_rms``
+    (:mod:`models.rounds_on_tails`)."""
 
     samples: int
     start_rms: float
@@ -73,6 +75,8 @@ class HeldOut:
     best_tried: str | None = None
     orders_saw_tails: bool = False
     kinks_beyond: tuple[str, ...] = ()
+    set_aside: tuple[str, ...] = ()
+    all_rounds_rms: float = np.nan
 
     @property
     def better(self) -> bool:

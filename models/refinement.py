@@ -151,6 +151,7 @@ from models.refinement_report import (
 )
 from models.regression import Workers
 from models.round_criteria import DEFAULT_ALPHA, fitted_on_all
+from models.rounds_on_tails import best_rounds_on_tails
 from models.scoring import Records
 from models.settling import of_time, settled_from
 from models.signals import GLITCH_FACTOR, glitches
@@ -447,6 +448,8 @@ def _grown_and_judged(
     if not short:
         grown = _refined_on_tails(grown, heads, tails)
     held_out = _judged_on_tails(grown, heads, tails, short, orders_saw_tails, tell)
+    if held_out is not None and held_out.kept:
+        grown, held_out = _best_rounds(grown, held_out, heads, tails, short, orders_saw_tails, tell)
     settled = settled_from(grown, held_out, heads, tails, tell)
     if not any(settled):
         return _on_all(grown, held_out, records, output_error, tell, threads), records
@@ -484,6 +487,31 @@ def _judged_on_tails(
     if kinks or not (held_out.better or (noise_only and not short and held_out.not_worse)):
         held_out = replace(held_out, kept=False, best_tried=_best_tried(result.kept))
     return held_out
+
+
+def _best_rounds(
+    grown: Grown,
+    held_out: HeldOut,
+    heads: Records,
+    tails: Segments,
+    short: bool,
+    orders_saw_tails: bool,
+    tell: Stage,
+) -> tuple[Grown, HeldOut]:
+    """``grown`` and its comparison ``held_out`` with the start, which kept it, or the model of its
+    first rounds where that ran free over the ``tails`` lower and is kept as well
+    (:mod:`models.rounds_on_tails`), the later rounds' effects set aside."""
+    tell("the rounds' models on the held-out tails")
+    earlier = best_rounds_on_tails(grown, heads, tails)
+    if earlier is None:
+        return grown, held_out
+    judged = _judged_on_tails(earlier, heads, tails, short, orders_saw_tails, tell)
+    if judged is None or not judged.kept:
+        return grown, held_out
+    set_aside = [step.added.name for step in earlier.refinement.rounds if step.set_aside and step.added]
+    return earlier, replace(
+        judged, set_aside=tuple(dict.fromkeys(set_aside)), all_rounds_rms=held_out.refined_rms
+    )
 
 
 def _start_on_tails(grown: Grown, heads: Records, tails: Segments, short: bool) -> Grown:

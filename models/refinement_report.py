@@ -70,6 +70,9 @@ class Round:
     # The effect added here (the generic polynomial) pruned whole after the rounds: a later
     # round's effect made it redundant, and the refined model holds none of its terms.
     pruned_whole: bool = False
+    # The effect added here left out of the model returned, with every later round's: the model the
+    # rounds before it grew ran free over the held-out tails better (:mod:`models.rounds_on_tails`).
+    set_aside: bool = False
     # The candidates whose free run over the check blocks the round compared with the model's
     # (each significant family judged on it, each structure simulated for a family's terms), and
     # the fall of that free-run RMS the effect added brought (else the best judged), with the
@@ -116,7 +119,11 @@ class Refinement:
     @property
     def kept(self) -> tuple[Round, ...]:
         """The rounds whose effect the refined model holds."""
-        return tuple(r for r in self.rounds[self.withdrawn :] if r.added is not None and not r.pruned_whole)
+        return tuple(
+            r
+            for r in self.rounds[self.withdrawn :]
+            if r.added is not None and not r.pruned_whole and not r.set_aside
+        )
 
     @property
     def effects_added(self) -> tuple[EffectScore, ...]:
@@ -215,6 +222,7 @@ class RefinementReport:
                     "decided_by": step.criterion,
                     "check_free_run_rms": [_finite(v) for v in step.check_rms],
                     "pruned_whole": step.pruned_whole,
+                    "set_aside": step.set_aside,
                 }
                 for number, step in enumerate(result.rounds, start=1)
             ],
@@ -279,6 +287,8 @@ def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
         "best_tried": held_out.best_tried,
         "orders_saw_tails": held_out.orders_saw_tails,
         "kinks_beyond": list(held_out.kinks_beyond),
+        "set_aside": list(held_out.set_aside),
+        "all_rounds_free_run_rms": _finite(held_out.all_rounds_rms),
     }
 
 
@@ -295,7 +305,13 @@ def _held_out_notes(result: Refinement) -> list[str]:
             "with the start on data no choice of the loop saw"
         ]
     if held_out.kept:
-        return []
+        if not held_out.set_aside:
+            return []
+        return [
+            f"over the estimation records' held-out tails the model with the last rounds' effects "
+            f"({', '.join(held_out.set_aside)}) ran free at {held_out.all_rounds_rms:.4g}, the model "
+            f"of the rounds before them at {held_out.refined_rms:.4g}: those effects are set aside"
+        ]
     if held_out.kinks_beyond:
         return [
             f"the data could not support the effects: {kinked_laws_reason(held_out.kinks_beyond)}; "

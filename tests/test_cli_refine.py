@@ -44,7 +44,8 @@ REPORT_KEYS = {
 ASSESSMENT_KEYS = {"one_step_rms", "free_run_rms", "ljung_box_p", "diagnostics", "skipped_tests", "diverged"}
 HELD_OUT_KEYS = {
     "samples", "start_free_run_rms", "refined_free_run_rms", "gain", "threshold", "level", "diverged",
-    "refined_returned", "best_tried", "orders_saw_tails", "kinks_beyond",
+    "refined_returned", "best_tried", "orders_saw_tails", "kinks_beyond", "set_aside",
+    "all_rounds_free_run_rms",
 }  # fmt: skip
 
 
