@@ -385,7 +385,9 @@ def refine(
     the loop runs on the rest, and the model it refines is kept only where its free run over
     those tails is better than the start's beyond the comparison's uncertainty
     (:func:`models.held_out.compare_on_tails`; moving-average noise alone, which leaves the
-    process structure as it was, need only not be worse). Otherwise the start is returned, every
+    process structure as it was, need only not be worse); where it is, the model of the loop's
+    first rounds takes its place where that runs free over the tails lower and is kept as well
+    (:mod:`models.rounds_on_tails`). Otherwise the start is returned, every
     round counted as withdrawn, and ``held_out`` names the best effect tried. The start is fitted
     by least squares, not output error, where least squares' fit simulates those tails better
     beyond the comparison's uncertainty (:func:`_start_on_tails`). The structure so judged then

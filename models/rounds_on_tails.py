@@ -7,10 +7,10 @@ tails approve the final model, the model the first k rounds grew is made for eac
 (the final structure without the later rounds' terms, fitted by least squares on the heads, as
 the rounds fitted it) and run free over the tails as well; the model, final or earlier, whose one
 free run over them is lowest is the one judged against the start, the later rounds' effects set
-aside: the held-out pruning of Piroddi and Spinelli (2003, simulation error judging each term's
-removal), where a later round must earn its place on the data no choice saw. Only where the
+aside. A later round must earn its place on the data no choice saw, as Piroddi and Spinelli's
+pruning makes each term earn it on the simulation error (Int. J. Control 76, 2003). Only where the
 final model passed: the tails already showed that refining helps, and choosing among nested
-models gives the start's comparison no second chance it did not have.
+models then gives the comparison with the start no second chance it did not have.
 """
 
 from __future__ import annotations
