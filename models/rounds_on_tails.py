@@ -10,7 +10,9 @@ free run over them is lowest is the one judged against the start, the later roun
 aside. A later round must earn its place on the data no choice saw, as Piroddi and Spinelli's
 pruning makes each term earn it on the simulation error (Int. J. Control 76, 2003). Only where the
 final model passed: the tails already showed that refining helps, and choosing among nested
-models then gives the comparison with the start no second chance it did not have.
+models then gives the comparison with the start no second chance it did not have. And only over
+tails of ``MIN_BLOCK`` samples or more (:func:`models.refinement.refine`'s short records): one
+free run over a hundred samples tells nested models apart by chance.
 """
 
 from __future__ import annotations
