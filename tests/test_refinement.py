@@ -97,7 +97,8 @@ def silverbox(silverbox_dir):
 
 # In `make slow`: bench/test_bench_refine.py's table test (`make bench`) runs the same loop on the
 # same split through the command and asserts these four names as the first of its ten, and the
-# final figures; `make test` keeps one Silverbox run, the command's (tests/test_cli_refine.py).
+# final figures; `make test` keeps one Silverbox run, the command's on part of the estimation data
+# (tests/test_cli_refine.py).
 @pytest.mark.slow
 def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silverbox):
     """The loop's first four rounds (the whole loop, ten rounds, is bench/test_bench_refine.py's,
