@@ -1,6 +1,8 @@
 """``narxwatch refine`` on Silverbox and on simulated records with an undeclared effect: through the
 console script's entry point in this process (``test_cli.invoke``), and as a process where the
-process is what is tested (a terminal, one CPU, signals)."""
+process is what is tested (a terminal, one CPU, signals). The loop runs in this process alone
+(--jobs 1), its report the same in processes (the --jobs test), but where its processes are what
+is tested: --jobs 2, the signals, and the terminal's run with the default, a process a CPU."""
 
 from __future__ import annotations
 
@@ -258,7 +260,8 @@ def two_record_table(simulated_records: Path) -> subprocess.CompletedProcess[str
     mathtext would be, with its figure drawn to two-records.png."""
     return invoke(
         "refine", "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--validate", "v2.csv",
-        "loud.csv", "--unit", MATHTEXT_UNIT, "--plot", "two-records.png", cwd=simulated_records,
+        "loud.csv", "--unit", MATHTEXT_UNIT, "--plot", "two-records.png", "--jobs", "1",
+        cwd=simulated_records,
     )  # fmt: skip
 
 
@@ -346,7 +349,7 @@ def test_the_realisations_of_one_file_are_records_as_separate_files_are(
     side_by_side(simulated_records, ["v1", "v2"], simulated_records / "test.csv")
     grouped = refine_report(
         "estimation.csv", "--x", "u", "--y", "y", "--declared", "2dof",
-        "--validate", "test.csv", cwd=simulated_records
+        "--validate", "test.csv", "--jobs", "1", cwd=simulated_records
     )  # fmt: skip
     separate = two_record_report
     assert grouped["data"]["estimation"] == [
@@ -460,7 +463,7 @@ def test_the_figure_draws_each_effects_contribution_and_shares(simulated_records
 def test_records_are_fitted_through_the_transient_and_judged_after_it(clean_records: Path):
     report = refine_report(
         "e1.csv", "e2.csv", "--declared", "2dof", "--validate", "v1.csv", "--transient", "1000",
-        "--initial", "20", cwd=clean_records
+        "--initial", "20", "--jobs", "1", cwd=clean_records
     )  # fmt: skip
     assert report["data"]["transient"] == 1000 and report["data"]["initial"] == 20
     assert [e["samples"] for e in report["data"]["estimation"]] == [[0, 6000], [0, 6000]]
@@ -482,7 +485,7 @@ def test_parts_of_one_record_count_after_its_transient_and_are_reported_as_the_f
 ):
     report = refine_report(
         "e1.csv", "--declared", "2dof", "--transient", "1000", "--estimation", "0:3000",
-        "--test", "3000:5000", cwd=clean_records
+        "--test", "3000:5000", "--jobs", "1", cwd=clean_records
     )  # fmt: skip
     assert [e["samples"] for e in report["data"]["estimation"]] == [[1000, 4000]]
     assert [t["samples"] for t in report["tests"]] == [[4000, 6000]]
@@ -498,7 +501,7 @@ def test_estimation_parts_leave_out_a_glitch_between_them(clean_records: Path, t
     glitched = record.y.copy()
     glitched[2000] = 10 * np.abs(record.y).max()
     (tmp_path / "glitched.csv").write_text(dump_csv(record.x, glitched, record.fs))
-    split = ("--declared", "2dof", "--test", "4000:6000", "--estimation")
+    split = ("--declared", "2dof", "--jobs", "1", "--test", "4000:6000", "--estimation")
     whole = refine_report("glitched.csv", *split, "0:4000", cwd=tmp_path)
     parts = refine_report("glitched.csv", *split, "0:1990,2010:4000", cwd=tmp_path)
     assert [e["samples"] for e in parts["data"]["estimation"]] == [[0, 1990], [2010, 4000]]
@@ -561,7 +564,7 @@ def test_the_plot_is_in_hz_from_the_files_times_and_per_sample_without_a_rate(
         "Time,x,y\n" + "".join(f"{t:.6g},{a:.17g},{b:.17g}\n" for t, a, b in rows)
     )
     (tmp_path / "bare.csv").write_text(dump_csv(record.x, record.y, fs).split("\n", 1)[1])  # no '# fs='
-    report = json.loads(invoke("refine", "timed.csv", "--declared", "2dof", "--json", cwd=tmp_path).stdout)
+    report = refine_report("timed.csv", "--declared", "2dof", "--jobs", "1", cwd=tmp_path)
     # Six digits over the record's 4 s: its span, and so the rate, known to a few parts in 10⁶.
     assert report["data"]["fs"] == pytest.approx(fs, rel=2e-6)
     test = (2 * n // 3, n)
@@ -726,7 +729,7 @@ def test_records_that_repeat_their_excitation_report_the_noise_between_periods(t
         np.savetxt(
             tmp_path / f"{name}.csv", np.column_stack([x, y]), delimiter=",", header="x,y", comments=""
         )
-    args = ("refine", "e1.csv", "e2.csv", "--declared", "linear:2,2", "--validate", "e3.csv")
+    args = ("refine", "e1.csv", "e2.csv", "--declared", "linear:2,2", "--validate", "e3.csv", "--jobs", "1")
     printed = invoke(*args, cwd=tmp_path).stdout
     assert "noise between the checked records' periods (6 of 512 samples)" in printed, printed
     assert "the check figure is at that floor" in printed, printed
