@@ -6,7 +6,7 @@ import operator
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
-from functools import partial
+from functools import cache, partial
 
 import numpy as np
 import pytest
@@ -505,13 +505,11 @@ def test_structures_judged_in_processes_are_judged_as_in_this_one():
 
 def test_linear_orders_chosen_in_processes_are_chosen_as_in_this_one():
     """With nothing declared, the linear candidates are judged side by side in worker processes
-    (``narxwatch refine --jobs``): the same orders and terms as judged here."""
-    record = simulate(
-        Scenario(disturbance_std=800.0, effects=Effects.parse(["cubic_stiffness1=4e6"])), 2400, 4
-    )
-    records = [(record.x[:1600], record.y[:1600])]
+    (``narxwatch refine --jobs``): the same orders and terms as judged here (on the record of the
+    rig with nothing planted below, judged here once for both tests)."""
+    records, here = planted_and_chosen("none", 1)
     with ProcessPoolExecutor(2) as pool:
-        assert choose_linear(records, workers=pool.map) == choose_linear(records)
+        assert choose_linear(records, workers=pool.map) == here
 
 
 def test_a_judgement_by_output_error_searches_from_the_fit_kept_here():
@@ -811,11 +809,19 @@ PLANTED = [
 ]
 
 
-@pytest.mark.parametrize(("effect", "seed"), PLANTED)
-def test_with_nothing_declared_a_planted_effect_leaves_the_start_at_the_rigs_order(effect, seed):
+@cache
+def planted_and_chosen(effect: str, seed: int) -> tuple[Records, tuple]:
+    """The loop's head of a 2400-sample record of the rig with ``effect`` planted (800 N of
+    unmeasured force), and the linear orders and terms chosen on it with nothing declared."""
     effects = Effects.parse([effect]) if effect != "none" else Effects()
     record = simulate(Scenario(disturbance_std=800.0, effects=effects), 2400, seed)
-    orders, _ = choose_linear([(record.x[:1600], record.y[:1600])])
+    records = [(record.x[:1600], record.y[:1600])]
+    return records, choose_linear(records)
+
+
+@pytest.mark.parametrize(("effect", "seed"), PLANTED)
+def test_with_nothing_declared_a_planted_effect_leaves_the_start_at_the_rigs_order(effect, seed):
+    _, (orders, _) = planted_and_chosen(effect, seed)
     assert orders == (4, 4, 1), orders
 
 
