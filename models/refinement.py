@@ -380,20 +380,20 @@ def refine(
     over threads of this process, test each round's families (:func:`models.scoring.score_effects`).
     The refinement is the same whichever.
 
-    **Never worse.** Where every record is long enough (:func:`models.held_out.held_out_tails`), the
-    last ``HELD_OUT_SHARE`` of each is held out from every choice (orders, effects, estimator): the
-    loop runs on the rest, and the model it refines is kept only where its free run over those tails
-    is better than the start's beyond the comparison's uncertainty
-    (:func:`models.held_out.compare_on_tails`; moving-average noise alone, which leaves the process
-    structure as it was, need only not be worse); where it is, the model of the loop's first rounds
-    takes its place where that runs free over the tails lower and is kept as well
-    (:mod:`models.rounds_on_tails`; tails of ``MIN_BLOCK`` samples or more). Otherwise the start is
-    returned, every round counted as withdrawn, and ``held_out`` names the best effect tried. The
-    start is fitted by least squares, not output error, where least squares' fit simulates those tails
-    better beyond the comparison's uncertainty (:func:`_start_on_tails`). The structure so judged then
+    **Never worse.** Where every record is long enough (:func:`models.held_out.held_out_tails`),
+    the last ``HELD_OUT_SHARE`` of each is held out from every choice (orders, effects, estimator):
+    the loop runs on the rest, and the model it refines is kept only where its free run over
+    those tails is better than the start's beyond the comparison's uncertainty
+    (:func:`models.held_out.compare_on_tails`; moving-average noise alone, which leaves the
+    process structure as it was, need only not be worse); over tails of ``MIN_BLOCK`` samples or
+    more, the model of the loop's first rounds takes its place where that runs free over them
+    lower and is kept as well (:mod:`models.rounds_on_tails`). Otherwise the start is returned, every
+    round counted as withdrawn, and ``held_out`` names the best effect tried. The start is fitted
+    by least squares, not output error, where least squares' fit simulates those tails better
+    beyond the comparison's uncertainty (:func:`_start_on_tails`). The structure so judged then
     has its parameters estimated on all the records as the loop estimated them on the rest
-    (:func:`_on_all`): the tails judged a procedure, and the model it makes gains from every sample.
-    Records of a few hundred samples are held out from as well (module docstring).
+    (:func:`_on_all`): the tails judged a procedure, and the model it makes gains from every
+    sample. Records of a few hundred samples are held out from as well (module docstring).
     """
     tell = told(progress)
     if not 0 < alpha < 1:
