@@ -206,10 +206,15 @@ def test_with_no_base_model_the_loop_chooses_linear_orders_and_stores_their_mode
     assert page.status_code == 200
     started = f"from the linear model whose orders the loop chose, ny = {ny}, nx = {nx}, input delay {delay}"
     assert started in page.text and f"to baseline v{refined['version']}" in page.text
-    # A row a round, each naming what it added.
+    # A row a round, each naming what it added, and where the pruning or the held-out tails took it out.
     assert page.text.count('<tr class="round">') == len(report["rounds"]) > 0
     for step in report["rounds"]:
-        assert f"<td>{step['added'] or 'nothing added'}</td>" in page.text
+        said = (
+            (step["added"] or "nothing added")
+            + (" (pruned whole after the rounds)" if step["pruned_whole"] else "")
+            + (" (set aside on the held-out tails)" if step["set_aside"] else "")
+        )
+        assert f"<td>{said}</td>" in page.text
     assert structure_page.status_code == 200
     assert f"linear ({ny}, {nx}), delay {delay}: orders chosen" in structure_page.text
 
