@@ -12,6 +12,7 @@ import httpx
 import psycopg
 import pytest
 
+from harness import migrated
 from harness.api_helpers import (
     API,
     Org,
@@ -37,15 +38,15 @@ FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3
 
 @pytest.fixture
 def database(postgres_url: str) -> str:
-    from harness import postgres
-
-    return postgres.create_database(postgres_url, f"faults_{uuid.uuid4().hex[:12]}")
+    return migrated.postgresql(postgres_url, f"faults_{uuid.uuid4().hex[:12]}")
 
 
 def test_a_job_whose_worker_is_killed_mid_run_runs_again_and_leaves_one_verdict(
     database: str, tmp_path: Path
 ):
     settings = Settings(database_url=database, worker_heartbeat_seconds=0.5, worker_stalled_seconds=3)
+    # Started first: its start-up goes on while the server starts and the model is trained.
+    victim = Worker(database, tmp_path / "victim.log", **FAST_FAILOVER)
     with LiveServer(settings) as server:
         org = Org.create(server)
         with clients(org) as (admin, ingest, viewer):
@@ -56,7 +57,6 @@ def test_a_job_whose_worker_is_killed_mid_run_runs_again_and_leaves_one_verdict(
             with psycopg.connect(conninfo(database)) as blocker:
                 # Held until the worker is dead: its job stops at its first look at the verdicts.
                 blocker.execute("LOCK TABLE verdicts IN ACCESS EXCLUSIVE MODE")
-                victim = Worker(database, tmp_path / "victim.log", **FAST_FAILOVER)
                 queued = post_record(ingest, sid, body, "application/x-npz", inspect="queue")
                 assert queued.status_code == 202, queued.text
                 record_id = queued.json()["id"]
