@@ -18,6 +18,7 @@ from harness.api_helpers import (
     Org,
     clients,
     create_structure,
+    jobs_ended,
     json_body,
     npz_bytes,
     post_record,
@@ -231,8 +232,3 @@ def test_the_same_record_uploaded_at_once_is_stored_once(tenant):
     # Every job the uploads queued has ended: none is left to make a second verdict.
     wait_for(lambda: jobs_ended(tenant.admin), 60, "queued inspections still waiting")
     assert len(verdicts_of(tenant.viewer, sid, record_id)) == 1
-
-
-def jobs_ended(admin: httpx.Client) -> bool:
-    items = admin.get(f"{API}/jobs", params={"limit": 1000}).json()["items"]
-    return all(job["state"] in ("done", "failed") for job in items)
