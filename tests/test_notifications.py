@@ -486,7 +486,8 @@ def notifying(request, tmp_path_factory, mailbox: Mailbox) -> Iterator[LiveServe
             yield server
         return
     url = migrated.postgresql(request.getfixturevalue("postgres_url"), f"notify_{uuid.uuid4().hex[:12]}")
-    with LiveServer(fast_settings(url, **smtp)) as server, workers(url, 1, folder, **FAST, **smtp):
+    # The worker first: its start-up goes on while the server starts.
+    with workers(url, 1, folder, **FAST, **smtp), LiveServer(fast_settings(url, **smtp)) as server:
         yield server
 
 
