@@ -57,6 +57,7 @@ from models.round_criteria import (
     follow,
     integer_law_first,
     judged_in_turn,
+    leader_as_pair,
     looked_ahead,
     next_round,
     offered_again,
@@ -360,6 +361,7 @@ def _tier(loop: _Loop, offer: _Offer, tier: list[bool], generic: bool, choosing:
         choosing = _integer_law(loop, offer, choosing, choosing.decided)
         choosing = _looking_ahead(loop, offer, in_turn, choosing, choosing.decided)
         if not generic:
+            choosing = _leader_in_pair(loop, offer, significant, choosing, choosing.decided)
             choosing = _output_state(loop, offer, choosing, choosing.decided)
     if choosing.decided is None and loop.output_error and generic in tier:
         choosing = _on_simulation(loop, offer, tier, generic, choosing)
@@ -511,6 +513,33 @@ def _in_pair(loop: _Loop, offer: _Offer, significant: list[EffectScore], choosin
         rejected=tuple(name for name in choosing.rejected if name != decided[0].name),
         judged=Gain(fall(pair_end, offer.check), SIMULATION_GAIN),
     )
+
+
+def _leader_in_pair(
+    loop: _Loop, offer: _Offer, significant: list[EffectScore], choosing: _Choosing, first: Decision
+) -> _Choosing:
+    """The family the one-step criterion decided, ``first``, or the one-step order's leader that
+    ran free worse alone, judged as a pair where ``first`` cleared by little and the pair ends
+    lower (:func:`models.round_criteria.leader_as_pair`)."""
+    # The pairs are judged as :func:`_in_pair` judges one: their partners effects of the process.
+    named = [effect for effect in loop.families if effect.kind != "noise"]
+    decided, tried = leader_as_pair(
+        first,
+        significant,
+        choosing.rejected,
+        offer.kinds,
+        offer.current,
+        loop.records,
+        offer.check,
+        loop.margin,
+        loop.checks,
+        _next_round(loop, named, offer.number + 1),
+    )
+    choosing = replace(choosing, decided=decided, tried=choosing.tried + tried)
+    if decided is first:
+        return choosing
+    rejected = tuple(name for name in choosing.rejected if name != decided[0].name)
+    return replace(choosing, rejected=rejected, judged=Gain(fall(decided[3], offer.check), SIMULATION_GAIN))
 
 
 def _next_round(

@@ -27,7 +27,9 @@ loop chooses, :mod:`models.linear_start`), each round (:mod:`models.growing`, it
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Where none does, the first significant family is judged with the family the
    round after it adds (:func:`models.round_criteria.as_pair`): two effects can each run free
-   worse alone and far better together. Otherwise the loop stops.
+   worse alone and far better together; so it is too where that first ran free worse alone and a
+   later family cleared step 3 by less than ``SIMULATION_GAIN``
+   (:func:`models.round_criteria.leader_as_pair`). Otherwise the loop stops.
 
 After the rounds, the loop prunes back the terms they added that the check blocks' free run does
 not need (:mod:`models.pruning`). Each round reports the candidates it compared on the check
