@@ -6,7 +6,7 @@ import operator
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
-from functools import partial
+from functools import cache, partial
 
 import numpy as np
 import pytest
@@ -97,7 +97,8 @@ def silverbox(silverbox_dir):
 
 # In `make slow`: bench/test_bench_refine.py's table test (`make bench`) runs the same loop on the
 # same split through the command and asserts these four names as the first of its ten, and the
-# final figures; `make test` keeps one Silverbox run, the command's (tests/test_cli_refine.py).
+# final figures; `make test` keeps one Silverbox run, the command's on part of the estimation data
+# (tests/test_cli_refine.py).
 @pytest.mark.slow
 def test_silverbox_from_linear_arx_finds_the_cubic_stiffness_and_the_offset(silverbox):
     """The loop's first four rounds (the whole loop, ten rounds, is bench/test_bench_refine.py's,
@@ -504,13 +505,11 @@ def test_structures_judged_in_processes_are_judged_as_in_this_one():
 
 def test_linear_orders_chosen_in_processes_are_chosen_as_in_this_one():
     """With nothing declared, the linear candidates are judged side by side in worker processes
-    (``narxwatch refine --jobs``): the same orders and terms as judged here."""
-    record = simulate(
-        Scenario(disturbance_std=800.0, effects=Effects.parse(["cubic_stiffness1=4e6"])), 2400, 4
-    )
-    records = [(record.x[:1600], record.y[:1600])]
+    (``narxwatch refine --jobs``): the same orders and terms as judged here (on the record of the
+    rig with nothing planted below, judged here once for both tests)."""
+    records, here = planted_and_chosen("none", 1)
     with ProcessPoolExecutor(2) as pool:
-        assert choose_linear(records, workers=pool.map) == choose_linear(records)
+        assert choose_linear(records, workers=pool.map) == here
 
 
 def test_a_judgement_by_output_error_searches_from_the_fit_kept_here():
@@ -810,11 +809,19 @@ PLANTED = [
 ]
 
 
-@pytest.mark.parametrize(("effect", "seed"), PLANTED)
-def test_with_nothing_declared_a_planted_effect_leaves_the_start_at_the_rigs_order(effect, seed):
+@cache
+def planted_and_chosen(effect: str, seed: int) -> tuple[Records, tuple]:
+    """The loop's head of a 2400-sample record of the rig with ``effect`` planted (800 N of
+    unmeasured force), and the linear orders and terms chosen on it with nothing declared."""
     effects = Effects.parse([effect]) if effect != "none" else Effects()
     record = simulate(Scenario(disturbance_std=800.0, effects=effects), 2400, seed)
-    orders, _ = choose_linear([(record.x[:1600], record.y[:1600])])
+    records = [(record.x[:1600], record.y[:1600])]
+    return records, choose_linear(records)
+
+
+@pytest.mark.parametrize(("effect", "seed"), PLANTED)
+def test_with_nothing_declared_a_planted_effect_leaves_the_start_at_the_rigs_order(effect, seed):
+    _, (orders, _) = planted_and_chosen(effect, seed)
     assert orders == (4, 4, 1), orders
 
 
@@ -1028,13 +1035,15 @@ def test_the_loop_hands_on_the_least_squares_fit_of_the_structure_it_refined():
     """The tails choose the refined model's estimator against the least-squares fit of its
     structure on all the heads (the test above), which the loop made already, in a thread beside
     the output-error check: it hands that fit on (``Grown.least_squares``), the same to the last
-    bit as a fit made afresh, where the tails' choice made it a second time."""
+    bit as a fit made afresh, where the tails' choice made it a second time. (On half the record
+    above, from the rig's structure: a loop that grows it and ends on output error, as that one
+    does, at a third of its cost.)"""
     scenario = Scenario(disturbance_std=200.0, effects=Effects.parse(["dead_zone=10000"]))
-    record = simulate(scenario, 4000, 1)
+    record = simulate(scenario, 2000, 1)
     split = held_out_tails([(record.x, record.y)])
     assert split is not None
     heads, _ = split
-    grown = loop_on(heads, None, None, DEFAULT_ALPHA, MAX_ROUNDS, True, lambda stage: None, map, map)
+    grown = loop_on(heads, EXACT_TERMS, None, DEFAULT_ALPHA, MAX_ROUNDS, True, lambda stage: None, map, map)
     assert grown.refinement.estimator == "output error" and grown.structure.terms != grown.start.terms
     fitted, _ = fitted_on_all(heads, grown.structure)
     assert grown.least_squares.terms == fitted.terms
