@@ -152,6 +152,7 @@ def loop_on(
     orders: tuple[int, int, int] | None = None,
     rectified: tuple[Term, ...] | None = None,
     ranged_by: Records | None = None,
+    on_structure: Callable[[Structure], object] | None = None,
 ) -> Grown:
     """The loop of :func:`models.refinement.refine` on all of ``records``, and what
     :func:`models.refinement.refine` needs to make its models again on more: the rounds
@@ -163,7 +164,11 @@ def loop_on(
     (:func:`models.refinement.refine` on short records). ``ranged_by``: the records whose range
     says whether laws of the output kinked at zero are offered
     (:func:`models.kinks.offered_within_the_records`), ``records`` where not given: the whole
-    records, tails too, where the caller holds tails out, as the comparison on them reads it."""
+    records, tails too, where the caller holds tails out, as the comparison on them reads it.
+    ``on_structure``: told the structure the loop refines once the rounds, the pruning and the
+    checks after them have settled it, before its estimator is chosen (an output-error search on
+    all the ``records``, in this process): a caller may start work that needs only that structure
+    meanwhile."""
     checks = CheckSplit.of(records)
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
@@ -194,13 +199,14 @@ def loop_on(
         ScoringKept(),
     )
     rounds, current, check = _rounds(loop, current, check, rectified)
-    if current.terms != tuple(terms):
-        rounds, current, check = _pruned_rounds(loop, terms, current, check, rounds)
-    # The least-squares fit on all the records of the structure the rounds grew, made by a thread
-    # while the workers check that structure by output error below, where this process would
-    # wait (a third of a second on Silverbox's NARMAX): unless those checks change the structure,
-    # it is the refined model's, or its search's start.
-    by_the_rounds, fitted_ahead = current, threads(_call, [partial(fitted_on_all, records, current)])
+    declared_structure = Structure(terms)
+    if output_error and current != declared_structure:
+        # The output-error judgements the pruning's bound and the check of what the rounds added
+        # ask for (:func:`models.pruning.pruned_back`, :func:`_after_rounds`), searched by the
+        # workers side by side from here, where this process made the first alone with the
+        # workers idle and the second waited for it; the pruning's least-squares judgements
+        # follow them.
+        checks.judge_ahead([current, declared_structure], workers, tuned=True)
     # The declared model's output-error fit on all the records, which the final search may start
     # from, searched by a worker meanwhile, where that search waited for it (0.4 s on Silverbox);
     # with the builtin map, only when asked for. Unused when least squares simulates better.
@@ -209,8 +215,16 @@ def loop_on(
         _call,
         [partial(by_output_error, declared_model, everything, SETTLED_EVALUATIONS)] if output_error else [],
     )
-    declared_structure = Structure(terms)
+    # The least-squares fit on all the records of the structure the rounds grew, made by a thread
+    # while the workers judge it, where this process would wait (a third of a second on
+    # Silverbox's NARMAX): unless the pruning or the checks change the structure, it is the
+    # refined model's, or its search's start.
+    by_the_rounds, fitted_ahead = current, threads(_call, [partial(fitted_on_all, records, current)])
+    if current.terms != tuple(terms):
+        rounds, current, check = _pruned_rounds(loop, terms, current, check, rounds)
     after = _after_rounds(loop, current, check, declared_structure, rounds)
+    if on_structure is not None:
+        on_structure(after.structure)
     fitted = fitted_ahead if after.structure == by_the_rounds else [fitted_on_all(records, after.structure)]
     return _grown(loop, after, fitted, (declared_model, declared_structure), declared_search, orders)
 

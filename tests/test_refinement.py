@@ -1382,6 +1382,59 @@ def test_a_removal_the_pruning_refuses_on_its_run_over_the_check_blocks_is_not_j
     assert (without, False) not in checks._errors
 
 
+def test_the_pruning_searches_its_output_error_bound_only_where_a_removal_passes_by_least_squares():
+    """The pruning's bound by output error (the structure's output-error fit on the fit parts, a
+    search) is read only where a removal passes by least squares, or that figure is not finite:
+    sent ahead to a worker as the rounds end (``CheckSplit.judge_ahead``), the removals'
+    least-squares judgements go on beside its search, where they waited for it. The Hammerstein
+    system's own x[t-1]² taken out is refused by least squares, and the bound is not searched;
+    read, it is the figure searched here, where it is below least squares'."""
+    records = [hammerstein(1500, seed=3, noise=0.1)]
+    checks = CheckSplit.of(records)
+    needed, spare = parse_terms(["x[t-1]^2", "x[t-1]^3"])
+    everything = Structure((*linear_terms(2, 2, 1), needed, spare))
+    ceiling = _ceiling(everything, checks, output_error=True)
+    assert ceiling is not None
+    assert _first_removal(everything, [(needed,)], ceiling, checks, map) is None
+    assert (everything, True) not in checks._errors and everything not in checks._tuned
+    simulated = CheckSplit.of(records).error(everything, tuned=True)
+    assert np.isfinite(simulated)
+    assert ceiling.output_error == (simulated if simulated < ceiling.least_squares else None)
+    assert checks.error(everything, tuned=True) == simulated
+
+
+def test_judgements_sent_ahead_are_read_as_made_here_and_sent_once():
+    """``CheckSplit.judge_ahead`` sends structures to the workers at once, each to be judged in
+    a split of its own, and the split goes on; ``error``, ``judge`` and ``tuned`` read those
+    judgements where they would make them: the figures and the output-error fits this process
+    makes, to the bit, whichever structure is asked for first, each sent once. With the builtin
+    map they are made when first read."""
+    records = [hammerstein(1500, seed=3, noise=0.1)]
+    linear = tuple(linear_terms(2, 2, 1))
+    structures = [Structure(linear), Structure((*linear, *parse_terms(["x[t-1]^2"])))]
+    here = CheckSplit.of(records)
+    figures = [here.error(structure, tuned=True) for structure in structures]
+    assert len(set(figures)) == 2 and all(np.isfinite(figures))
+    with ProcessPoolExecutor(2) as pool:
+        for workers in (map, pool.map):
+            sent: list[Structure] = []
+
+            def sending(function, jobs, workers=workers, sent=sent):
+                jobs = list(jobs)
+                sent.extend(structure for structure, _ in jobs)
+                return workers(function, jobs)
+
+            there = CheckSplit.of(records)
+            there.judge_ahead(structures, sending, tuned=True)
+            there.judge_ahead(structures, sending, tuned=True)
+            assert there.error(structures[1], tuned=True) == figures[1]
+            assert list(there.judge(structures, sending, tuned=True)) == figures
+            assert sent == structures
+            for structure in structures:
+                assert np.array_equal(there.tuned(structure).theta, here.tuned(structure).theta)
+            assert not there._ahead
+
+
 # Minutes of output-error searches on a long record: `make slow`. `python -m bench.measured --only
 # silverbox`'s linear:10,10 row takes the same path on the measured data.
 @pytest.mark.slow
