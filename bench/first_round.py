@@ -6,11 +6,11 @@ the one-step order, the rig's own cubic spring at every lag, and the planted fam
 parameters set or searched on that figure itself (a periodic force's sine and cosine at the
 simulated frequency; a Bouc–Wen variable's level and shape on the family's grid, its ends left
 out as the family leaves them; an offset with the rig's spring and the squares it brings; a
-quadratic spring or Coulomb friction at every lag; a power-law spring's exponent or a dead zone's
-or backlash's width at the simulated value and searched on the family's grid, alone and beside the rig's
-spring, on which the planted effect sits). Where
-the planted family searched so falls less than another family, naming it first is not what the
-data supports on that record.
+quadratic spring, Coulomb friction or quadratic damping at every lag; a power-law spring's or
+power-law damping's exponent or a dead zone's or backlash's width at the simulated value and
+searched on the family's grid, alone and beside the rig's spring, on which the planted effect
+sits). Where the planted family searched so falls less than another family, naming it first is
+not what the data supports on that record.
 
 Run from the project root on development seeds (below 1000)::
 
@@ -31,7 +31,14 @@ from rich.table import Table
 
 from bench.planted import CASES, TEST, Case
 from models.checking import CheckSplit, Structure
-from models.effects import BOUC_WEN_SHAPES, PROFILE_POINTS, STIFFNESS_EXPONENTS, candidate_effects, unused
+from models.effects import (
+    BOUC_WEN_SHAPES,
+    DAMPING_EXPONENTS,
+    PROFILE_POINTS,
+    STIFFNESS_EXPONENTS,
+    candidate_effects,
+    unused,
+)
 from models.held_out import held_out_tails
 from models.linear_start import choose_linear
 from models.round_criteria import DEFAULT_ALPHA, scored
@@ -43,8 +50,13 @@ SAMPLES = 1600
 SCORED = 4  # the significant families shown, first in the one-step order
 RIG_SPRING = [f"y[t-{k}]^3" for k in range(1, 5)]
 # The planted families of fixed terms, at lag k.
-FIXED_TERMS = {"quadratic_stiffness": "y[t-{k}]^2", "coulomb_friction": "sign(dy[t-{k}])"}
+FIXED_TERMS = {
+    "quadratic_stiffness": "y[t-{k}]^2",
+    "coulomb_friction": "sign(dy[t-{k}])",
+    "quadratic_damping": "dy[t-{k}]*abs(dy[t-{k}])",
+}
 HERTZ = 1.5  # the exponent of the simulator's Hertzian contact spring
+ORIFICE = 0.5  # the exponent of the simulator's power-law (orifice-like) damping
 # The input families of one width searched, by their term's function (the width planted is the
 # simulator's effect of the family's name less "input_").
 INPUT_PLAY = {"input_dead_zone": "deadzone", "input_backlash": "backlash"}
@@ -100,6 +112,10 @@ def _planted(
         exponents = np.linspace(*STIFFNESS_EXPONENTS, PROFILE_POINTS)
         law = ["spow(y[t-" + str(k) + "],{p:.4g})" for k in range(1, 5)]
         return _searched(current, checks, "p", law, exponents, HERTZ)
+    if case.family == "power_law_damping":
+        exponents = np.linspace(*DAMPING_EXPONENTS, PROFILE_POINTS)
+        law = ["spow(dy[t-" + str(k) + "],{p:.4g})" for k in range(1, 5)]
+        return _searched(current, checks, "p", law, exponents, ORIFICE)
     if case.family in INPUT_PLAY:
         function = INPUT_PLAY[case.family]
         planted_width = getattr(case.scenario.effects, case.family.removeprefix("input_"))

@@ -200,6 +200,12 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str) -> obje
     raise AssertionError(f"{what}: not within {timeout} s")
 
 
+def jobs_ended(admin: httpx.Client) -> bool:
+    """Every job of ``admin``'s organisation has ended (done or failed): none waits or runs."""
+    items = admin.get(f"{API}/jobs", params={"limit": 1000}).json()["items"]
+    return all(job["state"] in ("done", "failed") for job in items)
+
+
 def job_ended(client: httpx.Client, accepted: httpx.Response, timeout: float) -> dict:
     """The job a 202 answer queued, followed at its location until it is done or failed."""
     assert accepted.status_code == 202, accepted.text

@@ -80,6 +80,9 @@ class CheckSplit:
     _tuned: dict[Structure, NARX] = field(default_factory=dict)
     _settled: set[Structure] = field(default_factory=set)
     _beyond: Figures = field(default_factory=dict)
+    # Judgements sent to the workers ahead of being asked for (:meth:`judge_ahead`), each with
+    # the iterator its result comes from.
+    _ahead: dict[tuple[Structure, bool], Iterator[Found]] = field(default_factory=dict)
 
     @classmethod
     def of(cls, records: Records, fold: int = 1) -> CheckSplit:
@@ -90,9 +93,39 @@ class CheckSplit:
         parameters by output error if ``tuned``); each run starts from its part's first measured
         outputs. Infinite when the fit is impossible or a run diverges."""
         key = (structure, tuned)
+        self._collect(key)
         if key not in self._errors:
             self._errors[key] = self._judge(structure, tuned)
         return self._errors[key]
+
+    def judge_ahead(self, structures: Sequence[Structure], workers: Workers, tuned: bool = False) -> None:
+        """Send ``structures`` not judged yet to the ``workers`` now, each to be judged in a split
+        of its own as :meth:`judge` judges it, and go on: :meth:`error`, :meth:`judge` and
+        :meth:`tuned` read a judgement sent ahead where they would make it. With a process pool
+        they are made while this process does other work; with the builtin map, when first read."""
+        unjudged = [
+            s
+            for s in dict.fromkeys(structures)
+            if (s, tuned) not in self._errors and (s, tuned) not in self._ahead
+        ]
+        judged = iter(
+            workers(
+                partial(_judged, self.fit, self.check, tuned, None),
+                [(s, self._fitted.get(s)) for s in unjudged],
+            )
+        )
+        for structure in unjudged:
+            self._ahead[(structure, tuned)] = judged
+
+    def _collect(self, key: tuple[Structure, bool]) -> None:
+        """Keep the judgement of ``key`` sent ahead (:meth:`judge_ahead`), and those sent before it
+        with it, waiting for it where it is not made yet."""
+        judged = self._ahead.get(key)
+        while key in self._ahead and judged is not None:
+            found = next(judged)
+            self._keep(found)
+            for made in found[2]:
+                self._ahead.pop(made, None)
 
     def judge(
         self,
@@ -110,6 +143,8 @@ class CheckSplit:
         a quarter of a judgement): its figure is that run's RMS, a bound below :meth:`error`'s
         (which is that or infinite) that gives ``matters`` the same answer. Only :meth:`error`'s
         own figures are kept as such."""
+        for structure in structures:
+            self._collect((structure, tuned))
         unjudged = [s for s in dict.fromkeys(structures) if self._figure(s, tuned, matters) is None]
         # Each with the least-squares fit made here, where one was: an output-error search
         # starts from it, and a worker would make it again (extended least squares on Silverbox's
@@ -160,6 +195,7 @@ class CheckSplit:
     def tuned(self, structure: Structure) -> NARX:
         """``structure`` fitted on the fit parts by output error (as :meth:`error` judges it with
         ``tuned``); the least-squares fit where output error gains nothing."""
+        self._collect((structure, True))
         if structure not in self._tuned:
             self._tuned[structure] = by_output_error(self.fitted(structure), self.fit, CHECK_EVALUATIONS)
         return self._tuned[structure]
@@ -170,6 +206,7 @@ class CheckSplit:
         the result as its output-error fit (:meth:`tuned`). Returns :meth:`error` of it, kept
         as that: infinite, as :meth:`error` judges it, where ``structure`` cannot be fitted here
         (:meth:`search_grown` reads the figure kept)."""
+        self._collect((structure, True))
         try:
             start = self.fitted(structure) if start is None else start
         except InputError:

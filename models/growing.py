@@ -57,6 +57,7 @@ from models.round_criteria import (
     follow,
     integer_law_first,
     judged_in_turn,
+    leader_as_pair,
     looked_ahead,
     next_round,
     offered_again,
@@ -151,6 +152,7 @@ def loop_on(
     orders: tuple[int, int, int] | None = None,
     rectified: tuple[Term, ...] | None = None,
     ranged_by: Records | None = None,
+    on_structure: Callable[[Structure], object] | None = None,
 ) -> Grown:
     """The loop of :func:`models.refinement.refine` on all of ``records``, and what
     :func:`models.refinement.refine` needs to make its models again on more: the rounds
@@ -162,7 +164,11 @@ def loop_on(
     (:func:`models.refinement.refine` on short records). ``ranged_by``: the records whose range
     says whether laws of the output kinked at zero are offered
     (:func:`models.kinks.offered_within_the_records`), ``records`` where not given: the whole
-    records, tails too, where the caller holds tails out, as the comparison on them reads it."""
+    records, tails too, where the caller holds tails out, as the comparison on them reads it.
+    ``on_structure``: told the structure the loop refines once the rounds, the pruning and the
+    checks after them have settled it, before its estimator is chosen (an output-error search on
+    all the ``records``, in this process): a caller may start work that needs only that structure
+    meanwhile."""
     checks = CheckSplit.of(records)
     if declared is None:
         orders, terms = choose_linear(records, checks=checks, progress=tell, workers=workers)
@@ -193,13 +199,14 @@ def loop_on(
         ScoringKept(),
     )
     rounds, current, check = _rounds(loop, current, check, rectified)
-    if current.terms != tuple(terms):
-        rounds, current, check = _pruned_rounds(loop, terms, current, check, rounds)
-    # The least-squares fit on all the records of the structure the rounds grew, made by a thread
-    # while the workers check that structure by output error below, where this process would
-    # wait (a third of a second on Silverbox's NARMAX): unless those checks change the structure,
-    # it is the refined model's, or its search's start.
-    by_the_rounds, fitted_ahead = current, threads(_call, [partial(fitted_on_all, records, current)])
+    declared_structure = Structure(terms)
+    if output_error and current != declared_structure:
+        # The output-error judgements the pruning's bound and the check of what the rounds added
+        # ask for (:func:`models.pruning.pruned_back`, :func:`_after_rounds`), searched by the
+        # workers side by side from here, where this process made the first alone with the
+        # workers idle and the second waited for it; the pruning's least-squares judgements
+        # follow them.
+        checks.judge_ahead([current, declared_structure], workers, tuned=True)
     # The declared model's output-error fit on all the records, which the final search may start
     # from, searched by a worker meanwhile, where that search waited for it (0.4 s on Silverbox);
     # with the builtin map, only when asked for. Unused when least squares simulates better.
@@ -208,8 +215,16 @@ def loop_on(
         _call,
         [partial(by_output_error, declared_model, everything, SETTLED_EVALUATIONS)] if output_error else [],
     )
-    declared_structure = Structure(terms)
+    # The least-squares fit on all the records of the structure the rounds grew, made by a thread
+    # while the workers judge it, where this process would wait (a third of a second on
+    # Silverbox's NARMAX): unless the pruning or the checks change the structure, it is the
+    # refined model's, or its search's start.
+    by_the_rounds, fitted_ahead = current, threads(_call, [partial(fitted_on_all, records, current)])
+    if current.terms != tuple(terms):
+        rounds, current, check = _pruned_rounds(loop, terms, current, check, rounds)
     after = _after_rounds(loop, current, check, declared_structure, rounds)
+    if on_structure is not None:
+        on_structure(after.structure)
     fitted = fitted_ahead if after.structure == by_the_rounds else [fitted_on_all(records, after.structure)]
     return _grown(loop, after, fitted, (declared_model, declared_structure), declared_search, orders)
 
@@ -360,6 +375,7 @@ def _tier(loop: _Loop, offer: _Offer, tier: list[bool], generic: bool, choosing:
         choosing = _integer_law(loop, offer, choosing, choosing.decided)
         choosing = _looking_ahead(loop, offer, in_turn, choosing, choosing.decided)
         if not generic:
+            choosing = _leader_in_pair(loop, offer, significant, choosing, choosing.decided)
             choosing = _output_state(loop, offer, choosing, choosing.decided)
     if choosing.decided is None and loop.output_error and generic in tier:
         choosing = _on_simulation(loop, offer, tier, generic, choosing)
@@ -511,6 +527,33 @@ def _in_pair(loop: _Loop, offer: _Offer, significant: list[EffectScore], choosin
         rejected=tuple(name for name in choosing.rejected if name != decided[0].name),
         judged=Gain(fall(pair_end, offer.check), SIMULATION_GAIN),
     )
+
+
+def _leader_in_pair(
+    loop: _Loop, offer: _Offer, significant: list[EffectScore], choosing: _Choosing, first: Decision
+) -> _Choosing:
+    """The family the one-step criterion decided, ``first``, or the one-step order's leader that
+    ran free worse alone, judged as a pair where ``first`` cleared by little and the pair ends
+    lower (:func:`models.round_criteria.leader_as_pair`)."""
+    # The pairs are judged as :func:`_in_pair` judges one: their partners effects of the process.
+    named = [effect for effect in loop.families if effect.kind != "noise"]
+    decided, tried = leader_as_pair(
+        first,
+        significant,
+        choosing.rejected,
+        offer.kinds,
+        offer.current,
+        loop.records,
+        offer.check,
+        loop.margin,
+        loop.checks,
+        _next_round(loop, named, offer.number + 1),
+    )
+    choosing = replace(choosing, decided=decided, tried=choosing.tried + tried)
+    if decided is first:
+        return choosing
+    rejected = tuple(name for name in choosing.rejected if name != decided[0].name)
+    return replace(choosing, rejected=rejected, judged=Gain(fall(decided[3], offer.check), SIMULATION_GAIN))
 
 
 def _next_round(

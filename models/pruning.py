@@ -34,9 +34,8 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import replace
-from functools import partial
-from typing import NamedTuple
+from dataclasses import dataclass, replace
+from functools import cached_property, partial
 
 import numpy as np
 
@@ -128,22 +127,37 @@ def _while_found(
     return current, pruned
 
 
-class _Ceiling(NamedTuple):
+@dataclass
+class _Ceiling:
     """The check blocks' free-run RMS a pruned structure may reach (:func:`pruned_back`): by least
-    squares, and by output error where that is how the structure simulates better (else None)."""
+    squares, and by output error where that is how the structure simulates better (else None),
+    that figure read from ``simulated`` when a removal first needs it."""
 
     least_squares: float
-    output_error: float | None
+    simulated: Callable[[], float]
+
+    @cached_property
+    def output_error(self) -> float | None:
+        simulated = self.simulated()
+        return simulated if simulated < self.least_squares else None
 
 
 def _ceiling(current: Structure, checks: CheckSplit, output_error: bool) -> _Ceiling | None:
     """The bounds :func:`pruned_back` holds ``current``'s removals to: its figures on the check blocks;
-    None where neither figure is finite (no removal could be judged)."""
+    None where neither figure is finite (no removal could be judged). The output-error figure
+    is read only where a removal passes by least squares, or the least-squares figure is not
+    finite: judged ahead by a worker (:meth:`CheckSplit.judge_ahead`), the removals' least-squares
+    judgements go on beside its search."""
     figure = checks.error(current)
-    simulated = checks.error(current, tuned=True) if output_error else np.inf
-    if not np.isfinite(min(figure, simulated)):
+    ceiling = _Ceiling(figure, partial(checks.error, current, tuned=True) if output_error else _never)
+    if not np.isfinite(figure) and not np.isfinite(ceiling.simulated()):
         return None
-    return _Ceiling(figure, simulated if simulated < figure else None)
+    return ceiling
+
+
+def _never() -> float:
+    """The output-error figure of a loop that does not fit by output error."""
+    return np.inf
 
 
 def _first_removal(

@@ -27,7 +27,9 @@ loop chooses, :mod:`models.linear_start`), each round (:mod:`models.growing`, it
    blocks' free-run RMS by at least ``SIMULATION_GAIN`` is added — decided by the simulation
    criterion. Where none does, the first significant family is judged with the family the
    round after it adds (:func:`models.round_criteria.as_pair`): two effects can each run free
-   worse alone and far better together. Otherwise the loop stops.
+   worse alone and far better together; so it is too where that first ran free worse alone and a
+   later family cleared step 3 by less than ``SIMULATION_GAIN``
+   (:func:`models.round_criteria.leader_as_pair`). Otherwise the loop stops.
 
 After the rounds, the loop prunes back the terms they added that the check blocks' free run does
 not need (:mod:`models.pruning`). Each round reports the candidates it compared on the check
@@ -106,7 +108,7 @@ process noise is 86 mV RMS, the linear model's figure is within half a per cent 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 from functools import partial
 from itertools import pairwise
@@ -434,6 +436,15 @@ def _grown_and_judged(
     if split is None:
         return grow(records).refinement, records
     heads, tails = split
+    # The least-squares fit on all the records of the structure the loop refines, made by a worker
+    # while the loop searches that structure's parameters on the heads by output error, where
+    # the workers are idle: the model the tails keep is estimated again on all the records
+    # (:func:`_on_all`), and its search there starts from the best of that fit and others.
+    fitted_ahead: dict[Structure, Iterable[tuple[NARX, np.ndarray]]] = {}
+
+    def fit_ahead(structure: Structure) -> None:
+        fitted_ahead[structure] = workers(partial(fitted_on_all, records), [structure])
+
     short = any(len(y) < MIN_BLOCK for _, y, _ in tails)
     orders_saw_tails = short and declared is None
     if orders_saw_tails:
@@ -441,7 +452,7 @@ def _grown_and_judged(
         rectified = rectified_orders(records, None, tell, workers)
         grow = partial(grow, declared=terms, orders=orders, rectified=rectified)
     try:
-        grown = grow(heads)
+        grown = grow(heads, on_structure=fit_ahead)
     except InputError:
         # Too few equations for the candidates once the tails are held out: refined on all of
         # them, with nothing to compare on (the report says so).
@@ -454,7 +465,8 @@ def _grown_and_judged(
         grown, held_out = _best_rounds(grown, held_out, heads, tails, orders_saw_tails, tell)
     settled = settled_from(grown, held_out, heads, tails, tell)
     if not any(settled):
-        return _on_all(grown, held_out, records, output_error, tell, threads), records
+        ahead = fitted_ahead.get(grown.structure)
+        return _on_all(grown, held_out, records, output_error, tell, threads, ahead), records
     settled_records = [(x[cut:], y[cut:]) for (x, y), cut in zip(records, settled, strict=True)]
     refined = _on_all(grown, held_out, settled_records, output_error, tell, threads)
     return replace(refined, settled_from=settled), settled_records
@@ -583,6 +595,7 @@ def _on_all(
     output_error: bool,
     tell: Stage,
     threads: Workers,
+    fitted_ahead: Iterable[tuple[NARX, np.ndarray]] | None = None,
 ) -> Refinement:
     """The refinement the loop ``grown`` on the records' heads made, its models' parameters
     estimated again on all the ``records``, tails too, as the loop estimated them: the refined
@@ -592,7 +605,8 @@ def _on_all(
     by output error from the best simulating of its least-squares fit, the parameters the loop
     found and the start's grown by zeros; an output-error fit is kept as
     :func:`_fit_on_all_or_approved` says. The noise floor is read on the whole records, whose
-    periods a tail cut off leaves incomplete."""
+    periods a tail cut off leaves incomplete. ``fitted_ahead``, where given, yields the refined
+    structure's least-squares fit on the ``records``, made ahead."""
     result = grown.refinement
     declared_structure = Structure(result.declared.terms)
     declared, _ = fitted_on_all(records, declared_structure)
@@ -600,7 +614,10 @@ def _on_all(
     kept = bool(result.effects_added) and (held_out is None or held_out.kept)
     structure = grown.structure if kept else declared_structure
     estimator = result.estimator if kept else grown.start_estimator
-    refined, noise = fitted_on_all(records, structure) if kept else (declared, np.empty(0))
+    if not kept:
+        refined, noise = declared, np.empty(0)
+    else:
+        ((refined, noise),) = fitted_ahead or [fitted_on_all(records, structure)]
     if estimator == "output error":
         tell("output-error fit on all the records")
         declared_tuned = None

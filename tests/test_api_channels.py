@@ -13,9 +13,6 @@ import hashlib
 import io
 import json
 import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +44,7 @@ from harness.channel_helpers import (
     channels_body,
     csv_text,
 )
+from harness.cli import invoke
 from harness.dashboard_helpers import DASHBOARD, charts, logged_in
 from harness.live import LiveServer
 from models.vector import fit_vector_fnarx, inspect_vector
@@ -321,9 +319,6 @@ def test_trainings_refuse_records_of_other_channels(site: Site):
             assert response.status_code == 422 and words in detail(response), response.text
 
 
-SIM = shutil.which("narxwatch-sim", path=str(Path(sys.executable).parent))
-
-
 @pytest.fixture(scope="module")
 def chain_site(sqlite_api_server: LiveServer) -> Site:
     """A structure whose vector modes name the channels as the simulator does."""
@@ -335,14 +330,14 @@ def test_the_simulator_posts_every_mass_of_a_chain(
     chain_site: Site, sqlite_api_server: LiveServer, body: str
 ):
     """``narxwatch-sim record --masses 3`` posts its three displacements as channels y1, y2, y3 and
-    prints the verdict the structure's vector modes gave."""
-    assert SIM, "the narxwatch-sim console script is not installed next to this Python"
+    prints the verdict the structure's vector modes gave (its entry point in this process: the
+    script as a process is ``test_sim_client``'s)."""
     site = chain_site
     args = ["record", "--masses", "3", "--fault", "k2", "--k", "6", "--seed", "5", "--format", body, "--json"]
     env = {k: v for k, v in os.environ.items() if not k.startswith("NARXWATCH_SIM_")}
     env |= {"NARXWATCH_SIM_API_KEY": site.org.keys["ingest"], "NARXWATCH_SIM_URL": sqlite_api_server.url}
     where = ["--structure", str(site.structure_id)]
-    result = subprocess.run([SIM, *args, *where], env=env, capture_output=True, text=True, timeout=120)
+    result = invoke(*args, *where, cwd=Path.cwd(), check=False, script="narxwatch-sim", environ=env)
     assert result.returncode == 0, result.stderr
     verdict = json.loads(result.stdout)
     assert verdict["fault_mode"] == "k2" and list(verdict["modes"][0]["channel_rms"]) == ["y1", "y2", "y3"]

@@ -9,8 +9,6 @@ import re
 import numpy as np
 import pytest
 from scipy import signal, stats
-from statsmodels.stats.diagnostic import acorr_ljungbox
-from statsmodels.tsa.stattools import acf, ccf
 
 from models.correlation_tests import (
     CorrelationTest,
@@ -22,6 +20,9 @@ from models.correlation_tests import (
 from models.diagnostics import autocorrelation, hosking, ljung_box, residual_report
 from models.errors import InputError
 from models.spectrum import residual_spectrum, welch_dof
+
+# statsmodels, the independent reference of a few tests, is imported in them: every pytest-xdist
+# process imports every test module at collection, and statsmodels brings pandas and patsy.
 
 
 def white(n: int, seed: int) -> np.ndarray:
@@ -45,6 +46,8 @@ SERIES = {
 @pytest.mark.parametrize("name", SERIES)
 @pytest.mark.parametrize("h", [2, 10, 40])
 def test_autocorrelation_matches_statsmodels_acf(name: str, h: int) -> None:
+    from statsmodels.tsa.stattools import acf
+
     e = SERIES[name]
     np.testing.assert_allclose(autocorrelation(e, h), acf(e, nlags=h, fft=False), rtol=1e-10, atol=1e-13)
 
@@ -59,6 +62,8 @@ def test_autocorrelation_by_definition() -> None:
 @pytest.mark.parametrize("name", SERIES)
 @pytest.mark.parametrize("h", [5, 20, 40])
 def test_ljung_box_matches_statsmodels(name: str, h: int) -> None:
+    from statsmodels.stats.diagnostic import acorr_ljungbox
+
     e = SERIES[name]
     result = ljung_box(e, lags=h)
     reference = acorr_ljungbox(e, lags=[h], model_df=1)
@@ -71,6 +76,8 @@ def test_ljung_box_matches_statsmodels(name: str, h: int) -> None:
 
 
 def test_ljung_box_model_df_and_alpha() -> None:
+    from statsmodels.stats.diagnostic import acorr_ljungbox
+
     e = SERIES["coloured-500"]
     result = ljung_box(e, lags=12, alpha=0.01, model_df=3)
     reference = acorr_ljungbox(e, lags=[12], model_df=3)
@@ -168,6 +175,8 @@ def test_correlations_by_direct_sums(small_record) -> None:
 
 def test_input_cross_correlation_sign_convention_against_statsmodels(small_record) -> None:
     """φ_ue(τ) = corr(e(t), u(t − τ)): ccf(e, u)[τ] for τ ≥ 0 and ccf(u, e)[−τ] for τ ≤ 0."""
+    from statsmodels.tsa.stattools import ccf
+
     u, _, e = small_record
     test = input_cross_correlation(u, e, 15)
     np.testing.assert_allclose(test.values[15:], ccf(e, u, adjusted=False, fft=False)[:16], rtol=1e-10)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import collections
 import threading
-import time
 import uuid
 from pathlib import Path
 
@@ -13,11 +12,13 @@ import httpx
 import psycopg
 import pytest
 
+from harness import migrated
 from harness.api_helpers import (
     API,
     Org,
     clients,
     create_structure,
+    jobs_ended,
     json_body,
     npz_bytes,
     post_record,
@@ -38,15 +39,15 @@ FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3
 
 @pytest.fixture
 def database(postgres_url: str) -> str:
-    from harness import postgres
-
-    return postgres.create_database(postgres_url, f"faults_{uuid.uuid4().hex[:12]}")
+    return migrated.postgresql(postgres_url, f"faults_{uuid.uuid4().hex[:12]}")
 
 
 def test_a_job_whose_worker_is_killed_mid_run_runs_again_and_leaves_one_verdict(
     database: str, tmp_path: Path
 ):
     settings = Settings(database_url=database, worker_heartbeat_seconds=0.5, worker_stalled_seconds=3)
+    # Started first: its start-up goes on while the server starts and the model is trained.
+    victim = Worker(database, tmp_path / "victim.log", **FAST_FAILOVER)
     with LiveServer(settings) as server:
         org = Org.create(server)
         with clients(org) as (admin, ingest, viewer):
@@ -57,24 +58,19 @@ def test_a_job_whose_worker_is_killed_mid_run_runs_again_and_leaves_one_verdict(
             with psycopg.connect(conninfo(database)) as blocker:
                 # Held until the worker is dead: its job stops at its first look at the verdicts.
                 blocker.execute("LOCK TABLE verdicts IN ACCESS EXCLUSIVE MODE")
-                victim = Worker(database, tmp_path / "victim.log", **FAST_FAILOVER)
                 queued = post_record(ingest, sid, body, "application/x-npz", inspect="queue")
                 assert queued.status_code == 202, queued.text
                 record_id = queued.json()["id"]
                 with psycopg.connect(conninfo(database), autocommit=True) as look:
-
-                    def running() -> bool:
-                        query = "SELECT status FROM procrastinate_jobs WHERE task_name = 'inspect_record'"
-                        return look.execute(query).fetchone() == ("doing",)
-
-                    wait_for(running, 30, "the worker never started the job")
-                    time.sleep(0.5)  # now blocked inside the job, on the lock
-                    victim.kill()
-                blocker.rollback()
-            with workers(database, 1, tmp_path, **FAST_FAILOVER):
-                found = wait_for(lambda: verdicts_of(viewer, sid, record_id), 60, "no verdict after the kill")
-                time.sleep(2)
+                    wait_for(lambda: waiting_on_verdicts(look), 30, "the job never reached the verdicts")
+                    # The rescuer starts as the victim dies: its start-up goes on while the
+                    # victim's missed heartbeats add up to a stall.
+                    with workers(database, 1, tmp_path, **FAST_FAILOVER):
+                        victim.kill()
+                        blocker.rollback()
+                        wait_for(lambda: inspections_ended(look), 60, "the job did not run again")
                 assert len(verdicts_of(viewer, sid, record_id)) == 1
+            found = verdicts_of(viewer, sid, record_id)
             immediate = ingest.post(f"{API}/records/{record_id}/inspect").json()
             assert immediate["id"] == found[0]["id"], "inspecting again made a second verdict"
     with psycopg.connect(conninfo(database)) as connection:
@@ -83,6 +79,27 @@ def test_a_job_whose_worker_is_killed_mid_run_runs_again_and_leaves_one_verdict(
             "WHERE j.task_name = 'inspect_record' AND e.type = 'started'"
         ).fetchone()
     assert starts == (2,), "the killed job should have started twice: once killed, once to the end"
+
+
+def waiting_on_verdicts(look: psycopg.Connection) -> bool:
+    """A session waits for a lock on the verdicts table: the job, blocked inside its run."""
+    query = "SELECT count(*) FROM pg_locks WHERE NOT granted AND relation = 'verdicts'::regclass"
+    return look.execute(query).fetchone() != (0,)
+
+
+def inspections_ended(look: psycopg.Connection) -> bool:
+    """Every inspection job has ended: none is left to make a verdict."""
+    query = (
+        "SELECT count(*) FROM procrastinate_jobs "
+        "WHERE task_name = 'inspect_record' AND status IN ('todo', 'doing')"
+    )
+    return look.execute(query).fetchone() == (0,)
+
+
+def registered_workers(database_url: str) -> int:
+    """The Procrastinate workers running on the database (each registers at its start)."""
+    with psycopg.connect(conninfo(database_url), autocommit=True) as look:
+        return look.execute("SELECT count(*) FROM procrastinate_workers").fetchone()[0]
 
 
 @pytest.mark.parametrize("stop_mode", ["fast", "immediate"])
@@ -119,10 +136,14 @@ def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_uploa
                             if response.status_code == 202:
                                 acknowledged.append(response.json()["id"])
 
+                # Both workers running (their start-up takes seconds): what the stop interrupts
+                # is their work, not their start, which the test below has on its own.
+                wait_for(lambda: registered_workers(database.url) == 2, 60, "the workers never came up")
                 load = [threading.Thread(target=upload, args=(i,)) for i in range(2)]
                 for thread in load:
                     thread.start()
-                time.sleep(2)
+                # Under load: uploads acknowledged and their inspections queued, when it stops.
+                wait_for(lambda: len(acknowledged) >= 10, 60, "no uploads acknowledged")
                 before = len(acknowledged)
                 database.stop(stop_mode)
                 assert wait_for(
@@ -130,7 +151,8 @@ def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_uploa
                 )
                 down = post_record(ingest, sid, json_body(600, seed=7), inspect="queue")
                 assert down.status_code == 503 and "database" in down.json()["detail"], down.text
-                time.sleep(3)
+                # Down until the uploading clients have been answered 503 more than once: the load goes on.
+                wait_for(lambda: answers[503] >= 2, 30, "no upload was answered 503 while it was down")
                 database.start()
                 wait_for(lambda: server.client().get("/readyz").status_code == 200, 30, "no recovery")
                 during = len(acknowledged)
@@ -207,5 +229,6 @@ def test_the_same_record_uploaded_at_once_is_stored_once(tenant):
     assert sum(a.json()["created"] for a in answers) == 1
     record_id = answers[0].json()["id"]
     wait_for(lambda: verdicts_of(tenant.viewer, sid, record_id), 60, "no verdict")
-    time.sleep(1)
+    # Every job the uploads queued has ended: none is left to make a second verdict.
+    wait_for(lambda: jobs_ended(tenant.admin), 60, "queued inspections still waiting")
     assert len(verdicts_of(tenant.viewer, sid, record_id)) == 1

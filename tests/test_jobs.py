@@ -288,8 +288,9 @@ def test_a_job_whose_error_is_not_final_is_queued_again_with_its_reason(long_lag
 
 
 def test_a_job_running_longer_than_its_lease_is_not_claimed_by_another_worker(queue, monkeypatch):
-    """The lease is renewed while the job runs: a second worker that looks after several leases
-    have gone by finds nothing to claim, and the job starts once."""
+    """The lease is renewed while the job runs: a second worker that looks once two leases have
+    gone by since the claim (its first and a renewal's) finds nothing to claim, and the job
+    starts once."""
     sessions, settings = queue
     lease = dt.timedelta(seconds=1.5)  # renewed every 0.5 s: a second of slack on a busy machine
     started, release = threading.Event(), threading.Event()
@@ -306,7 +307,10 @@ def test_a_job_running_longer_than_its_lease_is_not_claimed_by_another_worker(qu
     running.start()
     try:
         assert started.wait(30), "the job never started"
-        time.sleep(3 * lease.total_seconds())
+        with sessions() as session:
+            first_lease_ends = session.scalars(select(Job.locked_until)).one()
+        # Two leases after the claim: without its renewals the job would have been free a lease.
+        time.sleep(max(0.0, (first_lease_ends + lease - utcnow()).total_seconds()))
         with sessions() as session:
             assert claim(session, lease=lease) is None, "a running job was handed to a second worker"
             (job,) = session.scalars(select(Job))

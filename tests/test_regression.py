@@ -6,7 +6,6 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-import statsmodels.api as sm
 from conftest import scaled_lstsq
 from scipy import linalg
 
@@ -20,6 +19,9 @@ from models.regression import (
     subtract_outer,
     triangular_factor,
 )
+
+# statsmodels, the independent reference of a few tests, is imported in them: every pytest-xdist
+# process imports every test module at collection, and statsmodels brings pandas and patsy.
 
 EPS = np.finfo(float).eps
 
@@ -60,6 +62,8 @@ def test_recovers_exact_solution_of_consistent_badly_scaled_system() -> None:
 
 
 def test_covariance_is_sigma2_times_inverse_gram() -> None:
+    from statsmodels.regression.linear_model import OLS
+
     rng = np.random.default_rng(3)
     n = 500
     Phi = np.column_stack([np.ones(n), rng.normal(size=n), rng.uniform(-1, 1, size=n)])
@@ -69,16 +73,18 @@ def test_covariance_is_sigma2_times_inverse_gram() -> None:
     sigma2 = np.mean(residuals**2)
     np.testing.assert_allclose(fit.covariance, sigma2 * np.linalg.inv(Phi.T @ Phi), rtol=1e-10)
     # statsmodels divides the residual sum of squares by N − p; the library by N (SPEC §3).
-    ols = sm.OLS(target, Phi).fit()
+    ols = OLS(target, Phi).fit()
     np.testing.assert_allclose(fit.theta, ols.params, rtol=1e-12)
     np.testing.assert_allclose(fit.covariance, ols.cov_params() * (n - 3) / n, rtol=1e-10)
     assert fit.sigma2 == pytest.approx(ols.ssr / n, rel=1e-12)
 
 
 def test_covariance_on_badly_scaled_problem_matches_statsmodels() -> None:
+    from statsmodels.regression.linear_model import OLS
+
     Phi, target, _ = badly_scaled_problem(4)
     fit = least_squares(Phi, target)
-    ols = sm.OLS(target, Phi).fit()
+    ols = OLS(target, Phi).fit()
     n, p = Phi.shape
     # statsmodels inverts the raw Gram matrix by pinv: accurate to ~eps·cond(raw) only.
     tolerance = 100 * EPS * np.linalg.cond(Phi)

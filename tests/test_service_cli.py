@@ -387,3 +387,34 @@ def test_invalid_settings_are_one_line_naming_each_variable_and_never_its_value(
     assert "NARXWATCH_SECRET_KEYS: " in line and "NARXWATCH_SMTP_PORT: " in line
     assert "NARXWATCH_MAX_CLOCK_SKEW_SECONDS: Input should be greater than or equal to 0" in line
     assert "hunter2" not in result.stderr and "seventy" not in result.stderr
+
+
+# Garbage in a cycle, left when the command ends; automatic collections off, so that only the
+# interpreter's last ones, as the process exits, could come to it.
+LEFT_AT_THE_END = """
+import gc, os, sys
+from service.cli import main
+
+class Cycle:
+    def __del__(self):
+        os.write(1, b"walked at exit")
+
+gc.disable()
+cycle = Cycle()
+cycle.me = cycle
+del cycle
+sys.argv = ["narxwatch", "keys", "--help"]
+main()
+"""
+
+
+def test_a_command_exits_without_walking_every_object_it_loaded():
+    """The interpreter's last collections walk every object still tracked: a stopped worker or
+    server spent seconds on them (numpy's, scipy's, numba's, SQLAlchemy's) before it exited.
+    A command leaves them alone, garbage and all: the process hands its memory back whole."""
+    ended = subprocess.run(
+        [sys.executable, "-c", LEFT_AT_THE_END], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert ended.returncode == 0, ended.stderr
+    assert "revoke" in ended.stdout, "the command did not run"
+    assert "walked at exit" not in ended.stdout

@@ -3,8 +3,9 @@
 Each physical statement is checked against theory built here from the equations (the chain's
 matrices written out by hand, closed-form natural frequencies of a uniform chain, a static
 equilibrium solved by scipy) or against the existing 2-DOF simulator, an independent code path.
-The command-line tests run the installed ``narxwatch-sim`` with nothing listening at the URL, so
-that exit code 2 shows an option was refused before any service was contacted.
+The command-line tests run ``narxwatch-sim``'s entry point in this process (what it writes and
+its exit code; the script as a process is ``test_sim_client``'s) with nothing listening at the
+URL, so that exit code 2 shows an option was refused before any service was contacted.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import csv
 import datetime as dt
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -24,6 +24,7 @@ import scipy.linalg
 import scipy.optimize
 import scipy.signal
 
+from harness.cli import invoke
 from harness.live import free_port
 from models.errors import InputError
 from recordfiles.reader import Layout, read_record
@@ -33,7 +34,6 @@ from simulator.physics import PhysicalParameters, UnstableSimulationError
 from simulator.simulate import Scenario, simulate
 from simulator.temperature import TemperatureCycle, Thermal
 
-SIM = shutil.which("narxwatch-sim", path=str(Path(sys.executable).parent))
 TS = 6.666e-4
 
 
@@ -54,10 +54,9 @@ def hand_matrices(p: ChainParameters) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 def run_sim(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    assert SIM, "the narxwatch-sim console script is not installed next to this Python"
     env = {k: v for k, v in os.environ.items() if not k.startswith("NARXWATCH_SIM_")}
     env |= {"NARXWATCH_SIM_URL": f"http://127.0.0.1:{free_port()}", "NARXWATCH_SIM_API_KEY": "nw_x_y"}
-    return subprocess.run([SIM, *args], env=env, cwd=cwd, capture_output=True, text=True, timeout=120)
+    return invoke(*args, cwd=cwd, check=False, script="narxwatch-sim", environ=env)
 
 
 # ---------------------------------------------------------------- the chain against theory
