@@ -200,7 +200,26 @@ def loop_on(
     )
     rounds, current, check = _rounds(loop, current, check, rectified)
     declared_structure = Structure(terms)
-    if output_error and current != declared_structure:
+    by_the_rounds = current
+    declared_search, fitted_ahead = _sent_ahead(loop, current, declared_model, declared_structure)
+    if current.terms != tuple(terms):
+        rounds, current, check = _pruned_rounds(loop, terms, current, check, rounds)
+    after = _after_rounds(loop, current, check, declared_structure, rounds)
+    if on_structure is not None:
+        on_structure(after.structure)
+    fitted = fitted_ahead if after.structure == by_the_rounds else [fitted_on_all(records, after.structure)]
+    return _grown(loop, after, fitted, (declared_model, declared_structure), declared_search, orders)
+
+
+def _sent_ahead(
+    loop: _Loop, current: Structure, declared_model: NARX, declared_structure: Structure
+) -> tuple[Iterable[NARX], Iterable[tuple[NARX, np.ndarray]]]:
+    """The work :func:`loop_on` sends to the workers and threads as the rounds end, to be read
+    after the pruning and the checks: the declared model's output-error search on all the
+    records, and the least-squares fit on them of ``current``, the rounds' structure (which the
+    pruning or the checks may yet change)."""
+    records, checks, workers = loop.records, loop.checks, loop.workers
+    if loop.output_error and current != declared_structure:
         # The output-error judgements the pruning's bound and the check of what the rounds added
         # ask for (:func:`models.pruning.pruned_back`, :func:`_after_rounds`), searched by the
         # workers side by side from here, where this process made the first alone with the
@@ -213,20 +232,15 @@ def loop_on(
     everything: Segments = [(x, y, 0) for x, y in records]
     declared_search = workers(
         _call,
-        [partial(by_output_error, declared_model, everything, SETTLED_EVALUATIONS)] if output_error else [],
+        [partial(by_output_error, declared_model, everything, SETTLED_EVALUATIONS)]
+        if loop.output_error
+        else [],
     )
     # The least-squares fit on all the records of the structure the rounds grew, made by a thread
     # while the workers judge it, where this process would wait (a third of a second on
     # Silverbox's NARMAX): unless the pruning or the checks change the structure, it is the
     # refined model's, or its search's start.
-    by_the_rounds, fitted_ahead = current, threads(_call, [partial(fitted_on_all, records, current)])
-    if current.terms != tuple(terms):
-        rounds, current, check = _pruned_rounds(loop, terms, current, check, rounds)
-    after = _after_rounds(loop, current, check, declared_structure, rounds)
-    if on_structure is not None:
-        on_structure(after.structure)
-    fitted = fitted_ahead if after.structure == by_the_rounds else [fitted_on_all(records, after.structure)]
-    return _grown(loop, after, fitted, (declared_model, declared_structure), declared_search, orders)
+    return declared_search, loop.threads(_call, [partial(fitted_on_all, records, current)])
 
 
 def _pruned_rounds(
