@@ -48,6 +48,7 @@ from models.round_criteria import (
     SIMULATION_GAIN,
     Decision,
     Gain,
+    Question,
     as_pair,
     better_gain,
     by_output_error_grown,
@@ -359,28 +360,11 @@ def _tier(loop: _Loop, offer: _Offer, tier: list[bool], generic: bool, choosing:
         (s for s, g in zip(offer.scores.scores, tier, strict=True) if s.significant and g == generic),
         key=lambda s: s.bic_change,
     )
-    in_turn = judged_in_turn(
-        significant,
-        offer.kinds,
-        offer.current,
-        loop.records,
-        loop.checks,
-        loop.workers,
-        loop.tell,
-        f"round {offer.number}",
-    )
+    question = _question(loop, offer)
+    in_turn = judged_in_turn(significant, question, loop.workers, loop.tell, f"round {offer.number}")
     choosing = _by_one_step(loop, offer, in_turn, choosing)
     if choosing.decided is None and loop.output_error:
-        decided = by_output_error_grown(
-            significant,
-            offer.kinds,
-            offer.current,
-            loop.records,
-            offer.check,
-            loop.margin,
-            loop.checks,
-            loop.workers,
-        )
+        decided = by_output_error_grown(significant, question, loop.workers)
         rejected = tuple(name for name in choosing.rejected if decided is None or name != decided[0].name)
         choosing = replace(choosing, decided=decided, rejected=rejected)
         if decided is not None:
@@ -425,17 +409,7 @@ def _integer_law(loop: _Loop, offer: _Offer, choosing: _Choosing, first: Decisio
     """The family the one-step criterion decided, ``first``, or the integer law a searched law
     stood in for with an effect beside it (:func:`models.round_criteria.integer_law_first`)."""
     decided, judged = integer_law_first(
-        first,
-        offer.offered,
-        offer.scores,
-        offer.current,
-        offer.check,
-        loop.margin,
-        loop.records,
-        loop.checks,
-        loop.workers,
-        loop.threads,
-        loop.alpha,
+        first, offer.offered, offer.scores, _question(loop, offer), loop.workers, loop.threads, loop.alpha
     )
     choosing = replace(choosing, decided=decided, tried=choosing.tried + judged)
     if decided is not first:
@@ -453,7 +427,7 @@ def _looking_ahead(
     """The family the one-step criterion decided, or a later one of ``in_turn`` that gains
     more and, the round after each judged, ends lower (:func:`models.round_criteria.looked_ahead`)."""
     ahead = _next_round(loop, loop.families, offer.number + 1)
-    decided, contended = looked_ahead(first, in_turn, offer.current, offer.check, loop.margin, ahead)
+    decided, contended = looked_ahead(first, in_turn, _question(loop, offer), ahead)
     choosing = replace(choosing, decided=decided, tried=choosing.tried + contended)
     if decided is not first:
         choosing = replace(choosing, judged=Gain(fall(decided[3], offer.check), loop.margin))
@@ -522,15 +496,7 @@ def _in_pair(loop: _Loop, offer: _Offer, significant: list[EffectScore], choosin
     # the pair where the first left it.
     named = [effect for effect in loop.families if effect.kind != "noise"]
     ahead = _next_round(loop, named, offer.number + 1)
-    paired, paired_tried = as_pair(
-        significant,
-        offer.kinds,
-        offer.current,
-        loop.records,
-        offer.check,
-        loop.checks,
-        ahead,
-    )
+    paired, paired_tried = as_pair(significant, _question(loop, offer), ahead)
     choosing = replace(choosing, tried=choosing.tried + paired_tried)
     if paired is None:
         return choosing
@@ -551,23 +517,18 @@ def _leader_in_pair(
     lower (:func:`models.round_criteria.leader_as_pair`)."""
     # The pairs are judged as :func:`_in_pair` judges one: their partners effects of the process.
     named = [effect for effect in loop.families if effect.kind != "noise"]
-    decided, tried = leader_as_pair(
-        first,
-        significant,
-        choosing.rejected,
-        offer.kinds,
-        offer.current,
-        loop.records,
-        offer.check,
-        loop.margin,
-        loop.checks,
-        _next_round(loop, named, offer.number + 1),
-    )
+    ahead = _next_round(loop, named, offer.number + 1)
+    decided, tried = leader_as_pair(first, significant, choosing.rejected, _question(loop, offer), ahead)
     choosing = replace(choosing, decided=decided, tried=choosing.tried + tried)
     if decided is first:
         return choosing
     rejected = tuple(name for name in choosing.rejected if name != decided[0].name)
     return replace(choosing, rejected=rejected, judged=Gain(fall(decided[3], offer.check), SIMULATION_GAIN))
+
+
+def _question(loop: _Loop, offer: _Offer) -> Question:
+    """What the round's criteria judge ``offer``'s families against (:class:`Question`)."""
+    return Question(offer.current, offer.check, loop.margin, offer.kinds, loop.records, loop.checks)
 
 
 def _next_round(

@@ -11,7 +11,7 @@ every phase makes of a structure (:func:`fitted_on_all`) are here too."""
 from __future__ import annotations
 
 from collections.abc import Callable, Generator, Iterator, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import partial
 from itertools import islice
 from typing import NamedTuple, get_args
@@ -50,6 +50,21 @@ LINEAR = 1.0
 # A family added, the criterion that decided, the structure with it and that structure's check
 # blocks' free-run RMS.
 Decision = tuple[EffectScore, Criterion, Structure, float]
+
+
+@dataclass(frozen=True)
+class Question:
+    """What a round's criteria judge its families against: the ``current`` structure and its check
+    blocks' free-run RMS ``check``, those blocks' noise ``margin``
+    (:func:`models.checking.check_noise`), the families' ``kinds`` by name, and the estimation
+    ``records`` with their ``checks`` split."""
+
+    current: Structure
+    check: float
+    margin: float
+    kinds: dict[str, str]
+    records: Records
+    checks: CheckSplit
 
 
 def scored(
@@ -98,11 +113,13 @@ def fitted_on_all(records: Records, structure: Structure) -> tuple[NARX, np.ndar
     )
 
 
-def _with(score: EffectScore, kinds: dict[str, str], current: Structure, records: Records) -> list[Structure]:
-    """The structures adding the scored effect may give: one, but two for output saturation
-    (of the state or of the sensor), which adds limits rather than terms."""
+def _with(score: EffectScore, question: Question) -> list[Structure]:
+    """The structures adding the scored effect to the ``question``'s current one may give: one,
+    but two for output saturation (of the state or of the sensor), which adds limits rather than
+    terms."""
+    kinds, current = question.kinds, question.current
     if kinds.get(score.name) == "saturation":
-        limits = output_limits(np.concatenate([y for _, y in records]))
+        limits = output_limits(np.concatenate([y for _, y in question.records]))
         if limits is None:
             return []
         return [replace(current, saturating=(limits, how)) for how in get_args(Saturation)]
@@ -184,10 +201,7 @@ def simulation_candidates(offered: Sequence[Effect], scores: Sequence[EffectScor
 
 def judged_in_turn(
     scores: Sequence[EffectScore],
-    kinds: dict[str, str],
-    current: Structure,
-    records: Records,
-    checks: CheckSplit,
+    question: Question,
     workers: Workers,
     tell: Stage,
     stage: str,
@@ -200,10 +214,8 @@ def judged_in_turn(
     ``matters``): the families judged from then on may give a bound for one that does not."""
     matters = None
     for first in range(0, len(scores), JUDGED_AT_ONCE):
-        batch = [
-            (score, _with(score, kinds, current, records)) for score in scores[first : first + JUDGED_AT_ONCE]
-        ]
-        errors = checks.judge(
+        batch = [(score, _with(score, question)) for score in scores[first : first + JUDGED_AT_ONCE]]
+        errors = question.checks.judge(
             [option for _, options in batch for option in options], workers, matters=matters
         )
         for score, options in batch:
@@ -215,18 +227,16 @@ def judged_in_turn(
 def looked_ahead(
     first: Decision,
     judged: Generator[tuple[EffectScore, float, Structure], Matters | None, None],
-    current: Structure,
-    check: float,
-    margin: float,
+    question: Question,
     ahead: Callable[[Structure, float], tuple[float, str | None, int]],
 ) -> tuple[Decision, int]:
     """The family a round adds: ``first``, the first in the one-step order to clear the margin,
     unless one of the next ``CONTENDERS`` still ``judged`` takes a further ``SIMULATION_GAIN`` of
-    the current model's figure ``check`` off the check blocks' free run and, each added in turn
-    and the round after judged (``ahead``: the check figure that round ends at, the family it
+    the current model's figure ``question.check`` off the check blocks' free run and, each added in
+    turn and the round after judged (``ahead``: the check figure that round ends at, the family it
     adds and the families it judged), the pair it starts ends lower by more than the figure's
-    standard error ``margin``, and without the first; and how many candidates the look compared
-    on the check blocks beside ``first`` (the contenders, and the families each round after
+    standard error ``question.margin``, and without the first; and how many candidates the look
+    compared on the check blocks beside ``first`` (the contenders, and the families each round after
     judged), which the round reports among those it tried.
 
     The one-step order carries what the free run cannot: a family that explains more of the
@@ -257,6 +267,7 @@ def looked_ahead(
     than the margin, its unbiased parameters leading the next round further.
     """
     _, criterion, structure, error = first
+    current, check, margin = question.current, question.check, question.margin
     noise_first = structure.noise_lags != current.noise_lags
     # The contenders judged from here need exact figures only where they could be chosen (a
     # partial, for the workers that judge them).
@@ -293,23 +304,19 @@ def integer_law_first(
     first: Decision,
     offered: Sequence[Effect],
     scores: Scores,
-    current: Structure,
-    check: float,
-    margin: float,
-    records: Records,
-    checks: CheckSplit,
+    question: Question,
     workers: Workers,
     threads: Workers,
     alpha: float,
 ) -> tuple[Decision, int]:
-    """The family a round adds where the one-step criterion decided ``first``: ``first``, unless
-    it is a law whose exponent was searched (``Effect.integer_laws``), found between the linear
-    law and an integer law of its signal on offer, and that integer law, with the law's exponent
-    searched again beside it, ranks before the law alone by the round's own criterion, the sum
-    of the two's BIC changes against the law's (each term a parameter, the exponent counted in
-    both); the integer law is then added where its model clears the ``margin`` below ``check`` on
-    the check blocks, and the law is offered again the round after, beside it. Also how many
-    structures it judged on the check blocks.
+    """The family a round adds where the one-step criterion decided ``first``: ``first``, unless it
+    is a law whose exponent was searched (``Effect.integer_laws``), found between the linear law and
+    an integer law of its signal on offer, and that integer law, with the law's exponent searched
+    again beside it, ranks before the law alone by the round's own criterion, the sum of the two's
+    BIC changes against the law's (each term a parameter, the exponent counted in both); the integer
+    law is then added where its model clears the ``question.margin`` below ``question.check`` on the
+    check blocks, and the law is offered again the round after, beside it. Also how many structures
+    it judged on the check blocks.
 
     A law at an exponent between two integer laws can blend them with an effect beside them: on
     the 2-DOF rig, whose own cubic spring holds a Hertzian contact's |y|^1.5 beside it, a single
@@ -323,7 +330,7 @@ def integer_law_first(
     neither: an integer law that explains something beside it is another effect, for its own
     round (on the coupled drives' second record, the rectified output's law at p = 0.68 gave way
     to the cubic, and the model ran free over the test part half as far off again)."""
-    law = first[0]
+    law, current = first[0], question.current
     family = next((effect for effect in offered if effect.name == law.name), None)
     if family is None or not family.integer_laws or not law.terms:
         return first, 0
@@ -342,7 +349,7 @@ def integer_law_first(
             continue
         beside = replace(current, terms=current.terms + parse_terms(integer.terms))
         (again,) = scored(
-            records, beside, [family], alpha, workers, threads, lag=lag, level=scores.level
+            question.records, beside, [family], alpha, workers, threads, lag=lag, level=scores.level
         ).scores
         together = integer.bic_change + again.bic_change
         if together < law.bic_change and (best is None or together < best[0]):
@@ -350,8 +357,8 @@ def integer_law_first(
     if best is None:
         return first, 0
     _, integer, structure = best
-    (error,) = checks.judge([structure], workers)
-    if not error <= (1 - margin) * check:
+    (error,) = question.checks.judge([structure], workers)
+    if not error <= (1 - question.margin) * question.check:
         return first, 1
     return (integer, first[1], structure, error), 1
 
@@ -405,7 +412,8 @@ def next_round(
     kinds = {effect.name: effect.kind for effect in offered}
     significant = sorted((s for s in scores.scores if s.significant), key=lambda s: s.bic_change)
     stage = f"round {number}, looked ahead"
-    judged = judged_in_turn(significant, kinds, current, records, checks, workers, tell, stage)
+    question = Question(current, check, margin, kinds, records, checks)
+    judged = judged_in_turn(significant, question, workers, tell, stage)
     for tried, (score, error, structure) in enumerate(judged, start=1):
         if error <= (1.0 if structure.noise_lags > current.noise_lags else 1 - margin) * check:
             return min(error, check), score.name, tried
@@ -414,19 +422,15 @@ def next_round(
 
 def as_pair(
     significant: Sequence[EffectScore],
-    kinds: dict[str, str],
-    current: Structure,
-    records: Records,
-    check: float,
-    checks: CheckSplit,
+    question: Question,
     ahead: Callable[[Structure, float], tuple[float, str | None, int]],
 ) -> tuple[tuple[Decision, float] | None, int]:
     """Where no family clears on its own, the first ``significant`` family in the one-step order
     (not moving-average noise) added with the one the round after it adds (``ahead``, judged as
     :func:`looked_ahead` judges a pair): its score, criterion, structure and check figure (worse
-    than ``check`` alone), and the check figure the pair ends at, or None unless that end takes
-    ``SIMULATION_GAIN`` of ``check`` off the check blocks' free run; and how many structures were
-    judged on the check blocks to decide it.
+    than ``question.check`` alone), and the check figure the pair ends at, or None unless that end
+    takes ``SIMULATION_GAIN`` of ``question.check`` off the check blocks' free run; and how many
+    structures were judged on the check blocks to decide it.
 
     Two effects can each make the free run worse alone and simulate far better together: each
     alone is fitted to the other's share of the residual as well as its own. On the rig with
@@ -440,8 +444,12 @@ def as_pair(
     first = next((score for score in significant if not score.noise_lags), None)
     if first is None:
         return None, 0
-    options = _with(first, kinds, current, records)
-    judged = [(checks.error(option), option) for option in options if option.noise_lags == current.noise_lags]
+    options = _with(first, question)
+    judged = [
+        (question.checks.error(option), option)
+        for option in options
+        if option.noise_lags == question.current.noise_lags
+    ]
     if not judged:
         return None, 0
     error, structure = min(judged, key=lambda trial: trial[0])
@@ -449,7 +457,7 @@ def as_pair(
         return None, len(judged)
     end, partner, partner_tried = ahead(structure, error)
     tried = len(judged) + partner_tried
-    if partner is None or partner == first.name or end > (1 - SIMULATION_GAIN) * check:
+    if partner is None or partner == first.name or end > (1 - SIMULATION_GAIN) * question.check:
         return None, tried
     return ((first, "pair", structure, error), end), tried
 
@@ -458,21 +466,16 @@ def leader_as_pair(
     first: Decision,
     significant: Sequence[EffectScore],
     rejected: Sequence[str],
-    kinds: dict[str, str],
-    current: Structure,
-    records: Records,
-    check: float,
-    margin: float,
-    checks: CheckSplit,
+    question: Question,
     ahead: Callable[[Structure, float], tuple[float, str | None, int]],
 ) -> tuple[Decision, int]:
-    """The family a round adds where the one-step criterion decided ``first`` on a fall of the
-    check blocks' free run short of ``SIMULATION_GAIN``, after the family the one-step order puts
-    first (the leader, not moving-average noise) ran free worse alone and was ``rejected``:
-    ``first``, unless the leader judged as a pair (:func:`as_pair`: with the family the round after
-    it adds, ``ahead``, ending ``SIMULATION_GAIN`` of ``check`` below it) ends lower than ``first``
+    """The family a round adds where the one-step criterion decided ``first`` on a fall of the check
+    blocks' free run short of ``SIMULATION_GAIN``, after the family the one-step order puts first
+    (the leader, not moving-average noise) ran free worse alone and was ``rejected``: ``first``,
+    unless the leader judged as a pair (:func:`as_pair`: with the family the round after it adds,
+    ``ahead``, ending ``SIMULATION_GAIN`` of ``question.check`` below it) ends lower than ``first``
     with the family its own round after adds, by more than the figure's standard error
-    ``margin``; and how many structures were judged on the check blocks to decide it.
+    ``question.margin``; and how many structures were judged on the check blocks to decide it.
 
     A fall short of what the simulation criterion asks of a family picked among many is within
     what the best of several gains by chance, and the pair criterion, which judges a leader that
@@ -491,29 +494,22 @@ def leader_as_pair(
         or leader is None
         or leader.name == chosen.name
         or leader.name not in rejected
-        or structure.noise_lags != current.noise_lags
-        or error <= (1 - SIMULATION_GAIN) * check
+        or structure.noise_lags != question.current.noise_lags
+        or error <= (1 - SIMULATION_GAIN) * question.check
     ):
         return first, 0
-    paired, tried = as_pair([leader], kinds, current, records, check, checks, ahead)
+    paired, tried = as_pair([leader], question, ahead)
     if paired is None:
         return first, tried
     decided, pair_end = paired
     first_end, _, first_tried = ahead(structure, error)
-    if pair_end < (1 - margin) * first_end:
+    if pair_end < (1 - question.margin) * first_end:
         return decided, tried + first_tried
     return first, tried + first_tried
 
 
 def by_output_error_grown(
-    significant: Sequence[EffectScore],
-    kinds: dict[str, str],
-    current: Structure,
-    records: Records,
-    check: float,
-    margin: float,
-    checks: CheckSplit,
-    workers: Workers,
+    significant: Sequence[EffectScore], question: Question, workers: Workers
 ) -> Decision | None:
     """Where no ``significant`` family clears the one-step criterion by least squares, the first
     in the one-step order whose least-squares model diverges on the check blocks and which clears
@@ -531,10 +527,11 @@ def by_output_error_grown(
     starts where the current model's ended, and a longer search can gain on its own).
     A family whose least-squares model runs free and does not clear has been judged.
     """
+    current, checks = question.current, question.checks
     diverged = [
         (score, structure)
         for score in significant
-        for structure in _with(score, kinds, current, records)
+        for structure in _with(score, question)
         if structure.noise_lags == current.noise_lags
         and structure.saturating == current.saturating
         and not np.isfinite(checks.error(structure))
@@ -544,10 +541,10 @@ def by_output_error_grown(
     start = checks.tuned(current)
     longer = CheckSplit(checks.fit, checks.check, _tuned={current: start})
     further = longer.search(current, start, CHECK_EVALUATIONS)
-    baseline = min(check, checks.error(current, tuned=True), further)
+    baseline = min(question.check, checks.error(current, tuned=True), further)
     for score, structure in diverged:
         (error,) = checks.search_grown(current, [structure], CHECK_EVALUATIONS, workers)
-        if error <= (1 - margin) * baseline:
+        if error <= (1 - question.margin) * baseline:
             return score, "output error", structure, error
     return None
 

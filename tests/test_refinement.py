@@ -1364,16 +1364,23 @@ def test_the_pruning_takes_an_earlier_effects_terms_but_never_its_last():
     assert kept in pruned.terms
 
 
+def _hammerstein_beside_a_spare_term() -> tuple[
+    list[tuple[np.ndarray, np.ndarray]], CheckSplit, Term, Structure
+]:
+    """A Hammerstein system's record, its check split, the system's own x[t-1]², and the linear
+    structure holding it beside a spare x[t-1]³."""
+    records = [hammerstein(1500, seed=3, noise=0.1)]
+    needed, spare = parse_terms(["x[t-1]^2", "x[t-1]^3"])
+    return records, CheckSplit.of(records), needed, Structure((*linear_terms(2, 2, 1), needed, spare))
+
+
 def test_a_removal_the_pruning_refuses_on_its_run_over_the_check_blocks_is_not_judged_in_full():
     """The pruning takes a removal only where the check blocks' figure without the terms stays
     within the ceiling (:func:`models.pruning.pruned_back`). A removal whose run over the check
     blocks is already beyond the ceiling is refused on that run's RMS, a bound below its figure,
     and not asked whether it comes to rest: the Hammerstein system's own x[t-1]² taken out, the
     figure judged in full is beyond the ceiling as well, and the split keeps no figure for it."""
-    records = [hammerstein(1500, seed=3, noise=0.1)]
-    checks = CheckSplit.of(records)
-    needed, spare = parse_terms(["x[t-1]^2", "x[t-1]^3"])
-    everything = Structure((*linear_terms(2, 2, 1), needed, spare))
+    records, checks, needed, everything = _hammerstein_beside_a_spare_term()
     ceiling = _ceiling(everything, checks, output_error=False)
     assert ceiling is not None
     assert _first_removal(everything, [(needed,)], ceiling, checks, map) is None
@@ -1389,10 +1396,7 @@ def test_the_pruning_searches_its_output_error_bound_only_where_a_removal_passes
     least-squares judgements go on beside its search, where they waited for it. The Hammerstein
     system's own x[t-1]² taken out is refused by least squares, and the bound is not searched;
     read, it is the figure searched here, where it is below least squares'."""
-    records = [hammerstein(1500, seed=3, noise=0.1)]
-    checks = CheckSplit.of(records)
-    needed, spare = parse_terms(["x[t-1]^2", "x[t-1]^3"])
-    everything = Structure((*linear_terms(2, 2, 1), needed, spare))
+    records, checks, needed, everything = _hammerstein_beside_a_spare_term()
     ceiling = _ceiling(everything, checks, output_error=True)
     assert ceiling is not None
     assert _first_removal(everything, [(needed,)], ceiling, checks, map) is None
