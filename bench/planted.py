@@ -50,7 +50,7 @@ from simulator.theory import EXACT_TERMS
 
 TEST = 4000  # samples of each held-out record
 TEST_SEEDS = 50_000  # a held-out record's seed: its estimation record's plus this
-HELD_OUT_SEEDS = 8212  # the first seed of the report; development used seeds below 1000
+HELD_OUT_SEEDS = 8312  # the first seed of the report; development used seeds below 1000
 PLANTED_FORCE = 200.0  # N of unmeasured force beside a planted effect, as the tests plant them
 RIG_FORCE = 800.0  # N of unmeasured force on the rig as it is: the clean records'
 # The clean records: the rig as it is, and the linear structure it is without its cubic spring
