@@ -277,3 +277,31 @@ def test_a_verdict_dated_in_the_future_never_stands_for_the_present(tmp_path):
     assert {kind for kind, state, _ in opened if state == "open"} == {"cusum", "persistence"}
     assert record_id not in {trigger for _, _, trigger in opened}
     assert state == _from_history(session, structure)
+
+
+def test_a_chart_that_fired_where_it_ran_opens_no_alarm_once_its_design_is_gone(tmp_path):
+    """A record uploaded late (the history replayed) can fire a fault mode's CUSUM at its place,
+    where the models' common error still allowed a design, while the records after it raised that
+    error beyond any: the chart stopped there, and the verdict is counted without an alarm opened
+    on a design that no longer exists, as the rules' answer says the CUSUM does not run."""
+    session, structure = _database(tmp_path / "s.db")
+
+    def store(hours: float, z: float, sigma_k_record: float) -> None:
+        record_id = _record(session, structure, T0 + hours * HOUR)
+        point = _insert_verdict(session, structure, record_id, "healthy", {"k2": z}, "a")
+        verdict = session.get_one(Verdict, point.verdict_id)
+        verdict.modes = [{**mode, "sigma_k_record": sigma_k_record} for mode in verdict.modes]
+        session.flush()
+        point = alarms.point(
+            point.verdict_id, record_id, point.acquired_at, "healthy", "k2", -0.01, 0.01, verdict.modes
+        )
+        alarms.evaluate(session, structure, PRESENT, point, new_record=True)
+        session.commit()
+
+    for hour in range(3):
+        store(hour, 0.0, 0.0097)  # a common share of 6 %: a design exists
+    for hour in range(10, 20):
+        store(hour, 0.0, 0.005)  # 75 %: none does
+    store(5, 60.0, 0.0097)  # late: at its place the median share is still 6 %, and k2's chart fires
+    assert [row for row in _alarms(session) if row[0] == "cusum"] == []
+    assert _kept(session, structure) == _from_history(session, structure)

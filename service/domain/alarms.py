@@ -647,6 +647,10 @@ def _apply(
             alarm.evaluated_through = max(alarm.evaluated_through, _moment(t.through))
             _end(session, structure, kept, key, "cleared", None)
         elif t.first is not None and t.quiet < rule.clear_after:
+            if isinstance(rule, CusumRule) and not _designable(rule, kept):
+                # The chart fired where it ran (a late record, the history replayed) but has
+                # stopped since: no alarm opens on a design that is gone (:func:`_stop_cusum`).
+                continue
             t.alarm = _open(session, structure, rule, kept, mode or None, t)
     if through:
         session.execute(THROUGH, through)
@@ -667,6 +671,15 @@ def _stop_cusum(session: Session, structure: Structure, rules: list[AlarmRule], 
     except InputError as refusal:
         for key in open_alarms:
             _end(session, structure, kept, key, "rule_not_running", str(refusal))
+
+
+def _designable(rule: CusumRule, kept: Kept) -> bool:
+    """Whether a CUSUM can be designed for the structure as it stands (:func:`cusum_design`)."""
+    try:
+        cusum_design(rule, kept.modes, kept.share())
+    except InputError:
+        return False
+    return True
 
 
 def _end(session: Session, structure: Structure, kept: Kept, key: str, how: str, note: str | None) -> None:
