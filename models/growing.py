@@ -492,11 +492,7 @@ def _on_simulation(
 def _in_pair(loop: _Loop, offer: _Offer, significant: list[EffectScore], choosing: _Choosing) -> _Choosing:
     """The first significant family with the family the round after it adds, where together they
     lower the check blocks' free run by ``SIMULATION_GAIN`` (:func:`models.round_criteria.as_pair`)."""
-    # The partner is an effect of the process: noise, which clears by being no worse, would end
-    # the pair where the first left it.
-    named = [effect for effect in loop.families if effect.kind != "noise"]
-    ahead = _next_round(loop, named, offer.number + 1)
-    paired, paired_tried = as_pair(significant, _question(loop, offer), ahead)
+    paired, paired_tried = as_pair(significant, _question(loop, offer), _partner_round(loop, offer))
     choosing = replace(choosing, tried=choosing.tried + paired_tried)
     if paired is None:
         return choosing
@@ -515,9 +511,7 @@ def _leader_in_pair(
     """The family the one-step criterion decided, ``first``, or the one-step order's leader that
     ran free worse alone, judged as a pair where ``first`` cleared by little and the pair ends
     lower (:func:`models.round_criteria.leader_as_pair`)."""
-    # The pairs are judged as :func:`_in_pair` judges one: their partners effects of the process.
-    named = [effect for effect in loop.families if effect.kind != "noise"]
-    ahead = _next_round(loop, named, offer.number + 1)
+    ahead = _partner_round(loop, offer)
     decided, tried = leader_as_pair(first, significant, choosing.rejected, _question(loop, offer), ahead)
     choosing = replace(choosing, decided=decided, tried=choosing.tried + tried)
     if decided is first:
@@ -529,6 +523,14 @@ def _leader_in_pair(
 def _question(loop: _Loop, offer: _Offer) -> Question:
     """What the round's criteria judge ``offer``'s families against (:class:`Question`)."""
     return Question(offer.current, offer.check, loop.margin, offer.kinds, loop.records, loop.checks)
+
+
+def _partner_round(loop: _Loop, offer: _Offer) -> Callable[[Structure, float], tuple[float, str | None, int]]:
+    """The round after ``offer``'s that finds a pair's partner (:func:`_next_round`): an effect of
+    the process, not noise, which clears by being no worse and would end the pair where its first
+    left it."""
+    named = [effect for effect in loop.families if effect.kind != "noise"]
+    return _next_round(loop, named, offer.number + 1)
 
 
 def _next_round(

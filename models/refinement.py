@@ -518,7 +518,7 @@ def _best_rounds(
     chance (on the DC motor's 500-sample estimation half, the model of its first three rounds ran
     its tails lower and the test half a sixth worse than the six rounds' model)."""
     tell("the rounds' models on the held-out tails")
-    earlier = best_rounds_on_tails(grown, heads, tails)
+    earlier = best_rounds_on_tails(grown, heads, tails, held_out.refined_rms)
     if earlier is None:
         return grown, held_out
     judged = _judged_on_tails(earlier, heads, tails, False, orders_saw_tails, tell)

@@ -40,9 +40,9 @@ def earlier_rounds(grown: Grown) -> list[tuple[tuple[int, ...], Structure]]:
     rounds = result.rounds
     kept = [i for i, step in enumerate(rounds) if step.added is not None and not step.pruned_whole]
     final = grown.structure
+    added = [rounds[i].added for i in kept]
     earlier = []
     for position in range(len(kept) - 1):
-        added = [rounds[i].added for i in kept]
         later = [score for score in added[position + 1 :] if score is not None]
         if any(not score.terms and not score.noise_lags for score in later):
             continue
@@ -55,14 +55,14 @@ def earlier_rounds(grown: Grown) -> list[tuple[tuple[int, ...], Structure]]:
     return earlier
 
 
-def best_rounds_on_tails(grown: Grown, heads: Records, tails: Segments) -> Grown | None:
+def best_rounds_on_tails(grown: Grown, heads: Records, tails: Segments, refined_rms: float) -> Grown | None:
     """``grown`` with the rounds after the k-th set aside, where the model the first k grew ran
     free over the ``tails`` (each continuing its record's head in ``heads``) lower than the
-    refined model and every model between them (:func:`earlier_rounds`, the earliest of equals);
-    None where the refined model ran lowest. Its parameters by least squares on the heads, its
-    check blocks' figure read again."""
-    lowest = free_run_rms(grown.refinement.refined, tails, heads)
-    best = None
+    refined model, whose run over them was ``refined_rms`` (the comparison's,
+    :attr:`models.held_out.HeldOut.refined_rms`), and every model between them
+    (:func:`earlier_rounds`, the earliest of equals); None where the refined model ran lowest. Its
+    parameters by least squares on the heads, its check blocks' figure read again."""
+    lowest, best = refined_rms, None
     for later, structure in earlier_rounds(grown):
         model, noise = fitted_on_all(heads, structure)
         rms = free_run_rms(model, tails, heads)

@@ -498,10 +498,10 @@ def _print_rounds(rounds: list[dict[str, Any]]) -> None:
         gain, needed = (f"{v:.1%}" if v is not None else "–" for v in (step["gain"], step["threshold"]))
         pruned = f"; pruned {', '.join(step['pruned'])}" if step["pruned"] else ""
         whole = " (pruned whole after the rounds)" if step["pruned_whole"] else ""
-        whole += " (set aside on the held-out tails)" if step.get("set_aside") else ""
+        aside = " (set aside on the held-out tails)" if step["set_aside"] else ""
         stdout.print(
             f"  {step['round']}: {step['candidates_tried']} tried, fall {gain} against {needed} needed"
-            f" → {step['added'] or 'nothing added'}{whole}{pruned}",
+            f" → {step['added'] or 'nothing added'}{whole}{aside}{pruned}",
             highlight=False,
             markup=False,
         )
