@@ -75,6 +75,9 @@ PLATEAU_SAMPLES = 3
 # A rectified output's readings may lie below zero, or stay above it, by this share of their range:
 # a sensor's offset at rest (the coupled drives' pulse counter reads −0.022 at rest, 1 % of it).
 MAGNITUDE_SLACK = 0.02
+# The offset family, by name: its form follows the model's (:func:`offset_effect`).
+OFFSET = "offset"
+OFFSET_DESCRIPTION = "constant offset: sensor bias or static load"
 # The rectified-output family's one regressor, by name: it adds no term.
 RECTIFIED = "rectified"
 # Exponents of the power laws, clear of the integer laws named by their own families (Coulomb
@@ -199,7 +202,7 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
     y_lags = [f.lag for t in terms for f in t.factors if f.signal == "y"]
     x_lags = sorted({f.lag for t in terms for f in t.factors if f.signal == "x"}) or [1]
     ny = max(y_lags, default=0)
-    lags_y = range(1, max(ny, 4) + 1)
+    lags_y = force_lags(terms)
     effects = [
         *_force_effects(lags_y),
         *_input_effects(x_lags),
@@ -208,6 +211,13 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         *_structure_effects(terms, ny, x_lags),
     ]
     return unused(effects, terms)
+
+
+def force_lags(terms: Sequence[Term]) -> range:
+    """The lags of y at which the restoring and damping forces are offered: the model's, and at
+    least four (the 2-DOF rig's order)."""
+    ny = max((f.lag for t in terms for f in t.factors if f.signal == "y"), default=0)
+    return range(1, max(ny, 4) + 1)
 
 
 def _powers(signal: str, lags: Sequence[int], power: int) -> tuple[Term, ...]:
@@ -353,7 +363,7 @@ def _structure_effects(terms: Sequence[Term], ny: int, x_lags: Sequence[int]) ->
             "dynamics beyond the declared lags, or a shorter input delay",
             _powers("y", [ny + 1, ny + 2], 1) + _powers("x", [x_lags[-1] + 1, *shorter_delay], 1),
         ),
-        Effect("offset", "constant offset: sensor bias or static load", offset_terms(terms), "output_shift"),
+        offset_effect(terms),
         polynomial_effect(terms),
         Effect(
             "periodic_disturbance",
@@ -420,6 +430,88 @@ def unused(effects: Sequence[Effect], terms: Sequence[Term]) -> list[Effect]:
         if new or effect.kind in ("periodic", "noise", "estimated", "saturation", "rectified"):
             kept.append(replace(effect, terms=new))
     return kept
+
+
+def offset_effect(terms: Sequence[Term]) -> Effect:
+    """An offset c of the measured output (a sensor's bias, or a static load): y reads the state
+    plus c, and the model's terms should read y − c.
+
+    Where the model's terms hold a power or a product of y, c shows through them: one regressor,
+    ∂ŷ/∂c at c = 0 (:func:`offset_direction`), adding the constant and the terms an offset brings
+    into them ("output_shift"). Where they hold none, c shows only as a constant, which a linear
+    model reaches through its poles or a constant term alike and which is no evidence of it; yet
+    a restoring force's nonlinearity reads the state, not y: on the 2-DOF rig with an offset c,
+    its cubic spring acts on (y − c)³ = y³ − 3c·y² + 3c²·y − c³, and a cube of y alone, entered
+    first, stands for it so badly that the offset's squares were never offered. So such a model
+    is offered the offset with the cube it shows through: the cube of y − c at each of the
+    force's lags, c estimated beside the cubes' coefficients (:func:`offset_cube`), one
+    regressor spanned by the constant and the lags' first, second and third powers
+    ("combined"). Without an offset, c comes out near zero and the cubic spring's family, with
+    half the terms, ranks before it."""
+    shifted = offset_terms(terms)
+    if len(shifted) > 1:
+        return Effect(OFFSET, OFFSET_DESCRIPTION, shifted, "output_shift")
+    lags = force_lags(terms)
+    monomials = (Term(), *(Term((Factor("y", k, power),)) for power in (1, 2, 3) for k in lags))
+    return Effect(
+        OFFSET,
+        OFFSET_DESCRIPTION + ", seen through a cubic restoring force: (y − c)³, c estimated",
+        monomials,
+        "combined",
+        combine=functools.partial(offset_cube, tuple(lags), monomials),
+        searched=len(lags),
+    )
+
+
+def offset_cube(
+    lags: Sequence[int],
+    monomials: Sequence[Term],
+    records: Sequence[tuple[np.ndarray, np.ndarray]],
+    residual: np.ndarray,
+    terms: Sequence[Term],
+    lag: int,
+) -> tuple[tuple[Term, ...], np.ndarray]:
+    """Σ_k w_k·(y[t-k] − c)³ over the ``lags``, for the offset c and weights w that, beside the
+    model's regressors, best explain the residual; the ``monomials`` that span it beside the
+    model's (the constant and y's powers at those lags), and the regressor itself over the
+    stacked rows lag … N−1 of every record (``residual`` runs over the same rows).
+
+    Separable least squares: for a c, w is the least-squares fit of the shifted cubes, made
+    orthogonal to the model's regressors, to the residual; c is searched on a grid of
+    ``PROFILE_POINTS`` over the output's range, then by a bounded scalar search between the best
+    point's neighbours. The search reads the first ``SEARCH_ROWS`` rows of the first record; c
+    and w are then fixed, and the regressor is built on every record. A record too short for
+    the span (ten equations per monomial) is not offered the family."""
+    x0, y0 = records[0]
+    rows = len(y0) - lag
+    stacked = sum(len(y) - lag for _, y in records)
+    if not np.any(residual[:rows]) or 10 * len(monomials) > min(rows, SEARCH_ROWS):
+        return (), np.zeros(stacked)
+    x, y, part, model_basis = _search_part(x0, y0, residual[:rows], terms, lag)
+    plain = [Term((Factor("y", k),)) for k in lags]
+    lagged, _ = regressor_matrix(plain, x, y, lag)
+
+    def fitted(c: float) -> tuple[float, np.ndarray]:
+        columns = _off_model(model_basis, (lagged - c) ** 3)
+        weights, *_ = linalg.lstsq(columns, part, lapack_driver="gelsd")
+        remaining = part - columns @ weights
+        return float(remaining @ remaining), weights
+
+    grid = np.linspace(float(np.min(y)), float(np.max(y)), PROFILE_POINTS)
+    values = [fitted(float(c))[0] for c in grid]
+    best = int(np.argmin(values))
+    refined = optimize.minimize_scalar(
+        lambda c: fitted(float(c))[0],
+        bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
+        method="bounded",
+        options={"xatol": 1e-3 * (grid[-1] - grid[0])},
+    )
+    c = float(refined.x) if refined.fun <= values[best] else float(grid[best])
+    weights = fitted(c)[1]
+    everywhere = np.concatenate(
+        [(regressor_matrix(plain, xr, yr, lag)[0] - c) ** 3 @ weights for xr, yr in records]
+    )
+    return _spanning(monomials, x, y, lag, model_basis), everywhere
 
 
 def offset_terms(terms: Sequence[Term]) -> tuple[Term, ...]:
