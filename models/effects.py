@@ -444,15 +444,15 @@ def offset_effect(terms: Sequence[Term]) -> Effect:
     its cubic spring acts on (y − c)³ = y³ − 3c·y² + 3c²·y − c³, and a cube of y alone, entered
     first, stands for it so badly that the offset's squares were never offered. So such a model
     is offered the offset with the cube it shows through: the cube of y − c at each of the
-    force's lags, c estimated beside the cubes' coefficients (:func:`offset_cube`), one
-    regressor spanned by the constant and the lags' first, second and third powers
-    ("combined"). Without an offset, c comes out near zero and the cubic spring's family, with
-    half the terms, ranks before it."""
+    model's lags of y, c estimated beside the cubes' coefficients (:func:`offset_cube`), one
+    regressor spanned by the constant and the lags' squares and cubes beside the model's own
+    lags ("combined"). Without an offset, c comes out near zero and the cubic spring's family,
+    with half the terms, ranks before it."""
     shifted = offset_terms(terms)
-    if len(shifted) > 1:
+    lags = sorted({t.factors[0].lag for t in terms if _plain_y(t)})
+    if len(shifted) > 1 or not lags:
         return Effect(OFFSET, OFFSET_DESCRIPTION, shifted, "output_shift")
-    lags = force_lags(terms)
-    monomials = (Term(), *(Term((Factor("y", k, power),)) for power in (1, 2, 3) for k in lags))
+    monomials = (Term(), *(Term((Factor("y", k, power),)) for power in (2, 3) for k in lags))
     return Effect(
         OFFSET,
         OFFSET_DESCRIPTION + ", seen through a cubic restoring force: (y − c)³, c estimated",
@@ -472,8 +472,9 @@ def offset_cube(
     lag: int,
 ) -> tuple[tuple[Term, ...], np.ndarray]:
     """Σ_k w_k·(y[t-k] − c)³ over the ``lags``, for the offset c and weights w that, beside the
-    model's regressors, best explain the residual; the ``monomials`` that span it beside the
-    model's (the constant and y's powers at those lags), and the regressor itself over the
+    model's regressors (the plain lags of y among them), best explain the residual; the
+    ``monomials`` that span it beside the model's (the constant, the squares and the cubes), and
+    the regressor itself over the
     stacked rows lag … N−1 of every record (``residual`` runs over the same rows).
 
     Separable least squares: for a c, w is the least-squares fit of the shifted cubes, made
@@ -545,6 +546,11 @@ def offset_direction(
         columns, _ = regressor_matrix(lowered, x, y, lag)
         direction -= columns @ np.asarray(weights)
     return direction
+
+
+def _plain_y(term: Term) -> bool:
+    """Whether ``term`` is a plain lag of y, y[t-k]."""
+    return len(term.factors) == 1 and term.factors[0] == Factor("y", term.factors[0].lag)
 
 
 def _y_factors(term: Term) -> list[int]:
