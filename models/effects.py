@@ -169,6 +169,10 @@ class Effect:
     # For a family whose terms are found from the residual: they will be a law of the output that
     # changes form where it crosses zero (:mod:`models.kinks`), known before the search.
     kinked_law: bool = False
+    # For a combined family: the effect's own evidence comes first, a column of its own (an
+    # offset's constant), and only where that is not significant is the combination tested, what
+    # the effect shows through where its own evidence is hidden (:func:`offset_effect`).
+    evidence_first: bool = False
 
     @property
     def regressors(self) -> int:
@@ -438,19 +442,24 @@ def offset_effect(terms: Sequence[Term]) -> Effect:
 
     Where the model's terms hold a power or a product of y, c shows through them: one regressor,
     ∂ŷ/∂c at c = 0 (:func:`offset_direction`), adding the constant and the terms an offset brings
-    into them ("output_shift"). Where they hold none, c shows only as a constant, which a linear
-    model reaches through its poles or a constant term alike and which is no evidence of it; yet
-    a restoring force's nonlinearity reads the state, not y: on the 2-DOF rig with an offset c,
-    its cubic spring acts on (y − c)³ = y³ − 3c·y² + 3c²·y − c³, and a cube of y alone, entered
-    first, stands for it so badly that the offset's squares were never offered. So such a model
-    is offered the offset with the cube it shows through: the cube of y − c at each of the
-    model's lags of y, c estimated beside the cubes' coefficients (:func:`offset_cube`), one
-    regressor spanned by the constant and the lags' squares and cubes beside the model's own
-    lags ("combined"). Without an offset, c comes out near zero and the cubic spring's family,
-    with half the terms, ranks before it."""
+    into them ("output_shift"); so too where the model holds a constant already, whose offset's
+    squares follow a power of y once one enters. A linear model without a constant is offered
+    the constant first, and where the constant explains the residual the offset is that constant.
+    Where it does not, the model's poles reach the shift and the offset shows only through a
+    nonlinearity that reads the state, not y: on the 2-DOF rig with an offset c, its cubic spring
+    acts on (y − c)³ = y³ − 3c·y² + 3c²·y − c³, and a cube of y alone stood for it so badly that it
+    never entered, nor the offset's squares after it. So there the offset is offered with the
+    cube it shows through: the cube of y − c at each of the model's lags of y, c estimated beside
+    the cubes' coefficients (:func:`offset_cube`), one regressor spanned by the constant, the
+    squares and the cubes ("combined", its constant tested first: ``Effect.evidence_first``).
+    Without an offset c comes out near zero, and the cubic spring's family, with half the terms,
+    ranks before it. Where the constant shows (Silverbox from ``linear:4,4``, which the rounds
+    give the constant after cubic damping), taking the cube in its place, or after it, put the
+    cubes and squares in one round where the cubic and quadratic springs had come in turn, and
+    the model ran free over the arrow 13 % and 44 % further off."""
     shifted = offset_terms(terms)
     lags = sorted({t.factors[0].lag for t in terms if _plain_y(t)})
-    if len(shifted) > 1 or not lags:
+    if len(shifted) > 1 or not lags or Term() in terms:
         return Effect(OFFSET, OFFSET_DESCRIPTION, shifted, "output_shift")
     monomials = (Term(), *(Term((Factor("y", k, power),)) for power in (2, 3) for k in lags))
     return Effect(
@@ -460,6 +469,7 @@ def offset_effect(terms: Sequence[Term]) -> Effect:
         "combined",
         combine=functools.partial(offset_cube, tuple(lags), monomials),
         searched=len(lags),
+        evidence_first=True,
     )
 
 
@@ -550,7 +560,10 @@ def offset_direction(
 
 def _plain_y(term: Term) -> bool:
     """Whether ``term`` is a plain lag of y, y[t-k]."""
-    return len(term.factors) == 1 and term.factors[0] == Factor("y", term.factors[0].lag)
+    if len(term.factors) != 1:
+        return False
+    factor = term.factors[0]
+    return factor.signal == "y" and factor.power == 1 and not factor.function
 
 
 def _y_factors(term: Term) -> list[int]:

@@ -328,12 +328,12 @@ def test_candidate_effects_leave_out_terms_the_model_has():
     assert [t.name for t in effects["missing_lags"].terms] == ["y[t-3]", "y[t-4]", "x[t-2]", "x[t]"]
     # The constant is declared; an offset still brings the square its cubic term lowers to.
     assert [t.name for t in effects["offset"].terms] == ["y[t-1]^2"]
-    # A linear model holds no power of y for an offset to show through: it is offered with the
-    # cube it shows through, the constant the model has left out.
     linear_with_constant = parse_terms(["y[t-1]", "y[t-2]", "x[t-1]", "1"])
-    offset = {effect.name: effect for effect in candidate_effects(linear_with_constant)}["offset"]
-    assert offset.kind == "combined"
-    assert [t.name for t in offset.terms] == ["y[t-1]^2", "y[t-2]^2", "y[t-1]^3", "y[t-2]^3"]
+    assert "offset" not in {effect.name for effect in candidate_effects(linear_with_constant)}
+    # Without the constant, a linear model is offered it first, then the cube it shows through.
+    offset = {effect.name: effect for effect in candidate_effects(linear_with_constant[:-1])}["offset"]
+    assert offset.kind == "combined" and offset.evidence_first
+    assert [t.name for t in offset.terms] == ["1", "y[t-1]^2", "y[t-2]^2", "y[t-1]^3", "y[t-2]^3"]
 
 
 def test_the_offset_a_linear_model_is_offered_is_the_cube_of_the_shifted_output():
@@ -363,6 +363,19 @@ def test_the_offset_a_linear_model_is_offered_is_the_cube_of_the_shifted_output(
     fit, *_ = linalg.lstsq(cubes, residual)
     assert np.sum((residual - cubes @ fit) ** 2) > 0.2 * np.sum(residual**2)
     assert [t.name for t in spanning] == ["1", "y[t-1]^2", "y[t-2]^2", "y[t-1]^3", "y[t-2]^3"]
+
+
+def test_an_offset_that_shows_as_a_constant_is_the_constant():
+    """A linear system with a static load, its model without a constant: the constant explains
+    the residual itself, and the offset is that constant, not the cube it would show through."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=3000)
+    noise = 0.01 * rng.normal(size=3000)
+    y = signal.lfilter([0.0, 1.0], [1.0, -0.5, 0.2], x) + 0.3 / 0.7 + noise
+    terms = linear_terms(2, 2)
+    offered = [effect for effect in candidate_effects(terms) if effect.name == "offset"]
+    (score,) = score_effects([(x, y)], terms, 0, offered, 0.01).scores
+    assert score.significant and score.terms == ("1",), score
 
 
 def test_a_sensor_offset_with_nothing_declared_is_named_first_with_the_rigs_spring():
