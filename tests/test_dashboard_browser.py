@@ -325,7 +325,10 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
 
 
 def test_a_refinement_on_a_periodic_record_states_the_noise_floor(page, server: LiveServer):
-    """A record repeating a multisine: the page says, in view, what noise no model can simulate."""
+    """A record that repeats a multisine six times through a second-order system with white
+    output noise 0.3: the page says, in view, what noise no model can simulate, the noise floor
+    the refinement found on its estimation part (four periods, the first left out), with its
+    figure. (A record that does not repeat shows none: tests/test_dashboard.py.)"""
     from harness.multisines import PERIOD, measured
 
     org = Org.create(server)
@@ -340,13 +343,17 @@ def test_a_refinement_on_a_periodic_record_states_the_noise_floor(page, server: 
         )
         body = {"record_id": record_id, "base_model_id": baseline.json()["id"]}
         refinement = admin.post(f"{API}/structures/{structure_id}/refinements", json=body).json()
+    figures = refinement["report"]["noise_floor"]
+    assert (figures["periods"], figures["period"]) == (3, PERIOD)
     page.goto(f"{server.url}{DASHBOARD}/login")
     log_in(page, org.keys["viewer"])
     page.wait_for_url(f"{server.url}{DASHBOARD}")
     page.goto(f"{server.url}{DASHBOARD}/refinements/{refinement['id']}")
     floor = page.locator("#noise-floor")
     assert floor.is_visible()
-    assert f"(3 of {PERIOD} samples)" in floor.inner_text()
+    text = " ".join(floor.inner_text().split())
+    assert f"the checked records' periods (3 of {PERIOD} samples)" in text, text
+    assert f"is {figures['rms']:.4g} ± {figures['standard_error']:.2g}" in text, text
     shot(page, "6-refinement-noise-floor")
 
 
