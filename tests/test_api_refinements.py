@@ -68,8 +68,8 @@ def simulated(effects: list[str], seed: int, n: int = SAMPLES) -> SimulatedRecor
     return simulate(scenario, n, np.random.SeedSequence(seed))
 
 
-def upload(ingest: httpx.Client, structure_id: int, effects: list[str], seed: int) -> int:
-    return upload_record(ingest, structure_id, simulated(effects, seed))
+def upload(ingest: httpx.Client, structure_id: int, effects: list[str], seed: int, n: int = SAMPLES) -> int:
+    return upload_record(ingest, structure_id, simulated(effects, seed, n))
 
 
 def upload_record(
@@ -316,12 +316,14 @@ def test_bad_refinement_requests_are_refused_and_write_nothing(rig: Rig, change,
 
 
 def test_a_glitch_in_one_of_several_records_is_named_by_the_record(rig: Rig):
-    record = simulated(QUADRATIC, seed=31, n=SHORT)
+    # Two records of 2000 samples fitted: the loop's length is not what is checked.
+    record = simulated(QUADRATIC, seed=31, n=2000)
     glitched = replace(record, y=record.y.copy())
     glitched.y[1234] = 10 * np.abs(record.y).max()
     with clients(rig.org) as (admin, ingest, _):
+        clean_id = upload(ingest, rig.structure_id, QUADRATIC, seed=32, n=2000)
         glitch_id = upload_record(ingest, rig.structure_id, glitched)
-        body = {"record_ids": [rig.fitted[0], glitch_id], "test_record_ids": rig.judged[:1]}
+        body = {"record_ids": [clean_id, glitch_id], "test_record_ids": rig.judged[:1]}
         response = admin.post(
             refinements_url(rig.structure_id), json=body | {"base_model_id": rig.baseline["id"]}
         )
