@@ -272,7 +272,8 @@ def test_a_wrong_key_stays_on_the_login_page_with_the_reason(page, server: LiveS
 def test_a_refinement_on_several_records_shows_each_test_record_and_each_criterion(page, server: LiveServer):
     """Two records fitted, two judged: the page names the records fitted, gives each judged record
     its declared and refined errors and whether it lies within the data fitted, and says which
-    criterion decided each effect."""
+    criterion decided each effect. Records of 3000 samples: what the page shows of the loop, not
+    what the loop finds on longer ones, is checked."""
     org = Org.create(server)
     with clients(org) as (admin, ingest, _):
         structure_id = create_structure(admin, "rig refined on several records")["id"]
@@ -284,7 +285,7 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
                 disturbance_std=200.0,
                 effects=Effects.parse(["quadratic_stiffness2=3e5"]),
             )
-            record = simulate(scenario, 6000, np.random.SeedSequence([53, seed]))
+            record = simulate(scenario, 3000, np.random.SeedSequence([53, seed]))
             body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
             ids.append(post_record(ingest, structure_id, body, "application/x-npz").json()["id"])
         baseline = admin.post(
