@@ -724,7 +724,7 @@ def test_records_that_repeat_their_excitation_report_the_noise_between_periods(t
     """Three records of four periods of a multisine through a second-order system, with white
     output noise 0.3: the right linear model's check figure is at the noise floor, and the
     table says so, with the floor's figure and its standard error. (Its JSON fields are the
-    report's, which the refinement routes give: tests/test_dashboard.py.)"""
+    report's, which the refinement routes give: tests/test_dashboard_browser.py.)"""
     for seed, name in enumerate(("e1", "e2", "e3"), start=31):
         x, _, y = measured(periods=4, sigma=0.3, seed=seed)
         np.savetxt(
