@@ -327,9 +327,10 @@ def test_a_refinement_on_several_records_shows_each_test_record_and_each_criteri
 
 def test_a_refinement_on_a_periodic_record_states_the_noise_floor(page, server: LiveServer):
     """A record that repeats a multisine six times through a second-order system with white
-    output noise 0.3: the page says, in view, what noise no model can simulate, the noise floor
-    the refinement found on its estimation part (four periods, the first left out), with its
-    figure. (A record that does not repeat shows none: tests/test_dashboard.py.)"""
+    output noise 0.3, refined from the right linear model: the page says, in view, what noise no
+    model can simulate, the noise floor the refinement found on its estimation part (four
+    periods, the first left out), with its figure, and that the check figure is at it. (A record
+    that does not repeat shows none: tests/test_dashboard.py.)"""
     from harness.multisines import PERIOD, measured
 
     org = Org.create(server)
@@ -340,7 +341,7 @@ def test_a_refinement_on_a_periodic_record_states_the_noise_floor(page, server: 
         record_id = post_record(ingest, structure_id, body, "application/x-npz").json()["id"]
         baseline = admin.post(
             f"{API}/structures/{structure_id}/models/baseline",
-            json={"record_ids": [record_id], "terms": RIG_TERMS},
+            json={"record_ids": [record_id], "terms": ["y[t-1]", "y[t-2]", "x[t-1]", "x[t-2]"]},
         )
         body = {"record_id": record_id, "base_model_id": baseline.json()["id"]}
         refinement = admin.post(f"{API}/structures/{structure_id}/refinements", json=body).json()
@@ -355,6 +356,7 @@ def test_a_refinement_on_a_periodic_record_states_the_noise_floor(page, server: 
     text = " ".join(floor.inner_text().split())
     assert f"the checked records' periods (3 of {PERIOD} samples)" in text, text
     assert f"is {figures['rms']:.4g} ± {figures['standard_error']:.2g}" in text, text
+    assert "the check figure is at that floor" in text, text
     shot(page, "6-refinement-noise-floor")
 
 
