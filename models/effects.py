@@ -206,7 +206,7 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
     y_lags = [f.lag for t in terms for f in t.factors if f.signal == "y"]
     x_lags = sorted({f.lag for t in terms for f in t.factors if f.signal == "x"}) or [1]
     ny = max(y_lags, default=0)
-    lags_y = force_lags(terms)
+    lags_y = range(1, max(ny, 4) + 1)
     effects = [
         *_force_effects(lags_y),
         *_input_effects(x_lags),
@@ -215,13 +215,6 @@ def candidate_effects(terms: Sequence[Term]) -> list[Effect]:
         *_structure_effects(terms, ny, x_lags),
     ]
     return unused(effects, terms)
-
-
-def force_lags(terms: Sequence[Term]) -> range:
-    """The lags of y at which the restoring and damping forces are offered: the model's, and at
-    least four (the 2-DOF rig's order)."""
-    ny = max((f.lag for t in terms for f in t.factors if f.signal == "y"), default=0)
-    return range(1, max(ny, 4) + 1)
 
 
 def _powers(signal: str, lags: Sequence[int], power: int) -> tuple[Term, ...]:
@@ -484,8 +477,8 @@ def offset_cube(
     """Σ_k w_k·(y[t-k] − c)³ over the ``lags``, for the offset c and weights w that, beside the
     model's regressors (the plain lags of y among them), best explain the residual; the
     ``monomials`` that span it beside the model's (the constant, the squares and the cubes), and
-    the regressor itself over the
-    stacked rows lag … N−1 of every record (``residual`` runs over the same rows).
+    the regressor itself over the stacked rows lag … N−1 of every record (``residual`` runs over
+    the same rows).
 
     Separable least squares: for a c, w is the least-squares fit of the shifted cubes, made
     orthogonal to the model's regressors, to the residual; c is searched on a grid of

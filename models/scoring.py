@@ -491,7 +491,8 @@ def _candidates(
         if not spanning:
             return [], np.empty((len(residual), 0))
         if effect.evidence_first:  # the constant first, tested alone (score_columns)
-            return [("1",), tuple(t.name for t in spanning)], np.column_stack([np.ones_like(column), column])
+            labels = [(Term().name,), tuple(t.name for t in spanning)]
+            return labels, np.column_stack([np.ones_like(column), column])
         return [tuple(t.name for t in spanning)], column[:, None]
     if effect.kind == "estimated" and effect.find is not None:
         # Parameters (a power, a width) estimated on the first record, tested on all.
