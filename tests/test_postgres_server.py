@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import pytest
 from sqlalchemy import Engine, create_engine, text
 from sqlalchemy.engine import make_url
@@ -74,3 +77,12 @@ def test_reset_database_drops_everything(postgres_url: str, engine: Engine) -> N
     with engine.connect() as conn:
         tables = conn.execute(text("select tablename from pg_tables where schemaname = 'public'")).all()
     assert tables == []
+
+
+def test_the_session_server_keeps_its_files_in_memory_where_the_machine_has_a_tmpfs(engine: Engine) -> None:
+    """Nothing of it is kept: its files, the tests' template copies among them, are written to
+    a tmpfs and deleted from it, never to a disk."""
+    with engine.connect() as conn:
+        data = Path(conn.execute(text("show data_directory")).scalar_one())
+    usable = postgres.MEMORY.is_dir() and os.access(postgres.MEMORY, os.W_OK | os.X_OK)
+    assert data.is_relative_to(postgres.MEMORY) == usable, data
