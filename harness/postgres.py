@@ -55,8 +55,10 @@ SERVER_SETTINGS = {
 # The session's server holds a copy of the migrated template for each test that needs a database
 # of its own (harness/migrated.py): on a disk, writing them back and deleting them at the end
 # (thousands of files) cost seconds of each pytest process's last moments; in memory, nothing
-# waits on a disk, and the durable server of the tests that stop PostgreSQL stays on one.
+# waits on a disk, and the durable server of the tests that stop PostgreSQL stays on one. Only
+# where the tmpfs has room for both pytest processes' servers: a container's is 64 MB by default.
 MEMORY = Path("/dev/shm")
+MEMORY_ROOM = 2 * 2**30  # bytes free on it at least
 
 
 class PostgresUnavailableError(RuntimeError):
@@ -164,11 +166,16 @@ class _Runner:
             os.chown(path, self.account.pw_uid, self.account.pw_gid)
 
 
+def in_memory_room() -> bool:
+    """Whether a throwaway server's files can go to ``MEMORY``: there, writable, with room."""
+    usable = MEMORY.is_dir() and os.access(MEMORY, os.W_OK | os.X_OK)
+    return usable and shutil.disk_usage(MEMORY).free >= MEMORY_ROOM
+
+
 def _make_workdir(as_root: bool, durable: bool) -> Path:
     """A private temporary directory; in memory (``MEMORY``) unless the server is ``durable``;
     under root one the ``postgres`` user can reach (/tmp)."""
-    in_memory = not durable and MEMORY.is_dir() and os.access(MEMORY, os.W_OK | os.X_OK)
-    base = str(MEMORY) if in_memory else tempfile.gettempdir()
+    base = str(MEMORY) if not durable and in_memory_room() else tempfile.gettempdir()
     if as_root:
         # Every parent must be traversable by the postgres user; /tmp always is.
         parents = Path(base).resolve().parents
