@@ -73,3 +73,24 @@ def test_the_entry_points_ask_for_one_blas_thread_before_numpy_loads(entry_point
     run = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert run.stderr.strip().splitlines()[-1] == expected
+
+
+# scipy's submodules the science uses in a few functions each, which scipy loads on first use
+# (``scipy.signal.lfilter``): about a second of CPU, with what they import, at every start.
+ON_USE = ("scipy.signal", "scipy.stats", "scipy.optimize", "scipy.ndimage", "scipy.fft", "scipy.io")
+
+
+def test_the_service_s_processes_start_without_the_scipy_they_load_on_use():
+    """`narxwatch serve` (its app, as each uvicorn worker imports it) and `narxwatch worker` (both
+    job backends) import the whole service and the science it names, but none of ``ON_USE``: a
+    process that never filters a signal, designs a chart or reads a MAT file does not load them.
+    In a fresh process, as each starts."""
+    child = textwrap.dedent(f"""
+        import sys
+        import service.api.app, service.cli.server, service.jobs.embedded, service.jobs.distributed
+        assert "models.inspection" in sys.modules and "scipy.linalg" in sys.modules
+        print(*sorted(set({ON_USE!r}) & set(sys.modules)))
+    """)
+    run = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == []
