@@ -79,7 +79,8 @@ def test_the_entry_points_ask_for_one_blas_thread_before_numpy_loads(entry_point
 
 
 # scipy's submodules the science uses in a few functions each, which scipy loads on first use
-# (``scipy.signal.lfilter``): about a second of CPU, with what they import, at every start.
+# (``scipy.signal.lfilter``): with what they import in turn (interpolate, sparse, …), the most of
+# scipy a process can start without.
 ON_USE = ("scipy.signal", "scipy.stats", "scipy.optimize", "scipy.ndimage", "scipy.fft", "scipy.io")
 
 
