@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+import scipy
 
 from models.checking import MIN_BLOCK, Segments, free_run_errors, pooled_rms
 from models.narx import NARX, run_start, sensor_limits
@@ -259,5 +259,5 @@ def _paired(before: np.ndarray, after: np.ndarray, alpha: float) -> tuple[float,
     # under "equally good" the statistic stays symmetric about zero, as Student's t is.
     ratio = np.clip(ratio, typical - cap, typical + cap)
     error = float(np.std(ratio, ddof=1) / np.sqrt(ratio.size))
-    quantile = float(stats.t.ppf(1 - alpha, ratio.size - 1))
+    quantile = float(scipy.stats.t.ppf(1 - alpha, ratio.size - 1))
     return float(-np.expm1(-np.mean(ratio))), float(-np.expm1(-quantile * error))
