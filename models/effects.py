@@ -505,7 +505,7 @@ def offset_cube(
     grid = np.linspace(float(np.min(y)), float(np.max(y)), PROFILE_POINTS)
     values = [fitted(float(c))[0] for c in grid]
     best = int(np.argmin(values))
-    refined = optimize.minimize_scalar(
+    refined = scipy.optimize.minimize_scalar(
         lambda c: fitted(float(c))[0],
         bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
         method="bounded",
