@@ -49,7 +49,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from scipy import fft, linalg, optimize
+from scipy import fft, linalg, optimize, stats
 
 from models.errors import InputError
 from models.regression import column_norms, divided_columns, orthogonal_part
@@ -81,6 +81,13 @@ RECTIFIED = "rectified"
 # friction at 0, quadratic damping at 2, cubic stiffness and damping at 3) and of the linear 1.
 STIFFNESS_EXPONENTS = (0.2, 2.6)
 DAMPING_EXPONENTS = (0.2, 1.8)
+# The integer laws of each power law's signal that a family names, by exponent: a law fitted at an
+# exponent the data cannot tell from one of these is that family's effect (:func:`power_law_terms`).
+STIFFNESS_LAWS = (("cubic_stiffness", 3.0),)
+DAMPING_LAWS = (("coulomb_friction", 0.0), ("quadratic_damping", 2.0), ("cubic_damping", 3.0))
+# The level at which a fitted exponent is told from an integer law's (a likelihood-ratio test of
+# one degree of freedom, :func:`integer_law_fits`): the families' tests' level.
+EXPONENT_ALPHA = 0.01
 PROFILE_POINTS = 12
 # Rows a parameter search reads (the first ones): plenty to fix one parameter, or a few, to the
 # digits a term's name keeps, and a long record's search stays as quick as a short one's.
@@ -300,8 +307,10 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             "a restoring force or outflow ∝ |y|^p·sign y, p estimated: a tank draining through an orifice",
             (),
             "estimated",
-            functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, integer_above=True),
-            integer_laws=(("cubic_stiffness", 3.0),),
+            functools.partial(
+                power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, STIFFNESS_LAWS, integer_above=True
+            ),
+            integer_laws=STIFFNESS_LAWS,
             searched=1,
             kinked_law=True,
         ),
@@ -310,7 +319,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             "damping ∝ |dy|^p·sign dy, p estimated: flow through an orifice, turbulent drag",
             (),
             "estimated",
-            functools.partial(power_law_terms, "dy", lags_y, DAMPING_EXPONENTS),
+            functools.partial(power_law_terms, "dy", lags_y, DAMPING_EXPONENTS, DAMPING_LAWS),
         ),
         Effect(
             "input_dead_zone",
@@ -615,24 +624,71 @@ def power_law_terms(
     signal: str,
     lags: Sequence[int],
     exponents: tuple[float, float],
+    integers: Sequence[tuple[str, float]],
     search: SearchInput,
     integer_above: bool = False,
 ) -> tuple[Term, ...]:
     """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated; none if
-    the model has such a law already (one exponent per law). With ``integer_above``, where an
-    integer law a family names lies just above the range (y's cubic above the stiffness law's),
-    none either where the best exponent is the range's end below it: the residual asks for a law
-    beyond the range, that family's, which the law at the end only imitates (on the rig with a
-    quadratic spring, nothing declared, a law at the end, p = 2.6, came in after the rig's cubic
-    and quadratic springs, the model complete, and the model ran free over another record more
-    than twice as far off)."""
+    the model has such a law already (one exponent per law), nor where the exponent found is one
+    the data cannot tell from an integer law of the signal that a family names (``integers``,
+    :func:`integer_law_fits`): that law is the simpler one, and its own family's effect. With
+    ``integer_above``, where an integer law a family names lies just above the range (y's cubic
+    above the stiffness law's), none either where the best exponent is the range's end below it:
+    the residual asks for a law beyond the range, that family's, which the law at the end only
+    imitates (on the rig with a quadratic spring, nothing declared, a law at the end, p = 2.6,
+    came in after the rig's cubic and quadratic springs, the model complete, and the model ran
+    free over another record more than twice as far off)."""
     if _has(search.terms, signal, "spow"):
         return ()
 
     def build(p: float) -> tuple[Term, ...]:
         return tuple(Term((Factor(signal, k, function="spow", parameter=p),)) for k in lags)
 
-    return profile_search(build, exponents, search, open_above=integer_above)
+    found = profile_search(build, exponents, search, open_above=integer_above)
+    if not found or integer_law_fits(signal, lags, found[0].factors[0].parameter, integers, search):
+        return ()
+    return found
+
+
+def integer_law_fits(
+    signal: str,
+    lags: Sequence[int],
+    exponent: float | None,
+    integers: Sequence[tuple[str, float]],
+    search: SearchInput,
+) -> str | None:
+    """The family of the integer law (of ``integers``, by exponent; the one nearest the ``exponent``
+    fitted) that the residual cannot tell from the law |s[t-k]|^p·sign s[t-k] of the ``signal``
+    at the ``lags``, p the ``exponent`` (:func:`power_law_terms`): the law
+    with its exponent fixed there leaves the residual's sum of squares S_k where the fitted one
+    leaves S, and n·ln(S_k/S) over the n rows the search read is below the χ² quantile of one
+    degree of freedom at ``EXPONENT_ALPHA``, the likelihood-ratio test of the exponent (Wilks); None
+    where the data tell the fitted exponent from every one.
+
+    Either law has the same regressors, lag for lag, but for one parameter, the exponent; where
+    the data do not ask for it, a careful identifier names the law without it. The range searched
+    stops short of the integer laws (each is its own family's): a law at the end next to one, or
+    anywhere within the exponent's uncertainty of it, is that integer law seen through the
+    search, a stand-in that the integer law's own family, scored beside it, names better (on the
+    2-DOF rig with quadratic damping planted the law came in first at its range's end, p = 1.8,
+    and the quadratic damping the round after it, beside it)."""
+    if exponent is None or not integers:
+        return None
+    x, y, unexplained = _unexplained(search)
+    rows = len(y) - search.lag
+    # The signal itself at each lag, raised here: an exponent of zero (the sign, Coulomb's law) is
+    # no term's parameter.
+    base, _ = regressor_matrix([Term((Factor(signal, k),)) for k in lags], x, y, search.lag)
+
+    def left(p: float) -> float:
+        return unexplained(np.sign(base) * np.abs(base) ** p)
+
+    fitted = left(exponent)
+    bound = float(stats.chi2.ppf(1 - EXPONENT_ALPHA, 1))
+    for name, integer in sorted(integers, key=lambda law: abs(law[1] - exponent)):
+        if fitted > 0 and rows * np.log(left(integer) / fitted) <= bound:
+            return name
+    return None
 
 
 def input_play_terms(function: str, lags: Sequence[int], search: SearchInput) -> tuple[Term, ...]:
