@@ -81,12 +81,13 @@ RECTIFIED = "rectified"
 # friction at 0, quadratic damping at 2, cubic stiffness and damping at 3) and of the linear 1.
 STIFFNESS_EXPONENTS = (0.2, 2.6)
 DAMPING_EXPONENTS = (0.2, 1.8)
-# The integer laws of each power law's signal that a family names, by exponent: a law fitted at an
-# exponent the data cannot tell from one of these is that family's effect (:func:`power_law_terms`).
+# The integer laws of each power law's signal that a family names, by exponent: where one of these
+# explains the residual better than the law at its fitted exponent, beyond that exponent's
+# uncertainty, the effect is that family's (:func:`power_law_terms`).
 STIFFNESS_LAWS = (("cubic_stiffness", 3.0),)
 DAMPING_LAWS = (("coulomb_friction", 0.0), ("quadratic_damping", 2.0), ("cubic_damping", 3.0))
-# The level at which a fitted exponent is told from an integer law's (a likelihood-ratio test of
-# one degree of freedom, :func:`integer_law_fits`): the families' tests' level.
+# The level at which an integer law is told from a fitted exponent (a likelihood-ratio test of one
+# degree of freedom, :func:`integer_law_better`): the families' tests' level.
 EXPONENT_ALPHA = 0.01
 PROFILE_POINTS = 12
 # Rows a parameter search reads (the first ones): plenty to fix one parameter, or a few, to the
@@ -629,9 +630,10 @@ def power_law_terms(
     integer_above: bool = False,
 ) -> tuple[Term, ...]:
     """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated; none if
-    the model has such a law already (one exponent per law), nor where the exponent found is one
-    the data cannot tell from an integer law of the signal that a family names (``integers``,
-    :func:`integer_law_fits`): that law is the simpler one, and its own family's effect. With
+    the model has such a law already (one exponent per law), nor where an integer law of the
+    signal that a family names (``integers``) explains the residual better than the exponent found,
+    beyond that exponent's uncertainty (:func:`integer_law_better`): the effect is that law, its own
+    family's. With
     ``integer_above``, where an integer law a family names lies just above the range (y's cubic
     above the stiffness law's), none either where the best exponent is the range's end below it:
     the residual asks for a law beyond the range, that family's, which the law at the end only
@@ -645,12 +647,12 @@ def power_law_terms(
         return tuple(Term((Factor(signal, k, function="spow", parameter=p),)) for k in lags)
 
     found = profile_search(build, exponents, search, open_above=integer_above)
-    if not found or integer_law_fits(signal, lags, found[0].factors[0].parameter, integers, search):
+    if not found or integer_law_better(signal, lags, found[0].factors[0].parameter, integers, search):
         return ()
     return found
 
 
-def integer_law_fits(
+def integer_law_better(
     signal: str,
     lags: Sequence[int],
     exponent: float | None,
@@ -658,20 +660,22 @@ def integer_law_fits(
     search: SearchInput,
 ) -> str | None:
     """The family of the integer law (of ``integers``, by exponent; the one nearest the ``exponent``
-    fitted) that the residual cannot tell from the law |s[t-k]|^p·sign s[t-k] of the ``signal``
-    at the ``lags``, p the ``exponent`` (:func:`power_law_terms`): the law
-    with its exponent fixed there leaves the residual's sum of squares S_k where the fitted one
-    leaves S, and n·ln(S_k/S) over the n rows the search read is below the χ² quantile of one
-    degree of freedom at ``EXPONENT_ALPHA``, the likelihood-ratio test of the exponent (Wilks); None
-    where the data tell the fitted exponent from every one.
+    fitted first) that explains the residual better than the law |s[t-k]|^p·sign s[t-k] of the
+    ``signal`` at the ``lags``, p the ``exponent`` (:func:`power_law_terms`), beyond the exponent's
+    uncertainty: the law with its exponent fixed at the integer leaves the residual's sum of
+    squares S_k where the fitted one leaves S, and n·ln(S/S_k) over the n rows the search read
+    exceeds the χ² quantile of one degree of freedom at ``EXPONENT_ALPHA`` (the likelihood-ratio
+    test of the exponent, Wilks); None where none does.
 
-    Either law has the same regressors, lag for lag, but for one parameter, the exponent; where
-    the data do not ask for it, a careful identifier names the law without it. The range searched
-    stops short of the integer laws (each is its own family's): a law at the end next to one, or
-    anywhere within the exponent's uncertainty of it, is that integer law seen through the
-    search, a stand-in that the integer law's own family, scored beside it, names better (on the
-    2-DOF rig with quadratic damping planted the law came in first at its range's end, p = 1.8,
-    and the quadratic damping the round after it, beside it)."""
+    The range searched stops short of the integer laws, each its own family's; inside it the
+    fitted exponent is the profile's least, and no integer law beyond explains more. Where the
+    best exponent is an end of the range and the integer law beyond it explains more by more
+    than the exponent's uncertainty, the data reject every exponent of the range for that law:
+    the law at the end is the integer law seen through the search, a stand-in its own family,
+    scored beside it, names better (on the 2-DOF rig with Coulomb friction or quadratic damping
+    planted the damping law came in first at its range's end, 0.2 or 1.8, and the integer law
+    beside it a round later). Where the data cannot tell the two apart (Silverbox's damping law at
+    1.8, within a unit of the quadratic's log-likelihood), the fitted law keeps its place."""
     if exponent is None or not integers:
         return None
     x, y, unexplained = _unexplained(search)
@@ -686,7 +690,8 @@ def integer_law_fits(
     fitted = left(exponent)
     bound = float(stats.chi2.ppf(1 - EXPONENT_ALPHA, 1))
     for name, integer in sorted(integers, key=lambda law: abs(law[1] - exponent)):
-        if fitted > 0 and rows * np.log(left(integer) / fitted) <= bound:
+        below = left(integer)
+        if below > 0 and rows * np.log(fitted / below) > bound:
             return name
     return None
 
