@@ -58,7 +58,7 @@ SCHROEDER_SAMPLES = 20_000
 
 def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     """The command's wiring on a measured record: the benchmark's format, estimation and test
-    parts chosen, a record to validate on, the JSON report and the figure. The loop runs on 6000
+    parts chosen, a record to validate on, the JSON report and the figure. The loop runs on 3000
     samples of the estimation data and judges on the Schroeder-phase record's first 20 000, in
     the benchmark's format as its file has them (its overload flags in the first row): enough
     for the linear model of the nonlinear circuit to be refined and judged better on each, by
@@ -70,7 +70,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     figure = tmp_path / "refine.png"
     result = invoke(
         "refine", str(silverbox_dir / "SNLS80mV.csv"), "--format", "silverbox", "--declared", "linear:4,4",
-        "--estimation", "40650:46650", "--test", "100:8100", "--validate", "Schroeder.csv",
+        "--estimation", "40650:43650", "--test", "100:8100", "--validate", "Schroeder.csv",
         "--json", "--plot", str(figure), "--jobs", "1", cwd=tmp_path,
     )  # fmt: skip
     report = json.loads(result.stdout)
@@ -80,9 +80,9 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
         assert effect["terms"] and set(effect["evidence"]) >= {"explained_fraction", "p_values", "level"}
         assert max(effect["evidence"]["p_values"]) < effect["evidence"]["level"]
     assert report["effects_added"], "the linear model of a nonlinear circuit is refined"
-    # The loop runs on 40650:45450, the last 1200 samples held out (and fitted once judged).
+    # The loop runs on 40650:43050, the last 600 samples held out (and fitted once judged).
     assert report["data"]["estimation"] == [
-        {"path": str(silverbox_dir / "SNLS80mV.csv"), "x": "V1", "y": "V2", "samples": [40650, 46650]}
+        {"path": str(silverbox_dir / "SNLS80mV.csv"), "x": "V1", "y": "V2", "samples": [40650, 43650]}
     ]
     assert report["data"]["unit"] == "V"  # the benchmark's signals are voltages
     arrow, schroeder = report["tests"]
@@ -99,7 +99,7 @@ def test_silverbox_json_report_and_plot(silverbox_dir, tmp_path):
     assert schroeder["after"]["free_run_rms"] < schroeder["before"]["free_run_rms"]
     assert arrow["verdict"] == schroeder["verdict"] == "better"
     # The refined model won on the estimation part's held-out tail, which no choice saw.
-    assert set(report["held_out"]) == HELD_OUT_KEYS and report["held_out"]["samples"] == 1200
+    assert set(report["held_out"]) == HELD_OUT_KEYS and report["held_out"]["samples"] == 600
     assert report["held_out"]["orders_saw_tails"] is False  # a long record's orders are chosen on its heads
     assert report["held_out"]["refined_returned"] and not report["held_out"]["diverged"]
     assert report["held_out"]["kinks_beyond"] == []  # Silverbox's output crosses zero
@@ -724,7 +724,7 @@ def test_records_that_repeat_their_excitation_report_the_noise_between_periods(t
     """Three records of four periods of a multisine through a second-order system, with white
     output noise 0.3: the right linear model's check figure is at the noise floor, and the
     table says so, with the floor's figure and its standard error. (Its JSON fields are the
-    report's, which the refinement routes give: tests/test_dashboard.py.)"""
+    report's, which the refinement routes give: tests/test_dashboard_browser.py.)"""
     for seed, name in enumerate(("e1", "e2", "e3"), start=31):
         x, _, y = measured(periods=4, sigma=0.3, seed=seed)
         np.savetxt(

@@ -701,7 +701,8 @@ def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: 
     assert page.status_code == 200
     for effect in report["effects_added"]:
         assert f"<strong>{effect['name']}</strong>" in page.text
-    assert report["noise_floor"] is None and 'id="noise-floor"' not in page.text  # the record does not repeat
+    # The record does not repeat: no noise floor (a record that does, tests/test_dashboard_browser.py).
+    assert report["noise_floor"] is None and 'id="noise-floor"' not in page.text
     declared, refined = charts(page)["errors"]["data"]
     assert declared["y"] == [report["before"]["one_step_rms"], report["before"]["free_run_rms"]]
     assert refined["y"] == [report["after"]["one_step_rms"], report["after"]["free_run_rms"]]
@@ -746,37 +747,6 @@ def test_the_refinement_page_shows_the_effects_found_and_the_errors(api_server: 
         assert page.status_code == 200
         assert f"Withdrawn: {', '.join(withdrawn)}." in page.text and why in page.text
         assert "No effect was added: the declared model stands." in page.text
-
-
-def test_the_refinement_page_gives_the_noise_between_periods_of_a_periodic_record(api_server: LiveServer):
-    """A record that repeats a multisine six times through a second-order system with white
-    output noise 0.3: the page gives the noise floor the refinement found on its estimation part
-    (four periods, the first left out) and that the check figure is at it. A record that does not
-    repeat (the test above) shows none."""
-    from harness.api_helpers import FS, npz_bytes, post_record
-    from harness.multisines import PERIOD, measured
-
-    org = Org.create(api_server)
-    x, _, y = measured(periods=6, sigma=0.3, seed=11)
-    with clients(org) as (admin, ingest, _):
-        structure_id = create_structure(admin, "periodic rig")["id"]
-        record_id = post_record(ingest, structure_id, npz_bytes(x=x, y=y, fs=FS), "application/x-npz").json()[
-            "id"
-        ]
-        baseline = admin.post(
-            f"{API}/structures/{structure_id}/models/baseline",
-            json={"record_ids": [record_id], "terms": RIG_TERMS},
-        )
-        body = {"record_id": record_id, "base_model_id": baseline.json()["id"]}
-        refinement = admin.post(f"{API}/structures/{structure_id}/refinements", json=body).json()
-    floor = refinement["report"]["noise_floor"]
-    assert (floor["periods"], floor["period"]) == (3, PERIOD)
-    with logged_in(api_server, org.keys["viewer"]) as client:
-        page = client.get(f"{DASHBOARD}/refinements/{refinement['id']}")
-    assert page.status_code == 200
-    text = " ".join(page.text.split())
-    assert f"the checked records' periods (3 of {PERIOD} samples)" in text, text
-    assert f"is {floor['rms']:.4g} ± {floor['standard_error']:.2g}" in text
 
 
 def test_a_login_ends_when_it_expires(api_server: LiveServer):
