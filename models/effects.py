@@ -674,8 +674,8 @@ def integer_law_better(
     the law at the end is the integer law seen through the search, a stand-in its own family,
     scored beside it, names better (on the 2-DOF rig with Coulomb friction or quadratic damping
     planted the damping law came in first at its range's end, 0.2 or 1.8, and the integer law
-    beside it a round later). Where the data cannot tell the two apart (Silverbox's damping law at
-    1.8, within a unit of the quadratic's log-likelihood), the fitted law keeps its place."""
+    beside it a round or two later). Where the data cannot tell the two apart (Silverbox's
+    damping law at 1.8 and the quadratic law), the fitted law keeps its place."""
     if exponent is None or not integers:
         return None
     x, y, unexplained = _unexplained(search)
