@@ -1,11 +1,11 @@
 """A throwaway PostgreSQL server for the test session.
 
-``postgres_server()`` runs ``initdb`` into a fresh temporary directory, starts the server on a
-free port of 127.0.0.1 (durability switched off: nothing here needs to survive a crash), creates
-an empty database and yields its SQLAlchemy URL. On exit the server is stopped and the directory
-deleted. It uses the server binaries of Debian's ``postgresql`` package
-(``/usr/lib/postgresql/<version>/bin``, newest version), falling back to ``initdb``/``pg_ctl``
-on ``PATH``; ``bash scripts/ensure-postgres.sh`` installs them.
+``postgres_server()`` runs ``initdb`` into a fresh temporary directory (in memory where the machine
+has a tmpfs, ``MEMORY``), starts the server on a free port of 127.0.0.1 (durability switched off:
+nothing here needs to survive a crash), creates an empty database and yields its SQLAlchemy URL. On
+exit the server is stopped and the directory deleted. It uses the server binaries of Debian's
+``postgresql`` package (``/usr/lib/postgresql/<version>/bin``, newest version), falling back to
+``initdb``/``pg_ctl`` on ``PATH``; ``bash scripts/ensure-postgres.sh`` installs them.
 
 PostgreSQL refuses to run as root, so under root (as in CI) the directory is handed to the
 ``postgres`` system user and the server runs as that user through ``runuser``.
@@ -49,6 +49,16 @@ SERVER_SETTINGS = {
     "log_min_messages": "warning",
     "logging_collector": "off",
 }
+
+
+# Where a server that need not survive a crash keeps its files, when the machine has it: a tmpfs.
+# The session's server holds a copy of the migrated template for each test that needs a database
+# of its own (harness/migrated.py): on a disk, writing them back and deleting them at the end
+# (thousands of files) cost seconds of each pytest process's last moments; in memory, nothing
+# waits on a disk, and the durable server of the tests that stop PostgreSQL stays on one. Only
+# where the tmpfs has room for both pytest processes' servers: a container's is 64 MB by default.
+MEMORY = Path("/dev/shm")
+MEMORY_ROOM = 2 * 2**30  # bytes free on it at least
 
 
 class PostgresUnavailableError(RuntimeError):
@@ -156,9 +166,16 @@ class _Runner:
             os.chown(path, self.account.pw_uid, self.account.pw_gid)
 
 
-def _make_workdir(as_root: bool) -> Path:
-    """A private temporary directory; under root one the ``postgres`` user can reach (/tmp)."""
-    base = tempfile.gettempdir()
+def in_memory_room() -> bool:
+    """Whether a throwaway server's files can go to ``MEMORY``: there, writable, with room."""
+    usable = MEMORY.is_dir() and os.access(MEMORY, os.W_OK | os.X_OK)
+    return usable and shutil.disk_usage(MEMORY).free >= MEMORY_ROOM
+
+
+def _make_workdir(as_root: bool, durable: bool) -> Path:
+    """A private temporary directory; in memory (``MEMORY``) unless the server is ``durable``;
+    under root one the ``postgres`` user can reach (/tmp)."""
+    base = str(MEMORY) if not durable and in_memory_room() else tempfile.gettempdir()
     if as_root:
         # Every parent must be traversable by the postgres user; /tmp always is.
         parents = Path(base).resolve().parents
@@ -301,7 +318,7 @@ def postgres_instance(database: str = DATABASE, durable: bool = False) -> Iterat
     assert binaries is not None
     import psycopg
 
-    workdir = _make_workdir(_running_as_root())
+    workdir = _make_workdir(_running_as_root(), durable)
     data, log = workdir / "data", workdir / "server.log"
     try:
         runner = _Runner(workdir)

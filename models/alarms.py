@@ -59,8 +59,8 @@ from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
+import scipy
 from numpy.typing import ArrayLike
-from scipy import optimize, stats
 
 from models.errors import InputError
 
@@ -168,8 +168,8 @@ def _arl_nystrom(h: float, r: float, mu: float) -> float:
     u = np.concatenate([x, [0.0]])
     shift = r - mu
     A = np.empty((u.size, u.size))
-    A[:, :-1] = -stats.norm.pdf(x[None, :] - u[:, None] + shift) * w[None, :]
-    A[:, -1] = -stats.norm.cdf(shift - u)  # the step to or below zero resets the chart
+    A[:, :-1] = -scipy.stats.norm.pdf(x[None, :] - u[:, None] + shift) * w[None, :]
+    A[:, -1] = -scipy.stats.norm.cdf(shift - u)  # the step to or below zero resets the chart
     A[np.arange(u.size), np.arange(u.size)] += 1.0
     # I − K is singular to working precision once L(0) nears 1/eps, or exactly (the solve then
     # refuses): such a chart never alarms in any service's lifetime, and its rate 1/ARL is zero to
@@ -315,7 +315,7 @@ def design_cusum(
             f"already rarer than one in {arl_in_control:.0f}; give a smaller shift or allow fewer "
             "false alarms"
         )
-    threshold = optimize.brentq(excess, 1e-6, upper, xtol=1e-10)
+    threshold = scipy.optimize.brentq(excess, 1e-6, upper, xtol=1e-10)
     rho = np.sqrt(1.0 - common_share)
     return CusumDesign(
         reference=reference,

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import signal
+import scipy
 
 from models.diagnostics import ResidualReport, residual_report
 from models.errors import InputError
@@ -99,7 +99,7 @@ def assess(
     xs, ys = np.asarray(x, dtype=np.float64)[start:], np.asarray(y, dtype=np.float64)[start:]
     error = model.residuals(xs, ys, t0 + start)
     if noise is not None and len(noise):
-        error = signal.lfilter([1.0], np.concatenate(([1.0], noise)), error)
+        error = scipy.signal.lfilter([1.0], np.concatenate(([1.0], noise)), error)
     L = model.max_lag
     simulated = model.simulate(xs, ys, t0 + start)[L:]
     # Rows of the error and the run from the first scored sample on.

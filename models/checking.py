@@ -19,7 +19,7 @@ import numpy as np
 
 from models.errors import InputError
 from models.instrumental import fit_instrumental
-from models.narx import NARX
+from models.narx import NARX, run_start, sensor_limits
 from models.output_error import comes_to_rest, fit_output_error
 from models.regression import Workers
 from models.scoring import Records, Saturating, fit_model
@@ -40,7 +40,9 @@ MIN_BLOCK = 200  # samples of the shortest block; shorter records get fewer bloc
 CHECK_EVALUATIONS = 30
 SETTLED_EVALUATIONS = 400
 
-Segments = list[tuple[np.ndarray, np.ndarray, int]]  # (x, y, first sample's index in its record)
+Segment = tuple[np.ndarray, np.ndarray, int]  # (x, y, first sample's index in its record)
+Segments = list[Segment]
+Limits = tuple[float, float]
 # The functions of a term whose value depends on the whole past of their signal: a Bouc–Wen
 # variable of the output, a backlash's play on the input (a dead zone is memoryless).
 MEMORIES = (*OUTPUT_HYSTERESES, "backlash")
@@ -376,12 +378,15 @@ def checked_whole(records: Records, fold: int = 1) -> Records:
 
 def free_run_rms(model: NARX, segments: Segments, pasts: Records | None = None) -> float:
     """Free-run RMS of ``model`` over ``segments``, each run started from its first measured
-    outputs (its memory from ``pasts``, :func:`free_run_errors`); infinite when a run diverges or
+    outputs (a sensor-saturating model's from its first clear of the limits; its memory from
+    ``pasts``, :func:`free_run_errors`); infinite when a run diverges or
     no segment is longer than the model's lags."""
     return pooled_rms(free_run_errors(model, segments, pasts))
 
 
-def free_run_errors(model: NARX, segments: Segments, pasts: Records | None = None) -> list[np.ndarray]:
+def free_run_errors(
+    model: NARX, segments: Segments, pasts: Records | None = None, limits: Limits | None = None
+) -> list[np.ndarray]:
     """The free-run errors of ``model`` over each of ``segments`` longer than its lags, each run
     started from its first measured outputs (samples L … of each, L the model's largest lag).
 
@@ -391,13 +396,20 @@ def free_run_errors(model: NARX, segments: Segments, pasts: Records | None = Non
     read the segment's first measured outputs: its state at the segment's start is what the
     measurements make it, where started at rest there it would be wrong by up to the memory's
     whole level, and stay wrong until the signal has moved by that much (over a held-out tail of
-    a few hundred samples, perhaps never)."""
+    a few hundred samples, perhaps never).
+
+    A sensor-saturating model's run starts where its first L readings lie clear of the sensor's
+    limits (``limits``, by default its own; :func:`models.narx.run_start`), its memory run over
+    the samples passed over; ``limits`` given, every model's run starts so, that two models
+    compared over the same segments are scored on the same samples."""
     L = model.max_lag
     errors = []
-    for index, (x, y, t0) in enumerate(segments):
-        if len(y) <= L:
+    for index, segment in enumerate(segments):
+        if len(segment[1]) <= L:
             continue
-        past = pasts[index] if pasts is not None and remembers(model.terms) else None
+        past = pasts[index] if pasts is not None else None
+        (x, y, t0), past = started_clear(segment, past, L, sensor_limits(model) if limits is None else limits)
+        past = past if remembers(model.terms) else None
         if past is None or not len(past[1]):
             errors.append(model.run_free(FreeRun.build(model.terms, x, t0), y)[L:] - y[L:])
             continue
@@ -406,6 +418,21 @@ def free_run_errors(model: NARX, segments: Segments, pasts: Records | None = Non
         run = FreeRun.build(model.terms, x_all, t0 - before).measured_to(before + L)
         errors.append(model.run_free(run, y_all)[before + L :] - y[L:])
     return errors
+
+
+def started_clear(
+    segment: Segment, past: tuple[np.ndarray, np.ndarray] | None, lag: int, limits: Limits | None
+) -> tuple[Segment, tuple[np.ndarray, np.ndarray] | None]:
+    """``segment`` from where a free run of ``lag`` lags starts on it clear of a sensor's
+    ``limits`` (:func:`models.narx.run_start`), the samples passed over joined to its ``past``
+    (where one is given), which a model's memory runs over as over the rest of its past."""
+    x, y, t0 = segment
+    skip = run_start(y, lag, limits) - lag
+    if not skip:
+        return segment, past
+    if past is not None:
+        past = (np.concatenate((past[0], x[:skip])), np.concatenate((past[1], y[:skip])))
+    return (x[skip:], y[skip:], t0 + skip), past
 
 
 def remembers(terms: Sequence[Term]) -> bool:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import signal
+import scipy
 
 from models.errors import InputError
 
@@ -86,8 +86,10 @@ def coverage(estimation: Records, x: np.ndarray, y: np.ndarray) -> Coverage:
     if segment < 2:
         raise InputError("coverage needs records of two samples or more")
     weights = np.array([xe.size for xe in inputs], dtype=np.float64)
-    fitted = np.average([signal.welch(xe, nperseg=segment)[1] for xe in inputs], axis=0, weights=weights)
-    tested = signal.welch(x, nperseg=segment)[1]
+    fitted = np.average(
+        [scipy.signal.welch(xe, nperseg=segment)[1] for xe in inputs], axis=0, weights=weights
+    )
+    tested = scipy.signal.welch(x, nperseg=segment)[1]
     unexcited = fitted <= BAND_FLOOR * fitted.max()  # all of them where the inputs were constant
     power = float(tested.sum())
     return Coverage(

@@ -49,7 +49,8 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from scipy import fft, linalg, optimize, stats
+import scipy
+from scipy import linalg
 
 from models.errors import InputError
 from models.regression import column_norms, divided_columns, orthogonal_part
@@ -496,9 +497,9 @@ def periodic_terms(residual: np.ndarray, alpha: float, x: np.ndarray) -> tuple[T
     n = residual.size
     # At least 8n, of a length whose FFT is fast: 8n itself can hold a large prime factor (a
     # fifth of a second on Silverbox's 65 000 samples where a fast length takes a fiftieth).
-    padded = fft.next_fast_len(8 * n, real=True)
-    power = np.abs(fft.rfft(residual - residual.mean(), padded)) ** 2
-    grid = fft.rfftfreq(padded)
+    padded = scipy.fft.next_fast_len(8 * n, real=True)
+    power = np.abs(scipy.fft.rfft(residual - residual.mean(), padded)) ** 2
+    grid = scipy.fft.rfftfreq(padded)
     times = np.arange(n, dtype=np.float64)
     half_bin = 0.5 / (spectrum.frequencies.size - 1)  # half a Welch bin, in cycles per sample
 
@@ -511,7 +512,7 @@ def periodic_terms(residual: np.ndarray, alpha: float, x: np.ndarray) -> tuple[T
         coarse = grid[near[np.argmax(power[near])]]
         step = 1.0 / padded
         low, high = max(coarse - step, 1e-9), min(coarse + step, 0.5 - 1e-9)
-        frequency = float(optimize.minimize_scalar(periodogram, bounds=(low, high), method="bounded").x)
+        frequency = float(scipy.optimize.minimize_scalar(periodogram, bounds=(low, high), method="bounded").x)
         if np.any((excited[:, 0] <= frequency) & (frequency <= excited[:, 1])):
             continue
         # Rounded so that the term's name stays short; the phase error this leaves over 10⁶
@@ -592,7 +593,7 @@ def profile_search(
     best = int(np.argmin(values))
     if open_above and best == len(grid) - 1:
         return ()
-    refined = optimize.minimize_scalar(
+    refined = scipy.optimize.minimize_scalar(
         at,
         bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
         method="bounded",
@@ -688,7 +689,7 @@ def integer_law_better(
         return unexplained(np.sign(base) * np.abs(base) ** p)
 
     fitted = left(exponent)
-    bound = float(stats.chi2.ppf(1 - EXPONENT_ALPHA, 1))
+    bound = float(scipy.stats.chi2.ppf(1 - EXPONENT_ALPHA, 1))
     for name, integer in sorted(integers, key=lambda law: abs(law[1] - exponent)):
         below = left(integer)
         if below > 0 and rows * np.log(fitted / below) > bound:
@@ -860,7 +861,7 @@ def _combination(
     best = None
     for signs in itertools.islice(itertools.product((1.0, -1.0), repeat=n_lags - 1), COMBINATION_STARTS):
         start = np.array((1.0, *signs)) / np.sqrt(n_lags)
-        fit = optimize.least_squares(misfit, start, jac=jacobian, max_nfev=100)
+        fit = scipy.optimize.least_squares(misfit, start, jac=jacobian, max_nfev=100)
         if best is None or fit.cost < best.cost:
             best = fit
     *_, a = projected(best.x)
@@ -926,7 +927,7 @@ def hysteresis_terms(lags: Sequence[int], search: SearchInput) -> tuple[Term, ..
         return ()
     box = [(grid[k - 1], grid[k + 1]) for grid, k in ((levels, i), (shapes, j))]  # i, j are inside
     start = np.array((levels[i], shapes[j]))
-    refined = optimize.minimize(
+    refined = scipy.optimize.minimize(
         at,
         start,
         method="Nelder-Mead",

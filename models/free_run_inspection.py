@@ -73,8 +73,9 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+import scipy
 from numpy.typing import ArrayLike
-from scipy import optimize, signal, special, stats
+from scipy import special
 
 from models.errors import InputError
 from models.fnarx import FNARX, Experiment, fit_fnarx
@@ -191,7 +192,7 @@ def _free_run(terms: Sequence[Term], run: FreeRun, theta: np.ndarray, y: np.ndar
 
 def _whitened(whitening: np.ndarray, series: np.ndarray) -> np.ndarray:
     """``series`` (along its first axis) through w(q), its first Q samples dropped."""
-    return signal.lfilter(np.concatenate(([1.0], -whitening)), [1.0], series, axis=0)[whitening.size :]
+    return scipy.signal.lfilter(np.concatenate(([1.0], -whitening)), [1.0], series, axis=0)[whitening.size :]
 
 
 def fit_free_run_modes(
@@ -418,7 +419,7 @@ def _held_out_scale(mode: FreeRunMode, held_out: Sequence[tuple[FNARX, FreeRun, 
     estimates = [(_estimate(replace(mode, model=model), run, y, True), k) for model, run, y, k in held_out]
     misses = [(estimate.k_hat - k) / estimate.sigma_k for estimate, k in estimates]
     total = float(np.sum(np.square(misses)))
-    if total <= float(stats.chi2.ppf(1 - HELD_OUT_LEVEL, len(misses))):
+    if total <= float(scipy.stats.chi2.ppf(1 - HELD_OUT_LEVEL, len(misses))):
         return 1.0
     return float(np.sqrt(total / len(misses)))
 
@@ -490,7 +491,9 @@ def _estimate(mode: FreeRunMode, run: FreeRun, y: np.ndarray, model_uncertainty:
     grid = np.linspace(basis.k_min, basis.k_max, GRID_POINTS)
     best = int(np.argmin([cost(k) for k in grid]))
     low, high = grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)]
-    found = optimize.minimize_scalar(cost, bounds=(low, high), method="bounded", options={"xatol": 1e-6})
+    found = scipy.optimize.minimize_scalar(
+        cost, bounds=(low, high), method="bounded", options={"xatol": 1e-6}
+    )
     k_hat = float(found.x) if found.fun <= cost(grid[best]) else float(grid[best])
     at = _free_run(model.terms, run, model.theta @ basis.values(k_hat), y, True)
     if not np.all(np.isfinite(at.error)):

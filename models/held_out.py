@@ -15,10 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+import scipy
 
-from models.checking import MIN_BLOCK, Segments, free_run_errors, free_run_rms, pooled_rms
-from models.narx import NARX
+from models.checking import MIN_BLOCK, Segments, free_run_errors, pooled_rms
+from models.narx import NARX, run_start, sensor_limits
 from models.output_error import diverged
 from models.periods import excitation_period
 from models.scoring import Records
@@ -157,13 +157,18 @@ def compare_on_tails(
     """
     blocks = comparison_blocks(tails)
     heads = [(x[:0], y[:0]) for x, y, _ in tails] if heads is None else heads
-    start_errors, refined_errors = (free_run_errors(model, tails, heads) for model in (start, refined))
+    # Both runs start clear of a sensor's limits where either model has one, so that the blocks
+    # pair the same samples (models.narx.run_start).
+    limits = sensor_limits(refined) or sensor_limits(start)
+    start_errors, refined_errors = (
+        free_run_errors(model, tails, heads, limits) for model in (start, refined)
+    )
     level = alpha / 2
     comparisons = [
         _paired(_block_squares(start_errors, blocks), _block_squares(refined_errors, blocks), level),
         _paired(
-            _restarted_squares(start, tails, heads, blocks),
-            _restarted_squares(refined, tails, heads, blocks),
+            _restarted_squares(start, tails, heads, blocks, limits),
+            _restarted_squares(refined, tails, heads, blocks, limits),
             level,
         ),
     ]
@@ -171,18 +176,25 @@ def compare_on_tails(
     start_rms, refined_rms = pooled_rms(start_errors), pooled_rms(refined_errors)
     samples = sum(len(y) for _, y, _ in tails)
     return HeldOut(
-        samples, start_rms, refined_rms, gain, threshold, diverged=_diverged(refined, refined_errors, tails)
+        samples,
+        start_rms,
+        refined_rms,
+        gain,
+        threshold,
+        diverged=_diverged(refined, refined_errors, tails, limits),
     )
 
 
-def _diverged(model: NARX, errors: list[np.ndarray], segments: Segments) -> bool:
+def _diverged(
+    model: NARX, errors: list[np.ndarray], segments: Segments, limits: tuple[float, float] | None
+) -> bool:
     """Whether ``model``'s free runs over the ``segments``, whose errors are ``errors``
     (:func:`models.checking.free_run_errors`), diverged as over a test record
     (:func:`models.output_error.diverged`): not finite, or beyond ``RESTLESS`` times the largest
     output measured in their segment. A stable model with a slow mode can ring that far from a
     measured state and stay finite over a tail of a few hundred samples."""
     L = model.max_lag
-    measured = [y[L:] for _, y, _ in segments if len(y) > L]
+    measured = [y[run_start(y, L, limits) :] for _, y, _ in segments if len(y) > L]
     return any(diverged(error + y, y) for error, y in zip(errors, measured, strict=True))
 
 
@@ -203,7 +215,9 @@ def _block_squares(errors: list[np.ndarray], blocks: int) -> np.ndarray:
     return np.array([float(np.mean(part**2)) for part in np.array_split(error, blocks)])
 
 
-def _restarted_squares(model: NARX, segments: Segments, pasts: Records, blocks: int) -> np.ndarray:
+def _restarted_squares(
+    model: NARX, segments: Segments, pasts: Records, blocks: int, limits: tuple[float, float] | None
+) -> np.ndarray:
     """``segments`` cut into about ``blocks`` pieces (a segment's share by its length), each run
     free from its own first measured outputs, its memory from the measured samples before it
     (the segment's ``pasts`` and the segment up to the piece): ``model``'s mean square over each;
@@ -220,7 +234,9 @@ def _restarted_squares(model: NARX, segments: Segments, pasts: Records, blocks: 
         for part in np.array_split(np.arange(len(y)), max(1, round(blocks * len(y) / total)))
         for a in (int(part[0]),)
     ]
-    squares = np.array([free_run_rms(model, [piece], [past]) ** 2 for piece, past in pieces])
+    squares = np.array(
+        [pooled_rms(free_run_errors(model, [piece], [past], limits)) ** 2 for piece, past in pieces]
+    )
     return squares if np.all(np.isfinite(squares)) else np.full(squares.size, np.inf)
 
 
@@ -243,5 +259,5 @@ def _paired(before: np.ndarray, after: np.ndarray, alpha: float) -> tuple[float,
     # under "equally good" the statistic stays symmetric about zero, as Student's t is.
     ratio = np.clip(ratio, typical - cap, typical + cap)
     error = float(np.std(ratio, ddof=1) / np.sqrt(ratio.size))
-    quantile = float(stats.t.ppf(1 - alpha, ratio.size - 1))
+    quantile = float(scipy.stats.t.ppf(1 - alpha, ratio.size - 1))
     return float(-np.expm1(-np.mean(ratio))), float(-np.expm1(-quantile * error))

@@ -28,7 +28,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from models.narx import NARX
+from models.narx import NARX, fitted_rows
 from models.regression import column_norms
 from models.terms import stacked_regressors
 
@@ -48,13 +48,21 @@ def fit_instrumental(model: NARX, segments: Sequence[tuple[np.ndarray, np.ndarra
     origins = [t0 for *_, t0 in segments]
     lag = model.max_lag
     regressors, target, _ = stacked_regressors(model.terms, records, lag, origins)
+    # A saturating model's equations on its limits are left out, as its least-squares fit
+    # leaves them out (models.narx.fitted_rows): there the reading is not its output.
+    kept = np.ones(len(target), dtype=bool)
+    if model.output_limits is not None:
+        kept = np.concatenate(
+            [fitted_rows(y, lag, model.output_limits, model.saturation) for _, y in records]
+        )
+    regressors, target = regressors[kept], target[kept]
     scale = column_norms(regressors)
     estimate = model
     for _ in range(PASSES):
         runs = [(x, estimate.simulate(x, y, t0)) for x, y, t0 in segments]
         if not all(np.all(np.isfinite(run)) for _, run in runs):
             return None
-        instruments, _, _ = stacked_regressors(model.terms, runs, lag, origins)
+        instruments = stacked_regressors(model.terms, runs, lag, origins)[0][kept]
         weights = instruments / column_norms(instruments)
         try:
             theta = np.linalg.solve(weights.T @ (regressors / scale), weights.T @ target) / scale

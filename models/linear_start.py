@@ -14,14 +14,14 @@ from typing import NamedTuple
 import numpy as np
 
 from models.checking import CheckSplit, Segments, Structure
-from models.effects import linear_terms, reads_magnitude
+from models.effects import linear_terms, output_limits, reads_magnitude
 from models.errors import InputError
 from models.input_drive import feeds_through, input_drives
 from models.narx import NARX
 from models.refinement_report import Stage, told
 from models.regression import Workers
 from models.round_criteria import DEFAULT_ALPHA
-from models.scoring import Records
+from models.scoring import Records, Saturating
 from models.terms import Term
 
 MAX_LINEAR_ORDER = 10  # the largest order tried when no structure is declared
@@ -73,6 +73,13 @@ def choose_linear(
     about zero the constant takes nothing off, and the start stays as it was without the second
     set of fits.
 
+    **Plateaus.** Where the records' output plateaus at its range ends
+    (:func:`models.effects.output_limits`), every candidate is judged as a clipping sensor's
+    model: fitted on the equations clear of the plateaus and run free from readings clear of
+    them, its output clipped. Judged as plain linear models over a quarter of clipped readings,
+    every order of the rig ran free alike and a higher one was the start, leaving the loop no
+    room for the rig's cubic spring.
+
     **Rectified.** With ``rectified``, every candidate is judged as a rectified model, its
     recursion read through a sensor of its magnitude (:mod:`models.narx`): the orders the
     rectified-output family starts from (:func:`rectified_orders`).
@@ -91,7 +98,22 @@ def choose_linear(
     # record of the rig, x[t-3]'s chance correlation with x[t-4] made ARX(3, 3)'s input
     # coefficients pass at the loop's level alone.
     level = DEFAULT_ALPHA / (2 * len(orders))
-    judge = partial(_driven_figures, folds, records, level, workers=workers, tell=tell, rectified=rectified)
+    # Where the readings plateau at their range ends, every candidate is judged as a clipping
+    # sensor's model (models.narx), fitted clear of the plateaus and run from readings clear of
+    # them: a linear model's free run scored against clipped readings, from a clipped start, is
+    # off by the clipping whatever its order, and its figures cannot tell the orders apart.
+    limits = None if rectified else output_limits(np.concatenate([y for _, y in records]))
+    saturating: Saturating | None = None if limits is None else (limits, "sensor")
+    judge = partial(
+        _driven_figures,
+        folds,
+        records,
+        level,
+        workers=workers,
+        tell=tell,
+        rectified=rectified,
+        saturating=saturating,
+    )
     spreads = np.array([_spread(fold.check) for fold in folds])
     smallest = partial(_smallest_driven, margin=margin, max_order=max_order, samples=samples, spreads=spreads)
     figures, admissible = judge([(n, d, False) for n, d in orders])
@@ -130,12 +152,14 @@ def _linear_figures(
     workers: Workers,
     tell: Stage,
     rectified: bool = False,
+    saturating: Saturating | None = None,
 ) -> tuple[dict[_Linear, _Judged], set[_Linear]]:
     """Each linear candidate's figures on the rotations of ``folds`` (:func:`_rotation_figures`);
     and those that may start the loop (:func:`choose_linear`). ``tell`` is told each candidate as
     its figures are read; ``workers`` judge them."""
     structures = [
-        Structure(linear_terms(n, n, d, constant), rectified=rectified) for n, d, constant in candidates
+        Structure(linear_terms(n, n, d, constant), saturating=saturating, rectified=rectified)
+        for n, d, constant in candidates
     ]
     parts = [(fold.fit, fold.check) for fold in folds]
     judged = workers(partial(_rotation_figures, parts), structures)
@@ -158,6 +182,7 @@ def _driven_figures(
     workers: Workers,
     tell: Stage,
     rectified: bool = False,
+    saturating: Saturating | None = None,
 ) -> tuple[dict[_Linear, _Judged], set[_Linear]]:
     """:func:`_linear_figures`, each candidate's figures marked with whether the input drives it
     at its delay (:func:`models.input_drive.input_drives` at ``level`` on all the ``records``,
@@ -167,7 +192,7 @@ def _driven_figures(
     rotations of a short record a little better than ARX(4, 4) by chance). A rectified model's
     linear terms read the recursion under the fold, which a linear fit of the readings does not:
     there every candidate counts as driven, judged by its free run alone."""
-    figures, admissible = _linear_figures(folds, candidates, workers, tell, rectified)
+    figures, admissible = _linear_figures(folds, candidates, workers, tell, rectified, saturating)
     if not rectified:
         for n, d, constant in candidates:
             terms = linear_terms(n, n, d, constant)

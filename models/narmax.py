@@ -47,8 +47,9 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
+import scipy
 from numpy.typing import ArrayLike
-from scipy import linalg, signal
+from scipy import linalg
 
 from models.errors import InputError
 from models.narx import NARX
@@ -277,7 +278,7 @@ def _hannan_rissanen(records: Sequence[np.ndarray], lags: int) -> np.ndarray:
 def innovations_of(records: Sequence[np.ndarray], coefficients: np.ndarray) -> list[np.ndarray]:
     """ξ = e / C(q) on each record, from rest at its start."""
     denominator = np.concatenate(([1.0], coefficients))
-    return [signal.lfilter([1.0], denominator, e) for e in records]
+    return [scipy.signal.lfilter([1.0], denominator, e) for e in records]
 
 
 def _filtered(series: np.ndarray, noise: np.ndarray, starts: np.ndarray) -> np.ndarray:
@@ -288,7 +289,7 @@ def _filtered(series: np.ndarray, noise: np.ndarray, starts: np.ndarray) -> np.n
     denominator = np.concatenate(([1.0], noise))
     out = np.empty(series.shape, order="F")
     for first, last in pairwise(starts):
-        out[first:last] = signal.lfilter([1.0], denominator, series[first:last], axis=0)
+        out[first:last] = scipy.signal.lfilter([1.0], denominator, series[first:last], axis=0)
     return out
 
 

@@ -249,6 +249,24 @@ def fit_narx(
     return NARX(parsed, fit.theta, fit.covariance, fit.sigma2, len(target), output_limits, saturation)
 
 
+def sensor_limits(model: NARX) -> tuple[float, float] | None:
+    """The limits ``model``'s sensor clips its readings to (None where it reads its state)."""
+    return model.output_limits if model.saturation == "sensor" else None
+
+
+def run_start(y: np.ndarray, lag: int, limits: tuple[float, float] | None) -> int:
+    """Where a free run over readings ``y`` starts from measured outputs: at ``lag``, or with a
+    sensor's ``limits`` at the first t ≥ ``lag`` whose readings y[t−lag … t−1] all lie clear of
+    them. A clipped reading is not the system's output, and a run started from it starts from a
+    state the system was not in: on a lightly damped structure the wrong start rings through the
+    whole run and hides what the model is. ``lag`` where no such t is."""
+    if limits is None or lag == 0:
+        return lag
+    on = (y <= limits[0]) | (y >= limits[1])
+    clear = np.flatnonzero(np.convolve(on, np.ones(lag), "valid")[: max(len(y) - lag, 0)] == 0)
+    return lag + int(clear[0]) if clear.size else lag
+
+
 def fitted_rows(y: np.ndarray, lag: int, limits: tuple[float, float], saturation: Saturation) -> np.ndarray:
     """Which equations t = lag … N−1 a saturating model is fitted on: those whose target is off
     the limits, and for a saturating sensor those whose lagged outputs are off them too."""

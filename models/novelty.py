@@ -87,8 +87,9 @@ from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 import numpy as np
+import scipy
 from numpy.typing import ArrayLike
-from scipy import signal, special
+from scipy import special
 from scipy.linalg import solve_discrete_lyapunov
 
 from models.errors import InputError
@@ -478,13 +479,13 @@ def _regression(
     w = np.concatenate(([1.0], -whitening))
 
     def whitened(series: np.ndarray) -> np.ndarray:
-        return signal.lfilter(w, [1.0], series, axis=0)[Q:]
+        return scipy.signal.lfilter(w, [1.0], series, axis=0)[Q:]
 
     S = whitened(start)
     regressors = regressor_matrix(model.terms, x, y - error)[0]
     # ∂ŷ/∂θ_i = φ_i / A(q): the regressor along the run through the linear part, from rest (what
     # the start would add, S spans).
-    J = signal.lfilter([1.0], np.concatenate(([1.0], -_linear_part(model))), regressors, axis=0)
+    J = scipy.signal.lfilter([1.0], np.concatenate(([1.0], -_linear_part(model))), regressors, axis=0)
     projected = np.column_stack([whitened(error[L:]), whitened(J)])
     projected -= S @ np.linalg.lstsq(S, projected, rcond=None)[0]
     return projected[:, 0], projected[:, 1:]

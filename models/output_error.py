@@ -42,7 +42,7 @@ from scipy import linalg
 
 from models.errors import InputError
 from models.levenberg_marquardt import Search, minimise
-from models.narx import NARX
+from models.narx import NARX, run_start, sensor_limits
 from models.regression import Workers, triangular_factor
 from models.signals import checked_records
 from models.simulation import FreeRun
@@ -93,7 +93,8 @@ def fit_output_error(
     start : the model whose terms are kept and whose θ starts the search; its free run must not
         diverge on any record.
     records : (x, y) pairs in the units of the model; each free run starts from its record's
-        first L = ``start.max_lag`` measured outputs.
+        first L = ``start.max_lag`` measured outputs (a sensor-saturating model's from its first
+        L clear of the sensor's limits, :func:`models.narx.run_start`).
     max_evaluations : bound on the search's evaluations of V (each a free run on every record;
         the Jacobian comes from the runs' sensitivities, one more pass per iteration); twice
         that where the search is run again, held to the restarts from measured outputs.
@@ -231,9 +232,14 @@ class _Search:
     ) -> _Search:
         L = start.max_lag
         checked = checked_records(records, L + len(start.terms) + 1, degree=max_degree(start.terms))
+        origins = record_origins(t0, len(checked))
+        # A sensor's clipped readings are no state to start from: each run starts clear of its
+        # limits, as the check blocks and the tails judge it (models.narx.run_start).
+        skips = [run_start(ya, L, sensor_limits(start)) - L for _, ya in checked]
+        checked = [(xa[skip:], ya[skip:]) for (xa, ya), skip in zip(checked, skips, strict=True)]
+        origins = [origin + skip for origin, skip in zip(origins, skips, strict=True)]
         targets = [ya[L:] for _, ya in checked]
         scale = np.sqrt(sum(float(np.sum(t**2)) for t in targets) / sum(t.size for t in targets)) or 1.0
-        origins = record_origins(t0, len(checked))
         record_runs, ring_downs = prepared(start.terms, checked, origins)
         runs = [(run, ya) for run, (_, ya) in zip(record_runs, checked, strict=True)]
         if start_from == "estimated" and not start.reads_state:

@@ -26,7 +26,8 @@ from itertools import chain, islice, pairwise
 from typing import Any
 
 import numpy as np
-from scipy import linalg, signal, special
+import scipy
+from scipy import linalg, special
 
 from models.effects import (
     RECTIFIED,
@@ -308,7 +309,7 @@ def _model_equations(
         residual = target - Phi @ process.theta
         innovations = np.concatenate(
             [
-                signal.lfilter([1.0], np.concatenate(([1.0], noise)), residual[a:b])
+                scipy.signal.lfilter([1.0], np.concatenate(([1.0], noise)), residual[a:b])
                 for a, b in pairwise(starts)
             ]
         )

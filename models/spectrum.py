@@ -6,8 +6,9 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+import scipy
 from numpy.typing import ArrayLike
-from scipy import ndimage, signal, special
+from scipy import special
 
 from models.errors import InputError
 from models.series import checked_series, sidak
@@ -115,10 +116,10 @@ def residual_spectrum(
     (e,) = checked_series(1, alpha, e=e)
     nperseg = _segment_length(e.size, fs, nperseg, smoothing_bins)
     bins_tested = nperseg // 2 - 1
-    window = signal.get_window("hann", nperseg)
+    window = scipy.signal.get_window("hann", nperseg)
     step = nperseg - nperseg // 2
     segments = 1 + (e.size - nperseg) // step
-    frequencies, psd = signal.welch(e, fs=fs, window=window, noverlap=nperseg // 2)
+    frequencies, psd = scipy.signal.welch(e, fs=fs, window=window, noverlap=nperseg // 2)
     dof = welch_dof(window, step, segments)
     bin_correlation = np.abs(np.fft.rfft(window**2))[1:] / np.sum(window**2)
     background_dof = 2.0 / np.pi * dof * smoothing_bins / (1.0 + 2.0 * float(np.sum(bin_correlation**2)))
@@ -172,7 +173,7 @@ def _background(psd: np.ndarray, dof: float, smoothing_bins: int) -> np.ndarray:
     the median of χ²_ν/ν; DC and Nyquist take their neighbour's."""
     inner = slice(1, psd.size - 1)
     background = np.empty_like(psd)
-    background[inner] = ndimage.median_filter(psd[inner], size=smoothing_bins, mode="reflect") / (
+    background[inner] = scipy.ndimage.median_filter(psd[inner], size=smoothing_bins, mode="reflect") / (
         float(special.chdtri(dof, 0.5)) / dof
     )
     background[0], background[-1] = background[1], background[-2]
@@ -285,10 +286,10 @@ def _lines(x: np.ndarray, alpha: float) -> np.ndarray:
     q = -np.log1p(-LINE_QUANTILE)
     dof = 2.0 * LINE_SMOOTHING * (1.0 - LINE_QUANTILE) * q**2 / LINE_QUANTILE
     lines = np.zeros(n // 2 + 1, dtype=bool)
-    for window in (np.ones(n), signal.get_window("hann", n)):
+    for window in (np.ones(n), scipy.signal.get_window("hann", n)):
         power = np.abs(np.fft.rfft(x * window)) ** 2
         inner = power[1:-1]
-        background = ndimage.percentile_filter(
+        background = scipy.ndimage.percentile_filter(
             inner, 100 * LINE_QUANTILE, size=LINE_SMOOTHING, mode="reflect"
         )
         background = np.maximum(background, DYNAMIC_RANGE * power.max())
@@ -297,7 +298,7 @@ def _lines(x: np.ndarray, alpha: float) -> np.ndarray:
         threshold = float(special.fdtri(2.0, background_dof, 1.0 - sidak(alpha, inner.size)))
         peaks = np.zeros_like(lines)
         peaks[1:-1] = (inner >= power[:-2]) & (inner >= power[2:]) & (inner * q > threshold * background)
-        lines |= peaks & ~ndimage.binary_dilation(lines)
+        lines |= peaks & ~scipy.ndimage.binary_dilation(lines)
     return lines
 
 
@@ -306,7 +307,7 @@ def _swept_band(x: np.ndarray) -> tuple[int, int] | None:
     not narrowband most of the time, or its narrowband peak stays put (a line, found as such)."""
     n = x.size
     nperseg = min(256, n // 4)
-    _, _, power = signal.spectrogram(x, window="hann", nperseg=nperseg, noverlap=nperseg // 2)
+    _, _, power = scipy.signal.spectrogram(x, window="hann", nperseg=nperseg, noverlap=nperseg // 2)
     strongest = np.argmax(power, axis=0)
     around = np.pad(power, ((2, 2), (0, 0)))
     columns = np.arange(power.shape[1])
@@ -328,7 +329,7 @@ def _products(excited: np.ndarray) -> np.ndarray:
     products = excited.copy()
     convolved = two_sided
     for _ in range(PRODUCT_ORDER - 1):
-        convolved = (signal.fftconvolve(convolved, two_sided) > 0.5).astype(np.float64)
+        convolved = (scipy.signal.fftconvolve(convolved, two_sided) > 0.5).astype(np.float64)
         centre = convolved.size // 2
         products |= convolved[centre : centre + excited.size] > 0.5
     return products

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import scipy
 from numpy.typing import ArrayLike
-from scipy import optimize
 
 from models.basis import BasisFamily, FunctionalBasis
 from models.diagnostics import HoskingResult, hosking
@@ -295,7 +295,7 @@ def _judge(mode: VectorFNARX, x: ArrayLike, y: ArrayLike, alpha: float, lags: in
         e = target - np.tensordot(basis.values(k), parts, axes=1)
         return float(np.einsum("ti,ij,tj->", e, weight, e))
 
-    found = optimize.minimize_scalar(criterion, bounds=(basis.k_min, basis.k_max), method="bounded")
+    found = scipy.optimize.minimize_scalar(criterion, bounds=(basis.k_min, basis.k_max), method="bounded")
     k_hat = float(found.x)
     e = target - np.tensordot(basis.values(k_hat), parts, axes=1)
     slope = -np.tensordot(basis.derivatives(k_hat), parts, axes=1)  # ∂e/∂k

@@ -95,6 +95,10 @@ class Settings(BaseSettings):
     # Distributed backend: a worker silent this long (killed, cut off) has its jobs run again.
     worker_heartbeat_seconds: float = Field(2.0, gt=0)
     worker_stalled_seconds: float = Field(10.0, gt=0)
+    # Distributed backend: every this many seconds (a divisor of 60: whole seconds of a minute)
+    # the workers sweep the schedules and notifications due and the jobs of stalled workers, which
+    # wait up to this long more for it. Each sweep is a job, which idle workers run too.
+    worker_sweep_seconds: int = Field(2, ge=1, le=60)
     # Dashboard logins: how long one lasts, and whether its cookie is sent over HTTPS only.
     # Browsers treat http://localhost and 127.0.0.1 as secure, so the default suits local use;
     # turn it off only behind a plain-HTTP proxy on a trusted network.
@@ -161,6 +165,15 @@ class Settings(BaseSettings):
     smtp_password: SecretStr | None = None
     smtp_from: str = "narxwatch@localhost"
     smtp_starttls: bool = True
+
+    @field_validator("worker_sweep_seconds")
+    @classmethod
+    def _divides_a_minute(cls, seconds: int) -> int:
+        """The sweeps are Procrastinate's periodic tasks, on a cron of seconds: ``*/7`` would
+        sweep 7 s apart, then 4 s across each minute's end."""
+        if 60 % seconds:
+            raise ValueError(f"{seconds} does not divide 60 (1, 2, 3, 4, 5, 6, 10, 12, 15, 20, 30 or 60)")
+        return seconds
 
     @field_validator("notification_ca_file")
     @classmethod

@@ -333,9 +333,12 @@ def postgresql_api_server(postgres_url, tmp_path_factory):
     from service.config import Settings
 
     url = migrated.postgresql(postgres_url, "narxwatch_api")
+    # No test on this server waits for a sweep (its schedules are never due: harness/estates.py;
+    # no delivery or stalled job is waited for), which idle workers would otherwise run every
+    # few seconds of the session: one a minute.
     with (
         LiveServer(Settings(database_url=url)) as server,
-        workers(url, 2, tmp_path_factory.mktemp("workers")),
+        workers(url, 2, tmp_path_factory.mktemp("workers"), worker_sweep_seconds="60"),
     ):
         yield server
 

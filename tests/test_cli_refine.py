@@ -7,6 +7,7 @@ is tested: --jobs 2, the signals, and the terminal's run with the default, a pro
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import json
 import os
 import pty
@@ -15,6 +16,7 @@ import signal
 import subprocess
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
 
@@ -630,6 +632,35 @@ def test_two_jobs_run_on_one_cpu_to_the_report_of_one_and_more_than_two_a_cpu_ar
     assert "at most 2, twice the CPUs this command may use; got 3" in " ".join(refused.stderr.split())
 
 
+# prctl(2)'s option: the orphans of this process's descendants become its children.
+PR_SET_CHILD_SUBREAPER = 36
+
+
+@contextlib.contextmanager
+def adopting_orphans() -> Iterator[None]:
+    """This process the parent of its descendants' orphans while the block runs (Linux's child
+    subreaper): it can then wait for them and see how they ended."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    assert libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) == 0, os.strerror(ctypes.get_errno())
+    try:
+        yield
+    finally:
+        libc.prctl(PR_SET_CHILD_SUBREAPER, 0, 0, 0, 0)
+
+
+def end_of(pid: int, timeout: float) -> int:
+    """The wait status of ``pid``, a child of this process (adopted: :func:`adopting_orphans`);
+    a process still running after ``timeout`` seconds is killed and the test fails."""
+    deadline = time.monotonic() + timeout
+    while (ended := os.waitpid(pid, os.WNOHANG))[0] == 0:
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            pytest.fail(f"worker {pid} outlived its command by {timeout} s")
+        time.sleep(0.01)
+    return ended[1]
+
+
 @pytest.mark.parametrize(
     ("stop", "group", "code", "seen"),
     [
@@ -644,7 +675,8 @@ def test_a_stopped_command_leaves_no_worker_behind_and_prints_no_traceback(
     silverbox_dir, tmp_path, stop, group, code, seen
 ):
     """However ``refine`` is stopped, its worker processes end with it, and none prints a traceback
-    (each used to on Ctrl-C; after SIGTERM or SIGKILL they waited for work for ever). Stopped
+    (each used to on Ctrl-C; after SIGTERM or SIGKILL they waited for work for ever, then looked
+    for their command once a second: now they are killed as it ends). Stopped
     when ``seen`` of its workers are running: both (the loop has reached its first round), or the
     first (the pool is starting: a Ctrl-C there used to leave the command waiting at its exit for
     workers nobody had told to stop, or a worker's traceback)."""
@@ -667,7 +699,13 @@ def test_a_stopped_command_leaves_no_worker_behind_and_prints_no_traceback(
     if group:
         os.killpg(started.pid, stop)
     else:
-        os.kill(started.pid, stop)
+        # The command alone, which leaves its workers orphans: adopted here, their ends are seen.
+        with adopting_orphans():
+            os.kill(started.pid, stop)
+            started.wait(timeout=30)
+            ends = [end_of(pid, timeout=10) for pid in workers]
+        # Killed as the command ended, not left to find out later that it had.
+        assert all(os.WIFSIGNALED(end) and os.WTERMSIG(end) == signal.SIGKILL for end in ends), ends
     with contextlib.suppress(subprocess.TimeoutExpired):  # a leftover worker holds the pipes open
         started.communicate(timeout=10)
     deadline = time.monotonic() + 5

@@ -14,7 +14,7 @@ from scipy import linalg, signal, stats
 from harness.hysteretic import BoucWenOscillator
 from harness.rectified import rectified_drive
 from models.assessment import assess
-from models.checking import SETTLED_EVALUATIONS
+from models.checking import SETTLED_EVALUATIONS, free_run_rms
 from models.effects import (
     EXPONENT_ALPHA,
     SearchInput,
@@ -28,7 +28,8 @@ from models.effects import (
 )
 from models.errors import InputError
 from models.explanation import explain_refinement
-from models.narx import NARX, fit_narx
+from models.held_out import compare_on_tails
+from models.narx import NARX, fit_narx, run_start
 from models.output_error import fit_output_error
 from models.refinement import RefinementReport, refine_record, refine_records
 from models.round_criteria import DEFAULT_ALPHA
@@ -36,7 +37,7 @@ from models.scoring import score_effects
 from models.terms import Factor, Term, bouc_wen, bouc_wen_step, max_lag, parse_terms, regressor_matrix
 from simulator.physics import PhysicalParameters
 from simulator.simulate import BOUC_WEN_BETA, BOUC_WEN_GAMMA, Effects, Scenario, simulate
-from simulator.theory import EXACT_TERMS
+from simulator.theory import EXACT_TERMS, exact_narx
 
 # The loop runs on the first 8000 samples and holds out the next 2000 (models.held_out); the
 # models are judged on the last 2000.
@@ -268,6 +269,56 @@ def test_a_sensor_fit_leaves_out_the_equations_clipping_corrupts() -> None:
     plain = fit_narx([(record.x, record.y)], EXACT_TERMS).theta
     np.testing.assert_allclose(sensor, exact, rtol=1e-6)
     assert not np.allclose(plain, exact, rtol=1e-2)
+
+
+def on_a_plateau(seed: int, disturbance: float) -> tuple[NARX, np.ndarray, np.ndarray, int]:
+    """The rig's exact NARX as a sensor-saturating model, a 1600-sample record through a sensor
+    clipping at ±0.08 m (``disturbance`` N of unmeasured force), and the first sample from 800 on
+    that begins four readings on a plateau: where a held-out tail or check block may begin."""
+    scenario = Scenario(disturbance_std=disturbance, effects=Effects.parse(["sensor_range=0.08"]))
+    record = simulate(scenario, 1600, seed)
+    limits = output_limits(record.y)
+    assert limits is not None
+    on = (record.y <= limits[0]) | (record.y >= limits[1])
+    start = next(t for t in range(800, 1200) if on[t : t + 4].all())
+    exact = replace(exact_narx(scenario.params), output_limits=limits, saturation="sensor")
+    return exact, record.x, record.y, start
+
+
+def test_a_sensor_models_free_run_starts_where_the_readings_are_the_systems_output() -> None:
+    """A clipped reading is not the system's output: a free run started from four readings on a
+    plateau starts from a state the rig was not in. With no disturbance the exact model run from
+    the first readings clear of the plateau reproduces the rest of the record; started on the
+    plateau, its wrong start rings through the lightly damped rig's whole run."""
+    exact, x, y, start = on_a_plateau(seed=3, disturbance=0.0)
+    part = (x[start : start + 400], y[start : start + 400], start)
+    assert run_start(part[1], exact.max_lag, exact.output_limits) > exact.max_lag
+    assert free_run_rms(exact, [part]) < 1e-9 * np.std(y)
+    from_the_plateau = exact.simulate(part[0], part[1][:4])[4:] - part[1][4:]
+    assert np.sqrt(np.mean(from_the_plateau**2)) > 0.1 * np.std(y)
+
+
+def test_the_tails_tell_a_clipping_sensors_model_with_the_springs_dynamics_from_one_without() -> None:
+    """The rig's cubic spring reaches y through mass 1's dynamics, as y[t-2]³, y[t-3]³, y[t-4]³
+    whose coefficients nearly cancel; a model holding only their sum, as y[t-1]³, is its static
+    part. On a tail that begins on a plateau (200 N of unmeasured force), both run from there
+    made the first figure lower and the comparison could not tell them apart, and the loop,
+    judging its rounds and pruning so, returned the static part and ran free over another
+    record ten times as far off as the rig's model. Both run from the first readings clear of
+    the plateau, the exact model is the better beyond the comparison's uncertainty."""
+    exact, x, y, start = on_a_plateau(seed=3, disturbance=200.0)
+    theta = exact.theta
+    static = NARX(
+        parse_terms(["y[t-1]", "y[t-2]", "y[t-3]", "y[t-4]", "y[t-1]^3", "x[t-4]"]),
+        np.concatenate((theta[:4], [theta[4:7].sum()], theta[7:])),
+        np.zeros((6, 6)),
+        output_limits=exact.output_limits,
+        saturation="sensor",
+    )
+    tail = (x[start : start + 400], y[start : start + 400], start)
+    held_out = compare_on_tails(static, exact, [tail], heads=[(x[:start], y[:start])])
+    assert held_out.better, held_out
+    assert held_out.refined_rms < 0.2 * held_out.start_rms
 
 
 def wiener_hammerstein(seed: int, n: int, hammerstein: bool = False) -> tuple[np.ndarray, np.ndarray]:

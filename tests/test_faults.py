@@ -34,7 +34,12 @@ from service.config import Settings
 from service.jobs.distributed import conninfo
 from service.migrate import upgrade_database
 
-FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3"}
+# A worker silent for 3 s is stalled, and the sweep that runs its jobs again looks every second.
+FAST_FAILOVER = {
+    "worker_heartbeat_seconds": "0.5",
+    "worker_stalled_seconds": "3",
+    "worker_sweep_seconds": "1",
+}
 
 
 @pytest.fixture

@@ -40,3 +40,18 @@ def test_no_instruments_are_made_from_a_model_whose_free_run_diverges() -> None:
     x, y = noisy_record(12)
     unstable = replace(fit_narx([(x, y)], TERMS), theta=np.array([2.5, -1.0, 1.0]))
     assert fit_instrumental(unstable, [(x, y, 0)]) is None
+
+
+def test_a_clipping_sensors_instruments_read_only_the_equations_clear_of_its_limits() -> None:
+    """The system above, noise-free, read through a sensor that clips at half its output's
+    range: the equations clear of the plateaus are exact, and the estimate from them is the
+    system; on the plateaus the reading is not the output, and equations holding them bias it."""
+    rng = np.random.default_rng(13)
+    x = rng.standard_normal(4000)
+    clean = signal.lfilter([0.0, TRUE[2]], [1.0, -TRUE[0], -TRUE[1]], x)
+    limits = (-0.5 * np.max(np.abs(clean)), 0.5 * np.max(np.abs(clean)))
+    y = np.clip(clean, *limits)
+    sensor = fit_narx([(x, y)], TERMS, output_limits=limits, saturation="sensor")
+    estimate = fit_instrumental(sensor, [(x, y, 0)])
+    assert estimate is not None and estimate.output_limits == limits
+    np.testing.assert_allclose(estimate.theta, TRUE, atol=1e-8)

@@ -50,9 +50,12 @@ def test_a_circle_is_found() -> None:
     assert ["p.a", "p.b", "p.c", "p.a"] in import_cycles(graph)
 
 
-@pytest.mark.parametrize("entry_point", ["service.cli", "simulator.client"])
+# A command whose module loads numpy: `narxwatch --help` would load every command's, seconds more.
+@pytest.mark.parametrize(
+    ("entry_point", "args"), [("service.cli", ["simulate", "--help"]), ("simulator.client", ["--help"])]
+)
 @pytest.mark.parametrize(("given", "expected"), [({}, "1 1 1"), ({"OPENBLAS_NUM_THREADS": "3"}, "3 1 1")])
-def test_the_entry_points_ask_for_one_blas_thread_before_numpy_loads(entry_point, given, expected):
+def test_the_entry_points_ask_for_one_blas_thread_before_numpy_loads(entry_point, args, given, expected):
     """Importing the packages sets nothing and loads no numpy; the console scripts' ``main`` sets
     one thread for each BLAS the user left alone, before a command loads numpy (BLAS reads the
     variables then, once). In a fresh process, as a console script starts."""
@@ -61,7 +64,7 @@ def test_the_entry_points_ask_for_one_blas_thread_before_numpy_loads(entry_point
         import models, recordfiles, service, simulator, {entry_point}
         assert not set({VARIABLES!r}) - set({list(given)!r}) & set(os.environ), "an import set them"
         assert "numpy" not in sys.modules, "numpy loaded before main could set the threads"
-        sys.argv = ["main", "--help"]
+        sys.argv = ["main", *{args!r}]
         try:
             {entry_point}.main()
         except SystemExit:
@@ -73,3 +76,25 @@ def test_the_entry_points_ask_for_one_blas_thread_before_numpy_loads(entry_point
     run = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert run.stderr.strip().splitlines()[-1] == expected
+
+
+# scipy's submodules the science uses in a few functions each, which scipy loads on first use
+# (``scipy.signal.lfilter``): with what they import in turn (interpolate, sparse, …), the most of
+# scipy a process can start without.
+ON_USE = ("scipy.signal", "scipy.stats", "scipy.optimize", "scipy.ndimage", "scipy.fft", "scipy.io")
+
+
+def test_the_service_s_processes_start_without_the_scipy_they_load_on_use():
+    """`narxwatch serve` (its app, as each uvicorn worker imports it) and `narxwatch worker` (both
+    job backends) import the whole service and the science it names, but none of ``ON_USE``: a
+    process that never filters a signal, designs a chart or reads a MAT file does not load them.
+    In a fresh process, as each starts."""
+    child = textwrap.dedent(f"""
+        import sys
+        import service.api.app, service.cli.server, service.jobs.embedded, service.jobs.distributed
+        assert "models.inspection" in sys.modules and "scipy.linalg" in sys.modules
+        print(*sorted(set({ON_USE!r}) & set(sys.modules)))
+    """)
+    run = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == []

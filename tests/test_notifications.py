@@ -83,6 +83,8 @@ FAST = {
     "smtp_starttls": "false",
     # An hour: no alarm is due again while a test runs unless the test moves its opening back.
     "renotify_after_seconds": "3600",
+    # `narxwatch worker`'s sweep, which defers each delivery due (a retry too), every second.
+    "worker_sweep_seconds": "1",
 }
 FAST_FAILOVER = {"worker_heartbeat_seconds": "0.5", "worker_stalled_seconds": "3"}
 

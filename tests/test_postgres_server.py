@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import uuid
+from pathlib import Path
+
+import psycopg
 import pytest
 from sqlalchemy import Engine, create_engine, text
 from sqlalchemy.engine import make_url
 
-from harness import postgres
+from harness import migrated, postgres
 
 
 @pytest.fixture(scope="module")
@@ -74,3 +78,25 @@ def test_reset_database_drops_everything(postgres_url: str, engine: Engine) -> N
     with engine.connect() as conn:
         tables = conn.execute(text("select tablename from pg_tables where schemaname = 'public'")).all()
     assert tables == []
+
+
+def test_the_session_server_keeps_its_files_in_memory_where_the_machine_has_a_tmpfs(engine: Engine) -> None:
+    """Nothing of it is kept: its files, the tests' template copies among them, are written to
+    a tmpfs and deleted from it, never to a disk."""
+    with engine.connect() as conn:
+        data = Path(conn.execute(text("show data_directory")).scalar_one())
+    assert data.is_relative_to(postgres.MEMORY) == postgres.in_memory_room(), data
+
+
+def test_a_copy_of_the_migrated_template_is_not_written_to_the_wal(postgres_url: str) -> None:
+    """``harness.migrated`` copies the template's files: the write-ahead log grows by a few
+    records, not by the copy's blocks (PostgreSQL's default since 15, slower for many copies)."""
+    migrated.postgresql(postgres_url, f"wal_{uuid.uuid4().hex[:12]}")  # the template made first
+    with psycopg.connect(postgres.conninfo(postgres_url), autocommit=True) as conn:
+        before = conn.execute("SELECT pg_current_wal_lsn()").fetchone()[0]
+        copy = migrated.postgresql(postgres_url, f"wal_{uuid.uuid4().hex[:12]}")
+        written, size = conn.execute(
+            "SELECT pg_wal_lsn_diff(pg_current_wal_lsn(), %s), pg_database_size(%s)",
+            (before, copy.rsplit("/", 1)[1]),
+        ).fetchone()
+    assert written < size / 10, f"{written} bytes of WAL for a copy of {size} bytes"

@@ -50,6 +50,9 @@ from service.tables import (
 )
 
 T0 = dt.datetime(2026, 11, 21, 10, 7, 30, tzinfo=dt.UTC)
+# `narxwatch worker` processes on PostgreSQL: Procrastinate's sweeps every second (the setting;
+# the default is 2 s), so that a due schedule waits less for its run.
+SWEEP_EVERY_SECOND = {"worker_sweep_seconds": "1"}
 
 
 def schedules_url(structure_id: int) -> str:
@@ -361,7 +364,10 @@ def test_three_workers_run_a_due_schedule_once(empty_database: str, tmp_path: Pa
     that both read it as due are the domain's test above: one claim wins.)"""
     settings = Settings(database_url=empty_database, embedded_worker=False)
     # The workers first: their start-up goes on while the server starts and the model is trained.
-    with workers(empty_database, 3, tmp_path) as running, LiveServer(settings) as server:
+    with (
+        workers(empty_database, 3, tmp_path, **SWEEP_EVERY_SECOND) as running,
+        LiveServer(settings) as server,
+    ):
         org = Org.create(server)
         with clients(org) as (admin, ingest, viewer):
             sid = create_structure(admin)["id"]
@@ -379,9 +385,35 @@ def test_three_workers_run_a_due_schedule_once(empty_database: str, tmp_path: Pa
             # had a sweep deferred one, is in the queue's table by now.
             wait_for(lambda: jobs_ended(admin), 60, "jobs still waiting or running")
             found = verdicts(viewer, sid)
+        if empty_database.startswith("postgresql"):
+            wait_for(lambda: swept_a_second_apart(empty_database), 30, "no two sweeps a second apart")
         assert all(worker.alive() for worker in running), [w.output()[-2000:] for w in running]
     assert sorted(v["record_id"] for v in found if v["record_id"] in pending) == pending
     assert run_schedule_count(empty_database, schedule["id"]) == 1
+
+
+def swept_a_second_apart(database_url: str) -> bool:
+    """Procrastinate's periodic deferrer queued the schedules' sweep for two consecutive seconds
+    (its jobs carry the second they were due at): the workers sweep at the period they were
+    given, not at the default's even seconds."""
+    query = (
+        "SELECT DISTINCT CAST(args->>'timestamp' AS BIGINT) FROM procrastinate_jobs "
+        "WHERE task_name = 'sweep_schedules'"
+    )
+    engine = make_engine(database_url)
+    with engine.connect() as connection:
+        seconds = set(connection.execute(text(query)).scalars())
+    engine.dispose()
+    return any(second + 1 in seconds for second in seconds)
+
+
+@pytest.mark.parametrize("seconds", [0, 7, 61])
+def test_a_sweep_period_that_is_not_a_divisor_of_a_minute_is_refused(seconds: int):
+    """Procrastinate's cron of seconds restarts each minute: a period of 7 s would sweep 4 s
+    apart across each minute's end."""
+    with pytest.raises(ValueError, match="worker_sweep_seconds"):
+        Settings(worker_sweep_seconds=seconds)
+    assert Settings(worker_sweep_seconds=60).worker_sweep_seconds == 60
 
 
 def sweeping(worker: Worker) -> bool:

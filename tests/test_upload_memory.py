@@ -243,7 +243,9 @@ def test_a_parse_waiting_beyond_its_bound_is_a_503_with_retry_after(tmp_path: Pa
         async def both() -> list[httpx.Response]:
             async with httpx.AsyncClient(base_url=server.url, headers=admin.headers, timeout=60) as client:
                 first = asyncio.create_task(client.post(path, content=large, headers=headers))
-                await asyncio.sleep(0.1)  # the first body has arrived and its parse begun
+                async with asyncio.timeout(30):  # until the first body's parse has begun
+                    while not server.app.state.uploads.running():
+                        await asyncio.sleep(0.01)
                 second = client.post(path, content=b"x,y\n1,abc\n", headers=headers)
                 return list(await asyncio.gather(first, second))
 

@@ -85,6 +85,10 @@ class Uploads:
         self.wait = wait
         self._semaphore = anyio.Semaphore(limit)  # tied to the serving event loop at its first use
 
+    def running(self) -> int:
+        """The uploads being worked on now."""
+        return self.limit - self._semaphore.value
+
     async def run(self, upload: Callable[[], Result]) -> Result:
         """``upload()`` on a worker thread, in one of the slots."""
         try:

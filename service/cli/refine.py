@@ -17,6 +17,7 @@ holds one record, or one for each pair of signals when ``--x`` and ``--y`` name 
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -369,11 +370,31 @@ def _worker_start(command: int) -> None:
     """A worker's start. A terminal's Ctrl-C reaches the workers too: the command stops them,
     rather than each printing its own traceback (a worker is forked with it held off, and the
     one that came meanwhile is dropped as it is unblocked). A worker whose command ended without
-    stopping it (SIGTERM from ``timeout`` or a service manager, SIGKILL) leaves within a second,
-    where it would wait for work for ever."""
+    stopping it (SIGTERM from ``timeout`` or a service manager, SIGKILL) ends with it
+    (:func:`_end_with`), where it would wait for work for ever."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-    threading.Thread(target=_leave_when_orphaned, args=(command,), daemon=True).start()
+    _end_with(command)
+
+
+# prctl(2)'s option: the signal this process gets as the thread that forked it ends.
+PR_SET_PDEATHSIG = 1
+
+
+def _end_with(command: int) -> None:
+    """End this worker as ``command``, the process that forked it, ends: on Linux the kernel
+    kills it then (the pool forks its workers from the command's main thread, whose end is the
+    command's); elsewhere a thread looks for its parent every second. A command that ended
+    before the request was made is seen by the parent already being another."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        asked = libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+    except (AttributeError, OSError):  # no prctl: not Linux
+        asked = False
+    if not asked:
+        threading.Thread(target=_leave_when_orphaned, args=(command,), daemon=True).start()
+    if os.getppid() != command:
+        os._exit(1)
 
 
 def _leave_when_orphaned(command: int) -> None:

@@ -50,12 +50,11 @@ def serve(
     workers, the request-latency metrics are shared through files in PROMETHEUS_MULTIPROC_DIR: a
     fresh temporary folder, removed at exit, unless the variable names one.
     """
-    # Imported here, as the app is: the other commands of this module need neither.
+    # Imported here: the other commands of this module do not need it.
     import uvicorn
 
     from service import sealing
-    from service.api.protocol import HeaderTimeoutProtocol
-    from service.observability.metrics import MULTIPROCESS_DIR
+    from service.observability import MULTIPROCESS_DIR
 
     settings = get_settings()
     if not settings.upgrade_on_start:
@@ -80,7 +79,9 @@ def serve(
             host=host,
             port=port,
             workers=workers,
-            http=HeaderTimeoutProtocol,  # NARXWATCH_HEADER_TIMEOUT_SECONDS bounds each request's head
+            # NARXWATCH_HEADER_TIMEOUT_SECONDS bounds each request's head. Named, as the app is:
+            # imported where it serves, not in a supervisor of several workers, which needs neither.
+            http="service.api.protocol:HeaderTimeoutProtocol",
             # uvicorn kills a worker that does not answer its supervisor's ping within this time
             # (5 s by default): importing the app on a loaded machine, or a long numerical step
             # holding the GIL, can take longer than that without anything being wrong.

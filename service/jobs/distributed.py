@@ -3,9 +3,9 @@
 Any number of workers, on any machine that reaches the database. Procrastinate gives at-least-once
 execution and retries with exponential backoff (not for ``FINAL_ERRORS``, which fail at once;
 the last error of a job is kept in ``job_errors``); its periodic tasks, deferred once per tick
-however many workers run, sweep the schedules and hand back the jobs of workers that died (no
-heartbeat for ``worker_stalled_seconds``). The service itself only defers jobs, in the
-transaction of the request that asks for them.
+however many workers run, sweep the schedules and the notifications and hand back the jobs of
+workers that died (no heartbeat for ``worker_stalled_seconds``) every ``worker_sweep_seconds``.
+The service itself only defers jobs, in the transaction of the request that asks for them.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from typing import Any
 import procrastinate
 from procrastinate import JobContext, PsycopgConnector, RetryStrategy, SyncPsycopgConnector
 from procrastinate.jobs import Job as ProcrastinateJob
+from procrastinate.periodic import PeriodicRegistry
 from procrastinate.retry import RetryDecision
 from sqlalchemy import text
 from sqlalchemy.dialects.postgresql import insert
@@ -54,7 +55,6 @@ class RetryUnlessFinal(RetryStrategy):
 
 
 RETRY = RetryUnlessFinal(max_attempts=5, exponential_wait=2)  # waits 2, 4, 8, 16 s between attempts
-SWEEP_CRON = "* * * * * */2"  # croniter's sixth field is seconds: every 2 s
 KEEP_SUCCEEDED_HOURS = 1
 STATES = ("todo", "doing", "succeeded", "failed", "cancelled", "aborting", "aborted")
 # Procrastinate's states in the service's vocabulary (narxwatch cancels and aborts nothing).
@@ -143,7 +143,6 @@ for _task in TASKS:  # every task of the service, whichever backend runs it
     _declare(_task)
 
 
-@app.periodic(cron=SWEEP_CRON, periodic_id="sweep")
 @app.task(name="sweep_schedules", pass_context=True, queueing_lock="sweep_schedules")
 def sweep_schedules(context: JobContext, timestamp: int) -> None:
     sessions: sessionmaker[Session] = context.additional_context["sessions"]
@@ -152,7 +151,6 @@ def sweep_schedules(context: JobContext, timestamp: int) -> None:
         session.commit()
 
 
-@app.periodic(cron=SWEEP_CRON, periodic_id="notifications")
 @app.task(name="sweep_notifications", pass_context=True, queueing_lock="sweep_notifications")
 def sweep_notifications(context: JobContext, timestamp: int) -> None:
     """Announce again the open alarms due for it (``service.domain.renotify``), then defer a job
@@ -164,7 +162,6 @@ def sweep_notifications(context: JobContext, timestamp: int) -> None:
         notifications.sweep(session, defer)
 
 
-@app.periodic(cron="* * * * *", periodic_id="retention")
 @app.task(name="sweep_retention", pass_context=True, queueing_lock="sweep_retention")
 def sweep_retention(context: JobContext, timestamp: int) -> None:
     """Defer a pruning for each organisation due one (``service.domain.retention``): every
@@ -176,7 +173,6 @@ def sweep_retention(context: JobContext, timestamp: int) -> None:
         retention.sweep(session, defer, every, dt.datetime.fromtimestamp(timestamp, dt.UTC))
 
 
-@app.periodic(cron=SWEEP_CRON, periodic_id="stalled")
 @app.task(name="retry_stalled_jobs", pass_context=True, queueing_lock="retry_stalled_jobs")
 async def retry_stalled_jobs(context: JobContext, timestamp: int) -> None:
     """Jobs whose worker stopped sending heartbeats (killed, or cut off) run again."""
@@ -186,7 +182,6 @@ async def retry_stalled_jobs(context: JobContext, timestamp: int) -> None:
         await manager.retry_job(job)
 
 
-@app.periodic(cron="*/10 * * * *", periodic_id="prune")
 @app.task(name="prune_finished_jobs", pass_context=True, queueing_lock="prune_finished_jobs")
 async def prune_finished_jobs(context: JobContext, timestamp: int) -> None:
     """Succeeded jobs (the sweeps every few seconds among them) are kept an hour, then dropped;
@@ -196,6 +191,24 @@ async def prune_finished_jobs(context: JobContext, timestamp: int) -> None:
     await context.app.connector.execute_query_async(
         "DELETE FROM job_errors e WHERE NOT EXISTS (SELECT FROM procrastinate_jobs j WHERE j.id = e.job_id)"
     )
+
+
+def schedule_periodic(sweep_seconds: int) -> None:
+    """Register the periodic tasks with Procrastinate, the sweeps every ``sweep_seconds`` (the
+    ``worker_sweep_seconds`` setting). As a worker starts, not at import as ``app.periodic``'s
+    decorator would: the worker reads the registry when it starts its periodic deferrer, so the
+    period can be the settings' of the process. A new registry, as Procrastinate refuses a
+    task registered twice."""
+    app.periodic_registry = PeriodicRegistry()
+    sweep = f"* * * * * */{sweep_seconds}"  # croniter's sixth field is seconds
+    for task, cron, periodic_id in (
+        (sweep_schedules, sweep, "sweep"),
+        (sweep_notifications, sweep, "notifications"),
+        (retry_stalled_jobs, sweep, "stalled"),
+        (sweep_retention, "* * * * *", "retention"),
+        (prune_finished_jobs, "*/10 * * * *", "prune"),
+    ):
+        app.periodic(cron=cron, periodic_id=periodic_id)(task)
 
 
 LATENCIES = text(
@@ -291,6 +304,7 @@ class DistributedBackend:
         """Run a Procrastinate worker until SIGINT/SIGTERM or, with ``once``, until the queue is
         empty. A worker that loses the database stops; it is started again, after a backoff,
         for as long as this process runs (its unfinished jobs go back to the queue as stalled)."""
+        schedule_periodic(self._settings.worker_sweep_seconds)
         asyncio.run(self._supervise(once, concurrency))
 
     async def _supervise(self, once: bool, concurrency: int) -> None:

@@ -26,9 +26,9 @@ from sqlalchemy.orm import Session
 
 from service.domain.fleet import STATUSES
 from service.jobs.types import QueueStats
+from service.observability import MULTIPROCESS_DIR
 from service.tables import StructureState
 
-MULTIPROCESS_DIR = "PROMETHEUS_MULTIPROC_DIR"
 QUANTILES = (0.5, 0.95, 0.99)
 LATENCY_WINDOW = dt.timedelta(minutes=5)
 
