@@ -11,11 +11,11 @@ For every benchmark and output it prints the free-run RMS on the test records of
 - the refined model's terms (and moving-average noise terms);
 
 beside the figures published for the benchmark, and the time the loop took. Run from the
-project root (``--only silverbox`` etc. for one benchmark; ``--jobs`` benchmarks at once, each in
-its own process, the longest first: about 40 minutes with two on 2 cores, F-16's accelerations
-2 and 3 taking most of it)::
+project root (``--only silverbox`` etc. for one benchmark, repeated for several; ``--jobs``
+benchmarks at once, each in its own process, the longest first: about 40 minutes with two on 2
+cores, F-16's accelerations 2 and 3 taking most of it)::
 
-    .venv/bin/python -m bench.measured [--only NAME] [--jobs N]
+    .venv/bin/python -m bench.measured [--only NAME ...] [--jobs N]
 
 Protocols: Silverbox estimates on samples [40650, 105712) of SNLS80mV and tests on the arrow
 [100, 40575) and on the whole of Schroeder80mV, each free run started from 50 measured
@@ -108,6 +108,8 @@ ONLY = (
     "coupled-drives",
     "coupled-drives-prbs",
 )
+# The other excitations of F-16 and the drives run when named only.
+BY_DEFAULT = tuple(name for name in ONLY if name not in ("f16-multisine", "coupled-drives-prbs"))
 BENCH_PYTHON = Path(__file__).resolve().parents[1] / ".venv-bench" / "bin" / "python"
 
 
@@ -462,31 +464,33 @@ def rows(build: Callable[[], Benchmark]) -> list[tuple[str, ...]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--only", choices=ONLY, help="one benchmark only")
+    parser.add_argument(
+        "--only", choices=ONLY, action="append", help="this benchmark only (repeat for several)"
+    )
     parser.add_argument("--jobs", type=int, default=1, help="benchmarks run at once, each in a process")
     arguments = parser.parse_args()
-    only = arguments.only
+    only = set(arguments.only or BY_DEFAULT)
     # Longest first, so that the processes finish together; the table keeps this order.
     builders: list[Callable[[], Benchmark]] = []
-    if only in (None, "f16"):
+    if "f16" in only:
         builders += [partial(f16, output) for output in (3, 2, 1)]
-    if only == "f16-multisine":
+    if "f16-multisine" in only:
         builders += [partial(f16, output, multisine=True) for output in (3, 2, 1)]
-    if only in (None, "bouc-wen"):
+    if "bouc-wen" in only:
         builders.append(bouc_wen)
-    if only in (None, "wh"):
+    if "wh" in only:
         builders.append(wiener_hammerstein)
-    if only in (None, "silverbox"):
+    if "silverbox" in only:
         builders += [
             partial(silverbox, linear_terms(4, 4), "from linear:4,4"),
             partial(silverbox, linear_terms(10, 10), "from linear:10,10"),
             partial(silverbox, None, "orders chosen"),
         ]
-    if only in (None, "dc-motor"):
+    if "dc-motor" in only:
         builders.append(dc_motor)
-    if only in (None, "coupled-drives"):
+    if "coupled-drives" in only:
         builders += [partial(coupled_drives, column) for column in (1, 2)]
-    if only == "coupled-drives-prbs":
+    if "coupled-drives-prbs" in only:
         builders += [partial(coupled_drives, column, prbs=True) for column in (1, 2, 3)]
     table = Table(title="Free-run RMS on the test records (output units; RRSE where named)")
     for column in COLUMNS:

@@ -85,6 +85,14 @@ RECTIFIED = "rectified"
 # friction at 0, quadratic damping at 2, cubic stiffness and damping at 3) and of the linear 1.
 STIFFNESS_EXPONENTS = (0.2, 2.6)
 DAMPING_EXPONENTS = (0.2, 1.8)
+# The integer laws of each power law's signal that a family names, by exponent: where one of these
+# explains the residual better than the law at its fitted exponent, beyond that exponent's
+# uncertainty, the effect is that family's (:func:`power_law_terms`).
+STIFFNESS_LAWS = (("cubic_stiffness", 3.0),)
+DAMPING_LAWS = (("coulomb_friction", 0.0), ("quadratic_damping", 2.0), ("cubic_damping", 3.0))
+# The level at which an integer law is told from a fitted exponent (a likelihood-ratio test of one
+# degree of freedom, :func:`integer_law_better`): the families' tests' level.
+EXPONENT_ALPHA = 0.01
 PROFILE_POINTS = 12
 # Rows a parameter search reads (the first ones): plenty to fix one parameter, or a few, to the
 # digits a term's name keeps, and a long record's search stays as quick as a short one's.
@@ -308,8 +316,10 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             "a restoring force or outflow ∝ |y|^p·sign y, p estimated: a tank draining through an orifice",
             (),
             "estimated",
-            functools.partial(power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, integer_above=True),
-            integer_laws=(("cubic_stiffness", 3.0),),
+            functools.partial(
+                power_law_terms, "y", lags_y, STIFFNESS_EXPONENTS, STIFFNESS_LAWS, integer_above=True
+            ),
+            integer_laws=STIFFNESS_LAWS,
             searched=1,
             kinked_law=True,
         ),
@@ -318,7 +328,7 @@ def _estimated_effects(lags_y: Sequence[int], x_lags: Sequence[int]) -> list[Eff
             "damping ∝ |dy|^p·sign dy, p estimated: flow through an orifice, turbulent drag",
             (),
             "estimated",
-            functools.partial(power_law_terms, "dy", lags_y, DAMPING_EXPONENTS),
+            functools.partial(power_law_terms, "dy", lags_y, DAMPING_EXPONENTS, DAMPING_LAWS),
         ),
         Effect(
             "input_dead_zone",
@@ -720,24 +730,75 @@ def power_law_terms(
     signal: str,
     lags: Sequence[int],
     exponents: tuple[float, float],
+    integers: Sequence[tuple[str, float]],
     search: SearchInput,
     integer_above: bool = False,
 ) -> tuple[Term, ...]:
     """|s[t-k]|^p·sign s[t-k] at each lag, s = y or dy, p in ``exponents`` estimated; none if
-    the model has such a law already (one exponent per law). With ``integer_above``, where an
-    integer law a family names lies just above the range (y's cubic above the stiffness law's),
-    none either where the best exponent is the range's end below it: the residual asks for a law
-    beyond the range, that family's, which the law at the end only imitates (on the rig with a
-    quadratic spring, nothing declared, a law at the end, p = 2.6, came in after the rig's cubic
-    and quadratic springs, the model complete, and the model ran free over another record more
-    than twice as far off)."""
+    the model has such a law already (one exponent per law), nor where an integer law of the
+    signal that a family names (``integers``) explains the residual better than the exponent found,
+    beyond that exponent's uncertainty (:func:`integer_law_better`): the effect is that law, its own
+    family's. With
+    ``integer_above``, where an integer law a family names lies just above the range (y's cubic
+    above the stiffness law's), none either where the best exponent is the range's end below it:
+    the residual asks for a law beyond the range, that family's, which the law at the end only
+    imitates (on the rig with a quadratic spring, nothing declared, a law at the end, p = 2.6,
+    came in after the rig's cubic and quadratic springs, the model complete, and the model ran
+    free over another record more than twice as far off)."""
     if _has(search.terms, signal, "spow"):
         return ()
 
     def build(p: float) -> tuple[Term, ...]:
         return tuple(Term((Factor(signal, k, function="spow", parameter=p),)) for k in lags)
 
-    return profile_search(build, exponents, search, open_above=integer_above)
+    found = profile_search(build, exponents, search, open_above=integer_above)
+    if not found or integer_law_better(signal, lags, found[0].factors[0].parameter, integers, search):
+        return ()
+    return found
+
+
+def integer_law_better(
+    signal: str,
+    lags: Sequence[int],
+    exponent: float | None,
+    integers: Sequence[tuple[str, float]],
+    search: SearchInput,
+) -> str | None:
+    """The family of the integer law (of ``integers``, by exponent; the one nearest the ``exponent``
+    fitted first) that explains the residual better than the law |s[t-k]|^p·sign s[t-k] of the
+    ``signal`` at the ``lags``, p the ``exponent`` (:func:`power_law_terms`), beyond the exponent's
+    uncertainty: the law with its exponent fixed at the integer leaves the residual's sum of
+    squares S_k where the fitted one leaves S, and n·ln(S/S_k) over the n rows the search read
+    exceeds the χ² quantile of one degree of freedom at ``EXPONENT_ALPHA`` (the likelihood-ratio
+    test of the exponent, Wilks); None where none does.
+
+    The range searched stops short of the integer laws, each its own family's; inside it the
+    fitted exponent is the profile's least, and no integer law beyond explains more. Where the
+    best exponent is an end of the range and the integer law beyond it explains more by more
+    than the exponent's uncertainty, the data reject every exponent of the range for that law:
+    the law at the end is the integer law seen through the search, a stand-in its own family,
+    scored beside it, names better (on the 2-DOF rig with Coulomb friction or quadratic damping
+    planted the damping law came in first at its range's end, 0.2 or 1.8, and the integer law
+    beside it a round or two later). Where the data cannot tell the two apart (Silverbox's
+    damping law at 1.8 and the quadratic law), the fitted law keeps its place."""
+    if exponent is None or not integers:
+        return None
+    x, y, unexplained = _unexplained(search)
+    rows = len(y) - search.lag
+    # The signal itself at each lag, raised here: an exponent of zero (the sign, Coulomb's law) is
+    # no term's parameter.
+    base, _ = regressor_matrix([Term((Factor(signal, k),)) for k in lags], x, y, search.lag)
+
+    def left(p: float) -> float:
+        return unexplained(np.sign(base) * np.abs(base) ** p)
+
+    fitted = left(exponent)
+    bound = float(scipy.stats.chi2.ppf(1 - EXPONENT_ALPHA, 1))
+    for name, integer in sorted(integers, key=lambda law: abs(law[1] - exponent)):
+        below = left(integer)
+        if below > 0 and rows * np.log(fitted / below) > bound:
+            return name
+    return None
 
 
 def input_play_terms(function: str, lags: Sequence[int], search: SearchInput) -> tuple[Term, ...]:

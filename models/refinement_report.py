@@ -253,7 +253,7 @@ class RefinementReport:
             "settled_from": list(result.settled_from),
             "amplitude_range": None if self.amplitude_range is None else self.amplitude_range.to_dict(),
             "notes": list(self.notes)
-            + _held_out_notes(result)
+            + held_out_notes(result)
             + _range_notes(self.amplitude_range, result)
             + _settled_notes(result)
             + _skipped_notes(self.tests),
@@ -292,7 +292,7 @@ def _held_out_dict(held_out: HeldOut) -> dict[str, Any]:
     }
 
 
-def _held_out_notes(result: Refinement) -> list[str]:
+def held_out_notes(result: Refinement) -> list[str]:
     """What the report says where the effects added could not be compared with the start on data
     no choice saw, or were and lost."""
     held_out = result.held_out

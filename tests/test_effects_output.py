@@ -16,6 +16,7 @@ from harness.rectified import rectified_drive
 from models.assessment import assess
 from models.checking import SETTLED_EVALUATIONS, free_run_rms
 from models.effects import (
+    EXPONENT_ALPHA,
     SearchInput,
     _search_part,
     candidate_effects,
@@ -521,6 +522,53 @@ def test_a_stiffness_law_at_its_ranges_end_below_the_cubic_is_not_offered() -> N
     assert law.find(SearchInput(x, y, cubic / np.std(cubic) + noise, declared, lag)) == ()
     found = law.find(SearchInput(x, y, contact / np.std(contact) + noise, declared, lag))
     assert found and found[0].factors[0].parameter == pytest.approx(1.5, abs=0.02), found
+
+
+@pytest.mark.parametrize(
+    ("spec", "integer"),
+    [
+        ("coulomb2=300", "coulomb_friction"),
+        ("quadratic_damping2=2000", "quadratic_damping"),
+        ("power_damping2=1000", None),
+    ],
+)
+def test_a_damping_law_at_its_ranges_end_that_an_integer_law_beyond_explains_better_is_not_offered(
+    spec: str, integer: str | None
+) -> None:
+    """The rig with Coulomb friction (a law of exponent 0), quadratic damping (2) or an orifice's
+    damping (½) on mass 2, 600 samples, the linear start's one-step residual. The damping law's
+    exponent is searched between the integer laws, 0.2 to 1.8: friction and quadratic damping
+    put its best at the range's end, where the integer law beyond it explains the residual
+    better beyond the exponent's uncertainty (the likelihood-ratio test of the exponent,
+    computed here by least squares on the start's regressors and the law's), and the family
+    offers nothing: the integer law's own family names the effect. The orifice's law is told
+    from every integer law, and offered at its exponent."""
+    record = simulate(Scenario(disturbance_std=200.0, effects=Effects.parse([spec])), 600, seed=1)
+    x, y = record.x, record.y
+    declared, lag = linear_terms(4, 4, 1), 5
+    Phi, target = regressor_matrix(list(declared), x, y, lag)
+    residual = target - Phi @ linalg.lstsq(Phi, target)[0]
+    (law,) = [effect for effect in candidate_effects(declared) if effect.name == "power_law_damping"]
+    assert law.find is not None
+    velocity, _ = regressor_matrix([Term((Factor("dy", k),)) for k in range(1, 5)], x, y, lag)
+
+    def left(p: float) -> float:  # the residual sum of squares with the law at exponent p beside the start
+        columns = np.hstack([Phi, np.sign(velocity) * np.abs(velocity) ** p])
+        columns /= np.linalg.norm(columns, axis=0)
+        return float(np.sum((target - columns @ linalg.lstsq(columns, target)[0]) ** 2))
+
+    bound = stats.chi2.ppf(1 - EXPONENT_ALPHA, 1)
+    found = law.find(SearchInput(x, y, residual, declared, lag))
+    integers = {"coulomb_friction": 0.0, "quadratic_damping": 2.0, "cubic_damping": 3.0}
+    if integer is None:
+        assert found, spec
+        exponent = found[0].factors[0].parameter
+        assert exponent == pytest.approx(0.5, abs=0.03)
+        assert all(target.size * np.log(left(k) / left(exponent)) > bound for k in integers.values())
+    else:
+        assert found == (), found
+        end = 0.2 if integers[integer] < 1 else 1.8
+        assert target.size * np.log(left(end) / left(integers[integer])) > bound
 
 
 def test_integer_powers_are_the_products_a_factor_computes_and_pow_to_its_rounding() -> None:

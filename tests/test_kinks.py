@@ -18,7 +18,7 @@ from models.kinks import (
 )
 from models.narx import NARX, fit_narx
 from models.refinement import Refinement, refine_records
-from models.refinement_report import _held_out_notes
+from models.refinement_report import held_out_notes
 from models.terms import Term
 from simulator.simulate import Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS
@@ -112,7 +112,7 @@ def test_the_report_says_why_a_model_holding_a_kinked_law_is_not_returned():
     held_out = HeldOut(
         320, 0.1, 0.01, 0.9, 0.5, kept=False, best_tried="power_law_stiffness", kinks_beyond=kinks
     )
-    (note,) = _held_out_notes(Refinement(start, start, held_out=held_out))
+    (note,) = held_out_notes(Refinement(start, start, held_out=held_out))
     reason = kinked_laws_reason(kinks)
     assert kinks == (POWER_LAW,) and POWER_LAW in reason and reason in note
 
