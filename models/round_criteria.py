@@ -19,7 +19,7 @@ from typing import NamedTuple, get_args
 import numpy as np
 
 from models.checking import CHECK_EVALUATIONS, CheckSplit, Matters, Structure, clears
-from models.effects import POLYNOMIAL, RECTIFIED, Effect, offset_terms, output_limits, unused
+from models.effects import OFFSET, POLYNOMIAL, RECTIFIED, Effect, offset_effect, output_limits, unused
 from models.narx import NARX, Saturation
 from models.refinement_report import Criterion, Stage
 from models.regression import Workers
@@ -673,7 +673,8 @@ def fall(after: float, before: float) -> float:
 
 
 def follow(effect: Effect, terms: tuple[Term, ...]) -> Effect:
-    """An output-shift effect brings the terms the current model's offset would."""
-    if effect.kind != "output_shift":
+    """The offset takes the current model's form (:func:`models.effects.offset_effect`): the terms
+    its offset would bring, or, in a model with no power of y, the cube it shows through."""
+    if effect.name != OFFSET:
         return effect
-    return Effect(effect.name, effect.description, offset_terms(terms), effect.kind)
+    return offset_effect(terms)

@@ -415,8 +415,7 @@ def score_columns(
         # the ratio of its powers) is counted among its first entry's parameters
         # (``Effect.searched``): a combination's one regressor, tested as one free column, passed
         # on clean records of a linear structure many times as often as the level allows.
-        law = bool(effect.integer_laws)
-        tested = _forward(columns, target, dof, level, rank, effect.kind == "terms" or law, effect.searched)
+        tested = _evidence_first(effect, columns, target, dof, level, rank)
     order, count, f_values, p_values, explained = tested
     chosen = order[:count]
     added = [label for i in chosen for label in labels[i]]
@@ -433,6 +432,24 @@ def score_columns(
         ranked=tuple(labels[i] for i in order),
     )
     return score, chosen, chosen_from[:, chosen]
+
+
+def _evidence_first(
+    effect: Effect, columns: np.ndarray, target: np.ndarray, dof: int, level: float, rank: bool
+) -> tuple[list[int], int, tuple[float, ...], tuple[float, ...], float]:
+    """:func:`_forward` on a family's columns; for one whose own evidence comes first
+    (``Effect.evidence_first``: its first column), that column alone where it passes its test,
+    else the others."""
+    if not effect.evidence_first or columns.shape[1] != 2:
+        law = bool(effect.integer_laws)
+        return _forward(columns, target, dof, level, rank, effect.kind == "terms" or law, effect.searched)
+    own = _forward(columns[:, :1], target, dof, level, rank)
+    if own[1]:
+        return own
+    order, count, f_values, p_values, explained = _forward(
+        columns[:, 1:], target, dof, level, rank, searched=effect.searched
+    )
+    return [i + 1 for i in order], count, f_values, p_values, explained
 
 
 def _candidates(
@@ -474,6 +491,9 @@ def _candidates(
         spanning, column = effect.combine(records, residual, terms, lag)
         if not spanning:
             return [], np.empty((len(residual), 0))
+        if effect.evidence_first:  # the constant first, tested alone (score_columns)
+            labels = [(Term().name,), tuple(t.name for t in spanning)]
+            return labels, np.column_stack([np.ones_like(column), column])
         return [tuple(t.name for t in spanning)], column[:, None]
     if effect.kind == "estimated" and effect.find is not None:
         # Parameters (a power, a width) estimated on the first record, tested on all.
