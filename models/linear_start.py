@@ -7,7 +7,7 @@ squares' bias does not buy needless orders, and a model the input barely drives 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import partial
 from typing import NamedTuple
 
@@ -63,22 +63,11 @@ def choose_linear(
     approximation of the nonlinearity), not by a new mode. A baseline to monitor a structure by
     wants the model that simulates best, ``margin`` 0.
 
-    **The constant.** An output at an operating point away from zero, its input about zero, is
-    reached by an ARX without a constant only through poles near one: a model that integrates
-    its own past, or one of needlessly high order. The orders chosen without a constant are
-    judged with one too; where it lowers their figure beyond the spread, every order is judged
-    with a constant as well and chosen among as above, the constant counted as one parameter
-    more; of the two starts so chosen, the one with the constant is taken where it
-    simulates better beyond ``margin`` and the spread, or as well and is smaller. On records
-    about zero the constant takes nothing off, and the start stays as it was without the second
-    set of fits.
+    **The constant.** The orders chosen without a constant are judged with one too, and every
+    order with one where it pays (:func:`_with_constant`).
 
-    **Plateaus.** Where the records' output plateaus at its range ends
-    (:func:`models.effects.output_limits`), every candidate is judged as a clipping sensor's
-    model: fitted on the equations clear of the plateaus and run free from readings clear of
-    them, its output clipped. Judged as plain linear models over a quarter of clipped readings,
-    every order of the rig ran free alike and a higher one was the start, leaving the loop no
-    room for the rig's cubic spring.
+    **Plateaus.** Where the records' output plateaus at its range ends, every candidate is
+    judged as a clipping sensor's model (:func:`_sensor_limits`).
 
     **Rectified.** With ``rectified``, every candidate is judged as a rectified model, its
     recursion read through a sensor of its magnitude (:mod:`models.narx`): the orders the
@@ -98,12 +87,6 @@ def choose_linear(
     # record of the rig, x[t-3]'s chance correlation with x[t-4] made ARX(3, 3)'s input
     # coefficients pass at the loop's level alone.
     level = DEFAULT_ALPHA / (2 * len(orders))
-    # Where the readings plateau at their range ends, every candidate is judged as a clipping
-    # sensor's model (models.narx), fitted clear of the plateaus and run from readings clear of
-    # them: a linear model's free run scored against clipped readings, from a clipped start, is
-    # off by the clipping whatever its order, and its figures cannot tell the orders apart.
-    limits = None if rectified else output_limits(np.concatenate([y for _, y in records]))
-    saturating: Saturating | None = None if limits is None else (limits, "sensor")
     judge = partial(
         _driven_figures,
         folds,
@@ -112,23 +95,53 @@ def choose_linear(
         workers=workers,
         tell=tell,
         rectified=rectified,
-        saturating=saturating,
+        saturating=None if rectified else _sensor_limits(records),
     )
     spreads = np.array([_spread(fold.check) for fold in folds])
     smallest = partial(_smallest_driven, margin=margin, max_order=max_order, samples=samples, spreads=spreads)
     figures, admissible = judge([(n, d, False) for n, d in orders])
-    n, d, _ = chosen = smallest(figures, admissible)
+    n, d, constant = _with_constant(judge, smallest, orders, figures, smallest(figures, admissible))
+    return (n, n, d), linear_terms(n, n, d, constant=constant)
+
+
+def _with_constant(
+    judge: Callable[[list[_Linear]], tuple[dict[_Linear, _Judged], set[_Linear]]],
+    smallest: Callable[[dict[_Linear, _Judged], set[_Linear]], _Linear],
+    orders: list[tuple[int, int]],
+    figures: dict[_Linear, _Judged],
+    chosen: _Linear,
+) -> _Linear:
+    """The start ``chosen`` without a constant, or the orders chosen with one.
+
+    An output at an operating point away from zero, its input about zero, is reached by an ARX
+    without a constant only through poles near one: a model that integrates its own past, or one
+    of needlessly high order. The orders chosen without a constant are judged with one too; where
+    it lowers their figure beyond the spread, every order is judged with a constant as well and
+    chosen among as :func:`choose_linear` chooses, the constant counted as one parameter more; of
+    the two starts so chosen, the one with the constant is taken where it simulates better beyond
+    the margin and the spread, or as well and is smaller. On records about zero the constant
+    takes nothing off, and the start stays as it was without the second set of fits."""
+    n, d, _ = chosen
     constant, constant_admissible = judge([(n, d, True)])
-    if _lower_beyond_spread(constant[(n, d, True)].figure, figures[chosen].figure):
-        others = [(m, e, True) for m, e in orders if (m, e) != (n, d)]
-        more, more_admissible = judge(others)
-        constant |= more
-        with_constant = smallest(constant, constant_admissible | more_admissible)
-        # The two starts judged as the orders are: the one without a constant is kept unless the
-        # other simulates better beyond the margin, or as well and is smaller.
-        pair = {key: figures[key] if key == chosen else constant[key] for key in (chosen, with_constant)}
-        n, d, _ = chosen = smallest(pair, set(pair))
-    return (n, n, d), linear_terms(n, n, d, constant=chosen[2])
+    if not _lower_beyond_spread(constant[(n, d, True)].figure, figures[chosen].figure):
+        return chosen
+    more, more_admissible = judge([(m, e, True) for m, e in orders if (m, e) != (n, d)])
+    constant |= more
+    with_constant = smallest(constant, constant_admissible | more_admissible)
+    pair = {key: figures[key] if key == chosen else constant[key] for key in (chosen, with_constant)}
+    return smallest(pair, set(pair))
+
+
+def _sensor_limits(records: Records) -> Saturating | None:
+    """The sensor's limits where the records' output plateaus at its range ends
+    (:func:`models.effects.output_limits`): every candidate is then judged as a clipping sensor's
+    model (:mod:`models.narx`), fitted on the equations clear of the plateaus and run free from
+    readings clear of them, its output clipped. A linear model's free run scored against clipped
+    readings, from a clipped start, is off by the clipping whatever its order: over a quarter of
+    clipped readings every order of the rig ran free alike and a higher one was the start,
+    leaving the loop no room for the rig's cubic spring."""
+    limits = output_limits(np.concatenate([y for _, y in records]))
+    return None if limits is None else (limits, "sensor")
 
 
 # A linear candidate of :func:`choose_linear`: its order n, input delay d, and whether it has a
