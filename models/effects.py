@@ -512,16 +512,8 @@ def offset_cube(
         remaining = part - columns @ weights
         return float(remaining @ remaining), weights
 
-    grid = np.linspace(float(np.min(y)), float(np.max(y)), PROFILE_POINTS)
-    values = [fitted(float(c))[0] for c in grid]
-    best = int(np.argmin(values))
-    refined = scipy.optimize.minimize_scalar(
-        lambda c: fitted(float(c))[0],
-        bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
-        method="bounded",
-        options={"xatol": 1e-3 * (grid[-1] - grid[0])},
-    )
-    c = float(refined.x) if refined.fun <= values[best] else float(grid[best])
+    c = _profile_least(lambda c: fitted(c)[0], float(np.min(y)), float(np.max(y)))
+    assert c is not None  # open below and above
     weights = fitted(c)[1]
     everywhere = np.concatenate(
         [(regressor_matrix(plain, xr, yr, lag)[0] - c) ** 3 @ weights for xr, yr in records]
@@ -692,19 +684,30 @@ def profile_search(
         return unexplained(columns)
 
     low, high = (np.log(bounds[0]), np.log(bounds[1])) if log_scale else bounds
+    p = _profile_least(at, low, high, open_above)
+    if p is None:
+        return ()
+    return build(float(f"{np.exp(p) if log_scale else p:.4g}"))
+
+
+def _profile_least(
+    at: Callable[[float], float], low: float, high: float, open_above: bool = False
+) -> float | None:
+    """The p in [``low``, ``high``] where ``at`` is least: a grid of ``PROFILE_POINTS``, then a
+    bounded scalar search between the best point's neighbours (the grid's best where the search
+    finds nothing lower). With ``open_above``, None where the grid's best is its high end."""
     grid = np.linspace(low, high, PROFILE_POINTS)
-    values = [at(p) for p in grid]
+    values = [at(float(p)) for p in grid]
     best = int(np.argmin(values))
     if open_above and best == len(grid) - 1:
-        return ()
+        return None
     refined = scipy.optimize.minimize_scalar(
-        at,
+        lambda p: at(float(p)),
         bounds=(grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]),
         method="bounded",
         options={"xatol": 1e-3 * (high - low)},
     )
-    p = float(refined.x) if refined.fun <= values[best] else float(grid[best])
-    return build(float(f"{np.exp(p) if log_scale else p:.4g}"))
+    return float(refined.x) if refined.fun <= values[best] else float(grid[best])
 
 
 def _unexplained(search: SearchInput) -> tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], float]]:
