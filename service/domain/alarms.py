@@ -647,7 +647,7 @@ def _apply(
             alarm.evaluated_through = max(alarm.evaluated_through, _moment(t.through))
             _end(session, structure, kept, key, "cleared", None)
         elif t.first is not None and t.quiet < rule.clear_after:
-            if isinstance(rule, CusumRule) and not _designable(rule, kept):
+            if isinstance(rule, CusumRule) and _design_refusal(rule, kept) is not None:
                 # The chart fired where it ran (a late record, the history replayed) but has
                 # stopped since: no alarm opens on a design that is gone (:func:`_stop_cusum`).
                 continue
@@ -666,20 +666,20 @@ def _stop_cusum(session: Session, structure: Structure, rules: list[AlarmRule], 
     open_alarms = [key for key, t in kept.tracks.items() if key.startswith("cusum ") and t.alarm is not None]
     if rule is None or not open_alarms:
         return
+    refusal = _design_refusal(rule, kept)
+    if refusal is not None:
+        for key in open_alarms:
+            _end(session, structure, kept, key, "rule_not_running", refusal)
+
+
+def _design_refusal(rule: CusumRule, kept: Kept) -> str | None:
+    """Why no CUSUM can be designed for the structure as it stands (:func:`cusum_design`); None
+    where one can."""
     try:
         cusum_design(rule, kept.modes, kept.share())
     except InputError as refusal:
-        for key in open_alarms:
-            _end(session, structure, kept, key, "rule_not_running", str(refusal))
-
-
-def _designable(rule: CusumRule, kept: Kept) -> bool:
-    """Whether a CUSUM can be designed for the structure as it stands (:func:`cusum_design`)."""
-    try:
-        cusum_design(rule, kept.modes, kept.share())
-    except InputError:
-        return False
-    return True
+        return str(refusal)
+    return None
 
 
 def _end(session: Session, structure: Structure, kept: Kept, key: str, how: str, note: str | None) -> None:
