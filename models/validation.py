@@ -5,7 +5,9 @@ For a NARX model with largest lag L, on a record of N samples:
 - one-step prediction ŷ[t|t−1] = φ[t]ᵀθ from measured lags, t = L … N−1;
 - k-step prediction ŷ[t|t−k]: measured outputs up to t−k, the model's own predictions
   after, driven by the measured input; defined for t = L+k−1 … N−1;
-- free run: simulation from the first L measured outputs, driven by x alone, t = L … N−1.
+- free run: simulation from the first L measured outputs, driven by x alone, t = L … N−1; a
+  clipping sensor's model starts from the first L readings clear of its limits instead
+  (:func:`models.narx.run_start`), as the loop's own free runs do.
 
 Each mode is summarised by RMS(y − ŷ) and NRMSE = RMS/std(y) over the samples it predicts,
 pooled over the records. A free run that diverges has infinite errors.
@@ -22,7 +24,7 @@ from numpy.typing import ArrayLike
 
 from models.correlation_tests import CorrelationTest, residual_autocorrelation
 from models.errors import InputError
-from models.narx import NARX
+from models.narx import NARX, run_start, sensor_limits
 from models.signals import checked_record, checked_records
 
 
@@ -132,13 +134,22 @@ def validate(
         predicted = {
             "one_step": (model.predict(x, y, t0), L),
             "k_step": (k_step_predictions(model, x, y, steps, t0)[L + steps - 1 :], L + steps - 1),
-            "free_run": (model.simulate(x, y[:L], t0)[L:], L),
+            "free_run": _free_run(model, x, y, t0),
         }
         for name, (values, start) in predicted.items():
             modes[name][0].append(y[start:])
             modes[name][1].append(values)
     summary = {name: _errors(np.concatenate(ys), np.concatenate(ps)) for name, (ys, ps) in modes.items()}
     return Validation(summary["one_step"], summary["k_step"], summary["free_run"], steps)
+
+
+def _free_run(model: NARX, x: np.ndarray, y: np.ndarray, t0: int) -> tuple[np.ndarray, int]:
+    """The free run over (x, y) and the sample it predicts from: a clipped reading is not the
+    system's output, and a run started from one rings through a lightly damped structure's
+    whole record."""
+    L = model.max_lag
+    start = run_start(y, L, sensor_limits(model))
+    return model.simulate(x[start - L :], y[start - L : start], t0 + start - L)[L:], start
 
 
 def _errors(measured: np.ndarray, predicted: np.ndarray) -> PredictionErrors:

@@ -35,6 +35,7 @@ from models.refinement import RefinementReport, refine_record, refine_records
 from models.round_criteria import DEFAULT_ALPHA
 from models.scoring import score_effects
 from models.terms import Factor, Term, bouc_wen, bouc_wen_step, max_lag, parse_terms, regressor_matrix
+from models.validation import validate
 from simulator.physics import PhysicalParameters
 from simulator.simulate import BOUC_WEN_BETA, BOUC_WEN_GAMMA, Effects, Scenario, simulate
 from simulator.theory import EXACT_TERMS, exact_narx
@@ -296,6 +297,17 @@ def test_a_sensor_models_free_run_starts_where_the_readings_are_the_systems_outp
     assert free_run_rms(exact, [part]) < 1e-9 * np.std(y)
     from_the_plateau = exact.simulate(part[0], part[1][:4])[4:] - part[1][4:]
     assert np.sqrt(np.mean(from_the_plateau**2)) > 0.1 * np.std(y)
+
+
+def test_validation_runs_a_sensors_model_free_from_the_readings_clear_of_its_limits() -> None:
+    """The held-out validation's free run (the bench's and `narxwatch select`'s) starts as the
+    loop's do: on a record that begins on the plateau the exact model, started clear of it,
+    reproduces the rest of the record and is scored over the samples it predicts from there."""
+    exact, x, y, start = on_a_plateau(seed=3, disturbance=0.0)
+    part_x, part_y = x[start : start + 400], y[start : start + 400]
+    free_run = validate(exact, [(part_x, part_y)], t0=start).free_run
+    assert free_run.rms < 1e-9 * np.std(y)
+    assert free_run.samples == part_y.size - run_start(part_y, exact.max_lag, exact.output_limits)
 
 
 def test_the_tails_tell_a_clipping_sensors_model_with_the_springs_dynamics_from_one_without() -> None:
