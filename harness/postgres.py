@@ -3,7 +3,8 @@
 ``postgres_server()`` runs ``initdb`` into a fresh temporary directory (in memory where the machine
 has a tmpfs, ``MEMORY``), starts the server on a free port of 127.0.0.1 (durability switched off:
 nothing here needs to survive a crash), creates an empty database and yields its SQLAlchemy URL. On
-exit the server is stopped and the directory deleted. It uses the server binaries of Debian's
+exit the server is stopped and the directory deleted; a watchdog does both if the test process dies
+without exiting (killed, or out of memory). It uses the server binaries of Debian's
 ``postgresql`` package (``/usr/lib/postgresql/<version>/bin``, newest version), falling back to
 ``initdb``/``pg_ctl`` on ``PATH``; ``bash scripts/ensure-postgres.sh`` installs them.
 
@@ -25,6 +26,7 @@ import shlex
 import shutil
 import socket
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -59,6 +61,19 @@ SERVER_SETTINGS = {
 # where the tmpfs has room for both pytest processes' servers: a container's is 64 MB by default.
 MEMORY = Path("/dev/shm")
 MEMORY_ROOM = 2 * 2**30  # bytes free on it at least
+
+
+# A server started with pg_ctl is detached: nothing stops it when the test process that started it
+# is killed, and it would keep its port, its memory and its tmpfs files until the machine restarts.
+# The watchdog waits on the test process's pidfd (no polling) and then stops the server and removes
+# its directory; a test process that exits normally has done both and ends the watchdog first.
+WATCHDOG = """
+import os, select, shutil, subprocess, sys
+parent, workdir, *stop = sys.argv[1:]
+select.select([os.pidfd_open(int(parent))], [], [])
+subprocess.run(stop, cwd=workdir, capture_output=True, timeout=60, check=False)
+shutil.rmtree(workdir, ignore_errors=True)
+"""
 
 
 class PostgresUnavailableError(RuntimeError):
@@ -245,8 +260,23 @@ def _pg_ctl_start(
     return runner.run([*command, "start"])
 
 
+def _stop_command(binaries: Binaries, data: Path, mode: str = "immediate") -> list[str]:
+    return [str(binaries.pg_ctl), "-D", str(data), "-m", mode, "-w", "-t", "30", "stop"]
+
+
 def _stop(binaries: Binaries, runner: _Runner, data: Path, mode: str = "immediate") -> None:
-    runner.run([str(binaries.pg_ctl), "-D", str(data), "-m", mode, "-w", "-t", "30", "stop"], timeout=60)
+    runner.run(_stop_command(binaries, data, mode), timeout=60)
+
+
+def _watchdog(binaries: Binaries, runner: _Runner, data: Path) -> subprocess.Popen[bytes] | None:
+    """The process that stops the server at ``data`` and removes its directory if this process
+    dies first (``WATCHDOG``); None where the system has no pidfds."""
+    if not hasattr(os, "pidfd_open"):
+        return None
+    stop = runner.command(_stop_command(binaries, data))
+    argv = [sys.executable, "-I", "-S", "-c", WATCHDOG, str(os.getpid()), str(data.parent), *stop]
+    # A session of its own: a signal to the test run's process group does not reach it.
+    return subprocess.Popen(argv, start_new_session=True, stdin=subprocess.DEVNULL)
 
 
 def conninfo(url: str) -> str:
@@ -320,9 +350,11 @@ def postgres_instance(database: str = DATABASE, durable: bool = False) -> Iterat
 
     workdir = _make_workdir(_running_as_root(), durable)
     data, log = workdir / "data", workdir / "server.log"
+    watchdog = None
     try:
         runner = _Runner(workdir)
         runner.give(workdir)
+        watchdog = _watchdog(binaries, runner, data)
         try:
             port = _start(binaries, runner, data, log, durable)
             admin = f"host={HOST} port={port} user={USER} dbname=postgres"
@@ -335,6 +367,9 @@ def postgres_instance(database: str = DATABASE, durable: bool = False) -> Iterat
                 _stop(binaries, runner, data)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
+        if watchdog is not None:
+            watchdog.kill()
+            watchdog.wait()
 
 
 @contextlib.contextmanager

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import socket
+import subprocess
+import sys
+import time
 import uuid
 from pathlib import Path
 
@@ -100,3 +104,38 @@ def test_a_copy_of_the_migrated_template_is_not_written_to_the_wal(postgres_url:
             (before, copy.rsplit("/", 1)[1]),
         ).fetchone()
     assert written < size / 10, f"{written} bytes of WAL for a copy of {size} bytes"
+
+
+SERVE_UNTIL_KILLED = """
+import sys, time
+from harness import postgres
+with postgres.postgres_instance() as server:
+    print(server.data.parent, server.port, flush=True)
+    time.sleep(600)
+"""
+
+
+def test_a_server_whose_test_process_is_killed_is_stopped_and_its_files_removed(postgres_url: str) -> None:
+    """pg_ctl detaches the server: without the watchdog a killed test run left it running, with
+    its port, memory and tmpfs files, until the machine restarted."""
+    process = subprocess.Popen(
+        [sys.executable, "-c", SERVE_UNTIL_KILLED],
+        cwd=Path(__file__).parents[1],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        workdir, port = process.stdout.readline().split()
+    finally:
+        process.kill()
+        process.wait()
+    deadline = time.monotonic() + 60
+    while (Path(workdir).exists() or _accepts(int(port))) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _accepts(int(port)), "the server outlived its test process"
+    assert not Path(workdir).exists(), "the server's files outlived its test process"
+
+
+def _accepts(port: int) -> bool:
+    with socket.socket() as probe:
+        return probe.connect_ex((postgres.HOST, port)) == 0
