@@ -45,6 +45,13 @@ COMPARISON_SAMPLES = 50
 # that on most blocks is then judged as if only that much better, while a block that goes the
 # other way keeps its full weight in the spread (:func:`_paired`).
 BLOCK_RATIO_CAP = 100.0
+# The first samples of each free run over a tail, left out of its blocks: started from the tail's
+# measured outputs, both models' free runs sit on them until their errors have built up, over
+# about the length these blocks are sized by (a free run's errors change over about that many
+# samples). There the two errors measure how well each predicts a few steps ahead, not how it
+# simulates, and a block of them can go the other way from every block after it. Left out only
+# where the tail keeps three blocks without them; the same samples for both models.
+WARM_UP = COMPARISON_SAMPLES
 
 
 @dataclass(frozen=True)
@@ -165,7 +172,7 @@ def compare_on_tails(
     )
     level = alpha / 2
     comparisons = [
-        _paired(_block_squares(start_errors, blocks), _block_squares(refined_errors, blocks), level),
+        one_run_comparison(start_errors, refined_errors, level),
         _paired(
             _restarted_squares(start, tails, heads, blocks, limits),
             _restarted_squares(refined, tails, heads, blocks, limits),
@@ -202,6 +209,26 @@ def comparison_blocks(segments: Segments) -> int:
     """How many blocks a comparison over ``segments`` cuts their errors into."""
     samples = sum(len(y) for _, y, _ in segments)
     return int(np.clip(samples // COMPARISON_SAMPLES, 3, COMPARISON_BLOCKS))
+
+
+def one_run_comparison(
+    start_errors: list[np.ndarray], refined_errors: list[np.ndarray], alpha: float
+) -> tuple[float, float]:
+    """The refined model's gain over the start and its threshold at level ``alpha`` (:func:`_paired`)
+    on the blocks of one free run over each tail, whose errors are ``start_errors`` and
+    ``refined_errors`` (:func:`models.checking.free_run_errors`, a list over the tails): each
+    tail's first ``WARM_UP`` errors left out where at least three blocks' worth stay (the
+    same tails for both models, by the longer of their two runs there), the rest cut into one
+    block for each ``COMPARISON_SAMPLES`` (3 to ``COMPARISON_BLOCKS``)."""
+    enough = WARM_UP + 3 * COMPARISON_SAMPLES
+    warm = [max(a.size, b.size) >= enough for a, b in zip(start_errors, refined_errors, strict=True)]
+    start_errors, refined_errors = (
+        [error[WARM_UP:] if cut else error for error, cut in zip(errors, warm, strict=True)]
+        for errors in (start_errors, refined_errors)
+    )
+    samples = sum(error.size for error in start_errors)
+    blocks = int(np.clip(samples // COMPARISON_SAMPLES, 3, COMPARISON_BLOCKS))
+    return _paired(_block_squares(start_errors, blocks), _block_squares(refined_errors, blocks), alpha)
 
 
 def _block_squares(errors: list[np.ndarray], blocks: int) -> np.ndarray:
