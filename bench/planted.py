@@ -133,8 +133,11 @@ class Run:
 
     @property
     def first_but_the_spring(self) -> bool:
-        """Whether the planted effect was named first, or second after the rig's own spring."""
-        rest = self.named[1:] if self.named[:1] == (RIG_SPRING,) else self.named
+        """Whether the planted effect was named first, or next after the rig's own spring (which
+        may enter over several rounds, each adding lags of it)."""
+        rest = self.named
+        while rest[:1] == (RIG_SPRING,):
+            rest = rest[1:]
         return bool(rest) and rest[0] == CASES[self.case].family
 
 

@@ -44,9 +44,9 @@ from __future__ import annotations
 
 import functools
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import scipy
@@ -640,6 +640,12 @@ def output_limits(y: np.ndarray) -> tuple[float, float] | None:
     low, high = float(np.min(y)), float(np.max(y))
     limits = (low if plateau(low) else -np.inf, high if plateau(high) else np.inf)
     return None if limits == (-np.inf, np.inf) or low == high else limits
+
+
+def records_output_limits(records: Iterable[tuple[Any, np.ndarray]]) -> tuple[float, float] | None:
+    """:func:`output_limits` of the outputs of all the ``(x, y)`` ``records`` together: one
+    sensor reads them all."""
+    return output_limits(np.concatenate([np.asarray(y, dtype=np.float64) for _, y in records]))
 
 
 def reads_magnitude(y: np.ndarray) -> bool:

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import special
 
-from models.effects import output_limits
+from models.effects import records_output_limits
 from models.narx import fitted_rows
 from models.scoring import Records
 from models.terms import Term, max_lag, stacked_regressors
@@ -72,7 +72,7 @@ def _block_significant(records: Records, terms: Sequence[Term], block: np.ndarra
     if not block.any() or block.all() or not usable:
         return True
     Phi, target, _ = stacked_regressors(list(terms), usable, lag)
-    limits = output_limits(np.concatenate([y for _, y in usable]))
+    limits = records_output_limits(usable)
     if limits is not None:
         kept = np.concatenate([fitted_rows(y, lag, limits, "sensor") for _, y in usable])
         Phi, target = Phi[kept], target[kept]

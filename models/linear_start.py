@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from models.checking import CheckSplit, Segments, Structure
-from models.effects import linear_terms, output_limits, reads_magnitude
+from models.effects import linear_terms, reads_magnitude, records_output_limits
 from models.errors import InputError
 from models.input_drive import feeds_through, input_drives
 from models.narx import NARX
@@ -140,7 +140,7 @@ def _sensor_limits(records: Records) -> Saturating | None:
     readings, from a clipped start, is off by the clipping whatever its order: over a quarter of
     clipped readings every order of the rig ran free alike and a higher one was the start,
     leaving the loop no room for the rig's cubic spring."""
-    limits = output_limits(np.concatenate([y for _, y in records]))
+    limits = records_output_limits(records)
     return None if limits is None else (limits, "sensor")
 
 

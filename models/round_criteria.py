@@ -19,7 +19,7 @@ from typing import NamedTuple, get_args
 import numpy as np
 
 from models.checking import CHECK_EVALUATIONS, CheckSplit, Matters, Structure, clears
-from models.effects import OFFSET, POLYNOMIAL, RECTIFIED, Effect, offset_effect, output_limits, unused
+from models.effects import OFFSET, POLYNOMIAL, RECTIFIED, Effect, offset_effect, records_output_limits, unused
 from models.narx import NARX, Saturation
 from models.refinement_report import Criterion, Stage
 from models.regression import Workers
@@ -119,7 +119,7 @@ def _with(score: EffectScore, question: Question) -> list[Structure]:
     terms."""
     kinds, current = question.kinds, question.current
     if kinds.get(score.name) == "saturation":
-        limits = output_limits(np.concatenate([y for _, y in question.records]))
+        limits = records_output_limits(question.records)
         if limits is None:
             return []
         return [replace(current, saturating=(limits, how)) for how in get_args(Saturation)]

@@ -35,9 +35,9 @@ from models.effects import (
     SearchInput,
     magnitude_direction,
     offset_direction,
-    output_limits,
     periodic_terms,
     reads_magnitude,
+    records_output_limits,
     saturation_direction,
 )
 from models.narmax import fit_narmax, invertible
@@ -471,7 +471,7 @@ def _candidates(
         lags = range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED)
         return [(f"e[t-{k}]",) for k in lags], _lagged(residual, lags, starts)
     if effect.kind == "saturation":  # one regressor, the clip of the one-step prediction
-        limits = output_limits(np.concatenate([y for _, y in records]))
+        limits = records_output_limits(records)
         if limits is None:
             return [], np.empty((len(residual), 0))
         label = f"output_limits({limits[0]!r},{limits[1]!r})"
