@@ -189,7 +189,7 @@ def test_record_json_over_npz_is_the_stored_verdict(trained: Trained):
 
 def test_scenario_iv_prints_a_line_per_run_and_a_tally(trained: Trained):
     before = len(verdicts(trained))
-    result = post(trained, "scenario", "IV", "--runs", "2", "--seed", "21", run=run_sim)
+    result = post(trained, "scenario", "IV", "--runs", "2", "--seed", "21")
     *lines, tally = result.stdout.splitlines()
     assert len(lines) == 2 and all(VERDICT_LINE.match(line) for line in lines)
     assert "(simulated k1 30 %, seed 21)" in lines[0] and "(simulated k1 30 %, seed 22)" in lines[1]
