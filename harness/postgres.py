@@ -232,6 +232,12 @@ def _start(binaries: Binaries, runner: _Runner, data: Path, log: Path, durable: 
     settings = {**SERVER_SETTINGS, "unix_socket_directories": f"'{workdir}'"}
     if durable:  # a server that is to be stopped under load keeps what it acknowledged
         settings.update(fsync="on", synchronous_commit="on", full_page_writes="on")
+        # A fast shutdown waits for the connections accepted while it runs to send their startup
+        # packet or time out: a client that connected then and never spoke (a narxwatch worker's
+        # connection attempt abandoned as it lost the database) held the stop for the default
+        # minute, past pg_ctl's wait (its backends cannot be signalled before they know their
+        # database). A client on loopback sends its packet as its connection opens.
+        settings["authentication_timeout"] = "'2s'"
     with (data / "postgresql.conf").open("a") as conf:
         conf.write("\n# throwaway test server (harness/postgres.py)\n")
         conf.writelines(f"{name} = {value}\n" for name, value in settings.items())
@@ -264,8 +270,10 @@ def _stop_command(binaries: Binaries, data: Path, mode: str = "immediate") -> li
     return [str(binaries.pg_ctl), "-D", str(data), "-m", mode, "-w", "-t", "30", "stop"]
 
 
-def _stop(binaries: Binaries, runner: _Runner, data: Path, mode: str = "immediate") -> None:
-    runner.run(_stop_command(binaries, data, mode), timeout=60)
+def _stop(
+    binaries: Binaries, runner: _Runner, data: Path, mode: str = "immediate"
+) -> subprocess.CompletedProcess[str]:
+    return runner.run(_stop_command(binaries, data, mode), timeout=60)
 
 
 def _watchdog(binaries: Binaries, runner: _Runner, data: Path) -> subprocess.Popen[bytes] | None:
@@ -321,8 +329,13 @@ class Server:
     port: int
 
     def stop(self, mode: str = "fast") -> None:
-        """``fast``: an operator's stop (sessions cut, work in flight rolled back); ``immediate``: a crash."""
-        _stop(self.binaries, self.runner, self.data, mode)
+        """``fast``: an operator's stop (sessions cut, work in flight rolled back); ``immediate``: a crash.
+
+        Raises when the server is still running after pg_ctl's wait: a test goes on only on a
+        server that is down."""
+        result = _stop(self.binaries, self.runner, self.data, mode)
+        if result.returncode != 0:
+            _fail(f"pg_ctl stop -m {mode} failed", result, self.log)
 
     def start(self) -> None:
         result = _pg_ctl_start(self.binaries, self.runner, self.data, self.log, self.port)

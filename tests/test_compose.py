@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from harness.cli import ENTRY_POINTS, invoke
 from harness.live import LiveServer
 from service.config import Settings
 
@@ -43,6 +44,13 @@ def in_container(command: list[str], mounts: dict[str, Path]) -> list[str]:
     for inside, outside in mounts.items():
         arguments = [a.replace(inside, str(outside)) for a in arguments]
     return [program, *arguments]
+
+
+def here(command: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``command`` (one without mounted paths) through its console script's entry point in this
+    process: what the container runs, without a new process's seconds of imports."""
+    assert command[0] in ENTRY_POINTS, f"{command[0]} is not a console script of this project"
+    return invoke(*command[1:], cwd=cwd, script=command[0], environ=env, check=False)
 
 
 def test_the_services_start_in_order_and_share_the_simulators_key(compose: dict):
@@ -99,6 +107,13 @@ def seeded(compose: dict, tmp_path_factory: pytest.TempPathFactory) -> Iterator[
     yield {"runs": runs, "url": url, "mounts": mounts, "key_file": folder / "keys" / "simulator.key"}
 
 
+@pytest.fixture(scope="module")
+def api(seeded: dict) -> Iterator[LiveServer]:
+    """The api service on the seeded database."""
+    with LiveServer(Settings(database_url=seeded["url"])) as server:
+        yield server
+
+
 def test_the_seed_service_seeds_the_demo_and_writes_and_prints_one_key(seeded: dict):
     first, second = seeded["runs"]
     key = seeded["key_file"].read_text().strip()
@@ -109,29 +124,25 @@ def test_the_seed_service_seeds_the_demo_and_writes_and_prints_one_key(seeded: d
     assert seeded["key_file"].read_text().strip() == key, "a restart keeps the key it made"
 
 
-def test_the_simulator_posts_with_the_key_the_seed_service_wrote(compose: dict, seeded: dict):
+def test_the_simulator_posts_with_the_key_the_seed_service_wrote(
+    compose: dict, seeded: dict, api: LiveServer, tmp_path: Path
+):
     simulator = compose["services"]["simulator"]
-    command = ["http://127.0.0.1" if part == "http://api:8000" else part for part in simulator["command"]]
+    command = [api.url if part == "http://api:8000" else part for part in simulator["command"]]
     command[command.index("--count") + 1] = "2"
     command[command.index("--every") + 1] = "0"
-    with LiveServer(Settings(database_url=seeded["url"])) as server:
-        command[command.index("--url") + 1] = server.url
-        env = {k: v for k, v in os.environ.items() if not k.startswith("NARXWATCH_")}
-        env["NARXWATCH_SIM_API_KEY_FILE"] = simulator["environment"]["NARXWATCH_SIM_API_KEY_FILE"]
-        for inside, outside in seeded["mounts"].items():
-            env["NARXWATCH_SIM_API_KEY_FILE"] = env["NARXWATCH_SIM_API_KEY_FILE"].replace(
-                inside, str(outside)
-            )
-        result = subprocess.run(
-            in_container(command, {}), env=env, capture_output=True, text=True, timeout=300
-        )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NARXWATCH_")}
+    env["NARXWATCH_SIM_API_KEY_FILE"] = simulator["environment"]["NARXWATCH_SIM_API_KEY_FILE"]
+    for inside, outside in seeded["mounts"].items():
+        env["NARXWATCH_SIM_API_KEY_FILE"] = env["NARXWATCH_SIM_API_KEY_FILE"].replace(inside, str(outside))
+    result = here(command, env, tmp_path)
     assert result.returncode == 0, result.stderr
     assert "stream: 2 records" in result.stdout, result.stdout
     assert len(re.findall(r"record \d+  (?:healthy|faulty|unknown)", result.stdout)) == 2, result.stdout
 
 
 def test_the_seed_service_says_how_to_make_an_admin_key_and_that_key_creates_structures(
-    compose: dict, seeded: dict
+    compose: dict, seeded: dict, api: LiveServer, tmp_path: Path
 ):
     """The seed's key is an ingest key, which cannot create a structure: its first start prints
     the command for an admin key, which docker-compose.yml's header gives as run in the api service."""
@@ -140,14 +151,9 @@ def test_the_seed_service_says_how_to_make_an_admin_key_and_that_key_creates_str
     assert printed not in second.stdout
     assert f"docker compose exec api {printed}" in (ROOT / "docker-compose.yml").read_text()
     env = {**os.environ, "NARXWATCH_DATABASE_URL": seeded["url"]}
-    made = subprocess.run(
-        in_container(printed.split(), {}), env=env, capture_output=True, text=True, timeout=120
-    )
+    made = here(printed.split(), env, tmp_path)
     assert made.returncode == 0, made.stderr
-    with (
-        LiveServer(Settings(database_url=seeded["url"])) as server,
-        server.client(made.stdout.strip()) as admin,
-    ):
+    with api.client(made.stdout.strip()) as admin:
         created = admin.post("/api/v1/structures", json={"name": "my rig", "fs": 1500.0})
         assert created.status_code == 201, created.text
         listed = admin.get("/api/v1/structures").json()

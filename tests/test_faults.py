@@ -6,13 +6,15 @@ from __future__ import annotations
 import collections
 import threading
 import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
 import psycopg
 import pytest
 
-from harness import migrated
+from harness import migrated, postgres
 from harness.api_helpers import (
     API,
     Org,
@@ -102,87 +104,129 @@ def inspections_ended(look: psycopg.Connection) -> bool:
 
 
 def registered_workers(database_url: str) -> int:
-    """The Procrastinate workers running on the database (each registers at its start)."""
+    """The Procrastinate workers running on the database: registered, and heard from within
+    the time after which a silent one is stalled (a worker that stopped when the database did
+    leaves its row until it is pruned)."""
+    query = (
+        "SELECT count(*) FROM procrastinate_workers WHERE last_heartbeat > now() - make_interval(secs => %s)"
+    )
     with psycopg.connect(conninfo(database_url), autocommit=True) as look:
-        return look.execute("SELECT count(*) FROM procrastinate_workers").fetchone()[0]
+        return look.execute(query, (float(FAST_FAILOVER["worker_stalled_seconds"]),)).fetchone()[0]
 
 
-@pytest.mark.parametrize("stop_mode", ["fast", "immediate"])
+STOP_MODES = ["fast", "immediate"]  # an operator's stop, and a crash
+RETRY_PAUSE = 0.1  # seconds an uploading client waits after a 503
+
+
+@dataclass
+class Restartable:
+    """A durable PostgreSQL server with the app and two workers on it, and a trained structure."""
+
+    database: postgres.Server
+    server: LiveServer
+    workers: list[Worker]
+    org: Org
+    structure_id: int
+
+
+@pytest.fixture(scope="module")
+def restartable(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Restartable]:
+    """One for both ways of stopping it: each test stops and restarts the server, and ends when
+    every upload it acknowledged is inspected, the workers alive; its uploads and verdicts are
+    its own records'."""
+    with postgres.postgres_instance("restart", durable=True) as database:
+        if database is None:
+            pytest.skip(f"PostgreSQL unavailable: {postgres.missing_reason()}")
+        folder = tmp_path_factory.mktemp("restart")
+        with (
+            LiveServer(Settings(database_url=database.url)) as server,
+            workers(database.url, 2, folder, **FAST_FAILOVER) as running,
+        ):
+            org = Org.create(server)
+            with clients(org) as (admin, ingest, _):
+                sid = create_structure(admin)["id"]
+                train_fault_mode(admin, ingest, sid, "k2", seed=93)
+            yield Restartable(database, server, running, org, sid)
+
+
+@pytest.fixture
+def restarted(restartable: Restartable) -> Iterator[Restartable]:
+    """``restartable``, running again after the test: one that failed while it was down does not
+    fail the next."""
+    yield restartable
+    if not (restartable.database.data / "postmaster.pid").exists():
+        restartable.database.start()
+
+
+@pytest.mark.parametrize("stop_mode", STOP_MODES)
 def test_postgresql_stopped_and_restarted_under_load_loses_no_acknowledged_upload(
-    tmp_path: Path, stop_mode: str
+    restarted: Restartable, stop_mode: str
 ):
     """While the database is down (stopped by an operator, or crashed) the API says so (503 on
     /readyz and on writes, never a 500); it recovers by itself, and every upload it acknowledged
     (202) is stored and inspected."""
-    from harness import postgres
+    database, server = restarted.database, restarted.server
+    org, sid = restarted.org, restarted.structure_id
+    with clients(org) as (_, ingest, viewer):
+        acknowledged: list[int] = []
+        answers: collections.Counter[int] = collections.Counter()
+        stop = threading.Event()
+        # Records of their own: one the other stop mode's test stored would be answered 200.
+        first_seed = STOP_MODES.index(stop_mode) * 10**7
 
-    with postgres.postgres_instance("restart", durable=True) as database:
-        if database is None:
-            pytest.skip(f"PostgreSQL unavailable: {postgres.missing_reason()}")
-        settings = Settings(database_url=database.url)
-        with LiveServer(settings) as server, workers(database.url, 2, tmp_path, **FAST_FAILOVER) as running:
-            org = Org.create(server)
-            with clients(org) as (admin, ingest, viewer):
-                sid = create_structure(admin)["id"]
-                train_fault_mode(admin, ingest, sid, "k2", seed=93)
-                acknowledged: list[int] = []
-                answers: collections.Counter[int] = collections.Counter()
-                stop = threading.Event()
+        def upload(thread: int) -> None:
+            with org.client("ingest") as client:
+                for seed in range(first_seed + thread * 10**6, first_seed + (thread + 1) * 10**6):
+                    if stop.is_set():
+                        return
+                    response = post_record(client, sid, json_body(600, seed=seed), inspect="queue")
+                    answers[response.status_code] += 1
+                    if response.status_code == 202:
+                        acknowledged.append(response.json()["id"])
+                    elif response.status_code == 503:
+                        # Told the service is unavailable, a client tries again a moment later:
+                        # answering a thousand 503s while it is down adds CPU, not a case.
+                        stop.wait(RETRY_PAUSE)
 
-                def upload(thread: int) -> None:
-                    with org.client("ingest") as client:
-                        for seed in range(10**6):
-                            if stop.is_set():
-                                return
-                            response = post_record(
-                                client, sid, json_body(600, seed=thread * 10**6 + seed), inspect="queue"
-                            )
-                            answers[response.status_code] += 1
-                            if response.status_code == 202:
-                                acknowledged.append(response.json()["id"])
+        # Both workers running (their start-up takes seconds; after a restart, their loop's):
+        # what the stop interrupts is their work, not their start, which the test below has.
+        wait_for(lambda: registered_workers(database.url) == 2, 60, "the workers are not both running")
+        load = [threading.Thread(target=upload, args=(i,)) for i in range(2)]
+        for thread in load:
+            thread.start()
+        # Under load: uploads acknowledged and their inspections queued, when it stops.
+        wait_for(lambda: len(acknowledged) >= 10, 60, "no uploads acknowledged")
+        before = len(acknowledged)
+        database.stop(stop_mode)
+        assert wait_for(lambda: server.client().get("/readyz").status_code == 503, 10, "/readyz still ready")
+        down = post_record(ingest, sid, json_body(600, seed=7), inspect="queue")
+        assert down.status_code == 503 and "database" in down.json()["detail"], down.text
+        # Down until the uploading clients have been answered 503 more than once: the load goes on.
+        wait_for(lambda: answers[503] >= 2, 30, "no upload was answered 503 while it was down")
+        database.start()
+        wait_for(lambda: server.client().get("/readyz").status_code == 200, 30, "no recovery")
+        during = len(acknowledged)
+        wait_for(lambda: len(acknowledged) > during + 20, 30, "uploads did not resume")
+        stop.set()
+        for thread in load:
+            thread.join(30)
+        assert set(answers) <= {202, 503}, answers
+        assert before > 0 and answers[503] > 0
+        pending = set(acknowledged)
 
-                # Both workers running (their start-up takes seconds): what the stop interrupts
-                # is their work, not their start, which the test below has on its own.
-                wait_for(lambda: registered_workers(database.url) == 2, 60, "the workers never came up")
-                load = [threading.Thread(target=upload, args=(i,)) for i in range(2)]
-                for thread in load:
-                    thread.start()
-                # Under load: uploads acknowledged and their inspections queued, when it stops.
-                wait_for(lambda: len(acknowledged) >= 10, 60, "no uploads acknowledged")
-                before = len(acknowledged)
-                database.stop(stop_mode)
-                assert wait_for(
-                    lambda: server.client().get("/readyz").status_code == 503, 10, "/readyz still ready"
-                )
-                down = post_record(ingest, sid, json_body(600, seed=7), inspect="queue")
-                assert down.status_code == 503 and "database" in down.json()["detail"], down.text
-                # Down until the uploading clients have been answered 503 more than once: the load goes on.
-                wait_for(lambda: answers[503] >= 2, 30, "no upload was answered 503 while it was down")
-                database.start()
-                wait_for(lambda: server.client().get("/readyz").status_code == 200, 30, "no recovery")
-                during = len(acknowledged)
-                wait_for(lambda: len(acknowledged) > during + 20, 30, "uploads did not resume")
-                stop.set()
-                for thread in load:
-                    thread.join(30)
-                assert set(answers) <= {202, 503}, answers
-                assert before > 0 and answers[503] > 0
-                pending = set(acknowledged)
+        def all_inspected() -> bool:
+            return pending <= {v["record_id"] for v in verdicts(viewer, sid)}
 
-                def all_inspected() -> bool:
-                    return pending <= {v["record_id"] for v in verdicts(viewer, sid)}
-
-                wait_for(all_inspected, 120, "acknowledged uploads without a verdict")
-                inspected = [v["record_id"] for v in verdicts(viewer, sid) if v["record_id"] in pending]
-                assert sorted(inspected) == sorted(pending), "a record got two verdicts"
-            assert all(worker.alive() for worker in running), [w.output()[-3000:] for w in running]
+        wait_for(all_inspected, 120, "acknowledged uploads without a verdict")
+        inspected = [v["record_id"] for v in verdicts(viewer, sid) if v["record_id"] in pending]
+        assert sorted(inspected) == sorted(pending), "a record got two verdicts"
+    running = restarted.workers
+    assert all(worker.alive() for worker in running), [w.output()[-3000:] for w in running]
 
 
 def test_a_worker_started_while_postgresql_is_down_waits_for_it_and_then_runs(tmp_path: Path):
     """A worker started while its database is stopped (a host booting, a server restarting)
     waits for it instead of exiting, then works: like a running worker that loses the database."""
-    from harness import postgres
-
     with postgres.postgres_instance("late") as database:
         if database is None:
             pytest.skip(f"PostgreSQL unavailable: {postgres.missing_reason()}")

@@ -169,40 +169,22 @@ def test_a_magnitude_the_record_cannot_determine_within_the_range_is_not_given()
     )
 
 
-def test_the_far_spring_is_given_no_magnitude(modes) -> None:
+def test_the_far_spring_is_given_no_magnitude_nor_a_sigma_k_a_perfect_model_could_not(modes) -> None:
     """The driving point barely feels the far spring (k3): its mode's interval spans most of its
-    range on every record, and no verdict gives it a magnitude."""
+    range on every record, and no verdict gives it a magnitude. Nor does the mode claim a σ̂_k
+    below what a perfect model of the chain would reach (:func:`harness.noisy_modes.perfect_sigma_k`):
+    a far spring's mode that took up the healthy point's misfit once claimed a slope hundreds of
+    times the spring's and a σ̂_k as many times below that bound, a 12 % loosening sized near 0
+    within a few hundredths (training set 52 000, since searched from a long ARX's fit as well:
+    it no longer does, with or without σ̂_k scaled by the mode's misses of its own experiments).
+    The near spring's σ̂_k is not scaled."""
     span = modes[1].model.basis.k_max - modes[1].model.basis.k_min
     verdicts = [
         inspect_free_run(x, y, modes, alpha=ALPHA)
         for _, x, y in faulty_records(4, 95_000, "k3", (13.0, 15.0))
     ]
-    assert all(
-        2 * stats.norm.ppf(1 - ALPHA / 2) * v.mode("k3").sigma_k > UNDETERMINED_SHARE * span for v in verdicts
-    )
-    assert not any(v.fault_mode == "k3" and v.interval is not None for v in verdicts)
-
-
-def test_a_mode_its_own_experiments_contradict_claims_no_sigma_k_a_perfect_model_could_not() -> None:
-    """A training set whose far-spring mode claims a slope its experiments contradict: k3's effect
-    on the driving point is less than the shared healthy point's misfit, and this set's k3 mode
-    claims a slope hundreds of times the spring's, its σ̂_k on a record as many times below what a
-    perfect model of the chain would reach (:func:`harness.noisy_modes.perfect_sigma_k`): a 12 %
-    loosening sized near 0 within an interval of a few hundredths, which would be given as the
-    record's magnitude. Refitted without each experiment, the mode misses that experiment's
-    magnitude by hundreds of its σ̂_k; its σ̂_k is scaled by that miss (the near spring's not), and
-    its interval then spans most of its range, so that no verdict would give it as a magnitude.
-    The slope stays the fit's: k̂ stays near 0, and the scaled interval reaches 12 % about as
-    often as not."""
-    modes = free_run_modes(seed=52_000)
-    bound = perfect_sigma_k("k3", SAMPLES)
-    verdicts = [
-        inspect_free_run(*record(scenario("k3", 12.0), SAMPLES, 92_000 + i), modes, alpha=ALPHA)
-        for i in range(3)
-    ]
     far = [v.mode("k3") for v in verdicts]
-    assert all(mode.sigma_k >= bound / 2 for mode in far)
-    span = modes[1].model.basis.k_max - modes[1].model.basis.k_min
+    assert all(mode.sigma_k >= perfect_sigma_k("k3", SAMPLES) / 2 for mode in far)
     assert all(2 * stats.norm.ppf(1 - ALPHA / 2) * mode.sigma_k > UNDETERMINED_SHARE * span for mode in far)
     assert not any(v.fault_mode == "k3" and v.interval is not None for v in verdicts)
     assert modes[0].scale == 1.0

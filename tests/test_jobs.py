@@ -162,7 +162,9 @@ def test_narxwatch_worker_runs_what_a_service_without_jobs_queued(tmp_path: Path
             body = npz_bytes(x=record.x, y=record.y, fs=record.fs)
             queued = post_record(ingest, sid, body, "application/x-npz", inspect="queue")
             assert queued.status_code == 202, queued.text
-            time.sleep(1.0)  # what an embedded worker would have needed
+            # The job is still queued when the worker comes (its start-up takes seconds, far
+            # longer than an embedded worker, woken by the upload, needs): "ran 1 job(s)" and no
+            # verdict before it, where an embedded worker would have left it none to run.
             assert verdicts_of(viewer, sid, queued.json()["id"]) == []
             result = subprocess.run(
                 [NARXWATCH, "worker", "--once"],

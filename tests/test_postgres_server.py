@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -139,3 +141,33 @@ def test_a_server_whose_test_process_is_killed_is_stopped_and_its_files_removed(
 def _accepts(port: int) -> bool:
     with socket.socket() as probe:
         return probe.connect_ex((postgres.HOST, port)) == 0
+
+
+def test_a_server_stopped_while_clients_connect_stops() -> None:
+    """A fast shutdown waits for each connection accepted while it runs until the client sends
+    its startup packet or the server's authentication timeout passes: a client that connected
+    then and never spoke (a narxwatch worker's connection attempt abandoned as it lost the
+    database) kept a server stopped under load running past pg_ctl's wait, and the test went on
+    as if it were down. Here clients keep connecting, and never speak, while it stops."""
+    with postgres.postgres_instance("stopping", durable=True) as server:
+        if server is None:
+            pytest.skip(f"PostgreSQL unavailable: {postgres.missing_reason()}")
+        held: list[socket.socket] = []
+        stopped = threading.Event()
+
+        def connect_and_say_nothing() -> None:
+            while not stopped.is_set():
+                with contextlib.suppress(OSError):
+                    held.append(socket.create_connection((postgres.HOST, server.port), timeout=1))
+                time.sleep(0.05)
+
+        connecting = threading.Thread(target=connect_and_say_nothing)
+        connecting.start()
+        try:
+            server.stop("fast")
+        finally:
+            stopped.set()
+            connecting.join()
+            for client in held:
+                client.close()
+        assert not (server.data / "postmaster.pid").exists() and not _accepts(server.port)

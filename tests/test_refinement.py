@@ -746,6 +746,22 @@ def hardening_mode(cubic: float, level: float, seed: int, n: int = 3000):
     return x, y + 0.3 * np.std(y) * rng.standard_normal(n), y
 
 
+@cache
+def across_folds(
+    cubic: float, shift: float, offered: tuple[str, ...]
+) -> tuple[Records, Refinement, tuple[str, ...]]:
+    """The mode at three levels, as F-16's sweeps (levels 1, 1.5 and 2, seeds 1 to 3), its readings
+    shifted by ``shift``, refined from linear:2,2 with the ``offered`` families alone; the stages
+    told. Made once a process: two tests read the spring's loop with its one family."""
+    records = [hardening_mode(cubic, level, seed) for level, seed in ((1.0, 1), (1.5, 2), (2.0, 3))]
+    estimation = [(x, y + shift) for x, y, _ in records]
+    declared = linear_terms(2, 2)
+    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
+    stages: list[str] = []
+    result = refine(estimation, declared, effects=families, progress=stages.append)
+    return estimation, result, tuple(stages)
+
+
 @pytest.mark.parametrize("cubic", [0.0, 0.01])
 def test_from_three_records_a_family_that_every_fold_simulates_better_is_added_across_folds(cubic):
     """Three records of the mode at three levels, as F-16's sweeps: least squares, biased by the
@@ -757,12 +773,8 @@ def test_from_three_records_a_family_that_every_fold_simulates_better_is_added_a
     output-error fit, both started from noise-free outputs (0.010 against 0.22). Without the
     spring nothing is added (none in five seeds tried; the spring in
     five of five)."""
-    records = [hardening_mode(cubic, level, seed) for level, seed in ((1.0, 1), (1.5, 2), (2.0, 3))]
-    estimation = [(x, y) for x, y, _ in records]
+    estimation, result, stages = across_folds(cubic, 0.0, ("cubic_stiffness",))
     declared = linear_terms(2, 2)
-    families = [effect for effect in candidate_effects(declared) if effect.name == "cubic_stiffness"]
-    stages: list[str] = []
-    result = refine(estimation, declared, effects=families, progress=stages.append)
     decided = [step.criterion for step in result.rounds if step.added is not None]
     assert stages[0] == "round 1: scoring 1 family"
     if cubic == 0.0:
@@ -815,11 +827,8 @@ def test_a_family_added_across_folds_is_fitted_on_all_the_records_as_the_folds_f
     on all the records, computed here independently. The loop used to search from whichever start
     simulated best, the first fold's fit among them: on F-16's acceleration 3 that ended 0.7 %
     lower on the estimation records and 60 % higher on the test sweep below their levels."""
-    records = [hardening_mode(0.01, level, seed) for level, seed in ((1.0, 1), (1.5, 2), (2.0, 3))]
-    estimation = [(x, y + shift) for x, y, _ in records]
+    estimation, result, _ = across_folds(0.01, shift, offered)
     declared = linear_terms(2, 2)
-    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
-    result = refine(estimation, declared, effects=families)
     added = [step for step in result.rounds if step.added]
     assert [step.criterion for step in added] == decided
     assert result.estimator == "output error"
@@ -1364,22 +1373,35 @@ def test_a_free_run_that_grows_without_bound_is_judged_diverged_though_finite():
     assert test["verdict"] == "diverged" and test["after"]["diverged"] and not test["before"]["diverged"]
 
 
+STIFFNESS_FAMILIES = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
+
+
+@cache
+def quadratic_spring_refined() -> tuple[Records, Refinement, tuple[str, ...]]:
+    """The rig's quadratic spring (1600 samples, seed 1) refined from linear:4,4 with the three
+    stiffness families alone, and the stages told: the loop two tests read, made once a process."""
+    record = simulate(
+        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
+    )
+    records = [(record.x, record.y)]
+    declared = linear_terms(4, 4, 1)
+    families = [effect for effect in candidate_effects(declared) if effect.name in STIFFNESS_FAMILIES]
+    told: list[str] = []
+    result = refine(records, declared, effects=families, progress=told.append)
+    return records, result, tuple(told)
+
+
 def test_a_term_that_a_later_addition_makes_redundant_is_pruned_and_the_report_names_it():
     """The rig's quadratic spring from linear:4,4: the cubic spring, added first, stands in for it
     with four terms; y[t-2]³ pays on the check blocks' free run until the quadratic spring is in,
     and not after. Pruned back after the rounds (Piroddi & Spinelli), it goes first, and the
     last round names what went; each round reports the candidates it compared, the gain it saw
     and the gain needed."""
-    record = simulate(
-        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
-    )
-    records = [(record.x, record.y)]
+    records, result, _ = quadratic_spring_refined()
+    ((x, y),) = records
     declared = linear_terms(4, 4, 1)
-    offered = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
-    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
-    result = refine(records, declared, effects=families)
     assert [effect.name for effect in result.effects_added] == ["cubic_stiffness", "quadratic_stiffness"]
-    report = RefinementReport(result, (compare(result, records, record.x, record.y, 0, None, 0),))
+    report = RefinementReport(result, (compare(result, records, x, y, 0, None, 0),))
     rounds = report.to_dict()["rounds"]
     assert [step["added"] for step in rounds] == ["cubic_stiffness", "quadratic_stiffness", None]
     *unpruned, (redundant, *_) = [parse_terms(step["pruned"]) if step["pruned"] else () for step in rounds]
@@ -1556,8 +1578,7 @@ def test_a_searched_law_does_not_stand_in_for_the_rigs_cubic_spring_and_a_contac
     blend. On the rig without its cubic spring the contact alone is named, though the cubic
     alone would be significant there too: beside the law it explains next to nothing."""
     declared = linear_terms(4, 4, 1)
-    offered = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
-    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
+    families = [effect for effect in candidate_effects(declared) if effect.name in STIFFNESS_FAMILIES]
 
     def refined(scenario: Scenario) -> Refinement:
         record = simulate(scenario, 1600, seed=1)
@@ -1588,14 +1609,7 @@ def test_a_round_counts_the_candidates_its_look_ahead_compared():
     (:func:`models.round_criteria.looked_ahead`). Every family judged on the check blocks is told as
     it is read; a round's candidates tried are all those told before the next round begins, the look
     ahead's among them."""
-    record = simulate(
-        Scenario(disturbance_std=200.0, effects=Effects(quadratic_stiffness2=3e5)), 1600, seed=1
-    )
-    declared = linear_terms(4, 4, 1)
-    offered = ("cubic_stiffness", "quadratic_stiffness", "power_law_stiffness")
-    families = [effect for effect in candidate_effects(declared) if effect.name in offered]
-    told: list[str] = []
-    result = refine([(record.x, record.y)], declared, effects=families, progress=told.append)
+    _, result, told = quadratic_spring_refined()
     judged = [0]
     for stage in told:
         if stage.startswith("round ") and ": scoring" in stage and "looked ahead" not in stage:

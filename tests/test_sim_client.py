@@ -189,7 +189,7 @@ def test_record_json_over_npz_is_the_stored_verdict(trained: Trained):
 
 def test_scenario_iv_prints_a_line_per_run_and_a_tally(trained: Trained):
     before = len(verdicts(trained))
-    result = post(trained, "scenario", "IV", "--runs", "2", "--seed", "21", run=run_sim)
+    result = post(trained, "scenario", "IV", "--runs", "2", "--seed", "21")
     *lines, tally = result.stdout.splitlines()
     assert len(lines) == 2 and all(VERDICT_LINE.match(line) for line in lines)
     assert "(simulated k1 30 %, seed 21)" in lines[0] and "(simulated k1 30 %, seed 22)" in lines[1]
@@ -629,22 +629,6 @@ def training_job(tenant: Tenant, structure_id: int) -> int:
     return wait_for(queued, 60, "the training's job")  # type: ignore[return-value]
 
 
-def queued_training(
-    server: LiveServer, tenant: Tenant, *wait: str, **upload: str
-) -> tuple[subprocess.Popen, int]:
-    """``train baseline --wait …`` as a process, running until its job is queued: the client and
-    the id of the job it follows."""
-    args, structure_id = training_command(tenant, *wait, **upload)
-    client = subprocess.Popen(
-        [SIM, *args],
-        env=sim_env(server.key(Role.admin, tenant.name), server.url),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    return client, training_job(tenant, structure_id)
-
-
 def waited_training(
     server: LiveServer, tenant: Tenant, meanwhile: Callable[[int], None], *wait: str, **upload: str
 ) -> tuple[subprocess.CompletedProcess[str], int]:
@@ -676,9 +660,8 @@ def waited_training(
 
 def test_train_wait_follows_the_queued_job_and_prints_the_version_it_made(queueing: LiveServer):
     tenant = Tenant.create(queueing)
-    client, job_id = queued_training(queueing, tenant)
-    run_jobs(queueing)
-    out, err = client.communicate(timeout=60)
+    client, job_id = waited_training(queueing, tenant, lambda _: run_jobs(queueing))
+    out, err = client.stdout, client.stderr
     assert client.returncode == 0, err
     job = tenant.admin.get(f"/api/v1/jobs/{job_id}").json()
     assert job["state"] == "done" and job["model"]["name"] == "baseline"
