@@ -54,9 +54,16 @@ reproduce: $(RUN_STAMP)
 
 # numba's kernels are compiled into their cache (harness/kernels.py) beside the site's build and
 # the checks, on the core they leave idle: in a fresh clone each pytest process would otherwise
-# compile them all at its start, both at once.
+# compile them all at its start, both at once. The project's own modules are compiled there first,
+# and the suite's processes may write bytecode (PYTHONDONTWRITEBYTECODE emptied, where the
+# environment sets it): the editable install's sources have no .pyc from the install, and each of
+# the hundred-odd processes the tests start (servers, workers, commands) would compile those it
+# imports again. The .pyc files go to __pycache__/ beside each module, which git ignores, as
+# pytest's rewritten test modules do.
+test: export PYTHONDONTWRITEBYTECODE =
 test: $(TEST_STAMP)
-	$(BIN)/python -m harness.kernels & compiling=$$!; \
+	{ $(BIN)/python -m compileall -q models recordfiles simulator service migrations harness \
+		&& $(BIN)/python -m harness.kernels; } & compiling=$$!; \
 	$(MAKE) --no-print-directory docs && $(BIN)/ruff check . && $(BIN)/lint-imports \
 		&& bash scripts/ensure-postgres.sh && bash scripts/ensure-chromium.sh; \
 	checked=$$?; wait $$compiling && exit $$checked

@@ -66,7 +66,7 @@ from models.round_criteria import (
     rectified_first,
     scored,
 )
-from models.scoring import EffectScore, Records, Scores, ScoringKept, first_row, fit_model
+from models.scoring import EffectScore, FitsOnAll, Records, Scores, ScoringKept, first_row, fit_model
 from models.signals import checked_records
 from models.terms import Term, max_degree, max_lag, parse_terms
 
@@ -87,6 +87,9 @@ class Grown(NamedTuple):
     # refined model where that is its estimator): a caller comparing the estimators takes it
     # from here rather than fitting it again.
     least_squares: NARX
+    # The least-squares fits on all the records the loop ran on that it made of its models (the
+    # rounds' scorings of a NARMAX), for a caller that fits one of them there again.
+    fits: FitsOnAll | None = None
 
 
 # The significant families judged on the check blocks in turn (:func:`models.round_criteria.judged_in_turn`).
@@ -294,7 +297,9 @@ def _grown(
     )
     start_check = checks.error(declared_structure, tuned=start_estimator == "output error")
     folded = (after.before_folds, tuple(after.grown_across_folds)) if after.grown_across_folds else None
-    return Grown(refinement, start, start_estimator, start_check, current, folded, least_squares)
+    return Grown(
+        refinement, start, start_estimator, start_check, current, folded, least_squares, loop.kept.fits
+    )
 
 
 def _rounds(

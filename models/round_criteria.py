@@ -23,7 +23,16 @@ from models.effects import OFFSET, POLYNOMIAL, RECTIFIED, Effect, offset_effect,
 from models.narx import NARX, Saturation
 from models.refinement_report import Criterion, Stage
 from models.regression import Workers
-from models.scoring import EffectScore, Records, Scores, ScoringKept, first_row, fit_model, score_effects
+from models.scoring import (
+    EffectScore,
+    FitsOnAll,
+    Records,
+    Scores,
+    ScoringKept,
+    first_row,
+    fit_model,
+    score_effects,
+)
 from models.terms import Term, max_lag, parse_terms
 
 # The significance level of the families' partial F tests, before the Bonferroni correction.
@@ -100,10 +109,15 @@ def scored(
     )
 
 
-def fitted_on_all(records: Records, structure: Structure) -> tuple[NARX, np.ndarray]:
-    """``structure``'s least-squares fit on all the ``records`` (:func:`models.scoring.fit_model`)."""
+def fitted_on_all(
+    records: Records, structure: Structure, fits: FitsOnAll | None = None
+) -> tuple[NARX, np.ndarray]:
+    """``structure``'s least-squares fit on all the ``records`` (:func:`models.scoring.fit_model`);
+    taken from ``fits``, the fits a loop made on these records, where it made this one, and kept
+    there otherwise."""
     lag = max_lag(structure.terms)
-    return fit_model(
+    fit = partial(
+        fit_model,
         records,
         structure.terms,
         structure.noise_lags,
@@ -111,6 +125,10 @@ def fitted_on_all(records: Records, structure: Structure) -> tuple[NARX, np.ndar
         saturating=structure.saturating,
         rectified=structure.rectified,
     )
+    if fits is None:
+        return fit()
+    key = (structure.terms, structure.noise_lags, lag, structure.saturating, structure.rectified)
+    return fits.fitted(key, fit)
 
 
 def _with(score: EffectScore, question: Question) -> list[Structure]:

@@ -61,10 +61,11 @@ def best_rounds_on_tails(grown: Grown, heads: Records, tails: Segments, refined_
     refined model, whose run over them was ``refined_rms`` (the comparison's,
     :attr:`models.held_out.HeldOut.refined_rms`), and every model between them
     (:func:`earlier_rounds`, the earliest of equals); None where the refined model ran lowest. Its
-    parameters by least squares on the heads, its check blocks' figure read again."""
+    parameters by least squares on the heads (the loop's records: the fits its rounds made there
+    are ``grown.fits``), its check blocks' figure read again."""
     lowest, best = refined_rms, None
     for later, structure in earlier_rounds(grown):
-        model, noise = fitted_on_all(heads, structure)
+        model, noise = fitted_on_all(heads, structure, grown.fits)
         rms = free_run_rms(model, tails, heads)
         if np.isfinite(rms) and rms < lowest:
             lowest, best = rms, (later, structure, model, noise)

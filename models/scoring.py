@@ -164,7 +164,8 @@ def score_effects(
     key = (tuple(terms), noise_lags, saturating, lag, alpha)
     model = kept.model(key) if kept is not None else None
     if model is None:
-        model = _model_scored(records, terms, noise_lags, lag, saturating)
+        fits = kept.fits if kept is not None else None
+        model = _model_scored(records, terms, noise_lags, lag, saturating, fits)
         if kept is not None:
             kept.keep(key, model)
     build = partial(
@@ -227,10 +228,16 @@ class _ModelScored:
 
 
 def _model_scored(
-    records: Records, terms: tuple[Term, ...], noise_lags: int, lag: int, saturating: Saturating | None
+    records: Records,
+    terms: tuple[Term, ...],
+    noise_lags: int,
+    lag: int,
+    saturating: Saturating | None,
+    fits: FitsOnAll | None = None,
 ) -> _ModelScored:
-    """The model's part of :func:`score_effects`, no family built yet."""
-    Phi, target, starts, inside = _model_equations(records, terms, noise_lags, lag, saturating)
+    """The model's part of :func:`score_effects`, no family built yet; ``fits`` as for
+    :func:`_model_equations`."""
+    Phi, target, starts, inside = _model_equations(records, terms, noise_lags, lag, saturating, fits)
     scale = column_norms(Phi)
     Q, R = linalg.qr(divided_columns(Phi, scale), mode="economic", overwrite_a=True)
     projection = Q.T @ target
@@ -247,6 +254,33 @@ def _model_scored(
         _lagged(residual, range(noise_lags + 1, noise_lags + 1 + NOISE_LAGS_OFFERED), starts), Q
     )
     return _ModelScored(Q, residual, every_row, inside, theta, n_obs - n_par, own_past)
+
+
+# What fixes a least-squares fit on a loop's records (:func:`fit_model`'s arguments but the
+# records): the terms, the moving-average order, the first row, the saturation and the rectifier.
+FitKey = tuple[tuple[Term, ...], int, int, Saturating | None, bool]
+
+
+class FitsOnAll:
+    """The least-squares fits (:func:`fit_model`) a loop made on all its records, by what fixes
+    each (:data:`FitKey`): a NARMAX's extended least squares on Silverbox's heads takes a fifth
+    of a second, and the comparison of the rounds' models on the held-out tails
+    (:mod:`models.rounds_on_tails`) asks again for those the rounds' scorings made. A model and
+    its noise coefficients a fit, kept for the loop's life; the records must stay the same (a
+    loop's own)."""
+
+    def __init__(self) -> None:
+        self._fits: dict[FitKey, tuple[NARX, np.ndarray]] = {}
+
+    def fitted(self, key: FitKey, fit: Callable[[], tuple[NARX, np.ndarray]]) -> tuple[NARX, np.ndarray]:
+        """The fit kept under ``key``, made by ``fit`` and kept where there is none."""
+        if key not in self._fits:
+            self._fits[key] = fit()
+        return self._fits[key]
+
+    def get(self, key: FitKey) -> tuple[NARX, np.ndarray] | None:
+        """The fit kept under ``key``, if one is."""
+        return self._fits.get(key)
 
 
 class ScoringKept:
@@ -267,6 +301,9 @@ class ScoringKept:
 
     def __init__(self) -> None:
         self._models: dict[tuple[Any, ...], _ModelScored] = {}
+        # The models' fits on all the records, kept beyond their scorings: small, and asked for
+        # again after the rounds.
+        self.fits = FitsOnAll()
 
     def model(self, key: tuple[Any, ...]) -> _ModelScored | None:
         """The model kept under ``key``, if it is kept (now the most recently asked for)."""
@@ -291,11 +328,17 @@ class ScoringKept:
 
 
 def _model_equations(
-    records: Records, terms: tuple[Term, ...], noise_lags: int, lag: int, saturating: Saturating | None
+    records: Records,
+    terms: tuple[Term, ...],
+    noise_lags: int,
+    lag: int,
+    saturating: Saturating | None,
+    fits: FitsOnAll | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The model's regressors and target on the rows t = lag … N−1 of each record that it is
     fitted on, each record's first of those rows (and the end), and which of every row they are;
-    with ``noise_lags``, the NARMAX's lagged innovations beside its regressors."""
+    with ``noise_lags``, the NARMAX's lagged innovations beside its regressors, its fit taken
+    from and kept in ``fits`` where given."""
     Phi, target, starts = stacked_regressors(terms, records, lag)
     # A saturating model's equations on (or, for a sensor, reading) its limits are left out; the
     # candidates are built on every row and masked alike.
@@ -305,7 +348,9 @@ def _model_equations(
         Phi, target = Phi[inside], target[inside]
         starts = np.concatenate(([0], np.cumsum([int(inside[a:b].sum()) for a, b in pairwise(starts)])))
     if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
-        process, noise = fit_model(records, terms, noise_lags, lag, saturating=saturating)
+        fit = partial(fit_model, records, terms, noise_lags, lag, saturating=saturating)
+        key = (tuple(terms), noise_lags, lag, saturating, False)
+        process, noise = fit() if fits is None else fits.fitted(key, fit)
         residual = target - Phi @ process.theta
         innovations = np.concatenate(
             [

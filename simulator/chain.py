@@ -23,7 +23,6 @@ from functools import cached_property
 from typing import Literal
 
 import numpy as np
-import scipy.linalg
 
 from models.errors import InputError
 from simulator.physics import UnstableSimulationError, check_pole_radius
@@ -148,6 +147,10 @@ class ChainParameters:
 
     def natural_frequencies(self) -> np.ndarray:
         """Undamped linear natural frequencies [Hz], ascending: eigenvalues of M⁻¹K."""
+        # Imported here: `narxwatch-sim` loads this module for its options, and most of its
+        # commands (and every record of the 2-DOF structure) never ask for the frequencies.
+        import scipy.linalg
+
         eigenvalues = scipy.linalg.eigh(self.stiffness_matrix(), np.diag(self.masses), eigvals_only=True)
         return np.sqrt(np.clip(eigenvalues, 0, None)) / (2 * np.pi)
 

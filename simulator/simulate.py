@@ -17,7 +17,6 @@ from typing import Protocol
 import numpy as np
 
 from models.errors import InputError
-from models.terms import play
 from simulator.physics import (
     FaultMode,
     PhysicalParameters,
@@ -131,6 +130,10 @@ class Effects:
         if self.dead_zone:
             force = force - np.clip(force, -self.dead_zone, self.dead_zone)
         if self.backlash:
+            # Imported here: models.terms loads numba, which a process that simulates no backlash
+            # (every `narxwatch-sim` and `narxwatch simulate` without it) need not load at start.
+            from models.terms import play
+
             force = play(force, self.backlash)
         return force
 

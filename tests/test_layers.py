@@ -98,3 +98,18 @@ def test_the_service_s_processes_start_without_the_scipy_they_load_on_use():
     run = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == []
+
+
+def test_the_simulation_commands_start_without_numba_or_scipy():
+    """`narxwatch-sim` (every command: its options name the simulator's scenarios) and `narxwatch
+    simulate` load neither numba (models.terms, for backlash alone) nor scipy (the chain's
+    natural frequencies alone) at start; the test suite and a demonstration start many of them.
+    In a fresh process, as each starts."""
+    child = textwrap.dedent("""
+        import sys
+        import simulator.client.commands, service.cli.simulate
+        print(*sorted(name for name in sys.modules if name.split(".")[0] in ("numba", "scipy")))
+    """)
+    run = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == []

@@ -1747,6 +1747,34 @@ def test_the_structure_a_look_ahead_chose_keeps_its_families_while_the_round_sco
     assert again == score_effects(records, chosen, 0, effects, 0.01)
 
 
+def test_a_narmax_fit_a_scoring_made_is_taken_by_a_later_fit_on_the_same_records_to_the_bit():
+    """Scoring a model with moving-average terms fits it by extended least squares on all the
+    records (the pseudo-linear regression's innovations); the loop keeps that fit
+    (``ScoringKept.fits``), and the comparison of the rounds' models on the held-out tails,
+    which fits each earlier round's structure on the same records, takes it from there rather
+    than making it again: the same model to the last bit as a fit made afresh. Another
+    structure's fit is made anew (and kept)."""
+    records, terms, effects, _ = _rig_less_its_spring_and_a_searched_family()
+    structure = Structure(terms, noise_lags=2)
+    kept = ScoringKept()
+    score_effects(records, terms, 2, effects[-1:], 0.01, kept=kept, lag=max_lag(terms))
+    fits = kept.fits
+    scoring_fit = fits.get((terms, 2, max_lag(terms), None, False))
+    assert scoring_fit is not None
+    made = fitted_on_all(records, structure, fits)
+    assert made is scoring_fit and fitted_on_all(records, structure, fits) is made  # not made again
+    fresh, noise = fitted_on_all(records, structure)
+    np.testing.assert_array_equal(made[0].theta, fresh.theta)
+    np.testing.assert_array_equal(made[0].covariance, fresh.covariance)
+    np.testing.assert_array_equal(made[1], noise)
+    other = replace(structure, noise_lags=1)
+    assert fits.get((terms, 1, max_lag(terms), None, False)) is None
+    np.testing.assert_array_equal(
+        fitted_on_all(records, other, fits)[0].theta, fitted_on_all(records, other)[0].theta
+    )
+    assert fits.get((terms, 1, max_lag(terms), None, False)) is not None
+
+
 def test_the_hysteresis_family_judged_on_its_free_run_is_judged_in_full_only_where_it_could_win():
     """Where the one-step criterion decided a round, the hysteresis family's ranked regressors are
     judged on the check blocks' free run (``output_state_by_simulation``): a structure whose run
