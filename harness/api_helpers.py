@@ -1,7 +1,8 @@
 """Shared set-up for the HTTP tests: structures, records, trained fault-mode models, and a check
 that a refused request left nothing behind.
 
-Everything goes through the API of a :class:`live.LiveServer`; nothing here touches the database.
+Everything goes through the API of a :class:`live.LiveServer`, but for the rows the refusal check
+reads from its database (``nothing_written``).
 """
 
 from __future__ import annotations
@@ -22,8 +23,10 @@ from typing import Any
 
 import httpx
 import numpy as np
+from sqlalchemy import select
 
 from harness.live import LiveServer
+from service.db import Base, transaction
 from service.security import Role
 from simulator.simulate import SimulatedRecord, simulate
 from simulator.study import StudySettings
@@ -280,22 +283,40 @@ def clients(org: Org) -> Iterator[tuple[httpx.Client, httpx.Client, httpx.Client
 # --- nothing half-written -------------------------------------------------------------------
 
 
-def _state(admin: httpx.Client, structure_id: int) -> dict[str, Any]:
-    def get(path: str) -> Any:
-        response = admin.get(f"{API}{path}")
-        assert response.status_code == 200, response.text
-        return response.json()
+# What the API lists of a structure and its organisation, as rows: the structures (the fleet's
+# listing, with each one's standing), the structure's model versions, verdicts (the summary counts
+# them), refinements, schedules, alarm rules and alarms, and the state its standing and alarm rules
+# keep. Read in the server's process from its database, not over HTTP: a refusal is checked after
+# every refused request, and eight listings over HTTP cost several times the request checked.
+LISTED = (
+    "model_versions",
+    "verdicts",
+    "refinements",
+    "schedules",
+    "alarm_rules",
+    "alarms",
+    "structure_states",
+    "alarm_states",
+)
 
-    return {
-        "structures": get("/structures"),
-        "models": get(f"/structures/{structure_id}/models"),
-        "verdicts": get(f"/structures/{structure_id}/verdicts?limit=1000"),
-        "summary": get(f"/structures/{structure_id}/summary")["counts"],
-        "refinements": get(f"/structures/{structure_id}/refinements"),
-        "schedules": get(f"/structures/{structure_id}/schedules"),
-        "alarms": get(f"/alarms?structure_id={structure_id}&limit=1000"),
-        "alarm_rules": get(f"/structures/{structure_id}/alarm-rules"),
-    }
+
+def _state(server: LiveServer, structure_id: int) -> dict[str, list[tuple]]:
+    tables = Base.metadata.tables
+    structures = tables["structures"]
+    with transaction(server.app.state.sessions) as session:
+        organisation = select(structures.c.organisation_id).where(structures.c.id == structure_id)
+        state = {
+            "structures": session.execute(
+                select(structures)
+                .where(structures.c.organisation_id == organisation.scalar_subquery())
+                .order_by(structures.c.id)
+            ).all()
+        }
+        for name in LISTED:
+            table = tables[name]
+            rows = select(table).where(table.c.structure_id == structure_id)
+            state[name] = session.execute(rows.order_by(*table.primary_key.columns)).all()
+    return {name: [tuple(row) for row in rows] for name, rows in state.items()}
 
 
 def sentinel_record(ingest: httpx.Client, structure_id: int) -> int:
@@ -308,14 +329,15 @@ def sentinel_record(ingest: httpx.Client, structure_id: int) -> int:
 
 @contextmanager
 def nothing_written(org: Org, structure_id: int) -> Iterator[None]:
-    """Assert that the requests made inside the block created no structure, model, verdict or
-    record: the listings are unchanged, and every record id allocated between a sentinel record
-    stored before and one stored after is unknown (404)."""
-    with clients(org) as (admin, ingest, _):
-        before = _state(admin, structure_id)
+    """Assert that the requests made inside the block created or changed no structure, model,
+    verdict, refinement, schedule or alarm: the rows the API lists are unchanged (``LISTED``), and
+    every record id allocated between a sentinel record stored before and one stored after is
+    unknown (404)."""
+    with org.client("ingest") as ingest:
         first = sentinel_record(ingest, structure_id)
+        before = _state(org.server, structure_id)
         yield
-        assert _state(admin, structure_id) == before, "a refused request changed what the API lists"
+        assert _state(org.server, structure_id) == before, "a refused request changed what the API lists"
         last = sentinel_record(ingest, structure_id)
         assert first < last
         assert last - first < 200, "implausibly many record ids allocated by refused requests"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Literal
 
 import numpy as np
@@ -95,21 +95,29 @@ class PhysicalParameters:
         """Largest pole modulus of the linearised discrete system about rest."""
         return pole_radius(self)
 
-    @cached_property
+    @property
     def stable_amplitude(self) -> float:
         """Largest |x2| (m) at which the scheme, linearised with the cubic spring's tangent
         stiffness 3·k3·x2², still has all poles inside the unit circle."""
-        if self.k3 == 0 or self.linear_pole_radius >= 1:
-            return np.inf if self.k3 == 0 else 0.0
-        low, high = 0.0, 1.0
-        while pole_radius(self, 3 * self.k3 * high**2) < 1:
-            low, high = high, 2 * high
-            if high > 1e6:
-                return np.inf
-        for _ in range(60):
-            middle = 0.5 * (low + high)
-            low, high = (middle, high) if pole_radius(self, 3 * self.k3 * middle**2) < 1 else (low, middle)
-        return low
+        return _stable_amplitude(self)
+
+
+# Kept by value, not on the instance: every scenario built anew (each record a test or a client
+# simulates) derives its parameters anew, and this bisection of some sixty polynomial roots costs
+# more than simulating a short record. Equal parameters (frozen, hashed by their fields) share it.
+@lru_cache(maxsize=1024)
+def _stable_amplitude(p: PhysicalParameters) -> float:
+    if p.k3 == 0 or p.linear_pole_radius >= 1:
+        return np.inf if p.k3 == 0 else 0.0
+    low, high = 0.0, 1.0
+    while pole_radius(p, 3 * p.k3 * high**2) < 1:
+        low, high = high, 2 * high
+        if high > 1e6:
+            return np.inf
+    for _ in range(60):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if pole_radius(p, 3 * p.k3 * middle**2) < 1 else (low, middle)
+    return low
 
 
 def characteristic_polynomial(p: PhysicalParameters, extra_k_mass2: float = 0.0) -> np.ndarray:
