@@ -207,7 +207,11 @@ def _diverged(
 
 def comparison_blocks(segments: Segments) -> int:
     """How many blocks a comparison over ``segments`` cuts their errors into."""
-    samples = sum(len(y) for _, y, _ in segments)
+    return _blocks_over(sum(len(y) for _, y, _ in segments))
+
+
+def _blocks_over(samples: int) -> int:
+    """One block for each ``COMPARISON_SAMPLES`` of ``samples``, 3 to ``COMPARISON_BLOCKS``."""
     return int(np.clip(samples // COMPARISON_SAMPLES, 3, COMPARISON_BLOCKS))
 
 
@@ -226,8 +230,7 @@ def one_run_comparison(
         [error[WARM_UP:] if cut else error for error, cut in zip(errors, warm, strict=True)]
         for errors in (start_errors, refined_errors)
     )
-    samples = sum(error.size for error in start_errors)
-    blocks = int(np.clip(samples // COMPARISON_SAMPLES, 3, COMPARISON_BLOCKS))
+    blocks = _blocks_over(sum(error.size for error in start_errors))
     return _paired(_block_squares(start_errors, blocks), _block_squares(refined_errors, blocks), alpha)
 
 
