@@ -263,8 +263,8 @@ FitKey = tuple[tuple[Term, ...], int, int, Saturating | None, bool]
 
 class FitsOnAll:
     """The least-squares fits (:func:`fit_model`) a loop made on all its records, by what fixes
-    each (:data:`FitKey`): a NARMAX's extended least squares on Silverbox's heads takes a fifth
-    of a second, and the comparison of the rounds' models on the held-out tails
+    each (:data:`FitKey`): a NARMAX's extended least squares iterates over every row of the
+    records, and the comparison of the rounds' models on the held-out tails
     (:mod:`models.rounds_on_tails`) asks again for those the rounds' scorings made. A model and
     its noise coefficients a fit, kept for the loop's life; the records must stay the same (a
     loop's own)."""
