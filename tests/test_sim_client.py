@@ -353,6 +353,7 @@ def test_stream_reports_a_refused_record_and_goes_on(api_server: LiveServer, ten
 
 def test_ctrl_c_stops_a_stream_cleanly(trained: Trained):
     args = [SIM, "stream", "--every", "60", "--structure", str(trained.structure_id)]
+    forking = _signal_state("thread-self")  # what the child inherits: this thread's mask
     with subprocess.Popen(
         args,
         env=sim_env(trained.key, trained.server.url),
@@ -368,13 +369,30 @@ def test_ctrl_c_stops_a_stream_cleanly(trained: Trained):
         try:
             out, err = process.communicate(timeout=30)
         except subprocess.TimeoutExpired:
+            held = _signal_state(process.pid)  # a signal blocked or ignored is what would explain it
             process.kill()
             out, err = process.communicate()
-            pytest.fail(f"the stream went on after Ctrl-C; it printed:\n{first}{out}{err}")
+            pytest.fail(
+                f"the stream went on after Ctrl-C (its {held}; the forking thread's {forking}); "
+                f"it printed:\n{first}{out}{err}"
+            )
     assert VERDICT_LINE.match(first), first + err
     assert process.returncode == 0, err
     assert "stopped" in err and "Traceback" not in err
     assert out.splitlines()[-1].startswith("stream: 1 record, ")
+
+
+def _signal_state(pid: int | str) -> str:
+    """The signals a process (or ``thread-self``) blocks, ignores and catches: masks in hex,
+    from /proc."""
+    status = Path(f"/proc/{pid}/status")
+    if not status.exists():
+        return "no /proc"
+    return ", ".join(
+        line.replace("\t", " ")
+        for line in status.read_text().splitlines()
+        if line[:6] in ("SigBlk", "SigIgn", "SigCgt")
+    )
 
 
 def test_record_with_coloured_measurement_noise_is_the_simulators(tmp_path: Path):
