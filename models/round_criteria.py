@@ -30,7 +30,7 @@ from models.scoring import (
     Scores,
     ScoringKept,
     first_row,
-    fit_model,
+    fit_model_kept,
     score_effects,
 )
 from models.terms import Term, max_lag, parse_terms
@@ -115,20 +115,10 @@ def fitted_on_all(
     """``structure``'s least-squares fit on all the ``records`` (:func:`models.scoring.fit_model`);
     taken from ``fits``, the fits a loop made on these records, where it made this one, and kept
     there otherwise."""
-    lag = max_lag(structure.terms)
-    fit = partial(
-        fit_model,
-        records,
-        structure.terms,
-        structure.noise_lags,
-        lag,
-        saturating=structure.saturating,
-        rectified=structure.rectified,
+    terms = structure.terms
+    return fit_model_kept(
+        records, terms, structure.noise_lags, max_lag(terms), structure.saturating, structure.rectified, fits
     )
-    if fits is None:
-        return fit()
-    key = (structure.terms, structure.noise_lags, lag, structure.saturating, structure.rectified)
-    return fits.fitted(key, fit)
 
 
 def _with(score: EffectScore, question: Question) -> list[Structure]:

@@ -283,6 +283,24 @@ class FitsOnAll:
         return self._fits.get(key)
 
 
+def fit_model_kept(
+    records: Records,
+    terms: tuple[Term, ...],
+    noise_lags: int,
+    lag: int,
+    saturating: Saturating | None = None,
+    rectified: bool = False,
+    fits: FitsOnAll | None = None,
+) -> tuple[NARX, np.ndarray]:
+    """:func:`fit_model` on the ``records`` from their first samples, taken from ``fits`` where
+    it holds this fit and kept there otherwise (fitted alone where ``fits`` is None): the one
+    place that says what a kept fit is keyed by."""
+    fit = partial(fit_model, records, terms, noise_lags, lag, saturating=saturating, rectified=rectified)
+    if fits is None:
+        return fit()
+    return fits.fitted((tuple(terms), noise_lags, lag, saturating, rectified), fit)
+
+
 class ScoringKept:
     """The models a loop scored last (:func:`score_effects`), their equations and the families'
     candidates built for them, for the loop's next scoring of one of them on the same records:
@@ -348,9 +366,7 @@ def _model_equations(
         Phi, target = Phi[inside], target[inside]
         starts = np.concatenate(([0], np.cumsum([int(inside[a:b].sum()) for a, b in pairwise(starts)])))
     if noise_lags:  # pseudo-linear regression on the NARMAX's own innovations
-        fit = partial(fit_model, records, terms, noise_lags, lag, saturating=saturating)
-        key = (tuple(terms), noise_lags, lag, saturating, False)
-        process, noise = fit() if fits is None else fits.fitted(key, fit)
+        process, noise = fit_model_kept(records, terms, noise_lags, lag, saturating, fits=fits)
         residual = target - Phi @ process.theta
         innovations = np.concatenate(
             [
